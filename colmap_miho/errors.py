@@ -1,0 +1,19 @@
+"""Exceptions meant for users: the CLI prints their message on one line and exits."""
+
+from __future__ import annotations
+
+
+class UserError(Exception):
+    """A problem with the user's input (file, option, database) that stops the run."""
+
+    exit_code = 2
+
+
+class DatabaseError(UserError):
+    """The database is missing, not a COLMAP database, locked, or inconsistent."""
+
+
+class RunFailed(UserError):
+    """The run itself failed (for example mapping registered no image)."""
+
+    exit_code = 1

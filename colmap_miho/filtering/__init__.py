@@ -1,0 +1,1 @@
+"""MOP / MOP+MiHo match filtering (paper Sec. 3.1-3.2, App. A-D)."""

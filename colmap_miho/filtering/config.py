@@ -1,0 +1,85 @@
+"""Configuration of the MOP / MOP+MiHo filter (pure dataclass, no torch import)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..enums import FilterMethod
+
+
+@dataclass(frozen=True, kw_only=True)
+class FilterConfig:
+    """Parameters of MOP / MOP+MiHo. Defaults are the paper's (App. A).
+
+    Attributes:
+        method: filter variant, see :class:`~colmap_miho.enums.FilterMethod`.
+        t_l: relaxed inlier threshold t_l in pixels (max two-way transfer error).
+        t_h: strict threshold t_h in pixels; ``None`` means the paper's t_l / 2
+            (the reference implementation uses 7).
+        min_inliers: n, the least inliers a kept homography needs; ``None`` means the
+            paper's 12 for MOP and 8 for MiHo.
+        max_failures: c_f*, consecutive failures that stop MOP (paper: 3).
+        min_iters: c_min, least RANSAC hypotheses per round (paper: 50).
+        max_iters: c_max, most RANSAC hypotheses per round (paper: 2000).
+        confidence: p of the adaptive RANSAC bound (reference: 0.9).
+        min_singular_value: threshold on the smallest singular value of the normalised
+            DLT system (paper: 0.05).
+        buffer_size: z, size of the top-z sub-optimal model buffer (paper: 5).
+        rotation_fix: MiHo's 90-degree rotation pre-alignment (App. C).
+        device: "cpu", "cuda" or "auto" (the device of the input tensors).
+    """
+
+    method: FilterMethod = FilterMethod.MOP_MIHO
+    t_l: float = 15.0
+    t_h: float | None = None
+    min_inliers: int | None = None
+    max_failures: int = 3
+    min_iters: int = 50
+    max_iters: int = 2000
+    confidence: float = 0.9
+    min_singular_value: float = 0.05
+    buffer_size: int = 5
+    rotation_fix: bool = True
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "method", FilterMethod.parse(self.method, "method"))
+        if not self.t_l > 0:
+            raise ValueError(f"t_l must be > 0 pixels, got {self.t_l}")
+        if self.t_h is not None and not 0 < self.t_h <= self.t_l:
+            raise ValueError(f"t_h must be in (0, t_l={self.t_l}], got {self.t_h}")
+        if self.min_inliers is not None and self.min_inliers < 4:
+            raise ValueError(f"min_inliers must be >= 4, got {self.min_inliers}")
+        if self.max_failures < 1:
+            raise ValueError(f"max_failures must be >= 1, got {self.max_failures}")
+        if not 1 <= self.min_iters <= self.max_iters:
+            raise ValueError(
+                f"need 1 <= min_iters <= max_iters, got min_iters={self.min_iters}, "
+                f"max_iters={self.max_iters}"
+            )
+        if not 0 < self.confidence < 1:
+            raise ValueError(f"confidence must be in (0, 1), got {self.confidence}")
+        if self.min_singular_value < 0:
+            raise ValueError(f"min_singular_value must be >= 0, got {self.min_singular_value}")
+        if self.buffer_size < 0:
+            raise ValueError(f"buffer_size must be >= 0, got {self.buffer_size}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+
+    @property
+    def is_miho(self) -> bool:
+        return self.method in (FilterMethod.MOP_MIHO, FilterMethod.MOP_MIHO_STAR)
+
+    @property
+    def reflection_check(self) -> bool:
+        return self.method in (FilterMethod.MOP_STAR, FilterMethod.MOP_MIHO_STAR)
+
+    @property
+    def strict_threshold(self) -> float:
+        return self.t_l / 2 if self.t_h is None else self.t_h
+
+    @property
+    def inlier_count(self) -> int:
+        if self.min_inliers is not None:
+            return self.min_inliers
+        return 8 if self.is_miho else 12

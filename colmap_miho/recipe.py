@@ -1,0 +1,207 @@
+"""Recipes: named TOML files that set the configuration of every stage.
+
+A recipe has one table per stage (``[filter]``, ``[ncc]``, ``[tracks]``, ``[pipeline]``)
+whose keys are fields of the stage's dataclass. Unknown tables or keys are errors, never
+silently ignored. ``--set section.key=value`` overrides are parsed with the field's type.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import types
+import typing
+from dataclasses import dataclass, field
+from enum import Enum
+from importlib import resources
+from pathlib import Path
+
+from .filtering.config import FilterConfig
+from .pipeline_config import PipelineConfig
+from .refinement.config import NCCConfig, TrackConfig
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+DEFAULT_RECIPE = "mop_miho_ncc"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Recipe:
+    """The configuration of every stage of ``colmap-miho refine``."""
+
+    name: str = DEFAULT_RECIPE
+    description: str = ""
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    ncc: NCCConfig = field(default_factory=NCCConfig)
+    tracks: TrackConfig = field(default_factory=TrackConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+
+    def to_dict(self) -> dict:
+        """Plain-data view (enums as strings), for JSON summaries."""
+        out: dict = {"name": self.name}
+        for section in SECTIONS:
+            cfg = getattr(self, section)
+            out[section] = {
+                f.name: _plain(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)
+            }
+        return out
+
+
+SECTIONS: dict[str, type] = {
+    "filter": FilterConfig,
+    "ncc": NCCConfig,
+    "tracks": TrackConfig,
+    "pipeline": PipelineConfig,
+}
+
+
+def _plain(value):
+    return value.value if isinstance(value, Enum) else value
+
+
+def available_recipes() -> list[str]:
+    """Names of the recipes shipped with the package."""
+    root = resources.files("colmap_miho.recipes")
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
+
+
+def _read_recipe_text(name_or_path: str) -> tuple[str, str]:
+    path = Path(name_or_path)
+    if path.suffix == ".toml" or path.exists():
+        if not path.is_file():
+            raise ValueError(f"recipe file not found: {path}")
+        return path.stem, path.read_text(encoding="utf-8")
+    root = resources.files("colmap_miho.recipes")
+    candidate = root / f"{name_or_path}.toml"
+    if not candidate.is_file():
+        raise ValueError(
+            f"unknown recipe {name_or_path!r}; shipped recipes: {', '.join(available_recipes())}"
+            " (or give a path to a .toml file)"
+        )
+    return name_or_path, candidate.read_text(encoding="utf-8")
+
+
+def _field_types(cls: type) -> dict[str, typing.Any]:
+    return typing.get_type_hints(cls)
+
+
+def _coerce(value, annotation, where: str):
+    """Convert a TOML or command-line value to the annotated field type."""
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if isinstance(value, str) and value.lower() in ("none", "null", ""):
+            return None
+        if value is None:
+            return None
+        last_error: Exception | None = None
+        for arg in args:
+            try:
+                return _coerce(value, arg, where)
+            except ValueError as exc:
+                last_error = exc
+        raise last_error or ValueError(f"{where}: cannot parse {value!r}")
+    if annotation is bool:
+        if isinstance(value, bool):
+            return value
+        text = str(value).strip().lower()
+        if text in ("1", "true", "yes", "on"):
+            return True
+        if text in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"{where}: expected true or false, got {value!r}")
+    if annotation is int:
+        if isinstance(value, bool):
+            raise ValueError(f"{where}: expected an integer, got {value!r}")
+        try:
+            as_float = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: expected an integer, got {value!r}") from None
+        if not as_float.is_integer():
+            raise ValueError(f"{where}: expected an integer, got {value!r}")
+        return int(as_float)
+    if annotation is float:
+        if isinstance(value, bool):
+            raise ValueError(f"{where}: expected a number, got {value!r}")
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: expected a number, got {value!r}") from None
+    if isinstance(annotation, type) and issubclass(annotation, Enum):
+        return annotation.parse(value, where)  # type: ignore[attr-defined]
+    if annotation is str:
+        return str(value)
+    if origin in (tuple, list):
+        items = value if isinstance(value, (list, tuple)) else str(value).split(",")
+        (inner, *_rest) = typing.get_args(annotation) or (str,)
+        return tuple(_coerce(v, inner, where) for v in items)
+    return value
+
+
+def _build_section(section: str, values: dict, base=None):
+    cls = SECTIONS[section]
+    types_ = _field_types(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    kwargs = {}
+    for key, value in values.items():
+        if key not in types_ or key not in names:
+            raise ValueError(
+                f"unknown key {section}.{key}; valid keys: "
+                + ", ".join(f"{section}.{n}" for n in names)
+            )
+        kwargs[key] = _coerce(value, types_[key], f"{section}.{key}")
+    try:
+        if base is None:
+            return cls(**kwargs)
+        return dataclasses.replace(base, **kwargs)
+    except ValueError as exc:
+        raise ValueError(f"[{section}] {exc}") from None
+
+
+def parse_overrides(overrides: list[str] | None) -> dict[str, dict[str, str]]:
+    """Parse ``section.key=value`` strings into ``{section: {key: value}}``."""
+    parsed: dict[str, dict[str, str]] = {}
+    for item in overrides or []:
+        if "=" not in item:
+            raise ValueError(f"--set expects section.key=value, got {item!r}")
+        key, value = item.split("=", 1)
+        if "." not in key:
+            raise ValueError(
+                f"--set key {key!r} needs a section: one of {', '.join(SECTIONS)} "
+                "(for example filter.t_l=12)"
+            )
+        section, name = key.strip().split(".", 1)
+        if section not in SECTIONS:
+            raise ValueError(f"--set {key!r}: unknown section {section!r}; one of {', '.join(SECTIONS)}")
+        parsed.setdefault(section, {})[name.strip()] = value.strip()
+    return parsed
+
+
+def load_recipe(name_or_path: str | None = None, overrides: list[str] | None = None) -> Recipe:
+    """Load a shipped recipe by name (or a TOML file by path) and apply ``--set`` overrides.
+
+    Raises:
+        ValueError: unknown recipe, table or key, or a value of the wrong type or range;
+            the message names the offending key.
+    """
+    name, text = _read_recipe_text(name_or_path or DEFAULT_RECIPE)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"recipe {name!r} is not valid TOML: {exc}") from None
+    description = str(data.pop("description", ""))
+    data.pop("name", None)
+    for section in data:
+        if section not in SECTIONS:
+            raise ValueError(
+                f"recipe {name!r}: unknown table [{section}]; valid tables: {', '.join(SECTIONS)}"
+            )
+        if not isinstance(data[section], dict):
+            raise ValueError(f"recipe {name!r}: {section} must be a table")
+    configs = {s: _build_section(s, data.get(s, {})) for s in SECTIONS}
+    for section, values in parse_overrides(overrides).items():
+        configs[section] = _build_section(section, values, base=configs[section])
+    return Recipe(name=name, description=description, **configs)

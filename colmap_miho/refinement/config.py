@@ -1,0 +1,83 @@
+"""Configuration of NCC refinement (pure dataclasses, no torch import)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..enums import MoveSide
+
+
+@dataclass(frozen=True, kw_only=True)
+class NCCConfig:
+    """Parameters of the pairwise NCC refinement (paper App. E).
+
+    Attributes:
+        template_radius: r, half size of the template in pixels (paper: 10, 21x21 patch).
+        search_radius: half size of the offset search in pixels (paper: 10).
+        perturbations: which template shapes are tried besides the base pass:
+            "none" (the extended pair only), "paper" (5 rotations x 5 shears of
+            App. E, the reference's 25 shapes) or "small" (a cheap subset).
+        use_base_pair: also try the base pair (identity / keypoint affine frame).
+        ellipse_mask: NCC* - restrict the search to the structure-tensor ellipse.
+        min_gain: a move is applied only if it raises NCC by at least this much.
+        reject_border: reject moves whose peak lies on the border of the search window.
+        cornerness_gate: skip flat and edge-like patches (structure-tensor test).
+        min_cornerness: threshold of the gate (lambda_min / lambda_max of the patch).
+        move: which side may move, "1", "2" or "auto" (the paper's: the higher NCC moves).
+        batch_size: matches per batched call (bounds memory).
+        device: "cpu", "cuda" or "auto".
+    """
+
+    template_radius: int = 10
+    search_radius: int = 10
+    perturbations: str = "none"
+    use_base_pair: bool = True
+    ellipse_mask: bool = False
+    min_gain: float = 0.0
+    reject_border: bool = True
+    cornerness_gate: bool = False
+    min_cornerness: float = 0.1
+    move: MoveSide = MoveSide.AUTO
+    batch_size: int = 512
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "move", MoveSide.parse(self.move, "move"))
+        if self.template_radius < 1:
+            raise ValueError(f"template_radius must be >= 1 pixel, got {self.template_radius}")
+        if self.search_radius < 1:
+            raise ValueError(f"search_radius must be >= 1 pixel, got {self.search_radius}")
+        if self.perturbations not in ("none", "small", "paper"):
+            raise ValueError(
+                f"perturbations must be none, small or paper, got {self.perturbations!r}"
+            )
+        if self.min_gain < 0:
+            raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
+        if not 0 <= self.min_cornerness <= 1:
+            raise ValueError(f"min_cornerness must be in [0, 1], got {self.min_cornerness}")
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackConfig:
+    """Parameters of the track-consistent refinement walk.
+
+    Attributes:
+        anchor: rule choosing the fixed observation of a track: "degree" (the most
+            connected keypoint, ties to the lowest image id).
+        max_images_in_memory: bound of the lazy image cache.
+    """
+
+    anchor: str = "degree"
+    max_images_in_memory: int = 8
+
+    def __post_init__(self) -> None:
+        if self.anchor not in ("degree",):
+            raise ValueError(f"anchor must be 'degree', got {self.anchor!r}")
+        if self.max_images_in_memory < 2:
+            raise ValueError(
+                f"max_images_in_memory must be >= 2, got {self.max_images_in_memory}"
+            )
