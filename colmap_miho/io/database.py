@@ -1,0 +1,279 @@
+"""The only module that reads and writes COLMAP databases (through pycolmap).
+
+It is also the only place with the half-pixel conversion: COLMAP stores keypoints with the
+image's top-left corner at (0, 0), so the centre of the top-left pixel is (0.5, 0.5);
+colmap-miho's arrays put pixel centres at integers (OpenCV, kornia). ``read`` subtracts
+:data:`HALF_PIXEL`, ``write`` adds it, each exactly once.
+
+Open only a working copy (see :mod:`colmap_miho.io.safety`): pycolmap migrates the schema on
+open and creates an empty database for a missing path. Never hold a Python ``sqlite3``
+connection and a pycolmap handle on the same file at the same time.
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..enums import MatchSource
+from ..errors import DatabaseError
+from .safety import check_database_path
+
+log = logging.getLogger(__name__)
+
+HALF_PIXEL = 0.5
+REQUIRED_TABLES = ("cameras", "images", "keypoints", "matches", "two_view_geometries")
+MAX_IMAGE_ID = 2147483647
+
+
+def colmap_to_pixel_centre(xy: np.ndarray) -> np.ndarray:
+    """COLMAP keypoint coordinates (N, 2) -> colmap-miho's (integer = pixel centre), float64."""
+    return np.asarray(xy, dtype=np.float64) - HALF_PIXEL
+
+
+def pixel_centre_to_colmap(xy: np.ndarray) -> np.ndarray:
+    """colmap-miho coordinates (N, 2) (integer = pixel centre) -> COLMAP's, float64."""
+    return np.asarray(xy, dtype=np.float64) + HALF_PIXEL
+
+
+def pair_id(image_id1: int, image_id2: int) -> int:
+    """COLMAP's pair id: 2147483647 * min + max."""
+    a, b = sorted((int(image_id1), int(image_id2)))
+    return MAX_IMAGE_ID * a + b
+
+
+def image_pair(pid: int) -> tuple[int, int]:
+    """Inverse of :func:`pair_id`: (smaller image id, larger image id)."""
+    pid = int(pid)
+    return pid // MAX_IMAGE_ID, pid % MAX_IMAGE_ID
+
+
+def validate_database(path: str | Path) -> None:
+    """Check that ``path`` is a COLMAP database (SQLite with COLMAP's tables).
+
+    Opens ``path`` read-only with Python's sqlite3 and closes it again; call it on a working
+    copy, never while a pycolmap handle is open on the same file.
+
+    Raises:
+        DatabaseError: missing file, not SQLite, or COLMAP tables missing; the message names
+            the file and the missing tables.
+    """
+    p = check_database_path(path)
+    try:
+        con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
+        try:
+            rows = con.execute("SELECT name FROM sqlite_master WHERE type='table'").fetchall()
+        finally:
+            con.close()
+    except sqlite3.DatabaseError as exc:
+        raise DatabaseError(f"not a COLMAP database ({exc}): {p}") from None
+    tables = {r[0] for r in rows}
+    missing = [t for t in REQUIRED_TABLES if t not in tables]
+    if missing:
+        raise DatabaseError(f"not a COLMAP database (missing tables: {', '.join(missing)}): {p}")
+
+
+@dataclass(frozen=True)
+class ImageRecord:
+    """One image of the database: id, file name (relative to the image folder), camera size."""
+
+    image_id: int
+    name: str
+    camera_id: int
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class PairRecord:
+    """One image pair with its match count in the chosen source; image_id1 < image_id2."""
+
+    image_id1: int
+    image_id2: int
+    num_matches: int
+
+
+_KEEP_MODEL_CONFIGS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
+
+
+class ColmapDatabase:
+    """A pycolmap handle on a (working copy of a) COLMAP database, with array helpers.
+
+    All coordinates in and out are colmap-miho's: (x, y) float64 pixels, integer = pixel
+    centre. Matches are uint32 (M, 2) keypoint indices ordered (image_id1, image_id2) as given.
+
+    Args:
+        path: an existing COLMAP database file (checked first: pycolmap would create it).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        import pycolmap
+
+        self.path = check_database_path(path)
+        self._pycolmap = pycolmap
+        self._db = pycolmap.Database.open(str(self.path))
+
+    # -- lifecycle -------------------------------------------------------------------------
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+
+    def __enter__(self) -> "ColmapDatabase":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def handle(self):
+        """The underlying ``pycolmap.Database`` (open)."""
+        if self._db is None:
+            raise RuntimeError("database is closed")
+        return self._db
+
+    # -- reading ---------------------------------------------------------------------------
+    def images(self) -> list[ImageRecord]:
+        """All images, sorted by id, with their camera's width and height in pixels."""
+        cams = {c.camera_id: c for c in self.handle.read_all_cameras()}
+        out = []
+        for im in self.handle.read_all_images():
+            cam = cams.get(im.camera_id)
+            out.append(ImageRecord(int(im.image_id), str(im.name), int(im.camera_id),
+                                   int(cam.width) if cam else 0, int(cam.height) if cam else 0))
+        return sorted(out, key=lambda r: r.image_id)
+
+    def raw_keypoints(self, image_id: int) -> np.ndarray:
+        """The stored keypoint rows, float32 (N, C), C in {2, 4, 6}, COLMAP coordinates."""
+        kp = np.asarray(self.handle.read_keypoints(int(image_id)), dtype=np.float32)
+        if kp.ndim != 2 or kp.shape[0] == 0:
+            return np.zeros((0, 2), np.float32)
+        return kp
+
+    def keypoints(self, image_id: int) -> np.ndarray:
+        """Keypoint positions of one image, float64 (N, 2), integer = pixel centre."""
+        return colmap_to_pixel_centre(self.raw_keypoints(image_id)[:, :2])
+
+    def pairs(self, source: MatchSource | str) -> list[PairRecord]:
+        """Image pairs with matches in ``source`` ("verified": two-view-geometry inliers,
+        "raw": the matches table), sorted by pair id. Cheap: reads counts only."""
+        source = MatchSource.parse(source, "source")
+        if source == MatchSource.VERIFIED:
+            pids, counts = self.handle.read_two_view_geometry_num_inliers()
+        else:
+            pids, counts = self.handle.read_num_matches()
+        out = []
+        for pid, n in sorted(zip(pids, counts)):
+            i, j = image_pair(pid)
+            if n > 0:
+                out.append(PairRecord(i, j, int(n)))
+        return out
+
+    def matches(self, image_id1: int, image_id2: int, source: MatchSource | str) -> np.ndarray:
+        """Matches of one pair from ``source``, uint32 (M, 2) ordered (image_id1, image_id2)."""
+        source = MatchSource.parse(source, "source")
+        if source == MatchSource.VERIFIED:
+            m = self.handle.read_two_view_geometry(int(image_id1), int(image_id2)).inlier_matches
+        else:
+            m = self.handle.read_matches(int(image_id1), int(image_id2))
+        m = np.asarray(m, dtype=np.uint32)
+        return m.reshape(-1, 2)
+
+    # -- writing ---------------------------------------------------------------------------
+    def write_keypoints(self, image_id: int, xy: np.ndarray, moved: np.ndarray) -> int:
+        """Write refined positions of one image, changing only x, y of the ``moved`` rows.
+
+        Args:
+            xy: float (N, 2) positions, integer = pixel centre (N = stored keypoint count).
+            moved: bool (N,) rows to update; other rows (and all other columns) are written
+                back bit-identical.
+
+        Returns:
+            Number of rows changed.
+        """
+        raw = self.raw_keypoints(image_id)
+        xy = np.asarray(xy, dtype=np.float64)
+        moved = np.asarray(moved, dtype=bool)
+        if xy.shape != (raw.shape[0], 2) or moved.shape != (raw.shape[0],):
+            raise ValueError(
+                f"image {image_id}: xy must be ({raw.shape[0]}, 2) and moved ({raw.shape[0]},), "
+                f"got {xy.shape} and {moved.shape}"
+            )
+        if not moved.any():
+            return 0
+        new = raw.copy()
+        new[moved, :2] = pixel_centre_to_colmap(xy[moved]).astype(np.float32)
+        self.handle.update_keypoints(int(image_id), new)
+        return int(moved.sum())
+
+    def write_pair(self, image_id1: int, image_id2: int, kept: np.ndarray,
+                   xy1: np.ndarray, xy2: np.ndarray, *, keep_model: bool = True) -> str:
+        """Write the kept matches of a pair into ``matches`` and ``two_view_geometries``.
+
+        The verified two-view geometry's model (config, F, E, H, relative pose) is kept when
+        ``keep_model`` and it has one; otherwise a fundamental matrix is fitted to the kept
+        matches by least squares (config UNCALIBRATED), or a homography (PLANAR) when F fails.
+        No kept match: the matches row becomes empty and the geometry row is deleted.
+
+        Args:
+            kept: uint32 (K, 2) keypoint indices ordered (image_id1, image_id2).
+            xy1, xy2: float (K, 2) kept keypoint positions (after refinement), pixel centres.
+
+        Returns:
+            The config name written ("NONE" when nothing was kept).
+        """
+        pc = self._pycolmap
+        db = self.handle
+        i, j = int(image_id1), int(image_id2)
+        kept = np.ascontiguousarray(kept, dtype=np.uint32).reshape(-1, 2)
+        if db.exists_matches(i, j):
+            db.delete_matches(i, j)
+        db.write_matches(i, j, kept)
+        old = db.read_two_view_geometry(i, j) if db.exists_two_view_geometry(i, j) else None
+        if len(kept) == 0:
+            if old is not None:
+                db.delete_two_view_geometry(i, j)
+            return "NONE"
+        if keep_model and old is not None and old.config.name in _KEEP_MODEL_CONFIGS:
+            tvg = old
+        else:
+            tvg = self._fit_geometry(pixel_centre_to_colmap(xy1), pixel_centre_to_colmap(xy2))
+        tvg.inlier_matches = kept
+        if old is not None:
+            db.update_two_view_geometry(i, j, tvg)
+        else:
+            db.write_two_view_geometry(i, j, tvg)
+        return tvg.config.name
+
+    def _fit_geometry(self, p1: np.ndarray, p2: np.ndarray):
+        import cv2
+
+        pc = self._pycolmap
+        tvg = pc.TwoViewGeometry()
+        F = None
+        if len(p1) >= 8:
+            F, _ = cv2.findFundamentalMat(p1, p2, cv2.FM_8POINT)
+        if F is not None and F.shape == (3, 3) and np.all(np.isfinite(F)):
+            tvg.config = pc.TwoViewGeometryConfiguration.UNCALIBRATED
+            tvg.F = F
+            return tvg
+        H = None
+        if len(p1) >= 4:
+            H, _ = cv2.findHomography(p1, p2, 0)
+        tvg.config = pc.TwoViewGeometryConfiguration.PLANAR
+        tvg.H = H if H is not None and np.all(np.isfinite(H)) else np.eye(3)
+        return tvg
+
+    def delete_two_view_geometries(self, pairs: list[tuple[int, int]]) -> None:
+        """Delete the two-view geometry rows of ``pairs`` (before COLMAP re-verification)."""
+        for i, j in pairs:
+            if self.handle.exists_two_view_geometry(int(i), int(j)):
+                self.handle.delete_two_view_geometry(int(i), int(j))
+
+    def transaction(self):
+        """A pycolmap transaction (speed only: it commits even when the block raises)."""
+        return self._pycolmap.DatabaseTransaction(self.handle)

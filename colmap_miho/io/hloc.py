@@ -1,0 +1,326 @@
+"""Read and write hloc / deep-image-matching feature and match files (HDF5, streamed with h5py).
+
+Layouts understood (all read one image or one pair at a time, never the whole file):
+
+Features file (hloc and deep-image-matching alike)
+    one group per image, named by the image's path relative to the image folder (a ``/`` in
+    the name makes nested groups), holding ``keypoints`` (N, 2) float (x, y) pixels with pixel
+    centres at integers (hloc's convention), optional ``scores`` (N,), optional ``scales``
+    and ``oris`` (N,) (hloc's SIFT), ``descriptors`` (ignored here), optional ``image_size``.
+
+Matches file, three pair layouts, told apart per pair:
+    * hloc nested (current hloc): group ``f(name0)/f(name1)`` with ``matches0`` (N0,) int
+      (index into the keypoints of image 1, -1 = unmatched) and optional
+      ``matching_scores0`` (N0,) float, where ``f(n) = n.replace('/', '-')``;
+    * hloc legacy flat: the same datasets in one group ``f(name0) + '_' + f(name1)``;
+    * deep-image-matching: group ``name0`` holding a dataset ``name1`` of (M, 2) int index
+      pairs (keypoint of image 0, keypoint of image 1).
+
+This module knows nothing of COLMAP: coordinates stay in the pixel-centre convention here.
+The COLMAP database side lives in the ``import`` and ``export`` commands
+(:mod:`colmap_miho.commands.import_`, :mod:`colmap_miho.commands.export`).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+MATCHES0 = "matches0"
+SCORES0 = "matching_scores0"
+
+
+def flat_name(name: str) -> str:
+    """hloc's pair-key form of an image name: every ``/`` replaced by ``-``."""
+    return name.replace("/", "-")
+
+
+def pair_key(name0: str, name1: str, separator: str = "/") -> str:
+    """hloc's key of the pair group (``names_to_pair``; ``separator='_'`` gives the legacy key)."""
+    return f"{flat_name(name0)}{separator}{flat_name(name1)}"
+
+
+def open_h5(path: str | Path, mode: str = "r") -> h5py.File:
+    """Open an HDF5 file, with a one-line error naming the file when it is missing or not HDF5."""
+    path = Path(path)
+    if mode == "r" and not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    if mode == "r" and not h5py.is_hdf5(path):
+        raise ValueError(f"{path}: not an HDF5 file")
+    return h5py.File(path, mode)
+
+
+@dataclass(frozen=True)
+class ImageFeatures:
+    """Keypoints of one image. ``keypoints`` (N, 2) float64 (x, y) pixels, integer = pixel centre;
+    ``scores`` (N,) float32 or None; ``shapes`` (N, 2, 2) float32 local affine frames (from hloc's
+    ``scales``/``oris``) or None."""
+
+    name: str
+    keypoints: np.ndarray
+    scores: np.ndarray | None = None
+    shapes: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class PairMatches:
+    """Matches of one image pair. ``matches`` (M, 2) int64 keypoint indices (image ``name0``,
+    image ``name1``); ``scores`` (M,) float32 or None."""
+
+    name0: str
+    name1: str
+    matches: np.ndarray
+    scores: np.ndarray | None = None
+
+
+# ---------------------------------------------------------------------------------------------
+# features
+
+
+def list_feature_images(h5: h5py.File) -> list[str]:
+    """Names of the images of a features file: every group holding a ``keypoints`` dataset,
+    in file order (names are group paths without the leading ``/``)."""
+    names: list[str] = []
+
+    def visit(path: str, obj) -> None:
+        if isinstance(obj, h5py.Dataset) and path.rsplit("/", 1)[-1] == "keypoints":
+            names.append(obj.parent.name.strip("/"))
+
+    h5.visititems(visit)
+    if not names:
+        raise ValueError(f"{h5.filename}: no group with a 'keypoints' dataset (not a features file?)")
+    return names
+
+
+def read_features(h5: h5py.File, name: str) -> ImageFeatures:
+    """Read the keypoints of image ``name``; ``ValueError`` naming the image on a bad shape."""
+    if name not in h5 or not isinstance(h5[name], h5py.Group) or "keypoints" not in h5[name]:
+        raise ValueError(f"{h5.filename}: image {name!r} has no 'keypoints' group/dataset")
+    grp = h5[name]
+    kp = np.asarray(grp["keypoints"][()], dtype=np.float64)
+    if kp.ndim != 2 or kp.shape[1] != 2:
+        raise ValueError(f"{h5.filename}: keypoints of image {name!r} have shape {kp.shape}, expected (N, 2)")
+    if not np.isfinite(kp).all():
+        raise ValueError(f"{h5.filename}: keypoints of image {name!r} contain NaN or inf")
+    n = len(kp)
+    scores = _optional_vector(grp, "scores", n, name)
+    shapes = None
+    scales, oris = _optional_vector(grp, "scales", n, name), _optional_vector(grp, "oris", n, name)
+    if scales is not None and oris is not None:
+        c, s = np.cos(oris), np.sin(oris)
+        shapes = (scales[:, None, None] * np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)).astype(np.float32)
+    return ImageFeatures(name=name, keypoints=kp, scores=scores, shapes=shapes)
+
+
+def _optional_vector(grp: h5py.Group, key: str, n: int, name: str) -> np.ndarray | None:
+    if key not in grp:
+        return None
+    v = np.asarray(grp[key][()], dtype=np.float32).reshape(-1)
+    if len(v) != n:
+        raise ValueError(f"image {name!r}: '{key}' has {len(v)} values for {n} keypoints")
+    return v
+
+
+def write_features(h5: h5py.File, name: str, keypoints: np.ndarray, image_size: tuple[int, int] | None = None) -> None:
+    """Write one image group: ``keypoints`` (N, 2) float32 pixel-centre (x, y) and, when given,
+    ``image_size`` (width, height) as hloc stores it. Replaces an existing group of that name."""
+    kp = np.asarray(keypoints, dtype=np.float32)
+    if kp.ndim != 2 or kp.shape[1] != 2:
+        raise ValueError(f"keypoints of image {name!r} have shape {kp.shape}, expected (N, 2)")
+    if name in h5:
+        del h5[name]
+    grp = h5.create_group(name)
+    grp.create_dataset("keypoints", data=kp)
+    if image_size is not None:
+        grp.create_dataset("image_size", data=np.asarray(image_size, dtype=np.int64))
+
+
+# ---------------------------------------------------------------------------------------------
+# matches
+
+
+class _NameIndex:
+    """Resolves pair keys of a matches file back to image names."""
+
+    def __init__(self, names: Iterable[str]):
+        self.names = set(names)
+        self.by_flat: dict[str, str] = {}
+        for n in self.names:
+            other = self.by_flat.setdefault(flat_name(n), n)
+            if other != n:
+                raise ValueError(f"images {other!r} and {n!r} have the same hloc pair name {flat_name(n)!r}")
+
+    def lookup(self, part: str) -> str | None:
+        return part if part in self.names else self.by_flat.get(part)
+
+    def split(self, key: str) -> tuple[str, str]:
+        """Split a pair key ``a/b``, ``a_b`` (any separator position) into two known image names."""
+        found = set()
+        for i, ch in enumerate(key):
+            if ch in "/_":
+                a, b = self.lookup(key[:i]), self.lookup(key[i + 1 :])
+                if a is not None and b is not None:
+                    found.add((a, b))
+        if not found:
+            raise ValueError(f"pair {key!r} in the matches file names an image that is not in the features file")
+        if len(found) > 1:
+            raise ValueError(f"pair {key!r} is ambiguous: it splits into {sorted(found)}")
+        return found.pop()
+
+
+def _pair_datasets(h5: h5py.File) -> list[tuple[str, str]]:
+    """(pair key, layout) for every pair of a matches file; layout is 'hloc' or 'dim'."""
+    out: list[tuple[str, str]] = []
+
+    def visit(path: str, obj) -> None:
+        if not isinstance(obj, h5py.Dataset):
+            return
+        leaf = path.rsplit("/", 1)[-1]
+        if leaf == MATCHES0:
+            out.append((obj.parent.name.strip("/"), "hloc"))
+        elif leaf != SCORES0 and MATCHES0 not in obj.parent:
+            if len(obj.shape) != 2 or obj.shape[1] != 2 or not np.issubdtype(obj.dtype, np.integer):
+                raise ValueError(
+                    f"{h5.filename}: dataset {path!r} (shape {obj.shape}, {obj.dtype}) is neither hloc's "
+                    f"'{MATCHES0}' nor a deep-image-matching (M, 2) integer match array (not a matches file?)"
+                )
+            out.append((path, "dim"))
+
+    h5.visititems(visit)
+    return out
+
+
+def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0: int, n1: int) -> PairMatches:
+    label = f"pair ({name0!r}, {name1!r})"
+    if layout == "hloc":
+        grp = h5[key]
+        m0 = np.asarray(grp[MATCHES0][()])
+        if m0.ndim != 1 or not np.issubdtype(m0.dtype, np.integer):
+            raise ValueError(f"{label}: '{MATCHES0}' has shape {m0.shape} dtype {m0.dtype}, expected (N0,) integers")
+        if len(m0) != n0:
+            raise ValueError(f"{label}: '{MATCHES0}' has {len(m0)} entries but image {name0!r} has {n0} keypoints")
+        idx0 = np.flatnonzero(m0 > -1)
+        matches = np.stack([idx0, m0[idx0]], axis=1).astype(np.int64)
+        scores = None
+        if SCORES0 in grp:
+            s0 = np.asarray(grp[SCORES0][()], dtype=np.float32).reshape(-1)
+            if len(s0) != n0:
+                raise ValueError(f"{label}: '{SCORES0}' has {len(s0)} entries, expected {n0}")
+            scores = s0[idx0]
+    else:
+        matches = np.asarray(h5[key][()])
+        if matches.ndim != 2 or matches.shape[1] != 2 or not np.issubdtype(matches.dtype, np.integer):
+            raise ValueError(f"{label}: matches have shape {matches.shape} dtype {matches.dtype}, expected (M, 2) integers")
+        matches = matches.astype(np.int64)
+        scores = None
+    bad = (matches < 0) | (matches >= np.array([n0, n1]))
+    if bad.any():
+        row = int(np.flatnonzero(bad.any(axis=1))[0])
+        raise ValueError(
+            f"{label}: keypoint index out of range in match {row}: {matches[row].tolist()} "
+            f"(images have {n0} and {n1} keypoints)"
+        )
+    return PairMatches(name0=name0, name1=name1, matches=matches, scores=scores)
+
+
+def iter_matches(
+    h5: h5py.File,
+    num_keypoints: dict[str, int],
+    pairs: Iterable[tuple[str, str]] | None = None,
+) -> Iterator[PairMatches]:
+    """Yield the matches of each pair, one pair in memory at a time.
+
+    Args:
+        h5: an open matches file (any of the three layouts; they may even be mixed).
+        num_keypoints: image name -> number of keypoints, for every image of the features file
+            (used to resolve pair keys and to check indices).
+        pairs: optional (name0, name1) pairs (a pairs.txt); each is looked up in either order and
+            every layout, and a missing one raises ``ValueError`` naming it. When None, every pair
+            in the file is yielded. Either way a pair already yielded (in either order) is skipped.
+
+    Yields:
+        :class:`PairMatches` in the orientation of the pairs list (or of the file).
+    """
+    index = _NameIndex(num_keypoints)
+    if pairs is None:
+        todo = [(key, layout, *index.split(key), False) for key, layout in _pair_datasets(h5)]
+    else:
+        todo = (_find_pair(h5, n0, n1) for n0, n1 in pairs)
+    seen: set[frozenset[str]] = set()
+    for key, layout, name0, name1, reverse in todo:
+        for n in (name0, name1):
+            if n not in num_keypoints:
+                raise ValueError(f"pair ({name0!r}, {name1!r}): image {n!r} is not in the features file")
+        if name0 == name1:
+            raise ValueError(f"pair ({name0!r}, {name1!r}) matches an image with itself")
+        unordered = frozenset((name0, name1))
+        if unordered in seen:
+            log.debug("pair (%s, %s) seen already: skipped", name0, name1)
+            continue
+        seen.add(unordered)
+        if reverse:  # stored as (name1, name0) in the file
+            pm = _read_pair(h5, key, layout, name1, name0, num_keypoints[name1], num_keypoints[name0])
+            yield PairMatches(name0=name0, name1=name1, matches=pm.matches[:, ::-1].copy(), scores=pm.scores)
+        else:
+            yield _read_pair(h5, key, layout, name0, name1, num_keypoints[name0], num_keypoints[name1])
+
+
+def _find_pair(h5: h5py.File, name0: str, name1: str) -> tuple[str, str, str, str, bool]:
+    """(key, layout, name0, name1, stored_reversed) of a pair from a pairs list, in any layout."""
+    for a, b, reverse in ((name0, name1, False), (name1, name0, True)):
+        for key, layout in ((pair_key(a, b, "/"), "hloc"), (pair_key(a, b, "_"), "hloc"), (f"{a}/{b}", "dim")):
+            obj = h5.get(key)
+            if layout == "hloc" and isinstance(obj, h5py.Group) and MATCHES0 in obj:
+                return key, layout, name0, name1, reverse
+            if layout == "dim" and isinstance(obj, h5py.Dataset):
+                return key, layout, name0, name1, reverse
+    raise ValueError(f"pair ({name0!r}, {name1!r}) from the pairs list is not in the matches file {h5.filename}")
+
+
+def write_pair_matches(
+    h5: h5py.File, pm: PairMatches, num_keypoints0: int, layout: str = "hloc"
+) -> int:
+    """Write one pair. ``layout='hloc'``: group ``f(name0)/f(name1)`` with ``matches0`` (N0,) int32
+    and ``matching_scores0`` (N0,) float32 (1.0 when no scores). A keypoint of image 0 with several
+    matches keeps its first one only (``matches0`` cannot hold more): the number dropped is
+    returned. ``layout='dim'``: dataset ``name0/name1`` (M, 2) int64, lossless, returns 0."""
+    m = np.asarray(pm.matches, dtype=np.int64).reshape(-1, 2)
+    if layout == "dim":
+        h5.create_dataset(f"{pm.name0}/{pm.name1}", data=m)
+        return 0
+    if layout != "hloc":
+        raise ValueError(f"layout={layout!r} is not one of: hloc, dim")
+    m0 = np.full(num_keypoints0, -1, dtype=np.int32)
+    s0 = np.zeros(num_keypoints0, dtype=np.float32)
+    first = np.unique(m[:, 0], return_index=True)[1]
+    dropped = len(m) - len(first)
+    scores = np.ones(len(m), np.float32) if pm.scores is None else np.asarray(pm.scores, np.float32)
+    m0[m[first, 0]] = m[first, 1]
+    s0[m[first, 0]] = scores[first]
+    grp = h5.require_group(pair_key(pm.name0, pm.name1))
+    grp.create_dataset(MATCHES0, data=m0)
+    grp.create_dataset(SCORES0, data=s0)
+    return dropped
+
+
+def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
+    """Read a pairs list: one ``name0 name1`` per line; blank lines and ``#`` comments skipped."""
+    path = Path(path)
+    pairs = []
+    with open(path, encoding="utf-8") as f:
+        for lineno, line in enumerate(f, 1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            parts = line.split()
+            if len(parts) != 2:
+                raise ValueError(f"{path}:{lineno}: expected 'name0 name1', got {line!r}")
+            pairs.append((parts[0], parts[1]))
+    return pairs
