@@ -49,8 +49,11 @@ def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
     R_gt = np.asarray(R_gt, dtype=np.float64)
     if R_est.shape != (3, 3) or R_gt.shape != (3, 3):
         raise ValueError(f"rotations must be (3, 3), got {R_est.shape} and {R_gt.shape}")
-    cos = (np.trace(R_est.T @ R_gt) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    M = R_est.T @ R_gt
+    # atan2 of sin and cos of the angle: accurate near 0 too (arccos of the trace is not)
+    sin = 0.5 * np.linalg.norm([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    cos = (np.trace(M) - 1.0) / 2.0
+    return float(np.degrees(np.arctan2(sin, cos)))
 
 
 def translation_angle_deg(t_est: np.ndarray, t_gt: np.ndarray, *, fold: bool = True) -> float:

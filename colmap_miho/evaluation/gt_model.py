@@ -1,0 +1,295 @@
+"""Ground-truth camera poses: load COLMAP models, convert dataset layouts, write COLMAP models.
+
+The common currency is a ``dict[str, CameraPose]`` keyed by image NAME (the file name relative
+to the image folder), so that a reconstruction and its ground truth are matched by name, never
+by image id.
+
+Pixel convention: :class:`CameraPose.K` uses the project's convention (integer = pixel centre).
+COLMAP *models* (cameras.txt / cameras.bin) put the top-left pixel centre at (0.5, 0.5), so the
+principal point is shifted by :data:`COLMAP_PRINCIPAL_POINT_OFFSET` when a model is read or
+written, in :func:`poses_from_reconstruction` and :func:`write_colmap_model` only. (Keypoints in
+databases are converted by ``colmap_miho.io.database``; this is the matching rule for models.)
+
+Dataset layouts supported (see the data README):
+
+- Strecha: one ``<image name>.camera`` file per image: K (3 lines), distortion (1 line),
+  camera-to-world R (3 lines), camera centre C (1 line), ``width height``. World-to-camera is
+  ``R_w2c = R^T``, ``t = -R^T C``. The K is 0-based (pixel centres at integers).
+- Middlebury: ``<scene>_par.txt``: first line the count, then per image
+  ``name k11..k33 r11..r33 t1 t2 t3`` with ``P = K [R | t]`` (world-to-camera).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+COLMAP_PRINCIPAL_POINT_OFFSET = 0.5
+"""COLMAP model principal point = project (pixel-centre) principal point + 0.5 px."""
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraPose:
+    """One calibrated, posed image.
+
+    Attributes:
+        name: image name (relative path inside the image folder).
+        K: (3, 3) float64 pinhole intrinsics, pixel-centre convention.
+        R: (3, 3) float64 world-to-camera rotation.
+        t: (3,) float64 world-to-camera translation (``X_cam = R X + t``).
+        width, height: image size in pixels.
+    """
+
+    name: str
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width: int
+    height: int
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) camera centre in world coordinates, ``-R^T t``."""
+        return -self.R.T @ self.t
+
+
+def project_to_so3(R: np.ndarray) -> np.ndarray:
+    """Closest rotation (Frobenius) to a (3, 3) matrix, via SVD with det = +1."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+# --------------------------------------------------------------------------- COLMAP models
+def poses_from_reconstruction(rec) -> dict[str, CameraPose]:
+    """Posed images of a ``pycolmap.Reconstruction`` (registered images only), by name.
+
+    K is the camera's pinhole part (``calibration_matrix``), shifted to the pixel-centre
+    convention; distortion parameters are ignored.
+    """
+    out: dict[str, CameraPose] = {}
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        cam = rec.cameras[image.camera_id]
+        K = np.array(cam.calibration_matrix(), dtype=np.float64)
+        K[0, 2] -= COLMAP_PRINCIPAL_POINT_OFFSET
+        K[1, 2] -= COLMAP_PRINCIPAL_POINT_OFFSET
+        pose = image.cam_from_world()
+        out[image.name] = CameraPose(
+            name=image.name, K=K, R=np.array(pose.rotation.matrix(), dtype=np.float64),
+            t=np.array(pose.translation, dtype=np.float64), width=int(cam.width),
+            height=int(cam.height),
+        )
+    return out
+
+
+def resolve_model_dir(path: str | Path) -> Path:
+    """The COLMAP model folder for ``path``: the folder itself, its ``gt_model/`` or ``0/``."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"ground-truth path not found: {path}")
+    for cand in (path, path / "gt_model", path / "sparse" / "0", path / "0"):
+        if (cand / "images.txt").is_file() or (cand / "images.bin").is_file():
+            return cand
+    raise ValueError(
+        f"{path} is not a COLMAP model folder (no images.txt/images.bin in it, its gt_model/ or 0/)"
+    )
+
+
+def load_reconstruction(path: str | Path):
+    """Read a COLMAP model folder (text or binary) as a ``pycolmap.Reconstruction``."""
+    import pycolmap
+
+    model_dir = resolve_model_dir(path)
+    return pycolmap.Reconstruction(str(model_dir))
+
+
+def load_gt_poses(path: str | Path) -> dict[str, CameraPose]:
+    """GT poses by image name from a COLMAP model folder (text or binary; points optional).
+
+    ``path`` may also be a dataset folder holding a ``gt_model/`` folder.
+    """
+    poses = poses_from_reconstruction(load_reconstruction(path))
+    if not poses:
+        raise ValueError(f"the ground-truth model at {path} has no posed images")
+    return poses
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z])
+    return -q if q[0] < 0 else q
+
+
+def write_colmap_model(poses: dict[str, CameraPose], out_dir: str | Path) -> Path:
+    """Write poses as a COLMAP text model (PINHOLE cameras, no 3D points).
+
+    Images with identical (K, width, height) share one camera. The principal point is written in
+    COLMAP's convention (+0.5). Image ids follow the sorted names, starting at 1.
+
+    Returns:
+        The output folder (created if needed).
+    """
+    if not poses:
+        raise ValueError("poses is empty: nothing to write")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cameras: dict[tuple, int] = {}
+    cam_lines, img_lines = [], []
+    for image_id, name in enumerate(sorted(poses), start=1):
+        p = poses[name]
+        fx, fy = p.K[0, 0], p.K[1, 1]
+        cx = p.K[0, 2] + COLMAP_PRINCIPAL_POINT_OFFSET
+        cy = p.K[1, 2] + COLMAP_PRINCIPAL_POINT_OFFSET
+        key = (p.width, p.height, round(fx, 9), round(fy, 9), round(cx, 9), round(cy, 9))
+        if key not in cameras:
+            cameras[key] = len(cameras) + 1
+            cam_lines.append(f"{cameras[key]} PINHOLE {p.width} {p.height} {fx:.12g} {fy:.12g} {cx:.12g} {cy:.12g}")
+        q = _quat_wxyz(p.R)
+        t = p.t
+        img_lines.append(
+            f"{image_id} {q[0]:.15g} {q[1]:.15g} {q[2]:.15g} {q[3]:.15g} "
+            f"{t[0]:.15g} {t[1]:.15g} {t[2]:.15g} {cameras[key]} {name}"
+        )
+        img_lines.append("")  # no 2D points
+    (out / "cameras.txt").write_text(
+        "# CAMERA_ID MODEL WIDTH HEIGHT fx fy cx cy\n" + "\n".join(cam_lines) + "\n", encoding="utf-8"
+    )
+    (out / "images.txt").write_text(
+        "# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME\n# POINTS2D (none)\n" + "\n".join(img_lines) + "\n",
+        encoding="utf-8",
+    )
+    (out / "points3D.txt").write_text("# no points: ground truth has cameras only\n", encoding="utf-8")
+    return out
+
+
+# --------------------------------------------------------------------------- dataset layouts
+def list_images(image_dir: str | Path) -> list[str]:
+    """Image file names (sorted) in a folder, by extension."""
+    image_dir = Path(image_dir)
+    if not image_dir.is_dir():
+        raise NotADirectoryError(f"image folder not found: {image_dir}")
+    return sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"cannot read image {path}")
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def _rescale(K: np.ndarray, size_from: tuple[int, int], size_to: tuple[int, int], name: str) -> np.ndarray:
+    """Rescale pixel-centre intrinsics from one image size to another (same aspect)."""
+    if size_from == size_to:
+        return K
+    sx, sy = size_to[0] / size_from[0], size_to[1] / size_from[1]
+    if abs(sx - sy) > 1e-3:
+        raise ValueError(f"{name}: GT size {size_from} and image size {size_to} differ in aspect")
+    log.info("%s: scaling GT intrinsics by %.4g (GT %dx%d, image %dx%d)", name, sx, *size_from, *size_to)
+    S = np.diag([sx, sy, 1.0])
+    # pixel-centre convention: x' + 0.5 = s (x + 0.5)
+    S[0, 2], S[1, 2] = 0.5 * (sx - 1.0), 0.5 * (sy - 1.0)
+    return S @ K
+
+
+def read_strecha_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
+    """Parse one Strecha ``.camera`` file.
+
+    Returns:
+        ``(K (3, 3), R_w2c (3, 3), t_w2c (3,), (width, height))``; R is projected onto SO(3).
+    """
+    rows = [ln.split() for ln in Path(path).read_text(encoding="utf-8").splitlines() if ln.strip()]
+    try:
+        vals = [[float(v) for v in r] for r in rows]
+        K = np.array(vals[0:3], dtype=np.float64)
+        R_c2w = np.array(vals[4:7], dtype=np.float64)
+        C = np.array(vals[7], dtype=np.float64)
+        w, h = int(vals[8][0]), int(vals[8][1])
+    except (IndexError, ValueError) as exc:
+        raise ValueError(f"{path}: not a Strecha .camera file ({exc})") from None
+    if K.shape != (3, 3) or R_c2w.shape != (3, 3) or C.shape != (3,):
+        raise ValueError(f"{path}: not a Strecha .camera file (bad K/R/C shapes)")
+    R = project_to_so3(R_c2w.T)
+    return K, R, -R @ C, (w, h)
+
+
+def strecha_poses(gt_dir: str | Path, image_dir: str | Path) -> dict[str, CameraPose]:
+    """GT poses for every image of ``image_dir`` that has ``<gt_dir>/<name>.camera``.
+
+    Intrinsics are rescaled when the image size differs from the .camera file's size (e.g.
+    full-resolution GT with half-resolution images).
+    """
+    gt_dir, image_dir = Path(gt_dir), Path(image_dir)
+    out: dict[str, CameraPose] = {}
+    for name in list_images(image_dir):
+        cam = gt_dir / f"{name}.camera"
+        if not cam.is_file():
+            log.warning("no GT camera file for %s", name)
+            continue
+        K, R, t, size = read_strecha_camera(cam)
+        img_size = _image_size(image_dir / name)
+        K = _rescale(K, size, img_size, name)
+        out[name] = CameraPose(name=name, K=K, R=R, t=t, width=img_size[0], height=img_size[1])
+    if not out:
+        raise ValueError(f"no <image>.camera file in {gt_dir} matches an image of {image_dir}")
+    return out
+
+
+def _find_par_file(path: Path) -> Path:
+    if path.is_file():
+        return path
+    found = sorted(path.glob("*_par.txt"))
+    if len(found) != 1:
+        raise ValueError(f"expected exactly one *_par.txt in {path}, found {len(found)}")
+    return found[0]
+
+
+def middlebury_poses(par_path: str | Path, image_dir: str | Path) -> dict[str, CameraPose]:
+    """GT poses from a Middlebury ``*_par.txt`` (file, or folder holding exactly one)."""
+    par = _find_par_file(Path(par_path))
+    image_dir = Path(image_dir)
+    names = set(list_images(image_dir))
+    lines = [ln.split() for ln in par.read_text(encoding="utf-8").splitlines() if ln.strip()]
+    out: dict[str, CameraPose] = {}
+    for fields in lines[1:]:
+        if len(fields) != 22:
+            raise ValueError(f"{par}: expected 22 fields per line, got {len(fields)}: {' '.join(fields[:3])} ...")
+        name = fields[0]
+        if name not in names:
+            log.warning("%s: %s is not in %s", par.name, name, image_dir)
+            continue
+        v = np.array([float(x) for x in fields[1:]], dtype=np.float64)
+        w, h = _image_size(image_dir / name)
+        out[name] = CameraPose(
+            name=name, K=v[0:9].reshape(3, 3), R=project_to_so3(v[9:18].reshape(3, 3)),
+            t=v[18:21], width=w, height=h,
+        )
+    if not out:
+        raise ValueError(f"no image of {par} found in {image_dir}")
+    return out
+
+
+def convert_gt(fmt: str, input_path: str | Path, image_dir: str | Path, output: str | Path) -> dict[str, CameraPose]:
+    """Convert a dataset's GT (``fmt`` "strecha" or "middlebury") into a COLMAP text model."""
+    fmt = str(fmt).lower()
+    if fmt == "strecha":
+        poses = strecha_poses(input_path, image_dir)
+    elif fmt == "middlebury":
+        poses = middlebury_poses(input_path, image_dir)
+    else:
+        raise ValueError(f"format={fmt!r} is not one of: strecha, middlebury")
+    write_colmap_model(poses, output)
+    return poses
