@@ -226,7 +226,6 @@ class ColmapDatabase:
         Returns:
             The config name written ("NONE" when nothing was kept).
         """
-        pc = self._pycolmap
         db = self.handle
         i, j = int(image_id1), int(image_id2)
         kept = np.ascontiguousarray(kept, dtype=np.uint32).reshape(-1, 2)
@@ -238,7 +237,7 @@ class ColmapDatabase:
             if old is not None:
                 db.delete_two_view_geometry(i, j)
             return "NONE"
-        if keep_model and old is not None and old.config.name in _KEEP_MODEL_CONFIGS:
+        if keep_model and old is not None and self._config_name(old) in _KEEP_MODEL_CONFIGS:
             tvg = old
         else:
             tvg = self._fit_geometry(pixel_centre_to_colmap(xy1), pixel_centre_to_colmap(xy2))
@@ -247,7 +246,10 @@ class ColmapDatabase:
             db.update_two_view_geometry(i, j, tvg)
         else:
             db.write_two_view_geometry(i, j, tvg)
-        return tvg.config.name
+        return self._config_name(tvg)
+
+    def _config_name(self, tvg) -> str:
+        return self._pycolmap.TwoViewGeometryConfiguration(int(tvg.config)).name
 
     def _fit_geometry(self, p1: np.ndarray, p2: np.ndarray):
         import cv2
