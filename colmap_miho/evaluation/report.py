@@ -1,0 +1,398 @@
+"""Quality report of a reconstruction (and of a database's matches) against ground truth.
+
+:func:`build_report` returns a plain dict (JSON-ready) with these sections:
+
+- ``reconstruction``: num_images, num_reg_images, num_points3D, num_observations,
+  mean_track_length, mean_reprojection_error (px).
+- ``model_pose_auc`` (with GT): relative-pose AUC at 5/10/20 deg and mAA (1-10 deg) over ALL
+  pairs of GT images, from the reconstructed poses; an unregistered image makes its pairs
+  failures. Pair error = max(rotation error, translation-direction angle), the sign of the
+  translation counts (a reconstruction fixes it).
+- ``absolute`` (with GT): rotation and camera-centre errors after a similarity (Umeyama)
+  alignment of the registered camera centres to the GT ones.
+- ``two_view_pose_auc_E`` / ``two_view_pose_auc_F`` (with GT and a database): the paper's E and
+  F protocols on every evaluated pair's verified inlier matches, with GT intrinsics.
+- ``pairs``: one row per evaluated pair (names, match count, model/E/F errors), for plots.
+
+All AUCs are fractions in [0, 1]. The database is read through a private copy: report never
+changes the caller's file (pycolmap migrates the schema of a database it opens).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from . import pose_metrics as pm
+from .gt_model import CameraPose
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------- reconstruction
+def reconstruction_stats(rec) -> dict:
+    """Statistics of a ``pycolmap.Reconstruction`` (see module docstring)."""
+    n_pts = int(rec.num_points3D())
+    return {
+        "num_images": int(rec.num_images()),
+        "num_reg_images": int(rec.num_reg_images()),
+        "num_points3D": n_pts,
+        "num_observations": int(rec.compute_num_observations()),
+        "mean_track_length": float(rec.compute_mean_track_length()) if n_pts else 0.0,
+        "mean_reprojection_error": float(rec.compute_mean_reprojection_error()) if n_pts else 0.0,
+    }
+
+
+# --------------------------------------------------------------------------- pose accuracy
+def gt_pairs(gt: dict[str, CameraPose]) -> list[tuple[str, str]]:
+    """All pairs of GT image names, (name1 < name2), sorted."""
+    return list(itertools.combinations(sorted(gt), 2))
+
+
+def model_pair_errors(
+    est: dict[str, CameraPose], gt: dict[str, CameraPose], pairs: list[tuple[str, str]] | None = None
+) -> dict[tuple[str, str], float]:
+    """Relative-pose error (degrees) of each GT pair from the reconstructed poses.
+
+    Args:
+        est: reconstructed poses by image name (registered images only).
+        gt: GT poses by image name.
+        pairs: pairs to evaluate (default: all GT pairs).
+
+    Returns:
+        ``{(name1, name2): error}``; ``inf`` when an image of the pair is not registered.
+    """
+    out = {}
+    for a, b in pairs if pairs is not None else gt_pairs(gt):
+        if a not in est or b not in est:
+            out[(a, b)] = math.inf
+            continue
+        R_gt, t_gt = pm.relative_pose(gt[a].R, gt[a].t, gt[b].R, gt[b].t)
+        R_es, t_es = pm.relative_pose(est[a].R, est[a].t, est[b].R, est[b].t)
+        out[(a, b)] = pm.pose_error_deg(R_es, t_es, R_gt, t_gt, fold=False)
+    return out
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity ``dst ~ s R src + t`` minimising the squared error (Umeyama 1991).
+
+    Args:
+        src, dst: (N, 3) corresponding points, N >= 3 not collinear.
+
+    Returns:
+        ``(s, R (3, 3), t (3,))``.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise ValueError(f"src and dst must be the same (N>=3, 3) shape, got {src.shape} and {dst.shape}")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    var_s = (xs**2).sum() / len(src)
+    s = float(np.trace(np.diag(D) @ S) / var_s) if var_s > 0 else 1.0
+    t = mu_d - s * R @ mu_s
+    return s, R, t
+
+
+def absolute_errors(est: dict[str, CameraPose], gt: dict[str, CameraPose]) -> dict:
+    """Rotation (deg) and camera-centre errors (GT units) after aligning centres with Umeyama.
+
+    Returns a dict with ``num_aligned``, ``scale`` and median/mean/max of both errors, plus
+    ``center_error_rel`` = median centre error / median distance of the GT centres to their
+    centroid (unit-free). Fewer than 3 common images gives ``num_aligned`` and NaNs.
+    """
+    names = sorted(set(est) & set(gt))
+    nan = float("nan")
+    empty = {"num_aligned": len(names), "scale": nan, "rotation_error_deg": {"median": nan, "mean": nan, "max": nan},
+             "center_error": {"median": nan, "mean": nan, "max": nan}, "center_error_rel": nan}
+    if len(names) < 3:
+        return empty
+    c_est = np.array([est[n].center for n in names])
+    c_gt = np.array([gt[n].center for n in names])
+    try:
+        s, R, t = umeyama(c_est, c_gt)
+    except np.linalg.LinAlgError:
+        return empty
+    c_al = (s * (R @ c_est.T)).T + t
+    cerr = np.linalg.norm(c_al - c_gt, axis=1)
+    # world-to-camera rotation in the GT frame: R_est R^T
+    rerr = np.array([pm.rotation_error_deg(est[n].R @ R.T, gt[n].R) for n in names])
+    spread = float(np.median(np.linalg.norm(c_gt - c_gt.mean(0), axis=1)))
+
+    def stats(x):
+        return {"median": float(np.median(x)), "mean": float(np.mean(x)), "max": float(np.max(x))}
+
+    return {
+        "num_aligned": len(names), "scale": s, "rotation_error_deg": stats(rerr), "center_error": stats(cerr),
+        "center_error_rel": float(np.median(cerr) / spread) if spread > 0 else nan,
+    }
+
+
+# --------------------------------------------------------------------------- database matches
+def count_database_images(database: str | Path) -> int:
+    """Number of images in a COLMAP database (read-only sqlite query; nothing is migrated)."""
+    import sqlite3
+
+    from ..io.database import validate_database
+
+    validate_database(database)
+    con = sqlite3.connect(f"file:{Path(database).resolve()}?mode=ro", uri=True)
+    try:
+        return int(con.execute("SELECT COUNT(*) FROM images").fetchone()[0])
+    finally:
+        con.close()
+
+
+def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
+    """Pairs ``name1 name2 ...`` from a text file (e.g. ``pairs_with_gt.txt``), one per line."""
+    out = []
+    for line in Path(path).read_text(encoding="utf-8").splitlines():
+        f = line.split()
+        if len(f) >= 2 and not line.lstrip().startswith("#"):
+            out.append((f[0], f[1]))
+    return out
+
+
+def read_database_matches(database: str | Path, names: set[str] | None = None) -> dict:
+    """Verified inlier matches of a database as pixel-centre point pairs, by image names.
+
+    The database is copied to a temporary folder first and only the copy is opened.
+
+    Args:
+        database: COLMAP database path.
+        names: keep only pairs whose two images are in this set (None: all).
+
+    Returns:
+        ``{(name1, name2): (pts1 (M, 2), pts2 (M, 2))}`` with name1 < name2, float64 pixels,
+        integer = pixel centre.
+    """
+    from ..io.database import ColmapDatabase
+    from ..io.safety import check_database_path, copy_file
+
+    database = check_database_path(database)
+    out: dict = {}
+    with tempfile.TemporaryDirectory(prefix="colmap_miho_report_") as tmp:
+        copy = Path(tmp) / "database.db"
+        copy_file(database, copy)
+        with ColmapDatabase(copy) as db:
+            images = {r.image_id: r.name for r in db.images()}
+            kp_cache: dict[int, np.ndarray] = {}
+
+            def kps(i):
+                if i not in kp_cache:
+                    kp_cache[i] = db.keypoints(i)
+                return kp_cache[i]
+
+            for pair in db.pairs("verified"):
+                i, j = pair.image_id1, pair.image_id2
+                ni, nj = images.get(i), images.get(j)
+                if ni is None or nj is None or (names is not None and (ni not in names or nj not in names)):
+                    continue
+                m = db.matches(i, j, "verified").astype(np.int64)
+                p1, p2 = kps(i)[m[:, 0]], kps(j)[m[:, 1]]
+                out[(ni, nj) if ni < nj else (nj, ni)] = (p1, p2) if ni < nj else (p2, p1)
+    return out
+
+
+def two_view_pair_errors(
+    matches: dict, gt: dict[str, CameraPose], pairs: list[tuple[str, str]], *, seed: int = 0,
+    protocols: tuple[str, ...] = ("E", "F"), magsac_for_f: bool = True,
+) -> dict[tuple[str, str], dict]:
+    """Run the paper's two-view pose protocols on every pair.
+
+    Args:
+        matches: output of :func:`read_database_matches`.
+        gt: GT poses (intrinsics and relative poses).
+        pairs: pairs to evaluate, (name1, name2) either order; a pair without matches is a
+            failure (error ``inf``) for every protocol.
+        seed: OpenCV RNG seed for RANSAC/MAGSAC.
+        protocols: subset of ("E", "F").
+        magsac_for_f: MAGSAC (0.75 px) before the 8-point F, as in the paper's F scores.
+
+    Returns:
+        ``{(name1, name2): {"num_matches": int, "E": error_deg, "F": error_deg}}``.
+    """
+    out = {}
+    for a, b in pairs:
+        key = (a, b) if a < b else (b, a)
+        a, b = key
+        row: dict = {"num_matches": 0}
+        for p in protocols:
+            row[p] = math.inf
+        if key in matches and a in gt and b in gt:
+            p1, p2 = matches[key]
+            row["num_matches"] = int(len(p1))
+            R_gt, t_gt = pm.relative_pose(gt[a].R, gt[a].t, gt[b].R, gt[b].t)
+            if "E" in protocols:
+                row["E"] = pm.pose_from_essential(p1, p2, gt[a].K, gt[b].K, R_gt, t_gt, seed=seed).error_deg
+            if "F" in protocols:
+                row["F"] = pm.pose_from_fundamental(
+                    p1, p2, gt[a].K, gt[b].K, R_gt, t_gt, magsac=magsac_for_f, seed=seed
+                ).error_deg
+        out[key] = row
+    return out
+
+
+def default_eval_pairs(gt_path: str | Path | None, gt: dict[str, CameraPose]) -> tuple[list[tuple[str, str]], str]:
+    """Pairs for the two-view AUC: the dataset's ``pairs_with_gt.txt`` when the GT model sits
+    in a dataset folder that has one (the benchmark's own pair list), else all GT pairs.
+
+    Returns ``(pairs, description)``.
+    """
+    if gt_path is not None:
+        from .gt_model import resolve_model_dir
+
+        model_dir = resolve_model_dir(gt_path)
+        for cand in (model_dir.parent / "pairs_with_gt.txt", Path(gt_path) / "pairs_with_gt.txt"):
+            if cand.is_file():
+                pairs = [p for p in read_pairs_file(cand) if p[0] in gt and p[1] in gt]
+                if pairs:
+                    return pairs, str(cand)
+    return gt_pairs(gt), "all GT pairs"
+
+
+# --------------------------------------------------------------------------- the report
+def _errors_for(rows: dict, key: str) -> list[float]:
+    return [r[key] for r in rows.values()]
+
+
+def build_report(
+    model: str | Path | None = None,
+    *,
+    reconstruction=None,
+    database: str | Path | None = None,
+    gt: str | Path | None = None,
+    pairs: list[tuple[str, str]] | str | Path | None = None,
+    seed: int = 0,
+) -> dict:
+    """Evaluate a model (and a database's matches) and return the report dict.
+
+    Args:
+        model: COLMAP model folder (text or binary); or pass ``reconstruction``.
+        reconstruction: an in-memory ``pycolmap.Reconstruction`` instead of ``model``.
+        database: COLMAP database whose verified matches get the two-view pose AUCs (needs gt).
+        gt: GT COLMAP model folder (or a dataset folder with ``gt_model/``).
+        pairs: pairs for the two-view AUCs: a list of name pairs or a pairs file; default
+            :func:`default_eval_pairs`.
+        seed: RANSAC seed of the two-view protocols.
+    """
+    from .gt_model import load_gt_poses, load_reconstruction, poses_from_reconstruction
+
+    if reconstruction is None and model is None:
+        raise ValueError("give model or reconstruction")
+    rec = reconstruction if reconstruction is not None else load_reconstruction(model)
+    report: dict = {"model": str(model) if model is not None else None,
+                    "reconstruction": reconstruction_stats(rec)}
+    if database is not None:
+        # a written model holds only its own images: count the database's for num_images
+        report["reconstruction"]["num_images"] = max(report["reconstruction"]["num_images"],
+                                                     count_database_images(database))
+    if gt is None:
+        if database is not None:
+            log.warning("--database given without --gt: two-view pose AUCs need ground truth; skipped")
+        return report
+    gt_poses = load_gt_poses(gt)
+    est = poses_from_reconstruction(rec)
+    report["gt"] = {"path": str(gt), "num_images": len(gt_poses),
+                    "num_registered": len(set(est) & set(gt_poses))}
+    missing = sorted(set(est) - set(gt_poses))
+    if missing:
+        log.warning("%d registered images are not in the GT (names differ?), e.g. %s", len(missing), missing[0])
+    all_pairs = gt_pairs(gt_poses)
+    model_err = model_pair_errors(est, gt_poses, all_pairs)
+    report["model_pose_auc"] = pm.auc_summary(list(model_err.values()))
+    report["absolute"] = absolute_errors(est, gt_poses)
+    rows = {k: {"model": v} for k, v in model_err.items()}
+    if database is not None:
+        if pairs is None:
+            eval_pairs, src = default_eval_pairs(gt, gt_poses)
+        elif isinstance(pairs, (str, Path)):
+            eval_pairs, src = read_pairs_file(pairs), str(pairs)
+        else:
+            eval_pairs, src = list(pairs), "given pairs"
+        matches = read_database_matches(database, set(gt_poses))
+        tv = two_view_pair_errors(matches, gt_poses, eval_pairs, seed=seed)
+        for proto in ("E", "F"):
+            s = pm.auc_summary(_errors_for(tv, proto))
+            s["pairs"] = src
+            report[f"two_view_pose_auc_{proto}"] = s
+        for k, r in tv.items():
+            rows.setdefault(k, {"model": model_err.get(k, math.inf)}).update(r)
+        report["database"] = str(database)
+    report["pairs"] = [
+        {"name1": a, "name2": b, **{k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in r.items()}}
+        for (a, b), r in sorted(rows.items())
+    ]
+    return report
+
+
+# --------------------------------------------------------------------------- text output
+def _pct(x) -> str:
+    return "  -  " if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:5.1f}"
+
+
+def format_report(report: dict) -> str:
+    """A readable multi-line table of a report dict (AUCs in percent)."""
+    r = report["reconstruction"]
+    lines = [
+        f"reconstruction  {r['num_reg_images']}/{r['num_images']} images registered, "
+        f"{r['num_points3D']} points, {r['num_observations']} observations",
+        f"                mean track length {r['mean_track_length']:.2f}, "
+        f"mean reprojection error {r['mean_reprojection_error']:.3f} px",
+    ]
+    if "model_pose_auc" in report:
+        lines.append("")
+        lines.append(f"{'pose AUC (%)':<26}{'@5':>7}{'@10':>7}{'@20':>7}{'mAA':>7}{'pairs':>7}{'failed':>7}")
+        keys = [("model (all GT pairs)", "model_pose_auc"), ("two-view E (db matches)", "two_view_pose_auc_E"),
+                ("two-view F (db, MAGSAC)", "two_view_pose_auc_F")]
+        for label, key in keys:
+            if key in report:
+                a = report[key]
+                lines.append(f"{label:<26}{_pct(a['auc5']):>7}{_pct(a['auc10']):>7}{_pct(a['auc20']):>7}"
+                             f"{_pct(a['maa']):>7}{a['num_pairs']:>7}{a['num_failed']:>7}")
+        ab = report.get("absolute", {})
+        if ab.get("num_aligned", 0) >= 3:
+            lines.append("")
+            lines.append(
+                f"after similarity alignment ({ab['num_aligned']} images): rotation error median "
+                f"{ab['rotation_error_deg']['median']:.3f} deg (max {ab['rotation_error_deg']['max']:.3f}), "
+                f"centre error median {ab['center_error']['median']:.4g} GT units "
+                f"({100 * ab['center_error_rel']:.2f}% of the camera spread)"
+            )
+    return "\n".join(lines)
+
+
+def json_safe(obj):
+    """Copy of ``obj`` with NaN/inf floats as None and paths/tuples as JSON types."""
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_report_json(report: dict, path: str | Path) -> Path:
+    """Write ``report`` as indented JSON (NaN/inf as null); returns the path."""
+    import json
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(json_safe(report), indent=2), encoding="utf-8")
+    return path

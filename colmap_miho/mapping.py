@@ -1,0 +1,223 @@
+"""Structure-from-Motion with pycolmap: incremental (default) or global mapping.
+
+:func:`run_mapping` maps a COLMAP database and writes the largest model (by registered images)
+to one folder. It never opens the caller's database: pycolmap migrates the schema of any
+database it opens, so mapping reads a private copy made first.
+
+COLMAP's own log (glog) goes to a file in the output folder (``colmap_log.*``) unless
+``verbose``; errors still reach stderr. A tqdm bar fed by the incremental mapper's callbacks
+shows registered images when ``progress`` is set.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from .enums import Mapper
+from .errors import RunFailed
+
+log = logging.getLogger(__name__)
+
+MODEL_FILES = ("cameras", "images", "points3D", "rigs", "frames")
+
+
+@dataclass(frozen=True, kw_only=True)
+class MappingResult:
+    """What :func:`run_mapping` produced.
+
+    Attributes:
+        success: at least one model with two or more registered images.
+        output: folder of the written (largest) model, or None.
+        mapper: "incremental" or "global".
+        num_models: models found by the mapper.
+        num_images: images in the database.
+        num_reg_images, num_points3D: of the largest model (0 on failure).
+        seconds: wall time of the mapper call.
+        log_file: COLMAP's log file (None when verbose).
+        reconstruction: the largest ``pycolmap.Reconstruction`` (not serialised).
+    """
+
+    success: bool
+    output: Path | None
+    mapper: str
+    num_models: int = 0
+    num_images: int = 0
+    num_reg_images: int = 0
+    num_points3D: int = 0
+    seconds: float = 0.0
+    log_file: Path | None = None
+    reconstruction: object = field(default=None, repr=False, compare=False)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.pop("reconstruction")
+        d["output"] = str(self.output) if self.output else None
+        d["log_file"] = str(self.log_file) if self.log_file else None
+        return d
+
+
+@contextlib.contextmanager
+def colmap_log_to_file(folder: Path | None, *, verbose: bool = False):
+    """Send COLMAP's glog output to ``folder/colmap_log.<timestamp>`` (errors still on stderr).
+
+    Yields the log file's path prefix (glog appends a timestamp), or None when verbose.
+    glog settings are process-wide; they are restored on exit.
+    """
+    import pycolmap
+
+    lg = pycolmap.logging
+    if verbose or folder is None:
+        yield None
+        return
+    saved = (lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold)
+    prefix = Path(folder) / "colmap_log."
+    try:
+        lg.logtostderr = False
+        lg.alsologtostderr = False
+        lg.stderrthreshold = 2  # ERROR and FATAL still reach the terminal
+        lg.set_log_destination(lg.INFO, str(prefix))
+        lg.set_log_destination(lg.WARNING, "")  # warnings are in the INFO file already
+        lg.set_log_destination(lg.ERROR, "")
+        yield prefix
+    finally:
+        lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold = saved
+        lg.set_log_destination(lg.INFO, "")
+
+
+def _latest_log(prefix: Path | None) -> Path | None:
+    if prefix is None:
+        return None
+    found = sorted(prefix.parent.glob(prefix.name + "*"), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else None
+
+
+def _count_images(database: Path) -> int:
+    import pycolmap
+
+    with pycolmap.Database.open(str(database)) as db:
+        return int(db.num_images())
+
+
+def run_mapping(
+    database: str | Path,
+    image_dir: str | Path,
+    output: str | Path,
+    *,
+    mapper: Mapper | str = Mapper.INCREMENTAL,
+    seed: int = 0,
+    num_threads: int = -1,
+    min_num_matches: int = 15,
+    progress: bool = False,
+    verbose: bool = False,
+) -> MappingResult:
+    """Map ``database`` with pycolmap and write the largest model to ``output``.
+
+    Args:
+        database: COLMAP database (read through a private copy; never modified).
+        image_dir: the image folder (colours of the 3D points).
+        output: folder for the model (cameras/images/points3D .bin); created. Existing model
+            files in it are replaced.
+        mapper: "incremental" (``pycolmap.incremental_mapping``) or "global"
+            (``pycolmap.global_mapping``, GLOMAP).
+        seed: ``random_seed`` of the mapper options (deterministic with ``num_threads=1``;
+            multi-threaded bundle adjustment may still vary in the last digits).
+        num_threads: mapper threads, -1 = all cores.
+        min_num_matches: pairs with fewer verified inliers are ignored by the mapper.
+        progress: tqdm bar of registered images (incremental only).
+        verbose: leave COLMAP's log on the terminal instead of a file.
+
+    Returns:
+        :class:`MappingResult`; ``success=False`` when no model was found (not an exception).
+
+    Raises:
+        DatabaseError: the database is missing or not a COLMAP database.
+    """
+    import pycolmap
+
+    from .io.safety import check_database_path, copy_file
+
+    mapper = Mapper.parse(mapper, "mapper")
+    database = check_database_path(database)
+    image_dir = Path(image_dir)
+    if not image_dir.is_dir():
+        raise NotADirectoryError(f"image folder not found: {image_dir}")
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+
+    with tempfile.TemporaryDirectory(prefix="colmap_miho_map_", dir=output) as tmp:
+        tmp = Path(tmp)
+        db_copy = tmp / "database.db"
+        copy_file(database, db_copy)
+        num_images = _count_images(db_copy)
+        models_dir = tmp / "models"
+        models_dir.mkdir()
+        bar = None
+        t0 = time.perf_counter()
+        with colmap_log_to_file(output, verbose=verbose) as prefix:
+            if mapper == Mapper.INCREMENTAL:
+                opts = pycolmap.IncrementalPipelineOptions()
+                opts.random_seed = int(seed)
+                opts.num_threads = int(num_threads)
+                opts.min_num_matches = int(min_num_matches)
+                opts.mapper.random_seed = int(seed)
+                opts.mapper.num_threads = int(num_threads)
+                opts.triangulation.random_seed = int(seed)
+                callbacks = {}
+                if progress:
+                    from tqdm import tqdm
+
+                    bar = tqdm(total=num_images, desc="mapping", unit="img")
+                    callbacks = {
+                        "initial_image_pair_callback": lambda: bar.update(2),
+                        "next_image_callback": lambda: bar.update(1),
+                    }
+                try:
+                    models = pycolmap.incremental_mapping(
+                        str(db_copy), str(image_dir), str(models_dir), opts, **callbacks
+                    )
+                finally:
+                    if bar is not None:
+                        bar.close()
+            else:
+                opts = pycolmap.GlobalPipelineOptions()
+                opts.random_seed = int(seed)
+                opts.num_threads = int(num_threads)
+                opts.min_num_matches = int(min_num_matches)
+                models = pycolmap.global_mapping(str(db_copy), str(image_dir), str(models_dir), opts)
+        seconds = time.perf_counter() - t0
+        log_file = _latest_log(prefix)
+
+    if not models:
+        log.warning("mapping found no model (%d images in the database)", num_images)
+        return MappingResult(success=False, output=None, mapper=mapper.value, num_images=num_images,
+                             seconds=seconds, log_file=log_file)
+    best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+    for stem in MODEL_FILES:
+        for ext in (".bin", ".txt"):
+            (output / f"{stem}{ext}").unlink(missing_ok=True)
+    best.write(str(output))
+    log.info(
+        "%s mapping: %d of %d images registered, %d points, %d model(s), %.1f s -> %s",
+        mapper.value, best.num_reg_images(), num_images, best.num_points3D(), len(models), seconds, output,
+    )
+    return MappingResult(
+        success=best.num_reg_images() >= 2, output=output, mapper=mapper.value, num_models=len(models),
+        num_images=num_images, num_reg_images=int(best.num_reg_images()),
+        num_points3D=int(best.num_points3D()), seconds=seconds, log_file=log_file, reconstruction=best,
+    )
+
+
+def require_success(result: MappingResult) -> MappingResult:
+    """Raise :class:`RunFailed` when mapping registered fewer than two images."""
+    if not result.success:
+        raise RunFailed(
+            f"mapping registered no model ({result.num_images} images in the database); "
+            f"see {result.log_file or 'the log above'}"
+        )
+    return result
+
