@@ -169,7 +169,10 @@ class _NameIndex:
                 if a is not None and b is not None:
                     found.add((a, b))
         if not found:
-            raise ValueError(f"pair {key!r} in the matches file names an image that is not in the features file")
+            half = [key[i + 1 :] if self.lookup(key[:i]) else key[:i]
+                    for i, ch in enumerate(key) if ch in "/_" and (self.lookup(key[:i]) or self.lookup(key[i + 1 :]))]
+            what = f"image {half[0]!r}" if len(half) == 1 else "an image"
+            raise ValueError(f"pair {key!r} in the matches file names {what} that is not in the features file")
         if len(found) > 1:
             raise ValueError(f"pair {key!r} is ambiguous: it splits into {sorted(found)}")
         return found.pop()
