@@ -33,9 +33,13 @@ def mapped(tmp_path_factory):
 def test_report_json_keys_and_high_auc(mapped, tmp_path):
     scene, model, gt = mapped
     out = tmp_path / "r.json"
+    before = scene.database.read_bytes()
     assert main(["report", "--model", str(model), "--database", str(scene.database), "--gt", str(gt),
                  "--json", str(out), "-q"]) == 0
     r = json.loads(out.read_text())
+    # the database is read through a copy: unchanged and no SQLite side files left behind
+    assert scene.database.read_bytes() == before
+    assert not any(scene.database.with_name(scene.database.name + s).exists() for s in ("-wal", "-shm"))
     for k in ("num_images", "num_reg_images", "num_points3D", "num_observations", "mean_track_length",
               "mean_reprojection_error"):
         assert k in r["reconstruction"]

@@ -140,20 +140,6 @@ def absolute_errors(est: dict[str, CameraPose], gt: dict[str, CameraPose]) -> di
 
 
 # --------------------------------------------------------------------------- database matches
-def count_database_images(database: str | Path) -> int:
-    """Number of images in a COLMAP database (read-only sqlite query; nothing is migrated)."""
-    import sqlite3
-
-    from ..io.database import validate_database
-
-    validate_database(database)
-    con = sqlite3.connect(f"file:{Path(database).resolve()}?mode=ro", uri=True)
-    try:
-        return int(con.execute("SELECT COUNT(*) FROM images").fetchone()[0])
-    finally:
-        con.close()
-
-
 def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
     """Pairs ``name1 name2 ...`` from a text file (e.g. ``pairs_with_gt.txt``), one per line."""
     out = []
@@ -164,7 +150,7 @@ def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
     return out
 
 
-def read_database_matches(database: str | Path, names: set[str] | None = None) -> dict:
+def read_database_matches(database: str | Path, names: set[str] | None = None) -> tuple[int, dict]:
     """Verified inlier matches of a database as pixel-centre point pairs, by image names.
 
     The database is copied to a temporary folder first and only the copy is opened.
@@ -174,6 +160,7 @@ def read_database_matches(database: str | Path, names: set[str] | None = None) -
         names: keep only pairs whose two images are in this set (None: all).
 
     Returns:
+        ``(num_images, matches)``: the database's image count and
         ``{(name1, name2): (pts1 (M, 2), pts2 (M, 2))}`` with name1 < name2, float64 pixels,
         integer = pixel centre.
     """
@@ -202,7 +189,7 @@ def read_database_matches(database: str | Path, names: set[str] | None = None) -
                 m = db.matches(i, j, "verified").astype(np.int64)
                 p1, p2 = kps(i)[m[:, 0]], kps(j)[m[:, 1]]
                 out[(ni, nj) if ni < nj else (nj, ni)] = (p1, p2) if ni < nj else (p2, p1)
-    return out
+    return len(images), out
 
 
 def two_view_pair_errors(
@@ -294,10 +281,11 @@ def build_report(
     rec = reconstruction if reconstruction is not None else load_reconstruction(model)
     report: dict = {"model": str(model) if model is not None else None,
                     "reconstruction": reconstruction_stats(rec)}
+    db_matches = None
     if database is not None:
         # a written model holds only its own images: count the database's for num_images
-        report["reconstruction"]["num_images"] = max(report["reconstruction"]["num_images"],
-                                                     count_database_images(database))
+        num_db_images, db_matches = read_database_matches(database)
+        report["reconstruction"]["num_images"] = max(report["reconstruction"]["num_images"], num_db_images)
     if gt is None:
         if database is not None:
             log.warning("--database given without --gt: two-view pose AUCs need ground truth; skipped")
@@ -321,8 +309,7 @@ def build_report(
             eval_pairs, src = read_pairs_file(pairs), str(pairs)
         else:
             eval_pairs, src = list(pairs), "given pairs"
-        matches = read_database_matches(database, set(gt_poses))
-        tv = two_view_pair_errors(matches, gt_poses, eval_pairs, seed=seed)
+        tv = two_view_pair_errors(db_matches, gt_poses, eval_pairs, seed=seed)
         for proto in ("E", "F"):
             s = pm.auc_summary(_errors_for(tv, proto))
             s["pairs"] = src
