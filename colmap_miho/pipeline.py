@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .enums import Device, MatchSource
-from .errors import DatabaseError, UserError
+from .errors import DatabaseError, RunFailed, UserError
 from .io.database import ColmapDatabase, validate_database
 from .io.images import ImageLoader
 from .io.safety import WorkingCopy, check_database_path
@@ -327,7 +327,10 @@ def refine_database(
             t = time.perf_counter()
             new_keypoints = keypoints
             if pcfg.refine and ok:
-                from .refinement.tracks import refine_tracks
+                try:
+                    from .refinement.tracks import refine_tracks
+                except ImportError as exc:  # the refinement module ships separately
+                    raise RunFailed(f"NCC refinement is not available ({exc}); use --no-refine") from None
 
                 usable = {k: v for k, v in ok.items()
                           if k[0] not in loader.missing and k[1] not in loader.missing}

@@ -1,0 +1,203 @@
+"""``colmap-miho refine`` end to end on pycolmap synthetic scenes, and every bad input."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sqlite3
+
+import cv2
+import numpy as np
+import pytest
+
+from colmap_miho.cli import main
+from colmap_miho.io.database import ColmapDatabase
+from colmap_miho.io.synthetic import make_synthetic_scene
+from colmap_miho.pipeline import RefineSummary, refine_database
+from colmap_miho.recipe import load_recipe
+
+# Measured on the 4-image, 120-point scene (seed 11, 20% planted outliers in the verified
+# matches, 1 px keypoint noise): MOP+MiHo removes 85-90% of the planted outliers and keeps
+# about 96% of the true matches.
+MIN_OUTLIERS_REMOVED = 0.75
+MIN_INLIERS_KEPT = 0.90
+
+
+def _truth(scene, db_path, source="verified"):
+    """(true matches, wrong matches) over all pairs of a database."""
+    good = bad = 0
+    with ColmapDatabase(db_path) as db:
+        for p in db.pairs(source):
+            t = scene.is_true_match(p.image_id1, p.image_id2, db.matches(p.image_id1, p.image_id2, source))
+            good += int(t.sum())
+            bad += int((~t).sum())
+    return good, bad
+
+
+def _map(db_path, image_dir, tmp_path):
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2
+    out = tmp_path / "sparse"
+    out.mkdir(exist_ok=True)
+    recs = pycolmap.incremental_mapping(str(db_path), str(image_dir), str(out))
+    return max((r.num_reg_images() for r in recs.values()), default=0)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_synthetic_scene(tmp_path_factory.mktemp("refine"), num_images=4, num_points=120,
+                                outlier_ratio=0.2, noise_px=1.0, seed=11)
+
+
+@pytest.fixture(scope="module")
+def filtered(scene, tmp_path_factory):
+    """One filter-only run through the CLI, with the JSON summary."""
+    folder = tmp_path_factory.mktemp("filtered")
+    out, js = folder / "out.db", folder / "summary.json"
+    code = main(["refine", "--database", str(scene.database), "--images", str(scene.image_dir),
+                 "--output", str(out), "--no-refine", "--workers", "1", "--json", str(js), "-q"])
+    assert code == 0
+    return out, json.loads(js.read_text())
+
+
+def test_filter_removes_planted_outliers_and_keeps_inliers(scene, filtered):
+    out, summary = filtered
+    good0, bad0 = _truth(scene, scene.database)
+    good1, bad1 = _truth(scene, out)
+    assert bad0 > 0.1 * (good0 + bad0)  # the scene really has outliers in the verified matches
+    assert 1 - bad1 / bad0 >= MIN_OUTLIERS_REMOVED
+    assert good1 / good0 >= MIN_INLIERS_KEPT
+    assert summary["matches_in"] == good0 + bad0
+    assert summary["matches_kept"] == good1 + bad1
+    assert summary["pairs_filtered"] == 6 and summary["keypoints_moved"] == 0
+
+
+def test_matches_mirrored_and_keypoints_untouched(scene, filtered):
+    out, _ = filtered
+    with ColmapDatabase(out) as db_out, ColmapDatabase(scene.database) as db_in:
+        for p in db_out.pairs("verified"):
+            i, j = p.image_id1, p.image_id2
+            np.testing.assert_array_equal(db_out.matches(i, j, "verified"), db_out.matches(i, j, "raw"))
+        for im in db_in.images():
+            # no refinement: every keypoint row written back bit-identical (no stray +-0.5)
+            np.testing.assert_array_equal(db_out.raw_keypoints(im.image_id), db_in.raw_keypoints(im.image_id))
+
+
+def test_mapping_registers_all_images(scene, filtered, tmp_path):
+    out, _ = filtered
+    assert _map(out, scene.image_dir, tmp_path) == 4
+
+
+def test_raw_source_replaces_verification(scene, tmp_path):
+    s = refine_database(scene.database, scene.image_dir, tmp_path / "raw.db",
+                        recipe=load_recipe(None, ["pipeline.source=raw", "pipeline.refine=false"]), workers=1)
+    assert isinstance(s, RefineSummary) and s.source == "raw"
+    good0, bad0 = _truth(scene, scene.database, "raw")
+    good1, bad1 = _truth(scene, s.output, "verified")
+    assert 1 - bad1 / bad0 >= MIN_OUTLIERS_REMOVED and good1 / good0 >= MIN_INLIERS_KEPT
+    d = s.to_dict()
+    assert d["output"] == str(tmp_path / "raw.db") and set(d["seconds"]) >= {"filter", "write", "total"}
+
+
+def test_verify_reruns_colmap_verification(scene, tmp_path):
+    s = refine_database(scene.database, scene.image_dir, tmp_path / "v.db",
+                        recipe=load_recipe(None, ["pipeline.verify=true", "pipeline.refine=false"]), workers=1)
+    assert s.verified and "verify" in s.seconds
+    good1, bad1 = _truth(scene, s.output, "verified")
+    good0, _ = _truth(scene, scene.database)
+    assert good1 / good0 >= MIN_INLIERS_KEPT
+    with ColmapDatabase(s.output) as db:
+        assert len(db.pairs("verified")) == 6
+
+
+def test_min_matches_passes_small_pairs_through(scene, tmp_path):
+    s = refine_database(scene.database, scene.image_dir, tmp_path / "p.db",
+                        recipe=load_recipe(None, ["pipeline.min_matches=100000", "pipeline.refine=false"]))
+    assert s.pairs_passed == 6 and s.pairs_filtered == 0 and s.matches_kept == 0
+    assert _truth(scene, s.output) == _truth(scene, scene.database)
+
+
+# ---------------------------------------------------------------------------------------
+# bad inputs: one clear line, exit code 2
+
+
+def _err(capsys) -> str:
+    """The CLI's stderr: exactly one ERROR line is expected."""
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if line.startswith("ERROR")]
+    assert len(errors) == 1, err
+    return errors[0]
+
+
+def _refine(*args):
+    return main(["refine", *map(str, args), "--workers", "1", "-q"])
+
+
+def test_missing_database_is_not_created(tmp_path, capsys):
+    missing = tmp_path / "typo.db"
+    assert _refine("--database", missing, "--images", tmp_path) == 2
+    assert "database not found" in _err(capsys) and not missing.exists()
+
+
+def test_text_file_and_foreign_sqlite(tmp_path, capsys):
+    text = tmp_path / "notes.db"
+    text.write_text("not a database\n")
+    assert _refine("--database", text, "--images", tmp_path) == 2
+    assert "not a COLMAP database (not an SQLite file)" in _err(capsys)
+    foreign = tmp_path / "foreign.db"
+    con = sqlite3.connect(foreign)
+    con.execute("CREATE TABLE t (x)")
+    con.commit()
+    con.close()
+    capsys.readouterr()
+    assert _refine("--database", foreign, "--images", tmp_path) == 2
+    assert "not a COLMAP database (missing tables" in _err(capsys)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["foreign.db", "notes.db"]
+
+
+def test_missing_image_folder(scene, tmp_path, capsys):
+    assert _refine("--database", scene.database, "--images", tmp_path / "nope", "--output",
+                   tmp_path / "o.db") == 2
+    assert "image folder not found" in _err(capsys)
+
+
+def test_empty_database_and_no_pairs(tmp_path, capsys):
+    import pycolmap
+
+    empty = tmp_path / "empty.db"
+    pycolmap.Database.open(str(empty)).close()
+    assert _refine("--database", empty, "--images", tmp_path) == 2
+    assert "database has no images" in _err(capsys)
+    scene = make_synthetic_scene(tmp_path / "s", num_images=2, num_points=20, render_images=False)
+    with ColmapDatabase(scene.database) as db:
+        db.handle.clear_two_view_geometries()
+        db.handle.clear_matches()
+    capsys.readouterr()
+    assert _refine("--database", scene.database, "--images", scene.image_dir) == 2
+    assert "no image pairs with verified matches" in _err(capsys)
+
+
+def test_output_and_in_place_are_exclusive(scene, tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        _refine("--database", scene.database, "--images", scene.image_dir, "--in-place",
+                "--output", tmp_path / "x.db")
+    assert exc.value.code == 2
+
+
+def test_bad_recipe_value(scene, tmp_path, capsys):
+    assert _refine("--database", scene.database, "--images", scene.image_dir, "--output",
+                   tmp_path / "o.db", "--set", "pipeline.min_matches=2") == 2
+    assert "min_matches must be >= 4" in _err(capsys)
+    assert not (tmp_path / "o.db").exists()
+
+
+@pytest.mark.parametrize("columns", [2, 4])
+def test_two_and_four_keypoint_columns(tmp_path, columns):
+    scene = make_synthetic_scene(tmp_path / "s", num_images=3, num_points=60, keypoint_columns=columns,
+                                 render_images=False, seed=2)
+    s = refine_database(scene.database, scene.image_dir, tmp_path / "o.db",
+                        recipe=load_recipe(None, ["pipeline.refine=false"]), workers=1)
+    assert s.pairs_filtered == 3 and s.matches_removed > 0
+    with ColmapDatabase(s.output) as db:
+        assert db.raw_keypoints(1).shape[1] == columns
