@@ -1,0 +1,332 @@
+"""Sparse point clouds: PLY files, density / outlier figures, cloud-to-cloud distances, pictures.
+
+open3d is an optional extra (``pip install 'colmap-miho[pointcloud]'``). Without it every
+function here still works: PLY reading and writing are plain numpy, nearest neighbours come
+from scipy's cKDTree, and open3d's statistical outlier rule is reproduced exactly (checked by
+the tests against open3d); :func:`require_open3d` raises a clear ``RuntimeError`` for callers
+that insist on open3d (``backend="open3d"``).
+
+Units are those of the reconstruction (arbitrary for an unscaled SfM model; metres after an
+alignment to a metric ground truth). Arrays: ``points`` (N, 3) float64, ``colors`` (N, 3) uint8.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+OPEN3D_MISSING = "open3d is not installed: pip install 'colmap-miho[pointcloud]' (or pip install 'open3d>=0.18')"
+_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
+              "char": "i1", "int8": "i1", "short": "<i2", "ushort": "<u2", "int": "<i4", "int32": "<i4",
+              "uint": "<u4", "uint32": "<u4"}
+_renderer_failed: str | None = None  # why open3d's offscreen renderer did not work, once seen
+
+
+def have_open3d() -> bool:
+    """Whether open3d can be imported."""
+    try:
+        import open3d  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def require_open3d():
+    """Return the open3d module or raise ``RuntimeError`` telling how to install it."""
+    try:
+        import open3d
+    except ImportError as exc:
+        raise RuntimeError(f"{OPEN3D_MISSING} ({exc})") from None
+    return open3d
+
+
+def _check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{name} contain NaN or inf")
+    return p
+
+
+# ---------------------------------------------------------------------------------------------
+# PLY
+
+
+def reconstruction_points(reconstruction) -> tuple[np.ndarray, np.ndarray]:
+    """3D points of a ``pycolmap.Reconstruction``: (N, 3) float64 xyz and (N, 3) uint8 RGB,
+    in increasing point3D id order."""
+    pts = reconstruction.points3D
+    ids = sorted(pts)
+    if not ids:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+    xyz = np.array([pts[i].xyz for i in ids], dtype=np.float64)
+    rgb = np.array([pts[i].color for i in ids], dtype=np.uint8)
+    return xyz, rgb
+
+
+def export_ply(reconstruction, path: str | Path) -> Path:
+    """Write the 3D points of a ``pycolmap.Reconstruction`` with their colours to a binary PLY
+    (pycolmap's ``export_PLY``: float x, y, z and uchar red, green, blue). Returns the path."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise NotADirectoryError(f"output folder does not exist: {path.parent}")
+    reconstruction.export_PLY(str(path))
+    return path
+
+
+def write_ply(points: np.ndarray, path: str | Path, colors: np.ndarray | None = None) -> Path:
+    """Write (N, 3) points (stored as float32) and optional (N, 3) uint8 colours to a binary
+    little-endian PLY, the layout COLMAP writes. Returns the path."""
+    p = _check_points(points)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if colors is not None:
+        c = np.asarray(colors)
+        if c.shape != p.shape:
+            raise ValueError(f"colors must have shape {p.shape}, got {c.shape}")
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    rows = np.empty(len(p), dtype=fields)
+    rows["x"], rows["y"], rows["z"] = p[:, 0], p[:, 1], p[:, 2]
+    if colors is not None:
+        rows["red"], rows["green"], rows["blue"] = c[:, 0], c[:, 1], c[:, 2]
+    props = "".join(f"property {'float' if t == '<f4' else 'uchar'} {n}\n" for n, t in fields)
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(p)}\n{props}end_header\n"
+    path = Path(path)
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rows.tobytes())
+    return path
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read the vertices of a binary little-endian PLY (as COLMAP and :func:`write_ply` write):
+    (N, 3) float64 xyz and (N, 3) uint8 RGB or None. Other vertex properties are skipped;
+    ASCII / big-endian files and other elements before the vertices raise ``ValueError``."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            raise ValueError(f"{path}: not a PLY file")
+        fields: list[tuple[str, str]] = []
+        count = None
+        in_vertex = False
+        while True:
+            line = f.readline()
+            if not line:
+                raise ValueError(f"{path}: PLY header without end_header")
+            words = line.decode("ascii", "replace").split()
+            if not words or words[0] in ("comment", "obj_info"):
+                continue
+            if words[0] == "format" and words[1] != "binary_little_endian":
+                raise ValueError(f"{path}: PLY format {words[1]} not supported (binary_little_endian only)")
+            if words[0] == "element":
+                if words[1] == "vertex":
+                    count, in_vertex = int(words[2]), True
+                elif count is None:
+                    raise ValueError(f"{path}: PLY element {words[1]!r} before the vertices is not supported")
+                else:
+                    in_vertex = False
+            elif words[0] == "property" and in_vertex:
+                if words[1] == "list" or words[1] not in _PLY_TYPES:
+                    raise ValueError(f"{path}: vertex property {' '.join(words[1:])!r} not supported")
+                fields.append((words[2], _PLY_TYPES[words[1]]))
+            elif words[0] == "end_header":
+                break
+        if count is None or not {"x", "y", "z"} <= {n for n, _ in fields}:
+            raise ValueError(f"{path}: no vertex element with x, y, z")
+        rows = np.frombuffer(f.read(np.dtype(fields).itemsize * count), dtype=fields, count=count)
+    xyz = np.stack([rows["x"], rows["y"], rows["z"]], axis=1).astype(np.float64)
+    names = {n for n, _ in fields}
+    rgb = np.stack([rows["red"], rows["green"], rows["blue"]], axis=1).astype(np.uint8) if {"red", "green", "blue"} <= names else None
+    return xyz, rgb
+
+
+# ---------------------------------------------------------------------------------------------
+# figures
+
+
+def _knn_distances(points: np.ndarray, k: int) -> np.ndarray:
+    """(N, k) distances to the k nearest points, the point itself (distance 0) included
+    (scipy's cKDTree: exact, and faster than a per-point open3d query from Python)."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(points).query(points, k=k)
+    return np.asarray(d, dtype=np.float64).reshape(len(points), k)
+
+
+def _backend(backend: str) -> str:
+    if backend not in ("auto", "open3d", "scipy"):
+        raise ValueError(f"backend={backend!r} is not one of: auto, open3d, scipy")
+    if backend == "auto":
+        return "open3d" if have_open3d() else "scipy"
+    if backend == "open3d":
+        require_open3d()
+    return backend
+
+
+def statistical_outliers(points: np.ndarray, *, nb_neighbors: int = 20, std_ratio: float = 2.0,
+                         backend: str = "auto") -> np.ndarray:
+    """bool (N,) True for the statistical outliers of open3d's ``remove_statistical_outlier``:
+    a point's mean distance to its ``nb_neighbors`` nearest points (itself included, as open3d
+    counts it) at or above the cloud's mean of that value + ``std_ratio`` x its standard deviation
+    (ddof 1). ``backend``: "open3d" (open3d itself), "scipy" (cKDTree, same rule) or "auto"."""
+    p = _check_points(points)
+    if nb_neighbors < 1:
+        raise ValueError(f"nb_neighbors must be >= 1, got {nb_neighbors}")
+    if std_ratio <= 0:
+        raise ValueError(f"std_ratio must be > 0, got {std_ratio}")
+    if len(p) <= nb_neighbors:
+        return np.zeros(len(p), dtype=bool)
+    if _backend(backend) == "open3d":
+        o3d = require_open3d()
+        _, keep = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p)).remove_statistical_outlier(
+            nb_neighbors=int(nb_neighbors), std_ratio=float(std_ratio))
+        out = np.ones(len(p), dtype=bool)
+        out[np.asarray(keep, dtype=np.int64)] = False
+        return out
+    avg = _knn_distances(p, int(nb_neighbors)).mean(axis=1)
+    threshold = avg.mean() + std_ratio * avg.std(ddof=1)
+    return ~((avg > 0) & (avg < threshold))
+
+
+def cloud_figures(points: np.ndarray, *, nb_neighbors: int = 20, std_ratio: float = 2.0,
+                  backend: str = "auto") -> dict:
+    """Density and cleanliness of one cloud.
+
+    Args:
+        points: (N, 3) float, any unit.
+        nb_neighbors, std_ratio: open3d's statistical-outlier parameters.
+        backend: "auto" (open3d when installed), "open3d" or "scipy".
+
+    Returns:
+        dict with ``num_points``, ``outlier_share`` (fraction of statistical outliers, see
+        :func:`statistical_outliers`, computed by ``backend``), ``spacing_median`` /
+        ``spacing_mean`` (distance from each point to its nearest other point, unit of
+        ``points``, via cKDTree; NaN below 2 points) and ``backend``.
+    """
+    p = _check_points(points)
+    b = _backend(backend)
+    out = {"num_points": int(len(p)), "outlier_share": 0.0, "spacing_median": float("nan"),
+           "spacing_mean": float("nan"), "backend": b}
+    if len(p) < 2:
+        return out
+    nn = _knn_distances(p, 2)[:, 1]
+    out["spacing_median"], out["spacing_mean"] = float(np.median(nn)), float(nn.mean())
+    out["outlier_share"] = float(statistical_outliers(p, nb_neighbors=nb_neighbors, std_ratio=std_ratio, backend=b).mean())
+    return out
+
+
+def cloud_to_cloud(a: np.ndarray, b: np.ndarray, *, backend: str = "auto") -> dict:
+    """Nearest-neighbour distances between two ALREADY ALIGNED clouds (same frame and scale:
+    align first, e.g. by the similarity from the report's alignment to GT or to each other).
+
+    Args:
+        a, b: (Na, 3), (Nb, 3) float, same unit.
+
+    Returns:
+        dict with, for each direction ``a_to_b`` and ``b_to_a``, ``median``, ``mean`` and ``p90``
+        of the distance from each point of the first cloud to its nearest point of the second
+        (unit of the inputs), and ``chamfer`` = mean of the two means.
+    """
+    pa, pb = _check_points(a, "a"), _check_points(b, "b")
+    if len(pa) == 0 or len(pb) == 0:
+        raise ValueError(f"both clouds need points, got {len(pa)} and {len(pb)}")
+    bk = _backend(backend)
+    out: dict = {"backend": bk}
+    for key, src, dst in (("a_to_b", pa, pb), ("b_to_a", pb, pa)):
+        if bk == "open3d":
+            o3d = require_open3d()
+            cloud_src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
+            cloud_dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(dst))
+            d = np.asarray(cloud_src.compute_point_cloud_distance(cloud_dst), dtype=np.float64)
+        else:
+            from scipy.spatial import cKDTree
+
+            d = cKDTree(dst).query(src, k=1)[0]
+        out[key] = {"median": float(np.median(d)), "mean": float(d.mean()), "p90": float(np.percentile(d, 90))}
+    out["chamfer"] = 0.5 * (out["a_to_b"]["mean"] + out["b_to_a"]["mean"])
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# pictures
+
+
+def render_cloud_png(points: np.ndarray, colors: np.ndarray | None, path: str | Path, *,
+                     width: int = 800, height: int = 600, backend: str = "auto",
+                     title: str | None = None) -> str:
+    """Draw a cloud to a PNG; returns the backend used ("open3d" or "matplotlib").
+
+    ``backend="auto"`` tries open3d's headless ``OffscreenRenderer`` (it needs EGL or a GPU
+    driver; on a plain server it raises, e.g. "Failed to load vulkan library!", and the failure is
+    remembered for the process) and falls back to a matplotlib 3-D scatter (Agg, works
+    everywhere). Colours: (N, 3) uint8 RGB or None (then coloured by height).
+    """
+    global _renderer_failed
+    p = _check_points(points)
+    if backend not in ("auto", "open3d", "matplotlib"):
+        raise ValueError(f"backend={backend!r} is not one of: auto, open3d, matplotlib")
+    c = None if colors is None else np.asarray(colors, dtype=np.float64).reshape(-1, 3) / 255.0
+    if c is not None and len(c) != len(p):
+        raise ValueError(f"colors must have {len(p)} rows, got {len(c)}")
+    path = Path(path)
+    if backend == "open3d" or (backend == "auto" and _renderer_failed is None and have_open3d()):
+        try:
+            _render_open3d(p, c, path, width, height)
+            return "open3d"
+        except RuntimeError as exc:
+            if backend == "open3d":
+                raise
+            _renderer_failed = str(exc)
+            log.info("open3d offscreen rendering unavailable (%s); using matplotlib", exc)
+    _render_matplotlib(p, c, path, width, height, title)
+    return "matplotlib"
+
+
+def _render_open3d(p, c, path: Path, width: int, height: int) -> None:
+    o3d = require_open3d()
+    level = o3d.utility.get_verbosity_level()
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    try:
+        r = o3d.visualization.rendering.OffscreenRenderer(int(width), int(height))
+    finally:
+        o3d.utility.set_verbosity_level(level)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    if c is not None:
+        pc.colors = o3d.utility.Vector3dVector(c)
+    mat = o3d.visualization.rendering.MaterialRecord()
+    mat.shader, mat.point_size = "defaultUnlit", 3.0
+    r.scene.set_background([1.0, 1.0, 1.0, 1.0])
+    r.scene.add_geometry("cloud", pc, mat)
+    lo, hi = (p.min(0), p.max(0)) if len(p) else (np.zeros(3), np.ones(3))
+    centre, extent = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) or 1.0
+    r.setup_camera(60.0, centre, centre + np.array([0.0, -0.3, -1.2]) * extent, [0.0, -1.0, 0.0])
+    o3d.io.write_image(str(path), r.render_to_image())
+
+
+def _render_matplotlib(p, c, path: Path, width: int, height: int, title: str | None) -> None:
+    from matplotlib.figure import Figure
+
+    dpi = 100
+    fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
+    ax = fig.add_subplot(projection="3d")
+    if len(p):
+        # COLMAP's camera frame has y down: show -y as up
+        ax.scatter(p[:, 0], p[:, 2], -p[:, 1], s=1.5, c=c if c is not None else -p[:, 1],
+                   cmap=None if c is not None else "viridis", linewidths=0, depthshade=False)
+        # view the 1st-99th percentile box (+10 %): a few far outliers must not shrink the cloud
+        lo, hi = np.percentile(p, 1, axis=0), np.percentile(p, 99, axis=0)
+        pad = 0.1 * np.maximum(hi - lo, 1e-9)
+        lo, hi = lo - pad, hi + pad
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[2], hi[2])
+        ax.set_zlim(-hi[1], -lo[1])
+        ax.set_box_aspect(tuple(hi[[0, 2, 1]] - lo[[0, 2, 1]]))
+    ax.set_xlabel("x")
+    ax.set_ylabel("z")
+    ax.set_zlabel("-y")
+    ax.set_title(title or f"{len(p)} points")
+    fig.savefig(path, dpi=dpi)
