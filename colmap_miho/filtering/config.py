@@ -26,7 +26,21 @@ class FilterConfig:
             DLT system (paper: 0.05).
         buffer_size: z, size of the top-z sub-optimal model buffer (paper: 5).
         rotation_fix: MiHo's 90-degree rotation pre-alignment (App. C).
-        device: "cpu", "cuda" or "auto" (the device of the input tensors).
+        device: "cpu", "cuda" or "auto". Accepted for interface stability; the filter
+            runs on the CPU in numpy whatever the device (a MOP round is a long chain of
+            small batched operations, latency-bound; see ``filtering/api.py``).
+        sampling: "local" (default, NAPSAC-style guided minimal samples, see
+            ``filtering/ransac.py``) or "uniform" (the paper's).
+        local_neighbours: neighbourhood size k of local sampling (joint (x1, x2) space).
+        local_fraction: share of the minimal samples drawn locally (rest uniform).
+        batch_size: hypotheses drawn per vectorised batch; the adaptive stopping test runs
+            between batches.
+        refit_iters: least-squares refits of the best model on its inliers, each kept only
+            if it does not lose inliers (paper: 1).
+        rotation_fix_reflections: let the rotation fix also consider mirrored image 2
+            (App. C says it "can easily be extended"); ignored for the reflection-checked
+            variants (MOP*, MOP+MiHo*).
+        rotation_pairs: random match pairs scored by the rotation fix (0 = all pairs).
     """
 
     method: FilterMethod = FilterMethod.MOP_MIHO
@@ -41,6 +55,13 @@ class FilterConfig:
     buffer_size: int = 5
     rotation_fix: bool = True
     device: str = "auto"
+    sampling: str = "local"
+    local_neighbours: int = 16
+    local_fraction: float = 0.75
+    batch_size: int = 128
+    refit_iters: int = 1
+    rotation_fix_reflections: bool = True
+    rotation_pairs: int = 20000
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", FilterMethod.parse(self.method, "method"))
@@ -65,6 +86,18 @@ class FilterConfig:
             raise ValueError(f"buffer_size must be >= 0, got {self.buffer_size}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+        if self.sampling not in ("local", "uniform"):
+            raise ValueError(f"sampling must be local or uniform, got {self.sampling!r}")
+        if self.local_neighbours < 3:
+            raise ValueError(f"local_neighbours must be >= 3, got {self.local_neighbours}")
+        if not 0 <= self.local_fraction <= 1:
+            raise ValueError(f"local_fraction must be in [0, 1], got {self.local_fraction}")
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.refit_iters < 0:
+            raise ValueError(f"refit_iters must be >= 0, got {self.refit_iters}")
+        if self.rotation_pairs < 0:
+            raise ValueError(f"rotation_pairs must be >= 0, got {self.rotation_pairs}")
 
     @property
     def is_miho(self) -> bool:

@@ -1,0 +1,114 @@
+"""MiHo and VSAC splits of a homography into two 'middle' homographies (paper Sec. 3.2,
+App. B, C).
+
+- MiHo: each match ``(x1, x2)`` becomes two half-matches ``(x1 -> m)`` and ``(m -> x2)`` with
+  ``m = (x1 + x2) / 2``; a hypothesis is the pair ``(H1, H2)`` fitted on the same 4 matches,
+  and the two-view map is ``H2 @ H1``. See :func:`build_problem`.
+- Rotation fix (App. C): before MOP, image-2 points are turned by the multiple of 90 degrees
+  (optionally also mirrored) that maximises the number of match pairs whose midpoint distance
+  lies between their two image distances, on a random subset of pairs. See
+  :func:`choose_rotation`.
+- VSAC: ``H = H_v @ H_v`` by the principal matrix square root after making ``det(H) > 0``;
+  fails for 180-degree rotations and reflections. See :func:`sqrt_split`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .ransac import Problem
+
+
+def _candidate_transforms(x2: np.ndarray, reflections: bool) -> list[np.ndarray]:
+    """3x3 affine maps of image 2 (rotations by k*90 degrees about the points' centroid,
+    then optionally a mirror about the vertical axis through it), identity first."""
+    c = x2.mean(axis=0)
+    out = []
+    for mirror in (False, True) if reflections else (False,):
+        for k in range(4):
+            a = k * np.pi / 2
+            R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]).round(12)
+            if mirror:
+                R = R @ np.diag([-1.0, 1.0])
+            G = np.eye(3)
+            G[:2, :2] = R
+            G[:2, 2] = c - R @ c
+            out.append(G)
+    return out
+
+
+def apply_affine(G: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply a 3x3 affine map ``G`` to ``(N, 2)`` points."""
+    return pts @ G[:2, :2].T + G[:2, 2]
+
+
+def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
+                    pairs: int = 20000, reflections: bool = False) -> tuple[np.ndarray, int, int]:
+    """Pick the image-2 pre-alignment of the rotation fix (App. C).
+
+    Args:
+        x1, x2: ``(N, 2)`` matched pixels.
+        pairs: random match pairs scored (0 = all ``N (N - 1) / 2`` pairs).
+        reflections: also try the four mirrored variants.
+
+    Returns:
+        ``(G, index, score)``: ``G`` ``(3, 3)`` affine map applied to image-2 points
+        (``x2' = G x2``), the index of the candidate (0-3: rotation by index*90 degrees,
+        4-7: mirrored then rotated), and its pair count.
+    """
+    N = len(x1)
+    if N < 2:
+        return np.eye(3), 0, 0
+    if pairs == 0 or pairs >= N * (N - 1) // 2:
+        i, j = np.triu_indices(N, 1)
+    else:
+        i = rng.integers(0, N, pairs)
+        j = rng.integers(0, N, pairs)
+        keep = i != j
+        i, j = i[keep], j[keep]
+    d1 = np.linalg.norm(x1[i] - x1[j], axis=1)
+    d2 = np.linalg.norm(x2[i] - x2[j], axis=1)  # invariant to the candidates (isometries)
+    lo, hi = np.minimum(d1, d2), np.maximum(d1, d2)
+    best = (np.eye(3), 0, -1)
+    for idx, G in enumerate(_candidate_transforms(x2, reflections)):
+        x2g = apply_affine(G, x2)
+        dm = np.linalg.norm((x1[i] + x2g[i]) / 2 - (x1[j] + x2g[j]) / 2, axis=1)
+        score = int(((dm >= lo - 1e-9) & (dm <= hi + 1e-9)).sum())
+        if score > best[2]:
+            best = (G, idx, score)
+    return best
+
+
+def build_problem(x1: np.ndarray, x2: np.ndarray, miho: bool) -> Problem:
+    """The RANSAC problem of plain MOP (one half ``x1 -> x2``) or of MOP+MiHo (two halves
+    ``x1 -> m`` and ``m -> x2``, spread tested in ``x1``, ``x2`` and ``m``)."""
+    if not miho:
+        return Problem(src=(x1,), dst=(x2,), spread=(x1, x2), x1=x1, x2=x2)
+    m = (x1 + x2) / 2
+    return Problem(src=(x1, m), dst=(m, x2), spread=(x1, x2, m), x1=x1, x2=x2)
+
+
+def sqrt_split(H: np.ndarray, tol: float = 1e-6) -> np.ndarray | None:
+    """VSAC half homography: ``H_v`` with ``H_v @ H_v ~ H`` (``(3, 3)``), or ``None`` when
+    no real square root exists (180-degree rotation, reflection, negative eigenvalues) or it
+    is inaccurate (relative residual above ``tol``)."""
+    from scipy.linalg import sqrtm
+
+    Hs = H / np.cbrt(np.linalg.det(H)) if np.linalg.det(H) != 0 else None
+    if Hs is None or not np.all(np.isfinite(Hs)):
+        return None
+    # det(Hs) = 1 > 0 now (the real cube root keeps the sign that makes it positive).
+    with np.errstate(all="ignore"):
+        try:
+            Hv = sqrtm(Hs)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+    Hv = np.asarray(Hv)
+    if not np.all(np.isfinite(Hv)):
+        return None
+    if np.iscomplexobj(Hv):
+        if np.abs(Hv.imag).max() > tol * max(np.abs(Hv.real).max(), 1e-12):
+            return None
+        Hv = Hv.real
+    resid = np.abs(Hv @ Hv - Hs).max() / np.abs(Hs).max()
+    return Hv if resid <= tol else None
