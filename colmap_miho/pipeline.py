@@ -81,6 +81,7 @@ class RefineSummary:
     median_displacement_px: float = 0.0
     max_displacement_px: float = 0.0
     images_missing: list[str] = field(default_factory=list)
+    refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -334,9 +335,13 @@ def refine_database(
 
                 usable = {k: v for k, v in ok.items()
                           if k[0] not in loader.missing and k[1] not in loader.missing}
+                affines = {i: db.keypoint_affines(i) for i in keypoints}
+                affines = None if any(a is None for a in affines.values()) else affines
                 tr = refine_tracks(loader, keypoints, {k: m for k, (m, _) in usable.items()},
                                    {k: r for k, (_, r) in usable.items()}, ncc_config=ncfg,
-                                   track_config=rec.tracks, progress=progress)
+                                   track_config=rec.tracks, affines=affines, progress=progress)
+                summary.refine_stats = {k: v for k, v in tr.stats.items()
+                                        if isinstance(v, (int, float, str, bool))}
                 new_keypoints = {i: np.asarray(tr.keypoints.get(i, keypoints[i]), np.float64)
                                  for i in keypoints}
             seconds["refine"] = time.perf_counter() - t

@@ -201,3 +201,70 @@ def test_two_and_four_keypoint_columns(tmp_path, columns):
     assert s.pairs_filtered == 3 and s.matches_removed > 0
     with ColmapDatabase(s.output) as db:
         assert db.raw_keypoints(1).shape[1] == columns
+
+
+# ---------------------------------------------------------------------------------------
+# with NCC refinement: images missing, grey and colour, different sizes
+
+# The NCC search radius (recipe default 10 px) bounds how far a keypoint can move.
+MAX_MOVE_PX = 10 * np.sqrt(2) + 1e-6
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    return make_synthetic_scene(tmp_path_factory.mktemp("small"), num_images=3, num_points=60,
+                                outlier_ratio=0.1, noise_px=1.0, seed=4)
+
+
+def _copy_scene_images(scene, folder):
+    folder.mkdir()
+    for p in scene.image_dir.iterdir():
+        (folder / p.name).write_bytes(p.read_bytes())
+    return folder
+
+
+def test_refine_moves_keypoints_once_and_maps(small_scene, tmp_path):
+    s = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "r.db", workers=1)
+    assert s.refined and s.keypoints_moved > 0
+    assert 0 < s.max_displacement_px <= MAX_MOVE_PX
+    with ColmapDatabase(small_scene.database) as db_in, ColmapDatabase(s.output) as db_out:
+        moved = 0
+        for im in db_in.images():
+            a, b = db_in.raw_keypoints(im.image_id), db_out.raw_keypoints(im.image_id)
+            assert a.shape == b.shape  # one row (one position) per keypoint, all columns kept
+            np.testing.assert_array_equal(a[:, 2:], b[:, 2:])
+            moved += int(np.any(a[:, :2] != b[:, :2], axis=1).sum())
+    assert moved == s.keypoints_moved
+    assert _map(s.output, small_scene.image_dir, tmp_path) == 3
+
+
+def test_missing_image_is_filtered_not_refined(small_scene, tmp_path, capsys):
+    images = _copy_scene_images(small_scene, tmp_path / "imgs")
+    with ColmapDatabase(small_scene.database) as db:
+        gone = db.images()[0]
+    (images / gone.name).unlink()
+    code = main(["refine", "--database", str(small_scene.database), "--images", str(images),
+                 "--output", str(tmp_path / "o.db"), "--workers", "1", "--json", str(tmp_path / "s.json"), "-q"])
+    assert code == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("WARNING")]
+    assert len(warnings) == 1 and gone.name in warnings[0]
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["images_missing"] == [gone.name] and summary["pairs_filtered"] == 3
+    with ColmapDatabase(small_scene.database) as db_in, ColmapDatabase(tmp_path / "o.db") as db_out:
+        np.testing.assert_array_equal(db_in.raw_keypoints(gone.image_id), db_out.raw_keypoints(gone.image_id))
+    code = main(["refine", "--database", str(small_scene.database), "--images", str(images),
+                 "--output", str(tmp_path / "o2.db"), "--strict", "--workers", "1", "-q"])
+    assert code == 2
+    assert gone.name in capsys.readouterr().err and not (tmp_path / "o2.db").exists()
+
+
+def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
+    images = _copy_scene_images(small_scene, tmp_path / "imgs")
+    names = sorted(p.name for p in images.iterdir())
+    grey = cv2.imread(str(images / names[0]), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(images / names[0]), grey)  # single channel
+    colour = cv2.imread(str(images / names[1]), cv2.IMREAD_COLOR)
+    cv2.imwrite(str(images / names[1]), np.pad(colour, ((0, 21), (0, 37), (0, 0))))  # larger
+    s = refine_database(small_scene.database, images, tmp_path / "o.db", workers=1)
+    assert s.keypoints_moved > 0 and s.images_missing == []
+    assert 0 < s.max_displacement_px <= MAX_MOVE_PX

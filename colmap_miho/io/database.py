@@ -158,6 +158,22 @@ class ColmapDatabase:
         """Keypoint positions of one image, float64 (N, 2), integer = pixel centre."""
         return colmap_to_pixel_centre(self.raw_keypoints(image_id)[:, :2])
 
+    def keypoint_affines(self, image_id: int) -> np.ndarray | None:
+        """Local affine frames of the keypoints, float64 (N, 2, 2) (columns = local axes, in
+        pixels), or None when the keypoints have only x, y.
+
+        6 columns: x, y, a11, a12, a21, a22 (COLMAP SIFT). 4 columns: x, y, scale,
+        orientation (radians), turned into a scaled rotation.
+        """
+        raw = self.raw_keypoints(image_id).astype(np.float64)
+        if raw.shape[1] >= 6:
+            return raw[:, 2:6].reshape(-1, 2, 2)
+        if raw.shape[1] == 4:
+            s, o = raw[:, 2], raw[:, 3]
+            c, n = s * np.cos(o), s * np.sin(o)
+            return np.stack([np.stack([c, -n], -1), np.stack([n, c], -1)], 1)
+        return None
+
     def pairs(self, source: MatchSource | str) -> list[PairRecord]:
         """Image pairs with matches in ``source`` ("verified": two-view-geometry inliers,
         "raw": the matches table), sorted by pair id. Cheap: reads counts only."""
