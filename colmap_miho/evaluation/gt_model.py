@@ -124,9 +124,9 @@ def load_gt_poses(path: str | Path) -> dict[str, CameraPose]:
 
 
 def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
+    import pycolmap
 
-    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    x, y, z, w = pycolmap.Rotation3d(np.asarray(R, dtype=np.float64)).quat
     q = np.array([w, x, y, z])
     return -q if q[0] < 0 else q
 

@@ -1,0 +1,137 @@
+"""PNG figures for ``compare``: cumulative pose-error curves, keypoint displacements, matches kept.
+
+matplotlib with the non-interactive Agg backend (works headless); each function writes one
+PNG and returns its path. Inputs are plain arrays / dicts; nothing here reads databases.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+COLORS = {"baseline": "#7f7f7f", "refined": "#d62728"}
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_pose_error_curves(
+    curves: dict[str, dict[str, list[float]]], path: str | Path, *, max_deg: float = 20.0, title: str = ""
+) -> Path:
+    """Cumulative pose-error curves: fraction of pairs with error <= x, one panel per metric.
+
+    Args:
+        curves: ``{metric: {label: errors}}``, e.g. ``{"model": {"baseline": [...], "refined":
+            [...]}, "two-view E": {...}}``; errors in degrees, ``inf``/None = failure. A label
+            starting with "baseline" / "refined" gets that colour; add the AUCs to the label.
+        path: PNG file to write.
+        max_deg: x-axis limit (degrees).
+    """
+    plt = _pyplot()
+    metrics = [m for m in curves if curves[m]]
+    fig, axes = plt.subplots(1, max(1, len(metrics)), figsize=(4.2 * max(1, len(metrics)), 3.6), squeeze=False)
+    xs = np.linspace(0.0, max_deg, 401)
+    for ax, metric in zip(axes[0], metrics):
+        for label, errs in curves[metric].items():
+            e = np.array([np.inf if v is None else v for v in errs], dtype=np.float64)
+            if e.size == 0:
+                continue
+            recall = (e[None, :] <= xs[:, None]).mean(axis=1)
+            key = label.split()[0] if label else label
+            ax.plot(xs, recall, color=COLORS.get(key), lw=2, label=label)
+        for t in (5, 10, 20):
+            if t <= max_deg:
+                ax.axvline(t, color="#cccccc", lw=0.8, zorder=0)
+        ax.set_xlim(0, max_deg)
+        ax.set_ylim(0, 1.02)
+        ax.set_xlabel("pose error (deg)")
+        ax.set_ylabel("fraction of pairs")
+        ax.set_title(metric)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_displacement_histogram(displacements: np.ndarray, path: str | Path, *, max_px: float | None = None,
+                                title: str = "") -> Path:
+    """Histogram of keypoint displacements (pixels) of the moved keypoints.
+
+    Args:
+        displacements: (N,) non-negative pixel distances; N may be 0 (an empty plot says so).
+    """
+    plt = _pyplot()
+    d = np.asarray(displacements, dtype=np.float64).reshape(-1)
+    fig, ax = plt.subplots(figsize=(5.5, 3.6))
+    if d.size:
+        hi = max_px if max_px else max(float(np.quantile(d, 0.99)), 1e-3)
+        ax.hist(np.clip(d, 0, hi), bins=40, range=(0, hi), color=COLORS["refined"], alpha=0.85)
+        ax.axvline(np.median(d), color="k", ls="--", lw=1, label=f"median {np.median(d):.2f} px")
+        ax.legend()
+        ax.set_xlabel(f"keypoint displacement (px, clipped at {hi:.2f})")
+    else:
+        ax.text(0.5, 0.5, "no keypoint moved", ha="center", va="center", transform=ax.transAxes)
+        ax.set_xlabel("keypoint displacement (px)")
+    ax.set_ylabel("keypoints")
+    ax.set_title(title or f"{d.size} keypoints moved")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _short_labels(labels: list[str]) -> list[str]:
+    """'a.png|b.png' pair labels without the names' common prefix and extension."""
+    import os
+
+    names = [n for lab in labels for n in lab.split("|")]
+    prefix = os.path.commonprefix(names) if len(names) > 1 else ""
+    return ["-".join(os.path.splitext(n[len(prefix):])[0] or n for n in lab.split("|")) for lab in labels]
+
+
+def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title: str = "") -> Path:
+    """Verified matches per image pair before and after (log scale), and the fraction kept.
+
+    Args:
+        before, after: ``{"name1|name2": count}``; a pair missing from ``after`` counts 0.
+            Pairs are sorted by ``before``.
+    """
+    plt = _pyplot()
+    labels = sorted(before, key=lambda k: -before[k])
+    b = np.array([before[k] for k in labels], dtype=np.float64)
+    a = np.array([after.get(k, 0) for k in labels], dtype=np.float64)
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(max(6.0, 0.2 * len(labels) + 2), 5.2), sharex=True,
+                                  gridspec_kw={"height_ratios": [2, 1]})
+    x = np.arange(len(labels))
+    ax.bar(x - 0.2, np.maximum(b, 0.8), color=COLORS["baseline"], label=f"baseline ({int(b.sum())})", width=0.4)
+    ax.bar(x + 0.2, np.maximum(a, 0.8), color=COLORS["refined"], label=f"colmap-miho ({int(a.sum())})", width=0.4)
+    ax.set_yscale("log")
+    ax.set_ylabel("verified matches")
+    ax.set_title(title or "matches kept per pair")
+    ax.legend(fontsize=8)
+    frac = np.where(b > 0, a / np.maximum(b, 1), 0.0)
+    ax2.bar(x, 100 * frac, color=COLORS["refined"], width=0.6)
+    ax2.axhline(100, color="#999999", lw=0.8)
+    ax2.set_ylabel("kept (%)")
+    ax2.set_ylim(0, max(105.0, 100 * float(frac.max(initial=0)) + 5))
+    ax2.set_xlabel("image pair (sorted by baseline matches)")
+    if len(labels) <= 60:
+        ax2.set_xticks(x, _short_labels(labels), rotation=90, fontsize=6)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
