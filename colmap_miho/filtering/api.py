@@ -17,7 +17,10 @@ Where this implementation differs from the paper (all are :class:`FilterConfig` 
 - Thresholds: t_h = t_l / 2 (paper; the reference uses 7 px). MiHo errors are the max of
   the four transfer errors against the midpoint with the same thresholds (reference).
 - The rotation fix is applied to MOP+MiHo and VSAC and may also pick a mirrored image 2
-  (``rotation_fix_reflections``), never for the reflection-checked variants.
+  (``rotation_fix_reflections``, App. C's suggested extension). For MOP+MiHo*, a pair whose
+  best pre-alignment is mirrored is rejected (``success=False``): MiHo's midpoint frame
+  degenerates there and the star variants assume no reflections. Plain MOP* needs no rule:
+  its reflection check rejects the samples of a mirrored plane.
 - The computation runs on the CPU in numpy; torch inputs (CPU or CUDA) are accepted and
   copied to the CPU. Measured: one MOP round is ~100 small batched operations on arrays of
   (64 hypotheses x N matches), where framework latency, not arithmetic, dominates.
@@ -159,9 +162,13 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
     t1 = time.perf_counter()
     if cfg.rotation_fix and (cfg.is_miho or vsac):
         G, idx, _ = choose_rotation(x1, x2, rng, pairs=cfg.rotation_pairs,
-                                    reflections=cfg.rotation_fix_reflections
-                                    and not cfg.reflection_check)
+                                    reflections=cfg.rotation_fix_reflections)
         stats["rotation_index"] = idx
+        if idx >= 4 and cfg.reflection_check:
+            # MiHo's midpoint frame degenerates for a mirrored pair; the star variants assume
+            # no reflections, so such a pair is rejected rather than filtered into garbage.
+            stats["time_total"] = time.perf_counter() - t0
+            return _failure(n, meth, stats, "mirrored pair rejected by the reflection check")
     else:
         stats["rotation_index"] = 0
     x2r = apply_affine(G, x2) if stats["rotation_index"] else x2

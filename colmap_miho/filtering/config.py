@@ -38,8 +38,8 @@ class FilterConfig:
         refit_iters: least-squares refits of the best model on its inliers, each kept only
             if it does not lose inliers (paper: 1).
         rotation_fix_reflections: let the rotation fix also consider mirrored image 2
-            (App. C says it "can easily be extended"); ignored for the reflection-checked
-            variants (MOP*, MOP+MiHo*).
+            (App. C says it "can easily be extended"); for MOP+MiHo* a mirrored best
+            candidate makes the pair fail (reflections are excluded by that variant).
         rotation_pairs: random match pairs scored by the rotation fix (0 = all pairs).
     """
 
