@@ -313,20 +313,29 @@ def _render_matplotlib(p, c, path: Path, width: int, height: int, title: str | N
     dpi = 100
     fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
     ax = fig.add_subplot(projection="3d")
+    shown = 0
     if len(p):
-        # COLMAP's camera frame has y down: show -y as up
-        ax.scatter(p[:, 0], p[:, 2], -p[:, 1], s=1.5, c=c if c is not None else -p[:, 1],
-                   cmap=None if c is not None else "viridis", linewidths=0, depthshade=False)
-        # view the 1st-99th percentile box (+10 %): a few far outliers must not shrink the cloud
-        lo, hi = np.percentile(p, 1, axis=0), np.percentile(p, 99, axis=0)
-        pad = 0.1 * np.maximum(hi - lo, 1e-9)
+        # principal axes: the two widest spread across the picture, the thinnest (a facade's
+        # normal, a ground plane's up) is the viewing depth, so structures are seen face-on
+        centred = p - p.mean(0)
+        axes = np.linalg.svd(centred, full_matrices=False)[2] if len(p) >= 3 else np.eye(3)
+        q = centred @ axes.T
+        # the 5th-95th percentile box (+25 %): far points are left out, not shrinking the cloud
+        lo, hi = np.percentile(q, 5, axis=0), np.percentile(q, 95, axis=0)
+        pad = 0.25 * np.maximum(hi - lo, 1e-9)
         lo, hi = lo - pad, hi + pad
+        inside = np.all((q >= lo) & (q <= hi), axis=1)
+        q = q[inside]
+        shown = len(q)
+        ax.scatter(q[:, 0], q[:, 2], q[:, 1], s=1.5, c=c[inside] if c is not None else q[:, 1],
+                   cmap=None if c is not None else "viridis", linewidths=0, depthshade=False)
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[2], hi[2])
-        ax.set_zlim(-hi[1], -lo[1])
+        ax.set_zlim(lo[1], hi[1])
         ax.set_box_aspect(tuple(hi[[0, 2, 1]] - lo[[0, 2, 1]]))
-    ax.set_xlabel("x")
-    ax.set_ylabel("z")
-    ax.set_zlabel("-y")
-    ax.set_title(title or f"{len(p)} points")
+        ax.view_init(elev=20, azim=-75)
+    ax.set_xlabel("axis 1")
+    ax.set_ylabel("axis 3 (depth)")
+    ax.set_zlabel("axis 2")
+    ax.set_title(title or f"{len(p)} points ({len(p) - shown} far points not drawn)")
     fig.savefig(path, dpi=dpi)
