@@ -8,7 +8,6 @@ half-pixel shift and every index are checked exactly, not against our own writer
 from __future__ import annotations
 
 import hashlib
-import shutil
 from pathlib import Path
 
 import h5py
