@@ -66,17 +66,19 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
         j = rng.integers(0, N, pairs)
         keep = i != j
         i, j = i[keep], j[keep]
-    d1 = np.linalg.norm(x1[i] - x1[j], axis=1)
-    d2 = np.linalg.norm(x2[i] - x2[j], axis=1)  # invariant to the candidates (isometries)
-    lo, hi = np.minimum(d1, d2), np.maximum(d1, d2)
-    best = (np.eye(3), 0, -1)
-    for idx, G in enumerate(_candidate_transforms(x2, reflections)):
-        x2g = apply_affine(G, x2)
-        dm = np.linalg.norm((x1[i] + x2g[i]) / 2 - (x1[j] + x2g[j]) / 2, axis=1)
-        score = int(((dm >= lo - 1e-9) & (dm <= hi + 1e-9)).sum())
-        if score > best[2]:
-            best = (G, idx, score)
-    return best
+    dx1 = x1[i] - x1[j]
+    dx2 = x2[i] - x2[j]
+    d1 = np.sqrt((dx1**2).sum(1))
+    d2 = np.sqrt((dx2**2).sum(1))  # invariant to the candidates (isometries)
+    lo, hi = np.minimum(d1, d2) - 1e-9, np.maximum(d1, d2) + 1e-9
+    cands = _candidate_transforms(x2, reflections)
+    # m_i - m_j = (dx1 + R dx2) / 2: translations cancel, only the linear part matters.
+    R = np.stack([G[:2, :2] for G in cands])  # (C, 2, 2)
+    dm = dx1[None] + np.einsum("cab,pb->cpa", R, dx2)
+    dm = np.sqrt((dm**2).sum(-1)) / 2  # (C, P)
+    scores = ((dm >= lo) & (dm <= hi)).sum(1)
+    best = int(np.argmax(scores))  # first maximum: identity wins ties
+    return cands[best], best, int(scores[best])
 
 
 def build_problem(x1: np.ndarray, x2: np.ndarray, miho: bool) -> Problem:
