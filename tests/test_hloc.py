@@ -322,6 +322,7 @@ def test_import_bad_options(tiny, capsys):
     assert not list(tmp.glob("x.db*"))
 
 
+@pytest.mark.slow
 def test_refine_then_export_round_trip(scene, h5files, tmp_path):
     """hloc files -> database -> refine -> export: the files carry the refined database exactly."""
     try:
