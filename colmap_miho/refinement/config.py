@@ -23,7 +23,13 @@ class NCCConfig:
         reject_border: reject moves whose peak lies on the border of the search window.
         cornerness_gate: skip flat and edge-like patches (structure-tensor test).
         min_cornerness: threshold of the gate (lambda_min / lambda_max of the patch).
+        min_template_std: templates whose intensity standard deviation is below this
+            ([0, 1] intensity scale; uint8 images are divided by 255) are flat and never
+            moved (NCC is undefined on them).
         move: which side may move, "1", "2" or "auto" (the paper's: the higher NCC moves).
+        subpixel_iterations: after the parabola fit on the integer NCC map, re-sample the
+            window at the sub-pixel estimate and fit again on the 3x3 neighbourhood this many
+            times (0 = the paper's single fit).
         batch_size: matches per batched call (bounds memory).
         device: "cpu", "cuda" or "auto".
     """
@@ -37,7 +43,9 @@ class NCCConfig:
     reject_border: bool = True
     cornerness_gate: bool = False
     min_cornerness: float = 0.1
+    min_template_std: float = 0.01
     move: MoveSide = MoveSide.AUTO
+    subpixel_iterations: int = 3
     batch_size: int = 512
     device: str = "auto"
 
@@ -55,6 +63,12 @@ class NCCConfig:
             raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
         if not 0 <= self.min_cornerness <= 1:
             raise ValueError(f"min_cornerness must be in [0, 1], got {self.min_cornerness}")
+        if self.min_template_std < 0:
+            raise ValueError(f"min_template_std must be >= 0, got {self.min_template_std}")
+        if not 0 <= self.subpixel_iterations <= 10:
+            raise ValueError(
+                f"subpixel_iterations must be in [0, 10], got {self.subpixel_iterations}"
+            )
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.device not in ("auto", "cpu", "cuda"):

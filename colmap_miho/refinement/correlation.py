@@ -1,0 +1,189 @@
+"""Batched normalised cross-correlation maps, structure tensors and peak finding (App. E).
+
+NCC of a template ``T`` (zero mean, unit norm) against the window patch ``W_t`` at offset
+``t`` is ``sum_w T(w) (W_t(w) - mean W_t) / ||W_t - mean W_t||``, in [-1, 1] (the paper's
+S divided by the number of pixels). Because ``T`` has zero mean, the numerator is the plain
+cross-correlation of ``T`` with the window (one grouped ``conv2d`` for all matches and shapes)
+and the window norms come from box filters (``avg_pool2d``), so no patch is normalised one by
+one.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+#: a parabola whose curvature (NCC units per px^2) is flatter than this is not fitted: on a
+#: flat ridge (along an edge) its vertex is noise.
+MIN_CURVATURE = 1e-4
+#: template / window norms below this (intensity units, [0, 1] scale) count as flat.
+_EPS_NORM = 1e-6
+
+
+def ncc_maps(windows: torch.Tensor, templates: torch.Tensor) -> torch.Tensor:
+    """NCC response maps of every template against its own window.
+
+    Args:
+        windows: (J, Sw, Sw) float32 search windows.
+        templates: (J, K, St, St) float32 templates (K shapes per window), St <= Sw.
+    Returns:
+        (J, K, So, So) float32 with So = Sw - St + 1; entry [j, k, y, x] is the NCC of
+        template k of job j with the window patch whose top-left corner is (x, y). Flat
+        windows or templates give 0.
+    """
+    J, K, St, _ = templates.shape
+    Sw = windows.shape[-1]
+    n = St * St
+    t = templates - templates.mean(dim=(-2, -1), keepdim=True)
+    t_norm = t.square().sum(dim=(-2, -1), keepdim=True).sqrt()
+    t = t / t_norm.clamp_min(_EPS_NORM)
+    t = torch.where(t_norm > _EPS_NORM, t, torch.zeros_like(t))
+    w = windows - windows.mean(dim=(-2, -1), keepdim=True)  # limits float32 cancellation
+    num = F.conv2d(w.reshape(1, J, Sw, Sw), t.reshape(J * K, 1, St, St), groups=J)
+    num = num.reshape(J, K, Sw - St + 1, Sw - St + 1)
+    s1 = box_sum(w, St)
+    s2 = box_sum(w.square(), St)
+    w_norm = (s2 - s1.square() / n).clamp_min(0.0).sqrt()[:, None]  # (J, 1, So, So)
+    inv = torch.where(w_norm > _EPS_NORM, 1.0 / w_norm.clamp_min(_EPS_NORM), 0.0)
+    return (num * inv).clamp_(-1.0, 1.0)
+
+
+def ncc_neighbourhood(windows: torch.Tensor, templates: torch.Tensor) -> torch.Tensor:
+    """NCC at the 3x3 offsets around the centre, by explicit shifts (cheaper than a grouped
+    convolution for so few offsets).
+
+    Args:
+        windows: (J, St + 2, St + 2) float32.
+        templates: (J, St, St) float32.
+    Returns:
+        (J, 3, 3) float32 NCC, [y, x] with the zero offset at [1, 1].
+    """
+    J, St, _ = templates.shape
+    t = templates - templates.mean(dim=(-2, -1), keepdim=True)
+    t_norm = t.square().sum(dim=(-2, -1), keepdim=True).sqrt()
+    t = torch.where(t_norm > _EPS_NORM, t / t_norm.clamp_min(_EPS_NORM), torch.zeros_like(t))
+    out = torch.empty((J, 3, 3), dtype=templates.dtype, device=templates.device)
+    for dy in range(3):
+        for dx in range(3):
+            w = windows[:, dy : dy + St, dx : dx + St]
+            w = w - w.mean(dim=(-2, -1), keepdim=True)
+            w_norm = w.square().sum(dim=(-2, -1)).sqrt()
+            num = (w * t).sum(dim=(-2, -1))
+            out[:, dy, dx] = torch.where(
+                w_norm > _EPS_NORM, num / w_norm.clamp_min(_EPS_NORM), torch.zeros_like(num)
+            )
+    return out
+
+
+def box_sum(x: torch.Tensor, size: int) -> torch.Tensor:
+    """Sums over all ``size`` x ``size`` windows ('valid') of x (J, S, S) by integral images
+    (float64 accumulation); returns (J, S - size + 1, S - size + 1) float32."""
+    c = F.pad(x.to(torch.float64).cumsum(-1).cumsum(-2), (1, 0, 1, 0))
+    out = c[:, size:, size:] - c[:, :-size, size:] - c[:, size:, :-size] + c[:, :-size, :-size]
+    return out.to(x.dtype)
+
+
+def structure_tensor(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Eigen-decomposition of the gradient structure tensor of each patch.
+
+    Args:
+        patches: (J, S, S) float32.
+    Returns:
+        (lam_min (J,), lam_max (J,), dir_max (J, 2)): eigenvalues of ``sum g g^T`` over the
+        patch (central differences) and the unit (x, y) direction of the dominant gradient.
+    """
+    gx = 0.5 * (patches[:, 1:-1, 2:] - patches[:, 1:-1, :-2])
+    gy = 0.5 * (patches[:, 2:, 1:-1] - patches[:, :-2, 1:-1])
+    a = gx.square().sum(dim=(-2, -1))
+    b = (gx * gy).sum(dim=(-2, -1))
+    c = gy.square().sum(dim=(-2, -1))
+    half_tr = 0.5 * (a + c)
+    disc = (0.25 * (a - c).square() + b.square()).sqrt()
+    lam_max = half_tr + disc
+    lam_min = (half_tr - disc).clamp_min(0.0)
+    # eigenvector of lam_max: (b, lam_max - a) or (lam_max - c, b), whichever is larger
+    v1 = torch.stack([b, lam_max - a], -1)
+    v2 = torch.stack([lam_max - c, b], -1)
+    v = torch.where((v1.norm(dim=-1) >= v2.norm(dim=-1))[:, None], v1, v2)
+    nv = v.norm(dim=-1, keepdim=True)
+    default = torch.tensor([1.0, 0.0], dtype=v.dtype, device=v.device).expand_as(v)
+    dir_max = torch.where(nv > 1e-12, v / nv.clamp_min(1e-12), default)
+    return lam_min, lam_max, dir_max
+
+
+def ellipse_masks(
+    lam_min: torch.Tensor,
+    lam_max: torch.Tensor,
+    dir_max: torch.Tensor,
+    radius: int,
+    min_axis: float = 0.5,
+) -> torch.Tensor:
+    """NCC* search masks (App. E): an ellipse with semi-axis ``radius`` along the dominant
+    gradient (across an edge) and ``max(min_axis, radius * sqrt(lam_min / lam_max))`` along
+    the edge.
+
+    Returns:
+        (J, 2*radius+1, 2*radius+1) bool, indexed [y, x] like the NCC maps.
+    """
+    r = torch.arange(-radius, radius + 1, device=lam_min.device, dtype=torch.float32)
+    yy, xx = torch.meshgrid(r, r, indexing="ij")
+    ratio = torch.where(lam_max > 0, lam_min / lam_max.clamp_min(1e-20), torch.ones_like(lam_max))
+    minor = (radius * ratio.sqrt()).clamp_min(min_axis)
+    d = dir_max.to(torch.float32)
+    along_grad = xx[None] * d[:, 0, None, None] + yy[None] * d[:, 1, None, None]
+    along_edge = -xx[None] * d[:, 1, None, None] + yy[None] * d[:, 0, None, None]
+    q = (along_grad / radius).square() + (along_edge / minor[:, None, None]).square()
+    return q <= 1.0 + 1e-6
+
+
+def find_peaks(maps: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Best shape and offset of each job, with 1-D parabolic sub-pixel refinement.
+
+    Args:
+        maps: (J, K, So, So) NCC maps (So = 2s+1, centre = zero offset).
+        mask: optional (J, So, So) bool, offsets allowed (NCC*).
+    Returns:
+        dict of (J,) tensors: ``k`` best shape, ``peak`` its NCC, ``ix``/``iy`` integer peak
+        offsets from the centre, ``dx``/``dy`` sub-pixel offsets (float, ``ix + sub``),
+        ``border`` (peak on the map border, or - with a mask - not a local maximum
+        of the unmasked map, i.e. held back by the mask), ``centre`` the NCC at zero
+        offset of the best shape at zero offset.
+    """
+    J, K, So, _ = maps.shape
+    s = So // 2
+    m = maps if mask is None else maps.masked_fill(~mask[:, None], -2.0)
+    flat = m.reshape(J, -1)
+    peak, arg = flat.max(dim=1)
+    k = arg // (So * So)
+    rem = arg % (So * So)
+    iy, ix = rem // So, rem % So
+    best = maps[torch.arange(J, device=maps.device), k]  # (J, So, So)
+    jj = torch.arange(J, device=maps.device)
+
+    def vertex(c0, cm, cp, valid):
+        den = cm - 2.0 * c0 + cp
+        ok = valid & (den < -MIN_CURVATURE)
+        d = 0.5 * (cm - cp) / torch.where(ok, den, torch.ones_like(den))
+        return torch.where(ok, d.clamp(-0.5, 0.5), torch.zeros_like(d))
+
+    vx = (ix > 0) & (ix < So - 1)
+    vy = (iy > 0) & (iy < So - 1)
+    c0 = best[jj, iy, ix]
+    sub_x = vertex(c0, best[jj, iy, (ix - 1).clamp_min(0)], best[jj, iy, (ix + 1).clamp_max(So - 1)], vx)
+    sub_y = vertex(c0, best[jj, (iy - 1).clamp_min(0), ix], best[jj, (iy + 1).clamp_max(So - 1), ix], vy)
+    border = ~(vx & vy)
+    if mask is not None:
+        # a peak held back by the mask is not a local maximum of the unmasked map
+        local_max = F.max_pool2d(best[:, None], 3, stride=1, padding=1)[:, 0]
+        border = border | (local_max[jj, iy, ix] > c0 + 1e-6)
+    centre = maps[:, :, s, s].max(dim=1).values
+    return {
+        "k": k,
+        "peak": peak,
+        "ix": ix - s,
+        "iy": iy - s,
+        "dx": (ix - s).to(maps.dtype) + sub_x,
+        "dy": (iy - s).to(maps.dtype) + sub_y,
+        "border": border,
+        "centre": centre,
+    }

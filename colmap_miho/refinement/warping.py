@@ -1,0 +1,182 @@
+"""Batched homography patch sampling with torch (bilinear, pixel centres at integers).
+
+All coordinates are (x, y) pixels with integer = pixel centre (OpenCV / kornia convention).
+A patch homography ``H`` maps image pixels into a common (rectified) frame: ``c ~ H x``.
+Sampling a patch around a common-frame centre ``c`` reads the image at ``H^-1 (c + w)`` for the
+offsets ``w`` of a square grid, with ``torch.nn.functional.grid_sample`` (bilinear,
+``align_corners=True``, which puts pixel centres at integers).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+#: |det H| below this (relative to the scale of H) marks a homography as singular.
+_SINGULAR_DET = 1e-12
+#: homogeneous w below this marks a point mapped to (or behind) the line at infinity.
+_MIN_W = 1e-8
+#: coordinates used for samples that cannot be mapped: far outside every image (reads zero).
+_FAR = -1.0e6
+
+
+def to_gray_tensor(image, device: torch.device) -> torch.Tensor:
+    """Image as a float32 tensor (H, W) on ``device``.
+
+    Args:
+        image: numpy array or tensor (H, W), uint8 (divided by 255) or float (used as is,
+            intensities nominally in [0, 1]).
+    """
+    if isinstance(image, torch.Tensor):
+        t = image.detach()
+    else:
+        t = torch.from_numpy(np.ascontiguousarray(image))
+    if t.ndim != 2:
+        raise ValueError(f"image must be a grayscale (H, W) array, got shape {tuple(t.shape)}")
+    if t.dtype == torch.uint8:
+        t = t.to(torch.float32) / 255.0
+    elif t.is_floating_point():
+        t = t.to(torch.float32)
+    else:
+        raise ValueError(f"image must be uint8 or float, got dtype {t.dtype}")
+    return t.to(device)
+
+
+def offset_grid(radius: int, device: torch.device, dtype=torch.float64) -> torch.Tensor:
+    """Integer offsets of a (2r+1) x (2r+1) square, (P, 2) as (x, y), row-major (y outer),
+    so that a tensor (..., P) reshapes to (..., 2r+1, 2r+1) indexed [y, x]."""
+    r = torch.arange(-radius, radius + 1, device=device, dtype=dtype)
+    yy, xx = torch.meshgrid(r, r, indexing="ij")
+    return torch.stack([xx.reshape(-1), yy.reshape(-1)], dim=-1)
+
+
+def invert_homographies(H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched 3x3 inverse by the adjugate.
+
+    Args:
+        H: (..., 3, 3) float64.
+    Returns:
+        (H_inv (..., 3, 3), valid (...) bool); singular or non-finite matrices get the
+        identity as inverse and ``valid=False``.
+    """
+    a, b, c = H[..., 0, 0], H[..., 0, 1], H[..., 0, 2]
+    d, e, f = H[..., 1, 0], H[..., 1, 1], H[..., 1, 2]
+    g, h, i = H[..., 2, 0], H[..., 2, 1], H[..., 2, 2]
+    adj = torch.stack(
+        [
+            torch.stack([e * i - f * h, c * h - b * i, b * f - c * e], -1),
+            torch.stack([f * g - d * i, a * i - c * g, c * d - a * f], -1),
+            torch.stack([d * h - e * g, b * g - a * h, a * e - b * d], -1),
+        ],
+        -2,
+    )
+    det = a * adj[..., 0, 0] + b * adj[..., 1, 0] + c * adj[..., 2, 0]
+    scale = H.abs().amax(dim=(-2, -1)).clamp_min(1e-300) ** 3
+    valid = torch.isfinite(det) & (det.abs() > _SINGULAR_DET * scale)
+    safe = torch.where(valid, det, torch.ones_like(det))
+    inv = adj / safe[..., None, None]
+    eye = torch.eye(3, dtype=H.dtype, device=H.device).expand_as(H)
+    inv = torch.where(valid[..., None, None], inv, eye)
+    return inv, valid
+
+
+def apply_homographies(H: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Map points by per-batch homographies.
+
+    Args:
+        H: (J, 3, 3) float64.
+        pts: (J, P, 2) float64 (x, y).
+    Returns:
+        (mapped (J, P, 2), ok (J, P) bool); points that land at or behind the line at
+        infinity get ``ok=False`` and a far-away coordinate.
+    """
+    xh = pts @ H[:, :2, :2].transpose(1, 2) + H[:, None, :2, 2]
+    w = pts @ H[:, 2:, :2].transpose(1, 2) + H[:, None, 2:, 2]
+    ok = w[..., 0] > _MIN_W
+    out = xh / torch.where(ok, w[..., 0], torch.ones_like(w[..., 0]))[..., None]
+    out = torch.where(ok[..., None], out, torch.full_like(out, _FAR))
+    return out, ok
+
+
+def sample_bilinear(image: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of ``image`` (H, W) float32 at ``pts`` (..., 2) pixel coordinates;
+    outside the image reads 0. Returns (...) float32."""
+    h, w = image.shape
+    scale = torch.tensor(
+        [2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], dtype=torch.float32, device=image.device
+    )
+    grid = pts.to(torch.float32) * scale - 1.0
+    return _grid_sample(image, grid)
+
+
+def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    shape = grid.shape[:-1]
+    out = F.grid_sample(
+        image[None, None], grid.reshape(1, -1, 1, 2), mode="bilinear", padding_mode="zeros",
+        align_corners=True,
+    )
+    return out.reshape(shape)
+
+
+def sample_patches(
+    image: torch.Tensor,
+    H_inv: torch.Tensor,
+    centres: torch.Tensor,
+    offsets: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sample square patches of the rectified image around common-frame centres.
+
+    The centre is mapped in float64; the (small) offsets are mapped relative to it in float32
+    (``x = x_c + (B o - x_c (b . o)) / (1 + b . o)``, with ``H^-1 = [B | a]`` normalised so that
+    the centre's homogeneous w is 1), which keeps sub-1e-3 pixel accuracy at a fraction of the
+    cost of mapping every sample in float64.
+
+    Args:
+        image: (H, W) float32.
+        H_inv: (J, 3, 3) float64, maps the common frame back to image pixels.
+        centres: (J, 2) float64 common-frame centres.
+        offsets: (K, P, 2) float64 common-frame offsets (K shapes of P = (2r+1)^2 pixels,
+            row-major as :func:`offset_grid`).
+    Returns:
+        (values (J, K, P) float32, inside (J,) bool: the patch corners of every shape map
+        in front of the camera and inside the image, so the whole patch does).
+    """
+    J = centres.shape[0]
+    K, P = offsets.shape[0], offsets.shape[1]
+    side = int(round(P**0.5))
+    corner_idx = torch.tensor([0, side - 1, P - side, P - 1], device=offsets.device)
+    corners = centres[:, None, None, :] + offsets[None, :, corner_idx]  # (J, K, 4, 2)
+    c_img, ok = apply_homographies(H_inv, corners.reshape(J, K * 4, 2))
+    h, w = image.shape
+    inside = (
+        ok
+        & (c_img[..., 0] >= 0)
+        & (c_img[..., 0] <= w - 1)
+        & (c_img[..., 1] >= 0)
+        & (c_img[..., 1] <= h - 1)
+    ).all(dim=1)
+    # centre in homogeneous image coordinates, normalised to w = 1
+    a = (H_inv[:, :, :2] @ centres[:, :, None])[..., 0] + H_inv[:, :, 2]  # (J, 3)
+    wc = a[:, 2:]
+    good = wc[:, 0] > 1e-8
+    inside &= good
+    wc = torch.where(good[:, None], wc, torch.ones_like(wc))
+    xc = a[:, :2] / wc  # (J, 2) float64
+    scale64 = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], dtype=torch.float64,
+                           device=image.device)
+    Bn = H_inv[:, :, :2] / wc[:, :, None]  # (J, 3, 2): columns of H^-1 acting on offsets
+    num_m = ((Bn[:, :2] - xc[:, :, None] * Bn[:, 2:]) * scale64[None, :, None])  # (J, 2, 2)
+    # one GEMM (J*3, 3) @ (3, KP): rows give the two numerators and the denominator
+    M = torch.zeros((J, 3, 3), dtype=torch.float64, device=image.device)
+    M[:, :2, :2] = num_m
+    M[:, :2, 2] = (xc * scale64 - 1.0)  # grid coordinates of the centre (times den below)
+    M[:, 2, :2] = Bn[:, 2]
+    M[:, 2, 2] = 1.0
+    o = torch.cat([offsets.reshape(K * P, 2), torch.ones_like(offsets.reshape(K * P, 2)[:, :1])], 1)
+    q = torch.matmul(M.to(torch.float32), o.to(torch.float32).T)  # (J, 3, KP)
+    den = q[:, 2:].clamp_min(1e-6)
+    # grid = base + num / den, written as (base * den + num) / den = q[:2] / den
+    grid = (q[:, :2] / den).transpose(1, 2)
+    values = _grid_sample(image, grid).reshape(J, K, P)
+    return values, inside
