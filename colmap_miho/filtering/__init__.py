@@ -1,1 +1,13 @@
-"""MOP / MOP+MiHo match filtering (paper Sec. 3.1-3.2, App. A-D)."""
+"""MOP / MOP+MiHo match filtering (paper Sec. 3.1-3.2, App. A-D).
+
+Modules, in data-flow order:
+
+- ``config``: :class:`FilterConfig` (paper parameters and the speed options).
+- ``miho``: the RANSAC problem of MOP or MiHo, the 90-degree rotation fix, VSAC square root.
+- ``ransac``: one batched RANSAC run (sample checks, closed-form minimal solver, exact
+  one-way pre-scoring, top-z buffer, adaptive stopping, refit).
+- ``mop``: the outer loop (adaptive threshold, failure counter).
+- ``assign``: homography assignment of the kept matches (App. A.4).
+- ``api``: :func:`filter_matches` and :class:`FilterResult`.
+- ``homography``: batched homography maths used by all of the above.
+"""

@@ -279,7 +279,6 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
     if n < 4:
         return None, buffer
     t2 = cfg.t_l**2
-    nh = problem.num_halves
     best_hyp, best_err, best_count, best_mask = None, None, -1, None
     cands: list[tuple[Hypotheses, np.ndarray]] = []
 
@@ -292,7 +291,8 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
             if counts[k] > best_count:
                 if best_hyp is not None:
                     cands.append((best_hyp, best_mask))
-                best_hyp, best_err, best_count, best_mask = hyp.take(k), err[k], int(counts[k]), masks[k]
+                best_hyp, best_err = hyp.take(k), err[k]
+                best_count, best_mask = int(counts[k]), masks[k]
                 improved = True
             elif counts[k] > 0:
                 cands.append((hyp.take(k), masks[k]))
