@@ -21,8 +21,9 @@ def add_arguments(parser) -> None:
                         help="work folder (default ./colmap_miho_demo)")
     parser.add_argument("--num-images", type=int, default=8, help="rendered views (default 8)")
     parser.add_argument("--size", default="640x480", help="image size WxH (default 640x480)")
-    parser.add_argument("--max-features", type=int, default=4096, help="SIFT features per image (default 4096)")
-    parser.add_argument("--quick", action="store_true", help="6 views at 480x360 (about half the time)")
+    parser.add_argument("--max-features", type=int, default=None,
+                        help="SIFT features per image (default 2048; 1024 with --quick)")
+    parser.add_argument("--quick", action="store_true", help="6 views at 480x360 and 1024 features (for tests)")
     add_recipe_arguments(parser)
 
 
@@ -45,6 +46,7 @@ def run(args) -> int:
     recipe = load_recipe(args.recipe, args.overrides)
     w, h = _size(args.size)
     n = args.num_images
+    max_features = args.max_features or (1024 if args.quick else 2048)
     if args.quick:
         n, w, h = 6, 480, 360
     t0 = time.perf_counter()
@@ -52,7 +54,7 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     out = run_from_images(
         scene.image_dir, args.output, gt=scene.gt_dir, recipe=recipe, compare=True,
-        max_features=args.max_features, mapper=args.mapper, seed=args.seed, workers=args.workers,
+        max_features=max_features, mapper=args.mapper, seed=args.seed, workers=args.workers,
         device=args.device, progress=not args.quiet, verbose=args.verbose,
     )
     if not args.quiet:
