@@ -235,7 +235,28 @@ def test_refine_moves_keypoints_once_and_maps(small_scene, tmp_path):
             np.testing.assert_array_equal(a[:, 2:], b[:, 2:])
             moved += int(np.any(a[:, :2] != b[:, :2], axis=1).sum())
     assert moved == s.keypoints_moved
-    assert _map(s.output, small_scene.image_dir, tmp_path) == 3
+
+
+# pycolmap's rendered blobs are not the same texture in every view (NCC at the true positions
+# is about 0.5), so NCC cannot make these keypoints more accurate: measured on the 4-image
+# scene (seed 11) the median keypoint error goes from 1.13 px to 1.65 px, mapping still
+# registers all images. The bound below catches a refinement that goes astray.
+MAX_MEDIAN_KEYPOINT_ERROR_AFTER_NCC_PX = 2.2
+
+
+def _median_keypoint_error(scene, db_path):
+    with ColmapDatabase(db_path) as db:
+        errs = [np.linalg.norm(db.keypoints(im.image_id) - scene.gt_keypoints[im.image_id], axis=1)
+                for im in db.images()]
+    e = np.concatenate(errs)
+    return float(np.median(e[np.isfinite(e)]))
+
+
+def test_refined_scene_maps_all_images(scene, tmp_path):
+    s = refine_database(scene.database, scene.image_dir, tmp_path / "r.db", workers=1)
+    assert s.keypoints_moved > 0
+    assert _median_keypoint_error(scene, s.output) <= MAX_MEDIAN_KEYPOINT_ERROR_AFTER_NCC_PX
+    assert _map(s.output, scene.image_dir, tmp_path) == 4
 
 
 def test_missing_image_is_filtered_not_refined(small_scene, tmp_path, capsys):
@@ -268,3 +289,21 @@ def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
     s = refine_database(small_scene.database, images, tmp_path / "o.db", workers=1)
     assert s.keypoints_moved > 0 and s.images_missing == []
     assert 0 < s.max_displacement_px <= MAX_MOVE_PX
+
+
+def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypatch):
+    """Filtering pairs and refining whole tracks in 2 processes changes nothing."""
+    import colmap_miho.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "MIN_PAIRS_PER_WORKER", 1)
+    monkeypatch.setattr(pipeline, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db", workers=1)
+    two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w2.db", workers=2)
+    assert one.workers == 1 and two.workers == 2 and two.refine_stats["workers"] == 2
+    assert (one.matches_kept, one.keypoints_moved) == (two.matches_kept, two.keypoints_moved)
+    with ColmapDatabase(one.output) as a, ColmapDatabase(two.output) as b:
+        for im in a.images():
+            np.testing.assert_array_equal(a.raw_keypoints(im.image_id), b.raw_keypoints(im.image_id))
+        for p in a.pairs("verified"):
+            np.testing.assert_array_equal(a.matches(p.image_id1, p.image_id2, "verified"),
+                                          b.matches(p.image_id1, p.image_id2, "verified"))

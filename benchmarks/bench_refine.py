@@ -1,0 +1,126 @@
+"""Benchmark ``colmap-miho refine`` against pycolmap's own feature extraction + matching.
+
+On a multi-view folder (default: ../shared/data/strecha_fountain_p11, 11 images, exhaustive
+matching) this builds a COLMAP database in a temp folder with ``pycolmap.extract_features``
+and ``pycolmap.match_exhaustive`` (CPU SIFT), then times ``refine_database`` on it (median of
+``--repeats`` runs), and prints both figures and their ratio. Optionally maps the input and the
+output with incremental mapping and prints registered images, points and reprojection error
+(``--map``), with ``--verify`` runs both ways.
+
+Usage::
+
+    python benchmarks/bench_refine.py [--scene DIR] [--workers N] [--repeats 3] [--map]
+        [--recipe mop_miho_ncc] [--set key=value ...] [--max-features 8192]
+
+Timings taken while other processes use the cores are pessimistic.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def build_database(image_dir: Path, db: Path, max_features: int) -> tuple[float, float]:
+    import pycolmap
+
+    t = time.perf_counter()
+    pycolmap.extract_features(
+        str(db), str(image_dir), camera_mode=pycolmap.CameraMode.SINGLE,
+        extraction_options={"max_image_size": 4096, "sift": {"max_num_features": max_features}},
+        device=pycolmap.Device.cpu,
+    )
+    t_extract = time.perf_counter() - t
+    t = time.perf_counter()
+    pycolmap.match_exhaustive(str(db), device=pycolmap.Device.cpu)
+    return t_extract, time.perf_counter() - t
+
+
+def map_database(db: Path, image_dir: Path) -> dict:
+    import pycolmap
+
+    out = Path(tempfile.mkdtemp(prefix="bench_map_"))
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.random_seed = 0
+    t = time.perf_counter()
+    recs = pycolmap.incremental_mapping(str(db), str(image_dir), str(out), options=opts)
+    secs = time.perf_counter() - t
+    if not recs:
+        return {"registered": 0, "seconds": secs}
+    r = max(recs.values(), key=lambda r: r.num_reg_images())
+    return {"registered": r.num_reg_images(), "points": r.num_points3D(),
+            "track_length": round(r.compute_mean_track_length(), 2),
+            "reproj_px": round(r.compute_mean_reprojection_error(), 3), "seconds": round(secs, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scene", type=Path, default=REPO.parent / "shared" / "data" / "strecha_fountain_p11")
+    parser.add_argument("--workers", type=int, default=None)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--recipe", default=None)
+    parser.add_argument("--set", dest="overrides", action="append", default=[])
+    parser.add_argument("--max-features", type=int, default=8192)
+    parser.add_argument("--map", action="store_true", help="also map input and outputs")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args(argv)
+
+    import pycolmap
+
+    from colmap_miho.pipeline import refine_database
+    from colmap_miho.recipe import load_recipe
+
+    pycolmap.logging.minloglevel = 2
+    logging.basicConfig(level=logging.WARNING)
+    image_dir = args.scene / "images"
+    if not image_dir.is_dir():
+        print(f"no image folder {image_dir}", file=sys.stderr)
+        return 2
+    n_images = len([p for p in image_dir.iterdir() if p.suffix.lower() in (".jpg", ".png", ".jpeg")])
+    with tempfile.TemporaryDirectory(prefix="bench_refine_") as tmp:
+        db = Path(tmp) / "database.db"
+        t_extract, t_match = build_database(image_dir, db, args.max_features)
+        print(f"scene {args.scene.name}: {n_images} images, cores {os.cpu_count()}")
+        print(f"pycolmap extract_features {t_extract:.1f} s + match_exhaustive {t_match:.1f} s "
+              f"= {t_extract + t_match:.1f} s (CPU SIFT, {args.max_features} features)")
+        variants = [("default", [])]
+        if args.map:
+            variants.append(("verify", ["pipeline.verify=true"]))
+        results = {}
+        for name, extra in variants:
+            recipe = load_recipe(args.recipe, [*args.overrides, *extra])
+            times, summary = [], None
+            for k in range(args.repeats if name == "default" else 1):
+                out = Path(tmp) / f"out_{name}_{k}.db"
+                t = time.perf_counter()
+                summary = refine_database(db, image_dir, out, recipe=recipe, workers=args.workers,
+                                          device=args.device, seed=0)
+                times.append(time.perf_counter() - t)
+            results[name] = (summary, times)
+            med = statistics.median(times)
+            print(f"refine [{recipe.name}{' ' + ' '.join(extra) if extra else ''}] median {med:.1f} s "
+                  f"over {len(times)} run(s) {[round(x, 1) for x in times]}; stages "
+                  + ", ".join(f"{k} {v:.1f}" for k, v in summary.seconds.items()))
+            print(f"  pairs {summary.num_pairs} ({summary.pairs_filtered} filtered), matches "
+                  f"{summary.matches_in} -> {summary.matches_kept}, keypoints moved "
+                  f"{summary.keypoints_moved} (median {summary.median_displacement_px:.2f} px), "
+                  f"workers {summary.workers}")
+            if name == "default":
+                print(f"ratio refine / (extract + match) = {med / (t_extract + t_match):.2f}")
+        if args.map:
+            print("mapping input :", map_database(db, image_dir))
+            for name, (summary, _) in results.items():
+                print(f"mapping {name:7s}:", map_database(summary.output, image_dir))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
