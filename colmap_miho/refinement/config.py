@@ -27,6 +27,9 @@ class NCCConfig:
             ([0, 1] intensity scale; uint8 images are divided by 255) are flat and never
             moved (NCC is undefined on them).
         move: which side may move, "1", "2" or "auto" (the paper's: the higher NCC moves).
+        coarse_shapes: with several template shapes, choose the shape by NCC on a stride-2
+            grid of offsets and search the full grid with that shape only (about 3x
+            cheaper for "paper"; False evaluates every shape at every offset).
         subpixel_iterations: after the parabola fit on the integer NCC map, re-sample the
             window at the sub-pixel estimate and fit again on the 3x3 neighbourhood this many
             times (0 = the paper's single fit).
@@ -45,6 +48,7 @@ class NCCConfig:
     min_cornerness: float = 0.1
     min_template_std: float = 0.01
     move: MoveSide = MoveSide.AUTO
+    coarse_shapes: bool = True
     subpixel_iterations: int = 3
     batch_size: int = 512
     device: str = "auto"

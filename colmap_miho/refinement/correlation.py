@@ -20,16 +20,17 @@ MIN_CURVATURE = 1e-4
 _EPS_NORM = 1e-6
 
 
-def ncc_maps(windows: torch.Tensor, templates: torch.Tensor) -> torch.Tensor:
+def ncc_maps(windows: torch.Tensor, templates: torch.Tensor, stride: int = 1) -> torch.Tensor:
     """NCC response maps of every template against its own window.
 
     Args:
         windows: (J, Sw, Sw) float32 search windows.
         templates: (J, K, St, St) float32 templates (K shapes per window), St <= Sw.
+        stride: evaluate every ``stride``-th offset only (coarse search).
     Returns:
-        (J, K, So, So) float32 with So = Sw - St + 1; entry [j, k, y, x] is the NCC of
-        template k of job j with the window patch whose top-left corner is (x, y). Flat
-        windows or templates give 0.
+        (J, K, So, So) float32 with So = (Sw - St) // stride + 1; entry [j, k, y, x] is the
+        NCC of template k of job j with the window patch whose top-left corner is
+        (stride x, stride y). Flat windows or templates give 0.
     """
     J, K, St, _ = templates.shape
     Sw = windows.shape[-1]
@@ -39,40 +40,13 @@ def ncc_maps(windows: torch.Tensor, templates: torch.Tensor) -> torch.Tensor:
     t = t / t_norm.clamp_min(_EPS_NORM)
     t = torch.where(t_norm > _EPS_NORM, t, torch.zeros_like(t))
     w = windows - windows.mean(dim=(-2, -1), keepdim=True)  # limits float32 cancellation
-    num = F.conv2d(w.reshape(1, J, Sw, Sw), t.reshape(J * K, 1, St, St), groups=J)
-    num = num.reshape(J, K, Sw - St + 1, Sw - St + 1)
+    num = F.conv2d(w.reshape(1, J, Sw, Sw), t.reshape(J * K, 1, St, St), groups=J, stride=stride)
+    num = num.reshape(J, K, num.shape[-2], num.shape[-1])
     s1 = box_sum(w, St)
     s2 = box_sum(w.square(), St)
-    w_norm = (s2 - s1.square() / n).clamp_min(0.0).sqrt()[:, None]  # (J, 1, So, So)
+    w_norm = (s2 - s1.square() / n).clamp_min(0.0).sqrt()[:, None, ::stride, ::stride]
     inv = torch.where(w_norm > _EPS_NORM, 1.0 / w_norm.clamp_min(_EPS_NORM), 0.0)
     return (num * inv).clamp_(-1.0, 1.0)
-
-
-def ncc_neighbourhood(windows: torch.Tensor, templates: torch.Tensor) -> torch.Tensor:
-    """NCC at the 3x3 offsets around the centre, by explicit shifts (cheaper than a grouped
-    convolution for so few offsets).
-
-    Args:
-        windows: (J, St + 2, St + 2) float32.
-        templates: (J, St, St) float32.
-    Returns:
-        (J, 3, 3) float32 NCC, [y, x] with the zero offset at [1, 1].
-    """
-    J, St, _ = templates.shape
-    t = templates - templates.mean(dim=(-2, -1), keepdim=True)
-    t_norm = t.square().sum(dim=(-2, -1), keepdim=True).sqrt()
-    t = torch.where(t_norm > _EPS_NORM, t / t_norm.clamp_min(_EPS_NORM), torch.zeros_like(t))
-    out = torch.empty((J, 3, 3), dtype=templates.dtype, device=templates.device)
-    for dy in range(3):
-        for dx in range(3):
-            w = windows[:, dy : dy + St, dx : dx + St]
-            w = w - w.mean(dim=(-2, -1), keepdim=True)
-            w_norm = w.square().sum(dim=(-2, -1)).sqrt()
-            num = (w * t).sum(dim=(-2, -1))
-            out[:, dy, dx] = torch.where(
-                w_norm > _EPS_NORM, num / w_norm.clamp_min(_EPS_NORM), torch.zeros_like(num)
-            )
-    return out
 
 
 def box_sum(x: torch.Tensor, size: int) -> torch.Tensor:

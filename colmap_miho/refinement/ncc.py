@@ -35,7 +35,6 @@ from .correlation import (
     ellipse_masks,
     find_peaks,
     ncc_maps,
-    ncc_neighbourhood,
     structure_tensor,
 )
 from .perturbations import perturbation_matrices
@@ -147,7 +146,14 @@ def _run_direction(img_f, img_m, x_f, x_m, pairs, f, m, tpl_off, win_off, cfg):
         tpl = tpl.reshape(J, K, st, st)
         if first_template is None:
             first_template = tpl[:, 0]
-        maps.append(ncc_maps(win.reshape(J, sw, sw), tpl))
+        win = win.reshape(J, sw, sw)
+        if K > 1 and cfg.coarse_shapes:
+            # pick the shape on a stride-2 offset grid, search the full grid with it only
+            coarse = ncc_maps(win, tpl, stride=2).reshape(J, K, -1).amax(dim=-1)
+            best = coarse.argmax(dim=1)
+            tpl = tpl[torch.arange(J, device=tpl.device), best][:, None]
+            K = 1
+        maps.append(ncc_maps(win, tpl))
         inside_all.append(in_t & in_w)
         valid_all.append(ok_f & ok_m)
         pass_of_k += [p] * K
@@ -206,7 +212,7 @@ def _iterate_subpixel(img_m, H_m_inv, c_m, offset, tpl, cfg):
     side = 2 * cfg.template_radius + 3
     for _ in range(cfg.subpixel_iterations):
         win, _ = sample_patches(img_m, H_m_inv, c_m + offset, ring)
-        m3 = ncc_neighbourhood(win.reshape(-1, side, side), tpl).to(torch.float64)
+        m3 = ncc_maps(win.reshape(-1, side, side), tpl[:, None])[:, 0].to(torch.float64)
         c0 = m3[:, 1, 1]
 
         def vertex(cm, cp):
