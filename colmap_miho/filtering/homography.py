@@ -24,9 +24,10 @@ def normalise_points(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ``(T, pts_n)``: ``T`` ``(B, 3, 3)`` similarity with ``pts_n = T pts``, the normalised
         points ``(B, M, 2)`` having centroid 0 and mean distance ``sqrt(2)`` from it.
     """
-    centroid = pts.mean(axis=1, keepdims=True)
+    m = pts.shape[1]
+    centroid = pts.sum(axis=1, keepdims=True) / m
     centred = pts - centroid
-    mean_dist = np.sqrt((centred**2).sum(-1)).mean(axis=1)
+    mean_dist = np.sqrt((centred**2).sum(-1)).sum(axis=1) / m
     scale = np.sqrt(2.0) / np.maximum(mean_dist, 1e-12)
     T = np.zeros((pts.shape[0], 3, 3))
     T[:, 0, 0] = scale

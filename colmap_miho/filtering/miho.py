@@ -73,9 +73,10 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
     lo, hi = np.minimum(d1, d2) - 1e-9, np.maximum(d1, d2) + 1e-9
     cands = _candidate_transforms(x2, reflections)
     # m_i - m_j = (dx1 + R dx2) / 2: translations cancel, only the linear part matters.
-    R = np.stack([G[:2, :2] for G in cands])  # (C, 2, 2)
-    dm = dx1[None] + np.einsum("cab,pb->cpa", R, dx2)
-    dm = np.sqrt((dm**2).sum(-1)) / 2  # (C, P)
+    R = np.stack([G[:2, :2] for G in cands])[:, :, :, None]  # (C, 2, 2, 1)
+    mx = dx1[:, 0] + R[:, 0, 0] * dx2[:, 0] + R[:, 0, 1] * dx2[:, 1]  # (C, P)
+    my = dx1[:, 1] + R[:, 1, 0] * dx2[:, 0] + R[:, 1, 1] * dx2[:, 1]
+    dm = np.sqrt(mx * mx + my * my) / 2
     scores = ((dm >= lo) & (dm <= hi)).sum(1)
     best = int(np.argmax(scores))  # first maximum: identity wins ties
     return cands[best], best, int(scores[best])

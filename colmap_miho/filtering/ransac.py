@@ -158,11 +158,11 @@ def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterCon
 def passes_singular_value_test(problem: Problem, hyp: Hypotheses, cfg: FilterConfig) -> np.ndarray:
     """``(K,)`` bool: the normalised minimal DLT system of every half has its smallest
     singular value above ``cfg.min_singular_value`` (paper App. A.3)."""
-    ok = np.ones(len(hyp), dtype=bool)
-    for h in range(problem.num_halves):
-        sv = dlt_singular_value(problem.src[h][hyp.sample], problem.dst[h][hyp.sample])
-        ok &= sv > cfg.min_singular_value
-    return ok
+    K, nh = len(hyp), problem.num_halves
+    src = problem.src_all[hyp.sample].transpose(0, 2, 1, 3).reshape(K * nh, 4, 2)
+    dst = problem.dst_all[hyp.sample].transpose(0, 2, 1, 3).reshape(K * nh, 4, 2)
+    sv = dlt_singular_value(src, dst).reshape(K, nh)
+    return np.all(sv > cfg.min_singular_value, axis=1)
 
 
 def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
