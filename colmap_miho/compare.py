@@ -104,6 +104,7 @@ _ROWS = [
     ("model pose mAA (%)", ("model_pose_auc", "maa"), "%"),
     ("rotation error median (deg)", ("absolute", "rotation_error_deg", "median"), ".3f"),
     ("centre error / camera spread (%)", ("absolute", "center_error_rel"), "%2"),
+    ("sparse-cloud outliers (%)", ("pointcloud", "outlier_share"), "%"),
     ("two-view E AUC@5 (%)", ("two_view_pose_auc_E", "auc5"), "%"),
     ("two-view E AUC@10 (%)", ("two_view_pose_auc_E", "auc10"), "%"),
     ("two-view E AUC@20 (%)", ("two_view_pose_auc_E", "auc20"), "%"),
@@ -190,6 +191,33 @@ def _curves(baseline: dict, refined: dict) -> dict:
     return curves
 
 
+def _point_clouds(output: Path, base_map, ref_map, plot_files: list) -> dict:
+    """PLY files, density/outlier figures and a picture of each side's sparse cloud.
+
+    Uses :mod:`colmap_miho.evaluation.pointcloud` (open3d optional: it falls back to scipy and
+    matplotlib); any failure there is logged and skipped, never fatal.
+    """
+    try:
+        from .evaluation import pointcloud as pc
+    except ImportError as exc:  # pragma: no cover - module missing in a partial install
+        log.info("point-cloud figures skipped: %s", exc)
+        return {}
+    out: dict = {}
+    for tag, res in (("baseline", base_map), ("refined", ref_map)):
+        if not res.success or res.reconstruction is None:
+            continue
+        try:
+            ply = pc.export_ply(res.reconstruction, output / tag / "points.ply")
+            xyz, rgb = pc.reconstruction_points(res.reconstruction)
+            out[tag] = {"ply": str(ply), **pc.cloud_figures(xyz)}
+            png = output / "plots" / f"points_{tag}.png"
+            pc.render_cloud_png(xyz, rgb, png, title=f"{tag}: {len(xyz)} points")
+            plot_files.append(png)
+        except (RuntimeError, ValueError, OSError) as exc:
+            log.info("point-cloud figures for %s skipped: %s", tag, exc)
+    return out
+
+
 def compare_databases(
     database: str | Path,
     image_dir: str | Path,
@@ -256,7 +284,7 @@ def compare_databases(
         pairs, _ = default_eval_pairs(gt, load_gt_poses(gt))
     baseline = _evaluate(base_map.success, base_map.output, database, gt, pairs, seed)
     refined = _evaluate(ref_map.success, ref_map.output, summary.output, gt, pairs, seed)
-    baseline["mapping"] = base_map.to_dict()
+    baseline["mapping"] = base_map.to_dict()  # point-cloud figures are added below, before the tables
     refined["mapping"] = ref_map.to_dict()
     write_report_json(baseline, output / "baseline" / "report.json")
     write_report_json(refined, output / "refined" / "report.json")
@@ -271,6 +299,10 @@ def compare_databases(
     plot_files.append(plots.plot_matches_per_pair(changes["matches_before"], changes["matches_after"],
                                                   output / "plots" / "matches_per_pair.png"))
 
+    clouds = _point_clouds(output, base_map, ref_map, plot_files)
+    for tag, rep in (("baseline", baseline), ("refined", refined)):
+        if tag in clouds:
+            rep["pointcloud"] = clouds[tag]
     md = output / "compare.md"
     md.write_text(comparison_markdown(baseline, refined, refine), encoding="utf-8")
     disp = changes["displacements"]
@@ -285,6 +317,7 @@ def compare_databases(
             "p90": float(np.quantile(disp, 0.9)) if disp.size else None,
             "max": float(disp.max()) if disp.size else None,
         },
+        "pointcloud": clouds,
         "rows": [{"metric": a, "baseline": b, "refined": c} for a, b, c in comparison_rows(baseline, refined)],
         "plots": [str(p) for p in plot_files],
     }
