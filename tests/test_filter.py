@@ -262,3 +262,11 @@ def test_uniform_sampling_is_as_accurate(scene):
 def test_image2_transform_roundtrip():
     G = image2_transform(90, mirror=True)
     assert np.isclose(abs(np.linalg.det(G[:2, :2])), 1.0)
+
+
+def test_result_pickles_for_worker_processes(scene):
+    import pickle
+
+    res = filter_matches(scene.x1, scene.x2, seed=np.uint64(3))
+    back = pickle.loads(pickle.dumps(res))
+    assert back.method == res.method and np.array_equal(back.labels, res.labels)

@@ -65,3 +65,15 @@ def test_real_pairs_precision_rises_recall_kept(real_matches, key, method):
     assert precision >= good.mean() + min_gain, (precision, good.mean())
     assert precision >= min_precision
     assert recall >= MIN_RECALL
+
+
+def test_example_filter_pair_runs(shared_data, monkeypatch, capsys):
+    import runpy
+    from pathlib import Path
+
+    monkeypatch.setenv("COLMAP_MIHO_DATA", str(shared_data))
+    example = Path(__file__).resolve().parents[1] / "examples" / "filter_pair.py"
+    module = runpy.run_path(str(example), run_name="example")
+    assert module["main"](["leuven", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "homographies" in out and "precision" in out
