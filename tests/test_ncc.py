@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -181,3 +184,15 @@ def test_oxford_real_pairs_with_gt_homography(shared_data, detector):
     r = refine_pair(img1, img2, p1, p2, homs)
     after = transfer_error(pair.H_2from1, r.pts1, r.pts2)
     assert np.median(after) <= OXFORD_MAX_RATIO[detector] * np.median(before[good])
+
+
+def test_example_refine_pair_runs(shared_data, monkeypatch, capsys):
+    import runpy
+
+    monkeypatch.setenv("COLMAP_MIHO_DATA", str(shared_data))
+    example = Path(__file__).resolve().parents[1] / "examples" / "refine_pair.py"
+    main = runpy.run_path(str(example))["main"]
+    assert main(["graf", "2", "gftt"]) == 0
+    out = capsys.readouterr().out
+    before, after = (float(x) for x in re.search(r"([\d.]+) px -> ([\d.]+) px", out).groups())
+    assert after < before
