@@ -196,3 +196,23 @@ def test_example_refine_pair_runs(shared_data, monkeypatch, capsys):
     out = capsys.readouterr().out
     before, after = (float(x) for x in re.search(r"([\d.]+) px -> ([\d.]+) px", out).groups())
     assert after < before
+
+
+def test_base_pass_uses_keypoint_affine_frames(known_motion):
+    """Extended pair useless (a 25-degree rotation); the base pass with the true local affine
+    frames (image-2 frame = Jacobian of H at the keypoint) still recovers the motion."""
+    img1, img2, pts1, gt2, noisy2, _ = known_motion
+    sl = slice(0, 120)
+    p1, g2, n2 = pts1[sl], gt2[sl], noisy2[sl]
+    c, s = np.cos(np.radians(25)), np.sin(np.radians(25))
+    wrong = np.tile(np.stack([np.eye(3), np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])]),
+                    (len(p1), 1, 1, 1))
+    x = np.c_[p1, np.ones(len(p1))] @ H_KNOWN.T
+    w = x[:, 2]
+    jac = (H_KNOWN[None, :2, :2] - (x[:, :2] / w[:, None])[:, :, None] * H_KNOWN[None, 2:, :2]) / w[:, None, None]
+    without = refine_pair(img1, img2, p1, n2, wrong, move="2", config=NCCConfig(use_base_pair=False))
+    with_aff = refine_pair(img1, img2, p1, n2, wrong, move="2",
+                           affine1=np.tile(np.eye(2), (len(p1), 1, 1)), affine2=jac)
+    e_without = np.median(np.linalg.norm(without.pts2 - g2, axis=1))
+    e_with = np.median(np.linalg.norm(with_aff.pts2 - g2, axis=1))
+    assert e_with <= KNOWN_MOTION_MEDIAN_PX and e_without > 2 * e_with

@@ -168,15 +168,19 @@ def sample_patches(
     Bn = H_inv[:, :, :2] / wc[:, :, None]  # (J, 3, 2): columns of H^-1 acting on offsets
     num_m = ((Bn[:, :2] - xc[:, :, None] * Bn[:, 2:]) * scale64[None, :, None])  # (J, 2, 2)
     # one GEMM (J*3, 3) @ (3, KP): rows give the two numerators and the denominator
+    base = xc * scale64 - 1.0  # (J, 2) grid coordinates of the centre
+    # grid = base + (num_m o) / den with den = 1 + b.o, written as q_xy / q_w where
+    # q = M [o; 1], M = [[num_m + base b^T, base], [b^T, 1]]: one GEMM for all jobs
     M = torch.zeros((J, 3, 3), dtype=torch.float64, device=image.device)
-    M[:, :2, :2] = num_m
-    M[:, :2, 2] = (xc * scale64 - 1.0)  # grid coordinates of the centre (times den below)
+    M[:, :2, :2] = num_m + base[:, :, None] * Bn[:, 2][:, None, :]
+    M[:, :2, 2] = base
     M[:, 2, :2] = Bn[:, 2]
     M[:, 2, 2] = 1.0
-    o = torch.cat([offsets.reshape(K * P, 2), torch.ones_like(offsets.reshape(K * P, 2)[:, :1])], 1)
-    q = torch.matmul(M.to(torch.float32), o.to(torch.float32).T)  # (J, 3, KP)
-    den = q[:, 2:].clamp_min(1e-6)
-    # grid = base + num / den, written as (base * den + num) / den = q[:2] / den
-    grid = (q[:, :2] / den).transpose(1, 2)
-    values = _grid_sample(image, grid).reshape(J, K, P)
+    flat = offsets.reshape(K * P, 2)
+    o = torch.cat([flat, torch.ones_like(flat[:, :1])], 1).to(torch.float32)  # (KP, 3)
+    q = (o @ M.to(torch.float32).permute(2, 0, 1).reshape(3, J * 3)).view(K * P, J, 3)
+    grid = q[..., :2] / q[..., 2:].clamp_min(1e-6)  # (KP, J, 2)
+    out = F.grid_sample(image[None, None], grid[None], mode="bilinear", padding_mode="zeros",
+                        align_corners=True)  # (1, 1, KP, J)
+    values = out[0, 0].t().reshape(J, K, P)
     return values, inside
