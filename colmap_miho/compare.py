@@ -284,10 +284,8 @@ def compare_databases(
         pairs, _ = default_eval_pairs(gt, load_gt_poses(gt))
     baseline = _evaluate(base_map.success, base_map.output, database, gt, pairs, seed)
     refined = _evaluate(ref_map.success, ref_map.output, summary.output, gt, pairs, seed)
-    baseline["mapping"] = base_map.to_dict()  # point-cloud figures are added below, before the tables
+    baseline["mapping"] = base_map.to_dict()
     refined["mapping"] = ref_map.to_dict()
-    write_report_json(baseline, output / "baseline" / "report.json")
-    write_report_json(refined, output / "refined" / "report.json")
 
     changes = match_changes(database, summary.output)
     plot_files = []
@@ -303,6 +301,7 @@ def compare_databases(
     for tag, rep in (("baseline", baseline), ("refined", refined)):
         if tag in clouds:
             rep["pointcloud"] = clouds[tag]
+        write_report_json(rep, output / tag / "report.json")
     md = output / "compare.md"
     md.write_text(comparison_markdown(baseline, refined, refine), encoding="utf-8")
     disp = changes["displacements"]
