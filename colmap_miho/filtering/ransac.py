@@ -305,18 +305,31 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
 
     use_local = cfg.sampling == "local" and n > cfg.local_neighbours + 1
     f_local = cfg.local_fraction if use_local else 0.0
-    knn = None
+    tree = feats = None
     if use_local:
         from scipy.spatial import cKDTree
 
         feats = np.concatenate([problem.x1[pool], problem.x2[pool]], axis=1)
-        _, knn = cKDTree(feats).query(feats, k=cfg.local_neighbours + 1)
-        knn = knn[:, 1:]
+        tree = cKDTree(feats)  # building is cheap; neighbours are queried only where needed
+
+    nb_cache = np.empty((n, cfg.local_neighbours), dtype=np.int64)
+    nb_known = np.zeros(n, dtype=bool)
+
+    def neighbours(pos: np.ndarray) -> np.ndarray:
+        """``(len(pos), k)`` pool positions of the k nearest matches of pool positions ``pos``
+        (queried once per position, on demand)."""
+        todo = np.unique(pos[~nb_known[pos]])
+        if len(todo):
+            nb_cache[todo] = tree.query(feats[todo], k=cfg.local_neighbours + 1)[1][:, 1:]
+            nb_known[todo] = True
+        return nb_cache[pos]
 
     def local_inlier_fraction() -> float:
-        if knn is None or best_mask is None or best_count <= 0:
+        if tree is None or best_mask is None or best_count <= 0:
             return 0.0
-        return float(best_mask[knn[best_mask]].mean())
+        inl = np.flatnonzero(best_mask)
+        probe = inl[np.linspace(0, len(inl) - 1, min(len(inl), 256)).astype(np.int64)]
+        return float(best_mask[neighbours(probe)].mean())
 
     def update_required() -> float:
         if best_count <= 0:
@@ -332,9 +345,11 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         seeds = rng.integers(0, n, B)
         others = rng.integers(0, n, (B, 3))
         if use_local:
-            is_local = rng.random(B) < f_local
-            loc = knn[seeds[:, None], rng.integers(0, cfg.local_neighbours, (B, 3))]
-            others = np.where(is_local[:, None], loc, others)
+            is_local = np.flatnonzero(rng.random(B) < f_local)
+            pick = rng.integers(0, cfg.local_neighbours, (len(is_local), 3))
+            if len(is_local):
+                nb = neighbours(seeds[is_local])
+                others[is_local] = np.take_along_axis(nb, pick, axis=1)
         sample = pool[np.concatenate([seeds[:, None], others], axis=1)]
         stats["drawn"] += B
         hyp = hypotheses_from_samples(problem, sample, cfg)
