@@ -56,7 +56,7 @@ class FilterConfig:
     rotation_fix: bool = True
     device: str = "auto"
     sampling: str = "local"
-    local_neighbours: int = 16
+    local_neighbours: int = 8
     local_fraction: float = 0.75
     batch_size: int = 128
     refit_iters: int = 1
