@@ -180,9 +180,13 @@ def test_four_point_matches_normalised_dlt():
     rng = np.random.default_rng(0)
     src = rng.uniform(0, 800, (50, 4, 2))
     dst = src + rng.normal(0, 30, (50, 4, 2))
-    a = to_unit_h33(four_point(src, dst))
-    b = to_unit_h33(dlt(src, dst)[0])
-    assert np.allclose(a, b, atol=1e-7)
+    H, sign_fwd, sign_inv = four_point(src, dst)
+    assert np.allclose(to_unit_h33(H), to_unit_h33(dlt(src, dst)[0]), atol=1e-7)
+    # The closed-form quasi-affinity signs equal those of the projected sample points.
+    w_fwd = (H[:, None, 2, :2] * src).sum(-1) + H[:, None, 2, 2]
+    Hinv = np.linalg.inv(H) * np.linalg.det(H)[:, None, None]  # adjugate
+    w_inv = (Hinv[:, None, 2, :2] * dst).sum(-1) + Hinv[:, None, 2, 2]
+    assert np.array_equal(np.sign(w_fwd), sign_fwd) and np.array_equal(np.sign(w_inv), sign_inv)
 
 
 def test_assignment_rule():

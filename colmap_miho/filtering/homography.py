@@ -105,15 +105,18 @@ def dlt(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return normalise_scale(H), sv8
 
 
-def _basis_map(p: np.ndarray) -> np.ndarray:
-    """``(B, 3, 3)`` projective map sending the canonical basis and ``(1, 1, 1)`` to the
-    homogeneous points ``p`` ``(B, 4, 3)`` (up to scale)."""
+def _basis_map(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Projective map sending the canonical basis and ``(1, 1, 1)`` to the homogeneous
+    points ``p`` ``(B, 4, 3)``: returns ``(P diag(lam), lam, det(P))`` with ``P`` the
+    ``(B, 3, 3)`` matrix of columns ``p0, p1, p2`` and ``lam = adj(P) p3`` ``(B, 3)``."""
     P = np.swapaxes(p[:, :3], 1, 2)  # columns p0, p1, p2
-    lam = (adjugate(P) @ p[:, 3, :, None])[..., 0]  # det(P) * P^-1 p3
-    return P * lam[:, None, :]
+    adj = adjugate(P)
+    lam = (adj @ p[:, 3, :, None])[..., 0]  # det(P) * P^-1 p3
+    det = (P[:, 0, :] * adj[:, :, 0]).sum(-1)
+    return P * lam[:, None, :], lam, det
 
 
-def four_point(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+def four_point(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact homographies of minimal samples in closed form (no SVD).
 
     With 4 points the ``8 x 9`` DLT system has a one-dimensional null space, so this is the
@@ -123,17 +126,34 @@ def four_point(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     needed here: measured residual on the 4 points <= 1e-7 px at 1500 px coordinates, the
     same as with it.
 
+    The same factors give, without projecting anything, the signs of the homogeneous ``w``
+    of the 4 source points under ``H`` and of the 4 destination points under ``adj(H)``
+    (quasi-affinity of the sample, App. A.3): with ``A = P diag(lam)``, ``B = Q diag(mu)``,
+    ``H p_i ~ det(A) mu_i / lam_i q_i`` (i < 3) and ``H p_3 ~ det(A) det(Q) / det(P) q_3``,
+    and symmetrically for ``adj(H)``.
+
     Args:
         src, dst: ``(B, 4, 2)`` pixels.
 
     Returns:
-        ``H`` ``(B, 3, 3)``, ``dst ~ H src``, unit Frobenius norm. Degenerate samples (three
+        ``(H, sign_fwd, sign_inv)``: ``H`` ``(B, 3, 3)``, ``dst ~ H src``, unit Frobenius
+        norm; ``sign_fwd``, ``sign_inv`` ``(B, 4)`` in {-1, 0, 1}. Degenerate samples (three
         collinear points) give a (near) singular ``H``; :func:`dlt_singular_value` flags them.
     """
     one = np.ones(src.shape[:2] + (1,))
-    A = _basis_map(np.concatenate([src, one], axis=2))
-    Bm = _basis_map(np.concatenate([dst, one], axis=2))
-    return normalise_scale(Bm @ adjugate(A))
+    A, lam, det_p = _basis_map(np.concatenate([src, one], axis=2))
+    Bm, mu, det_q = _basis_map(np.concatenate([dst, one], axis=2))
+    H = normalise_scale(Bm @ adjugate(A))
+    s_lam, s_mu = np.sign(lam), np.sign(mu)
+    s_det_a = np.sign(det_p) * np.prod(s_lam, axis=1)  # sign det(A)
+    s_det_b = np.sign(det_q) * np.prod(s_mu, axis=1)  # sign det(B)
+    sign_fwd = np.empty(src.shape[:2])
+    sign_inv = np.empty(src.shape[:2])
+    sign_fwd[:, :3] = s_det_a[:, None] * s_mu * s_lam
+    sign_fwd[:, 3] = s_det_a * np.sign(det_q) * np.sign(det_p)
+    sign_inv[:, :3] = (s_det_a * s_det_b)[:, None] * s_lam * s_mu
+    sign_inv[:, 3] = s_det_a * s_det_b * np.sign(det_p) * np.sign(det_q)
+    return H, sign_fwd, sign_inv
 
 
 def dlt_singular_value(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

@@ -147,12 +147,16 @@ def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterCon
         return Hypotheses.empty(nh)
     src = problem.src_all[sample].transpose(0, 2, 1, 3).reshape(B * nh, 4, 2)
     dst = problem.dst_all[sample].transpose(0, 2, 1, 3).reshape(B * nh, 4, 2)
-    H = four_point(src, dst).reshape(B, nh, 3, 3)
+    H, s_fwd, s_inv = four_point(src, dst)
+    H = H.reshape(B, nh, 3, 3)
+    s_fwd = s_fwd.reshape(B, nh, 4)
+    s_inv = s_inv.reshape(B, nh, 4)
+    # Quasi-affinity of the sample: one nonzero sign of w per half and direction.
     ok = np.all(np.isfinite(H), axis=(1, 2, 3))
-    H, sample = H[ok], sample[ok]
-    Hinv = adjugate(H)
-    ok, sign, sign_inv = sample_signs(problem, H, Hinv, sample)
-    return Hypotheses(H[ok], Hinv[ok], sign[ok], sign_inv[ok], sample[ok])
+    for sg in (s_fwd, s_inv):
+        ok &= np.all(sg == sg[:, :, :1], axis=(1, 2)) & np.all(sg[:, :, 0] != 0, axis=1)
+    H = H[ok]
+    return Hypotheses(H, adjugate(H), s_fwd[ok, :, 0], s_inv[ok, :, 0], sample[ok])
 
 
 def passes_singular_value_test(problem: Problem, hyp: Hypotheses, cfg: FilterConfig) -> np.ndarray:
