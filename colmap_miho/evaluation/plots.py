@@ -32,13 +32,17 @@ def plot_pose_error_curves(
             [...]}, "two-view E": {...}}``; errors in degrees, ``inf``/None = failure. A label
             starting with "baseline" / "refined" gets that colour; add the AUCs to the label.
         path: PNG file to write.
-        max_deg: x-axis limit (degrees).
+        max_deg: largest x-axis limit (degrees); a panel whose errors are all small zooms in
+            to 1.5 x their 95th percentile (at least 1 degree).
     """
     plt = _pyplot()
     metrics = [m for m in curves if curves[m]]
     fig, axes = plt.subplots(1, max(1, len(metrics)), figsize=(4.2 * max(1, len(metrics)), 3.6), squeeze=False)
-    xs = np.linspace(0.0, max_deg, 401)
     for ax, metric in zip(axes[0], metrics):
+        finite = np.array([v for errs in curves[metric].values() for v in errs if v is not None and np.isfinite(v)])
+        # zoom in when every error is small: the curve's shape is the information
+        hi = max_deg if finite.size == 0 else float(min(max_deg, max(1.0, np.ceil(1.5 * np.quantile(finite, 0.95)))))
+        xs = np.linspace(0.0, hi, 401)
         for label, errs in curves[metric].items():
             e = np.array([np.inf if v is None else v for v in errs], dtype=np.float64)
             if e.size == 0:
@@ -47,9 +51,9 @@ def plot_pose_error_curves(
             key = label.split()[0] if label else label
             ax.plot(xs, recall, color=COLORS.get(key), lw=2, label=label)
         for t in (5, 10, 20):
-            if t <= max_deg:
+            if t <= hi:
                 ax.axvline(t, color="#cccccc", lw=0.8, zorder=0)
-        ax.set_xlim(0, max_deg)
+        ax.set_xlim(0, hi)
         ax.set_ylim(0, 1.02)
         ax.set_xlabel("pose error (deg)")
         ax.set_ylabel("fraction of pairs")
