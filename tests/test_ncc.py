@@ -216,3 +216,13 @@ def test_base_pass_uses_keypoint_affine_frames(known_motion):
     e_without = np.median(np.linalg.norm(without.pts2 - g2, axis=1))
     e_with = np.median(np.linalg.norm(with_aff.pts2 - g2, axis=1))
     assert e_with <= KNOWN_MOTION_MEDIAN_PX and e_without > 2 * e_with
+
+
+def test_result_of_a_match_does_not_depend_on_its_batch(known_motion):
+    """Bitwise: the pipeline refines tracks in several processes with different batches."""
+    img1, img2, pts1, gt2, noisy2, homs = known_motion
+    full = refine_pair(img1, img2, pts1, noisy2, homs, config=NCCConfig(batch_size=64))
+    part = refine_pair(img1, img2, pts1[5:45], noisy2[5:45], homs[5:45],
+                       config=NCCConfig(batch_size=13))
+    np.testing.assert_array_equal(full.pts1[5:45], part.pts1)
+    np.testing.assert_array_equal(full.pts2[5:45], part.pts2)

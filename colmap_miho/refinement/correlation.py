@@ -35,11 +35,13 @@ def ncc_maps(windows: torch.Tensor, templates: torch.Tensor, stride: int = 1) ->
     J, K, St, _ = templates.shape
     Sw = windows.shape[-1]
     n = St * St
-    t = templates - templates.mean(dim=(-2, -1), keepdim=True)
-    t_norm = t.square().sum(dim=(-2, -1), keepdim=True).sqrt()
+    # float64 reductions: float32 ones may round differently with the batch size, and a
+    # match's result should not depend on which other matches share its batch
+    t = templates - _mean64(templates)
+    t_norm = t.to(torch.float64).square().sum(dim=(-2, -1), keepdim=True).sqrt().to(t.dtype)
     t = t / t_norm.clamp_min(_EPS_NORM)
     t = torch.where(t_norm > _EPS_NORM, t, torch.zeros_like(t))
-    w = windows - windows.mean(dim=(-2, -1), keepdim=True)  # limits float32 cancellation
+    w = windows - _mean64(windows)  # limits float32 cancellation
     num = F.conv2d(w.reshape(1, J, Sw, Sw), t.reshape(J * K, 1, St, St), groups=J, stride=stride)
     num = num.reshape(J, K, num.shape[-2], num.shape[-1])
     s1 = box_sum(w, St)
@@ -47,6 +49,10 @@ def ncc_maps(windows: torch.Tensor, templates: torch.Tensor, stride: int = 1) ->
     w_norm = (s2 - s1.square() / n).clamp_min(0.0).sqrt()[:, None, ::stride, ::stride]
     inv = torch.where(w_norm > _EPS_NORM, 1.0 / w_norm.clamp_min(_EPS_NORM), 0.0)
     return (num * inv).clamp_(-1.0, 1.0)
+
+
+def _mean64(x: torch.Tensor) -> torch.Tensor:
+    return x.to(torch.float64).mean(dim=(-2, -1), keepdim=True).to(x.dtype)
 
 
 def box_sum(x: torch.Tensor, size: int) -> torch.Tensor:
@@ -66,6 +72,7 @@ def structure_tensor(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor,
         (lam_min (J,), lam_max (J,), dir_max (J, 2)): eigenvalues of ``sum g g^T`` over the
         patch (central differences) and the unit (x, y) direction of the dominant gradient.
     """
+    patches = patches.to(torch.float64)  # batch-independent sums
     gx = 0.5 * (patches[:, 1:-1, 2:] - patches[:, 1:-1, :-2])
     gy = 0.5 * (patches[:, 2:, 1:-1] - patches[:, :-2, 1:-1])
     a = gx.square().sum(dim=(-2, -1))

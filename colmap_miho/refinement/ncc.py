@@ -184,7 +184,7 @@ def _run_direction(img_f, img_m, x_f, x_m, pairs, f, m, tpl_off, win_off, cfg):
             num = (Hi[:, :2, :2] @ tgt[:, :, None])[..., 0] + Hi[:, :2, 2]
             den = (Hi[:, 2:, :2] @ tgt[:, :, None])[..., 0] + Hi[:, 2:, 2]
             new[sel] = num / den.clamp_min(1e-12)
-    tstd = first_template.reshape(J, -1).std(dim=1)
+    tstd = first_template.reshape(J, -1).to(torch.float64).std(dim=1)
     ratio = torch.where(lam_max > 0, lam_min / lam_max.clamp_min(1e-20), torch.zeros_like(lam_max))
     valid = torch.stack(valid_all).all(dim=0)
     return {
@@ -210,6 +210,7 @@ def _iterate_subpixel(img_m, H_m_inv, c_m, offset, tpl, cfg):
     """
     ring = offset_grid(cfg.template_radius + 1, offset.device)[None]
     side = 2 * cfg.template_radius + 3
+    active = torch.ones(offset.shape[0], dtype=torch.bool, device=offset.device)
     for _ in range(cfg.subpixel_iterations):
         win, _ = sample_patches(img_m, H_m_inv, c_m + offset, ring)
         m3 = ncc_maps(win.reshape(-1, side, side), tpl[:, None])[:, 0].to(torch.float64)
@@ -222,8 +223,10 @@ def _iterate_subpixel(img_m, H_m_inv, c_m, offset, tpl, cfg):
             return torch.where(ok, d.clamp(-0.5, 0.5), torch.zeros_like(d))
 
         step = torch.stack([vertex(m3[:, 1, 0], m3[:, 1, 2]), vertex(m3[:, 0, 1], m3[:, 2, 1])], -1)
-        offset = offset + step
-        if step.abs().max() < 1e-3:
+        # per-match convergence, so that a match's result does not depend on its batch
+        offset = offset + torch.where(active[:, None], step, torch.zeros_like(step))
+        active = active & (step.abs().amax(dim=1) >= 1e-3)
+        if not active.any():
             break
     return offset
 
