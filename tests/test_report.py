@@ -95,6 +95,10 @@ def test_umeyama_recovers_similarity():
 
 def test_report_without_gt_and_bad_model(mapped, tmp_path, capsys):
     _, model, _ = mapped
-    assert main(["report", "--model", str(model)]) == 0
-    assert "images registered" in capsys.readouterr().out
+    assert main(["report", "--model", str(model), "--ply", str(tmp_path / "p.ply"), "--json", str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out
+    assert "images registered" in out and "sparse cloud" in out
+    assert (tmp_path / "p.ply").read_bytes().startswith(b"ply")
+    r = json.loads((tmp_path / "r.json").read_text())
+    assert "model_pose_auc" not in r and r["pointcloud"]["num_points"] == r["reconstruction"]["num_points3D"]
     assert main(["report", "--model", str(tmp_path / "missing"), "-q"]) == 2

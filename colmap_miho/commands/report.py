@@ -23,6 +23,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--pairs", type=Path, default=None, help="pairs file (name1 name2 ...) for the two-view AUCs")
     parser.add_argument("--seed", type=int, default=0, help="RANSAC seed of the two-view protocols")
     parser.add_argument("--json", type=Path, default=None, help="write the full report as JSON")
+    parser.add_argument("--ply", type=Path, default=None, help="also export the model's 3D points (with colours) as PLY")
 
 
 def run(args) -> int:
@@ -33,6 +34,14 @@ def run(args) -> int:
     report = build_report(args.model, database=args.database, gt=args.gt, pairs=args.pairs, seed=args.seed)
     if not args.quiet:
         print(format_report(report))
+    if args.ply:
+        from ..evaluation.gt_model import load_reconstruction
+        from ..evaluation.pointcloud import export_ply
+
+        args.ply.parent.mkdir(parents=True, exist_ok=True)
+        export_ply(load_reconstruction(args.model), args.ply)
+        if not args.quiet:
+            print(f"points written to {args.ply}")
     if args.json:
         write_report_json(report, args.json)
         if not args.quiet:

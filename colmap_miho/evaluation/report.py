@@ -48,6 +48,19 @@ def reconstruction_stats(rec) -> dict:
     }
 
 
+def pointcloud_figures(rec) -> dict:
+    """Density / outlier figures of the sparse cloud (``colmap_miho.evaluation.pointcloud``;
+    open3d optional). Empty dict when they cannot be computed (logged, never fatal)."""
+    try:
+        from . import pointcloud as pc
+
+        xyz, _ = pc.reconstruction_points(rec)
+        return pc.cloud_figures(xyz) if len(xyz) else {}
+    except (ImportError, RuntimeError, ValueError) as exc:
+        log.info("point-cloud figures skipped: %s", exc)
+        return {}
+
+
 # --------------------------------------------------------------------------- pose accuracy
 def gt_pairs(gt: dict[str, CameraPose]) -> list[tuple[str, str]]:
     """All pairs of GT image names, (name1 < name2), sorted."""
@@ -281,6 +294,7 @@ def build_report(
     rec = reconstruction if reconstruction is not None else load_reconstruction(model)
     report: dict = {"model": str(model) if model is not None else None,
                     "reconstruction": reconstruction_stats(rec)}
+    report["pointcloud"] = pointcloud_figures(rec)
     db_matches = None
     if database is not None:
         # a written model holds only its own images: count the database's for num_images
@@ -338,6 +352,10 @@ def format_report(report: dict) -> str:
         f"                mean track length {r['mean_track_length']:.2f}, "
         f"mean reprojection error {r['mean_reprojection_error']:.3f} px",
     ]
+    pc = report.get("pointcloud") or {}
+    if pc.get("num_points"):
+        lines.append(f"                sparse cloud: {100 * pc['outlier_share']:.1f}% statistical outliers, "
+                     f"median spacing {pc['spacing_median']:.3g} model units")
     if "model_pose_auc" in report:
         lines.append("")
         lines.append(f"{'pose AUC (%)':<26}{'@5':>7}{'@10':>7}{'@20':>7}{'mAA':>7}{'pairs':>7}{'failed':>7}")
