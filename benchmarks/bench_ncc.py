@@ -12,11 +12,13 @@ move="2" (one direction, as in the track walk).
 Speed: median wall time of ``--runs`` calls at the reference's two sizes (950 and 2549
 matches: the SIFT matches of a pair tiled to that count), and the process CPU time divided by
 the torch thread count, a better estimate of an idle machine's wall time when other jobs share
-the CPU. Reference implementation on this machine class (algorithm.md): full NCC (25 shapes +
+the CPU (with spinning OpenMP threads on an oversubscribed machine, CPU time is inflated too:
+use ``--threads 1`` there, whose CPU time is the work of one core). Reference implementation on this machine class (algorithm.md): full NCC (25 shapes +
 base, both directions) 5.4 s for 950 matches and 21 s for 2549.
 
     python benchmarks/bench_ncc.py            # graf and boat 1->2, both front ends, 3 runs
     python benchmarks/bench_ncc.py --quick    # graf 1->2, SIFT, 1 run, 950 matches only
+    python benchmarks/bench_ncc.py --threads 1 --skip-accuracy   # timings on a busy machine
 
 Data: ``$COLMAP_MIHO_DATA`` or ``<repo>/../shared/data``.
 """
@@ -63,7 +65,11 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="one pair, SIFT only, one run")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    ap.add_argument("--skip-accuracy", action="store_true", help="timings only")
     args = ap.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     root = data_root()
     if not (root / "oxford_affine").is_dir():
         print(f"data folder not found: {root}", file=sys.stderr)
@@ -79,6 +85,8 @@ def main(argv=None) -> int:
     print(f"{'pair':14s} {'front end':9s} {'n':>5s} {'before':>7s} "
           + " ".join(f"{s + '/' + m:>11s}" for s in sets for m in ("auto", "2")))
     timing_input = None
+    if args.skip_accuracy:
+        seqs, detectors = seqs[:1], ["sift"]
     for seq in seqs:
         pair = oxford_pairs(root / "oxford_affine" / seq, targets=(2,))[0]
         img1, img2 = pair.image1(), pair.image2()
@@ -89,18 +97,20 @@ def main(argv=None) -> int:
             p1, p2 = fm.pts1[good], fm.pts2[good]
             homs = np.tile(np.stack([np.eye(3), np.linalg.inv(pair.H_2from1)]), (len(p1), 1, 1, 1))
             cells = []
-            for s in sets:
+            for s in ([] if args.skip_accuracy else sets):
                 for move in ("auto", "2"):
                     r = refine_pair(img1, img2, p1, p2, homs, move=move,
                                     config=NCCConfig(perturbations=s, device=args.device))
                     cells.append(f"{np.median(transfer_error(pair.H_2from1, r.pts1, r.pts2)):11.3f}")
-            print(f"{seq + ' 1-2':14s} {det:9s} {len(p1):5d} {np.median(err0[good]):7.3f} " + " ".join(cells))
+            if cells:
+                print(f"{seq + ' 1-2':14s} {det:9s} {len(p1):5d} {np.median(err0[good]):7.3f} "
+                      + " ".join(cells))
             if timing_input is None and det == "sift":
                 all_homs = np.tile(np.stack([np.eye(3), np.linalg.inv(pair.H_2from1)]),
                                    (len(fm.pts1), 1, 1, 1))
                 timing_input = (img1, img2, fm.pts1, fm.pts2, all_homs)
 
-    print("\n== speed: median wall s (CPU s / threads) ==")
+    print(f"\n== speed: median wall s (CPU s / threads), {torch.get_num_threads()} thread(s) ==")
     img1, img2, p1, p2, homs = timing_input
     print(f"{'matches':>7s} {'set':6s} {'move':5s} {'wall':>7s} {'cpu/thr':>8s} {'ref':>6s} {'speed-up':>8s}")
     for n in sizes:
