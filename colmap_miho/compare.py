@@ -346,6 +346,7 @@ def run_from_images(
     compare: bool = False,
     camera_mode: str = "single",
     camera_model: str = "SIMPLE_RADIAL",
+    camera_params: str = "",
     max_features: int = 8192,
     mapper: str = "incremental",
     seed: int = 0,
@@ -379,7 +380,7 @@ def run_from_images(
         features = {"reused": True}
     else:
         features = extract_and_match(image_dir, database, camera_mode=camera_mode, camera_model=camera_model,
-                                     max_features=max_features, verbose=verbose)
+                                     camera_params=camera_params, max_features=max_features, verbose=verbose)
     out: dict = {"database": str(database), "features": features}
     if compare:
         res = compare_databases(database, image_dir, output, gt=gt, recipe=recipe, mapper=mapper, seed=seed,

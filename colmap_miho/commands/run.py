@@ -24,6 +24,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--camera-mode", default="single", choices=["single", "per_image", "per_folder", "auto"],
                         help="COLMAP camera sharing (default: one camera for all images)")
     parser.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (default SIMPLE_RADIAL)")
+    parser.add_argument("--camera-params", default="",
+                        help="known intrinsics for --camera-model as COLMAP's comma-separated list "
+                             "(e.g. PINHOLE 'fx,fy,cx,cy', COLMAP pixel convention); default: estimated")
     parser.add_argument("--max-features", type=int, default=8192, help="SIFT features per image (default 8192)")
     add_recipe_arguments(parser)
 
@@ -38,7 +41,8 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     out = run_from_images(
         args.images, args.output, gt=args.gt, recipe=recipe, compare=args.compare,
-        camera_mode=args.camera_mode, camera_model=args.camera_model, max_features=args.max_features,
+        camera_mode=args.camera_mode, camera_model=args.camera_model,
+        camera_params=args.camera_params, max_features=args.max_features,
         mapper=args.mapper, seed=args.seed, workers=args.workers, device=args.device,
         progress=not args.quiet, verbose=args.verbose,
     )
