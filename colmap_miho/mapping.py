@@ -74,9 +74,10 @@ def colmap_log_to_file(folder: Path | None, *, verbose: bool = False):
     if verbose or folder is None:
         yield None
         return
-    saved = (lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold)
+    saved = (lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel)
     prefix = Path(folder) / "colmap_log."
     try:
+        lg.minloglevel = 0  # the file gets everything, even when the caller silenced COLMAP
         lg.logtostderr = False
         lg.alsologtostderr = False
         lg.stderrthreshold = 2  # ERROR and FATAL still reach the terminal
@@ -85,7 +86,7 @@ def colmap_log_to_file(folder: Path | None, *, verbose: bool = False):
         lg.set_log_destination(lg.ERROR, "")
         yield prefix
     finally:
-        lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold = saved
+        lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel = saved
         lg.set_log_destination(lg.INFO, "")
 
 

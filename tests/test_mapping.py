@@ -34,6 +34,19 @@ def test_incremental_mapping_registers_all_and_keeps_input(scene, tmp_path, capf
     assert "incremental_pipeline.cc" not in err  # glog went to the file, not the terminal
 
 
+def test_log_file_is_complete_even_when_colmap_was_silenced(scene, tmp_path):
+    import pycolmap
+
+    saved = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 2
+    try:
+        res = run_mapping(scene.database, scene.image_dir, tmp_path / "model")
+        assert "incremental_pipeline" in res.log_file.read_text()
+        assert pycolmap.logging.minloglevel == 2  # restored
+    finally:
+        pycolmap.logging.minloglevel = saved
+
+
 def test_mapping_is_repeatable_with_seed(scene, tmp_path):
     import numpy as np
 
