@@ -124,13 +124,16 @@ def _base_pairs(n: int, affine1, affine2) -> np.ndarray:
 def _run_direction(img_f, img_m, x_f, x_m, pairs, f, m, tpl_off, win_off, cfg):
     """Evaluate one direction (template from side f, search in side m) for a chunk.
 
-    pairs: list of (H (J, 2, 3, 3) float64 tensor, template offsets (K, P, 2)).
+    pairs: list of (H (J, 2, 3, 3) float64 tensor, template offsets (K, P, 2), the same
+    shapes sampled every 2 px (K, Pc, 2) or None), one entry per pass (extended, base).
     Returns a dict of (J,) tensors.
     """
     maps, inside_all, valid_all, pass_of_k, k_local = [], [], [], [], []
     first_template = None
     H_m_invs, c_ms, templates = [], [], []
-    for p, (H, offs) in enumerate(pairs):
+    st = 2 * cfg.template_radius + 1
+    sw = 2 * (cfg.template_radius + cfg.search_radius) + 1
+    for p, (H, offs, offs_coarse) in enumerate(pairs):
         H_f, H_m = H[:, f], H[:, m]
         H_f_inv, ok_f = invert_homographies(H_f)
         H_m_inv, ok_m = invert_homographies(H_m)
@@ -138,21 +141,35 @@ def _run_direction(img_f, img_m, x_f, x_m, pairs, f, m, tpl_off, win_off, cfg):
         c_f = c_f / ((H_f[:, 2:, :2] @ x_f[:, :, None])[..., 0] + H_f[:, 2:, 2]).clamp_min(1e-12)
         c_m = (H_m[:, :2, :2] @ x_m[:, :, None])[..., 0] + H_m[:, :2, 2]
         c_m = c_m / ((H_m[:, 2:, :2] @ x_m[:, :, None])[..., 0] + H_m[:, 2:, 2]).clamp_min(1e-12)
-        tpl, in_t = sample_patches(img_f, H_f_inv, c_f, offs)
         win, in_w = sample_patches(img_m, H_m_inv, c_m, win_off[None])
-        st = 2 * cfg.template_radius + 1
-        sw = 2 * (cfg.template_radius + cfg.search_radius) + 1
-        J, K = tpl.shape[:2]
-        tpl = tpl.reshape(J, K, st, st)
-        if first_template is None:
-            first_template = tpl[:, 0]
+        J = c_f.shape[0]
         win = win.reshape(J, sw, sw)
-        if K > 1 and cfg.coarse_shapes:
-            # pick the shape on a stride-2 offset grid, search the full grid with it only
-            coarse = ncc_maps(win, tpl, stride=2).reshape(J, K, -1).amax(dim=-1)
-            best = coarse.argmax(dim=1)
-            tpl = tpl[torch.arange(J, device=tpl.device), best][:, None]
-            K = 1
+        if offs.shape[0] > 1 and cfg.coarse_shapes:
+            # choose the shape with templates sampled every 2 px against the window's even
+            # pixels (offsets on a stride-2 grid), then sample and search the chosen shape
+            # at full resolution: the cost of the shapes drops ~4x in samples and ~10x in MACs
+            tpl_c, in_t = sample_patches(img_f, H_f_inv, c_f, offs_coarse)
+            sc = int(round(offs_coarse.shape[1] ** 0.5))
+            coarse = ncc_maps(win[:, ::2, ::2], tpl_c.reshape(J, -1, sc, sc))
+            best = coarse.reshape(J, offs.shape[0], -1).amax(dim=-1).argmax(dim=1)
+            ident, in_i = sample_patches(img_f, H_f_inv, c_f, offs[:1])
+            in_t = in_t & in_i
+            chosen = ident.clone()
+            for k in torch.unique(best).tolist():
+                if k:
+                    sel = torch.nonzero(best == k)[:, 0]
+                    tk, _ = sample_patches(img_f, H_f_inv[sel], c_f[sel], offs[k : k + 1])
+                    chosen[sel] = tk
+            # the unperturbed shape always competes at full resolution too: the coarse
+            # choice is blurred by aliasing
+            tpl = torch.cat([ident, chosen], dim=1).reshape(J, 2, st, st)
+        else:
+            tpl, in_t = sample_patches(img_f, H_f_inv, c_f, offs)
+            tpl = tpl.reshape(J, -1, st, st)
+            ident = tpl[:, :1]
+        K = tpl.shape[1]
+        if first_template is None:
+            first_template = ident.reshape(J, st, st)
         maps.append(ncc_maps(win, tpl))
         inside_all.append(in_t & in_w)
         valid_all.append(ok_f & ok_m)
@@ -297,6 +314,8 @@ def refine_pair(
     shapes = torch.as_tensor(perturbation_matrices(cfg.perturbations), device=device)
     grid_t = offset_grid(cfg.template_radius, device)
     tpl_off = grid_t[None] @ shapes.transpose(1, 2)  # (K, P, 2): M w
+    grid_c = 2.0 * offset_grid(cfg.template_radius // 2, device)  # every 2 px
+    tpl_off_coarse = grid_c[None] @ shapes.transpose(1, 2)
     win_off = offset_grid(cfg.template_radius + cfg.search_radius, device)
     base = _base_pairs(n, affine1, affine2)
     use_base = cfg.use_base_pair and not (
@@ -314,9 +333,9 @@ def refine_pair(
             sl = slice(start, min(start + cfg.batch_size, n))
             x = (torch.as_tensor(p1[sl], device=device), torch.as_tensor(p2[sl], device=device))
             H_ext = torch.as_tensor(homs[sl], device=device)
-            pairs = [(H_ext, tpl_off)]
+            pairs = [(H_ext, tpl_off, tpl_off_coarse)]
             if use_base:
-                pairs.append((torch.as_tensor(base[sl], device=device), grid_t[None]))
+                pairs.append((torch.as_tensor(base[sl], device=device), grid_t[None], None))
             res = [
                 (f, m, _run_direction(img[f], img[m], x[f], x[m], pairs, f, m, tpl_off, win_off, cfg))
                 for f, m in directions
