@@ -406,7 +406,9 @@ def refine_database(
             ``min_matches``, refinement and re-verification.
         in_place: replace ``database`` itself, after copying it to a timestamped backup.
         overwrite: allow replacing an existing ``output``.
-        workers: processes that filter pairs (default: all cores; 1 = in this process).
+        workers: processes that filter pairs and refine tracks (default: all cores; 1 = all
+            in this process). Small jobs stay in this process (a worker costs an import of
+            torch); results do not depend on the worker count.
         device: "cpu", "cuda" or "auto" for the torch work.
         seed: base seed; each pair's filter seed is derived from it and the pair's image ids.
         strict: a missing or unreadable image is an error instead of a warning.

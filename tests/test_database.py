@@ -147,7 +147,16 @@ def test_validate_database_rejects_non_colmap_files(tmp_path, scene_db):
     validate_database(scene_db.database)
 
 
-def test_image_loader_gray_colour_16bit_missing(tmp_path, caplog):
+class _Collect(logging.Handler):
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+def test_image_loader_gray_colour_16bit_missing(tmp_path):
     rng = np.random.default_rng(0)
     colour = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
     gray = rng.integers(0, 256, (25, 15), dtype=np.uint8)
@@ -163,9 +172,15 @@ def test_image_loader_gray_colour_16bit_missing(tmp_path, caplog):
     np.testing.assert_allclose(c, cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY) / 255.0, atol=1e-6)
     np.testing.assert_allclose(loader[2], gray / 255.0, atol=1e-6)
     np.testing.assert_allclose(loader[3], gray / 255.0, atol=1e-6)
-    with caplog.at_level(logging.WARNING, logger="colmap_miho"):
+    # the CLI tests configure the "colmap_miho" logger (no propagation): listen directly
+    collect = _Collect()
+    logger = logging.getLogger("colmap_miho.io.images")
+    logger.addHandler(collect)
+    try:
         assert loader[4] is None and loader[5] is None and loader[5] is None
-    warned = [r.getMessage() for r in caplog.records]
+    finally:
+        logger.removeHandler(collect)
+    warned = collect.messages
     assert len(warned) == 2 and "broken.jpg" in warned[0] and "absent.png" in warned[1]
     assert len(loader._cache) <= 2  # bounded
     assert read_gray_float(tmp_path / "absent.png") is None

@@ -44,6 +44,19 @@ def _map(db_path, image_dir, tmp_path):
     return max((r.num_reg_images() for r in recs.values()), default=0)
 
 
+
+@pytest.fixture(autouse=True)
+def _restore_cli_logging():
+    """``main()`` configures the "colmap_miho" logger with a handler on this test's stderr;
+    put the library's default back so later tests do not log to a closed stream."""
+    import logging
+
+    logger = logging.getLogger("colmap_miho")
+    saved = (logger.handlers[:], logger.level, logger.propagate)
+    yield
+    logger.handlers[:], logger.level, logger.propagate = saved[0], saved[1], saved[2]
+
+
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     return make_synthetic_scene(tmp_path_factory.mktemp("refine"), num_images=4, num_points=120,
@@ -307,3 +320,16 @@ def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypa
         for p in a.pairs("verified"):
             np.testing.assert_array_equal(a.matches(p.image_id1, p.image_id2, "verified"),
                                           b.matches(p.image_id1, p.image_id2, "verified"))
+
+
+def test_example_script_runs(tmp_path, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "refine_database.py"
+    spec = importlib.util.spec_from_file_location("example_refine_database", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.main(["--out", str(tmp_path), "--no-refine"]) == 0
+    out = capsys.readouterr().out
+    assert "matches" in out and "mapped: 4 images" in out

@@ -188,6 +188,8 @@ class WorkingCopy:
         if not in_place:
             if self.output.resolve() == self.database.resolve():
                 raise UserError(f"output {self.output} is the input database; use --in-place to replace it")
+            if self.output.is_dir():
+                raise UserError(f"output {self.output} is a folder; give a database file name")
             if self.output.exists() and not overwrite:
                 raise UserError(f"output {self.output} exists; pass --overwrite to replace it")
             if not self.output.parent.is_dir():
