@@ -6,7 +6,10 @@ kept. Otherwise it is kept and its strict (t_h) inliers leave the pool when ther
 than n/2 of them; if not, its relaxed (t_l) inliers leave and the round counts as a failure.
 A round without failure resets the counter; MOP stops when ``max_failures`` (c_f*) failures
 happen in a row (the paper's rule; the reference implementation stops one later, which is
-``max_failures=4``) or when fewer than 4 matches are left.
+``max_failures=4``) or when fewer than n matches are left (no round could succeed). The
+reference also counts a failure when the pool shrinks by at most n/2; here a kept model
+always removes more than n/2 matches (its strict inliers, or else its >= n relaxed ones),
+so that rule never fires.
 """
 
 from __future__ import annotations
@@ -45,7 +48,9 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
         from tqdm import tqdm
 
         bar = tqdm(desc="MOP rounds", unit="round", leave=False)
-    while failures < cfg.max_failures and len(pool) >= 4:
+    # A model needs n inliers among the pool: with fewer matches left no round can succeed,
+    # so stopping there gives the same result as running out the failure counter.
+    while failures < cfg.max_failures and len(pool) >= max(4, n_req):
         res, buffer = ransac_round(problem, pool, cfg, rng, buffer)
         stats["rounds"] += 1
         if bar is not None:
