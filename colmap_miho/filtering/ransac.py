@@ -7,12 +7,18 @@ destination) point sets that share the same minimal sample. Plain MOP has one ha
 is within the threshold and both projections keep the quasi-affine sign of the minimal sample
 (App. A.3), i.e. the error below is the max over all halves and both directions.
 
-Per run, hypotheses are drawn in batches (``FilterConfig.batch_size``). For each batch:
-minimal-sample spread test (>= t_l in every image), reflection check (MOP*, App. D),
-normalised DLT with the singular-value test, quasi-affinity of the sample both ways, then a
-one-way error count on the pool (an upper bound of the full inlier count, so pruning with it
-is exact) and the full two-way error only for hypotheses that can still matter. The run stops
-at the adaptive bound for confidence ``p`` (never before ``min_iters``, never after
+Per run, hypotheses are drawn in batches (``FilterConfig.batch_size``, growing to 8x when
+the stopping bound is far). For each batch: minimal-sample spread test (>= t_l in every
+image), reflection check (MOP*, App. D), closed-form 4-point homographies with the sample's
+quasi-affine signs (both ways, every half) from the same factors, then a one-way float32
+error count on the pool, which bounds the full inlier count from above. Hypotheses are then
+fully scored (two-way, every half, float64) in descending order of that bound until none
+left can beat the best, so the best model is the one exhaustive scoring would pick; the
+normalised-DLT singular-value test (> 0.05) runs just before full scoring, which rejects
+exactly the hypotheses the paper rejects among those that can matter. Buffer candidates are
+the two strongest of each batch with at least n possible inliers (the paper considers every
+hypothesis; a weaker one could not enter a buffer of models worth bootstrapping). The run
+stops at the adaptive bound for confidence ``p`` (never before ``min_iters``, never after
 ``max_iters``), counting every drawn sample as an iteration.
 
 Sampling (``FilterConfig.sampling``): ``"uniform"`` is the paper's; ``"local"`` draws a seed
