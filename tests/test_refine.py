@@ -207,13 +207,14 @@ def test_bad_recipe_value(scene, tmp_path, capsys):
 
 @pytest.mark.parametrize("columns", [2, 4])
 def test_two_and_four_keypoint_columns(tmp_path, columns):
-    scene = make_synthetic_scene(tmp_path / "s", num_images=3, num_points=60, keypoint_columns=columns,
-                                 render_images=False, seed=2)
-    s = refine_database(scene.database, scene.image_dir, tmp_path / "o.db",
-                        recipe=load_recipe(None, ["pipeline.refine=false"]), workers=1)
-    assert s.pairs_filtered == 3 and s.matches_removed > 0
-    with ColmapDatabase(s.output) as db:
-        assert db.raw_keypoints(1).shape[1] == columns
+    """2 columns (x, y) and 4 (x, y, scale, orientation) work end to end, NCC included."""
+    scene = make_synthetic_scene(tmp_path / "s", num_images=3, num_points=60, keypoint_columns=columns, seed=2)
+    s = refine_database(scene.database, scene.image_dir, tmp_path / "o.db", workers=1)
+    assert s.pairs_filtered == 3 and s.matches_removed > 0 and s.keypoints_moved > 0
+    with ColmapDatabase(scene.database) as db_in, ColmapDatabase(s.output) as db_out:
+        a, b = db_in.raw_keypoints(1), db_out.raw_keypoints(1)
+    assert b.shape == a.shape and a.shape[1] == columns
+    np.testing.assert_array_equal(a[:, 2:], b[:, 2:])
 
 
 # ---------------------------------------------------------------------------------------
