@@ -208,12 +208,14 @@ def test_normal_and_failing_runs_leave_input_identical(db_copy, scene):
 
 
 def test_in_place_writes_backup_and_valid_result(db_copy, scene):
+    os.chmod(db_copy, 0o640)
     digest = sha256(db_copy)
     assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir),
                  "--in-place", "--workers", "1", "--no-refine", "-q"]) == 0
     backups = list(db_copy.parent.glob("scene.db.*.bak"))
     assert len(backups) == 1 and sha256(backups[0]) == digest
     assert sha256(db_copy) != digest
+    assert db_copy.stat().st_mode & 0o777 == 0o640  # permissions kept, not mkstemp's 0600
     con = sqlite3.connect(db_copy)
     try:
         assert con.execute("PRAGMA integrity_check").fetchone()[0] == "ok"

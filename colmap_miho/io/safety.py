@@ -13,6 +13,7 @@ import fcntl
 import logging
 import os
 import shutil
+import stat
 import struct
 import tempfile
 import time
@@ -211,6 +212,8 @@ class WorkingCopy:
         self.path = Path(name)
         try:
             copy_file(self.database, self.path)
+            # mkstemp makes the file private (0600): give the result the input's permissions
+            os.chmod(self.path, stat.S_IMODE(self.database.stat().st_mode))
         except BaseException:
             remove_with_side_files(self.path)
             raise
