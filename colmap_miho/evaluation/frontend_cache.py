@@ -66,8 +66,13 @@ def _colmap_matches(pair: PairGT, cache_dir: Path):
             m = m[:, ::-1]
         raw1, raw2 = db.raw_keypoints(i), db.raw_keypoints(j)
         k1, k2 = db.keypoints(i), db.keypoints(j)
+        d1 = np.asarray(db.handle.read_descriptors(i).data, np.float32)[m[:, 0]]
+        d2 = np.asarray(db.handle.read_descriptors(j).data, np.float32)[m[:, 1]]
+    # COLMAP keeps no ratio score: use the descriptor distance (scores must vary, AdaLAM
+    # picks seeds as local score optima and exhausts memory on ties).
+    scores = np.linalg.norm(d1 - d2, axis=1) / 512.0
     aff = lambda raw, idx: raw[idx, 2:6].reshape(-1, 2, 2).astype(np.float64) if raw.shape[1] == 6 else None  # noqa: E731
-    return k1[m[:, 0]], k2[m[:, 1]], np.full(len(m), 0.5), aff(raw1, m[:, 0]), aff(raw2, m[:, 1])
+    return k1[m[:, 0]], k2[m[:, 1]], scores, aff(raw1, m[:, 0]), aff(raw2, m[:, 1])
 
 
 def load_inputs(pair: PairGT, frontend: str, cache_dir: Path) -> PairInput:
