@@ -22,3 +22,15 @@ def shared_data() -> Path:
     if not (root / "README.md").is_file():
         pytest.skip(f"real data folder not found at {root} (set COLMAP_MIHO_DATA or place ../shared/data)")
     return root
+
+
+@pytest.fixture(autouse=True)
+def _restore_package_logger():
+    """``cli.main`` configures the ``colmap_miho`` logger like an application does (own handler,
+    no propagation); undo that after every test so caplog and later tests see log records."""
+    import logging
+
+    logger = logging.getLogger("colmap_miho")
+    saved = (list(logger.handlers), logger.level, logger.propagate)
+    yield
+    logger.handlers[:], logger.level, logger.propagate = saved[0], saved[1], saved[2]

@@ -45,18 +45,6 @@ def _map(db_path, image_dir, tmp_path):
 
 
 
-@pytest.fixture(autouse=True)
-def _restore_cli_logging():
-    """``main()`` configures the "colmap_miho" logger with a handler on this test's stderr;
-    put the library's default back so later tests do not log to a closed stream."""
-    import logging
-
-    logger = logging.getLogger("colmap_miho")
-    saved = (logger.handlers[:], logger.level, logger.propagate)
-    yield
-    logger.handlers[:], logger.level, logger.propagate = saved[0], saved[1], saved[2]
-
-
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     return make_synthetic_scene(tmp_path_factory.mktemp("refine"), num_images=4, num_points=120,
