@@ -32,6 +32,7 @@ def main() -> int:
     ap.add_argument("--pairs", type=int, default=None, help="at most this many pairs per scene folder")
     ap.add_argument("--pipelines", default=None, help="comma list (default: all, or the quick set)")
     ap.add_argument("--quick", action="store_true", help="CI mode: quick pipeline set, 1 pair per scene")
+    ap.add_argument("--workers", type=int, default=None, help="processes over pairs (default: all cores)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
     if not (args.data / "README.md").is_file():
@@ -42,7 +43,7 @@ def main() -> int:
     results = run_benchmark(args.data, args.out, frontends=frontends, datasets=args.datasets.split(","),
                             quick=args.quick, pair_limit=args.pairs,
                             pipelines=args.pipelines.split(",") if args.pipelines else None,
-                            cache_dir=args.cache)
+                            cache_dir=args.cache, workers=args.workers)
     seconds = time.perf_counter() - t0
     save_summary(args.out, results, seconds)
     print(headline(results))

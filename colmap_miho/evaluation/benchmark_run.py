@@ -52,9 +52,30 @@ def plot_error_distribution(path: Path, frontend: str, kept_errors: dict[str, li
     plt.close(fig)
 
 
+def _init_worker() -> None:
+    """One torch thread per worker process: two processes on two cores beat two threads."""
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _evaluate_pair(pair, frontend: str, cache_dir: Path, names: list[str], seed: int):
+    """All pipelines on one pair (runs in a worker process)."""
+    inp = load_inputs(pair, frontend, cache_dir)
+    err_in = gt_error(pair, inp.pts1, inp.pts2)
+    out = {}
+    for name in names:
+        try:
+            out[name] = evaluate_pipeline(name, inp, err_in, seed=seed)
+        except Exception as exc:  # name the pair and pipeline, then fail loudly
+            raise RuntimeError(f"{name} on {pair.label} ({frontend}) failed: {exc}") from exc
+    return out
+
+
 def run_benchmark(data_root: Path, out_dir: Path, *, frontends=("sift",), datasets=tuple(DATASETS),
                   quick: bool = False, pair_limit: int | None = None, pipelines: list[str] | None = None,
-                  cache_dir: Path | None = None, seed: int = 0, progress: bool = True) -> dict:
+                  cache_dir: Path | None = None, seed: int = 0, progress: bool = True,
+                  workers: int | None = None) -> dict:
     """Evaluate every pipeline on every pair; write ``<frontend>.md/.json/_errors.png``.
 
     Args:
@@ -62,32 +83,44 @@ def run_benchmark(data_root: Path, out_dir: Path, *, frontends=("sift",), datase
         out_dir: where results go (created).
         quick: a few pipelines and one pair per scene folder (CI mode, minutes).
         pair_limit: at most this many pairs per scene folder (None: all; quick: 1).
+        workers: processes evaluating pairs in parallel (default: all cores; 1 = in process).
     Returns:
         ``{frontend: {dataset: {pipeline: summary}}}``.
     """
+    import os
+    from concurrent.futures import ProcessPoolExecutor
+
     from tqdm import tqdm
 
     data_root, out_dir = Path(data_root), Path(out_dir)
     cache_dir = Path(cache_dir) if cache_dir else out_dir / "cache"
     names = pipelines or pipeline_names(quick)
     limit = 1 if quick and pair_limit is None else pair_limit
+    workers = workers or os.cpu_count() or 1
     everything = {}
     for frontend in frontends:
+        if frontend == "colmap":  # build the per-scene databases once, before the workers start
+            for dataset in datasets:
+                for pair in load_pairs(data_root, dataset, limit):
+                    load_inputs(pair, frontend, cache_dir)
         results: dict[str, dict] = {}
         kept_errors: dict[str, list[np.ndarray]] = {n: [] for n in names}
         for dataset in datasets:
             pairs = load_pairs(data_root, dataset, limit)
             outcomes: dict[str, list] = {n: [] for n in names}
-            bar = tqdm(pairs, desc=f"{frontend}/{dataset}", disable=not progress, leave=False)
-            for pair in bar:
-                inp = load_inputs(pair, frontend, cache_dir)
-                err_in = gt_error(pair, inp.pts1, inp.pts2)
-                for name in names:
-                    try:
-                        outcome, errs = evaluate_pipeline(name, inp, err_in, seed=seed)
-                    except Exception as exc:  # a crash in one pipeline must not hide the others
-                        log.error("%s on %s (%s) failed: %s", name, pair.label, frontend, exc)
-                        raise
+            args = [(p, frontend, cache_dir, names, seed) for p in pairs]
+            if workers > 1 and len(pairs) > 1:
+                import multiprocessing
+
+                ctx = multiprocessing.get_context("spawn")
+                with ProcessPoolExecutor(min(workers, len(pairs)), mp_context=ctx, initializer=_init_worker) as pool:
+                    per_pair = list(tqdm(pool.map(_evaluate_pair, *zip(*args)), total=len(pairs),
+                                         desc=f"{frontend}/{dataset}", disable=not progress, leave=False))
+            else:
+                per_pair = [_evaluate_pair(*a) for a in tqdm(args, desc=f"{frontend}/{dataset}",
+                                                             disable=not progress, leave=False)]
+            for res in per_pair:  # pool.map keeps the pairs' order: results are deterministic
+                for name, (outcome, errs) in res.items():
                     outcomes[name].append(outcome)
                     kept_errors[name].append(errs)
             results[dataset] = {n: summarize(o) for n, o in outcomes.items()}
