@@ -296,9 +296,10 @@ def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
 def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypatch):
     """Filtering pairs and refining whole tracks in 2 processes changes nothing."""
     import colmap_miho.pipeline as pipeline
+    import colmap_miho.pipeline_stages as stages
 
     monkeypatch.setattr(pipeline, "MIN_PAIRS_PER_WORKER", 1)
-    monkeypatch.setattr(pipeline, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
     one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db", workers=1)
     two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w2.db", workers=2)
     assert one.workers == 1 and two.workers == 2 and two.refine_stats["workers"] == 2
