@@ -99,23 +99,22 @@ def run_filter_stage(db: ColmapDatabase, pairs, keypoints, source, filter_config
             ctx = multiprocessing.get_context("spawn")
             with _single_thread_children(), \
                     ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as ex:
+                def collect(fut) -> None:
+                    i, j, res = fut.result()
+                    results[(i, j)] = (matches_of.pop((i, j)), res)
+                    if bar:
+                        bar.update()
+
                 pending = set()
-                it = iter(pairs)
                 try:
-                    for p in it:
+                    for p in pairs:
                         pending.add(ex.submit(_filter_one, *job(p)))
-                        if len(pending) >= 2 * workers:
+                        if len(pending) >= 2 * workers:  # bounded: stream pairs, do not queue all
                             done, pending = wait(pending, return_when=FIRST_COMPLETED)
                             for fut in done:
-                                i, j, res = fut.result()
-                                results[(i, j)] = (matches_of.pop((i, j)), res)
-                                if bar:
-                                    bar.update()
+                                collect(fut)
                     for fut in pending:
-                        i, j, res = fut.result()
-                        results[(i, j)] = (matches_of.pop((i, j)), res)
-                        if bar:
-                            bar.update()
+                        collect(fut)
                 except BaseException:
                     ex.shutdown(wait=False, cancel_futures=True)
                     raise
