@@ -20,13 +20,26 @@ MIN_CURVATURE = 1e-4
 _EPS_NORM = 1e-6
 
 
-def ncc_maps(windows: torch.Tensor, templates: torch.Tensor, stride: int = 1) -> torch.Tensor:
+def normalize_templates(templates: torch.Tensor) -> torch.Tensor:
+    """Zero-mean, unit-norm templates (J, K, St, St) float32; flat ones become all zero."""
+    # float64 reductions: float32 ones may round differently with the batch size, and a
+    # match's result should not depend on which other matches share its batch
+    t = templates - _mean64(templates)
+    t_norm = t.to(torch.float64).square().sum(dim=(-2, -1), keepdim=True).sqrt().to(t.dtype)
+    t = t / t_norm.clamp_min(_EPS_NORM)
+    return torch.where(t_norm > _EPS_NORM, t, torch.zeros_like(t))
+
+
+def ncc_maps(
+    windows: torch.Tensor, templates: torch.Tensor, stride: int = 1, normalized: bool = False
+) -> torch.Tensor:
     """NCC response maps of every template against its own window.
 
     Args:
         windows: (J, Sw, Sw) float32 search windows.
         templates: (J, K, St, St) float32 templates (K shapes per window), St <= Sw.
         stride: evaluate every ``stride``-th offset only (coarse search).
+        normalized: the templates already went through :func:`normalize_templates`.
     Returns:
         (J, K, So, So) float32 with So = (Sw - St) // stride + 1; entry [j, k, y, x] is the
         NCC of template k of job j with the window patch whose top-left corner is
@@ -35,19 +48,14 @@ def ncc_maps(windows: torch.Tensor, templates: torch.Tensor, stride: int = 1) ->
     J, K, St, _ = templates.shape
     Sw = windows.shape[-1]
     n = St * St
-    # float64 reductions: float32 ones may round differently with the batch size, and a
-    # match's result should not depend on which other matches share its batch
-    t = templates - _mean64(templates)
-    t_norm = t.to(torch.float64).square().sum(dim=(-2, -1), keepdim=True).sqrt().to(t.dtype)
-    t = t / t_norm.clamp_min(_EPS_NORM)
-    t = torch.where(t_norm > _EPS_NORM, t, torch.zeros_like(t))
+    t = templates if normalized else normalize_templates(templates)
     w = windows - _mean64(windows)  # limits float32 cancellation
     # one grouped convolution per shape: oneDNN is 5-15x slower on groups with more than
     # one output channel (measured, torch 2.13 CPU)
     win4 = w.reshape(1, J, Sw, Sw)
+    tk = t.transpose(0, 1).contiguous()  # (K, J, St, St): each shape's kernels contiguous
     num = torch.stack(
-        [F.conv2d(win4, t[:, k : k + 1].contiguous(), groups=J, stride=stride)[0] for k in range(K)],
-        dim=1,
+        [F.conv2d(win4, tk[k, :, None], groups=J, stride=stride)[0] for k in range(K)], dim=1
     )
     s1 = box_sum(w, St)
     s2 = box_sum(w.square(), St)
@@ -62,12 +70,16 @@ def _mean64(x: torch.Tensor) -> torch.Tensor:
 
 def box_sum(x: torch.Tensor, size: int) -> torch.Tensor:
     """Sums over all ``size`` x ``size`` windows ('valid') of x (J, S, S) by separable
-    running sums in float64 (rows, then columns); returns (J, S - size + 1, S - size + 1)
-    in x's dtype."""
-    c = F.pad(x.to(torch.float64).cumsum(-1), (1, 0))
+    running sums (rows, then columns); returns (J, S - size + 1, S - size + 1).
+
+    Running sums along one axis are sequential per row, so a value never depends on the
+    batch it is computed in. In float32 on the mean-free windows of :func:`ncc_maps`
+    (values in [-1, 1], S = 41) the error is below 1e-5, far below the window norms that
+    matter (a flat 21x21 template has a squared norm of about 0.04)."""
+    c = F.pad(x.cumsum(-1), (1, 0))
     rows = c[..., size:] - c[..., :-size]  # (J, S, S - size + 1)
     c = F.pad(rows.cumsum(-2), (0, 0, 1, 0))
-    return (c[:, size:] - c[:, :-size]).to(x.dtype)
+    return c[:, size:] - c[:, :-size]
 
 
 def structure_tensor(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -137,16 +137,19 @@ def sample_patches(
         H_inv: (J, 3, 3) float64, maps the common frame back to image pixels.
         centres: (J, 2) float64 common-frame centres.
         offsets: (K, P, 2) float64 common-frame offsets (K shapes of P = (2r+1)^2 pixels,
-            row-major as :func:`offset_grid`).
+            row-major as :func:`offset_grid`) shared by all jobs, or (J, K, P, 2) one set
+            per job.
     Returns:
         (values (J, K, P) float32, inside (J,) bool: the patch corners of every shape map
         in front of the camera and inside the image, so the whole patch does).
     """
     J = centres.shape[0]
-    K, P = offsets.shape[0], offsets.shape[1]
+    per_job = offsets.ndim == 4
+    K, P = offsets.shape[-3], offsets.shape[-2]
     side = int(round(P**0.5))
     corner_idx = torch.tensor([0, side - 1, P - side, P - 1], device=offsets.device)
-    corners = centres[:, None, None, :] + offsets[None, :, corner_idx]  # (J, K, 4, 2)
+    corner_off = offsets[..., corner_idx, :]
+    corners = centres[:, None, None, :] + (corner_off if per_job else corner_off[None])
     c_img, ok = apply_homographies(H_inv, corners.reshape(J, K * 4, 2))
     h, w = image.shape
     inside = (
@@ -167,20 +170,27 @@ def sample_patches(
                            device=image.device)
     Bn = H_inv[:, :, :2] / wc[:, :, None]  # (J, 3, 2): columns of H^-1 acting on offsets
     num_m = ((Bn[:, :2] - xc[:, :, None] * Bn[:, 2:]) * scale64[None, :, None])  # (J, 2, 2)
-    # one GEMM (J*3, 3) @ (3, KP): rows give the two numerators and the denominator
     base = xc * scale64 - 1.0  # (J, 2) grid coordinates of the centre
     # grid = base + (num_m o) / den with den = 1 + b.o, written as q_xy / q_w where
-    # q = M [o; 1], M = [[num_m + base b^T, base], [b^T, 1]]: one GEMM for all jobs
+    # q = M [o; 1], M = [[num_m + base b^T, base], [b^T, 1]]; the grid is laid out job-major
+    # (J, KP) so that the sampled values need no transpose
     M = torch.zeros((J, 3, 3), dtype=torch.float64, device=image.device)
     M[:, :2, :2] = num_m + base[:, :, None] * Bn[:, 2][:, None, :]
     M[:, :2, 2] = base
     M[:, 2, :2] = Bn[:, 2]
     M[:, 2, 2] = 1.0
-    flat = offsets.reshape(K * P, 2)
-    o = torch.cat([flat, torch.ones_like(flat[:, :1])], 1).to(torch.float32)  # (KP, 3)
-    q = (o @ M.to(torch.float32).permute(2, 0, 1).reshape(3, J * 3)).view(K * P, J, 3)
-    grid = q[..., :2] / q[..., 2:].clamp_min(1e-6)  # (KP, J, 2)
+    M32 = M.to(torch.float32)
+    if per_job:
+        o = offsets.reshape(J, K * P, 2).to(torch.float32)
+        o3 = torch.cat([o, torch.ones_like(o[..., :1])], -1)  # (J, KP, 3)
+        q = torch.bmm(M32, o3.transpose(1, 2))  # (J, 3, KP)
+    else:
+        flat = offsets.reshape(K * P, 2).to(torch.float32)
+        o3 = torch.cat([flat, torch.ones_like(flat[:, :1])], 1)  # (KP, 3)
+        # one GEMM for all jobs: (J*3, 3) @ (3, KP)
+        q = torch.mm(M32.reshape(J * 3, 3), o3.t()).view(J, 3, K * P)
+    grid = (q[:, :2] / q[:, 2:].clamp_min(1e-6)).transpose(1, 2)  # (J, KP, 2)
     out = F.grid_sample(image[None, None], grid[None], mode="bilinear", padding_mode="zeros",
-                        align_corners=True)  # (1, 1, KP, J)
-    values = out[0, 0].t().reshape(J, K, P)
+                        align_corners=True)  # (1, 1, J, KP)
+    values = out[0, 0].reshape(J, K, P)
     return values, inside
