@@ -300,8 +300,11 @@ def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypa
 
     monkeypatch.setattr(pipeline, "MIN_PAIRS_PER_WORKER", 1)
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
-    one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db", workers=1)
-    two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w2.db", workers=2)
+    # the CPU worker pool is what is tested (on a CUDA machine "auto" would use one GPU worker)
+    one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db",
+                          workers=1, device="cpu")
+    two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w2.db",
+                          workers=2, device="cpu")
     assert one.workers == 1 and two.workers == 2 and two.refine_stats["workers"] == 2
     assert (one.matches_kept, one.keypoints_moved) == (two.matches_kept, two.keypoints_moved)
     with ColmapDatabase(one.output) as a, ColmapDatabase(two.output) as b:

@@ -81,7 +81,8 @@ def test_unregistered_image_counts_as_failure():
     est.pop("3.png")
     errs = rp.model_pair_errors(est, gt)
     assert len(errs) == 6 and sum(np.isinf(list(errs.values()))) == 3
-    assert max(e for e in errs.values() if np.isfinite(e)) < 1e-6
+    # identical poses: arccos of 1 - 1 ulp is already 1.2e-6 degrees
+    assert max(e for e in errs.values() if np.isfinite(e)) < 1e-4
 
 
 def test_umeyama_recovers_similarity():

@@ -79,7 +79,8 @@ def _as_array(name: str, value, shape_tail: tuple[int, ...], n: int | None) -> n
     return arr
 
 
-def _pick_device(config: NCCConfig, *tensors) -> torch.device:
+def resolve_device(config: NCCConfig, *tensors) -> torch.device:
+    """The torch device ``config.device`` means for inputs ``tensors`` (see NCCConfig)."""
     if config.device == "cuda":
         if not torch.cuda.is_available():
             raise ValueError("config.device='cuda' but torch sees no CUDA device")
@@ -169,7 +170,7 @@ def refine_pair(
         affine1 = _as_array("affine1", affine1, (2, 2), n)
         affine2 = _as_array("affine2", affine2, (2, 2), n)
     homs = _normalise_signs(homs, p1, p2)
-    device = _pick_device(cfg, image1, image2, pts1, patch_homographies)
+    device = resolve_device(cfg, image1, image2, pts1, patch_homographies)
     img = (to_gray_tensor(image1, device), to_gray_tensor(image2, device))
 
     out1, out2 = p1.copy(), p2.copy()

@@ -55,7 +55,8 @@ class TrackRefineResult:
 class _ImageCache:
     """Lazy loader with a bounded LRU cache; ``None`` from the loader means missing."""
 
-    def __init__(self, images, max_items: int):
+    def __init__(self, images, max_items: int, prepare: Callable | None = None):
+        self._prepare = prepare
         if isinstance(images, Mapping):
             self._load = images.get
         elif callable(images):
@@ -78,6 +79,8 @@ class _ImageCache:
             self.missing.add(image_id)
             return None
         self.loaded += 1
+        if self._prepare is not None:
+            img = self._prepare(img)
         self._cache[image_id] = img
         while len(self._cache) > self._max:
             self._cache.popitem(last=False)
@@ -174,8 +177,17 @@ def refine_tracks(
     """
     t0 = time.perf_counter()
     ncc_cfg, trk_cfg = _resolve_configs(config, ncc_config, track_config)
+    prepare = None
     if refine_fn is None:
         from .ncc import refine_pair as refine_fn
+        from .ncc import resolve_device
+
+        device = resolve_device(ncc_cfg)
+        if device.type == "cuda":
+            # keep the cached images on the GPU: each is uploaded once, not once per call
+            from .warping import to_gray_tensor
+
+            prepare = lambda img: to_gray_tensor(img, device)  # noqa: E731
 
     image_ids = sorted(keypoints)
     kps = {}
@@ -250,7 +262,7 @@ def refine_tracks(
         stats["anchors"] = int(anchors.size)
         fixed = np.zeros(total, bool)
         fixed[anchors] = True
-        cache = _ImageCache(images, trk_cfg.max_images_in_memory)
+        cache = _ImageCache(images, trk_cfg.max_images_in_memory, prepare)
         pos = {i: out_kp[i] for i in image_ids}  # updated in place as keypoints move
         bar = None
         if progress:
