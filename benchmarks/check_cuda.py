@@ -5,7 +5,9 @@
    largest and median coordinate difference of matches moved on both, and the median GT
    transfer error on each device.
 2. ``refine_tracks`` on the first ``--track-images`` images of Oxford graf (all pairs, SIFT
-   matches filtered by MOP+MiHo): the same agreement figures per keypoint, and the time.
+   matches filtered by MOP+MiHo): the same agreement figures per keypoint (CPU, one call per
+   pair, against CUDA, one call per level: the defaults), and the time of each, also of CUDA
+   with one call per pair.
 3. CUDA wall time of ``refine_pair`` at the reference's sizes (950 and 2549 matches) for
    batch sizes 512 (the default) and 4096.
 
@@ -27,11 +29,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from colmap_miho import filter_matches, refine_pair
+from colmap_miho import refine_pair
 from colmap_miho.evaluation.datasets import oxford_pairs
-from colmap_miho.evaluation.frontend import detect_and_describe, mutual_nn_ratio, sift_matches
+from colmap_miho.evaluation.frontend import filtered_multiview_matches, sift_matches
 from colmap_miho.evaluation.match_errors import transfer_error
-from colmap_miho.refinement.config import NCCConfig
+from colmap_miho.refinement.config import NCCConfig, TrackConfig
 from colmap_miho.refinement.tracks import refine_tracks
 
 GT_PX = 3.0
@@ -80,25 +82,21 @@ def check_tracks(root: Path, n_images: int) -> None:
 
     images = {i: cv2.imread(str(next(seq.glob(f"img{i}.*"))), cv2.IMREAD_GRAYSCALE)
               for i in range(1, n_images + 1)}
-    feats = {i: detect_and_describe(im, detector="sift", max_features=8000)
-             for i, im in images.items()}
-    keypoints = {i: f[0] for i, f in feats.items()}
-    matches, results = {}, {}
-    for i, j in itertools.combinations(sorted(images), 2):
-        idx, _ = mutual_nn_ratio(feats[i][2], feats[j][2], 0.95)
-        fr = filter_matches(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], method="mop_miho")
-        if fr.success and fr.inliers.sum() >= 8:
-            matches[(i, j)] = idx[fr.inliers]
-            results[(i, j)] = fr
+    keypoints, matches, results = filtered_multiview_matches(images)
     print(f"{len(matches)} pairs, {sum(len(m) for m in matches.values())} kept matches")
     out = {}
-    for dev in ("cpu", "cuda"):
+    runs = {"cpu": ("cpu", None), "cuda per pair": ("cuda", False), "cuda": ("cuda", None)}
+    for name, (dev, batch) in runs.items():
+        refine_tracks(images, keypoints, matches, results, ncc_config=NCCConfig(device=dev),
+                      track_config=TrackConfig(batch_pairs=batch))  # warm-up
         t0 = time.perf_counter()
-        out[dev] = refine_tracks(images, keypoints, matches, results,
-                                 ncc_config=NCCConfig(device=dev))
-        st = out[dev].stats
-        print(f"{dev:4s}: {time.perf_counter() - t0:6.2f} s, tracks {st['tracks']}, refined "
-              f"{st['refined']}, moved {st['moved']}, rejected {st['rejected']}")
+        out[name] = refine_tracks(images, keypoints, matches, results,
+                                  ncc_config=NCCConfig(device=dev),
+                                  track_config=TrackConfig(batch_pairs=batch))
+        st = out[name].stats
+        print(f"{name:13s}: {time.perf_counter() - t0:6.2f} s, {st['refine_calls']} calls, "
+              f"tracks {st['tracks']}, refined {st['refined']}, moved {st['moved']}, "
+              f"rejected {st['rejected']}")
     for i in sorted(images):
         a, b = out["cpu"].keypoints[i], out["cuda"].keypoints[i]
         ma, mb = out["cpu"].displacement[i] > 0, out["cuda"].displacement[i] > 0

@@ -119,3 +119,32 @@ def sift_matches(img1: np.ndarray, img2: np.ndarray, *, detector: str = "sift", 
                                      rootsift=rootsift, upright=upright)
     idx, scores = mutual_nn_ratio(d1, d2, ratio)
     return FrontendMatches(p1[idx[:, 0]], p2[idx[:, 1]], f1[idx[:, 0]], f2[idx[:, 1]], scores, (len(p1), len(p2)))
+
+
+def filtered_multiview_matches(images: dict, *, detector: str = "sift", max_features: int = 8000,
+                               ratio: float = 0.95, method: str = "mop_miho",
+                               min_inliers: int = 8):
+    """Inputs of :func:`colmap_miho.refine_tracks` for a few images: keypoints, and for every
+    image pair the mutual-NN ratio matches kept by the filter (``method``).
+
+    Args:
+        images: image_id -> (H, W) uint8 grayscale image.
+    Returns:
+        (keypoints: id -> (N, 2), matches: (id1, id2) -> (M, 2) keypoint indices of the kept
+        matches, results: (id1, id2) -> FilterResult); pairs whose filter failed or kept fewer
+        than ``min_inliers`` matches are left out.
+    """
+    import itertools
+
+    from ..filtering.api import filter_matches
+
+    feats = {i: detect_and_describe(im, detector=detector, max_features=max_features)
+             for i, im in images.items()}
+    keypoints = {i: f[0] for i, f in feats.items()}
+    matches, results = {}, {}
+    for i, j in itertools.combinations(sorted(images), 2):
+        idx, _ = mutual_nn_ratio(feats[i][2], feats[j][2], ratio)
+        fr = filter_matches(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], method=method)
+        if fr.success and fr.inliers.sum() >= min_inliers:
+            matches[(i, j)], results[(i, j)] = idx[fr.inliers], fr
+    return keypoints, matches, results

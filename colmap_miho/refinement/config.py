@@ -105,11 +105,17 @@ class TrackConfig:
     Attributes:
         anchor: rule choosing the fixed observation of a track: "degree" (the most
             connected keypoint, ties to the lowest image id).
-        max_images_in_memory: bound of the lazy image cache.
+        max_images_in_memory: bound of the lazy image cache (and of the images one batched
+            call may use).
+        batch_pairs: refine all image pairs of a walk level in one NCC call (images stacked,
+            at most ``max_images_in_memory`` per call) instead of one call per pair and side.
+            None: on CUDA only, where a call costs about the same for 100 matches as for
+            10000; on the CPU the work per match dominates and one call per pair is as fast.
     """
 
     anchor: str = "degree"
     max_images_in_memory: int = 8
+    batch_pairs: bool | None = None
 
     def __post_init__(self) -> None:
         if self.anchor not in ("degree",):

@@ -34,7 +34,7 @@ from .config import DEFAULT_BATCH_SIZE, NCCConfig
 from .perturbations import perturbation_matrices
 from .search import evaluate_direction, to_frame
 from .subpixel import iterate_subpixel
-from .warping import offset_grid, to_gray_tensor
+from .warping import ImageStack, offset_grid, to_gray_tensor
 
 logger = logging.getLogger(__name__)
 
@@ -87,6 +87,8 @@ def resolve_device(config: NCCConfig, *tensors) -> torch.device:
         return torch.device("cuda")
     if config.device == "auto":
         for t in tensors:
+            if isinstance(t, ImageStack):
+                return t.device  # built by the caller on the device it chose
             if isinstance(t, torch.Tensor) and t.is_cuda:
                 return t.device
         if torch.cuda.is_available():
@@ -137,7 +139,8 @@ def refine_pair(
 
     Args:
         image1, image2: grayscale images (H, W), numpy or torch, uint8 (scaled to [0, 1]) or
-            float (intensities nominally in [0, 1]).
+            float (intensities nominally in [0, 1]); or :class:`~.warping.ImageStack` objects
+            with one image per match (several image pairs in one call).
         pts1, pts2: (N, 2) pixel coordinates (x, y), integer = pixel centre.
         patch_homographies: (N, 2, 3, 3) one pair (A, B) per match mapping image 1 and image 2
             into a common frame, ``A x1 ~ B x2`` (e.g. (I, H_2from1^-1) for MOP, the two
@@ -209,11 +212,12 @@ def refine_pair(
             pairs = [(H_ext, tpl_off, tpl_off_coarse)]
             if use_base:
                 pairs.append((torch.as_tensor(base[sl], device=device), grid_t[None], None))
+            cimg = tuple(im.rows(sl) if isinstance(im, ImageStack) else im for im in img)
             res = [
-                (f, m, evaluate_direction(img[f], img[m], x[f], x[m], pairs, f, m, win_off, cfg))
+                (f, m, evaluate_direction(cimg[f], cimg[m], x[f], x[m], pairs, f, m, win_off, cfg))
                 for f, m in directions
             ]
-            _decide(res, img, sl, cfg, (out1, out2), before, after, moved, disp, rejected,
+            _decide(res, cimg, sl, cfg, (out1, out2), before, after, moved, disp, rejected,
                     counts)
 
     counts.update(
@@ -269,7 +273,8 @@ def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, count
             continue
         sel = torch.as_tensor(take, device=r["offset"].device)
         H_inv, frame = r["H_inv"][sel], r["frame_m"][sel]
-        off = iterate_subpixel(img[m], H_inv, frame, r["offset"][sel], r["template"][sel],
+        img_m = img[m].rows(sel) if isinstance(img[m], ImageStack) else img[m]
+        off = iterate_subpixel(img_m, H_inv, frame, r["offset"][sel], r["template"][sel],
                                cfg.template_radius, cfg.subpixel_iterations)
         new = to_frame(H_inv, frame + off).cpu().numpy()
         ok = idx[take]

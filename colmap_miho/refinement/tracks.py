@@ -8,7 +8,8 @@ breadth-first from the anchor, level by level. Each free keypoint adjacent to an
 fixed one is refined against it (template from the fixed side, ``move`` = the free side) and
 becomes fixed whatever the outcome (moved, rejected or skipped). Hence no keypoint moves twice.
 
-Track logic only: the patch maths is in :mod:`colmap_miho.refinement.ncc`.
+Track logic only: the refine calls are made by :mod:`.walk_calls`, the patch maths is in
+:mod:`colmap_miho.refinement.ncc`.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from .config import NCCConfig, TrackConfig
+from .walk_calls import Group, WalkState, chunks_by_images, refine_batch, refine_group
 
 logger = logging.getLogger(__name__)
 
@@ -165,7 +167,9 @@ def refine_tracks(
         affines: optional image_id -> (Ni, 2, 2) keypoint affine frames for the base pass.
         progress: tqdm bar over the refine calls.
         refine_fn: the pairwise refiner, default :func:`colmap_miho.refinement.ncc.refine_pair`
-            (same signature; tests pass a cheap fake).
+            (same signature; tests pass a cheap fake). With ``TrackConfig.batch_pairs`` it
+            receives :class:`~.warping.ImageStack` images, the fixed side first, and
+            ``move="2"``.
 
     Anchor rule (``TrackConfig.anchor = "degree"``): the observation with the most
     refinable matches in its track; ties go to the lowest (image_id, keypoint_index). A free
@@ -177,17 +181,23 @@ def refine_tracks(
     """
     t0 = time.perf_counter()
     ncc_cfg, trk_cfg = _resolve_configs(config, ncc_config, track_config)
-    prepare = None
-    if refine_fn is None:
+    import torch
+
+    prepare, device = None, torch.device("cpu")
+    default_refiner = refine_fn is None
+    if default_refiner:
         from .ncc import refine_pair as refine_fn
         from .ncc import resolve_device
+        from .warping import to_gray_tensor
 
         device = resolve_device(ncc_cfg)
         if device.type == "cuda":
             # keep the cached images on the GPU: each is uploaded once, not once per call
-            from .warping import to_gray_tensor
-
             prepare = lambda img: to_gray_tensor(img, device)  # noqa: E731
+    use_batch = trk_cfg.batch_pairs
+    if use_batch is None:
+        use_batch = default_refiner and device.type == "cuda"
+    batched = device if use_batch else None
 
     image_ids = sorted(keypoints)
     kps = {}
@@ -289,14 +299,25 @@ def refine_tracks(
             e_idx, free, anchor_of, side = e_idx[groups], free[groups], anchor_of[groups], side[groups]
             keys = np.stack([ep[e_idx], side], 1)
             bounds = np.flatnonzero(np.any(keys[1:] != keys[:-1], axis=1)) + 1
-            for g in np.split(np.arange(e_idx.size), bounds):
-                _refine_group(
-                    pairs[ep[e_idx[g[0]]]], int(side[g[0]]), er[e_idx[g]], free[g], anchor_of[g],
-                    pair_matches, pair_homs[ep[e_idx[g[0]]]], pos, affines, cache, ncc_cfg,
-                    refine_fn, node_image, node_kp, out_disp, out_against, stats,
-                )
-                if bar is not None:
-                    bar.update(1)
+            groups = [
+                Group(pairs[ep[e_idx[g[0]]]], int(side[g[0]]), er[e_idx[g]], free[g],
+                       anchor_of[g], pair_homs[ep[e_idx[g[0]]]])
+                for g in np.split(np.arange(e_idx.size), bounds)
+            ]
+            ctx = WalkState(pair_matches, pos, affines, cache, ncc_cfg, refine_fn, node_image,
+                             node_kp, out_disp, out_against, stats)
+            if batched is not None:
+                # groups of one level are independent: each free keypoint is in one group
+                # and is refined against keypoints fixed at an earlier level
+                for chunk in chunks_by_images(groups, trk_cfg.max_images_in_memory):
+                    refine_batch(chunk, ctx, batched)
+                    if bar is not None:
+                        bar.update(len(chunk))
+            else:
+                for grp in groups:
+                    refine_group(grp, ctx)
+                    if bar is not None:
+                        bar.update(1)
             fixed[free] = True
         if bar is not None:
             bar.close()
@@ -307,31 +328,3 @@ def refine_tracks(
     return TrackRefineResult(
         keypoints=out_kp, displacement=out_disp, refined_against=out_against, stats=stats
     )
-
-
-def _refine_group(pair, side, rows, free, anchor_of, pair_matches, homs, pos, affines, cache,
-                  ncc_cfg, refine_fn, node_image, node_kp, out_disp, out_against, stats):
-    """One refine call: matches ``rows`` of ``pair`` where keypoints of side ``side`` move."""
-    id1, id2 = pair
-    m = np.asarray(pair_matches[pair]).astype(np.int64).reshape(-1, 2)[rows]
-    img1, img2 = cache.get(id1), cache.get(id2)
-    if img1 is None or img2 is None:
-        stats["skipped"] += int(rows.size)
-        return
-    kwargs = {}
-    if affines is not None and id1 in affines and id2 in affines:
-        kwargs = {"affine1": np.asarray(affines[id1])[m[:, 0]],
-                  "affine2": np.asarray(affines[id2])[m[:, 1]]}
-    res = refine_fn(img1, img2, pos[id1][m[:, 0]], pos[id2][m[:, 1]], homs[rows],
-                    move=str(side), config=ncc_cfg, **kwargs)
-    stats["refine_calls"] += 1
-    stats["refined"] += int(rows.size)
-    moving_id, idx = (id2, m[:, 1]) if side == 2 else (id1, m[:, 0])
-    new = res.pts2 if side == 2 else res.pts1
-    did = np.asarray(res.moved_side) == side
-    pos[moving_id][idx[did]] = new[did]
-    out_disp[moving_id][idx[did]] = np.asarray(res.displacement)[did]
-    out_against[moving_id][idx, 0] = node_image[anchor_of]
-    out_against[moving_id][idx, 1] = node_kp[anchor_of]
-    stats["moved"] += int(did.sum())
-    stats["rejected"] += int(np.asarray(res.rejected).sum())

@@ -9,6 +9,8 @@ offsets ``w`` of a square grid, with ``torch.nn.functional.grid_sample`` (biline
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -22,12 +24,15 @@ _FAR = -1.0e6
 
 
 def to_gray_tensor(image, device: torch.device) -> torch.Tensor:
-    """Image as a float32 tensor (H, W) on ``device``.
+    """Image as a float32 tensor (H, W) on ``device`` (an :class:`ImageStack` is returned
+    as is).
 
     Args:
         image: numpy array or tensor (H, W), uint8 (divided by 255) or float (used as is,
             intensities nominally in [0, 1]).
     """
+    if isinstance(image, ImageStack):
+        return image
     if isinstance(image, torch.Tensor):
         t = image.detach()
     else:
@@ -41,6 +46,56 @@ def to_gray_tensor(image, device: torch.device) -> torch.Tensor:
     else:
         raise ValueError(f"image must be uint8 or float, got dtype {t.dtype}")
     return t.to(device)
+
+
+@dataclass(frozen=True)
+class ImageStack:
+    """Several images for one batch of jobs: job j reads image ``index[j]`` of ``stack``.
+
+    Lets one batched call serve matches of many image pairs (the track walk on a GPU, where
+    a call costs about the same for 100 matches as for 10000). Images are zero-padded to a
+    common size; the inside test uses each job's true image size, so a patch that counts as
+    inside never reads padding.
+
+    Attributes:
+        stack: (D, Hmax, Wmax) float32.
+        slot_sizes: (D, 2) float64 (width, height) of each image.
+        index: (J,) int64 image of each job.
+    """
+
+    stack: torch.Tensor
+    slot_sizes: torch.Tensor
+    index: torch.Tensor
+
+    @classmethod
+    def build(cls, images: list[torch.Tensor], index, device: torch.device) -> "ImageStack":
+        """Stack (H, W) float32 tensors; ``index`` (J,) picks each job's image."""
+        h = max(int(im.shape[0]) for im in images)
+        w = max(int(im.shape[1]) for im in images)
+        stack = torch.zeros((len(images), h, w), dtype=torch.float32, device=device)
+        for k, im in enumerate(images):
+            stack[k, : im.shape[0], : im.shape[1]] = im.to(device)
+        wh = torch.tensor([[im.shape[1], im.shape[0]] for im in images], dtype=torch.float64,
+                          device=device)
+        return cls(stack, wh, torch.as_tensor(index, dtype=torch.int64, device=device))
+
+    def with_index(self, index) -> "ImageStack":
+        """The same images, read by other jobs."""
+        return ImageStack(self.stack, self.slot_sizes,
+                          torch.as_tensor(index, dtype=torch.int64, device=self.stack.device))
+
+    def rows(self, sel) -> "ImageStack":
+        """The same images for a subset (slice or index tensor) of the jobs."""
+        return ImageStack(self.stack, self.slot_sizes, self.index[sel])
+
+    @property
+    def sizes(self) -> torch.Tensor:
+        """(J, 2) float64 (width, height) of each job's image."""
+        return self.slot_sizes[self.index]
+
+    @property
+    def device(self) -> torch.device:
+        return self.stack.device
 
 
 def offset_grid(radius: int, device: torch.device, dtype=torch.float64) -> torch.Tensor:
@@ -120,7 +175,7 @@ def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
 
 
 def sample_patches(
-    image: torch.Tensor,
+    image: torch.Tensor | ImageStack,
     H_inv: torch.Tensor,
     centres: torch.Tensor,
     offsets: torch.Tensor,
@@ -133,7 +188,7 @@ def sample_patches(
     cost of mapping every sample in float64.
 
     Args:
-        image: (H, W) float32.
+        image: (H, W) float32, or an :class:`ImageStack` with one image per job.
         H_inv: (J, 3, 3) float64, maps the common frame back to image pixels.
         centres: (J, 2) float64 common-frame centres.
         offsets: (K, P, 2) float64 common-frame offsets (K shapes of P = (2r+1)^2 pixels,
@@ -151,13 +206,19 @@ def sample_patches(
     corner_off = offsets[..., corner_idx, :]
     corners = centres[:, None, None, :] + (corner_off if per_job else corner_off[None])
     c_img, ok = apply_homographies(H_inv, corners.reshape(J, K * 4, 2))
-    h, w = image.shape
+    stacked = isinstance(image, ImageStack)
+    if stacked:
+        h, w = image.stack.shape[1:]
+        wj, hj = image.sizes[:, 0:1], image.sizes[:, 1:2]  # (J, 1) each job's own image
+    else:
+        h, w = image.shape
+        wj, hj = w, h
     inside = (
         ok
         & (c_img[..., 0] >= 0)
-        & (c_img[..., 0] <= w - 1)
+        & (c_img[..., 0] <= wj - 1)
         & (c_img[..., 1] >= 0)
-        & (c_img[..., 1] <= h - 1)
+        & (c_img[..., 1] <= hj - 1)
     ).all(dim=1)
     # centre in homogeneous image coordinates, normalised to w = 1
     a = (H_inv[:, :, :2] @ centres[:, :, None])[..., 0] + H_inv[:, :, 2]  # (J, 3)
@@ -190,6 +251,14 @@ def sample_patches(
         # one GEMM for all jobs: (J*3, 3) @ (3, KP)
         q = torch.mm(M32.reshape(J * 3, 3), o3.t()).view(J, 3, K * P)
     grid = (q[:, :2] / q[:, 2:].clamp_min(1e-6)).transpose(1, 2)  # (J, KP, 2)
+    if stacked:
+        # trilinear sampling of the (D, H, W) volume at integer depth = bilinear in the slice
+        d = image.stack.shape[0]
+        z = image.index.to(torch.float32) * (2.0 / max(d - 1, 1)) - (1.0 if d > 1 else 0.0)
+        grid = torch.cat([grid, z[:, None, None].expand(J, K * P, 1)], dim=-1)
+        out = F.grid_sample(image.stack[None, None], grid[None, None], mode="bilinear",
+                            padding_mode="zeros", align_corners=True)  # (1, 1, 1, J, KP)
+        return out.reshape(J, K, P), inside
     out = F.grid_sample(image[None, None], grid[None], mode="bilinear", padding_mode="zeros",
                         align_corners=True)  # (1, 1, J, KP)
     values = out[0, 0].reshape(J, K, P)
