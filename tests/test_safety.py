@@ -154,7 +154,7 @@ def _kill_at_write(cmd: list[str], marker: Path) -> None:
             proc.wait()
 
 
-def test_sigkill_mid_write_leaves_input_identical(db_copy, scene, tmp_path):
+def test_sigkill_mid_write_leaves_input_identical(db_copy, scene, tmp_path, capfd):
     digest = sha256(db_copy)
     out = db_copy.with_name("out.db")
     _kill_at_write(_refine_cmd(db_copy, scene.image_dir, "--output", str(out)), tmp_path / "marker")
@@ -162,7 +162,20 @@ def test_sigkill_mid_write_leaves_input_identical(db_copy, scene, tmp_path):
     assert not out.exists()
     # the killed run's working copy stays behind (nothing can clean up after SIGKILL), but it
     # is a hidden temp file, never the output or the input
-    assert all(name.startswith(".out.db.") for name in leftovers(db_copy.parent))
+    left = leftovers(db_copy.parent)
+    assert left and all(name.startswith(".out.db.") for name in left)
+    # the next run says so, names it, and leaves it alone (another run might own it)
+    from colmap_miho.io.safety import leftover_copies
+
+    copies = [name for name in left if name.endswith(".tmp")]  # the rest: its -wal, -shm
+    assert len(copies) == 1 and [f.name for f in leftover_copies(out)] == copies
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir),
+                 "--output", str(out), "--workers", "1", "--no-refine", "-q"]) == 0
+    err = capfd.readouterr().err
+    assert copies[0] in err and "interrupted" in err
+    assert sha256(db_copy) == digest and out.exists()
+    assert leftovers(db_copy.parent) == left
 
 
 def test_sigkill_in_place_keeps_input_and_backup(db_copy, scene, tmp_path):

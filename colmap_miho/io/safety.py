@@ -203,6 +203,7 @@ class WorkingCopy:
 
     def __enter__(self) -> "WorkingCopy":
         check_not_in_use(self.database)
+        _warn_leftover_copies(self.output)
         if self.in_place:
             self.backup = backup_path(self.database)
             copy_file(self.database, self.backup)
@@ -233,6 +234,28 @@ class WorkingCopy:
     def __exit__(self, exc_type, exc, tb) -> None:
         if self.path is not None and not self.committed:
             remove_with_side_files(self.path)
+
+
+def leftover_copies(output: Path) -> list[Path]:
+    """Hidden working copies of ``output`` that an earlier run left behind (a run killed with
+    SIGKILL or a power cut cannot delete its own), oldest first. Copies that another process
+    holds open (a run still going) are not listed."""
+    found = [f for f in Path(output).parent.glob(f".{Path(output).name}.*.tmp")
+             if f.is_file() and not _locked_by_other_process(f)]
+    return sorted(found, key=lambda f: f.stat().st_mtime)
+
+
+def _warn_leftover_copies(output: Path) -> None:
+    found = leftover_copies(output)
+    if found:
+        mb = sum(g.stat().st_size for f in found for g in [f, *side_files(f)]) / 1e6
+        log.warning(
+            "%d working cop%s of %s left by an interrupted earlier run (%.0f MB with their "
+            "-wal/-shm files; never the input or a result, safe to delete once no other "
+            "colmap-miho run writes %s): %s",
+            len(found), "y" if len(found) == 1 else "ies", output.name, mb, output.name,
+            ", ".join(f.name for f in found),
+        )
 
 
 @contextlib.contextmanager
