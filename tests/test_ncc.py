@@ -245,3 +245,30 @@ def test_cuda_agrees_with_cpu(known_motion, perturbations):
     assert agree.mean() >= 0.99
     diff = np.linalg.norm(res["cpu"].pts2 - res["cuda"].pts2, axis=1)[agree]
     assert np.median(diff) < 1e-4 and np.percentile(diff, 99) < 1e-2
+
+
+def test_image_stack_samples_like_separate_images():
+    """Jobs reading images of different sizes from one padded stack get the values and the
+    inside flags of sampling each image on its own (the batched track walk relies on it)."""
+    from colmap_miho.refinement.warping import ImageStack, offset_grid, sample_patches
+
+    rng = np.random.default_rng(0)
+    images = [torch.as_tensor(rng.random((60, 90)), dtype=torch.float32),
+              torch.as_tensor(rng.random((80, 50)), dtype=torch.float32),
+              torch.as_tensor(rng.random((40, 40)), dtype=torch.float32)]
+    index = np.array([0, 1, 2, 1, 0, 2])
+    # centres near each image's far corner: some patches cross that image's border, which the
+    # padding of the larger images must not hide
+    centres = torch.tensor([[87.0, 50.0], [30.0, 40.0], [20.0, 20.0], [47.0, 70.0],
+                            [10.0, 10.0], [37.0, 30.0]], dtype=torch.float64)
+    H = torch.eye(3, dtype=torch.float64).repeat(6, 1, 1)
+    H[:, 0, 1] = 0.05
+    offsets = offset_grid(4, torch.device("cpu"))[None]
+    stack = ImageStack.build(images, index, torch.device("cpu"))
+    got, inside = sample_patches(stack, H, centres, offsets)
+    for j, k in enumerate(index):
+        want, want_in = sample_patches(images[k], H[j:j + 1], centres[j:j + 1], offsets)
+        assert bool(inside[j]) == bool(want_in[0])
+        if want_in[0]:
+            np.testing.assert_allclose(got[j].numpy(), want[0].numpy(), atol=1e-5)
+    assert inside.tolist() == [False, True, True, False, True, False]
