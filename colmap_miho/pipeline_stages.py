@@ -142,15 +142,18 @@ def _import_refine_tracks():
 
 
 def _refine_chunk(loader_state, keypoints, pair_matches, pair_results, ncc_config, track_config,
-                  affines, threads):
-    """Worker: refine_tracks on a set of whole tracks; returns (keypoints, stats)."""
+                  affines, threads, progress_queue=None):
+    """Worker: refine_tracks on a set of whole tracks; returns (keypoints, stats). Reports the
+    keypoints it has handled on ``progress_queue`` (a manager queue) when given."""
     import torch
 
     torch.set_num_threads(max(1, int(threads)))
     refine_tracks = _import_refine_tracks()
     loader = ImageLoader(**loader_state)
+    report = progress_queue.put if progress_queue is not None else None
     tr = refine_tracks(loader, keypoints, pair_matches, pair_results, ncc_config=ncc_config,
-                       track_config=track_config, affines=affines, progress=False)
+                       track_config=track_config, affines=affines, progress=False,
+                       on_progress=report)
     return tr.keypoints, tr.stats
 
 
@@ -158,8 +161,10 @@ def _split_tracks(keypoints, pairs, workers: int):
     """Split the refinable matches into ``workers`` chunks of whole tracks (connected
     components over (image, keypoint) nodes), balanced by match count.
 
-    Returns a list of (pair_matches, pair_results) per chunk; tracks never straddle chunks, so
-    each keypoint can move in one chunk only and the chunks' results merge without conflict.
+    Returns (a list of (pair_matches, pair_results) per chunk, the number of keypoints the
+    walk will refine: all keypoints in tracks but one anchor per track). Tracks never
+    straddle chunks, so each keypoint can move in one chunk only and the chunks' results merge
+    without conflict.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -180,6 +185,8 @@ def _split_tracks(keypoints, pairs, workers: int):
     ea, eb = np.concatenate(ea), np.concatenate(eb)
     _, comp = connected_components(coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)),
                                    directed=False)
+    nodes = np.unique(np.concatenate([ea, eb]))
+    to_refine = int(nodes.size - np.unique(comp[nodes]).size)
     edge_comp = comp[ea]
     sizes = np.bincount(edge_comp, minlength=comp.max() + 1)
     order = np.argsort(-sizes, kind="stable")
@@ -203,7 +210,7 @@ def _split_tracks(keypoints, pairs, workers: int):
             sel = rr[ch == b]
             chunks[b][0][k] = m[sel]
             chunks[b][1][k] = _PairRows(np.ones(sel.size, bool), labels[sel], homs)
-    return [c for c in chunks if c[0]]
+    return [c for c in chunks if c[0]], to_refine
 
 
 def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config, track_config, *,
@@ -223,23 +230,37 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         new = {i: np.asarray(tr.keypoints.get(i, keypoints[i]), np.float64) for i in keypoints}
         return new, _numeric(tr.stats), 1
     _import_refine_tracks()  # fail early, in this process, if it is missing
-    chunks = _split_tracks(keypoints, pairs, use)
+    chunks, to_refine = _split_tracks(keypoints, pairs, use)
     state = dict(image_dir=loader.image_dir, names=loader.names, max_cached=loader.max_cached)
     threads = max(1, (os.cpu_count() or 1) // len(chunks))
     import multiprocessing
 
     new = {i: keypoints[i].copy() for i in keypoints}
     stats: dict = {}
-    bar = None
+    bar = queue = manager = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(chunks), desc="NCC tracks (chunks)", unit="chunk")
+        bar = tqdm(total=to_refine, desc=f"NCC tracks ({len(chunks)} workers)", unit="kp")
+        manager = multiprocessing.get_context("spawn").Manager()
+        queue = manager.Queue()
+
+    def drain() -> None:
+        while queue is not None and not queue.empty():
+            bar.update(queue.get())
+
     try:
         with ProcessPoolExecutor(max_workers=len(chunks), mp_context=multiprocessing.get_context("spawn")) as ex:
-            futs = [ex.submit(_refine_chunk, state, keypoints, pm, pr, ncc_config, track_config, affines, threads)
+            futs = [ex.submit(_refine_chunk, state, keypoints, pm, pr, ncc_config, track_config,
+                              affines, threads, queue)
                     for pm, pr in chunks]
             try:
+                pending = set(futs)
+                while pending:
+                    done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
+                    drain()
+                    for fut in done:
+                        fut.result()  # a failed worker stops the run now, not at the end
                 for fut in futs:
                     kp, st = fut.result()
                     for i, arr in kp.items():
@@ -248,14 +269,15 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
                         new[i][changed] = arr[changed]
                     for key, v in _numeric(st).items():
                         stats[key] = stats.get(key, 0) + v
-                    if bar:
-                        bar.update()
+                drain()
             except BaseException:
                 ex.shutdown(wait=False, cancel_futures=True)
                 raise
     finally:
         if bar:
             bar.close()
+        if manager is not None:
+            manager.shutdown()
     return new, stats, len(chunks)
 
 

@@ -147,6 +147,7 @@ def refine_tracks(
     track_config: TrackConfig | None = None,
     affines: Mapping | None = None,
     progress: bool = False,
+    on_progress: Callable[[int], None] | None = None,
     refine_fn: Callable | None = None,
 ) -> TrackRefineResult:
     """Refine keypoints of many images by NCC so that every keypoint moves at most once.
@@ -165,7 +166,10 @@ def refine_tracks(
             TrackConfig), or one of the two; ``ncc_config`` / ``track_config`` override it.
             ``NCCConfig.move`` is ignored: the walk decides which side moves.
         affines: optional image_id -> (Ni, 2, 2) keypoint affine frames for the base pass.
-        progress: tqdm bar over the refine calls.
+        progress: tqdm bar over the keypoints to refine (all keypoints in tracks but the
+            anchors).
+        on_progress: called with the number of keypoints handled after every refine
+            call (worker processes report progress through it).
         refine_fn: the pairwise refiner, default :func:`colmap_miho.refinement.ncc.refine_pair`
             (same signature; tests pass a cheap fake). With ``TrackConfig.batch_pairs`` it
             receives :class:`~.warping.ImageStack` images, the fixed side first, and
@@ -275,10 +279,18 @@ def refine_tracks(
         cache = _ImageCache(images, trk_cfg.max_images_in_memory, prepare)
         pos = {i: out_kp[i] for i in image_ids}  # updated in place as keypoints move
         bar = None
+        to_refine = int(comp_nodes.size - anchors.size)
+
+        def advance(n: int) -> None:
+            if bar is not None:
+                bar.update(n)
+            if on_progress is not None:
+                on_progress(n)
+
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(desc="NCC tracks", unit="pair")
+            bar = tqdm(total=to_refine, desc="NCC tracks", unit="kp")
         while True:
             fa, fb = fixed[ea], fixed[eb]
             fwd = fa & ~fb  # a fixed, b free: b moves (side 2)
@@ -311,13 +323,11 @@ def refine_tracks(
                 # and is refined against keypoints fixed at an earlier level
                 for chunk in chunks_by_images(groups, trk_cfg.max_images_in_memory):
                     refine_batch(chunk, ctx, batched)
-                    if bar is not None:
-                        bar.update(len(chunk))
+                    advance(sum(int(grp.rows.size) for grp in chunk))
             else:
                 for grp in groups:
                     refine_group(grp, ctx)
-                    if bar is not None:
-                        bar.update(1)
+                    advance(int(grp.rows.size))
             fixed[free] = True
         if bar is not None:
             bar.close()
