@@ -94,11 +94,7 @@ def run_filter_stage(db: ColmapDatabase, pairs, keypoints, source, filter_config
                 if bar:
                     bar.update()
         else:
-            import multiprocessing
-
-            ctx = multiprocessing.get_context("spawn")
-            with _single_thread_children(), \
-                    ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as ex:
+            with _single_thread_children(), _process_pool(workers, initializer=_init_worker) as ex:
                 def collect(fut) -> None:
                     i, j, res = fut.result()
                     results[(i, j)] = (matches_of.pop((i, j)), res)
@@ -106,18 +102,14 @@ def run_filter_stage(db: ColmapDatabase, pairs, keypoints, source, filter_config
                         bar.update()
 
                 pending = set()
-                try:
-                    for p in pairs:
-                        pending.add(ex.submit(_filter_one, *job(p)))
-                        if len(pending) >= 2 * workers:  # bounded: stream pairs, do not queue all
-                            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                            for fut in done:
-                                collect(fut)
-                    for fut in pending:
-                        collect(fut)
-                except BaseException:
-                    ex.shutdown(wait=False, cancel_futures=True)
-                    raise
+                for p in pairs:
+                    pending.add(ex.submit(_filter_one, *job(p)))
+                    if len(pending) >= 2 * workers:  # bounded: stream pairs, do not queue all
+                        done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                        for fut in done:
+                            collect(fut)
+                for fut in pending:
+                    collect(fut)
     finally:
         if bar:
             bar.close()
@@ -250,35 +242,46 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
             bar.update(queue.get())
 
     try:
-        with ProcessPoolExecutor(max_workers=len(chunks), mp_context=multiprocessing.get_context("spawn")) as ex:
+        with _process_pool(len(chunks)) as ex:
             futs = [ex.submit(_refine_chunk, state, keypoints, pm, pr, ncc_config, track_config,
                               affines, threads, queue)
                     for pm, pr in chunks]
-            try:
-                pending = set(futs)
-                while pending:
-                    done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
-                    drain()
-                    for fut in done:
-                        fut.result()  # a failed worker stops the run now, not at the end
-                for fut in futs:
-                    kp, st = fut.result()
-                    for i, arr in kp.items():
-                        arr = np.asarray(arr, np.float64)
-                        changed = np.any(arr != keypoints[i], axis=1)
-                        new[i][changed] = arr[changed]
-                    for key, v in _numeric(st).items():
-                        stats[key] = stats.get(key, 0) + v
+            pending = set(futs)
+            while pending:
+                done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
                 drain()
-            except BaseException:
-                ex.shutdown(wait=False, cancel_futures=True)
-                raise
+                for fut in done:
+                    fut.result()  # a failed worker stops the run now, not at the end
+            for fut in futs:
+                kp, st = fut.result()
+                for i, arr in kp.items():
+                    arr = np.asarray(arr, np.float64)
+                    changed = np.any(arr != keypoints[i], axis=1)
+                    new[i][changed] = arr[changed]
+                for key, v in _numeric(st).items():
+                    stats[key] = stats.get(key, 0) + v
+            drain()
     finally:
         if bar:
             bar.close()
         if manager is not None:
             manager.shutdown()
     return new, stats, len(chunks)
+
+
+@contextlib.contextmanager
+def _process_pool(workers: int, **kwargs):
+    """A spawn process pool whose queued work is cancelled, not waited for, when the block
+    raises (a failed worker, Ctrl-C)."""
+    import multiprocessing
+
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                             **kwargs) as ex:
+        try:
+            yield ex
+        except BaseException:
+            ex.shutdown(wait=False, cancel_futures=True)
+            raise
 
 
 @contextlib.contextmanager

@@ -185,9 +185,7 @@ def refine_tracks(
     """
     t0 = time.perf_counter()
     ncc_cfg, trk_cfg = _resolve_configs(config, ncc_config, track_config)
-    import torch
-
-    prepare, device = None, torch.device("cpu")
+    prepare, device = None, "cpu"
     default_refiner = refine_fn is None
     if default_refiner:
         from .ncc import refine_pair as refine_fn
@@ -200,7 +198,7 @@ def refine_tracks(
             prepare = lambda img: to_gray_tensor(img, device)  # noqa: E731
     use_batch = trk_cfg.batch_pairs
     if use_batch is None:
-        use_batch = default_refiner and device.type == "cuda"
+        use_batch = default_refiner and str(device).startswith("cuda")
     batched = device if use_batch else None
 
     image_ids = sorted(keypoints)

@@ -78,15 +78,15 @@ def _orient(grp: Group, ctx: WalkState) -> _Call:
                  homs[:, ::-1], aff2, aff1)
 
 
-def _apply(grp: Group, call: _Call, new, moved, displacement, rejected, ctx: WalkState):
-    """Write one group's refinement result (``moved``: the moving keypoint was moved)."""
+def _apply(grp: Group, moving_id, idx, new, moved, displacement, rejected, ctx: WalkState):
+    """Write one group's refinement result: keypoints ``idx`` of image ``moving_id`` were
+    refined, ``moved`` says which of them moved to ``new``."""
     st = ctx.stats
     st["refined"] += int(grp.rows.size)
-    idx = call.moving_idx
-    ctx.pos[call.moving_id][idx[moved]] = new[moved]
-    ctx.out_disp[call.moving_id][idx[moved]] = displacement[moved]
-    ctx.out_against[call.moving_id][idx, 0] = ctx.node_image[grp.anchor_of]
-    ctx.out_against[call.moving_id][idx, 1] = ctx.node_kp[grp.anchor_of]
+    ctx.pos[moving_id][idx[moved]] = new[moved]
+    ctx.out_disp[moving_id][idx[moved]] = displacement[moved]
+    ctx.out_against[moving_id][idx, 0] = ctx.node_image[grp.anchor_of]
+    ctx.out_against[moving_id][idx, 1] = ctx.node_kp[grp.anchor_of]
     st["moved"] += int(moved.sum())
     st["rejected"] += int(np.asarray(rejected).sum())
 
@@ -144,7 +144,8 @@ def refine_batch(groups: list, ctx: WalkState, device) -> None:
     for grp, call, n in zip(kept, calls, sizes):
         seg = slice(start, start + n)
         start += n
-        _apply(grp, call, res.pts2[seg], np.asarray(res.moved_side[seg]) == 2,
+        _apply(grp, call.moving_id, call.moving_idx, res.pts2[seg],
+               np.asarray(res.moved_side[seg]) == 2,
                np.asarray(res.displacement[seg]), res.rejected[seg], ctx)
 
 
@@ -164,5 +165,6 @@ def refine_group(grp: Group, ctx: WalkState) -> None:
                         grp.homs[grp.rows], move=str(grp.side), config=ctx.ncc_cfg, **kwargs)
     ctx.stats["refine_calls"] += 1
     new = res.pts2 if grp.side == 2 else res.pts1
-    _apply(grp, _orient(grp, ctx), new, np.asarray(res.moved_side) == grp.side,
+    moving_id, idx = (id2, m[:, 1]) if grp.side == 2 else (id1, m[:, 0])
+    _apply(grp, moving_id, idx, new, np.asarray(res.moved_side) == grp.side,
            np.asarray(res.displacement), res.rejected, ctx)
