@@ -1,7 +1,7 @@
 """Speed and accuracy of the MOP / MOP+MiHo filter on real pairs with ground truth.
 
 For each pair: SIFT+NNR matches (8000 RootSIFT, upright, mutual NN, ratio 0.95 — the
-paper's front end, :func:`colmap_miho.evaluation.frontend.sift_matches`), then every method;
+paper's front end, :func:`miho_bench.frontend.sift_matches`), then every method;
 prints the match count, homographies found, kept matches, precision and recall against GT
 (3 px: max two-way transfer error for Oxford, max epipolar distance for Strecha; recall
 relative to the input's GT inliers) and the median wall time of ``--runs`` calls.
@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from colmap_miho import filter_matches
-from colmap_miho.evaluation.datasets import multiview_pairs, oxford_pairs
-from colmap_miho.evaluation.frontend import sift_matches
-from colmap_miho.evaluation.match_errors import gt_error
+from miho_bench.datasets import multiview_pairs, oxford_pairs
+from miho_bench.frontend import sift_matches
+from miho_bench.match_errors import gt_error
 from colmap_miho.filtering.config import FilterConfig
 
 GT_PX = 3.0

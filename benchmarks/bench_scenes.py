@@ -45,8 +45,8 @@ def main(argv=None) -> int:
 
     import pycolmap
 
-    from colmap_miho.compare import compare_databases
-    from colmap_miho.mapping import extract_and_match
+    from colmap_miho.reporting.compare import compare_databases
+    from colmap_miho.sfm import extract_and_match
     from colmap_miho.recipe import load_recipe
 
     pycolmap.logging.minloglevel = 1

@@ -30,9 +30,9 @@ import numpy as np
 import torch
 
 from colmap_miho import refine_pair
-from colmap_miho.evaluation.datasets import oxford_pairs
-from colmap_miho.evaluation.frontend import filtered_multiview_matches, sift_matches
-from colmap_miho.evaluation.match_errors import transfer_error
+from miho_bench.datasets import oxford_pairs
+from miho_bench.frontend import filtered_multiview_matches, sift_matches
+from miho_bench.match_errors import transfer_error
 from colmap_miho.refinement.config import NCCConfig, TrackConfig
 from colmap_miho.refinement.tracks import refine_tracks
 

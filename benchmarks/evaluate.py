@@ -15,9 +15,9 @@ import logging
 import time
 from pathlib import Path
 
-from colmap_miho.evaluation.benchmark import DATASETS
-from colmap_miho.evaluation.benchmark_run import headline, run_benchmark, save_summary
-from colmap_miho.evaluation.frontend_cache import FRONTENDS
+from miho_bench.benchmark import DATASETS
+from miho_bench.benchmark_run import headline, run_benchmark, save_summary
+from miho_bench.frontend_cache import FRONTENDS
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -10,7 +10,7 @@ Public API (imported lazily so that the CLI starts without torch)::
     load_recipe(name_or_path=None, overrides=None) -> Recipe
 
 Pixel convention everywhere in the API: (x, y), integer = pixel centre (OpenCV). The +0.5
-shift to COLMAP's convention happens only in ``colmap_miho.io.database``.
+shift to COLMAP's convention happens only in ``colmap_miho.adapters.database``.
 """
 
 from __future__ import annotations

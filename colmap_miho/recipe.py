@@ -17,7 +17,7 @@ from importlib import resources
 from pathlib import Path
 
 from .filtering.config import FilterConfig
-from .pipeline_config import PipelineConfig
+from .pipeline.config import PipelineConfig
 from .refinement.config import NCCConfig, TrackConfig
 
 if sys.version_info >= (3, 11):

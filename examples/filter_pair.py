@@ -25,9 +25,9 @@ def main(argv: list[str]) -> int:
         return 0
 
     from colmap_miho import filter_matches
-    from colmap_miho.evaluation.datasets import oxford_pairs
-    from colmap_miho.evaluation.frontend import sift_matches
-    from colmap_miho.evaluation.match_errors import transfer_error
+    from miho_bench.datasets import oxford_pairs
+    from miho_bench.frontend import sift_matches
+    from miho_bench.match_errors import transfer_error
 
     pair = oxford_pairs(seq_dir, (target,))[0]
     m = sift_matches(pair.image1(), pair.image2())  # SIFT+NNR, (x, y) pixel centres

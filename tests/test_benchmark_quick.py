@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from colmap_miho.evaluation.benchmark import pipeline_names
-from colmap_miho.evaluation.benchmark_run import headline, run_benchmark
+from miho_bench.benchmark import pipeline_names
+from miho_bench.benchmark_run import headline, run_benchmark
 
 
 @pytest.mark.realdata

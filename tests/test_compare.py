@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from colmap_miho.cli import main
-from colmap_miho.compare import comparison_markdown, match_changes
-from colmap_miho.io.synthetic import make_synthetic_scene
+from colmap_miho.reporting.compare import comparison_markdown, match_changes
+from colmap_miho.adapters.synthetic import make_synthetic_scene
 
 # Measured on this synthetic scene (0.5 px noise, 20% planted outliers in the verified
 # matches): model pose AUC@5 ~0.99 on both sides.
@@ -88,7 +88,7 @@ def test_markdown_marks_missing_values():
 @pytest.mark.slow
 def test_compare_middlebury_temple(shared_data, tmp_path):
     """Real data: SIFT + exhaustive matching, then compare (filter only, to stay fast)."""
-    from colmap_miho.mapping import extract_and_match
+    from colmap_miho.sfm import extract_and_match
 
     root = shared_data / "middlebury_temple_sparse_ring"
     db = tmp_path / "db.db"

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from colmap_miho.evaluation import plots
+from colmap_miho.reporting import plots
 
 
 def test_pose_error_curves_with_failures(tmp_path):

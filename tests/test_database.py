@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 
 from colmap_miho.errors import DatabaseError
-from colmap_miho.io.database import (
+from colmap_miho.adapters.database import (
     HALF_PIXEL,
     ColmapDatabase,
     colmap_to_pixel_centre,
     pixel_centre_to_colmap,
     validate_database,
 )
-from colmap_miho.io.images import ImageLoader, read_gray_float
-from colmap_miho.io.synthetic import make_synthetic_scene
+from colmap_miho.adapters.images import ImageLoader, read_gray_float
+from colmap_miho.adapters.synthetic import make_synthetic_scene
 
 # The synthetic scene's keypoint noise is Gaussian with this sigma per axis; the median 2D
 # error of Gaussian noise is sigma * sqrt(2 ln 2) ~ 1.18 sigma (measured 1.11 on seed 0).
@@ -174,7 +174,7 @@ def test_image_loader_gray_colour_16bit_missing(tmp_path):
     np.testing.assert_allclose(loader[3], gray / 255.0, atol=1e-6)
     # the CLI tests configure the "colmap_miho" logger (no propagation): listen directly
     collect = _Collect()
-    logger = logging.getLogger("colmap_miho.io.images")
+    logger = logging.getLogger("colmap_miho.adapters.images")
     logger.addHandler(collect)
     try:
         assert loader[4] is None and loader[5] is None and loader[5] is None

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from colmap_miho.cli import main
-from colmap_miho.demo_scene import demo_cameras, make_demo_scene
-from colmap_miho.evaluation.gt_model import load_gt_poses
-from colmap_miho.evaluation.pose_metrics import relative_pose
+from colmap_miho.reporting.demo_scene import demo_cameras, make_demo_scene
+from colmap_miho.reporting.gt_model import load_gt_poses
+from colmap_miho.reporting.pose_metrics import relative_pose
 
 # Measured: SIFT RANSAC inliers between rendered views lie ~0.1-0.2 px (median) from the GT
 # epipolar lines; 0.5 px catches any convention slip (a 0.5 px principal-point shift or a
@@ -27,8 +27,8 @@ def _skew(t):
 def test_demo_scene_gt_is_exact(tmp_path):
     import cv2
 
-    from colmap_miho.evaluation.frontend import sift_matches
-    from colmap_miho.evaluation.match_errors import epipolar_error
+    from miho_bench.frontend import sift_matches
+    from miho_bench.match_errors import epipolar_error
 
     scene = make_demo_scene(tmp_path, num_images=3, width=480, height=360)
     poses = load_gt_poses(scene.gt_dir)  # read back through the written COLMAP model

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from colmap_miho.evaluation.datasets import fundamental_from_pose, multiview_pairs, oxford_pairs
-from colmap_miho.evaluation.frontend import mutual_nn_ratio, sift_matches
-from colmap_miho.evaluation.match_errors import epipolar_error, precision_recall, transfer_error
+from miho_bench.datasets import fundamental_from_pose, multiview_pairs, oxford_pairs
+from miho_bench.frontend import mutual_nn_ratio, sift_matches
+from miho_bench.match_errors import epipolar_error, precision_recall, transfer_error
 
 
 def test_transfer_error_of_exact_homography_is_zero():

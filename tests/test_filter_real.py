@@ -35,9 +35,9 @@ PAIRS = {
 
 @pytest.fixture(scope="module")
 def real_matches(shared_data):
-    from colmap_miho.evaluation.datasets import multiview_pairs, oxford_pairs
-    from colmap_miho.evaluation.frontend import sift_matches
-    from colmap_miho.evaluation.match_errors import gt_error
+    from miho_bench.datasets import multiview_pairs, oxford_pairs
+    from miho_bench.frontend import sift_matches
+    from miho_bench.match_errors import gt_error
 
     out = {}
     for key in PAIRS:

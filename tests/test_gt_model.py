@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from colmap_miho.cli import main
-from colmap_miho.evaluation import gt_model as gm
-from colmap_miho.evaluation.pose_metrics import rotation_error_deg
+from colmap_miho.reporting import gt_model as gm
+from colmap_miho.reporting.pose_metrics import rotation_error_deg
 
 # The shipped gt_model files print 12 significant digits: agreement to 1e-6 is exact here.
 ROT_TOL_DEG = 1e-6

@@ -1,7 +1,7 @@
 """hloc / deep-image-matching h5 files in and out of COLMAP databases (import / export commands).
 
 The synthetic scene (pycolmap.synthesize_dataset) is written as hloc files by the test itself,
-independently of colmap_miho.io.hloc, with hloc's convention (COLMAP x, y minus 0.5), so the
+independently of colmap_miho.adapters.hloc, with hloc's convention (COLMAP x, y minus 0.5), so the
 half-pixel shift and every index are checked exactly, not against our own writer.
 """
 
@@ -17,9 +17,9 @@ import pytest
 from colmap_miho.cli import main
 from colmap_miho.commands.export import export_hloc
 from colmap_miho.commands.import_ import import_hloc
-from colmap_miho.io import hloc
-from colmap_miho.io.database import image_pair
-from colmap_miho.io.synthetic import make_synthetic_scene
+from colmap_miho.adapters import hloc
+from colmap_miho.adapters.database import image_pair
+from colmap_miho.adapters.synthetic import make_synthetic_scene
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -326,7 +326,7 @@ def test_import_bad_options(tiny, capsys):
 def test_refine_then_export_round_trip(scene, h5files, tmp_path):
     """hloc files -> database -> refine -> export: the files carry the refined database exactly."""
     try:
-        from colmap_miho.pipeline import refine_database
+        from colmap_miho.pipeline.refine import refine_database
     except ImportError as exc:  # the refine stage is built by another helper
         pytest.skip(f"refine not available: {exc}")
     db = tmp_path / "in.db"

@@ -7,8 +7,8 @@ import hashlib
 import pytest
 
 from colmap_miho.cli import main
-from colmap_miho.io.synthetic import make_synthetic_scene
-from colmap_miho.mapping import run_mapping
+from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.sfm import run_mapping
 
 
 def sha(path):
@@ -71,8 +71,8 @@ def test_map_cli_and_errors(scene, tmp_path):
 def test_global_mapping_on_real_images(shared_data, tmp_path):
     """GLOMAP through pycolmap.global_mapping (needs real two-view geometries: on pycolmap's
     synthetic databases it finds no tracks)."""
-    from colmap_miho.evaluation.report import build_report
-    from colmap_miho.mapping import extract_and_match
+    from colmap_miho.reporting.report import build_report
+    from colmap_miho.sfm import extract_and_match
 
     root = shared_data / "middlebury_temple_sparse_ring"
     db = tmp_path / "db.db"

@@ -169,9 +169,9 @@ def test_edge_patches_move_only_across_the_edge():
 
 @pytest.mark.parametrize("detector", ["sift", "gftt"])
 def test_oxford_real_pairs_with_gt_homography(shared_data, detector):
-    from colmap_miho.evaluation.datasets import oxford_pairs
-    from colmap_miho.evaluation.frontend import sift_matches
-    from colmap_miho.evaluation.match_errors import transfer_error
+    from miho_bench.datasets import oxford_pairs
+    from miho_bench.frontend import sift_matches
+    from miho_bench.match_errors import transfer_error
 
     pair = oxford_pairs(shared_data / "oxford_affine" / "graf", targets=(2,))[0]
     img1, img2 = pair.image1(), pair.image2()

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from colmap_miho.evaluation import pointcloud as pc
+from colmap_miho.reporting import pointcloud as pc
 
 SPACING = 0.1  # grid step of the synthetic cloud, in cloud units
 NUM_FAR = 20  # planted far outliers

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from colmap_miho.evaluation import pose_metrics as pm
+from colmap_miho.reporting import pose_metrics as pm
 
 
 def rot(axis, deg):

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from colmap_miho.evaluation.peers import adalam_mask, colmap_verification_mask, gms_available, magsac_mask
-from colmap_miho.evaluation.protocol import (
+from miho_bench.peers import adalam_mask, colmap_verification_mask, gms_available, magsac_mask
+from miho_bench.protocol import (
     averaged_precision_recall,
     homography_auc,
     homography_error,

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from colmap_miho.cli import main
-from colmap_miho.io.database import ColmapDatabase
-from colmap_miho.io.synthetic import make_synthetic_scene
-from colmap_miho.pipeline import RefineSummary, refine_database
+from colmap_miho.adapters.database import ColmapDatabase
+from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.pipeline.refine import RefineSummary, refine_database
 from colmap_miho.recipe import load_recipe
 
 # Measured on the 4-image, 120-point scene (seed 11, 20% planted outliers in the verified
@@ -295,8 +295,8 @@ def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
 
 def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypatch):
     """Filtering pairs and refining whole tracks in 2 processes changes nothing."""
-    import colmap_miho.pipeline as pipeline
-    import colmap_miho.pipeline_stages as stages
+    import colmap_miho.pipeline.refine as pipeline
+    import colmap_miho.pipeline.stages as stages
 
     monkeypatch.setattr(pipeline, "MIN_PAIRS_PER_WORKER", 1)
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from colmap_miho.cli import main
-from colmap_miho.evaluation import gt_model as gm
-from colmap_miho.evaluation import report as rp
-from colmap_miho.io.synthetic import make_synthetic_scene
-from colmap_miho.mapping import run_mapping
+from colmap_miho.reporting import gt_model as gm
+from colmap_miho.reporting import report as rp
+from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.sfm import run_mapping
 
 # Measured on this scene (0.5 px noise, 10% outliers): model pose errors < 0.5 deg, AUC@5 ~0.93.
 MODEL_AUC5_MIN = 0.85

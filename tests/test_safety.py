@@ -15,15 +15,15 @@ import pytest
 
 from colmap_miho.cli import main
 from colmap_miho.errors import DatabaseError, UserError
-from colmap_miho.io.safety import (
+from colmap_miho.adapters.safety import (
     WorkingCopy,
     backup_path,
     check_database_path,
     check_not_in_use,
     default_output_path,
 )
-from colmap_miho.io.synthetic import make_synthetic_scene
-from colmap_miho.pipeline import PAUSE_AT_WRITE_ENV
+from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.pipeline.refine import PAUSE_AT_WRITE_ENV
 
 REPO = Path(__file__).resolve().parents[1]
 # Seconds a subprocess may take to reach the write stage (imports torch, filters 6 pairs).
@@ -165,7 +165,7 @@ def test_sigkill_mid_write_leaves_input_identical(db_copy, scene, tmp_path, capf
     left = leftovers(db_copy.parent)
     assert left and all(name.startswith(".out.db.") for name in left)
     # the next run says so, names it, and leaves it alone (another run might own it)
-    from colmap_miho.io.safety import leftover_copies
+    from colmap_miho.adapters.safety import leftover_copies
 
     copies = [name for name in left if name.endswith(".tmp")]  # the rest: its -wal, -shm
     assert len(copies) == 1 and [f.name for f in leftover_copies(out)] == copies

@@ -199,8 +199,8 @@ def test_synthetic_scene_refinement(tmp_path):
     """
     pycolmap = pytest.importorskip("pycolmap")
     cv2 = pytest.importorskip("cv2")
-    from colmap_miho.io.database import colmap_to_pixel_centre, image_pair
-    from colmap_miho.io.synthetic import make_synthetic_scene
+    from colmap_miho.adapters.database import colmap_to_pixel_centre, image_pair
+    from colmap_miho.adapters.synthetic import make_synthetic_scene
 
     scene = make_synthetic_scene(tmp_path / "scene", num_images=6, num_points=50,
                                  outlier_ratio=0.0, noise_px=1.0, seed=0, render_images=False)
@@ -252,7 +252,7 @@ def test_batched_levels_match_per_pair_calls_on_real_images(shared_data):
     keypoints as one call per pair and side, to float32 rounding (measured: 2e-4 px)."""
     import cv2
 
-    from colmap_miho.evaluation.frontend import filtered_multiview_matches
+    from miho_bench.frontend import filtered_multiview_matches
 
     seq = shared_data / "oxford_affine" / "graf"
     images = {i: cv2.imread(str(seq / f"img{i}.png"), cv2.IMREAD_GRAYSCALE) for i in (1, 2, 3)}

@@ -43,7 +43,7 @@ def quiet_colmap(verbose: bool) -> None:
 
 
 def run(args) -> int:
-    from ..compare import compare_databases, format_comparison
+    from ..reporting.compare import compare_databases, format_comparison
     from ..recipe import load_recipe
 
     recipe = load_recipe(args.recipe, args.overrides)

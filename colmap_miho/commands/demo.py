@@ -38,8 +38,8 @@ def _size(text: str) -> tuple[int, int]:
 def run(args) -> int:
     import time
 
-    from ..compare import format_comparison, run_from_images
-    from ..demo_scene import make_demo_scene
+    from ..reporting.compare import format_comparison, run_from_images
+    from ..reporting.demo_scene import make_demo_scene
     from ..recipe import load_recipe
     from .compare import quiet_colmap
 

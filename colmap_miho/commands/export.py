@@ -89,9 +89,9 @@ def export_hloc(
     from tqdm import tqdm
 
     from ..enums import MatchSource
-    from ..io import hloc
-    from ..io.database import ColmapDatabase, validate_database
-    from ..io.safety import check_database_path, check_not_in_use, copy_file
+    from ..adapters import hloc
+    from ..adapters.database import ColmapDatabase, validate_database
+    from ..adapters.safety import check_database_path, check_not_in_use, copy_file
 
     database, features, matches = Path(database), Path(features), Path(matches)
     source = MatchSource.parse(source, "source")

@@ -25,7 +25,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from ..evaluation.gt_model import convert_gt
+    from ..reporting.gt_model import convert_gt
 
     if not args.input.exists():
         raise FileNotFoundError(f"--input not found: {args.input}")

@@ -2,7 +2,7 @@
 
 Keypoints in the h5 files follow hloc's convention (integer = pixel centre, as OpenCV and
 kornia); COLMAP puts the image corner at (0, 0), so +0.5 is added on the way in, by the
-database layer's :func:`colmap_miho.io.database.pixel_centre_to_colmap` (the one place of that
+database layer's :func:`colmap_miho.adapters.database.pixel_centre_to_colmap` (the one place of that
 shift). deep-image-matching's own importer writes its keypoints without the shift;
 ``--keypoint-origin corner`` reproduces its databases exactly.
 
@@ -121,7 +121,7 @@ def import_hloc(
     """
     import pycolmap
 
-    from ..io import hloc
+    from ..adapters import hloc
 
     features, matches, images, database = Path(features), Path(matches), Path(images), Path(database)
     if database.exists():
@@ -171,8 +171,8 @@ def _write_images(db, fh, images: Path, camera_model: str, single_camera: bool, 
     import pycolmap
     from tqdm import tqdm
 
-    from ..io import hloc
-    from ..io.database import pixel_centre_to_colmap
+    from ..adapters import hloc
+    from ..adapters.database import pixel_centre_to_colmap
 
     names = hloc.list_feature_images(fh)
     ids: dict[str, int] = {}
@@ -221,7 +221,7 @@ def _write_matches(db, mh, ids, nkp, pair_list, verify: bool, min_match_score, p
     import pycolmap
     from tqdm import tqdm
 
-    from ..io import hloc
+    from ..adapters import hloc
 
     npairs = nmatches = 0
     no_scores = 0

@@ -21,7 +21,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from ..mapping import require_success, run_mapping
+    from ..sfm import require_success, run_mapping
 
     result = run_mapping(
         args.database, args.images, args.output, mapper=args.mapper, seed=args.seed,

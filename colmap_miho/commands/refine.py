@@ -44,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..pipeline import refine_database
+    from ..pipeline.refine import refine_database
     from ..recipe import load_recipe
 
     if args.workers is not None and args.workers < 1:

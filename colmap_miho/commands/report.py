@@ -27,7 +27,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from ..evaluation.report import build_report, format_report, write_report_json
+    from ..reporting.report import build_report, format_report, write_report_json
 
     if not args.model.exists():
         raise FileNotFoundError(f"--model not found: {args.model}")
@@ -35,8 +35,8 @@ def run(args) -> int:
     if not args.quiet:
         print(format_report(report))
     if args.ply:
-        from ..evaluation.gt_model import load_reconstruction
-        from ..evaluation.pointcloud import export_ply
+        from ..reporting.gt_model import load_reconstruction
+        from ..reporting.pointcloud import export_ply
 
         args.ply.parent.mkdir(parents=True, exist_ok=True)
         export_ply(load_reconstruction(args.model), args.ply)

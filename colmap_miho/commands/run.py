@@ -32,8 +32,8 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from ..compare import format_comparison, run_from_images
-    from ..evaluation.report import format_report
+    from ..reporting.compare import format_comparison, run_from_images
+    from ..reporting.report import format_report
     from ..recipe import load_recipe
     from .compare import quiet_colmap
 

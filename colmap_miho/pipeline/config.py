@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .enums import MatchSource
+from ..enums import MatchSource
 
 
 @dataclass(frozen=True, kw_only=True)

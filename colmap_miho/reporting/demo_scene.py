@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluation.gt_model import CameraPose, write_colmap_model
+from .gt_model import CameraPose, write_colmap_model
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ Pixel convention: :class:`CameraPose.K` uses the project's convention (integer =
 COLMAP *models* (cameras.txt / cameras.bin) put the top-left pixel centre at (0.5, 0.5), so the
 principal point is shifted by :data:`COLMAP_PRINCIPAL_POINT_OFFSET` when a model is read or
 written, in :func:`poses_from_reconstruction` and :func:`write_colmap_model` only. (Keypoints in
-databases are converted by ``colmap_miho.io.database``; this is the matching rule for models.)
+databases are converted by ``colmap_miho.adapters.database``; this is the matching rule for models.)
 
 Dataset layouts supported (see the data README):
 

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import RunFailed
+from ..errors import RunFailed
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ class CompareResult:
 
     Attributes:
         output: the comparison folder.
-        baseline, refined: report dicts (see :func:`colmap_miho.evaluation.report.build_report`);
+        baseline, refined: report dicts (see :func:`colmap_miho.reporting.report.build_report`);
             an empty ``reconstruction`` when mapping failed.
         refine: ``RefineSummary.to_dict()``.
         markdown, json: the side-by-side table files.
@@ -64,8 +64,8 @@ def match_changes(baseline_db: str | Path, refined_db: str | Path) -> dict:
         ``{"matches_before": {"a|b": n}, "matches_after": {"a|b": n},
         "displacements": float64 (K,) pixel distances of the keypoints that moved}``.
     """
-    from .io.database import ColmapDatabase
-    from .io.safety import copy_file
+    from ..adapters.database import ColmapDatabase
+    from ..adapters.safety import copy_file
 
     out: dict = {}
     kps: dict[str, dict[str, np.ndarray]] = {}
@@ -160,7 +160,7 @@ def comparison_markdown(baseline: dict, refined: dict, refine: dict, title: str 
 
 # --------------------------------------------------------------------------- compare
 def _evaluate(model_ok: bool, model: Path, database: Path, gt, pairs, seed: int) -> dict:
-    from .evaluation.report import build_report, json_safe
+    from .report import build_report, json_safe
 
     if not model_ok:
         return {"reconstruction": {}, "mapping_failed": True}
@@ -194,11 +194,11 @@ def _curves(baseline: dict, refined: dict) -> dict:
 def _point_clouds(output: Path, base_map, ref_map, plot_files: list) -> dict:
     """PLY files, density/outlier figures and a picture of each side's sparse cloud.
 
-    Uses :mod:`colmap_miho.evaluation.pointcloud` (open3d optional: it falls back to scipy and
+    Uses :mod:`colmap_miho.reporting.pointcloud` (open3d optional: it falls back to scipy and
     matplotlib); any failure there is logged and skipped, never fatal.
     """
     try:
-        from .evaluation import pointcloud as pc
+        from . import pointcloud as pc
     except ImportError as exc:  # pragma: no cover - module missing in a partial install
         log.info("point-cloud figures skipped: %s", exc)
         return {}
@@ -251,10 +251,10 @@ def compare_databases(
     Returns:
         :class:`CompareResult`.
     """
-    from .evaluation import plots
-    from .evaluation.report import write_report_json
-    from .mapping import run_mapping
-    from .pipeline import refine_database
+    from . import plots
+    from .report import write_report_json
+    from ..sfm import run_mapping
+    from ..pipeline.refine import refine_database
 
     output = Path(output)
     (output / "baseline").mkdir(parents=True, exist_ok=True)
@@ -278,8 +278,8 @@ def compare_databases(
         raise RunFailed("mapping failed on both the baseline and the refined database")
 
     if gt is not None and pairs is None:
-        from .evaluation.gt_model import load_gt_poses
-        from .evaluation.report import default_eval_pairs
+        from .gt_model import load_gt_poses
+        from .report import default_eval_pairs
 
         pairs, _ = default_eval_pairs(gt, load_gt_poses(gt))
     baseline = _evaluate(base_map.success, base_map.output, database, gt, pairs, seed)
@@ -368,9 +368,9 @@ def run_from_images(
     Raises:
         RunFailed: extraction found < 2 images, or mapping registered nothing.
     """
-    from .evaluation.report import build_report, write_report_json
-    from .mapping import extract_and_match, require_success, run_mapping
-    from .pipeline import refine_database
+    from .report import build_report, write_report_json
+    from ..sfm import extract_and_match, require_success, run_mapping
+    from ..pipeline.refine import refine_database
 
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
@@ -405,6 +405,6 @@ def run_from_images(
 
 def dumps(obj) -> str:
     """JSON text of a result dict (drops in-memory objects)."""
-    from .evaluation.report import json_safe
+    from .report import json_safe
 
     return json.dumps(json_safe({k: v for k, v in obj.items() if k not in ("result", "report_dict")}), indent=2)

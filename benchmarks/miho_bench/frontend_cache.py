@@ -1,8 +1,8 @@
 """Tentative matches of GT pairs from the benchmark's front ends, cached on disk.
 
-* ``sift`` / ``gftt``: :func:`colmap_miho.evaluation.frontend.sift_matches`;
+* ``sift`` / ``gftt``: :func:`miho_bench.frontend.sift_matches`;
 * ``colmap``: pycolmap's own SIFT extraction and exhaustive matching of the scene's images
-  (CPU), read back from the database through :mod:`colmap_miho.io.database` (which converts
+  (CPU), read back from the database through :mod:`colmap_miho.adapters.database` (which converts
   COLMAP's +0.5 pixel convention).
 """
 
@@ -54,7 +54,7 @@ def _colmap_database(image_dir: Path, cache_dir: Path) -> Path:
 
 
 def _colmap_matches(pair: PairGT, cache_dir: Path):
-    from ..io.database import ColmapDatabase
+    from colmap_miho.adapters.database import ColmapDatabase
 
     db_path = _colmap_database(pair.path1.parent, cache_dir)
     with ColmapDatabase(db_path) as db:

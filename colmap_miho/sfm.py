@@ -140,7 +140,7 @@ def run_mapping(
     """
     import pycolmap
 
-    from .io.safety import check_database_path, copy_file
+    from .adapters.safety import check_database_path, copy_file
 
     mapper = Mapper.parse(mapper, "mapper")
     database = check_database_path(database)

@@ -6,13 +6,13 @@ Data flow (one stage after the other)::
       -> track-consistent NCC refinement -> write back (keypoints, matches,
       two_view_geometries) -> optional COLMAP re-verification -> atomic replace
 
-The input database is never opened for writing; see :mod:`colmap_miho.io.safety`.
+The input database is never opened for writing; see :mod:`colmap_miho.adapters.safety`.
 
-Parallelism (see :mod:`colmap_miho.pipeline_stages`): pairs are filtered, and whole tracks
+Parallelism (see :mod:`colmap_miho.pipeline.stages`): pairs are filtered, and whole tracks
 refined, in ``spawn``-ed worker processes with one thread each. Scripts that call
 :func:`refine_database` with ``workers > 1`` need the usual ``if __name__ == "__main__":`` guard.
 All coordinates handled here are colmap-miho's (integer = pixel centre); the conversion to
-COLMAP's happens inside :mod:`colmap_miho.io.database`.
+COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
 """
 
 from __future__ import annotations
@@ -24,16 +24,19 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .enums import Device, MatchSource
-from .errors import DatabaseError, UserError
-from .io.database import ColmapDatabase, validate_database
-from .io.images import ImageLoader
-from .io.safety import WorkingCopy, check_database_path
-from .pipeline_stages import run_filter_stage, run_refine_stage
-from .recipe import Recipe, load_recipe
+from ..enums import Device, MatchSource
+from ..errors import DatabaseError, UserError
+from ..adapters.database import ColmapDatabase, validate_database
+from ..adapters.images import ImageLoader
+from ..adapters.safety import WorkingCopy, check_database_path
+from .stages import run_filter_stage, run_refine_stage
+
+if TYPE_CHECKING:  # recipe.py imports this package's config: import it lazily
+    from ..recipe import Recipe
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +122,8 @@ class RefineSummary:
 
 
 def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
+    from ..recipe import Recipe, load_recipe
+
     if isinstance(recipe, Recipe):
         return recipe
     return load_recipe(None if recipe is None else str(recipe))

@@ -136,7 +136,7 @@ def filtered_multiview_matches(images: dict, *, detector: str = "sift", max_feat
     """
     import itertools
 
-    from ..filtering.api import filter_matches
+    from colmap_miho.filtering.api import filter_matches
 
     feats = {i: detect_and_describe(im, detector=detector, max_features=max_features)
              for i, im in images.items()}

@@ -24,7 +24,7 @@ import numpy as np
 from .datasets import PairGT, multiview_pairs, oxford_pairs
 from .match_errors import gt_error
 from .peers import adalam_mask, colmap_verification_mask, gms_available, gms_mask, magsac_mask
-from .pose_metrics import auc_summary, pose_from_essential, pose_from_fundamental
+from colmap_miho.reporting.pose_metrics import auc_summary, pose_from_essential, pose_from_fundamental
 from .protocol import averaged_precision_recall, homography_auc, homography_error, homography_from_matches
 
 log = logging.getLogger(__name__)
@@ -93,9 +93,9 @@ def load_pairs(data_root: Path, dataset: str, limit: int | None = None) -> list[
 
 def _filter_and_refine(name: str, inp: PairInput, seed: int):
     """Run one pipeline; return (kept mask (N,), refined pts1, pts2, seconds, extra)."""
-    from ..filtering.api import filter_matches
-    from ..refinement.config import NCCConfig
-    from ..refinement.ncc import refine_pair
+    from colmap_miho.filtering.api import filter_matches
+    from colmap_miho.refinement.config import NCCConfig
+    from colmap_miho.refinement.ncc import refine_pair
 
     n = len(inp.pts1)
     t0 = time.perf_counter()

@@ -49,7 +49,7 @@ def reconstruction_stats(rec) -> dict:
 
 
 def pointcloud_figures(rec) -> dict:
-    """Density / outlier figures of the sparse cloud (``colmap_miho.evaluation.pointcloud``;
+    """Density / outlier figures of the sparse cloud (``colmap_miho.reporting.pointcloud``;
     open3d optional). Empty dict when they cannot be computed (logged, never fatal)."""
     try:
         from . import pointcloud as pc
@@ -177,8 +177,8 @@ def read_database_matches(database: str | Path, names: set[str] | None = None) -
         ``{(name1, name2): (pts1 (M, 2), pts2 (M, 2))}`` with name1 < name2, float64 pixels,
         integer = pixel centre.
     """
-    from ..io.database import ColmapDatabase
-    from ..io.safety import check_database_path, copy_file
+    from ..adapters.database import ColmapDatabase
+    from ..adapters.safety import check_database_path, copy_file
 
     database = check_database_path(database)
     out: dict = {}

@@ -5,7 +5,7 @@ image's top-left corner at (0, 0), so the centre of the top-left pixel is (0.5, 
 colmap-miho's arrays put pixel centres at integers (OpenCV, kornia). ``read`` subtracts
 :data:`HALF_PIXEL`, ``write`` adds it, each exactly once.
 
-Open only a working copy (see :mod:`colmap_miho.io.safety`): pycolmap migrates the schema on
+Open only a working copy (see :mod:`colmap_miho.adapters.safety`): pycolmap migrates the schema on
 open and creates an empty database for a missing path. Never hold a Python ``sqlite3``
 connection and a pycolmap handle on the same file at the same time.
 """

@@ -5,7 +5,7 @@
 * homography error of a least-squares homography against the GT one, and its AUC at
   5, 10, 15 px.
 
-Pose AUCs live in :mod:`colmap_miho.evaluation.pose_metrics`; all points are (N, 2) pixels,
+Pose AUCs live in :mod:`colmap_miho.reporting.pose_metrics`; all points are (N, 2) pixels,
 integer = pixel centre.
 """
 
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .pose_metrics import pose_auc
+from colmap_miho.reporting.pose_metrics import pose_auc
 
 PR_THRESHOLDS_PX: tuple[float, ...] = tuple(float(t) for t in range(1, 17))
 """Thresholds whose precision / recall are averaged (pixels)."""

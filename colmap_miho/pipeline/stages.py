@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import RunFailed
-from .io.database import ColmapDatabase
-from .io.images import ImageLoader
+from ..errors import RunFailed
+from ..adapters.database import ColmapDatabase
+from ..adapters.images import ImageLoader
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ def _single_thread_children():
 
 def _filter_one(i: int, j: int, pts1: np.ndarray, pts2: np.ndarray, filter_config, seed: int):
     """Run the filter on one pair (in a worker or in-process); returns (i, j, result)."""
-    from .filtering.api import filter_matches
+    from ..filtering.api import filter_matches
 
     result = filter_matches(pts1, pts2, method=filter_config.method, config=filter_config, seed=seed)
     return i, j, result
@@ -127,7 +127,7 @@ class _PairRows:
 
 def _import_refine_tracks():
     try:
-        from .refinement.tracks import refine_tracks
+        from ..refinement.tracks import refine_tracks
     except ImportError as exc:  # the refinement module ships separately
         raise RunFailed(f"NCC refinement is not available ({exc}); use --no-refine") from None
     return refine_tracks
