@@ -24,6 +24,15 @@ def shared_data() -> Path:
     return root
 
 
+def pytest_collection_modifyitems(config, items):
+    """Every test that uses the ``shared_data`` fixture (directly or through another fixture)
+    reads ``../shared/data``: mark it ``realdata`` so that ``-m realdata`` / ``-m "not realdata"``
+    select exactly the real-data suite or the offline one."""
+    for item in items:
+        if "shared_data" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.realdata)
+
+
 @pytest.fixture(autouse=True)
 def _restore_package_logger():
     """``cli.main`` configures the ``colmap_miho`` logger like an application does (own handler,
