@@ -18,6 +18,9 @@ from colmap_miho.reporting.pose_metrics import relative_pose
 GT_EPIPOLAR_MEDIAN_MAX_PX = 0.5
 # Measured on the quick demo: model pose AUC@5 ~0.99 both sides.
 DEMO_MODEL_AUC5_MIN = 0.9
+# Measured on the quick demo: two-view E and F AUC@10 0.94-0.96 both sides (exact GT, 6 images);
+# a broken protocol or GT convention gives well under 0.5.
+DEMO_TWO_VIEW_AUC10_MIN = 0.8
 
 
 def _skew(t):
@@ -73,7 +76,7 @@ def test_demo_quick_end_to_end(demo_run):
         assert rep["reconstruction"]["num_reg_images"] == 6
         assert rep["model_pose_auc"]["auc5"] > DEMO_MODEL_AUC5_MIN
         for sec in ("two_view_pose_auc_E", "two_view_pose_auc_F"):
-            assert 0.0 <= rep[sec]["auc10"] <= 1.0
+            assert rep[sec]["auc10"] > DEMO_TWO_VIEW_AUC10_MIN
     for png in ("pose_error_curves.png", "keypoint_displacement.png", "matches_per_pair.png"):
         assert (out / "plots" / png).stat().st_size > 5000
     assert "| model pose AUC@5 (%) |" in (out / "compare.md").read_text()

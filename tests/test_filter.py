@@ -267,8 +267,20 @@ def test_uniform_sampling_is_as_accurate(scene):
 
 
 def test_image2_transform_roundtrip():
+    """The test scenes' image-2 map: mirror then turn about the image centre; four quarter turns
+    and two mirrors are the identity, and the centre stays fixed."""
+    from planes import HEIGHT, WIDTH
+
     G = image2_transform(90, mirror=True)
-    assert np.isclose(abs(np.linalg.det(G[:2, :2])), 1.0)
+    assert np.isclose(np.linalg.det(G[:2, :2]), -1.0)  # a reflection, not a rotation
+    centre = np.array([(WIDTH - 1) / 2, (HEIGHT - 1) / 2, 1.0])
+    assert np.allclose(G @ centre, centre)
+    corner = np.array([0.0, 0.0, 1.0])  # mirrored to (W-1, 0), then turned by +90 deg about c
+    expected = np.array([centre[0] + centre[1], centre[0] + centre[1], 1.0])
+    assert np.allclose(G @ corner, expected)
+    assert np.allclose(np.linalg.matrix_power(image2_transform(90), 4), np.eye(3))
+    M = image2_transform(0, mirror=True)
+    assert np.allclose(M @ M, np.eye(3))
 
 
 def test_result_pickles_for_worker_processes(scene):
