@@ -41,6 +41,7 @@ def test_overrides_are_typed():
         ("filter.max_iters=2.5", "expected an integer"),
         ("filter.rotation_fix=maybe", "expected true or false"),
         ("noequals", "section.key=value"),
+        ("filter.device=cpu", "unknown key filter.device"),  # the filter always runs in numpy
     ],
 )
 def test_bad_overrides_name_the_key(override, message):

@@ -203,7 +203,7 @@ def refine_database(
     rec = _resolve_recipe(recipe)
     pcfg = rec.pipeline
     dev = _resolve_device(device)
-    fcfg = dataclasses.replace(rec.filter, device=dev) if rec.filter.device == "auto" else rec.filter
+    fcfg = rec.filter
     ncfg = dataclasses.replace(rec.ncc, device=dev) if rec.ncc.device == "auto" else rec.ncc
     n_workers = max(1, int(workers) if workers else (os.cpu_count() or 1))
     if dev == "cuda":
