@@ -295,10 +295,10 @@ def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
 
 def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypatch):
     """Filtering pairs and refining whole tracks in 2 processes changes nothing."""
-    import colmap_miho.pipeline.refine as pipeline
+    import colmap_miho.pipeline.filter_stage as filter_stage
     import colmap_miho.pipeline.stages as stages
 
-    monkeypatch.setattr(pipeline, "MIN_PAIRS_PER_WORKER", 1)
+    monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
     # the CPU worker pool is what is tested (on a CUDA machine "auto" would use one GPU worker)
     one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db",
