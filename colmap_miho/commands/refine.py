@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from ..enums import Device, MatchSource
+
 HELP = "filter (MOP+MiHo) and refine (track-consistent NCC) the matches of a COLMAP database"
 DESCRIPTION = (
     "Filter every image pair of a COLMAP database with MOP / MOP+MiHo, refine the kept "
@@ -29,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_ncc)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a recipe value, e.g. --set filter.t_l=12 (repeatable)")
-    parser.add_argument("--source", choices=["verified", "raw"], default=None,
+    parser.add_argument("--source", choices=MatchSource.values(), default=None,
                         help="filter the verified inliers (two_view_geometries, default) or the "
                              "raw tentative matches (MOP+MiHo then replaces geometric verification)")
     parser.add_argument("--no-refine", action="store_true", help="filter only, no NCC refinement")
@@ -37,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="re-run COLMAP's epipolar verification on the kept matches "
                              "(default: the recipe's pipeline.verify, off)")
     parser.add_argument("--workers", type=int, default=None, help="processes filtering pairs (default: all cores)")
-    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="torch device")
+    parser.add_argument("--device", choices=Device.values(), default=Device.AUTO.value, help="torch device")
     parser.add_argument("--seed", type=int, default=0, help="base random seed")
     parser.add_argument("--strict", action="store_true", help="a missing or unreadable image is an error")
     parser.add_argument("--json", dest="json_path", type=Path, default=None, help="write the summary as JSON")
