@@ -12,7 +12,7 @@ class StrEnum(str, Enum):
         return str(self.value)
 
     @classmethod
-    def parse(cls, value: "str | StrEnum", name: str = "value") -> "StrEnum":
+    def parse(cls, value: str | StrEnum, name: str = "value") -> StrEnum:
         """Return the member for ``value`` or raise ``ValueError`` listing the choices."""
         if isinstance(value, cls):
             return value

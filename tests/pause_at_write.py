@@ -8,8 +8,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's colmap_miho
 
-import colmap_miho.pipeline.write as write_stage  # noqa: E402
-from colmap_miho.cli import main  # noqa: E402
+import colmap_miho.pipeline.write as write_stage
+from colmap_miho.cli import main
 
 #: The process is killed long before this; the sleep only bounds a forgotten runner.
 PAUSE_S = 60

@@ -6,8 +6,8 @@ import hashlib
 
 import pytest
 
-from colmap_miho.cli import main
 from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.cli import main
 from colmap_miho.sfm import run_mapping
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
 
 from ..enums import Device, MatchSource
@@ -16,9 +15,6 @@ DESCRIPTION = (
     "modified), or with --in-place replace the input atomically after a timestamped backup."
 )
 ORDER = 10
-
-log = logging.getLogger("colmap_miho.commands.refine")
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--database", required=True, type=Path, help="input COLMAP database")
@@ -60,12 +56,9 @@ def run(args: argparse.Namespace) -> int:
         overrides.append(f"pipeline.verify={str(args.verify).lower()}")
     recipe = load_recipe(args.recipe, overrides)
     if not args.verbose:
-        try:
-            import pycolmap
+        import pycolmap
 
-            pycolmap.logging.minloglevel = 2
-        except Exception:  # pragma: no cover - logging attribute missing in other versions
-            pass
+        pycolmap.logging.minloglevel = 2
     summary = refine_database(
         args.database, args.images, args.output, recipe=recipe, in_place=args.in_place,
         overwrite=args.overwrite, workers=args.workers, device=args.device, seed=args.seed,

@@ -37,7 +37,6 @@ On 17 Oxford/Strecha SIFT+NNR pairs (mean 1231 matches) it takes about 0.07 s (M
 from __future__ import annotations
 
 import dataclasses
-import logging
 import time
 from dataclasses import dataclass, field
 
@@ -50,8 +49,6 @@ from .homography import adjugate, to_unit_h33
 from .miho import apply_affine, build_problem, choose_rotation, sqrt_split
 from .mop import run_mop
 from .ransac import error_sq
-
-logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)

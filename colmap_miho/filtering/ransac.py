@@ -36,8 +36,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import FilterConfig
-from .homography import (adjugate, dlt, dlt_singular_value, four_point, project,
-                         triangle_orientations)
+from .homography import (
+    adjugate,
+    dlt,
+    dlt_singular_value,
+    four_point,
+    project,
+    triangle_orientations,
+)
 
 _PAIR_I = np.array([0, 0, 0, 1, 1, 2])
 _PAIR_J = np.array([1, 2, 3, 2, 3, 3])
@@ -89,13 +95,13 @@ class Hypotheses:
     def __len__(self) -> int:
         return self.H.shape[0]
 
-    def take(self, idx) -> "Hypotheses":
+    def take(self, idx) -> Hypotheses:
         idx = np.atleast_1d(np.asarray(idx))
         return Hypotheses(self.H[idx], self.Hinv[idx], self.sign[idx], self.sign_inv[idx],
                           self.sample[idx])
 
     @staticmethod
-    def concat(items: list["Hypotheses"]) -> "Hypotheses":
+    def concat(items: list[Hypotheses]) -> Hypotheses:
         items = [h for h in items if len(h)]
         if not items:
             return Hypotheses.empty(1)
@@ -103,7 +109,7 @@ class Hypotheses:
                             ("H", "Hinv", "sign", "sign_inv", "sample")))
 
     @staticmethod
-    def empty(halves: int) -> "Hypotheses":
+    def empty(halves: int) -> Hypotheses:
         return Hypotheses(np.zeros((0, halves, 3, 3)), np.zeros((0, halves, 3, 3)),
                           np.zeros((0, halves)), np.zeros((0, halves)),
                           np.zeros((0, 4), dtype=np.int64))

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..adapters.database import ColmapDatabase
+from ..enums import MatchSource
 from .config import PipelineConfig
 from .filter_stage import FilteredPairs
-from ..enums import MatchSource
 
 
 @dataclass(frozen=True, kw_only=True)
