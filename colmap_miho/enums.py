@@ -12,7 +12,7 @@ class StrEnum(str, Enum):
         return str(self.value)
 
     @classmethod
-    def parse(cls, value: "str | StrEnum", name: str = "value") -> "StrEnum":
+    def parse(cls, value: str | StrEnum, name: str = "value") -> StrEnum:
         """Return the member for ``value`` or raise ``ValueError`` listing the choices."""
         if isinstance(value, cls):
             return value
@@ -21,6 +21,11 @@ class StrEnum(str, Enum):
         except ValueError:
             choices = ", ".join(m.value for m in cls)
             raise ValueError(f"{name}={value!r} is not one of: {choices}") from None
+
+    @classmethod
+    def values(cls) -> list[str]:
+        """The members' values, in definition order (for argparse ``choices``)."""
+        return [m.value for m in cls]
 
 
 class FilterMethod(StrEnum):
@@ -61,3 +66,12 @@ class Mapper(StrEnum):
 
     INCREMENTAL = "incremental"
     GLOBAL = "global"
+
+
+class CameraMode(StrEnum):
+    """How COLMAP's feature extraction assigns cameras to images."""
+
+    SINGLE = "single"  # one camera for all images
+    PER_IMAGE = "per_image"
+    PER_FOLDER = "per_folder"
+    AUTO = "auto"  # COLMAP's: by image size and EXIF

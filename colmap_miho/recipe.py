@@ -1,8 +1,8 @@
 """Recipes: named TOML files that set the configuration of every stage.
 
-A recipe has one table per stage (``[filter]``, ``[ncc]``, ``[tracks]``, ``[pipeline]``)
-whose keys are fields of the stage's dataclass. Unknown tables or keys are errors, never
-silently ignored. ``--set section.key=value`` overrides are parsed with the field's type.
+A recipe has one table per stage (``[filter]``, ``[ncc]``, ``[tracks]``, ``[pipeline]``,
+``[mapping]``) whose keys are fields of the stage's dataclass; a missing table means the
+dataclass defaults. Unknown tables or keys are errors, never silently ignored. ``--set section.key=value`` overrides are parsed with the field's type.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from pathlib import Path
 from .filtering.config import FilterConfig
 from .pipeline.config import PipelineConfig
 from .refinement.config import NCCConfig, TrackConfig
+from .sfm import MappingConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -30,7 +31,8 @@ DEFAULT_RECIPE = "mop_miho_ncc"
 
 @dataclass(frozen=True, kw_only=True)
 class Recipe:
-    """The configuration of every stage of ``colmap-miho refine``."""
+    """The configuration of every stage: ``refine`` (filter, ncc, tracks, pipeline) and
+    mapping."""
 
     name: str = DEFAULT_RECIPE
     description: str = ""
@@ -38,16 +40,7 @@ class Recipe:
     ncc: NCCConfig = field(default_factory=NCCConfig)
     tracks: TrackConfig = field(default_factory=TrackConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
-
-    def to_dict(self) -> dict:
-        """Plain-data view (enums as strings), for JSON summaries."""
-        out: dict = {"name": self.name}
-        for section in SECTIONS:
-            cfg = getattr(self, section)
-            out[section] = {
-                f.name: _plain(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)
-            }
-        return out
+    mapping: MappingConfig = field(default_factory=MappingConfig)
 
 
 SECTIONS: dict[str, type] = {
@@ -55,11 +48,8 @@ SECTIONS: dict[str, type] = {
     "ncc": NCCConfig,
     "tracks": TrackConfig,
     "pipeline": PipelineConfig,
+    "mapping": MappingConfig,
 }
-
-
-def _plain(value):
-    return value.value if isinstance(value, Enum) else value
 
 
 def available_recipes() -> list[str]:
@@ -82,10 +72,6 @@ def _read_recipe_text(name_or_path: str) -> tuple[str, str]:
             " (or give a path to a .toml file)"
         )
     return name_or_path, candidate.read_text(encoding="utf-8")
-
-
-def _field_types(cls: type) -> dict[str, typing.Any]:
-    return typing.get_type_hints(cls)
 
 
 def _coerce(value, annotation, where: str):
@@ -143,7 +129,7 @@ def _coerce(value, annotation, where: str):
 
 def _build_section(section: str, values: dict, base=None):
     cls = SECTIONS[section]
-    types_ = _field_types(cls)
+    types_ = typing.get_type_hints(cls)
     names = [f.name for f in dataclasses.fields(cls)]
     kwargs = {}
     for key, value in values.items():

@@ -15,10 +15,10 @@ import contextlib
 import logging
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from .enums import Mapper
+from .enums import CameraMode, Mapper
 from .errors import RunFailed
 
 log = logging.getLogger(__name__)
@@ -97,22 +97,43 @@ def _latest_log(prefix: Path | None) -> Path | None:
     return found[-1] if found else None
 
 
-def _count_images(database: Path) -> int:
-    import pycolmap
+@dataclass(frozen=True, kw_only=True)
+class MappingConfig:
+    """Parameters of the mapping stage (the recipe's ``mapping`` table; ``map``, ``run`` and
+    ``compare`` flags override it).
 
-    with pycolmap.Database.open(str(database)) as db:
-        return int(db.num_images())
+    Attributes:
+        mapper: "incremental" (``pycolmap.incremental_mapping``) or "global"
+            (``pycolmap.global_mapping``, GLOMAP).
+        seed: ``random_seed`` of the mapper options (deterministic with ``num_threads=1``;
+            multi-threaded bundle adjustment may still vary in the last digits).
+        num_threads: mapper threads, -1 = all cores.
+        min_num_matches: pairs with fewer verified inliers are ignored by the mapper.
+    """
+
+    mapper: Mapper = Mapper.INCREMENTAL
+    seed: int = 0
+    num_threads: int = -1
+    min_num_matches: int = 15
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mapper", Mapper.parse(self.mapper, "mapper"))
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.num_threads != -1 and self.num_threads < 1:
+            raise ValueError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
+        if self.min_num_matches < 0:
+            raise ValueError(f"min_num_matches must be >= 0, got {self.min_num_matches}")
 
 
 def run_mapping(
     database: str | Path,
     image_dir: str | Path,
     output: str | Path,
+    config: MappingConfig | None = None,
     *,
-    mapper: Mapper | str = Mapper.INCREMENTAL,
-    seed: int = 0,
-    num_threads: int = -1,
-    min_num_matches: int = 15,
+    mapper: Mapper | str | None = None,
+    seed: int | None = None,
     progress: bool = False,
     verbose: bool = False,
 ) -> MappingResult:
@@ -123,12 +144,8 @@ def run_mapping(
         image_dir: the image folder (colours of the 3D points).
         output: folder for the model (cameras/images/points3D .bin); created. Existing model
             files in it are replaced.
-        mapper: "incremental" (``pycolmap.incremental_mapping``) or "global"
-            (``pycolmap.global_mapping``, GLOMAP).
-        seed: ``random_seed`` of the mapper options (deterministic with ``num_threads=1``;
-            multi-threaded bundle adjustment may still vary in the last digits).
-        num_threads: mapper threads, -1 = all cores.
-        min_num_matches: pairs with fewer verified inliers are ignored by the mapper.
+        config: mapper, seed, threads and ``min_num_matches`` (default :class:`MappingConfig`).
+        mapper, seed: when given, replace ``config.mapper`` / ``config.seed``.
         progress: tqdm bar of registered images (incremental only).
         verbose: leave COLMAP's log on the terminal instead of a file.
 
@@ -138,11 +155,13 @@ def run_mapping(
     Raises:
         DatabaseError: the database is missing or not a COLMAP database.
     """
-    import pycolmap
-
+    from .adapters.database import count_images
     from .adapters.safety import check_database_path, copy_file
 
-    mapper = Mapper.parse(mapper, "mapper")
+    cfg = config or MappingConfig()
+    if mapper is not None or seed is not None:
+        cfg = replace(cfg, mapper=cfg.mapper if mapper is None else mapper,
+                      seed=cfg.seed if seed is None else seed)
     database = check_database_path(database)
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
@@ -151,66 +170,73 @@ def run_mapping(
     output.mkdir(parents=True, exist_ok=True)
 
     with tempfile.TemporaryDirectory(prefix="colmap_miho_map_", dir=output) as tmp:
-        tmp = Path(tmp)
-        db_copy = tmp / "database.db"
+        db_copy = Path(tmp) / "database.db"
         copy_file(database, db_copy)
-        num_images = _count_images(db_copy)
-        models_dir = tmp / "models"
+        num_images = count_images(db_copy)
+        models_dir = Path(tmp) / "models"
         models_dir.mkdir()
-        bar = None
         t0 = time.perf_counter()
         with colmap_log_to_file(output, verbose=verbose) as prefix:
-            if mapper == Mapper.INCREMENTAL:
-                opts = pycolmap.IncrementalPipelineOptions()
-                opts.random_seed = int(seed)
-                opts.num_threads = int(num_threads)
-                opts.min_num_matches = int(min_num_matches)
-                opts.mapper.random_seed = int(seed)
-                opts.mapper.num_threads = int(num_threads)
-                opts.triangulation.random_seed = int(seed)
-                callbacks = {}
-                if progress:
-                    from tqdm import tqdm
-
-                    bar = tqdm(total=num_images, desc="mapping", unit="img")
-                    callbacks = {
-                        "initial_image_pair_callback": lambda: bar.update(2),
-                        "next_image_callback": lambda: bar.update(1),
-                    }
-                try:
-                    models = pycolmap.incremental_mapping(
-                        str(db_copy), str(image_dir), str(models_dir), opts, **callbacks
-                    )
-                finally:
-                    if bar is not None:
-                        bar.close()
-            else:
-                opts = pycolmap.GlobalPipelineOptions()
-                opts.random_seed = int(seed)
-                opts.num_threads = int(num_threads)
-                opts.min_num_matches = int(min_num_matches)
-                models = pycolmap.global_mapping(str(db_copy), str(image_dir), str(models_dir), opts)
+            models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None)
         seconds = time.perf_counter() - t0
         log_file = _latest_log(prefix)
 
     if not models:
         log.warning("mapping found no model (%d images in the database)", num_images)
-        return MappingResult(success=False, output=None, mapper=mapper.value, num_images=num_images,
+        return MappingResult(success=False, output=None, mapper=cfg.mapper.value, num_images=num_images,
                              seconds=seconds, log_file=log_file)
+    best = _write_largest(models, output)
+    log.info(
+        "%s mapping: %d of %d images registered, %d points, %d model(s), %.1f s -> %s",
+        cfg.mapper.value, best.num_reg_images(), num_images, best.num_points3D(), len(models), seconds,
+        output,
+    )
+    return MappingResult(
+        success=best.num_reg_images() >= 2, output=output, mapper=cfg.mapper.value, num_models=len(models),
+        num_images=num_images, num_reg_images=int(best.num_reg_images()),
+        num_points3D=int(best.num_points3D()), seconds=seconds, log_file=log_file, reconstruction=best,
+    )
+
+
+def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir: Path,
+                bar_total: int | None) -> dict:
+    """pycolmap's incremental or global pipeline on ``database``; returns its models. A tqdm
+    bar over ``bar_total`` images follows the incremental mapper's callbacks when given."""
+    import pycolmap
+
+    if cfg.mapper == Mapper.GLOBAL:
+        opts = pycolmap.GlobalPipelineOptions()
+        opts.random_seed = int(cfg.seed)
+        opts.num_threads = int(cfg.num_threads)
+        opts.min_num_matches = int(cfg.min_num_matches)
+        return pycolmap.global_mapping(str(database), str(image_dir), str(models_dir), opts)
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.random_seed = int(cfg.seed)
+    opts.num_threads = int(cfg.num_threads)
+    opts.min_num_matches = int(cfg.min_num_matches)
+    opts.mapper.random_seed = int(cfg.seed)
+    opts.mapper.num_threads = int(cfg.num_threads)
+    opts.triangulation.random_seed = int(cfg.seed)
+    if bar_total is None:
+        return pycolmap.incremental_mapping(str(database), str(image_dir), str(models_dir), opts)
+    from tqdm import tqdm
+
+    with tqdm(total=bar_total, desc="mapping", unit="img") as bar:
+        return pycolmap.incremental_mapping(
+            str(database), str(image_dir), str(models_dir), opts,
+            initial_image_pair_callback=lambda: bar.update(2),
+            next_image_callback=lambda: bar.update(1))
+
+
+def _write_largest(models: dict, output: Path):
+    """Write the model with the most registered images (then points) to ``output``, replacing
+    model files there; returns it."""
     best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
     for stem in MODEL_FILES:
         for ext in (".bin", ".txt"):
             (output / f"{stem}{ext}").unlink(missing_ok=True)
     best.write(str(output))
-    log.info(
-        "%s mapping: %d of %d images registered, %d points, %d model(s), %.1f s -> %s",
-        mapper.value, best.num_reg_images(), num_images, best.num_points3D(), len(models), seconds, output,
-    )
-    return MappingResult(
-        success=best.num_reg_images() >= 2, output=output, mapper=mapper.value, num_models=len(models),
-        num_images=num_images, num_reg_images=int(best.num_reg_images()),
-        num_points3D=int(best.num_points3D()), seconds=seconds, log_file=log_file, reconstruction=best,
-    )
+    return best
 
 
 def require_success(result: MappingResult) -> MappingResult:
@@ -223,15 +249,11 @@ def require_success(result: MappingResult) -> MappingResult:
     return result
 
 
-
-CAMERA_MODES = ("single", "per_image", "per_folder", "auto")
-
-
 def extract_and_match(
     image_dir: str | Path,
     database: str | Path,
     *,
-    camera_mode: str = "single",
+    camera_mode: CameraMode | str = CameraMode.SINGLE,
     camera_model: str = "SIMPLE_RADIAL",
     camera_params: str = "",
     max_features: int = 8192,
@@ -261,8 +283,7 @@ def extract_and_match(
     database = Path(database)
     if database.exists():
         raise FileExistsError(f"database already exists: {database}")
-    if camera_mode not in CAMERA_MODES:
-        raise ValueError(f"camera_mode={camera_mode!r} is not one of: {', '.join(CAMERA_MODES)}")
+    camera_mode = CameraMode.parse(camera_mode, "camera_mode")
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
         raise NotADirectoryError(f"image folder not found: {image_dir}")
@@ -273,7 +294,7 @@ def extract_and_match(
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = int(max_features)
     extraction.num_threads = int(num_threads)
-    mode = getattr(pycolmap.CameraMode, camera_mode.upper())
+    mode = getattr(pycolmap.CameraMode, camera_mode.name)
     with colmap_log_to_file(Path(log_dir) if log_dir else database.parent, verbose=verbose):
         t0 = time.perf_counter()
         pycolmap.extract_features(str(database), str(image_dir), camera_mode=mode, reader_options=reader,
@@ -285,7 +306,9 @@ def extract_and_match(
         t2 = time.perf_counter()
     if not database.is_file():
         raise RunFailed(f"feature extraction wrote no database (no readable image in {image_dir}?)")
-    n = _count_images(database)
+    from .adapters.database import count_images
+
+    n = count_images(database)
     if n < 2:
         raise RunFailed(f"feature extraction found {n} image(s) in {image_dir}; need at least 2")
     log.info("extracted %d images in %.1f s, matched exhaustively in %.1f s", n, t1 - t0, t2 - t1)

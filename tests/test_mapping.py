@@ -6,8 +6,8 @@ import hashlib
 
 import pytest
 
-from colmap_miho.cli import main
 from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.cli import main
 from colmap_miho.sfm import run_mapping
 
 
@@ -83,3 +83,25 @@ def test_global_mapping_on_real_images(shared_data, tmp_path):
     rep = build_report(res.output, gt=root / "gt_model")
     # measured: all 16 registered, model AUC@5 ~0.8 with 8192 features; 0.5 leaves room
     assert rep["model_pose_auc"]["auc5"] > 0.5
+
+
+def test_mapping_config_validates_and_flags_override_the_recipe(scene, tmp_path):
+    import json
+
+    from colmap_miho.sfm import MappingConfig
+
+    with pytest.raises(ValueError, match="num_threads must be -1"):
+        MappingConfig(num_threads=0)
+    with pytest.raises(ValueError, match="mapper='sfm' is not one of"):
+        MappingConfig(mapper="sfm")
+    recipe = tmp_path / "mine.toml"
+    recipe.write_text('[mapping]\nmapper = "global"\nnum_threads = 1\n')
+    # --mapper overrides the recipe's mapping.mapper; the recipe's num_threads still applies
+    out = tmp_path / "m.json"
+    assert main(["map", "--database", str(scene.database), "--images", str(scene.image_dir),
+                 "--output", str(tmp_path / "m"), "--recipe", str(recipe), "--mapper", "incremental",
+                 "-q", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["mapper"] == "incremental"
+    # a bad --set value is a one-line user error naming the key
+    assert main(["map", "--database", str(scene.database), "--images", str(scene.image_dir),
+                 "--output", str(tmp_path / "x"), "--set", "mapping.num_threads=0", "-q"]) == 2

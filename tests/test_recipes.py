@@ -1,6 +1,6 @@
 import pytest
 
-from colmap_miho.enums import FilterMethod, MatchSource
+from colmap_miho.enums import FilterMethod, Mapper, MatchSource
 from colmap_miho.recipe import available_recipes, load_recipe
 
 
@@ -23,6 +23,28 @@ def test_default_recipe_is_mop_miho_with_refinement():
     assert recipe.filter.inlier_count == 8 and recipe.filter.strict_threshold == 7.5
 
 
+def test_mapping_table_defaults_and_overrides():
+    assert load_recipe().mapping.mapper is Mapper.INCREMENTAL  # shipped recipes omit [mapping]
+    recipe = load_recipe(None, ["mapping.mapper=global", "mapping.seed=4", "mapping.min_num_matches=30"])
+    assert recipe.mapping.mapper is Mapper.GLOBAL and recipe.mapping.seed == 4
+    assert recipe.mapping.min_num_matches == 30 and recipe.mapping.num_threads == -1
+
+
+def test_run_commands_apply_mapper_and_seed_flags_over_the_recipe():
+    from colmap_miho.cli import build_parser
+    from colmap_miho.commands.compare import load_run_recipe
+
+    base = ["compare", "--database", "d.db", "--images", "i", "--output", "o"]
+    args = build_parser().parse_args([*base, "--set", "mapping.mapper=global", "--seed", "5"])
+    recipe = load_run_recipe(args)
+    assert recipe.mapping.mapper is Mapper.GLOBAL and recipe.mapping.seed == 5
+    args = build_parser().parse_args([*base, "--set", "mapping.mapper=global", "--mapper", "incremental"])
+    assert load_run_recipe(args).mapping.mapper is Mapper.INCREMENTAL
+    args = build_parser().parse_args([*base, "--set", "mapping.num_threads=1"])
+    with pytest.raises(ValueError, match="mapping.num_threads is applied by `colmap-miho map` only"):
+        load_run_recipe(args)
+
+
 def test_overrides_are_typed():
     recipe = load_recipe("mop", ["filter.t_l=12", "pipeline.source=raw", "pipeline.refine=yes", "filter.t_h=none"])
     assert recipe.filter.t_l == 12.0 and recipe.filter.t_h is None
@@ -41,6 +63,7 @@ def test_overrides_are_typed():
         ("filter.max_iters=2.5", "expected an integer"),
         ("filter.rotation_fix=maybe", "expected true or false"),
         ("noequals", "section.key=value"),
+        ("filter.device=cpu", "unknown key filter.device"),  # the filter always runs in numpy
     ],
 )
 def test_bad_overrides_name_the_key(override, message):

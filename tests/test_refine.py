@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import json
-import logging
 import sqlite3
 
 import cv2
 import numpy as np
 import pytest
 
-from colmap_miho.cli import main
 from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.cli import main
 from colmap_miho.pipeline.refine import RefineSummary, refine_database
 from colmap_miho.recipe import load_recipe
 
@@ -295,10 +294,9 @@ def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
 
 def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypatch):
     """Filtering pairs and refining whole tracks in 2 processes changes nothing."""
-    import colmap_miho.pipeline.refine as pipeline
-    import colmap_miho.pipeline.stages as stages
+    from colmap_miho.pipeline import filter_stage, stages
 
-    monkeypatch.setattr(pipeline, "MIN_PAIRS_PER_WORKER", 1)
+    monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
     # the CPU worker pool is what is tested (on a CUDA machine "auto" would use one GPU worker)
     one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db",

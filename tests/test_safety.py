@@ -23,7 +23,6 @@ from colmap_miho.adapters.safety import (
     default_output_path,
 )
 from colmap_miho.adapters.synthetic import make_synthetic_scene
-from colmap_miho.pipeline.refine import PAUSE_AT_WRITE_ENV
 
 REPO = Path(__file__).resolve().parents[1]
 # Seconds a subprocess may take to reach the write stage (imports torch, filters 6 pairs).
@@ -131,13 +130,15 @@ def test_database_locked_by_another_process(db_copy, journal, message):
 
 
 def _refine_cmd(db: Path, images: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "colmap_miho", "refine", "--database", str(db), "--images",
-            str(images), "--workers", "1", "--no-refine", "-q", *extra]
+    return ["refine", "--database", str(db), "--images", str(images), "--workers", "1",
+            "--no-refine", "-q", *extra]
 
 
-def _kill_at_write(cmd: list[str], marker: Path) -> None:
-    env = dict(os.environ, **{PAUSE_AT_WRITE_ENV: str(marker)})
-    proc = subprocess.Popen(cmd, env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+def _kill_at_write(cli_args: list[str], marker: Path) -> None:
+    """Run the CLI in a subprocess whose write stage pauses after its first pair (see
+    ``pause_at_write.py``) and SIGKILL it there."""
+    cmd = [sys.executable, str(Path(__file__).with_name("pause_at_write.py")), str(marker), *cli_args]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
         while not marker.exists():

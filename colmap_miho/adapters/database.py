@@ -295,3 +295,10 @@ class ColmapDatabase:
     def transaction(self):
         """A pycolmap transaction (speed only: it commits even when the block raises)."""
         return self._pycolmap.DatabaseTransaction(self.handle)
+
+
+def count_images(path: str | Path) -> int:
+    """Number of images in the COLMAP database at ``path`` (a working copy or a database
+    colmap-miho created: pycolmap migrates the schema on open)."""
+    with ColmapDatabase(path) as db:
+        return int(db.handle.num_images())

@@ -40,10 +40,9 @@ def run(args) -> int:
 
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.demo_scene import make_demo_scene
-    from ..recipe import load_recipe
-    from .compare import quiet_colmap
+    from .compare import load_run_recipe, quiet_colmap
 
-    recipe = load_recipe(args.recipe, args.overrides)
+    recipe = load_run_recipe(args)
     w, h = _size(args.size)
     n = args.num_images
     max_features = args.max_features or (1024 if args.quick else 2048)
@@ -54,7 +53,7 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     out = run_from_images(
         scene.image_dir, args.output, gt=scene.gt_dir, recipe=recipe, compare=True,
-        max_features=max_features, mapper=args.mapper, seed=args.seed, workers=args.workers,
+        max_features=max_features, mapper=recipe.mapping.mapper.value, seed=recipe.mapping.seed, workers=args.workers,
         device=args.device, progress=not args.quiet, verbose=args.verbose,
     )
     if not args.quiet:

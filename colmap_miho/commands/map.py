@@ -5,29 +5,42 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..enums import Mapper
+
 HELP = "map a COLMAP database with pycolmap (incremental or global) and write the largest model"
 ORDER = 30
+
+#: flag -> key of the recipe's ``mapping`` table it overrides (when given)
+_FLAG_KEYS = {"mapper": "mapper", "seed": "seed", "threads": "num_threads",
+              "min_num_matches": "min_num_matches"}
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--database", required=True, type=Path, help="COLMAP database (read through a copy, never modified)")
     parser.add_argument("--images", required=True, type=Path, help="image folder")
     parser.add_argument("--output", required=True, type=Path, help="folder for the model (largest by registered images)")
-    parser.add_argument("--mapper", default="incremental", choices=["incremental", "global"], help="pycolmap pipeline (default incremental)")
-    parser.add_argument("--seed", type=int, default=0, help="mapper random seed (default 0)")
-    parser.add_argument("--threads", type=int, default=-1, help="mapper threads (-1 all; 1 for bit-exact repeat runs)")
-    parser.add_argument("--min-num-matches", type=int, default=15, help="ignore pairs with fewer verified inliers (default 15)")
+    parser.add_argument("--recipe", default=None,
+                        help="recipe name or .toml path whose [mapping] table is used (default mop_miho_ncc)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a recipe value, e.g. --set mapping.num_threads=1 (repeatable)")
+    parser.add_argument("--mapper", default=None, choices=Mapper.values(), help="pycolmap pipeline (default incremental)")
+    parser.add_argument("--seed", type=int, default=None, help="mapper random seed (default 0)")
+    parser.add_argument("--threads", type=int, default=None, help="mapper threads (-1 all, the default; 1 for bit-exact repeat runs)")
+    parser.add_argument("--min-num-matches", type=int, default=None, help="ignore pairs with fewer verified inliers (default 15)")
     parser.add_argument("--json", type=Path, default=None, help="write the mapping summary as JSON")
 
 
 def run(args) -> int:
+    from ..recipe import load_recipe
     from ..sfm import require_success, run_mapping
 
-    result = run_mapping(
-        args.database, args.images, args.output, mapper=args.mapper, seed=args.seed,
-        num_threads=args.threads, min_num_matches=args.min_num_matches,
-        progress=not args.quiet, verbose=args.verbose,
-    )
+    overrides = list(args.overrides)
+    for flag, key in _FLAG_KEYS.items():
+        if getattr(args, flag) is not None:
+            overrides.append(f"mapping.{key}={getattr(args, flag)}")
+    config = load_recipe(args.recipe, overrides).mapping
+    result = run_mapping(args.database, args.images, args.output, config,
+                         progress=not args.quiet, verbose=args.verbose)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result.to_dict(), indent=2), encoding="utf-8")

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import logging
 from pathlib import Path
+
+from ..enums import Device, MatchSource
 
 HELP = "filter (MOP+MiHo) and refine (track-consistent NCC) the matches of a COLMAP database"
 DESCRIPTION = (
@@ -14,9 +15,6 @@ DESCRIPTION = (
     "modified), or with --in-place replace the input atomically after a timestamped backup."
 )
 ORDER = 10
-
-log = logging.getLogger("colmap_miho.commands.refine")
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--database", required=True, type=Path, help="input COLMAP database")
@@ -29,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_ncc)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a recipe value, e.g. --set filter.t_l=12 (repeatable)")
-    parser.add_argument("--source", choices=["verified", "raw"], default=None,
+    parser.add_argument("--source", choices=MatchSource.values(), default=None,
                         help="filter the verified inliers (two_view_geometries, default) or the "
                              "raw tentative matches (MOP+MiHo then replaces geometric verification)")
     parser.add_argument("--no-refine", action="store_true", help="filter only, no NCC refinement")
@@ -37,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="re-run COLMAP's epipolar verification on the kept matches "
                              "(default: the recipe's pipeline.verify, off)")
     parser.add_argument("--workers", type=int, default=None, help="processes filtering pairs (default: all cores)")
-    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="torch device")
+    parser.add_argument("--device", choices=Device.values(), default=Device.AUTO.value, help="torch device")
     parser.add_argument("--seed", type=int, default=0, help="base random seed")
     parser.add_argument("--strict", action="store_true", help="a missing or unreadable image is an error")
     parser.add_argument("--json", dest="json_path", type=Path, default=None, help="write the summary as JSON")
@@ -58,12 +56,9 @@ def run(args: argparse.Namespace) -> int:
         overrides.append(f"pipeline.verify={str(args.verify).lower()}")
     recipe = load_recipe(args.recipe, overrides)
     if not args.verbose:
-        try:
-            import pycolmap
+        import pycolmap
 
-            pycolmap.logging.minloglevel = 2
-        except Exception:  # pragma: no cover - logging attribute missing in other versions
-            pass
+        pycolmap.logging.minloglevel = 2
     summary = refine_database(
         args.database, args.images, args.output, recipe=recipe, in_place=args.in_place,
         overwrite=args.overwrite, workers=args.workers, device=args.device, seed=args.seed,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..enums import CameraMode
 from .compare import add_recipe_arguments
 
 HELP = "from a folder of images: SIFT + exhaustive matching, refine, map, report (--compare: vs baseline)"
@@ -21,7 +22,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--output", required=True, type=Path, help="work folder")
     parser.add_argument("--gt", type=Path, default=None, help="GT COLMAP model folder (or dataset folder with gt_model/)")
     parser.add_argument("--compare", action="store_true", help="also map the unrefined database and compare")
-    parser.add_argument("--camera-mode", default="single", choices=["single", "per_image", "per_folder", "auto"],
+    parser.add_argument("--camera-mode", default=CameraMode.SINGLE.value, choices=CameraMode.values(),
                         help="COLMAP camera sharing (default: one camera for all images)")
     parser.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (default SIMPLE_RADIAL)")
     parser.add_argument("--camera-params", default="",
@@ -34,16 +35,15 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.report import format_report
-    from ..recipe import load_recipe
-    from .compare import quiet_colmap
+    from .compare import load_run_recipe, quiet_colmap
 
-    recipe = load_recipe(args.recipe, args.overrides)
+    recipe = load_run_recipe(args)
     quiet_colmap(args.verbose)
     out = run_from_images(
         args.images, args.output, gt=args.gt, recipe=recipe, compare=args.compare,
         camera_mode=args.camera_mode, camera_model=args.camera_model,
         camera_params=args.camera_params, max_features=args.max_features,
-        mapper=args.mapper, seed=args.seed, workers=args.workers, device=args.device,
+        mapper=recipe.mapping.mapper.value, seed=recipe.mapping.seed, workers=args.workers, device=args.device,
         progress=not args.quiet, verbose=args.verbose,
     )
     if not args.quiet:

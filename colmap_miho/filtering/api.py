@@ -37,7 +37,6 @@ On 17 Oxford/Strecha SIFT+NNR pairs (mean 1231 matches) it takes about 0.07 s (M
 from __future__ import annotations
 
 import dataclasses
-import logging
 import time
 from dataclasses import dataclass, field
 
@@ -50,8 +49,6 @@ from .homography import adjugate, to_unit_h33
 from .miho import apply_affine, build_problem, choose_rotation, sqrt_split
 from .mop import run_mop
 from .ransac import error_sq
-
-logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -151,34 +148,20 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
     x2 = _as_points(pts2, "pts2")
     if len(x1) != len(x2):
         raise ValueError(f"pts1 and pts2 must have the same length, got {len(x1)} and {len(x2)}")
-    if config is None:
-        config = FilterConfig(method=FilterMethod.MOP_MIHO if method is None else method)
-    elif not isinstance(config, FilterConfig):
-        raise ValueError(f"config must be a FilterConfig, got {type(config).__name__}")
-    elif method is not None:
-        config = dataclasses.replace(config, method=FilterMethod.parse(method, "method"))
-    cfg = config
-    meth = cfg.method
+    cfg = _resolve_config(method, config)
     n = len(x1)
     stats: dict = {"matches": n}
     if n < 4:
-        return _failure(n, meth, stats, "fewer than 4 matches")
+        return _failure(n, cfg.method, stats, "fewer than 4 matches")
 
     rng = np.random.default_rng(seed)
-    vsac = meth == FilterMethod.MOP_VSAC
-    G = np.eye(3)
     t1 = time.perf_counter()
-    if cfg.rotation_fix and (cfg.is_miho or vsac):
-        G, idx, _ = choose_rotation(x1, x2, rng, pairs=cfg.rotation_pairs,
-                                    reflections=cfg.rotation_fix_reflections)
-        stats["rotation_index"] = idx
-        if idx >= 4 and cfg.reflection_check:
-            # MiHo's midpoint frame degenerates for a mirrored pair; the star variants assume
-            # no reflections, so such a pair is rejected rather than filtered into garbage.
-            stats["time_total"] = time.perf_counter() - t0
-            return _failure(n, meth, stats, "mirrored pair rejected by the reflection check")
-    else:
-        stats["rotation_index"] = 0
+    G = _rotation_fix(x1, x2, cfg, rng, stats)
+    if G is None:
+        # MiHo's midpoint frame degenerates for a mirrored pair; the star variants assume
+        # no reflections, so such a pair is rejected rather than filtered into garbage.
+        stats["time_total"] = time.perf_counter() - t0
+        return _failure(n, cfg.method, stats, "mirrored pair rejected by the reflection check")
     x2r = apply_affine(G, x2) if stats["rotation_index"] else x2
     t2 = time.perf_counter()
 
@@ -186,39 +169,69 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
     mop = run_mop(problem, cfg, rng, progress=progress)
     stats.update(mop.stats)
     t3 = time.perf_counter()
-    hyps = mop.hyps
-    K = len(hyps)
     stats.update(time_validate=t1 - t0, time_rotation=t2 - t1, time_mop=t3 - t2)
-    if K == 0:
+    if len(mop.hyps) == 0:
         stats["time_total"] = time.perf_counter() - t0
-        return _failure(n, meth, stats, "no homography with enough inliers")
+        return _failure(n, cfg.method, stats, "no homography with enough inliers")
 
-    err2 = error_sq(problem, hyps, np.arange(n))
-    labels, support = assign_matches(err2, cfg.t_l)
+    labels, support = assign_matches(error_sq(problem, mop.hyps, np.arange(n)), cfg.t_l)
     t4 = time.perf_counter()
-
-    G_inv = np.linalg.inv(G)
-    eye = np.broadcast_to(np.eye(3), (K, 3, 3))
-    if cfg.is_miho:
-        H1, H2 = hyps.H[:, 0], hyps.H[:, 1]
-        H = G_inv @ H2 @ H1
-        patch = np.stack([H1, adjugate(H2) @ G], axis=1)
-    else:
-        Hr = hyps.H[:, 0]
-        H = G_inv @ Hr
-        patch = np.stack([eye, adjugate(H)], axis=1)
-        if vsac:
-            fallbacks = []
-            for k in range(K):
-                Hv = sqrt_split(Hr[k])
-                if Hv is None:
-                    fallbacks.append(k)
-                else:
-                    patch[k] = (Hv, adjugate(Hv) @ G)
-            stats["vsac_fallbacks"] = fallbacks
+    H, patch = _homographies_and_patch_pairs(mop.hyps, G, cfg, stats)
     t5 = time.perf_counter()
     stats.update(time_assign=t4 - t3, time_split=t5 - t4, time_total=t5 - t0,
                  support=support.tolist())
     return FilterResult(
         inliers=labels >= 0, labels=labels, homographies=to_unit_h33(H),
-        patch_homographies=to_unit_h33(patch), success=True, method=meth, stats=stats)
+        patch_homographies=to_unit_h33(patch), success=True, method=cfg.method, stats=stats)
+
+
+def _resolve_config(method: str | FilterMethod | None, config: FilterConfig | None) -> FilterConfig:
+    """The config that runs: ``method``, when given, replaces ``config.method``."""
+    if config is None:
+        return FilterConfig(method=FilterMethod.MOP_MIHO if method is None else method)
+    if not isinstance(config, FilterConfig):
+        raise ValueError(f"config must be a FilterConfig, got {type(config).__name__}")
+    if method is not None:
+        return dataclasses.replace(config, method=FilterMethod.parse(method, "method"))
+    return config
+
+
+def _rotation_fix(x1: np.ndarray, x2: np.ndarray, cfg: FilterConfig, rng: np.random.Generator,
+                  stats: dict) -> np.ndarray | None:
+    """MiHo's pre-alignment ``G`` ``(3, 3)`` applied to image 2 (identity when off), recording
+    ``stats["rotation_index"]``; ``None`` when the pair is mirrored and the method rejects
+    reflections."""
+    if not (cfg.rotation_fix and (cfg.is_miho or cfg.method == FilterMethod.MOP_VSAC)):
+        stats["rotation_index"] = 0
+        return np.eye(3)
+    G, idx, _ = choose_rotation(x1, x2, rng, pairs=cfg.rotation_pairs,
+                                reflections=cfg.rotation_fix_reflections)
+    stats["rotation_index"] = idx
+    if idx >= 4 and cfg.reflection_check:
+        return None
+    return G
+
+
+def _homographies_and_patch_pairs(hyps, G: np.ndarray, cfg: FilterConfig,
+                                  stats: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``H_2from1`` ``(K, 3, 3)`` in the original image 2 and the patch pairs ``(K, 2, 3, 3)``
+    of :class:`FilterResult`, from MOP's hypotheses fitted against image 2 pre-aligned by
+    ``G``; VSAC records the square roots that failed in ``stats["vsac_fallbacks"]``."""
+    G_inv = np.linalg.inv(G)
+    K = len(hyps)
+    if cfg.is_miho:
+        H1, H2 = hyps.H[:, 0], hyps.H[:, 1]
+        return G_inv @ H2 @ H1, np.stack([H1, adjugate(H2) @ G], axis=1)
+    Hr = hyps.H[:, 0]
+    H = G_inv @ Hr
+    patch = np.stack([np.broadcast_to(np.eye(3), (K, 3, 3)), adjugate(H)], axis=1)
+    if cfg.method == FilterMethod.MOP_VSAC:
+        fallbacks = []
+        for k in range(K):
+            Hv = sqrt_split(Hr[k])
+            if Hv is None:
+                fallbacks.append(k)
+            else:
+                patch[k] = (Hv, adjugate(Hv) @ G)
+        stats["vsac_fallbacks"] = fallbacks
+    return H, patch

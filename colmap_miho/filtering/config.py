@@ -26,9 +26,6 @@ class FilterConfig:
             DLT system (paper: 0.05).
         buffer_size: z, size of the top-z sub-optimal model buffer (paper: 5).
         rotation_fix: MiHo's 90-degree rotation pre-alignment (App. C).
-        device: "cpu", "cuda" or "auto". Accepted for interface stability; the filter
-            runs on the CPU in numpy whatever the device (a MOP round is a long chain of
-            small batched operations, latency-bound; see ``filtering/api.py``).
         sampling: "local" (default, NAPSAC-style guided minimal samples, see
             ``filtering/ransac.py``) or "uniform" (the paper's).
         local_neighbours: neighbourhood size k of local sampling (joint (x1, x2) space).
@@ -54,7 +51,6 @@ class FilterConfig:
     min_singular_value: float = 0.05
     buffer_size: int = 5
     rotation_fix: bool = True
-    device: str = "auto"
     sampling: str = "local"
     local_neighbours: int = 8
     local_fraction: float = 0.75
@@ -84,8 +80,6 @@ class FilterConfig:
             raise ValueError(f"min_singular_value must be >= 0, got {self.min_singular_value}")
         if self.buffer_size < 0:
             raise ValueError(f"buffer_size must be >= 0, got {self.buffer_size}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
         if self.sampling not in ("local", "uniform"):
             raise ValueError(f"sampling must be local or uniform, got {self.sampling!r}")
         if self.local_neighbours < 3:

@@ -61,6 +61,19 @@ def normalise_scale(H: np.ndarray) -> np.ndarray:
     return H / np.maximum(norm, 1e-300)
 
 
+def _dlt_system(s: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The DLT system ``A`` ``(B, 2M, 9)`` of ``(B, M, 2)`` (normalised) point sets, ``A h = 0``
+    for ``d ~ H s`` with ``h`` the row-major entries of ``H``: two rows per point."""
+    B, M, _ = s.shape
+    A = np.zeros((B, 2 * M, 9))
+    x, y, u, v = s[..., 0], s[..., 1], d[..., 0], d[..., 1]
+    A[:, 0::2, 0], A[:, 0::2, 1], A[:, 0::2, 2] = x, y, 1.0
+    A[:, 0::2, 6], A[:, 0::2, 7], A[:, 0::2, 8] = -u * x, -u * y, -u
+    A[:, 1::2, 3], A[:, 1::2, 4], A[:, 1::2, 5] = x, y, 1.0
+    A[:, 1::2, 6], A[:, 1::2, 7], A[:, 1::2, 8] = -v * x, -v * y, -v
+    return A
+
+
 def dlt(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised DLT for a batch of point sets.
 
@@ -76,21 +89,7 @@ def dlt(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     B, M, _ = src.shape
     T1, s = normalise_points(src)
     T2, d = normalise_points(dst)
-    A = np.zeros((B, 2 * M, 9))
-    x, y = s[..., 0], s[..., 1]
-    u, v = d[..., 0], d[..., 1]
-    A[:, 0::2, 0] = x
-    A[:, 0::2, 1] = y
-    A[:, 0::2, 2] = 1.0
-    A[:, 0::2, 6] = -u * x
-    A[:, 0::2, 7] = -u * y
-    A[:, 0::2, 8] = -u
-    A[:, 1::2, 3] = x
-    A[:, 1::2, 4] = y
-    A[:, 1::2, 5] = 1.0
-    A[:, 1::2, 6] = -v * x
-    A[:, 1::2, 7] = -v * y
-    A[:, 1::2, 8] = -v
+    A = _dlt_system(s, d)
     if M == 4:
         _, sv, vh = np.linalg.svd(A, full_matrices=True)
         sv8 = sv[:, 7]
@@ -161,13 +160,7 @@ def dlt_singular_value(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     ``(B, 4, 2)`` samples: the paper's degeneracy test keeps hypotheses above 0.05."""
     _, s = normalise_points(src)
     _, d = normalise_points(dst)
-    B = src.shape[0]
-    A = np.zeros((B, 8, 9))
-    x, y, u, v = s[..., 0], s[..., 1], d[..., 0], d[..., 1]
-    A[:, 0::2, 0], A[:, 0::2, 1], A[:, 0::2, 2] = x, y, 1.0
-    A[:, 0::2, 6], A[:, 0::2, 7], A[:, 0::2, 8] = -u * x, -u * y, -u
-    A[:, 1::2, 3], A[:, 1::2, 4], A[:, 1::2, 5] = x, y, 1.0
-    A[:, 1::2, 6], A[:, 1::2, 7], A[:, 1::2, 8] = -v * x, -v * y, -v
+    A = _dlt_system(s, d)
     evals = np.linalg.eigvalsh(A @ np.swapaxes(A, 1, 2))
     return np.sqrt(np.maximum(evals[:, 0], 0.0))
 
@@ -203,13 +196,6 @@ def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     x /= safe_w
     y /= safe_w
     return x, y, w
-
-
-def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Squared one-way transfer error ``|H src - dst|^2``, ``(K, N)`` for ``H`` ``(K, 3, 3)``
-    and ``src``, ``dst`` ``(N, 2)`` pixels."""
-    x, y, _ = project(H, src)
-    return (x - dst[:, 0]) ** 2 + (y - dst[:, 1]) ** 2
 
 
 def to_unit_h33(H: np.ndarray) -> np.ndarray:

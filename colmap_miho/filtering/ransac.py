@@ -36,8 +36,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import FilterConfig
-from .homography import (adjugate, dlt, dlt_singular_value, four_point, project,
-                         triangle_orientations)
+from .homography import (
+    adjugate,
+    dlt,
+    dlt_singular_value,
+    four_point,
+    project,
+    triangle_orientations,
+)
 
 _PAIR_I = np.array([0, 0, 0, 1, 1, 2])
 _PAIR_J = np.array([1, 2, 3, 2, 3, 3])
@@ -89,13 +95,13 @@ class Hypotheses:
     def __len__(self) -> int:
         return self.H.shape[0]
 
-    def take(self, idx) -> "Hypotheses":
+    def take(self, idx) -> Hypotheses:
         idx = np.atleast_1d(np.asarray(idx))
         return Hypotheses(self.H[idx], self.Hinv[idx], self.sign[idx], self.sign_inv[idx],
                           self.sample[idx])
 
     @staticmethod
-    def concat(items: list["Hypotheses"]) -> "Hypotheses":
+    def concat(items: list[Hypotheses]) -> Hypotheses:
         items = [h for h in items if len(h)]
         if not items:
             return Hypotheses.empty(1)
@@ -103,7 +109,7 @@ class Hypotheses:
                             ("H", "Hinv", "sign", "sign_inv", "sample")))
 
     @staticmethod
-    def empty(halves: int) -> "Hypotheses":
+    def empty(halves: int) -> Hypotheses:
         return Hypotheses(np.zeros((0, halves, 3, 3)), np.zeros((0, halves, 3, 3)),
                           np.zeros((0, halves)), np.zeros((0, halves)),
                           np.zeros((0, 4), dtype=np.int64))
@@ -273,6 +279,141 @@ def _greedy_buffer(cands: list[tuple[Hypotheses, np.ndarray]], best_mask: np.nda
     return chosen
 
 
+@dataclass
+class _Search:
+    """State of one RANSAC run: the best model so far (``hyp``; ``err`` its squared errors on
+    the pool, ``mask`` its t_l inliers, ``count`` their number, -1 before any model) and the
+    sub-optimal candidates ``(hypothesis, inlier mask)`` for the top-z buffer."""
+
+    t2: float
+    hyp: Hypotheses | None = None
+    err: np.ndarray | None = None
+    count: int = -1
+    mask: np.ndarray | None = None
+    cands: list[tuple[Hypotheses, np.ndarray]] = field(default_factory=list)
+
+    def consider(self, hyp: Hypotheses, err: np.ndarray) -> bool:
+        """Score fully scored hypotheses ``err`` ``(K, n_pool)``; returns whether the best
+        model changed. A replaced best and every other model with inliers become candidates."""
+        masks = err <= self.t2
+        counts = masks.sum(1)
+        improved = False
+        for k in np.argsort(-counts, kind="stable"):
+            if counts[k] > self.count:
+                if self.hyp is not None:
+                    self.cands.append((self.hyp, self.mask))
+                self.hyp, self.err = hyp.take(k), err[k]
+                self.count, self.mask = int(counts[k]), masks[k]
+                improved = True
+            elif counts[k] > 0:
+                self.cands.append((hyp.take(k), masks[k]))
+        return improved
+
+
+class _Sampler:
+    """Minimal samples over the pool: uniform, or a ``local_fraction`` of them drawn around
+    a seed match among its ``local_neighbours`` nearest pool matches in ``(x1, x2)`` space
+    (neighbours queried once per position, on demand)."""
+
+    def __init__(self, problem: Problem, pool: np.ndarray, cfg: FilterConfig) -> None:
+        n = len(pool)
+        self.pool = pool
+        self.k = cfg.local_neighbours
+        self.local = cfg.sampling == "local" and n > cfg.local_neighbours + 1
+        self.fraction = cfg.local_fraction if self.local else 0.0
+        self._tree = self._feats = None
+        if self.local:
+            from scipy.spatial import cKDTree
+
+            self._feats = np.concatenate([problem.x1[pool], problem.x2[pool]], axis=1)
+            self._tree = cKDTree(self._feats)  # cheap to build; queried only where needed
+        self._nb = np.empty((n, self.k), dtype=np.int64)
+        self._known = np.zeros(n, dtype=bool)
+
+    def neighbours(self, pos: np.ndarray) -> np.ndarray:
+        """``(len(pos), k)`` pool positions of the k nearest matches of pool positions ``pos``."""
+        todo = np.unique(pos[~self._known[pos]])
+        if len(todo):
+            self._nb[todo] = self._tree.query(self._feats[todo], k=self.k + 1)[1][:, 1:]
+            self._known[todo] = True
+        return self._nb[pos]
+
+    def local_inlier_fraction(self, search: _Search) -> float:
+        """Share of the best model's inliers among the neighbours of (up to 256) of them."""
+        if self._tree is None or search.mask is None or search.count <= 0:
+            return 0.0
+        inl = np.flatnonzero(search.mask)
+        probe = inl[np.linspace(0, len(inl) - 1, min(len(inl), 256)).astype(np.int64)]
+        return float(search.mask[self.neighbours(probe)].mean())
+
+    def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
+        """``(size, 4)`` global match indices, seed match first."""
+        n = len(self.pool)
+        seeds = rng.integers(0, n, size)
+        others = rng.integers(0, n, (size, 3))
+        if self.local:
+            is_local = np.flatnonzero(rng.random(size) < self.fraction)
+            pick = rng.integers(0, self.k, (len(is_local), 3))
+            if len(is_local):
+                nb = self.neighbours(seeds[is_local])
+                others[is_local] = np.take_along_axis(nb, pick, axis=1)
+        return self.pool[np.concatenate([seeds[:, None], others], axis=1)]
+
+
+def _required(search: _Search, sampler: _Sampler, n: int, cfg: FilterConfig) -> float:
+    """Adaptive iteration bound for the current best model (``max_iters`` before any)."""
+    if search.count <= 0:
+        return float(cfg.max_iters)
+    return _required_iters(search.count / n, sampler.local_inlier_fraction(search),
+                           sampler.fraction, cfg.confidence)
+
+
+def _score_batch(problem: Problem, hyp: Hypotheses, pool: np.ndarray, cfg: FilterConfig,
+                 search: _Search, stats: dict) -> bool:
+    """Full-score the hypotheses of one batch that can matter; returns whether the best
+    model changed.
+
+    Full scoring runs in descending order of the one-way upper bound, in small groups, until
+    no remaining bound can beat the best count; the batch's two strongest (at least n
+    possible inliers) are always scored, as buffer candidates.
+    """
+    ub = one_way_count(problem, hyp, pool, search.t2)
+    order = np.argsort(-ub, kind="stable")
+    ub = ub[order]
+    n_buf = int(np.count_nonzero(ub[: min(2, cfg.buffer_size)] >= cfg.inlier_count))
+    improved = False
+    start = 0
+    while start < len(order) and (ub[start] > search.count or start < n_buf):
+        stop = start + 4
+        sub = hyp.take(order[start:stop][ub[start:stop] > 0])
+        start = stop
+        sub = sub.take(np.flatnonzero(passes_singular_value_test(problem, sub, cfg)))
+        if not len(sub):
+            continue
+        stats["full_scored"] += len(sub)
+        improved |= search.consider(sub, error_sq(problem, sub, pool))
+    return improved
+
+
+def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _Search,
+                stats: dict) -> None:
+    """Replace the best model by least-squares refits on its inliers while they lose none."""
+    for _ in range(cfg.refit_iters):
+        refit = _refit(problem, search.hyp, pool[search.err <= search.t2])
+        if refit is None:
+            break
+        err = error_sq(problem, refit, pool)[0]
+        mask = err <= search.t2
+        count = int(mask.sum())
+        stats["full_scored"] += 1
+        if count < search.count:
+            break
+        unchanged = count == search.count and np.array_equal(mask, search.mask)
+        search.hyp, search.err, search.count, search.mask = refit, err, count, mask
+        if unchanged:
+            break
+
+
 def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.random.Generator,
                  buffer: list[Hypotheses]) -> tuple[RoundResult | None, list[Hypotheses]]:
     """Run one RANSAC search on the matches ``pool`` (``(n,)`` global indices).
@@ -288,126 +429,30 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
     stats = {"drawn": 0, "valid": 0, "full_scored": 0}
     if n < 4:
         return None, buffer
-    t2 = cfg.t_l**2
-    best_hyp, best_err, best_count, best_mask = None, None, -1, None
-    cands: list[tuple[Hypotheses, np.ndarray]] = []
-
-    def consider(hyp: Hypotheses, err: np.ndarray) -> bool:
-        nonlocal best_hyp, best_err, best_count, best_mask
-        masks = err <= t2
-        counts = masks.sum(1)
-        improved = False
-        for k in np.argsort(-counts, kind="stable"):
-            if counts[k] > best_count:
-                if best_hyp is not None:
-                    cands.append((best_hyp, best_mask))
-                best_hyp, best_err = hyp.take(k), err[k]
-                best_count, best_mask = int(counts[k]), masks[k]
-                improved = True
-            elif counts[k] > 0:
-                cands.append((hyp.take(k), masks[k]))
-        return improved
-
+    search = _Search(t2=cfg.t_l**2)
     if buffer:
         boot = Hypotheses.concat(buffer)
-        consider(boot, error_sq(problem, boot, pool))
+        search.consider(boot, error_sq(problem, boot, pool))
         stats["full_scored"] += len(boot)
-
-    use_local = cfg.sampling == "local" and n > cfg.local_neighbours + 1
-    f_local = cfg.local_fraction if use_local else 0.0
-    tree = feats = None
-    if use_local:
-        from scipy.spatial import cKDTree
-
-        feats = np.concatenate([problem.x1[pool], problem.x2[pool]], axis=1)
-        tree = cKDTree(feats)  # building is cheap; neighbours are queried only where needed
-
-    nb_cache = np.empty((n, cfg.local_neighbours), dtype=np.int64)
-    nb_known = np.zeros(n, dtype=bool)
-
-    def neighbours(pos: np.ndarray) -> np.ndarray:
-        """``(len(pos), k)`` pool positions of the k nearest matches of pool positions ``pos``
-        (queried once per position, on demand)."""
-        todo = np.unique(pos[~nb_known[pos]])
-        if len(todo):
-            nb_cache[todo] = tree.query(feats[todo], k=cfg.local_neighbours + 1)[1][:, 1:]
-            nb_known[todo] = True
-        return nb_cache[pos]
-
-    def local_inlier_fraction() -> float:
-        if tree is None or best_mask is None or best_count <= 0:
-            return 0.0
-        inl = np.flatnonzero(best_mask)
-        probe = inl[np.linspace(0, len(inl) - 1, min(len(inl), 256)).astype(np.int64)]
-        return float(best_mask[neighbours(probe)].mean())
-
-    def update_required() -> float:
-        if best_count <= 0:
-            return float(cfg.max_iters)
-        return _required_iters(best_count / n, local_inlier_fraction(), f_local, cfg.confidence)
-
-    required = update_required()
+    sampler = _Sampler(problem, pool, cfg)
+    required = _required(search, sampler, n, cfg)
     while stats["drawn"] < (target := max(cfg.min_iters, min(required, cfg.max_iters))):
         # Small batches while the bound may still drop, bigger ones when it will not.
-        B = cfg.batch_size
-        if best_count > 0:
-            B = int(min(max(B, target - stats["drawn"]), 8 * B))
-        seeds = rng.integers(0, n, B)
-        others = rng.integers(0, n, (B, 3))
-        if use_local:
-            is_local = np.flatnonzero(rng.random(B) < f_local)
-            pick = rng.integers(0, cfg.local_neighbours, (len(is_local), 3))
-            if len(is_local):
-                nb = neighbours(seeds[is_local])
-                others[is_local] = np.take_along_axis(nb, pick, axis=1)
-        sample = pool[np.concatenate([seeds[:, None], others], axis=1)]
-        stats["drawn"] += B
+        size = cfg.batch_size
+        if search.count > 0:
+            size = int(min(max(size, target - stats["drawn"]), 8 * size))
+        sample = sampler.draw(rng, size)
+        stats["drawn"] += size
         hyp = hypotheses_from_samples(problem, sample, cfg)
         stats["valid"] += len(hyp)
-        if not len(hyp):
-            continue
-        ub = one_way_count(problem, hyp, pool, t2)
-        order = np.argsort(-ub, kind="stable")
-        ub = ub[order]
-        improved = False
-        # Buffer candidates: the batch's two strongest (a model below n inliers is never
-        # kept, so weaker ones are not worth a full score).
-        n_buf = int(np.count_nonzero(ub[: min(2, cfg.buffer_size)] >= cfg.inlier_count))
-        start = 0
-        # Exact search for a new best: full-score in descending upper-bound order, in small
-        # groups, until no remaining upper bound can beat the best count.
-        while start < len(order) and (ub[start] > best_count or start < n_buf):
-            stop = start + 4
-            sub = hyp.take(order[start:stop][ub[start:stop] > 0])
-            start = stop
-            sub = sub.take(np.flatnonzero(passes_singular_value_test(problem, sub, cfg)))
-            if not len(sub):
-                continue
-            stats["full_scored"] += len(sub)
-            improved |= consider(sub, error_sq(problem, sub, pool))
-        if improved:
-            required = update_required()
-
-    if best_hyp is None:
+        if len(hyp) and _score_batch(problem, hyp, pool, cfg, search, stats):
+            required = _required(search, sampler, n, cfg)
+    if search.hyp is None:
         return None, buffer
-
-    for _ in range(cfg.refit_iters):
-        refit = _refit(problem, best_hyp, pool[best_err <= t2])
-        if refit is None:
-            break
-        err = error_sq(problem, refit, pool)[0]
-        count = int((err <= t2).sum())
-        stats["full_scored"] += 1
-        if count < best_count:
-            break
-        unchanged = count == best_count and np.array_equal(err <= t2, best_mask)
-        best_hyp, best_err, best_count, best_mask = refit, err, count, err <= t2
-        if unchanged:
-            break
-
-    buffer = _greedy_buffer(cands, best_mask, cfg.buffer_size)
+    _refit_best(problem, pool, cfg, search, stats)
+    buffer = _greedy_buffer(search.cands, search.mask, cfg.buffer_size)
     stats["required_iters"] = required
-    return RoundResult(best_hyp, best_err, best_count, stats), buffer
+    return RoundResult(search.hyp, search.err, search.count, stats), buffer
 
 
 def _refit(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> Hypotheses | None:

@@ -1,8 +1,9 @@
 """The ``refine`` pipeline: read -> filter -> refine -> write -> verify, on a working copy.
 
-:func:`refine_database` (in :mod:`.refine`) runs the stages in the order of the data flow; the
-heavy stages and their worker processes are in :mod:`.stages`; :class:`PipelineConfig` is the
-recipe's ``pipeline`` table.
+:func:`refine_database` (in :mod:`.refine`) runs the stages in the order of the data flow, one
+``run_<stage>`` call each: :mod:`.read`, :mod:`.filter_stage`, :mod:`.stages` (the NCC
+refinement), :mod:`.write`, :mod:`.verify`; :mod:`.workers` holds the process-pool helpers;
+:class:`PipelineConfig` is the recipe's ``pipeline`` table.
 """
 
 from .config import PipelineConfig

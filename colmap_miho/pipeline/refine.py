@@ -1,14 +1,16 @@
 """``refine_database``: filter and refine the matches of a COLMAP database, safely.
 
-Data flow (one stage after the other)::
+Data flow (one stage after the other, each ``run_<stage>`` returning its outputs and a small
+stats dataclass that :class:`RefineSummary` is assembled from)::
 
-    safe working copy -> read pairs -> filter each pair (MOP / MOP+MiHo, parallel)
-      -> track-consistent NCC refinement -> write back (keypoints, matches,
-      two_view_geometries) -> optional COLMAP re-verification -> atomic replace
+    safe working copy -> read (:mod:`.read`) -> filter each pair (:mod:`.filter_stage`,
+      MOP / MOP+MiHo, parallel) -> track-consistent NCC refinement (:mod:`.stages`)
+      -> write back (:mod:`.write`: keypoints, matches, two_view_geometries)
+      -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
 
 The input database is never opened for writing; see :mod:`colmap_miho.adapters.safety`.
 
-Parallelism (see :mod:`colmap_miho.pipeline.stages`): pairs are filtered, and whole tracks
+Parallelism (see :mod:`.workers`): pairs are filtered, and whole tracks
 refined, in ``spawn``-ed worker processes with one thread each. Scripts that call
 :func:`refine_database` with ``workers > 1`` need the usual ``if __name__ == "__main__":`` guard.
 All coordinates handled here are colmap-miho's (integer = pixel centre); the conversion to
@@ -28,24 +30,20 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..enums import Device, MatchSource
-from ..errors import DatabaseError, UserError
 from ..adapters.database import ColmapDatabase, validate_database
-from ..adapters.images import ImageLoader
 from ..adapters.safety import WorkingCopy, check_database_path
-from .stages import run_filter_stage, run_refine_stage
+from ..enums import Device
+from ..errors import UserError
+from .filter_stage import FilteredPairs, FilterOptions, FilterStats, run_filter
+from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
+from .stages import run_refine_stage
+from .verify import run_verify
+from .write import WriteStats, run_write
 
 if TYPE_CHECKING:  # recipe.py imports this package's config: import it lazily
     from ..recipe import Recipe
 
 log = logging.getLogger(__name__)
-
-#: Test hook: when set to a file path, the write stage creates that file and then sleeps,
-#: so that a test can kill the process in the middle of writing.
-PAUSE_AT_WRITE_ENV = "COLMAP_MIHO_DEBUG_PAUSE_AT_WRITE"
-#: Below this many pairs to filter per worker, filtering runs in this process (starting a
-#: worker process costs seconds: it imports torch).
-MIN_PAIRS_PER_WORKER = 4
 
 
 @dataclass
@@ -90,6 +88,25 @@ class RefineSummary:
     images_missing: list[str] = field(default_factory=list)
     refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
+                    device: str, read: ReadStats, filtered: FilterStats, refine_stats: dict,
+                    write: WriteStats, seconds: dict[str, float]) -> RefineSummary:
+        """Assemble the summary from the stages' stats."""
+        pcfg = recipe.pipeline
+        return cls(
+            output=output, database=database, backup=backup, recipe=recipe.name,
+            source=str(pcfg.source), refined=pcfg.refine, verified=pcfg.verify,
+            workers=filtered.workers, device=device, num_images=read.num_images,
+            num_pairs=read.num_pairs, pairs_filtered=filtered.pairs_filtered,
+            pairs_passed=read.pairs_passed, pairs_failed=filtered.pairs_failed,
+            matches_in=filtered.matches_in, matches_kept=filtered.matches_kept,
+            matches_removed=filtered.matches_removed, keypoints_total=read.keypoints_total,
+            keypoints_moved=write.keypoints_moved,
+            median_displacement_px=write.median_displacement_px,
+            max_displacement_px=write.max_displacement_px,
+            images_missing=list(read.images_missing), refine_stats=refine_stats, seconds=seconds)
 
     def to_dict(self) -> dict:
         """Plain JSON-ready data (paths as strings, seconds rounded to ms)."""
@@ -142,13 +159,6 @@ def _resolve_device(device: Device | str) -> str:
     return "cuda" if torch.cuda.is_available() else "cpu"
 
 
-def _pause_for_tests(stage: str) -> None:
-    marker = os.environ.get(PAUSE_AT_WRITE_ENV)
-    if marker:
-        Path(marker).write_text(stage)
-        time.sleep(60)
-
-
 def refine_database(
     database: str | os.PathLike,
     image_dir: str | os.PathLike,
@@ -194,8 +204,7 @@ def refine_database(
             image missing, no pairs to process.
         ValueError: a bad recipe or option value (the message names it).
     """
-    t_start = time.perf_counter()
-    seconds: dict[str, float] = {}
+    laps = _Laps()
     database = check_database_path(database)
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
@@ -203,114 +212,66 @@ def refine_database(
     rec = _resolve_recipe(recipe)
     pcfg = rec.pipeline
     dev = _resolve_device(device)
-    fcfg = dataclasses.replace(rec.filter, device=dev) if rec.filter.device == "auto" else rec.filter
-    ncfg = dataclasses.replace(rec.ncc, device=dev) if rec.ncc.device == "auto" else rec.ncc
-    n_workers = max(1, int(workers) if workers else (os.cpu_count() or 1))
-    if dev == "cuda":
-        n_workers = 1  # one process owns the GPU
-
-    summary = RefineSummary(output=Path(output) if output else database, database=database,
-                            recipe=rec.name, source=str(pcfg.source), refined=pcfg.refine,
-                            verified=pcfg.verify, device=dev)
+    n_workers = 1 if dev == "cuda" else max(1, int(workers) if workers else (os.cpu_count() or 1))
     wc = WorkingCopy(database, Path(output) if output else None, in_place=in_place, overwrite=overwrite)
-    t_copy = time.perf_counter()
-    seconds["setup"] = t_copy - t_start
+    laps.lap("setup")
     with wc:
-        seconds["copy"] = time.perf_counter() - t_copy
+        laps.lap("copy")
         validate_database(wc.path)
-        t = time.perf_counter()
         with ColmapDatabase(wc.path) as db:
-            images = db.images()
-            if not images:
-                raise DatabaseError(f"database has no images: {database}")
-            names = {im.image_id: im.name for im in images}
-            keypoints = {im.image_id: db.keypoints(im.image_id) for im in images}
-            pairs = db.pairs(pcfg.source)
-            if not pairs:
-                raise DatabaseError(
-                    f"database has no image pairs with {pcfg.source} matches: {database}"
-                    + (" (try --source raw)" if pcfg.source == MatchSource.VERIFIED else "")
-                )
-            to_filter = [p for p in pairs if p.num_matches >= pcfg.min_matches]
-            summary.num_images = len(images)
-            summary.num_pairs = len(pairs)
-            summary.pairs_passed = len(pairs) - len(to_filter)
-            summary.keypoints_total = int(sum(len(k) for k in keypoints.values()))
-            loader = ImageLoader(image_dir, names, max_cached=rec.tracks.max_images_in_memory,
-                                 expected_sizes={im.image_id: (im.width, im.height) for im in images})
-            if pcfg.refine:
-                missing = loader.check_all()
-                summary.images_missing = [names[i] for i in missing]
-                if missing and strict:
-                    raise UserError(f"image missing or unreadable (--strict): {loader.path(missing[0])}"
-                                    + (f" and {len(missing) - 1} more" if len(missing) > 1 else ""))
-            seconds["read"] = time.perf_counter() - t
-
-            t = time.perf_counter()
-            workers_used = n_workers if len(to_filter) >= MIN_PAIRS_PER_WORKER * n_workers else 1
-            summary.workers = workers_used
-            filtered = run_filter_stage(db, to_filter, keypoints, pcfg.source, fcfg, seed=seed,
-                                     workers=workers_used, progress=progress)
-            ok = {k: v for k, v in filtered.items() if bool(v[1].success)}
-            summary.pairs_filtered = len(filtered)
-            summary.pairs_failed = len(filtered) - len(ok)
-            summary.matches_in = int(sum(len(m) for m, _ in ok.values()))
-            summary.matches_kept = int(sum(int(np.count_nonzero(r.inliers)) for _, r in ok.values()))
-            summary.matches_removed = summary.matches_in - summary.matches_kept
-            seconds["filter"] = time.perf_counter() - t
-
-            t = time.perf_counter()
-            new_keypoints = keypoints
-            if pcfg.refine and ok:
-                usable = {k: v for k, v in ok.items()
-                          if k[0] not in loader.missing and k[1] not in loader.missing}
-                affines = {i: db.keypoint_affines(i) for i in keypoints}
-                affines = None if any(a is None for a in affines.values()) else affines
-                new_keypoints, stats, refine_workers = run_refine_stage(
-                    loader, keypoints, usable, affines, ncfg, rec.tracks,
-                    workers=1 if dev == "cuda" else n_workers, progress=progress)
-                summary.refine_stats = dict(stats, workers=refine_workers)
-            seconds["refine"] = time.perf_counter() - t
-
-            t = time.perf_counter()
-            displacements = []
-            with db.transaction():
-                for image_id, old in keypoints.items():
-                    new = new_keypoints[image_id]
-                    moved = np.any(new != old, axis=1) if len(old) else np.zeros(0, bool)
-                    if moved.any():
-                        displacements.append(np.linalg.norm(new[moved] - old[moved], axis=1))
-                        db.write_keypoints(image_id, new, moved)
-                for n_written, ((i, j), (m, r)) in enumerate(sorted(ok.items())):
-                    if n_written == len(ok) // 2:
-                        _pause_for_tests("write")
-                    kept = m[np.asarray(r.inliers, bool)]
-                    db.write_pair(i, j, kept, new_keypoints[i][kept[:, 0]], new_keypoints[j][kept[:, 1]],
-                                  keep_model=pcfg.source == MatchSource.VERIFIED)
-                if pcfg.verify:
-                    db.delete_two_view_geometries(sorted(ok))
-            d = np.concatenate(displacements) if displacements else np.zeros(0)
-            summary.keypoints_moved = int(d.size)
-            summary.median_displacement_px = float(np.median(d)) if d.size else 0.0
-            summary.max_displacement_px = float(d.max()) if d.size else 0.0
-            seconds["write"] = time.perf_counter() - t
-
+            read, read_stats = run_read(db, ReadConfig(
+                pipeline=pcfg, image_dir=image_dir, max_images_in_memory=rec.tracks.max_images_in_memory,
+                strict=strict, database_name=database))
+            laps.lap("read")
+            ok, filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
+                source=pcfg.source, seed=seed, workers=n_workers, progress=progress))
+            laps.lap("filter")
+            new_keypoints, refine_stats = _refine(db, read, ok, rec, dev, n_workers, progress)
+            laps.lap("refine")
+            write_stats = run_write(db, read.keypoints, new_keypoints, ok, pcfg)
+            laps.lap("write")
         if pcfg.verify:
-            t = time.perf_counter()
-            _reverify(wc.path)
-            seconds["verify"] = time.perf_counter() - t
-        summary.output = wc.commit()
-        summary.backup = wc.backup
-    seconds["total"] = time.perf_counter() - t_start
-    summary.seconds = seconds
+            run_verify(wc.path)
+            laps.lap("verify")
+        written = wc.commit()
+    summary = RefineSummary.from_stages(
+        output=written, database=database, backup=wc.backup, recipe=rec, device=dev,
+        read=read_stats, filtered=filter_stats, refine_stats=refine_stats, write=write_stats,
+        seconds=laps.total())
     if json_path:
         Path(json_path).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
     log.info("wrote %s", summary.output)
     return summary
 
 
-def _reverify(path: Path) -> None:
-    """COLMAP's own epipolar verification of the pairs that have matches and no geometry."""
-    import pycolmap
+def _refine(db: ColmapDatabase, read: ReadOutput, ok: FilteredPairs, rec: Recipe, device: str,
+            workers: int, progress: bool) -> tuple[dict[int, np.ndarray], dict]:
+    """Refine stage on the pairs whose two images are readable; returns the new keypoints and
+    the summed refinement counters with the processes used (``{}`` when refinement is off or
+    nothing was filtered)."""
+    if not (rec.pipeline.refine and ok):
+        return read.keypoints, {}
+    missing = read.loader.missing
+    usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
+    ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
+    new_keypoints, stats, used = run_refine_stage(
+        read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, rec.tracks,
+        workers=workers, progress=progress)
+    return new_keypoints, dict(stats, workers=used)
 
-    pycolmap.geometric_verification(str(path))
+
+class _Laps:
+    """Wall time per stage: each :meth:`lap` records the time since the previous one."""
+
+    def __init__(self) -> None:
+        self.start = self.last = time.perf_counter()
+        self.seconds: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.seconds[name] = now - self.last
+        self.last = now
+
+    def total(self) -> dict[str, float]:
+        self.seconds["total"] = time.perf_counter() - self.start
+        return self.seconds

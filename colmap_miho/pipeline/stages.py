@@ -1,10 +1,8 @@
-"""The two heavy stages of ``refine_database``: filtering pairs and the track-consistent NCC
-walk, each in this process or in ``spawn``-ed worker processes with one BLAS/torch thread each.
+"""Refine stage of ``refine_database``: the track-consistent NCC walk, in this process or in
+``spawn``-ed worker processes (see :mod:`.workers`) with one BLAS/torch thread each.
 
-Measured on the 2-core machine: one torch thread is 4x faster than two for the NCC walk, and
-threads over track chunks were slower than one thread (the walk holds the GIL), hence processes.
-Results do not depend on the worker count: each pair's seed is derived from its image ids and
-refinement chunks are whole tracks, which never share a keypoint.
+Results do not depend on the worker count: refinement chunks are whole tracks, which never
+share a keypoint.
 """
 
 from __future__ import annotations
@@ -12,108 +10,18 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, wait
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import RunFailed
-from ..adapters.database import ColmapDatabase
 from ..adapters.images import ImageLoader
+from .workers import process_pool as _process_pool
 
 log = logging.getLogger(__name__)
 
 #: Refinement runs in worker processes only with at least this many refinable matches each.
 MIN_MATCHES_PER_REFINE_WORKER = 2000
-
-
-def pair_seed(seed: int, image_id1: int, image_id2: int) -> int:
-    """Seed of one pair, independent of worker count and order."""
-    return int(np.random.SeedSequence([int(seed), int(image_id1), int(image_id2)]).generate_state(1)[0])
-
-
-_SINGLE_THREAD_ENV = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-
-
-def _init_worker() -> None:
-    """One thread per worker process (the parallelism is across pairs)."""
-    import sys
-
-    if "torch" in sys.modules:  # the filter is numpy; only pay for torch if it is loaded
-        sys.modules["torch"].set_num_threads(1)
-
-
-@contextlib.contextmanager
-def _single_thread_children():
-    """Spawned workers inherit the environment: make their BLAS/OpenMP single-threaded."""
-    saved = {k: os.environ.get(k) for k in _SINGLE_THREAD_ENV}
-    os.environ.update(_SINGLE_THREAD_ENV)
-    try:
-        yield
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
-def _filter_one(i: int, j: int, pts1: np.ndarray, pts2: np.ndarray, filter_config, seed: int):
-    """Run the filter on one pair (in a worker or in-process); returns (i, j, result)."""
-    from ..filtering.api import filter_matches
-
-    result = filter_matches(pts1, pts2, method=filter_config.method, config=filter_config, seed=seed)
-    return i, j, result
-
-
-def run_filter_stage(db: ColmapDatabase, pairs, keypoints, source, filter_config, *, seed: int,
-                  workers: int, progress: bool):
-    """Filter every pair, streaming matches from the database into a bounded worker queue.
-
-    Returns dict (i, j) -> (matches uint32 (M, 2), FilterResult).
-    """
-    results: dict[tuple[int, int], tuple[np.ndarray, object]] = {}
-    matches_of: dict[tuple[int, int], np.ndarray] = {}
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=len(pairs), desc="filter pairs", unit="pair")
-
-    def job(p):
-        m = db.matches(p.image_id1, p.image_id2, source)
-        matches_of[(p.image_id1, p.image_id2)] = m
-        return (p.image_id1, p.image_id2, keypoints[p.image_id1][m[:, 0]],
-                keypoints[p.image_id2][m[:, 1]], filter_config, pair_seed(seed, p.image_id1, p.image_id2))
-
-    try:
-        if workers <= 1:
-            for p in pairs:
-                i, j, res = _filter_one(*job(p))
-                results[(i, j)] = (matches_of.pop((i, j)), res)
-                if bar:
-                    bar.update()
-        else:
-            with _single_thread_children(), _process_pool(workers, initializer=_init_worker) as ex:
-                def collect(fut) -> None:
-                    i, j, res = fut.result()
-                    results[(i, j)] = (matches_of.pop((i, j)), res)
-                    if bar:
-                        bar.update()
-
-                pending = set()
-                for p in pairs:
-                    pending.add(ex.submit(_filter_one, *job(p)))
-                    if len(pending) >= 2 * workers:  # bounded: stream pairs, do not queue all
-                        done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                        for fut in done:
-                            collect(fut)
-                for fut in pending:
-                    collect(fut)
-    finally:
-        if bar:
-            bar.close()
-    return results
 
 
 @dataclass(frozen=True)
@@ -126,10 +34,9 @@ class _PairRows:
 
 
 def _import_refine_tracks():
-    try:
-        from ..refinement.tracks import refine_tracks
-    except ImportError as exc:  # the refinement module ships separately
-        raise RunFailed(f"NCC refinement is not available ({exc}); use --no-refine") from None
+    """``refine_tracks``, imported only when a run refines."""
+    from ..refinement.tracks import refine_tracks
+
     return refine_tracks
 
 
@@ -267,21 +174,6 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         if manager is not None:
             manager.shutdown()
     return new, stats, len(chunks)
-
-
-@contextlib.contextmanager
-def _process_pool(workers: int, **kwargs):
-    """A spawn process pool whose queued work is cancelled, not waited for, when the block
-    raises (a failed worker, Ctrl-C)."""
-    import multiprocessing
-
-    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                             **kwargs) as ex:
-        try:
-            yield ex
-        except BaseException:
-            ex.shutdown(wait=False, cancel_futures=True)
-            raise
 
 
 @contextlib.contextmanager

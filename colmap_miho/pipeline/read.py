@@ -1,0 +1,103 @@
+"""Read stage: images, keypoints and the pairs to filter from the working copy, and which
+images can be read for refinement."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..adapters.database import ColmapDatabase, PairRecord
+from ..adapters.images import ImageLoader
+from ..enums import MatchSource
+from ..errors import DatabaseError, UserError
+from .config import PipelineConfig
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReadConfig:
+    """What the read stage needs besides the database.
+
+    Attributes:
+        pipeline: the recipe's ``pipeline`` table (match source, ``min_matches``, refine).
+        image_dir: folder the database's image names are relative to.
+        max_images_in_memory: images the loader keeps decoded (``tracks.max_images_in_memory``).
+        strict: a missing or unreadable image is an error (only checked when refining).
+        database_name: the user's database, named in error messages (the stage reads a copy).
+    """
+
+    pipeline: PipelineConfig
+    image_dir: Path
+    max_images_in_memory: int
+    strict: bool = False
+    database_name: Path | str = ""
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReadOutput:
+    """The database as the later stages see it.
+
+    Attributes:
+        keypoints: image id -> ``(N_i, 2)`` float64 pixels (integer = pixel centre).
+        to_filter: pairs with at least ``pipeline.min_matches`` matches, in database order.
+        loader: lazy image loader; its ``missing`` set holds unreadable images once checked.
+    """
+
+    keypoints: dict[int, np.ndarray]
+    to_filter: list[PairRecord]
+    loader: ImageLoader
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReadStats:
+    """Counts of the read stage (``RefineSummary`` fields of the same names)."""
+
+    num_images: int
+    num_pairs: int
+    pairs_passed: int
+    keypoints_total: int
+    images_missing: list[str] = field(default_factory=list)
+
+
+def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats]:
+    """Read images, keypoints and pairs; check that the images open when refining.
+
+    Raises:
+        DatabaseError: no images, or no pairs with ``pipeline.source`` matches.
+        UserError: ``strict`` and an image is missing or unreadable.
+    """
+    pcfg = cfg.pipeline
+    images = db.images()
+    if not images:
+        raise DatabaseError(f"database has no images: {cfg.database_name}")
+    names = {im.image_id: im.name for im in images}
+    keypoints = {im.image_id: db.keypoints(im.image_id) for im in images}
+    pairs = db.pairs(pcfg.source)
+    if not pairs:
+        raise DatabaseError(
+            f"database has no image pairs with {pcfg.source} matches: {cfg.database_name}"
+            + (" (try --source raw)" if pcfg.source == MatchSource.VERIFIED else "")
+        )
+    to_filter = [p for p in pairs if p.num_matches >= pcfg.min_matches]
+    loader = ImageLoader(cfg.image_dir, names, max_cached=cfg.max_images_in_memory,
+                         expected_sizes={im.image_id: (im.width, im.height) for im in images})
+    missing_names: list[str] = []
+    if pcfg.refine:
+        missing = loader.check_all()
+        missing_names = [names[i] for i in missing]
+        if missing and cfg.strict:
+            raise UserError(f"image missing or unreadable (--strict): {loader.path(missing[0])}"
+                            + (f" and {len(missing) - 1} more" if len(missing) > 1 else ""))
+    stats = ReadStats(num_images=len(images), num_pairs=len(pairs),
+                      pairs_passed=len(pairs) - len(to_filter),
+                      keypoints_total=int(sum(len(k) for k in keypoints.values())),
+                      images_missing=missing_names)
+    return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats
+
+
+def read_affines(db: ColmapDatabase, image_ids) -> dict[int, np.ndarray] | None:
+    """Keypoint affine shapes per image (see ``ColmapDatabase.keypoint_affines``), or None
+    when any image's keypoints carry no affine shape."""
+    affines = {i: db.keypoint_affines(i) for i in image_ids}
+    return None if any(a is None for a in affines.values()) else affines

@@ -1,0 +1,63 @@
+"""Write stage: moved keypoints, the kept matches and their two-view geometries, in one
+transaction on the working copy (COLMAP's +0.5 pixel conversion happens in the database
+adapter)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..adapters.database import ColmapDatabase
+from ..enums import MatchSource
+from .config import PipelineConfig
+from .filter_stage import FilteredPairs
+
+
+@dataclass(frozen=True, kw_only=True)
+class WriteStats:
+    """Keypoints moved by refinement and their displacements in pixels (``RefineSummary``
+    fields of the same names; 0 when nothing moved)."""
+
+    keypoints_moved: int
+    median_displacement_px: float
+    max_displacement_px: float
+
+
+def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoints: dict[int, np.ndarray],
+              ok: FilteredPairs, cfg: PipelineConfig) -> WriteStats:
+    """Write what changed, in one transaction.
+
+    Args:
+        keypoints / new_keypoints: image id -> ``(N_i, 2)`` float64 pixels before / after
+            refinement; only rows that differ are written.
+        ok: the successfully filtered pairs; their inlier matches replace the pair's matches.
+        cfg: ``source`` (a verified pair keeps its geometry model) and ``verify`` (the pairs'
+            two-view geometries are deleted, for COLMAP to re-verify).
+    """
+    displacements = []
+    with db.transaction():
+        for image_id, old in keypoints.items():
+            new = new_keypoints[image_id]
+            moved = np.any(new != old, axis=1) if len(old) else np.zeros(0, bool)
+            if moved.any():
+                displacements.append(np.linalg.norm(new[moved] - old[moved], axis=1))
+                db.write_keypoints(image_id, new, moved)
+        for (i, j), (m, r) in sorted(ok.items()):
+            kept = m[np.asarray(r.inliers, bool)]
+            write_pair(db, i, j, kept, new_keypoints[i][kept[:, 0]], new_keypoints[j][kept[:, 1]],
+                       keep_model=cfg.source == MatchSource.VERIFIED)
+        if cfg.verify:
+            db.delete_two_view_geometries(sorted(ok))
+    d = np.concatenate(displacements) if displacements else np.zeros(0)
+    return WriteStats(keypoints_moved=int(d.size),
+                      median_displacement_px=float(np.median(d)) if d.size else 0.0,
+                      max_displacement_px=float(d.max()) if d.size else 0.0)
+
+
+def write_pair(db: ColmapDatabase, i: int, j: int, kept: np.ndarray, pts1: np.ndarray,
+               pts2: np.ndarray, *, keep_model: bool) -> None:
+    """Write one pair's kept matches ``(M, 2)`` and positions ``(M, 2)`` pixels (called once
+    per pair inside the write transaction; tests wrap it to interrupt a run mid-write)."""
+    db.write_pair(i, j, kept, pts1, pts2, keep_model=keep_model)
+
