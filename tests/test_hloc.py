@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 
 from colmap_miho.cli import main
-from colmap_miho.commands.export import export_hloc
-from colmap_miho.commands.import_ import import_hloc
+from colmap_miho.adapters.exchange import export_hloc, import_hloc
 from colmap_miho.adapters import hloc
 from colmap_miho.adapters.database import image_pair
 from colmap_miho.adapters.synthetic import make_synthetic_scene

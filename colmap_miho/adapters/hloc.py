@@ -17,8 +17,8 @@ Matches file, three pair layouts, told apart per pair:
       pairs (keypoint of image 0, keypoint of image 1).
 
 This module knows nothing of COLMAP: coordinates stay in the pixel-centre convention here.
-The COLMAP database side lives in the ``import`` and ``export`` commands
-(:mod:`colmap_miho.commands.import_`, :mod:`colmap_miho.commands.export`).
+The COLMAP database side is :mod:`colmap_miho.adapters.exchange` (``import`` and ``export``
+commands).
 """
 
 from __future__ import annotations
@@ -314,7 +314,20 @@ def write_pair_matches(
 
 
 def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
-    """Read a pairs list: one ``name0 name1`` per line; blank lines and ``#`` comments skipped."""
+    """Read a pairs list: the package's one reader of pairs files.
+
+    Rule: one pair per line, its first two whitespace-separated fields are the two image
+    names; further fields are ignored, so both hloc's ``pairs.txt`` (``name0 name1``) and the
+    SuperGlue/LoFTR ``pairs_with_gt.txt`` (``name0 name1 rot0 rot1 K0 K1 T_0to1``) read.
+    Blank lines and lines starting with ``#`` are skipped.
+
+    Returns:
+        ``[(name0, name1), ...]`` in file order (duplicates kept).
+
+    Raises:
+        FileNotFoundError: ``path`` is missing. ValueError: a line with a single field, naming
+        ``file:line``.
+    """
     path = Path(path)
     pairs = []
     with open(path, encoding="utf-8") as f:
@@ -323,7 +336,7 @@ def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
             if not line or line.startswith("#"):
                 continue
             parts = line.split()
-            if len(parts) != 2:
-                raise ValueError(f"{path}:{lineno}: expected 'name0 name1', got {line!r}")
+            if len(parts) < 2:
+                raise ValueError(f"{path}:{lineno}: expected 'name0 name1 ...', got {line!r}")
             pairs.append((parts[0], parts[1]))
     return pairs
