@@ -205,6 +205,13 @@ def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     return x, y, w
 
 
+def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Squared one-way transfer error ``|H src - dst|^2``, ``(K, N)`` for ``H`` ``(K, 3, 3)``
+    and ``src``, ``dst`` ``(N, 2)`` pixels."""
+    x, y, _ = project(H, src)
+    return (x - dst[:, 0]) ** 2 + (y - dst[:, 1]) ** 2
+
+
 def to_unit_h33(H: np.ndarray) -> np.ndarray:
     """Scale ``(..., 3, 3)`` homographies so that ``H[2, 2] == 1`` where that entry is not
     tiny relative to the matrix; otherwise to unit Frobenius norm with ``H[2, 2] >= 0``."""
