@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,9 +24,9 @@ PLOTTED = ("none", "magsac", "mop", "mop_miho", "mop_miho+ncc", "mop_miho+track"
 def plot_error_distribution(path: Path, frontend: str, kept_errors: dict[str, list[np.ndarray]]) -> None:
     """Cumulative distribution of the GT error (epipolar or transfer, pixels) of the matches
     each stage keeps, over every pair of the run."""
-    import matplotlib
+    from colmap_miho.extras import require
 
-    matplotlib.use("Agg")
+    require("matplotlib", "plots", "the benchmark's plots").use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5))

@@ -43,9 +43,11 @@ def quiet_colmap(verbose: bool) -> None:
 
 
 def run(args) -> int:
-    from ..reporting.compare import compare_databases, format_comparison
+    from ..extras import require
     from ..recipe import load_recipe
+    from ..reporting.compare import compare_databases, format_comparison
 
+    require("matplotlib", "plots", "compare's figures")  # before the long mapping runs
     recipe = load_recipe(args.recipe, args.overrides)
     quiet_colmap(args.verbose)
     result = compare_databases(

@@ -38,11 +38,14 @@ def _size(text: str) -> tuple[int, int]:
 def run(args) -> int:
     import time
 
+    from ..extras import require
+    from ..recipe import load_recipe
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.demo_scene import make_demo_scene
-    from ..recipe import load_recipe
     from .compare import quiet_colmap
 
+    for module, purpose in (("skimage", "the demo scene"), ("matplotlib", "the demo's figures")):
+        require(module, "demo", purpose)
     recipe = load_recipe(args.recipe, args.overrides)
     w, h = _size(args.size)
     n = args.num_images

@@ -32,11 +32,14 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from ..extras import require
+    from ..recipe import load_recipe
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.report import format_report
-    from ..recipe import load_recipe
     from .compare import quiet_colmap
 
+    if args.compare:
+        require("matplotlib", "plots", "--compare's figures")  # before the long mapping runs
     recipe = load_recipe(args.recipe, args.overrides)
     quiet_colmap(args.verbose)
     out = run_from_images(
