@@ -113,7 +113,7 @@ def run_benchmark(data_root: Path, out_dir: Path, *, frontends=("sift",), datase
 
                 ctx = multiprocessing.get_context("spawn")
                 with ProcessPoolExecutor(min(workers, len(pairs)), mp_context=ctx, initializer=_init_worker) as pool:
-                    per_pair = list(tqdm(pool.map(_evaluate_pair, *zip(*args)), total=len(pairs),
+                    per_pair = list(tqdm(pool.map(_evaluate_pair, *zip(*args, strict=True)), total=len(pairs),
                                          desc=f"{frontend}/{dataset}", disable=not progress, leave=False))
             else:
                 per_pair = [_evaluate_pair(*a) for a in tqdm(args, desc=f"{frontend}/{dataset}",
@@ -130,7 +130,10 @@ def run_benchmark(data_root: Path, out_dir: Path, *, frontends=("sift",), datase
     return everything
 
 
-def headline(results: dict, pipelines=("none", "magsac", "mop_miho", "mop_miho+ncc", "mop_miho+track", "adalam", "colmap")) -> str:
+HEADLINE_PIPELINES = ("none", "magsac", "mop_miho", "mop_miho+ncc", "mop_miho+track", "adalam", "colmap")
+
+
+def headline(results: dict, pipelines=HEADLINE_PIPELINES) -> str:
     """A short table for the README: mean AUC^F_M (or AUC^H) per dataset and front end."""
     lines = []
     for frontend, per_dataset in results.items():

@@ -213,7 +213,7 @@ class ColmapDatabase:
         else:
             pids, counts = self.handle.read_num_matches()
         out = []
-        for pid, n in sorted(zip(pids, counts)):
+        for pid, n in sorted(zip(pids, counts, strict=True)):
             i, j = image_pair(pid)
             if n > 0:
                 out.append(PairRecord(i, j, int(n)))
@@ -401,7 +401,7 @@ class ColmapDatabase:
         """Make every pair's two-view-geometry inliers equal to its raw ``matches`` (as a weak
         geometric verification would); the pairs must have a two-view geometry already."""
         pids, arrays = self.handle.read_all_matches()
-        for pid, m in zip(pids, arrays):
+        for pid, m in zip(pids, arrays, strict=True):
             i, j = image_pair(pid)
             tvg = self.handle.read_two_view_geometry(i, j)
             tvg.inlier_matches = np.asarray(m, np.uint32)

@@ -115,7 +115,8 @@ def read_features(h5: h5py.File, name: str) -> ImageFeatures:
     scales, oris = _optional_vector(grp, "scales", n, name), _optional_vector(grp, "oris", n, name)
     if scales is not None and oris is not None:
         c, s = np.cos(oris), np.sin(oris)
-        shapes = (scales[:, None, None] * np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)).astype(np.float32)
+        rotations = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+        shapes = (scales[:, None, None] * rotations).astype(np.float32)
     return ImageFeatures(name=name, keypoints=kp, scores=scores, shapes=shapes)
 
 
@@ -220,7 +221,8 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
     else:
         matches = np.asarray(h5[key][()])
         if matches.ndim != 2 or matches.shape[1] != 2 or not np.issubdtype(matches.dtype, np.integer):
-            raise ValueError(f"{label}: matches have shape {matches.shape} dtype {matches.dtype}, expected (M, 2) integers")
+            raise ValueError(f"{label}: matches have shape {matches.shape} dtype {matches.dtype}, "
+                             "expected (M, 2) integers")
         matches = matches.astype(np.int64)
         scores = None
     bad = (matches < 0) | (matches >= np.array([n0, n1]))

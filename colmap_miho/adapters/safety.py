@@ -200,7 +200,7 @@ class WorkingCopy:
         self.path: Path | None = None
         self.committed = False
 
-    def __enter__(self) -> "WorkingCopy":
+    def __enter__(self) -> WorkingCopy:
         check_not_in_use(self.database)
         _warn_leftover_copies(self.output)
         if self.in_place:

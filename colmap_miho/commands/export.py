@@ -30,7 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--source", choices=("verified", "raw"), default="verified",
                    help="two-view-geometry inliers (verified, default) or the matches table (raw)")
     p.add_argument("--layout", choices=("hloc", "dim"), default="hloc",
-                   help="matches.h5 layout: hloc's name0/name1/matches0 (default) or deep-image-matching's (M, 2) name0/name1")
+                   help="matches.h5 layout: hloc's name0/name1/matches0 (default) "
+                        "or deep-image-matching's (M, 2) name0/name1")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
 
 

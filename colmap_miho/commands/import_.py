@@ -24,17 +24,23 @@ log = logging.getLogger(__name__)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--features", type=Path, required=True, help="features.h5 (hloc / deep-image-matching)")
-    p.add_argument("--matches", type=Path, required=True, help="matches.h5 (hloc nested or legacy flat, or deep-image-matching)")
-    p.add_argument("--pairs", type=Path, help="pairs.txt ('name0 name1' a line): import only these pairs (default: every pair in matches.h5)")
-    p.add_argument("--images", type=Path, required=True, help="image folder; the h5 image names are paths relative to it")
+    p.add_argument("--matches", type=Path, required=True,
+                   help="matches.h5 (hloc nested or legacy flat, or deep-image-matching)")
+    p.add_argument("--pairs", type=Path,
+                   help="pairs.txt ('name0 name1' a line): import only these pairs (default: every pair in matches.h5)")
+    p.add_argument("--images", type=Path, required=True,
+                   help="image folder; the h5 image names are paths relative to it")
     p.add_argument("--database", type=Path, required=True, help="the NEW database to create (must not exist)")
     p.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (default: %(default)s)")
-    p.add_argument("--single-camera", action="store_true", help="one camera shared by all images (they must have one size)")
+    p.add_argument("--single-camera", action="store_true",
+                   help="one camera shared by all images (they must have one size)")
     p.add_argument("--verify", action=argparse.BooleanOptionalAction, default=True,
                    help="run COLMAP's geometric verification (default); --no-verify stores every match as an inlier")
-    p.add_argument("--min-match-score", type=float, default=None, help="drop matches whose matching score is below this")
+    p.add_argument("--min-match-score", type=float, default=None,
+                   help="drop matches whose matching score is below this")
     p.add_argument("--keypoint-origin", choices=("center", "corner"), default="center",
-                   help="h5 keypoints put pixel centres at integers (center: hloc, default) or are already in COLMAP's convention (corner)")
+                   help="h5 keypoints put pixel centres at integers (center: hloc, default) "
+                        "or are already in COLMAP's convention (corner)")
     p.add_argument("--seed", type=int, default=0, help="RANSAC seed of the verification (default: %(default)s)")
 
 
