@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ._options import add_recipe_arguments, quiet_colmap
+
 HELP = "baseline vs colmap-miho on one database: map both, evaluate, write table + plots"
 DESCRIPTION = (
     "Map the database as it is (baseline) and after `refine` (same mapper and seed), evaluate "
@@ -14,17 +16,6 @@ DESCRIPTION = (
 ORDER = 50
 
 
-def add_recipe_arguments(parser) -> None:
-    """--recipe / --set / --workers / --device / --seed / --mapper, shared with run and demo."""
-    parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_ncc)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a recipe value, e.g. --set filter.t_l=12 (repeatable)")
-    parser.add_argument("--mapper", default="incremental", choices=["incremental", "global"], help="pycolmap mapper")
-    parser.add_argument("--workers", type=int, default=None, help="processes filtering pairs (default: all cores)")
-    parser.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto", help="torch device")
-    parser.add_argument("--seed", type=int, default=0, help="seed of refinement, mapping and RANSAC")
-
-
 def add_arguments(parser) -> None:
     parser.add_argument("--database", required=True, type=Path, help="COLMAP database (never modified)")
     parser.add_argument("--images", required=True, type=Path, help="image folder")
@@ -32,14 +23,6 @@ def add_arguments(parser) -> None:
     parser.add_argument("--gt", type=Path, default=None, help="GT COLMAP model folder (or dataset folder with gt_model/)")
     parser.add_argument("--pairs", type=Path, default=None, help="pairs file for the two-view AUCs")
     add_recipe_arguments(parser)
-
-
-def quiet_colmap(verbose: bool) -> None:
-    """Keep COLMAP's INFO lines off the terminal outside the mapper (which logs to a file)."""
-    if not verbose:
-        import pycolmap
-
-        pycolmap.logging.minloglevel = 1
 
 
 def run(args) -> int:

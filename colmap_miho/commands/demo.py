@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .compare import add_recipe_arguments
+from ._options import add_recipe_arguments, quiet_colmap
 
 HELP = "run the whole job on a built-in scene with exact ground truth (no downloads)"
 DESCRIPTION = (
@@ -42,7 +42,6 @@ def run(args) -> int:
     from ..recipe import load_recipe
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.demo_scene import make_demo_scene
-    from .compare import quiet_colmap
 
     for module, purpose in (("skimage", "the demo scene"), ("matplotlib", "the demo's figures")):
         require(module, "demo", purpose)

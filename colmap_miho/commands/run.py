@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .compare import add_recipe_arguments
+from ._options import add_recipe_arguments, quiet_colmap
 
 HELP = "from a folder of images: SIFT + exhaustive matching, refine, map, report (--compare: vs baseline)"
 DESCRIPTION = (
@@ -36,7 +36,6 @@ def run(args) -> int:
     from ..recipe import load_recipe
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.report import format_report
-    from .compare import quiet_colmap
 
     if args.compare:
         require("matplotlib", "plots", "--compare's figures")  # before the long mapping runs
