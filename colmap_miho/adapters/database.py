@@ -17,6 +17,7 @@ import logging
 import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -110,6 +111,8 @@ class ColmapDatabase:
     Args:
         path: an existing COLMAP database file (checked first: pycolmap would create it).
     """
+
+    _db: Any  # pycolmap.Database while open, None once closed
 
     def __init__(self, path: str | Path) -> None:
         import pycolmap

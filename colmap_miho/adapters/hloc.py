@@ -254,6 +254,7 @@ def iter_matches(
         :class:`PairMatches` in the orientation of the pairs list (or of the file).
     """
     index = _NameIndex(num_keypoints)
+    todo: Iterable[tuple[str, str, str, str, bool]]
     if pairs is None:
         todo = [(key, layout, *index.split(key), False) for key, layout in _pair_datasets(h5)]
     else:
