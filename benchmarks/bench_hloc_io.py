@@ -28,8 +28,7 @@ def main() -> None:
 
     import pycolmap
 
-    from colmap_miho.commands.export import export_hloc
-    from colmap_miho.commands.import_ import import_hloc
+    from colmap_miho.adapters.exchange import export_hloc, import_hloc
 
     pycolmap.logging.minloglevel = 2
     with tempfile.TemporaryDirectory() as tmp:

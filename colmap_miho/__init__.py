@@ -1,7 +1,10 @@
 """colmap-miho: MOP+MiHo match filtering and track-consistent NCC refinement for COLMAP.
 
-Public API (imported lazily so that the CLI starts without torch)::
+Public API (imported on first use, so that ``colmap-miho --help`` starts without torch)::
 
+    refine_database(database, image_dir, output=None, *, recipe=None, ...) -> RefineSummary
+    extract_and_match(database, image_dir, ...); run_mapping(database, image_dir, output, ...)
+    build_report(...); compare_databases(...)
     filter_matches(pts1, pts2, *, method="mop_miho", config=None, seed=0) -> FilterResult
     refine_pair(image1, image2, pts1, pts2, patch_homographies, *, move="auto", config=None)
         -> RefineResult
@@ -17,10 +20,28 @@ from __future__ import annotations
 
 import importlib
 import logging
+from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING
 
-__version__ = "0.1.0"
+try:
+    __version__ = version("colmap-miho")  # the one version source: pyproject.toml
+except PackageNotFoundError:  # a source tree that is not installed
+    __version__ = "0+unknown"
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
+
+if TYPE_CHECKING:  # what static tools see; at run time the table below imports on first use
+    from .enums import FilterMethod, MoveSide
+    from .filtering.api import FilterResult, filter_matches
+    from .filtering.config import FilterConfig
+    from .pipeline import PipelineConfig, RefineSummary, refine_database
+    from .recipe import Recipe, load_recipe
+    from .refinement.config import NCCConfig, TrackConfig
+    from .refinement.ncc import RefineResult, refine_pair
+    from .refinement.tracks import TrackRefineResult, refine_tracks
+    from .reporting.compare import compare_databases
+    from .reporting.report import build_report
+    from .sfm import MappingResult, extract_and_match, run_mapping
 
 _LAZY = {
     "filter_matches": "colmap_miho.filtering.api",
@@ -36,16 +57,49 @@ _LAZY = {
     "Recipe": "colmap_miho.recipe",
     "FilterMethod": "colmap_miho.enums",
     "MoveSide": "colmap_miho.enums",
+    "refine_database": "colmap_miho.pipeline",
+    "RefineSummary": "colmap_miho.pipeline",
+    "PipelineConfig": "colmap_miho.pipeline",
+    "extract_and_match": "colmap_miho.sfm",
+    "run_mapping": "colmap_miho.sfm",
+    "MappingResult": "colmap_miho.sfm",
+    "build_report": "colmap_miho.reporting.report",
+    "compare_databases": "colmap_miho.reporting.compare",
 }
 
-__all__ = sorted(_LAZY) + ["__version__"]
+__all__ = [
+    "FilterConfig",
+    "FilterMethod",
+    "FilterResult",
+    "MappingResult",
+    "MoveSide",
+    "NCCConfig",
+    "PipelineConfig",
+    "Recipe",
+    "RefineResult",
+    "RefineSummary",
+    "TrackConfig",
+    "TrackRefineResult",
+    "__version__",
+    "build_report",
+    "compare_databases",
+    "extract_and_match",
+    "filter_matches",
+    "load_recipe",
+    "refine_database",
+    "refine_pair",
+    "refine_tracks",
+    "run_mapping",
+]
 
 
 def __getattr__(name: str):
     if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value  # resolve once
+        return value
     raise AttributeError(f"module 'colmap_miho' has no attribute {name!r}")
 
 
 def __dir__():
-    return __all__
+    return sorted(set(globals()) | set(__all__))

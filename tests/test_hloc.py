@@ -14,12 +14,11 @@ import h5py
 import numpy as np
 import pytest
 
-from colmap_miho.cli import main
-from colmap_miho.commands.export import export_hloc
-from colmap_miho.commands.import_ import import_hloc
 from colmap_miho.adapters import hloc
 from colmap_miho.adapters.database import image_pair
+from colmap_miho.adapters.exchange import export_hloc, import_hloc
 from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.cli import main
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -37,12 +36,12 @@ def _read_db(path: Path):
         kps = {names[i]: np.asarray(db.read_keypoints(i)) for i in names}
         pids, arrays = db.read_all_matches()
         matches = {}
-        for pid, m in zip(pids, arrays):
+        for pid, m in zip(pids, arrays, strict=True):
             i, j = image_pair(pid)
             matches[(names[i], names[j])] = np.asarray(m, np.int64)
         pids, tvgs = db.read_two_view_geometries()
         inliers = {}
-        for pid, t in zip(pids, tvgs):
+        for pid, t in zip(pids, tvgs, strict=True):
             i, j = image_pair(pid)
             inliers[(names[i], names[j])] = np.asarray(t.inlier_matches, np.int64)
         cams = {c.camera_id: c for c in db.read_all_cameras()}
@@ -257,7 +256,8 @@ def _cli_error(capsys, argv) -> str:
 
 
 def _argv(f, m, img, db, *extra):
-    return ["import", "-q", "--features", str(f), "--matches", str(m), "--images", str(img), "--database", str(db), *extra]
+    return ["import", "-q", "--features", str(f), "--matches", str(m), "--images", str(img),
+            "--database", str(db), *extra]
 
 
 def test_cli_round_trip(tiny, capsys):
@@ -284,15 +284,17 @@ def _edit(path: Path, fn) -> None:
     "breakage, expected",
     [
         (lambda f, m, img: f.write_bytes(b"not hdf5"), "not an HDF5 file"),
-        (lambda f, m, img: _edit(f, lambda h: h.__delitem__("sub/b.png")), "pair 'sub-a.png/sub-b.png' in the matches file names image 'sub-b.png' that is not in the features file"),
+        (lambda f, m, img: _edit(f, lambda h: h.__delitem__("sub/b.png")),
+         "pair 'sub-a.png/sub-b.png' in the matches file names image 'sub-b.png' that is not in the features file"),
         (lambda f, m, img: _edit(f, lambda h: (h.__delitem__("sub/a.png/keypoints"),
                                                h.create_dataset("sub/a.png/keypoints", data=np.zeros((3, 3))))),
          "keypoints of image 'sub/a.png' have shape (3, 3)"),
         (lambda f, m, img: (img / "sub" / "b.png").unlink(), "image 'sub/b.png'"),
         (lambda f, m, img: _edit(m, lambda h: h["sub-a.png/sub-b.png/matches0"].__setitem__(2, 7)),
          "pair ('sub/a.png', 'sub/b.png'): keypoint index out of range"),
-        (lambda f, m, img: _edit(m, lambda h: (h.__delitem__("sub-a.png/sub-b.png/matches0"),
-                                               h.create_dataset("sub-a.png/sub-b.png/matches0", data=np.array([0, 1])))),
+        (lambda f, m, img: _edit(m, lambda h: (
+            h.__delitem__("sub-a.png/sub-b.png/matches0"),
+            h.create_dataset("sub-a.png/sub-b.png/matches0", data=np.array([0, 1])))),
          "'matches0' has 2 entries but image 'sub/a.png' has 3 keypoints"),
         (lambda f, m, img: _edit(m, lambda h: h.create_dataset("sub-a.png/other.png", data=np.zeros((2, 2), int))),
          "pair 'sub-a.png/other.png' in the matches file names image 'other.png' that is not in the features file"),
@@ -318,7 +320,8 @@ def test_import_bad_options(tiny, capsys):
         capsys, _argv(f, m, img, tmp / "x.db", "--pairs", str(pairs)))
     assert "camera_model='FISHEYE9'" in _cli_error(capsys, _argv(f, m, img, tmp / "x.db", "--camera-model", "FISHEYE9"))
     _blank(img / "sub" / "b.png", 32, 48)
-    assert "--single-camera: image 'sub/b.png' is 32x48" in _cli_error(capsys, _argv(f, m, img, tmp / "x.db", "--single-camera"))
+    err = _cli_error(capsys, _argv(f, m, img, tmp / "x.db", "--single-camera"))
+    assert "--single-camera: image 'sub/b.png' is 32x48" in err
     assert not list(tmp.glob("x.db*"))
 
 
@@ -342,7 +345,8 @@ def test_refine_then_export_round_trip(scene, h5files, tmp_path):
     kp, _, inl, _ = _read_db(out)
     with h5py.File(tmp_path / "rf.h5") as h:
         for name, k in kp.items():
-            np.testing.assert_array_equal(h[name]["keypoints"][()], (k[:, :2].astype(np.float64) - 0.5).astype(np.float32))
+            expected = (k[:, :2].astype(np.float64) - 0.5).astype(np.float32)
+            np.testing.assert_array_equal(h[name]["keypoints"][()], expected)
     with h5py.File(tmp_path / "rm.h5") as h:
         for (a, b), m in inl.items():
             m0 = h[f"{a}/{b}/matches0"][()]
@@ -394,7 +398,8 @@ def test_real_scene_import_maps_to_ground_truth(shared_data, tmp_path):
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = 0
     (tmp_path / "sparse").mkdir()
-    recs = pycolmap.incremental_mapping(str(tmp_path / "db.db"), str(scene / "images"), str(tmp_path / "sparse"), options=opts)
+    recs = pycolmap.incremental_mapping(str(tmp_path / "db.db"), str(scene / "images"), str(tmp_path / "sparse"),
+                                        options=opts)
     rec = max(recs.values(), key=lambda r: r.num_reg_images())
     assert rec.num_reg_images() == 6
     gt = pycolmap.Reconstruction(str(scene / "gt_model"))

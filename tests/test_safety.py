@@ -13,8 +13,6 @@ from pathlib import Path
 
 import pytest
 
-from colmap_miho.cli import main
-from colmap_miho.errors import DatabaseError, UserError
 from colmap_miho.adapters.safety import (
     WorkingCopy,
     backup_path,
@@ -23,6 +21,8 @@ from colmap_miho.adapters.safety import (
     default_output_path,
 )
 from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.cli import main
+from colmap_miho.errors import DatabaseError, UserError
 
 REPO = Path(__file__).resolve().parents[1]
 # Seconds a subprocess may take to reach the write stage (imports torch, filters 6 pairs).

@@ -21,10 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from colmap_miho.reporting.pose_metrics import auc_summary, pose_from_essential, pose_from_fundamental
+
 from .datasets import PairGT, multiview_pairs, oxford_pairs
 from .match_errors import gt_error
 from .peers import adalam_mask, colmap_verification_mask, gms_available, gms_mask, magsac_mask
-from colmap_miho.reporting.pose_metrics import auc_summary, pose_from_essential, pose_from_fundamental
 from .protocol import averaged_precision_recall, homography_auc, homography_error, homography_from_matches
 
 log = logging.getLogger(__name__)

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,9 +24,9 @@ PLOTTED = ("none", "magsac", "mop", "mop_miho", "mop_miho+ncc", "mop_miho+track"
 def plot_error_distribution(path: Path, frontend: str, kept_errors: dict[str, list[np.ndarray]]) -> None:
     """Cumulative distribution of the GT error (epipolar or transfer, pixels) of the matches
     each stage keeps, over every pair of the run."""
-    import matplotlib
+    from colmap_miho.extras import require
 
-    matplotlib.use("Agg")
+    require("matplotlib", "plots", "the benchmark's plots").use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4.5))
@@ -114,7 +113,7 @@ def run_benchmark(data_root: Path, out_dir: Path, *, frontends=("sift",), datase
 
                 ctx = multiprocessing.get_context("spawn")
                 with ProcessPoolExecutor(min(workers, len(pairs)), mp_context=ctx, initializer=_init_worker) as pool:
-                    per_pair = list(tqdm(pool.map(_evaluate_pair, *zip(*args)), total=len(pairs),
+                    per_pair = list(tqdm(pool.map(_evaluate_pair, *zip(*args, strict=True)), total=len(pairs),
                                          desc=f"{frontend}/{dataset}", disable=not progress, leave=False))
             else:
                 per_pair = [_evaluate_pair(*a) for a in tqdm(args, desc=f"{frontend}/{dataset}",
@@ -131,7 +130,10 @@ def run_benchmark(data_root: Path, out_dir: Path, *, frontends=("sift",), datase
     return everything
 
 
-def headline(results: dict, pipelines=("none", "magsac", "mop_miho", "mop_miho+ncc", "mop_miho+track", "adalam", "colmap")) -> str:
+HEADLINE_PIPELINES = ("none", "magsac", "mop_miho", "mop_miho+ncc", "mop_miho+track", "adalam", "colmap")
+
+
+def headline(results: dict, pipelines=HEADLINE_PIPELINES) -> str:
     """A short table for the README: mean AUC^F_M (or AUC^H) per dataset and front end."""
     lines = []
     for frontend, per_dataset in results.items():

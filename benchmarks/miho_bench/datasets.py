@@ -19,19 +19,17 @@ from pathlib import Path
 
 import numpy as np
 
+from colmap_miho.adapters.images import read_gray_uint8
+
 
 def load_gray(path: str | Path) -> np.ndarray:
-    """Read an image file as (H, W) uint8 grayscale.
+    """Read an image file as (H, W) uint8 grayscale (the package's one image reader,
+    :func:`colmap_miho.adapters.images.read_gray_uint8`).
 
     Raises:
         FileNotFoundError: the file does not exist or cannot be decoded.
     """
-    import cv2
-
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise FileNotFoundError(f"cannot read image {path}")
-    return image
+    return read_gray_uint8(path)
 
 
 def skew(t: np.ndarray) -> np.ndarray:

@@ -94,8 +94,11 @@ def colmap_verification_mask(pts1: np.ndarray, pts2: np.ndarray, shape1: tuple[i
                              K2: np.ndarray | None = None) -> np.ndarray:
     """COLMAP's own two-view geometric verification (``pycolmap.estimate_two_view_geometry``,
     default options). Cameras: SIMPLE_PINHOLE from K when given, else a 1.2 * max(w, h) focal
-    prior. pycolmap expects COLMAP coordinates (+0.5), converted here."""
+    prior. pycolmap expects COLMAP coordinates (+0.5), converted by the database layer's
+    :func:`~colmap_miho.adapters.database.pixel_centre_to_colmap`."""
     import pycolmap
+
+    from colmap_miho.adapters.database import pixel_centre_to_colmap
 
     n = len(pts1)
     if n < 8:
@@ -106,14 +109,14 @@ def colmap_verification_mask(pts1: np.ndarray, pts2: np.ndarray, shape1: tuple[i
         if K is not None:
             f = float((K[0, 0] + K[1, 1]) / 2)
             return pycolmap.Camera(model="SIMPLE_PINHOLE", width=w, height=h,
-                                   params=[f, K[0, 2] + 0.5, K[1, 2] + 0.5])
+                                   params=[f, *pixel_centre_to_colmap(K[:2, 2])])
         return pycolmap.Camera(model="SIMPLE_RADIAL", width=w, height=h,
                                params=[1.2 * max(w, h), w / 2, h / 2, 0.0])
 
     matches = np.stack([np.arange(n), np.arange(n)], axis=1).astype(np.uint32)
     geom = pycolmap.estimate_two_view_geometry(
-        camera(shape1, K1), np.asarray(pts1, np.float64) + 0.5,
-        camera(shape2, K2), np.asarray(pts2, np.float64) + 0.5,
+        camera(shape1, K1), pixel_centre_to_colmap(pts1),
+        camera(shape2, K2), pixel_centre_to_colmap(pts2),
         matches, pycolmap.TwoViewGeometryOptions(),
     )
     mask = np.zeros(n, bool)

@@ -73,7 +73,8 @@ def _one_way(H_est, H_gt, shape_src, shape_dst, step):
     pts = _grid(shape_src, step)
     gt = _apply(H_gt, pts)
     h, w = shape_dst
-    inside = np.isfinite(gt).all(1) & (gt[:, 0] >= -0.5) & (gt[:, 0] <= w - 0.5) & (gt[:, 1] >= -0.5) & (gt[:, 1] <= h - 0.5)
+    inside = (np.isfinite(gt).all(1) & (gt[:, 0] >= -0.5) & (gt[:, 0] <= w - 0.5)
+              & (gt[:, 1] >= -0.5) & (gt[:, 1] <= h - 0.5))
     if not inside.any():
         return np.inf
     est = _apply(H_est, pts[inside])
@@ -112,4 +113,4 @@ def homography_from_matches(pts1: np.ndarray, pts2: np.ndarray) -> np.ndarray | 
 def homography_auc(errors, thresholds: tuple[float, ...] = H_AUC_THRESHOLDS_PX) -> dict:
     """``{"auc5", "auc10", "auc15"}`` of planar errors in pixels (failures are ``inf``)."""
     values = pose_auc(errors, thresholds)
-    return {f"auc{int(t)}": v for t, v in zip(thresholds, values)}
+    return {f"auc{int(t)}": v for t, v in zip(thresholds, values, strict=True)}

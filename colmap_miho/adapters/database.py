@@ -1,4 +1,4 @@
-"""The only module that reads and writes COLMAP databases (through pycolmap).
+"""The only module that creates, reads and writes COLMAP databases (through pycolmap).
 
 It is also the only place with the half-pixel conversion: COLMAP stores keypoints with the
 image's top-left corner at (0, 0), so the centre of the top-left pixel is (0.5, 0.5);
@@ -7,7 +7,8 @@ colmap-miho's arrays put pixel centres at integers (OpenCV, kornia). ``read`` su
 
 Open only a working copy (see :mod:`colmap_miho.adapters.safety`): pycolmap migrates the schema on
 open and creates an empty database for a missing path. Never hold a Python ``sqlite3``
-connection and a pycolmap handle on the same file at the same time.
+connection and a pycolmap handle on the same file at the same time. New databases (hloc import,
+synthetic scenes) are made with :meth:`ColmapDatabase.create`.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import logging
 import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -110,6 +112,8 @@ class ColmapDatabase:
         path: an existing COLMAP database file (checked first: pycolmap would create it).
     """
 
+    _db: Any  # pycolmap.Database while open, None once closed
+
     def __init__(self, path: str | Path) -> None:
         import pycolmap
 
@@ -117,13 +121,30 @@ class ColmapDatabase:
         self._pycolmap = pycolmap
         self._db = pycolmap.Database.open(str(self.path))
 
+    @classmethod
+    def create(cls, path: str | Path) -> ColmapDatabase:
+        """Create a NEW, empty COLMAP database at ``path`` and open it.
+
+        Raises:
+            FileExistsError: ``path`` exists (an existing database is never reused).
+        """
+        import pycolmap
+
+        p = Path(path)
+        if p.exists():
+            raise FileExistsError(f"{p} exists: a new database is created only where none is")
+        self = cls.__new__(cls)
+        self.path, self._pycolmap = p, pycolmap
+        self._db = pycolmap.Database.open(str(p))
+        return self
+
     # -- lifecycle -------------------------------------------------------------------------
     def close(self) -> None:
         if self._db is not None:
             self._db.close()
             self._db = None
 
-    def __enter__(self) -> "ColmapDatabase":
+    def __enter__(self) -> ColmapDatabase:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -137,6 +158,18 @@ class ColmapDatabase:
         return self._db
 
     # -- reading ---------------------------------------------------------------------------
+    def num_images(self) -> int:
+        """Number of images in the database."""
+        return int(self.handle.num_images())
+
+    def num_verified_pairs(self) -> int:
+        """Number of image pairs with a two-view geometry holding at least one inlier."""
+        return int(self.handle.num_verified_image_pairs())
+
+    def num_inlier_matches(self) -> int:
+        """Total number of two-view-geometry inlier matches over all pairs."""
+        return int(self.handle.num_inlier_matches())
+
     def images(self) -> list[ImageRecord]:
         """All images, sorted by id, with their camera's width and height in pixels."""
         cams = {c.camera_id: c for c in self.handle.read_all_cameras()}
@@ -183,7 +216,7 @@ class ColmapDatabase:
         else:
             pids, counts = self.handle.read_num_matches()
         out = []
-        for pid, n in sorted(zip(pids, counts)):
+        for pid, n in sorted(zip(pids, counts, strict=True)):
             i, j = image_pair(pid)
             if n > 0:
                 out.append(PairRecord(i, j, int(n)))
@@ -286,6 +319,105 @@ class ColmapDatabase:
         tvg.H = H if H is not None and np.all(np.isfinite(H)) else np.eye(3)
         return tvg
 
+    # -- building a new database (hloc import, synthetic scenes) ----------------------------
+    def add_camera(self, model: str, width: int, height: int, focal: float) -> tuple[int, int]:
+        """Write a camera of COLMAP model ``model`` (``focal`` prior in pixels, pycolmap's
+        default principal point and distortion) and a rig with it as reference sensor.
+
+        Returns:
+            ``(camera_id, rig_id)``.
+
+        Raises:
+            ValueError: ``model`` is not a COLMAP camera model (the message names it).
+        """
+        pc = self._pycolmap
+        try:
+            cam = pc.Camera.create_from_model_name(0, model, float(focal), int(width), int(height))
+        except ValueError:
+            raise ValueError(f"camera_model={model!r} is not a COLMAP camera model "
+                             "(e.g. SIMPLE_RADIAL, PINHOLE, OPENCV)") from None
+        camera_id = self.handle.write_camera(cam)
+        rig = pc.Rig()
+        rig.add_ref_sensor(pc.sensor_t(pc.SensorType.CAMERA, camera_id))
+        return int(camera_id), int(self.handle.write_rig(rig))
+
+    def add_image(self, name: str, camera_id: int, rig_id: int) -> int:
+        """Write image ``name`` (path relative to the image folder) of camera ``camera_id`` and
+        its frame in rig ``rig_id``; returns the new image id."""
+        pc = self._pycolmap
+        image_id = self.handle.write_image(pc.Image(name=name, camera_id=int(camera_id)))
+        frame = pc.Frame()
+        frame.rig_id = int(rig_id)
+        frame.add_data_id(pc.data_t(pc.sensor_t(pc.SensorType.CAMERA, int(camera_id)), image_id))
+        self.handle.write_frame(frame)
+        return int(image_id)
+
+    def add_keypoints(self, image_id: int, xy: np.ndarray, affines: np.ndarray | None = None, *,
+                      colmap_coordinates: bool = False) -> None:
+        """Write the keypoints of a new image as COLMAP's 6 columns (x, y, a11, a12, a21, a22).
+
+        Args:
+            xy: float (N, 2) positions, integer = pixel centre (shifted by +0.5 here), or
+                already in COLMAP's convention when ``colmap_coordinates``.
+            affines: float (N, 2, 2) local affine frames (columns = local axes, pixels), or
+                None for the identity.
+        """
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        rows = np.zeros((len(xy), 6), dtype=np.float32)
+        rows[:, :2] = xy if colmap_coordinates else pixel_centre_to_colmap(xy)
+        if affines is not None:
+            rows[:, 2:] = np.asarray(affines, dtype=np.float32).reshape(-1, 4)
+        else:
+            rows[:, 2], rows[:, 5] = 1.0, 1.0
+        self.handle.write_keypoints(int(image_id), rows)
+
+    def add_matches(self, image_id1: int, image_id2: int, matches: np.ndarray, *,
+                    as_inliers: bool = False) -> None:
+        """Write the matches of a new pair, uint32 (M, 2) keypoint indices ordered
+        (image_id1, image_id2); ``as_inliers`` also stores them all as the inliers of an
+        UNCALIBRATED two-view geometry (no verification)."""
+        m = np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2)
+        self.handle.write_matches(int(image_id1), int(image_id2), m)
+        if as_inliers:
+            tvg = self._pycolmap.TwoViewGeometry()
+            tvg.config = self._pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
+            tvg.inlier_matches = m
+            self.handle.write_two_view_geometry(int(image_id1), int(image_id2), tvg)
+
+    def synthesize(self, dataset_options, noise_options=None):
+        """Fill this new database with ``pycolmap.synthesize_dataset(dataset_options)``.
+
+        With ``noise_options`` (``pycolmap.SyntheticNoiseOptions``) the stored keypoints are
+        then moved by ``pycolmap.synthesize_noise``.
+
+        Returns:
+            The noise-free ground-truth ``pycolmap.Reconstruction`` (COLMAP coordinates).
+        """
+        pc = self._pycolmap
+        rec = pc.synthesize_dataset(dataset_options, self.handle)
+        gt = pc.Reconstruction(rec)
+        if noise_options is not None:
+            pc.synthesize_noise(noise_options, rec, self.handle)
+        return gt
+
+    def store_raw_matches_as_inliers(self) -> None:
+        """Make every pair's two-view-geometry inliers equal to its raw ``matches`` (as a weak
+        geometric verification would); the pairs must have a two-view geometry already."""
+        pids, arrays = self.handle.read_all_matches()
+        for pid, m in zip(pids, arrays, strict=True):
+            i, j = image_pair(pid)
+            tvg = self.handle.read_two_view_geometry(i, j)
+            tvg.inlier_matches = np.asarray(m, np.uint32)
+            self.handle.update_two_view_geometry(i, j, tvg)
+
+    def keep_keypoint_columns(self, columns: int) -> None:
+        """Rewrite every image's keypoints with their first ``columns`` columns (2, 4 or 6)."""
+        if columns not in (2, 4, 6):
+            raise ValueError(f"columns must be 2, 4 or 6, got {columns}")
+        for record in self.images():
+            kp = self.raw_keypoints(record.image_id)
+            self.handle.update_keypoints(record.image_id, np.ascontiguousarray(kp[:, :columns]))
+
     def delete_two_view_geometries(self, pairs: list[tuple[int, int]]) -> None:
         """Delete the two-view geometry rows of ``pairs`` (before COLMAP re-verification)."""
         for i, j in pairs:
@@ -302,3 +434,14 @@ def count_images(path: str | Path) -> int:
     colmap-miho created: pycolmap migrates the schema on open)."""
     with ColmapDatabase(path) as db:
         return int(db.handle.num_images())
+
+
+def verify_geometry(path: str | Path, *, seed: int = 0) -> None:
+    """COLMAP's geometric verification of every matched pair of the (closed) database at
+    ``path`` (``pycolmap.geometric_verification``), RANSAC seeded with ``seed``; it writes the
+    two-view geometries."""
+    import pycolmap
+
+    opts = pycolmap.TwoViewGeometryOptions()
+    opts.ransac.random_seed = int(seed)
+    pycolmap.geometric_verification(str(path), two_view_geometry_options=opts)

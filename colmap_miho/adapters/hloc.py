@@ -17,8 +17,8 @@ Matches file, three pair layouts, told apart per pair:
       pairs (keypoint of image 0, keypoint of image 1).
 
 This module knows nothing of COLMAP: coordinates stay in the pixel-centre convention here.
-The COLMAP database side lives in the ``import`` and ``export`` commands
-(:mod:`colmap_miho.commands.import_`, :mod:`colmap_miho.commands.export`).
+The COLMAP database side is :mod:`colmap_miho.adapters.exchange` (``import`` and ``export``
+commands).
 """
 
 from __future__ import annotations
@@ -115,7 +115,8 @@ def read_features(h5: h5py.File, name: str) -> ImageFeatures:
     scales, oris = _optional_vector(grp, "scales", n, name), _optional_vector(grp, "oris", n, name)
     if scales is not None and oris is not None:
         c, s = np.cos(oris), np.sin(oris)
-        shapes = (scales[:, None, None] * np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)).astype(np.float32)
+        rotations = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+        shapes = (scales[:, None, None] * rotations).astype(np.float32)
     return ImageFeatures(name=name, keypoints=kp, scores=scores, shapes=shapes)
 
 
@@ -220,7 +221,8 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
     else:
         matches = np.asarray(h5[key][()])
         if matches.ndim != 2 or matches.shape[1] != 2 or not np.issubdtype(matches.dtype, np.integer):
-            raise ValueError(f"{label}: matches have shape {matches.shape} dtype {matches.dtype}, expected (M, 2) integers")
+            raise ValueError(f"{label}: matches have shape {matches.shape} dtype {matches.dtype}, "
+                             "expected (M, 2) integers")
         matches = matches.astype(np.int64)
         scores = None
     bad = (matches < 0) | (matches >= np.array([n0, n1]))
@@ -252,6 +254,7 @@ def iter_matches(
         :class:`PairMatches` in the orientation of the pairs list (or of the file).
     """
     index = _NameIndex(num_keypoints)
+    todo: Iterable[tuple[str, str, str, str, bool]]
     if pairs is None:
         todo = [(key, layout, *index.split(key), False) for key, layout in _pair_datasets(h5)]
     else:
@@ -314,7 +317,20 @@ def write_pair_matches(
 
 
 def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
-    """Read a pairs list: one ``name0 name1`` per line; blank lines and ``#`` comments skipped."""
+    """Read a pairs list: the package's one reader of pairs files.
+
+    Rule: one pair per line, its first two whitespace-separated fields are the two image
+    names; further fields are ignored, so both hloc's ``pairs.txt`` (``name0 name1``) and the
+    SuperGlue/LoFTR ``pairs_with_gt.txt`` (``name0 name1 rot0 rot1 K0 K1 T_0to1``) read.
+    Blank lines and lines starting with ``#`` are skipped.
+
+    Returns:
+        ``[(name0, name1), ...]`` in file order (duplicates kept).
+
+    Raises:
+        FileNotFoundError: ``path`` is missing. ValueError: a line with a single field, naming
+        ``file:line``.
+    """
     path = Path(path)
     pairs = []
     with open(path, encoding="utf-8") as f:
@@ -323,7 +339,7 @@ def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
             if not line or line.startswith("#"):
                 continue
             parts = line.split()
-            if len(parts) != 2:
-                raise ValueError(f"{path}:{lineno}: expected 'name0 name1', got {line!r}")
+            if len(parts) < 2:
+                raise ValueError(f"{path}:{lineno}: expected 'name0 name1 ...', got {line!r}")
             pairs.append((parts[0], parts[1]))
     return pairs

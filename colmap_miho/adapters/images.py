@@ -1,4 +1,5 @@
-"""Lazy, bounded loading of the images named in a COLMAP database.
+"""Image files: the one decoder (:func:`read_image`), gray conversions, sizes, and lazy, bounded
+loading of the images named in a COLMAP database.
 
 :class:`ImageLoader` is a read-only mapping ``image_id -> float32 (H, W) grayscale in
 [0, 1]`` (or ``None`` for a missing or unreadable image). Images are read on first access and
@@ -20,17 +21,39 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
-def read_gray_float(path: str | Path) -> np.ndarray | None:
-    """Read one image as float32 (H, W) grayscale in [0, 1]; None if missing or unreadable."""
+def read_image(path: str | Path, *, gray8: bool = False) -> np.ndarray | None:
+    """Decode one image file; the one image decoder of the package (OpenCV).
+
+    Args:
+        path: image file; non-ASCII paths work (unlike ``cv2.imread``).
+        gray8: False (default): the pixels as stored, (H, W) or (H, W, C) in the file's dtype
+            (uint8, uint16 ...), channels in BGR(A) order, no EXIF rotation (as COLMAP reads
+            them). True: uint8 (H, W) grayscale from the decoder itself, exactly as
+            ``cv2.imread(path, cv2.IMREAD_GRAYSCALE)``.
+
+    Returns:
+        The array, or None if the file is missing, empty or not decodable.
+    """
     import cv2
 
     p = Path(path)
     if not p.is_file():
         return None
-    data = np.fromfile(p, dtype=np.uint8)  # works with non-ASCII paths, unlike cv2.imread
+    data = np.fromfile(p, dtype=np.uint8)
     if data.size == 0:
         return None
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if gray8 else cv2.IMREAD_UNCHANGED)
+
+
+def read_gray_float(path: str | Path) -> np.ndarray | None:
+    """Read one image as float32 (H, W) grayscale in [0, 1]; None if missing or unreadable.
+
+    Colour is converted with OpenCV's BGR -> gray weights, an alpha channel is dropped, uint8
+    is divided by 255 and uint16 by 65535.
+    """
+    import cv2
+
+    img = read_image(path)
     if img is None:
         return None
     if img.ndim == 3:
@@ -42,6 +65,31 @@ def read_gray_float(path: str | Path) -> np.ndarray | None:
             img = img[:, :, 0]
     scale = 65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0
     return np.ascontiguousarray(img.astype(np.float32) / np.float32(scale))
+
+
+def read_gray_uint8(path: str | Path) -> np.ndarray:
+    """Read one image as uint8 (H, W) grayscale, converted by the decoder (libpng / libjpeg
+    gray output, which may differ from :func:`read_gray_float` by a grey level or two).
+
+    Raises:
+        FileNotFoundError: the file is missing or cannot be decoded (the message names it).
+    """
+    img = read_image(path, gray8=True)
+    if img is None:
+        raise FileNotFoundError(f"cannot read image {path}")
+    return img
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """``(width, height)`` in pixels of an image file (decoded by :func:`read_image`).
+
+    Raises:
+        FileNotFoundError: the file is missing or cannot be decoded (the message names it).
+    """
+    img = read_image(path)
+    if img is None:
+        raise FileNotFoundError(f"cannot read image {path}")
+    return int(img.shape[1]), int(img.shape[0])
 
 
 class ImageLoader(Mapping):

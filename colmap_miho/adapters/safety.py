@@ -17,7 +17,6 @@ import stat
 import struct
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 from ..errors import DatabaseError, UserError
@@ -201,7 +200,7 @@ class WorkingCopy:
         self.path: Path | None = None
         self.committed = False
 
-    def __enter__(self) -> "WorkingCopy":
+    def __enter__(self) -> WorkingCopy:
         check_not_in_use(self.database)
         _warn_leftover_copies(self.output)
         if self.in_place:
@@ -257,10 +256,3 @@ def _warn_leftover_copies(output: Path) -> None:
             ", ".join(f.name for f in found),
         )
 
-
-@contextlib.contextmanager
-def working_copy(database: Path, output: Path | None = None, *, in_place: bool = False,
-                 overwrite: bool = False) -> Iterator[WorkingCopy]:
-    """Function form of :class:`WorkingCopy`."""
-    with WorkingCopy(database, output, in_place=in_place, overwrite=overwrite) as wc:
-        yield wc

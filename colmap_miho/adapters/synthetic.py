@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .database import colmap_to_pixel_centre, image_pair
+from .database import ColmapDatabase, colmap_to_pixel_centre
 
 log = logging.getLogger(__name__)
 
@@ -122,23 +122,14 @@ def make_synthetic_scene(
     opts.num_points2D_without_point3D = 10
 
     pycolmap.set_random_seed(int(seed))
-    with pycolmap.Database.open(str(database)) as db:
-        rec = pycolmap.synthesize_dataset(opts, db)
-        gt = pycolmap.Reconstruction(rec)
-        if noise_px > 0:
-            pycolmap.synthesize_noise(pycolmap.SyntheticNoiseOptions(point2D_stddev=float(noise_px)), rec, db)
+    noise = pycolmap.SyntheticNoiseOptions(point2D_stddev=float(noise_px)) if noise_px > 0 else None
+    with ColmapDatabase.create(database) as db:
+        gt = db.synthesize(opts, noise)
         if outliers_in_verified:
-            pids, arrays = db.read_all_matches()
-            for pid, m in zip(pids, arrays):
-                i, j = image_pair(pid)
-                tvg = db.read_two_view_geometry(i, j)
-                tvg.inlier_matches = np.asarray(m, np.uint32)
-                db.update_two_view_geometry(i, j, tvg)
+            db.store_raw_matches_as_inliers()
         if keypoint_columns != 6:
-            for im in db.read_all_images():
-                kp = db.read_keypoints(im.image_id)
-                db.update_keypoints(im.image_id, np.ascontiguousarray(kp[:, :keypoint_columns]))
-        stored = {im.image_id: len(db.read_keypoints(im.image_id)) for im in db.read_all_images()}
+            db.keep_keypoint_columns(keypoint_columns)
+        stored = {r.image_id: len(db.raw_keypoints(r.image_id)) for r in db.images()}
 
     gt_kp: dict[int, np.ndarray] = {}
     ids: dict[int, np.ndarray] = {}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .compare import add_recipe_arguments
+from ._options import add_recipe_arguments, load_run_recipe, quiet_colmap
 
 HELP = "run the whole job on a built-in scene with exact ground truth (no downloads)"
 DESCRIPTION = (
@@ -38,10 +38,12 @@ def _size(text: str) -> tuple[int, int]:
 def run(args) -> int:
     import time
 
+    from ..extras import require
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.demo_scene import make_demo_scene
-    from .compare import load_run_recipe, quiet_colmap
 
+    for module, purpose in (("skimage", "the demo scene"), ("matplotlib", "the demo's figures")):
+        require(module, "demo", purpose)
     recipe = load_run_recipe(args)
     w, h = _size(args.size)
     n = args.num_images

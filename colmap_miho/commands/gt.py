@@ -19,7 +19,8 @@ log = logging.getLogger(__name__)
 
 def add_arguments(parser) -> None:
     parser.add_argument("--format", required=True, choices=["strecha", "middlebury"], help="dataset layout")
-    parser.add_argument("--input", required=True, type=Path, help="GT folder (strecha) or *_par.txt / its folder (middlebury)")
+    parser.add_argument("--input", required=True, type=Path,
+                        help="GT folder (strecha) or *_par.txt / its folder (middlebury)")
     parser.add_argument("--images", required=True, type=Path, help="image folder (names and sizes)")
     parser.add_argument("--output", required=True, type=Path, help="output COLMAP model folder")
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..enums import CameraMode
-from .compare import add_recipe_arguments
+from ._options import add_recipe_arguments, load_run_recipe, quiet_colmap
 
 HELP = "from a folder of images: SIFT + exhaustive matching, refine, map, report (--compare: vs baseline)"
 DESCRIPTION = (
@@ -33,10 +33,12 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from ..extras import require
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.report import format_report
-    from .compare import load_run_recipe, quiet_colmap
 
+    if args.compare:
+        require("matplotlib", "plots", "--compare's figures")  # before the long mapping runs
     recipe = load_run_recipe(args)
     quiet_colmap(args.verbose)
     out = run_from_images(

@@ -17,7 +17,6 @@ The input database is never modified (everything reads copies).
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import tempfile
@@ -414,9 +413,3 @@ def run_from_images(
     out["report_dict"] = report
     return out
 
-
-def dumps(obj) -> str:
-    """JSON text of a result dict (drops in-memory objects)."""
-    from .report import json_safe
-
-    return json.dumps(json_safe({k: v for k, v in obj.items() if k not in ("result", "report_dict")}), indent=2)

@@ -101,8 +101,10 @@ def _plane(origin, u_axis, v_axis, width, height, texture) -> Plane:
 def build_planes() -> list[Plane]:
     """The scene's planes (deterministic: the textures are the bundled photographs)."""
     import cv2
-    from skimage import data
 
+    from ..extras import require
+
+    data = require("skimage.data", "demo", "the demo scene's textures")
     planes = []
     # back wall z = 9: brick, with photographs hung on it
     W, H = 30.0, 12.0

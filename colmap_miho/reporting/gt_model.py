@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-log = logging.getLogger(__name__)
+from ..adapters.database import colmap_to_pixel_centre, pixel_centre_to_colmap
+from ..adapters.images import image_size
 
-COLMAP_PRINCIPAL_POINT_OFFSET = 0.5
-"""COLMAP model principal point = project (pixel-centre) principal point + 0.5 px."""
+log = logging.getLogger(__name__)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 
@@ -80,8 +80,7 @@ def poses_from_reconstruction(rec) -> dict[str, CameraPose]:
             continue
         cam = rec.cameras[image.camera_id]
         K = np.array(cam.calibration_matrix(), dtype=np.float64)
-        K[0, 2] -= COLMAP_PRINCIPAL_POINT_OFFSET
-        K[1, 2] -= COLMAP_PRINCIPAL_POINT_OFFSET
+        K[:2, 2] = colmap_to_pixel_centre(K[:2, 2])
         pose = image.cam_from_world()
         out[image.name] = CameraPose(
             name=image.name, K=K, R=np.array(pose.rotation.matrix(), dtype=np.float64),
@@ -149,8 +148,7 @@ def write_colmap_model(poses: dict[str, CameraPose], out_dir: str | Path) -> Pat
     for image_id, name in enumerate(sorted(poses), start=1):
         p = poses[name]
         fx, fy = p.K[0, 0], p.K[1, 1]
-        cx = p.K[0, 2] + COLMAP_PRINCIPAL_POINT_OFFSET
-        cy = p.K[1, 2] + COLMAP_PRINCIPAL_POINT_OFFSET
+        cx, cy = pixel_centre_to_colmap(p.K[:2, 2])
         key = (p.width, p.height, round(fx, 9), round(fy, 9), round(cx, 9), round(cy, 9))
         if key not in cameras:
             cameras[key] = len(cameras) + 1
@@ -180,15 +178,6 @@ def list_images(image_dir: str | Path) -> list[str]:
     if not image_dir.is_dir():
         raise NotADirectoryError(f"image folder not found: {image_dir}")
     return sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
-
-
-def _image_size(path: Path) -> tuple[int, int]:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"cannot read image {path}")
-    return int(img.shape[1]), int(img.shape[0])
 
 
 def _rescale(K: np.ndarray, size_from: tuple[int, int], size_to: tuple[int, int], name: str) -> np.ndarray:
@@ -240,7 +229,7 @@ def strecha_poses(gt_dir: str | Path, image_dir: str | Path) -> dict[str, Camera
             log.warning("no GT camera file for %s", name)
             continue
         K, R, t, size = read_strecha_camera(cam)
-        img_size = _image_size(image_dir / name)
+        img_size = image_size(image_dir / name)
         K = _rescale(K, size, img_size, name)
         out[name] = CameraPose(name=name, K=K, R=R, t=t, width=img_size[0], height=img_size[1])
     if not out:
@@ -272,7 +261,7 @@ def middlebury_poses(par_path: str | Path, image_dir: str | Path) -> dict[str, C
             log.warning("%s: %s is not in %s", par.name, name, image_dir)
             continue
         v = np.array([float(x) for x in fields[1:]], dtype=np.float64)
-        w, h = _image_size(image_dir / name)
+        w, h = image_size(image_dir / name)
         out[name] = CameraPose(
             name=name, K=v[0:9].reshape(3, 3), R=project_to_so3(v[9:18].reshape(3, 3)),
             t=v[18:21], width=w, height=h,

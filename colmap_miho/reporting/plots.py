@@ -14,8 +14,9 @@ COLORS = {"baseline": "#7f7f7f", "refined": "#d62728"}
 
 
 def _pyplot():
-    import matplotlib
+    from ..extras import require
 
+    matplotlib = require("matplotlib", "plots", "plotting")
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 

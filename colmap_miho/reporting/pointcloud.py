@@ -308,8 +308,9 @@ def _render_open3d(p, c, path: Path, width: int, height: int) -> None:
 
 
 def _render_matplotlib(p, c, path: Path, width: int, height: int, title: str | None) -> None:
-    from matplotlib.figure import Figure
+    from ..extras import require
 
+    Figure = require("matplotlib.figure", "plots", "drawing a point cloud without open3d").Figure
     dpi = 100
     fig = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
     ax = fig.add_subplot(projection="3d")

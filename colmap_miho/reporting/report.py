@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..adapters.hloc import read_pairs_file
 from . import pose_metrics as pm
 from .gt_model import CameraPose
 
@@ -159,16 +160,6 @@ def absolute_errors(est: dict[str, CameraPose], gt: dict[str, CameraPose]) -> di
 
 
 # --------------------------------------------------------------------------- database matches
-def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
-    """Pairs ``name1 name2 ...`` from a text file (e.g. ``pairs_with_gt.txt``), one per line."""
-    out = []
-    for line in Path(path).read_text(encoding="utf-8").splitlines():
-        f = line.split()
-        if len(f) >= 2 and not line.lstrip().startswith("#"):
-            out.append((f[0], f[1]))
-    return out
-
-
 @dataclass(frozen=True, kw_only=True)
 class DatabaseInliers:
     """Keypoints and verified inlier matches of a database, by image name.

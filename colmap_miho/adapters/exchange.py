@@ -1,0 +1,253 @@
+"""hloc / deep-image-matching h5 files in and out of COLMAP databases.
+
+:func:`import_hloc` builds a NEW database from a features.h5 and a matches.h5;
+:func:`export_hloc` writes a database's keypoints and matches as such files. The h5 side is
+:mod:`colmap_miho.adapters.hloc` (no COLMAP there), the database side
+:mod:`colmap_miho.adapters.database` (the only place of the +0.5 pixel shift: keypoints in h5
+files follow hloc's convention, integer = pixel centre). deep-image-matching's own importer
+writes its keypoints without the shift; ``keypoint_origin="corner"`` reproduces its databases
+exactly.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..enums import MatchSource
+from . import hloc
+from .database import ColmapDatabase, validate_database, verify_geometry
+from .images import image_size
+from .safety import check_database_path, check_not_in_use, copy_file, remove_with_side_files
+
+log = logging.getLogger(__name__)
+
+KEYPOINT_ORIGINS = ("center", "corner")
+EXPORT_LAYOUTS = ("hloc", "dim")
+FOCAL_PRIOR = 1.2
+"""Focal length prior of imported cameras, times max(width, height) (COLMAP's default)."""
+
+
+@dataclass(frozen=True)
+class ImportStats:
+    """What an import wrote: counts of images, cameras, keypoints, pairs, matches, and (after
+    verification) pairs with a two-view geometry and their inlier matches."""
+
+    num_images: int
+    num_cameras: int
+    num_keypoints: int
+    num_pairs: int
+    num_matches: int
+    num_verified_pairs: int
+    num_inlier_matches: int
+
+
+@dataclass(frozen=True)
+class ExportStats:
+    """What an export wrote. ``num_dropped``: matches that hloc's one-match-per-keypoint
+    ``matches0`` could not hold (0 with ``layout='dim'``)."""
+
+    num_images: int
+    num_keypoints: int
+    num_pairs: int
+    num_matches: int
+    num_dropped: int
+
+
+def import_hloc(
+    features: str | Path,
+    matches: str | Path,
+    images: str | Path,
+    database: str | Path,
+    *,
+    pairs: str | Path | None = None,
+    camera_model: str = "SIMPLE_RADIAL",
+    single_camera: bool = False,
+    verify: bool = True,
+    min_match_score: float | None = None,
+    keypoint_origin: str = "center",
+    seed: int = 0,
+    progress: bool = False,
+) -> ImportStats:
+    """Create ``database`` from hloc-layout h5 files, streaming one image / pair at a time.
+
+    Cameras come from the image files (focal prior ``FOCAL_PRIOR * max(width, height)``).
+    Keypoints are written as COLMAP's 6 columns (x, y, a11, a12, a21, a22); the affine shape is
+    built from hloc's ``scales``/``oris`` when present, else identity. The database is written
+    to ``<database>.partial`` and renamed at the end: a failed import leaves nothing behind.
+
+    Args:
+        features, matches: the h5 files (layouts in :mod:`colmap_miho.adapters.hloc`).
+        images: the image folder; h5 image names are paths relative to it.
+        database: the NEW database (must not exist).
+        pairs: optional pairs list (:func:`colmap_miho.adapters.hloc.read_pairs_file`).
+        verify: run COLMAP's geometric verification (seeded by ``seed``); False stores every
+            match as an inlier of an UNCALIBRATED two-view geometry.
+        min_match_score: drop matches whose matching score is below it (pairs without scores
+            keep all, with one warning).
+        keypoint_origin: "center" (hloc: integer = pixel centre, shifted +0.5) or "corner"
+            (already COLMAP's convention, written as is).
+
+    Raises:
+        FileExistsError: ``database`` exists. FileNotFoundError / ValueError naming the file,
+        image or pair for malformed or mismatched inputs.
+    """
+    features, matches, images, database = Path(features), Path(matches), Path(images), Path(database)
+    if database.exists():
+        raise FileExistsError(f"{database} exists: import writes a new database only")
+    if not images.is_dir():
+        raise NotADirectoryError(f"{images}: image folder not found")
+    if keypoint_origin not in KEYPOINT_ORIGINS:
+        raise ValueError(f"keypoint_origin={keypoint_origin!r} is not one of: {', '.join(KEYPOINT_ORIGINS)}")
+    pair_list = hloc.read_pairs_file(pairs) if pairs is not None else None
+    partial = database.with_name(database.name + ".partial")
+    remove_with_side_files(partial)
+    try:
+        with hloc.open_h5(features) as fh, hloc.open_h5(matches) as mh:
+            with ColmapDatabase.create(partial) as db, db.transaction():
+                ids, nkp, ncams = _write_images(db, fh, images, camera_model, single_camera,
+                                                keypoint_origin == "corner", progress)
+                npairs, nmatches = _write_matches(db, mh, ids, nkp, pair_list, verify, min_match_score, progress)
+        if verify:
+            verify_geometry(partial, seed=seed)
+        with ColmapDatabase(partial) as db:
+            nver, ninl = db.num_verified_pairs(), db.num_inlier_matches()
+        os.replace(partial, database)
+    except BaseException:
+        remove_with_side_files(partial)
+        raise
+    remove_with_side_files(partial)  # -wal/-shm leftovers of the partial name
+    return ImportStats(
+        num_images=len(ids), num_cameras=ncams, num_keypoints=int(sum(nkp.values())), num_pairs=npairs,
+        num_matches=nmatches, num_verified_pairs=nver, num_inlier_matches=ninl,
+    )
+
+
+def _write_images(db: ColmapDatabase, fh, images: Path, camera_model: str, single_camera: bool,
+                  colmap_coordinates: bool, progress: bool) -> tuple[dict[str, int], dict[str, int], int]:
+    """Cameras, rigs, images, frames and keypoints of every image of the features file."""
+    from tqdm import tqdm
+
+    ids: dict[str, int] = {}
+    nkp: dict[str, int] = {}
+    shared: tuple[int, int, tuple[int, int], str] | None = None  # camera id, rig id, size, first image
+    ncams = 0
+    for name in tqdm(hloc.list_feature_images(fh), desc="images", unit="img", disable=not progress):
+        path = images / name
+        if not path.is_file():
+            raise FileNotFoundError(f"image {name!r} of {fh.filename} is not in the image folder {images}")
+        size = image_size(path)
+        if single_camera and shared is not None:
+            cam_id, rig_id, first_size, first = shared
+            if size != first_size:
+                raise ValueError(f"--single-camera: image {name!r} is {size[0]}x{size[1]} "
+                                 f"but {first!r} is {first_size[0]}x{first_size[1]}")
+        else:
+            cam_id, rig_id = db.add_camera(camera_model, size[0], size[1], FOCAL_PRIOR * max(size))
+            shared = (cam_id, rig_id, size, name)
+            ncams += 1
+        image_id = db.add_image(name, cam_id, rig_id)
+        feats = hloc.read_features(fh, name)
+        db.add_keypoints(image_id, feats.keypoints, feats.shapes, colmap_coordinates=colmap_coordinates)
+        ids[name], nkp[name] = image_id, len(feats.keypoints)
+    return ids, nkp, ncams
+
+
+def _write_matches(db: ColmapDatabase, mh, ids: dict[str, int], nkp: dict[str, int], pair_list,
+                   verify: bool, min_match_score: float | None, progress: bool) -> tuple[int, int]:
+    """The matches of every pair (of ``pair_list`` when given); returns (pairs, matches)."""
+    from tqdm import tqdm
+
+    npairs = nmatches = no_scores = 0
+    pairs_iter = hloc.iter_matches(mh, nkp, pair_list)
+    for pm in tqdm(pairs_iter, desc="pairs", unit="pair", total=len(pair_list) if pair_list else None,
+                   disable=not progress):
+        m = pm.matches
+        if min_match_score is not None:
+            if pm.scores is None:
+                no_scores += 1
+            else:
+                m = m[pm.scores >= min_match_score]
+        db.add_matches(ids[pm.name0], ids[pm.name1], m, as_inliers=not verify)
+        npairs += 1
+        nmatches += len(m)
+    if no_scores:
+        log.warning("--min-match-score ignored for %d pairs without matching scores", no_scores)
+    return npairs, nmatches
+
+
+def export_hloc(
+    database: str | Path,
+    features: str | Path,
+    matches: str | Path,
+    *,
+    source: MatchSource | str = "verified",
+    layout: str = "hloc",
+    overwrite: bool = False,
+    progress: bool = False,
+) -> ExportStats:
+    """Write ``features`` (per image ``keypoints`` (N, 2) float32, integer = pixel centre, and
+    ``image_size`` (width, height)) and ``matches`` (one group per pair with matches, image order
+    of the database pair: smaller image id first) from ``database``.
+
+    The database is never opened itself: a temporary copy is read. Matches come from the
+    two-view-geometry inliers (``source="verified"``) or the raw matches table (``"raw"``).
+    ``layout``: "hloc" (name0/name1/matches0, one match per keypoint of image 0) or "dim"
+    (deep-image-matching's (M, 2) name0/name1, lossless). Both files are written under
+    temporary names and renamed at the end.
+
+    Raises:
+        FileExistsError: an existing output without ``overwrite``. DatabaseError: a missing,
+        locked or non-COLMAP database.
+    """
+    from tqdm import tqdm
+
+    database, features, matches = Path(database), Path(features), Path(matches)
+    source = MatchSource.parse(source, "source")
+    if layout not in EXPORT_LAYOUTS:
+        raise ValueError(f"layout={layout!r} is not one of: {', '.join(EXPORT_LAYOUTS)}")
+    for out in (features, matches):
+        if out.exists() and not overwrite:
+            raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
+        if not out.parent.is_dir():
+            raise NotADirectoryError(f"output folder does not exist: {out.parent}")
+    if features.resolve() == matches.resolve():
+        raise ValueError("--features and --matches must be different files")
+    check_database_path(database)
+    check_not_in_use(database)
+
+    tmp_feat = features.with_name(f".{features.name}.partial")
+    tmp_match = matches.with_name(f".{matches.name}.partial")
+    nkp_total = npairs = nmatches = ndropped = 0
+    try:
+        with tempfile.TemporaryDirectory(prefix="colmap-miho-export-") as tmp:
+            copy = Path(tmp) / "database.db"
+            copy_file(database, copy)
+            validate_database(copy)
+            with ColmapDatabase(copy) as db, hloc.open_h5(tmp_feat, "w") as fh, hloc.open_h5(tmp_match, "w") as mh:
+                records = db.images()
+                names = {r.image_id: r.name for r in records}
+                nkp: dict[int, int] = {}
+                for r in tqdm(records, desc="keypoints", unit="img", disable=not progress):
+                    xy = db.keypoints(r.image_id)
+                    hloc.write_features(fh, r.name, xy, image_size=(r.width, r.height))
+                    nkp[r.image_id] = len(xy)
+                    nkp_total += len(xy)
+                for pr in tqdm(db.pairs(source), desc="pairs", unit="pair", disable=not progress):
+                    m = db.matches(pr.image_id1, pr.image_id2, source)
+                    pm = hloc.PairMatches(names[pr.image_id1], names[pr.image_id2], m.astype(np.int64))
+                    ndropped += hloc.write_pair_matches(mh, pm, nkp[pr.image_id1], layout=layout)
+                    npairs += 1
+                    nmatches += len(m)
+        os.replace(tmp_feat, features)
+        os.replace(tmp_match, matches)
+    finally:
+        tmp_feat.unlink(missing_ok=True)
+        tmp_match.unlink(missing_ok=True)
+    return ExportStats(num_images=len(nkp), num_keypoints=nkp_total, num_pairs=npairs,
+                       num_matches=nmatches - ndropped, num_dropped=ndropped)
