@@ -128,7 +128,10 @@ def main(argv=None) -> int:
     from colmap_miho.recipe import load_recipe
     from colmap_miho.reporting.compare import gt_intrinsics
     from colmap_miho.reporting.gt_model import load_gt_poses
-    from colmap_miho.reporting.report import database_keypoint_accuracy, read_database_inliers
+    from colmap_miho.reporting.report import (
+        database_keypoint_accuracy,
+        read_database_inliers,
+    )
 
     pycolmap.logging.minloglevel = 1
     recipe = load_recipe(args.recipe, [*args.overrides, f"mapping.num_threads={args.threads}",

@@ -4,6 +4,7 @@ in compare, repeated runs, and the AUC thresholds of the reports."""
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import math
 import shutil
@@ -14,8 +15,18 @@ import pytest
 from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.reporting import pose_metrics as pm
-from colmap_miho.reporting.report import DEFAULT_AUC_THRESHOLDS_DEG, auc_key, auc_thresholds, build_report
-from colmap_miho.sfm import MappingConfig, RefineIntrinsics, parse_camera_params, run_mapping
+from colmap_miho.reporting.report import (
+    DEFAULT_AUC_THRESHOLDS_DEG,
+    auc_key,
+    auc_thresholds,
+    build_report,
+)
+from colmap_miho.sfm import (
+    MappingConfig,
+    RefineIntrinsics,
+    parse_camera_params,
+    run_mapping,
+)
 
 WIDTH, HEIGHT = 640, 480
 FOCAL = 1.2 * WIDTH  # make_synthetic_scene's default
@@ -154,7 +165,7 @@ def test_auc_below_the_smallest_error_is_zero_and_above_the_largest_close_to_one
     assert lo == 0.0
     assert hi > 0.99
     aucs = pm.pose_auc(errors, DEFAULT_AUC_THRESHOLDS_DEG)
-    assert all(a <= b for a, b in zip(aucs, aucs[1:]))  # monotone in the threshold
+    assert all(a <= b for a, b in itertools.pairwise(aucs))  # monotone in the threshold
     # one failure in five caps every AUC at 0.8
     assert max(pm.pose_auc([*errors[:4], math.inf], [1000.0])) <= 0.8
 
@@ -174,7 +185,7 @@ def test_report_has_every_auc_key_and_model_analyzer_statistics(scene, tmp_path,
     rep = build_report(reconstruction=res.reconstruction, database=s.database, gt=gt)
     for sec in ("model_pose_auc", "two_view_pose_auc_E", "two_view_pose_auc_F"):
         values = [rep[sec][auc_key(t)] for t in DEFAULT_AUC_THRESHOLDS_DEG]
-        assert all(a <= b + 1e-12 for a, b in zip(values, values[1:])), (sec, values)
+        assert all(a <= b + 1e-12 for a, b in itertools.pairwise(values)), (sec, values)
     stats = rep["reconstruction"]
     for key in ("num_cameras", "num_images", "num_reg_images", "num_points3D", "num_observations",
                 "mean_track_length", "mean_observations_per_image", "mean_reprojection_error"):
