@@ -256,3 +256,10 @@ def test_a_recipe_file_sets_known_cameras(tmp_path):
     assert m.intrinsics().params == (700.0, 701.0, 320.5, 240.25) and m.intrinsics().model == "PINHOLE"
     with pytest.raises(ValueError, match=r"\[mapping\] camera_params: camera model PINHOLE takes 4 parameters"):
         load_recipe(str(path), ["mapping.camera_params=1,2"])
+
+
+def test_run_repeats_needs_compare(scene, tmp_path, capsys):
+    s, _ = scene
+    rc = main(["run", "--images", str(s.image_dir), "--output", str(tmp_path / "r"), "--repeats", "2", "-q"])
+    assert rc == 2 and "--repeats needs --compare" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()

@@ -38,6 +38,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from ..errors import UserError
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.report import format_report
     from .compare import (
@@ -48,10 +49,12 @@ def run(args) -> int:
     )
 
     if args.extract_camera_params:
-        # known intrinsics: also written into the mapped copies (a reused database keeps its own)
+        # known intrinsics: also written into the mapped copies (a reused database gets them there too)
         args.camera_model, args.camera_params = args.extract_camera_model, args.extract_camera_params
     recipe = load_run_recipe(args)
     check_repeat_arguments(args)
+    if args.repeats > 1 and not args.compare:
+        raise UserError("--repeats needs --compare (it maps both sides N times)")
     thresholds = auc_thresholds(args)
     quiet_colmap(args.verbose)
     out = run_from_images(
