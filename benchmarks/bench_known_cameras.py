@@ -73,13 +73,12 @@ def map_runs(db: Path, image_dir: Path, gt: Path, folder: Path, repeats: int, ma
 
 
 def _median_range(values: list[float], pct: bool) -> str:
-    k = 100.0 if pct else 1.0
-    med = statistics.median(values)
-    if len(values) == 1 or min(values) == max(values):
-        return f"{k * med:.1f}" if pct else f"{med:g}"
-    if pct:
-        return f"{k * med:.1f} ({k * min(values):.1f}-{k * max(values):.1f})"
-    return f"{med:g} ({min(values):g}-{max(values):g})"
+    """``median (min-max)``; the range only when it shows at the printed precision."""
+    def fmt(v: float) -> str:
+        return f"{100.0 * v:.1f}" if pct else f"{v:g}"
+
+    lo, med, hi = fmt(min(values)), fmt(statistics.median(values)), fmt(max(values))
+    return med if lo == hi else f"{med} ({lo}-{hi})"
 
 
 def table(rows: list[dict]) -> str:
@@ -118,10 +117,15 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-intrinsics", default="none", choices=["all", "default", "none"])
     ap.add_argument("--max-features", type=int, default=4096)
     ap.add_argument("--json", type=Path, default=None, help="write every run's row as JSON")
+    ap.add_argument("--table-from", type=Path, default=None, metavar="JSON",
+                    help="print the table of an earlier run's --json file and exit")
     args = ap.parse_args(argv)
     if args.repeats < 1:
         ap.error("--repeats must be >= 1")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.table_from:
+        print(table(json.loads(args.table_from.read_text(encoding="utf-8"))["rows"]))
+        return 0
 
     import pycolmap
 

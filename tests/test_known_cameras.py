@@ -263,3 +263,18 @@ def test_run_repeats_needs_compare(scene, tmp_path, capsys):
     rc = main(["run", "--images", str(s.image_dir), "--output", str(tmp_path / "r"), "--repeats", "2", "-q"])
     assert rc == 2 and "--repeats needs --compare" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
+
+
+def test_bench_known_cameras_table_shows_medians_and_visible_ranges():
+    import bench_known_cameras as bk
+
+    assert bk._median_range([0.1, 0.3, 0.2], pct=True) == "20.0 (10.0-30.0)"
+    assert bk._median_range([0.12301, 0.12304], pct=True) == "12.3"  # the range would not show
+    assert bk._median_range([9, 10, 16], pct=False) == "10 (9-16)"
+    runs = [{"num_reg_images": n, "num_images": 16, **{auc_key(t): a for t in bk.AUCS}}
+            for n, a in ((16, 0.5), (13, 0.25), (16, 0.75))]
+    rows = [{"scene": "s", "setting": "default", "side": "baseline", "runs": runs,
+             "keypoint_accuracy": {"residual_median_px": 0.2, "wrong_track_share": 0.01}}]
+    line = bk.table(rows).splitlines()[-1]
+    assert line == ("| s | default | baseline | 16 (13-16)/16 | 50.0 (25.0-75.0) | 50.0 (25.0-75.0) | "
+                    "50.0 (25.0-75.0) | 50.0 (25.0-75.0) | 0.200 | 1.00 |")
