@@ -391,5 +391,5 @@ def write_camera_intrinsics(path: str | Path, intrinsics: CameraIntrinsics | dic
         new = {cam: _camera_from(cameras[cam], intr) for cam, intr in wanted.items()}
         for camera in new.values():
             db.handle.update_camera(camera)
-    log.info("wrote the intrinsics of %d camera(s) into %s", len(new), path)
+    log.debug("wrote the intrinsics of %d camera(s) into %s", len(new), path)
     return len(new)
