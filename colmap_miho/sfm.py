@@ -4,6 +4,10 @@
 to one folder. It never opens the caller's database: pycolmap migrates the schema of any
 database it opens, so mapping reads a private copy made first.
 
+Known cameras: :class:`MappingConfig` (``camera_model``, ``camera_params``) or ``intrinsics``
+(e.g. the GT's) are written into that copy, never into the caller's file, and
+``refine_intrinsics`` (:class:`RefineIntrinsics`) says what bundle adjustment may change.
+
 COLMAP's own log (glog) goes to a file in the output folder (``colmap_log.*``) unless
 ``verbose``; errors still reach stderr. A tqdm bar fed by the incremental mapper's callbacks
 shows registered images when ``progress`` is set.
