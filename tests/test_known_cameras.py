@@ -278,3 +278,31 @@ def test_bench_known_cameras_table_shows_medians_and_visible_ranges():
     line = bk.table(rows).splitlines()[-1]
     assert line == ("| s | default | baseline | 16 (13-16)/16 | 50.0 (25.0-75.0) | 50.0 (25.0-75.0) | "
                     "50.0 (25.0-75.0) | 50.0 (25.0-75.0) | 0.200 | 1.00 |")
+
+
+@pytest.mark.parametrize("refine, flags", [
+    ("all", (True, True, True)), ("none", (False, False, False)), ("default", None)])
+def test_refine_flags_reach_both_mappers(monkeypatch, tmp_path, refine, flags):
+    """The pipelines' own options get the flags (incremental: bundle adjustment and image
+    registration; global: its bundle adjustment); ``default`` leaves pycolmap's defaults."""
+    import pycolmap
+
+    from colmap_miho.sfm import _run_mapper
+
+    seen = {}
+    monkeypatch.setattr(pycolmap, "incremental_mapping", lambda db, im, out, opts, **kw: seen.update(inc=opts) or {})
+    monkeypatch.setattr(pycolmap, "global_mapping", lambda db, im, out, opts, **kw: seen.update(glo=opts) or {})
+    for mapper in ("incremental", "global"):
+        _run_mapper(MappingConfig(mapper=mapper, refine_intrinsics=refine), tmp_path / "db", tmp_path, tmp_path, None)
+    inc, ba = seen["inc"], seen["glo"].mapper.bundle_adjustment
+    ref_inc, ref_ba = pycolmap.IncrementalPipelineOptions(), pycolmap.GlobalPipelineOptions().mapper.bundle_adjustment
+    got_inc = (inc.ba_refine_focal_length, inc.ba_refine_principal_point, inc.ba_refine_extra_params)
+    got_ba = (ba.refine_focal_length, ba.refine_principal_point, ba.refine_extra_params)
+    if flags is None:
+        assert got_inc == (ref_inc.ba_refine_focal_length, ref_inc.ba_refine_principal_point,
+                           ref_inc.ba_refine_extra_params)
+        assert got_ba == (ref_ba.refine_focal_length, ref_ba.refine_principal_point, ref_ba.refine_extra_params)
+        assert inc.mapper.abs_pose_refine_focal_length == ref_inc.mapper.abs_pose_refine_focal_length
+    else:
+        assert got_inc == flags and got_ba == flags
+        assert (inc.mapper.abs_pose_refine_focal_length, inc.mapper.abs_pose_refine_extra_params) == (flags[0], flags[2])
