@@ -8,6 +8,11 @@ dataset's pairs_with_gt.txt, plus wall times.
     python benchmarks/bench_scenes.py [--data ../shared/data] [--work /tmp/bench_scenes]
         [--scenes middlebury_temple_sparse_ring strecha_fountain_p11 strecha_entry_p10]
         [--recipe mop_miho_ncc] [--set pipeline.refine=false] [--max-features 4096]
+        [--repeats 3] [--camera-from-gt --refine-intrinsics none]
+
+With ``--repeats N`` the mapping figures are medians of N runs (``compare --repeats``).
+Known cameras in a leaner form, both matching settings and median of 3 runs:
+``benchmarks/bench_known_cameras.py``.
 
 Timings on a shared 2-core machine are pessimistic; the AUCs do not depend on them.
 """
@@ -26,7 +31,9 @@ SCENES = ("middlebury_temple_sparse_ring", "strecha_fountain_p11", "strecha_entr
 
 
 def pct(rep: dict, sec: str, key: str) -> str:
-    v = rep.get(sec, {}).get(key)
+    """A percentage of ``rep[sec][key]``, the median over the runs when ``rep`` has repeats."""
+    med = rep.get("repeats", {}).get("median", {})
+    v = (med if sec in med else rep).get(sec, {}).get(key)
     return "-" if v is None else f"{100 * v:.1f}"
 
 
@@ -39,6 +46,9 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--max-features", type=int, default=4096)
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--repeats", type=int, default=1, help="mapping runs per side (median reported)")
+    ap.add_argument("--camera-from-gt", action="store_true", help="map with the GT intrinsics")
+    ap.add_argument("--refine-intrinsics", default=None, choices=["all", "default", "none"])
     ap.add_argument("--tag", default="", help="suffix of the comparison folder (several recipes side by side)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -50,7 +60,8 @@ def main(argv=None) -> int:
     from colmap_miho.recipe import load_recipe
 
     pycolmap.logging.minloglevel = 1
-    recipe = load_recipe(args.recipe, args.overrides)
+    mapping = [f"mapping.refine_intrinsics={args.refine_intrinsics}"] if args.refine_intrinsics else []
+    recipe = load_recipe(args.recipe, [*args.overrides, *mapping])
     rows = []
     for scene in args.scenes:
         root = args.data / scene
@@ -65,7 +76,7 @@ def main(argv=None) -> int:
         t_feat = time.perf_counter() - t0
         t0 = time.perf_counter()
         res = compare_databases(db, root / "images", work / f"compare{args.tag}", gt=root, recipe=recipe,
-                                workers=args.workers)
+                                workers=args.workers, repeats=args.repeats, gt_cameras=args.camera_from_gt)
         t_cmp = time.perf_counter() - t0
         for side in ("baseline", "refined"):
             rep = getattr(res, side)

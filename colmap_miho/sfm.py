@@ -4,6 +4,10 @@
 to one folder. It never opens the caller's database: pycolmap migrates the schema of any
 database it opens, so mapping reads a private copy made first.
 
+Known cameras: :class:`MappingConfig` (``camera_model``, ``camera_params``) or ``intrinsics``
+(e.g. the GT's) are written into that copy, never into the caller's file, and
+``refine_intrinsics`` (:class:`RefineIntrinsics`) says what bundle adjustment may change.
+
 COLMAP's own log (glog) goes to a file in the output folder (``colmap_log.*``) unless
 ``verbose``; errors still reach stderr. A tqdm bar fed by the incremental mapper's callbacks
 shows registered images when ``progress`` is set.
@@ -13,12 +17,13 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from .enums import CameraMode, Mapper
+from .enums import CameraMode, Mapper, StrEnum
 from .errors import RunFailed
 
 log = logging.getLogger(__name__)
@@ -34,10 +39,14 @@ class MappingResult:
         success: at least one model with two or more registered images.
         output: folder of the written (largest) model, or None.
         mapper: "incremental" or "global".
+        seed: the mapper's random seed.
         num_models: models found by the mapper.
         num_images: images in the database.
         num_reg_images, num_points3D: of the largest model (0 on failure).
         seconds: wall time of the mapper call.
+        cameras: the largest model's cameras after mapping, ``[{"camera_id", "model",
+            "width", "height", "params"}]`` (params in COLMAP's order and pixel convention).
+        refine_intrinsics: what bundle adjustment was allowed to change.
         log_file: COLMAP's log file (None when verbose).
         reconstruction: the largest ``pycolmap.Reconstruction`` (not serialised).
     """
@@ -45,11 +54,14 @@ class MappingResult:
     success: bool
     output: Path | None
     mapper: str
+    seed: int = 0
     num_models: int = 0
     num_images: int = 0
     num_reg_images: int = 0
     num_points3D: int = 0
     seconds: float = 0.0
+    cameras: list = field(default_factory=list)
+    refine_intrinsics: str = "default"
     log_file: Path | None = None
     reconstruction: object = field(default=None, repr=False, compare=False)
 
@@ -97,6 +109,55 @@ def _latest_log(prefix: Path | None) -> Path | None:
     return found[-1] if found else None
 
 
+class RefineIntrinsics(StrEnum):
+    """What bundle adjustment may change in the cameras (``--refine-intrinsics``).
+
+    ``all``: focal length, principal point and extra (distortion) parameters; ``default``:
+    COLMAP's own choice (focal length and extra parameters, principal point fixed); ``none``:
+    keep the intrinsics in the database (for known, calibrated cameras).
+    """
+
+    ALL = "all"
+    DEFAULT = "default"
+    NONE = "none"
+
+
+#: (refine_focal_length, refine_principal_point, refine_extra_params), None = COLMAP's default
+_REFINE_FLAGS = {RefineIntrinsics.ALL: (True, True, True), RefineIntrinsics.NONE: (False, False, False)}
+
+
+def parse_camera_params(model: str, params: str) -> tuple[float, ...]:
+    """COLMAP's comma-separated parameter list for ``model`` as floats.
+
+    Args:
+        model: COLMAP camera model name (any case).
+        params: e.g. ``"1379.7,1382.1,760.8,503.9"`` for PINHOLE (fx, fy, cx, cy), COLMAP pixel
+            convention; "" gives ().
+
+    Raises:
+        ValueError: unknown model, a value that is not a finite number, or a count that does not
+            fit the model (one line naming the model and the count it takes).
+    """
+    from .adapters.database import model_num_params
+
+    n = model_num_params(model)
+    if not params.strip():
+        return ()
+    values = []
+    for item in params.split(","):
+        try:
+            v = float(item)
+        except ValueError:
+            raise ValueError(f"camera_params: {item.strip()!r} is not a number (in {params!r})") from None
+        if not math.isfinite(v):
+            raise ValueError(f"camera_params: {item.strip()!r} is not a finite number")
+        values.append(v)
+    if len(values) != n:
+        raise ValueError(f"camera_params: camera model {model.upper()} takes {n} parameters, got {len(values)} "
+                         f"({params!r})")
+    return tuple(values)
+
+
 @dataclass(frozen=True, kw_only=True)
 class MappingConfig:
     """Parameters of the mapping stage (the recipe's ``mapping`` table; ``map``, ``run`` and
@@ -109,21 +170,47 @@ class MappingConfig:
             multi-threaded bundle adjustment may still vary in the last digits).
         num_threads: mapper threads, -1 = all cores.
         min_num_matches: pairs with fewer verified inliers are ignored by the mapper.
+        camera_model: COLMAP camera model written into the mapped copy of the database for
+            every camera ("" = keep the database's cameras).
+        camera_params: the model's parameters as COLMAP's comma-separated list (COLMAP pixel
+            convention); "" with a ``camera_model`` = keep the database camera's focal length,
+            principal point at the image centre. Needs ``camera_model``.
+        refine_intrinsics: what bundle adjustment may change (:class:`RefineIntrinsics`);
+            ``none`` keeps the given (or stored) intrinsics exactly.
     """
 
     mapper: Mapper = Mapper.INCREMENTAL
     seed: int = 0
     num_threads: int = -1
     min_num_matches: int = 15
+    camera_model: str = ""
+    camera_params: str = ""
+    refine_intrinsics: RefineIntrinsics = RefineIntrinsics.DEFAULT
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mapper", Mapper.parse(self.mapper, "mapper"))
+        object.__setattr__(self, "refine_intrinsics", RefineIntrinsics.parse(self.refine_intrinsics,
+                                                                             "refine_intrinsics"))
+        if self.camera_params.strip() and not self.camera_model.strip():
+            raise ValueError("camera_params needs camera_model (the model the parameters belong to)")
+        if self.camera_model.strip():
+            parse_camera_params(self.camera_model, self.camera_params)
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         if self.num_threads != -1 and self.num_threads < 1:
             raise ValueError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
         if self.min_num_matches < 0:
             raise ValueError(f"min_num_matches must be >= 0, got {self.min_num_matches}")
+
+    def intrinsics(self):
+        """The :class:`~colmap_miho.adapters.database.CameraIntrinsics` to write into every
+        camera, or None when ``camera_model`` is empty."""
+        from .adapters.database import CameraIntrinsics
+
+        if not self.camera_model.strip():
+            return None
+        return CameraIntrinsics(model=self.camera_model.strip().upper(),
+                                params=parse_camera_params(self.camera_model, self.camera_params))
 
 
 def run_mapping(
@@ -134,7 +221,9 @@ def run_mapping(
     *,
     mapper: Mapper | str | None = None,
     seed: int | None = None,
+    intrinsics: dict | None = None,
     progress: bool = False,
+    label: str = "mapping",
     verbose: bool = False,
 ) -> MappingResult:
     """Map ``database`` with pycolmap and write the largest model to ``output``.
@@ -146,7 +235,11 @@ def run_mapping(
             files in it are replaced.
         config: mapper, seed, threads and ``min_num_matches`` (default :class:`MappingConfig`).
         mapper, seed: when given, replace ``config.mapper`` / ``config.seed``.
+        intrinsics: image name -> :class:`~colmap_miho.adapters.database.CameraIntrinsics`
+            written into those images' cameras of the copy after ``config.camera_model`` (e.g.
+            the GT cameras, :func:`colmap_miho.reporting.compare.gt_intrinsics`).
         progress: tqdm bar of registered images (incremental only).
+        label: the bar's description (e.g. "baseline run 2/3").
         verbose: leave COLMAP's log on the terminal instead of a file.
 
     Returns:
@@ -155,7 +248,7 @@ def run_mapping(
     Raises:
         DatabaseError: the database is missing or not a COLMAP database.
     """
-    from .adapters.database import count_images
+    from .adapters.database import count_images, write_camera_intrinsics
     from .adapters.safety import check_database_path, copy_file
 
     cfg = config or MappingConfig()
@@ -172,19 +265,23 @@ def run_mapping(
     with tempfile.TemporaryDirectory(prefix="colmap_miho_map_", dir=output) as tmp:
         db_copy = Path(tmp) / "database.db"
         copy_file(database, db_copy)
+        if cfg.intrinsics() is not None:
+            write_camera_intrinsics(db_copy, cfg.intrinsics())
+        if intrinsics and not write_camera_intrinsics(db_copy, intrinsics):
+            log.warning("no database image has given intrinsics (names differ?): cameras unchanged")
         num_images = count_images(db_copy)
         models_dir = Path(tmp) / "models"
         models_dir.mkdir()
         t0 = time.perf_counter()
         with colmap_log_to_file(output, verbose=verbose) as prefix:
-            models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None)
+            models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None, label)
         seconds = time.perf_counter() - t0
         log_file = _latest_log(prefix)
 
     if not models:
         log.warning("mapping found no model (%d images in the database)", num_images)
-        return MappingResult(success=False, output=None, mapper=cfg.mapper.value, num_images=num_images,
-                             seconds=seconds, log_file=log_file)
+        return MappingResult(success=False, output=None, mapper=cfg.mapper.value, seed=cfg.seed, num_images=num_images,
+                             seconds=seconds, refine_intrinsics=cfg.refine_intrinsics.value, log_file=log_file)
     best = _write_largest(models, output)
     log.info(
         "%s mapping: %d of %d images registered, %d points, %d model(s), %.1f s -> %s",
@@ -192,23 +289,34 @@ def run_mapping(
         output,
     )
     return MappingResult(
-        success=best.num_reg_images() >= 2, output=output, mapper=cfg.mapper.value, num_models=len(models),
+        success=best.num_reg_images() >= 2, output=output, mapper=cfg.mapper.value, seed=cfg.seed,
+        num_models=len(models),
         num_images=num_images, num_reg_images=int(best.num_reg_images()),
-        num_points3D=int(best.num_points3D()), seconds=seconds, log_file=log_file, reconstruction=best,
+        num_points3D=int(best.num_points3D()), seconds=seconds, cameras=_camera_rows(best),
+        refine_intrinsics=cfg.refine_intrinsics.value, log_file=log_file, reconstruction=best,
     )
 
 
+def _camera_rows(rec) -> list[dict]:
+    return [{"camera_id": int(c.camera_id), "model": c.model.name, "width": int(c.width), "height": int(c.height),
+             "params": [float(v) for v in c.params]} for _, c in sorted(rec.cameras.items())]
+
+
 def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir: Path,
-                bar_total: int | None) -> dict:
+                bar_total: int | None, label: str = "mapping") -> dict:
     """pycolmap's incremental or global pipeline on ``database``; returns its models. A tqdm
     bar over ``bar_total`` images follows the incremental mapper's callbacks when given."""
     import pycolmap
 
+    refine = _REFINE_FLAGS.get(cfg.refine_intrinsics)
     if cfg.mapper == Mapper.GLOBAL:
         opts = pycolmap.GlobalPipelineOptions()
         opts.random_seed = int(cfg.seed)
         opts.num_threads = int(cfg.num_threads)
         opts.min_num_matches = int(cfg.min_num_matches)
+        if refine is not None:
+            ba = opts.mapper.bundle_adjustment
+            ba.refine_focal_length, ba.refine_principal_point, ba.refine_extra_params = refine
         return pycolmap.global_mapping(str(database), str(image_dir), str(models_dir), opts)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = int(cfg.seed)
@@ -217,11 +325,15 @@ def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir:
     opts.mapper.random_seed = int(cfg.seed)
     opts.mapper.num_threads = int(cfg.num_threads)
     opts.triangulation.random_seed = int(cfg.seed)
+    if refine is not None:
+        opts.ba_refine_focal_length, opts.ba_refine_principal_point, opts.ba_refine_extra_params = refine
+        # image registration (absolute pose) refines focal / distortion on its own flags
+        opts.mapper.abs_pose_refine_focal_length, opts.mapper.abs_pose_refine_extra_params = refine[0], refine[2]
     if bar_total is None:
         return pycolmap.incremental_mapping(str(database), str(image_dir), str(models_dir), opts)
     from tqdm import tqdm
 
-    with tqdm(total=bar_total, desc="mapping", unit="img") as bar:
+    with tqdm(total=bar_total, desc=label, unit="img") as bar:
         return pycolmap.incremental_mapping(
             str(database), str(image_dir), str(models_dir), opts,
             initial_image_pair_callback=lambda: bar.update(2),

@@ -32,7 +32,7 @@ def test_mapping_table_defaults_and_overrides():
 
 def test_run_commands_apply_mapper_and_seed_flags_over_the_recipe():
     from colmap_miho.cli import build_parser
-    from colmap_miho.commands.compare import load_run_recipe
+    from colmap_miho.commands._options import load_run_recipe
 
     base = ["compare", "--database", "d.db", "--images", "i", "--output", "o"]
     args = build_parser().parse_args([*base, "--set", "mapping.mapper=global", "--seed", "5"])
@@ -40,9 +40,11 @@ def test_run_commands_apply_mapper_and_seed_flags_over_the_recipe():
     assert recipe.mapping.mapper is Mapper.GLOBAL and recipe.mapping.seed == 5
     args = build_parser().parse_args([*base, "--set", "mapping.mapper=global", "--mapper", "incremental"])
     assert load_run_recipe(args).mapping.mapper is Mapper.INCREMENTAL
-    args = build_parser().parse_args([*base, "--set", "mapping.num_threads=1"])
-    with pytest.raises(ValueError, match="mapping.num_threads is applied by `colmap-miho map` only"):
-        load_run_recipe(args)
+    # compare / run / demo now pass the whole mapping table (threads, min matches, cameras) on
+    args = build_parser().parse_args([*base, "--set", "mapping.num_threads=1", "--set", "mapping.min_num_matches=30",
+                                      "--refine-intrinsics", "none", "--camera-model", "pinhole"])
+    m = load_run_recipe(args).mapping
+    assert (m.num_threads, m.min_num_matches, m.refine_intrinsics, m.camera_model) == (1, 30, "none", "pinhole")
 
 
 def test_overrides_are_typed():

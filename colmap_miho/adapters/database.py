@@ -445,3 +445,94 @@ def verify_geometry(path: str | Path, *, seed: int = 0) -> None:
     opts = pycolmap.TwoViewGeometryOptions()
     opts.ransac.random_seed = int(seed)
     pycolmap.geometric_verification(str(path), two_view_geometry_options=opts)
+
+
+# --------------------------------------------------------------------------- camera intrinsics
+@dataclass(frozen=True, kw_only=True)
+class CameraIntrinsics:
+    """Intrinsics to write into a database camera.
+
+    Attributes:
+        model: COLMAP camera model name (``PINHOLE``, ``SIMPLE_RADIAL``, ...).
+        params: the model's parameters in COLMAP's order and pixel convention (the image's
+            top-left corner at (0, 0)); empty = keep the camera's mean focal length, principal
+            point at the image centre, zero distortion.
+        width, height: image size in pixels the parameters belong to; None = not checked.
+    """
+
+    model: str
+    params: tuple[float, ...] = ()
+    width: int | None = None
+    height: int | None = None
+
+
+def model_num_params(model: str) -> int:
+    """Number of parameters of the COLMAP camera model ``model`` (a name, any case).
+
+    Raises:
+        ValueError: unknown model name (the message lists the known ones).
+    """
+    import pycolmap
+
+    names = [n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"]
+    if str(model).upper() not in names:
+        raise ValueError(f"unknown camera model {model!r}; one of: {', '.join(names)}")
+    return len(pycolmap.Camera.create_from_model_name(1, str(model).upper(), 1.0, 2, 2).params)
+
+
+def _camera_from(old, intr: CameraIntrinsics):
+    import pycolmap
+
+    if intr.width is not None and (int(intr.width), int(intr.height)) != (int(old.width), int(old.height)):
+        raise DatabaseError(f"camera {old.camera_id} is {old.width}x{old.height} px but the intrinsics given "
+                            f"are for {intr.width}x{intr.height} px")
+    model = str(intr.model).upper()
+    new = pycolmap.Camera.create_from_model_name(int(old.camera_id), model, float(old.mean_focal_length()),
+                                                 int(old.width), int(old.height))
+    if intr.params:
+        if len(intr.params) != len(new.params):
+            raise ValueError(f"camera model {model} takes {len(new.params)} parameters, got {len(intr.params)}")
+        new.params = np.asarray(intr.params, dtype=np.float64)
+        new.has_prior_focal_length = True
+    else:
+        new.has_prior_focal_length = bool(old.has_prior_focal_length)
+    return new
+
+
+def write_camera_intrinsics(path: str | Path, intrinsics: CameraIntrinsics | dict[str, CameraIntrinsics]) -> int:
+    """Set the model and parameters of cameras in the database at ``path`` (a working copy:
+    never the user's file). Given parameters are marked as a prior focal length.
+
+    Args:
+        path: database to change in place.
+        intrinsics: one :class:`CameraIntrinsics` for every camera, or a dict image name ->
+            intrinsics for the cameras of those images (images not in the dict keep theirs).
+
+    Returns:
+        The number of cameras written.
+
+    Raises:
+        DatabaseError: a camera is shared by images given different intrinsics, or its size
+            differs from the intrinsics' ``width``/``height``.
+        ValueError: unknown model or a parameter count that does not fit it.
+    """
+    with ColmapDatabase(path) as db:
+        cameras = {int(c.camera_id): c for c in db.handle.read_all_cameras()}
+        wanted: dict[int, CameraIntrinsics] = {}
+        if isinstance(intrinsics, CameraIntrinsics):
+            wanted = dict.fromkeys(cameras, intrinsics)
+        else:
+            for image in db.handle.read_all_images():
+                intr = intrinsics.get(image.name)
+                if intr is None:
+                    continue
+                cam = int(image.camera_id)
+                if cam in wanted and wanted[cam] != intr:
+                    raise DatabaseError(f"camera {cam} is shared by images with different intrinsics "
+                                        f"(e.g. {image.name}); extract with one camera per image")
+                wanted[cam] = intr
+        new = {cam: _camera_from(cameras[cam], intr) for cam, intr in wanted.items()}
+        for camera in new.values():
+            db.handle.update_camera(camera)
+    log.debug("wrote the intrinsics of %d camera(s) into %s", len(new), path)
+    return len(new)

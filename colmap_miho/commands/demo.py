@@ -55,8 +55,8 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     out = run_from_images(
         scene.image_dir, args.output, gt=scene.gt_dir, recipe=recipe, compare=True,
-        max_features=max_features, mapper=recipe.mapping.mapper.value, seed=recipe.mapping.seed, workers=args.workers,
-        device=args.device, progress=not args.quiet, verbose=args.verbose,
+        max_features=max_features, workers=args.workers, device=args.device, progress=not args.quiet,
+        verbose=args.verbose,
     )
     if not args.quiet:
         print(format_comparison(out["result"]))

@@ -6,13 +6,10 @@ import json
 from pathlib import Path
 
 from ..enums import Mapper
+from ._options import add_camera_arguments, add_refine_intrinsics_argument
 
 HELP = "map a COLMAP database with pycolmap (incremental or global) and write the largest model"
 ORDER = 30
-
-#: flag -> key of the recipe's ``mapping`` table it overrides (when given)
-_FLAG_KEYS = {"mapper": "mapper", "seed": "seed", "threads": "num_threads",
-              "min_num_matches": "min_num_matches"}
 
 
 def add_arguments(parser) -> None:
@@ -27,18 +24,17 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="mapper random seed (default 0)")
     parser.add_argument("--threads", type=int, default=None, help="mapper threads (-1 all, the default; 1 for bit-exact repeat runs)")
     parser.add_argument("--min-num-matches", type=int, default=None, help="ignore pairs with fewer verified inliers (default 15)")
+    add_camera_arguments(parser)
+    add_refine_intrinsics_argument(parser)
     parser.add_argument("--json", type=Path, default=None, help="write the mapping summary as JSON")
 
 
 def run(args) -> int:
     from ..recipe import load_recipe
     from ..sfm import require_success, run_mapping
+    from ._options import mapping_overrides
 
-    overrides = list(args.overrides)
-    for flag, key in _FLAG_KEYS.items():
-        if getattr(args, flag) is not None:
-            overrides.append(f"mapping.{key}={getattr(args, flag)}")
-    config = load_recipe(args.recipe, overrides).mapping
+    config = load_recipe(args.recipe, [*args.overrides, *mapping_overrides(args)]).mapping
     result = run_mapping(args.database, args.images, args.output, config,
                          progress=not args.quiet, verbose=args.verbose)
     if args.json:

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ._options import add_auc_arguments
+
 HELP = ("reconstruction statistics; with --gt pose AUC/mAA, and two-view pose AUC and keypoint accuracy "
         "of --database")
 DESCRIPTION = (
     "Print reconstruction statistics of a COLMAP model. With --gt (COLMAP model folder, text or "
-    "binary, images matched by name): relative-pose AUC@5/10/20 deg and mAA over all GT pairs, and "
+    "binary, images matched by name): relative-pose AUC at --auc-thresholds (default "
+    "0.5/1/2/5/10/20 deg) and mAA over all GT pairs, and "
     "rotation / camera-centre errors after a similarity alignment. With --database too: the "
     "paper's two-view pose AUCs (E and F protocols) from the database's verified matches, on the "
     "dataset's pairs_with_gt.txt when the GT folder has one (else all GT pairs), and the keypoint "
@@ -28,6 +31,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--gt", type=Path, default=None, help="GT COLMAP model folder (or a dataset folder with gt_model/)")
     parser.add_argument("--pairs", type=Path, default=None, help="pairs file (name1 name2 ...) for the two-view AUCs")
     parser.add_argument("--seed", type=int, default=0, help="RANSAC seed of the two-view protocols")
+    add_auc_arguments(parser)
     parser.add_argument("--json", type=Path, default=None, help="write the full report as JSON")
     parser.add_argument("--ply", type=Path, default=None, help="also export the model's 3D points (with colours) as PLY")
 
@@ -35,6 +39,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from ..errors import UserError
     from ..reporting.report import build_report, format_report, write_report_json
+    from ._options import auc_thresholds
 
     if args.model is None:
         if args.gt is None or args.database is None:
@@ -43,7 +48,9 @@ def run(args) -> int:
             raise UserError("--ply needs --model")
     elif not args.model.exists():
         raise FileNotFoundError(f"--model not found: {args.model}")
-    report = build_report(args.model, database=args.database, gt=args.gt, pairs=args.pairs, seed=args.seed)
+    thresholds = auc_thresholds(args)
+    report = build_report(args.model, database=args.database, gt=args.gt, pairs=args.pairs, seed=args.seed,
+                          thresholds=thresholds)
     if not args.quiet:
         print(format_report(report))
     if args.ply:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..enums import CameraMode
-from ._options import add_recipe_arguments, load_run_recipe, quiet_colmap
+from ._options import add_auc_arguments, add_recipe_arguments, add_repeat_arguments
 
 HELP = "from a folder of images: SIFT + exhaustive matching, refine, map, report (--compare: vs baseline)"
 DESCRIPTION = (
@@ -24,28 +24,47 @@ def add_arguments(parser) -> None:
     parser.add_argument("--compare", action="store_true", help="also map the unrefined database and compare")
     parser.add_argument("--camera-mode", default=CameraMode.SINGLE.value, choices=CameraMode.values(),
                         help="COLMAP camera sharing (default: one camera for all images)")
-    parser.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model (default SIMPLE_RADIAL)")
-    parser.add_argument("--camera-params", default="",
+    parser.add_argument("--camera-model", dest="extract_camera_model", default="SIMPLE_RADIAL",
+                        help="COLMAP camera model (default SIMPLE_RADIAL)")
+    parser.add_argument("--camera-params", dest="extract_camera_params", default="",
                         help="known intrinsics for --camera-model as COLMAP's comma-separated list "
-                             "(e.g. PINHOLE 'fx,fy,cx,cy', COLMAP pixel convention); default: estimated")
+                             "(e.g. PINHOLE 'fx,fy,cx,cy', COLMAP pixel convention), written into the "
+                             "database and into the mapped copies; --refine-intrinsics none keeps them; "
+                             "default: estimated")
     parser.add_argument("--max-features", type=int, default=8192, help="SIFT features per image (default 8192)")
     add_recipe_arguments(parser)
+    add_repeat_arguments(parser)
+    add_auc_arguments(parser)
 
 
 def run(args) -> int:
+    from ..errors import UserError
     from ..extras import require
     from ..reporting.compare import format_comparison, run_from_images
     from ..reporting.report import format_report
+    from ._options import (
+        auc_thresholds,
+        check_repeat_arguments,
+        load_run_recipe,
+        quiet_colmap,
+    )
 
     if args.compare:
         require("matplotlib", "plots", "--compare's figures")  # before the long mapping runs
+    if args.extract_camera_params:
+        # known intrinsics: also written into the mapped copies (a reused database gets them there too)
+        args.camera_model, args.camera_params = args.extract_camera_model, args.extract_camera_params
     recipe = load_run_recipe(args)
+    check_repeat_arguments(args)
+    if args.repeats > 1 and not args.compare:
+        raise UserError("--repeats needs --compare (it maps both sides N times)")
+    thresholds = auc_thresholds(args)
     quiet_colmap(args.verbose)
     out = run_from_images(
         args.images, args.output, gt=args.gt, recipe=recipe, compare=args.compare,
-        camera_mode=args.camera_mode, camera_model=args.camera_model,
-        camera_params=args.camera_params, max_features=args.max_features,
-        mapper=recipe.mapping.mapper.value, seed=recipe.mapping.seed, workers=args.workers, device=args.device,
+        camera_mode=args.camera_mode, camera_model=args.extract_camera_model,
+        camera_params=args.extract_camera_params, max_features=args.max_features, repeats=args.repeats,
+        gt_cameras=args.camera_from_gt, thresholds=thresholds, workers=args.workers, device=args.device,
         progress=not args.quiet, verbose=args.verbose,
     )
     if not args.quiet:

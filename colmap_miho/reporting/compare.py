@@ -5,10 +5,14 @@
 truth, and writes side by side::
 
     OUTPUT/
-      baseline/model/  baseline/report.json
-      refined/database.db  refined/refine.json  refined/model/  refined/report.json
+      baseline/model/  baseline/report.json  [baseline/runs/seed<S>/model/ with repeats]
+      refined/database.db  refined/refine.json  refined/model/  refined/report.json  [refined/runs/...]
       compare.md  compare.json
       plots/pose_error_curves.png  plots/keypoint_displacement.png  plots/matches_per_pair.png
+
+Both sides are mapped with the recipe's ``mapping`` config (known cameras: ``camera_model`` /
+``camera_params``, or the GT's cameras with ``gt_cameras``; ``refine_intrinsics``), ``repeats``
+times each (:mod:`colmap_miho.reporting.repeats`: per-run rows, median, range).
 
 :func:`run_from_images` extracts SIFT features and matches them exhaustively (pycolmap, CPU)
 into ``OUTPUT/database.db``, then refines, maps and reports, or runs the comparison.
@@ -18,7 +22,6 @@ The input database is never modified (everything reads copies).
 from __future__ import annotations
 
 import logging
-import math
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import RunFailed
-from .keypoint_accuracy import EPIPOLAR_THRESHOLD_PX, TRACK_THRESHOLD_PX
+from .tables import _fmt, comparison_markdown, comparison_rows, table_rows
+
+__all__ = ["CompareResult", "compare_databases", "comparison_markdown", "comparison_rows", "evaluate_side",
+           "format_comparison", "gt_intrinsics", "map_repeats", "match_changes", "run_from_images", "table_rows"]
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +57,29 @@ class CompareResult:
     markdown: Path
     json: Path
     plots: list[Path] = field(default_factory=list)
+
+
+# --------------------------------------------------------------------------- known cameras
+def gt_intrinsics(gt: str | Path) -> dict:
+    """The cameras of a GT model by image name, to map with known intrinsics.
+
+    Args:
+        gt: GT COLMAP model folder (or dataset folder with ``gt_model/``).
+
+    Returns:
+        image name -> :class:`colmap_miho.adapters.database.CameraIntrinsics` (model, params in
+        COLMAP's pixel convention, width, height): pass as ``run_mapping(intrinsics=...)``.
+    """
+    from ..adapters.database import CameraIntrinsics
+    from .gt_model import load_reconstruction
+
+    rec = load_reconstruction(gt)
+    out = {}
+    for image in rec.images.values():
+        cam = rec.cameras[image.camera_id]
+        out[image.name] = CameraIntrinsics(model=cam.model.name, params=tuple(float(v) for v in cam.params),
+                                           width=int(cam.width), height=int(cam.height))
+    return out
 
 
 # --------------------------------------------------------------------------- database diffs
@@ -91,93 +120,7 @@ def match_changes(baseline_db: str | Path, refined_db: str | Path) -> dict:
     return out
 
 
-# --------------------------------------------------------------------------- tables
-_ROWS = [
-    ("registered images", ("reconstruction", "num_reg_images"), "d"),
-    ("3D points", ("reconstruction", "num_points3D"), "d"),
-    ("observations", ("reconstruction", "num_observations"), "d"),
-    ("mean track length", ("reconstruction", "mean_track_length"), ".2f"),
-    ("mean reprojection error (px)", ("reconstruction", "mean_reprojection_error"), ".3f"),
-    ("model pose AUC@5 (%)", ("model_pose_auc", "auc5"), "%"),
-    ("model pose AUC@10 (%)", ("model_pose_auc", "auc10"), "%"),
-    ("model pose AUC@20 (%)", ("model_pose_auc", "auc20"), "%"),
-    ("model pose mAA (%)", ("model_pose_auc", "maa"), "%"),
-    ("rotation error median (deg)", ("absolute", "rotation_error_deg", "median"), ".3f"),
-    ("centre error / camera spread (%)", ("absolute", "center_error_rel"), "%2"),
-    ("sparse-cloud outliers (%)", ("pointcloud", "outlier_share"), "%"),
-    ("two-view E AUC@5 (%)", ("two_view_pose_auc_E", "auc5"), "%"),
-    ("two-view E AUC@10 (%)", ("two_view_pose_auc_E", "auc10"), "%"),
-    ("two-view E AUC@20 (%)", ("two_view_pose_auc_E", "auc20"), "%"),
-    ("two-view F AUC@5 (%)", ("two_view_pose_auc_F", "auc5"), "%"),
-    ("two-view F AUC@10 (%)", ("two_view_pose_auc_F", "auc10"), "%"),
-    ("two-view F AUC@20 (%)", ("two_view_pose_auc_F", "auc20"), "%"),
-    # keypoint accuracy under GT geometry (colmap_miho.reporting.keypoint_accuracy)
-    ("GT track residual median (px)", ("keypoint_accuracy", "residual_median_px"), ".3f"),
-    ("GT track residual mean (px)", ("keypoint_accuracy", "residual_mean_px"), ".3f"),
-    ("GT track residual p90 (px)", ("keypoint_accuracy", "residual_p90_px"), ".3f"),
-    ("GT tracks measured", ("keypoint_accuracy", "num_measured_tracks"), "d"),
-    (f"wrong tracks > {TRACK_THRESHOLD_PX:g} px (%)", ("keypoint_accuracy", "wrong_track_share"), "%"),
-    ("conflicting tracks", ("keypoint_accuracy", "num_conflicting_tracks"), "d"),
-    ("epipolar distance median (px)", ("keypoint_accuracy", "epipolar_median_px"), ".3f"),
-    (f"epipolar distance > {EPIPOLAR_THRESHOLD_PX:g} px (%)", ("keypoint_accuracy", "epipolar_share_above"), "%"),
-]
-
-
-def _get(d: dict, path: tuple):
-    for k in path:
-        if not isinstance(d, dict) or k not in d:
-            return None
-        d = d[k]
-    return d
-
-
-def _fmt(v, spec: str) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    if spec == "%":
-        return f"{100 * v:.1f}"
-    if spec == "%2":
-        return f"{100 * v:.2f}"
-    return format(v, spec)
-
-
-def comparison_rows(baseline: dict, refined: dict) -> list[tuple[str, str, str]]:
-    """(metric, baseline, refined) text rows for every metric present in either report."""
-    rows = []
-    for label, path, spec in _ROWS:
-        b, r = _get(baseline, path), _get(refined, path)
-        if b is None and r is None:
-            continue
-        rows.append((label, _fmt(b, spec), _fmt(r, spec)))
-    return rows
-
-
-def comparison_markdown(baseline: dict, refined: dict, refine: dict, title: str = "colmap-miho comparison") -> str:
-    """A markdown document: the side-by-side table plus the refine counters."""
-    lines = [f"# {title}", "", "| metric | baseline | colmap-miho |", "|---|---:|---:|"]
-    lines += [f"| {a} | {b} | {c} |" for a, b, c in comparison_rows(baseline, refined)]
-    if refine:
-        lines += [
-            "", f"Recipe `{refine.get('recipe', '')}`: {refine.get('pairs_filtered', 0)} pairs filtered, "
-            f"{refine.get('matches_kept', 0)} of {refine.get('matches_in', 0)} matches kept, "
-            f"{refine.get('keypoints_moved', 0)} keypoints moved (median "
-            f"{refine.get('median_displacement_px', 0.0):.2f} px), "
-            f"{refine.get('seconds', {}).get('total', float('nan')):.1f} s.",
-        ]
-    return "\n".join(lines) + "\n"
-
-
-# --------------------------------------------------------------------------- compare
-def _evaluate(model_ok: bool, model: Path, database: Path, gt, pairs, seed: int) -> dict:
-    from .report import build_report, json_safe
-
-    if not model_ok:
-        # the database's own sections (two-view AUCs, keypoint accuracy) need no model
-        rep = json_safe(build_report(database=database, gt=gt, pairs=pairs, seed=seed)) if gt is not None else {}
-        return {**rep, "reconstruction": {}, "mapping_failed": True}
-    return json_safe(build_report(model, database=database if gt is not None else None, gt=gt, pairs=pairs, seed=seed))
-
-
+# --------------------------------------------------------------------------- compare steps
 def _curves(baseline: dict, refined: dict) -> dict:
     def errs(rep, key):
         return [p.get(key) for p in rep.get("pairs", []) if key in p]
@@ -229,76 +172,84 @@ def _point_clouds(output: Path, base_map, ref_map, plot_files: list) -> dict:
     return out
 
 
-def compare_databases(
-    database: str | Path,
-    image_dir: str | Path,
-    output: str | Path,
-    *,
-    gt: str | Path | None = None,
-    pairs=None,
-    recipe=None,
-    mapper: str = "incremental",
-    seed: int = 0,
-    workers: int | None = None,
-    device: str = "auto",
-    progress: bool = False,
-    verbose: bool = False,
-) -> CompareResult:
-    """Map and evaluate ``database`` as it is and after ``refine_database``; write tables/plots.
+def _mapping_config(recipe, mapper: str | None, seed: int | None):
+    """The recipe's ``mapping`` config with the ``mapper`` / ``seed`` overrides applied."""
+    from dataclasses import replace
 
-    Args:
-        database: COLMAP database (never modified).
-        image_dir: its image folder.
-        output: comparison folder (created; files in it are replaced).
-        gt: GT COLMAP model folder (or dataset folder with ``gt_model/``); without it only
-            reconstruction statistics are compared.
-        pairs: pairs for the two-view AUCs (list or file); default: the dataset's
-            ``pairs_with_gt.txt`` if present, else all GT pairs. Both sides use the same pairs.
-        recipe: Recipe, recipe name or TOML path for ``refine_database``.
-        mapper, seed: mapping options (same for both sides).
-        workers, device: ``refine_database`` options.
-        progress, verbose: bars and COLMAP's log on the terminal.
+    cfg = recipe.mapping
+    if mapper is not None:
+        cfg = replace(cfg, mapper=mapper)
+    if seed is not None:
+        cfg = replace(cfg, seed=seed)
+    return cfg
 
-    Returns:
-        :class:`CompareResult`.
+
+def _as_recipe(recipe):
+    from ..recipe import Recipe, load_recipe
+
+    return recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
+
+
+def map_repeats(database: Path, image_dir: Path, folder: Path, mapping, *, repeats: int = 1,
+                intrinsics: dict | None = None, tag: str = "", progress: bool = False,
+                verbose: bool = False) -> list:
+    """Map ``database`` ``repeats`` times with seeds ``mapping.seed + k``.
+
+    Run 0 writes ``folder/model`` (the model the report and plots use), run k >= 1
+    ``folder/runs/seed<S>/model``. Returns the ``MappingResult`` of each run.
     """
-    from . import plots
-    from .report import write_report_json
+    from dataclasses import replace
+
     from ..sfm import run_mapping
-    from ..pipeline.refine import refine_database
 
-    output = Path(output)
-    (output / "baseline").mkdir(parents=True, exist_ok=True)
-    (output / "refined").mkdir(parents=True, exist_ok=True)
-    (output / "plots").mkdir(exist_ok=True)
-    database, image_dir = Path(database), Path(image_dir)
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    results = []
+    for k in range(repeats):
+        seed = mapping.seed + k
+        out = folder / "model" if k == 0 else folder / "runs" / f"seed{seed}" / "model"
+        label = f"{tag} run {k + 1}/{repeats}" if repeats > 1 else f"{tag} mapping".strip()
+        log.info("%s: mapping (seed %d)", tag or "mapping", seed)
+        results.append(run_mapping(database, image_dir, out, replace(mapping, seed=seed), intrinsics=intrinsics,
+                                   progress=progress, label=label, verbose=verbose))
+    return results
 
-    log.info("baseline: mapping the database as it is")
-    base_map = run_mapping(database, image_dir, output / "baseline" / "model", mapper=mapper, seed=seed,
-                           progress=progress, verbose=verbose)
-    log.info("refining the matches (recipe %s)", getattr(recipe, "name", recipe) or "default")
-    refined_db = output / "refined" / "database.db"
-    summary = refine_database(database, image_dir, refined_db, recipe=recipe, overwrite=True, workers=workers,
-                              device=device, seed=seed, progress=progress,
-                              json_path=output / "refined" / "refine.json")
-    refine = summary.to_dict()
-    log.info("refined: mapping the refined database")
-    ref_map = run_mapping(summary.output, image_dir, output / "refined" / "model", mapper=mapper, seed=seed,
-                          progress=progress, verbose=verbose)
-    if not base_map.success and not ref_map.success:
-        raise RunFailed("mapping failed on both the baseline and the refined database")
 
-    if gt is not None and pairs is None:
-        from .gt_model import load_gt_poses
-        from .report import default_eval_pairs
+def _evaluate(model_ok: bool, model: Path, database: Path | None, gt, pairs, seed: int, thresholds) -> dict:
+    from .report import build_report, json_safe
 
-        pairs, _ = default_eval_pairs(gt, load_gt_poses(gt))
-    baseline = _evaluate(base_map.success, base_map.output, database, gt, pairs, seed)
-    refined = _evaluate(ref_map.success, ref_map.output, summary.output, gt, pairs, seed)
-    baseline["mapping"] = base_map.to_dict()
-    refined["mapping"] = ref_map.to_dict()
+    if not model_ok:
+        # the database's own sections (two-view AUCs, keypoint accuracy) need no model
+        rep = (json_safe(build_report(database=database, gt=gt, pairs=pairs, seed=seed, thresholds=thresholds))
+               if gt is not None and database is not None else {})
+        return {**rep, "reconstruction": {}, "mapping_failed": True}
+    return json_safe(build_report(model, database=database if gt is not None else None, gt=gt, pairs=pairs,
+                                  seed=seed, thresholds=thresholds))
 
-    changes = match_changes(database, summary.output)
+
+def evaluate_side(runs: list, database: Path, gt, pairs, seed: int, thresholds=None) -> dict:
+    """The report of one side: run 0's full report (model and database sections), its
+    ``mapping`` summary, and with several runs a ``repeats`` section
+    (:func:`colmap_miho.reporting.repeats.summarise_runs`; later runs evaluate the model only)."""
+    from .repeats import run_row, summarise_runs
+
+    first = runs[0]
+    report = _evaluate(first.success, first.output, database, gt, pairs, seed, thresholds)
+    report["mapping"] = first.to_dict()
+    if len(runs) > 1:
+        rows = [run_row(report, first.seed, first.success)]
+        for res in runs[1:]:
+            rep = _evaluate(res.success, res.output, None, gt, pairs, seed, thresholds)
+            rows.append(run_row(rep, res.seed, res.success))
+        for row, res in zip(rows, runs):
+            row["mapping"] = res.to_dict()
+        report["repeats"] = summarise_runs(rows)
+    return report
+
+
+def _write_plots(output: Path, baseline: dict, refined: dict, changes: dict) -> list[Path]:
+    from . import plots
+
     plot_files = []
     curves = _curves(baseline, refined)
     if curves:
@@ -307,12 +258,14 @@ def compare_databases(
                                                         output / "plots" / "keypoint_displacement.png"))
     plot_files.append(plots.plot_matches_per_pair(changes["matches_before"], changes["matches_after"],
                                                   output / "plots" / "matches_per_pair.png"))
+    return plot_files
 
-    clouds = _point_clouds(output, base_map, ref_map, plot_files)
-    for tag, rep in (("baseline", baseline), ("refined", refined)):
-        if tag in clouds:
-            rep["pointcloud"] = clouds[tag]
-        write_report_json(rep, output / tag / "report.json")
+
+def _write_tables(output: Path, baseline: dict, refined: dict, refine: dict, changes: dict, clouds: dict,
+                  plot_files: list[Path]) -> tuple[Path, Path]:
+    """compare.md and compare.json (the JSON without the per-pair rows)."""
+    from .report import write_report_json
+
     md = output / "compare.md"
     md.write_text(comparison_markdown(baseline, refined, refine), encoding="utf-8")
     disp = changes["displacements"]
@@ -331,7 +284,94 @@ def compare_databases(
         "rows": [{"metric": a, "baseline": b, "refined": c} for a, b, c in comparison_rows(baseline, refined)],
         "plots": [str(p) for p in plot_files],
     }
-    js = write_report_json(summary_json, output / "compare.json")
+    return md, write_report_json(summary_json, output / "compare.json")
+
+
+# --------------------------------------------------------------------------- compare
+def compare_databases(
+    database: str | Path,
+    image_dir: str | Path,
+    output: str | Path,
+    *,
+    gt: str | Path | None = None,
+    pairs=None,
+    recipe=None,
+    mapper: str | None = None,
+    seed: int | None = None,
+    repeats: int = 1,
+    gt_cameras: bool = False,
+    thresholds=None,
+    workers: int | None = None,
+    device: str = "auto",
+    progress: bool = False,
+    verbose: bool = False,
+) -> CompareResult:
+    """Map and evaluate ``database`` as it is and after ``refine_database``; write tables/plots.
+
+    Args:
+        database: COLMAP database (never modified).
+        image_dir: its image folder.
+        output: comparison folder (created; files in it are replaced).
+        gt: GT COLMAP model folder (or dataset folder with ``gt_model/``); without it only
+            reconstruction statistics are compared.
+        pairs: pairs for the two-view AUCs (list or file); default: the dataset's
+            ``pairs_with_gt.txt`` if present, else all GT pairs. Both sides use the same pairs.
+        recipe: Recipe, recipe name or TOML path: ``refine_database``'s stages and the
+            ``mapping`` config of both sides (mapper, seed, threads, cameras, refine_intrinsics).
+        mapper, seed: when given, replace the recipe's ``mapping.mapper`` / ``mapping.seed``
+            (the seed is also refinement's and the two-view protocols').
+        repeats: mapping runs per side, seeds ``seed, seed + 1, ...``; with more than one the
+            reports get a ``repeats`` section (per-run rows, median, min, max).
+        gt_cameras: write the GT model's intrinsics into the mapped copies (needs ``gt``;
+            combine with ``mapping.refine_intrinsics = "none"`` to keep them).
+        thresholds: pose-AUC thresholds in degrees (default 0.5/1/2/5/10/20).
+        workers, device: ``refine_database`` options.
+        progress, verbose: bars (one per mapping run) and COLMAP's log on the terminal.
+
+    Returns:
+        :class:`CompareResult`.
+    """
+    from ..pipeline.refine import refine_database
+
+    recipe = _as_recipe(recipe)
+    mapping = _mapping_config(recipe, mapper, seed)
+    if gt_cameras and gt is None:
+        raise ValueError("taking the cameras from the GT needs --gt")
+    intrinsics = gt_intrinsics(gt) if gt_cameras else None
+    output = Path(output)
+    for sub in ("baseline", "refined", "plots"):
+        (output / sub).mkdir(parents=True, exist_ok=True)
+    database, image_dir = Path(database), Path(image_dir)
+
+    common = {"repeats": repeats, "intrinsics": intrinsics, "progress": progress, "verbose": verbose}
+    base_runs = map_repeats(database, image_dir, output / "baseline", mapping, tag="baseline", **common)
+    log.info("refining the matches (recipe %s)", recipe.name)
+    summary = refine_database(database, image_dir, output / "refined" / "database.db", recipe=recipe,
+                              overwrite=True, workers=workers, device=device, seed=mapping.seed, progress=progress,
+                              json_path=output / "refined" / "refine.json")
+    refine = summary.to_dict()
+    ref_runs = map_repeats(summary.output, image_dir, output / "refined", mapping, tag="refined", **common)
+    if not any(r.success for r in base_runs + ref_runs):
+        raise RunFailed("mapping failed on both the baseline and the refined database")
+
+    if gt is not None and pairs is None:
+        from .gt_model import load_gt_poses
+        from .report import default_eval_pairs
+
+        pairs, _ = default_eval_pairs(gt, load_gt_poses(gt))
+    baseline = evaluate_side(base_runs, database, gt, pairs, mapping.seed, thresholds)
+    refined = evaluate_side(ref_runs, summary.output, gt, pairs, mapping.seed, thresholds)
+
+    changes = match_changes(database, summary.output)
+    plot_files = _write_plots(output, baseline, refined, changes)
+    clouds = _point_clouds(output, base_runs[0], ref_runs[0], plot_files)
+    from .report import write_report_json
+
+    for tag, rep in (("baseline", baseline), ("refined", refined)):
+        if tag in clouds:
+            rep["pointcloud"] = clouds[tag]
+        write_report_json(rep, output / tag / "report.json")
+    md, js = _write_tables(output, baseline, refined, refine, changes, clouds, plot_files)
     return CompareResult(output=output, baseline=baseline, refined=refined, refine=refine, markdown=md, json=js,
                          plots=plot_files)
 
@@ -340,8 +380,12 @@ def format_comparison(result: CompareResult) -> str:
     """Terminal text: the side-by-side table and where the files are."""
     rows = comparison_rows(result.baseline, result.refined)
     w = max((len(r[0]) for r in rows), default=10) + 2
-    lines = [f"{'metric':<{w}}{'baseline':>12}{'colmap-miho':>14}"]
-    lines += [f"{a:<{w}}{b:>12}{c:>14}" for a, b, c in rows]
+    cw = max([12, *(len(c) + 2 for r in rows for c in r[1:])])
+    lines = [f"{'metric':<{w}}{'baseline':>{cw}}{'colmap-miho':>{cw}}"]
+    lines += [f"{a:<{w}}{b:>{cw}}{c:>{cw}}" for a, b, c in rows]
+    runs = result.baseline.get("repeats", {}).get("num_runs")
+    if runs:
+        lines += ["", f"mapping figures: median [min-max] of {runs} runs per side"]
     lines += ["", f"table:  {result.markdown}", f"json:   {result.json}"]
     lines += [f"plot:   {p}" for p in result.plots]
     return "\n".join(lines)
@@ -359,8 +403,11 @@ def run_from_images(
     camera_model: str = "SIMPLE_RADIAL",
     camera_params: str = "",
     max_features: int = 8192,
-    mapper: str = "incremental",
-    seed: int = 0,
+    mapper: str | None = None,
+    seed: int | None = None,
+    repeats: int = 1,
+    gt_cameras: bool = False,
+    thresholds=None,
     workers: int | None = None,
     device: str = "auto",
     progress: bool = False,
@@ -368,9 +415,13 @@ def run_from_images(
 ) -> dict:
     """The whole job from a folder of images: SIFT + exhaustive matching, refine, map, report.
 
-    Writes ``OUTPUT/database.db`` (COLMAP's features and matches, kept as the baseline input).
-    Without ``compare``: ``OUTPUT/refined/{database.db, refine.json, model/}`` and
-    ``OUTPUT/report.json``. With ``compare``: :func:`compare_databases` into ``OUTPUT``.
+    Writes ``OUTPUT/database.db`` (COLMAP's features and matches, kept as the baseline input;
+    ``camera_model`` / ``camera_params`` are the extraction's camera, a prior only: the
+    recipe's ``mapping`` config decides what mapping keeps). Without ``compare``:
+    ``OUTPUT/refined/{database.db, refine.json, model/}`` and ``OUTPUT/report.json``. With
+    ``compare``: :func:`compare_databases` into ``OUTPUT`` (``repeats``, ``gt_cameras`` and
+    ``thresholds`` are passed on; without ``compare`` only ``gt_cameras`` and ``thresholds``
+    apply).
 
     Returns:
         ``{"database", "features", "report" | "compare"}`` (a JSON-ready dict; with compare
@@ -383,6 +434,10 @@ def run_from_images(
     from ..sfm import extract_and_match, require_success, run_mapping
     from ..pipeline.refine import refine_database
 
+    recipe = _as_recipe(recipe)
+    mapping = _mapping_config(recipe, mapper, seed)
+    if gt_cameras and gt is None:
+        raise ValueError("taking the cameras from the GT needs --gt")
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     database = output / "database.db"
@@ -395,18 +450,21 @@ def run_from_images(
     out: dict = {"database": str(database), "features": features}
     if compare:
         res = compare_databases(database, image_dir, output, gt=gt, recipe=recipe, mapper=mapper, seed=seed,
-                                workers=workers, device=device, progress=progress, verbose=verbose)
+                                repeats=repeats, gt_cameras=gt_cameras, thresholds=thresholds, workers=workers,
+                                device=device, progress=progress, verbose=verbose)
         out["compare"] = str(res.json)
         out["result"] = res
         return out
     (output / "refined").mkdir(exist_ok=True)
     summary = refine_database(database, image_dir, output / "refined" / "database.db", recipe=recipe,
-                              overwrite=True, workers=workers, device=device, seed=seed, progress=progress,
+                              overwrite=True, workers=workers, device=device, seed=mapping.seed, progress=progress,
                               json_path=output / "refined" / "refine.json")
-    res = require_success(run_mapping(summary.output, image_dir, output / "refined" / "model", mapper=mapper,
-                                      seed=seed, progress=progress, verbose=verbose))
+    res = require_success(run_mapping(summary.output, image_dir, output / "refined" / "model", mapping,
+                                      intrinsics=gt_intrinsics(gt) if gt_cameras else None, progress=progress,
+                                      verbose=verbose))
     report = build_report(res.output, reconstruction=res.reconstruction,
-                          database=summary.output if gt is not None else None, gt=gt, seed=seed)
+                          database=summary.output if gt is not None else None, gt=gt, seed=mapping.seed,
+                          thresholds=thresholds)
     report["refine"] = summary.to_dict()
     report["mapping"] = res.to_dict()
     out["report"] = str(write_report_json(report, output / "report.json"))

@@ -2,16 +2,20 @@
 
 :func:`build_report` returns a plain dict (JSON-ready) with these sections:
 
-- ``reconstruction``: num_images, num_reg_images, num_points3D, num_observations,
-  mean_track_length, mean_reprojection_error (px).
-- ``model_pose_auc`` (with GT): relative-pose AUC at 5/10/20 deg and mAA (1-10 deg) over ALL
+- ``reconstruction``: the statistics of COLMAP's ``model_analyzer`` under pycolmap's
+  ``Reconstruction.summary()`` names: num_cameras, num_images, num_reg_images, num_points3D,
+  num_observations, mean_track_length, mean_observations_per_image, mean_reprojection_error
+  (px).
+- ``model_pose_auc`` (with GT): relative-pose AUC at each of ``auc_thresholds`` (default
+  0.5/1/2/5/10/20 deg, keys ``auc0.5``, ``auc1``, ...; 5/10/20 always present) and mAA (1-10 deg) over ALL
   pairs of GT images, from the reconstructed poses; an unregistered image makes its pairs
   failures. Pair error = max(rotation error, translation-direction angle), the sign of the
   translation counts (a reconstruction fixes it).
 - ``absolute`` (with GT): rotation and camera-centre errors after a similarity (Umeyama)
   alignment of the registered camera centres to the GT ones.
 - ``two_view_pose_auc_E`` / ``two_view_pose_auc_F`` (with GT and a database): the paper's E and
-  F protocols on every evaluated pair's verified inlier matches, with GT intrinsics.
+  F protocols on every evaluated pair's verified inlier matches, with GT intrinsics (same AUC
+  keys).
 - ``keypoint_accuracy`` (with GT and a database): the stored inlier matches' distances to
   their GT epipolar lines and the residuals of their tracks triangulated with the GT cameras
   (:mod:`colmap_miho.reporting.keypoint_accuracy`; keys of ``KeypointAccuracy.to_dict``).
@@ -41,16 +45,45 @@ from .gt_model import CameraPose
 log = logging.getLogger(__name__)
 
 
+DEFAULT_AUC_THRESHOLDS_DEG: tuple[float, ...] = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0)
+"""Pose-AUC thresholds of the reports (degrees): COLMAP's benchmark tolerances (0.5/1/5/10)
+and the usual 2/20. 5/10/20 are always added (the ``auc5/auc10/auc20`` keys stay)."""
+
+
+def auc_thresholds(thresholds=None) -> tuple[float, ...]:
+    """``thresholds`` (degrees; None = :data:`DEFAULT_AUC_THRESHOLDS_DEG`) with 5/10/20 added,
+    sorted, duplicates removed.
+
+    Raises:
+        ValueError: a threshold that is not a positive finite number.
+    """
+    given = DEFAULT_AUC_THRESHOLDS_DEG if thresholds is None else tuple(thresholds)
+    for t in given:
+        if not (isinstance(t, (int, float)) and math.isfinite(t) and t > 0):
+            raise ValueError(f"AUC thresholds must be positive numbers of degrees, got {t!r}")
+    return tuple(sorted({float(t) for t in (*given, *pm.AUC_THRESHOLDS_DEG)}))
+
+
+def auc_key(threshold: float) -> str:
+    """JSON key of the AUC at ``threshold`` degrees: ``auc0.5``, ``auc1``, ``auc20`` (the keys
+    of :func:`colmap_miho.reporting.pose_metrics.auc_summary`)."""
+    t = float(threshold)
+    return f"auc{int(t) if t.is_integer() else t}"
+
+
 # --------------------------------------------------------------------------- reconstruction
 def reconstruction_stats(rec) -> dict:
     """Statistics of a ``pycolmap.Reconstruction`` (see module docstring)."""
     n_pts = int(rec.num_points3D())
+    n_reg = int(rec.num_reg_images())
     return {
+        "num_cameras": int(rec.num_cameras()),
         "num_images": int(rec.num_images()),
-        "num_reg_images": int(rec.num_reg_images()),
+        "num_reg_images": n_reg,
         "num_points3D": n_pts,
         "num_observations": int(rec.compute_num_observations()),
         "mean_track_length": float(rec.compute_mean_track_length()) if n_pts else 0.0,
+        "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image()) if n_reg else 0.0,
         "mean_reprojection_error": float(rec.compute_mean_reprojection_error()) if n_pts else 0.0,
     }
 
@@ -313,6 +346,7 @@ def build_report(
     gt: str | Path | None = None,
     pairs: list[tuple[str, str]] | str | Path | None = None,
     seed: int = 0,
+    thresholds=None,
 ) -> dict:
     """Evaluate a model and/or a database's matches and return the report dict.
 
@@ -328,11 +362,15 @@ def build_report(
         pairs: pairs for the two-view AUCs: a list of name pairs or a pairs file; default
             :func:`default_eval_pairs`.
         seed: RANSAC seed of the two-view protocols.
+        thresholds: pose-AUC thresholds in degrees (default
+            :data:`DEFAULT_AUC_THRESHOLDS_DEG`; 5/10/20 are always added, see
+            :func:`auc_thresholds`).
     """
     from .gt_model import load_gt_poses, load_reconstruction, poses_from_reconstruction
 
     if reconstruction is None and model is None and (database is None or gt is None):
         raise ValueError("give model or reconstruction, or database and gt")
+    thresholds = auc_thresholds(thresholds)
     rec = None
     if reconstruction is not None or model is not None:
         rec = reconstruction if reconstruction is not None else load_reconstruction(model)
@@ -363,7 +401,7 @@ def build_report(
             log.warning("%d registered images are not in the GT (names differ?), e.g. %s", len(missing), missing[0])
         all_pairs = gt_pairs(gt_poses)
         model_err = model_pair_errors(est, gt_poses, all_pairs)
-        report["model_pose_auc"] = pm.auc_summary(list(model_err.values()))
+        report["model_pose_auc"] = pm.auc_summary(list(model_err.values()), thresholds)
         report["absolute"] = absolute_errors(est, gt_poses)
         rows = {k: {"model": v} for k, v in model_err.items()}
     else:
@@ -378,7 +416,7 @@ def build_report(
             eval_pairs, src = list(pairs), "given pairs"
         tv = two_view_pair_errors(db_matches, gt_poses, eval_pairs, seed=seed)
         for proto in ("E", "F"):
-            s = pm.auc_summary(_errors_for(tv, proto))
+            s = pm.auc_summary(_errors_for(tv, proto), thresholds)
             s["pairs"] = src
             report[f"two_view_pose_auc_{proto}"] = s
         for k, r in tv.items():
@@ -402,6 +440,16 @@ def _pct(x) -> str:
 
 def _px(x) -> str:
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.3f}"
+
+
+def _auc_threshold(key: str) -> float | None:
+    """The threshold of an ``aucX`` key, or None for any other key."""
+    if not key.startswith("auc"):
+        return None
+    try:
+        return float(key[3:])
+    except ValueError:
+        return None
 
 
 def format_keypoint_accuracy(ka: dict) -> list[str]:
@@ -430,7 +478,9 @@ def format_report(report: dict) -> str:
             f"reconstruction  {r['num_reg_images']}/{r['num_images']} images registered, "
             f"{r['num_points3D']} points, {r['num_observations']} observations",
             f"                mean track length {r['mean_track_length']:.2f}, "
-            f"mean reprojection error {r['mean_reprojection_error']:.3f} px",
+            + (f"mean observations per image {r['mean_observations_per_image']:.1f}, "
+               if "mean_observations_per_image" in r else "")
+            + f"mean reprojection error {r['mean_reprojection_error']:.3f} px",
         ]
     pc = report.get("pointcloud") or {}
     if pc.get("num_points"):
@@ -439,14 +489,17 @@ def format_report(report: dict) -> str:
     if any(k in report for k in ("model_pose_auc", "two_view_pose_auc_E", "two_view_pose_auc_F")):
         if lines:
             lines.append("")
-        lines.append(f"{'pose AUC (%)':<26}{'@5':>7}{'@10':>7}{'@20':>7}{'mAA':>7}{'pairs':>7}{'failed':>7}")
         keys = [("model (all GT pairs)", "model_pose_auc"), ("two-view E (db matches)", "two_view_pose_auc_E"),
                 ("two-view F (db, MAGSAC)", "two_view_pose_auc_F")]
+        aucs = sorted({k for _, key in keys for k in report.get(key, {}) if _auc_threshold(k) is not None},
+                      key=_auc_threshold)
+        lines.append(f"{'pose AUC (%)':<26}" + "".join(f"{'@' + k[3:]:>7}" for k in aucs)
+                     + f"{'mAA':>7}{'pairs':>7}{'failed':>7}")
         for label, key in keys:
             if key in report:
                 a = report[key]
-                lines.append(f"{label:<26}{_pct(a['auc5']):>7}{_pct(a['auc10']):>7}{_pct(a['auc20']):>7}"
-                             f"{_pct(a['maa']):>7}{a['num_pairs']:>7}{a['num_failed']:>7}")
+                lines.append(f"{label:<26}" + "".join(f"{_pct(a.get(k)):>7}" for k in aucs)
+                             + f"{_pct(a['maa']):>7}{a['num_pairs']:>7}{a['num_failed']:>7}")
         ab = report.get("absolute", {})
         if ab.get("num_aligned", 0) >= 3:
             lines.append("")
