@@ -37,7 +37,8 @@ def test_local_samples_pass_the_spread_test(miho):
     # The 8 nearest matches in (x1, x2) fail the test on this grid; 88% of the drawn samples
     # pass (real SIFT pairs: 93-98%, against 5-21% with the plain nearest neighbours).
     assert ok.mean() > 0.8
-    nearest = sampler._tree.query(sampler._feats[:50], k=cfg.local_neighbours + 1)[1][:, 1:]
+    x1x2 = np.c_[x1, x2]
+    nearest = sampler._cands._tree.query(x1x2[:50], k=cfg.local_neighbours + 1)[1][:, 1:]
     assert not spread_ok(problem, np.c_[np.arange(50), nearest[:, :3]], cfg.t_l).any()
     # Every local pick is one of its seed's listed neighbours (or, where none was left, the
     # seed itself, which fails the test).

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import FilterConfig
-from .ransac import Hypotheses, Problem, ransac_round
+from .ransac import Hypotheses, LocalCandidates, Problem, ransac_round
 
 logger = logging.getLogger(__name__)
 
@@ -48,6 +48,7 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
     kept: list[Hypotheses] = []
     held: list[np.ndarray] = []
     failures = 0
+    candidates = LocalCandidates(problem, cfg) if cfg.sampling == "local" else None
     stats = {"rounds": 0, "failures": 0, "drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
     bar = None
     if progress:
@@ -57,7 +58,7 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
     # A model needs n inliers among the pool: with fewer matches left no round can succeed,
     # so stopping there gives the same result as running out the failure counter.
     while failures < cfg.max_failures and len(pool) >= max(4, n_req):
-        res, buffer = ransac_round(problem, pool, cfg, rng, buffer)
+        res, buffer = ransac_round(problem, pool, cfg, rng, buffer, candidates)
         stats["rounds"] += 1
         if bar is not None:
             bar.update(1)

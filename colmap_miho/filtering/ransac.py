@@ -333,69 +333,114 @@ class _Search:
         return improved
 
 
+class LocalCandidates:
+    """Candidate neighbours of local sampling for one filtering problem, shared by its MOP
+    rounds: for each match, its ``4 k`` nearest matches in the joint ``(x1, x2)`` space
+    (``k = local_neighbours``) and whether each lies at least t_l from it in every spread
+    set. Both are independent of the pool, so they are computed once per match, on demand."""
+
+    SEARCH = 4
+
+    def __init__(self, problem: Problem, cfg: FilterConfig) -> None:
+        from scipy.spatial import cKDTree
+
+        n = len(problem.x1)
+        self._spread = problem.spread_all
+        self._t2 = cfg.t_l**2
+        self.feats = np.concatenate([problem.x1, problem.x2], axis=1)
+        self._tree = cKDTree(self.feats)
+        self._q = max(min(n, self.SEARCH * cfg.local_neighbours + 1) - 1, 0)
+        self._cand = np.full((n, self._q), -1, dtype=np.int64)
+        self._far = np.zeros((n, self._q), dtype=bool)
+        self._known = np.zeros(n, dtype=bool)
+
+    def far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Whether matches ``a`` and ``b`` (broadcast) are >= t_l apart in every spread set."""
+        d = self._spread[a] - self._spread[b]
+        return np.all((d * d).sum(-1) >= self._t2, axis=-1)
+
+    def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
+        (nearest first) and whether each is far enough for the spread test."""
+        todo = np.unique(idx[~self._known[idx]])
+        if len(todo) and self._q:
+            cand = self._tree.query(self.feats[todo], k=self._q + 1)[1][:, 1:]
+            self._cand[todo] = cand
+            self._far[todo] = self.far(cand, todo[:, None])
+        self._known[todo] = True
+        return self._cand[idx], self._far[idx]
+
+
 class _Sampler:
     """Minimal samples over the pool: uniform, or a ``local_fraction`` of them drawn around
     a seed match among its ``local_neighbours`` nearest pool matches in ``(x1, x2)`` space.
 
-    Local samples are drawn so that they pass the spread test: a seed's neighbours are its
-    nearest matches that lie at least t_l from it in every spread set (image 1, image 2 and,
-    for MiHo, the midpoints), searched among its ``_SEARCH x k`` nearest, and the three
-    others are drawn one by one among the neighbours at least t_l from those already drawn.
-    A seed without three such neighbours gives a sample that fails the spread test.
-    Neighbour lists and their pairwise spread are computed once per pool position, on demand.
+    Local samples are drawn so that they pass the spread test: a seed's neighbours are the
+    nearest of its :class:`LocalCandidates` that are still in the pool and lie at least t_l
+    from it in every spread set (image 1, image 2 and, for MiHo, the midpoints; where fewer
+    than k of them are left in the pool, the nearest in the pool are searched anew), and the
+    three others are drawn one by one among the neighbours at least t_l from those already
+    drawn. A seed without three such neighbours gives a sample that fails the spread test.
+    Neighbour lists are computed once per pool position, on demand.
     """
 
-    _SEARCH = 4
-
-    def __init__(self, problem: Problem, pool: np.ndarray, cfg: FilterConfig) -> None:
+    def __init__(self, problem: Problem, pool: np.ndarray, cfg: FilterConfig,
+                 candidates: LocalCandidates | None = None) -> None:
         n = len(pool)
         self.pool = pool
         self.k = cfg.local_neighbours
         self.local = cfg.sampling == "local" and n > cfg.local_neighbours + 1
         self.fraction = cfg.local_fraction if self.local else 0.0
-        self._t2 = cfg.t_l**2
-        self._spread = problem.spread_all[pool]  # (n, sets, 2)
-        self._tree = self._feats = None
+        self._cands = None
         if self.local:
-            from scipy.spatial import cKDTree
-
-            self._feats = np.concatenate([problem.x1[pool], problem.x2[pool]], axis=1)
-            self._tree = cKDTree(self._feats)  # cheap to build; queried only where needed
+            self._cands = candidates if candidates is not None else LocalCandidates(problem, cfg)
+            self._pos = np.full(len(problem.x1), -1, dtype=np.int64)  # global -> pool position
+            self._pos[pool] = np.arange(n)
+        self._pool_tree = None
         self._nb = np.full((n, self.k), -1, dtype=np.int64)  # -1 = no such neighbour
-        self._apart = np.zeros((n, self.k, self.k), dtype=bool)
+        self._spread = problem.spread_all[pool] if self.local else None  # (n, sets, 2)
+        self._t2 = cfg.t_l**2
         self._known = np.zeros(n, dtype=bool)
 
-    def _far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Whether pool positions ``a`` and ``b`` (broadcast) are >= t_l apart in every set."""
-        d = self._spread[a] - self._spread[b]
-        return np.all((d * d).sum(-1) >= self._t2, axis=-1)
-
     def neighbours(self, pos: np.ndarray) -> np.ndarray:
-        """``(len(pos), k)`` pool positions of the nearest matches at least t_l from each of
-        the pool positions ``pos`` in every spread set (-1 where there are fewer than k)."""
+        """``(len(pos), k)`` pool positions of the nearest pool matches at least t_l from each
+        of the pool positions ``pos`` in every spread set (-1 where there are fewer than k)."""
         todo = np.unique(pos[~self._known[pos]])
         if len(todo):
-            n = len(self.pool)
-            q = min(n, self._SEARCH * self.k + 1)
-            cand = self._tree.query(self._feats[todo], k=q)[1][:, 1:]  # (T, q - 1)
-            ok = self._far(cand, todo[:, None])
-            # The first k far-enough candidates, nearest first.
-            order = np.argsort(~ok, axis=1, kind="stable")[:, : self.k]
-            nb = np.take_along_axis(cand, order, axis=1)
-            nb[~np.take_along_axis(ok, order, axis=1)] = -1
-            if nb.shape[1] < self.k:
-                nb = np.pad(nb, ((0, 0), (0, self.k - nb.shape[1])), constant_values=-1)
-            valid = nb >= 0
-            safe = np.where(valid, nb, 0)
-            apart = self._far(safe[:, :, None], safe[:, None, :])
+            cand, far = self._cands.get(self.pool[todo])
+            cand_pos = np.where(cand >= 0, self._pos[np.maximum(cand, 0)], -1)
+            nb = self._first_k(cand_pos, far & (cand_pos >= 0))
+            # Where earlier rounds removed too many of the candidates, search the pool itself.
+            short = np.flatnonzero((nb < 0).any(axis=1))
+            if len(short):
+                nb[short] = self._first_k(*self._pool_candidates(todo[short]))
             self._nb[todo] = nb
-            self._apart[todo] = apart & valid[:, :, None] & valid[:, None, :]
             self._known[todo] = True
         return self._nb[pos]
 
+    def _first_k(self, cand: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """The first k candidates (pool positions, nearest first) where ``ok``, -1 padded."""
+        order = np.argsort(~ok, axis=1, kind="stable")[:, : self.k]
+        nb = np.take_along_axis(cand, order, axis=1)
+        nb[~np.take_along_axis(ok, order, axis=1)] = -1
+        if nb.shape[1] < self.k:
+            nb = np.pad(nb, ((0, 0), (0, self.k - nb.shape[1])), constant_values=-1)
+        return nb
+
+    def _pool_candidates(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest pool matches of pool positions ``pos`` (as pool positions) and whether
+        each is far enough for the spread test, from a k-d tree over the pool."""
+        if self._pool_tree is None:
+            from scipy.spatial import cKDTree
+
+            self._pool_tree = cKDTree(self._cands.feats[self.pool])
+        q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
+        cand = self._pool_tree.query(self._cands.feats[self.pool[pos]], k=q)[1][:, 1:]
+        return cand, self._cands.far(self.pool[cand], self.pool[pos][:, None])
+
     def local_inlier_fraction(self, search: _Search) -> float:
         """Share of the best model's inliers among the neighbours of (up to 256) of them."""
-        if self._tree is None or search.mask is None or search.count <= 0:
+        if self._cands is None or search.mask is None or search.count <= 0:
             return 0.0
         inl = np.flatnonzero(search.mask)
         probe = inl[np.linspace(0, len(inl) - 1, min(len(inl), 256)).astype(np.int64)]
@@ -410,7 +455,7 @@ class _Sampler:
         (the seed itself where no such neighbour is left, which fails the spread test)."""
         nb = self.neighbours(seeds)
         free = nb >= 0  # (L, k) candidates still allowed
-        apart = self._apart[seeds]  # (L, k, k)
+        pts = self._spread[np.maximum(nb, 0)]  # (L, k, sets, 2)
         rows = np.arange(len(seeds))
         out = np.empty((len(seeds), 3), dtype=np.int64)
         for j in range(3):
@@ -418,7 +463,8 @@ class _Sampler:
             pick = np.argmax(key, axis=1)
             found = key[rows, pick] >= 0
             out[:, j] = np.where(found, nb[rows, pick], seeds)
-            free &= apart[rows, pick]
+            d = pts - pts[rows, pick][:, None]
+            free &= np.all((d * d).sum(-1) >= self._t2, axis=-1)
         return out
 
     def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
@@ -488,12 +534,15 @@ def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _
 
 
 def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.random.Generator,
-                 buffer: list[Hypotheses]) -> tuple[RoundResult | None, list[Hypotheses]]:
+                 buffer: list[Hypotheses], candidates: LocalCandidates | None = None
+                 ) -> tuple[RoundResult | None, list[Hypotheses]]:
     """Run one RANSAC search on the matches ``pool`` (``(n,)`` global indices).
 
     Args:
         buffer: the global top-z buffer of sub-optimal hypotheses; evaluated first
             (bootstrap) and returned updated.
+        candidates: the problem's local-sampling candidates, shared by the rounds (built
+            here when ``None``).
 
     Returns:
         ``(result, buffer)``; ``result`` is ``None`` when no valid hypothesis was found.
@@ -507,7 +556,7 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         boot = Hypotheses.concat(buffer)
         search.consider(boot, error_sq(problem, boot, pool))
         stats["full_scored"] += len(boot)
-    sampler = _Sampler(problem, pool, cfg)
+    sampler = _Sampler(problem, pool, cfg, candidates)
     required = _required(search, sampler, n, cfg)
     # Iterations are the samples that pass the spread test: a draw that fails it is not a
     # hypothesis and counts neither towards c_min / c_max nor against the adaptive bound
