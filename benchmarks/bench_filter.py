@@ -1,8 +1,10 @@
 """Speed and accuracy of the MOP / MOP+MiHo filter on real pairs with ground truth.
 
 For each pair: SIFT+NNR matches (8000 RootSIFT, upright, mutual NN, ratio 0.95 — the
-paper's front end, :func:`miho_bench.frontend.sift_matches`), then every method;
-prints the match count, homographies found, kept matches, precision and recall against GT
+paper's front end, :func:`miho_bench.frontend.sift_matches`, cached under
+``benchmarks/results/cache``), then every method;
+prints the match count, homographies found, kept matches, correct kept matches (``ok``),
+precision and recall against GT
 (3 px: max two-way transfer error for Oxford, max epipolar distance for Strecha; recall
 relative to the input's GT inliers) and the median wall time of ``--runs`` calls.
 
@@ -12,6 +14,8 @@ on 1351 SIFT matches; MOP+MiHo 2.5 s on 2558.
     python benchmarks/bench_filter.py            # 12 Oxford + 8 Strecha pairs
     python benchmarks/bench_filter.py --quick    # 3 pairs
     python benchmarks/bench_filter.py --sampling both   # guided vs the paper's uniform sampling
+    python benchmarks/bench_filter.py --only fountain --methods mop_miho \
+        --variant half:miho_threshold=half                # config overrides beside the default
 
 Data: ``$COLMAP_MIHO_DATA`` or ``<repo>/../shared/data``. Timings taken while other jobs
 share the CPU are pessimistic: the ``cpu`` column (process CPU time; the filter is
@@ -27,14 +31,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_hard_pairs import parse_variant
+from miho_bench.datasets import multiview_pairs, oxford_pairs
+from miho_bench.frontend_cache import load_inputs
+from miho_bench.match_errors import gt_error
 
 from colmap_miho import filter_matches
-from miho_bench.datasets import multiview_pairs, oxford_pairs
-from miho_bench.frontend import sift_matches
-from miho_bench.match_errors import gt_error
 from colmap_miho.filtering.config import FilterConfig
 
 GT_PX = 3.0
+CACHE = Path(__file__).resolve().parent / "results" / "cache"
 
 
 def data_root() -> Path:
@@ -61,25 +67,32 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=5, help="timed calls per pair and method")
     ap.add_argument("--methods", default="mop,mop_miho", help="comma-separated methods")
     ap.add_argument("--sampling", choices=("local", "uniform", "both"), default="local")
+    ap.add_argument("--variant", action="append", default=[],
+                    help="extra config per method, 'name:key=value,...' (repeatable)")
+    ap.add_argument("--only", default=None, help="only pairs whose label contains this")
     args = ap.parse_args(argv)
     root = data_root()
     if not (root / "README.md").is_file():
         print(f"data folder not found at {root} (set COLMAP_MIHO_DATA)")
         return 1
     samplings = ["local", "uniform"] if args.sampling == "both" else [args.sampling]
-    variants = [(m, s) for m in args.methods.split(",") for s in samplings]
+    extra = [("", {})] + [parse_variant(v) for v in args.variant]
+    variants = [(m, s, vn, over) for m in args.methods.split(",") for s in samplings
+                for vn, over in extra]
     # Warm-up (imports, first-call overheads) outside the timings.
     rng = np.random.default_rng(0)
     filter_matches(rng.uniform(0, 500, (100, 2)), rng.uniform(0, 500, (100, 2)))
     print(f"{'pair':<28} {'N':>5} {'inP':>5} | {'method':<16} {'K':>3} {'kept':>5} "
-          f"{'P':>6} {'R':>6} {'sec':>6} {'cpu':>6}")
+          f"{'ok':>5} {'P':>6} {'R':>6} {'sec':>6} {'cpu':>6}")
     summary: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     for label, pair in select_pairs(root, args.quick):
-        fm = sift_matches(pair.image1(), pair.image2())
+        if args.only and args.only not in label:
+            continue
+        fm = load_inputs(pair, "sift", CACHE)  # sift_matches(), cached on disk
         err = gt_error(pair, fm.pts1, fm.pts2)
         good = err <= GT_PX
-        for method, sampling in variants:
-            cfg = FilterConfig(method=method, sampling=sampling)
+        for method, sampling, vname, over in variants:
+            cfg = FilterConfig(method=method, sampling=sampling, **over)
             times, cpu = [], []
             for _ in range(args.runs):
                 t0, c0 = time.perf_counter(), time.process_time()
@@ -91,16 +104,19 @@ def main(argv: list[str] | None = None) -> int:
             prec = np.count_nonzero(kept & good) / kept.sum() if kept.any() else float("nan")
             rec = np.count_nonzero(kept & good) / good.sum() if good.any() else float("nan")
             sec, csec = float(np.median(times)), float(np.median(cpu))
-            summary.setdefault((method, sampling), []).append((prec, rec, sec, csec))
             name = method if len(samplings) == 1 else f"{method}/{sampling}"
+            name += f"/{vname}" if vname else ""
+            correct = np.count_nonzero(kept & good)
+            summary.setdefault((name, sampling), []).append((prec, rec, sec, csec, correct))
             print(f"{label:<28} {len(err):>5} {good.mean():>5.3f} | {name:<16} "
-                  f"{res.num_homographies:>3} {res.num_inliers:>5} {prec:>6.3f} {rec:>6.3f} {sec:>6.3f} "
-                  f"{csec:>6.3f}")
+                  f"{res.num_homographies:>3} {res.num_inliers:>5} {correct:>5} {prec:>6.3f} {rec:>6.3f} "
+                  f"{sec:>6.3f} {csec:>6.3f}")
         sys.stdout.flush()
     print("\nmean over pairs (sec = wall, cpu = process CPU time; median per pair, then mean/max)")
     for (method, sampling), rows in summary.items():
         a = np.array(rows)
-        print(f"  {method:<14} {sampling:<8} P {np.nanmean(a[:, 0]):.3f}  R {np.nanmean(a[:, 1]):.3f}  "
+        print(f"  {method:<22} {sampling:<8} P {np.nanmean(a[:, 0]):.3f}  R {np.nanmean(a[:, 1]):.3f}  "
+              f"correct kept {int(a[:, 4].sum())}  "
               f"sec mean {a[:, 2].mean():.3f} max {a[:, 2].max():.3f}  "
               f"cpu mean {a[:, 3].mean():.3f} max {a[:, 3].max():.3f}")
     return 0

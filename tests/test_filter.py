@@ -189,20 +189,73 @@ def test_four_point_matches_normalised_dlt():
     assert np.array_equal(np.sign(w_fwd), sign_fwd) and np.array_equal(np.sign(w_inv), sign_inv)
 
 
-def test_assignment_rule():
-    # 3 homographies; supports 5, 4, 2 (t_l = 1 -> compatible iff err2 <= 1).
+def _assign_case(supports, errors, rule="paper"):
+    """One probe match compatible with homographies of the given supports (t_l = 1) and
+    squared errors; the other matches only make up the supports."""
+    K = len(supports)
+    n = max(supports) + 1
+    err2 = np.full((K, n), np.inf)
+    for k, s in enumerate(supports):
+        err2[k, 1:s] = 0.5  # s - 1 filler inliers, plus the probe
+    err2[:, 0] = errors
+    labels, support = assign_matches(err2, t_l=1.0, rule=rule)
+    assert support.tolist() == list(supports)
+    return int(labels[0])
+
+
+@pytest.mark.parametrize("rule", ["paper", "median", "reference"])
+def test_assignment_one_compatible_plane(rule):
     inf = np.inf
-    err2 = np.array([
-        [0.9, 0.5, 0.1, 0.2, 0.3, inf, inf, inf],
-        [0.1, 0.1, inf, inf, inf, 0.5, 0.2, inf],
-        [0.0, inf, inf, inf, inf, 0.1, inf, inf],
-    ])
-    labels, support = assign_matches(err2, t_l=1.0)
-    assert support.tolist() == [5, 4, 2]
-    # Match 0: compatible with all; supports 5,4,2 -> q = 4 -> min error among H0, H1 = H1.
-    # Match 1: H0 (5), H1 (4) -> q = 4.5 -> only H0 eligible although H1 has a lower error.
-    # Match 5: H1 (4), H2 (2) -> q = 3 -> H1 although H2 has a lower error. Match 7: -1.
-    assert labels.tolist() == [1, 0, 0, 0, 0, 1, 1, -1]
+    err2 = np.array([[0.3, inf, inf], [inf, inf, 0.1]])
+    rounds = np.array([[True, False, False], [False, False, True]])
+    labels, _ = assign_matches(err2, t_l=1.0, rule=rule, round_inliers=rounds)
+    assert labels.tolist() == [0, -1, 1]
+
+
+def test_assignment_two_compatible_planes_compare_errors():
+    # Supports 40 and 10: q would be their mean (25) under the plain median, so the larger
+    # plane would always win; the paper's intermediate rule lets the errors decide.
+    assert _assign_case([40, 10], [0.8, 0.1]) == 1
+    assert _assign_case([40, 10], [0.1, 0.8]) == 0
+    assert _assign_case([40, 10], [0.8, 0.1], rule="median") == 0
+
+
+def test_assignment_three_to_five_compatible_planes():
+    # Three: q = the 2nd support -> the top two are eligible, the smaller error wins.
+    assert _assign_case([50, 30, 10], [0.9, 0.5, 0.1]) == 1
+    assert _assign_case([50, 30, 10], [0.2, 0.5, 0.1]) == 0
+    # Four: q = mean of the 2nd and 3rd -> the top two (the 3rd only on a tie).
+    assert _assign_case([50, 30, 20, 10], [0.9, 0.6, 0.1, 0.05]) == 1
+    assert _assign_case([50, 30, 30, 10], [0.9, 0.6, 0.1, 0.05]) == 2
+    # Five: q = the 3rd -> the top three.
+    assert _assign_case([50, 40, 30, 20, 10], [0.9, 0.8, 0.3, 0.1, 0.05]) == 2
+    # Six: only the top five by support count; q is still their 3rd.
+    assert _assign_case([60, 50, 40, 30, 20, 10], [0.9, 0.8, 0.7, 0.3, 0.1, 0.05]) == 2
+    # The plain median agrees for three, four and five.
+    for sup, err in (([50, 30, 10], [0.9, 0.5, 0.1]), ([50, 30, 20, 10], [0.9, 0.6, 0.1, 0.05]),
+                     ([50, 40, 30, 20, 10], [0.9, 0.8, 0.3, 0.1, 0.05])):
+        assert _assign_case(sup, err, rule="median") == _assign_case(sup, err)
+
+
+def test_assignment_reference_uses_round_inliers():
+    inf = np.inf
+    # Match 0 is within t_l of both H0 and H1 but only H0's round held it: the reference
+    # rule sees one compatible plane. Match 3 was held by no round: it keeps its
+    # least-error homography. The kept set equals the paper rule's.
+    err2 = np.array([[0.6, 0.1, 0.2, 0.9, inf],
+                     [0.1, inf, 0.3, 0.5, inf]])
+    rounds = np.array([[True, True, True, False, False],
+                       [False, False, True, False, False]])
+    ref, support = assign_matches(err2, t_l=1.0, rule="reference", round_inliers=rounds)
+    paper, _ = assign_matches(err2, t_l=1.0)
+    assert support.tolist() == [3, 1]
+    assert ref.tolist() == [0, 0, 0, 1, -1]
+    assert paper.tolist() == [1, 0, 0, 1, -1]
+    assert np.array_equal(ref >= 0, paper >= 0)
+    with pytest.raises(ValueError, match="round_inliers"):
+        assign_matches(err2, t_l=1.0, rule="reference")
+    with pytest.raises(ValueError, match="rule"):
+        assign_matches(err2, t_l=1.0, rule="mean")
 
 
 def test_degenerate_inputs_are_results():

@@ -38,6 +38,24 @@ class FilterConfig:
             (App. C says it "can easily be extended"); for MOP+MiHo* a mirrored best
             candidate makes the pair fail (reflections are excluded by that variant).
         rotation_pairs: random match pairs scored by the rotation fix (0 = all pairs).
+        miho_threshold: what MiHo's thresholds t_l and t_h bound. ``"half"`` (the paper's
+            and the reference's): each of the four transfer errors of the two half-matches
+            against the midpoint, so a full match may be about twice as far off as MOP
+            allows. ``"full"``: the full match, i.e. twice the largest half-match error
+            (which bounds ``|H1 x1 - H2 x2|`` in the midpoint frame), the same tolerance as
+            MOP's. ``"full_search"`` (default, chosen by measurement, see the README): the
+            full match while MOP searches planes, the half-matches when the found planes
+            keep and assign matches. Ignored by the other methods.
+        assignment: App. A.4 rule giving each kept match one homography. ``"paper"``: the
+            compatible homography with the least error among those whose support is at
+            least q, the median support of the (top 5) compatible ones; with exactly two
+            compatible homographies both are eligible (their errors decide, as in the
+            reference; the plain median, their mean, would always pick the larger plane).
+            ``"median"``: the plain median in every case. ``"reference"``: the reference
+            implementation's rule: compatibility and supports from each homography's t_l
+            inliers in the pool of the round that found it, and a match compatible with
+            none is still kept, with its least-error homography, when that error is within
+            t_l.
     """
 
     method: FilterMethod = FilterMethod.MOP_MIHO
@@ -58,6 +76,8 @@ class FilterConfig:
     refit_iters: int = 1
     rotation_fix_reflections: bool = True
     rotation_pairs: int = 20000
+    miho_threshold: str = "full_search"
+    assignment: str = "paper"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", FilterMethod.parse(self.method, "method"))
@@ -90,6 +110,12 @@ class FilterConfig:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.refit_iters < 0:
             raise ValueError(f"refit_iters must be >= 0, got {self.refit_iters}")
+        if self.miho_threshold not in ("half", "full", "full_search"):
+            raise ValueError(
+                f"miho_threshold must be half, full or full_search, got {self.miho_threshold!r}")
+        if self.assignment not in ("paper", "median", "reference"):
+            raise ValueError(
+                f"assignment must be paper, median or reference, got {self.assignment!r}")
         if self.rotation_pairs < 0:
             raise ValueError(f"rotation_pairs must be >= 0, got {self.rotation_pairs}")
 

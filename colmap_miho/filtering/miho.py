@@ -18,6 +18,8 @@ import numpy as np
 
 from .ransac import Problem
 
+_ROTATION_Z = 3.0  # paired z-score a non-identity pre-alignment needs over the identity
+
 
 def _candidate_transforms(x2: np.ndarray, reflections: bool) -> list[np.ndarray]:
     """3x3 affine maps of image 2 (rotations by k*90 degrees about the points' centroid,
@@ -51,6 +53,10 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
         pairs: random match pairs scored (0 = all ``N (N - 1) / 2`` pairs).
         reflections: also try the four mirrored variants.
 
+    The identity is kept unless another candidate's count exceeds it by more than three
+    standard deviations of the paired difference (same pairs), so that outlier noise
+    cannot turn an upright pair.
+
     Returns:
         ``(G, index, score)``: ``G`` ``(3, 3)`` affine map applied to image-2 points
         (``x2' = G x2``), the index of the candidate (0-3: rotation by index*90 degrees,
@@ -77,18 +83,34 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
     mx = dx1[:, 0] + R[:, 0, 0] * dx2[:, 0] + R[:, 0, 1] * dx2[:, 1]  # (C, P)
     my = dx1[:, 1] + R[:, 1, 0] * dx2[:, 0] + R[:, 1, 1] * dx2[:, 1]
     dm = np.sqrt(mx * mx + my * my) / 2
-    scores = ((dm >= lo) & (dm <= hi)).sum(1)
-    best = int(np.argmax(scores))  # first maximum: identity wins ties
+    inside = (dm >= lo) & (dm <= hi)  # (C, P)
+    scores = inside.sum(1)
+    # Keep the identity unless a candidate beats it clearly on the same pairs (paired
+    # z-score above _ROTATION_Z): where few matches are correct, pairs of outliers decide
+    # the counts and their noise would otherwise turn an upright pair (measured: Oxford
+    # pairs with 95% random matches added picked a mirrored frame and lost every match).
+    diff = inside.astype(np.int64) - inside[0]
+    spread = np.sqrt(np.maximum((diff * diff).sum(1), 1))
+    z = (scores - scores[0]) / spread
+    clear = np.flatnonzero(z > _ROTATION_Z)
+    best = int(clear[np.argmax(scores[clear])]) if len(clear) else 0
     return cands[best], best, int(scores[best])
 
 
-def build_problem(x1: np.ndarray, x2: np.ndarray, miho: bool) -> Problem:
+def build_problem(x1: np.ndarray, x2: np.ndarray, miho: bool, full_match: bool = False) -> Problem:
     """The RANSAC problem of plain MOP (one half ``x1 -> x2``) or of MOP+MiHo (two halves
-    ``x1 -> m`` and ``m -> x2``, spread tested in ``x1``, ``x2`` and ``m``)."""
+    ``x1 -> m`` and ``m -> x2``, spread tested in ``x1``, ``x2`` and ``m``).
+
+    With ``full_match`` MiHo's half-match errors are doubled before the thresholds: a match
+    ``d`` pixels off moves its midpoint by ``d / 2``, so each half-match error is about
+    ``d / 2`` and the doubled error bounds the full match's ``|H1 x1 - H2 x2|`` in the
+    midpoint frame (triangle inequality); the thresholds then mean what they mean for MOP.
+    """
     if not miho:
         return Problem(src=(x1,), dst=(x2,), spread=(x1, x2), x1=x1, x2=x2)
     m = (x1 + x2) / 2
-    return Problem(src=(x1, m), dst=(m, x2), spread=(x1, x2, m), x1=x1, x2=x2)
+    return Problem(src=(x1, m), dst=(m, x2), spread=(x1, x2, m), x1=x1, x2=x2,
+                   error_scale=2.0 if full_match else 1.0)
 
 
 def sqrt_split(H: np.ndarray, tol: float = 1e-6) -> np.ndarray | None:

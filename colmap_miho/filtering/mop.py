@@ -6,10 +6,13 @@ kept. Otherwise it is kept and its strict (t_h) inliers leave the pool when ther
 than n/2 of them; if not, its relaxed (t_l) inliers leave and the round counts as a failure.
 A round without failure resets the counter; MOP stops when ``max_failures`` (c_f*) failures
 happen in a row (the paper's rule; the reference implementation stops one later, which is
-``max_failures=4``) or when fewer than n matches are left (no round could succeed). The
-reference also counts a failure when the pool shrinks by at most n/2; here a kept model
-always removes more than n/2 matches (its strict inliers, or else its >= n relaxed ones),
-so that rule never fires.
+``max_failures=4``) or when fewer than n matches are left (no round could succeed).
+
+The reference has an extra rule: when a round's strict inliers shrink the pool by at most
+n/2 matches, it counts a failure and removes from the pool the relaxed (t_l) inliers of
+*every* homography kept so far, not only this one's. Here, as in the paper, such a round
+removes this model's relaxed inliers (>= n of them) and counts a failure; the extra rule's
+condition can then never hold, and the union it would remove is not implemented.
 """
 
 from __future__ import annotations
@@ -20,16 +23,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import FilterConfig
-from .ransac import Hypotheses, Problem, ransac_round
+from .ransac import Hypotheses, LocalCandidates, Problem, ransac_round
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass
 class MopOutput:
-    """Kept hypotheses (``K`` of them, in discovery order) and loop counters."""
+    """Kept hypotheses (``K`` of them, in discovery order), each one's t_l inliers in the pool
+    of its round (``round_inliers``, bool ``(K, N)``) and loop counters."""
 
     hyps: Hypotheses
+    round_inliers: np.ndarray
     stats: dict = field(default_factory=dict)
 
 
@@ -41,8 +46,10 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
     pool = np.arange(len(problem.x1))
     buffer: list[Hypotheses] = []
     kept: list[Hypotheses] = []
+    held: list[np.ndarray] = []
     failures = 0
-    stats = {"rounds": 0, "failures": 0, "drawn": 0, "valid": 0, "full_scored": 0}
+    candidates = LocalCandidates(problem, cfg) if cfg.sampling == "local" else None
+    stats = {"rounds": 0, "failures": 0, "drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
     bar = None
     if progress:
         from tqdm import tqdm
@@ -51,7 +58,7 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
     # A model needs n inliers among the pool: with fewer matches left no round can succeed,
     # so stopping there gives the same result as running out the failure counter.
     while failures < cfg.max_failures and len(pool) >= max(4, n_req):
-        res, buffer = ransac_round(problem, pool, cfg, rng, buffer)
+        res, buffer = ransac_round(problem, pool, cfg, rng, buffer, candidates)
         stats["rounds"] += 1
         if bar is not None:
             bar.update(1)
@@ -59,7 +66,7 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
             failures += 1
             stats["failures"] += 1
             continue
-        for key in ("drawn", "valid", "full_scored"):
+        for key in ("drawn", "samples", "valid", "full_scored"):
             stats[key] += res.stats[key]
         if res.count < n_req:
             failures += 1
@@ -74,6 +81,7 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
             failures += 1
             stats["failures"] += 1
         kept.append(res.hyp)
+        held.append(pool[res.err2 <= cfg.t_l**2])
         pool = pool[~remove]
         logger.debug("MOP round %d: %d inliers, %d left in pool", stats["rounds"], res.count,
                      len(pool))
@@ -81,4 +89,7 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
         bar.close()
     hyps = Hypotheses.concat(kept) if kept else Hypotheses.empty(problem.num_halves)
     stats["homographies"] = len(hyps)
-    return MopOutput(hyps, stats)
+    round_inliers = np.zeros((len(held), len(problem.x1)), dtype=bool)
+    for k, idx in enumerate(held):
+        round_inliers[k, idx] = True
+    return MopOutput(hyps, round_inliers, stats)

@@ -19,13 +19,19 @@ exactly the hypotheses the paper rejects among those that can matter. Buffer can
 the two strongest of each batch with at least n possible inliers (the paper considers every
 hypothesis; a weaker one could not enter a buffer of models worth bootstrapping). The run
 stops at the adaptive bound for confidence ``p`` (never before ``min_iters``, never after
-``max_iters``), counting every drawn sample as an iteration.
+``max_iters``). Iterations are the samples that pass the spread test: a draw that fails it
+is not a hypothesis, so it counts neither towards c_min / c_max nor against the bound
+(samples that the reflection or quasi-affinity checks reject do count). At most
+``10 x max_iters`` samples are drawn, for pools where almost nothing is spread out.
 
 Sampling (``FilterConfig.sampling``): ``"uniform"`` is the paper's; ``"local"`` draws a seed
 match uniformly and the other three among its ``local_neighbours`` nearest matches in the
-joint ``(x1, x2)`` space (NAPSAC-style) for a ``local_fraction`` of the samples. The adaptive
-bound then uses the all-inlier probability of that mixture (for local samples ``w * w_loc^3``
-with ``w_loc`` the measured inlier fraction among the inliers' neighbours).
+joint ``(x1, x2)`` space (NAPSAC-style) that lie at least t_l from the seed and from each
+other in every spread set, for a ``local_fraction`` of the samples. Plain nearest
+neighbours are mostly closer than t_l to each other (measured: 79-95% of such samples failed
+the spread test on SIFT pairs; 2-7% fail now). The adaptive bound uses the all-inlier
+probability of that mixture (for local samples ``w * w_loc^3`` with ``w_loc`` the measured
+inlier fraction among the inliers' neighbours).
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from .homography import (
     triangle_orientations,
 )
 
+_DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
 _PAIR_I = np.array([0, 0, 0, 1, 1, 2])
 _PAIR_J = np.array([1, 2, 3, 2, 3, 3])
 
@@ -58,6 +65,9 @@ class Problem:
             homography per half mapping ``src`` to ``dst``.
         spread: point sets in which the 4 sample points must be at least t_l apart.
         x1, x2: the two images' points (reflection check, local-sampling features).
+        error_scale: factor applied to every transfer error before the thresholds (1 for
+            MOP; 2 for MiHo with thresholds on the full match, see
+            ``FilterConfig.miho_threshold``).
     """
 
     src: tuple[np.ndarray, ...]
@@ -65,6 +75,7 @@ class Problem:
     spread: tuple[np.ndarray, ...]
     x1: np.ndarray
     x2: np.ndarray
+    error_scale: float = 1.0
     # Stacked copies (N, halves or sets, 2) so that a batch needs one gather, not a loop.
     src_all: np.ndarray = field(init=False, repr=False)
     dst_all: np.ndarray = field(init=False, repr=False)
@@ -136,18 +147,26 @@ def sample_signs(problem: Problem, H: np.ndarray, Hinv: np.ndarray, sample: np.n
     return ok, signs[0], signs[1]
 
 
-def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig):
-    """Fit and check hypotheses for minimal samples ``(B, 4)`` of global match indices.
-
-    Applies the spread test, the reflection check (MOP*) and the quasi-affinity of the
-    sample (both ways, every half); homographies come from the closed-form minimal solver.
-    The singular-value test is separate (:func:`passes_singular_value_test`) so that it runs
-    only on hypotheses that can matter; the result is the same as testing all of them first.
-    Returns the surviving :class:`Hypotheses`.
-    """
+def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
+    """``(B,)`` bool: the 4 points of each minimal sample ``(B, 4)`` are pairwise at least
+    ``t_l`` pixels apart in every spread set (paper App. A.3)."""
     p = problem.spread_all[sample]  # (B, 4, sets, 2)
     d = p[:, _PAIR_I] - p[:, _PAIR_J]  # (B, 6, sets, 2)
-    ok = np.all((d * d).sum(-1) >= cfg.t_l**2, axis=(1, 2))
+    return np.all((d * d).sum(-1) >= t_l**2, axis=(1, 2))
+
+
+def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
+                            ok: np.ndarray | None = None):
+    """Fit and check hypotheses for minimal samples ``(B, 4)`` of global match indices.
+
+    Applies the spread test (unless its result ``ok`` ``(B,)`` is given), the reflection
+    check (MOP*) and the quasi-affinity of the sample (both ways, every half); homographies
+    come from the closed-form minimal solver. The singular-value test is separate
+    (:func:`passes_singular_value_test`) so that it runs only on hypotheses that can matter;
+    the result is the same as testing all of them first. Returns the surviving
+    :class:`Hypotheses`.
+    """
+    ok = spread_ok(problem, sample, cfg.t_l) if ok is None else ok.copy()
     if cfg.reflection_check and ok.any():
         o1 = triangle_orientations(problem.x1[sample])
         o2 = triangle_orientations(problem.x2[sample])
@@ -183,8 +202,9 @@ def passes_singular_value_test(problem: Problem, hyp: Hypotheses, cfg: FilterCon
 
 def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
     """Squared MOP error ``(K, n)`` of hypotheses on the matches ``idx`` ``(n,)``: the max over
-    halves and directions of the squared transfer error; ``inf`` where a projection breaks
-    the quasi-affine sign of the hypothesis' sample."""
+    halves and directions of the squared transfer error (times ``problem.error_scale``
+    squared); ``inf`` where a projection breaks the quasi-affine sign of the hypothesis'
+    sample."""
     err = np.zeros((len(hyp), len(idx)))
     for h in range(problem.num_halves):
         src, dst = problem.src[h][idx], problem.dst[h][idx]
@@ -193,6 +213,8 @@ def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
             e = (x - b[:, 0]) ** 2 + (y - b[:, 1]) ** 2
             e[np.sign(w) != sgn[:, h, None]] = np.inf
             np.maximum(err, e, out=err)
+    if problem.error_scale != 1.0:
+        err *= problem.error_scale**2
     return err
 
 
@@ -206,6 +228,7 @@ def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
     3x faster than a GEMM with inner dimension 3 here). float32 rounding moves the bound by
     about 1e-4 px at 1000 px coordinates.
     """
+    t2 = t2 / problem.error_scale**2
     src = problem.src[0][idx].astype(np.float32)
     dst = problem.dst[0][idx].astype(np.float32)
     X, Y, x2, y2 = src[:, 0], src[:, 1], dst[:, 0], dst[:, 1]
@@ -310,41 +333,139 @@ class _Search:
         return improved
 
 
+class LocalCandidates:
+    """Candidate neighbours of local sampling for one filtering problem, shared by its MOP
+    rounds: for each match, its ``4 k`` nearest matches in the joint ``(x1, x2)`` space
+    (``k = local_neighbours``) and whether each lies at least t_l from it in every spread
+    set. Both are independent of the pool, so they are computed once per match, on demand."""
+
+    SEARCH = 4
+
+    def __init__(self, problem: Problem, cfg: FilterConfig) -> None:
+        from scipy.spatial import cKDTree
+
+        n = len(problem.x1)
+        self._spread = problem.spread_all
+        self._t2 = cfg.t_l**2
+        self.feats = np.concatenate([problem.x1, problem.x2], axis=1)
+        self._tree = cKDTree(self.feats)
+        self._q = max(min(n, self.SEARCH * cfg.local_neighbours + 1) - 1, 0)
+        self._cand = np.full((n, self._q), -1, dtype=np.int64)
+        self._far = np.zeros((n, self._q), dtype=bool)
+        self._known = np.zeros(n, dtype=bool)
+
+    def far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Whether matches ``a`` and ``b`` (broadcast) are >= t_l apart in every spread set."""
+        d = self._spread[a] - self._spread[b]
+        return np.all((d * d).sum(-1) >= self._t2, axis=-1)
+
+    def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
+        (nearest first) and whether each is far enough for the spread test."""
+        todo = np.unique(idx[~self._known[idx]])
+        if len(todo) and self._q:
+            cand = self._tree.query(self.feats[todo], k=self._q + 1)[1][:, 1:]
+            self._cand[todo] = cand
+            self._far[todo] = self.far(cand, todo[:, None])
+        self._known[todo] = True
+        return self._cand[idx], self._far[idx]
+
+
 class _Sampler:
     """Minimal samples over the pool: uniform, or a ``local_fraction`` of them drawn around
-    a seed match among its ``local_neighbours`` nearest pool matches in ``(x1, x2)`` space
-    (neighbours queried once per position, on demand)."""
+    a seed match among its ``local_neighbours`` nearest pool matches in ``(x1, x2)`` space.
 
-    def __init__(self, problem: Problem, pool: np.ndarray, cfg: FilterConfig) -> None:
+    Local samples are drawn so that they pass the spread test: a seed's neighbours are the
+    nearest of its :class:`LocalCandidates` that are still in the pool and lie at least t_l
+    from it in every spread set (image 1, image 2 and, for MiHo, the midpoints; where fewer
+    than k of them are left in the pool, the nearest in the pool are searched anew), and the
+    three others are drawn one by one among the neighbours at least t_l from those already
+    drawn. A seed without three such neighbours gives a sample that fails the spread test.
+    Neighbour lists are computed once per pool position, on demand.
+    """
+
+    def __init__(self, problem: Problem, pool: np.ndarray, cfg: FilterConfig,
+                 candidates: LocalCandidates | None = None) -> None:
         n = len(pool)
         self.pool = pool
         self.k = cfg.local_neighbours
         self.local = cfg.sampling == "local" and n > cfg.local_neighbours + 1
         self.fraction = cfg.local_fraction if self.local else 0.0
-        self._tree = self._feats = None
+        self._cands = None
         if self.local:
-            from scipy.spatial import cKDTree
-
-            self._feats = np.concatenate([problem.x1[pool], problem.x2[pool]], axis=1)
-            self._tree = cKDTree(self._feats)  # cheap to build; queried only where needed
-        self._nb = np.empty((n, self.k), dtype=np.int64)
+            self._cands = candidates if candidates is not None else LocalCandidates(problem, cfg)
+            self._pos = np.full(len(problem.x1), -1, dtype=np.int64)  # global -> pool position
+            self._pos[pool] = np.arange(n)
+        self._pool_tree = None
+        self._nb = np.full((n, self.k), -1, dtype=np.int64)  # -1 = no such neighbour
+        self._spread = problem.spread_all[pool] if self.local else None  # (n, sets, 2)
+        self._t2 = cfg.t_l**2
         self._known = np.zeros(n, dtype=bool)
 
     def neighbours(self, pos: np.ndarray) -> np.ndarray:
-        """``(len(pos), k)`` pool positions of the k nearest matches of pool positions ``pos``."""
+        """``(len(pos), k)`` pool positions of the nearest pool matches at least t_l from each
+        of the pool positions ``pos`` in every spread set (-1 where there are fewer than k)."""
         todo = np.unique(pos[~self._known[pos]])
         if len(todo):
-            self._nb[todo] = self._tree.query(self._feats[todo], k=self.k + 1)[1][:, 1:]
+            cand, far = self._cands.get(self.pool[todo])
+            cand_pos = np.where(cand >= 0, self._pos[np.maximum(cand, 0)], -1)
+            nb = self._first_k(cand_pos, far & (cand_pos >= 0))
+            # Where earlier rounds removed too many of the candidates, search the pool itself.
+            short = np.flatnonzero((nb < 0).any(axis=1))
+            if len(short):
+                nb[short] = self._first_k(*self._pool_candidates(todo[short]))
+            self._nb[todo] = nb
             self._known[todo] = True
         return self._nb[pos]
 
+    def _first_k(self, cand: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """The first k candidates (pool positions, nearest first) where ``ok``, -1 padded."""
+        order = np.argsort(~ok, axis=1, kind="stable")[:, : self.k]
+        nb = np.take_along_axis(cand, order, axis=1)
+        nb[~np.take_along_axis(ok, order, axis=1)] = -1
+        if nb.shape[1] < self.k:
+            nb = np.pad(nb, ((0, 0), (0, self.k - nb.shape[1])), constant_values=-1)
+        return nb
+
+    def _pool_candidates(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest pool matches of pool positions ``pos`` (as pool positions) and whether
+        each is far enough for the spread test, from a k-d tree over the pool."""
+        if self._pool_tree is None:
+            from scipy.spatial import cKDTree
+
+            self._pool_tree = cKDTree(self._cands.feats[self.pool])
+        q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
+        cand = self._pool_tree.query(self._cands.feats[self.pool[pos]], k=q)[1][:, 1:]
+        return cand, self._cands.far(self.pool[cand], self.pool[pos][:, None])
+
     def local_inlier_fraction(self, search: _Search) -> float:
         """Share of the best model's inliers among the neighbours of (up to 256) of them."""
-        if self._tree is None or search.mask is None or search.count <= 0:
+        if self._cands is None or search.mask is None or search.count <= 0:
             return 0.0
         inl = np.flatnonzero(search.mask)
         probe = inl[np.linspace(0, len(inl) - 1, min(len(inl), 256)).astype(np.int64)]
-        return float(search.mask[self.neighbours(probe)].mean())
+        nb = self.neighbours(probe)
+        valid = nb >= 0
+        if not valid.any():
+            return 0.0
+        return float(search.mask[nb[valid]].mean())
+
+    def _draw_local(self, rng: np.random.Generator, seeds: np.ndarray) -> np.ndarray:
+        """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart
+        (the seed itself where no such neighbour is left, which fails the spread test)."""
+        nb = self.neighbours(seeds)
+        free = nb >= 0  # (L, k) candidates still allowed
+        pts = self._spread[np.maximum(nb, 0)]  # (L, k, sets, 2)
+        rows = np.arange(len(seeds))
+        out = np.empty((len(seeds), 3), dtype=np.int64)
+        for j in range(3):
+            key = np.where(free, rng.random(free.shape), -1.0)
+            pick = np.argmax(key, axis=1)
+            found = key[rows, pick] >= 0
+            out[:, j] = np.where(found, nb[rows, pick], seeds)
+            d = pts - pts[rows, pick][:, None]
+            free &= np.all((d * d).sum(-1) >= self._t2, axis=-1)
+        return out
 
     def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
         """``(size, 4)`` global match indices, seed match first."""
@@ -353,10 +474,8 @@ class _Sampler:
         others = rng.integers(0, n, (size, 3))
         if self.local:
             is_local = np.flatnonzero(rng.random(size) < self.fraction)
-            pick = rng.integers(0, self.k, (len(is_local), 3))
             if len(is_local):
-                nb = self.neighbours(seeds[is_local])
-                others[is_local] = np.take_along_axis(nb, pick, axis=1)
+                others[is_local] = self._draw_local(rng, seeds[is_local])
         return self.pool[np.concatenate([seeds[:, None], others], axis=1)]
 
 
@@ -415,18 +534,21 @@ def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _
 
 
 def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.random.Generator,
-                 buffer: list[Hypotheses]) -> tuple[RoundResult | None, list[Hypotheses]]:
+                 buffer: list[Hypotheses], candidates: LocalCandidates | None = None
+                 ) -> tuple[RoundResult | None, list[Hypotheses]]:
     """Run one RANSAC search on the matches ``pool`` (``(n,)`` global indices).
 
     Args:
         buffer: the global top-z buffer of sub-optimal hypotheses; evaluated first
             (bootstrap) and returned updated.
+        candidates: the problem's local-sampling candidates, shared by the rounds (built
+            here when ``None``).
 
     Returns:
         ``(result, buffer)``; ``result`` is ``None`` when no valid hypothesis was found.
     """
     n = len(pool)
-    stats = {"drawn": 0, "valid": 0, "full_scored": 0}
+    stats = {"drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
     if n < 4:
         return None, buffer
     search = _Search(t2=cfg.t_l**2)
@@ -434,16 +556,26 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         boot = Hypotheses.concat(buffer)
         search.consider(boot, error_sq(problem, boot, pool))
         stats["full_scored"] += len(boot)
-    sampler = _Sampler(problem, pool, cfg)
+    sampler = _Sampler(problem, pool, cfg, candidates)
     required = _required(search, sampler, n, cfg)
-    while stats["drawn"] < (target := max(cfg.min_iters, min(required, cfg.max_iters))):
-        # Small batches while the bound may still drop, bigger ones when it will not.
+    # Iterations are the samples that pass the spread test: a draw that fails it is not a
+    # hypothesis and counts neither towards c_min / c_max nor against the adaptive bound
+    # (samples rejected by the reflection or quasi-affinity checks do count: they are
+    # hypotheses found wrong). A pool where almost no sample is spread out stops after
+    # _DRAW_CAP x c_max draws.
+    while (stats["samples"] < (target := max(cfg.min_iters, min(required, cfg.max_iters)))
+           and stats["drawn"] < _DRAW_CAP * cfg.max_iters):
+        # Small batches while the bound may still drop, bigger ones when it will not; sized
+        # by the share of spread-out draws so far.
         size = cfg.batch_size
         if search.count > 0:
-            size = int(min(max(size, target - stats["drawn"]), 8 * size))
+            rate = max(stats["samples"] / max(stats["drawn"], 1), 0.05)
+            size = int(min(max(size, (target - stats["samples"]) / rate), 8 * size))
         sample = sampler.draw(rng, size)
         stats["drawn"] += size
-        hyp = hypotheses_from_samples(problem, sample, cfg)
+        ok = spread_ok(problem, sample, cfg.t_l)
+        stats["samples"] += int(ok.sum())
+        hyp = hypotheses_from_samples(problem, sample, cfg, ok)
         stats["valid"] += len(hyp)
         if len(hyp) and _score_batch(problem, hyp, pool, cfg, search, stats):
             required = _required(search, sampler, n, cfg)

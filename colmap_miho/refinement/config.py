@@ -27,11 +27,16 @@ class NCCConfig:
         template_radius: r, half size of the template in pixels (paper: 10, 21x21 patch).
         search_radius: half size of the offset search in pixels (paper: 10).
         perturbations: which template shapes are tried on the extended pair: "none" (the
-            pair itself), "paper" (5 rotations x 5 shears of App. E, the reference's 25
-            shapes, applied to the template only) or "small" (identity, +-15 degrees,
-            factors 5/6 and 6/5).
+            pair itself), "paper" (App. E's A_{rho,f}: 5 rotations x 5 factors, applied to
+            the template only; not the reference's 25 shapes, its own anisotropic scalings
+            times rotations, through which it samples inversely) or "small" (identity,
+            +-15 degrees, factors 5/6 and 6/5).
         use_base_pair: also try the base pair (identity / keypoint affine frame).
-        ellipse_mask: NCC* - restrict the search to the structure-tensor ellipse.
+        ellipse_mask: NCC* - restrict the search to the structure-tensor ellipse. The
+            tensor is taken from the (unperturbed) template; the semi-axis along the edge
+            is ``search_radius * sqrt(lambda_min / lambda_max)`` floored at 0.5 px (the
+            paper says about 1 px); with ``reject_border`` a peak held back by the mask (not
+            a local maximum of the unmasked map) is rejected like a border peak.
         min_gain: a move of at least one pixel is applied only if it raises NCC by at least
             this much (NCC in [-1, 1]).
         reject_border: reject moves whose peak lies on the border of the search window (or

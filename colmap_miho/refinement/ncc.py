@@ -10,8 +10,9 @@ refines the accepted ones to sub-pixel accuracy (:mod:`.subpixel`, on those matc
 maps them back: ``x_moving' = H_moving^-1 (H_moving x_moving + t)``.
 
 Differences from the reference implementation (all configurable, see ``NCCConfig``):
-- perturbations act on the template only (the window is not re-sampled per shape); the
-  reference also perturbs the window side, which is close to the inverse template shape;
+- perturbations act on the template only and the window is sampled once per match; the
+  reference, too, perturbs only the template, but re-samples the (unperturbed) window for
+  every shape;
 - a move is rejected when its peak lies on the border of the search window (or is held back
   by the NCC* mask) or when it raises NCC by less than ``min_gain``; the reference never
   rejects;

@@ -1,0 +1,105 @@
+"""Issue 13: local samples that pass the spread test, iterations counted on valid samples,
+MiHo's tolerance (half-match vs full-match thresholds) and the rotation fix's margin."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from planes import make_scene
+
+from colmap_miho import filter_matches
+from colmap_miho.filtering.config import FilterConfig
+from colmap_miho.filtering.miho import build_problem, choose_rotation
+from colmap_miho.filtering.ransac import _Sampler, ransac_round, spread_ok
+
+
+def _dense_plane(rng, n=400, step=6.0):
+    """Matches on a jittered grid ``step`` px apart (closer than t_l = 15 px) under an affine
+    map: nearest neighbours are too close for the spread test. (The neighbours are searched
+    among the 4k nearest: a grid denser than about 5 px would leave none far enough.)"""
+    side = int(np.ceil(np.sqrt(n)))
+    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n]
+    x1 = 100 + step * g + rng.uniform(-0.5, 0.5, (n, 2))
+    A = np.array([[0.9, 0.1], [-0.05, 1.1]])
+    return x1, x1 @ A.T + [30.0, -20.0]
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_local_samples_pass_the_spread_test(miho):
+    rng = np.random.default_rng(0)
+    x1, x2 = _dense_plane(rng)
+    problem = build_problem(x1, x2, miho=miho)
+    cfg = FilterConfig(local_fraction=1.0)
+    pool = np.arange(len(x1))
+    sampler = _Sampler(problem, pool, cfg)
+    sample = sampler.draw(np.random.default_rng(1), 2000)
+    ok = spread_ok(problem, sample, cfg.t_l)
+    # The 8 nearest matches in (x1, x2) fail the test on this grid; 88% of the drawn samples
+    # pass (real SIFT pairs: 93-98%, against 5-21% with the plain nearest neighbours).
+    assert ok.mean() > 0.8
+    x1x2 = np.c_[x1, x2]
+    nearest = sampler._cands._tree.query(x1x2[:50], k=cfg.local_neighbours + 1)[1][:, 1:]
+    assert not spread_ok(problem, np.c_[np.arange(50), nearest[:, :3]], cfg.t_l).any()
+    # Every local pick is one of its seed's listed neighbours (or, where none was left, the
+    # seed itself, which fails the test).
+    nb = sampler.neighbours(sample[:, 0])
+    listed = (nb[:, :, None] == sample[:, None, 1:]).any(axis=1)
+    assert np.all(listed | (sample[:, 1:] == sample[:, :1]))
+    assert np.all(listed[ok])
+
+
+def test_iterations_count_spread_out_samples():
+    rng = np.random.default_rng(3)
+    x1, x2 = _dense_plane(rng, n=300)
+    noise = rng.uniform(0, 600, (300, 2))  # a second set of random matches
+    x1, x2 = np.r_[x1, noise], np.r_[x2, rng.uniform(0, 600, (300, 2))]
+    problem = build_problem(x1, x2, miho=False)
+    cfg = FilterConfig(method="mop", max_iters=300, min_iters=300)
+    res, _ = ransac_round(problem, np.arange(len(x1)), cfg, np.random.default_rng(0), [])
+    st = res.stats
+    assert st["samples"] >= cfg.min_iters  # c_min counts samples that pass the spread test
+    assert st["drawn"] >= st["samples"] >= st["valid"]
+    assert res.count >= 280  # the plane is found
+
+
+def _plane_with_offsets(offsets):
+    """300 exact matches of one homography plus one match per offset, its image-2 point moved
+    by ``offset`` px along x (the full match is ``offset`` px off)."""
+    rng = np.random.default_rng(5)
+    H = np.array([[1.05, 0.08, 40.0], [-0.03, 0.97, 15.0], [2e-5, 1e-5, 1.0]])
+    x1 = rng.uniform(50, 750, (300 + len(offsets), 2))
+    y = np.c_[x1, np.ones(len(x1))] @ H.T
+    x2 = y[:, :2] / y[:, 2:]
+    x2[300:, 0] += offsets
+    return x1, x2
+
+
+def test_miho_threshold_half_vs_full():
+    offsets = [5.0, 10.0, 20.0, 26.0, 40.0]
+    x1, x2 = _plane_with_offsets(offsets)
+    half = filter_matches(x1, x2, config=FilterConfig(method="mop_miho", miho_threshold="half"))
+    full = filter_matches(x1, x2, config=FilterConfig(method="mop_miho", miho_threshold="full"))
+    search = filter_matches(x1, x2, method="mop_miho")  # default "full_search"
+    mop = filter_matches(x1, x2, method="mop")
+    assert half.inliers[:300].all() and full.inliers[:300].all()
+    assert FilterConfig().miho_threshold == "full_search"
+    # Half-match thresholds: each half is about offset / 2 off, so up to ~2 t_l passes.
+    assert half.inliers[300:].tolist() == [True, True, True, True, False]
+    # Full-match thresholds: the same tolerance as MOP's.
+    assert full.inliers[300:].tolist() == [True, True, False, False, False]
+    assert mop.inliers[300:].tolist() == full.inliers[300:].tolist()
+    # Default: planes searched with the full-match tolerance, matches kept with half-matches.
+    assert search.inliers[300:].tolist() == half.inliers[300:].tolist()
+    with pytest.raises(ValueError, match="miho_threshold"):
+        FilterConfig(miho_threshold="both")
+    with pytest.raises(ValueError, match="assignment"):
+        FilterConfig(assignment="largest")
+
+
+def test_rotation_fix_keeps_upright_pairs_among_outliers():
+    # 5% correct upright matches among random ones: outlier pairs decide the raw counts, so
+    # only a clear margin may turn image 2 (measured: without it, 2 of these 8 seeds mirrored).
+    for seed in range(8):
+        sc = make_scene(np.random.default_rng(seed), n_planes=1, per_plane=60, outlier_ratio=0.95)
+        _, idx, _ = choose_rotation(sc.x1, sc.x2, np.random.default_rng(seed), reflections=True)
+        assert idx == 0, seed
