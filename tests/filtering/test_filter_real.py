@@ -72,7 +72,7 @@ def test_example_filter_pair_runs(shared_data, monkeypatch, capsys):
     from pathlib import Path
 
     monkeypatch.setenv("COLMAP_MIHO_DATA", str(shared_data))
-    example = Path(__file__).resolve().parents[1] / "examples" / "filter_pair.py"
+    example = Path(__file__).resolve().parents[2] / "examples" / "filter_pair.py"
     module = runpy.run_path(str(example), run_name="example")
     assert module["main"](["leuven", "2"]) == 0
     out = capsys.readouterr().out

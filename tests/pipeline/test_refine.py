@@ -317,7 +317,7 @@ def test_example_script_runs(tmp_path, capsys):
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "examples" / "refine_database.py"
+    path = Path(__file__).resolve().parents[2] / "examples" / "refine_database.py"
     spec = importlib.util.spec_from_file_location("example_refine_database", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

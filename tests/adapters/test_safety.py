@@ -24,7 +24,7 @@ from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.errors import DatabaseError, UserError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 # Seconds a subprocess may take to reach the write stage (imports torch, filters 6 pairs).
 REACH_WRITE_TIMEOUT_S = 120
 
@@ -137,7 +137,7 @@ def _refine_cmd(db: Path, images: Path, *extra: str) -> list[str]:
 def _kill_at_write(cli_args: list[str], marker: Path) -> None:
     """Run the CLI in a subprocess whose write stage pauses after its first pair (see
     ``pause_at_write.py``) and SIGKILL it there."""
-    cmd = [sys.executable, str(Path(__file__).with_name("pause_at_write.py")), str(marker), *cli_args]
+    cmd = [sys.executable, str(Path(__file__).resolve().parents[1] / "pause_at_write.py"), str(marker), *cli_args]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S

@@ -190,7 +190,7 @@ def test_example_refine_pair_runs(shared_data, monkeypatch, capsys):
     import runpy
 
     monkeypatch.setenv("COLMAP_MIHO_DATA", str(shared_data))
-    example = Path(__file__).resolve().parents[1] / "examples" / "refine_pair.py"
+    example = Path(__file__).resolve().parents[2] / "examples" / "refine_pair.py"
     main = runpy.run_path(str(example))["main"]
     assert main(["graf", "2", "gftt"]) == 0
     out = capsys.readouterr().out
