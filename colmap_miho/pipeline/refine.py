@@ -130,16 +130,17 @@ def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
 
 
 def _resolve_device(device: Device | str) -> str:
+    """"cpu" or "cuda", by the refinement's resolver (torch is imported only if needed)."""
     device = Device.parse(device, "device")
     if device == Device.CPU:
         return "cpu"
-    import torch
+    from ..refinement.config import NCCConfig
+    from ..refinement.ncc import resolve_device
 
-    if device == Device.CUDA:
-        if not torch.cuda.is_available():
-            raise UserError("--device cuda was asked for but torch sees no CUDA device")
-        return "cuda"
-    return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        return resolve_device(NCCConfig(device=str(device))).type
+    except ValueError:
+        raise UserError("--device cuda was asked for but torch sees no CUDA device") from None
 
 
 def _pause_for_tests(stage: str) -> None:
@@ -266,8 +267,14 @@ def refine_database(
                           if k[0] not in loader.missing and k[1] not in loader.missing}
                 affines = {i: db.keypoint_affines(i) for i in keypoints}
                 affines = None if any(a is None for a in affines.values()) else affines
+                # every other match that stays in the output joins the tracks (never refines)
+                unrefined = {(p.image_id1, p.image_id2): db.matches(p.image_id1, p.image_id2,
+                                                                    pcfg.source)
+                             for p in pairs if p.num_matches < pcfg.min_matches}
+                unrefined.update({k: m if not r.success else m[np.asarray(r.inliers, bool)]
+                                  for k, (m, r) in filtered.items() if k not in usable})
                 new_keypoints, stats, refine_workers = run_refine_stage(
-                    loader, keypoints, usable, affines, ncfg, rec.tracks,
+                    loader, keypoints, usable, affines, ncfg, rec.tracks, unrefined=unrefined,
                     workers=1 if dev == "cuda" else n_workers, progress=progress)
                 summary.refine_stats = dict(stats, workers=refine_workers)
             seconds["refine"] = time.perf_counter() - t

@@ -102,24 +102,28 @@ class NCCConfig:
 class TrackConfig:
     """Parameters of the track-consistent refinement walk.
 
+    The rules of the walk (anchor, reach, conflicts) are in
+    :mod:`colmap_miho.refinement.track_plan`.
+
     Attributes:
-        anchor: rule choosing the fixed observation of a track: "degree" (the most
-            connected keypoint, ties to the lowest image id).
-        max_images_in_memory: bound of the lazy image cache (and of the images one batched
-            call may use).
+        max_images_in_memory: images the pipeline's lazy loader keeps, and the most images
+            one batched call may use.
+        duplicate_px: two keypoints of one image in one track closer than this (pixels) are
+            duplicates (SIFT keeps one keypoint per dominant orientation at one position)
+            and are walked; farther apart they freeze the track.
         batch_pairs: refine all image pairs of a walk level in one NCC call (images stacked,
             at most ``max_images_in_memory`` per call) instead of one call per pair and side.
             None: on CUDA only, where a call costs about the same for 100 matches as for
             10000; on the CPU the work per match dominates and one call per pair is as fast.
     """
 
-    anchor: str = "degree"
     max_images_in_memory: int = 8
     batch_pairs: bool | None = None
+    duplicate_px: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.anchor not in ("degree",):
-            raise ValueError(f"anchor must be 'degree', got {self.anchor!r}")
+        if not self.duplicate_px >= 0:
+            raise ValueError(f"duplicate_px must be >= 0 pixels, got {self.duplicate_px}")
         if self.max_images_in_memory < 2:
             raise ValueError(
                 f"max_images_in_memory must be >= 2, got {self.max_images_in_memory}"
