@@ -59,6 +59,13 @@ def test_compare_synthetic(scene, tmp_path, capsys):
     assert cmp["baseline"]["two_view_pose_auc_E"]["num_pairs"] == cmp["refined"]["two_view_pose_auc_E"]["num_pairs"]
     for png in ("pose_error_curves.png", "keypoint_displacement.png", "matches_per_pair.png"):
         assert (out / "plots" / png).stat().st_size > 5000
+    # keypoint accuracy on both sides; planted outliers join tracks, the filter splits them again
+    kb, kr = cmp["baseline"]["keypoint_accuracy"], cmp["refined"]["keypoint_accuracy"]
+    assert kr["num_measured_tracks"] > kb["num_measured_tracks"]
+    assert kr["epipolar_share_above"] < kb["epipolar_share_above"]
+    rows = {r["metric"]: r for r in cmp["rows"]}
+    assert rows["GT track residual median (px)"]["refined"] == f"{kr['residual_median_px']:.3f}"
+    assert "epipolar distance median (px)" in printed and "wrong tracks > 4 px (%)" in printed
 
 
 def test_match_changes_sees_moved_keypoints(scene, tmp_path):

@@ -4,21 +4,27 @@ from __future__ import annotations
 
 from pathlib import Path
 
-HELP = "reconstruction statistics; with --gt pose AUC/mAA, and two-view pose AUC of --database"
+HELP = ("reconstruction statistics; with --gt pose AUC/mAA, and two-view pose AUC and keypoint accuracy "
+        "of --database")
 DESCRIPTION = (
     "Print reconstruction statistics of a COLMAP model. With --gt (COLMAP model folder, text or "
     "binary, images matched by name): relative-pose AUC@5/10/20 deg and mAA over all GT pairs, and "
     "rotation / camera-centre errors after a similarity alignment. With --database too: the "
     "paper's two-view pose AUCs (E and F protocols) from the database's verified matches, on the "
-    "dataset's pairs_with_gt.txt when the GT folder has one (else all GT pairs). The database is "
-    "read through a copy and never changed."
+    "dataset's pairs_with_gt.txt when the GT folder has one (else all GT pairs), and the keypoint "
+    "accuracy of its inlier matches under the GT geometry (distance to the GT epipolar lines; "
+    "residuals of the tracks triangulated with the GT cameras, wrong tracks apart). --model is "
+    "optional when --gt and --database are given. The database is read through a copy and never "
+    "changed."
 )
 ORDER = 40
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--model", required=True, type=Path, help="COLMAP model folder (text or binary)")
-    parser.add_argument("--database", type=Path, default=None, help="COLMAP database for the two-view pose AUCs")
+    parser.add_argument("--model", type=Path, default=None,
+                        help="COLMAP model folder (text or binary); optional with --gt and --database")
+    parser.add_argument("--database", type=Path, default=None,
+                        help="COLMAP database for the two-view pose AUCs and the keypoint accuracy")
     parser.add_argument("--gt", type=Path, default=None, help="GT COLMAP model folder (or a dataset folder with gt_model/)")
     parser.add_argument("--pairs", type=Path, default=None, help="pairs file (name1 name2 ...) for the two-view AUCs")
     parser.add_argument("--seed", type=int, default=0, help="RANSAC seed of the two-view protocols")
@@ -27,9 +33,15 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from ..errors import UserError
     from ..reporting.report import build_report, format_report, write_report_json
 
-    if not args.model.exists():
+    if args.model is None:
+        if args.gt is None or args.database is None:
+            raise UserError("give --model, or --gt and --database (keypoint accuracy without a model)")
+        if args.ply:
+            raise UserError("--ply needs --model")
+    elif not args.model.exists():
         raise FileNotFoundError(f"--model not found: {args.model}")
     report = build_report(args.model, database=args.database, gt=args.gt, pairs=args.pairs, seed=args.seed)
     if not args.quiet:

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import RunFailed
+from .keypoint_accuracy import EPIPOLAR_THRESHOLD_PX, TRACK_THRESHOLD_PX
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +112,15 @@ _ROWS = [
     ("two-view F AUC@5 (%)", ("two_view_pose_auc_F", "auc5"), "%"),
     ("two-view F AUC@10 (%)", ("two_view_pose_auc_F", "auc10"), "%"),
     ("two-view F AUC@20 (%)", ("two_view_pose_auc_F", "auc20"), "%"),
+    # keypoint accuracy under GT geometry (colmap_miho.reporting.keypoint_accuracy)
+    ("GT track residual median (px)", ("keypoint_accuracy", "residual_median_px"), ".3f"),
+    ("GT track residual mean (px)", ("keypoint_accuracy", "residual_mean_px"), ".3f"),
+    ("GT track residual p90 (px)", ("keypoint_accuracy", "residual_p90_px"), ".3f"),
+    ("GT tracks measured", ("keypoint_accuracy", "num_measured_tracks"), "d"),
+    (f"wrong tracks > {TRACK_THRESHOLD_PX:g} px (%)", ("keypoint_accuracy", "wrong_track_share"), "%"),
+    ("conflicting tracks", ("keypoint_accuracy", "num_conflicting_tracks"), "d"),
+    ("epipolar distance median (px)", ("keypoint_accuracy", "epipolar_median_px"), ".3f"),
+    (f"epipolar distance > {EPIPOLAR_THRESHOLD_PX:g} px (%)", ("keypoint_accuracy", "epipolar_share_above"), "%"),
 ]
 
 
@@ -163,7 +173,9 @@ def _evaluate(model_ok: bool, model: Path, database: Path, gt, pairs, seed: int)
     from .report import build_report, json_safe
 
     if not model_ok:
-        return {"reconstruction": {}, "mapping_failed": True}
+        # the database's own sections (two-view AUCs, keypoint accuracy) need no model
+        rep = json_safe(build_report(database=database, gt=gt, pairs=pairs, seed=seed)) if gt is not None else {}
+        return {**rep, "reconstruction": {}, "mapping_failed": True}
     return json_safe(build_report(model, database=database if gt is not None else None, gt=gt, pairs=pairs, seed=seed))
 
 

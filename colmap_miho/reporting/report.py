@@ -12,7 +12,12 @@
   alignment of the registered camera centres to the GT ones.
 - ``two_view_pose_auc_E`` / ``two_view_pose_auc_F`` (with GT and a database): the paper's E and
   F protocols on every evaluated pair's verified inlier matches, with GT intrinsics.
+- ``keypoint_accuracy`` (with GT and a database): the stored inlier matches' distances to
+  their GT epipolar lines and the residuals of their tracks triangulated with the GT cameras
+  (:mod:`colmap_miho.reporting.keypoint_accuracy`; keys of ``KeypointAccuracy.to_dict``).
 - ``pairs``: one row per evaluated pair (names, match count, model/E/F errors), for plots.
+
+Without a model (database and GT only) the report holds the database sections alone.
 
 All AUCs are fractions in [0, 1]. The database is read through a private copy: report never
 changes the caller's file (pycolmap migrates the schema of a database it opens).
@@ -24,6 +29,7 @@ import itertools
 import logging
 import math
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -163,6 +169,59 @@ def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
     return out
 
 
+@dataclass(frozen=True, kw_only=True)
+class DatabaseInliers:
+    """Keypoints and verified inlier matches of a database, by image name.
+
+    Attributes:
+        num_images: the database's image count.
+        keypoints: name -> float64 (N, 2) keypoint positions, integer = pixel centre.
+        matches: (name1, name2) with name1 < name2 -> int64 (M, 2) keypoint indices (column 0
+            into name1's keypoints, column 1 into name2's) of the two-view-geometry inliers.
+    """
+
+    num_images: int
+    keypoints: dict
+    matches: dict
+
+    def point_pairs(self, names: set[str] | None = None) -> dict:
+        """``{(name1, name2): (pts1 (M, 2), pts2 (M, 2))}`` float64 pixels, name1 < name2."""
+        return {(a, b): (self.keypoints[a][m[:, 0]], self.keypoints[b][m[:, 1]])
+                for (a, b), m in self.matches.items()
+                if names is None or (a in names and b in names)}
+
+
+def read_database_inliers(database: str | Path) -> DatabaseInliers:
+    """Keypoints and verified inlier matches of a database (see :class:`DatabaseInliers`).
+
+    The database is copied to a temporary folder first and only the copy is opened; keypoints
+    come through :class:`colmap_miho.adapters.database.ColmapDatabase` (COLMAP's +0.5 px offset
+    removed there).
+    """
+    from ..adapters.database import ColmapDatabase
+    from ..adapters.safety import check_database_path, copy_file
+
+    database = check_database_path(database)
+    kps: dict[str, np.ndarray] = {}
+    matches: dict = {}
+    with tempfile.TemporaryDirectory(prefix="colmap_miho_report_") as tmp:
+        copy = Path(tmp) / "database.db"
+        copy_file(database, copy)
+        with ColmapDatabase(copy) as db:
+            images = {r.image_id: r.name for r in db.images()}
+            for pair in db.pairs("verified"):
+                i, j = pair.image_id1, pair.image_id2
+                ni, nj = images.get(i), images.get(j)
+                if ni is None or nj is None:
+                    continue
+                for k, n in ((i, ni), (j, nj)):
+                    if n not in kps:
+                        kps[n] = db.keypoints(k)
+                m = db.matches(i, j, "verified").astype(np.int64)
+                matches[(ni, nj) if ni < nj else (nj, ni)] = m if ni < nj else m[:, ::-1].copy()
+    return DatabaseInliers(num_images=len(images), keypoints=kps, matches=matches)
+
+
 def read_database_matches(database: str | Path, names: set[str] | None = None) -> tuple[int, dict]:
     """Verified inlier matches of a database as pixel-centre point pairs, by image names.
 
@@ -177,32 +236,20 @@ def read_database_matches(database: str | Path, names: set[str] | None = None) -
         ``{(name1, name2): (pts1 (M, 2), pts2 (M, 2))}`` with name1 < name2, float64 pixels,
         integer = pixel centre.
     """
-    from ..adapters.database import ColmapDatabase
-    from ..adapters.safety import check_database_path, copy_file
+    inl = read_database_inliers(database)
+    return inl.num_images, inl.point_pairs(names)
 
-    database = check_database_path(database)
-    out: dict = {}
-    with tempfile.TemporaryDirectory(prefix="colmap_miho_report_") as tmp:
-        copy = Path(tmp) / "database.db"
-        copy_file(database, copy)
-        with ColmapDatabase(copy) as db:
-            images = {r.image_id: r.name for r in db.images()}
-            kp_cache: dict[int, np.ndarray] = {}
 
-            def kps(i):
-                if i not in kp_cache:
-                    kp_cache[i] = db.keypoints(i)
-                return kp_cache[i]
+def database_keypoint_accuracy(inliers: DatabaseInliers, gt: dict[str, CameraPose], **thresholds) -> dict:
+    """:func:`colmap_miho.reporting.keypoint_accuracy.keypoint_accuracy` of a database's
+    inliers under the GT cameras, as a JSON-ready dict (the ``keypoint_accuracy`` section);
+    ``thresholds`` are passed on (``epipolar_threshold_px``, ``track_threshold_px``,
+    ``min_track_views``)."""
+    from .keypoint_accuracy import keypoint_accuracy
 
-            for pair in db.pairs("verified"):
-                i, j = pair.image_id1, pair.image_id2
-                ni, nj = images.get(i), images.get(j)
-                if ni is None or nj is None or (names is not None and (ni not in names or nj not in names)):
-                    continue
-                m = db.matches(i, j, "verified").astype(np.int64)
-                p1, p2 = kps(i)[m[:, 0]], kps(j)[m[:, 1]]
-                out[(ni, nj) if ni < nj else (nj, ni)] = (p1, p2) if ni < nj else (p2, p1)
-    return len(images), out
+    if not set(inliers.keypoints) & set(gt):
+        log.warning("no database image is in the GT (names differ?): keypoint accuracy is empty")
+    return keypoint_accuracy(gt, inliers.keypoints, inliers.matches, **thresholds).to_dict()
 
 
 def two_view_pair_errors(
@@ -276,12 +323,16 @@ def build_report(
     pairs: list[tuple[str, str]] | str | Path | None = None,
     seed: int = 0,
 ) -> dict:
-    """Evaluate a model (and a database's matches) and return the report dict.
+    """Evaluate a model and/or a database's matches and return the report dict.
 
     Args:
-        model: COLMAP model folder (text or binary); or pass ``reconstruction``.
+        model: COLMAP model folder (text or binary); or pass ``reconstruction``. Without
+            either, only the database's matches are evaluated (needs ``database`` and ``gt``):
+            the report then has no ``reconstruction``, ``model_pose_auc`` or ``absolute``
+            section and its pair rows hold no ``model`` error.
         reconstruction: an in-memory ``pycolmap.Reconstruction`` instead of ``model``.
-        database: COLMAP database whose verified matches get the two-view pose AUCs (needs gt).
+        database: COLMAP database whose verified matches get the two-view pose AUCs and the
+            ``keypoint_accuracy`` section (needs gt).
         gt: GT COLMAP model folder (or a dataset folder with ``gt_model/``).
         pairs: pairs for the two-view AUCs: a list of name pairs or a pairs file; default
             :func:`default_eval_pairs`.
@@ -289,33 +340,44 @@ def build_report(
     """
     from .gt_model import load_gt_poses, load_reconstruction, poses_from_reconstruction
 
-    if reconstruction is None and model is None:
-        raise ValueError("give model or reconstruction")
-    rec = reconstruction if reconstruction is not None else load_reconstruction(model)
-    report: dict = {"model": str(model) if model is not None else None,
-                    "reconstruction": reconstruction_stats(rec)}
-    report["pointcloud"] = pointcloud_figures(rec)
-    db_matches = None
+    if reconstruction is None and model is None and (database is None or gt is None):
+        raise ValueError("give model or reconstruction, or database and gt")
+    rec = None
+    if reconstruction is not None or model is not None:
+        rec = reconstruction if reconstruction is not None else load_reconstruction(model)
+    report: dict = {"model": str(model) if model is not None else None}
+    if rec is not None:
+        report["reconstruction"] = reconstruction_stats(rec)
+        report["pointcloud"] = pointcloud_figures(rec)
+    inliers = db_matches = None
     if database is not None:
-        # a written model holds only its own images: count the database's for num_images
-        num_db_images, db_matches = read_database_matches(database)
-        report["reconstruction"]["num_images"] = max(report["reconstruction"]["num_images"], num_db_images)
+        inliers = read_database_inliers(database)
+        db_matches = inliers.point_pairs()
+        if rec is not None:
+            # a written model holds only its own images: count the database's for num_images
+            report["reconstruction"]["num_images"] = max(report["reconstruction"]["num_images"],
+                                                         inliers.num_images)
     if gt is None:
         if database is not None:
             log.warning("--database given without --gt: two-view pose AUCs need ground truth; skipped")
         return report
     gt_poses = load_gt_poses(gt)
-    est = poses_from_reconstruction(rec)
-    report["gt"] = {"path": str(gt), "num_images": len(gt_poses),
-                    "num_registered": len(set(est) & set(gt_poses))}
-    missing = sorted(set(est) - set(gt_poses))
-    if missing:
-        log.warning("%d registered images are not in the GT (names differ?), e.g. %s", len(missing), missing[0])
-    all_pairs = gt_pairs(gt_poses)
-    model_err = model_pair_errors(est, gt_poses, all_pairs)
-    report["model_pose_auc"] = pm.auc_summary(list(model_err.values()))
-    report["absolute"] = absolute_errors(est, gt_poses)
-    rows = {k: {"model": v} for k, v in model_err.items()}
+    rows: dict = {}
+    if rec is not None:
+        est = poses_from_reconstruction(rec)
+        report["gt"] = {"path": str(gt), "num_images": len(gt_poses),
+                        "num_registered": len(set(est) & set(gt_poses))}
+        missing = sorted(set(est) - set(gt_poses))
+        if missing:
+            log.warning("%d registered images are not in the GT (names differ?), e.g. %s", len(missing), missing[0])
+        all_pairs = gt_pairs(gt_poses)
+        model_err = model_pair_errors(est, gt_poses, all_pairs)
+        report["model_pose_auc"] = pm.auc_summary(list(model_err.values()))
+        report["absolute"] = absolute_errors(est, gt_poses)
+        rows = {k: {"model": v} for k, v in model_err.items()}
+    else:
+        model_err = {}
+        report["gt"] = {"path": str(gt), "num_images": len(gt_poses)}
     if database is not None:
         if pairs is None:
             eval_pairs, src = default_eval_pairs(gt, gt_poses)
@@ -329,8 +391,12 @@ def build_report(
             s["pairs"] = src
             report[f"two_view_pose_auc_{proto}"] = s
         for k, r in tv.items():
-            rows.setdefault(k, {"model": model_err.get(k, math.inf)}).update(r)
+            if rec is not None:
+                rows.setdefault(k, {"model": model_err.get(k, math.inf)}).update(r)
+            else:
+                rows.setdefault(k, {}).update(r)
         report["database"] = str(database)
+        report["keypoint_accuracy"] = database_keypoint_accuracy(inliers, gt_poses)
     report["pairs"] = [
         {"name1": a, "name2": b, **{k: (None if isinstance(v, float) and math.isinf(v) else v) for k, v in r.items()}}
         for (a, b), r in sorted(rows.items())
@@ -343,21 +409,45 @@ def _pct(x) -> str:
     return "  -  " if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:5.1f}"
 
 
+def _px(x) -> str:
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.3f}"
+
+
+def format_keypoint_accuracy(ka: dict) -> list[str]:
+    """Text lines of a ``keypoint_accuracy`` section (see :mod:`.keypoint_accuracy`)."""
+    share = ka.get("epipolar_share_above")
+    wrong = ka.get("wrong_track_share")
+    return [
+        f"keypoint accuracy under GT geometry ({ka['num_matches']} inlier matches, "
+        f"{ka['num_tracks']} tracks seen by >= {ka['min_track_views']} GT images)",
+        f"  epipolar distance median {_px(ka.get('epipolar_median_px'))} px, "
+        f"{_pct(share).strip()}% above {ka['epipolar_threshold_px']:g} px",
+        f"  GT track residual (tracks <= {ka['track_threshold_px']:g} px: {ka['num_measured_tracks']} tracks, "
+        f"{ka['num_measured_observations']} observations): median {_px(ka.get('residual_median_px'))}, "
+        f"mean {_px(ka.get('residual_mean_px'))}, p90 {_px(ka.get('residual_p90_px'))} px",
+        f"  wrong tracks (> {ka['track_threshold_px']:g} px): {ka['num_wrong_tracks']} "
+        f"({_pct(wrong).strip()}%); conflicting (two keypoints of one image): {ka['num_conflicting_tracks']}",
+    ]
+
+
 def format_report(report: dict) -> str:
     """A readable multi-line table of a report dict (AUCs in percent)."""
-    r = report["reconstruction"]
-    lines = [
-        f"reconstruction  {r['num_reg_images']}/{r['num_images']} images registered, "
-        f"{r['num_points3D']} points, {r['num_observations']} observations",
-        f"                mean track length {r['mean_track_length']:.2f}, "
-        f"mean reprojection error {r['mean_reprojection_error']:.3f} px",
-    ]
+    lines = []
+    r = report.get("reconstruction")
+    if r:
+        lines += [
+            f"reconstruction  {r['num_reg_images']}/{r['num_images']} images registered, "
+            f"{r['num_points3D']} points, {r['num_observations']} observations",
+            f"                mean track length {r['mean_track_length']:.2f}, "
+            f"mean reprojection error {r['mean_reprojection_error']:.3f} px",
+        ]
     pc = report.get("pointcloud") or {}
     if pc.get("num_points"):
         lines.append(f"                sparse cloud: {100 * pc['outlier_share']:.1f}% statistical outliers, "
                      f"median spacing {pc['spacing_median']:.3g} model units")
-    if "model_pose_auc" in report:
-        lines.append("")
+    if any(k in report for k in ("model_pose_auc", "two_view_pose_auc_E", "two_view_pose_auc_F")):
+        if lines:
+            lines.append("")
         lines.append(f"{'pose AUC (%)':<26}{'@5':>7}{'@10':>7}{'@20':>7}{'mAA':>7}{'pairs':>7}{'failed':>7}")
         keys = [("model (all GT pairs)", "model_pose_auc"), ("two-view E (db matches)", "two_view_pose_auc_E"),
                 ("two-view F (db, MAGSAC)", "two_view_pose_auc_F")]
@@ -375,6 +465,9 @@ def format_report(report: dict) -> str:
                 f"centre error median {ab['center_error']['median']:.4g} GT units "
                 f"({100 * ab['center_error_rel']:.2f}% of the camera spread)"
             )
+    if report.get("keypoint_accuracy"):
+        lines.append("")
+        lines += format_keypoint_accuracy(report["keypoint_accuracy"])
     return "\n".join(lines)
 
 

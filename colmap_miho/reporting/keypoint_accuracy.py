@@ -1,0 +1,382 @@
+"""Keypoint accuracy under ground-truth geometry: epipolar distances and GT track residuals.
+
+The measure by which keypoint refinement is judged. Given GT cameras, the keypoints of each
+image and the stored inlier matches of each image pair, :func:`keypoint_accuracy` computes
+
+- **epipolar distance** of every stored inlier match whose two images have GT: the symmetric
+  point-to-epipolar-line distance in pixels, ``(d(x2, F x1) + d(x1, F^T x2)) / 2`` with the GT
+  fundamental matrix ``F = K2^-T [t]_x R K1^-1`` (``R, t`` = camera 2 from camera 1). Median and
+  the share above :data:`EPIPOLAR_THRESHOLD_PX`.
+- **GT track residuals**: tracks are the connected components of the stored inliers over
+  (image, keypoint) nodes, as COLMAP's mapper would join them. A track that holds two keypoints
+  of one image is *conflicting* and counted apart, not measured. Each other track seen by at
+  least :data:`MIN_TRACK_VIEWS` GT images is triangulated with the GT cameras (linear DLT on
+  normalised coordinates, then Gauss-Newton on the pixel reprojection error, vectorised over
+  tracks); the residual of an observation is its reprojection error in pixels. Tracks whose
+  largest residual is at most :data:`TRACK_THRESHOLD_PX` are *measured* (median, mean and 90th
+  percentile of their observations' residuals); the others (and tracks that triangulate behind
+  a camera or at infinity) are *wrong tracks*, reported as a count and a share.
+
+Pure numpy/scipy: no file access, no pycolmap. Pixel convention: integer = pixel centre, both
+for the keypoints and for the intrinsics ``K`` (see :mod:`colmap_miho.reporting.gt_model`).
+The residual of a track triangulated from its own observations is slightly below the keypoint
+noise (the point absorbs 3 degrees of freedom): for Gaussian noise of ``sigma`` px per axis and
+``n`` views, the mean squared residual is ``2 sigma^2 (1 - 3 / (2 n))``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Hashable, Mapping
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+EPIPOLAR_THRESHOLD_PX = 2.0
+"""A stored inlier match farther than this (px, symmetric) from its GT epipolar line is counted
+in ``epipolar_share_above``."""
+
+TRACK_THRESHOLD_PX = 4.0
+"""A track whose largest GT reprojection residual exceeds this (px) is a *wrong track*: it joins
+keypoints of different 3D points, so its residuals measure matching errors, not localisation."""
+
+MIN_TRACK_VIEWS = 3
+"""Tracks seen by fewer GT images are not measured (two views leave the residual nearly free)."""
+
+GAUSS_NEWTON_STEPS = 5
+"""Gauss-Newton steps on the reprojection error after the DLT (converged well before 5 on
+sub-pixel noise)."""
+
+_MIN_DEPTH = 1e-9  # a point at or behind a camera (depth below this) does not triangulate
+
+
+@dataclass(frozen=True, kw_only=True)
+class KeypointAccuracy:
+    """Keypoint accuracy of one database under GT geometry (see the module docstring).
+
+    Attributes:
+        num_matches: stored inlier matches between two GT images (epipolar distances measured).
+        epipolar_median_px: median symmetric epipolar distance of those matches (px).
+        epipolar_share_above: share of them farther than ``epipolar_threshold_px``.
+        num_tracks: tracks seen by >= ``min_track_views`` GT images (conflicting ones included).
+        num_conflicting_tracks: of those, tracks holding two keypoints of one image (any image);
+            not measured.
+        num_measured_tracks: tracks whose largest residual is <= ``track_threshold_px``.
+        num_measured_observations: their GT observations.
+        residual_median_px / residual_mean_px / residual_p90_px: reprojection residuals of the
+            measured observations (px).
+        num_wrong_tracks: non-conflicting tracks above ``track_threshold_px`` (or not
+            triangulable).
+        wrong_track_share: ``num_wrong_tracks / (num_measured_tracks + num_wrong_tracks)``.
+        epipolar_threshold_px, track_threshold_px, min_track_views: the thresholds used.
+    NaN where nothing was measured.
+    """
+
+    num_matches: int
+    epipolar_median_px: float
+    epipolar_share_above: float
+    num_tracks: int
+    num_conflicting_tracks: int
+    num_measured_tracks: int
+    num_measured_observations: int
+    residual_median_px: float
+    residual_mean_px: float
+    residual_p90_px: float
+    num_wrong_tracks: int
+    wrong_track_share: float
+    epipolar_threshold_px: float
+    track_threshold_px: float
+    min_track_views: int
+
+    def to_dict(self) -> dict:
+        """Plain dict with the attribute names as keys (stable), NaN as None (JSON-ready)."""
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in asdict(self).items()}
+
+
+# --------------------------------------------------------------------------- cameras
+def _camera(cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K, R, t) float64 from an object with ``K, R, t`` attributes or a 3-tuple."""
+    if hasattr(cam, "K") and hasattr(cam, "R") and hasattr(cam, "t"):
+        K, R, t = cam.K, cam.R, cam.t
+    else:
+        K, R, t = cam
+    K, R, t = (np.asarray(a, dtype=np.float64) for a in (K, R, t))
+    if K.shape != (3, 3) or R.shape != (3, 3) or t.reshape(-1).shape != (3,):
+        raise ValueError(f"a camera needs K (3, 3), R (3, 3), t (3,); got {K.shape}, {R.shape}, {t.shape}")
+    return K, R, t.reshape(3)
+
+
+def fundamental_from_poses(K1, R1, t1, K2, R2, t2) -> np.ndarray:
+    """GT fundamental matrix ``F`` (3, 3) with ``x2^T F x1 = 0`` for pixel points (pixel-centre
+    convention), from two world-to-camera poses."""
+    R = R2 @ R1.T
+    t = t2 - R @ t1
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return np.linalg.inv(K2).T @ tx @ R @ np.linalg.inv(K1)
+
+
+def symmetric_epipolar_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Symmetric epipolar distance (px) of point pairs: ``(d(x2, F x1) + d(x1, F^T x2)) / 2``.
+
+    Args:
+        F: (3, 3) fundamental matrix, ``x2^T F x1 = 0``.
+        x1, x2: (M, 2) pixel points.
+
+    Returns:
+        (M,) float64 distances.
+    """
+    x1 = np.asarray(x1, dtype=np.float64).reshape(-1, 2)
+    x2 = np.asarray(x2, dtype=np.float64).reshape(-1, 2)
+    h1 = np.column_stack([x1, np.ones(len(x1))])
+    h2 = np.column_stack([x2, np.ones(len(x2))])
+    l2 = h1 @ F.T  # lines in image 2
+    l1 = h2 @ F  # lines in image 1
+    alg = np.abs(np.sum(h2 * l2, axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = alg / np.hypot(l2[:, 0], l2[:, 1])
+        d1 = alg / np.hypot(l1[:, 0], l1[:, 1])
+    return 0.5 * (d1 + d2)
+
+
+# --------------------------------------------------------------------------- triangulation
+def triangulate_tracks(
+    K: np.ndarray, R: np.ndarray, t: np.ndarray, xy: np.ndarray, valid: np.ndarray,
+    *, gauss_newton_steps: int = GAUSS_NEWTON_STEPS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate T tracks of up to L observations with known cameras; vectorised over tracks.
+
+    Linear DLT on normalised coordinates (``K^-1 x``), then ``gauss_newton_steps`` Gauss-Newton
+    steps on the pixel reprojection error (a step that does not lower a track's error is not
+    taken).
+
+    Args:
+        K, R, t: (T, L, 3, 3), (T, L, 3, 3), (T, L, 3) camera of each observation (world-to-camera).
+        xy: (T, L, 2) observed pixels (integer = pixel centre).
+        valid: (T, L) bool, which slots hold an observation (>= 2 per track).
+
+    Returns:
+        ``(X (T, 3), residual (T, L))``: the points and the pixel reprojection error of each
+        observation (0 at invalid slots; ``inf`` at every slot of a track whose point lies
+        behind or on one of its cameras).
+    """
+    valid = np.asarray(valid, dtype=bool)
+    w = valid[..., None].astype(np.float64)
+    T = xy.shape[0]
+    if T == 0:
+        return np.zeros((0, 3)), np.zeros(valid.shape)
+    # DLT rows x * P3 - P1, y * P3 - P2 with P = [R | t] and x = normalised coordinates
+    h = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
+    xn = np.einsum("tlij,tlj->tli", np.linalg.inv(np.where(valid[..., None, None], K, np.eye(3))), h)
+    xn = xn[..., :2] / xn[..., 2:3]
+    P = np.concatenate([R, t[..., None]], axis=-1)  # (T, L, 3, 4)
+    rows = np.stack([xn[..., 0:1] * P[..., 2, :] - P[..., 0, :], xn[..., 1:2] * P[..., 2, :] - P[..., 1, :]],
+                    axis=2)  # (T, L, 2, 4)
+    A = (rows * w[..., None]).reshape(T, -1, 4)
+    _, _, Vt = np.linalg.svd(A)
+    Xh = Vt[:, -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[:, :3] / Xh[:, 3:4]
+    X = np.where(np.isfinite(X), X, 0.0)
+    KR = K @ R  # (T, L, 3, 3)
+    Kt = np.einsum("tlij,tlj->tli", K, t)
+
+    def project(X):
+        p = np.einsum("tlij,tj->tli", KR, X) + Kt
+        z = p[..., 2]
+        zs = np.where(np.abs(z) > _MIN_DEPTH, z, _MIN_DEPTH)
+        return p[..., :2] / zs[..., None], zs
+
+    def cost(X):
+        uv, _ = project(X)
+        return (((uv - xy) ** 2).sum(-1) * valid).sum(-1)
+
+    c = cost(X)
+    for _ in range(gauss_newton_steps):
+        uv, z = project(X)
+        r = (uv - xy) * w  # (T, L, 2)
+        # d(uv)/dp = [[1/z, 0, -u/z], [0, 1/z, -v/z]]; dp/dX = K R
+        Jp = np.zeros(uv.shape[:-1] + (2, 3))
+        Jp[..., 0, 0] = 1.0 / z
+        Jp[..., 1, 1] = 1.0 / z
+        Jp[..., 0, 2] = -uv[..., 0] / z
+        Jp[..., 1, 2] = -uv[..., 1] / z
+        J = (Jp @ KR) * w[..., None]  # (T, L, 2, 3)
+        JtJ = np.einsum("tlai,tlaj->tij", J, J)
+        Jtr = np.einsum("tlai,tla->ti", J, r)
+        JtJ = JtJ + 1e-12 * np.trace(JtJ, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+        ok = np.abs(np.linalg.det(JtJ)) > 0
+        step = np.zeros_like(X)
+        if ok.any():
+            step[ok] = np.linalg.solve(JtJ[ok], -Jtr[ok][..., None])[..., 0]
+        Xn = X + step
+        cn = cost(Xn)
+        better = np.isfinite(cn) & (cn < c)
+        X = np.where(better[:, None], Xn, X)
+        c = np.where(better, cn, c)
+    uv, _ = project(X)
+    depth = np.einsum("tlj,tj->tl", R[..., 2, :], X) + t[..., 2]
+    res = np.linalg.norm(uv - xy, axis=-1) * valid
+    behind = ((depth <= _MIN_DEPTH) & valid).any(axis=1)
+    res[behind] = np.where(valid[behind], np.inf, 0.0)
+    return X, res
+
+
+# --------------------------------------------------------------------------- tracks
+def build_tracks(num_keypoints: list[int], matches: list[tuple[int, int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Connected components of matches over (image, keypoint) nodes.
+
+    Args:
+        num_keypoints: keypoint count of each image (images numbered 0..I-1).
+        matches: ``(image_a, image_b, idx (M, 2))`` keypoint indices of a into a, of b into b.
+
+    Returns:
+        ``(node (N,), label (N,))``: the global node index (``offset[image] + keypoint``) of every
+        matched keypoint and its component label (labels are arbitrary integers, equal within
+        a track).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    offset = np.concatenate([[0], np.cumsum(num_keypoints)]).astype(np.int64)
+    src, dst = [], []
+    for a, b, idx in matches:
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1, 2)
+        if len(idx) == 0:
+            continue
+        src.append(offset[a] + idx[:, 0])
+        dst.append(offset[b] + idx[:, 1])
+    if not src:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    s, d = np.concatenate(src), np.concatenate(dst)
+    n = int(offset[-1])
+    graph = coo_matrix((np.ones(len(s), np.int8), (s, d)), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    nodes = np.unique(np.concatenate([s, d]))
+    return nodes, labels[nodes]
+
+
+# --------------------------------------------------------------------------- the measure
+def keypoint_accuracy(
+    cameras: Mapping[Hashable, object],
+    keypoints: Mapping[Hashable, np.ndarray],
+    matches: Mapping[tuple[Hashable, Hashable], np.ndarray],
+    *,
+    epipolar_threshold_px: float = EPIPOLAR_THRESHOLD_PX,
+    track_threshold_px: float = TRACK_THRESHOLD_PX,
+    min_track_views: int = MIN_TRACK_VIEWS,
+    gauss_newton_steps: int = GAUSS_NEWTON_STEPS,
+) -> KeypointAccuracy:
+    """Epipolar distances and GT track residuals of stored inlier matches (see module docstring).
+
+    Args:
+        cameras: GT camera per image key: a :class:`~colmap_miho.reporting.gt_model.CameraPose`
+            (or any object with ``K`` (3, 3), ``R`` (3, 3), ``t`` (3,)) or a ``(K, R, t)``
+            tuple; world-to-camera, pixel-centre intrinsics. Images without a camera take part
+            in the tracks' connectivity but are not measured.
+        keypoints: (N_i, 2) float pixel positions per image key (integer = pixel centre).
+        matches: (M, 2) int keypoint indices per image pair ``(key_a, key_b)``: column 0 into
+            ``keypoints[key_a]``, column 1 into ``keypoints[key_b]``.
+        epipolar_threshold_px, track_threshold_px, min_track_views: see the module constants.
+        gauss_newton_steps: refinement steps after the DLT.
+
+    Returns:
+        :class:`KeypointAccuracy`.
+
+    Raises:
+        ValueError: a bad threshold, a pair naming an image without keypoints, or a match index
+            out of range (the message names the pair).
+    """
+    if not (epipolar_threshold_px > 0 and track_threshold_px > 0):
+        raise ValueError(f"thresholds must be > 0, got epipolar_threshold_px={epipolar_threshold_px}, "
+                         f"track_threshold_px={track_threshold_px}")
+    if int(min_track_views) < 2:
+        raise ValueError(f"min_track_views must be >= 2, got {min_track_views}")
+    if int(gauss_newton_steps) < 0:
+        raise ValueError(f"gauss_newton_steps must be >= 0, got {gauss_newton_steps}")
+    min_track_views = int(min_track_views)
+    keys = list(keypoints)
+    index = {k: i for i, k in enumerate(keys)}
+    kps = [np.asarray(keypoints[k], dtype=np.float64).reshape(-1, 2) for k in keys]
+    cams = {k: _camera(c) for k, c in cameras.items()}
+
+    # epipolar distances + the match list for the tracks
+    epi = []
+    track_matches = []
+    for (a, b), idx in matches.items():
+        if a not in index or b not in index:
+            raise ValueError(f"pair ({a!r}, {b!r}): no keypoints for {a if a not in index else b!r}")
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1, 2)
+        if len(idx) == 0:
+            continue
+        ia, ib = index[a], index[b]
+        if idx.min() < 0 or idx[:, 0].max() >= len(kps[ia]) or idx[:, 1].max() >= len(kps[ib]):
+            raise ValueError(f"pair ({a!r}, {b!r}): match index out of range "
+                             f"({len(kps[ia])} and {len(kps[ib])} keypoints)")
+        track_matches.append((ia, ib, idx))
+        if a in cams and b in cams:
+            F = fundamental_from_poses(*cams[a], *cams[b])
+            epi.append(symmetric_epipolar_distance(F, kps[ia][idx[:, 0]], kps[ib][idx[:, 1]]))
+    e = np.concatenate(epi) if epi else np.zeros(0)
+    nan = float("nan")
+
+    # tracks
+    nodes, labels = build_tracks([len(k) for k in kps], track_matches)
+    offset = np.concatenate([[0], np.cumsum([len(k) for k in kps])]).astype(np.int64)
+    img = np.searchsorted(offset, nodes, side="right") - 1
+    _, lab = np.unique(labels, return_inverse=True)
+    n_lab = int(lab.max()) + 1 if lab.size else 0
+    n_obs = np.bincount(lab, minlength=n_lab)
+    uniq_li = np.unique(lab * len(kps) + img) if lab.size else np.zeros(0, np.int64)
+    n_img = np.bincount(uniq_li // max(len(kps), 1), minlength=n_lab)
+    has_gt = np.array([k in cams for k in keys], dtype=bool)
+    gt_obs = has_gt[img] if img.size else np.zeros(0, bool)
+    gt_li = np.unique((lab * len(kps) + img)[gt_obs]) if lab.size else np.zeros(0, np.int64)
+    n_gt_img = np.bincount(gt_li // max(len(kps), 1), minlength=n_lab)
+    candidate = n_gt_img >= min_track_views
+    conflicting = candidate & (n_obs > n_img)
+    measured_tracks = candidate & ~conflicting
+
+    # padded (T, L) arrays of the GT observations of the measurable tracks
+    sel = measured_tracks[lab] & gt_obs
+    order = np.argsort(lab[sel], kind="stable")
+    t_lab, t_img, t_node = lab[sel][order], img[sel][order], nodes[sel][order]
+    track_ids, t_row = np.unique(t_lab, return_inverse=True)
+    T = len(track_ids)
+    counts = np.bincount(t_row, minlength=T)
+    L = int(counts.max()) if T else 0
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if T else np.zeros(0, np.int64)
+    slot = np.arange(len(t_row)) - starts[t_row] if T else np.zeros(0, np.int64)
+    Ks = np.stack([cams[k][0] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
+    Rs = np.stack([cams[k][1] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
+    ts = np.stack([cams[k][2] if k in cams else np.zeros(3) for k in keys]) if keys else np.zeros((0, 3))
+    Kp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
+    Rp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
+    tp = np.zeros((T, L, 3))
+    xy = np.zeros((T, L, 2))
+    valid = np.zeros((T, L), bool)
+    if T:
+        Kp[t_row, slot], Rp[t_row, slot], tp[t_row, slot] = Ks[t_img], Rs[t_img], ts[t_img]
+        xy[t_row, slot] = np.concatenate(kps)[t_node]
+        valid[t_row, slot] = True
+    _, res = triangulate_tracks(Kp, Rp, tp, xy, valid, gauss_newton_steps=int(gauss_newton_steps))
+    worst = np.where(valid, res, 0.0).max(axis=1) if T else np.zeros(0)
+    good = worst <= track_threshold_px
+    r = res[good][valid[good]]
+    n_good, n_wrong = int(good.sum()), int(T - good.sum())
+    return KeypointAccuracy(
+        num_matches=int(e.size),
+        epipolar_median_px=float(np.median(e)) if e.size else nan,
+        epipolar_share_above=float(np.mean(e > epipolar_threshold_px)) if e.size else nan,
+        num_tracks=int(candidate.sum()),
+        num_conflicting_tracks=int(conflicting.sum()),
+        num_measured_tracks=n_good,
+        num_measured_observations=int(r.size),
+        residual_median_px=float(np.median(r)) if r.size else nan,
+        residual_mean_px=float(np.mean(r)) if r.size else nan,
+        residual_p90_px=float(np.quantile(r, 0.9)) if r.size else nan,
+        num_wrong_tracks=n_wrong,
+        wrong_track_share=float(n_wrong / T) if T else nan,
+        epipolar_threshold_px=float(epipolar_threshold_px),
+        track_threshold_px=float(track_threshold_px),
+        min_track_views=min_track_views,
+    )
