@@ -120,7 +120,7 @@ def _import_refinement():
         from ..refinement import track_plan, tracks
     except ImportError as exc:  # the refinement module ships separately
         raise RunFailed(f"NCC refinement is not available ({exc}); use --no-refine") from None
-    return track_plan.build_track_plan, tracks.walk_tracks
+    return track_plan.build_track_plan, tracks.walk_tracks, tracks.local_affine_of
 
 
 def _refine_chunk(loader_state, plan, ncc_config, track_config, affines, threads,
@@ -130,7 +130,7 @@ def _refine_chunk(loader_state, plan, ncc_config, track_config, affines, threads
     import torch
 
     torch.set_num_threads(max(1, int(threads)))
-    _, walk_tracks = _import_refinement()
+    _, walk_tracks, _ = _import_refinement()
     report = progress_queue.put if progress_queue is not None else None
     tr = walk_tracks(ImageLoader(**loader_state), plan, ncc_config=ncc_config,
                      track_config=track_config, affines=affines, progress=False,
@@ -163,10 +163,11 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
     Returns:
         (new keypoints dict, stats, processes used).
     """
-    build_track_plan, walk_tracks = _import_refinement()
+    build_track_plan, walk_tracks, local_affine_of = _import_refinement()
     plan = build_track_plan(keypoints, {k: m for k, (m, _) in pairs.items()},
                             {k: r for k, (_, r) in pairs.items()}, unrefined_matches=unrefined,
-                            duplicate_px=track_config.duplicate_px)
+                            duplicate_px=track_config.duplicate_px,
+                            local_affine=local_affine_of(ncc_config))
     n_edges = int(plan.refinable().sum())
     if not n_edges:
         return keypoints, _numeric(plan.stats), 1

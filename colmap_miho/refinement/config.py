@@ -54,6 +54,11 @@ class NCCConfig:
             CPU larger chunks gain nothing).
         device: "cpu", "cuda" or "auto" (the device of CUDA tensor inputs, else CUDA when
             torch sees one, else the CPU).
+        local_affine_neighbours: in the track walk, replace the filter's patch homography
+            pair of every match by a local affine fit to this many nearest matches of its
+            cluster (:mod:`.rectify`); 0 keeps the filter's pairs.
+        local_affine_max_residual_px: neighbours off the first local fit by more than this
+            many pixels are dropped from the second.
     """
 
     template_radius: int = 10
@@ -71,6 +76,8 @@ class NCCConfig:
     subpixel_iterations: int = 3
     batch_size: int | None = None
     device: str = "auto"
+    local_affine_neighbours: int = 0
+    local_affine_max_residual_px: float = 2.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "move", MoveSide.parse(self.move, "move"))
@@ -94,6 +101,12 @@ class NCCConfig:
             )
         if self.batch_size is not None and self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.local_affine_neighbours != 0 and self.local_affine_neighbours < 6:
+            raise ValueError(f"local_affine_neighbours must be 0 (off) or >= 6, got "
+                             f"{self.local_affine_neighbours}")
+        if not self.local_affine_max_residual_px > 0:
+            raise ValueError(f"local_affine_max_residual_px must be > 0, got "
+                             f"{self.local_affine_max_residual_px}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
 

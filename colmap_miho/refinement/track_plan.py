@@ -227,6 +227,24 @@ def _edges(kps, offset, pair_matches, pair_filter_results, unrefined_matches):
     return tuple(pairs), tuple(homs), cat(ea), cat(eb), cat(ep), cat(el)
 
 
+def _local_pairs(kps, node_kp, pairs, homs, ea, eb, ep, el, k, max_residual_px):
+    """Per-edge homography pairs from local affine fits; labels become edge rows within
+    their pair (-1 stays -1)."""
+    from .rectify import local_affine_pairs
+
+    new_homs, new_el = [], el.copy()
+    starts = np.searchsorted(ep, np.arange(len(pairs) + 1))
+    for p, (id1, id2) in enumerate(pairs):
+        sl = slice(starts[p], starts[p + 1])
+        lab = el[sl]
+        x1 = kps[id1][node_kp[ea[sl]]]
+        x2 = kps[id2][node_kp[eb[sl]]]
+        new_homs.append(local_affine_pairs(x1, x2, lab, homs[p], k=k,
+                                           max_residual_px=max_residual_px))
+        new_el[sl] = np.where(lab >= 0, np.arange(lab.size), -1)
+    return tuple(new_homs), new_el
+
+
 def _conflicts(track, nodes, node_image, pos, duplicate_px) -> np.ndarray:
     """(n_tracks,) bool: tracks with two keypoints of one image more than ``duplicate_px``
     apart; and (n_tracks,) bool: tracks with two keypoints of one image at all."""
@@ -253,6 +271,7 @@ def build_track_plan(
     *,
     unrefined_matches: Mapping | None = None,
     duplicate_px: float = 1.0,
+    local_affine: tuple[int, float] | None = None,
 ) -> TrackPlan:
     """Build the tracks of all output matches (see the module docstring for the rules).
 
@@ -266,6 +285,9 @@ def build_track_plan(
             homography (pairs never filtered, failed, or with a missing image).
         duplicate_px: keypoints of one image in one track closer than this are duplicates,
             farther ones freeze the track.
+        local_affine: (k neighbours, max residual px): give every refinable match its own
+            patch homography pair from a local affine fit to its pair's nearest matches
+            (:func:`.rectify.local_affine_pairs`); None keeps the filter's pairs.
     Returns:
         :class:`TrackPlan`.
     Raises:
@@ -274,6 +296,8 @@ def build_track_plan(
     kps, offset, node_image, node_kp = _nodes(keypoints)
     pairs, homs, ea, eb, ep, el = _edges(kps, offset, pair_matches, pair_filter_results,
                                          unrefined_matches)
+    if local_affine is not None:
+        homs, el = _local_pairs(kps, node_kp, pairs, homs, ea, eb, ep, el, *local_affine)
     total = node_image.size
     track = np.full(total, -1, np.int64)
     stats = dict.fromkeys(["tracks", "conflicting_tracks", "frozen_tracks", "frozen_keypoints",

@@ -69,6 +69,13 @@ class TrackRefineResult:
     stats: dict = field(default_factory=dict)
 
 
+def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
+    """The plan's ``local_affine`` argument for an NCC configuration."""
+    if not ncc_cfg.local_affine_neighbours:
+        return None
+    return ncc_cfg.local_affine_neighbours, ncc_cfg.local_affine_max_residual_px
+
+
 def _resolve_configs(config, ncc_config, track_config) -> tuple[NCCConfig, TrackConfig]:
     ncc, trk = NCCConfig(), TrackConfig()
     if isinstance(config, tuple):
@@ -129,7 +136,8 @@ def refine_tracks(
     ncc_cfg, trk_cfg = _resolve_configs(config, ncc_config, track_config)
     plan = build_track_plan(keypoints, pair_matches, pair_filter_results,
                             unrefined_matches=unrefined_matches,
-                            duplicate_px=trk_cfg.duplicate_px)
+                            duplicate_px=trk_cfg.duplicate_px,
+                            local_affine=local_affine_of(ncc_cfg))
     return walk_tracks(images, plan, ncc_config=ncc_cfg, track_config=trk_cfg, affines=affines,
                        progress=progress, on_progress=on_progress, refine_fn=refine_fn)
 
