@@ -34,6 +34,8 @@ class NCCConfig:
         ellipse_mask: NCC* - restrict the search to the structure-tensor ellipse.
         min_gain: a move of at least one pixel is applied only if it raises NCC by at least
             this much (NCC in [-1, 1]).
+        min_ncc: a move is applied only if its NCC peak reaches this (in [-1, 1]; -1 = no
+            floor): a weak peak is more likely wrong than right.
         reject_border: reject moves whose peak lies on the border of the search window (or
             is held back by the NCC* ellipse).
         cornerness_gate: skip edge-like patches (structure-tensor test).
@@ -54,9 +56,16 @@ class NCCConfig:
             CPU larger chunks gain nothing).
         device: "cpu", "cuda" or "auto" (the device of CUDA tensor inputs, else CUDA when
             torch sees one, else the CPU).
-        local_affine_neighbours: in the track walk, replace the filter's patch homography
-            pair of every match by a local affine fit to this many nearest matches of its
-            cluster (:mod:`.rectify`); 0 keeps the filter's pairs.
+        rectification: the patch homography pairs of the track walk: "filter" (the
+            filter's plane of each match), "local" (a local affine fit to the
+            ``local_affine_neighbours`` nearest matches of its cluster, :mod:`.rectify`) or
+            "both" (each match searched with both; the higher NCC peak wins).
+        local_affine_neighbours: matches (the match included) of each local affine fit.
+        check_radius: 0 (off), or the radius of a second template (another size than
+            ``template_radius``): a move is applied only if the search with that template
+            moves the same keypoint to within ``check_px`` pixels of it (both sizes agree;
+            a peak biased by the patch's content rarely is at both sizes).
+        check_px: agreement of the two template sizes, pixels.
         local_affine_max_residual_px: neighbours off the first local fit by more than this
             many pixels are dropped from the second.
     """
@@ -67,6 +76,7 @@ class NCCConfig:
     use_base_pair: bool = True
     ellipse_mask: bool = False
     min_gain: float = 0.0
+    min_ncc: float = -1.0
     reject_border: bool = True
     cornerness_gate: bool = False
     min_cornerness: float = 0.1
@@ -76,7 +86,10 @@ class NCCConfig:
     subpixel_iterations: int = 3
     batch_size: int | None = None
     device: str = "auto"
-    local_affine_neighbours: int = 0
+    rectification: str = "filter"
+    check_radius: int = 0
+    check_px: float = 0.25
+    local_affine_neighbours: int = 12
     local_affine_max_residual_px: float = 2.0
 
     def __post_init__(self) -> None:
@@ -91,6 +104,8 @@ class NCCConfig:
             )
         if self.min_gain < 0:
             raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
+        if not -1 <= self.min_ncc <= 1:
+            raise ValueError(f"min_ncc must be in [-1, 1], got {self.min_ncc}")
         if not 0 <= self.min_cornerness <= 1:
             raise ValueError(f"min_cornerness must be in [0, 1], got {self.min_cornerness}")
         if self.min_template_std < 0:
@@ -101,8 +116,16 @@ class NCCConfig:
             )
         if self.batch_size is not None and self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
-        if self.local_affine_neighbours != 0 and self.local_affine_neighbours < 6:
-            raise ValueError(f"local_affine_neighbours must be 0 (off) or >= 6, got "
+        if self.rectification not in ("filter", "local", "both"):
+            raise ValueError(f"rectification must be filter, local or both, got "
+                             f"{self.rectification!r}")
+        if self.check_radius < 0 or self.check_radius == self.template_radius:
+            raise ValueError(f"check_radius must be 0 (off) or >= 1 and not template_radius, "
+                             f"got {self.check_radius}")
+        if not self.check_px > 0:
+            raise ValueError(f"check_px must be > 0 pixels, got {self.check_px}")
+        if self.local_affine_neighbours < 6:
+            raise ValueError(f"local_affine_neighbours must be >= 6, got "
                              f"{self.local_affine_neighbours}")
         if not self.local_affine_max_residual_px > 0:
             raise ValueError(f"local_affine_max_residual_px must be > 0, got "

@@ -4,8 +4,8 @@ The filter's planes are fitted at a tolerance of several pixels, so the patch ho
 pair of a cluster can be off by a few percent in scale or shear at a given keypoint; over a
 21x21 template that biases the NCC peak by a tenth of a pixel or more. Here each refinable
 match gets its own affine map image 1 -> image 2, fitted by least squares to the ``k``
-nearest matches (in image 1) of the same cluster, once re-fitted without the neighbours that
-miss it by more than ``max_residual_px``. Matches with too few neighbours keep the filter's
+nearest matches (in image 1) of the same cluster, re-fitted without the neighbours that miss
+it (by twice the median residual, then by ``max_residual_px``). Matches with too few neighbours keep the filter's
 pair.
 
 Pure numpy/scipy.
@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+#: re-weighted fits before the last one.
+_ITERATIONS = 3
 #: fewest neighbours (the match included) an affine fit needs; 3 determine it exactly.
 MIN_NEIGHBOURS = 6
 
@@ -60,9 +62,16 @@ def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs:
         nb = rows[nn]  # (n, kk)
         c1, c2 = x1[rows], x2[rows]
         x1n, x2n = x1[nb] - c1[:, None], x2[nb] - c2[:, None]  # centred on the match
-        A, good = _fit(x1n, x2n, np.ones(nb.shape))
-        pred = np.einsum("nij,nkj->nki", A[:, :, :2], x1n) + A[:, None, :, 2]
-        w = (np.linalg.norm(pred - x2n, axis=2) <= max_residual_px).astype(np.float64)
+        w = np.ones(nb.shape)
+        for it in range(_ITERATIONS):
+            A, good = _fit(x1n, x2n, w)
+            pred = np.einsum("nij,nkj->nki", A[:, :, :2], x1n) + A[:, None, :, 2]
+            r = np.linalg.norm(pred - x2n, axis=2)
+            # a gross outlier inflates every residual of the first fits: drop by the
+            # median residual first, by the absolute bound last
+            bound = max_residual_px if it == _ITERATIONS - 1 else np.maximum(
+                max_residual_px, 2.0 * np.median(r, axis=1, keepdims=True))
+            w = (r <= bound).astype(np.float64)
         A, good2 = _fit(x1n, x2n, w)
         good &= good2 & (w.sum(axis=1) >= MIN_NEIGHBOURS)
         # full affine image 1 -> image 2 around the match: x2 = c2 + L (x1 - c1) + t

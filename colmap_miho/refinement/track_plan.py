@@ -45,8 +45,11 @@ class TrackPlan:
         pairs: the image pairs (id1, id2); ``edge_pair`` indexes it.
         pair_homs: per pair the (K, 2, 3, 3) float64 patch homography pairs (A, B),
             ``A x1 ~ B x2``.
+        local_homs: None, or per pair the (M_p, 2, 3, 3) local affine pairs of its edges
+            (``local_affine``), indexed by ``edge_row``.
         edge_a, edge_b: (E,) int64 nodes of each edge, ``edge_a`` in the pair's first image.
         edge_pair: (E,) int64 pair of each edge.
+        edge_row: (E,) int64 row of each edge among its pair's edges.
         edge_label: (E,) int64 homography pair of each edge in ``pair_homs``; -1: joins
             tracks, never refines.
         track: (T,) int64 track of each node, -1 for nodes without an edge.
@@ -66,9 +69,11 @@ class TrackPlan:
     node_kp: np.ndarray
     pairs: tuple
     pair_homs: tuple
+    local_homs: tuple | None
     edge_a: np.ndarray
     edge_b: np.ndarray
     edge_pair: np.ndarray
+    edge_row: np.ndarray
     edge_label: np.ndarray
     track: np.ndarray
     anchors: np.ndarray
@@ -111,7 +116,8 @@ class TrackPlan:
             nodes = np.unique(np.concatenate([self.edge_a[keep], self.edge_b[keep]]))
             out.append(replace(
                 self, edge_a=self.edge_a[keep], edge_b=self.edge_b[keep],
-                edge_pair=self.edge_pair[keep], edge_label=self.edge_label[keep],
+                edge_pair=self.edge_pair[keep], edge_row=self.edge_row[keep],
+                edge_label=self.edge_label[keep],
                 anchors=anchors, to_refine=_reachable(self.num_nodes, self.edge_a[keep],
                                                       self.edge_b[keep], anchors, nodes),
                 stats={},
@@ -227,22 +233,20 @@ def _edges(kps, offset, pair_matches, pair_filter_results, unrefined_matches):
     return tuple(pairs), tuple(homs), cat(ea), cat(eb), cat(ep), cat(el)
 
 
-def _local_pairs(kps, node_kp, pairs, homs, ea, eb, ep, el, k, max_residual_px):
-    """Per-edge homography pairs from local affine fits; labels become edge rows within
-    their pair (-1 stays -1)."""
+def _local_pairs(kps, node_kp, pairs, homs, ea, eb, ep, el, k, max_residual_px) -> tuple:
+    """Per pair the (M_p, 2, 3, 3) homography pairs of its edges (in edge order) from local
+    affine fits."""
     from .rectify import local_affine_pairs
 
-    new_homs, new_el = [], el.copy()
+    out = []
     starts = np.searchsorted(ep, np.arange(len(pairs) + 1))
     for p, (id1, id2) in enumerate(pairs):
         sl = slice(starts[p], starts[p + 1])
-        lab = el[sl]
         x1 = kps[id1][node_kp[ea[sl]]]
         x2 = kps[id2][node_kp[eb[sl]]]
-        new_homs.append(local_affine_pairs(x1, x2, lab, homs[p], k=k,
-                                           max_residual_px=max_residual_px))
-        new_el[sl] = np.where(lab >= 0, np.arange(lab.size), -1)
-    return tuple(new_homs), new_el
+        out.append(local_affine_pairs(x1, x2, el[sl], homs[p], k=k,
+                                      max_residual_px=max_residual_px))
+    return tuple(out)
 
 
 def _conflicts(track, nodes, node_image, pos, duplicate_px) -> np.ndarray:
@@ -285,9 +289,9 @@ def build_track_plan(
             homography (pairs never filtered, failed, or with a missing image).
         duplicate_px: keypoints of one image in one track closer than this are duplicates,
             farther ones freeze the track.
-        local_affine: (k neighbours, max residual px): give every refinable match its own
-            patch homography pair from a local affine fit to its pair's nearest matches
-            (:func:`.rectify.local_affine_pairs`); None keeps the filter's pairs.
+        local_affine: (k neighbours, max residual px): also give every refinable match its
+            own patch homography pair from a local affine fit to its pair's nearest matches
+            (:func:`.rectify.local_affine_pairs`); None: the filter's pairs only.
     Returns:
         :class:`TrackPlan`.
     Raises:
@@ -296,8 +300,9 @@ def build_track_plan(
     kps, offset, node_image, node_kp = _nodes(keypoints)
     pairs, homs, ea, eb, ep, el = _edges(kps, offset, pair_matches, pair_filter_results,
                                          unrefined_matches)
+    local = None
     if local_affine is not None:
-        homs, el = _local_pairs(kps, node_kp, pairs, homs, ea, eb, ep, el, *local_affine)
+        local = _local_pairs(kps, node_kp, pairs, homs, ea, eb, ep, el, *local_affine)
     total = node_image.size
     track = np.full(total, -1, np.int64)
     stats = dict.fromkeys(["tracks", "conflicting_tracks", "frozen_tracks", "frozen_keypoints",
@@ -330,6 +335,7 @@ def build_track_plan(
         stats["unreached_keypoints"] = int(
             np.isin(track[nodes], track[anchors]).sum() - anchors.size - to_refine)
     return TrackPlan(keypoints=kps, node_image=node_image, node_kp=node_kp, pairs=pairs,
-                     pair_homs=homs, edge_a=ea, edge_b=eb, edge_pair=ep, edge_label=el,
+                     pair_homs=homs, local_homs=local, edge_a=ea, edge_b=eb, edge_pair=ep,
+                     edge_row=np.arange(ep.size) - np.searchsorted(ep, ep), edge_label=el,
                      track=track, anchors=anchors, frozen=frozen, to_refine=to_refine,
                      stats=stats)

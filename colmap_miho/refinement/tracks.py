@@ -71,7 +71,7 @@ class TrackRefineResult:
 
 def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
     """The plan's ``local_affine`` argument for an NCC configuration."""
-    if not ncc_cfg.local_affine_neighbours:
+    if ncc_cfg.rectification == "filter":
         return None
     return ncc_cfg.local_affine_neighbours, ncc_cfg.local_affine_max_residual_px
 

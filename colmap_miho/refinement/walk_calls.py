@@ -88,7 +88,8 @@ class WalkState:
 @dataclass(frozen=True)
 class _Call:
     """One group oriented as (fixed, moving): keypoint indices, positions, homography pairs
-    (fixed side first) and affine frames (or None)."""
+    (fixed side first; (n, 2, 3, 3) or (n, P, 2, 3, 3) candidates) and affine frames (or
+    None)."""
 
     fixed_id: object
     moving_id: object
@@ -101,20 +102,31 @@ class _Call:
     aff_m: np.ndarray | None
 
 
+def _pairs_of(plan: TrackPlan, edges: np.ndarray, rectification: str) -> np.ndarray:
+    """Patch homography pairs of edges of one pair: (n, 2, 3, 3) from the filter ("filter")
+    or the local affine fits ("local"), or (n, 2, 2, 3, 3) both as candidates ("both")."""
+    p = int(plan.edge_pair[edges[0]])
+    filt = plan.pair_homs[p][plan.edge_label[edges]]
+    if rectification == "filter" or plan.local_homs is None:
+        return filt
+    local = plan.local_homs[p][plan.edge_row[edges]]
+    return local if rectification == "local" else np.stack([filt, local], axis=1)
+
+
 def _orient(grp: Group, ctx: WalkState) -> _Call:
     plan = ctx.plan
     id1, id2 = grp.pair
     k1 = plan.node_kp[plan.edge_a[grp.edges]]
     k2 = plan.node_kp[plan.edge_b[grp.edges]]
-    homs = plan.pair_homs[int(plan.edge_pair[grp.edges[0]])][plan.edge_label[grp.edges]]
+    homs = _pairs_of(plan, grp.edges, ctx.ncc_cfg.rectification)
     aff1 = aff2 = None
     if ctx.affines is not None and id1 in ctx.affines and id2 in ctx.affines:
         aff1 = np.asarray(ctx.affines[id1])[k1]
         aff2 = np.asarray(ctx.affines[id2])[k2]
     if grp.side == 2:
         return _Call(id1, id2, k1, k2, ctx.pos[id1][k1], ctx.pos[id2][k2], homs, aff1, aff2)
-    return _Call(id2, id1, k2, k1, ctx.pos[id2][k2], ctx.pos[id1][k1], homs[:, ::-1], aff2,
-                 aff1)
+    return _Call(id2, id1, k2, k1, ctx.pos[id2][k2], ctx.pos[id1][k1], np.flip(homs, axis=-3),
+                 aff2, aff1)
 
 
 def _apply(grp: Group, call: _Call, new, moved, displacement, rejected, ncc_after,
