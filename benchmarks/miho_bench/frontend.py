@@ -131,9 +131,11 @@ def filtered_multiview_matches(images: dict, *, detector: str = "sift", max_feat
         images: image_id -> (H, W) uint8 grayscale image.
     Returns:
         (keypoints: id -> (N, 2), matches: (id1, id2) -> (M, 2) keypoint indices of the kept
-        matches, results: (id1, id2) -> FilterResult); pairs whose filter failed or kept fewer
+        matches, results: (id1, id2) -> FilterResult restricted to the kept rows, 1:1 with
+        the matches); pairs whose filter failed or kept fewer
         than ``min_inliers`` matches are left out.
     """
+    import dataclasses
     import itertools
 
     from colmap_miho.filtering.api import filter_matches
@@ -146,5 +148,7 @@ def filtered_multiview_matches(images: dict, *, detector: str = "sift", max_feat
         idx, _ = mutual_nn_ratio(feats[i][2], feats[j][2], ratio)
         fr = filter_matches(keypoints[i][idx[:, 0]], keypoints[j][idx[:, 1]], method=method)
         if fr.success and fr.inliers.sum() >= min_inliers:
-            matches[(i, j)], results[(i, j)] = idx[fr.inliers], fr
+            keep = np.asarray(fr.inliers, bool)  # results' rows 1:1 with the kept matches
+            matches[(i, j)] = idx[keep]
+            results[(i, j)] = dataclasses.replace(fr, inliers=fr.inliers[keep], labels=fr.labels[keep])
     return keypoints, matches, results

@@ -147,16 +147,17 @@ def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
 
 
 def _resolve_device(device: Device | str) -> str:
+    """"cpu" or "cuda", by the refinement's resolver (torch is imported only if needed)."""
     device = Device.parse(device, "device")
     if device == Device.CPU:
         return "cpu"
-    import torch
+    from ..refinement.config import NCCConfig
+    from ..refinement.ncc import resolve_device
 
-    if device == Device.CUDA:
-        if not torch.cuda.is_available():
-            raise UserError("--device cuda was asked for but torch sees no CUDA device")
-        return "cuda"
-    return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        return resolve_device(NCCConfig(device=str(device))).type
+    except ValueError:
+        raise UserError("--device cuda was asked for but torch sees no CUDA device") from None
 
 
 def refine_database(
@@ -256,8 +257,28 @@ def _refine(db: ColmapDatabase, read: ReadOutput, ok: FilteredPairs, rec: Recipe
     ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
     new_keypoints, stats, used = run_refine_stage(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, rec.tracks,
-        workers=workers, progress=progress)
+        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), workers=workers,
+        progress=progress)
     return new_keypoints, dict(stats, workers=used)
+
+
+def _unrefined_matches(db: ColmapDatabase, ok: FilteredPairs, usable: FilteredPairs,
+                       source) -> dict[tuple[int, int], np.ndarray]:
+    """Every match that reaches the output database but is not refined: the pairs too small to
+    filter and the failed ones (written back unchanged), and the kept matches of pairs with a
+    missing image. The walk joins them into tracks (they never refine), so a keypoint that moves
+    stays consistent with every partner COLMAP will see."""
+    out = {}
+    for p in db.pairs(source):
+        key = (p.image_id1, p.image_id2)
+        if key in usable:
+            continue
+        if key in ok:
+            m, r = ok[key]
+            out[key] = m[np.asarray(r.inliers, bool)]
+        else:
+            out[key] = db.matches(p.image_id1, p.image_id2, source)
+    return out
 
 
 class _Laps:

@@ -39,6 +39,8 @@ class NCCConfig:
             a local maximum of the unmasked map) is rejected like a border peak.
         min_gain: a move of at least one pixel is applied only if it raises NCC by at least
             this much (NCC in [-1, 1]).
+        min_ncc: a move is applied only if its NCC peak reaches this (in [-1, 1]; -1 = no
+            floor): a weak peak is more likely wrong than right.
         reject_border: reject moves whose peak lies on the border of the search window (or
             is held back by the NCC* ellipse).
         cornerness_gate: skip edge-like patches (structure-tensor test).
@@ -59,6 +61,18 @@ class NCCConfig:
             CPU larger chunks gain nothing).
         device: "cpu", "cuda" or "auto" (the device of CUDA tensor inputs, else CUDA when
             torch sees one, else the CPU).
+        rectification: the patch homography pairs of the track walk: "filter" (the
+            filter's plane of each match), "local" (a local affine fit to the
+            ``local_affine_neighbours`` nearest matches of its cluster, :mod:`.rectify`) or
+            "both" (each match searched with both; the higher NCC peak wins).
+        local_affine_neighbours: matches (the match included) of each local affine fit.
+        check_radius: 0 (off), or the radius of a second template (another size than
+            ``template_radius``): a move is applied only if the search with that template
+            moves the same keypoint to within ``check_px`` pixels of it (both sizes agree;
+            a peak biased by the patch's content rarely is at both sizes).
+        check_px: agreement of the two template sizes, pixels.
+        local_affine_max_residual_px: neighbours off the first local fit by more than this
+            many pixels are dropped from the second.
     """
 
     template_radius: int = 10
@@ -67,6 +81,7 @@ class NCCConfig:
     use_base_pair: bool = True
     ellipse_mask: bool = False
     min_gain: float = 0.0
+    min_ncc: float = -1.0
     reject_border: bool = True
     cornerness_gate: bool = False
     min_cornerness: float = 0.1
@@ -76,6 +91,11 @@ class NCCConfig:
     subpixel_iterations: int = 3
     batch_size: int | None = None
     device: str = "auto"
+    rectification: str = "filter"
+    check_radius: int = 0
+    check_px: float = 0.25
+    local_affine_neighbours: int = 12
+    local_affine_max_residual_px: float = 2.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "move", MoveSide.parse(self.move, "move"))
@@ -89,6 +109,8 @@ class NCCConfig:
             )
         if self.min_gain < 0:
             raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
+        if not -1 <= self.min_ncc <= 1:
+            raise ValueError(f"min_ncc must be in [-1, 1], got {self.min_ncc}")
         if not 0 <= self.min_cornerness <= 1:
             raise ValueError(f"min_cornerness must be in [0, 1], got {self.min_cornerness}")
         if self.min_template_std < 0:
@@ -99,6 +121,20 @@ class NCCConfig:
             )
         if self.batch_size is not None and self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+        if self.rectification not in ("filter", "local", "both"):
+            raise ValueError(f"rectification must be filter, local or both, got "
+                             f"{self.rectification!r}")
+        if self.check_radius < 0 or self.check_radius == self.template_radius:
+            raise ValueError(f"check_radius must be 0 (off) or >= 1 and not template_radius, "
+                             f"got {self.check_radius}")
+        if not self.check_px > 0:
+            raise ValueError(f"check_px must be > 0 pixels, got {self.check_px}")
+        if self.local_affine_neighbours < 6:
+            raise ValueError(f"local_affine_neighbours must be >= 6, got "
+                             f"{self.local_affine_neighbours}")
+        if not self.local_affine_max_residual_px > 0:
+            raise ValueError(f"local_affine_max_residual_px must be > 0, got "
+                             f"{self.local_affine_max_residual_px}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
@@ -107,24 +143,28 @@ class NCCConfig:
 class TrackConfig:
     """Parameters of the track-consistent refinement walk.
 
+    The rules of the walk (anchor, reach, conflicts) are in
+    :mod:`colmap_miho.refinement.track_plan`.
+
     Attributes:
-        anchor: rule choosing the fixed observation of a track: "degree" (the most
-            connected keypoint, ties to the lowest image id).
-        max_images_in_memory: bound of the lazy image cache (and of the images one batched
-            call may use).
+        max_images_in_memory: images the pipeline's lazy loader keeps, and the most images
+            one batched call may use.
+        duplicate_px: two keypoints of one image in one track closer than this (pixels) are
+            duplicates (SIFT keeps one keypoint per dominant orientation at one position)
+            and are walked; farther apart they freeze the track.
         batch_pairs: refine all image pairs of a walk level in one NCC call (images stacked,
             at most ``max_images_in_memory`` per call) instead of one call per pair and side.
             None: on CUDA only, where a call costs about the same for 100 matches as for
             10000; on the CPU the work per match dominates and one call per pair is as fast.
     """
 
-    anchor: str = "degree"
     max_images_in_memory: int = 8
     batch_pairs: bool | None = None
+    duplicate_px: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.anchor not in ("degree",):
-            raise ValueError(f"anchor must be 'degree', got {self.anchor!r}")
+        if not self.duplicate_px >= 0:
+            raise ValueError(f"duplicate_px must be >= 0 pixels, got {self.duplicate_px}")
         if self.max_images_in_memory < 2:
             raise ValueError(
                 f"max_images_in_memory must be >= 2, got {self.max_images_in_memory}"

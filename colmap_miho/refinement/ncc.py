@@ -15,7 +15,7 @@ Differences from the reference implementation (all configurable, see ``NCCConfig
   every shape;
 - a move is rejected when its peak lies on the border of the search window (or is held back
   by the NCC* mask) or when it raises NCC by less than ``min_gain``; the reference never
-  rejects;
+  rejects; so is a move whose peak NCC is below ``min_ncc``;
 - flat templates (``min_template_std``) are never moved; an optional cornerness gate also
   skips edge-like ones;
 - matches whose template or search window leaves the image are not refined.
@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -54,6 +54,8 @@ class RefineResult:
         displacement: (N,) float64 pixels the moved keypoint travelled (0 where none).
         rejected: (N,) bool, a move was found but not applied (border or too small a gain).
         stats: counters (``n``, ``moved``, ``rejected_border``, ``rejected_gain``,
+            ``rejected_weak`` (peak below ``min_ncc``), ``rejected_disagree`` (not
+            confirmed by the ``check_radius`` template),
             ``gated_flat``, ``gated_edge``, ``outside``, ``invalid_homography``,
             ``seconds``, ``device``, ``shapes``).
     """
@@ -145,7 +147,9 @@ def refine_pair(
         pts1, pts2: (N, 2) pixel coordinates (x, y), integer = pixel centre.
         patch_homographies: (N, 2, 3, 3) one pair (A, B) per match mapping image 1 and image 2
             into a common frame, ``A x1 ~ B x2`` (e.g. (I, H_2from1^-1) for MOP, the two
-            middle homographies for MiHo).
+            middle homographies for MiHo); or (N, P, 2, 3, 3) P candidate pairs per match
+            (the first with the template shapes of ``perturbations``, the others
+            unperturbed; the best NCC peak over all of them wins).
         move: "1" or "2" (only that side may move, the other gives the template) or "auto"
             (both directions are tried, the one with the higher NCC peak moves: the paper's
             behaviour); ``None`` uses ``config.move``.
@@ -167,7 +171,16 @@ def refine_pair(
     p1 = _as_array("pts1", pts1, (2,), None)
     n = p1.shape[0]
     p2 = _as_array("pts2", pts2, (2,), n)
-    homs = _as_array("patch_homographies", patch_homographies, (2, 3, 3), n)
+    homs = patch_homographies
+    if isinstance(homs, torch.Tensor):
+        homs = homs.detach().cpu().numpy()
+    homs = np.asarray(homs, dtype=np.float64)
+    extra = []
+    if homs.ndim == 5:  # (N, P, 2, 3, 3): P candidate pairs per match
+        extra = [_normalise_signs(_as_array("patch_homographies[:, k]", homs[:, k], (2, 3, 3), n),
+                                  p1, p2) for k in range(1, homs.shape[1])]
+        homs = homs[:, 0]
+    homs = _as_array("patch_homographies", homs, (2, 3, 3), n)
     if (affine1 is None) != (affine2 is None):
         raise ValueError("affine1 and affine2 must be given together")
     if affine1 is not None:
@@ -184,7 +197,7 @@ def refine_pair(
     disp = np.zeros(n)
     rejected = np.zeros(n, bool)
     counts = dict.fromkeys(
-        ["moved", "rejected_border", "rejected_gain", "gated_flat", "gated_edge", "outside",
+        ["moved", "rejected_border", "rejected_gain", "rejected_weak", "gated_flat", "gated_edge", "outside",
          "invalid_homography"], 0)
 
     shapes = torch.as_tensor(perturbation_matrices(cfg.perturbations), device=device)
@@ -211,6 +224,7 @@ def refine_pair(
             x = (torch.as_tensor(p1[sl], device=device), torch.as_tensor(p2[sl], device=device))
             H_ext = torch.as_tensor(homs[sl], device=device)
             pairs = [(H_ext, tpl_off, tpl_off_coarse)]
+            pairs += [(torch.as_tensor(h[sl], device=device), grid_t[None], None) for h in extra]
             if use_base:
                 pairs.append((torch.as_tensor(base[sl], device=device), grid_t[None], None))
             cimg = tuple(im.rows(sl) if isinstance(im, ImageStack) else im for im in img)
@@ -221,11 +235,14 @@ def refine_pair(
             _decide(res, cimg, sl, cfg, (out1, out2), before, after, moved, disp, rejected,
                     counts)
 
+    if cfg.check_radius and moved.any():
+        _check_agreement(image1, image2, p1, p2, patch_homographies, side, cfg, affine1, affine2,
+                         (out1, out2), after, before, moved, disp, rejected, counts)
     counts.update(
         n=n,
         seconds=time.perf_counter() - t0,
         device=str(device),
-        shapes=int(shapes.shape[0]) + int(use_base),
+        shapes=int(shapes.shape[0]) + len(extra) + int(use_base),
         directions=len(directions),
     )
     logger.debug("refine_pair: %s", counts)
@@ -233,6 +250,34 @@ def refine_pair(
         pts1=out1, pts2=out2, ncc_before=before, ncc_after=after, moved_side=moved,
         displacement=disp, rejected=rejected, stats=counts,
     )
+
+
+def _check_agreement(image1, image2, p1, p2, homs, side, cfg, affine1, affine2, outs, after,
+                     before, moved, disp, rejected, counts) -> None:
+    """Undo the moves that a second search with a ``check_radius`` template does not confirm
+    (other side moved, or the two positions more than ``check_px`` apart)."""
+    rows = np.flatnonzero(moved > 0)
+    sub = torch.as_tensor(rows) if isinstance(image1, ImageStack) else None
+    pick = (lambda im: im.rows(sub.to(im.device)) if isinstance(im, ImageStack) else im)  # noqa: E731
+    homs = homs.detach().cpu().numpy() if isinstance(homs, torch.Tensor) else np.asarray(homs)
+    chk = refine_pair(
+        pick(image1), pick(image2), p1[rows], p2[rows], homs[rows], move=side,
+        config=replace(cfg, template_radius=cfg.check_radius, check_radius=0),
+        affine1=None if affine1 is None else affine1[rows],
+        affine2=None if affine2 is None else affine2[rows])
+    m = moved[rows]
+    mine = np.where((m == 1)[:, None], outs[0][rows], outs[1][rows])
+    theirs = np.where((m == 1)[:, None], chk.pts1, chk.pts2)
+    agree = (chk.moved_side == m) & (np.linalg.norm(mine - theirs, axis=1) <= cfg.check_px)
+    undo = rows[~agree]
+    outs[0][undo] = p1[undo]
+    outs[1][undo] = p2[undo]
+    moved[undo] = 0
+    disp[undo] = 0.0
+    rejected[undo] = True
+    after[undo] = before[undo]
+    counts["moved"] -= int(undo.size)
+    counts["rejected_disagree"] = int(undo.size)
 
 
 def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, counts) -> None:
@@ -265,9 +310,11 @@ def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, count
         after[gi] = h["centre"][rows]
         on_border = h["border"][rows] & cfg.reject_border
         small_gain = ~h["zero"][rows] & (h["peak"][rows] - h["centre"][rows] < cfg.min_gain)
-        reject = on_border | small_gain
+        weak = ~h["zero"][rows] & (h["peak"][rows] < cfg.min_ncc)
+        reject = on_border | small_gain | weak
         counts["rejected_border"] += int(on_border.sum())
         counts["rejected_gain"] += int((small_gain & ~on_border).sum())
+        counts["rejected_weak"] += int((weak & ~small_gain & ~on_border).sum())
         rejected[gi[reject]] = True
         take = np.flatnonzero(rows)[~reject]
         if take.size == 0:

@@ -1,7 +1,7 @@
 """The refine calls of the track walk: one per image pair and side, or one per level.
 
 :mod:`.tracks` decides which keypoints move against which; this module turns a level's
-groups (matches of one pair whose keypoints on one side move) into calls of the pairwise
+groups (edges of one pair whose keypoints on one side move) into calls of the pairwise
 refiner and writes the results back. On CUDA a call costs about the same for 100 matches as
 for 10000, so all groups of a level go into one call on stacked images
 (:class:`~.warping.ImageStack`), at most ``max_images`` images a call.
@@ -15,34 +15,71 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import NCCConfig
+from .track_plan import TrackPlan
 
 
 @dataclass(frozen=True)
 class Group:
-    """Matches ``rows`` of ``pair`` whose side-``side`` keypoints (``free``) move at this
-    level, each against the fixed keypoint ``anchor_of``; ``homs`` the pair's per-match
-    homography pairs."""
+    """Edges ``edges`` (indices into the plan's edge arrays) of ``pair`` whose side-``side``
+    keypoints (nodes ``free``) move at this level, each against the fixed node
+    ``partner``."""
 
     pair: tuple
     side: int
-    rows: np.ndarray
+    edges: np.ndarray
     free: np.ndarray
-    anchor_of: np.ndarray
-    homs: np.ndarray
+    partner: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.edges.size)
+
+
+class ImageSource:
+    """Images by id from a Mapping (``.get``) or a callable; ``None`` means missing.
+
+    Holds no cache of its own: a Mapping that loads lazily (e.g.
+    :class:`colmap_miho.adapters.images.ImageLoader`) bounds its own memory; a plain dict
+    holds everything already; a callable is called on every use."""
+
+    def __init__(self, images):
+        if isinstance(images, Mapping):
+            self._load = images.get
+        elif callable(images):
+            self._load = images
+        else:
+            raise ValueError("images must be a Mapping or a callable image_id -> array or None")
+        self.missing: set = set()
+        self.used: set = set()
+
+    def get(self, image_id):
+        if image_id in self.missing:
+            return None
+        img = self._load(image_id)
+        if img is None:
+            self.missing.add(image_id)
+        else:
+            self.used.add(image_id)
+        return img
 
 
 @dataclass(frozen=True)
 class WalkState:
-    """What the refine calls of the walk read and update (arrays are updated in place)."""
+    """What the refine calls of the walk read and update (arrays are updated in place).
 
-    pair_matches: Mapping
+    ``pos`` image_id -> (Ni, 2) current positions; ``score`` (T,) quality of each fixed
+    node as a partner (NCC after refinement, +inf for anchors); ``moved`` (T,) bool;
+    ``out_disp`` / ``out_against`` the result arrays of :class:`~.tracks.TrackRefineResult`.
+    """
+
+    plan: TrackPlan
     pos: dict
     affines: Mapping | None
-    cache: object  # tracks._ImageCache: .get(image_id) -> image or None
+    images: ImageSource
     ncc_cfg: NCCConfig
     refine_fn: Callable
-    node_image: np.ndarray
-    node_kp: np.ndarray
+    score: np.ndarray
+    moved: np.ndarray
     out_disp: dict
     out_against: dict
     stats: dict
@@ -51,10 +88,12 @@ class WalkState:
 @dataclass(frozen=True)
 class _Call:
     """One group oriented as (fixed, moving): keypoint indices, positions, homography pairs
-    (fixed side first) and affine frames (or None)."""
+    (fixed side first; (n, 2, 3, 3) or (n, P, 2, 3, 3) candidates) and affine frames (or
+    None)."""
 
     fixed_id: object
     moving_id: object
+    fixed_idx: np.ndarray
     moving_idx: np.ndarray
     pts_f: np.ndarray
     pts_m: np.ndarray
@@ -63,30 +102,47 @@ class _Call:
     aff_m: np.ndarray | None
 
 
+def _pairs_of(plan: TrackPlan, edges: np.ndarray, rectification: str) -> np.ndarray:
+    """Patch homography pairs of edges of one pair: (n, 2, 3, 3) from the filter ("filter")
+    or the local affine fits ("local"), or (n, 2, 2, 3, 3) both as candidates ("both")."""
+    p = int(plan.edge_pair[edges[0]])
+    filt = plan.pair_homs[p][plan.edge_label[edges]]
+    if rectification == "filter" or plan.local_homs is None:
+        return filt
+    local = plan.local_homs[p][plan.edge_row[edges]]
+    return local if rectification == "local" else np.stack([filt, local], axis=1)
+
+
 def _orient(grp: Group, ctx: WalkState) -> _Call:
+    plan = ctx.plan
     id1, id2 = grp.pair
-    m = np.asarray(ctx.pair_matches[grp.pair]).astype(np.int64).reshape(-1, 2)[grp.rows]
-    homs = grp.homs[grp.rows]
+    k1 = plan.node_kp[plan.edge_a[grp.edges]]
+    k2 = plan.node_kp[plan.edge_b[grp.edges]]
+    homs = _pairs_of(plan, grp.edges, ctx.ncc_cfg.rectification)
     aff1 = aff2 = None
     if ctx.affines is not None and id1 in ctx.affines and id2 in ctx.affines:
-        aff1 = np.asarray(ctx.affines[id1])[m[:, 0]]
-        aff2 = np.asarray(ctx.affines[id2])[m[:, 1]]
+        aff1 = np.asarray(ctx.affines[id1])[k1]
+        aff2 = np.asarray(ctx.affines[id2])[k2]
     if grp.side == 2:
-        return _Call(id1, id2, m[:, 1], ctx.pos[id1][m[:, 0]], ctx.pos[id2][m[:, 1]], homs,
-                     aff1, aff2)
-    return _Call(id2, id1, m[:, 0], ctx.pos[id2][m[:, 1]], ctx.pos[id1][m[:, 0]],
-                 homs[:, ::-1], aff2, aff1)
+        return _Call(id1, id2, k1, k2, ctx.pos[id1][k1], ctx.pos[id2][k2], homs, aff1, aff2)
+    return _Call(id2, id1, k2, k1, ctx.pos[id2][k2], ctx.pos[id1][k1], np.flip(homs, axis=-3),
+                 aff2, aff1)
 
 
-def _apply(grp: Group, moving_id, idx, new, moved, displacement, rejected, ctx: WalkState):
-    """Write one group's refinement result: keypoints ``idx`` of image ``moving_id`` were
-    refined, ``moved`` says which of them moved to ``new``."""
+def _apply(grp: Group, call: _Call, new, moved, displacement, rejected, ncc_after,
+           ctx: WalkState) -> None:
+    """Write one group's refinement result: ``moved`` says which of its keypoints moved to
+    ``new``; every one of them is fixed from now on, with ``ncc_after`` as partner score."""
     st = ctx.stats
-    st["refined"] += int(grp.rows.size)
-    ctx.pos[moving_id][idx[moved]] = new[moved]
-    ctx.out_disp[moving_id][idx[moved]] = displacement[moved]
-    ctx.out_against[moving_id][idx, 0] = ctx.node_image[grp.anchor_of]
-    ctx.out_against[moving_id][idx, 1] = ctx.node_kp[grp.anchor_of]
+    idx = call.moving_idx
+    st["refined"] += grp.size
+    st["refined_against_moved"] += int(ctx.moved[grp.partner].sum())
+    ctx.pos[call.moving_id][idx[moved]] = new[moved]
+    ctx.out_disp[call.moving_id][idx[moved]] = displacement[moved]
+    ctx.out_against[call.moving_id][idx, 0] = ctx.plan.node_image[grp.partner]
+    ctx.out_against[call.moving_id][idx, 1] = ctx.plan.node_kp[grp.partner]
+    ctx.moved[grp.free[moved]] = True
+    ctx.score[grp.free] = np.nan_to_num(np.asarray(ncc_after, np.float64), nan=-np.inf)
     st["moved"] += int(moved.sum())
     st["rejected"] += int(np.asarray(rejected).sum())
 
@@ -111,8 +167,8 @@ def refine_batch(groups: list, ctx: WalkState, device) -> None:
 
     calls, kept = [], []
     for grp in groups:
-        if ctx.cache.get(grp.pair[0]) is None or ctx.cache.get(grp.pair[1]) is None:
-            ctx.stats["skipped"] += int(grp.rows.size)
+        if ctx.images.get(grp.pair[0]) is None or ctx.images.get(grp.pair[1]) is None:
+            ctx.stats["skipped"] += grp.size
             continue
         calls.append(_orient(grp, ctx))
         kept.append(grp)
@@ -123,7 +179,7 @@ def refine_batch(groups: list, ctx: WalkState, device) -> None:
     sizes = [c.pts_f.shape[0] for c in calls]
     idx_f = np.repeat([slot[c.fixed_id] for c in calls], sizes)
     idx_m = np.repeat([slot[c.moving_id] for c in calls], sizes)
-    stack_f = ImageStack.build([to_gray_tensor(ctx.cache.get(i), device) for i in ids], idx_f,
+    stack_f = ImageStack.build([to_gray_tensor(ctx.images.get(i), device) for i in ids], idx_f,
                                device)
     stack_m = stack_f.with_index(idx_m)
     aff = {}
@@ -144,27 +200,24 @@ def refine_batch(groups: list, ctx: WalkState, device) -> None:
     for grp, call, n in zip(kept, calls, sizes):
         seg = slice(start, start + n)
         start += n
-        _apply(grp, call.moving_id, call.moving_idx, res.pts2[seg],
-               np.asarray(res.moved_side[seg]) == 2,
-               np.asarray(res.displacement[seg]), res.rejected[seg], ctx)
+        _apply(grp, call, res.pts2[seg], np.asarray(res.moved_side[seg]) == 2,
+               np.asarray(res.displacement[seg]), res.rejected[seg], res.ncc_after[seg], ctx)
 
 
 def refine_group(grp: Group, ctx: WalkState) -> None:
-    """One refine call: the matches of one group, on the pair's two images."""
+    """One refine call: the edges of one group, on the pair's two images."""
     id1, id2 = grp.pair
-    img1, img2 = ctx.cache.get(id1), ctx.cache.get(id2)
+    img1, img2 = ctx.images.get(id1), ctx.images.get(id2)
     if img1 is None or img2 is None:
-        ctx.stats["skipped"] += int(grp.rows.size)
+        ctx.stats["skipped"] += grp.size
         return
-    m = np.asarray(ctx.pair_matches[grp.pair]).astype(np.int64).reshape(-1, 2)[grp.rows]
+    call = _orient(grp, ctx)
     kwargs = {}
-    if ctx.affines is not None and id1 in ctx.affines and id2 in ctx.affines:
-        kwargs = {"affine1": np.asarray(ctx.affines[id1])[m[:, 0]],
-                  "affine2": np.asarray(ctx.affines[id2])[m[:, 1]]}
-    res = ctx.refine_fn(img1, img2, ctx.pos[id1][m[:, 0]], ctx.pos[id2][m[:, 1]],
-                        grp.homs[grp.rows], move=str(grp.side), config=ctx.ncc_cfg, **kwargs)
+    if call.aff_f is not None:
+        kwargs = {"affine1": call.aff_f, "affine2": call.aff_m}
+    img_f, img_m = (img1, img2) if grp.side == 2 else (img2, img1)
+    res = ctx.refine_fn(img_f, img_m, call.pts_f, call.pts_m, call.homs, move="2",
+                        config=ctx.ncc_cfg, **kwargs)
     ctx.stats["refine_calls"] += 1
-    new = res.pts2 if grp.side == 2 else res.pts1
-    moving_id, idx = (id2, m[:, 1]) if grp.side == 2 else (id1, m[:, 0])
-    _apply(grp, moving_id, idx, new, np.asarray(res.moved_side) == grp.side,
-           np.asarray(res.displacement), res.rejected, ctx)
+    _apply(grp, call, res.pts2, np.asarray(res.moved_side) == 2, np.asarray(res.displacement),
+           res.rejected, res.ncc_after, ctx)

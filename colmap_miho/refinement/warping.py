@@ -154,26 +154,6 @@ def apply_homographies(H: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor
     return out, ok
 
 
-def sample_bilinear(image: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples of ``image`` (H, W) float32 at ``pts`` (..., 2) pixel coordinates;
-    outside the image reads 0. Returns (...) float32."""
-    h, w = image.shape
-    scale = torch.tensor(
-        [2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], dtype=torch.float32, device=image.device
-    )
-    grid = pts.to(torch.float32) * scale - 1.0
-    return _grid_sample(image, grid)
-
-
-def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    shape = grid.shape[:-1]
-    out = F.grid_sample(
-        image[None, None], grid.reshape(1, -1, 1, 2), mode="bilinear", padding_mode="zeros",
-        align_corners=True,
-    )
-    return out.reshape(shape)
-
-
 def sample_patches(
     image: torch.Tensor | ImageStack,
     H_inv: torch.Tensor,

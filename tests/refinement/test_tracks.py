@@ -3,6 +3,7 @@ pycolmap synthetic multi-view scene with ground truth."""
 
 from __future__ import annotations
 
+import dataclasses
 from types import SimpleNamespace
 
 import numpy as np
@@ -12,7 +13,8 @@ from hypothesis import strategies as st
 
 from colmap_miho.refinement.config import NCCConfig, TrackConfig
 from colmap_miho.refinement.ncc import RefineResult
-from colmap_miho.refinement.tracks import match_rows, refine_tracks
+from colmap_miho.refinement.track_plan import build_track_plan, pair_rows
+from colmap_miho.refinement.tracks import refine_tracks, walk_tracks
 
 # test_synthetic_scene_refinement: required drop of the median track-relative error
 # (measured: -56%).
@@ -64,6 +66,24 @@ def match_graphs(draw):
     return kps, pair_matches
 
 
+def _tracks(pair_matches):
+    """Union-find over (image, keypoint) nodes: node -> root, written independently of the
+    library's plan."""
+    parent = {}
+
+    def find(x):
+        parent.setdefault(x, x)
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for (a, b), m in pair_matches.items():
+        for x, y in np.asarray(m).reshape(-1, 2):
+            parent[find((a, int(x)))] = find((b, int(y)))
+    return {n: find(n) for n in list(parent)}
+
+
 @pytest.mark.parametrize("batch_pairs", [False, True])
 @settings(max_examples=150, deadline=None)
 @given(graph=match_graphs())
@@ -82,26 +102,34 @@ def test_every_keypoint_moves_at_most_once(graph, batch_pairs):
         assert np.all(np.isin(d, [0.0, 1.0]))
         assert np.array_equal(res.displacement[i], d)
         assert np.all(res.keypoints[i][:, 1] == k[:, 1])
-    # every keypoint that has a refinable match is either an anchor or was refined against a
-    # keypoint it is matched with; anchors are one per track
-    matched = set()
+    # keypoints of one image are 7 px apart here, so a track holding two is frozen; every
+    # other keypoint with a match is either its track's anchor or was refined against a
+    # keypoint of its own track it is matched with
+    root = _tracks(pair_matches)
+    images_of = {}
+    for (img, kp), r in root.items():
+        images_of.setdefault(r, []).append(img)
+    frozen = {r for r, ims in images_of.items() if len(ims) != len(set(ims))}
     edges = set()
     for (a, b), m in pair_matches.items():
         for x, y in m:
-            matched |= {(a, x), (b, y)}
             edges |= {((a, x), (b, y)), ((b, y), (a, x))}
-    anchors = 0
+    anchors = {}
     for i, ra in res.refined_against.items():
         for k, (img, kp) in enumerate(ra):
-            if (i, k) not in matched:
+            node = (i, k)
+            if node not in root or root[node] in frozen:
                 assert img == -1 and res.displacement[i][k] == 0
             elif img == -1:
-                anchors += 1
+                anchors[root[node]] = anchors.get(root[node], 0) + 1
                 assert res.displacement[i][k] == 0
             else:
-                assert ((i, k), (int(img), int(kp))) in edges
-    assert anchors == res.stats["anchors"] == res.stats["tracks"]
-    assert res.stats["moved"] == res.stats["refined"] == len(matched) - anchors
+                assert (node, (int(img), int(kp))) in edges
+    walked = set(root.values()) - frozen
+    assert set(anchors) == walked and set(anchors.values()) <= {1}
+    assert res.stats["anchors"] == len(walked) and res.stats["frozen_tracks"] == len(frozen)
+    n_walked = sum(1 for r in root.values() if r in walked)
+    assert res.stats["moved"] == res.stats["refined"] == n_walked - len(walked)
 
 
 def test_anchor_is_the_most_connected_observation():
@@ -113,50 +141,156 @@ def test_anchor_is_the_most_connected_observation():
     assert res.refined_against[2][0].tolist() == [-1, -1]  # degree 2: the anchor
     assert res.refined_against[1][0].tolist() == [2, 0]
     assert res.refined_against[3][0].tolist() == [2, 0]
-    assert res.stats["levels"] == 1
+    assert res.stats["levels"] == 1 and res.stats["refined_against_moved"] == 0
 
 
-def test_conflicting_track_is_counted_and_still_moves_once():
-    kps = {1: np.zeros((2, 2)), 2: np.zeros((1, 2))}
-    pair_matches = {(1, 2): np.array([[0, 0], [1, 0]])}  # two keypoints of image 1 -> one track
-    res = refine_tracks({1: np.zeros((4, 4)), 2: np.zeros((4, 4))}, kps, pair_matches,
-                        _identity_results(pair_matches), refine_fn=FakeRefiner())
-    assert res.stats["conflicting_tracks"] == 1
-    assert res.stats["moved"] == 2
-    assert res.displacement[2].tolist() == [0.0]
+class ScoredRefiner(FakeRefiner):
+    """FakeRefiner whose NCC after the move is a per-image score."""
+
+    def __init__(self, ncc_of_image):
+        super().__init__()
+        self.ncc_of_image = ncc_of_image
+
+    def __call__(self, image1, image2, pts1, pts2, homs, *, move, config, **kw):
+        res = super().__call__(image1, image2, pts1, pts2, homs, move=move, config=config)
+        return dataclasses.replace(res, ncc_after=np.full(len(pts1), self.ncc_of_image[image2]))
 
 
-def test_missing_image_is_skipped_and_unlabelled_matches_are_ignored():
+def test_partner_is_the_best_scoring_fixed_keypoint():
+    """Chain 1-2, 1-3 (anchor 1), and 4 matched with both 2 and 3: 4 is refined against the
+    partner whose own refinement had the higher NCC (3), not the lowest id (2)."""
+    kps = {i: np.zeros((1, 2)) for i in (1, 2, 3, 4)}
+    kps[1] = np.zeros((2, 2))
+    kps[1][1] = 50.0
+    pm = {(1, 2): np.array([[0, 0]]), (1, 3): np.array([[0, 0]]), (2, 4): np.array([[0, 0]]),
+          (3, 4): np.array([[0, 0]])}
+    # image id -> its "image": the fake reads the moving image's score from it
+    images = {i: i for i in kps}
+    res = refine_tracks(images, kps, pm, _identity_results(pm),
+                        refine_fn=ScoredRefiner({2: 0.5, 3: 0.9, 4: 0.7}))
+    assert res.refined_against[1][0].tolist() == [-1, -1]  # anchor: degree 2, lowest id
+    assert res.refined_against[4][0].tolist() == [3, 0]
+    assert res.stats["levels"] == 2 and res.stats["refined_against_moved"] == 1
+
+
+def test_conflicting_track_is_frozen_duplicates_are_walked():
+    """Two keypoints of image 1 far apart in one track: nothing of that track moves. At one
+    position (SIFT's several orientations) they are duplicates: the track is walked."""
+    pair_matches = {(1, 2): np.array([[0, 0], [1, 0]]), (2, 3): np.array([[0, 0]])}
+    images = {i: np.zeros((4, 4)) for i in (1, 2, 3)}
+    far = {1: np.array([[0.0, 0.0], [30.0, 0.0]]), 2: np.zeros((1, 2)), 3: np.zeros((1, 2))}
+    res = refine_tracks(images, far, pair_matches, _identity_results(pair_matches),
+                        refine_fn=FakeRefiner())
+    assert res.stats["conflicting_tracks"] == res.stats["frozen_tracks"] == 1
+    assert res.stats["frozen_keypoints"] == 4 and res.stats["moved"] == 0
+    assert all(np.array_equal(res.keypoints[i], far[i]) for i in far)
+    dup = {1: np.array([[5.0, 5.0], [5.0, 5.5]]), 2: np.zeros((1, 2)), 3: np.zeros((1, 2))}
+    res = refine_tracks(images, dup, pair_matches, _identity_results(pair_matches),
+                        refine_fn=FakeRefiner())
+    assert res.stats["conflicting_tracks"] == 1 and res.stats["frozen_tracks"] == 0
+    assert res.stats["moved"] == 3  # 4 keypoints, one anchor
+
+
+def _moved(res, kps):
+    return {(i, k) for i in kps for k in np.flatnonzero(np.any(res.keypoints[i] != kps[i], 1))}
+
+
+def test_unfiltered_pair_joins_tracks_and_never_refines():
+    """Tracks A = (1,0)-(2,0) and B = (3,0)-(4,0) are joined by an unfiltered match
+    (2,0)-(3,0): one track, one anchor; B is not reachable over refinable edges from it,
+    so B does not move (before, A and B each moved against its own anchor and the output's
+    match (2,0)-(3,0) joined two references)."""
+    kps = {i: np.zeros((1, 2)) for i in (1, 2, 3, 4)}
+    pm = {(1, 2): np.array([[0, 0]]), (3, 4): np.array([[0, 0]])}
+    images = {i: np.zeros((4, 4)) for i in kps}
+    alone = refine_tracks(images, kps, pm, _identity_results(pm), refine_fn=FakeRefiner())
+    assert alone.stats["tracks"] == 2 and len(_moved(alone, kps)) == 2
+    res = refine_tracks(images, kps, pm, _identity_results(pm), refine_fn=FakeRefiner(),
+                        unrefined_matches={(2, 3): np.array([[0, 0]])})
+    assert res.stats["tracks"] == res.stats["anchors"] == 1
+    assert res.stats["unrefinable_matches"] == 1 and res.stats["unreached_keypoints"] == 2
+    assert _moved(res, kps) == {(2, 0)}
+    anchor = (1, 0)
+    assert res.refined_against[2][0].tolist() == list(anchor)
+
+
+def test_failed_pair_rows_join_tracks():
+    """A filtered pair whose rows all carry label -1 (no homography, e.g. a failed filter
+    passed through) joins tracks exactly like an unfiltered pair."""
+    kps = {i: np.zeros((1, 2)) for i in (1, 2, 3, 4)}
+    pm = {(1, 2): np.array([[0, 0]]), (2, 3): np.array([[0, 0]]), (3, 4): np.array([[0, 0]])}
+    results = _identity_results(pm)
+    results[(2, 3)].labels = np.array([-1])
+    images = {i: np.zeros((4, 4)) for i in kps}
+    res = refine_tracks(images, kps, pm, results, refine_fn=FakeRefiner())
+    joined = refine_tracks(images, kps, {k: pm[k] for k in [(1, 2), (3, 4)]},
+                           {k: results[k] for k in [(1, 2), (3, 4)]}, refine_fn=FakeRefiner(),
+                           unrefined_matches={(2, 3): pm[(2, 3)]})
+    assert res.stats["tracks"] == 1 and _moved(res, kps) == _moved(joined, kps) == {(2, 0)}
+
+
+def test_missing_image_is_skipped():
+    """Keypoints whose refinement needs a missing image stay; nothing else changes."""
     kps = {1: np.zeros((2, 2)), 2: np.zeros((2, 2)), 3: np.zeros((2, 2))}
+    kps[1][1] = kps[2][1] = 40.0
     pair_matches = {(1, 2): np.array([[0, 0], [1, 1]]), (2, 3): np.array([[0, 0]])}
     results = _identity_results(pair_matches)
     results[(1, 2)].labels = np.array([0, -1])
-    loaded = []
+    calls = []
 
     def loader(i):
-        loaded.append(i)
+        calls.append(i)
         return None if i == 3 else np.zeros((4, 4))
 
     res = refine_tracks(loader, kps, pair_matches, results, refine_fn=FakeRefiner())
     batched = refine_tracks(loader, kps, pair_matches, results, refine_fn=FakeRefiner(),
                             track_config=TrackConfig(batch_pairs=True))
     assert batched.stats == {**res.stats, "seconds": batched.stats["seconds"]}
-    assert res.stats["tracks"] == 1  # (1,0)-(2,0)-(3,0); (1,1)-(2,1) is not refinable
+    # (1,0)-(2,0)-(3,0) walked; (1,1)-(2,1) is a track without a refinable edge
+    assert res.stats["tracks"] == 2 and res.stats["anchors"] == 1
     assert res.stats["skipped"] == 1 and res.stats["missing_images"] == 1
-    assert res.stats["moved"] == 1
-    assert res.displacement[1][1] == 0 and res.displacement[2][1] == 0
+    assert _moved(res, kps) == {(1, 0)}
+    assert 3 in calls
 
 
-def test_filter_result_rows_rule():
-    homs = np.tile(np.eye(3), (2, 2, 1, 1))
+def test_rows_must_be_one_to_one():
     full = SimpleNamespace(inliers=np.array([1, 0, 1], bool), labels=np.array([1, -1, 0]),
-                           patch_homographies=homs)
-    labels, _ = match_rows((1, 2), 3, full)
-    assert labels.tolist() == [1, -1, 0]
-    labels, _ = match_rows((1, 2), 2, full)  # kept rows only
-    assert labels.tolist() == [1, 0]
-    with pytest.raises(ValueError, match=r"\(1, 2\)"):
-        match_rows((1, 2), 4, full)
+                           patch_homographies=np.tile(np.eye(3), (2, 2, 1, 1)))
+    m, labels, _ = pair_rows((1, 2), np.array([[0, 0], [1, 1], [2, 2]]), full)
+    assert labels.tolist() == [1, 0] and m.tolist() == [[0, 0], [2, 2]]
+    with pytest.raises(ValueError, match=r"\(1, 2\).*1:1"):
+        pair_rows((1, 2), np.array([[0, 0], [2, 2]]), full)  # kept rows with all labels
+    kps = {1: np.zeros((3, 2)), 2: np.zeros((3, 2))}
+    with pytest.raises(ValueError, match="1:1"):
+        refine_tracks({}, kps, {(1, 2): np.array([[0, 0], [2, 2]])}, {(1, 2): full},
+                      refine_fn=FakeRefiner())
+
+
+def test_partition_keeps_whole_tracks_and_gives_the_same_result():
+    rng = np.random.default_rng(0)
+    kps = {i: rng.uniform(0, 100, (30, 2)) for i in range(1, 6)}
+    pm = {}
+    for a in range(1, 6):
+        for b in range(a + 1, 6):
+            pm[(a, b)] = np.stack([rng.permutation(30)[:12], rng.permutation(30)[:12]], 1)
+    plan = build_track_plan(kps, pm, _identity_results(pm))
+    parts = plan.partition(3)
+    assert 1 <= len(parts) <= 3
+    tracks = [set(plan.track[np.concatenate([p.edge_a, p.edge_b])]) for p in parts]
+    for x in range(len(tracks)):
+        for y in range(x + 1, len(tracks)):
+            assert not tracks[x] & tracks[y]
+    assert sum(p.to_refine for p in parts) == plan.to_refine
+    images = {i: np.zeros((4, 4)) for i in kps}
+    whole = walk_tracks(images, plan, refine_fn=FakeRefiner())
+    merged = {i: k.copy() for i, k in kps.items()}
+    for p in parts:
+        r = walk_tracks(images, p, refine_fn=FakeRefiner())
+        for i in kps:
+            ch = np.any(r.keypoints[i] != kps[i], 1)
+            merged[i][ch] = r.keypoints[i][ch]
+    for i in kps:
+        np.testing.assert_array_equal(merged[i], whole.keypoints[i])
 
 
 def test_bad_inputs_raise():
@@ -169,6 +303,8 @@ def test_bad_inputs_raise():
                       _identity_results({(1, 1): np.array([[0, 0]])}), refine_fn=FakeRefiner())
     with pytest.raises(ValueError, match="keypoints"):
         refine_tracks({}, {1: np.zeros((2, 3))}, {}, {})
+    with pytest.raises(ValueError, match="no filter result"):
+        refine_tracks({}, kps, pm, {}, refine_fn=FakeRefiner())
 
 
 def _local_affine_pairs(gt1, gt2, k=10):
@@ -243,8 +379,7 @@ def test_synthetic_scene_refinement(tmp_path):
             rel_after.append(np.linalg.norm(
                 (res.keypoints[i][k] - gt[i][k]) - (res.keypoints[j][ref] - gt[j][ref])))
     assert np.median(rel_after) <= (1 - MIN_ERROR_REDUCTION) * np.median(rel_before)
-    # the walk keeps at most two images cached, so some were loaded more than once
-    assert len(loaded) >= len(kps)
+    assert set(loaded) == set(kps)
 
 
 def test_batched_levels_match_per_pair_calls_on_real_images(shared_data):
