@@ -73,15 +73,15 @@ def _split_tracks(keypoints, pairs, workers: int):
         offset[i] = total
         total += len(keypoints[i])
     keys = sorted(pairs)
-    rows, ea, eb = {}, [], []
+    rows, ea_parts, eb_parts = {}, [], []
     for k in keys:
         m, r = pairs[k]
         labels = np.asarray(r.labels, np.int64).reshape(-1)
         rr = np.flatnonzero(labels >= 0)
         rows[k] = rr
-        ea.append(offset[k[0]] + m[rr, 0].astype(np.int64))
-        eb.append(offset[k[1]] + m[rr, 1].astype(np.int64))
-    ea, eb = np.concatenate(ea), np.concatenate(eb)
+        ea_parts.append(offset[k[0]] + m[rr, 0].astype(np.int64))
+        eb_parts.append(offset[k[1]] + m[rr, 1].astype(np.int64))
+    ea, eb = np.concatenate(ea_parts), np.concatenate(eb_parts)
     _, comp = connected_components(coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)),
                                    directed=False)
     nodes = np.unique(np.concatenate([ea, eb]))
@@ -96,7 +96,7 @@ def _split_tracks(keypoints, pairs, workers: int):
         chunk_of_comp[c] = b
         load[b] += sizes[c]
     edge_chunk = chunk_of_comp[edge_comp]
-    chunks = [({}, {}) for _ in range(workers)]
+    chunks: list[tuple[dict, dict]] = [({}, {}) for _ in range(workers)]
     start = 0
     for k in keys:
         m, r = pairs[k]
@@ -145,7 +145,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         queue = manager.Queue()
 
     def drain() -> None:
-        while queue is not None and not queue.empty():
+        while bar is not None and queue is not None and not queue.empty():
             bar.update(queue.get())
 
     try:
