@@ -32,12 +32,12 @@ from pathlib import Path
 
 import numpy as np
 from bench_hard_pairs import parse_variant
-from miho_bench.datasets import multiview_pairs, oxford_pairs
-from miho_bench.frontend_cache import load_inputs
-from miho_bench.match_errors import gt_error
 
 from colmap_miho import filter_matches
 from colmap_miho.filtering.config import FilterConfig
+from miho_bench.datasets import multiview_pairs, oxford_pairs
+from miho_bench.frontend_cache import load_inputs
+from miho_bench.match_errors import gt_error
 
 GT_PX = 3.0
 CACHE = Path(__file__).resolve().parent / "results" / "cache"

@@ -39,14 +39,14 @@ import time
 from pathlib import Path
 
 import numpy as np
-from miho_bench.datasets import oxford_pairs
-from miho_bench.frontend_cache import load_inputs
-from miho_bench.match_errors import gt_error
-from miho_bench.peers import magsac_mask
 
 from colmap_miho import filter_matches
 from colmap_miho.enums import FilterMethod
 from colmap_miho.filtering.config import FilterConfig
+from miho_bench.datasets import oxford_pairs
+from miho_bench.frontend_cache import load_inputs
+from miho_bench.match_errors import gt_error
+from miho_bench.peers import magsac_mask
 
 OUTLIER_PX = 15.0
 GOOD_PX = 3.0

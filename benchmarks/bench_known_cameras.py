@@ -166,7 +166,8 @@ def main(argv=None) -> int:
                                                  "rows": rows}, indent=2), encoding="utf-8")
     wall = time.perf_counter() - t_all
     print(f"recipe {recipe.name} {' '.join('--set ' + o for o in args.overrides)}; GT intrinsics, "
-          f"refine_intrinsics={args.refine_intrinsics}; median of {args.repeats} mapping runs (seeds 0..{args.repeats - 1}, "
+          f"refine_intrinsics={args.refine_intrinsics}; median of {args.repeats} mapping runs "
+          f"(seeds 0..{args.repeats - 1}, "
           f"{args.threads} thread(s)), range in brackets; model pose AUC over all GT pairs; GT residual = median "
           f"residual of the stored inliers' tracks triangulated with the GT cameras (tracks <= 4 px), wrong = "
           f"tracks > 4 px; {wall:.0f} s")

@@ -14,8 +14,9 @@ Speed: median wall time of ``--runs`` calls at the reference's two sizes (950 an
 matches: the SIFT matches of a pair tiled to that count), and the process CPU time divided by
 the torch thread count, a better estimate of an idle machine's wall time when other jobs share
 the CPU (with spinning OpenMP threads on an oversubscribed machine, CPU time is inflated too:
-use ``--threads 1`` there, whose CPU time is the work of one core). Reference implementation on this machine class (algorithm.md): full NCC (25 shapes +
-base, both directions) 5.4 s for 950 matches and 21 s for 2549.
+use ``--threads 1`` there, whose CPU time is the work of one core). Reference implementation
+on this machine class (algorithm.md): full NCC (25 shapes + base, both directions) 5.4 s for 950 matches
+and 21 s for 2549.
 
     python benchmarks/bench_ncc.py            # graf and boat 1->2, both front ends, 3 runs
     python benchmarks/bench_ncc.py --quick    # graf 1->2, SIFT, 1 run, 950 matches only
@@ -37,10 +38,10 @@ import numpy as np
 import torch
 
 from colmap_miho import refine_pair
+from colmap_miho.refinement.config import NCCConfig
 from miho_bench.datasets import oxford_pairs
 from miho_bench.frontend import sift_matches
 from miho_bench.match_errors import transfer_error
-from colmap_miho.refinement.config import NCCConfig
 
 GT_PX = 3.0
 REFERENCE_S = {950: 5.4, 2549: 21.0}
@@ -127,8 +128,8 @@ def main(argv=None) -> int:
             for move in ("auto", "2"):
                 shapes, coarse = variants[s]
                 cfg = NCCConfig(perturbations=shapes, coarse_shapes=coarse, device=args.device)
-                wall, cpu = timed(lambda: refine_pair(img1, img2, p1[idx], p2[idx], homs[idx],
-                                                      move=move, config=cfg), runs)
+                wall, cpu = timed(lambda idx=idx, move=move, cfg=cfg: refine_pair(
+                    img1, img2, p1[idx], p2[idx], homs[idx], move=move, config=cfg), runs)
                 ref = REFERENCE_S[n]
                 print(f"{n:7d} {s:7s} {move:5s} {wall:7.2f} {cpu:8.2f} {ref:6.1f} "
                       f"{ref / wall:7.1f} {ref / cpu:7.1f}")

@@ -55,9 +55,9 @@ def main(argv=None) -> int:
 
     import pycolmap
 
+    from colmap_miho.recipe import load_recipe
     from colmap_miho.reporting.compare import compare_databases
     from colmap_miho.sfm import extract_and_match
-    from colmap_miho.recipe import load_recipe
 
     pycolmap.logging.minloglevel = 1
     mapping = [f"mapping.refine_intrinsics={args.refine_intrinsics}"] if args.refine_intrinsics else []
@@ -91,7 +91,8 @@ def main(argv=None) -> int:
                 "refine_s": f"{res.refine.get('seconds', {}).get('total', 0):.1f}" if side == "refined" else "",
                 "moved": res.refine.get("keypoints_moved", "") if side == "refined" else "",
             })
-        print(f"{scene}: features {t_feat:.1f} s (0 = cached), compare {t_cmp:.1f} s -> {res.markdown}", file=sys.stderr)
+        print(f"{scene}: features {t_feat:.1f} s (0 = cached), compare {t_cmp:.1f} s -> {res.markdown}",
+              file=sys.stderr)
     head = ["scene", "side", "reg", "points", "reproj", "model", "E", "F", "map_s", "refine_s", "moved"]
     print(f"recipe {recipe.name} {' '.join(args.overrides)}; AUC@5/10/20 in %; model = all GT pairs from the "
           f"reconstruction, E/F = two-view protocols on pairs_with_gt.txt")

@@ -30,11 +30,11 @@ import numpy as np
 import torch
 
 from colmap_miho import refine_pair
+from colmap_miho.refinement.config import NCCConfig, TrackConfig
+from colmap_miho.refinement.tracks import refine_tracks
 from miho_bench.datasets import oxford_pairs
 from miho_bench.frontend import filtered_multiview_matches, sift_matches
 from miho_bench.match_errors import transfer_error
-from colmap_miho.refinement.config import NCCConfig, TrackConfig
-from colmap_miho.refinement.tracks import refine_tracks
 
 GT_PX = 3.0
 
@@ -121,7 +121,7 @@ def time_cuda(root: Path, runs: int) -> None:
             cfg = NCCConfig(perturbations=shapes, device="cuda", batch_size=batch)
             cells = []
             for a, b in ((img1, img2), (g1, g2)):
-                def call(a=a, b=b):
+                def call(a=a, b=b, idx=idx, move=move, cfg=cfg):
                     refine_pair(a, b, fm.pts1[idx], fm.pts2[idx], homs[idx], move=move, config=cfg)
                 call()  # warm-up (kernels, allocator)
                 walls = []

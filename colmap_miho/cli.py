@@ -58,7 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
 def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s" if not verbose else "%(asctime)s %(name)s %(levelname)s: %(message)s"))
+    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
+                                           else "%(levelname)s: %(message)s"))
     root = logging.getLogger("colmap_miho")
     root.handlers[:] = [handler]
     root.setLevel(level)

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 from enum import Enum
+from typing import TypeVar
+
+_E = TypeVar("_E", bound="StrEnum")
 
 
 class StrEnum(str, Enum):
@@ -12,7 +15,7 @@ class StrEnum(str, Enum):
         return str(self.value)
 
     @classmethod
-    def parse(cls, value: str | StrEnum, name: str = "value") -> StrEnum:
+    def parse(cls: type[_E], value: str | StrEnum, name: str = "value") -> _E:
         """Return the member for ``value`` or raise ``ValueError`` listing the choices."""
         if isinstance(value, cls):
             return value

@@ -2,7 +2,8 @@
 
 A recipe has one table per stage (``[filter]``, ``[ncc]``, ``[tracks]``, ``[pipeline]``,
 ``[mapping]``) whose keys are fields of the stage's dataclass; a missing table means the
-dataclass defaults. Unknown tables or keys are errors, never silently ignored. ``--set section.key=value`` overrides are parsed with the field's type.
+dataclass defaults. Unknown tables or keys are errors, never silently ignored.
+``--set section.key=value`` overrides are parsed with the field's type.
 """
 
 from __future__ import annotations

@@ -465,6 +465,10 @@ class CameraIntrinsics:
     width: int | None = None
     height: int | None = None
 
+    def __post_init__(self) -> None:
+        if (self.width is None) != (self.height is None):
+            raise ValueError(f"camera intrinsics: give width and height together, got {self.width}x{self.height}")
+
 
 def model_num_params(model: str) -> int:
     """Number of parameters of the COLMAP camera model ``model`` (a name, any case).
@@ -483,7 +487,8 @@ def model_num_params(model: str) -> int:
 def _camera_from(old, intr: CameraIntrinsics):
     import pycolmap
 
-    if intr.width is not None and (int(intr.width), int(intr.height)) != (int(old.width), int(old.height)):
+    if (intr.width is not None and intr.height is not None
+            and (int(intr.width), int(intr.height)) != (int(old.width), int(old.height))):
         raise DatabaseError(f"camera {old.camera_id} is {old.width}x{old.height} px but the intrinsics given "
                             f"are for {intr.width}x{intr.height} px")
     model = str(intr.model).upper()
@@ -492,7 +497,7 @@ def _camera_from(old, intr: CameraIntrinsics):
     if intr.params:
         if len(intr.params) != len(new.params):
             raise ValueError(f"camera model {model} takes {len(new.params)} parameters, got {len(intr.params)}")
-        new.params = np.asarray(intr.params, dtype=np.float64)
+        new.params = [float(v) for v in intr.params]
         new.has_prior_focal_length = True
     else:
         new.has_prior_focal_length = bool(old.has_prior_focal_length)

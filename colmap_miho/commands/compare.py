@@ -32,7 +32,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--database", required=True, type=Path, help="COLMAP database (never modified)")
     parser.add_argument("--images", required=True, type=Path, help="image folder")
     parser.add_argument("--output", required=True, type=Path, help="comparison folder")
-    parser.add_argument("--gt", type=Path, default=None, help="GT COLMAP model folder (or dataset folder with gt_model/)")
+    parser.add_argument("--gt", type=Path, default=None,
+                        help="GT COLMAP model folder (or dataset folder with gt_model/)")
     parser.add_argument("--pairs", type=Path, default=None, help="pairs file for the two-view AUCs")
     add_recipe_arguments(parser)
     add_camera_arguments(parser)

@@ -13,17 +13,22 @@ ORDER = 30
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--database", required=True, type=Path, help="COLMAP database (read through a copy, never modified)")
+    parser.add_argument("--database", required=True, type=Path,
+                        help="COLMAP database (read through a copy, never modified)")
     parser.add_argument("--images", required=True, type=Path, help="image folder")
-    parser.add_argument("--output", required=True, type=Path, help="folder for the model (largest by registered images)")
+    parser.add_argument("--output", required=True, type=Path,
+                        help="folder for the model (largest by registered images)")
     parser.add_argument("--recipe", default=None,
                         help="recipe name or .toml path whose [mapping] table is used (default mop_miho_ncc)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a recipe value, e.g. --set mapping.num_threads=1 (repeatable)")
-    parser.add_argument("--mapper", default=None, choices=Mapper.values(), help="pycolmap pipeline (default incremental)")
+    parser.add_argument("--mapper", default=None, choices=Mapper.values(),
+                        help="pycolmap pipeline (default incremental)")
     parser.add_argument("--seed", type=int, default=None, help="mapper random seed (default 0)")
-    parser.add_argument("--threads", type=int, default=None, help="mapper threads (-1 all, the default; 1 for bit-exact repeat runs)")
-    parser.add_argument("--min-num-matches", type=int, default=None, help="ignore pairs with fewer verified inliers (default 15)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="mapper threads (-1 all, the default; 1 for bit-exact repeat runs)")
+    parser.add_argument("--min-num-matches", type=int, default=None,
+                        help="ignore pairs with fewer verified inliers (default 15)")
     add_camera_arguments(parser)
     add_refine_intrinsics_argument(parser)
     parser.add_argument("--json", type=Path, default=None, help="write the mapping summary as JSON")

@@ -28,12 +28,15 @@ def add_arguments(parser) -> None:
                         help="COLMAP model folder (text or binary); optional with --gt and --database")
     parser.add_argument("--database", type=Path, default=None,
                         help="COLMAP database for the two-view pose AUCs and the keypoint accuracy")
-    parser.add_argument("--gt", type=Path, default=None, help="GT COLMAP model folder (or a dataset folder with gt_model/)")
-    parser.add_argument("--pairs", type=Path, default=None, help="pairs file (name1 name2 ...) for the two-view AUCs")
+    parser.add_argument("--gt", type=Path, default=None,
+                        help="GT COLMAP model folder (or a dataset folder with gt_model/)")
+    parser.add_argument("--pairs", type=Path, default=None,
+                        help="pairs file (name1 name2 ...) for the two-view AUCs")
     parser.add_argument("--seed", type=int, default=0, help="RANSAC seed of the two-view protocols")
     add_auc_arguments(parser)
     parser.add_argument("--json", type=Path, default=None, help="write the full report as JSON")
-    parser.add_argument("--ply", type=Path, default=None, help="also export the model's 3D points (with colours) as PLY")
+    parser.add_argument("--ply", type=Path, default=None,
+                        help="also export the model's 3D points (with colours) as PLY")
 
 
 def run(args) -> int:

@@ -20,7 +20,8 @@ ORDER = 60
 def add_arguments(parser) -> None:
     parser.add_argument("--images", required=True, type=Path, help="image folder")
     parser.add_argument("--output", required=True, type=Path, help="work folder")
-    parser.add_argument("--gt", type=Path, default=None, help="GT COLMAP model folder (or dataset folder with gt_model/)")
+    parser.add_argument("--gt", type=Path, default=None,
+                        help="GT COLMAP model folder (or dataset folder with gt_model/)")
     parser.add_argument("--compare", action="store_true", help="also map the unrefined database and compare")
     parser.add_argument("--camera-mode", default=CameraMode.SINGLE.value, choices=CameraMode.values(),
                         help="COLMAP camera sharing (default: one camera for all images)")

@@ -210,7 +210,7 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
 def _resolve_config(method: str | FilterMethod | None, config: FilterConfig | None) -> FilterConfig:
     """The config that runs: ``method``, when given, replaces ``config.method``."""
     if config is None:
-        return FilterConfig(method=FilterMethod.MOP_MIHO if method is None else method)
+        return FilterConfig(method=FilterMethod.MOP_MIHO if method is None else FilterMethod.parse(method, "method"))
     if not isinstance(config, FilterConfig):
         raise ValueError(f"config must be a FilterConfig, got {type(config).__name__}")
     if method is not None:

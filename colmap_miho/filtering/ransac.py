@@ -38,10 +38,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .config import FilterConfig
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 from .homography import (
     adjugate,
     dlt,
@@ -323,7 +327,7 @@ class _Search:
         improved = False
         for k in np.argsort(-counts, kind="stable"):
             if counts[k] > self.count:
-                if self.hyp is not None:
+                if self.hyp is not None and self.mask is not None:  # set together
                     self.cands.append((self.hyp, self.mask))
                 self.hyp, self.err = hyp.take(k), err[k]
                 self.count, self.mask = int(counts[k]), masks[k]
@@ -391,12 +395,12 @@ class _Sampler:
         self.k = cfg.local_neighbours
         self.local = cfg.sampling == "local" and n > cfg.local_neighbours + 1
         self.fraction = cfg.local_fraction if self.local else 0.0
-        self._cands = None
+        self._cands: LocalCandidates | None = None
         if self.local:
             self._cands = candidates if candidates is not None else LocalCandidates(problem, cfg)
             self._pos = np.full(len(problem.x1), -1, dtype=np.int64)  # global -> pool position
             self._pos[pool] = np.arange(n)
-        self._pool_tree = None
+        self._pool_tree: cKDTree | None = None
         self._nb = np.full((n, self.k), -1, dtype=np.int64)  # -1 = no such neighbour
         self._spread = problem.spread_all[pool] if self.local else None  # (n, sets, 2)
         self._t2 = cfg.t_l**2
@@ -407,6 +411,7 @@ class _Sampler:
         of the pool positions ``pos`` in every spread set (-1 where there are fewer than k)."""
         todo = np.unique(pos[~self._known[pos]])
         if len(todo):
+            assert self._cands is not None, "neighbours are searched with local sampling only"
             cand, far = self._cands.get(self.pool[todo])
             cand_pos = np.where(cand >= 0, self._pos[np.maximum(cand, 0)], -1)
             nb = self._first_k(cand_pos, far & (cand_pos >= 0))
@@ -430,13 +435,15 @@ class _Sampler:
     def _pool_candidates(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest pool matches of pool positions ``pos`` (as pool positions) and whether
         each is far enough for the spread test, from a k-d tree over the pool."""
+        cands = self._cands
+        assert cands is not None, "neighbours are searched with local sampling only"
         if self._pool_tree is None:
             from scipy.spatial import cKDTree
 
-            self._pool_tree = cKDTree(self._cands.feats[self.pool])
+            self._pool_tree = cKDTree(cands.feats[self.pool])
         q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
-        cand = self._pool_tree.query(self._cands.feats[self.pool[pos]], k=q)[1][:, 1:]
-        return cand, self._cands.far(self.pool[cand], self.pool[pos][:, None])
+        cand = self._pool_tree.query(cands.feats[self.pool[pos]], k=q)[1][:, 1:]
+        return cand, cands.far(self.pool[cand], self.pool[pos][:, None])
 
     def local_inlier_fraction(self, search: _Search) -> float:
         """Share of the best model's inliers among the neighbours of (up to 256) of them."""
@@ -453,6 +460,7 @@ class _Sampler:
     def _draw_local(self, rng: np.random.Generator, seeds: np.ndarray) -> np.ndarray:
         """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart
         (the seed itself where no such neighbour is left, which fails the spread test)."""
+        assert self._spread is not None, "local draws need local sampling"
         nb = self.neighbours(seeds)
         free = nb >= 0  # (L, k) candidates still allowed
         pts = self._spread[np.maximum(nb, 0)]  # (L, k, sets, 2)
@@ -517,6 +525,7 @@ def _score_batch(problem: Problem, hyp: Hypotheses, pool: np.ndarray, cfg: Filte
 def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _Search,
                 stats: dict) -> None:
     """Replace the best model by least-squares refits on its inliers while they lose none."""
+    assert search.hyp is not None and search.err is not None and search.mask is not None, "no best model"
     for _ in range(cfg.refit_iters):
         refit = _refit(problem, search.hyp, pool[search.err <= search.t2])
         if refit is None:
@@ -548,7 +557,7 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         ``(result, buffer)``; ``result`` is ``None`` when no valid hypothesis was found.
     """
     n = len(pool)
-    stats = {"drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
+    stats: dict[str, float] = {"drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
     if n < 4:
         return None, buffer
     search = _Search(t2=cfg.t_l**2)
@@ -582,6 +591,7 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
     if search.hyp is None:
         return None, buffer
     _refit_best(problem, pool, cfg, search, stats)
+    assert search.err is not None and search.mask is not None  # set together with hyp
     buffer = _greedy_buffer(search.cands, search.mask, cfg.buffer_size)
     stats["required_iters"] = required
     return RoundResult(search.hyp, search.err, search.count, stats), buffer

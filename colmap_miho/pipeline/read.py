@@ -100,4 +100,5 @@ def read_affines(db: ColmapDatabase, image_ids) -> dict[int, np.ndarray] | None:
     """Keypoint affine shapes per image (see ``ColmapDatabase.keypoint_affines``), or None
     when any image's keypoints carry no affine shape."""
     affines = {i: db.keypoint_affines(i) for i in image_ids}
-    return None if any(a is None for a in affines.values()) else affines
+    known = {i: a for i, a in affines.items() if a is not None}
+    return known if len(known) == len(affines) else None

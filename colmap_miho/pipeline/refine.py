@@ -218,8 +218,10 @@ def refine_database(
     laps.lap("setup")
     with wc:
         laps.lap("copy")
-        validate_database(wc.path)
-        with ColmapDatabase(wc.path) as db:
+        work_db = wc.path
+        assert work_db is not None  # set on entering the block
+        validate_database(work_db)
+        with ColmapDatabase(work_db) as db:
             read, read_stats = run_read(db, ReadConfig(
                 pipeline=pcfg, image_dir=image_dir, max_images_in_memory=rec.tracks.max_images_in_memory,
                 strict=strict, database_name=database))
@@ -232,7 +234,7 @@ def refine_database(
             write_stats = run_write(db, read.keypoints, new_keypoints, ok, pcfg)
             laps.lap("write")
         if pcfg.verify:
-            run_verify(wc.path)
+            run_verify(work_db)
             laps.lap("verify")
         written = wc.commit()
     summary = RefineSummary.from_stages(

@@ -101,7 +101,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         queue = manager.Queue()
 
     def drain() -> None:
-        while queue is not None and not queue.empty():
+        while queue is not None and bar is not None and not queue.empty():
             bar.update(queue.get())
 
     try:

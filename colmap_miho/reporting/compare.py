@@ -241,7 +241,7 @@ def evaluate_side(runs: list, database: Path, gt, pairs, seed: int, thresholds=N
         for res in runs[1:]:
             rep = _evaluate(res.success, res.output, None, gt, pairs, seed, thresholds)
             rows.append(run_row(rep, res.seed, res.success))
-        for row, res in zip(rows, runs):
+        for row, res in zip(rows, runs, strict=True):
             row["mapping"] = res.to_dict()
         report["repeats"] = summarise_runs(rows)
     return report
@@ -430,9 +430,9 @@ def run_from_images(
     Raises:
         RunFailed: extraction found < 2 images, or mapping registered nothing.
     """
-    from .report import build_report, write_report_json
-    from ..sfm import extract_and_match, require_success, run_mapping
     from ..pipeline.refine import refine_database
+    from ..sfm import extract_and_match, require_success, run_mapping
+    from .report import build_report, write_report_json
 
     recipe = _as_recipe(recipe)
     mapping = _mapping_config(recipe, mapper, seed)

@@ -39,7 +39,8 @@ def plot_pose_error_curves(
     plt = _pyplot()
     metrics = [m for m in curves if curves[m]]
     fig, axes = plt.subplots(1, max(1, len(metrics)), figsize=(4.2 * max(1, len(metrics)), 3.6), squeeze=False)
-    for ax, metric in zip(axes[0], metrics):
+    # strict=False: with no metric there is still one (empty) panel, so axes can outnumber metrics
+    for ax, metric in zip(axes[0], metrics, strict=False):
         finite = np.array([v for errs in curves[metric].values() for v in errs if v is not None and np.isfinite(v)])
         # zoom in when every error is small: the curve's shape is the information
         hi = max_deg if finite.size == 0 else float(min(max_deg, max(1.0, np.ceil(1.5 * np.quantile(finite, 0.95)))))

@@ -140,7 +140,9 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         rows = np.frombuffer(f.read(np.dtype(fields).itemsize * count), dtype=fields, count=count)
     xyz = np.stack([rows["x"], rows["y"], rows["z"]], axis=1).astype(np.float64)
     names = {n for n, _ in fields}
-    rgb = np.stack([rows["red"], rows["green"], rows["blue"]], axis=1).astype(np.uint8) if {"red", "green", "blue"} <= names else None
+    rgb = None
+    if {"red", "green", "blue"} <= names:
+        rgb = np.stack([rows["red"], rows["green"], rows["blue"]], axis=1).astype(np.uint8)
     return xyz, rgb
 
 
@@ -215,7 +217,8 @@ def cloud_figures(points: np.ndarray, *, nb_neighbors: int = 20, std_ratio: floa
         return out
     nn = _knn_distances(p, 2)[:, 1]
     out["spacing_median"], out["spacing_mean"] = float(np.median(nn)), float(nn.mean())
-    out["outlier_share"] = float(statistical_outliers(p, nb_neighbors=nb_neighbors, std_ratio=std_ratio, backend=b).mean())
+    outliers = statistical_outliers(p, nb_neighbors=nb_neighbors, std_ratio=std_ratio, backend=b)
+    out["outlier_share"] = float(outliers.mean())
     return out
 
 

@@ -154,7 +154,7 @@ def auc_summary(errors, thresholds=AUC_THRESHOLDS_DEG) -> dict:
     """``{"auc5", "auc10", "auc20", "maa", "num_pairs", "num_failed"}`` for a set of pair errors."""
     errs = np.asarray(errors, dtype=np.float64).reshape(-1)
     aucs = pose_auc(errs, thresholds)
-    out = {f"auc{int(t) if float(t).is_integer() else t}": a for t, a in zip(thresholds, aucs)}
+    out = {f"auc{int(t) if float(t).is_integer() else t}": a for t, a in zip(thresholds, aucs, strict=True)}
     out["maa"] = mean_average_accuracy(errs)
     out["num_pairs"] = int(errs.size)
     out["num_failed"] = int(np.sum(~np.isfinite(errs)))

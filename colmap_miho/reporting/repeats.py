@@ -63,8 +63,9 @@ def summarise_runs(rows: list[dict]) -> dict:
         which count as 0. Non-finite values (a failed pose) are ignored.
     """
     leaves = [_leaves({s: r[s] for s in RUN_SECTIONS if s in r}) for r in rows]
-    auc_paths = {p for lv in leaves for p in lv if p[0] == "model_pose_auc" and (p[1].startswith("auc") or p[1] == "maa")}
-    for r, lv in zip(rows, leaves):
+    auc_paths = {p for lv in leaves for p in lv
+                 if p[0] == "model_pose_auc" and (p[1].startswith("auc") or p[1] == "maa")}
+    for r, lv in zip(rows, leaves, strict=True):
         if not r["success"]:
             lv.update(dict.fromkeys(auc_paths, 0.0))
     paths = sorted({p for lv in leaves for p in lv}, key=str)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from colmap_miho.reporting import keypoint_accuracy as ka
-from colmap_miho.reporting.gt_model import CameraPose
 from colmap_miho.reporting.demo_scene import look_at
+from colmap_miho.reporting.gt_model import CameraPose
 
 # exact keypoints: residual is float64 round-off after Gauss-Newton (measured ~1e-12 px)
 EXACT_TOL_PX = 1e-6

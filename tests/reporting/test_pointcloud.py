@@ -106,7 +106,8 @@ def test_render_png(tmp_path):
     import cv2
 
     pts, _ = grid_with_far_outliers()
-    assert pc.render_cloud_png(pts, None, tmp_path / "m.png", width=400, height=300, backend="matplotlib") == "matplotlib"
+    backend = pc.render_cloud_png(pts, None, tmp_path / "m.png", width=400, height=300, backend="matplotlib")
+    assert backend == "matplotlib"
     img = cv2.imread(str(tmp_path / "m.png"))
     assert img.shape == (300, 400, 3) and img.std() > 5  # something was drawn
     used = pc.render_cloud_png(pts, np.full((len(pts), 3), 128, np.uint8), tmp_path / "a.png", width=320, height=240)

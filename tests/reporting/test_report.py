@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
+from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.reporting import gt_model as gm
 from colmap_miho.reporting import report as rp
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.sfm import run_mapping
 
 # Measured on this scene (0.5 px noise, 10% outliers): model pose errors < 0.5 deg, AUC@5 ~0.93.
@@ -23,7 +23,7 @@ def mapped(tmp_path_factory):
     root = tmp_path_factory.mktemp("rep")
     scene = make_synthetic_scene(root / "scene", num_images=6, num_points=300, outlier_ratio=0.1,
                                  noise_px=0.5, render_images=False, seed=1)
-    res = run_mapping(scene.database, scene.image_dir, root / "model", seed=0)
+    run_mapping(scene.database, scene.image_dir, root / "model", seed=0)
     gt_dir = root / "gt"
     gt_dir.mkdir()
     scene.gt_reconstruction.write_text(str(gt_dir))
@@ -96,7 +96,8 @@ def test_umeyama_recovers_similarity():
 
 def test_report_without_gt_and_bad_model(mapped, tmp_path, capsys):
     _, model, _ = mapped
-    assert main(["report", "--model", str(model), "--ply", str(tmp_path / "p.ply"), "--json", str(tmp_path / "r.json")]) == 0
+    argv = ["report", "--model", str(model), "--ply", str(tmp_path / "p.ply"), "--json", str(tmp_path / "r.json")]
+    assert main(argv) == 0
     out = capsys.readouterr().out
     assert "images registered" in out and "sparse cloud" in out
     assert (tmp_path / "p.ply").read_bytes().startswith(b"ply")

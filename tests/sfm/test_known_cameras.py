@@ -305,4 +305,5 @@ def test_refine_flags_reach_both_mappers(monkeypatch, tmp_path, refine, flags):
         assert inc.mapper.abs_pose_refine_focal_length == ref_inc.mapper.abs_pose_refine_focal_length
     else:
         assert got_inc == flags and got_ba == flags
-        assert (inc.mapper.abs_pose_refine_focal_length, inc.mapper.abs_pose_refine_extra_params) == (flags[0], flags[2])
+        got_abs = (inc.mapper.abs_pose_refine_focal_length, inc.mapper.abs_pose_refine_extra_params)
+        assert got_abs == (flags[0], flags[2])
