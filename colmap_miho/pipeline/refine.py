@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..adapters.database import ColmapDatabase, validate_database
+from ..adapters.paths import check_distinct
 from ..adapters.safety import WorkingCopy, check_database_path
 from ..enums import Device
 from ..errors import UserError
@@ -214,6 +215,10 @@ def refine_database(
     dev = _resolve_device(device)
     n_workers = 1 if dev == "cuda" else max(1, int(workers) if workers else (os.cpu_count() or 1))
     wc = WorkingCopy(database, Path(output) if output else None, in_place=in_place, overwrite=overwrite)
+    check_distinct({"--database": database, "--images": image_dir},
+                   {"--output": None if in_place else wc.output, "--json": json_path})
+    if json_path:
+        _check_writable_file(Path(json_path), "--json")
     laps.lap("setup")
     with wc:
         laps.lap("copy")
@@ -233,15 +238,29 @@ def refine_database(
         if pcfg.verify:
             run_verify(wc.path)
             laps.lap("verify")
-        written = wc.commit()
-    summary = RefineSummary.from_stages(
-        output=written, database=database, backup=wc.backup, recipe=rec, device=dev,
-        read=read_stats, filtered=filter_stats, refine_stats=refine_stats, write=write_stats,
-        seconds=laps.total())
-    if json_path:
-        Path(json_path).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
+        summary = RefineSummary.from_stages(
+            output=database if in_place else wc.output,  # in place: the user's path (a symlink stays one)
+            database=database, backup=wc.backup, recipe=rec, device=dev, read=read_stats,
+            filtered=filter_stats, refine_stats=refine_stats, write=write_stats, seconds=laps.total())
+        if json_path:  # written beside its target now, renamed onto it with the commit
+            wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
+        wc.commit()
     log.info("wrote %s", summary.output)
     return summary
+
+
+def _check_writable_file(path: Path, label: str) -> None:
+    """Refuse, before any work, an output file whose folder is missing or read-only.
+
+    Raises:
+        UserError: the message names the option and the path.
+    """
+    if path.is_dir():
+        raise UserError(f"{label} {path} is a folder; give a file name")
+    if not path.parent.is_dir():
+        raise UserError(f"{label} folder does not exist: {path.parent}")
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise UserError(f"{label} {path}: cannot write in {path.parent} (read-only folder)")
 
 
 def _refine(db: ColmapDatabase, read: ReadOutput, ok: FilteredPairs, rec: Recipe, device: str,

@@ -1,0 +1,210 @@
+"""Issue 14: no path, race, signal or full disk may cost a user their database.
+
+Each test is one case of the misuse attack: the command must exit 1 or 2 with one line naming
+the user's file, and the database must stay byte-identical.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from colmap_miho.adapters.paths import check_distinct, same_file
+from colmap_miho.adapters.safety import WorkingCopy
+from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.cli import main
+from colmap_miho.errors import DatabaseError, UserError
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def hidden_leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir()
+                  if p.name.endswith((".tmp", "-wal", "-shm", "-journal", ".bak")))
+
+
+def error_lines(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.strip()]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_synthetic_scene(tmp_path_factory.mktemp("reliability"), num_images=4, num_points=80,
+                                render_images=True, seed=5)
+
+
+@pytest.fixture
+def db(scene, tmp_path):
+    target = tmp_path / "work" / "scene.db"
+    target.parent.mkdir()
+    target.write_bytes(scene.database.read_bytes())
+    return target
+
+
+def _refine(db: Path, images: Path, *extra: str) -> list[str]:
+    return ["refine", "--database", str(db), "--images", str(images), "--workers", "1", "--no-refine",
+            "-q", *extra]
+
+
+# ------------------------------------------------------------------ 1. overlapping paths
+def test_check_distinct_follows_symlinks_and_hard_links(tmp_path):
+    real = tmp_path / "x.db"
+    real.write_bytes(b"data")
+    link = tmp_path / "link.db"
+    link.symlink_to(real)
+    hard = tmp_path / "hard.db"
+    os.link(real, hard)
+    assert same_file(link, real) and same_file(hard, real) and same_file(tmp_path / "." / "x.db", real)
+    for out in (real, link, hard, tmp_path / "sub" / ".." / "x.db"):
+        with pytest.raises(UserError, match=r"--json .* is the same file as --database .*choose another"):
+            check_distinct({"--database": real}, {"--json": out})
+    with pytest.raises(UserError, match="SQLite's -wal file"):
+        check_distinct({"--database": real}, {"--json": Path(str(real) + "-wal")})
+    with pytest.raises(UserError, match="--features and --matches are the same file.*choose another --matches"):
+        check_distinct({}, {"--features": tmp_path / "f.h5", "--matches": tmp_path / "f.h5"})
+    check_distinct({"--database": real, "--images": None}, {"--json": tmp_path / "summary.json", "--ply": None})
+
+
+@pytest.mark.parametrize("case", ["refine_json_is_database", "refine_json_is_output",
+                                  "refine_json_is_default_output", "refine_in_place_json_link",
+                                  "map_json", "report_json", "export_features", "export_matches"])
+def test_overlapping_output_is_refused_before_work(case, db, scene, tmp_path, capfd):
+    """Every command that would write where it reads exits 2 with one line; nothing changes."""
+    digest = sha256(db)
+    link = tmp_path / "alias.json"
+    link.symlink_to(db)
+    out = db.with_name("out.db")
+    argv = {
+        "refine_json_is_database": _refine(db, scene.image_dir, "--json", str(db)),
+        "refine_json_is_output": _refine(db, scene.image_dir, "--output", str(out), "--json", str(out)),
+        "refine_json_is_default_output": _refine(db, scene.image_dir, "--json", str(db.with_name("scene.miho.db"))),
+        "refine_in_place_json_link": _refine(db, scene.image_dir, "--in-place", "--json", str(link)),
+        "map_json": ["map", "--database", str(db), "--images", str(scene.image_dir), "--output",
+                     str(tmp_path / "model"), "--json", str(db), "-q"],
+        "report_json": ["report", "--database", str(db), "--gt", str(tmp_path), "--json", str(db), "-q"],
+        "export_features": ["export", "--database", str(db), "--features", str(db), "--matches",
+                            str(tmp_path / "m.h5"), "--overwrite", "-q"],
+        "export_matches": ["export", "--database", str(link), "--features", str(tmp_path / "f.h5"),
+                           "--matches", str(db), "--overwrite", "-q"],
+    }[case]
+    capfd.readouterr()
+    assert main(argv) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "same file" in lines[0] and "choose another" in lines[0], lines
+    assert sha256(db) == digest
+    assert not out.exists() and not (tmp_path / "model").exists()
+    assert hidden_leftovers(db.parent) == []
+
+
+# ------------------------------------------------------------------ 2. side files before the replace
+def test_bad_json_path_fails_before_the_in_place_replace(db, scene, capfd):
+    digest = sha256(db)
+    bad = db.parent / "no_such_folder" / "summary.json"
+    assert main(_refine(db, scene.image_dir, "--in-place", "--json", str(bad))) == 2
+    assert "--json folder does not exist" in capfd.readouterr().err
+    assert sha256(db) == digest
+    assert hidden_leftovers(db.parent) == []  # no backup either: nothing was replaced
+
+
+def test_json_is_written_with_the_commit(db, scene, tmp_path):
+    summary = tmp_path / "summary.json"
+    out = db.with_name("out.db")
+    assert main(_refine(db, scene.image_dir, "--output", str(out), "--json", str(summary))) == 0
+    data = json.loads(summary.read_text())
+    assert data["output"] == str(out) and out.exists()
+    assert hidden_leftovers(tmp_path) == [] and hidden_leftovers(db.parent) == []
+
+
+def test_side_file_staging_failure_replaces_nothing(db, tmp_path):
+    """A side file that cannot be written fails inside the block: the output is not created."""
+    out = db.with_name("out.db")
+    with pytest.raises(UserError, match="cannot write .*nothing was replaced"):
+        with WorkingCopy(db, out) as wc:
+            wc.stage_side_file(tmp_path / "missing" / "s.json", "{}")
+            wc.commit()
+    assert not out.exists() and hidden_leftovers(db.parent) == []
+
+
+# ------------------------------------------------------------------ 3. in place on a symlink
+def test_in_place_on_a_symlink_refines_the_target_and_keeps_the_link(db, scene, tmp_path):
+    digest = sha256(db)
+    link_dir = tmp_path / "links"
+    link_dir.mkdir()
+    link = link_dir / "project.db"
+    link.symlink_to(db)
+    assert main(_refine(link, scene.image_dir, "--in-place")) == 0
+    assert link.is_symlink() and link.resolve() == db.resolve()
+    assert sha256(db) != digest  # the real database was refined
+    backups = list(db.parent.glob("scene.db.*.bak"))  # beside the real file
+    assert len(backups) == 1 and sha256(backups[0]) == digest
+    assert list(link_dir.iterdir()) == [link]
+
+
+# ------------------------------------------------------------------ 4. checks repeated at commit time
+def test_output_created_during_the_run_is_not_replaced(db):
+    out = db.with_name("out.db")
+    with pytest.raises(UserError, match="created by another program during the run.*--overwrite"):
+        with WorkingCopy(db, out) as wc:
+            out.write_bytes(b"the other run's result")
+            wc.commit()
+    assert out.read_bytes() == b"the other run's result"
+    assert hidden_leftovers(db.parent) == []
+
+
+HOLD_OPEN = """
+import sqlite3, sys, time
+con = sqlite3.connect(sys.argv[1], isolation_level=None)
+con.execute("PRAGMA journal_mode=wal")
+con.execute("SELECT COUNT(*) FROM images").fetchall()
+print("open", flush=True)
+time.sleep(60)
+"""
+
+
+def test_overwrite_of_an_output_held_open_is_refused_at_commit(db):
+    out = db.with_name("out.db")
+    out.write_bytes(db.read_bytes())
+    digest = sha256(out)
+    with WorkingCopy(db, out, overwrite=True) as wc:
+        proc = subprocess.Popen([sys.executable, "-c", HOLD_OPEN, str(out)], stdout=subprocess.PIPE, text=True)
+        try:
+            assert proc.stdout.readline().strip() == "open"
+            with pytest.raises(DatabaseError, match="in use by another program"):
+                wc.commit()
+        finally:
+            proc.kill()
+            proc.wait()
+    assert sha256(out) == digest
+    assert not list(db.parent.glob(".out.db.*.tmp"))
+
+
+def test_in_place_input_changed_during_the_run_is_not_replaced(db):
+    with pytest.raises(DatabaseError, match=r"changed during the run.*kept in .*scene\.miho-.*\.db.*backup"):
+        with WorkingCopy(db, in_place=True) as wc:
+            con = sqlite3.connect(db)  # another program commits an edit meanwhile
+            con.execute("UPDATE cameras SET width = width + 1")
+            con.commit()
+            con.close()
+            edited = sha256(db)
+            wc.commit()
+    assert sha256(db) == edited  # the other program's edit is still there
+    assert len(list(db.parent.glob("scene.miho-*.db"))) == 1
+    assert len(list(db.parent.glob("scene.db.*.bak"))) == 1
+
+
+def test_interrupted_in_place_run_removes_its_backup(db):
+    digest = sha256(db)
+    with pytest.raises(KeyboardInterrupt):
+        with WorkingCopy(db, in_place=True) as wc:
+            assert wc.backup is not None and wc.backup.exists()
+            raise KeyboardInterrupt
+    assert sha256(db) == digest and hidden_leftovers(db.parent) == []
