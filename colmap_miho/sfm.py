@@ -156,7 +156,7 @@ def run_mapping(
         DatabaseError: the database is missing or not a COLMAP database.
     """
     from .adapters.database import count_images
-    from .adapters.safety import check_database_path, copy_file
+    from .adapters.safety import check_database_path, read_copy
 
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
@@ -171,7 +171,7 @@ def run_mapping(
 
     with tempfile.TemporaryDirectory(prefix="colmap_miho_map_", dir=output) as tmp:
         db_copy = Path(tmp) / "database.db"
-        copy_file(database, db_copy)
+        read_copy(database, db_copy)  # refuses a database in use or with a hot journal
         num_images = count_images(db_copy)
         models_dir = Path(tmp) / "models"
         models_dir.mkdir()

@@ -208,3 +208,153 @@ def test_interrupted_in_place_run_removes_its_backup(db):
             assert wc.backup is not None and wc.backup.exists()
             raise KeyboardInterrupt
     assert sha256(db) == digest and hidden_leftovers(db.parent) == []
+
+
+# ------------------------------------------------------------------ 6. signals and orphans
+REPO = Path(__file__).resolve().parents[1]
+# Seconds a subprocess may take to reach the write stage (imports torch, filters 6 pairs).
+REACH_WRITE_TIMEOUT_S = 120
+# Seconds orphaned workers may take to notice their parent died (watchdog poll 0.5 s + exit).
+ORPHAN_EXIT_S = 10
+
+ORPHAN_SCRIPT = """
+import os, sys, time
+sys.path.insert(0, sys.argv[1])
+from colmap_miho.pipeline.workers import process_pool
+
+def work(_):
+    time.sleep(120)
+
+if __name__ == "__main__":
+    with process_pool(2) as ex:
+        futures = [ex.submit(work, k) for k in range(2)]
+        while len(ex._processes) < 2:
+            time.sleep(0.05)
+        time.sleep(1.0)
+        print(" ".join(str(p) for p in ex._processes), flush=True)
+        time.sleep(120)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie awaiting its reaper counts as gone
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return True
+
+
+def test_workers_die_with_a_killed_parent(tmp_path):
+    import signal
+    import time
+
+    script = tmp_path / "orphans.py"
+    script.write_text(ORPHAN_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), str(REPO)], stdout=subprocess.PIPE, text=True)
+    try:
+        pids = [int(p) for p in proc.stdout.readline().split()]
+        assert len(pids) == 2 and all(_alive(p) for p in pids)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        deadline = time.monotonic() + ORPHAN_EXIT_S
+        while any(_alive(p) for p in pids) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(_alive(p) for p in pids), "workers outlived their parent"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_sigterm_mid_write_cleans_up_like_ctrl_c(db, scene, tmp_path, in_place):
+    import signal
+    import time
+
+    digest = sha256(db)
+    marker = tmp_path / "marker"
+    out = db.with_name("out.db")
+    args = _refine(db, scene.image_dir, *(["--in-place"] if in_place else ["--output", str(out)]))
+    cmd = [sys.executable, str(REPO / "tests" / "pause_at_write.py"), str(marker), *args]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
+        while not marker.exists():
+            if proc.poll() is not None:
+                pytest.fail(f"refine ended before the write stage: {proc.stderr.read()}")
+            assert time.monotonic() < deadline, "refine did not reach the write stage in time"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143
+    lines = error_lines(err)
+    assert len(lines) == 1 and lines[0].startswith("ERROR: terminated"), err
+    assert sha256(db) == digest and not out.exists()
+    assert hidden_leftovers(db.parent) == []  # working copy, its -wal/-shm and the backup removed
+
+
+# ------------------------------------------------------------------ 5. every command reads safely
+CRASH_WITH_WAL = """
+import os, sqlite3, sys
+con = sqlite3.connect(sys.argv[1], isolation_level=None)
+con.execute("PRAGMA journal_mode=wal")
+con.execute("PRAGMA wal_autocheckpoint=0")
+con.execute("DELETE FROM two_view_geometries")
+os._exit(0)  # a crash: the change is only in the -wal, never checkpointed
+"""
+
+
+def _gt_folder(scene, tmp_path: Path) -> Path:
+    folder = tmp_path / "gt"
+    folder.mkdir()
+    scene.gt_reconstruction.write(str(folder))
+    return folder
+
+
+def _hot_wal(db: Path) -> None:
+    subprocess.run([sys.executable, "-c", CRASH_WITH_WAL, str(db)], check=True)
+    assert Path(str(db) + "-wal").stat().st_size > 0
+
+
+@pytest.mark.parametrize("command", ["map", "report", "export", "compare", "refine"])
+def test_hot_wal_is_never_read_stale(command, db, scene, tmp_path, capfd):
+    _hot_wal(db)
+    digest = sha256(db)
+    argv = {
+        "map": ["map", "--database", str(db), "--images", str(scene.image_dir), "--output", str(tmp_path / "m")],
+        "report": ["report", "--database", str(db), "--gt", str(_gt_folder(scene, tmp_path))],
+        "export": ["export", "--database", str(db), "--features", str(tmp_path / "f.h5"), "--matches", str(tmp_path / "m.h5")],
+        "compare": ["compare", "--database", str(db), "--images", str(scene.image_dir), "--output", str(tmp_path / "c")],
+        "refine": _refine(db, scene.image_dir),
+    }[command]
+    capfd.readouterr()
+    assert main([*argv, "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "not closed cleanly" in lines[0] and str(db) in lines[0], lines
+    assert sha256(db) == digest
+
+
+def test_empty_wal_of_a_viewer_does_not_block(db, scene):
+    Path(str(db) + "-wal").write_bytes(b"")
+    Path(str(db) + "-shm").write_bytes(b"\0" * 32768)
+    assert main(_refine(db, scene.image_dir, "--output", str(db.with_name("out.db")))) == 0
+
+
+def test_truncated_database_is_one_line(db, scene, tmp_path, capfd):
+    data = db.read_bytes()
+    db.write_bytes(data[: len(data) * 3 // 4])
+    for argv in (_refine(db, scene.image_dir),
+                 ["export", "--database", str(db), "--features", str(tmp_path / "f.h5"),
+                  "--matches", str(tmp_path / "m.h5"), "-q"]):
+        capfd.readouterr()
+        assert main(argv) == 2
+        lines = error_lines(capfd.readouterr().err)
+        assert len(lines) == 1 and f"database {db} is damaged" in lines[0], lines
+    assert hidden_leftovers(db.parent) == []

@@ -13,6 +13,7 @@ import fcntl
 import logging
 import os
 import shutil
+import sqlite3
 import stat
 import struct
 import tempfile
@@ -142,7 +143,31 @@ def read_copy(database: str | os.PathLike, dst: Path) -> Path:
     check_not_in_use(src)
     check_free_space(Path(dst).parent, 2 * _size(src), f"a working copy of {src}")
     copy_file(src, Path(dst))
+    check_integrity(Path(dst), src)
     return src
+
+
+def check_integrity(copy: Path, name: Path) -> None:
+    """SQLite's ``PRAGMA quick_check`` on the copy ``copy`` of the user's database ``name``
+    (with Python's sqlite3, closed again: a WAL-mode copy is left without side files): a
+    truncated or damaged file is an error before pycolmap, which aborts the process on some
+    damaged files, ever opens it. Never call it on the user's file itself.
+
+    Raises:
+        DatabaseError: damaged or not a database; the message names ``name``.
+    """
+    try:
+        con = sqlite3.connect(f"file:{Path(copy).resolve()}?mode=rw", uri=True)
+        try:
+            rows = con.execute("PRAGMA quick_check").fetchall()
+        finally:
+            con.close()
+    except sqlite3.Error as exc:
+        raise DatabaseError(f"database {name} is damaged or truncated (SQLite: {exc}); restore it "
+                            "from a backup or rebuild it") from None
+    if rows != [("ok",)]:
+        raise DatabaseError(f"database {name} is damaged (SQLite quick_check: {rows[0][0]}); restore "
+                            "it from a backup or rebuild it")
 
 
 def copy_file(src: Path, dst: Path) -> None:
@@ -300,6 +325,7 @@ class WorkingCopy:
         self.path = Path(name)
         try:
             copy_file(self.database, self.path)
+            check_integrity(self.path, self.database)
             # mkstemp makes the file private (0600): give the result the input's permissions
             os.chmod(self.path, stat.S_IMODE(self.database.stat().st_mode))
         except BaseException:
