@@ -358,3 +358,117 @@ def test_truncated_database_is_one_line(db, scene, tmp_path, capfd):
         lines = error_lines(capfd.readouterr().err)
         assert len(lines) == 1 and f"database {db} is damaged" in lines[0], lines
     assert hidden_leftovers(db.parent) == []
+
+
+# ------------------------------------------------------------------ 7. disk full, bad values, broken files
+def test_free_space_is_checked_before_copying(db, scene, monkeypatch, capfd):
+    import shutil
+    from collections import namedtuple
+
+    digest = sha256(db)
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**9, 10**9 - 1000, 1000))
+    for extra in ([], ["--in-place"]):
+        capfd.readouterr()
+        assert main(_refine(db, scene.image_dir, *extra)) == 2
+        lines = error_lines(capfd.readouterr().err)
+        assert len(lines) == 1 and "not enough free space in" in lines[0], lines
+    assert sha256(db) == digest and hidden_leftovers(db.parent) == []
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_disk_full_while_copying_leaves_nothing_behind(db, scene, monkeypatch, capfd, in_place):
+    """A patched copy writes half the file, then fails with ENOSPC (a real full disk needs a
+    small tmpfs, which tests cannot mount): one line, no truncated backup or working copy."""
+    import errno
+    import shutil
+
+    digest = sha256(db)
+
+    def full_disk_copy(src, dst, **kwargs):
+        data = Path(src).read_bytes()
+        Path(dst).write_bytes(data[: len(data) // 2])
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(dst))
+
+    monkeypatch.setattr(shutil, "copyfile", full_disk_copy)
+    capfd.readouterr()
+    assert main(_refine(db, scene.image_dir, *(["--in-place"] if in_place else []))) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "No space left on device" in lines[0] and str(db) in lines[0], lines
+    assert sha256(db) == digest and hidden_leftovers(db.parent) == []
+    assert sorted(p.name for p in db.parent.iterdir()) == ["scene.db"]
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("ncc.template_radius=1000", "template_radius \\+ search_radius must be <= 64"),
+    ("ncc.search_radius=100000", "template_radius \\+ search_radius must be <= 64"),
+    ("filter.t_l=inf", "t_l must be a finite number"),
+    ("filter.confidence=nan", "confidence must be a finite number"),
+    ("ncc.min_gain=nan", "min_gain must be a finite number"),
+    ("filter.batch_size=100000000", "batch_size must be <= 8192"),
+])
+def test_unsafe_settings_are_one_line(setting, message, db, scene, capfd):
+    capfd.readouterr()
+    assert main(_refine(db, scene.image_dir, "--set", setting)) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1, lines
+    import re
+
+    assert re.search(message, lines[0]), lines
+
+
+def test_match_index_past_the_keypoint_count_is_one_line(db, scene, capfd):
+    import numpy as np
+
+    con = sqlite3.connect(db)
+    pair_id, rows, data = con.execute(
+        "SELECT pair_id, rows, data FROM two_view_geometries WHERE rows > 20 LIMIT 1").fetchone()
+    m = np.frombuffer(data, np.uint32).reshape(rows, 2).copy()
+    m[3, 1] = 99999
+    con.execute("UPDATE two_view_geometries SET data = ? WHERE pair_id = ?", (m.tobytes(), pair_id))
+    con.commit()
+    con.close()
+    digest = sha256(db)
+    capfd.readouterr()
+    assert main(_refine(db, scene.image_dir)) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"database {db}" in lines[0] and "keypoint 99999" in lines[0], lines
+    assert sha256(db) == digest and hidden_leftovers(db.parent) == []
+
+
+def test_import_into_a_missing_folder_is_one_line(tmp_path, capfd):
+    capfd.readouterr()
+    assert main(["import", "--features", str(tmp_path / "f.h5"), "--matches", str(tmp_path / "m.h5"),
+                 "--images", str(tmp_path), "--database", str(tmp_path / "no" / "new.db"), "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "--database folder does not exist" in lines[0], lines
+
+
+def test_truncated_h5_is_one_line(tmp_path, scene, capfd):
+    good, matches = tmp_path / "good.h5", tmp_path / "matches.h5"
+    assert main(["export", "--database", str(scene.database), "--features", str(good), "--matches",
+                 str(matches), "--layout", "dim", "-q"]) == 0
+    bad = tmp_path / "features.h5"
+    data = good.read_bytes()
+    bad.write_bytes(data[: len(data) * 6 // 10])  # a copy cut short
+    capfd.readouterr()
+    code = main(["import", "--features", str(bad), "--matches", str(matches), "--images", str(scene.image_dir),
+                 "--database", str(tmp_path / "new.db"), "-q"])
+    assert code == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"{bad}: cannot open the HDF5 file, damaged or truncated" in lines[0], lines
+    assert not (tmp_path / "new.db").exists()
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_read_only_output_folder_is_one_line(db, scene, tmp_path, capfd):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        capfd.readouterr()
+        assert main(_refine(db, scene.image_dir, "--output", str(ro / "out.db"))) == 2
+        lines = error_lines(capfd.readouterr().err)
+        assert len(lines) == 1 and "read-only folder" in lines[0], lines
+    finally:
+        ro.chmod(0o755)

@@ -5,6 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..enums import FilterMethod
+from ..validation import require_at_most, require_finite
+
+#: Upper bound of ``batch_size``: each batch scores that many homographies on every match.
+MAX_HYPOTHESES_BATCH = 8192
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -61,6 +65,9 @@ class FilterConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", FilterMethod.parse(self.method, "method"))
+        require_finite(self)
+        require_at_most("batch_size", self.batch_size, MAX_HYPOTHESES_BATCH,
+                        "hypotheses scored at once are held in memory")
         if not self.t_l > 0:
             raise ValueError(f"t_l must be > 0 pixels, got {self.t_l}")
         if self.t_h is not None and not 0 < self.t_h <= self.t_l:

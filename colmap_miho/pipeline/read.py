@@ -96,6 +96,25 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
     return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats
 
 
+def check_match_indices(matches: np.ndarray, n1: int, n2: int, pair: tuple[int, int],
+                        database_name: Path | str = "") -> None:
+    """Refuse matches ``(M, 2)`` whose keypoint indices are past the two images' keypoint
+    counts ``n1``, ``n2`` (an inconsistent database: matches written for other keypoints).
+
+    Raises:
+        DatabaseError: names the database, the pair's image ids and the first bad index.
+    """
+    if not len(matches):
+        return
+    for col, n, image_id in ((0, n1, pair[0]), (1, n2, pair[1])):
+        top = int(matches[:, col].max())
+        if top >= n:
+            raise DatabaseError(
+                f"database {database_name}: a match of image pair {pair[0]}-{pair[1]} uses keypoint "
+                f"{top} of image {image_id}, which has {n} keypoints; the matches do not belong to these "
+                "keypoints (re-run matching, or re-import the features and matches together)")
+
+
 def read_affines(db: ColmapDatabase, image_ids) -> dict[int, np.ndarray] | None:
     """Keypoint affine shapes per image (see ``ColmapDatabase.keypoint_affines``), or None
     when any image's keypoints carry no affine shape."""

@@ -229,7 +229,8 @@ def refine_database(
                 strict=strict, database_name=database))
             laps.lap("read")
             ok, filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
-                source=pcfg.source, seed=seed, workers=n_workers, progress=progress))
+                source=pcfg.source, seed=seed, workers=n_workers, progress=progress,
+                database_name=str(database)))
             laps.lap("filter")
             new_keypoints, refine_stats = _refine(db, read, ok, rec, dev, n_workers, progress)
             laps.lap("refine")
