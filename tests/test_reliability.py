@@ -472,3 +472,16 @@ def test_read_only_output_folder_is_one_line(db, scene, tmp_path, capfd):
         assert len(lines) == 1 and "read-only folder" in lines[0], lines
     finally:
         ro.chmod(0o755)
+
+
+@pytest.mark.parametrize("name", ["images.bin", "points3D.bin"])
+def test_truncated_model_file_is_one_line(name, scene, tmp_path, capfd):
+    model = tmp_path / "model"
+    model.mkdir()
+    scene.gt_reconstruction.write(str(model))
+    data = (model / name).read_bytes()
+    (model / name).write_bytes(data[: len(data) // 2])
+    capfd.readouterr()
+    assert main(["report", "--model", str(model), "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"cannot read the COLMAP model in {model}" in lines[0], lines
