@@ -485,3 +485,54 @@ def test_truncated_model_file_is_one_line(name, scene, tmp_path, capfd):
     assert main(["report", "--model", str(model), "-q"]) == 2
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and f"cannot read the COLMAP model in {model}" in lines[0], lines
+
+
+# ------------------------------------------------------------------ 8. images checked by decoding and size
+def _image_copies(scene, folder: Path) -> list[Path]:
+    folder.mkdir()
+    for p in scene.image_dir.iterdir():
+        (folder / p.name).write_bytes(p.read_bytes())
+    return sorted(folder.iterdir())
+
+
+@pytest.mark.parametrize("damage", ["truncated", "resized"])
+def test_bad_image_is_skipped_and_named_or_refused_with_strict(damage, db, scene, tmp_path, capfd):
+    import cv2
+    import numpy as np
+
+    files = _image_copies(scene, tmp_path / "imgs")
+    bad = files[0]
+    if damage == "truncated":
+        data = bad.read_bytes()
+        bad.write_bytes(data[: len(data) * 2 // 3])
+        why = "truncated"
+    else:
+        img = cv2.imread(str(bad))
+        cv2.imwrite(str(bad), np.pad(img, ((0, 8), (0, 8), (0, 0))))
+        why = "but its camera in the database is"
+    summary = tmp_path / "s.json"
+    out = tmp_path / "o.db"
+    argv = ["refine", "--database", str(db), "--images", str(bad.parent), "--workers", "1", "-q"]
+    capfd.readouterr()
+    assert main([*argv, "--output", str(out), "--json", str(summary)]) == 0
+    err = capfd.readouterr().err
+    assert bad.name in err and why in err
+    data = json.loads(summary.read_text())
+    assert data["images_missing"] == [bad.name]
+    assert data["refine_stats"].get("missing_images", 1) == 1  # one count everywhere
+    capfd.readouterr()
+    assert main([*argv, "--output", str(tmp_path / "o2.db"), "--strict"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert [line for line in lines if line.startswith("ERROR")] == lines[-1:]
+    assert str(bad) in lines[-1] and why in lines[-1] and "--strict" in lines[-1]
+    assert not (tmp_path / "o2.db").exists()
+
+
+def test_wrong_image_folder_is_an_error_not_a_silent_success(db, tmp_path, capfd):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db), "--images", str(empty), "--workers", "1", "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert lines[-1].startswith("ERROR: none of the 4 images") and "--no-refine" in lines[-1], lines
+    assert hidden_leftovers(db.parent) == [] and not db.with_name("scene.miho.db").exists()
