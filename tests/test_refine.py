@@ -152,7 +152,8 @@ def test_text_file_and_foreign_sqlite(tmp_path, capsys):
     con.close()
     capsys.readouterr()
     assert _refine("--database", foreign, "--images", tmp_path) == 2
-    assert "not a COLMAP database (missing tables" in _err(capsys)
+    err = _err(capsys)
+    assert "not a COLMAP database (missing tables" in err and err.endswith(str(foreign))  # not the hidden copy
     assert sorted(p.name for p in tmp_path.iterdir()) == ["foreign.db", "notes.db"]
 
 

@@ -34,7 +34,7 @@ from ..adapters.database import ColmapDatabase, validate_database
 from ..adapters.paths import check_distinct
 from ..adapters.safety import WorkingCopy, check_database_path
 from ..enums import Device
-from ..errors import UserError
+from ..errors import DatabaseError, UserError
 from .filter_stage import FilteredPairs, FilterOptions, FilterStats, run_filter
 from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
 from .stages import run_refine_stage
@@ -222,7 +222,10 @@ def refine_database(
     laps.lap("setup")
     with wc:
         laps.lap("copy")
-        validate_database(wc.path)
+        try:
+            validate_database(wc.path)
+        except DatabaseError as exc:  # name the user's file, not the hidden working copy
+            raise DatabaseError(str(exc).replace(str(wc.path), str(database))) from None
         with ColmapDatabase(wc.path) as db:
             read, read_stats = run_read(db, ReadConfig(
                 pipeline=pcfg, image_dir=image_dir, max_images_in_memory=rec.tracks.max_images_in_memory,
