@@ -330,8 +330,10 @@ def test_hot_wal_is_never_read_stale(command, db, scene, tmp_path, capfd):
     argv = {
         "map": ["map", "--database", str(db), "--images", str(scene.image_dir), "--output", str(tmp_path / "m")],
         "report": ["report", "--database", str(db), "--gt", str(_gt_folder(scene, tmp_path))],
-        "export": ["export", "--database", str(db), "--features", str(tmp_path / "f.h5"), "--matches", str(tmp_path / "m.h5")],
-        "compare": ["compare", "--database", str(db), "--images", str(scene.image_dir), "--output", str(tmp_path / "c")],
+        "export": ["export", "--database", str(db), "--features", str(tmp_path / "f.h5"),
+                   "--matches", str(tmp_path / "m.h5")],
+        "compare": ["compare", "--database", str(db), "--images", str(scene.image_dir),
+                    "--output", str(tmp_path / "c")],
         "refine": _refine(db, scene.image_dir),
     }[command]
     capfd.readouterr()
@@ -536,3 +538,106 @@ def test_wrong_image_folder_is_an_error_not_a_silent_success(db, tmp_path, capfd
     lines = error_lines(capfd.readouterr().err)
     assert lines[-1].startswith("ERROR: none of the 4 images") and "--no-refine" in lines[-1], lines
     assert hidden_leftovers(db.parent) == [] and not db.with_name("scene.miho.db").exists()
+
+
+# ------------------------------------------------------------------ 4. races, with a real second process
+def _run_held(cli_args: list[str], tmp_path: Path, meanwhile) -> tuple[int, str]:
+    """Run the CLI in a subprocess held in its write stage, call ``meanwhile()``, let it finish;
+    returns its exit code and stderr."""
+    import time
+
+    marker, resume = tmp_path / "marker", tmp_path / "resume"
+    cmd = [sys.executable, str(REPO / "tests" / "hold_at_write.py"), str(marker), str(resume), *cli_args]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
+        while not marker.exists():
+            if proc.poll() is not None:
+                pytest.fail(f"refine ended before the write stage: {proc.stderr.read()}")
+            assert time.monotonic() < deadline, "refine did not reach the write stage in time"
+            time.sleep(0.05)
+        meanwhile()
+        resume.write_text("go")
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, err
+
+
+def test_two_runs_writing_one_output_the_second_fails_cleanly(db, scene, tmp_path):
+    out = db.with_name("out.db")
+
+    def other_run_finishes_first():
+        assert main(_refine(db, scene.image_dir, "--output", str(out))) == 0
+
+    code, err = _run_held(_refine(db, scene.image_dir, "--output", str(out)), tmp_path, other_run_finishes_first)
+    assert code == 2 and "created by another program during the run" in err, err
+    con = sqlite3.connect(out)  # the first result is whole
+    try:
+        assert con.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    finally:
+        con.close()
+    assert hidden_leftovers(db.parent) == []
+
+
+def test_in_place_edit_by_another_program_during_the_run_is_kept(db, scene, tmp_path):
+    def other_program_edits():
+        con = sqlite3.connect(db)
+        con.execute("UPDATE cameras SET width = width + 1")
+        con.commit()
+        con.close()
+
+    code, err = _run_held(_refine(db, scene.image_dir, "--in-place"), tmp_path, other_program_edits)
+    assert code == 2 and "changed during the run" in err, err
+    con = sqlite3.connect(db)
+    try:
+        widths = [w for (w,) in con.execute("SELECT width FROM cameras")]
+    finally:
+        con.close()
+    assert widths and all(w == 641 for w in widths), widths  # the other program's edit survived
+    assert len(list(db.parent.glob("scene.miho-*.db"))) == 1  # the work is kept, named
+    assert len(list(db.parent.glob("scene.db.*.bak"))) == 1
+
+
+def test_overwrite_of_an_output_opened_during_the_run_is_refused(db, scene, tmp_path):
+    out = db.with_name("out.db")
+    out.write_bytes(db.read_bytes())
+    digest = sha256(out)
+    holder = []
+
+    def viewer_opens_output():
+        proc = subprocess.Popen([sys.executable, "-c", HOLD_OPEN, str(out)], stdout=subprocess.PIPE, text=True)
+        holder.append(proc)
+        assert proc.stdout.readline().strip() == "open"
+
+    try:
+        code, err = _run_held(_refine(db, scene.image_dir, "--output", str(out), "--overwrite"), tmp_path,
+                              viewer_opens_output)
+    finally:
+        for proc in holder:
+            proc.kill()
+            proc.wait()
+    assert code == 2 and "in use by another program" in err, err
+    assert sha256(out) == digest
+    assert not list(db.parent.glob(".out.db.*.tmp"))
+
+
+def test_disk_full_while_writing_is_one_line(db, scene, monkeypatch, capfd):
+    """The write stage fails with ENOSPC (patched: a real full disk needs a small tmpfs): one
+    line, exit 1, the input untouched and the working copy removed."""
+    import errno
+
+    import colmap_miho.pipeline.write as write_stage
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(write_stage, "write_pair", full)
+    digest = sha256(db)
+    capfd.readouterr()
+    assert main(_refine(db, scene.image_dir, "--in-place")) == 1
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"disk full while writing in {db.parent}; {db} is unchanged" in lines[0], lines
+    assert sha256(db) == digest and hidden_leftovers(db.parent) == []

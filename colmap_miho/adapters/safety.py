@@ -282,7 +282,10 @@ class WorkingCopy:
         self.in_place = in_place
         self.overwrite = overwrite
         # in place on a symlink: replace the real file (beside it), keep the link
-        self.output = self.database.resolve() if in_place else Path(output) if output else default_output_path(self.database)
+        if in_place:
+            self.output = self.database.resolve()
+        else:
+            self.output = Path(output) if output else default_output_path(self.database)
         if not in_place:
             if self.output.resolve() == self.database.resolve() or _same_inode(self.output, self.database):
                 raise UserError(f"output {self.output} is the input database; use --in-place to replace it")
@@ -390,6 +393,8 @@ class WorkingCopy:
         return self.output
 
     def _check_input_unchanged(self) -> None:
+        if self.path is None:
+            raise RuntimeError("no working copy to check against")
         try:
             now = file_identity(self.output)
         except OSError:

@@ -20,9 +20,11 @@ COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import logging
 import os
+import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,7 +36,7 @@ from ..adapters.database import ColmapDatabase, validate_database
 from ..adapters.paths import check_distinct
 from ..adapters.safety import WorkingCopy, check_database_path
 from ..enums import Device
-from ..errors import DatabaseError, UserError
+from ..errors import DatabaseError, RunFailed, UserError
 from .filter_stage import FilteredPairs, FilterOptions, FilterStats, run_filter
 from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
 from .stages import run_refine_stage
@@ -220,35 +222,44 @@ def refine_database(
     if json_path:
         _check_writable_file(Path(json_path), "--json")
     laps.lap("setup")
-    with wc:
-        laps.lap("copy")
-        try:
-            validate_database(wc.path)
-        except DatabaseError as exc:  # name the user's file, not the hidden working copy
-            raise DatabaseError(str(exc).replace(str(wc.path), str(database))) from None
-        with ColmapDatabase(wc.path) as db:
-            read, read_stats = run_read(db, ReadConfig(
-                pipeline=pcfg, image_dir=image_dir, max_images_in_memory=rec.tracks.max_images_in_memory,
-                strict=strict, database_name=database))
-            laps.lap("read")
-            ok, filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
-                source=pcfg.source, seed=seed, workers=n_workers, progress=progress,
-                database_name=str(database)))
-            laps.lap("filter")
-            new_keypoints, refine_stats = _refine(db, read, ok, rec, dev, n_workers, progress)
-            laps.lap("refine")
-            write_stats = run_write(db, read.keypoints, new_keypoints, ok, pcfg)
-            laps.lap("write")
-        if pcfg.verify:
-            run_verify(wc.path)
-            laps.lap("verify")
-        summary = RefineSummary.from_stages(
-            output=database if in_place else wc.output,  # in place: the user's path (a symlink stays one)
-            database=database, backup=wc.backup, recipe=rec, device=dev, read=read_stats,
-            filtered=filter_stats, refine_stats=refine_stats, write=write_stats, seconds=laps.total())
-        if json_path:  # written beside its target now, renamed onto it with the commit
-            wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
-        wc.commit()
+    try:
+        with wc:
+            laps.lap("copy")
+            try:
+                validate_database(wc.path)
+            except DatabaseError as exc:  # name the user's file, not the hidden working copy
+                raise DatabaseError(str(exc).replace(str(wc.path), str(database))) from None
+            with ColmapDatabase(wc.path) as db:
+                read, read_stats = run_read(db, ReadConfig(
+                    pipeline=pcfg, image_dir=image_dir, max_images_in_memory=rec.tracks.max_images_in_memory,
+                    strict=strict, database_name=database))
+                laps.lap("read")
+                ok, filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
+                    source=pcfg.source, seed=seed, workers=n_workers, progress=progress,
+                    database_name=str(database)))
+                laps.lap("filter")
+                new_keypoints, refine_stats = _refine(db, read, ok, rec, dev, n_workers, progress)
+                laps.lap("refine")
+                write_stats = run_write(db, read.keypoints, new_keypoints, ok, pcfg)
+                laps.lap("write")
+            if pcfg.verify:
+                run_verify(wc.path)
+                laps.lap("verify")
+            summary = RefineSummary.from_stages(
+                output=database if in_place else wc.output,  # in place: the user's path (a symlink stays one)
+                database=database, backup=wc.backup, recipe=rec, device=dev, read=read_stats,
+                filtered=filter_stats, refine_stats=refine_stats, write=write_stats, seconds=laps.total())
+            if json_path:  # written beside its target now, renamed onto it with the commit
+                wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
+            wc.commit()
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        raise RunFailed(f"disk full while writing in {wc.output.parent}; {database} is unchanged and the "
+                        "working files were removed: free some space and retry") from None
+    except sqlite3.Error as exc:
+        raise RunFailed(f"SQLite error while writing the copy of {database} ({exc}); {database} is "
+                        "unchanged and the working files were removed") from None
     log.info("wrote %s", summary.output)
     return summary
 

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 from ..enums import MoveSide
 from ..validation import require_at_most, require_finite
 
-
 #: matches per batched NCC call when ``NCCConfig.batch_size`` is None, per device type.
 DEFAULT_BATCH_SIZE = {"cpu": 512, "cuda": 4096}
 #: Upper bound of ``template_radius + search_radius`` (pixels): each match holds a
