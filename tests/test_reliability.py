@@ -411,6 +411,7 @@ def test_disk_full_while_copying_leaves_nothing_behind(db, scene, monkeypatch, c
     ("filter.confidence=nan", "confidence must be a finite number"),
     ("ncc.min_gain=nan", "min_gain must be a finite number"),
     ("filter.batch_size=100000000", "batch_size must be <= 8192"),
+    ("filter.t_l=1e308", "t_l must be <= 100000"),
 ])
 def test_unsafe_settings_are_one_line(setting, message, db, scene, capfd):
     capfd.readouterr()
@@ -661,3 +662,20 @@ def test_read_only_folders_are_one_line_even_as_root(db, scene, tmp_path, monkey
         lines = error_lines(capfd.readouterr().err)
         assert len(lines) == 1 and message in lines[0], lines
     assert sha256(db) == digest and hidden_leftovers(db.parent) == [] and list(ro.iterdir()) == []
+
+
+@pytest.mark.parametrize("case", ["map_output_is_a_file", "report_pairs_missing"])
+def test_misplaced_paths_are_one_line(case, db, scene, tmp_path, capfd):
+    afile = tmp_path / "notes.txt"
+    afile.write_text("notes")
+    argv, message = {
+        "map_output_is_a_file": (["map", "--database", str(db), "--images", str(scene.image_dir), "--output",
+                                  str(afile)], f"--output {afile} is a file; give a folder"),
+        "report_pairs_missing": (["report", "--database", str(db), "--gt", str(tmp_path), "--pairs",
+                                  str(tmp_path / "pairs.txt")], "--pairs not found"),
+    }[case]
+    capfd.readouterr()
+    assert main([*argv, "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and message in lines[0], lines
+    assert afile.read_text() == "notes"
