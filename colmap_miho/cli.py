@@ -15,13 +15,17 @@ files removed, the input untouched).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
+import os
 import pkgutil
 import signal
+import socket
 import sqlite3
 import sys
 import threading
+import time
 
 from . import __version__
 from .errors import Terminated, UserError
@@ -74,8 +78,59 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     root.propagate = False
 
 
+#: Seconds a SIGTERM may wait for the interpreter (held by a long COLMAP call, e.g. mapping)
+#: before the working files are removed and the process exits anyway.
+TERM_GRACE_S = 5.0
+
+
 def _raise_terminated(signum, frame) -> None:
     raise Terminated(f"terminated by signal {signum}")
+
+
+@contextlib.contextmanager
+def _forced_exit_after_sigterm():
+    """Python runs signal handlers between bytecodes only, so a SIGTERM during a long C++ call
+    would wait for it to end. A thread reading the signal wakeup fd gives the handler
+    :data:`TERM_GRACE_S`, then removes the working files and exits with 143 itself."""
+    rsock, wsock = socket.socketpair()
+    wsock.setblocking(False)
+    try:
+        old_fd = signal.set_wakeup_fd(wsock.fileno(), warn_on_full_buffer=False)
+    except ValueError:  # not the main thread
+        rsock.close()
+        wsock.close()
+        yield
+        return
+
+    def watch() -> None:
+        while True:
+            try:
+                data = rsock.recv(64)
+            except OSError:
+                return
+            if not data:
+                return
+            if signal.SIGTERM in data:
+                time.sleep(TERM_GRACE_S)
+                from .adapters.safety import remove_working_files
+
+                remove_working_files()
+                sys.stderr.write("ERROR: terminated (SIGTERM) during a COLMAP call; working files "
+                                 "removed, nothing was written to the input\n")
+                sys.stderr.flush()
+                os._exit(143)
+
+    thread = threading.Thread(target=watch, name="sigterm-watch", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        signal.set_wakeup_fd(old_fd)
+        wsock.close()
+        with contextlib.suppress(OSError):
+            rsock.shutdown(socket.SHUT_RDWR)
+        thread.join(timeout=1)
+        rsock.close()
 
 
 def install_signal_handlers() -> None:
@@ -108,7 +163,9 @@ def main(argv: list[str] | None = None) -> int:
     saved = signal.getsignal(signal.SIGTERM)
     if in_main_thread:
         install_signal_handlers()
+    guard = _forced_exit_after_sigterm() if in_main_thread else contextlib.nullcontext()
     try:
+        guard.__enter__()
         if args._paths is not None:
             from .adapters.paths import check_distinct
 
@@ -137,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
                   type(exc).__name__, _one_line(exc), exc_info=verbose)
         return 1
     finally:
+        guard.__exit__(None, None, None)
         if in_main_thread:
             signal.signal(signal.SIGTERM, saved)
 

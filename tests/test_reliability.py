@@ -679,3 +679,37 @@ def test_misplaced_paths_are_one_line(case, db, scene, tmp_path, capfd):
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and message in lines[0], lines
     assert afile.read_text() == "notes"
+
+
+def test_sigterm_during_a_long_c_call_still_exits_and_cleans_up(db, scene, tmp_path):
+    """Python serves signals between bytecodes only: during a long COLMAP (C++) call the CLI's
+    watcher thread removes the working files and exits 143 after the grace period."""
+    import signal
+    import time
+
+    from colmap_miho.cli import TERM_GRACE_S
+
+    digest = sha256(db)
+    marker = tmp_path / "marker"
+    out = db.with_name("out.db")
+    cmd = [sys.executable, str(REPO / "tests" / "busy_at_write.py"), str(marker),
+           *_refine(db, scene.image_dir, "--output", str(out))]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
+        while not marker.exists():
+            if proc.poll() is not None:
+                pytest.fail(f"refine ended before the write stage: {proc.stderr.read()}")
+            assert time.monotonic() < deadline, "refine did not reach the write stage in time"
+            time.sleep(0.05)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=TERM_GRACE_S + 30)
+        waited = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143 and "terminated (SIGTERM) during a COLMAP call" in err, err
+    assert "Traceback" not in err and waited < TERM_GRACE_S + 20
+    assert sha256(db) == digest and not out.exists() and hidden_leftovers(db.parent) == []

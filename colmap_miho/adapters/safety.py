@@ -30,6 +30,23 @@ SIDE_SUFFIXES = ("-wal", "-shm", "-journal")
 _LOCK_START = 0x40000000
 _LOCK_LEN = 512
 
+#: Working files of this process that a forced exit must remove (see :func:`remove_working_files`).
+_WORKING_FILES: set[Path] = set()
+
+
+def remove_working_files() -> list[Path]:
+    """Delete this process's registered working files (working copies, read copies) and their
+    SQLite side files; returns those that existed. For a forced exit (a SIGTERM that arrives
+    while a long COLMAP call holds the interpreter), where no ``finally`` block runs."""
+    removed = []
+    for path in list(_WORKING_FILES):
+        if path.exists():
+            removed.append(path)
+        with contextlib.suppress(OSError):
+            remove_with_side_files(path)
+        _WORKING_FILES.discard(path)
+    return removed
+
 
 def check_database_path(path: str | os.PathLike) -> Path:
     """Check that ``path`` is an existing, readable SQLite file and return it as a Path.
@@ -142,6 +159,7 @@ def read_copy(database: str | os.PathLike, dst: Path) -> Path:
     src = check_database_path(database)
     check_not_in_use(src)
     check_free_space(Path(dst).parent, 2 * _size(src), f"a working copy of {src}")
+    _WORKING_FILES.add(Path(dst))
     copy_file(src, Path(dst))
     check_integrity(Path(dst), src)
     return src
@@ -326,6 +344,7 @@ class WorkingCopy:
             raise UserError(f"cannot create a working copy in {self.output.parent}: {exc.strerror}") from None
         os.close(fd)
         self.path = Path(name)
+        _WORKING_FILES.add(self.path)
         try:
             copy_file(self.database, self.path)
             check_integrity(self.path, self.database)
@@ -385,6 +404,7 @@ class WorkingCopy:
             os.replace(self.path, self.output)
         else:
             _rename_no_replace(self.path, self.output)
+        _WORKING_FILES.discard(self.path)
         _fsync_dir(self.output.parent)
         self.committed = True
         for tmp, target in self._side:
@@ -426,6 +446,7 @@ class WorkingCopy:
             tmp.unlink(missing_ok=True)
         if not self.committed and self.path is not None:  # None: kept beside a changed input
             remove_with_side_files(self.path)
+            _WORKING_FILES.discard(self.path)
             self._drop_backup()
 
 
