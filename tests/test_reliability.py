@@ -681,7 +681,8 @@ def test_misplaced_paths_are_one_line(case, db, scene, tmp_path, capfd):
     assert afile.read_text() == "notes"
 
 
-def test_sigterm_during_a_long_c_call_still_exits_and_cleans_up(db, scene, tmp_path):
+@pytest.mark.parametrize("in_place", [False, True])
+def test_sigterm_during_a_long_c_call_still_exits_and_cleans_up(db, scene, tmp_path, in_place):
     """Python serves signals between bytecodes only: during a long COLMAP (C++) call the CLI's
     watcher thread removes the working files and exits 143 after the grace period."""
     import signal
@@ -693,7 +694,7 @@ def test_sigterm_during_a_long_c_call_still_exits_and_cleans_up(db, scene, tmp_p
     marker = tmp_path / "marker"
     out = db.with_name("out.db")
     cmd = [sys.executable, str(REPO / "tests" / "busy_at_write.py"), str(marker),
-           *_refine(db, scene.image_dir, "--output", str(out))]
+           *_refine(db, scene.image_dir, *(["--in-place"] if in_place else ["--output", str(out)]))]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
@@ -702,6 +703,8 @@ def test_sigterm_during_a_long_c_call_still_exits_and_cleans_up(db, scene, tmp_p
                 pytest.fail(f"refine ended before the write stage: {proc.stderr.read()}")
             assert time.monotonic() < deadline, "refine did not reach the write stage in time"
             time.sleep(0.05)
+        if in_place:
+            assert len(list(db.parent.glob("scene.db.*.bak"))) == 1
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=TERM_GRACE_S + 30)

@@ -32,6 +32,8 @@ _LOCK_LEN = 512
 
 #: Working files of this process that a forced exit must remove (see :func:`remove_working_files`).
 _WORKING_FILES: set[Path] = set()
+#: In-place backups not yet needed: backup -> (the input, its identity when backed up).
+_PENDING_BACKUPS: dict[Path, tuple[Path, tuple]] = {}
 
 
 def remove_working_files() -> list[Path]:
@@ -45,6 +47,12 @@ def remove_working_files() -> list[Path]:
         with contextlib.suppress(OSError):
             remove_with_side_files(path)
         _WORKING_FILES.discard(path)
+    for backup, (target, identity) in list(_PENDING_BACKUPS.items()):
+        with contextlib.suppress(OSError):
+            if file_identity(target) == identity:  # the input was not replaced: no need for it
+                backup.unlink()
+                removed.append(backup)
+        _PENDING_BACKUPS.pop(backup, None)
     return removed
 
 
@@ -336,6 +344,7 @@ class WorkingCopy:
             backup = backup_path(self.output)
             copy_file(self.database, backup)
             self.backup = backup
+            _PENDING_BACKUPS[backup] = (self.output, self._identity)
             log.info("backup of the input written to %s", self.backup)
         try:
             fd, name = tempfile.mkstemp(prefix=f".{self.output.name}.", suffix=".tmp", dir=self.output.parent)
@@ -405,6 +414,8 @@ class WorkingCopy:
         else:
             _rename_no_replace(self.path, self.output)
         _WORKING_FILES.discard(self.path)
+        if self.backup is not None:
+            _PENDING_BACKUPS.pop(self.backup, None)  # the replaced input lives on in it
         _fsync_dir(self.output.parent)
         self.committed = True
         for tmp, target in self._side:
@@ -439,6 +450,7 @@ class WorkingCopy:
             unchanged = False
         if unchanged:
             self.backup.unlink(missing_ok=True)
+            _PENDING_BACKUPS.pop(self.backup, None)
             self.backup = None
 
     def __exit__(self, exc_type, exc, tb) -> None:
