@@ -5,6 +5,7 @@ never returns to the interpreter (like a long COLMAP call), after creating MARKE
 
 import hashlib
 import sys
+import threading
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's colmap_miho
@@ -14,6 +15,8 @@ from colmap_miho.cli import main
 
 #: PBKDF2 rounds: far longer than the test waits (minutes), all inside one C call.
 ROUNDS = 10**9
+#: Seconds between entering the C call and writing the marker.
+MARKER_DELAY_S = 1.0
 
 
 def _busy(write_pair):
@@ -23,7 +26,9 @@ def _busy(write_pair):
         nonlocal calls
         calls += 1
         if calls == 2:
-            Path(sys.argv[1]).write_text("write")
+            # the marker is written by a thread once this thread is inside the C call (which
+            # releases the GIL): a SIGTERM sent before it would be served by Python's handler
+            threading.Timer(MARKER_DELAY_S, Path(sys.argv[1]).write_text, args=("write",)).start()
             hashlib.pbkdf2_hmac("sha256", b"colmap", b"miho", ROUNDS)
         return write_pair(*args, **kwargs)
 
