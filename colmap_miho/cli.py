@@ -3,19 +3,32 @@
 Each subcommand lives in ``colmap_miho/commands/<name>.py`` and defines ``HELP`` (one line),
 ``ORDER`` (position in ``--help``), ``add_arguments(parser)`` and ``run(args) -> int``.
 Command modules import heavy libraries (torch, pycolmap) inside ``run`` only, so that
-``colmap-miho --help`` stays fast.
+``colmap-miho --help`` stays fast. A command may also define ``paths(args) -> (inputs,
+outputs)`` (label -> path): :func:`main` refuses any overlap before the command starts (see
+:mod:`colmap_miho.adapters.paths`).
+
+Failures reach the user as one line (``ERROR: ...``, the traceback only with ``-v``) and an
+exit code: 2 bad input, 1 failed run, 130 Ctrl-C, 143 SIGTERM (handled like Ctrl-C: working
+files removed, the input untouched).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
+import os
 import pkgutil
+import signal
+import socket
+import sqlite3
 import sys
+import threading
+import time
 
 from . import __version__
-from .errors import UserError
+from .errors import Terminated, UserError
 
 log = logging.getLogger("colmap_miho")
 
@@ -51,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
         verbosity.add_argument("-v", "--verbose", action="store_true", help="more log output (and COLMAP's own log)")
         verbosity.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors, no progress bars")
         mod.add_arguments(p)
-        p.set_defaults(_run=mod.run)
+        p.set_defaults(_run=mod.run, _paths=getattr(mod, "paths", None))
     return parser
 
 
@@ -66,25 +79,125 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     root.propagate = False
 
 
+#: Seconds a SIGTERM may wait for the interpreter (held by a long COLMAP call, e.g. mapping)
+#: before the working files are removed and the process exits anyway.
+TERM_GRACE_S = 5.0
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated(f"terminated by signal {signum}")
+
+
+@contextlib.contextmanager
+def _forced_exit_after_sigterm():
+    """Python runs signal handlers between bytecodes only, so a SIGTERM during a long C++ call
+    would wait for it to end. A thread reading the signal wakeup fd gives the handler
+    :data:`TERM_GRACE_S`, then removes the working files and exits with 143 itself."""
+    rsock, wsock = socket.socketpair()
+    wsock.setblocking(False)
+    try:
+        old_fd = signal.set_wakeup_fd(wsock.fileno(), warn_on_full_buffer=False)
+    except ValueError:  # not the main thread
+        rsock.close()
+        wsock.close()
+        yield
+        return
+
+    def watch() -> None:
+        while True:
+            try:
+                data = rsock.recv(64)
+            except OSError:
+                return
+            if not data:
+                return
+            if signal.SIGTERM in data:
+                time.sleep(TERM_GRACE_S)
+                from .adapters.safety import remove_working_files
+
+                remove_working_files()
+                sys.stderr.write("ERROR: terminated (SIGTERM) during a COLMAP call; working files "
+                                 "removed, nothing was written to the input\n")
+                sys.stderr.flush()
+                os._exit(143)
+
+    thread = threading.Thread(target=watch, name="sigterm-watch", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        signal.set_wakeup_fd(old_fd)
+        wsock.close()
+        with contextlib.suppress(OSError):
+            rsock.shutdown(socket.SHUT_RDWR)
+        thread.join(timeout=1)
+        rsock.close()
+
+
+def install_signal_handlers() -> None:
+    """SIGTERM raises :class:`~colmap_miho.errors.Terminated` (a KeyboardInterrupt), so it
+    cleans up like Ctrl-C. pycolmap's import installs glog's handler (a stack dump), so
+    pycolmap is imported first, then replaced."""
+    try:
+        import pycolmap  # noqa: F401
+    except ImportError:  # pragma: no cover - a broken install reports itself later
+        pass
+    if hasattr(signal, "SIGTERM"):
+        signal.signal(signal.SIGTERM, _raise_terminated)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; return the process exit code (0 ok, 1 failed run, 2 bad input, 130 Ctrl-C)."""
+    """Run the CLI; return the process exit code (0 ok, 1 failed run, 2 bad input, 130 Ctrl-C,
+    143 SIGTERM)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
-    configure_logging(getattr(args, "verbose", False), getattr(args, "quiet", False))
+    verbose = getattr(args, "verbose", False)
+    configure_logging(verbose, getattr(args, "quiet", False))
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    saved = signal.getsignal(signal.SIGTERM)
+    if in_main_thread:
+        install_signal_handlers()
+    guard = _forced_exit_after_sigterm() if in_main_thread else contextlib.nullcontext()
     try:
+        guard.__enter__()
+        if args._paths is not None:
+            from .adapters.paths import check_distinct
+
+            check_distinct(*args._paths(args))
         return int(args._run(args) or 0)
     except UserError as exc:
-        log.error("%s", exc)
+        log.error("%s", _one_line(exc))
         return exc.exit_code
-    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, PermissionError) as exc:
-        log.error("%s", exc)
+    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
+            PermissionError) as exc:
+        log.error("%s", _one_line(exc))
         return 2
+    except Terminated:
+        log.error("terminated (SIGTERM); working files removed, nothing was written to the input")
+        return 143
     except KeyboardInterrupt:
-        log.error("interrupted; nothing was written to the input")
+        log.error("interrupted; working files removed, nothing was written to the input")
         return 130
+    except (OSError, sqlite3.Error, MemoryError) as exc:
+        # disk full, read-only folder, a truncated or corrupt file: one line, not a traceback
+        log.error("%s%s", _one_line(exc), "" if verbose else " (run with -v for details)",
+                  exc_info=verbose)
+        return 1
+    except Exception as exc:  # noqa: BLE001 - no traceback reaches a user without -v
+        log.error("%s: %s (unexpected; run with -v for the traceback and report it)",
+                  type(exc).__name__, _one_line(exc), exc_info=verbose)
+        return 1
+    finally:
+        guard.__exit__(None, None, None)
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, saved)
 
 
 def console_main() -> None:

@@ -17,3 +17,7 @@ class RunFailed(UserError):
     """The run itself failed (for example mapping registered no image)."""
 
     exit_code = 1
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised by the CLI's handler so that a terminated run cleans up like Ctrl-C."""

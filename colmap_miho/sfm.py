@@ -249,7 +249,7 @@ def run_mapping(
         DatabaseError: the database is missing or not a COLMAP database.
     """
     from .adapters.database import count_images, write_camera_intrinsics
-    from .adapters.safety import check_database_path, copy_file
+    from .adapters.safety import check_database_path, read_copy
 
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
@@ -264,7 +264,7 @@ def run_mapping(
 
     with tempfile.TemporaryDirectory(prefix="colmap_miho_map_", dir=output) as tmp:
         db_copy = Path(tmp) / "database.db"
-        copy_file(database, db_copy)
+        read_copy(database, db_copy)  # refuses a database in use or with a hot journal
         if cfg.intrinsics() is not None:
             write_camera_intrinsics(db_copy, cfg.intrinsics())
         if intrinsics and not write_camera_intrinsics(db_copy, intrinsics):

@@ -23,7 +23,7 @@ from ..enums import MatchSource
 from . import hloc
 from .database import ColmapDatabase, validate_database, verify_geometry
 from .images import image_size
-from .safety import check_database_path, check_not_in_use, copy_file, remove_with_side_files
+from .safety import check_database_path, check_not_in_use, read_copy, remove_with_side_files
 
 log = logging.getLogger(__name__)
 
@@ -219,7 +219,7 @@ def export_hloc(
     if features.resolve() == matches.resolve():
         raise ValueError("--features and --matches must be different files")
     check_database_path(database)
-    check_not_in_use(database)
+    check_not_in_use(database)  # before the outputs' temporary files are created
 
     tmp_feat = features.with_name(f".{features.name}.partial")
     tmp_match = matches.with_name(f".{matches.name}.partial")
@@ -227,7 +227,7 @@ def export_hloc(
     try:
         with tempfile.TemporaryDirectory(prefix="colmap-miho-export-") as tmp:
             copy = Path(tmp) / "database.db"
-            copy_file(database, copy)
+            read_copy(database, copy)
             validate_database(copy)
             with ColmapDatabase(copy) as db, hloc.open_h5(tmp_feat, "w") as fh, hloc.open_h5(tmp_match, "w") as mh:
                 records = db.images()

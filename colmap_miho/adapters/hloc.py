@@ -54,7 +54,10 @@ def open_h5(path: str | Path, mode: str = "r") -> h5py.File:
         raise FileNotFoundError(f"{path}: no such file")
     if mode == "r" and not h5py.is_hdf5(path):
         raise ValueError(f"{path}: not an HDF5 file")
-    return h5py.File(path, mode)
+    try:
+        return h5py.File(path, mode)
+    except OSError as exc:  # truncated or damaged: h5py's message does not name the file
+        raise ValueError(f"{path}: cannot open the HDF5 file, damaged or truncated ({exc})") from None
 
 
 @dataclass(frozen=True)

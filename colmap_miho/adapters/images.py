@@ -80,6 +80,47 @@ def read_gray_uint8(path: str | Path) -> np.ndarray:
     return img
 
 
+#: Bytes at the end of a JPEG / PNG file searched for its end marker (EOI / IEND); a file cut
+#: short ends inside its compressed data, where the marker cannot occur.
+_END_MARKER_WINDOW = 4096
+
+
+def _truncated(data: np.ndarray) -> bool:
+    """True for a JPEG without its EOI marker or a PNG without IEND near its end (OpenCV
+    decodes a cut JPEG without an error, filling the missing rows with grey)."""
+    head, tail = data[:8].tobytes(), data[-_END_MARKER_WINDOW:].tobytes()
+    if head[:2] == b"\xff\xd8":
+        return b"\xff\xd9" not in tail
+    if head == b"\x89PNG\r\n\x1a\n":
+        return b"IEND" not in tail
+    return False
+
+
+def image_problem(path: str | Path, expected_size: tuple[int, int] | None = None) -> str | None:
+    """Why the image file ``path`` cannot be used, or None when it can: missing, empty,
+    truncated (JPEG / PNG end marker absent), not decodable, or of another size than
+    ``expected_size`` ``(width, height)`` (its camera in the database: its keypoints would
+    not belong to these pixels). Decodes the whole image.
+    """
+    import cv2
+
+    p = Path(path)
+    if not p.is_file():
+        return "missing"
+    data = np.fromfile(p, dtype=np.uint8)
+    if data.size == 0:
+        return "empty"
+    if _truncated(data):
+        return "truncated (the file is cut short)"
+    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        return "not a readable image"
+    if expected_size and tuple(expected_size) != (img.shape[1], img.shape[0]):
+        return (f"{img.shape[1]}x{img.shape[0]} pixels but its camera in the database is "
+                f"{expected_size[0]}x{expected_size[1]}")
+    return None
+
+
 def image_size(path: str | Path) -> tuple[int, int]:
     """``(width, height)`` in pixels of an image file (decoded by :func:`read_image`).
 
@@ -100,8 +141,8 @@ class ImageLoader(Mapping):
         names: image_id -> file name (as stored in the database).
         max_cached: most images kept in memory at once (>= 1).
         expected_sizes: optional image_id -> (width, height) from the database's cameras;
-            an image of another size gives a warning (keypoints may not belong to it) but is
-            still returned.
+            an image of another size is not used (its keypoints do not belong to it): one
+            warning, then ``None``.
     """
 
     def __init__(self, image_dir: str | Path, names: Mapping[int, str], *, max_cached: int = 8,
@@ -114,6 +155,7 @@ class ImageLoader(Mapping):
         self.expected_sizes = dict(expected_sizes or {})
         self._cache: OrderedDict[int, np.ndarray | None] = OrderedDict()
         self.missing: set[int] = set()
+        self.problems: dict[int, str] = {}  # image id -> why it is not used
         self.loads = 0
 
     def path(self, image_id: int) -> Path:
@@ -130,36 +172,37 @@ class ImageLoader(Mapping):
             return self._cache[image_id]
         img = read_gray_float(self.path(image_id))
         self.loads += 1
-        if img is None:
-            self.missing.add(image_id)
-            log.warning("image %s is missing or unreadable; its keypoints are not refined",
-                        self.path(image_id))
-            return None
         size = self.expected_sizes.get(image_id)
+        if img is None:
+            self._skip(image_id, "missing or unreadable")
+            return None
         if size and tuple(size) != (img.shape[1], img.shape[0]):
-            log.warning("image %s is %dx%d but its camera says %dx%d", self.path(image_id),
-                        img.shape[1], img.shape[0], size[0], size[1])
+            self._skip(image_id, f"{img.shape[1]}x{img.shape[0]} pixels but its camera in the "
+                                 f"database is {size[0]}x{size[1]}")
+            return None
         self._cache[image_id] = img
         while len(self._cache) > self.max_cached:
             self._cache.popitem(last=False)
         return img
 
-    def check_all(self) -> list[int]:
-        """Find the missing/unreadable images without decoding them all (existence and a
-        header read); returns their ids (each warned once)."""
-        import cv2
+    def _skip(self, image_id: int, why: str) -> None:
+        if image_id not in self.missing:
+            self.missing.add(image_id)
+            self.problems[image_id] = why
+            log.warning("image %s is %s; it is skipped (its keypoints are not refined)",
+                        self.path(image_id), why)
 
+    def check_all(self) -> list[int]:
+        """Find the images that cannot be used (see :func:`image_problem`: missing, empty,
+        truncated, undecodable or of another size than their camera), decoding each once;
+        returns their ids (each warned once; the reason is in ``problems``)."""
         bad = []
         for image_id in self.names:
-            p = self.path(image_id)
-            ok = p.is_file() and p.stat().st_size > 0
-            if ok and cv2.haveImageReader(str(p)) is False:
-                ok = False
-            if not ok:
+            why = self.problems.get(image_id) or image_problem(self.path(image_id),
+                                                               self.expected_sizes.get(image_id))
+            if why is not None:
                 bad.append(image_id)
-                if image_id not in self.missing:
-                    self.missing.add(image_id)
-                    log.warning("image %s is missing or unreadable; its keypoints are not refined", p)
+                self._skip(image_id, why)
         return bad
 
     def __iter__(self) -> Iterator[int]:

@@ -13,6 +13,7 @@ import fcntl
 import logging
 import os
 import shutil
+import sqlite3
 import stat
 import struct
 import tempfile
@@ -28,6 +29,31 @@ SIDE_SUFFIXES = ("-wal", "-shm", "-journal")
 # SQLite's lock bytes live at 1 GiB (PENDING_BYTE) + 2 + 510 shared bytes.
 _LOCK_START = 0x40000000
 _LOCK_LEN = 512
+
+#: Working files of this process that a forced exit must remove (see :func:`remove_working_files`).
+_WORKING_FILES: set[Path] = set()
+#: In-place backups not yet needed: backup -> (the input, its identity when backed up).
+_PENDING_BACKUPS: dict[Path, tuple[Path, tuple]] = {}
+
+
+def remove_working_files() -> list[Path]:
+    """Delete this process's registered working files (working copies, read copies) and their
+    SQLite side files; returns those that existed. For a forced exit (a SIGTERM that arrives
+    while a long COLMAP call holds the interpreter), where no ``finally`` block runs."""
+    removed = []
+    for path in list(_WORKING_FILES):
+        if path.exists():
+            removed.append(path)
+        with contextlib.suppress(OSError):
+            remove_with_side_files(path)
+        _WORKING_FILES.discard(path)
+    for backup, (target, identity) in list(_PENDING_BACKUPS.items()):
+        with contextlib.suppress(OSError):
+            if file_identity(target) == identity:  # the input was not replaced: no need for it
+                backup.unlink()
+                removed.append(backup)
+        _PENDING_BACKUPS.pop(backup, None)
+    return removed
 
 
 def check_database_path(path: str | os.PathLike) -> Path:
@@ -83,22 +109,91 @@ def _locked_by_other_process(path: Path) -> bool:
 def check_not_in_use(path: Path) -> None:
     """Refuse a database that another program holds open or that was not closed cleanly.
 
-    COLMAP uses WAL journal mode: while it has the database open there are ``-wal`` and
-    ``-shm`` side files, and a ``-wal`` left by a crash may hold data not yet in the main
-    file, so copying the main file alone would lose it.
+    COLMAP uses WAL journal mode: while a program has the database open it holds an SQLite
+    lock (probed without taking it) and there are ``-wal``/``-shm`` side files; a non-empty
+    ``-wal`` (or rollback ``-journal``) that nobody holds open is a hot journal left by a crash:
+    it holds data not yet in the main file, so copying the main file alone would use stale
+    data. An empty ``-wal`` and a ``-shm`` without a lock (what a read-only viewer leaves)
+    hold nothing and are safe.
 
     Raises:
-        DatabaseError: side files exist or another process holds an SQLite lock.
+        DatabaseError: another process holds a lock, or a hot journal exists; the message
+            names the file and the way out.
     """
     found = side_files(path)
-    if found:
-        names = ", ".join(f.name for f in found)
-        raise DatabaseError(
-            f"database {path} is in use by another program or was not closed cleanly "
-            f"(found {names}); close COLMAP and retry"
-        )
     if _locked_by_other_process(path):
-        raise DatabaseError(f"database {path} is locked by another process; close it and retry")
+        names = "".join(f", {f.name} exists" for f in found)
+        raise DatabaseError(f"database {path} is in use by another program (locked by another process{names}); "
+                            "close it (COLMAP, a viewer) and retry")
+    hot = [f for f in found if not f.name.endswith("-shm") and _size(f) > 0]
+    if hot:
+        raise DatabaseError(
+            f"database {path} was not closed cleanly: {hot[0].name} holds {_size(hot[0])} bytes of "
+            f"changes not yet in the main file; open it once with COLMAP or `sqlite3 {path} "
+            f"'PRAGMA wal_checkpoint;'` to apply them, then retry")
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
+def check_free_space(folder: Path, needed: int, what: str) -> None:
+    """Refuse to start when ``folder``'s file system has less than ``needed`` bytes free.
+
+    Raises:
+        UserError: not enough space; the message names the folder, both sizes and ``what``.
+    """
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:  # pragma: no cover - unknown: let the copy itself fail cleanly
+        return
+    if free < needed:
+        raise UserError(f"not enough free space in {folder}: {what} needs about {needed / 1e6:.0f} MB, "
+                        f"{free / 1e6:.0f} MB free; free some space or write elsewhere")
+
+
+def read_copy(database: str | os.PathLike, dst: Path) -> Path:
+    """The safe way to read a database: check it (exists, SQLite, not in use, no hot journal),
+    check the free space, and copy it to ``dst``; returns the checked input path. Only the
+    copy may then be opened (pycolmap migrates the schema on open).
+
+    Raises:
+        DatabaseError / UserError: see :func:`check_database_path`, :func:`check_not_in_use`,
+            :func:`check_free_space`, :func:`copy_file`.
+    """
+    src = check_database_path(database)
+    check_not_in_use(src)
+    check_free_space(Path(dst).parent, 2 * _size(src), f"a working copy of {src}")
+    _WORKING_FILES.add(Path(dst))
+    copy_file(src, Path(dst))
+    check_integrity(Path(dst), src)
+    return src
+
+
+def check_integrity(copy: Path, name: Path) -> None:
+    """SQLite's ``PRAGMA quick_check`` on the copy ``copy`` of the user's database ``name``
+    (with Python's sqlite3, closed again: a WAL-mode copy is left without side files): a
+    truncated or damaged file is an error before pycolmap, which aborts the process on some
+    damaged files, ever opens it. Never call it on the user's file itself.
+
+    Raises:
+        DatabaseError: damaged or not a database; the message names ``name``.
+    """
+    try:
+        con = sqlite3.connect(f"file:{Path(copy).resolve()}?mode=rw", uri=True)
+        try:
+            rows = con.execute("PRAGMA quick_check").fetchall()
+        finally:
+            con.close()
+    except sqlite3.Error as exc:
+        raise DatabaseError(f"database {name} is damaged or truncated (SQLite: {exc}); restore it "
+                            "from a backup or rebuild it") from None
+    if rows != [("ok",)]:
+        raise DatabaseError(f"database {name} is damaged (SQLite quick_check: {rows[0][0]}); restore "
+                            "it from a backup or rebuild it")
 
 
 def copy_file(src: Path, dst: Path) -> None:
@@ -106,14 +201,33 @@ def copy_file(src: Path, dst: Path) -> None:
 
     Raises:
         DatabaseError: the source changed while it was copied.
+        UserError: the copy failed (disk full, read-only folder); ``dst`` is removed and the
+            message names the folder.
     """
     before = src.stat()
-    shutil.copyfile(src, dst)
+    try:
+        shutil.copyfile(src, dst)
+        with open(dst, "rb+") as fh:
+            os.fsync(fh.fileno())
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            Path(dst).unlink()
+        raise UserError(f"cannot copy database {src} to {Path(dst).parent}: "
+                        f"{exc.strerror or exc}; free some space or choose a writable folder") from None
     after = src.stat()
     if (before.st_size, before.st_mtime_ns) != (after.st_size, after.st_mtime_ns):
+        with contextlib.suppress(OSError):
+            Path(dst).unlink()
         raise DatabaseError(f"database {src} changed while it was copied; is another program writing it?")
-    with open(dst, "rb+") as fh:
-        os.fsync(fh.fileno())
+
+
+def file_identity(path: Path) -> tuple:
+    """What must not change under an in-place run: device, inode, size, mtime (ns) and the
+    first 100 bytes (SQLite's header with its change counter)."""
+    st = os.stat(path)
+    with open(path, "rb") as fh:
+        header = fh.read(100)
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, header
 
 
 def default_output_path(database: Path) -> Path:
@@ -169,10 +283,18 @@ class WorkingCopy:
     Use as a context manager: ``path`` is a temporary copy of the input beside the output.
     Call :meth:`commit` after all writes (and after every database handle on ``path`` is
     closed) to move it onto the output. Leaving the block without commit, or with an
-    exception, deletes the temporary copy; the input is never written.
+    exception, deletes the temporary copy (and, in place, the now useless backup); the input
+    is never written.
+
+    The checks made at the start are made again at commit time, right before the replace:
+    an output that appeared meanwhile (another run) is not replaced without ``overwrite``; an
+    output another SQLite client holds open is never replaced (SQLite would later apply that
+    client's journal to the new file); in place, the input must be unchanged (device, inode,
+    size, mtime and header), else the result is kept beside it under a visible name.
 
     Args:
-        database: the input database (checked, not opened).
+        database: the input database (checked, not opened). In place on a symlink, the link's
+            target is replaced and the link kept.
         output: the output path, or None for ``<stem>.miho.db`` beside the input.
         in_place: replace the input itself, after copying it to a timestamped backup.
         overwrite: allow replacing an existing ``output``.
@@ -184,9 +306,14 @@ class WorkingCopy:
         if in_place and output is not None and Path(output).resolve() != self.database.resolve():
             raise UserError("use either --output or --in-place, not both")
         self.in_place = in_place
-        self.output = self.database if in_place else Path(output) if output else default_output_path(self.database)
+        self.overwrite = overwrite
+        # in place on a symlink: replace the real file (beside it), keep the link
+        if in_place:
+            self.output = self.database.resolve()
+        else:
+            self.output = Path(output) if output else default_output_path(self.database)
         if not in_place:
-            if self.output.resolve() == self.database.resolve():
+            if self.output.resolve() == self.database.resolve() or _same_inode(self.output, self.database):
                 raise UserError(f"output {self.output} is the input database; use --in-place to replace it")
             if self.output.is_dir():
                 raise UserError(f"output {self.output} is a folder; give a database file name")
@@ -196,43 +323,189 @@ class WorkingCopy:
                 raise UserError(f"output folder does not exist: {self.output.parent}")
             if self.output.exists():
                 check_not_in_use(self.output)
+        if not os.access(self.output.parent, os.W_OK | os.X_OK):
+            raise UserError(f"cannot write in {self.output.parent} (read-only folder); "
+                            + ("copy the database to a writable folder" if in_place else "choose another --output"))
         self.backup: Path | None = None
         self.path: Path | None = None
         self.committed = False
+        self._identity: tuple | None = None
+        self._side: list[tuple[Path, Path]] = []
 
     def __enter__(self) -> WorkingCopy:
         check_not_in_use(self.database)
         _warn_leftover_copies(self.output)
+        size = self.database.stat().st_size
+        # the copy, its WAL and the rewritten pages (about the copy again), and the backup
+        check_free_space(self.output.parent, (3 if self.in_place else 2) * size,
+                         f"refining {self.database}" + (" in place (with its backup)" if self.in_place else ""))
+        self._identity = file_identity(self.output if self.in_place else self.database)
         if self.in_place:
-            self.backup = backup_path(self.database)
-            copy_file(self.database, self.backup)
+            backup = backup_path(self.output)
+            copy_file(self.database, backup)
+            self.backup = backup
+            _PENDING_BACKUPS[backup] = (self.output, self._identity)
             log.info("backup of the input written to %s", self.backup)
-        fd, name = tempfile.mkstemp(prefix=f".{self.output.name}.", suffix=".tmp", dir=self.output.parent)
+        try:
+            fd, name = tempfile.mkstemp(prefix=f".{self.output.name}.", suffix=".tmp", dir=self.output.parent)
+        except OSError as exc:
+            self._drop_backup()
+            raise UserError(f"cannot create a working copy in {self.output.parent}: {exc.strerror}") from None
         os.close(fd)
         self.path = Path(name)
+        _WORKING_FILES.add(self.path)
         try:
             copy_file(self.database, self.path)
+            check_integrity(self.path, self.database)
             # mkstemp makes the file private (0600): give the result the input's permissions
             os.chmod(self.path, stat.S_IMODE(self.database.stat().st_mode))
         except BaseException:
             remove_with_side_files(self.path)
+            self._drop_backup()
             raise
         return self
 
+    def stage_side_file(self, path: str | os.PathLike, text: str) -> None:
+        """Write ``text`` now to a hidden file beside ``path``; :meth:`commit` renames it onto
+        ``path`` right after the database (so a bad path fails before anything is replaced,
+        and no side file describes a result that was not committed).
+
+        Raises:
+            UserError: the file cannot be written (missing or read-only folder, disk full).
+        """
+        target = Path(path)
+        try:
+            fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+            with os.fdopen(fd, "w", encoding="utf-8") as fh:
+                fh.write(text)
+        except OSError as exc:
+            if "name" in locals():
+                Path(name).unlink(missing_ok=True)
+            raise UserError(f"cannot write {target}: {exc.strerror or exc}; nothing was replaced") from None
+        os.chmod(name, 0o666 & ~_umask())
+        self._side.append((Path(name), target))
+
     def commit(self) -> Path:
-        """Atomically move the working copy onto the output; returns the output path."""
+        """Check again, then atomically move the working copy onto the output; returns it.
+
+        Raises:
+            UserError: the output appeared meanwhile (no ``overwrite``), or is held open.
+            DatabaseError: in place, the input changed during the run; the result is kept
+                beside it (named in the message) and the input is left as it is.
+        """
         if self.path is None:
             raise RuntimeError("commit() outside the with block")
         if self.in_place:
-            # The input must not have changed since it was backed up.
-            check_not_in_use(self.database)
-        atomic_replace(self.path, self.output)
+            self._check_input_unchanged()
+            check_not_in_use(self.output)
+        elif self.output.exists() or self.output.is_symlink():
+            if not self.overwrite:
+                raise UserError(f"output {self.output} was created by another program during the run; "
+                                "nothing was replaced (pass --overwrite to replace it)")
+            check_not_in_use(self.output)
+        for s in SIDE_SUFFIXES:
+            side = Path(str(self.path) + s)
+            if side.exists():
+                raise DatabaseError(f"working copy {self.path} is still open ({side.name} exists)")
+        with open(self.path, "rb+") as fh:
+            os.fsync(fh.fileno())
+        if self.in_place or self.overwrite:
+            os.replace(self.path, self.output)
+        else:
+            _rename_no_replace(self.path, self.output)
+        _WORKING_FILES.discard(self.path)
+        if self.backup is not None:
+            _PENDING_BACKUPS.pop(self.backup, None)  # the replaced input lives on in it
+        _fsync_dir(self.output.parent)
         self.committed = True
+        for tmp, target in self._side:
+            os.replace(tmp, target)
+        self._side.clear()
         return self.output
 
+    def _check_input_unchanged(self) -> None:
+        if self.path is None:
+            raise RuntimeError("no working copy to check against")
+        try:
+            now = file_identity(self.output)
+        except OSError:
+            now = None
+        if now == self._identity:
+            return
+        kept = _visible_name(self.output)
+        os.replace(self.path, kept)
+        self.path = None
+        raise DatabaseError(
+            f"database {self.database} changed during the run (another program wrote it), so it "
+            f"was not replaced; the result, made from its earlier state, is kept in {kept} and "
+            f"that state in the backup {self.backup}: rerun on the database as it is now")
+
+    def _drop_backup(self) -> None:
+        """Delete the backup of an in-place run that replaced nothing (the input is as it was)."""
+        if self.backup is None:
+            return
+        try:
+            unchanged = file_identity(self.output) == self._identity
+        except OSError:
+            unchanged = False
+        if unchanged:
+            self.backup.unlink(missing_ok=True)
+            _PENDING_BACKUPS.pop(self.backup, None)
+            self.backup = None
+
     def __exit__(self, exc_type, exc, tb) -> None:
-        if self.path is not None and not self.committed:
+        for tmp, _ in self._side:
+            tmp.unlink(missing_ok=True)
+        if not self.committed and self.path is not None:  # None: kept beside a changed input
             remove_with_side_files(self.path)
+            _WORKING_FILES.discard(self.path)
+            self._drop_backup()
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _same_inode(a: Path, b: Path) -> bool:
+    try:
+        sa, sb = os.stat(a), os.stat(b)
+    except OSError:
+        return False
+    return (sa.st_dev, sa.st_ino) == (sb.st_dev, sb.st_ino)
+
+
+def _visible_name(database: Path) -> Path:
+    """``<stem>.miho-<time>.db`` beside ``database``, not existing yet."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    candidate = database.with_name(f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
+    k = 1
+    while candidate.exists():
+        candidate = database.with_name(f"{database.stem}.miho-{stamp}-{k}{database.suffix or '.db'}")
+        k += 1
+    return candidate
+
+
+def _rename_no_replace(src: Path, dst: Path) -> None:
+    """Move ``src`` to ``dst`` only if ``dst`` does not exist, atomically where the file
+    system supports hard links (a race with another run cannot replace its result).
+
+    Raises:
+        UserError: ``dst`` exists.
+    """
+    try:
+        os.link(src, dst)
+    except FileExistsError:
+        raise UserError(f"output {dst} was created by another program during the run; nothing "
+                        "was replaced (pass --overwrite to replace it)") from None
+    except OSError:  # no hard links here (some network/FAT file systems): check, then rename
+        if dst.exists():
+            raise UserError(f"output {dst} was created by another program during the run; nothing "
+                            "was replaced (pass --overwrite to replace it)") from None
+        os.replace(src, dst)
+        return
+    src.unlink()
 
 
 def leftover_copies(output: Path) -> list[Path]:

@@ -35,6 +35,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
 
 
+def paths(args: argparse.Namespace) -> tuple[dict, dict]:
+    """Inputs and outputs for the CLI's overlap check."""
+    return {"--database": args.database}, {"--features": args.features, "--matches": args.matches}
+
+
 def run(args: argparse.Namespace) -> int:
     from ..adapters.exchange import export_hloc
 

@@ -25,6 +25,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--output", required=True, type=Path, help="output COLMAP model folder")
 
 
+def paths(args) -> tuple[dict, dict]:
+    """Inputs and outputs for the CLI's overlap check (the model files written in --output)."""
+    from ..adapters.paths import model_files
+
+    return {"--input": args.input, "--images": args.images}, model_files(args.output, "--output")
+
+
 def run(args) -> int:
     from ..reporting.gt_model import convert_gt
 

@@ -44,6 +44,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="RANSAC seed of the verification (default: %(default)s)")
 
 
+def paths(args: argparse.Namespace) -> tuple[dict, dict]:
+    """Inputs and outputs for the CLI's overlap check; the new database's folder must exist."""
+    if not args.database.parent.is_dir():
+        raise NotADirectoryError(f"--database folder does not exist: {args.database.parent} (create it first)")
+    return ({"--features": args.features, "--matches": args.matches, "--pairs": args.pairs,
+             "--images": args.images}, {"--database": args.database})
+
+
 def run(args: argparse.Namespace) -> int:
     import pycolmap
 

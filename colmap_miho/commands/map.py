@@ -34,6 +34,16 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", type=Path, default=None, help="write the mapping summary as JSON")
 
 
+def paths(args) -> tuple[dict, dict]:
+    """Inputs and outputs for the CLI's overlap check (the model files written in --output)."""
+    from ..adapters.paths import model_files
+
+    if args.output.exists() and not args.output.is_dir():
+        raise NotADirectoryError(f"--output {args.output} is a file; give a folder for the model")
+    return ({"--database": args.database, "--images": args.images},
+            {"--json": args.json, **model_files(args.output, "--output")})
+
+
 def run(args) -> int:
     from ..recipe import load_recipe
     from ..sfm import require_success, run_mapping

@@ -41,6 +41,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", dest="json_path", type=Path, default=None, help="write the summary as JSON")
 
 
+def paths(args: argparse.Namespace) -> tuple[dict, dict]:
+    """Inputs and outputs for the CLI's overlap check (the default output included)."""
+    from ..adapters.safety import default_output_path
+
+    output = None if args.in_place else args.output or default_output_path(args.database)
+    return ({"--database": args.database, "--images": args.images},
+            {"--output": output, "--json": args.json_path})
+
+
 def run(args: argparse.Namespace) -> int:
     from ..pipeline.refine import refine_database
     from ..recipe import load_recipe

@@ -39,6 +39,17 @@ def add_arguments(parser) -> None:
                         help="also export the model's 3D points (with colours) as PLY")
 
 
+def paths(args) -> tuple[dict, dict]:
+    """Inputs and outputs for the CLI's overlap check."""
+    from ..adapters.paths import model_files
+
+    if args.pairs is not None and not args.pairs.is_file():
+        raise FileNotFoundError(f"--pairs not found: {args.pairs}")
+    inputs = {"--model": args.model, "--database": args.database, "--gt": args.gt, "--pairs": args.pairs,
+              **model_files(args.model, "--model"), **model_files(args.gt, "--gt")}
+    return inputs, {"--json": args.json, "--ply": args.ply}
+
+
 def run(args) -> int:
     from ..errors import UserError
     from ..reporting.report import build_report, format_report, write_report_json

@@ -38,6 +38,14 @@ def add_arguments(parser) -> None:
     add_auc_arguments(parser)
 
 
+def paths(args) -> tuple[dict, dict]:
+    """Inputs and outputs for the CLI's overlap check; a missing --gt is refused before the
+    long runs."""
+    if args.gt is not None and not args.gt.exists():
+        raise FileNotFoundError(f"--gt not found: {args.gt}")
+    return {"--images": args.images, "--gt": args.gt}, {}
+
+
 def run(args) -> int:
     from ..errors import UserError
     from ..extras import require

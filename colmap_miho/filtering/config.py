@@ -5,6 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..enums import FilterMethod
+from ..validation import require_at_most, require_finite
+
+#: Upper bound of ``batch_size``: each batch scores that many homographies on every match.
+MAX_HYPOTHESES_BATCH = 8192
+#: Upper bound of the thresholds ``t_l`` / ``t_h`` in pixels: larger than any image side
+#: (``filter.t_l=1e308`` overflowed the squared thresholds).
+MAX_THRESHOLD_PX = 1e5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -81,6 +88,10 @@ class FilterConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", FilterMethod.parse(self.method, "method"))
+        require_finite(self)
+        require_at_most("batch_size", self.batch_size, MAX_HYPOTHESES_BATCH,
+                        "hypotheses scored at once are held in memory")
+        require_at_most("t_l", self.t_l, MAX_THRESHOLD_PX, "pixels, larger than any image")
         if not self.t_l > 0:
             raise ValueError(f"t_l must be > 0 pixels, got {self.t_l}")
         if self.t_h is not None and not 0 < self.t_h <= self.t_l:

@@ -15,6 +15,7 @@ from ..adapters.database import ColmapDatabase, PairRecord
 from ..enums import MatchSource
 from ..filtering.api import FilterResult, filter_matches
 from ..filtering.config import FilterConfig
+from .read import check_match_indices
 from .workers import init_worker, pair_seed, process_pool, single_thread_children
 
 #: Below this many pairs to filter per worker, filtering runs in this process (starting a
@@ -34,12 +35,14 @@ class FilterOptions:
         seed: base seed; each pair's seed is :func:`~.workers.pair_seed` of it and the ids.
         workers: processes available (fewer are used for small jobs).
         progress: tqdm bar over pairs.
+        database_name: the user's database, named in error messages (the stage reads a copy).
     """
 
     source: MatchSource
     seed: int = 0
     workers: int = 1
     progress: bool = False
+    database_name: str = ""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -95,6 +98,7 @@ def _filter_pairs(db: ColmapDatabase, pairs: list[PairRecord], keypoints, cfg: F
     def job(p: PairRecord):
         i, j = p.image_id1, p.image_id2
         m = db.matches(i, j, opts.source)
+        check_match_indices(m, len(keypoints[i]), len(keypoints[j]), (i, j), opts.database_name)
         matches_of[(i, j)] = m
         return i, j, keypoints[i][m[:, 0]], keypoints[j][m[:, 1]], cfg, pair_seed(opts.seed, i, j)
 

@@ -77,7 +77,8 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
     if not pairs:
         raise DatabaseError(
             f"database has no image pairs with {pcfg.source} matches: {cfg.database_name}"
-            + (" (try --source raw)" if pcfg.source == MatchSource.VERIFIED else "")
+            + (" (try --source raw)" if pcfg.source == MatchSource.VERIFIED and db.pairs(MatchSource.RAW)
+               else " (it has no matches at all: run COLMAP's matching first)")
         )
     to_filter = [p for p in pairs if p.num_matches >= pcfg.min_matches]
     loader = ImageLoader(cfg.image_dir, names, max_cached=cfg.max_images_in_memory,
@@ -87,13 +88,37 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
         missing = loader.check_all()
         missing_names = [names[i] for i in missing]
         if missing and cfg.strict:
-            raise UserError(f"image missing or unreadable (--strict): {loader.path(missing[0])}"
-                            + (f" and {len(missing) - 1} more" if len(missing) > 1 else ""))
+            raise UserError(f"image {loader.path(missing[0])} is {loader.problems[missing[0]]} (--strict)"
+                            + (f"; and {len(missing) - 1} more" if len(missing) > 1 else "")
+                            + "; fix it, or drop --strict to skip it")
+        if missing and len(missing) == len(images):
+            raise UserError(f"none of the {len(images)} images of {cfg.database_name} can be used from "
+                            f"{cfg.image_dir} (e.g. {loader.path(missing[0])} is {loader.problems[missing[0]]}); "
+                            "check --images, or pass --no-refine to filter only")
     stats = ReadStats(num_images=len(images), num_pairs=len(pairs),
                       pairs_passed=len(pairs) - len(to_filter),
                       keypoints_total=int(sum(len(k) for k in keypoints.values())),
                       images_missing=missing_names)
     return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats
+
+
+def check_match_indices(matches: np.ndarray, n1: int, n2: int, pair: tuple[int, int],
+                        database_name: Path | str = "") -> None:
+    """Refuse matches ``(M, 2)`` whose keypoint indices are past the two images' keypoint
+    counts ``n1``, ``n2`` (an inconsistent database: matches written for other keypoints).
+
+    Raises:
+        DatabaseError: names the database, the pair's image ids and the first bad index.
+    """
+    if not len(matches):
+        return
+    for col, n, image_id in ((0, n1, pair[0]), (1, n2, pair[1])):
+        top = int(matches[:, col].max())
+        if top >= n:
+            raise DatabaseError(
+                f"database {database_name}: a match of image pair {pair[0]}-{pair[1]} uses keypoint "
+                f"{top} of image {image_id}, which has {n} keypoints; the matches do not belong to these "
+                "keypoints (re-run matching, or re-import the features and matches together)")
 
 
 def read_affines(db: ColmapDatabase, image_ids) -> dict[int, np.ndarray] | None:

@@ -20,9 +20,11 @@ COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import logging
 import os
+import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,9 +33,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..adapters.database import ColmapDatabase, validate_database
+from ..adapters.paths import check_distinct
 from ..adapters.safety import WorkingCopy, check_database_path
 from ..enums import Device
-from ..errors import UserError
+from ..errors import DatabaseError, RunFailed, UserError
 from .filter_stage import FilteredPairs, FilterOptions, FilterStats, run_filter
 from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
 from .stages import run_refine_stage
@@ -215,36 +218,67 @@ def refine_database(
     dev = _resolve_device(device)
     n_workers = 1 if dev == "cuda" else max(1, int(workers) if workers else (os.cpu_count() or 1))
     wc = WorkingCopy(database, Path(output) if output else None, in_place=in_place, overwrite=overwrite)
-    laps.lap("setup")
-    with wc:
-        laps.lap("copy")
-        work_db = wc.path
-        assert work_db is not None  # set on entering the block
-        validate_database(work_db)
-        with ColmapDatabase(work_db) as db:
-            read, read_stats = run_read(db, ReadConfig(
-                pipeline=pcfg, image_dir=image_dir, max_images_in_memory=rec.tracks.max_images_in_memory,
-                strict=strict, database_name=database))
-            laps.lap("read")
-            ok, filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
-                source=pcfg.source, seed=seed, workers=n_workers, progress=progress))
-            laps.lap("filter")
-            new_keypoints, refine_stats = _refine(db, read, ok, rec, dev, n_workers, progress)
-            laps.lap("refine")
-            write_stats = run_write(db, read.keypoints, new_keypoints, ok, pcfg)
-            laps.lap("write")
-        if pcfg.verify:
-            run_verify(work_db)
-            laps.lap("verify")
-        written = wc.commit()
-    summary = RefineSummary.from_stages(
-        output=written, database=database, backup=wc.backup, recipe=rec, device=dev,
-        read=read_stats, filtered=filter_stats, refine_stats=refine_stats, write=write_stats,
-        seconds=laps.total())
+    check_distinct({"--database": database, "--images": image_dir},
+                   {"--output": None if in_place else wc.output, "--json": json_path})
     if json_path:
-        Path(json_path).write_text(json.dumps(summary.to_dict(), indent=2) + "\n", encoding="utf-8")
+        _check_writable_file(Path(json_path), "--json")
+    laps.lap("setup")
+    try:
+        with wc:
+            laps.lap("copy")
+            work_db = wc.path
+            assert work_db is not None  # set on entering the block
+            try:
+                validate_database(work_db)
+            except DatabaseError as exc:  # name the user's file, not the hidden working copy
+                raise DatabaseError(str(exc).replace(str(work_db), str(database))) from None
+            with ColmapDatabase(work_db) as db:
+                read, read_stats = run_read(db, ReadConfig(
+                    pipeline=pcfg, image_dir=image_dir, max_images_in_memory=rec.tracks.max_images_in_memory,
+                    strict=strict, database_name=database))
+                laps.lap("read")
+                ok, filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
+                    source=pcfg.source, seed=seed, workers=n_workers, progress=progress,
+                    database_name=str(database)))
+                laps.lap("filter")
+                new_keypoints, refine_stats = _refine(db, read, ok, rec, dev, n_workers, progress)
+                laps.lap("refine")
+                write_stats = run_write(db, read.keypoints, new_keypoints, ok, pcfg)
+                laps.lap("write")
+            if pcfg.verify:
+                run_verify(work_db)
+                laps.lap("verify")
+            summary = RefineSummary.from_stages(
+                output=database if in_place else wc.output,  # in place: the user's path (a symlink stays one)
+                database=database, backup=wc.backup, recipe=rec, device=dev, read=read_stats,
+                filtered=filter_stats, refine_stats=refine_stats, write=write_stats, seconds=laps.total())
+            if json_path:  # written beside its target now, renamed onto it with the commit
+                wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
+            wc.commit()
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        raise RunFailed(f"disk full while writing in {wc.output.parent}; {database} is unchanged and the "
+                        "working files were removed: free some space and retry") from None
+    except sqlite3.Error as exc:
+        raise RunFailed(f"SQLite error while writing the copy of {database} ({exc}); {database} is "
+                        "unchanged and the working files were removed") from None
     log.info("wrote %s", summary.output)
     return summary
+
+
+def _check_writable_file(path: Path, label: str) -> None:
+    """Refuse, before any work, an output file whose folder is missing or read-only.
+
+    Raises:
+        UserError: the message names the option and the path.
+    """
+    if path.is_dir():
+        raise UserError(f"{label} {path} is a folder; give a file name")
+    if not path.parent.is_dir():
+        raise UserError(f"{label} folder does not exist: {path.parent}")
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise UserError(f"{label} {path}: cannot write in {path.parent} (read-only folder)")
 
 
 def _refine(db: ColmapDatabase, read: ReadOutput, ok: FilteredPairs, rec: Recipe, device: str,
@@ -259,9 +293,10 @@ def _refine(db: ColmapDatabase, read: ReadOutput, ok: FilteredPairs, rec: Recipe
     ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
     new_keypoints, stats, used = run_refine_stage(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, rec.tracks,
-        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), workers=workers,
-        progress=progress)
-    return new_keypoints, dict(stats, workers=used)
+        workers=workers, progress=progress)
+    # the images skipped before the walk count as missing too: the same number as images_missing
+    return new_keypoints, dict(stats, workers=used,
+                               missing_images=max(int(stats.get("missing_images", 0)), len(missing)))
 
 
 def _unrefined_matches(db: ColmapDatabase, ok: FilteredPairs, usable: FilteredPairs,

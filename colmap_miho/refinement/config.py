@@ -5,10 +5,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..enums import MoveSide
-
+from ..validation import require_at_most, require_finite
 
 #: matches per batched NCC call when ``NCCConfig.batch_size`` is None, per device type.
 DEFAULT_BATCH_SIZE = {"cpu": 512, "cuda": 4096}
+#: Upper bound of ``template_radius + search_radius`` (pixels): each match holds a
+#: (2 (r_t + r_s) + 1)^2 window per perturbation (paper: 10 + 10); 1000 tried to allocate 320 GB.
+MAX_WINDOW_RADIUS_PX = 64
+#: Upper bound of ``NCCConfig.batch_size`` (matches per batched call).
+MAX_NCC_BATCH = 65536
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -99,6 +104,10 @@ class NCCConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "move", MoveSide.parse(self.move, "move"))
+        require_finite(self)
+        require_at_most("template_radius + search_radius", self.template_radius + self.search_radius,
+                        MAX_WINDOW_RADIUS_PX, "the search window of every match is held in memory")
+        require_at_most("batch_size", self.batch_size, MAX_NCC_BATCH, "matches held in memory at once")
         if self.template_radius < 1:
             raise ValueError(f"template_radius must be >= 1 pixel, got {self.template_radius}")
         if self.search_radius < 1:

@@ -94,14 +94,14 @@ def match_changes(baseline_db: str | Path, refined_db: str | Path) -> dict:
         "displacements": float64 (K,) pixel distances of the keypoints that moved}``.
     """
     from ..adapters.database import ColmapDatabase
-    from ..adapters.safety import copy_file
+    from ..adapters.safety import read_copy
 
     out: dict = {}
     kps: dict[str, dict[str, np.ndarray]] = {}
     with tempfile.TemporaryDirectory(prefix="colmap_miho_cmp_") as tmp:
         for tag, src in (("before", Path(baseline_db)), ("after", Path(refined_db))):
             copy = Path(tmp) / f"{tag}.db"
-            copy_file(src, copy)
+            read_copy(src, copy)  # refuses a database in use or with a hot journal
             with ColmapDatabase(copy) as db:
                 names = {r.image_id: r.name for r in db.images()}
                 out[f"matches_{tag}"] = {

@@ -108,7 +108,12 @@ def load_reconstruction(path: str | Path):
     import pycolmap
 
     model_dir = resolve_model_dir(path)
-    return pycolmap.Reconstruction(str(model_dir))
+    try:
+        return pycolmap.Reconstruction(str(model_dir))
+    except (RuntimeError, IndexError, ValueError) as exc:  # pycolmap's errors on a truncated file
+        msg = " ".join(str(exc).split())
+        raise ValueError(f"cannot read the COLMAP model in {model_dir} (damaged or truncated file? "
+                         f"{msg}); write it again") from None
 
 
 def load_gt_poses(path: str | Path) -> dict[str, CameraPose]:

@@ -223,14 +223,14 @@ def read_database_inliers(database: str | Path) -> DatabaseInliers:
     removed there).
     """
     from ..adapters.database import ColmapDatabase
-    from ..adapters.safety import check_database_path, copy_file
+    from ..adapters.safety import check_database_path, read_copy
 
     database = check_database_path(database)
     kps: dict[str, np.ndarray] = {}
     matches: dict = {}
     with tempfile.TemporaryDirectory(prefix="colmap_miho_report_") as tmp:
         copy = Path(tmp) / "database.db"
-        copy_file(database, copy)
+        read_copy(database, copy)  # refuses a database in use or with a hot journal
         with ColmapDatabase(copy) as db:
             images = {r.image_id: r.name for r in db.images()}
             for pair in db.pairs("verified"):

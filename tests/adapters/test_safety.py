@@ -93,9 +93,16 @@ def test_working_copy_refuses_existing_output_and_same_file(db_copy):
     assert sha256(out) == sha256(db_copy)
 
 
-def test_wal_side_file_gives_clear_error(db_copy):
-    Path(str(db_copy) + "-wal").write_bytes(b"")
-    with pytest.raises(DatabaseError, match=r"in use by another program .*scene\.db-wal"):
+def test_hot_wal_gives_clear_error_and_empty_wal_is_safe(db_copy):
+    """A non-empty -wal nobody holds open is a hot journal (data not in the main file):
+    refused, naming it and the way out. An empty -wal and a -shm without a lock (what a
+    read-only viewer leaves) hold nothing and must not block."""
+    wal, shm = Path(str(db_copy) + "-wal"), Path(str(db_copy) + "-shm")
+    wal.write_bytes(b"")
+    shm.write_bytes(b"\0" * 32768)
+    check_not_in_use(db_copy)
+    wal.write_bytes(b"x" * 4096)
+    with pytest.raises(DatabaseError, match=r"not closed cleanly: scene\.db-wal holds 4096 bytes.*wal_checkpoint"):
         check_not_in_use(db_copy)
     assert main(["refine", "--database", str(db_copy), "--images", str(db_copy.parent), "-q"]) == 2
 
@@ -137,7 +144,8 @@ def _refine_cmd(db: Path, images: Path, *extra: str) -> list[str]:
 def _kill_at_write(cli_args: list[str], marker: Path) -> None:
     """Run the CLI in a subprocess whose write stage pauses after its first pair (see
     ``pause_at_write.py``) and SIGKILL it there."""
-    cmd = [sys.executable, str(Path(__file__).resolve().parents[1] / "pause_at_write.py"), str(marker), *cli_args]
+    helper = Path(__file__).resolve().parents[1] / "helpers" / "pause_at_write.py"
+    cmd = [sys.executable, str(helper), str(marker), *cli_args]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S

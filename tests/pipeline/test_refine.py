@@ -152,7 +152,8 @@ def test_text_file_and_foreign_sqlite(tmp_path, capsys):
     con.close()
     capsys.readouterr()
     assert _refine("--database", foreign, "--images", tmp_path) == 2
-    assert "not a COLMAP database (missing tables" in _err(capsys)
+    err = _err(capsys)
+    assert "not a COLMAP database (missing tables" in err and err.endswith(str(foreign))  # not the hidden copy
     assert sorted(p.name for p in tmp_path.iterdir()) == ["foreign.db", "notes.db"]
 
 
@@ -281,6 +282,8 @@ def test_missing_image_is_filtered_not_refined(small_scene, tmp_path, capsys):
 
 
 def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
+    """Grey and colour files are both used; an image of another size than its camera is
+    skipped (its keypoints do not belong to these pixels: issue 14), and named."""
     images = _copy_scene_images(small_scene, tmp_path / "imgs")
     names = sorted(p.name for p in images.iterdir())
     grey = cv2.imread(str(images / names[0]), cv2.IMREAD_GRAYSCALE)
@@ -288,7 +291,8 @@ def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
     colour = cv2.imread(str(images / names[1]), cv2.IMREAD_COLOR)
     cv2.imwrite(str(images / names[1]), np.pad(colour, ((0, 21), (0, 37), (0, 0))))  # larger
     s = refine_database(small_scene.database, images, tmp_path / "o.db", workers=1)
-    assert s.keypoints_moved > 0 and s.images_missing == []
+    assert s.keypoints_moved > 0 and s.images_missing == [names[1]]
+    assert s.refine_stats["missing_images"] == 1
     assert 0 < s.max_displacement_px <= MAX_MOVE_PX
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
-from colmap_miho.sfm import run_mapping
+from colmap_miho.sfm import MappingConfig, run_mapping
 
 
 def sha(path):
@@ -50,8 +50,11 @@ def test_log_file_is_complete_even_when_colmap_was_silenced(scene, tmp_path):
 def test_mapping_is_repeatable_with_seed(scene, tmp_path):
     import numpy as np
 
-    a = run_mapping(scene.database, scene.image_dir, tmp_path / "a", seed=3).reconstruction
-    b = run_mapping(scene.database, scene.image_dir, tmp_path / "b", seed=3).reconstruction
+    # one mapper thread: with several, COLMAP's result depends on thread scheduling (seen to
+    # differ by 2% in the camera positions on a loaded machine)
+    cfg = MappingConfig(seed=3, num_threads=1)
+    a = run_mapping(scene.database, scene.image_dir, tmp_path / "a", cfg).reconstruction
+    b = run_mapping(scene.database, scene.image_dir, tmp_path / "b", cfg).reconstruction
     for im in a.images.values():
         other = b.find_image_with_name(im.name)
         np.testing.assert_allclose(im.cam_from_world().translation, other.cam_from_world().translation, atol=1e-9)

@@ -6,7 +6,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's colmap_miho
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # this checkout's colmap_miho
 
 import colmap_miho.pipeline.write as write_stage
 from colmap_miho.cli import main
