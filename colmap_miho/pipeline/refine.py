@@ -293,7 +293,8 @@ def _refine(db: ColmapDatabase, read: ReadOutput, ok: FilteredPairs, rec: Recipe
     ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
     new_keypoints, stats, used = run_refine_stage(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, rec.tracks,
-        workers=workers, progress=progress)
+        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), workers=workers,
+        progress=progress)
     # the images skipped before the walk count as missing too: the same number as images_missing
     return new_keypoints, dict(stats, workers=used,
                                missing_images=max(int(stats.get("missing_images", 0)), len(missing)))
