@@ -77,6 +77,9 @@ def test_demo_quick_end_to_end(demo_run):
     for png in ("pose_error_curves.png", "keypoint_displacement.png", "matches_per_pair.png"):
         assert (out / "plots" / png).stat().st_size > 5000
     assert "| model pose AUC@5 (%) |" in (out / "compare.md").read_text()
+    # the keypoint-accuracy rows (GT track residuals, epipolar distance) are in the demo's table
+    assert "| GT track residual median (px) |" in (out / "compare.md").read_text()
+    assert cmp["baseline"]["keypoint_accuracy"]["num_measured_tracks"] > 0
 
 
 @pytest.mark.slow

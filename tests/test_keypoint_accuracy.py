@@ -227,3 +227,46 @@ def test_report_exact_keypoints_through_the_database(synthetic):
     k = rp.build_report(database=s.database, gt=gt)["keypoint_accuracy"]
     assert k["num_measured_tracks"] > 100 and k["num_wrong_tracks"] == 0
     assert k["residual_p90_px"] < FLOAT32_TOL_PX and k["epipolar_median_px"] < FLOAT32_TOL_PX
+
+
+# --------------------------------------------------------------------------- the benchmark
+def test_bench_variants_and_stats_columns():
+    import bench_accuracy as ba
+
+    assert ba.parse_variant("r6:ncc.template_radius=6, recipe=mop_ncc") == ("r6", "mop_ncc", ["ncc.template_radius=6"])
+    assert ba.parse_variant("plain") == ("plain", None, [])
+    for bad in ("input", ":a=1", "x:novalue"):
+        with pytest.raises(ValueError):
+            ba.parse_variant(bad)
+    stats = ba.numeric_stats({"levels": 4, "seconds": 1.0, "workers": 2, "note": "x", "flag": True,
+                              "walk": {"depth": 3}})
+    assert stats == {"levels": 4, "walk.depth": 3}
+    cams, kps, matches, _, _ = _scene()
+    k = ka.keypoint_accuracy(cams, kps, matches).to_dict()
+    text = ba.table([{"scene": "s", "setting": "default", "variant": "input", "keypoint_accuracy": k},
+                     {"scene": "s", "setting": "default", "variant": "v", "keypoint_accuracy": k,
+                      "median_change_pct": 0.0, "keypoints_moved": 5, "refine_seconds": 1.0, "refine_stats": stats}])
+    lines = text.splitlines()
+    assert lines[0].endswith("| levels | walk.depth |") and len(lines) == 4
+    assert lines[3].split("|")[-3].strip() == "4"
+
+
+@pytest.mark.realdata
+@pytest.mark.slow
+def test_bench_on_the_temple_input_agrees_with_the_gt(shared_data, tmp_path):
+    """SIFT + COLMAP verification on the Middlebury temple: the stored inliers sit close to the
+    GT geometry (data README: Sampson error 0.07-0.14 px), so conventions and loaders agree."""
+    import json
+
+    import bench_accuracy as ba
+
+    out = tmp_path / "b.json"
+    assert ba.main(["--data", str(shared_data), "--work", str(tmp_path), "--scenes", "middlebury_temple_sparse_ring",
+                    "--settings", "default", "--variant", "filter:pipeline.refine=false", "--workers", "1",
+                    "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["variant"] for r in rows] == ["input", "filter"]
+    k = rows[0]["keypoint_accuracy"]
+    assert k["num_measured_tracks"] > 100 and k["residual_median_px"] < 0.5 and k["epipolar_median_px"] < 0.5
+    assert k["wrong_track_share"] < 0.05
+    assert rows[1]["keypoints_moved"] == 0

@@ -7,7 +7,8 @@ from pathlib import Path
 HELP = "baseline vs colmap-miho on one database: map both, evaluate, write table + plots"
 DESCRIPTION = (
     "Map the database as it is (baseline) and after `refine` (same mapper and seed), evaluate "
-    "both (against --gt when given), and write OUTPUT/compare.md, compare.json and PNG plots "
+    "both (against --gt when given: pose AUCs, and the keypoint accuracy of each database's inlier "
+    "matches under the GT geometry), and write OUTPUT/compare.md, compare.json and PNG plots "
     "(cumulative pose-error curves, keypoint displacements, matches kept per pair). The input "
     "database is never modified."
 )
