@@ -28,8 +28,21 @@ class NCCConfig:
     pycolmap synthetic scene it keeps the track-relative error at 1.9 px instead of 5.4 px);
     3 sub-pixel iterations bring the error on a known homography from 0.16 to 0.05 px.
 
+    Track walk defaults chosen with ``benchmarks/bench_accuracy.py`` (GT track residual
+    median, demo + Middlebury temple + Strecha fountain and entry, COLMAP default and
+    permissive matching, change vs the input database): with the filter's planes and
+    r = 10 the residual rose on the demo (+27%/+35%) and the temple (+39%/+57%); searching
+    each match with both the filter's pair and a local affine pair (``rectification =
+    "both"``) removes most of that (demo -54%/-47%); r = 6 is what keeps the temple from
+    getting worse (r = 10: +9%/+32%, r = 6: -16%/-2%) at a cost of 2-10 points on the
+    Strecha scenes (r = 6: -36% to -38%; r = 10: -38% to -48%), so the shipped NCC recipes
+    set ``template_radius = 6``. The pairwise default stays at the paper's 10: with an exact
+    homography (no relief) the larger template is the more precise (0.05 vs 0.10 px on
+    Oxford graf with a known warp).
+
     Attributes:
-        template_radius: r, half size of the template in pixels (paper: 10, 21x21 patch).
+        template_radius: r, half size of the template in pixels (paper: 10, 21x21 patch;
+            the shipped NCC recipes use 6, 13x13: see below).
         search_radius: half size of the offset search in pixels (paper: 10).
         perturbations: which template shapes are tried on the extended pair: "none" (the
             pair itself), "paper" (App. E's A_{rho,f}: 5 rotations x 5 factors, applied to
@@ -76,6 +89,9 @@ class NCCConfig:
             moves the same keypoint to within ``check_px`` pixels of it (both sizes agree;
             a peak biased by the patch's content rarely is at both sizes).
         check_px: agreement of the two template sizes, pixels.
+        check_rule: "agree" (above) or "ncc": the ``check_radius`` template's move replaces
+            the other where its NCC peak is higher by more than ``check_ncc_margin``.
+        check_ncc_margin: NCC margin of the "ncc" rule.
         local_affine_max_residual_px: neighbours off the first local fit by more than this
             many pixels are dropped from the second.
     """
@@ -96,9 +112,11 @@ class NCCConfig:
     subpixel_iterations: int = 3
     batch_size: int | None = None
     device: str = "auto"
-    rectification: str = "filter"
+    rectification: str = "both"
     check_radius: int = 0
     check_px: float = 0.25
+    check_rule: str = "agree"
+    check_ncc_margin: float = 0.03
     local_affine_neighbours: int = 12
     local_affine_max_residual_px: float = 2.0
 
@@ -136,6 +154,10 @@ class NCCConfig:
         if self.check_radius < 0 or self.check_radius == self.template_radius:
             raise ValueError(f"check_radius must be 0 (off) or >= 1 and not template_radius, "
                              f"got {self.check_radius}")
+        if self.check_rule not in ("agree", "ncc"):
+            raise ValueError(f"check_rule must be agree or ncc, got {self.check_rule!r}")
+        if not 0 <= self.check_ncc_margin <= 2:
+            raise ValueError(f"check_ncc_margin must be in [0, 2], got {self.check_ncc_margin}")
         if not self.check_px > 0:
             raise ValueError(f"check_px must be > 0 pixels, got {self.check_px}")
         if self.local_affine_neighbours < 6:

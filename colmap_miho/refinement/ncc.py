@@ -266,6 +266,17 @@ def _check_agreement(image1, image2, p1, p2, homs, side, cfg, affine1, affine2, 
         affine1=None if affine1 is None else affine1[rows],
         affine2=None if affine2 is None else affine2[rows])
     m = moved[rows]
+    if cfg.check_rule == "ncc":
+        # the smaller template wins where the larger one correlates clearly worse: the
+        # larger one then spans what the rectification does not model (relief, occlusion)
+        swap = (chk.moved_side == m) & (chk.ncc_after > after[rows] + cfg.check_ncc_margin)
+        sel = rows[swap]
+        for side_out, chk_pts in ((outs[0], chk.pts1), (outs[1], chk.pts2)):
+            side_out[sel] = chk_pts[swap]
+        disp[sel] = chk.displacement[swap]
+        after[sel] = chk.ncc_after[swap]
+        counts["smaller_template"] = int(sel.size)
+        return
     mine = np.where((m == 1)[:, None], outs[0][rows], outs[1][rows])
     theirs = np.where((m == 1)[:, None], chk.pts1, chk.pts2)
     agree = (chk.moved_side == m) & (np.linalg.norm(mine - theirs, axis=1) <= cfg.check_px)

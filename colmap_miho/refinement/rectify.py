@@ -27,10 +27,11 @@ def _fit(x1n: np.ndarray, x2n: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, n
     Returns (A (n, 2, 3), well-conditioned (n,) bool)."""
     X = np.concatenate([x1n, np.ones(x1n.shape[:2] + (1,))], axis=2)  # (n, k, 3)
     Xw = X * w[..., None]
-    XtX = np.einsum("nki,nkj->nij", Xw, X)
-    XtY = np.einsum("nki,nkj->nij", Xw, x2n)
-    cond = np.linalg.cond(XtX)
-    ok = np.isfinite(cond) & (cond < 1e8)
+    XwT = Xw.transpose(0, 2, 1)
+    XtX = XwT @ X
+    XtY = XwT @ x2n
+    ev = np.linalg.eigvalsh(XtX)  # symmetric: condition number from its eigenvalues
+    ok = np.isfinite(ev).all(axis=1) & (ev[:, 0] > 1e-8 * ev[:, 2])
     XtX[~ok] = np.eye(3)
     A = np.linalg.solve(XtX, XtY)  # (n, 3, 2)
     return A.transpose(0, 2, 1), ok
@@ -65,7 +66,7 @@ def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs:
         w = np.ones(nb.shape)
         for it in range(_ITERATIONS):
             A, good = _fit(x1n, x2n, w)
-            pred = np.einsum("nij,nkj->nki", A[:, :, :2], x1n) + A[:, None, :, 2]
+            pred = x1n @ A[:, :, :2].transpose(0, 2, 1) + A[:, None, :, 2]
             r = np.linalg.norm(pred - x2n, axis=2)
             # a gross outlier inflates every residual of the first fits: drop by the
             # median residual first, by the absolute bound last

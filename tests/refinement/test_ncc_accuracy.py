@@ -62,7 +62,7 @@ def test_ncc_recovers_known_subpixel_shifts_with_the_exact_homography():
 
 def test_ncc_with_local_affine_rectification_from_noisy_matches():
     """The rectification comes from the matches themselves (0.3 px noise), as in the walk."""
-    img1, img2, H, pts1, truth2, rng = _scene(seed=1)
+    img1, img2, _H, pts1, truth2, rng = _scene(seed=1)
     start = truth2 + rng.uniform(-INPUT_OFFSET_PX, INPUT_OFFSET_PX, truth2.shape)
     noisy = truth2 + rng.normal(0, 0.3, truth2.shape)
     identity = np.tile(np.eye(3), (1, 2, 1, 1))
