@@ -196,7 +196,7 @@ def refine_pair(
     moved = np.zeros(n, np.int8)
     disp = np.zeros(n)
     rejected = np.zeros(n, bool)
-    counts = dict.fromkeys(
+    counts: dict[str, int | float | str] = dict.fromkeys(
         ["moved", "rejected_border", "rejected_gain", "rejected_weak", "gated_flat", "gated_edge", "outside",
          "invalid_homography"], 0)
 
@@ -223,7 +223,8 @@ def refine_pair(
             sl = slice(start, min(start + batch, n))
             x = (torch.as_tensor(p1[sl], device=device), torch.as_tensor(p2[sl], device=device))
             H_ext = torch.as_tensor(homs[sl], device=device)
-            pairs = [(H_ext, tpl_off, tpl_off_coarse)]
+            pairs: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = [
+                (H_ext, tpl_off, tpl_off_coarse)]
             pairs += [(torch.as_tensor(h[sl], device=device), grid_t[None], None) for h in extra]
             if use_base:
                 pairs.append((torch.as_tensor(base[sl], device=device), grid_t[None], None))
@@ -258,7 +259,9 @@ def _check_agreement(image1, image2, p1, p2, homs, side, cfg, affine1, affine2, 
     (other side moved, or the two positions more than ``check_px`` apart)."""
     rows = np.flatnonzero(moved > 0)
     sub = torch.as_tensor(rows) if isinstance(image1, ImageStack) else None
-    pick = (lambda im: im.rows(sub.to(im.device)) if isinstance(im, ImageStack) else im)  # noqa: E731
+    def pick(im):
+        return im.rows(sub.to(im.device)) if isinstance(im, ImageStack) and sub is not None else im
+
     homs = homs.detach().cpu().numpy() if isinstance(homs, torch.Tensor) else np.asarray(homs)
     chk = refine_pair(
         pick(image1), pick(image2), p1[rows], p2[rows], homs[rows], move=side,
@@ -314,7 +317,7 @@ def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, count
     counts["gated_edge"] += int(
         (none & h0["valid"] & h0["inside"] & ~h0["flat"] & h0["edge"]).sum()
     )
-    for d, (f, m, r, h, usable) in enumerate(cand):
+    for d, (_f, m, r, h, usable) in enumerate(cand):
         rows = (best == d) & usable
         gi = idx[rows]
         before[gi] = h["centre"][rows]

@@ -13,7 +13,7 @@ import torch
 
 from .config import NCCConfig
 from .correlation import ellipse_masks, find_peaks, ncc_maps, structure_tensor
-from .warping import invert_homographies, sample_patches
+from .warping import ImageStack, invert_homographies, sample_patches
 
 
 def to_frame(H: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -47,8 +47,8 @@ def _templates(img_f, H_f_inv, c_f, win, offs, offs_coarse, cfg: NCCConfig):
 
 
 def evaluate_direction(
-    img_f: torch.Tensor,
-    img_m: torch.Tensor,
+    img_f: torch.Tensor | ImageStack,
+    img_m: torch.Tensor | ImageStack,
     x_f: torch.Tensor,
     x_m: torch.Tensor,
     passes: list,

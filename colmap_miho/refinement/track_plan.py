@@ -229,7 +229,9 @@ def _edges(kps, offset, pair_matches, pair_filter_results, unrefined_matches):
         eb.append(offset[pair[1]] + m[:, 1])
         ep.append(np.full(m.shape[0], p, np.int64))
         el.append(lab)
-    cat = lambda xs: np.concatenate(xs) if xs else np.zeros(0, np.int64)
+    def cat(xs: list) -> np.ndarray:
+        return np.concatenate(xs) if xs else np.zeros(0, np.int64)
+
     return tuple(pairs), tuple(homs), cat(ea), cat(eb), cat(ep), cat(el)
 
 
@@ -249,7 +251,7 @@ def _local_pairs(kps, node_kp, pairs, homs, ea, eb, ep, el, k, max_residual_px) 
     return tuple(out)
 
 
-def _conflicts(track, nodes, node_image, pos, duplicate_px) -> np.ndarray:
+def _conflicts(track, nodes, node_image, pos, duplicate_px) -> tuple[np.ndarray, np.ndarray]:
     """(n_tracks,) bool: tracks with two keypoints of one image more than ``duplicate_px``
     apart; and (n_tracks,) bool: tracks with two keypoints of one image at all."""
     n_tracks = int(track.max()) + 1

@@ -144,7 +144,7 @@ def refine_tracks(
 
 def _refiner(refine_fn, ncc_cfg: NCCConfig, trk_cfg: TrackConfig):
     """(refine function, device for batched levels or None)."""
-    device = "cpu"
+    device: object = "cpu"  # "cpu" or the torch.device the NCC runs on
     if refine_fn is None:
         from .ncc import refine_pair as refine_fn
         from .ncc import resolve_device

@@ -149,7 +149,8 @@ def _apply(grp: Group, call: _Call, new, moved, displacement, rejected, ncc_afte
 
 def chunks_by_images(groups: list, max_images: int):
     """Consecutive runs of groups that together use at most ``max_images`` images."""
-    chunk, ids = [], set()
+    chunk: list = []
+    ids: set = set()
     for grp in groups:
         both = ids | set(grp.pair)
         if chunk and len(both) > max_images:
@@ -197,7 +198,7 @@ def refine_batch(groups: list, ctx: WalkState, device) -> None:
                         **aff)
     ctx.stats["refine_calls"] += 1
     start = 0
-    for grp, call, n in zip(kept, calls, sizes):
+    for grp, call, n in zip(kept, calls, sizes, strict=True):
         seg = slice(start, start + n)
         start += n
         _apply(grp, call, res.pts2[seg], np.asarray(res.moved_side[seg]) == 2,

@@ -10,6 +10,7 @@ offsets ``w`` of a square grid, with ``torch.nn.functional.grid_sample`` (biline
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import overload
 
 import numpy as np
 import torch
@@ -23,7 +24,11 @@ _MIN_W = 1e-8
 _FAR = -1.0e6
 
 
-def to_gray_tensor(image, device: torch.device) -> torch.Tensor:
+@overload
+def to_gray_tensor(image: ImageStack, device: torch.device) -> ImageStack: ...
+@overload
+def to_gray_tensor(image: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor: ...
+def to_gray_tensor(image, device):
     """Image as a float32 tensor (H, W) on ``device`` (an :class:`ImageStack` is returned
     as is).
 
@@ -68,7 +73,7 @@ class ImageStack:
     index: torch.Tensor
 
     @classmethod
-    def build(cls, images: list[torch.Tensor], index, device: torch.device) -> "ImageStack":
+    def build(cls, images: list[torch.Tensor], index, device: torch.device) -> ImageStack:
         """Stack (H, W) float32 tensors; ``index`` (J,) picks each job's image."""
         h = max(int(im.shape[0]) for im in images)
         w = max(int(im.shape[1]) for im in images)
@@ -79,12 +84,12 @@ class ImageStack:
                           device=device)
         return cls(stack, wh, torch.as_tensor(index, dtype=torch.int64, device=device))
 
-    def with_index(self, index) -> "ImageStack":
+    def with_index(self, index) -> ImageStack:
         """The same images, read by other jobs."""
         return ImageStack(self.stack, self.slot_sizes,
                           torch.as_tensor(index, dtype=torch.int64, device=self.stack.device))
 
-    def rows(self, sel) -> "ImageStack":
+    def rows(self, sel) -> ImageStack:
         """The same images for a subset (slice or index tensor) of the jobs."""
         return ImageStack(self.stack, self.slot_sizes, self.index[sel])
 
@@ -186,13 +191,12 @@ def sample_patches(
     corner_off = offsets[..., corner_idx, :]
     corners = centres[:, None, None, :] + (corner_off if per_job else corner_off[None])
     c_img, ok = apply_homographies(H_inv, corners.reshape(J, K * 4, 2))
-    stacked = isinstance(image, ImageStack)
-    if stacked:
+    if isinstance(image, ImageStack):
         h, w = image.stack.shape[1:]
         wj, hj = image.sizes[:, 0:1], image.sizes[:, 1:2]  # (J, 1) each job's own image
     else:
         h, w = image.shape
-        wj, hj = w, h
+        wj, hj = w, h  # type: ignore[assignment]  # one image: plain ints, broadcast like (J, 1)
     inside = (
         ok
         & (c_img[..., 0] >= 0)
@@ -231,7 +235,7 @@ def sample_patches(
         # one GEMM for all jobs: (J*3, 3) @ (3, KP)
         q = torch.mm(M32.reshape(J * 3, 3), o3.t()).view(J, 3, K * P)
     grid = (q[:, :2] / q[:, 2:].clamp_min(1e-6)).transpose(1, 2)  # (J, KP, 2)
-    if stacked:
+    if isinstance(image, ImageStack):
         # trilinear sampling of the (D, H, W) volume at integer depth = bilinear in the slice
         d = image.stack.shape[0]
         z = image.index.to(torch.float32) * (2.0 / max(d - 1, 1)) - (1.0 if d > 1 else 0.0)

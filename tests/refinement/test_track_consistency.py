@@ -18,7 +18,7 @@ def _output_tracks(db_path):
 
     with ColmapDatabase(db_path) as db:
         n = {im.image_id: len(db.keypoints(im.image_id)) for im in db.images()}
-        offset = dict(zip(sorted(n), np.cumsum([0] + [n[i] for i in sorted(n)])[:-1]))
+        offset = dict(zip(sorted(n), np.cumsum([0] + [n[i] for i in sorted(n)])[:-1], strict=True))
         ea, eb = [], []
         for p in db.pairs("verified"):
             m = db.matches(p.image_id1, p.image_id2, "verified").astype(np.int64)

@@ -107,7 +107,7 @@ def test_every_keypoint_moves_at_most_once(graph, batch_pairs):
     # keypoint of its own track it is matched with
     root = _tracks(pair_matches)
     images_of = {}
-    for (img, kp), r in root.items():
+    for (img, _kp), r in root.items():
         images_of.setdefault(r, []).append(img)
     frozen = {r for r, ims in images_of.items() if len(ims) != len(set(ims))}
     edges = set()
@@ -349,7 +349,7 @@ def test_synthetic_scene_refinement(tmp_path):
             kps[im.image_id] = colmap_to_pixel_centre(xy)  # COLMAP corner -> pixel centre
             names[im.image_id] = im.name
         pids, arrays = db.read_all_matches()
-        for pid, m in zip(pids, arrays):
+        for pid, m in zip(pids, arrays, strict=True):
             pm[image_pair(pid)] = np.asarray(m, np.int64)
     gt = scene.gt_keypoints
     results = {
