@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import REPO, start_at_write
 
 from colmap_miho.adapters.paths import check_distinct, same_file
 from colmap_miho.adapters.safety import WorkingCopy
@@ -211,9 +212,6 @@ def test_interrupted_in_place_run_removes_its_backup(db):
 
 
 # ------------------------------------------------------------------ 6. signals and orphans
-REPO = Path(__file__).resolve().parents[2]
-# Seconds a subprocess may take to reach the write stage (imports torch, filters 6 pairs).
-REACH_WRITE_TIMEOUT_S = 120
 # Seconds orphaned workers may take to notice their parent died (watchdog poll 0.5 s + exit).
 ORPHAN_EXIT_S = 10
 
@@ -275,21 +273,13 @@ def test_workers_die_with_a_killed_parent(tmp_path):
 @pytest.mark.parametrize("in_place", [False, True])
 def test_sigterm_mid_write_cleans_up_like_ctrl_c(db, scene, tmp_path, in_place):
     import signal
-    import time
 
     digest = sha256(db)
     marker = tmp_path / "marker"
     out = db.with_name("out.db")
     args = _refine(db, scene.image_dir, *(["--in-place"] if in_place else ["--output", str(out)]))
-    cmd = [sys.executable, str(REPO / "tests" / "helpers" / "pause_at_write.py"), str(marker), *args]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = start_at_write("pause_at_write.py", marker, *args)
     try:
-        deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
-        while not marker.exists():
-            if proc.poll() is not None:
-                pytest.fail(f"refine ended before the write stage: {proc.stderr.read()}")
-            assert time.monotonic() < deadline, "refine did not reach the write stage in time"
-            time.sleep(0.05)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -548,18 +538,10 @@ def test_wrong_image_folder_is_an_error_not_a_silent_success(db, tmp_path, capfd
 def _run_held(cli_args: list[str], tmp_path: Path, meanwhile) -> tuple[int, str]:
     """Run the CLI in a subprocess held in its write stage, call ``meanwhile()``, let it finish;
     returns its exit code and stderr."""
-    import time
 
     marker, resume = tmp_path / "marker", tmp_path / "resume"
-    cmd = [sys.executable, str(REPO / "tests" / "helpers" / "hold_at_write.py"), str(marker), str(resume), *cli_args]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = start_at_write("hold_at_write.py", marker, str(resume), *cli_args)
     try:
-        deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
-        while not marker.exists():
-            if proc.poll() is not None:
-                pytest.fail(f"refine ended before the write stage: {proc.stderr.read()}")
-            assert time.monotonic() < deadline, "refine did not reach the write stage in time"
-            time.sleep(0.05)
         meanwhile()
         resume.write_text("go")
         _, err = proc.communicate(timeout=120)
@@ -693,16 +675,9 @@ def test_sigterm_during_a_long_c_call_still_exits_and_cleans_up(db, scene, tmp_p
     digest = sha256(db)
     marker = tmp_path / "marker"
     out = db.with_name("out.db")
-    cmd = [sys.executable, str(REPO / "tests" / "helpers" / "busy_at_write.py"), str(marker),
-           *_refine(db, scene.image_dir, *(["--in-place"] if in_place else ["--output", str(out)]))]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    target = ["--in-place"] if in_place else ["--output", str(out)]
+    proc = start_at_write("busy_at_write.py", marker, *_refine(db, scene.image_dir, *target))
     try:
-        deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
-        while not marker.exists():
-            if proc.poll() is not None:
-                pytest.fail(f"refine ended before the write stage: {proc.stderr.read()}")
-            assert time.monotonic() < deadline, "refine did not reach the write stage in time"
-            time.sleep(0.05)
         if in_place:
             assert len(list(db.parent.glob("scene.db.*.bak"))) == 1
         t0 = time.monotonic()

@@ -8,10 +8,10 @@ import signal
 import sqlite3
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from helpers import start_at_write
 
 from colmap_miho.adapters.safety import (
     WorkingCopy,
@@ -23,10 +23,6 @@ from colmap_miho.adapters.safety import (
 from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.errors import DatabaseError, UserError
-
-REPO = Path(__file__).resolve().parents[2]
-# Seconds a subprocess may take to reach the write stage (imports torch, filters 6 pairs).
-REACH_WRITE_TIMEOUT_S = 120
 
 
 def sha256(path: Path) -> str:
@@ -144,17 +140,8 @@ def _refine_cmd(db: Path, images: Path, *extra: str) -> list[str]:
 def _kill_at_write(cli_args: list[str], marker: Path) -> None:
     """Run the CLI in a subprocess whose write stage pauses after its first pair (see
     ``pause_at_write.py``) and SIGKILL it there."""
-    helper = Path(__file__).resolve().parents[1] / "helpers" / "pause_at_write.py"
-    cmd = [sys.executable, str(helper), str(marker), *cli_args]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = start_at_write("pause_at_write.py", marker, *cli_args)
     try:
-        deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
-        while not marker.exists():
-            if proc.poll() is not None:
-                pytest.fail(f"refine ended before the write stage: {proc.stderr.read().decode()}")
-            if time.monotonic() > deadline:
-                pytest.fail("refine did not reach the write stage in time")
-            time.sleep(0.05)
         proc.send_signal(signal.SIGKILL)
         assert proc.wait(timeout=30) == -signal.SIGKILL
     finally:
