@@ -19,7 +19,6 @@ from helpers import REPO, start_at_write
 
 from colmap_miho.adapters.paths import check_distinct, same_file
 from colmap_miho.adapters.safety import WorkingCopy
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.errors import DatabaseError, UserError
 
@@ -37,18 +36,10 @@ def error_lines(err: str) -> list[str]:
     return [line for line in err.splitlines() if line.strip()]
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return make_synthetic_scene(tmp_path_factory.mktemp("reliability"), num_images=4, num_points=80,
-                                render_images=True, seed=5)
-
-
 @pytest.fixture
-def db(scene, tmp_path):
-    target = tmp_path / "work" / "scene.db"
-    target.parent.mkdir()
-    target.write_bytes(scene.database.read_bytes())
-    return target
+def db(db_copy):
+    """A private copy of the scene database (``db_copy`` of the adapters' conftest)."""
+    return db_copy
 
 
 def _refine(db: Path, images: Path, *extra: str) -> list[str]:

@@ -20,7 +20,6 @@ from colmap_miho.adapters.safety import (
     check_not_in_use,
     default_output_path,
 )
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.errors import DatabaseError, UserError
 
@@ -34,19 +33,6 @@ def leftovers(folder: Path) -> list[str]:
 
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    return make_synthetic_scene(tmp_path_factory.mktemp("safety"), num_images=4, num_points=80,
-                                render_images=True, seed=5)
-
-
-@pytest.fixture
-def db_copy(scene, tmp_path):
-    """A private copy of the scene database (tests may lock or replace it)."""
-    target = tmp_path / "work" / "scene.db"
-    target.parent.mkdir()
-    target.write_bytes(scene.database.read_bytes())
-    return target
 
 
 def test_check_database_path_never_creates(tmp_path):
