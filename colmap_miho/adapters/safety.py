@@ -237,11 +237,17 @@ def default_output_path(database: Path) -> Path:
 
 def backup_path(database: Path, now: float | None = None) -> Path:
     """A timestamped backup name beside ``database`` that does not exist yet."""
+    return _unused_stamped_name(database, lambda stamp: f"{database.name}.{stamp}.bak", now)
+
+
+def _unused_stamped_name(database: Path, name_for, now: float | None = None) -> Path:
+    """``database.with_name(name_for(stamp))`` with the local time as stamp, ``-1``, ``-2``, ...
+    appended to the stamp until the name does not exist."""
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
-    candidate = database.with_name(f"{database.name}.{stamp}.bak")
+    candidate = database.with_name(name_for(stamp))
     k = 1
     while candidate.exists():
-        candidate = database.with_name(f"{database.name}.{stamp}-{k}.bak")
+        candidate = database.with_name(name_for(f"{stamp}-{k}"))
         k += 1
     return candidate
 
@@ -478,13 +484,7 @@ def _same_inode(a: Path, b: Path) -> bool:
 
 def _visible_name(database: Path) -> Path:
     """``<stem>.miho-<time>.db`` beside ``database``, not existing yet."""
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    candidate = database.with_name(f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
-    k = 1
-    while candidate.exists():
-        candidate = database.with_name(f"{database.stem}.miho-{stamp}-{k}{database.suffix or '.db'}")
-        k += 1
-    return candidate
+    return _unused_stamped_name(database, lambda stamp: f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
 
 
 def _rename_no_replace(src: Path, dst: Path) -> None:
