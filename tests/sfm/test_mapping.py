@@ -79,9 +79,12 @@ def test_global_mapping_on_real_images(shared_data, tmp_path):
 
     root = shared_data / "middlebury_temple_sparse_ring"
     db = tmp_path / "db.db"
-    info = extract_and_match(root / "images", db, max_features=2048)
+    # one thread for extraction, matching and mapping: with several, GLOMAP's result depends on
+    # thread scheduling (AUC@5 0.50-0.80 seen on a loaded machine; 0.80 with one thread)
+    info = extract_and_match(root / "images", db, max_features=2048, num_threads=1)
     assert info["num_images"] == 16
-    res = run_mapping(db, root / "images", tmp_path / "global", mapper="global")
+    res = run_mapping(db, root / "images", tmp_path / "global",
+                      MappingConfig(mapper="global", num_threads=1, seed=0))
     assert res.success and res.mapper == "global" and res.num_reg_images >= 10
     rep = build_report(res.output, gt=root / "gt_model")
     # measured: all 16 registered, model AUC@5 ~0.8 with 8192 features; 0.5 leaves room
