@@ -1,0 +1,151 @@
+"""Where the pipeline's parallel work runs: this process, a local ``spawn`` process pool, or a
+Dask cluster (a local one, or a running scheduler at ``tcp://host:port``).
+
+The stages see one :class:`Runner`: ``runner.slots`` says how many tasks run at once,
+``runner.submit(fn, *args)`` returns a :class:`concurrent.futures.Future` (Dask's client speaks
+``concurrent.futures`` through ``Client.get_executor``), so the filter and refine stages are
+written once for every engine. Tasks are plain module-level functions with picklable arguments;
+their results come back to this process, which alone writes SQLite.
+
+Every task runs with one BLAS/torch thread (the parallelism is across tasks): the process
+pool's workers are set up that way (:mod:`.workers`), and on Dask each task sets it on entry
+(Dask's nanny already starts workers with ``OMP_NUM_THREADS=1`` and friends).
+
+A Dask worker imports ``colmap_miho`` itself and reads the images from the path the client
+gives it: on a multi-machine cluster, install the same colmap-miho on every worker and mount the
+image folder at the same path (see the README's "Dask cluster" section).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor, Future
+
+from ..errors import UserError
+from .workers import init_worker, process_pool, single_thread_children
+
+log = logging.getLogger(__name__)
+
+#: Seconds to wait for a Dask scheduler given by address before giving up.
+CONNECT_TIMEOUT_S = 20
+
+#: ``--dask`` value that starts a local cluster (``refine --dask`` without an address).
+LOCAL = "local"
+
+
+def _one_thread_task(fn: Callable, *args):
+    """Run ``fn(*args)`` in a Dask worker with one torch / BLAS thread."""
+    init_worker()
+    return fn(*args)
+
+
+class Runner:
+    """The engine of one run: in-process, process pool or Dask.
+
+    Attributes:
+        slots: tasks that run at once (1 in-process).
+        kind: "inline", "processes" or "dask".
+        address: the Dask scheduler's address ("" otherwise).
+    """
+
+    def __init__(self, slots: int, kind: str, address: str = "",
+                 make_executor: Callable[[], Executor] | None = None,
+                 wrap: bool = False) -> None:
+        self.slots = max(1, int(slots))
+        self.kind = kind
+        self.address = address
+        self._make = make_executor
+        self._executor: Executor | None = None
+        self._wrap = wrap
+
+    @property
+    def parallel(self) -> bool:
+        """Whether tasks go to other processes (False: call them in this process)."""
+        return self._make is not None
+
+    def executor(self) -> Executor:
+        """The underlying executor, started on first use (a process pool costs seconds:
+        each worker imports numpy/torch)."""
+        if self._make is None:
+            raise RuntimeError("an inline runner has no executor; call the function directly")
+        if self._executor is None:
+            self._executor = self._make()
+        return self._executor
+
+    def submit(self, fn: Callable, *args) -> Future:
+        """Submit ``fn(*args)``; inline runners call it now and return a finished future."""
+        if self._make is None:
+            fut: Future = Future()
+            try:
+                fut.set_result(fn(*args))
+            except BaseException as exc:  # surfaced by fut.result(), as an executor would
+                fut.set_exception(exc)
+            return fut
+        if self._wrap:
+            return self.executor().submit(_one_thread_task, fn, *args)
+        return self.executor().submit(fn, *args)
+
+
+@contextlib.contextmanager
+def open_runner(workers: int, dask: str | None = None) -> Iterator[Runner]:
+    """The engine for ``workers`` processes, or a Dask cluster.
+
+    Args:
+        workers: processes (local pool, or local Dask cluster); 1 and no ``dask``: in-process.
+        dask: None (no Dask), :data:`LOCAL` (start a ``LocalCluster`` of ``workers``
+            single-threaded worker processes) or a scheduler address ``tcp://host:port``
+            (use its workers; ``workers`` is ignored).
+
+    Raises:
+        UserError: distributed is not installed, or the scheduler cannot be reached.
+    """
+    if dask is None:
+        if workers <= 1:
+            yield Runner(1, "inline")
+            return
+        with contextlib.ExitStack() as stack:
+            def start() -> Executor:
+                stack.enter_context(single_thread_children())
+                return stack.enter_context(process_pool(workers, initializer=init_worker))
+
+            yield Runner(workers, "processes", make_executor=start)
+        return
+    with _dask_client(workers, dask) as client:
+        slots = sum(int(w.get("nthreads", 1)) for w in client.scheduler_info()["workers"].values())
+        ex = client.get_executor(pure=False)
+        runner = Runner(max(1, slots), "dask", address=str(client.scheduler.address),
+                        make_executor=lambda: ex, wrap=True)
+        try:
+            yield runner
+        except BaseException:
+            with contextlib.suppress(Exception):
+                ex.shutdown(wait=False)
+            raise
+
+
+@contextlib.contextmanager
+def _dask_client(workers: int, dask: str):
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:  # pragma: no cover - distributed is a dependency
+        raise UserError("--dask needs the 'distributed' package: pip install distributed") from None
+    if dask == LOCAL:
+        with LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
+                          dashboard_address=None, silence_logs=logging.ERROR) as cluster, \
+                Client(cluster) as client:
+            log.info("started a local Dask cluster of %d workers at %s", workers, cluster.scheduler_address)
+            yield client
+        return
+    if not dask.startswith(("tcp://", "tls://", "ucx://", "inproc://")):
+        raise UserError(f"--dask {dask}: give a scheduler address like tcp://host:8786, or no value "
+                        "for a local cluster")
+    try:
+        client = Client(dask, timeout=f"{CONNECT_TIMEOUT_S}s")
+    except (OSError, TimeoutError) as exc:
+        raise UserError(f"--dask {dask}: cannot reach the Dask scheduler ({exc})") from None
+    with client:
+        if not client.scheduler_info()["workers"]:
+            client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+        yield client
