@@ -38,10 +38,15 @@ Where this implementation differs from the paper (all are :class:`FilterConfig` 
   whose best pre-alignment is mirrored is rejected (``success=False``): MiHo's midpoint
   frame degenerates there and the star variants assume no reflections. Plain MOP* needs no
   rule: its reflection check rejects the samples of a mirrored plane.
-- The computation runs on the CPU in numpy; torch inputs (CPU or CUDA) are accepted and
-  copied to the CPU. A MOP round is a chain of ~100 small batched operations on arrays of
-  (128-1024 hypotheses x N matches) where per-call latency, not arithmetic, dominates;
-  torch on the CPU was slower for such operations here.
+- By default the computation runs on the CPU in numpy; torch inputs (CPU or CUDA) are
+  accepted and copied to the CPU. With ``device="cuda"`` (or another torch device, or
+  ``"torch-cpu"``) the heavy RANSAC kernels (batched minimal solver, one-way bounds,
+  singular-value test, full scoring) run in torch on that device while sampling (same
+  seed, same samples) and the bookkeeping stay in numpy: the same result up to
+  floating-point ties (``filtering/torch_scoring.py``, ``tests/filtering/test_filter_torch.py``).
+  A MOP round is a chain of ~100 small batched operations on arrays of (128-1024
+  hypotheses x N matches) where per-call latency, not arithmetic, dominates: torch on the
+  CPU is slower than numpy for them (``benchmarks/bench_filter.py --device torch-cpu``).
 
 Speed (see ``benchmarks/bench_filter.py``; the reference implementation takes 1.4 s for MOP
 and 2.3 s for MOP+MiHo on 1351 SIFT matches): closed-form minimal solver and sample signs
@@ -67,7 +72,7 @@ from .config import FilterConfig
 from .homography import adjugate, to_unit_h33
 from .miho import apply_affine, build_problem, choose_rotation, sqrt_split
 from .mop import run_mop
-from .ransac import error_sq
+from .torch_scoring import scoring_for_device
 
 
 @dataclass(frozen=True)
@@ -138,7 +143,7 @@ def _failure(n: int, method: FilterMethod, stats: dict, reason: str) -> FilterRe
 
 def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
                    config: FilterConfig | None = None, seed: int = 0,
-                   progress: bool = False) -> FilterResult:
+                   progress: bool = False, device="cpu") -> FilterResult:
     """Filter two-view matches with MOP / MOP* / MOP+MiHo / MOP+MiHo* / MOP+VSAC.
 
     Args:
@@ -152,6 +157,12 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
         seed: seed of the ``numpy.random.Generator`` that drives all sampling; the same
             inputs, config and seed give identical results.
         progress: show a tqdm bar over MOP rounds.
+        device: where the heavy RANSAC kernels run: ``"cpu"`` (default, numpy),
+            ``"cuda"`` / ``"cuda:N"`` / any torch device string or ``torch.device`` object
+            (torch float64 on that device; ``torch.device("cpu")`` too), or ``"torch-cpu"``
+            (torch on the CPU). Sampling stays in numpy with the same generator, so every
+            device draws the same samples; results agree up to floating-point ties.
+            Outputs are numpy arrays on every device.
 
     Returns:
         :class:`FilterResult`. Degenerate input (fewer than 4 matches, duplicated or
@@ -159,10 +170,11 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
         kept.
 
     Raises:
-        ValueError: wrong shapes, length mismatch, NaN/inf (naming the argument) or an
-            unknown method.
+        ValueError: wrong shapes, length mismatch, NaN/inf (naming the argument), an
+            unknown method, or a device that is unknown or not available.
     """
     t0 = time.perf_counter()
+    scoring = scoring_for_device(device)
     x1 = _as_points(pts1, "pts1")
     x2 = _as_points(pts2, "pts2")
     if len(x1) != len(x2):
@@ -185,7 +197,7 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
     t2 = time.perf_counter()
 
     problem = build_problem(x1, x2r, miho=cfg.is_miho, full_match=cfg.miho_threshold != "half")
-    mop = run_mop(problem, cfg, rng, progress=progress)
+    mop = run_mop(problem, cfg, rng, progress=progress, scoring=scoring)
     stats.update(mop.stats)
     t3 = time.perf_counter()
     stats.update(time_validate=t1 - t0, time_rotation=t2 - t1, time_mop=t3 - t2)
@@ -195,7 +207,7 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
 
     if cfg.miho_threshold == "full_search" and cfg.is_miho:
         problem = build_problem(x1, x2r, miho=True, full_match=False)  # keep: half-match
-    labels, support = assign_matches(error_sq(problem, mop.hyps, np.arange(n)), cfg.t_l,
+    labels, support = assign_matches(scoring.error_sq(problem, mop.hyps, np.arange(n)), cfg.t_l,
                                      rule=cfg.assignment, round_inliers=mop.round_inliers)
     t4 = time.perf_counter()
     H, patch = _homographies_and_patch_pairs(mop.hyps, G, cfg, stats)

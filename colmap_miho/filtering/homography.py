@@ -1,4 +1,9 @@
-"""Batched homography maths for MOP (numpy, float64).
+"""Batched homography maths for MOP (float64).
+
+Every function takes numpy arrays or torch tensors (any device) and returns the same kind:
+the operations are written once, for both (:func:`array_module` picks the library), so the
+torch path of the filter (``filter_matches(..., device=...)``) computes the same formulas in
+the same order as the numpy one.
 
 All points are ``(x, y)`` pixels, integer = pixel centre. A homography ``H`` of shape
 ``(3, 3)`` maps a source point ``x`` to ``H @ [x, y, 1]`` (then divided by the third
@@ -11,7 +16,27 @@ divides, so near-singular hypotheses do not produce infinities.
 
 from __future__ import annotations
 
+import math
+import sys
+
 import numpy as np
+
+
+def array_module(a):
+    """``numpy`` for numpy arrays (and scalars), ``torch`` for torch tensors."""
+    if isinstance(a, np.ndarray):
+        return np
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(a, torch.Tensor):
+        return torch
+    return np
+
+
+def zeros(like, shape: tuple[int, ...]):
+    """float64 zeros of ``shape`` of the same kind (and torch device) as ``like``."""
+    if isinstance(like, np.ndarray):
+        return np.zeros(shape)
+    return like.new_zeros(shape, dtype=like.dtype)
 
 
 def normalise_points(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -24,12 +49,13 @@ def normalise_points(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ``(T, pts_n)``: ``T`` ``(B, 3, 3)`` similarity with ``pts_n = T pts``, the normalised
         points ``(B, M, 2)`` having centroid 0 and mean distance ``sqrt(2)`` from it.
     """
+    xp = array_module(pts)
     m = pts.shape[1]
     centroid = pts.sum(axis=1, keepdims=True) / m
     centred = pts - centroid
-    mean_dist = np.sqrt((centred**2).sum(-1)).sum(axis=1) / m
-    scale = np.sqrt(2.0) / np.maximum(mean_dist, 1e-12)
-    T = np.zeros((pts.shape[0], 3, 3))
+    mean_dist = xp.sqrt((centred**2).sum(-1)).sum(axis=1) / m
+    scale = math.sqrt(2.0) / xp.clip(mean_dist, 1e-12, None)
+    T = zeros(pts, (pts.shape[0], 3, 3))
     T[:, 0, 0] = scale
     T[:, 1, 1] = scale
     T[:, :2, 2] = -scale[:, None] * centroid[:, 0, :]
@@ -42,7 +68,7 @@ def adjugate(H: np.ndarray) -> np.ndarray:
     a, b, c = H[..., 0, 0], H[..., 0, 1], H[..., 0, 2]
     d, e, f = H[..., 1, 0], H[..., 1, 1], H[..., 1, 2]
     g, h, i = H[..., 2, 0], H[..., 2, 1], H[..., 2, 2]
-    adj = np.empty_like(H)
+    adj = array_module(H).empty_like(H)
     adj[..., 0, 0] = e * i - f * h
     adj[..., 0, 1] = c * h - b * i
     adj[..., 0, 2] = b * f - c * e
@@ -57,15 +83,16 @@ def adjugate(H: np.ndarray) -> np.ndarray:
 
 def normalise_scale(H: np.ndarray) -> np.ndarray:
     """Scale ``(..., 3, 3)`` homographies to unit Frobenius norm (keeps the sign)."""
-    norm = np.sqrt((H**2).sum(axis=(-2, -1), keepdims=True))
-    return H / np.maximum(norm, 1e-300)
+    xp = array_module(H)
+    norm = xp.sqrt((H**2).sum(axis=(-2, -1), keepdims=True))
+    return H / xp.clip(norm, 1e-300, None)
 
 
 def _dlt_system(s: np.ndarray, d: np.ndarray) -> np.ndarray:
     """The DLT system ``A`` ``(B, 2M, 9)`` of ``(B, M, 2)`` (normalised) point sets, ``A h = 0``
     for ``d ~ H s`` with ``h`` the row-major entries of ``H``: two rows per point."""
     B, M, _ = s.shape
-    A = np.zeros((B, 2 * M, 9))
+    A = zeros(s, (B, 2 * M, 9))
     x, y, u, v = s[..., 0], s[..., 1], d[..., 0], d[..., 1]
     A[:, 0::2, 0], A[:, 0::2, 1], A[:, 0::2, 2] = x, y, 1.0
     A[:, 0::2, 6], A[:, 0::2, 7], A[:, 0::2, 8] = -u * x, -u * y, -u
@@ -108,7 +135,7 @@ def _basis_map(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Projective map sending the canonical basis and ``(1, 1, 1)`` to the homogeneous
     points ``p`` ``(B, 4, 3)``: returns ``(P diag(lam), lam, det(P))`` with ``P`` the
     ``(B, 3, 3)`` matrix of columns ``p0, p1, p2`` and ``lam = adj(P) p3`` ``(B, 3)``."""
-    P = np.swapaxes(p[:, :3], 1, 2)  # columns p0, p1, p2
+    P = array_module(p).swapaxes(p[:, :3], 1, 2)  # columns p0, p1, p2
     adj = adjugate(P)
     lam = (adj @ p[:, 3, :, None])[..., 0]  # det(P) * P^-1 p3
     det = (P[:, 0, :] * adj[:, :, 0]).sum(-1)
@@ -139,30 +166,32 @@ def four_point(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray
         norm; ``sign_fwd``, ``sign_inv`` ``(B, 4)`` in {-1, 0, 1}. Degenerate samples (three
         collinear points) give a (near) singular ``H``; :func:`dlt_singular_value` flags them.
     """
-    one = np.ones(src.shape[:2] + (1,))
-    A, lam, det_p = _basis_map(np.concatenate([src, one], axis=2))
-    Bm, mu, det_q = _basis_map(np.concatenate([dst, one], axis=2))
+    xp = array_module(src)
+    one = xp.ones_like(src[..., :1])
+    A, lam, det_p = _basis_map(xp.concatenate([src, one], axis=2))
+    Bm, mu, det_q = _basis_map(xp.concatenate([dst, one], axis=2))
     H = normalise_scale(Bm @ adjugate(A))
-    s_lam, s_mu = np.sign(lam), np.sign(mu)
-    s_det_a = np.sign(det_p) * np.prod(s_lam, axis=1)  # sign det(A)
-    s_det_b = np.sign(det_q) * np.prod(s_mu, axis=1)  # sign det(B)
-    sign_fwd = np.empty(src.shape[:2])
-    sign_inv = np.empty(src.shape[:2])
+    s_lam, s_mu = xp.sign(lam), xp.sign(mu)
+    s_det_a = xp.sign(det_p) * xp.prod(s_lam, axis=1)  # sign det(A)
+    s_det_b = xp.sign(det_q) * xp.prod(s_mu, axis=1)  # sign det(B)
+    sign_fwd = xp.empty_like(src[..., 0])
+    sign_inv = xp.empty_like(src[..., 0])
     sign_fwd[:, :3] = s_det_a[:, None] * s_mu * s_lam
-    sign_fwd[:, 3] = s_det_a * np.sign(det_q) * np.sign(det_p)
+    sign_fwd[:, 3] = s_det_a * xp.sign(det_q) * xp.sign(det_p)
     sign_inv[:, :3] = (s_det_a * s_det_b)[:, None] * s_lam * s_mu
-    sign_inv[:, 3] = s_det_a * s_det_b * np.sign(det_p) * np.sign(det_q)
+    sign_inv[:, 3] = s_det_a * s_det_b * xp.sign(det_p) * xp.sign(det_q)
     return H, sign_fwd, sign_inv
 
 
 def dlt_singular_value(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Smallest singular value ``(B,)`` of the normalised minimal DLT system (``8 x 9``) of
     ``(B, 4, 2)`` samples: the paper's degeneracy test keeps hypotheses above 0.05."""
+    xp = array_module(src)
     _, s = normalise_points(src)
     _, d = normalise_points(dst)
     A = _dlt_system(s, d)
-    evals = np.linalg.eigvalsh(A @ np.swapaxes(A, 1, 2))
-    return np.sqrt(np.maximum(evals[:, 0], 0.0))
+    evals = xp.linalg.eigvalsh(A @ xp.swapaxes(A, 1, 2))
+    return xp.sqrt(xp.clip(evals[:, 0], 0.0, None))
 
 
 def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -192,7 +221,7 @@ def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     y = h[:, 3] * X
     y += h[:, 4] * Y
     y += h[:, 5]
-    safe_w = np.where(w == 0, 1e-300, w)
+    safe_w = array_module(w).where(w == 0, 1e-300, w)
     x /= safe_w
     y /= safe_w
     return x, y, w

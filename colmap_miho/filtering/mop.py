@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import FilterConfig
-from .ransac import Hypotheses, LocalCandidates, Problem, ransac_round
+from .ransac import Hypotheses, LocalCandidates, NumpyScoring, Problem, ransac_round
 
 logger = logging.getLogger(__name__)
 
@@ -39,8 +39,9 @@ class MopOutput:
 
 
 def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
-            progress: bool = False) -> MopOutput:
-    """Find the homographies of ``problem`` (all matches ``0..N-1`` start in the pool)."""
+            progress: bool = False, scoring: NumpyScoring | None = None) -> MopOutput:
+    """Find the homographies of ``problem`` (all matches ``0..N-1`` start in the pool);
+    ``scoring`` runs the heavy RANSAC kernels (``None``: numpy)."""
     n_req = cfg.inlier_count
     t_h2 = cfg.strict_threshold**2
     pool = np.arange(len(problem.x1))
@@ -58,7 +59,7 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
     # A model needs n inliers among the pool: with fewer matches left no round can succeed,
     # so stopping there gives the same result as running out the failure counter.
     while failures < cfg.max_failures and len(pool) >= max(4, n_req):
-        res, buffer = ransac_round(problem, pool, cfg, rng, buffer, candidates)
+        res, buffer = ransac_round(problem, pool, cfg, rng, buffer, candidates, scoring)
         stats["rounds"] += 1
         if bar is not None:
             bar.update(1)

@@ -48,11 +48,13 @@ if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 from .homography import (
     adjugate,
+    array_module,
     dlt,
     dlt_singular_value,
     four_point,
     project,
     triangle_orientations,
+    zeros,
 )
 
 _DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
@@ -62,7 +64,8 @@ _PAIR_J = np.array([1, 2, 3, 2, 3, 3])
 
 @dataclass(frozen=True)
 class Problem:
-    """Point sets of one filtering problem (all ``(N, 2)`` float64 pixels).
+    """Point sets of one filtering problem (all ``(N, 2)`` float64 pixels: numpy arrays, or
+    torch tensors for the device copy of :class:`~colmap_miho.filtering.torch_scoring.TorchScoring`).
 
     Attributes:
         src, dst: per half, the source and destination points; a hypothesis holds one
@@ -86,9 +89,10 @@ class Problem:
     spread_all: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "src_all", np.stack(self.src, axis=1))
-        object.__setattr__(self, "dst_all", np.stack(self.dst, axis=1))
-        object.__setattr__(self, "spread_all", np.stack(self.spread, axis=1))
+        xp = array_module(self.x1)
+        object.__setattr__(self, "src_all", xp.stack(self.src, axis=1))
+        object.__setattr__(self, "dst_all", xp.stack(self.dst, axis=1))
+        object.__setattr__(self, "spread_all", xp.stack(self.spread, axis=1))
 
     @property
     def num_halves(self) -> int:
@@ -99,7 +103,8 @@ class Problem:
 class Hypotheses:
     """A stack of ``K`` hypotheses: ``H`` and its adjugate ``Hinv`` ``(K, halves, 3, 3)``,
     quasi-affine reference signs ``sign``/``sign_inv`` ``(K, halves)`` and the minimal
-    samples ``sample`` ``(K, 4)`` (global match indices)."""
+    samples ``sample`` ``(K, 4)`` (global match indices). numpy arrays, except for the
+    transient device copies of the torch path (:meth:`error_sq` etc. accept both)."""
 
     H: np.ndarray
     Hinv: np.ndarray
@@ -159,6 +164,18 @@ def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
     return np.all((d * d).sum(-1) >= t_l**2, axis=(1, 2))
 
 
+def checked_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
+                    ok: np.ndarray | None = None) -> np.ndarray:
+    """The minimal samples ``(B, 4)`` that pass the spread test (unless its result ``ok``
+    ``(B,)`` is given) and, for MOP*, the reflection check (App. D)."""
+    ok = spread_ok(problem, sample, cfg.t_l) if ok is None else ok.copy()
+    if cfg.reflection_check and ok.any():
+        o1 = triangle_orientations(problem.x1[sample])
+        o2 = triangle_orientations(problem.x2[sample])
+        ok &= np.all(o1 * o2 > 0, axis=1)
+    return sample[ok]
+
+
 def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
                             ok: np.ndarray | None = None):
     """Fit and check hypotheses for minimal samples ``(B, 4)`` of global match indices.
@@ -170,12 +187,7 @@ def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterCon
     the result is the same as testing all of them first. Returns the surviving
     :class:`Hypotheses`.
     """
-    ok = spread_ok(problem, sample, cfg.t_l) if ok is None else ok.copy()
-    if cfg.reflection_check and ok.any():
-        o1 = triangle_orientations(problem.x1[sample])
-        o2 = triangle_orientations(problem.x2[sample])
-        ok &= np.all(o1 * o2 > 0, axis=1)
-    sample = sample[ok]
+    sample = checked_samples(problem, sample, cfg, ok)
     nh = problem.num_halves
     B = len(sample)
     if not B:
@@ -209,14 +221,19 @@ def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
     halves and directions of the squared transfer error (times ``problem.error_scale``
     squared); ``inf`` where a projection breaks the quasi-affine sign of the hypothesis'
     sample."""
-    err = np.zeros((len(hyp), len(idx)))
+    xp = array_module(problem.x1)
+    err = zeros(problem.x1, (len(hyp), len(idx)))
     for h in range(problem.num_halves):
         src, dst = problem.src[h][idx], problem.dst[h][idx]
         for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst), (hyp.Hinv, hyp.sign_inv, dst, src)):
             x, y, w = project(mat[:, h], a)
             e = (x - b[:, 0]) ** 2 + (y - b[:, 1]) ** 2
-            e[np.sign(w) != sgn[:, h, None]] = np.inf
-            np.maximum(err, e, out=err)
+            bad = xp.sign(w) != sgn[:, h, None]
+            if xp is np:
+                e[bad] = np.inf
+            else:  # masked fill: a boolean-mask assignment would synchronise a GPU
+                e.masked_fill_(bad, math.inf)
+            xp.maximum(err, e, out=err)
     if problem.error_scale != 1.0:
         err *= problem.error_scale**2
     return err
@@ -319,17 +336,18 @@ class _Search:
     mask: np.ndarray | None = None
     cands: list[tuple[Hypotheses, np.ndarray]] = field(default_factory=list)
 
-    def consider(self, hyp: Hypotheses, err: np.ndarray) -> bool:
-        """Score fully scored hypotheses ``err`` ``(K, n_pool)``; returns whether the best
-        model changed. A replaced best and every other model with inliers become candidates."""
-        masks = err <= self.t2
+    def consider(self, hyp: Hypotheses, masks: np.ndarray, err: np.ndarray | None = None) -> bool:
+        """Take fully scored hypotheses: their t_l inlier ``masks`` ``(K, n_pool)`` and, when
+        at hand, their squared errors ``err`` (otherwise the best's are computed at the end
+        of the run); returns whether the best model changed. A replaced best and every other
+        model with inliers become candidates."""
         counts = masks.sum(1)
         improved = False
         for k in np.argsort(-counts, kind="stable"):
             if counts[k] > self.count:
                 if self.hyp is not None and self.mask is not None:  # set together
                     self.cands.append((self.hyp, self.mask))
-                self.hyp, self.err = hyp.take(k), err[k]
+                self.hyp, self.err = hyp.take(k), None if err is None else err[k]
                 self.count, self.mask = int(counts[k]), masks[k]
                 improved = True
             elif counts[k] > 0:
@@ -495,8 +513,97 @@ def _required(search: _Search, sampler: _Sampler, n: int, cfg: FilterConfig) -> 
                            sampler.fraction, cfg.confidence)
 
 
+class NumpyScoring:
+    """The heavy kernels of a RANSAC run (minimal solver, bounds, singular-value test, full
+    scoring), in numpy on the CPU: the default. Its torch twin, for any torch device, is
+    :class:`~colmap_miho.filtering.torch_scoring.TorchScoring`; sampling, the search's
+    bookkeeping and the refit stay in numpy for both.
+
+    ``prefetch``: 0 scores exactly the hypotheses the search reaches; ``> 0`` screens them
+    ahead in chunks of that many (then doubling), which gives the same result with fewer
+    round trips to a device (:class:`_BatchScores`).
+    """
+
+    prefetch = 0
+
+    def hypotheses(self, problem: Problem, sample: np.ndarray, cfg: FilterConfig,
+                   ok: np.ndarray) -> Hypotheses:
+        """:func:`hypotheses_from_samples`."""
+        return hypotheses_from_samples(problem, sample, cfg, ok)
+
+    def one_way_count(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
+                      t2: float) -> np.ndarray:
+        """:func:`one_way_count`."""
+        return one_way_count(problem, hyp, idx, t2)
+
+    def singular_value_ok(self, problem: Problem, hyp: Hypotheses,
+                          cfg: FilterConfig) -> np.ndarray:
+        """:func:`passes_singular_value_test`."""
+        return passes_singular_value_test(problem, hyp, cfg)
+
+    def error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
+        """:func:`error_sq`, float64 ``(K, n)`` numpy."""
+        return error_sq(problem, hyp, idx)
+
+    def masks(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
+              t2: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """``(masks, err)``: the inliers ``err <= t2`` ``(K, n)`` and the errors (``None``
+        where the kernel does not bring them back)."""
+        err = self.error_sq(problem, hyp, idx)
+        return err <= t2, err
+
+    def screen(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
+               cfg: FilterConfig) -> tuple[np.ndarray, np.ndarray]:
+        """``(sv_ok, masks)``: the singular-value test ``(K,)`` and the inlier masks
+        ``(K, n)`` of all ``K`` hypotheses (rows failing the test are not used)."""
+        return self.singular_value_ok(problem, hyp, cfg), self.masks(problem, hyp, idx, t2)[0]
+
+
+class _BatchScores:
+    """Full scores of one batch's hypotheses ``hyp`` (sorted by their one-way bound ``ub``),
+    computed on demand for the positions :func:`_score_batch` reaches.
+
+    With ``scoring.prefetch == 0`` exactly the positions asked for are scored (singular-value
+    test, then the errors of the survivors). Otherwise positions are screened ahead, in
+    chunks of ``prefetch`` that double, never past ``reach`` (the positions the loop can
+    reach at all, set by the best count when the batch starts); the search takes the same
+    hypotheses in the same order, so the result is the same.
+    """
+
+    def __init__(self, scoring: NumpyScoring, problem: Problem, hyp: Hypotheses, ub: np.ndarray,
+                 pool: np.ndarray, cfg: FilterConfig, t2: float, reach: int) -> None:
+        self.scoring, self.problem, self.hyp, self.ub = scoring, problem, hyp, ub
+        self.pool, self.cfg, self.t2, self.reach = pool, cfg, t2, reach
+        self.chunk = scoring.prefetch
+        self.done = 0
+        if self.chunk:
+            self.sv = np.zeros(reach, dtype=bool)
+            self.mask = np.zeros((reach, len(pool)), dtype=bool)
+
+    def get(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``(keep, masks, err)`` for the positions ``pos``: those passing the singular-value
+        test, their inlier masks and (when at hand) errors on the pool."""
+        if not self.chunk:
+            keep = pos[self.scoring.singular_value_ok(self.problem, self.hyp.take(pos), self.cfg)]
+            if not len(keep):
+                return keep, np.zeros((0, len(self.pool)), dtype=bool), None
+            masks, err = self.scoring.masks(self.problem, self.hyp.take(keep), self.pool, self.t2)
+            return keep, masks, err
+        if len(pos) and pos[-1] >= self.done:
+            stop = min(max(int(pos[-1]) + 1, self.done + self.chunk), self.reach)
+            todo = np.arange(self.done, stop)
+            todo = todo[self.ub[todo] > 0]
+            if len(todo):
+                self.sv[todo], self.mask[todo] = self.scoring.screen(
+                    self.problem, self.hyp.take(todo), self.pool, self.t2, self.cfg)
+            self.done = stop
+            self.chunk *= 2
+        keep = pos[self.sv[pos]]
+        return keep, self.mask[keep], None
+
+
 def _score_batch(problem: Problem, hyp: Hypotheses, pool: np.ndarray, cfg: FilterConfig,
-                 search: _Search, stats: dict) -> bool:
+                 search: _Search, stats: dict, scoring: NumpyScoring) -> bool:
     """Full-score the hypotheses of one batch that can matter; returns whether the best
     model changed.
 
@@ -504,33 +611,37 @@ def _score_batch(problem: Problem, hyp: Hypotheses, pool: np.ndarray, cfg: Filte
     no remaining bound can beat the best count; the batch's two strongest (at least n
     possible inliers) are always scored, as buffer candidates.
     """
-    ub = one_way_count(problem, hyp, pool, search.t2)
+    ub = scoring.one_way_count(problem, hyp, pool, search.t2)
     order = np.argsort(-ub, kind="stable")
     ub = ub[order]
     n_buf = int(np.count_nonzero(ub[: min(2, cfg.buffer_size)] >= cfg.inlier_count))
+    # The best count only rises, so no group starting past the bounds above it is reached.
+    first = max(int(np.count_nonzero(ub > search.count)), n_buf)
+    reach = min(len(ub), -(-first // 4) * 4)
+    scores = _BatchScores(scoring, problem, hyp.take(order), ub, pool, cfg, search.t2, reach)
     improved = False
     start = 0
     while start < len(order) and (ub[start] > search.count or start < n_buf):
-        stop = start + 4
-        sub = hyp.take(order[start:stop][ub[start:stop] > 0])
-        start = stop
-        sub = sub.take(np.flatnonzero(passes_singular_value_test(problem, sub, cfg)))
-        if not len(sub):
+        pos = np.arange(start, min(start + 4, len(order)))
+        start += 4
+        keep, masks, err = scores.get(pos[ub[pos] > 0])
+        if not len(keep):
             continue
-        stats["full_scored"] += len(sub)
-        improved |= search.consider(sub, error_sq(problem, sub, pool))
+        stats["full_scored"] += len(keep)
+        improved |= search.consider(scores.hyp.take(keep), masks, err)
     return improved
 
 
 def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _Search,
-                stats: dict) -> None:
-    """Replace the best model by least-squares refits on its inliers while they lose none."""
-    assert search.hyp is not None and search.err is not None and search.mask is not None, "no best model"
+                stats: dict, scoring: NumpyScoring) -> None:
+    """Replace the best model by least-squares refits on its inliers while they lose none
+    (the refit itself runs in numpy; its errors through ``scoring``)."""
+    assert search.hyp is not None and search.mask is not None, "no best model"
     for _ in range(cfg.refit_iters):
-        refit = _refit(problem, search.hyp, pool[search.err <= search.t2])
+        refit = _refit(problem, search.hyp, pool[search.mask])
         if refit is None:
             break
-        err = error_sq(problem, refit, pool)[0]
+        err = scoring.error_sq(problem, refit, pool)[0]
         mask = err <= search.t2
         count = int(mask.sum())
         stats["full_scored"] += 1
@@ -543,7 +654,8 @@ def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _
 
 
 def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.random.Generator,
-                 buffer: list[Hypotheses], candidates: LocalCandidates | None = None
+                 buffer: list[Hypotheses], candidates: LocalCandidates | None = None,
+                 scoring: NumpyScoring | None = None
                  ) -> tuple[RoundResult | None, list[Hypotheses]]:
     """Run one RANSAC search on the matches ``pool`` (``(n,)`` global indices).
 
@@ -552,6 +664,7 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
             (bootstrap) and returned updated.
         candidates: the problem's local-sampling candidates, shared by the rounds (built
             here when ``None``).
+        scoring: where the heavy kernels run (``None``: :class:`NumpyScoring`).
 
     Returns:
         ``(result, buffer)``; ``result`` is ``None`` when no valid hypothesis was found.
@@ -560,10 +673,11 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
     stats: dict[str, float] = {"drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
     if n < 4:
         return None, buffer
+    scoring = NumpyScoring() if scoring is None else scoring
     search = _Search(t2=cfg.t_l**2)
     if buffer:
         boot = Hypotheses.concat(buffer)
-        search.consider(boot, error_sq(problem, boot, pool))
+        search.consider(boot, *scoring.masks(problem, boot, pool, search.t2))
         stats["full_scored"] += len(boot)
     sampler = _Sampler(problem, pool, cfg, candidates)
     required = _required(search, sampler, n, cfg)
@@ -584,14 +698,16 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         stats["drawn"] += size
         ok = spread_ok(problem, sample, cfg.t_l)
         stats["samples"] += int(ok.sum())
-        hyp = hypotheses_from_samples(problem, sample, cfg, ok)
+        hyp = scoring.hypotheses(problem, sample, cfg, ok)
         stats["valid"] += len(hyp)
-        if len(hyp) and _score_batch(problem, hyp, pool, cfg, search, stats):
+        if len(hyp) and _score_batch(problem, hyp, pool, cfg, search, stats, scoring):
             required = _required(search, sampler, n, cfg)
     if search.hyp is None:
         return None, buffer
-    _refit_best(problem, pool, cfg, search, stats)
-    assert search.err is not None and search.mask is not None  # set together with hyp
+    _refit_best(problem, pool, cfg, search, stats, scoring)
+    if search.err is None:  # the scoring kept only masks: the best's errors, once
+        search.err = scoring.error_sq(problem, search.hyp, pool)[0]
+    assert search.mask is not None  # set together with hyp
     buffer = _greedy_buffer(search.cands, search.mask, cfg.buffer_size)
     stats["required_iters"] = required
     return RoundResult(search.hyp, search.err, search.count, stats), buffer

@@ -1,0 +1,221 @@
+"""The filter's heavy RANSAC kernels in torch, on any torch device (CUDA or CPU).
+
+``filter_matches(..., device=...)`` picks where the kernels run (:func:`scoring_for_device`):
+
+- ``"cpu"`` or ``None`` (default): numpy on the CPU (:class:`~.ransac.NumpyScoring`).
+- ``"cuda"``, ``"cuda:1"``, any other torch device string, or a ``torch.device`` object
+  (``torch.device("cpu")`` included): torch float64 on that device (:class:`TorchScoring`).
+- ``"torch-cpu"``: torch on the CPU, the torch path where no GPU is lent (tests, timing).
+
+What runs on the device: the closed-form 4-point homographies of every batch of minimal
+samples with their quasi-affine signs, the float32 one-way inlier bound of every hypothesis
+over the pool, the normalised-DLT singular-value test and the full two-way float64 errors /
+inlier masks of the hypotheses the search reaches (bootstrap buffer included), the errors
+of each round's best model and of the final assignment. The formulas are the numpy path's
+own (:mod:`.homography` and :func:`.ransac.error_sq` take numpy arrays or tensors), in the
+same order. Sampling (the same ``numpy.random.Generator``, so a seed draws the same samples),
+the spread and reflection checks, the search's bookkeeping, the top-z buffer, the
+least-squares refit and the assignment rule stay in numpy: they are cheap, sequential, and
+keeping them on the host keeps both paths alike. Up to floating-point ties (a bound or an
+error landing on the other side of a threshold, which can then change the random stream),
+both paths give the same matches, labels and homographies.
+
+Round trips: one per batch for the hypotheses, one for their bounds, and one per chunk of
+full scores (``TorchScoring.prefetch`` hypotheses screened ahead, doubling; the search takes
+the same ones in the same order as numpy, see :class:`~.ransac._BatchScores`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .config import FilterConfig
+from .homography import adjugate, dlt_singular_value, four_point
+from .ransac import Hypotheses, NumpyScoring, Problem, checked_samples, error_sq
+
+#: ``device`` value that runs the torch path on the CPU.
+TORCH_CPU = "torch-cpu"
+
+
+def scoring_for_device(device: Any = "cpu") -> NumpyScoring:
+    """The kernels for ``device`` (see the module docstring); ``ValueError`` (one line) for
+    an unknown device or one torch cannot use (e.g. ``"cuda"`` without a CUDA device)."""
+    if device is None or (isinstance(device, str) and device == "cpu"):
+        return NumpyScoring()
+    try:
+        import torch
+    except ImportError:
+        raise ValueError(f"device {device!r} needs torch, which is not installed") from None
+    if isinstance(device, str):
+        if device == TORCH_CPU:
+            device = torch.device("cpu")
+        else:
+            try:
+                device = torch.device(device)
+            except (RuntimeError, ValueError):
+                raise ValueError(f"device must be 'cpu', '{TORCH_CPU}', 'cuda[:N]' or another "
+                                 f"torch device, got {device!r}") from None
+    if not isinstance(device, torch.device):
+        raise ValueError(f"device must be a string or a torch.device, got {type(device).__name__}")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {str(device)!r} requested but torch sees no CUDA device")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"device {str(device)!r} requested but torch sees "
+                             f"{torch.cuda.device_count()} CUDA device(s)")
+    return TorchScoring(device)
+
+
+class TorchScoring(NumpyScoring):
+    """:class:`~.ransac.NumpyScoring`'s kernels in torch float64 on ``device`` (the one-way
+    bound in float32, as in numpy). Takes and returns numpy, like its parent; the problem's
+    points are copied to the device once per problem and each pool once per round."""
+
+    def __init__(self, device: Any) -> None:
+        import torch
+
+        self.torch = torch
+        self.device = torch.device(device)
+        on_gpu = self.device.type != "cpu"
+        # Screening ahead costs little on a GPU and saves round trips; on the CPU it is
+        # extra arithmetic, so only a little.
+        self.prefetch = 64 if on_gpu else 8
+        self._bound_block = 1 << 24 if on_gpu else 131072  # elements per one-way block
+        self._problems: dict[int, tuple[Problem, Any]] = {}
+        self._pool: tuple[np.ndarray, Any] | None = None
+
+    # -- transfers ------------------------------------------------------------------------
+    def _tensor(self, a: np.ndarray) -> Any:
+        return self.torch.as_tensor(a, device=self.device)
+
+    def _problem(self, problem: Problem) -> Any:
+        """The device copy of ``problem`` (kept alive with it, so its id stays unique)."""
+        hit = self._problems.get(id(problem))
+        if hit is None or hit[0] is not problem:
+            dev = Problem(src=tuple(self._tensor(a) for a in problem.src),
+                          dst=tuple(self._tensor(a) for a in problem.dst),
+                          spread=tuple(self._tensor(a) for a in problem.spread),
+                          x1=self._tensor(problem.x1), x2=self._tensor(problem.x2),
+                          error_scale=problem.error_scale)
+            hit = (problem, dev)
+            self._problems[id(problem)] = hit
+        return hit[1]
+
+    def _index(self, idx: np.ndarray) -> Any:
+        """``idx`` on the device; the pool of a round is uploaded once."""
+        if self._pool is None or self._pool[0] is not idx:
+            self._pool = (idx, self._tensor(idx))
+        return self._pool[1]
+
+    def _hyp(self, hyp: Hypotheses) -> Any:
+        return Hypotheses(*(self._tensor(getattr(hyp, f))
+                            for f in ("H", "Hinv", "sign", "sign_inv", "sample")))
+
+    @staticmethod
+    def _host(t: Any) -> np.ndarray:
+        return t.cpu().numpy()
+
+    # -- kernels --------------------------------------------------------------------------
+    def hypotheses(self, problem: Problem, sample: np.ndarray, cfg: FilterConfig,
+                   ok: np.ndarray) -> Hypotheses:
+        """:func:`~.ransac.hypotheses_from_samples`, with the minimal solver and the
+        quasi-affinity of the samples on the device (one transfer back)."""
+        sample = checked_samples(problem, sample, cfg, ok)
+        nh = problem.num_halves
+        B = len(sample)
+        if not B:
+            return Hypotheses.empty(nh)
+        P = self._problem(problem)
+        s = self._tensor(sample)
+        src = P.src_all[s].permute(0, 2, 1, 3).reshape(B * nh, 4, 2)
+        dst = P.dst_all[s].permute(0, 2, 1, 3).reshape(B * nh, 4, 2)
+        solved: Any = four_point(src, dst)  # tensors: the maths is shared with numpy
+        H, s_fwd, s_inv = solved
+        H = H.reshape(B, nh, 3, 3)
+        s_fwd = s_fwd.reshape(B, nh, 4)
+        s_inv = s_inv.reshape(B, nh, 4)
+        good = self.torch.isfinite(H).flatten(1).all(1)
+        for sg in (s_fwd, s_inv):
+            good &= (sg == sg[:, :, :1]).flatten(1).all(1) & (sg[:, :, 0] != 0).all(1)
+        packed = self._host(self.torch.cat(
+            [H.reshape(B, -1), adjugate(H).reshape(B, -1), s_fwd[:, :, 0], s_inv[:, :, 0],
+             good[:, None].to(H.dtype)], dim=1))
+        keep = packed[:, -1] > 0
+        packed = packed[keep]
+        k = 9 * nh
+        return Hypotheses(packed[:, :k].reshape(-1, nh, 3, 3),
+                          packed[:, k:2 * k].reshape(-1, nh, 3, 3),
+                          packed[:, 2 * k:2 * k + nh], packed[:, 2 * k + nh:2 * k + 2 * nh],
+                          sample[keep])
+
+    def one_way_count(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
+                      t2: float) -> np.ndarray:
+        """:func:`~.ransac.one_way_count` (float32, division-free) on the device."""
+        torch = self.torch
+        t2 = t2 / problem.error_scale**2
+        P, ix = self._problem(problem), self._index(idx)
+        src = P.src[0][ix].to(torch.float32)
+        dst = P.dst[0][ix].to(torch.float32)
+        X, Y, x2, y2 = src[:, 0], src[:, 1], dst[:, 0], dst[:, 1]
+        n, K = len(idx), len(hyp)
+        Hs = self._tensor((hyp.H[:, 0] * hyp.sign[:, 0, None, None]).astype(np.float32))
+        Hs = Hs.reshape(K, 9, 1)
+        counts = []
+        kb = max(1, self._bound_block // max(n, 1))
+        for a in range(0, K, kb):
+            h = Hs[a:a + kb]
+            W = h[:, 6] * X
+            W += h[:, 7] * Y
+            W += h[:, 8]
+            U = h[:, 0] * X
+            U += h[:, 1] * Y
+            U += h[:, 2]
+            U -= W * x2
+            V = h[:, 3] * X
+            V += h[:, 4] * Y
+            V += h[:, 5]
+            V -= W * y2
+            U *= U
+            V *= V
+            U += V
+            ok = W > 0
+            W *= W
+            W *= t2
+            ok &= U <= W
+            counts.append(ok.sum(1))
+        return self._host(torch.cat(counts)).astype(np.int64)
+
+    def singular_value_ok(self, problem: Problem, hyp: Hypotheses,
+                          cfg: FilterConfig) -> np.ndarray:
+        """:func:`~.ransac.passes_singular_value_test` on the device."""
+        return self._host(self._sv_ok(problem, self._tensor(hyp.sample), cfg))
+
+    def _sv_ok(self, problem: Problem, sample: Any, cfg: FilterConfig) -> Any:
+        P = self._problem(problem)
+        K, nh = sample.shape[0], problem.num_halves
+        src = P.src_all[sample].permute(0, 2, 1, 3).reshape(K * nh, 4, 2)
+        dst = P.dst_all[sample].permute(0, 2, 1, 3).reshape(K * nh, 4, 2)
+        sv = dlt_singular_value(src, dst).reshape(K, nh)
+        return (sv > cfg.min_singular_value).all(1)
+
+    def _error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> Any:
+        return error_sq(self._problem(problem), self._hyp(hyp), self._index(idx))
+
+    def error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
+        """:func:`~.ransac.error_sq` on the device, brought back as float64 numpy."""
+        return self._host(self._error_sq(problem, hyp, idx))
+
+    def masks(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
+              t2: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """Inlier masks only (the errors stay on the device)."""
+        return self._host(self._error_sq(problem, hyp, idx) <= t2), None
+
+    def screen(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
+               cfg: FilterConfig) -> tuple[np.ndarray, np.ndarray]:
+        """Singular-value test and inlier masks together (one transfer back)."""
+        sv = self._sv_ok(problem, self._tensor(hyp.sample), cfg)
+        masks = self._error_sq(problem, hyp, idx) <= t2
+        both = self._host(self.torch.cat([sv[:, None], masks], dim=1))
+        return both[:, 0], both[:, 1:]
