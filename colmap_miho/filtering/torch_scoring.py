@@ -139,8 +139,9 @@ class TorchScoring(NumpyScoring):
         good = self.torch.isfinite(H).flatten(1).all(1)
         for sg in (s_fwd, s_inv):
             good &= (sg == sg[:, :, :1]).flatten(1).all(1) & (sg[:, :, 0] != 0).all(1)
+        Hinv: Any = adjugate(H)
         packed = self._host(self.torch.cat(
-            [H.reshape(B, -1), adjugate(H).reshape(B, -1), s_fwd[:, :, 0], s_inv[:, :, 0],
+            [H.reshape(B, -1), Hinv.reshape(B, -1), s_fwd[:, :, 0], s_inv[:, :, 0],
              good[:, None].to(H.dtype)], dim=1))
         keep = packed[:, -1] > 0
         packed = packed[keep]
