@@ -16,6 +16,10 @@ on 1351 SIFT matches; MOP+MiHo 2.5 s on 2558.
     python benchmarks/bench_filter.py --sampling both   # guided vs the paper's uniform sampling
     python benchmarks/bench_filter.py --only fountain --methods mop_miho \
         --variant half:miho_threshold=half                # config overrides beside the default
+    python benchmarks/bench_filter.py --device torch-cpu --torch-threads 1 --runs 1
+        # the torch path (any torch device: cuda, cuda:1, torch-cpu = torch on the CPU); every
+        # pair also runs on numpy: ``np sec`` is its time, ``same`` the share of matches with
+        # the same inlier flag, ``lab`` with the same label
 
 Data: ``$COLMAP_MIHO_DATA`` or ``<repo>/../shared/data``. Timings taken while other jobs
 share the CPU are pessimistic: the ``cpu`` column (process CPU time; the filter is
@@ -70,7 +74,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variant", action="append", default=[],
                     help="extra config per method, 'name:key=value,...' (repeatable)")
     ap.add_argument("--only", default=None, help="only pairs whose label contains this")
+    ap.add_argument("--device", default="cpu",
+                    help="filter_matches device: cpu (numpy), cuda[:N], torch-cpu (default cpu)")
+    ap.add_argument("--torch-threads", type=int, default=0,
+                    help="torch.set_num_threads for the torch path (0: torch's default)")
     args = ap.parse_args(argv)
+    compare = args.device != "cpu"
+    if compare and args.torch_threads:
+        import torch
+
+        torch.set_num_threads(args.torch_threads)
     root = data_root()
     if not (root / "README.md").is_file():
         print(f"data folder not found at {root} (set COLMAP_MIHO_DATA)")
@@ -81,9 +94,12 @@ def main(argv: list[str] | None = None) -> int:
                 for vn, over in extra]
     # Warm-up (imports, first-call overheads) outside the timings.
     rng = np.random.default_rng(0)
-    filter_matches(rng.uniform(0, 500, (100, 2)), rng.uniform(0, 500, (100, 2)))
+    filter_matches(rng.uniform(0, 500, (100, 2)), rng.uniform(0, 500, (100, 2)),
+                   device=args.device)
     print(f"{'pair':<28} {'N':>5} {'inP':>5} | {'method':<16} {'K':>3} {'kept':>5} "
-          f"{'ok':>5} {'P':>6} {'R':>6} {'sec':>6} {'cpu':>6}")
+          f"{'ok':>5} {'P':>6} {'R':>6} {'sec':>6} {'cpu':>6}"
+          + (f" {'np sec':>6} {'same':>6} {'lab':>6}" if compare else ""))
+    agree: dict[tuple[str, str], list[tuple[int, int, int, float]]] = {}
     summary: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     for label, pair in select_pairs(root, args.quick):
         if args.only and args.only not in label:
@@ -93,24 +109,37 @@ def main(argv: list[str] | None = None) -> int:
         good = err <= GT_PX
         for method, sampling, vname, over in variants:
             cfg = FilterConfig(method=method, sampling=sampling, **over)
+            name = method if len(samplings) == 1 else f"{method}/{sampling}"
+            name += f"/{vname}" if vname else ""
             times, cpu = [], []
             for _ in range(args.runs):
                 t0, c0 = time.perf_counter(), time.process_time()
-                res = filter_matches(fm.pts1, fm.pts2, config=cfg, seed=0)
+                res = filter_matches(fm.pts1, fm.pts2, config=cfg, seed=0, device=args.device)
+                sync(args.device)
                 times.append(time.perf_counter() - t0)
                 cpu.append(time.process_time() - c0)
+            extra = ""
+            if compare:
+                np_times = []
+                for _ in range(args.runs):
+                    t0 = time.perf_counter()
+                    ref = filter_matches(fm.pts1, fm.pts2, config=cfg, seed=0)
+                    np_times.append(time.perf_counter() - t0)
+                same = int(np.count_nonzero(ref.inliers == res.inliers))
+                lab = int(np.count_nonzero(ref.labels == res.labels))
+                np_sec = float(np.median(np_times))
+                agree.setdefault((name, sampling), []).append((len(err), same, lab, np_sec))
+                extra = f" {np_sec:>6.3f} {same / len(err):>6.1%} {lab / len(err):>6.1%}"
             kept = res.inliers
             # nan when nothing is kept (or the input has no correct match): left out of means
             prec = np.count_nonzero(kept & good) / kept.sum() if kept.any() else float("nan")
             rec = np.count_nonzero(kept & good) / good.sum() if good.any() else float("nan")
             sec, csec = float(np.median(times)), float(np.median(cpu))
-            name = method if len(samplings) == 1 else f"{method}/{sampling}"
-            name += f"/{vname}" if vname else ""
             correct = np.count_nonzero(kept & good)
             summary.setdefault((name, sampling), []).append((prec, rec, sec, csec, correct))
             print(f"{label:<28} {len(err):>5} {good.mean():>5.3f} | {name:<16} "
                   f"{res.num_homographies:>3} {res.num_inliers:>5} {correct:>5} {prec:>6.3f} {rec:>6.3f} "
-                  f"{sec:>6.3f} {csec:>6.3f}")
+                  f"{sec:>6.3f} {csec:>6.3f}" + extra)
         sys.stdout.flush()
     print("\nmean over pairs (sec = wall, cpu = process CPU time; median per pair, then mean/max)")
     for (method, sampling), rows in summary.items():
@@ -119,7 +148,21 @@ def main(argv: list[str] | None = None) -> int:
               f"correct kept {int(a[:, 4].sum())}  "
               f"sec mean {a[:, 2].mean():.3f} max {a[:, 2].max():.3f}  "
               f"cpu mean {a[:, 3].mean():.3f} max {a[:, 3].max():.3f}")
+    for key, rows in agree.items():
+        n, same, lab, np_sec = np.array(rows).T
+        dev_sec = np.array([r[2] for r in summary[key]])
+        print(f"  {key[0]:<22} {args.device} vs numpy: same inlier flag {same.sum() / n.sum():.4%}, "
+              f"same label {lab.sum() / n.sum():.4%} of {int(n.sum())} matches; sec per pair "
+              f"{args.device} {dev_sec.mean():.3f} numpy {np_sec.mean():.3f}")
     return 0
+
+
+def sync(device) -> None:
+    """Wait for queued CUDA work, so that wall times are complete."""
+    if str(device).startswith("cuda"):
+        import torch
+
+        torch.cuda.synchronize()
 
 
 if __name__ == "__main__":

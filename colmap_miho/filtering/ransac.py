@@ -527,9 +527,12 @@ class NumpyScoring:
     prefetch = 0
 
     def hypotheses(self, problem: Problem, sample: np.ndarray, cfg: FilterConfig,
-                   ok: np.ndarray) -> Hypotheses:
-        """:func:`hypotheses_from_samples`."""
-        return hypotheses_from_samples(problem, sample, cfg, ok)
+                   ok: np.ndarray, pool: np.ndarray, t2: float) -> tuple[Hypotheses, np.ndarray]:
+        """:func:`hypotheses_from_samples` and their :func:`one_way_count` on ``pool``."""
+        hyp = hypotheses_from_samples(problem, sample, cfg, ok)
+        if not len(hyp):
+            return hyp, np.zeros(0, dtype=np.int64)
+        return hyp, self.one_way_count(problem, hyp, pool, t2)
 
     def one_way_count(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
                       t2: float) -> np.ndarray:
@@ -602,16 +605,16 @@ class _BatchScores:
         return keep, self.mask[keep], None
 
 
-def _score_batch(problem: Problem, hyp: Hypotheses, pool: np.ndarray, cfg: FilterConfig,
-                 search: _Search, stats: dict, scoring: NumpyScoring) -> bool:
+def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.ndarray,
+                 cfg: FilterConfig, search: _Search, stats: dict, scoring: NumpyScoring) -> bool:
     """Full-score the hypotheses of one batch that can matter; returns whether the best
     model changed.
 
     Full scoring runs in descending order of the one-way upper bound, in small groups, until
     no remaining bound can beat the best count; the batch's two strongest (at least n
-    possible inliers) are always scored, as buffer candidates.
+    possible inliers) are always scored, as buffer candidates. ``ub`` ``(K,)``: the one-way
+    bounds of ``hyp`` on ``pool`` (:func:`one_way_count`).
     """
-    ub = scoring.one_way_count(problem, hyp, pool, search.t2)
     order = np.argsort(-ub, kind="stable")
     ub = ub[order]
     n_buf = int(np.count_nonzero(ub[: min(2, cfg.buffer_size)] >= cfg.inlier_count))
@@ -698,9 +701,9 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         stats["drawn"] += size
         ok = spread_ok(problem, sample, cfg.t_l)
         stats["samples"] += int(ok.sum())
-        hyp = scoring.hypotheses(problem, sample, cfg, ok)
+        hyp, ub = scoring.hypotheses(problem, sample, cfg, ok, pool, search.t2)
         stats["valid"] += len(hyp)
-        if len(hyp) and _score_batch(problem, hyp, pool, cfg, search, stats, scoring):
+        if len(hyp) and _score_batch(problem, hyp, ub, pool, cfg, search, stats, scoring):
             required = _required(search, sampler, n, cfg)
     if search.hyp is None:
         return None, buffer

@@ -6,6 +6,7 @@
 - ``"cuda"``, ``"cuda:1"``, any other torch device string, or a ``torch.device`` object
   (``torch.device("cpu")`` included): torch float64 on that device (:class:`TorchScoring`).
 - ``"torch-cpu"``: torch on the CPU, the torch path where no GPU is lent (tests, timing).
+- ``"auto"``: ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``.
 
 What runs on the device: the closed-form 4-point homographies of every batch of minimal
 samples with their quasi-affine signs, the float32 one-way inlier bound of every hypothesis
@@ -20,7 +21,7 @@ keeping them on the host keeps both paths alike. Up to floating-point ties (a bo
 error landing on the other side of a threshold, which can then change the random stream),
 both paths give the same matches, labels and homographies.
 
-Round trips: one per batch for the hypotheses, one for their bounds, and one per chunk of
+Round trips: one per batch for the hypotheses and their bounds, and one per chunk of
 full scores (``TorchScoring.prefetch`` hypotheses screened ahead, doubling; the search takes
 the same ones in the same order as numpy, see :class:`~.ransac._BatchScores`).
 """
@@ -49,6 +50,8 @@ def scoring_for_device(device: Any = "cpu") -> NumpyScoring:
     except ImportError:
         raise ValueError(f"device {device!r} needs torch, which is not installed") from None
     if isinstance(device, str):
+        if device == "auto":
+            return TorchScoring("cuda") if torch.cuda.is_available() else NumpyScoring()
         if device == TORCH_CPU:
             device = torch.device("cpu")
         else:
@@ -119,14 +122,15 @@ class TorchScoring(NumpyScoring):
 
     # -- kernels --------------------------------------------------------------------------
     def hypotheses(self, problem: Problem, sample: np.ndarray, cfg: FilterConfig,
-                   ok: np.ndarray) -> Hypotheses:
-        """:func:`~.ransac.hypotheses_from_samples`, with the minimal solver and the
-        quasi-affinity of the samples on the device (one transfer back)."""
+                   ok: np.ndarray, pool: np.ndarray, t2: float) -> tuple[Hypotheses, np.ndarray]:
+        """:func:`~.ransac.hypotheses_from_samples` and their one-way bounds on ``pool``:
+        minimal solver, quasi-affinity of the samples and bounds on the device, one
+        transfer back."""
         sample = checked_samples(problem, sample, cfg, ok)
         nh = problem.num_halves
         B = len(sample)
         if not B:
-            return Hypotheses.empty(nh)
+            return Hypotheses.empty(nh), np.zeros(0, dtype=np.int64)
         P = self._problem(problem)
         s = self._tensor(sample)
         src = P.src_all[s].permute(0, 2, 1, 3).reshape(B * nh, 4, 2)
@@ -140,28 +144,39 @@ class TorchScoring(NumpyScoring):
         for sg in (s_fwd, s_inv):
             good &= (sg == sg[:, :, :1]).flatten(1).all(1) & (sg[:, :, 0] != 0).all(1)
         Hinv: Any = adjugate(H)
+        # The bound of every sample (the invalid ones are dropped on the host).
+        ub = self._bounds(problem, (H[:, 0] * s_fwd[:, 0, :1, None]).to(self.torch.float32),
+                          pool, t2)
         packed = self._host(self.torch.cat(
             [H.reshape(B, -1), Hinv.reshape(B, -1), s_fwd[:, :, 0], s_inv[:, :, 0],
-             good[:, None].to(H.dtype)], dim=1))
+             ub[:, None].to(H.dtype), good[:, None].to(H.dtype)], dim=1))
         keep = packed[:, -1] > 0
         packed = packed[keep]
         k = 9 * nh
-        return Hypotheses(packed[:, :k].reshape(-1, nh, 3, 3),
-                          packed[:, k:2 * k].reshape(-1, nh, 3, 3),
-                          packed[:, 2 * k:2 * k + nh], packed[:, 2 * k + nh:2 * k + 2 * nh],
-                          sample[keep])
+        hyp = Hypotheses(packed[:, :k].reshape(-1, nh, 3, 3),
+                         packed[:, k:2 * k].reshape(-1, nh, 3, 3),
+                         packed[:, 2 * k:2 * k + nh], packed[:, 2 * k + nh:2 * k + 2 * nh],
+                         sample[keep])
+        return hyp, packed[:, -2].astype(np.int64)
 
     def one_way_count(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
                       t2: float) -> np.ndarray:
         """:func:`~.ransac.one_way_count` (float32, division-free) on the device."""
+        Hs = self._tensor((hyp.H[:, 0] * hyp.sign[:, 0, None, None]).astype(np.float32))
+        return self._host(self._bounds(problem, Hs, idx, t2)).astype(np.int64)
+
+    def _bounds(self, problem: Problem, Hs: Any, idx: np.ndarray, t2: float) -> Any:
+        """One-way inlier counts ``(K,)`` on the device of the first half's homographies
+        ``Hs`` ``(K, 3, 3)`` float32, each scaled by its sample's forward sign."""
         torch = self.torch
         t2 = t2 / problem.error_scale**2
         P, ix = self._problem(problem), self._index(idx)
         src = P.src[0][ix].to(torch.float32)
         dst = P.dst[0][ix].to(torch.float32)
         X, Y, x2, y2 = src[:, 0], src[:, 1], dst[:, 0], dst[:, 1]
-        n, K = len(idx), len(hyp)
-        Hs = self._tensor((hyp.H[:, 0] * hyp.sign[:, 0, None, None]).astype(np.float32))
+        n, K = len(idx), Hs.shape[0]
+        if K == 0:
+            return torch.zeros(0, dtype=torch.int64, device=self.device)
         Hs = Hs.reshape(K, 9, 1)
         counts = []
         kb = max(1, self._bound_block // max(n, 1))
@@ -186,7 +201,7 @@ class TorchScoring(NumpyScoring):
             W *= t2
             ok &= U <= W
             counts.append(ok.sum(1))
-        return self._host(torch.cat(counts)).astype(np.int64)
+        return torch.cat(counts)
 
     def singular_value_ok(self, problem: Problem, hyp: Hypotheses,
                           cfg: FilterConfig) -> np.ndarray:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from planes import make_scene
 
 from colmap_miho import filter_matches
 from colmap_miho.filtering.config import FilterConfig
@@ -20,7 +21,6 @@ from colmap_miho.filtering.miho import build_problem
 from colmap_miho.filtering.mop import run_mop
 from colmap_miho.filtering.ransac import NumpyScoring, Problem, hypotheses_from_samples
 from colmap_miho.filtering.torch_scoring import TorchScoring, scoring_for_device
-from planes import make_scene
 
 torch = pytest.importorskip("torch")
 
@@ -47,6 +47,8 @@ def agreement(a, b) -> tuple[float, float]:
 def test_device_values_pick_the_kernels():
     assert type(scoring_for_device("cpu")) is NumpyScoring
     assert type(scoring_for_device(None)) is NumpyScoring
+    auto = scoring_for_device("auto")
+    assert isinstance(auto, TorchScoring) == torch.cuda.is_available()
     s = scoring_for_device("torch-cpu")
     assert isinstance(s, TorchScoring) and s.device == torch.device("cpu")
     assert isinstance(scoring_for_device(torch.device("cpu")), TorchScoring)
@@ -88,16 +90,17 @@ def batch():
 def test_kernels_match_numpy(batch):
     problem, cfg, sample, ok, hyp, pool = batch
     ref, dev = NumpyScoring(), TorchScoring("cpu")
-    got = dev.hypotheses(problem, sample, cfg, ok)
+    t2 = cfg.t_l**2
+    got, got_bound = dev.hypotheses(problem, sample, cfg, ok, pool, t2)
     assert len(hyp) > 200 and len(got) == len(hyp)
     np.testing.assert_array_equal(got.sample, hyp.sample)
     np.testing.assert_array_equal(got.sign, hyp.sign)
     np.testing.assert_array_equal(got.sign_inv, hyp.sign_inv)
     np.testing.assert_allclose(got.H, hyp.H, rtol=0, atol=1e-12)
     np.testing.assert_allclose(got.Hinv, hyp.Hinv, rtol=0, atol=1e-12)
-    t2 = cfg.t_l**2
     bound = ref.one_way_count(problem, hyp, pool, t2)
     assert bound.max() > 50  # some hypotheses hit a plane: the counts are informative
+    np.testing.assert_array_equal(got_bound, bound)
     np.testing.assert_array_equal(dev.one_way_count(problem, hyp, pool, t2), bound)
     np.testing.assert_array_equal(dev.singular_value_ok(problem, hyp, cfg),
                                   ref.singular_value_ok(problem, hyp, cfg))
