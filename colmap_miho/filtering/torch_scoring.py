@@ -28,13 +28,14 @@ the same ones in the same order as numpy, see :class:`~.ransac._BatchScores`).
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
 from .config import FilterConfig
-from .homography import adjugate, dlt_singular_value, four_point
-from .ransac import Hypotheses, NumpyScoring, Problem, checked_samples, error_sq
+from .homography import adjugate, dlt_singular_value, four_point, project
+from .ransac import Hypotheses, NumpyScoring, Problem, checked_samples
 
 #: ``device`` value that runs the torch path on the CPU.
 TORCH_CPU = "torch-cpu"
@@ -88,6 +89,7 @@ class TorchScoring(NumpyScoring):
         self._bound_block = 1 << 24 if on_gpu else 131072  # elements per one-way block
         self._problems: dict[int, tuple[Problem, Any]] = {}
         self._pool: tuple[np.ndarray, Any] | None = None
+        self._points: tuple | None = None
 
     # -- transfers ------------------------------------------------------------------------
     def _tensor(self, a: np.ndarray) -> Any:
@@ -112,9 +114,28 @@ class TorchScoring(NumpyScoring):
             self._pool = (idx, self._tensor(idx))
         return self._pool[1]
 
-    def _hyp(self, hyp: Hypotheses) -> Any:
-        return Hypotheses(*(self._tensor(getattr(hyp, f))
-                            for f in ("H", "Hinv", "sign", "sign_inv", "sample")))
+    def _hyp(self, hyp: Hypotheses) -> tuple[Any, Any]:
+        """``(mats, signs)`` on the device (one upload): ``(K, 2 halves, 3, 3)``, the forward
+        homographies of every half then their adjugates, and their quasi-affine signs
+        ``(K, 2 halves)``."""
+        K, nh = len(hyp), hyp.H.shape[1]
+        packed = self._tensor(np.concatenate(
+            [hyp.H.reshape(K, -1), hyp.Hinv.reshape(K, -1), hyp.sign, hyp.sign_inv], axis=1))
+        mats = packed[:, :18 * nh].reshape(K, 2 * nh, 3, 3)
+        return mats, packed[:, 18 * nh:]
+
+    def _pool_points(self, problem: Problem, idx: np.ndarray) -> tuple[Any, Any]:
+        """Source and destination points ``(2 halves, n, 2)`` of the pool ``idx`` in the
+        order of :meth:`_hyp`'s matrices: ``(src_h..., dst_h...)`` and ``(dst_h..., src_h...)``."""
+        key = (id(problem), id(idx))
+        hit = self._points
+        if hit is None or hit[0] != key or hit[1] is not problem or hit[2] is not idx:
+            P, ix = self._problem(problem), self._index(idx)
+            src = P.src_all[ix].transpose(0, 1)  # (halves, n, 2)
+            dst = P.dst_all[ix].transpose(0, 1)
+            pts = (self.torch.cat([src, dst]), self.torch.cat([dst, src]))
+            hit = self._points = (key, problem, idx, pts)
+        return hit[3]
 
     @staticmethod
     def _host(t: Any) -> np.ndarray:
@@ -209,6 +230,7 @@ class TorchScoring(NumpyScoring):
         return self._host(self._sv_ok(problem, self._tensor(hyp.sample), cfg))
 
     def _sv_ok(self, problem: Problem, sample: Any, cfg: FilterConfig) -> Any:
+        """:func:`~.ransac.passes_singular_value_test` of the samples ``(K, 4)`` (device)."""
         P = self._problem(problem)
         K, nh = sample.shape[0], problem.num_halves
         src = P.src_all[sample].permute(0, 2, 1, 3).reshape(K * nh, 4, 2)
@@ -217,7 +239,18 @@ class TorchScoring(NumpyScoring):
         return (sv > cfg.min_singular_value).all(1)
 
     def _error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> Any:
-        return error_sq(self._problem(problem), self._hyp(hyp), self._index(idx))
+        """:func:`~.ransac.error_sq` on the device ``(K, n)``: the same formula, element by
+        element, over all halves and both directions at once (a handful of launches)."""
+        mats, signs = self._hyp(hyp)
+        a, b = self._pool_points(problem, idx)
+        projected: Any = project(mats, a)  # tensors (K, 2 halves, n)
+        x, y, w = projected
+        e = (x - b[..., 0]) ** 2 + (y - b[..., 1]) ** 2
+        e.masked_fill_(self.torch.sign(w) != signs[..., None], math.inf)
+        err = e.amax(dim=1)
+        if problem.error_scale != 1.0:
+            err *= problem.error_scale**2
+        return err
 
     def error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
         """:func:`~.ransac.error_sq` on the device, brought back as float64 numpy."""
