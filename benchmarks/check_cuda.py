@@ -1,5 +1,13 @@
-"""CPU vs CUDA agreement and CUDA speed of the NCC refinement (needs a CUDA device).
+"""CPU vs CUDA agreement and CUDA speed of the filter and the NCC refinement (needs CUDA).
 
+0. ``filter_matches`` (MOP and MOP+MiHo, seed 0) on the 12 Oxford + 8 Strecha SIFT pairs of
+   ``bench_filter.py`` (``--quick``: 3 pairs), numpy on the CPU against ``--device``: per
+   pair and in total the share of matches with the same inlier flag and with the same label,
+   and the seconds per pair of each (median of ``--runs`` calls after a warm-up); then the
+   fountain-P11 scene as the pipeline filters it: pycolmap SIFT + exhaustive matching (the
+   verified matches, 55 pairs, about 113k matches; the database is built once under
+   ``benchmarks/results/cache``), every pair filtered with MOP+MiHo on each device in
+   turn: total seconds, seconds per pair and the agreement.
 1. ``refine_pair`` on Oxford graf and boat 1->2 (SIFT and GFTT front ends, GT patch
    homographies), per shape set and move mode: how often CPU and CUDA move the same side, the
    largest and median coordinate difference of matches moved on both, and the median GT
@@ -12,8 +20,14 @@
    batch sizes 512 (the default) and 4096.
 
     python benchmarks/check_cuda.py
+    python benchmarks/check_cuda.py --sections filter,fountain     # the filter only
+    python benchmarks/check_cuda.py --device cpu --sections filter --quick
+        # dry run without a GPU: the filter sections with torch on the CPU ("torch-cpu")
+        # in place of CUDA (the NCC sections need CUDA and are skipped)
 
-Data: ``$COLMAP_MIHO_DATA`` or ``<repo>/../shared/data``. Exit code 2 without CUDA or data.
+Carry ``benchmarks/results/cache`` (ignored by git) to skip the SIFT and pycolmap front ends.
+Data: ``$COLMAP_MIHO_DATA`` or ``<repo>/../shared/data``. Exit code 2 without CUDA (unless
+``--device cpu``) or data.
 """
 
 from __future__ import annotations
@@ -29,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from colmap_miho import refine_pair
+from colmap_miho import filter_matches, refine_pair
 from colmap_miho.refinement.config import NCCConfig, TrackConfig
 from colmap_miho.refinement.tracks import refine_tracks
 from miho_bench.datasets import oxford_pairs
@@ -37,6 +51,8 @@ from miho_bench.frontend import filtered_multiview_matches, sift_matches
 from miho_bench.match_errors import transfer_error
 
 GT_PX = 3.0
+SECTIONS = ("filter", "fountain", "pairs", "tracks", "speed")
+NCC_SECTIONS = ("pairs", "tracks", "speed")
 
 
 def data_root() -> Path:
@@ -51,6 +67,100 @@ def agreement(a1, a2, side_a, b1, b2, side_b) -> str:
         return f"same side {same:6.1%}, none moved on both"
     d = np.maximum(np.linalg.norm(a1 - b1, axis=1), np.linalg.norm(a2 - b2, axis=1))[both]
     return f"same side {same:6.1%}, |cpu-cuda| max {d.max():.2e} median {np.median(d):.2e} px"
+
+
+def _sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def _timed_filter(pts1, pts2, device: str, runs: int, method: str = "mop_miho"):
+    """(result, median seconds) of ``runs`` calls of ``filter_matches`` on ``device``."""
+    walls = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        res = filter_matches(pts1, pts2, method=method, seed=0, device=device)
+        _sync(device)
+        walls.append(time.perf_counter() - t0)
+    return res, statistics.median(walls)
+
+
+def _same(a, b) -> tuple[int, int]:
+    """Matches with the same inlier flag, with the same label."""
+    return int(np.count_nonzero(a.inliers == b.inliers)), int(np.count_nonzero(a.labels == b.labels))
+
+
+def check_filter(root: Path, device: str, runs: int, quick: bool) -> None:
+    from bench_filter import CACHE, select_pairs
+
+    from miho_bench.frontend_cache import load_inputs
+
+    print(f"== filter_matches: numpy (CPU) vs {device} (bench_filter pairs, SIFT+NNR) ==")
+    rng = np.random.default_rng(0)  # warm-up: imports, kernels, allocator
+    for dev in ("cpu", device):
+        filter_matches(rng.uniform(0, 500, (300, 2)), rng.uniform(0, 500, (300, 2)), device=dev)
+    print(f"{'pair':<28} {'N':>5} {'method':<9} {'kept np':>7} {'kept dev':>8} {'same':>7} "
+          f"{'label':>7} {'np s':>6} {'dev s':>6}")
+    tot: dict[str, list[float]] = {}
+    for label, pair in select_pairs(root, quick):
+        fm = load_inputs(pair, "sift", CACHE)
+        for method in ("mop", "mop_miho"):
+            a, ta = _timed_filter(fm.pts1, fm.pts2, "cpu", runs, method)
+            b, tb = _timed_filter(fm.pts1, fm.pts2, device, runs, method)
+            same, lab = _same(a, b)
+            n = len(fm.pts1)
+            for key, v in (("n", n), ("same", same), ("lab", lab), ("np", ta), ("dev", tb)):
+                tot.setdefault(f"{method} {key}", []).append(v)
+            print(f"{label:<28} {n:>5} {method:<9} {a.num_inliers:>7} {b.num_inliers:>8} "
+                  f"{same / n:>7.2%} {lab / n:>7.2%} {ta:>6.3f} {tb:>6.3f}")
+        sys.stdout.flush()
+    for method in ("mop", "mop_miho"):
+        n = sum(tot[f"{method} n"])
+        print(f"{method}: same inlier flag {sum(tot[f'{method} same']) / n:.4%}, same label "
+              f"{sum(tot[f'{method} lab']) / n:.4%} of {int(n)} matches; seconds per pair numpy "
+              f"{np.mean(tot[f'{method} np']):.3f}, {device} {np.mean(tot[f'{method} dev']):.3f}")
+
+
+def fountain_matches(root: Path) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(pts1, pts2) of every verified pair of fountain-P11 from pycolmap SIFT + exhaustive
+    matching (pixel centres), as the pipeline reads them."""
+    from bench_filter import CACHE
+
+    from colmap_miho.adapters.database import ColmapDatabase
+    from miho_bench.frontend_cache import _colmap_database
+
+    CACHE.mkdir(parents=True, exist_ok=True)
+    db_path = _colmap_database(root / "strecha_fountain_p11" / "images", CACHE)
+    out = []
+    with ColmapDatabase(db_path) as db:
+        kps = {r.image_id: db.keypoints(r.image_id) for r in db.images()}
+        for rec in db.pairs("verified"):
+            m = db.matches(rec.image_id1, rec.image_id2, "verified").astype(np.int64)
+            out.append((kps[rec.image_id1][m[:, 0]], kps[rec.image_id2][m[:, 1]]))
+    return out
+
+
+def time_fountain(root: Path, device: str) -> None:
+    print(f"\n== filter_matches on fountain-P11 (pycolmap verified matches): numpy vs {device} ==")
+    pairs = fountain_matches(root)
+    print(f"{len(pairs)} pairs, {sum(len(p1) for p1, _ in pairs)} matches, MOP+MiHo, one call "
+          "per pair in turn (after one warm-up call)")
+    res: dict[str, list] = {}
+    for dev in ("cpu", device):
+        filter_matches(*pairs[0], seed=0, device=dev)
+        _sync(dev)
+        t0 = time.perf_counter()
+        res[dev] = [filter_matches(p1, p2, seed=0, device=dev) for p1, p2 in pairs]
+        _sync(dev)
+        wall = time.perf_counter() - t0
+        print(f"{dev:>10s}: {wall:6.2f} s, {wall / len(pairs):.4f} s per pair, kept "
+              f"{sum(r.num_inliers for r in res[dev])}")
+    n = sum(len(p1) for p1, _ in pairs)
+    same = [_same(a, b) for a, b in zip(res["cpu"], res[device], strict=True)]
+    print(f"same inlier flag {sum(s for s, _ in same) / n:.4%}, same label "
+          f"{sum(lab for _, lab in same) / n:.4%}; pairs identical "
+          f"{sum(s == len(p1) and lab == len(p1) for (s, lab), (p1, _) in zip(same, pairs, strict=True))}"
+          f"/{len(pairs)}")
 
 
 def check_pairs(root: Path) -> None:
@@ -139,18 +249,42 @@ def main(argv=None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--track-images", type=int, default=4)
+    ap.add_argument("--device", choices=("cuda", "cpu"), default="cuda",
+                    help="cpu: dry run of the filter sections with torch on the CPU")
+    ap.add_argument("--sections", default=",".join(SECTIONS),
+                    help=f"comma-separated, of {', '.join(SECTIONS)} (default: all)")
+    ap.add_argument("--quick", action="store_true", help="filter section: 3 pairs only")
     args = ap.parse_args(argv)
-    if not torch.cuda.is_available():
+    sections = args.sections.split(",")
+    unknown = sorted(set(sections) - set(SECTIONS))
+    if unknown:
+        ap.error(f"unknown sections {unknown}; choose from {', '.join(SECTIONS)}")
+    if args.device == "cuda" and not torch.cuda.is_available():
         print("torch sees no CUDA device", file=sys.stderr)
         return 2
     root = data_root()
     if not (root / "oxford_affine").is_dir():
         print(f"data folder not found: {root}", file=sys.stderr)
         return 2
-    print(f"torch {torch.__version__}, {torch.cuda.get_device_name()}")
-    check_pairs(root)
-    check_tracks(root, args.track_images)
-    time_cuda(root, args.runs)
+    device = "cuda" if args.device == "cuda" else "torch-cpu"
+    if args.device == "cpu":
+        skipped = [s for s in sections if s in NCC_SECTIONS]
+        sections = [s for s in sections if s not in NCC_SECTIONS]
+        torch.set_num_threads(1)  # like the single-threaded numpy filter; no contention
+        print(f"dry run: torch {torch.__version__} on the CPU (1 thread) in place of CUDA"
+              + (f"; skipped (need CUDA): {', '.join(skipped)}" if skipped else ""))
+    else:
+        print(f"torch {torch.__version__}, {torch.cuda.get_device_name()}")
+    if "filter" in sections:
+        check_filter(root, device, args.runs, args.quick)
+    if "fountain" in sections:
+        time_fountain(root, device)
+    if "pairs" in sections:
+        check_pairs(root)
+    if "tracks" in sections:
+        check_tracks(root, args.track_images)
+    if "speed" in sections:
+        time_cuda(root, args.runs)
     return 0
 
 

@@ -9,5 +9,6 @@ Modules, in data-flow order:
 - ``mop``: the outer loop (adaptive threshold, failure counter).
 - ``assign``: homography assignment of the kept matches (App. A.4).
 - ``api``: :func:`filter_matches` and :class:`FilterResult`.
-- ``homography``: batched homography maths used by all of the above.
+- ``homography``: batched homography maths used by all of the above (numpy or torch).
+- ``torch_scoring``: the ``device`` argument, and the RANSAC kernels in torch on that device.
 """

@@ -32,6 +32,11 @@ neighbours are mostly closer than t_l to each other (measured: 79-95% of such sa
 the spread test on SIFT pairs; 2-7% fail now). The adaptive bound uses the all-inlier
 probability of that mixture (for local samples ``w * w_loc^3`` with ``w_loc`` the measured
 inlier fraction among the inliers' neighbours).
+
+Where the heavy kernels run (minimal solver, bounds, singular-value test, full scoring):
+:class:`NumpyScoring` (numpy, the default) or its torch twin
+:class:`~colmap_miho.filtering.torch_scoring.TorchScoring` (any torch device), passed as
+``scoring``; sampling and the search's bookkeeping are numpy for both.
 """
 
 from __future__ import annotations

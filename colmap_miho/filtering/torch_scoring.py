@@ -86,7 +86,7 @@ class TorchScoring(NumpyScoring):
         # Screening ahead costs little on a GPU and saves round trips; on the CPU it is
         # extra arithmetic, so only a little.
         self.prefetch = 64 if on_gpu else 8
-        self._bound_block = 1 << 24 if on_gpu else 131072  # elements per one-way block
+        self._bound_block = 1 << 22 if on_gpu else 131072  # elements per one-way block
         self._problems: dict[int, tuple[Problem, Any]] = {}
         self._pool: tuple[np.ndarray, Any] | None = None
         self._points: tuple | None = None
