@@ -63,6 +63,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -73,6 +74,9 @@ from .homography import adjugate, to_unit_h33
 from .miho import apply_affine, build_problem, choose_rotation, sqrt_split
 from .mop import run_mop
 from .torch_scoring import scoring_for_device
+
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass(frozen=True)
@@ -143,7 +147,7 @@ def _failure(n: int, method: FilterMethod, stats: dict, reason: str) -> FilterRe
 
 def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
                    config: FilterConfig | None = None, seed: int = 0,
-                   progress: bool = False, device="cpu") -> FilterResult:
+                   progress: bool = False, device: str | torch.device | None = "cpu") -> FilterResult:
     """Filter two-view matches with MOP / MOP* / MOP+MiHo / MOP+MiHo* / MOP+VSAC.
 
     Args:

@@ -29,7 +29,7 @@ the same ones in the same order as numpy, see :class:`~.ransac._BatchScores`).
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -37,11 +37,14 @@ from .config import FilterConfig
 from .homography import adjugate, dlt_singular_value, four_point, project
 from .ransac import Hypotheses, NumpyScoring, Problem, checked_samples
 
+if TYPE_CHECKING:
+    import torch
+
 #: ``device`` value that runs the torch path on the CPU.
 TORCH_CPU = "torch-cpu"
 
 
-def scoring_for_device(device: Any = "cpu") -> NumpyScoring:
+def scoring_for_device(device: str | torch.device | None = "cpu") -> NumpyScoring:
     """The kernels for ``device`` (see the module docstring); ``ValueError`` (one line) for
     an unknown device or one torch cannot use (e.g. ``"cuda"`` without a CUDA device)."""
     if device is None or (isinstance(device, str) and device == "cpu"):
@@ -127,15 +130,14 @@ class TorchScoring(NumpyScoring):
     def _pool_points(self, problem: Problem, idx: np.ndarray) -> tuple[Any, Any]:
         """Source and destination points ``(2 halves, n, 2)`` of the pool ``idx`` in the
         order of :meth:`_hyp`'s matrices: ``(src_h..., dst_h...)`` and ``(dst_h..., src_h...)``."""
-        key = (id(problem), id(idx))
         hit = self._points
-        if hit is None or hit[0] != key or hit[1] is not problem or hit[2] is not idx:
+        if hit is None or hit[0] is not problem or hit[1] is not idx:
             P, ix = self._problem(problem), self._index(idx)
             src = P.src_all[ix].transpose(0, 1)  # (halves, n, 2)
             dst = P.dst_all[ix].transpose(0, 1)
-            pts = (self.torch.cat([src, dst]), self.torch.cat([dst, src]))
-            hit = self._points = (key, problem, idx, pts)
-        return hit[3]
+            hit = self._points = (problem, idx, (self.torch.cat([src, dst]),
+                                                 self.torch.cat([dst, src])))
+        return hit[2]
 
     @staticmethod
     def _host(t: Any) -> np.ndarray:
