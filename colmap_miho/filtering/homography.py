@@ -49,18 +49,25 @@ def normalise_points(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ``(T, pts_n)``: ``T`` ``(B, 3, 3)`` similarity with ``pts_n = T pts``, the normalised
         points ``(B, M, 2)`` having centroid 0 and mean distance ``sqrt(2)`` from it.
     """
+    scale, centroid, normalised = _normalised(pts)
+    T = zeros(pts, (pts.shape[0], 3, 3))
+    T[:, 0, 0] = scale
+    T[:, 1, 1] = scale
+    T[:, :2, 2] = -scale[:, None] * centroid[:, 0, :]
+    T[:, 2, 2] = 1.0
+    return T, normalised
+
+
+def _normalised(pts: np.ndarray):
+    """``(scale (B,), centroid (B, 1, 2), normalised points (B, M, 2))`` of
+    :func:`normalise_points`."""
     xp = array_module(pts)
     m = pts.shape[1]
     centroid = pts.sum(axis=1, keepdims=True) / m
     centred = pts - centroid
     mean_dist = xp.sqrt((centred**2).sum(-1)).sum(axis=1) / m
     scale = math.sqrt(2.0) / xp.clip(mean_dist, 1e-12, None)
-    T = zeros(pts, (pts.shape[0], 3, 3))
-    T[:, 0, 0] = scale
-    T[:, 1, 1] = scale
-    T[:, :2, 2] = -scale[:, None] * centroid[:, 0, :]
-    T[:, 2, 2] = 1.0
-    return T, centred * scale[:, None, None]
+    return scale, centroid, centred * scale[:, None, None]
 
 
 # adj(H) = H[_ADJ[0]] * H[_ADJ[1]] - H[_ADJ[2]] * H[_ADJ[3]] entrywise, over the row-major
@@ -99,14 +106,15 @@ def normalise_scale(H: np.ndarray) -> np.ndarray:
 def _dlt_system(s: np.ndarray, d: np.ndarray) -> np.ndarray:
     """The DLT system ``A`` ``(B, 2M, 9)`` of ``(B, M, 2)`` (normalised) point sets, ``A h = 0``
     for ``d ~ H s`` with ``h`` the row-major entries of ``H``: two rows per point."""
+    # Stacked rather than assigned entry by entry: a few whole-array operations.
+    xp = array_module(s)
     B, M, _ = s.shape
-    A = zeros(s, (B, 2 * M, 9))
     x, y, u, v = s[..., 0], s[..., 1], d[..., 0], d[..., 1]
-    A[:, 0::2, 0], A[:, 0::2, 1], A[:, 0::2, 2] = x, y, 1.0
-    A[:, 0::2, 6], A[:, 0::2, 7], A[:, 0::2, 8] = -u * x, -u * y, -u
-    A[:, 1::2, 3], A[:, 1::2, 4], A[:, 1::2, 5] = x, y, 1.0
-    A[:, 1::2, 6], A[:, 1::2, 7], A[:, 1::2, 8] = -v * x, -v * y, -v
-    return A
+    one, zero = xp.ones_like(x), xp.zeros_like(x)
+    nu, nv = -u, -v
+    even = xp.stack([x, y, one, zero, zero, zero, nu * x, nu * y, nu], axis=-1)
+    odd = xp.stack([zero, zero, zero, x, y, one, nv * x, nv * y, nv], axis=-1)
+    return xp.stack([even, odd], axis=2).reshape(B, 2 * M, 9)
 
 
 def dlt(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -195,9 +203,7 @@ def dlt_singular_value(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Smallest singular value ``(B,)`` of the normalised minimal DLT system (``8 x 9``) of
     ``(B, 4, 2)`` samples: the paper's degeneracy test keeps hypotheses above 0.05."""
     xp = array_module(src)
-    _, s = normalise_points(src)
-    _, d = normalise_points(dst)
-    A = _dlt_system(s, d)
+    A = _dlt_system(_normalised(src)[2], _normalised(dst)[2])
     evals = xp.linalg.eigvalsh(A @ xp.swapaxes(A, 1, 2))
     return xp.sqrt(xp.clip(evals[:, 0], 0.0, None))
 
