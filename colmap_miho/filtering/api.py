@@ -46,7 +46,8 @@ Where this implementation differs from the paper (all are :class:`FilterConfig` 
   floating-point ties (``filtering/torch_scoring.py``, ``tests/filtering/test_filter_torch.py``).
   A MOP round is a chain of ~100 small batched operations on arrays of (128-1024
   hypotheses x N matches) where per-call latency, not arithmetic, dominates: torch on the
-  CPU is slower than numpy for them (``benchmarks/bench_filter.py --device torch-cpu``).
+  CPU takes about 1.7x numpy's CPU time for them (``benchmarks/bench_filter.py --device
+  torch-cpu --torch-threads 1``), so numpy stays the CPU default.
 
 Speed (see ``benchmarks/bench_filter.py``; the reference implementation takes 1.4 s for MOP
 and 2.3 s for MOP+MiHo on 1351 SIFT matches): closed-form minimal solver and sample signs

@@ -59,7 +59,6 @@ from .homography import (
     four_point,
     project,
     triangle_orientations,
-    zeros,
 )
 
 _DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
@@ -108,8 +107,7 @@ class Problem:
 class Hypotheses:
     """A stack of ``K`` hypotheses: ``H`` and its adjugate ``Hinv`` ``(K, halves, 3, 3)``,
     quasi-affine reference signs ``sign``/``sign_inv`` ``(K, halves)`` and the minimal
-    samples ``sample`` ``(K, 4)`` (global match indices). numpy arrays, except for the
-    transient device copies of the torch path (:meth:`error_sq` etc. accept both)."""
+    samples ``sample`` ``(K, 4)`` (global match indices), numpy arrays."""
 
     H: np.ndarray
     Hinv: np.ndarray
@@ -225,20 +223,16 @@ def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
     """Squared MOP error ``(K, n)`` of hypotheses on the matches ``idx`` ``(n,)``: the max over
     halves and directions of the squared transfer error (times ``problem.error_scale``
     squared); ``inf`` where a projection breaks the quasi-affine sign of the hypothesis'
-    sample."""
-    xp = array_module(problem.x1)
-    err = zeros(problem.x1, (len(hyp), len(idx)))
+    sample. The torch path computes the same per-element formula stacked over halves and
+    directions (``TorchScoring._error_sq``)."""
+    err = np.zeros((len(hyp), len(idx)))
     for h in range(problem.num_halves):
         src, dst = problem.src[h][idx], problem.dst[h][idx]
         for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst), (hyp.Hinv, hyp.sign_inv, dst, src)):
             x, y, w = project(mat[:, h], a)
             e = (x - b[:, 0]) ** 2 + (y - b[:, 1]) ** 2
-            bad = xp.sign(w) != sgn[:, h, None]
-            if xp is np:
-                e[bad] = np.inf
-            else:  # masked fill: a boolean-mask assignment would synchronise a GPU
-                e.masked_fill_(bad, math.inf)
-            xp.maximum(err, e, out=err)
+            e[np.sign(w) != sgn[:, h, None]] = np.inf
+            np.maximum(err, e, out=err)
     if problem.error_scale != 1.0:
         err *= problem.error_scale**2
     return err
