@@ -17,6 +17,7 @@ import pytest
 from planes import make_scene
 
 from colmap_miho import filter_matches
+from colmap_miho.enums import Device
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem
 from colmap_miho.filtering.mop import run_mop
@@ -50,6 +51,7 @@ def agreement(a, b) -> tuple[float, float]:
 def test_device_values_pick_the_kernels():
     assert type(scoring_for_device("cpu")) is NumpyScoring
     assert type(scoring_for_device(None)) is NumpyScoring
+    assert type(scoring_for_device(Device.CPU)) is NumpyScoring  # the pipeline's enum
     auto = scoring_for_device("auto")
     assert isinstance(auto, TorchScoring) == torch.cuda.is_available()
     s = scoring_for_device("torch-cpu")
