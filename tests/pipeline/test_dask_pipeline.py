@@ -1,0 +1,34 @@
+"""``refine --dask``: a local Dask cluster of 2 workers writes the same database as the
+process pool and as one process (only the client writes SQLite)."""
+
+from __future__ import annotations
+
+import pytest
+from helpers.db_contents import assert_same_database
+
+from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.pipeline import filter_stage, stages
+from colmap_miho.pipeline.executor import LOCAL
+from colmap_miho.pipeline.refine import refine_database
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_synthetic_scene(tmp_path_factory.mktemp("dask"), num_images=4, num_points=80,
+                                outlier_ratio=0.15, noise_px=1.0, seed=9)
+
+
+def test_local_cluster_equals_process_pool_and_one_process(scene, tmp_path, monkeypatch):
+    # small scene: let the process pool take it too (it keeps small jobs in this process)
+    monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
+    monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    one = refine_database(scene.database, scene.image_dir, tmp_path / "one.db", workers=1, device="cpu")
+    pool = refine_database(scene.database, scene.image_dir, tmp_path / "pool.db", workers=2, device="cpu")
+    dask = refine_database(scene.database, scene.image_dir, tmp_path / "dask.db", workers=2, device="cpu",
+                           dask=LOCAL)
+    assert (one.runner, pool.runner, dask.runner) == ("inline", "processes", "dask")
+    assert pool.workers == dask.workers == 2
+    assert dask.filter_chunks >= 2  # the pairs were spread over the cluster in chunks
+    assert dask.keypoints_moved > 0 and dask.matches_removed > 0
+    assert_same_database(one.output, pool.output)
+    assert_same_database(pool.output, dask.output)
