@@ -305,7 +305,7 @@ def _run_stages(database: Path, image_dir: Path, wc: WorkingCopy, store: RunStor
                 raise DatabaseError(str(exc).replace(str(work_db), str(database))) from None
             with ColmapDatabase(work_db) as db:
                 read, read_stats = run_read(db, ReadConfig(
-                    pipeline=pcfg, image_dir=image_dir, max_images_in_memory=rec.tracks.max_images_in_memory,
+                    pipeline=pcfg, image_dir=image_dir, image_budget_bytes=pcfg.image_budget_bytes(runner.slots),
                     strict=strict, database_name=database))
                 laps.lap("read")
                 filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
@@ -354,19 +354,23 @@ def _check_writable_file(path: Path, label: str) -> None:
 
 def _refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, rec: Recipe, device: str,
             runner: Runner, progress: bool) -> tuple[dict[int, np.ndarray], dict]:
-    """Refine stage on the stored pairs whose two images are readable; returns the new
-    keypoints and the summed refinement counters with the processes used (``{}`` when
-    refinement is off or nothing was filtered)."""
+    """Refine stage on the stored pairs whose two images are readable, on ``runner``, skipping
+    the track groups ``store`` holds and storing each finished one; returns the new keypoints
+    and the summed refinement counters with the processes used (``{}`` when refinement is off
+    or nothing was filtered)."""
     if not rec.pipeline.refine or not store.filter_counts().pairs_ok:
         return read.keypoints, {}
     ok = store.load_filtered()
     missing = read.loader.missing
     usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
     ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
+    budget = rec.pipeline.image_budget_bytes(runner.slots)
+    # the groups are numbered for one image budget: stored groups of another are walked again
+    done = store.refine_groups({"image_budget_bytes": budget})
     new_keypoints, stats, used = run_refine_stage(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, rec.tracks,
-        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), workers=runner.slots,
-        progress=progress)
+        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), runner=runner,
+        progress=progress, image_budget_bytes=budget, done=done, on_group=store.save_group)
     # the images skipped before the walk count as missing too: the same number as images_missing
     return new_keypoints, dict(stats, workers=used,
                                missing_images=max(int(stats.get("missing_images", 0)), len(missing)))

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import pytest
 from helpers.db_contents import assert_same_database
+from helpers.small_budget import two_images
 
 from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.pipeline import filter_stage, stages
+from colmap_miho.pipeline.config import PipelineConfig
 from colmap_miho.pipeline.executor import LOCAL
 from colmap_miho.pipeline.refine import refine_database
 
@@ -22,6 +24,7 @@ def test_local_cluster_equals_process_pool_and_one_process(scene, tmp_path, monk
     # small scene: let the process pool take it too (it keeps small jobs in this process)
     monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # several track groups
     one = refine_database(scene.database, scene.image_dir, tmp_path / "one.db", workers=1, device="cpu")
     pool = refine_database(scene.database, scene.image_dir, tmp_path / "pool.db", workers=2, device="cpu")
     dask = refine_database(scene.database, scene.image_dir, tmp_path / "dask.db", workers=2, device="cpu",
@@ -29,6 +32,7 @@ def test_local_cluster_equals_process_pool_and_one_process(scene, tmp_path, monk
     assert (one.runner, pool.runner, dask.runner) == ("inline", "processes", "dask")
     assert pool.workers == dask.workers == 2
     assert dask.filter_chunks >= 2  # the pairs were spread over the cluster in chunks
+    assert dask.refine_groups >= 2 and dask.refine_stats["workers"] == 2  # and the track groups
     assert dask.keypoints_moved > 0 and dask.matches_removed > 0
     assert_same_database(one.output, pool.output)
     assert_same_database(pool.output, dask.output)

@@ -12,9 +12,11 @@ import sys
 import pytest
 from helpers import HELPERS, REPO
 from helpers.db_contents import assert_same_database
+from helpers.small_budget import two_images
 
 from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
+from colmap_miho.pipeline.config import PipelineConfig
 from colmap_miho.pipeline.store import store_folder
 
 #: Seconds the killed run may take (imports, copy, a few pairs).
@@ -87,6 +89,29 @@ def test_killed_run_resumes_to_the_uninterrupted_result(scene, reference, tmp_pa
     assert_same_database(reference, out)
     assert not store_folder(out).exists()  # removed after the commit
     assert _sha(scene.database) == before
+
+
+def test_run_killed_while_refining_resumes_its_groups(scene, reference, tmp_path, monkeypatch):
+    out = tmp_path / "out.db"
+    _killed_run(scene, out, "group", 1)
+    assert len(_stored(out, "filter")) == 6 and _stored(out, "group") == ["group-000000.npz"]
+    monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # the killed run's groups
+    js = tmp_path / "s.json"
+    assert main(_args(scene, out, "--resume", "--json", str(js))) == 0
+    summary = json.loads(js.read_text())
+    assert summary["filter_chunks_resumed"] == 6 and summary["refine_groups_resumed"] == 1
+    assert summary["refine_groups"] >= 2
+    assert_same_database(reference, out)  # reference: default budget, one group
+
+
+def test_resume_with_another_image_budget_walks_the_groups_again(scene, reference, tmp_path):
+    out = tmp_path / "out.db"
+    _killed_run(scene, out, "group", 1)
+    js = tmp_path / "s.json"
+    assert main(_args(scene, out, "--resume", "--json", str(js))) == 0  # default budget: one group
+    summary = json.loads(js.read_text())
+    assert summary["filter_chunks_resumed"] == 6 and summary["refine_groups_resumed"] == 0
+    assert_same_database(reference, out)
 
 
 def test_restart_discards_the_finished_work(scene, reference, tmp_path):
