@@ -276,17 +276,32 @@ def refine_database(
         with open_runner(n_workers, dask) as runner:
             summary = _run_stages(database, image_dir, wc, store, runner, rec, dev, seed=seed, strict=strict,
                                   progress=progress, json_path=json_path, resumed=resumed, laps=laps)
+    except UserError as exc:  # one line: the error, then how to resume
+        if not _keep_store(store):
+            raise
+        raise type(exc)(f"{exc}; {_resume_hint(store)}") from exc
     except BaseException:
-        if store.has_work():
-            store.close()
-            log.warning("the finished work of this run is kept in %s: run the same command with --resume "
-                        "to continue it (or --restart to start again)", store.folder)
-        else:
-            store.remove()
+        if _keep_store(store):
+            log.warning("%s", _resume_hint(store))
         raise
     store.remove()
     log.info("wrote %s", summary.output)
     return summary
+
+
+def _keep_store(store: RunStore) -> bool:
+    """After a failure: keep the store when it holds finished work (else remove it); True
+    when kept."""
+    if store.has_work():
+        store.close()
+        return True
+    store.remove()
+    return False
+
+
+def _resume_hint(store: RunStore) -> str:
+    return (f"the finished work of this run is kept in {store.folder}: run the same command with "
+            "--resume to continue it (or --restart to start again)")
 
 
 def _run_stages(database: Path, image_dir: Path, wc: WorkingCopy, store: RunStore, runner: Runner,

@@ -36,3 +36,27 @@ def test_local_cluster_equals_process_pool_and_one_process(scene, tmp_path, monk
     assert dask.keypoints_moved > 0 and dask.matches_removed > 0
     assert_same_database(one.output, pool.output)
     assert_same_database(pool.output, dask.output)
+
+
+def test_dask_option_without_value_is_a_local_cluster():
+    from colmap_miho.cli import build_parser
+
+    base = ["refine", "--database", "d.db", "--images", "imgs"]
+    parse = build_parser().parse_args
+    assert parse(base).dask is None
+    assert parse([*base, "--dask"]).dask == LOCAL
+    assert parse([*base, "--dask", "--workers", "3"]).dask == LOCAL
+    assert parse([*base, "--dask", "tcp://head:8786"]).dask == "tcp://head:8786"
+
+
+def test_unreachable_scheduler_is_one_line_and_leaves_no_store(scene, tmp_path, monkeypatch, capsys):
+    from colmap_miho.cli import main
+    from colmap_miho.pipeline.store import store_folder
+
+    monkeypatch.setattr("colmap_miho.pipeline.executor.CONNECT_TIMEOUT_S", 2)
+    out = tmp_path / "o.db"
+    assert main(["refine", "--database", str(scene.database), "--images", str(scene.image_dir),
+                 "--output", str(out), "--dask", "tcp://127.0.0.1:1", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot reach the Dask scheduler" in err[0]
+    assert not out.exists() and not store_folder(out).exists()
