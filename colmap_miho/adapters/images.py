@@ -3,8 +3,9 @@ loading of the images named in a COLMAP database.
 
 :class:`ImageLoader` is a read-only mapping ``image_id -> float32 (H, W) grayscale in
 [0, 1]`` (or ``None`` for a missing or unreadable image). Images are read on first access and
-at most ``max_cached`` are kept (least recently used first out), so memory stays bounded on
-large scenes. Colour images are converted to gray (OpenCV's BGR -> gray weights), 16-bit
+at most ``max_cached`` images and / or ``max_cached_bytes`` bytes of them are kept (least
+recently used first out), so memory stays bounded on large scenes; ``decodes`` counts every
+real decode (a cache hit is not one). Colour images are converted to gray (OpenCV's BGR -> gray weights), 16-bit
 images are scaled to [0, 1], an alpha channel is dropped. A missing or unreadable image gives
 one warning naming it, then ``None``.
 """
@@ -51,11 +52,14 @@ def read_gray_float(path: str | Path) -> np.ndarray | None:
     Colour is converted with OpenCV's BGR -> gray weights, an alpha channel is dropped, uint8
     is divided by 255 and uint16 by 65535.
     """
+    img = read_image(path)
+    return None if img is None else _to_gray_float(img)
+
+
+def _to_gray_float(img: np.ndarray) -> np.ndarray:
+    """Decoded pixels (as :func:`read_image` gives them) -> float32 (H, W) gray in [0, 1]."""
     import cv2
 
-    img = read_image(path)
-    if img is None:
-        return None
     if img.ndim == 3:
         if img.shape[2] == 4:
             img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
@@ -102,23 +106,34 @@ def image_problem(path: str | Path, expected_size: tuple[int, int] | None = None
     ``expected_size`` ``(width, height)`` (its camera in the database: its keypoints would
     not belong to these pixels). Decodes the whole image.
     """
+    return _checked_decode(path, expected_size)[1]
+
+
+#: :func:`_checked_decode` reasons given before any decoding.
+_NOT_DECODED = ("missing", "empty", "truncated (the file is cut short)")
+
+
+def _checked_decode(path: str | Path, expected_size: tuple[int, int] | None = None
+                    ) -> tuple[np.ndarray | None, str | None]:
+    """(float32 gray image as :func:`read_gray_float` gives it, None) when the file can be used,
+    else (None, why): the checks of :func:`image_problem` and the decode in one read."""
     import cv2
 
     p = Path(path)
     if not p.is_file():
-        return "missing"
+        return None, "missing"
     data = np.fromfile(p, dtype=np.uint8)
     if data.size == 0:
-        return "empty"
+        return None, "empty"
     if _truncated(data):
-        return "truncated (the file is cut short)"
-    img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+        return None, "truncated (the file is cut short)"
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if img is None:
-        return "not a readable image"
+        return None, "not a readable image"
     if expected_size and tuple(expected_size) != (img.shape[1], img.shape[0]):
-        return (f"{img.shape[1]}x{img.shape[0]} pixels but its camera in the database is "
-                f"{expected_size[0]}x{expected_size[1]}")
-    return None
+        return None, (f"{img.shape[1]}x{img.shape[0]} pixels but its camera in the database is "
+                      f"{expected_size[0]}x{expected_size[1]}")
+    return _to_gray_float(img), None
 
 
 def image_size(path: str | Path) -> tuple[int, int]:
@@ -139,27 +154,67 @@ class ImageLoader(Mapping):
     Args:
         image_dir: folder the database's image names are relative to.
         names: image_id -> file name (as stored in the database).
-        max_cached: most images kept in memory at once (>= 1).
+        max_cached: most images kept in memory at once (>= 1), or None (no count bound).
+        max_cached_bytes: most bytes of decoded images kept at once (float32: 4 bytes a pixel),
+            or None (no byte bound). Both bounds apply; an image bigger than the byte bound is
+            returned but not kept.
         expected_sizes: optional image_id -> (width, height) from the database's cameras;
             an image of another size is not used (its keypoints do not belong to it): one
             warning, then ``None``.
+
+    Attributes:
+        decodes: image files decoded so far (by lookups that missed the cache and by
+            :meth:`check_all`).
+        loads: decodes by lookups only.
     """
 
-    def __init__(self, image_dir: str | Path, names: Mapping[int, str], *, max_cached: int = 8,
+    def __init__(self, image_dir: str | Path, names: Mapping[int, str], *,
+                 max_cached: int | None = 8, max_cached_bytes: int | None = None,
                  expected_sizes: Mapping[int, tuple[int, int]] | None = None) -> None:
-        if max_cached < 1:
+        if max_cached is not None and max_cached < 1:
             raise ValueError(f"max_cached must be >= 1, got {max_cached}")
+        if max_cached_bytes is not None and max_cached_bytes < 0:
+            raise ValueError(f"max_cached_bytes must be >= 0, got {max_cached_bytes}")
         self.image_dir = Path(image_dir)
         self.names = {int(k): str(v) for k, v in names.items()}
-        self.max_cached = int(max_cached)
+        self.max_cached = None if max_cached is None else int(max_cached)
+        self.max_cached_bytes = None if max_cached_bytes is None else int(max_cached_bytes)
         self.expected_sizes = dict(expected_sizes or {})
-        self._cache: OrderedDict[int, np.ndarray | None] = OrderedDict()
+        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._cached_bytes = 0
         self.missing: set[int] = set()
         self.problems: dict[int, str] = {}  # image id -> why it is not used
         self.loads = 0
+        self.decodes = 0
+
+    @property
+    def cached_bytes(self) -> int:
+        """Bytes of the decoded images held now."""
+        return self._cached_bytes
+
+    def state(self) -> dict:
+        """Keyword arguments that rebuild this loader (empty cache) in another process."""
+        return dict(image_dir=self.image_dir, names=self.names, max_cached=self.max_cached,
+                    max_cached_bytes=self.max_cached_bytes, expected_sizes=self.expected_sizes)
+
+    def add_images(self, names: Mapping[int, str],
+                   expected_sizes: Mapping[int, tuple[int, int]] | None = None) -> None:
+        """Add (or rename) images; the cache is kept, so a worker's loader can serve the images
+        of one task after another."""
+        for k, v in names.items():
+            k = int(k)
+            if self.names.get(k, str(v)) != str(v):
+                self._drop(k)
+            self.names[k] = str(v)
+        self.expected_sizes.update(expected_sizes or {})
 
     def path(self, image_id: int) -> Path:
         return self.image_dir / self.names[int(image_id)]
+
+    def image_bytes(self, image_id: int) -> int | None:
+        """Bytes the decoded image takes (from its expected size), None when unknown."""
+        size = self.expected_sizes.get(int(image_id))
+        return None if not size else 4 * int(size[0]) * int(size[1])
 
     def __getitem__(self, image_id: int) -> np.ndarray | None:
         image_id = int(image_id)
@@ -172,6 +227,7 @@ class ImageLoader(Mapping):
             return self._cache[image_id]
         img = read_gray_float(self.path(image_id))
         self.loads += 1
+        self.decodes += img is not None or self.path(image_id).is_file()
         size = self.expected_sizes.get(image_id)
         if img is None:
             self._skip(image_id, "missing or unreadable")
@@ -180,10 +236,30 @@ class ImageLoader(Mapping):
             self._skip(image_id, f"{img.shape[1]}x{img.shape[0]} pixels but its camera in the "
                                  f"database is {size[0]}x{size[1]}")
             return None
-        self._cache[image_id] = img
-        while len(self._cache) > self.max_cached:
-            self._cache.popitem(last=False)
+        self._keep(image_id, img, evict=True)
         return img
+
+    def _fits(self, extra_images: int, extra_bytes: int) -> bool:
+        return ((self.max_cached is None or len(self._cache) + extra_images <= self.max_cached)
+                and (self.max_cached_bytes is None
+                     or self._cached_bytes + extra_bytes <= self.max_cached_bytes))
+
+    def _keep(self, image_id: int, img: np.ndarray, *, evict: bool) -> None:
+        """Cache ``img``: evicting the least recently used images when ``evict``, else only
+        if it fits beside the cached ones. Never kept when it alone is over a bound."""
+        if not (self.max_cached_bytes is None or img.nbytes <= self.max_cached_bytes):
+            return
+        if evict:
+            while self._cache and not self._fits(1, img.nbytes):
+                self._drop(next(iter(self._cache)))
+        if self._fits(1, img.nbytes):
+            self._cache[image_id] = img
+            self._cached_bytes += img.nbytes
+
+    def _drop(self, image_id: int) -> None:
+        img = self._cache.pop(image_id, None)
+        if img is not None:
+            self._cached_bytes -= img.nbytes
 
     def _skip(self, image_id: int, why: str) -> None:
         if image_id not in self.missing:
@@ -194,12 +270,19 @@ class ImageLoader(Mapping):
 
     def check_all(self) -> list[int]:
         """Find the images that cannot be used (see :func:`image_problem`: missing, empty,
-        truncated, undecodable or of another size than their camera), decoding each once;
-        returns their ids (each warned once; the reason is in ``problems``)."""
+        truncated, undecodable or of another size than their camera), decoding each once
+        (images already cached are not decoded again); returns their ids (each warned once;
+        the reason is in ``problems``). A good image is kept in the cache when it fits beside
+        the ones kept before it (in id order: nothing is evicted), so that a walk starting with
+        the lowest image ids does not decode them again."""
         bad = []
         for image_id in self.names:
-            why = self.problems.get(image_id) or image_problem(self.path(image_id),
-                                                               self.expected_sizes.get(image_id))
+            why = self.problems.get(image_id)
+            if why is None and image_id not in self._cache:
+                img, why = _checked_decode(self.path(image_id), self.expected_sizes.get(image_id))
+                self.decodes += why not in _NOT_DECODED
+                if img is not None:
+                    self._keep(image_id, img, evict=False)
             if why is not None:
                 bad.append(image_id)
                 self._skip(image_id, why)

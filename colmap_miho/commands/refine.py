@@ -7,6 +7,10 @@ from pathlib import Path
 
 from ..enums import Device, MatchSource
 
+#: ``--dask`` without a value: a local cluster (``pipeline.executor.LOCAL``; not imported
+#: here, the parser is built without importing the pipeline).
+DASK_LOCAL = "local"
+
 HELP = "filter (MOP+MiHo) and refine (track-consistent NCC) the matches of a COLMAP database"
 DESCRIPTION = (
     "Filter every image pair of a COLMAP database with MOP / MOP+MiHo, refine the kept "
@@ -34,7 +38,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--verify", action=argparse.BooleanOptionalAction, default=None,
                         help="re-run COLMAP's epipolar verification on the kept matches "
                              "(default: the recipe's pipeline.verify, off)")
-    parser.add_argument("--workers", type=int, default=None, help="processes filtering pairs (default: all cores)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="processes filtering pairs and refining tracks, or the workers of a local "
+                             "--dask cluster (default: all cores)")
+    parser.add_argument("--dask", nargs="?", const=DASK_LOCAL, default=None, metavar="ADDRESS",
+                        help="run the filtering and refinement on Dask: no value starts a local cluster of "
+                             "--workers processes, tcp://host:8786 uses a running scheduler (its workers "
+                             "must see --images at the same path and run the same colmap-miho)")
+    parser.add_argument("--memory-budget", type=int, default=None, metavar="MB",
+                        help="memory for the run's working data in MiB: sizes the filter's chunks of pairs "
+                             "and the refinement's image cache (default: the recipe's "
+                             "pipeline.memory_budget_mb, 2048); results do not depend on it")
+    resume = parser.add_mutually_exclusive_group()
+    resume.add_argument("--resume", action="store_true",
+                        help="continue an interrupted run from its finished work (kept in "
+                             ".<output name>.miho-run beside the output); same inputs and options")
+    resume.add_argument("--restart", action="store_true",
+                        help="discard an interrupted run's finished work and start again")
     parser.add_argument("--device", choices=Device.values(), default=Device.AUTO.value, help="torch device")
     parser.add_argument("--seed", type=int, default=0, help="base random seed")
     parser.add_argument("--strict", action="store_true", help="a missing or unreadable image is an error")
@@ -63,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
         overrides.append("pipeline.refine=false")
     if args.verify is not None:
         overrides.append(f"pipeline.verify={str(args.verify).lower()}")
+    if args.memory_budget is not None:
+        overrides.append(f"pipeline.memory_budget_mb={args.memory_budget}")
     recipe = load_recipe(args.recipe, overrides)
     if not args.verbose:
         import pycolmap
@@ -71,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
     summary = refine_database(
         args.database, args.images, args.output, recipe=recipe, in_place=args.in_place,
         overwrite=args.overwrite, workers=args.workers, device=args.device, seed=args.seed,
-        strict=args.strict, progress=not args.quiet, json_path=args.json_path,
+        strict=args.strict, progress=not args.quiet, json_path=args.json_path, resume=args.resume,
+        restart=args.restart, dask=args.dask,
     )
     if not args.quiet:
         print(summary.format())

@@ -6,6 +6,13 @@ from dataclasses import dataclass
 
 from ..enums import MatchSource
 
+#: ``pipeline.memory_budget_mb`` default (MiB) and smallest accepted value.
+DEFAULT_MEMORY_BUDGET_MB = 2048
+MIN_MEMORY_BUDGET_MB = 256
+#: Share of the memory budget for decoded images in the refine stage (the rest: the track
+#: plan, the NCC batches and the filter results the stage reads back).
+IMAGE_BUDGET_SHARE = 0.5
+
 
 @dataclass(frozen=True, kw_only=True)
 class PipelineConfig:
@@ -17,14 +24,34 @@ class PipelineConfig:
         min_matches: pairs with fewer matches pass through unchanged.
         refine: run the track-consistent NCC refinement after filtering.
         verify: re-run COLMAP's epipolar verification on the kept matches.
+        memory_budget_mb: memory the run may use for its working data, in MiB (default
+            2048, at least 256). It bounds the filter's chunks of pairs (the matches read,
+            filtered and held for the run store at once; see :func:`~.filter_stage.chunk_matches`)
+            and the decoded images the refine stage keeps (:meth:`image_budget_bytes`: half
+            of it, shared among the parallel tasks; it sets the images of a track group);
+            results do not depend on it. Not bounded by it: the keypoints
+            of all images and the matches of the filtered pairs, which the track plan needs
+            at once (about 40 bytes per keypoint and per match).
     """
 
     source: MatchSource = MatchSource.VERIFIED
     min_matches: int = 15
     refine: bool = True
     verify: bool = False
+    memory_budget_mb: int = DEFAULT_MEMORY_BUDGET_MB
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "source", MatchSource.parse(self.source, "source"))
         if self.min_matches < 4:
             raise ValueError(f"min_matches must be >= 4, got {self.min_matches}")
+        if self.memory_budget_mb < MIN_MEMORY_BUDGET_MB:
+            raise ValueError(f"memory_budget_mb must be >= {MIN_MEMORY_BUDGET_MB}, got {self.memory_budget_mb}")
+
+    @property
+    def memory_budget_bytes(self) -> int:
+        """``memory_budget_mb`` in bytes."""
+        return int(self.memory_budget_mb) * 2**20
+
+    def image_budget_bytes(self, slots: int) -> int:
+        """Decoded image bytes one of ``slots`` parallel refine tasks may hold."""
+        return int(self.memory_budget_bytes * IMAGE_BUDGET_SHARE) // max(1, int(slots))

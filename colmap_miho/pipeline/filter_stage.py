@@ -1,13 +1,24 @@
-"""Filter stage: MOP / MOP+MiHo on every pair with enough matches, in this process or in
-``spawn``-ed worker processes (one thread each), streaming the matches from the database.
+"""Filter stage: MOP / MOP+MiHo on every pair with enough matches, in chunks of pairs.
 
-Results do not depend on the worker count: each pair's seed is derived from its image ids.
+The pairs are cut, in database order, into chunks of at most :func:`chunk_matches` matches
+(set by ``pipeline.memory_budget_mb``, see :func:`plan_chunks`). This process reads a chunk's
+matches from the database, one task filters the chunk (in this process, a worker process or a
+Dask worker: the run's :class:`~.executor.Runner`), and the finished chunk goes to the run
+store (:mod:`.store`), from which the refine and write stages read it back; at most
+:data:`IN_FLIGHT_PER_SLOT` chunks per parallel slot are read and not yet stored. A resumed run
+skips the pairs of the chunks already in the store.
+
+Results do not depend on the chunking, the worker count or the engine: each pair's seed is
+derived from the base seed and its image ids.
 """
 
 from __future__ import annotations
 
-from concurrent.futures import FIRST_COMPLETED, wait
+import inspect
+import math
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -16,14 +27,63 @@ from ..enums import MatchSource
 from ..filtering.api import FilterResult, filter_matches
 from ..filtering.config import FilterConfig
 from .read import check_match_indices
-from .workers import init_worker, pair_seed, process_pool, single_thread_children
+from .workers import pair_seed
 
-#: Below this many pairs to filter per worker, filtering runs in this process (starting a
-#: worker process costs seconds: it imports torch).
+if TYPE_CHECKING:
+    from .executor import Runner
+    from .store import RunStore
+
+#: Below this many pairs to filter per parallel slot, filtering runs in this process (a
+#: process-pool worker costs seconds to start: it imports torch). Dask runs always use the
+#: cluster (it is started already).
 MIN_PAIRS_PER_WORKER = 4
 
-#: (image_id1, image_id2) -> (matches uint32 ``(M, 2)`` keypoint indices, the pair's result)
-FilteredPairs = dict[tuple[int, int], tuple[np.ndarray, FilterResult]]
+#: Bytes this process holds per match of a chunk in flight: positions (2 x 2 float64), indices
+#: (2 uint32), the result's flag and label, and their pickled copies; an upper estimate that
+#: sizes the chunks from the memory budget.
+BYTES_PER_MATCH_IN_FLIGHT = 160
+
+#: Share of ``pipeline.memory_budget_mb`` for the chunks in flight (the stage runs alone: the
+#: rest covers the filter's own working arrays, up to 2048 hypotheses x N matches per task).
+FILTER_BUDGET_SHARE = 0.25
+
+#: Most matches in one chunk whatever the budget: a chunk is the unit a resumed run skips
+#: (measured 0.05-0.3 s per pair of ~1000 matches: at most about a minute of one core's work).
+MAX_CHUNK_MATCHES = 200_000
+
+#: A parallel run cuts its pairs into at least this many chunks per slot (load balance).
+CHUNKS_PER_SLOT = 4
+
+#: Chunks read ahead per parallel slot (one running, one queued).
+IN_FLIGHT_PER_SLOT = 2
+
+
+@dataclass(frozen=True)
+class PairOutcome:
+    """What the later stages need of one pair's :class:`~colmap_miho.filtering.api.FilterResult`
+    (``FilterResult``-like for :func:`~colmap_miho.refinement.track_plan.pair_rows`).
+
+    Attributes:
+        inliers: bool ``(M,)``, the matches kept (rows 1:1 with the pair's matches).
+        labels: int64 ``(M,)``, each kept match's homography, -1 for discarded ones.
+        patch_homographies: float64 ``(K, 2, 3, 3)``, see ``FilterResult``.
+        success: a plane was found (otherwise the pair is written back unchanged).
+    """
+
+    inliers: np.ndarray
+    labels: np.ndarray
+    patch_homographies: np.ndarray
+    success: bool
+
+    @classmethod
+    def of(cls, r: FilterResult) -> PairOutcome:
+        return cls(inliers=np.asarray(r.inliers, bool), labels=np.asarray(r.labels, np.int64),
+                   patch_homographies=np.asarray(r.patch_homographies, np.float64).reshape(-1, 2, 3, 3),
+                   success=bool(r.success))
+
+
+#: (image_id1, image_id2) -> (matches uint32 ``(M, 2)`` keypoint indices, the pair's outcome)
+FilteredPairs = dict[tuple[int, int], tuple[np.ndarray, PairOutcome]]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -33,14 +93,16 @@ class FilterOptions:
     Attributes:
         source: which matches are read (``pipeline.source``).
         seed: base seed; each pair's seed is :func:`~.workers.pair_seed` of it and the ids.
-        workers: processes available (fewer are used for small jobs).
+        memory_budget_bytes: ``pipeline.memory_budget_mb`` in bytes (sizes the chunks).
+        device: "cpu" or "cuda"; "cuda" is passed to the filter when it takes a device.
         progress: tqdm bar over pairs.
         database_name: the user's database, named in error messages (the stage reads a copy).
     """
 
     source: MatchSource
     seed: int = 0
-    workers: int = 1
+    memory_budget_bytes: int = 2048 * 2**20
+    device: str = "cpu"
     progress: bool = False
     database_name: str = ""
 
@@ -48,81 +110,137 @@ class FilterOptions:
 @dataclass(frozen=True, kw_only=True)
 class FilterStats:
     """Counts of the filter stage (``RefineSummary`` fields of the same names); matches are
-    counted over the pairs where the filter succeeded."""
+    counted over the pairs where the filter succeeded; ``chunks`` / ``pairs_resumed`` count
+    the chunks and pairs of the whole run / taken from an interrupted run's store."""
 
     workers: int
     pairs_filtered: int
     pairs_failed: int
     matches_in: int
     matches_kept: int
+    chunks: int = 0
+    chunks_resumed: int = 0
+    pairs_resumed: int = 0
 
     @property
     def matches_removed(self) -> int:
         return self.matches_in - self.matches_kept
 
 
+def chunk_matches(budget_bytes: int, slots: int, total_matches: int) -> int:
+    """Most matches per chunk: the budget's share over the chunks in flight, at most
+    :data:`MAX_CHUNK_MATCHES`, and small enough for :data:`CHUNKS_PER_SLOT` chunks per slot
+    when ``slots > 1``."""
+    cap = budget_bytes * FILTER_BUDGET_SHARE / (IN_FLIGHT_PER_SLOT * max(1, slots) * BYTES_PER_MATCH_IN_FLIGHT)
+    cap = min(cap, MAX_CHUNK_MATCHES)
+    if slots > 1:
+        cap = min(cap, math.ceil(total_matches / (CHUNKS_PER_SLOT * slots)))
+    return max(1, int(cap))
+
+
+def plan_chunks(pairs: list[PairRecord], max_matches: int) -> list[list[PairRecord]]:
+    """Cut ``pairs`` (in their order) into runs of at most ``max_matches`` matches; a pair with
+    more matches is a chunk of its own."""
+    chunks: list[list[PairRecord]] = []
+    current: list[PairRecord] = []
+    size = 0
+    for p in pairs:
+        if current and size + p.num_matches > max_matches:
+            chunks.append(current)
+            current, size = [], 0
+        current.append(p)
+        size += p.num_matches
+    if current:
+        chunks.append(current)
+    return chunks
+
+
+def filter_chunk(items: list[tuple[np.ndarray, np.ndarray, int]], cfg: FilterConfig,
+                 extra: dict) -> list[PairOutcome]:
+    """Task: filter the pairs ``items`` = ``[(pts1 (M, 2), pts2 (M, 2) pixels, seed), ...]``;
+    ``extra``: more keyword arguments of ``filter_matches`` (the device)."""
+    return [PairOutcome.of(filter_matches(p1, p2, method=cfg.method, config=cfg, seed=s, **extra))
+            for p1, p2, s in items]
+
+
+def filter_device_kwargs(device: str) -> dict:
+    """``{"device": "cuda"}`` when the run is on CUDA and the filter takes a device, else ``{}``
+    (the filter then runs on the CPU)."""
+    if device == "cuda" and "device" in inspect.signature(filter_matches).parameters:
+        return {"device": device}
+    return {}
+
+
 def run_filter(db: ColmapDatabase, pairs: list[PairRecord], keypoints: dict[int, np.ndarray],
-               cfg: FilterConfig, opts: FilterOptions) -> tuple[FilteredPairs, FilterStats]:
-    """Filter ``pairs`` (their matches read from ``db``, positions from ``keypoints``).
+               cfg: FilterConfig, opts: FilterOptions, *, runner: Runner, store: RunStore) -> FilterStats:
+    """Filter ``pairs`` (matches read from ``db``, positions from ``keypoints``) chunk by chunk
+    into ``store``; the pairs the store already holds are skipped.
 
     Returns:
-        ``(ok, stats)``: ``ok`` holds the pairs where a plane was found (failed pairs are
-        left unchanged by the pipeline and only counted).
+        The stage's counts over all of ``pairs`` (the stored ones included).
+    Raises:
+        DatabaseError: a pair's matches use keypoints the image does not have.
     """
-    workers = opts.workers if len(pairs) >= MIN_PAIRS_PER_WORKER * opts.workers else 1
-    filtered = _filter_pairs(db, pairs, keypoints, cfg, opts, workers)
-    ok = {k: v for k, v in filtered.items() if bool(v[1].success)}
-    stats = FilterStats(
-        workers=workers, pairs_filtered=len(filtered), pairs_failed=len(filtered) - len(ok),
-        matches_in=int(sum(len(m) for m, _ in ok.values())),
-        matches_kept=int(sum(int(np.count_nonzero(r.inliers)) for _, r in ok.values())))
-    return ok, stats
+    done = store.filtered_pairs()
+    todo = [p for p in pairs if (p.image_id1, p.image_id2) not in done]
+    resumed = store.filter_counts()
+    parallel = runner.parallel and (runner.kind == "dask" or len(todo) >= MIN_PAIRS_PER_WORKER * runner.slots)
+    slots = runner.slots if parallel else 1
+    chunks = plan_chunks(todo, chunk_matches(opts.memory_budget_bytes, slots,
+                                             sum(p.num_matches for p in todo)))
+    _filter_chunks(db, chunks, keypoints, cfg, opts, runner if parallel else None, store)
+    total = store.filter_counts()
+    return FilterStats(workers=slots, pairs_filtered=total.pairs, pairs_failed=total.pairs - total.pairs_ok,
+                       matches_in=total.matches_in, matches_kept=total.matches_kept, chunks=total.chunks,
+                       chunks_resumed=resumed.chunks, pairs_resumed=resumed.pairs)
 
 
-def _filter_one(i: int, j: int, pts1: np.ndarray, pts2: np.ndarray, cfg: FilterConfig, seed: int):
-    """Run the filter on one pair (in a worker or in-process); returns (i, j, result)."""
-    return i, j, filter_matches(pts1, pts2, method=cfg.method, config=cfg, seed=seed)
-
-
-def _filter_pairs(db: ColmapDatabase, pairs: list[PairRecord], keypoints, cfg: FilterConfig,
-                  opts: FilterOptions, workers: int) -> FilteredPairs:
-    """Filter every pair, streaming matches from the database into a bounded worker queue."""
-    results: FilteredPairs = {}
-    matches_of: dict[tuple[int, int], np.ndarray] = {}
+def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints, cfg: FilterConfig,
+                   opts: FilterOptions, runner: Runner | None, store: RunStore) -> None:
+    """Filter ``chunks`` in this process (``runner`` None) or as tasks of ``runner``, storing
+    each finished chunk; chunks are read ahead at most :data:`IN_FLIGHT_PER_SLOT` per slot."""
+    extra = filter_device_kwargs(opts.device)
+    first = store.next_filter_index()
     bar = None
     if opts.progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(pairs), desc="filter pairs", unit="pair")
+        bar = tqdm(total=sum(len(c) for c in chunks), desc="filter pairs", unit="pair")
 
-    def job(p: PairRecord):
-        i, j = p.image_id1, p.image_id2
-        m = db.matches(i, j, opts.source)
-        check_match_indices(m, len(keypoints[i]), len(keypoints[j]), (i, j), opts.database_name)
-        matches_of[(i, j)] = m
-        return i, j, keypoints[i][m[:, 0]], keypoints[j][m[:, 1]], cfg, pair_seed(opts.seed, i, j)
+    def read(chunk: list[PairRecord]):
+        matches, items = [], []
+        for p in chunk:
+            i, j = p.image_id1, p.image_id2
+            m = db.matches(i, j, opts.source)
+            check_match_indices(m, len(keypoints[i]), len(keypoints[j]), (i, j), opts.database_name)
+            matches.append(m)
+            items.append((keypoints[i][m[:, 0]], keypoints[j][m[:, 1]], pair_seed(opts.seed, i, j)))
+        return matches, items
 
-    def collect(i: int, j: int, res: FilterResult) -> None:
-        results[(i, j)] = (matches_of.pop((i, j)), res)
+    def finish(index: int, chunk: list[PairRecord], matches: list[np.ndarray], outcomes: list[PairOutcome]):
+        store.save_filter_chunk(index, [(p.image_id1, p.image_id2) for p in chunk], matches, outcomes)
         if bar:
-            bar.update()
+            bar.update(len(chunk))
 
     try:
-        if workers <= 1:
-            for p in pairs:
-                collect(*_filter_one(*job(p)))
-            return results
-        with single_thread_children(), process_pool(workers, initializer=init_worker) as ex:
-            pending = set()
-            for p in pairs:
-                pending.add(ex.submit(_filter_one, *job(p)))
-                if len(pending) >= 2 * workers:  # bounded: stream pairs, do not queue all
-                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for fut in done:
-                        collect(*fut.result())
-            for fut in pending:
-                collect(*fut.result())
+        if runner is None:
+            for k, chunk in enumerate(chunks):
+                matches, items = read(chunk)
+                finish(first + k, chunk, matches, filter_chunk(items, cfg, extra))
+            return
+        pending: dict[Future, tuple[int, list[PairRecord], list[np.ndarray]]] = {}
+
+        def collect(futs) -> None:
+            for fut in futs:
+                finish(*pending.pop(fut), fut.result())
+
+        for k, chunk in enumerate(chunks):
+            matches, items = read(chunk)
+            pending[runner.submit(filter_chunk, items, cfg, extra)] = (first + k, chunk, matches)
+            if len(pending) >= IN_FLIGHT_PER_SLOT * runner.slots:
+                collect(wait(list(pending), return_when=FIRST_COMPLETED).done)
+        while pending:
+            collect(wait(list(pending), return_when=FIRST_COMPLETED).done)
     finally:
         if bar:
             bar.close()
-    return results

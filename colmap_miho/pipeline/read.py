@@ -22,14 +22,15 @@ class ReadConfig:
     Attributes:
         pipeline: the recipe's ``pipeline`` table (match source, ``min_matches``, refine).
         image_dir: folder the database's image names are relative to.
-        max_images_in_memory: images the loader keeps decoded (``tracks.max_images_in_memory``).
+        image_budget_bytes: decoded image bytes the loader keeps (LRU); the refine stage's
+            track groups are sized to it (:meth:`PipelineConfig.image_budget_bytes`).
         strict: a missing or unreadable image is an error (only checked when refining).
         database_name: the user's database, named in error messages (the stage reads a copy).
     """
 
     pipeline: PipelineConfig
     image_dir: Path
-    max_images_in_memory: int
+    image_budget_bytes: int
     strict: bool = False
     database_name: Path | str = ""
 
@@ -81,7 +82,7 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
                else " (it has no matches at all: run COLMAP's matching first)")
         )
     to_filter = [p for p in pairs if p.num_matches >= pcfg.min_matches]
-    loader = ImageLoader(cfg.image_dir, names, max_cached=cfg.max_images_in_memory,
+    loader = ImageLoader(cfg.image_dir, names, max_cached=None, max_cached_bytes=cfg.image_budget_bytes,
                          expected_sizes={im.image_id: (im.width, im.height) for im in images})
     missing_names: list[str] = []
     if pcfg.refine:

@@ -3,18 +3,29 @@
 Data flow (one stage after the other, each ``run_<stage>`` returning its outputs and a small
 stats dataclass that :class:`RefineSummary` is assembled from)::
 
-    safe working copy -> read (:mod:`.read`) -> filter each pair (:mod:`.filter_stage`,
-      MOP / MOP+MiHo, parallel) -> track-consistent NCC refinement (:mod:`.stages`)
-      -> write back (:mod:`.write`: keypoints, matches, two_view_geometries)
+    safe working copy -> read (:mod:`.read`) -> filter the pairs chunk by chunk
+      (:mod:`.filter_stage`, MOP / MOP+MiHo) into the run store (:mod:`.store`)
+      -> track-consistent NCC refinement (:mod:`.stages`) -> write back chunk by chunk
+      (:mod:`.write`: keypoints, matches, two_view_geometries)
       -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
 
 The input database is never opened for writing; see :mod:`colmap_miho.adapters.safety`.
 
-Parallelism (see :mod:`.workers`): pairs are filtered, and whole tracks
-refined, in ``spawn``-ed worker processes with one thread each. Scripts that call
-:func:`refine_database` with ``workers > 1`` need the usual ``if __name__ == "__main__":`` guard.
-All coordinates handled here are colmap-miho's (integer = pixel centre); the conversion to
-COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
+Memory: ``pipeline.memory_budget_mb`` (``refine --memory-budget``) sizes the filter's chunks
+and the refine stage's image cache (see :class:`~.config.PipelineConfig`).
+
+Resuming: finished filter chunks and refine groups are kept in the run store beside the
+output until the commit; a killed or failed run is continued with ``resume=True``
+(``refine --resume``), and ``restart=True`` discards them. A run that finds finished work
+and was given neither refuses to start.
+
+Parallelism: one :class:`~.executor.Runner` per run (:func:`~.executor.open_runner`) runs the
+filter's chunks and the refinement's track groups in this process, in ``spawn``-ed worker
+processes with one thread each, or on a Dask cluster (``dask``); only this process writes
+SQLite. Scripts that call :func:`refine_database` with ``workers > 1`` need the usual
+``if __name__ == "__main__":`` guard. All coordinates handled here are colmap-miho's
+(integer = pixel centre); the conversion to COLMAP's happens inside
+:mod:`colmap_miho.adapters.database`.
 """
 
 from __future__ import annotations
@@ -37,9 +48,11 @@ from ..adapters.paths import check_distinct
 from ..adapters.safety import WorkingCopy, check_database_path
 from ..enums import Device
 from ..errors import DatabaseError, RunFailed, UserError
+from .executor import Runner, open_runner
 from .filter_stage import FilteredPairs, FilterOptions, FilterStats, run_filter
 from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
 from .stages import run_refine_stage
+from .store import RunStore, run_fingerprint, store_folder
 from .verify import run_verify
 from .write import WriteStats, run_write
 
@@ -63,6 +76,13 @@ class RefineSummary:
         keypoints_moved: keypoints whose position changed (each moves at most once).
         median_displacement_px / max_displacement_px: over the moved keypoints, pixels.
         images_missing: names of images that could not be read (not refined).
+        runner: where the parallel work ran: "inline", "processes" or "dask".
+        memory_budget_mb: ``pipeline.memory_budget_mb`` of the run.
+        filter_chunks / filter_chunks_resumed: chunks of pairs filtered in all / taken from
+            an interrupted run's store; pairs_resumed: the pairs of those chunks.
+        refine_groups / refine_groups_resumed: track groups refined in all / taken from the
+            store (0 when the refine stage does not report groups).
+        resumed: the run continued an interrupted one.
         seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
             "total").
     """
@@ -89,13 +109,21 @@ class RefineSummary:
     median_displacement_px: float = 0.0
     max_displacement_px: float = 0.0
     images_missing: list[str] = field(default_factory=list)
+    runner: str = "inline"
+    memory_budget_mb: int = 0
+    filter_chunks: int = 0
+    filter_chunks_resumed: int = 0
+    pairs_resumed: int = 0
+    refine_groups: int = 0
+    refine_groups_resumed: int = 0
+    resumed: bool = False
     refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
-                    device: str, read: ReadStats, filtered: FilterStats, refine_stats: dict,
-                    write: WriteStats, seconds: dict[str, float]) -> RefineSummary:
+                    device: str, runner: str, resumed: bool, read: ReadStats, filtered: FilterStats,
+                    refine_stats: dict, write: WriteStats, seconds: dict[str, float]) -> RefineSummary:
         """Assemble the summary from the stages' stats."""
         pcfg = recipe.pipeline
         return cls(
@@ -109,7 +137,11 @@ class RefineSummary:
             keypoints_moved=write.keypoints_moved,
             median_displacement_px=write.median_displacement_px,
             max_displacement_px=write.max_displacement_px,
-            images_missing=list(read.images_missing), refine_stats=refine_stats, seconds=seconds)
+            images_missing=list(read.images_missing), runner=runner, memory_budget_mb=pcfg.memory_budget_mb,
+            filter_chunks=filtered.chunks, filter_chunks_resumed=filtered.chunks_resumed,
+            pairs_resumed=filtered.pairs_resumed, refine_groups=int(refine_stats.get("groups", 0)),
+            refine_groups_resumed=int(refine_stats.get("groups_resumed", 0)), resumed=resumed,
+            refine_stats=refine_stats, seconds=seconds)
 
     def to_dict(self) -> dict:
         """Plain JSON-ready data (paths as strings, seconds rounded to ms)."""
@@ -125,7 +157,7 @@ class RefineSummary:
         lines = [
             f"colmap-miho refine: {self.database} -> {self.output}",
             f"  recipe {self.recipe}, source {self.source}, refine {'on' if self.refined else 'off'}, "
-            f"verify {'on' if self.verified else 'off'}, {self.workers} worker(s), {self.device}",
+            f"verify {'on' if self.verified else 'off'}, {self.workers} worker(s) ({self.runner}), {self.device}",
             f"  images {self.num_images}, pairs {self.num_pairs}: {self.pairs_filtered} filtered, "
             f"{self.pairs_passed} too small (unchanged), {self.pairs_failed} no plane found (unchanged)",
             f"  matches {self.matches_in} -> kept {self.matches_kept} ({kept_pct:.1f}%), "
@@ -133,6 +165,10 @@ class RefineSummary:
             f"  keypoints moved {self.keypoints_moved} of {self.keypoints_total}, median displacement "
             f"{self.median_displacement_px:.2f} px, max {self.max_displacement_px:.2f} px",
         ]
+        if self.resumed:
+            lines.append(f"  resumed: {self.filter_chunks_resumed} of {self.filter_chunks} filter chunks "
+                         f"({self.pairs_resumed} pairs) and {self.refine_groups_resumed} of "
+                         f"{self.refine_groups} refine groups were finished before")
         if self.images_missing:
             lines.append(f"  images not refined (missing/unreadable): {', '.join(self.images_missing)}")
         if self.backup:
@@ -177,6 +213,9 @@ def refine_database(
     strict: bool = False,
     progress: bool = False,
     json_path: str | os.PathLike | None = None,
+    resume: bool = False,
+    restart: bool = False,
+    dask: str | None = None,
 ) -> RefineSummary:
     """Filter (MOP / MOP+MiHo) and refine (track-consistent NCC) a COLMAP database.
 
@@ -187,17 +226,24 @@ def refine_database(
         output: the database to write; default ``<stem>.miho.db`` beside the input.
         recipe: a :class:`~colmap_miho.recipe.Recipe`, a shipped recipe name or a TOML path
             (default ``mop_miho_ncc``); its ``pipeline`` table chooses the match source,
-            ``min_matches``, refinement and re-verification.
+            ``min_matches``, refinement, re-verification and the memory budget.
         in_place: replace ``database`` itself, after copying it to a timestamped backup.
         overwrite: allow replacing an existing ``output``.
         workers: processes that filter pairs and refine tracks (default: all cores; 1 = all
-            in this process). Small jobs stay in this process (a worker costs an import of
-            torch); results do not depend on the worker count.
+            in this process), or the workers of a local Dask cluster. Small jobs stay in
+            this process (a worker costs an import of torch); results do not depend on the
+            worker count.
         device: "cpu", "cuda" or "auto" for the torch work.
         seed: base seed; each pair's filter seed is derived from it and the pair's image ids.
         strict: a missing or unreadable image is an error instead of a warning.
         progress: show tqdm progress bars.
         json_path: also write :meth:`RefineSummary.to_dict` as JSON to this file.
+        resume: continue an interrupted run from its run store (``.<output name>.miho-run``
+            beside the output); the inputs and options must be those of that run.
+        restart: discard an interrupted run's store and start again.
+        dask: None (no Dask), ``"local"`` (a local Dask cluster of ``workers`` processes) or
+            a scheduler address ``tcp://host:8786``; the workers must see ``image_dir`` at
+            the same path.
 
     Returns:
         A :class:`RefineSummary`.
@@ -205,7 +251,8 @@ def refine_database(
     Raises:
         DatabaseError: missing or non-COLMAP database, database in use.
         UserError: bad image folder, existing output without ``overwrite``, strict and an
-            image missing, no pairs to process.
+            image missing, no pairs to process; an interrupted run's store found without
+            ``resume`` or ``restart``, or ``resume`` with other inputs or options.
         ValueError: a bad recipe or option value (the message names it).
     """
     laps = _Laps()
@@ -214,7 +261,6 @@ def refine_database(
     if not image_dir.is_dir():
         raise UserError(f"image folder not found: {image_dir}")
     rec = _resolve_recipe(recipe)
-    pcfg = rec.pipeline
     dev = _resolve_device(device)
     n_workers = 1 if dev == "cuda" else max(1, int(workers) if workers else (os.cpu_count() or 1))
     wc = WorkingCopy(database, Path(output) if output else None, in_place=in_place, overwrite=overwrite)
@@ -222,7 +268,47 @@ def refine_database(
                    {"--output": None if in_place else wc.output, "--json": json_path})
     if json_path:
         _check_writable_file(Path(json_path), "--json")
+    store = RunStore.open(store_folder(wc.output), run_fingerprint(database, image_dir, rec, seed, dev),
+                          resume=resume, restart=restart)
+    resumed = store.has_work()
     laps.lap("setup")
+    try:
+        with open_runner(n_workers, dask) as runner:
+            summary = _run_stages(database, image_dir, wc, store, runner, rec, dev, seed=seed, strict=strict,
+                                  progress=progress, json_path=json_path, resumed=resumed, laps=laps)
+    except UserError as exc:  # one line: the error, then how to resume
+        if not _keep_store(store):
+            raise
+        raise type(exc)(f"{exc}; {_resume_hint(store)}") from exc
+    except BaseException:
+        if _keep_store(store):
+            log.warning("%s", _resume_hint(store))
+        raise
+    store.remove()
+    log.info("wrote %s", summary.output)
+    return summary
+
+
+def _keep_store(store: RunStore) -> bool:
+    """After a failure: keep the store when it holds finished work (else remove it); True
+    when kept."""
+    if store.has_work():
+        store.close()
+        return True
+    store.remove()
+    return False
+
+
+def _resume_hint(store: RunStore) -> str:
+    return (f"the finished work of this run is kept in {store.folder}: run the same command with "
+            "--resume to continue it (or --restart to start again)")
+
+
+def _run_stages(database: Path, image_dir: Path, wc: WorkingCopy, store: RunStore, runner: Runner,
+                rec: Recipe, dev: str, *, seed: int, strict: bool, progress: bool,
+                json_path: str | os.PathLike | None, resumed: bool, laps: _Laps) -> RefineSummary:
+    """The stages on the working copy, then the commit; returns the summary."""
+    pcfg = rec.pipeline
     try:
         with wc:
             laps.lap("copy")
@@ -234,24 +320,25 @@ def refine_database(
                 raise DatabaseError(str(exc).replace(str(work_db), str(database))) from None
             with ColmapDatabase(work_db) as db:
                 read, read_stats = run_read(db, ReadConfig(
-                    pipeline=pcfg, image_dir=image_dir, max_images_in_memory=rec.tracks.max_images_in_memory,
+                    pipeline=pcfg, image_dir=image_dir, image_budget_bytes=pcfg.image_budget_bytes(runner.slots),
                     strict=strict, database_name=database))
                 laps.lap("read")
-                ok, filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
-                    source=pcfg.source, seed=seed, workers=n_workers, progress=progress,
-                    database_name=str(database)))
+                filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
+                    source=pcfg.source, seed=seed, memory_budget_bytes=pcfg.memory_budget_bytes, device=dev,
+                    progress=progress, database_name=str(database)), runner=runner, store=store)
                 laps.lap("filter")
-                new_keypoints, refine_stats = _refine(db, read, ok, rec, dev, n_workers, progress)
+                new_keypoints, refine_stats = _refine(db, read, store, rec, dev, runner, progress)
                 laps.lap("refine")
-                write_stats = run_write(db, read.keypoints, new_keypoints, ok, pcfg)
+                write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg)
                 laps.lap("write")
             if pcfg.verify:
                 run_verify(work_db)
                 laps.lap("verify")
             summary = RefineSummary.from_stages(
-                output=database if in_place else wc.output,  # in place: the user's path (a symlink stays one)
-                database=database, backup=wc.backup, recipe=rec, device=dev, read=read_stats,
-                filtered=filter_stats, refine_stats=refine_stats, write=write_stats, seconds=laps.total())
+                output=database if wc.in_place else wc.output,  # in place: the user's path (a symlink stays one)
+                database=database, backup=wc.backup, recipe=rec, device=dev, runner=runner.kind,
+                resumed=resumed, read=read_stats, filtered=filter_stats, refine_stats=refine_stats,
+                write=write_stats, seconds=laps.total())
             if json_path:  # written beside its target now, renamed onto it with the commit
                 wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
             wc.commit()
@@ -263,7 +350,6 @@ def refine_database(
     except sqlite3.Error as exc:
         raise RunFailed(f"SQLite error while writing the copy of {database} ({exc}); {database} is "
                         "unchanged and the working files were removed") from None
-    log.info("wrote %s", summary.output)
     return summary
 
 
@@ -281,20 +367,25 @@ def _check_writable_file(path: Path, label: str) -> None:
         raise UserError(f"{label} {path}: cannot write in {path.parent} (read-only folder)")
 
 
-def _refine(db: ColmapDatabase, read: ReadOutput, ok: FilteredPairs, rec: Recipe, device: str,
-            workers: int, progress: bool) -> tuple[dict[int, np.ndarray], dict]:
-    """Refine stage on the pairs whose two images are readable; returns the new keypoints and
-    the summed refinement counters with the processes used (``{}`` when refinement is off or
-    nothing was filtered)."""
-    if not (rec.pipeline.refine and ok):
+def _refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, rec: Recipe, device: str,
+            runner: Runner, progress: bool) -> tuple[dict[int, np.ndarray], dict]:
+    """Refine stage on the stored pairs whose two images are readable, on ``runner``, skipping
+    the track groups ``store`` holds and storing each finished one; returns the new keypoints
+    and the summed refinement counters with the processes used (``{}`` when refinement is off
+    or nothing was filtered)."""
+    if not rec.pipeline.refine or not store.filter_counts().pairs_ok:
         return read.keypoints, {}
+    ok = store.load_filtered()
     missing = read.loader.missing
     usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
     ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
+    budget = rec.pipeline.image_budget_bytes(runner.slots)
+    # the groups are numbered for one image budget: stored groups of another are walked again
+    done = store.refine_groups({"image_budget_bytes": budget})
     new_keypoints, stats, used = run_refine_stage(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, rec.tracks,
-        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), workers=workers,
-        progress=progress)
+        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), runner=runner,
+        progress=progress, image_budget_bytes=budget, done=done, on_group=store.save_group)
     # the images skipped before the walk count as missing too: the same number as images_missing
     return new_keypoints, dict(stats, workers=used,
                                missing_images=max(int(stats.get("missing_images", 0)), len(missing)))

@@ -1,26 +1,41 @@
-"""Refine stage of ``refine_database``: the track-consistent NCC walk, in this process or in
-``spawn``-ed worker processes (see :mod:`.workers`) with one BLAS/torch thread each.
+"""Refine stage of ``refine_database``: the track-consistent NCC walk over groups of tracks.
 
-Results do not depend on the worker count: refinement chunks are whole tracks, which never
-share a keypoint.
+The :class:`~colmap_miho.refinement.track_plan.TrackPlan` of all output matches is cut into
+groups of whole walked tracks (:meth:`~colmap_miho.refinement.track_plan.TrackPlan.groups`),
+each using at most as many images as fit in the image budget; groups are numbered 0..G-1 in
+their schedule order (consecutive groups share images) and walked one after the other in
+this process, or spread over the runner's slots (:mod:`.executor`: a process pool or Dask)
+as contiguous runs of groups, one group of each run in flight at a time, so that a worker
+keeps the images the next group of its run needs.
+
+Results do not depend on the runner, its slots or the budget: groups are whole tracks, which
+never share a keypoint, and each group's walk is exactly the whole plan's walk of its tracks.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-import os
-from concurrent.futures import FIRST_COMPLETED, wait
+from collections.abc import Callable, Mapping
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 
 import numpy as np
 
 from ..adapters.images import ImageLoader
-from .workers import process_pool as _process_pool
 
 log = logging.getLogger(__name__)
 
 #: Refinement runs in worker processes only with at least this many refinable matches each.
 MIN_MATCHES_PER_REFINE_WORKER = 2000
+
+#: Bytes of one pixel of a decoded image (:class:`ImageLoader` keeps float32 gray).
+BYTES_PER_PIXEL = 4
+
+#: (image id, keypoint indices (K,) int64, new positions (K, 2) float64) per image of a group.
+Moved = dict[int, tuple[np.ndarray, np.ndarray]]
+
+#: The loader of this worker process, kept from one task to the next (image reuse).
+_WORKER_LOADER: ImageLoader | None = None
 
 
 def _import_refinement():
@@ -30,47 +45,132 @@ def _import_refinement():
     return track_plan.build_track_plan, tracks.walk_tracks, tracks.local_affine_of
 
 
-def _refine_chunk(loader_state, plan, ncc_config, track_config, affines, threads,
-                  progress_queue=None):
-    """Worker: walk the whole tracks of ``plan``; returns (keypoints, stats). Reports the
-    keypoints it has handled on ``progress_queue`` (a manager queue) when given."""
-    import torch
+def max_images_for(loader: ImageLoader, image_ids, budget_bytes: int | None,
+                   fallback: int) -> int:
+    """Images a group may use (at least 2): as many of the largest of ``image_ids`` (decoded,
+    from the loader's expected sizes) as fit in ``budget_bytes`` and in the loader's own
+    bounds (so that a group's images stay cached during its walk); ``fallback`` when none of
+    these bounds is known."""
+    sizes = [b for b in (loader.image_bytes(i) for i in image_ids) if b]
+    bounds = [loader.max_cached] if loader.max_cached is not None else []
+    for budget in (budget_bytes, loader.max_cached_bytes):
+        if budget is not None and sizes:
+            bounds.append(int(budget) // max(sizes))
+    return max(2, min(bounds) if bounds else int(fallback))
 
-    torch.set_num_threads(max(1, int(threads)))
+
+def _moved_of(group, keypoints) -> Moved:
+    """The keypoints of ``group``'s images that its walk changed: image -> (idx, xy)."""
+    out: Moved = {}
+    for i, arr in keypoints.items():
+        arr = np.asarray(arr, np.float64)
+        idx = np.flatnonzero(np.any(arr != group.keypoints[i], axis=1))
+        if idx.size:
+            out[int(i)] = (idx.astype(np.int64), arr[idx].copy())
+    return out
+
+
+def _walk_group(loader, group, ncc_config, track_config, affines, on_progress=None):
+    """Walk one group with ``loader``; returns (moved, numeric stats)."""
     _, walk_tracks, _ = _import_refinement()
-    report = progress_queue.put if progress_queue is not None else None
-    tr = walk_tracks(ImageLoader(**loader_state), plan, ncc_config=ncc_config,
-                     track_config=track_config, affines=affines, progress=False,
-                     on_progress=report)
-    return tr.keypoints, tr.stats
+    tr = walk_tracks(loader, group, ncc_config=ncc_config, track_config=track_config,
+                     affines=affines, progress=False, on_progress=on_progress)
+    return _moved_of(group, tr.keypoints), _numeric(tr.stats)
+
+
+def _walk_group_task(loader_state: dict, group, ncc_config, track_config, affines):
+    """Worker task: walk one group with this process's loader (created on first use, then
+    kept with its cache, so the next group of the same run finds its shared images)."""
+    global _WORKER_LOADER
+    state = dict(loader_state)
+    names, sizes = state.pop("names"), state.pop("expected_sizes")
+    loader = _WORKER_LOADER
+    if loader is None or {k: getattr(loader, k) for k in state} != state:
+        loader = _WORKER_LOADER = ImageLoader(names=names, expected_sizes=sizes, **state)
+    else:
+        loader.add_images(names, sizes)
+    return _walk_group(loader, group, ncc_config, track_config, affines)
+
+
+def _group_args(loader: ImageLoader, group, affines, budget_bytes: int | None
+                ) -> tuple[dict, Mapping | None]:
+    """What a worker needs besides the group: the loader settings (bytes bounded by
+    ``budget_bytes`` when given) with the group's images only, and the affine frames of the
+    group's images."""
+    ids = group.image_ids
+    state = dict(loader.state(), max_cached_bytes=budget_bytes or loader.max_cached_bytes)
+    state["names"] = {i: loader.names[i] for i in ids}
+    state["expected_sizes"] = {i: loader.expected_sizes[i] for i in ids
+                               if i in loader.expected_sizes}
+    aff = None if affines is None else {i: affines[i] for i in ids if i in affines}
+    return state, aff
 
 
 def _merge_walk_stats(plan_stats: dict, parts: list[dict]) -> dict:
-    """The plan's stats, the parts' counters summed (``levels``: the deepest part)."""
+    """The plan's stats, the groups' counters summed (``levels``, ``missing_images``: the
+    largest of one group)."""
     from ..refinement.tracks import WALK_COUNTERS
 
     stats = dict(plan_stats)
-    for key in WALK_COUNTERS + ("missing_images", "images_loaded", "seconds"):
+    for key in WALK_COUNTERS + ("missing_images", "images_loaded", "image_decodes", "seconds"):
         vals = [st[key] for st in parts if key in st]
         if vals:
             stats[key] = max(vals) if key in ("levels", "missing_images") else sum(vals)
     return _numeric(stats)
 
 
+def _runs(groups: list, n: int) -> list[list[int]]:
+    """``n`` contiguous runs of group indices, balanced by keypoints to refine (empty runs
+    left out)."""
+    work = np.cumsum([g.to_refine for g in groups], dtype=np.float64)
+    cut = np.searchsorted(work, work[-1] * np.arange(1, n) / n, side="right")
+    bounds = [0, *sorted(set(cut.tolist())), len(groups)]
+    return [list(range(a, b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
 def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config, track_config, *,
-                     unrefined=None, workers: int, progress: bool):
-    """Track-consistent NCC refinement, in this process or in ``workers`` processes (each
-    walks whole tracks of one :class:`~colmap_miho.refinement.track_plan.TrackPlan`).
+                     unrefined=None, runner=None, progress: bool = False,
+                     image_budget_bytes: int | None = None,
+                     done: Mapping[int, tuple[Moved, dict]] | None = None,
+                     on_group: Callable[[int, Moved, dict], None] | None = None,
+                     workers: int | None = None):
+    """Track-consistent NCC refinement over groups of whole tracks.
 
     Args:
+        loader: the run's image loader (walks in this process use it; workers build their own
+            with its settings, :meth:`ImageLoader.state`).
+        keypoints: image id -> (N, 2) float64 pixels (integer = pixel centre).
         pairs: (i, j) -> (matches (M, 2), FilterResult with rows 1:1) of the filtered pairs
             whose images are present.
+        affines: image id -> (N, 2, 2) keypoint affine frames, or None.
         unrefined: (i, j) -> (M, 2) the other matches that reach the output database (pairs
             not filtered, failed, or with a missing image): they join tracks, never refine.
+        runner: a :class:`~.executor.Runner`; None: in this process (or ``workers``).
+        progress: a tqdm bar over the keypoints to refine.
+        image_budget_bytes: decoded image bytes one walking process may hold; sets the
+            images of a group (:func:`max_images_for`; None: ``tracks.max_images_in_memory``).
+            Workers' loaders keep at most this many bytes (or the run loader's bound).
+        done: group index -> (moved, stats) of groups finished by an earlier run of the same
+            inputs (resume): not walked again, their moved keypoints applied.
+        on_group: called in this process as each group finishes, with (group index, moved,
+            stats); moved = image id -> (keypoint indices (K,) int64, positions (K, 2)
+            float64) of the keypoints the group changed.
+        workers: without ``runner``: processes of a local pool (kept for callers that do not
+            pass a runner yet).
+
     Returns:
-        (new keypoints dict, stats, processes used).
+        (new keypoints dict, stats, processes used). Stats hold the plan's, the walk
+        counters summed over groups, ``groups``, ``groups_resumed``, ``group_max_images``.
     """
-    build_track_plan, walk_tracks, local_affine_of = _import_refinement()
+    if runner is None:
+        from .executor import open_runner
+
+        with open_runner(int(workers or 1)) as opened:
+            return run_refine_stage(loader, keypoints, pairs, affines, ncc_config, track_config,
+                                    unrefined=unrefined, runner=opened, progress=progress,
+                                    image_budget_bytes=image_budget_bytes, done=done,
+                                    on_group=on_group)
+    build_track_plan, _, local_affine_of = _import_refinement()
     plan = build_track_plan(keypoints, {k: m for k, (m, _) in pairs.items()},
                             {k: r for k, (_, r) in pairs.items()}, unrefined_matches=unrefined,
                             duplicate_px=track_config.duplicate_px,
@@ -78,57 +178,101 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
     n_edges = int(plan.refinable().sum())
     if not n_edges:
         return keypoints, _numeric(plan.stats), 1
-    use = min(workers, max(1, n_edges // MIN_MATCHES_PER_REFINE_WORKER))
-    if use <= 1:
-        with _torch_threads(1 if ncc_config.device != "cuda" else None):
-            tr = walk_tracks(loader, plan, ncc_config=ncc_config, track_config=track_config,
-                             affines=affines, progress=progress)
-        new = {i: np.asarray(tr.keypoints.get(i, keypoints[i]), np.float64) for i in keypoints}
-        return new, _numeric(tr.stats), 1
-    parts = plan.partition(use)
-    state = dict(image_dir=loader.image_dir, names=loader.names, max_cached=loader.max_cached)
-    threads = max(1, (os.cpu_count() or 1) // len(parts))
-    import multiprocessing
+    max_images = max_images_for(loader, plan.image_ids, image_budget_bytes,
+                                track_config.max_images_in_memory)
+    groups = plan.groups(max_images)
+    done = dict(done or {})
+    if any(not 0 <= g < len(groups) for g in done):
+        raise ValueError(f"resumed group indices must be in 0..{len(groups) - 1} (were the "
+                         "inputs or the image budget changed since?)")
+    new = {i: np.array(keypoints[i], np.float64) for i in keypoints}
+    group_stats: list[dict] = []
+    attach = _LocalPairs(plan, groups, skip=done)
 
-    new = {i: keypoints[i].copy() for i in keypoints}
-    part_stats: list[dict] = []
-    bar = queue = manager = None
+    def finish(g: int, moved: Moved, st: dict, *, resumed: bool = False) -> None:
+        for i, (idx, xy) in moved.items():
+            new[i][idx] = xy
+        group_stats.append(st)
+        if not resumed and on_group is not None:
+            on_group(g, moved, st)
+
+    todo = [g for g in range(len(groups)) if g not in done]
+    for g in sorted(done):
+        finish(g, *done[g], resumed=True)
+    use = 1
+    if runner.parallel:
+        use = min(runner.slots, max(1, n_edges // MIN_MATCHES_PER_REFINE_WORKER), max(1, len(todo)))
+    bar = None
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=plan.to_refine, desc=f"NCC tracks ({len(parts)} workers)", unit="kp")
-        manager = multiprocessing.get_context("spawn").Manager()
-        queue = manager.Queue()
-
-    def drain() -> None:
-        while queue is not None and bar is not None and not queue.empty():
-            bar.update(queue.get())
-
+        bar = tqdm(total=plan.to_refine, desc="NCC tracks" + (f" ({use} workers)" if use > 1 else ""),
+                   unit="kp", initial=sum(groups[g].to_refine for g in done))
     try:
-        with _process_pool(len(parts)) as ex:
-            futs = [ex.submit(_refine_chunk, state, part, ncc_config, track_config, affines,
-                              threads, queue)
-                    for part in parts]
-            pending = set(futs)
-            while pending:
-                done, pending = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
-                drain()
-                for fut in done:
-                    fut.result()  # a failed worker stops the run now, not at the end
-            for fut in futs:
-                kp, st = fut.result()
-                for i, arr in kp.items():
-                    arr = np.asarray(arr, np.float64)
-                    changed = np.any(arr != keypoints[i], axis=1)
-                    new[i][changed] = arr[changed]
-                part_stats.append(st)
-            drain()
+        if use <= 1:
+            with _torch_threads(1 if ncc_config.device != "cuda" else None):
+                for g in todo:
+                    finish(g, *_walk_group(loader, attach(g), ncc_config, track_config, affines,
+                                           bar.update if bar is not None else None))
+        else:
+            _dispatch(runner, loader, groups, todo, use, attach,
+                      (ncc_config, track_config, affines, image_budget_bytes), finish, bar)
     finally:
-        if bar:
+        if bar is not None:
             bar.close()
-        if manager is not None:
-            manager.shutdown()
-    return new, _merge_walk_stats(plan.stats, part_stats), len(parts)
+    stats = _merge_walk_stats(plan.stats, group_stats)
+    stats.update(groups=len(groups), groups_resumed=len(done), group_max_images=max_images)
+    return new, stats, use
+
+
+class _LocalPairs:
+    """``attach(g)``: group ``g`` with its local affine pairs; a pair's are fitted when the
+    first group that uses it is attached and forgotten once the last one is."""
+
+    def __init__(self, plan, groups: list, skip) -> None:
+        self.plan, self.groups = plan, groups
+        self.left: dict[int, int] = {}
+        for g, grp in enumerate(groups):
+            if g not in skip:
+                for p in grp.source_pairs.tolist():
+                    self.left[p] = self.left.get(p, 0) + 1
+
+    def __call__(self, g: int):
+        grp = self.plan.attach_local(self.groups[g])
+        for p in self.groups[g].source_pairs.tolist():
+            self.left[p] -= 1
+            if not self.left[p]:
+                self.plan.release_local([p])
+        return grp
+
+
+def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> None:
+    """Walk the ``todo`` groups on the runner: ``use`` contiguous runs, one group of each run
+    in flight at a time (the worker that finished a group is the idle one, so it usually gets
+    the next group of its run and finds the shared images in its cache). ``args``: (NCC
+    config, track config, affines, image budget)."""
+    ncc_config, track_config, affines, budget = args
+    runs = [[todo[k] for k in r] for r in _runs([groups[g] for g in todo], use)]
+    pending: dict[Future, tuple[int, int]] = {}
+
+    def submit(r: int) -> None:
+        if runs[r]:
+            g = runs[r].pop(0)
+            state, aff = _group_args(loader, groups[g], affines, budget)
+            pending[runner.submit(_walk_group_task, state, attach(g), ncc_config, track_config,
+                                  aff)] = (r, g)
+
+    for r in range(len(runs)):
+        submit(r)
+    while pending:
+        finished, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+        for fut in sorted(finished, key=lambda f: pending[f][1]):
+            r, g = pending.pop(fut)
+            moved, st = fut.result()  # a failed group stops the run now
+            finish(g, moved, st)
+            if bar is not None:
+                bar.update(groups[g].to_refine)
+            submit(r)
 
 
 @contextlib.contextmanager

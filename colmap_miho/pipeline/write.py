@@ -1,9 +1,10 @@
 """Write stage: moved keypoints, the kept matches and their two-view geometries, in one
-transaction on the working copy (COLMAP's +0.5 pixel conversion happens in the database
-adapter)."""
+transaction on the working copy, the pairs chunk by chunk as the run store gives them back
+(COLMAP's +0.5 pixel conversion happens in the database adapter)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,13 +26,14 @@ class WriteStats:
 
 
 def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoints: dict[int, np.ndarray],
-              ok: FilteredPairs, cfg: PipelineConfig) -> WriteStats:
+              chunks: Iterable[FilteredPairs], cfg: PipelineConfig) -> WriteStats:
     """Write what changed, in one transaction.
 
     Args:
         keypoints / new_keypoints: image id -> ``(N_i, 2)`` float64 pixels before / after
             refinement; only rows that differ are written.
-        ok: the successfully filtered pairs; their inlier matches replace the pair's matches.
+        chunks: the successfully filtered pairs, one chunk at a time (only one is held at
+            once); their inlier matches replace the pair's matches.
         cfg: ``source`` (a verified pair keeps its geometry model) and ``verify`` (the pairs'
             two-view geometries are deleted, for COLMAP to re-verify).
     """
@@ -43,12 +45,15 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
             if moved.any():
                 displacements.append(np.linalg.norm(new[moved] - old[moved], axis=1))
                 db.write_keypoints(image_id, new, moved)
-        for (i, j), (m, r) in sorted(ok.items()):
-            kept = m[np.asarray(r.inliers, bool)]
-            write_pair(db, i, j, kept, new_keypoints[i][kept[:, 0]], new_keypoints[j][kept[:, 1]],
-                       keep_model=cfg.source == MatchSource.VERIFIED)
+        written: list[tuple[int, int]] = []
+        for ok in chunks:
+            for (i, j), (m, r) in sorted(ok.items()):
+                kept = m[np.asarray(r.inliers, bool)]
+                write_pair(db, i, j, kept, new_keypoints[i][kept[:, 0]], new_keypoints[j][kept[:, 1]],
+                           keep_model=cfg.source == MatchSource.VERIFIED)
+                written.append((i, j))
         if cfg.verify:
-            db.delete_two_view_geometries(sorted(ok))
+            db.delete_two_view_geometries(sorted(written))
     d = np.concatenate(displacements) if displacements else np.zeros(0)
     return WriteStats(keypoints_moved=int(d.size),
                       median_displacement_px=float(np.median(d)) if d.size else 0.0,

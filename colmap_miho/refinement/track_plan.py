@@ -46,7 +46,8 @@ class TrackPlan:
         pair_homs: per pair the (K, 2, 3, 3) float64 patch homography pairs (A, B),
             ``A x1 ~ B x2``.
         local_homs: None, or per pair the (M_p, 2, 3, 3) local affine pairs of its edges
-            (``local_affine``), indexed by ``edge_row``.
+            (``local_affine``), indexed by ``edge_row``. Plans from :func:`build_track_plan`
+            compute them lazily, pair by pair (:meth:`TrackPlan.local_pairs`).
         edge_a, edge_b: (E,) int64 nodes of each edge, ``edge_a`` in the pair's first image.
         edge_pair: (E,) int64 pair of each edge.
         edge_row: (E,) int64 row of each edge among its pair's edges.
@@ -57,6 +58,12 @@ class TrackPlan:
         frozen: (T,) bool nodes of frozen (conflicting) tracks.
         to_refine: keypoints the walk will refine (reachable from an anchor, anchors not
             counted).
+        local_affine: (k neighbours, max residual px) of the local affine pairs, or None.
+        source_pairs: None for a plan over all output matches; for a group
+            (:meth:`TrackPlan.groups`) the (P',) int64 index of each of its pairs in the
+            plan it came from.
+        source_rows: None, or for a group the (E',) int64 row of each edge among its pair's
+            edges in the plan it came from.
         stats: ``tracks`` (tracks with >= 2 keypoints), ``conflicting_tracks`` (two
             keypoints of one image), ``frozen_tracks``, ``frozen_keypoints``,
             ``keypoints_in_tracks``, ``anchors``, ``unrefinable_matches`` (edges without
@@ -80,49 +87,191 @@ class TrackPlan:
     frozen: np.ndarray
     to_refine: int
     stats: dict = field(default_factory=dict)
+    local_affine: tuple | None = None
+    source_pairs: np.ndarray | None = None
+    source_rows: np.ndarray | None = None
+    _local_cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def num_nodes(self) -> int:
         return int(self.node_image.size)
+
+    @property
+    def image_ids(self) -> list:
+        """The images of this plan's keypoints, sorted."""
+        return sorted(self.keypoints)
+
+    def local_pairs(self, p: int) -> np.ndarray | None:
+        """(M_p, 2, 3, 3) local affine pairs of the edges of pair ``p`` (by ``edge_row``), or
+        None without ``local_affine``. A plan over all output matches fits them on first use
+        to all of the pair's edges (the neighbourhood of every match) and keeps them until
+        :meth:`release_local`; a group carries those of its own edges
+        (:meth:`attach_local`).
+
+        Raises:
+            ValueError: a group whose local pairs were not attached.
+        """
+        if self.local_homs is not None:
+            return self.local_homs[p]
+        if self.local_affine is None:
+            return None
+        if self.source_pairs is not None:
+            raise ValueError("this group has no local affine pairs: attach them with "
+                             "attach_local of the plan it came from")
+        if p not in self._local_cache:
+            from .rectify import local_affine_pairs
+
+            lo, hi = np.searchsorted(self.edge_pair, [p, p + 1])
+            id1, id2 = self.pairs[p]
+            x1 = self.keypoints[id1][self.node_kp[self.edge_a[lo:hi]]]
+            x2 = self.keypoints[id2][self.node_kp[self.edge_b[lo:hi]]]
+            k, max_residual_px = self.local_affine
+            self._local_cache[p] = local_affine_pairs(
+                x1, x2, self.edge_label[lo:hi], self.pair_homs[p], k=k,
+                max_residual_px=max_residual_px)
+        return self._local_cache[p]
+
+    def release_local(self, pairs) -> None:
+        """Forget the local affine pairs of ``pairs`` (pair indices); they are fitted again,
+        identically, if asked for later."""
+        for p in np.asarray(pairs, np.int64).reshape(-1):
+            self._local_cache.pop(int(p), None)
+
+    def attach_local(self, group: TrackPlan) -> TrackPlan:
+        """``group`` (from :meth:`groups` of this plan) with the local affine pairs of its
+        edges, fitted in this plan (over each pair's full edge set, so they are those a walk of
+        this whole plan uses); itself when this plan has no ``local_affine``."""
+        if self.local_affine is None or group.local_homs is not None:
+            return group
+        if group.source_pairs is None or group.source_rows is None:
+            raise ValueError("attach_local takes a group made by groups() of this plan")
+        starts = np.searchsorted(group.edge_pair, np.arange(len(group.pairs) + 1))
+        local = tuple(self.local_pairs(int(sp))[group.source_rows[starts[q]:starts[q + 1]]]
+                      for q, sp in enumerate(group.source_pairs))
+        return replace(group, local_homs=local)
+
+    def walked_units(self) -> tuple[np.ndarray, np.ndarray]:
+        """The walk's independent units: per edge the (E,) int64 walked component it belongs
+        to (-1: not refinable, or not reachable from its track's anchor over refinable
+        edges), and per unit its anchor node (U,) int64. Units are numbered in anchor
+        order."""
+        ok = self.refinable()
+        unit = np.full(self.edge_a.size, -1, np.int64)
+        if not ok.any() or not self.anchors.size:
+            return unit, np.zeros(0, np.int64)
+        total = self.num_nodes
+        ea, eb = self.edge_a[ok], self.edge_b[ok]
+        _, comp = connected_components(
+            coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
+        of_comp = np.full(comp.max() + 1, -1, np.int64)
+        of_comp[comp[self.anchors]] = np.arange(self.anchors.size)
+        unit[ok] = of_comp[comp[ea]]
+        return unit, self.anchors
+
+    def subset(self, edges: np.ndarray, anchors: np.ndarray) -> TrackPlan:
+        """A compact plan of whole walked units: the refinable ``edges`` (indices, all the
+        edges of the units of ``anchors``) and ``anchors`` (nodes). Only its own nodes,
+        edges, pairs and the keypoint arrays of its images are kept, re-indexed in the same
+        order (node order is (image_id, keypoint_index) as here, pairs as here), so its walk
+        moves its keypoints exactly as a walk of this whole plan does."""
+        edges = np.sort(np.asarray(edges, np.int64))
+        ea, eb = self.edge_a[edges], self.edge_b[edges]
+        nodes = np.unique(np.concatenate([ea, eb, anchors]))
+        used_pairs, edge_pair = np.unique(self.edge_pair[edges], return_inverse=True)
+        edge_pair = edge_pair.astype(np.int64).reshape(-1)
+        node_image = self.node_image[nodes]
+        src_pairs = used_pairs if self.source_pairs is None else self.source_pairs[used_pairs]
+        rows = self.edge_row[edges]
+        src_rows = rows if self.source_rows is None else self.source_rows[edges]
+        local = None
+        if self.local_homs is not None:
+            starts = np.searchsorted(edge_pair, np.arange(used_pairs.size + 1))
+            local = tuple(self.local_homs[int(p)][rows[starts[q]:starts[q + 1]]]
+                          for q, p in enumerate(used_pairs))
+        _, track = np.unique(self.track[nodes], return_inverse=True)
+        new_a, new_b = np.searchsorted(nodes, ea), np.searchsorted(nodes, eb)
+        new_anchors = np.searchsorted(nodes, np.asarray(anchors, np.int64))
+        return TrackPlan(
+            keypoints={int(i): self.keypoints[int(i)] for i in np.unique(node_image)},
+            node_image=node_image, node_kp=self.node_kp[nodes],
+            pairs=tuple(self.pairs[int(p)] for p in used_pairs),
+            pair_homs=tuple(self.pair_homs[int(p)] for p in used_pairs), local_homs=local,
+            edge_a=new_a, edge_b=new_b, edge_pair=edge_pair,
+            edge_row=np.arange(edge_pair.size) - np.searchsorted(edge_pair, edge_pair),
+            edge_label=self.edge_label[edges], track=track.astype(np.int64).reshape(-1),
+            anchors=new_anchors, frozen=np.zeros(nodes.size, bool),
+            to_refine=int(nodes.size - new_anchors.size), stats={},
+            local_affine=self.local_affine, source_pairs=src_pairs, source_rows=src_rows)
+
+    def groups(self, max_images: int) -> list[TrackPlan]:
+        """Whole walked units (the part of a track its anchor reaches over refinable
+        edges) packed into compact groups (:meth:`subset`) of at most ``max_images``
+        distinct images each (a unit with more images is a group alone).
+
+        Schedule: units sorted by their sorted image ids (lexicographically; ties by
+        anchor), then swept in that order, a new group started when the next unit's images
+        would exceed ``max_images``; so consecutive groups share images and an image stops
+        being needed once the sweep has passed the units that start with it. Deterministic:
+        the same plan and ``max_images`` give the same groups in the same order. Walking the
+        groups one by one moves exactly the keypoints a walk of the whole plan moves, to the
+        same positions (units never share a keypoint). Local affine pairs are not included:
+        :meth:`attach_local` adds them, group by group.
+        """
+        if max_images < 1:
+            raise ValueError(f"max_images must be >= 1, got {max_images}")
+        unit, anchors = self.walked_units()
+        if not anchors.size:
+            return []
+        e_ids = np.flatnonzero(unit >= 0)
+        eu = unit[e_ids]
+        img_a, img_b = self.node_image[self.edge_a[e_ids]], self.node_image[self.edge_b[e_ids]]
+        key = np.unique(np.stack([np.concatenate([eu, eu]), np.concatenate([img_a, img_b])], 1),
+                        axis=0)
+        bounds = np.searchsorted(key[:, 0], np.arange(anchors.size + 1))
+        images = [tuple(key[bounds[u]:bounds[u + 1], 1].tolist()) for u in range(anchors.size)]
+        order = sorted(range(anchors.size), key=lambda u: (images[u], u))
+        group_of = np.empty(anchors.size, np.int64)
+        g, current = -1, set()
+        for u in order:
+            both = current | set(images[u])
+            if g < 0 or len(both) > max_images:
+                g, both = g + 1, set(images[u])
+            group_of[u] = g
+            current = both
+        return self._split(e_ids, group_of[eu], anchors, group_of, g + 1)
+
+    def _split(self, e_ids, edge_group, anchors, anchor_group, n) -> list[TrackPlan]:
+        """Compact plans of the edges ``e_ids`` by their group ``edge_group`` (0..n-1)."""
+        e_sorted = e_ids[np.argsort(edge_group, kind="stable")]
+        e_bounds = np.searchsorted(np.sort(edge_group), np.arange(n + 1))
+        a_order = np.argsort(anchor_group, kind="stable")
+        a_sorted = anchors[a_order]
+        a_bounds = np.searchsorted(anchor_group[a_order], np.arange(n + 1))
+        return [self.subset(e_sorted[e_bounds[b]:e_bounds[b + 1]],
+                            a_sorted[a_bounds[b]:a_bounds[b + 1]])
+                for b in range(n) if e_bounds[b + 1] > e_bounds[b]]
 
     def refinable(self) -> np.ndarray:
         """(E,) bool: edges the walk may refine along (labelled, track not frozen)."""
         return (self.edge_label >= 0) & ~self.frozen[self.edge_a]
 
     def partition(self, n: int) -> list[TrackPlan]:
-        """At most ``n`` plans of whole walked tracks, balanced by refinable edges (greedy:
-        the biggest track to the lightest part). Parts never share a keypoint, so their
-        results merge without conflict. Empty parts are left out."""
+        """At most ``n`` compact plans (:meth:`subset`) of whole walked units, balanced by
+        refinable edges (greedy: the biggest unit to the lightest part). Parts never share a
+        keypoint, so their results merge without conflict. Empty parts are left out."""
         if n < 1:
             raise ValueError(f"n must be >= 1, got {n}")
-        ok = self.refinable()
-        n_tracks = int(self.track.max()) + 1 if self.track.size else 0
-        sizes = np.bincount(self.track[self.edge_a[ok]], minlength=n_tracks)
+        unit, anchors = self.walked_units()
+        e_ids = np.flatnonzero(unit >= 0)
+        sizes = np.bincount(unit[e_ids], minlength=anchors.size)
         order = np.argsort(-sizes, kind="stable")
         load = np.zeros(n)
-        part_of = np.full(n_tracks, -1, np.int64)
-        for t in order[sizes[order] > 0]:
+        part_of = np.zeros(anchors.size, np.int64)
+        for u in order:
             b = int(np.argmin(load))
-            part_of[t] = b
-            load[b] += sizes[t]
-        edge_part = np.where(ok, part_of[self.track[self.edge_a]], -1)
-        anchor_part = part_of[self.track[self.anchors]]
-        out = []
-        for b in range(n):
-            keep = edge_part == b
-            if not keep.any():
-                continue
-            anchors = self.anchors[anchor_part == b]
-            nodes = np.unique(np.concatenate([self.edge_a[keep], self.edge_b[keep]]))
-            out.append(replace(
-                self, edge_a=self.edge_a[keep], edge_b=self.edge_b[keep],
-                edge_pair=self.edge_pair[keep], edge_row=self.edge_row[keep],
-                edge_label=self.edge_label[keep],
-                anchors=anchors, to_refine=_reachable(self.num_nodes, self.edge_a[keep],
-                                                      self.edge_b[keep], anchors, nodes),
-                stats={},
-            ))
-        return out
+            part_of[u] = b
+            load[b] += sizes[u]
+        return self._split(e_ids, part_of[unit[e_ids]], anchors, part_of, n)
 
 
 def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,
@@ -235,22 +384,6 @@ def _edges(kps, offset, pair_matches, pair_filter_results, unrefined_matches):
     return tuple(pairs), tuple(homs), cat(ea), cat(eb), cat(ep), cat(el)
 
 
-def _local_pairs(kps, node_kp, pairs, homs, ea, eb, ep, el, k, max_residual_px) -> tuple:
-    """Per pair the (M_p, 2, 3, 3) homography pairs of its edges (in edge order) from local
-    affine fits."""
-    from .rectify import local_affine_pairs
-
-    out = []
-    starts = np.searchsorted(ep, np.arange(len(pairs) + 1))
-    for p, (id1, id2) in enumerate(pairs):
-        sl = slice(starts[p], starts[p + 1])
-        x1 = kps[id1][node_kp[ea[sl]]]
-        x2 = kps[id2][node_kp[eb[sl]]]
-        out.append(local_affine_pairs(x1, x2, el[sl], homs[p], k=k,
-                                      max_residual_px=max_residual_px))
-    return tuple(out)
-
-
 def _conflicts(track, nodes, node_image, pos, duplicate_px) -> tuple[np.ndarray, np.ndarray]:
     """(n_tracks,) bool: tracks with two keypoints of one image more than ``duplicate_px``
     apart; and (n_tracks,) bool: tracks with two keypoints of one image at all."""
@@ -293,7 +426,8 @@ def build_track_plan(
             farther ones freeze the track.
         local_affine: (k neighbours, max residual px): also give every refinable match its
             own patch homography pair from a local affine fit to its pair's nearest matches
-            (:func:`.rectify.local_affine_pairs`); None: the filter's pairs only.
+            (:func:`.rectify.local_affine_pairs`), fitted when the walk first needs the pair
+            (:meth:`TrackPlan.local_pairs`); None: the filter's pairs only.
     Returns:
         :class:`TrackPlan`.
     Raises:
@@ -302,9 +436,6 @@ def build_track_plan(
     kps, offset, node_image, node_kp = _nodes(keypoints)
     pairs, homs, ea, eb, ep, el = _edges(kps, offset, pair_matches, pair_filter_results,
                                          unrefined_matches)
-    local = None
-    if local_affine is not None:
-        local = _local_pairs(kps, node_kp, pairs, homs, ea, eb, ep, el, *local_affine)
     total = node_image.size
     track = np.full(total, -1, np.int64)
     stats = dict.fromkeys(["tracks", "conflicting_tracks", "frozen_tracks", "frozen_keypoints",
@@ -337,7 +468,8 @@ def build_track_plan(
         stats["unreached_keypoints"] = int(
             np.isin(track[nodes], track[anchors]).sum() - anchors.size - to_refine)
     return TrackPlan(keypoints=kps, node_image=node_image, node_kp=node_kp, pairs=pairs,
-                     pair_homs=homs, local_homs=local, edge_a=ea, edge_b=eb, edge_pair=ep,
+                     pair_homs=homs, local_homs=None, edge_a=ea, edge_b=eb, edge_pair=ep,
                      edge_row=np.arange(ep.size) - np.searchsorted(ep, ep), edge_label=el,
                      track=track, anchors=anchors, frozen=frozen, to_refine=to_refine,
-                     stats=stats)
+                     stats=stats,
+                     local_affine=None if local_affine is None else tuple(local_affine))

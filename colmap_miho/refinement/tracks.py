@@ -60,7 +60,11 @@ class TrackRefineResult:
             ``refined`` (refine attempts), ``refined_against_moved`` (attempts whose partner
             had itself moved), ``moved``, ``rejected``, ``skipped`` (keypoints left
             unrefined because an image was missing), ``missing_images``, ``refine_calls``,
-            ``images_loaded`` (distinct images read), ``seconds``.
+            ``images_loaded`` (distinct images read), ``image_decodes`` (image files the
+            walk decoded, only when ``images`` counts them in ``decodes``, like
+            :class:`~colmap_miho.adapters.images.ImageLoader`), ``seconds``.
+            The result holds the images of the plan's keypoints only (for a group of
+            :meth:`~.track_plan.TrackPlan.groups`: its own images).
     """
 
     keypoints: dict
@@ -203,6 +207,7 @@ def walk_tracks(
     out_against = {i: np.full((k.shape[0], 2), -1, dtype=np.int64) for i, k in kps.items()}
     stats = dict(plan.stats, **dict.fromkeys(WALK_COUNTERS, 0))
     source = ImageSource(images)
+    decodes_before = getattr(images, "decodes", None)
     ok = plan.refinable()
     e_ids = np.flatnonzero(ok)
     ea, eb = plan.edge_a[ok], plan.edge_b[ok]
@@ -244,6 +249,8 @@ def walk_tracks(
             bar.close()
     stats["missing_images"] = len(source.missing)
     stats["images_loaded"] = len(source.used)
+    if isinstance(decodes_before, int):
+        stats["image_decodes"] = int(images.decodes) - decodes_before
     stats["seconds"] = time.perf_counter() - t0
     logger.info("refine_tracks: %s", stats)
     return TrackRefineResult(keypoints=out_kp, displacement=out_disp,

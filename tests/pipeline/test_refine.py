@@ -8,10 +8,12 @@ import sqlite3
 import cv2
 import numpy as np
 import pytest
+from helpers.small_budget import two_images
 
 from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
+from colmap_miho.pipeline.config import PipelineConfig
 from colmap_miho.pipeline.refine import RefineSummary, refine_database
 from colmap_miho.recipe import load_recipe
 
@@ -302,12 +304,14 @@ def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypa
 
     monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # several track groups
     # the CPU worker pool is what is tested (on a CUDA machine "auto" would use one GPU worker)
     one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db",
                           workers=1, device="cpu")
     two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w2.db",
                           workers=2, device="cpu")
     assert one.workers == 1 and two.workers == 2 and two.refine_stats["workers"] == 2
+    assert one.refine_groups == two.refine_groups >= 2
     assert (one.matches_kept, one.keypoints_moved) == (two.matches_kept, two.keypoints_moved)
     with ColmapDatabase(one.output) as a, ColmapDatabase(two.output) as b:
         for im in a.images():

@@ -276,7 +276,15 @@ def test_partition_keeps_whole_tracks_and_gives_the_same_result():
     plan = build_track_plan(kps, pm, _identity_results(pm))
     parts = plan.partition(3)
     assert 1 <= len(parts) <= 3
-    tracks = [set(plan.track[np.concatenate([p.edge_a, p.edge_b])]) for p in parts]
+    node_of = {(int(i), int(k)): n for n, (i, k) in enumerate(zip(plan.node_image, plan.node_kp, strict=True))}
+
+    def parent_tracks(part):
+        nodes = np.unique(np.concatenate([part.edge_a, part.edge_b]))
+        return {int(plan.track[node_of[int(part.node_image[n]), int(part.node_kp[n])]])
+                for n in nodes}
+
+    tracks = [parent_tracks(p) for p in parts]
+    assert all(-1 not in t for t in tracks)
     for x in range(len(tracks)):
         for y in range(x + 1, len(tracks)):
             assert not tracks[x] & tracks[y]
@@ -286,7 +294,8 @@ def test_partition_keeps_whole_tracks_and_gives_the_same_result():
     merged = {i: k.copy() for i, k in kps.items()}
     for p in parts:
         r = walk_tracks(images, p, refine_fn=FakeRefiner())
-        for i in kps:
+        assert set(r.keypoints) == set(p.keypoints) == set(np.unique(p.node_image).tolist())
+        for i in r.keypoints:
             ch = np.any(r.keypoints[i] != kps[i], 1)
             merged[i][ch] = r.keypoints[i][ch]
     for i in kps:

@@ -1,0 +1,368 @@
+"""Run store: the finished work of one ``refine`` run on disk, so that a killed run resumes.
+
+The store is a folder beside the output (and its hidden working copy),
+``<output dir>/.<output name>.miho-run/`` (:func:`store_folder`), holding:
+
+- ``manifest.json``: what the work was made from (:func:`run_fingerprint`: the input
+  database's size and modification time, the image folder, the recipe's values that change
+  the result, the seed, the device and the colmap-miho version), and the refine stage's plan
+  key (its groups are numbered for one image budget);
+- ``filter-NNNNNN.npz``: one finished filter chunk (per pair: the matches, the outcome's
+  inliers, labels, patch homographies and success);
+- ``group-NNNNNN.npz``: one finished refine track group (the keypoints it moved, its stats);
+- ``lock``: held (``flock``) by the run using the folder, released by the kernel even on
+  SIGKILL.
+
+Every file is written under a temporary name, flushed to disk, then renamed onto its name
+(:func:`os.replace`): a file that exists is complete. ``refine`` removes the store after its
+commit; after a failure, Ctrl-C, SIGTERM or SIGKILL it stays, and ``refine --resume``
+continues from it (``--restart`` discards it). The user's database is never written here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import fcntl
+import json
+import logging
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+from .filter_stage import FilteredPairs, PairOutcome
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "manifest.json"
+LOCK = "lock"
+#: Format of the store's files; a store of another format is not resumed.
+STORE_VERSION = 1
+#: Recipe tables whose values change a run's result (``mapping`` is not used by ``refine``).
+RESULT_TABLES = ("filter", "ncc", "tracks", "pipeline")
+#: ``pipeline`` keys that do not change the result (they only bound memory).
+NOT_RESULT_KEYS = {"pipeline": ("memory_budget_mb",)}
+
+_FILTER_FILE = re.compile(r"^filter-(\d{6})\.npz$")
+_GROUP_FILE = re.compile(r"^group-(\d{6})\.npz$")
+
+#: (image id -> (keypoint indices int64 (K,), new positions float64 (K, 2) pixels), stats)
+GroupResult = tuple[dict[int, tuple[np.ndarray, np.ndarray]], dict]
+
+
+def store_folder(output: Path) -> Path:
+    """``<output dir>/.<output name>.miho-run`` (the run store of ``output``)."""
+    output = Path(output)
+    return output.with_name(f".{output.name}.miho-run")
+
+
+def run_fingerprint(database: Path, image_dir: Path, recipe, seed: int, device: str) -> dict:
+    """What a run's stored work depends on, as plain JSON data (compared on resume)."""
+    from .. import __version__
+
+    st = Path(database).stat()
+    tables = {}
+    for name in RESULT_TABLES:
+        values = dataclasses.asdict(getattr(recipe, name))
+        for key in NOT_RESULT_KEYS.get(name, ()):
+            values.pop(key, None)
+        tables[name] = values
+    data = {"store_version": STORE_VERSION, "colmap_miho": __version__,
+            "database": {"path": str(Path(database).resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns},
+            "images": str(Path(image_dir).resolve()), "recipe": tables, "seed": int(seed), "device": device}
+    return json.loads(json.dumps(data, default=str))  # enums -> str, tuples -> lists
+
+
+def fingerprint_difference(old: dict, new: dict) -> str | None:
+    """What differs between two fingerprints, in words ("the seed", "recipe value
+    filter.t_l", ...), or None when they agree."""
+    words = {"store_version": "store format", "colmap_miho": "colmap-miho version",
+             "database": "input database (changed since: size or modification time)",
+             "images": "image folder", "seed": "seed", "device": "device"}
+    for key in sorted(set(old) | set(new)):
+        if old.get(key) == new.get(key):
+            continue
+        if key == "recipe":
+            a, b = old.get(key) or {}, new.get(key) or {}
+            for table in sorted(set(a) | set(b)):
+                ta, tb = a.get(table) or {}, b.get(table) or {}
+                for name in sorted(set(ta) | set(tb)):
+                    if ta.get(name) != tb.get(name):
+                        return f"recipe value {table}.{name} ({ta.get(name)!r} then, {tb.get(name)!r} now)"
+            return "recipe"
+        return words.get(key, key)
+    return None
+
+
+@dataclass(frozen=True)
+class FilterCounts:
+    """Totals over the stored filter chunks."""
+
+    chunks: int = 0
+    pairs: int = 0
+    pairs_ok: int = 0
+    matches_in: int = 0
+    matches_kept: int = 0
+
+
+@dataclass(frozen=True)
+class _ChunkIndex:
+    pairs: np.ndarray  # int64 (P, 2)
+    success: np.ndarray  # bool (P,)
+    matches: int  # over the successful pairs
+    kept: int
+
+
+def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write ``arrays`` as ``path`` (npz): a temporary file, flushed, renamed onto it."""
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **arrays)  # type: ignore[arg-type]  # numpy stubs: allow_pickle kw
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(name, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(name)
+        raise
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(name, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(name)
+        raise
+
+
+class RunStore:
+    """The open run store of one run (see the module docstring); make it with :meth:`open`."""
+
+    def __init__(self, folder: Path, manifest: dict, lock_fd: int) -> None:
+        self.folder = Path(folder)
+        self.manifest = manifest
+        self._lock_fd: int | None = lock_fd
+        self._chunks: dict[int, _ChunkIndex] = {}
+        for index, path in self._files(_FILTER_FILE):
+            with np.load(path) as z:
+                ok = z["success"].astype(bool)
+                offsets, kept = z["offsets"], z["kept"]
+                self._chunks[index] = _ChunkIndex(
+                    pairs=z["pairs"].astype(np.int64).reshape(-1, 2), success=ok,
+                    matches=int(np.diff(offsets)[ok].sum()), kept=int(kept[ok].sum()))
+
+    # -- opening, closing --------------------------------------------------------------------
+    @classmethod
+    def open(cls, folder: Path, fingerprint: dict, *, resume: bool = False, restart: bool = False) -> RunStore:
+        """Open (create) the store at ``folder`` for a run with ``fingerprint``.
+
+        Args:
+            resume: continue from the finished work in the folder (its fingerprint must match).
+            restart: discard the finished work in the folder.
+
+        Raises:
+            UserError: another run uses the folder; finished work is there and neither
+                ``resume`` nor ``restart`` was given; ``resume`` with another fingerprint
+                (the message names what changed); the folder cannot be written.
+        """
+        folder = Path(folder)
+        if resume and restart:
+            raise UserError("use either --resume or --restart, not both")
+        try:
+            folder.mkdir(exist_ok=True)
+            lock_fd = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise UserError(f"cannot create the run folder {folder}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(lock_fd)
+            raise UserError(f"another colmap-miho run is using {folder} (it writes the same output); "
+                            "wait for it to finish or choose another output") from None
+        try:
+            return cls._open_locked(folder, fingerprint, lock_fd, resume=resume, restart=restart)
+        except BaseException:
+            os.close(lock_fd)
+            raise
+
+    @classmethod
+    def _open_locked(cls, folder: Path, fingerprint: dict, lock_fd: int, *, resume: bool,
+                     restart: bool) -> RunStore:
+        manifest_path = folder / MANIFEST
+        old = None
+        if manifest_path.is_file():
+            try:
+                old = json.loads(manifest_path.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                old = {}  # unreadable: written by no finished run of this format
+        has_work = any(_FILTER_FILE.match(p.name) or _GROUP_FILE.match(p.name) for p in folder.iterdir())
+        if has_work and old is not None and not (resume or restart):
+            raise UserError(f"an interrupted run left its finished work in {folder}: pass --resume to "
+                            "continue it, or --restart to discard it and start again")
+        if resume and has_work:
+            what = fingerprint_difference(old.get("fingerprint", {}) if old else {}, fingerprint)
+            if what is not None:
+                raise UserError(f"--resume: the interrupted run in {folder} was made with another {what}; "
+                                "resume with the same inputs and options, or pass --restart to discard it")
+            log.info("resuming the interrupted run from %s", folder)
+            return cls(folder, old or {}, lock_fd)
+        if resume:
+            log.info("--resume: no finished work in %s; starting from the beginning", folder)
+        cls._clear(folder)
+        manifest = {"fingerprint": fingerprint}
+        _atomic_write_text(manifest_path, json.dumps(manifest, indent=1) + "\n")
+        return cls(folder, manifest, lock_fd)
+
+    @staticmethod
+    def _clear(folder: Path) -> None:
+        """Delete the work files (and stale temporary files) of ``folder``, keep the lock."""
+        for p in folder.iterdir():
+            if p.name != LOCK:
+                if p.is_dir():
+                    shutil.rmtree(p, ignore_errors=True)
+                else:
+                    p.unlink(missing_ok=True)
+
+    def has_work(self) -> bool:
+        """Whether any chunk or group is stored."""
+        return bool(self._chunks) or any(True for _ in self._files(_GROUP_FILE))
+
+    def close(self) -> None:
+        """Release the lock; the files stay."""
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+    def remove(self) -> None:
+        """Delete the store (after the run's commit), then release the lock."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+        self.close()
+
+    def _files(self, pattern: re.Pattern) -> list[tuple[int, Path]]:
+        out = []
+        for p in self.folder.iterdir():
+            m = pattern.match(p.name)
+            if m:
+                out.append((int(m.group(1)), p))
+        return sorted(out)
+
+    # -- filter chunks -----------------------------------------------------------------------
+    def filtered_pairs(self) -> set[tuple[int, int]]:
+        """Pairs (image_id1, image_id2) of the stored filter chunks."""
+        return {(int(a), int(b)) for c in self._chunks.values() for a, b in c.pairs}
+
+    def filter_counts(self) -> FilterCounts:
+        """Chunks, pairs, successful pairs and their matches in / kept, over the stored chunks."""
+        cs = list(self._chunks.values())
+        return FilterCounts(chunks=len(cs), pairs=sum(len(c.pairs) for c in cs),
+                            pairs_ok=sum(int(c.success.sum()) for c in cs),
+                            matches_in=sum(c.matches for c in cs), matches_kept=sum(c.kept for c in cs))
+
+    def next_filter_index(self) -> int:
+        """The first chunk index not used yet."""
+        return max(self._chunks, default=-1) + 1
+
+    def save_filter_chunk(self, index: int, pairs: list[tuple[int, int]], matches: list[np.ndarray],
+                          outcomes: list[PairOutcome]) -> None:
+        """Store one finished chunk: ``pairs`` with their matches ``(M, 2)`` and outcomes
+        (rows 1:1). A failed pair's matches and rows are not kept (the pipeline writes it back
+        from the database unchanged)."""
+        if index in self._chunks:
+            raise RuntimeError(f"filter chunk {index} is stored already")
+        ok = np.array([o.success for o in outcomes], bool)
+        rows = [len(m) if s else 0 for m, s in zip(matches, ok, strict=True)]
+        homs = [len(o.patch_homographies) if s else 0 for o, s in zip(outcomes, ok, strict=True)]
+        sel = [k for k in range(len(pairs)) if ok[k]]
+        arrays = {
+            "pairs": np.asarray(pairs, np.int64).reshape(-1, 2),
+            "success": ok,
+            "offsets": np.concatenate([[0], np.cumsum(rows)]).astype(np.int64),
+            "kept": np.array([int(np.count_nonzero(o.inliers)) if s else 0 for o, s in zip(outcomes, ok, strict=True)],
+                             np.int64),
+            "matches": _cat([matches[k] for k in sel], (0, 2), np.uint32),
+            "inliers": _cat([outcomes[k].inliers for k in sel], (0,), bool),
+            "labels": _cat([outcomes[k].labels for k in sel], (0,), np.int64),
+            "hom_offsets": np.concatenate([[0], np.cumsum(homs)]).astype(np.int64),
+            "patch_homographies": _cat([outcomes[k].patch_homographies for k in sel], (0, 2, 3, 3), np.float64),
+        }
+        _atomic_savez(self.folder / f"filter-{index:06d}.npz", arrays)
+        self._chunks[index] = _ChunkIndex(pairs=arrays["pairs"], success=ok,
+                                          matches=int(arrays["offsets"][-1]), kept=int(arrays["kept"].sum()))
+
+    def iter_filter_chunks(self) -> Iterator[FilteredPairs]:
+        """The successful pairs of each stored chunk, one chunk at a time (chunk order)."""
+        for index, path in self._files(_FILTER_FILE):
+            if index not in self._chunks:
+                continue
+            with np.load(path) as z:
+                pairs, ok, off, hoff = z["pairs"], z["success"], z["offsets"], z["hom_offsets"]
+                matches, inliers, labels, homs = z["matches"], z["inliers"], z["labels"], z["patch_homographies"]
+            out: FilteredPairs = {}
+            for k in np.flatnonzero(ok):
+                a, b = int(off[k]), int(off[k + 1])
+                out[(int(pairs[k, 0]), int(pairs[k, 1]))] = (matches[a:b], PairOutcome(
+                    inliers=inliers[a:b], labels=labels[a:b],
+                    patch_homographies=homs[int(hoff[k]):int(hoff[k + 1])], success=True))
+            yield out
+
+    def load_filtered(self) -> FilteredPairs:
+        """The successful pairs of all stored chunks."""
+        out: FilteredPairs = {}
+        for chunk in self.iter_filter_chunks():
+            out.update(chunk)
+        return out
+
+    # -- refine groups -----------------------------------------------------------------------
+    def refine_groups(self, plan_key: dict) -> dict[int, GroupResult]:
+        """The stored refine groups, when they were made under ``plan_key`` (the refine stage's
+        grouping depends on it); otherwise they are dropped and ``plan_key`` recorded."""
+        plan_key = json.loads(json.dumps(plan_key, default=str))
+        files = self._files(_GROUP_FILE)
+        if self.manifest.get("refine_plan") != plan_key:
+            if files:
+                log.info("the stored refine groups were planned for %s, this run for %s: refining them again",
+                         self.manifest.get("refine_plan"), plan_key)
+            for _, path in files:
+                path.unlink(missing_ok=True)
+            self.manifest = dict(self.manifest, refine_plan=plan_key)
+            _atomic_write_text(self.folder / MANIFEST, json.dumps(self.manifest, indent=1) + "\n")
+            return {}
+        out: dict[int, GroupResult] = {}
+        for index, path in files:
+            with np.load(path) as z:
+                ids, off, idx, xy = z["image_ids"], z["offsets"], z["idx"], z["xy"]
+                stats = json.loads(str(z["stats"]))
+            moved = {int(i): (idx[off[k]:off[k + 1]], xy[off[k]:off[k + 1]]) for k, i in enumerate(ids)}
+            out[index] = (moved, stats)
+        return out
+
+    def save_group(self, index: int, moved: dict[int, tuple[np.ndarray, np.ndarray]], stats: dict) -> None:
+        """Store one finished refine group: image id -> (keypoint indices (K,), positions
+        (K, 2) pixels) and its stats (JSON-ready numbers)."""
+        ids = sorted(moved)
+        sizes = [len(moved[i][0]) for i in ids]
+        _atomic_savez(self.folder / f"group-{index:06d}.npz", {
+            "image_ids": np.asarray(ids, np.int64),
+            "offsets": np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+            "idx": _cat([np.asarray(moved[i][0], np.int64) for i in ids], (0,), np.int64),
+            "xy": _cat([np.asarray(moved[i][1], np.float64).reshape(-1, 2) for i in ids], (0, 2), np.float64),
+            "stats": np.array(json.dumps(stats, default=float)),
+        })
+
+
+def _cat(parts: list[np.ndarray], empty_shape: tuple, dtype) -> np.ndarray:
+    return np.concatenate([np.asarray(p, dtype) for p in parts]) if parts else np.zeros(empty_shape, dtype)

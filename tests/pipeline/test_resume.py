@@ -1,0 +1,154 @@
+"""``refine --resume``: a run SIGKILLed after some filter chunks continues from them and
+writes the same database as an uninterrupted run; finished work is never thrown away
+silently, and a resume with other options is one clear error."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+
+import pytest
+from helpers import HELPERS, REPO
+from helpers.db_contents import assert_same_database
+from helpers.small_budget import two_images
+
+from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.cli import main
+from colmap_miho.pipeline.config import PipelineConfig
+from colmap_miho.pipeline.store import store_folder
+
+#: Seconds the killed run may take (imports, copy, a few pairs).
+KILLED_RUN_TIMEOUT_S = 180
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return make_synthetic_scene(tmp_path_factory.mktemp("resume"), num_images=4, num_points=80,
+                                outlier_ratio=0.15, noise_px=1.0, seed=5)
+
+
+def _args(scene, out, *extra):
+    return ["refine", "--database", str(scene.database), "--images", str(scene.image_dir),
+            "--output", str(out), "--workers", "1", "--device", "cpu", "-q", *extra]
+
+
+@pytest.fixture(scope="module")
+def reference(scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ref") / "ref.db"
+    assert main(_args(scene, out)) == 0
+    return out
+
+
+def _sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _killed_run(scene, out, kind: str, n: int) -> None:
+    """Run refine in a subprocess that SIGKILLs itself after ``n`` stored ``kind`` items."""
+    cmd = [sys.executable, str(HELPERS / "kill_after_saves.py"), kind, str(n), *_args(scene, out)]
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=KILLED_RUN_TIMEOUT_S)
+    assert proc.returncode == -9, proc.stderr  # killed, not finished
+    assert not out.exists()
+
+
+def _stored(out, prefix):
+    return sorted(p.name for p in store_folder(out).glob(f"{prefix}-*.npz"))
+
+
+def test_killed_run_resumes_to_the_uninterrupted_result(scene, reference, tmp_path, capsys):
+    before = _sha(scene.database)
+    out = tmp_path / "out.db"
+    _killed_run(scene, out, "filter", 2)
+    assert _stored(out, "filter") == ["filter-000000.npz", "filter-000001.npz"]
+    assert _sha(scene.database) == before  # the input is never written
+    capsys.readouterr()
+
+    # without --resume the finished work is not thrown away: one line naming both options
+    assert main(_args(scene, out)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--resume" in err[0] and "--restart" in err[0] and str(store_folder(out)) in err[0]
+    assert _stored(out, "filter") and not out.exists()
+
+    # a resume with another seed or recipe value is refused, naming what changed
+    assert main(_args(scene, out, "--resume", "--seed", "3")) == 2
+    assert "another seed" in capsys.readouterr().err
+    assert main(_args(scene, out, "--resume", "--set", "filter.t_l=12")) == 2
+    err = capsys.readouterr().err
+    assert "recipe value filter.t_l" in err and "--restart" in err
+    assert len(_stored(out, "filter")) == 2
+
+    js = tmp_path / "s.json"
+    assert main(_args(scene, out, "--resume", "--json", str(js))) == 0
+    summary = json.loads(js.read_text())
+    assert summary["resumed"] and summary["filter_chunks_resumed"] == 2 and summary["pairs_resumed"] == 2
+    # the 4 pairs left form one default chunk (the resumed run is not the test runner)
+    assert summary["filter_chunks"] == 3 and summary["pairs_filtered"] == 6
+    assert summary["runner"] == "inline" and summary["memory_budget_mb"] == 2048
+    assert_same_database(reference, out)
+    assert not store_folder(out).exists()  # removed after the commit
+    assert _sha(scene.database) == before
+
+
+def test_run_killed_while_refining_resumes_its_groups(scene, reference, tmp_path, monkeypatch):
+    out = tmp_path / "out.db"
+    _killed_run(scene, out, "group", 1)
+    assert len(_stored(out, "filter")) == 6 and _stored(out, "group") == ["group-000000.npz"]
+    monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # the killed run's groups
+    js = tmp_path / "s.json"
+    assert main(_args(scene, out, "--resume", "--json", str(js))) == 0
+    summary = json.loads(js.read_text())
+    assert summary["filter_chunks_resumed"] == 6 and summary["refine_groups_resumed"] == 1
+    assert summary["refine_groups"] >= 2
+    assert_same_database(reference, out)  # reference: default budget, one group
+
+
+def test_resume_with_another_image_budget_walks_the_groups_again(scene, reference, tmp_path):
+    out = tmp_path / "out.db"
+    _killed_run(scene, out, "group", 1)
+    js = tmp_path / "s.json"
+    assert main(_args(scene, out, "--resume", "--json", str(js))) == 0  # default budget: one group
+    summary = json.loads(js.read_text())
+    assert summary["filter_chunks_resumed"] == 6 and summary["refine_groups_resumed"] == 0
+    assert_same_database(reference, out)
+
+
+def test_restart_discards_the_finished_work(scene, reference, tmp_path):
+    out = tmp_path / "out.db"
+    _killed_run(scene, out, "filter", 1)
+    assert len(_stored(out, "filter")) == 1
+    js = tmp_path / "s.json"
+    assert main(_args(scene, out, "--restart", "--json", str(js))) == 0
+    summary = json.loads(js.read_text())
+    assert not summary["resumed"] and summary["filter_chunks_resumed"] == 0
+    assert_same_database(reference, out)
+    assert not store_folder(out).exists()
+
+
+def test_resume_without_finished_work_runs_from_the_start(scene, reference, tmp_path):
+    out = tmp_path / "out.db"
+    assert main(_args(scene, out, "--resume")) == 0
+    assert_same_database(reference, out)
+
+
+def test_failed_run_keeps_its_work_and_says_how_to_resume(scene, reference, tmp_path, monkeypatch, capsys):
+    from colmap_miho.pipeline import refine as refine_module
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("refine stage broke")
+
+    monkeypatch.setattr(refine_module, "run_refine_stage", broken)
+    out = tmp_path / "out.db"
+    assert main(_args(scene, out)) == 1
+    err = capsys.readouterr().err
+    assert "refine stage broke" in err and "--resume" in err and str(store_folder(out)) in err
+    assert len(_stored(out, "filter")) == 1
+    monkeypatch.undo()
+    assert main(_args(scene, out, "--resume")) == 0
+    assert_same_database(reference, out)
+
+
+def test_resume_and_restart_are_exclusive(scene, tmp_path):
+    with pytest.raises(SystemExit):
+        main(_args(scene, tmp_path / "o.db", "--resume", "--restart"))

@@ -1,0 +1,232 @@
+"""Groups of whole tracks (``TrackPlan.groups``): compact, bounded in images, deterministic, and
+walked one by one they move every keypoint exactly as the walk of the whole plan does."""
+
+from __future__ import annotations
+
+import pickle
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from colmap_miho.refinement.config import NCCConfig, TrackConfig
+from colmap_miho.refinement.ncc import RefineResult
+from colmap_miho.refinement.rectify import local_affine_pairs
+from colmap_miho.refinement.track_plan import build_track_plan
+from colmap_miho.refinement.tracks import walk_tracks
+
+LOCAL = (6, 2.0)
+
+
+def random_scene(seed: int, n_images: int = 9, n_tracks: int = 400):
+    """Tracks over sequential windows of images (as a video or a walk around an object),
+    a few long ones, duplicates and conflicts, two filter clusters per pair, and some
+    unrefined matches. Returns (keypoints, pair_matches, results, unrefined)."""
+    rng = np.random.default_rng(seed)
+    kps: dict[int, list] = {i: [] for i in range(1, n_images + 1)}
+    pm: dict[tuple, list] = {}
+    for t in range(n_tracks):
+        length = int(rng.integers(2, 5)) if t % 40 else n_images
+        start = int(rng.integers(1, n_images - length + 2))
+        members = list(range(start, start + length))
+        centre = rng.uniform(20, 480, 2)
+        obs = []
+        for i in members:
+            obs.append((i, len(kps[i])))
+            kps[i].append(centre + rng.normal(0, 3, 2))
+        if t % 50 == 7:  # a second keypoint of one image: a conflict (far) or a duplicate
+            i = members[0]
+            obs.append((i, len(kps[i])))
+            kps[i].append(kps[i][-1] + (30.0 if t % 100 == 7 else 0.4))
+        for a in range(len(obs)):
+            for b in range(a + 1, len(obs)):
+                (i, ki), (j, kj) = obs[a], obs[b]
+                if i != j and rng.random() < 0.8:
+                    key, row = ((i, j), [ki, kj]) if i < j else ((j, i), [kj, ki])
+                    pm.setdefault(key, []).append(row)
+    keypoints = {i: np.asarray(v, np.float64).reshape(-1, 2) for i, v in kps.items()}
+    matches = {k: np.asarray(v, np.int64) for k, v in pm.items()}
+    unrefined = {}
+    for k in list(matches)[::7]:  # some pairs never filtered
+        unrefined[k] = matches.pop(k)
+    results = {}
+    for k, m in matches.items():
+        labels = rng.integers(-1, 2, len(m))  # -1: kept, no homography
+        homs = np.tile(np.eye(3), (2, 2, 1, 1))
+        homs[1, 1, :2, 2] = rng.normal(0, 0.5, 2)
+        results[k] = SimpleNamespace(inliers=rng.random(len(m)) < 0.95, labels=labels,
+                                     patch_homographies=homs)
+    return keypoints, matches, results, unrefined
+
+
+class PullRefiner:
+    """Moves each free keypoint a quarter of the way towards its fixed partner plus a term of
+    the homography pair it got; its NCC depends on the positions, so partner choice and order
+    matter. Records the homography pair each (moving image, keypoint) was refined with."""
+
+    def __init__(self):
+        self.homs = {}
+
+    def __call__(self, image1, image2, pts1, pts2, homs, *, move, config, **kw):
+        p1, p2 = np.array(pts1, float), np.array(pts2, float)
+        h = np.asarray(homs)
+        new = p2 + 0.25 * (p1 - p2) + 0.01 * h.reshape(len(p2), -1)[:, :2].sum(1, keepdims=True)
+        ncc = np.cos(p1[:, 0] * 0.37 + p2[:, 1] * 0.11)
+        for row, pt in enumerate(p2):
+            self.homs[(image2, float(pt[0]), float(pt[1]))] = h[row].copy()
+        n = len(p1)
+        return RefineResult(pts1=p1, pts2=new, ncc_before=np.zeros(n), ncc_after=ncc,
+                            moved_side=np.full(n, 2, np.int8), displacement=np.linalg.norm(new - p2, axis=1),
+                            rejected=np.zeros(n, bool), stats={})
+
+
+def _images(kps):
+    return {i: i for i in kps}  # the fake reads no pixels: the "image" is its id
+
+
+def _merge(kps, plan, walks):
+    out = {i: k.copy() for i, k in kps.items()}
+    against = {i: np.full((len(k), 2), -1, np.int64) for i, k in kps.items()}
+    for r in walks:
+        for i in r.keypoints:
+            ch = np.any(r.keypoints[i] != kps[i], 1)
+            out[i][ch] = r.keypoints[i][ch]
+            got = r.refined_against[i][:, 0] >= 0
+            assert not (against[i][got, 0] >= 0).any()  # no keypoint in two groups
+            against[i][got] = r.refined_against[i][got]
+    return out, against
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("max_images", [1, 2, 3, 5, 100])
+def test_groups_walk_exactly_like_the_whole_plan(seed, max_images):
+    kps, pm, res, unref = random_scene(seed)
+    plan = build_track_plan(kps, pm, res, unrefined_matches=unref, local_affine=LOCAL)
+    ncc = NCCConfig(rectification="both")
+    whole_fake = PullRefiner()
+    whole = walk_tracks(_images(kps), plan, ncc_config=ncc, refine_fn=whole_fake)
+    groups = plan.groups(max_images)
+    assert groups == [] or len(groups) >= 1
+    fake = PullRefiner()
+    walks = [walk_tracks(_images(kps), plan.attach_local(g), ncc_config=ncc, refine_fn=fake)
+             for g in groups]
+    merged, against = _merge(kps, plan, walks)
+    assert whole.stats["moved"] > 200
+    for i in kps:
+        np.testing.assert_array_equal(merged[i], whole.keypoints[i])
+        np.testing.assert_array_equal(against[i], whole.refined_against[i])
+    assert whole_fake.homs.keys() == fake.homs.keys()
+    for key, h in whole_fake.homs.items():
+        np.testing.assert_array_equal(fake.homs[key], h)
+    assert sum(w.stats["refined"] for w in walks) == whole.stats["refined"]
+    assert sum(g.to_refine for g in groups) == plan.to_refine
+
+
+@pytest.mark.parametrize("max_images", [2, 3, 4, 9])
+def test_groups_are_bounded_compact_and_deterministic(max_images):
+    kps, pm, res, unref = random_scene(3)
+    plan = build_track_plan(kps, pm, res, unrefined_matches=unref, local_affine=LOCAL)
+    groups = plan.groups(max_images)
+    again = plan.groups(max_images)
+    assert len(groups) == len(again)
+    for a, b in zip(groups, again, strict=True):
+        assert pickle.dumps(a) == pickle.dumps(b)
+    seen: set = set()
+    for g in groups:
+        images = set(np.unique(g.node_image).tolist())
+        assert set(g.keypoints) == images
+        # bounded, unless the group is one track (a track of more images is alone)
+        assert len(images) <= max_images or g.anchors.size == 1
+        # compact: only its own nodes, every node has an edge, every pair is used
+        assert np.array_equal(np.unique(np.concatenate([g.edge_a, g.edge_b])), np.arange(g.num_nodes))
+        assert np.array_equal(np.unique(g.edge_pair), np.arange(len(g.pairs)))
+        assert g.refinable().all() and g.local_homs is None
+        nodes = set(zip(g.node_image.tolist(), g.node_kp.tolist(), strict=True))
+        assert not nodes & seen
+        seen |= nodes
+    # pickled, a group costs its own size: the keypoint arrays of its images, 8 bytes per
+    # node and edge array entry, its pairs' filter homographies and a fixed overhead (never the whole plan)
+    whole = len(pickle.dumps(plan))
+    for g in groups:
+        own = sum(k.nbytes for k in g.keypoints.values()) + 8 * (4 * g.num_nodes + 6 * g.edge_a.size)
+        assert len(pickle.dumps(g)) <= own + 4096 + 600 * len(g.pairs)
+        if len(groups) > 3:
+            assert len(pickle.dumps(g)) < 0.5 * whole
+    # consecutive groups share images (the schedule): most of them
+    shared = [bool(set(a.keypoints) & set(b.keypoints)) for a, b in zip(groups, groups[1:], strict=False)]
+    assert not shared or np.mean(shared) >= 0.8
+    with pytest.raises(ValueError, match="max_images"):
+        plan.groups(0)
+
+
+def test_local_pairs_are_those_of_the_whole_pair():
+    """Lazy local affine pairs, per group, are bit-identical to fitting every pair over all of
+    its edges up front (what the plan did before); and a group must get them attached."""
+    kps, pm, res, unref = random_scene(5, n_tracks=900)
+    plan = build_track_plan(kps, pm, res, unrefined_matches=unref, local_affine=LOCAL)
+    starts = np.searchsorted(plan.edge_pair, np.arange(len(plan.pairs) + 1))
+    eager = []
+    for p, (id1, id2) in enumerate(plan.pairs):
+        sl = slice(starts[p], starts[p + 1])
+        eager.append(local_affine_pairs(kps[id1][plan.node_kp[plan.edge_a[sl]]],
+                                        kps[id2][plan.node_kp[plan.edge_b[sl]]],
+                                        plan.edge_label[sl], plan.pair_homs[p], k=LOCAL[0],
+                                        max_residual_px=LOCAL[1]))
+    fitted = 0
+    for g in plan.groups(3):
+        with pytest.raises(ValueError, match="attach"):
+            g.local_pairs(0)
+        full = plan.attach_local(g)
+        gs = np.searchsorted(full.edge_pair, np.arange(len(full.pairs) + 1))
+        for q, p in enumerate(full.source_pairs):
+            rows = full.source_rows[gs[q]:gs[q + 1]]
+            np.testing.assert_array_equal(full.local_pairs(q), eager[p][rows])
+            fitted += int((eager[p][rows][:, 0] != np.eye(3)).any(axis=(1, 2)).sum() == 0)
+        plan.release_local(full.source_pairs)
+    assert not plan._local_cache
+    assert fitted > 0
+
+
+def test_partition_of_a_group_and_no_walked_track():
+    kps = {1: np.zeros((1, 2)), 2: np.zeros((1, 2))}
+    pm = {(1, 2): np.array([[0, 0]])}
+    res = {(1, 2): SimpleNamespace(labels=np.array([-1]), patch_homographies=np.zeros((0, 2, 3, 3)))}
+    plan = build_track_plan(kps, pm, res)
+    assert plan.groups(4) == [] and plan.partition(2) == []
+    kps, pm, res, unref = random_scene(2)
+    plan = build_track_plan(kps, pm, res, unrefined_matches=unref)
+    g = max(plan.groups(4), key=lambda g: g.anchors.size)
+    parts = g.partition(2)
+    assert sum(p.to_refine for p in parts) == g.to_refine
+    whole = walk_tracks(_images(g.keypoints), g, refine_fn=PullRefiner())
+    merged, _ = _merge(g.keypoints, g, [walk_tracks(_images(p.keypoints), p, refine_fn=PullRefiner())
+                                         for p in parts])
+    for i in g.keypoints:
+        np.testing.assert_array_equal(merged[i], whole.keypoints[i])
+
+
+def test_groups_on_real_images_move_keypoints_like_the_whole_walk(shared_data):
+    """Real NCC (local affine pairs on, as shipped) on 5 Middlebury temple images: the walk of
+    the groups for several image bounds gives bit-identical keypoints to the whole walk."""
+    import cv2
+
+    from miho_bench.frontend import filtered_multiview_matches
+
+    folder = shared_data / "middlebury_temple_sparse_ring" / "images"
+    files = sorted(folder.iterdir())[:5]
+    images = {i + 1: cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for i, f in enumerate(files)}
+    kps, matches, results = filtered_multiview_matches(images, max_features=600)
+    assert len(matches) >= 4
+    ncc = NCCConfig(device="cpu", template_radius=6)
+    plan = build_track_plan(kps, matches, results, local_affine=(ncc.local_affine_neighbours,
+                                                                 ncc.local_affine_max_residual_px))
+    whole = walk_tracks(images, plan, ncc_config=ncc, track_config=TrackConfig())
+    assert whole.stats["moved"] > 50
+    for max_images in (2, 3):
+        groups = plan.groups(max_images)
+        assert len(groups) > 1
+        walks = [walk_tracks(images, plan.attach_local(g), ncc_config=ncc) for g in groups]
+        merged, against = _merge(kps, plan, walks)
+        for i in kps:
+            np.testing.assert_array_equal(merged[i], whole.keypoints[i])
+            np.testing.assert_array_equal(against[i], whole.refined_against[i])
