@@ -214,7 +214,7 @@ def main(argv=None) -> int:
             for name, _, _ in variants:
                 out = args.work / scene / setting / "variants" / f"{name}.db"
                 out.parent.mkdir(parents=True, exist_ok=True)
-                summary = refine_database(db, image_dir, out, recipe=recipes[name], overwrite=True,
+                summary = refine_database(db, image_dir, out, recipe=recipes[name], overwrite=True, restart=True,
                                           workers=args.workers, seed=0)
                 k = measure(summary.output, gt)
                 b, a = base.get("residual_median_px"), k.get("residual_median_px")

@@ -44,7 +44,8 @@ def refined_database(db: Path, image_dir: Path, folder: Path, recipe, overrides:
     out = folder / f"refined_{recipe.name}_{tag}.db"
     if not out.is_file():
         tmp = out.with_suffix(".tmp.db")
-        refine_database(db, image_dir, tmp, recipe=recipe, overwrite=True, workers=workers, seed=0)
+        refine_database(db, image_dir, tmp, recipe=recipe, overwrite=True, restart=True, workers=workers,
+                        seed=0)
         tmp.rename(out)
     return out
 

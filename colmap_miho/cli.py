@@ -150,6 +150,11 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
+def _notes(exc: BaseException) -> str:
+    """The exception's notes (e.g. how to resume a refine run), as "; "-joined text."""
+    return "".join(f"; {' '.join(str(n).split())}" for n in getattr(exc, "__notes__", ()))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; return the process exit code (0 ok, 1 failed run, 2 bad input, 130 Ctrl-C,
     143 SIGTERM)."""
@@ -179,20 +184,21 @@ def main(argv: list[str] | None = None) -> int:
             PermissionError) as exc:
         log.error("%s", _one_line(exc))
         return 2
-    except Terminated:
-        log.error("terminated (SIGTERM); working files removed, nothing was written to the input")
+    except Terminated as exc:
+        log.error("terminated (SIGTERM); working files removed, nothing was written to the input%s",
+                  _notes(exc))
         return 143
-    except KeyboardInterrupt:
-        log.error("interrupted; working files removed, nothing was written to the input")
+    except KeyboardInterrupt as exc:
+        log.error("interrupted; working files removed, nothing was written to the input%s", _notes(exc))
         return 130
     except (OSError, sqlite3.Error, MemoryError) as exc:
         # disk full, read-only folder, a truncated or corrupt file: one line, not a traceback
-        log.error("%s%s", _one_line(exc), "" if verbose else " (run with -v for details)",
+        log.error("%s%s%s", _one_line(exc), _notes(exc), "" if verbose else " (run with -v for details)",
                   exc_info=verbose)
         return 1
     except Exception as exc:  # noqa: BLE001 - no traceback reaches a user without -v
-        log.error("%s: %s (unexpected; run with -v for the traceback and report it)",
-                  type(exc).__name__, _one_line(exc), exc_info=verbose)
+        log.error("%s: %s%s (unexpected; run with -v for the traceback and report it)",
+                  type(exc).__name__, _one_line(exc), _notes(exc), exc_info=verbose)
         return 1
     finally:
         guard.__exit__(None, None, None)

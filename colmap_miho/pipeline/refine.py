@@ -280,9 +280,9 @@ def refine_database(
         if not _keep_store(store):
             raise
         raise type(exc)(f"{exc}; {_resume_hint(store)}") from exc
-    except BaseException:
+    except BaseException as exc:  # the CLI prints the note on the error's one line
         if _keep_store(store):
-            log.warning("%s", _resume_hint(store))
+            exc.add_note(_resume_hint(store))
         raise
     store.remove()
     log.info("wrote %s", summary.output)

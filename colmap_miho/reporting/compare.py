@@ -347,7 +347,8 @@ def compare_databases(
     base_runs = map_repeats(database, image_dir, output / "baseline", mapping, tag="baseline", **common)
     log.info("refining the matches (recipe %s)", recipe.name)
     summary = refine_database(database, image_dir, output / "refined" / "database.db", recipe=recipe,
-                              overwrite=True, workers=workers, device=device, seed=mapping.seed, progress=progress,
+                              overwrite=True, restart=True, workers=workers, device=device, seed=mapping.seed,
+                              progress=progress,
                               json_path=output / "refined" / "refine.json")
     refine = summary.to_dict()
     ref_runs = map_repeats(summary.output, image_dir, output / "refined", mapping, tag="refined", **common)
@@ -457,7 +458,8 @@ def run_from_images(
         return out
     (output / "refined").mkdir(exist_ok=True)
     summary = refine_database(database, image_dir, output / "refined" / "database.db", recipe=recipe,
-                              overwrite=True, workers=workers, device=device, seed=mapping.seed, progress=progress,
+                              overwrite=True, restart=True, workers=workers, device=device, seed=mapping.seed,
+                              progress=progress,
                               json_path=output / "refined" / "refine.json")
     res = require_success(run_mapping(summary.output, image_dir, output / "refined" / "model", mapping,
                                       intrinsics=gt_intrinsics(gt) if gt_cameras else None, progress=progress,

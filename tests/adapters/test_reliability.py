@@ -280,6 +280,7 @@ def test_sigterm_mid_write_cleans_up_like_ctrl_c(db, scene, tmp_path, in_place):
     assert proc.returncode == 143
     lines = error_lines(err)
     assert len(lines) == 1 and lines[0].startswith("ERROR: terminated"), err
+    assert "--resume" in lines[0]  # the filtered pairs are kept for a resumed run
     assert sha256(db) == digest and not out.exists()
     assert hidden_leftovers(db.parent) == []  # working copy, its -wal/-shm and the backup removed
 
@@ -543,14 +544,18 @@ def _run_held(cli_args: list[str], tmp_path: Path, meanwhile) -> tuple[int, str]
     return proc.returncode, err
 
 
-def test_two_runs_writing_one_output_the_second_fails_cleanly(db, scene, tmp_path):
+def test_two_runs_writing_one_output_the_second_is_refused_at_once(db, scene, tmp_path, capfd):
     out = db.with_name("out.db")
 
-    def other_run_finishes_first():
-        assert main(_refine(db, scene.image_dir, "--output", str(out))) == 0
+    def other_run_is_refused():
+        capfd.readouterr()
+        assert main(_refine(db, scene.image_dir, "--output", str(out))) == 2
+        err = capfd.readouterr().err
+        assert "another colmap-miho run" in err and not out.exists(), err
 
-    code, err = _run_held(_refine(db, scene.image_dir, "--output", str(out)), tmp_path, other_run_finishes_first)
-    assert code == 2 and "created by another program during the run" in err, err
+    code, err = _run_held(_refine(db, scene.image_dir, "--output", str(out)), tmp_path, other_run_is_refused)
+    assert code == 0, err
+    assert not list(db.parent.glob(".out.db.miho-run"))  # the first run's store went with its commit
     con = sqlite3.connect(out)  # the first result is whole
     try:
         assert con.execute("PRAGMA integrity_check").fetchone()[0] == "ok"

@@ -151,13 +151,18 @@ def test_sigkill_mid_write_leaves_input_identical(db_copy, scene, tmp_path, capf
 
     copies = [name for name in left if name.endswith(".tmp")]  # the rest: its -wal, -shm
     assert len(copies) == 1 and [f.name for f in leftover_copies(out)] == copies
+    # the killed run's finished work stays too: a plain rerun refuses, naming both ways out
     capfd.readouterr()
-    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir),
-                 "--output", str(out), "--workers", "1", "--no-refine", "-q"]) == 0
+    args = ["refine", "--database", str(db_copy), "--images", str(scene.image_dir),
+            "--output", str(out), "--workers", "1", "--no-refine", "-q"]
+    assert main(args) == 2
+    err = capfd.readouterr().err
+    assert "--resume" in err and "--restart" in err and not out.exists()
+    assert main([*args, "--resume"]) == 0
     err = capfd.readouterr().err
     assert copies[0] in err and "interrupted" in err
     assert sha256(db_copy) == digest and out.exists()
-    assert leftovers(db_copy.parent) == left
+    assert leftovers(db_copy.parent) == left  # the resumed run removed its store, not the copy
 
 
 def test_sigkill_in_place_keeps_input_and_backup(db_copy, scene, tmp_path):
