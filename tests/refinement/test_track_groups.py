@@ -135,8 +135,9 @@ def test_groups_are_bounded_compact_and_deterministic(max_images):
     for g in groups:
         images = set(np.unique(g.node_image).tolist())
         assert set(g.keypoints) == images
-        # bounded, unless the group is one track (a track of more images is alone)
-        assert len(images) <= max_images or g.anchors.size == 1
+        # bounded, unless one track has more images: then by its image count
+        biggest = max(len(set(g.node_image[g.track == t].tolist())) for t in range(g.anchors.size))
+        assert len(images) <= max(max_images, biggest)
         # compact: only its own nodes, every node has an edge, every pair is used
         assert np.array_equal(np.unique(np.concatenate([g.edge_a, g.edge_b])), np.arange(g.num_nodes))
         assert np.array_equal(np.unique(g.edge_pair), np.arange(len(g.pairs)))
@@ -205,9 +206,16 @@ def test_partition_of_a_group_and_no_walked_track():
         np.testing.assert_array_equal(merged[i], whole.keypoints[i])
 
 
+#: Real NCC: a match's result depends on the other matches of its refine call in the last
+#: float32 bits (measured: 4e-7 px for a call of 2 vs 6 matches, 5e-6 px for 1 vs 7), and a
+#: group's calls hold fewer matches than the whole plan's. Everything else is exact.
+NCC_BATCH_PX = 1e-4
+
+
 def test_groups_on_real_images_move_keypoints_like_the_whole_walk(shared_data):
     """Real NCC (local affine pairs on, as shipped) on 5 Middlebury temple images: the walk of
-    the groups for several image bounds gives bit-identical keypoints to the whole walk."""
+    the groups for several image bounds refines the same keypoints against the same partners
+    as the whole walk, to the same positions up to the refiner's batch rounding."""
     import cv2
 
     from miho_bench.frontend import filtered_multiview_matches
@@ -227,6 +235,22 @@ def test_groups_on_real_images_move_keypoints_like_the_whole_walk(shared_data):
         assert len(groups) > 1
         walks = [walk_tracks(images, plan.attach_local(g), ncc_config=ncc) for g in groups]
         merged, against = _merge(kps, plan, walks)
+        assert sum(w.stats["moved"] for w in walks) == whole.stats["moved"]
         for i in kps:
-            np.testing.assert_array_equal(merged[i], whole.keypoints[i])
             np.testing.assert_array_equal(against[i], whole.refined_against[i])
+            np.testing.assert_array_equal(merged[i] != kps[i], whole.keypoints[i] != kps[i])
+            np.testing.assert_allclose(merged[i], whole.keypoints[i], rtol=0, atol=NCC_BATCH_PX)
+
+
+def test_groups_bounded_in_edges_cover_the_plan():
+    kps, pm, res, unref = random_scene(4)
+    plan = build_track_plan(kps, pm, res, unrefined_matches=unref)
+    by_images = plan.groups(9)
+    groups = plan.groups(9, max_edges=40)
+    assert len(groups) > len(by_images)
+    for g in groups:
+        assert g.edge_a.size <= 40 or g.anchors.size == 1
+    assert sum(g.to_refine for g in groups) == plan.to_refine
+    assert sum(g.edge_a.size for g in groups) == sum(g.edge_a.size for g in by_images)
+    with pytest.raises(ValueError, match="max_edges"):
+        plan.groups(9, max_edges=0)
