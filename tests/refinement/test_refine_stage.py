@@ -18,7 +18,7 @@ from colmap_miho.refinement.config import NCCConfig, TrackConfig
 
 NCC = NCCConfig(device="cpu", template_radius=6)
 #: see test_track_groups.NCC_BATCH_PX
-NCC_BATCH_PX = 1e-4
+NCC_BATCH_PX = 1e-3
 TRACKS = TrackConfig()
 
 
