@@ -168,7 +168,9 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
 
     Returns:
         (new keypoints dict, stats, processes used). Stats hold the plan's, the walk
-        counters summed over groups, ``groups``, ``groups_resumed``, ``group_max_images``.
+        counters summed over groups (``images_loaded`` and ``image_decodes`` too: an image
+        counts once per group that read / decoded it; the decodes of the loader's
+        ``check_all`` are not in them), ``groups``, ``groups_resumed``, ``group_max_images``.
     """
     if runner is None:
         from .executor import open_runner
