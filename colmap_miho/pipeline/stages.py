@@ -28,6 +28,11 @@ log = logging.getLogger(__name__)
 #: Refinement runs in worker processes only with at least this many refinable matches each.
 MIN_MATCHES_PER_REFINE_WORKER = 2000
 
+#: Most refinable matches of one group of tracks, in units of
+#: :data:`MIN_MATCHES_PER_REFINE_WORKER`: a group is the unit of work handed to a worker and
+#: of what a resumed run keeps (a fixed number, so the groups do not depend on the runner).
+GROUP_SIZE_IN_WORKER_MINIMUMS = 10
+
 #: Bytes of one pixel of a decoded image (:class:`ImageLoader` keeps float32 gray).
 BYTES_PER_PIXEL = 4
 
@@ -149,7 +154,10 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         progress: a tqdm bar over the keypoints to refine.
         image_budget_bytes: decoded image bytes one walking process may hold; sets the
             images of a group (:func:`max_images_for`; None: ``tracks.max_images_in_memory``).
-            Workers' loaders keep at most this many bytes (or the run loader's bound).
+            Workers' loaders keep at most this many bytes (or the run loader's bound). Groups
+            (and so ``done``'s indices) depend on the inputs and on this budget only; groups
+            hold at most ``GROUP_SIZE_IN_WORKER_MINIMUMS * MIN_MATCHES_PER_REFINE_WORKER``
+            refinable matches (20,000).
         done: group index -> (moved, stats) of groups finished by an earlier run of the same
             inputs (resume): not walked again, their moved keypoints applied.
         on_group: called in this process as each group finishes, with (group index, moved,
@@ -160,7 +168,9 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
 
     Returns:
         (new keypoints dict, stats, processes used). Stats hold the plan's, the walk
-        counters summed over groups, ``groups``, ``groups_resumed``, ``group_max_images``.
+        counters summed over groups (``images_loaded`` and ``image_decodes`` too: an image
+        counts once per group that read / decoded it; the decodes of the loader's
+        ``check_all`` are not in them), ``groups``, ``groups_resumed``, ``group_max_images``.
     """
     if runner is None:
         from .executor import open_runner
@@ -180,7 +190,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         return keypoints, _numeric(plan.stats), 1
     max_images = max_images_for(loader, plan.image_ids, image_budget_bytes,
                                 track_config.max_images_in_memory)
-    groups = plan.groups(max_images)
+    groups = plan.groups(max_images, GROUP_SIZE_IN_WORKER_MINIMUMS * MIN_MATCHES_PER_REFINE_WORKER)
     done = dict(done or {})
     if any(not 0 <= g < len(groups) for g in done):
         raise ValueError(f"resumed group indices must be in 0..{len(groups) - 1} (were the "

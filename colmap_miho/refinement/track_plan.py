@@ -146,9 +146,13 @@ class TrackPlan:
         if group.source_pairs is None or group.source_rows is None:
             raise ValueError("attach_local takes a group made by groups() of this plan")
         starts = np.searchsorted(group.edge_pair, np.arange(len(group.pairs) + 1))
-        local = tuple(self.local_pairs(int(sp))[group.source_rows[starts[q]:starts[q + 1]]]
-                      for q, sp in enumerate(group.source_pairs))
-        return replace(group, local_homs=local)
+        rows = group.source_rows
+        local = []
+        for q, sp in enumerate(group.source_pairs):
+            fitted = self.local_pairs(int(sp))
+            assert fitted is not None  # local_affine is set
+            local.append(fitted[rows[starts[q]:starts[q + 1]]])
+        return replace(group, local_homs=tuple(local))
 
     def walked_units(self) -> tuple[np.ndarray, np.ndarray]:
         """The walk's independent units: per edge the (E,) int64 walked component it belongs
@@ -203,22 +207,26 @@ class TrackPlan:
             to_refine=int(nodes.size - new_anchors.size), stats={},
             local_affine=self.local_affine, source_pairs=src_pairs, source_rows=src_rows)
 
-    def groups(self, max_images: int) -> list[TrackPlan]:
+    def groups(self, max_images: int, max_edges: int | None = None) -> list[TrackPlan]:
         """Whole walked units (the part of a track its anchor reaches over refinable
         edges) packed into compact groups (:meth:`subset`) of at most ``max_images``
-        distinct images each (a unit with more images is a group alone).
+        distinct images and at most ``max_edges`` refinable edges each. A unit over
+        ``max_images`` images (its walk needs them all anyway) raises its group's image bound
+        to its own image count; one over ``max_edges`` is a group alone.
 
         Schedule: units sorted by their sorted image ids (lexicographically; ties by
-        anchor), then swept in that order, a new group started when the next unit's images
-        would exceed ``max_images``; so consecutive groups share images and an image stops
-        being needed once the sweep has passed the units that start with it. Deterministic:
-        the same plan and ``max_images`` give the same groups in the same order. Walking the
+        anchor), then swept in that order, a new group started when the next unit would
+        exceed a bound; so consecutive groups share images and an image stops being needed
+        once the sweep has passed the units that start with it. Deterministic: the same
+        plan and bounds give the same groups in the same order. Walking the
         groups one by one moves exactly the keypoints a walk of the whole plan moves, to the
         same positions (units never share a keypoint). Local affine pairs are not included:
         :meth:`attach_local` adds them, group by group.
         """
         if max_images < 1:
             raise ValueError(f"max_images must be >= 1, got {max_images}")
+        if max_edges is not None and max_edges < 1:
+            raise ValueError(f"max_edges must be >= 1 or None, got {max_edges}")
         unit, anchors = self.walked_units()
         if not anchors.size:
             return []
@@ -230,14 +238,17 @@ class TrackPlan:
         bounds = np.searchsorted(key[:, 0], np.arange(anchors.size + 1))
         images = [tuple(key[bounds[u]:bounds[u + 1], 1].tolist()) for u in range(anchors.size)]
         order = sorted(range(anchors.size), key=lambda u: (images[u], u))
+        n_edges = np.bincount(eu, minlength=anchors.size).tolist()
+        limit = max_edges or eu.size
         group_of = np.empty(anchors.size, np.int64)
-        g, current = -1, set()
+        g, current, edges, cap = -1, set[int](), 0, max_images
         for u in order:
             both = current | set(images[u])
-            if g < 0 or len(both) > max_images:
-                g, both = g + 1, set(images[u])
+            edges += n_edges[u]
+            if g < 0 or len(both) > max(cap, len(images[u])) or edges > limit:
+                g, both, edges, cap = g + 1, set(images[u]), n_edges[u], max_images
             group_of[u] = g
-            current = both
+            current, cap = both, max(cap, len(images[u]))
         return self._split(e_ids, group_of[eu], anchors, group_of, g + 1)
 
     def _split(self, e_ids, edge_group, anchors, anchor_group, n) -> list[TrackPlan]:

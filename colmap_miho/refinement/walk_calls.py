@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import DEFAULT_BATCH_SIZE, NCCConfig
+from .config import NCCConfig
 from .track_plan import TrackPlan
 
 
@@ -206,56 +206,20 @@ def refine_batch(groups: list, ctx: WalkState, device) -> None:
                np.asarray(res.displacement[seg]), res.rejected[seg], res.ncc_after[seg], ctx)
 
 
-#: The pairwise refiner's result fields with one row per match.
-_ROW_FIELDS = ("pts2", "moved_side", "displacement", "rejected", "ncc_after")
-
-
-def call_pieces(n: int, batch: int) -> list[slice]:
-    """Rows ``0..n-1`` of one call cut into pieces of at most ``batch`` rows, none of one row
-    when ``n >= 2`` (the last two pieces are ``batch - 1`` and 2 rows where a piece of one
-    would be left)."""
-    bounds = list(range(0, n, batch)) + [n]
-    if n >= 2 and bounds[-1] - bounds[-2] == 1:
-        bounds[-2] -= 1
-    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
-
-
-def _refine_rows(img_f, img_m, call: _Call, ctx: WalkState) -> dict:
-    """The pairwise refiner on the rows of one call, as pieces of at least two matches.
-
-    A match's result does not depend on the other matches of its batch, except in a batch
-    of one (the CPU grouped convolution of :mod:`.correlation` with one group rounds
-    differently: ~1e-5 px). A group of tracks holds fewer matches per pair than the whole plan,
-    so without this a match refined alone in one walk and with others in another would move
-    differently: a lone match is refined twice over in one batch of two, and no batch of the
-    refiner (``NCCConfig.batch_size``, :data:`.config.DEFAULT_BATCH_SIZE` on the CPU) is left
-    with one match."""
-    n = call.pts_f.shape[0]
-    rows = np.zeros(2, np.int64) if n == 1 else np.arange(n)
-    out: dict = {k: [] for k in _ROW_FIELDS}
-    batch = ctx.ncc_cfg.batch_size or DEFAULT_BATCH_SIZE["cpu"]
-    for sl in call_pieces(rows.size, batch):
-        r = rows[sl]
-        kwargs = {}
-        if call.aff_f is not None:
-            kwargs = {"affine1": call.aff_f[r], "affine2": call.aff_m[r]}
-        res = ctx.refine_fn(img_f, img_m, call.pts_f[r], call.pts_m[r], call.homs[r], move="2",
-                            config=ctx.ncc_cfg, **kwargs)
-        ctx.stats["refine_calls"] += 1
-        for k in _ROW_FIELDS:
-            out[k].append(np.asarray(getattr(res, k)))
-    return {k: np.concatenate(v)[:n] for k, v in out.items()}
-
-
 def refine_group(grp: Group, ctx: WalkState) -> None:
-    """Refine the edges of one group on the pair's two images."""
+    """One refine call: the edges of one group, on the pair's two images."""
     id1, id2 = grp.pair
     img1, img2 = ctx.images.get(id1), ctx.images.get(id2)
     if img1 is None or img2 is None:
         ctx.stats["skipped"] += grp.size
         return
     call = _orient(grp, ctx)
+    kwargs = {}
+    if call.aff_f is not None:
+        kwargs = {"affine1": call.aff_f, "affine2": call.aff_m}
     img_f, img_m = (img1, img2) if grp.side == 2 else (img2, img1)
-    res = _refine_rows(img_f, img_m, call, ctx)
-    _apply(grp, call, res["pts2"], res["moved_side"] == 2, res["displacement"], res["rejected"],
-           res["ncc_after"], ctx)
+    res = ctx.refine_fn(img_f, img_m, call.pts_f, call.pts_m, call.homs, move="2",
+                        config=ctx.ncc_cfg, **kwargs)
+    ctx.stats["refine_calls"] += 1
+    _apply(grp, call, res.pts2, np.asarray(res.moved_side) == 2, np.asarray(res.displacement),
+           res.rejected, res.ncc_after, ctx)
