@@ -48,6 +48,7 @@ from ..adapters.paths import check_distinct
 from ..adapters.safety import WorkingCopy, check_database_path
 from ..enums import Device
 from ..errors import DatabaseError, RunFailed, UserError
+from . import stages
 from .executor import Runner, open_runner
 from .filter_stage import FilteredPairs, FilterOptions, FilterStats, run_filter
 from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
@@ -282,7 +283,7 @@ def refine_database(
         raise type(exc)(f"{exc}; {_resume_hint(store)}") from exc
     except BaseException as exc:  # the CLI prints the note on the error's one line
         if _keep_store(store):
-            exc.add_note(_resume_hint(store))
+            _add_note(exc, _resume_hint(store))
         raise
     store.remove()
     log.info("wrote %s", summary.output)
@@ -297,6 +298,15 @@ def _keep_store(store: RunStore) -> bool:
         return True
     store.remove()
     return False
+
+
+def _add_note(exc: BaseException, note: str) -> None:
+    """``exc.add_note(note)`` (Python >= 3.11), or the same ``__notes__`` list on 3.10."""
+    add = getattr(exc, "add_note", None)
+    if add is not None:
+        add(note)
+    else:  # pragma: no cover - Python 3.10
+        exc.__notes__ = [*getattr(exc, "__notes__", []), note]  # type: ignore[attr-defined]
 
 
 def _resume_hint(store: RunStore) -> str:
@@ -381,7 +391,7 @@ def _refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, rec: Recipe, 
     ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
     budget = rec.pipeline.image_budget_bytes(runner.slots)
     # the groups are numbered for one image budget: stored groups of another are walked again
-    done = store.refine_groups({"image_budget_bytes": budget})
+    done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": stages.group_max_matches()})
     new_keypoints, stats, used = run_refine_stage(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, rec.tracks,
         unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), runner=runner,

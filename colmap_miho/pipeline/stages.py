@@ -33,6 +33,12 @@ MIN_MATCHES_PER_REFINE_WORKER = 2000
 #: of what a resumed run keeps (a fixed number, so the groups do not depend on the runner).
 GROUP_SIZE_IN_WORKER_MINIMUMS = 10
 
+
+
+def group_max_matches() -> int:
+    """Most refinable matches of one group (part of a resumed run's plan key)."""
+    return GROUP_SIZE_IN_WORKER_MINIMUMS * MIN_MATCHES_PER_REFINE_WORKER
+
 #: Bytes of one pixel of a decoded image (:class:`ImageLoader` keeps float32 gray).
 BYTES_PER_PIXEL = 4
 
@@ -156,7 +162,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
             images of a group (:func:`max_images_for`; None: ``tracks.max_images_in_memory``).
             Workers' loaders keep at most this many bytes (or the run loader's bound). Groups
             (and so ``done``'s indices) depend on the inputs and on this budget only; groups
-            hold at most ``GROUP_SIZE_IN_WORKER_MINIMUMS * MIN_MATCHES_PER_REFINE_WORKER``
+            hold at most :func:`group_max_matches`
             refinable matches (20,000).
         done: group index -> (moved, stats) of groups finished by an earlier run of the same
             inputs (resume): not walked again, their moved keypoints applied.
@@ -190,7 +196,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         return keypoints, _numeric(plan.stats), 1
     max_images = max_images_for(loader, plan.image_ids, image_budget_bytes,
                                 track_config.max_images_in_memory)
-    groups = plan.groups(max_images, GROUP_SIZE_IN_WORKER_MINIMUMS * MIN_MATCHES_PER_REFINE_WORKER)
+    groups = plan.groups(max_images, group_max_matches())
     done = dict(done or {})
     if any(not 0 <= g < len(groups) for g in done):
         raise ValueError(f"resumed group indices must be in 0..{len(groups) - 1} (were the "

@@ -8,3 +8,8 @@ TWO_IMAGES_BYTES = 2 * 640 * 480 * 4 + 1000
 def two_images(self, slots: int) -> int:
     """Stands in for :meth:`PipelineConfig.image_budget_bytes`."""
     return TWO_IMAGES_BYTES
+
+
+#: ``stages.MIN_MATCHES_PER_REFINE_WORKER`` on the small test scenes (it sets the groups' match
+#: bound), so that their tracks make several groups.
+SMALL_WORKER_MATCHES = 20

@@ -12,10 +12,11 @@ import sys
 import pytest
 from helpers import HELPERS, REPO
 from helpers.db_contents import assert_same_database
-from helpers.small_budget import two_images
+from helpers.small_budget import SMALL_WORKER_MATCHES, two_images
 
 from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
+from colmap_miho.pipeline import stages
 from colmap_miho.pipeline.config import PipelineConfig
 from colmap_miho.pipeline.store import store_folder
 
@@ -96,6 +97,7 @@ def test_run_killed_while_refining_resumes_its_groups(scene, reference, tmp_path
     _killed_run(scene, out, "group", 1)
     assert len(_stored(out, "filter")) == 6 and _stored(out, "group") == ["group-000000.npz"]
     monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # the killed run's groups
+    monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", SMALL_WORKER_MATCHES)
     js = tmp_path / "s.json"
     assert main(_args(scene, out, "--resume", "--json", str(js))) == 0
     summary = json.loads(js.read_text())
