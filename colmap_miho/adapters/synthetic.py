@@ -360,13 +360,13 @@ def make_survey_scene(
                                                        image_id=k + 1), pose)
     tracks: dict[int, list[tuple[int, int]]] = {}
     for k in range(num_images):
-        for kp in np.flatnonzero(seen[k] >= 0):
-            tracks.setdefault(int(seen[k][kp]), []).append((k + 1, int(kp)))
+        for kp_index in np.flatnonzero(seen[k] >= 0).tolist():
+            tracks.setdefault(int(seen[k][kp_index]), []).append((k + 1, kp_index))
     for p, elements in tracks.items():
         if len(elements) >= 2:
             track = pycolmap.Track()
-            for image_id, kp in elements:
-                track.add_element(image_id, kp)
+            for image_id, kp_index in elements:
+                track.add_element(image_id, kp_index)
             gt.add_point3D(layout.points[p], track)
 
     pairs = []
