@@ -9,9 +9,12 @@ in a child process (``--workers``) and the script records:
 
 - seconds per stage from the refine JSON summary (``seconds``), and the child's wall time;
 - peak RSS: ``rss_tree_mb`` = peak of the summed RSS of the refine process and all its
-  descendants (worker processes included), sampled by psutil every ``--poll`` seconds;
-  ``maxrss_mb`` = ``ru_maxrss`` of ``os.wait4`` on the child (the largest single process of
-  its tree, exact, kernel-measured);
+  descendants (worker processes included), sampled by psutil every ``--poll`` seconds (a
+  lower bound); ``hwm_max_mb`` = the largest single process's peak RSS (the kernel's VmHWM of
+  each process, read at every sample); ``hwm_sum_mb`` = the sum of those per-process peaks (an
+  upper bound of the tree's peak). Not ``ru_maxrss``: Linux carries the launching process's
+  RSS at fork through ``exec`` into the child's ``ru_maxrss``, so it reads this script's own
+  size (1.1 GB after a SIFT run) instead of refine's;
 - pairs, matches in, images, images loaded / decoded, walk levels (``n/a`` when the summary
   has no such key);
 - pycolmap SIFT extraction + exhaustive matching seconds on the same images with the same
@@ -60,8 +63,9 @@ class ChildRun:
         wall_s: wall time from start to exit, seconds.
         rss_tree_mb: peak of the summed RSS of the child and its descendants (psutil samples),
             MiB; a lower bound (a peak between two samples is missed).
-        maxrss_mb: ``ru_maxrss`` from ``os.wait4`` (largest single process of the child's
-            waited-for tree), MiB.
+        hwm_max_mb: the largest peak RSS (``VmHWM``, kernel-kept) of one process of the tree,
+            MiB (0 where ``/proc`` is missing).
+        hwm_sum_mb: the sum of the per-process peaks, MiB: an upper bound of the tree's peak.
         samples: number of psutil samples taken.
         stderr_tail: the end of the child's stderr.
     """
@@ -69,13 +73,27 @@ class ChildRun:
     returncode: int
     wall_s: float
     rss_tree_mb: float
-    maxrss_mb: float
+    hwm_max_mb: float
+    hwm_sum_mb: float
     samples: int
     stderr_tail: str = ""
 
 
-def _tree_rss(proc) -> int:
-    """Summed RSS in bytes of ``proc`` (a psutil.Process) and its living descendants."""
+def _vm_hwm(pid: int) -> int:
+    """Peak RSS (``VmHWM``) of process ``pid`` in bytes, 0 when unreadable."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def _sample_tree(proc, hwm: dict[int, int]) -> int:
+    """Summed RSS in bytes of ``proc`` (a psutil.Process) and its living descendants; updates
+    ``hwm`` (pid -> largest VmHWM seen)."""
     import psutil
 
     total = 0
@@ -87,7 +105,8 @@ def _tree_rss(proc) -> int:
         try:
             total += p.memory_info().rss
         except psutil.Error:
-            pass
+            continue
+        hwm[p.pid] = max(hwm.get(p.pid, 0), _vm_hwm(p.pid))
     return total
 
 
@@ -100,6 +119,7 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
     with open(os.devnull, "w") as devnull, subprocess.Popen(cmd, env=env, stdout=devnull,
                                                             stderr=subprocess.PIPE) as child:
         peak, samples, done = 0, 0, threading.Event()
+        hwm: dict[int, int] = {}
         stderr_chunks: list[bytes] = []
 
         def sample() -> None:
@@ -109,7 +129,7 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
             except psutil.Error:
                 return
             while not done.is_set():
-                peak = max(peak, _tree_rss(proc))
+                peak = max(peak, _sample_tree(proc, hwm))
                 samples += 1
                 done.wait(poll)
 
@@ -124,7 +144,7 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
             t.start()
         deadline = None if timeout is None else t0 + timeout
         while True:
-            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
+            pid, status, _ = os.wait4(child.pid, os.WNOHANG)
             if pid:
                 break
             if deadline is not None and time.perf_counter() > deadline:
@@ -136,7 +156,8 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
         for t in threads:
             t.join(timeout=5)
     tail = b"".join(stderr_chunks).decode(errors="replace")[-2000:]
-    return ChildRun(child.returncode, wall, peak / 2**20, usage.ru_maxrss / 1024.0, samples, tail)
+    return ChildRun(child.returncode, wall, peak / 2**20, max(hwm.values(), default=0) / 2**20,
+                    sum(hwm.values()) / 2**20, samples, tail)
 
 
 def fit_power_law(x, y) -> tuple[float, float]:
@@ -300,7 +321,8 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
         "matches": summary.get("matches_in"), "matches_kept": summary.get("matches_kept"),
         "images_loaded": _get(summary, "images_loaded"), "image_decodes": _get(summary, "image_decodes"),
         "levels": _get(summary, "levels"), "refine_s": secs.get("total"), "child_wall_s": round(run.wall_s, 2),
-        "seconds": secs, "rss_tree_mb": round(run.rss_tree_mb, 1), "maxrss_mb": round(run.maxrss_mb, 1),
+        "seconds": secs, "rss_tree_mb": round(run.rss_tree_mb, 1), "hwm_max_mb": round(run.hwm_max_mb, 1),
+        "hwm_sum_mb": round(run.hwm_sum_mb, 1),
         "rss_samples": run.samples, "scene_info": scene.info,
     }
     sift = scene.sift
@@ -316,7 +338,8 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
 
 # -------------------------------------------------------------------------------- reports
 COLUMNS = ("scene", "images", "pairs", "matches", "refine_s", "read", "filter", "refine", "write",
-           "rss_tree_mb", "maxrss_mb", "images_loaded", "image_decodes", "levels", "sift_total_s", "ratio")
+           "rss_tree_mb", "hwm_max_mb", "hwm_sum_mb", "images_loaded", "image_decodes", "levels",
+           "sift_total_s", "ratio")
 
 
 def fmt(v) -> str:
@@ -348,11 +371,19 @@ def fits(rows: list[dict]) -> dict:
         return {}
     m = [r["matches"] for r in syn]
     out = {}
-    for key in ("refine_s", "rss_tree_mb", "maxrss_mb"):
+    for key in ("refine_s", "rss_tree_mb", "hwm_max_mb"):
         y = [r.get(key) or 0 for r in syn]
         b, c = fit_power_law(m, y)
         out[key] = {"exponent": round(b, 3), "prefactor": c}
     return out
+
+
+def short_name(scene: str) -> str:
+    """A plot label: ``survey400`` -> ``400``, ``strecha_fountain_p11`` -> ``fountain``."""
+    if scene.startswith("survey"):
+        return scene[len("survey"):]
+    parts = scene.split("_")
+    return parts[1] if len(parts) > 1 else scene
 
 
 def plot(rows: list[dict], path: Path) -> bool:
@@ -378,7 +409,7 @@ def plot(rows: list[dict], path: Path) -> bool:
                 ax.loglog(x, y, marker, label=name)
                 for r in group:
                     if r.get("matches") and r.get(key):
-                        ax.annotate(r["scene"].replace("survey", ""), (r["matches"], r[key]), fontsize=7,
+                        ax.annotate(short_name(r["scene"]), (r["matches"], r[key]), fontsize=7,
                                     xytext=(3, 3), textcoords="offset points")
         if key in f and syn:
             xs = np.geomspace(min(r["matches"] for r in syn), max(r["matches"] for r in syn), 20)
@@ -389,6 +420,11 @@ def plot(rows: list[dict], path: Path) -> bool:
             if pts:
                 x, y = zip(*pts, strict=True)
                 ax.loglog(x, y, "x", label="SIFT extract + exhaustive match")
+        from matplotlib.ticker import LogLocator, ScalarFormatter
+
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(ScalarFormatter())
+        ax.yaxis.set_minor_formatter(ScalarFormatter() if key != "refine_s" else plt.NullFormatter())
         ax.set_xlabel("matches in")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
@@ -420,6 +456,8 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=None, help="kill a refine after this many seconds")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="refine --set KEY=VALUE")
     ap.add_argument("--refine-arg", action="append", default=[], help="extra refine argument (repeatable)")
+    ap.add_argument("--report-only", action="store_true",
+                    help="measure nothing: rewrite scale.md and scale.png from --out/scale.json")
     args = ap.parse_args(argv)
     if any(n < 2 for n in args.sizes):
         ap.error("--sizes must be >= 2 images")
@@ -434,6 +472,17 @@ def main(argv=None) -> int:
         import psutil  # noqa: F401
     except ImportError:
         ap.error("psutil is needed for the RSS figures (pip install psutil)")
+
+    if args.report_only:
+        if not (args.out / "scale.json").is_file():
+            ap.error(f"--report-only: no {args.out / 'scale.json'}")
+        saved = json.loads((args.out / "scale.json").read_text())
+        args.workers = saved["workers"]
+        args.poll = saved.get("poll", args.poll)
+        args.sift_sample = saved.get("sift_sample", args.sift_sample)
+        print(write_report(saved["rows"], args, saved.get("refine_args", []), write_json=False,
+                           note=saved.get("note", "")))
+        return 0
 
     import pycolmap
 
@@ -469,24 +518,29 @@ def main(argv=None) -> int:
     return 0
 
 
-def write_report(rows: list[dict], args, extra: list[str]) -> str:
-    """Write ``scale.md``, ``scale.json`` and ``scale.png`` of ``rows`` to ``args.out``;
-    returns the markdown."""
+def write_report(rows: list[dict], args, extra: list[str], *, write_json: bool = True, note: str = "") -> str:
+    """Write ``scale.md``, ``scale.json`` (unless not ``write_json``) and ``scale.png`` of
+    ``rows`` to ``args.out``; returns the markdown (with ``note`` below the table)."""
     f = fits(rows)
     md = [f"colmap-miho refine, {args.workers} worker(s), refine args: {' '.join(extra) or '-'}; "
           f"refine_s = summary seconds.total, read/filter/refine/write = stage seconds; rss_tree_mb = peak "
-          f"summed RSS of refine + workers (psutil, {args.poll} s), maxrss_mb = ru_maxrss of the largest single "
-          f"process; sift_total_s = pycolmap SIFT extraction + exhaustive matching ({args.workers} threads); "
+          f"summed RSS of refine + workers (psutil, {args.poll} s), hwm_max_mb / hwm_sum_mb = largest / sum of "
+          f"the per-process peak RSS (VmHWM); sift_total_s = pycolmap SIFT extraction + exhaustive matching "
+          f"({args.workers} threads); "
           f"ratio = refine_s / sift_total_s (~: SIFT times scaled from {args.sift_sample} random images)",
           "", table(rows), ""]
     for key, v in f.items():
         md.append(f"- fit {key} ~ matches^{v['exponent']:.3f} over the synthetic sizes")
+    if note:
+        md += ["", note]
     text = "\n".join(md)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "scale.md").write_text(text + "\n")
-    meta = {"argv": sys.argv[1:], "workers": args.workers, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-            "cpu_count": os.cpu_count(), "fits": f, "rows": rows}
-    (args.out / "scale.json").write_text(json.dumps(meta, indent=2) + "\n")
+    if write_json:
+        meta = {"argv": sys.argv[1:], "refine_args": extra, "workers": args.workers, "poll": args.poll,
+                "sift_sample": args.sift_sample, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+                "cpu_count": os.cpu_count(), "fits": f, "rows": rows}
+        (args.out / "scale.json").write_text(json.dumps(meta, indent=2) + "\n")
     plot(rows, args.out / "scale.png")
     return text
 
