@@ -339,7 +339,7 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
 # -------------------------------------------------------------------------------- reports
 COLUMNS = ("scene", "images", "pairs", "matches", "refine_s", "read", "filter", "refine", "write",
            "rss_tree_mb", "hwm_max_mb", "hwm_sum_mb", "images_loaded", "image_decodes", "levels",
-           "sift_total_s", "ratio")
+           "sift_total_s", "ratio", "sift_graph_s", "ratio_graph")
 
 
 def fmt(v) -> str:
@@ -351,30 +351,55 @@ def fmt(v) -> str:
     return str(v)
 
 
+FIT_KEYS = ("refine_s", "filter", "refine", "rss_tree_mb", "hwm_max_mb")
+
+
+def _value(row: dict, key: str):
+    """A row's figure: its own key, else a stage's seconds, else a derived ratio."""
+    if key in row:
+        return row[key]
+    if key in row.get("seconds", {}):
+        return row["seconds"][key]
+    return derived(row).get(key)
+
+
+def derived(row: dict) -> dict:
+    """``sift_graph_s``: SIFT extraction + matching of only refine's pairs (the exhaustive
+    per-pair cost times refine's pair count: what a sequential / spatial matcher choosing the
+    same graph would spend), and ``ratio_graph`` = refine_s / sift_graph_s; {} without SIFT
+    figures."""
+    n, pairs = row.get("images"), row.get("pairs")
+    if not (row.get("sift_match_s") and n and n > 1 and pairs and row.get("refine_s")):
+        return {}
+    graph = row["sift_extract_s"] + row["sift_match_s"] / (n * (n - 1) / 2) * pairs
+    return {"sift_graph_s": round(graph, 2), "ratio_graph": round(row["refine_s"] / graph, 3)}
+
+
 def table(rows: list[dict]) -> str:
     """A markdown table of the rows (stage seconds from the refine summary)."""
     lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     for r in rows:
-        cells = [fmt(r.get(c, r.get("seconds", {}).get(c))) for c in COLUMNS]
+        cells = [fmt(_value(r, c)) for c in COLUMNS]
         if r.get("sift_estimated"):  # scaled from a sample of images (see sift_times)
-            for c in ("sift_total_s", "ratio"):
+            for c in ("sift_total_s", "ratio", "sift_graph_s", "ratio_graph"):
                 cells[COLUMNS.index(c)] = "~" + cells[COLUMNS.index(c)]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def fits(rows: list[dict]) -> dict:
-    """Exponents of refine seconds and of peak RSS (tree, single) against matches over the
-    synthetic rows; {} with fewer than two sizes."""
+    """Exponents of refine seconds (total, filter and refine stages) and of peak RSS (tree,
+    single process) against matches over the synthetic rows; {} with fewer than two sizes."""
     syn = [r for r in rows if r["kind"] == "synthetic" and r.get("matches")]
     if len({r["matches"] for r in syn}) < 2:
         return {}
     m = [r["matches"] for r in syn]
     out = {}
-    for key in ("refine_s", "rss_tree_mb", "hwm_max_mb"):
-        y = [r.get(key) or 0 for r in syn]
-        b, c = fit_power_law(m, y)
-        out[key] = {"exponent": round(b, 3), "prefactor": c}
+    for key in FIT_KEYS:
+        y = [_value(r, key) or 0 for r in syn]
+        if sum(v > 0 for v in y) >= 2:
+            b, c = fit_power_law(m, y)
+            out[key] = {"exponent": round(b, 3), "prefactor": c}
     return out
 
 
@@ -527,7 +552,9 @@ def write_report(rows: list[dict], args, extra: list[str], *, write_json: bool =
           f"summed RSS of refine + workers (psutil, {args.poll} s), hwm_max_mb / hwm_sum_mb = largest / sum of "
           f"the per-process peak RSS (VmHWM); sift_total_s = pycolmap SIFT extraction + exhaustive matching "
           f"({args.workers} threads); "
-          f"ratio = refine_s / sift_total_s (~: SIFT times scaled from {args.sift_sample} random images)",
+          f"ratio = refine_s / sift_total_s (~: SIFT times scaled from {args.sift_sample} random images); "
+          f"sift_graph_s = SIFT extraction + matching of refine's pairs only (exhaustive per-pair cost x pairs), "
+          f"ratio_graph = refine_s / sift_graph_s",
           "", table(rows), ""]
     for key, v in f.items():
         md.append(f"- fit {key} ~ matches^{v['exponent']:.3f} over the synthetic sizes")

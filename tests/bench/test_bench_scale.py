@@ -13,6 +13,7 @@ pytest.importorskip("psutil")
 import bench_scale  # noqa: E402
 from bench_scale import (  # noqa: E402
     Scene,
+    derived,
     fit_power_law,
     fits,
     fmt,
@@ -65,13 +66,20 @@ def test_table_and_fits_report_absent_keys_as_na(tmp_path):
             for n, m in ((25, 1000), (50, 2000), (100, 4000))]
     text = table(rows)
     assert "| survey50 |" in text and "| 1.50 |" in text
-    # absent: images, pairs, read, refine, write, hwm_sum, images_loaded, image_decodes, sift, ratio
-    assert fmt(None) == "n/a" and text.count("n/a") == 3 * 10
+    # absent: images, pairs, read, refine, write, hwm_sum, images_loaded, image_decodes, and the
+    # four SIFT figures
+    assert fmt(None) == "n/a" and text.count("n/a") == 3 * 12
     f = fits(rows)
     assert f["refine_s"]["exponent"] == pytest.approx(1.0, abs=1e-9)
     assert f["hwm_max_mb"]["exponent"] == pytest.approx(0.0, abs=1e-9)
     assert 0 < f["rss_tree_mb"]["exponent"] < 0.1
+    assert f["filter"]["exponent"] == pytest.approx(0.0, abs=1e-9)
+    assert "refine" not in f  # no stage seconds given
     assert fits(rows[:1]) == {}
+    # SIFT on the pair graph only: 10 images = 45 exhaustive pairs of 2 s; refine has 9 pairs
+    sift = {"images": 10, "pairs": 9, "refine_s": 6.0, "sift_extract_s": 12.0, "sift_match_s": 90.0}
+    assert derived(sift) == {"sift_graph_s": 30.0, "ratio_graph": 0.2}
+    assert derived({**sift, "sift_match_s": None}) == {}
     if plot(rows, tmp_path / "scale.png"):
         assert (tmp_path / "scale.png").stat().st_size > 10_000
 
