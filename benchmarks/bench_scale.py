@@ -441,15 +441,18 @@ def plot(rows: list[dict], path: Path) -> bool:
             ax.loglog(xs, f[key]["prefactor"] * xs ** f[key]["exponent"], "--",
                       label=f"fit: exponent {f[key]['exponent']:.2f}")
         if key == "refine_s":
-            pts = [(r["matches"], r["sift_total_s"]) for r in rows if r.get("matches") and r.get("sift_total_s")]
-            if pts:
-                x, y = zip(*pts, strict=True)
-                ax.loglog(x, y, "x", label="SIFT extract + exhaustive match")
+            for key2, marker, name in (("sift_total_s", "x", "SIFT extract + exhaustive match"),
+                                       ("sift_graph_s", "+", "SIFT extract + match of refine's pairs")):
+                pts = [(r["matches"], _value(r, key2)) for r in rows if r.get("matches") and _value(r, key2)]
+                if pts:
+                    x, y = zip(*pts, strict=True)
+                    ax.loglog(x, y, marker, label=name)
         from matplotlib.ticker import LogLocator, ScalarFormatter
 
         ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
         ax.yaxis.set_major_formatter(ScalarFormatter())
         ax.yaxis.set_minor_formatter(ScalarFormatter() if key != "refine_s" else plt.NullFormatter())
+        ax.xaxis.set_minor_formatter(plt.NullFormatter())
         ax.set_xlabel("matches in")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
