@@ -1,0 +1,578 @@
+"""How `colmap-miho refine` grows with the scene: time, memory, image reads, walk depth.
+
+Synthetic aerial surveys (``colmap_miho.adapters.synthetic.make_survey_scene``: serpentine
+flight lines, a point seen by the few images around it, pairs = next ``--sequential`` images
+plus ``--nearest`` nearest camera centres, images rendered by ``pycolmap.synthesize_images``)
+at ``--sizes`` images, and the real scenes of ``../shared/data`` (``--scenes``, pycolmap SIFT +
+exhaustive matching, ``--max-features`` per image). For each scene ``colmap-miho refine`` runs
+in a child process (``--workers``) and the script records:
+
+- seconds per stage from the refine JSON summary (``seconds``), and the child's wall time;
+- peak RSS: ``rss_tree_mb`` = peak of the summed RSS of the refine process and all its
+  descendants (worker processes included), sampled by psutil every ``--poll`` seconds (a
+  lower bound); ``hwm_max_mb`` = the largest single process's peak RSS (the kernel's VmHWM of
+  each process, read at every sample); ``hwm_sum_mb`` = the sum of those per-process peaks (an
+  upper bound of the tree's peak). Not ``ru_maxrss``: Linux carries the launching process's
+  RSS at fork through ``exec`` into the child's ``ru_maxrss``, so it reads this script's own
+  size (1.1 GB after a SIFT run) instead of refine's;
+- pairs, matches in, images, images loaded / decoded, walk levels (``n/a`` when the summary
+  has no such key);
+- pycolmap SIFT extraction + exhaustive matching seconds on the same images with the same
+  thread count (cached with the scene: ``sift.json``), and refine / (extraction + matching).
+  A synthetic scene of more than ``--sift-sample`` images is timed on that many random images
+  and scaled (per image, per pair: exhaustive matching is quadratic, 400 images are 79,800
+  pairs); such figures carry a ``~`` in the table.
+
+Then a log-log least-squares fit of refine seconds and of peak RSS against matches over the
+synthetic sizes (exponent = slope), a table (``scale.md``), all figures (``scale.json``) and a
+plot (``scale.png``) in ``--out``. Scenes are cached under ``--work``; the refined database is
+rewritten on every run.
+
+    python benchmarks/bench_scale.py --sizes 25 50 100 200 400 --workers 2
+    python benchmarks/bench_scale.py --sizes --scenes middlebury_temple_sparse_ring strecha_fountain_p11
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SIZES = (25, 50, 100, 200, 400)
+SCENES = ("middlebury_temple_sparse_ring", "strecha_fountain_p11", "strecha_entry_p10")
+NA = "n/a"
+
+
+# ------------------------------------------------------------------------------ measuring
+@dataclass
+class ChildRun:
+    """One measured child process.
+
+    Attributes:
+        returncode: exit status.
+        wall_s: wall time from start to exit, seconds.
+        rss_tree_mb: peak of the summed RSS of the child and its descendants (psutil samples),
+            MiB; a lower bound (a peak between two samples is missed).
+        hwm_max_mb: the largest peak RSS (``VmHWM``, kernel-kept) of one process of the tree,
+            MiB (0 where ``/proc`` is missing).
+        hwm_sum_mb: the sum of the per-process peaks, MiB: an upper bound of the tree's peak.
+        samples: number of psutil samples taken.
+        stderr_tail: the end of the child's stderr.
+    """
+
+    returncode: int
+    wall_s: float
+    rss_tree_mb: float
+    hwm_max_mb: float
+    hwm_sum_mb: float
+    samples: int
+    stderr_tail: str = ""
+
+
+def _vm_hwm(pid: int) -> int:
+    """Peak RSS (``VmHWM``) of process ``pid`` in bytes, 0 when unreadable."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def _sample_tree(proc, hwm: dict[int, int]) -> int:
+    """Summed RSS in bytes of ``proc`` (a psutil.Process) and its living descendants; updates
+    ``hwm`` (pid -> largest VmHWM seen)."""
+    import psutil
+
+    total = 0
+    try:
+        procs = [proc, *proc.children(recursive=True)]
+    except psutil.Error:
+        return 0
+    for p in procs:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            continue
+        hwm[p.pid] = max(hwm.get(p.pid, 0), _vm_hwm(p.pid))
+    return total
+
+
+def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
+                 timeout: float | None = None) -> ChildRun:
+    """Run ``cmd`` and measure its wall time and peak memory (see :class:`ChildRun`)."""
+    import psutil
+
+    t0 = time.perf_counter()
+    with open(os.devnull, "w") as devnull, subprocess.Popen(cmd, env=env, stdout=devnull,
+                                                            stderr=subprocess.PIPE) as child:
+        peak, samples, done = 0, 0, threading.Event()
+        hwm: dict[int, int] = {}
+        stderr_chunks: list[bytes] = []
+
+        def sample() -> None:
+            nonlocal peak, samples
+            try:
+                proc = psutil.Process(child.pid)
+            except psutil.Error:
+                return
+            while not done.is_set():
+                peak = max(peak, _sample_tree(proc, hwm))
+                samples += 1
+                done.wait(poll)
+
+        def drain() -> None:
+            assert child.stderr is not None
+            for chunk in iter(lambda: child.stderr.read(65536), b""):  # type: ignore[union-attr]
+                stderr_chunks.append(chunk)
+                del stderr_chunks[:-4]
+
+        threads = [threading.Thread(target=sample, daemon=True), threading.Thread(target=drain, daemon=True)]
+        for t in threads:
+            t.start()
+        deadline = None if timeout is None else t0 + timeout
+        while True:
+            pid, status, _ = os.wait4(child.pid, os.WNOHANG)
+            if pid:
+                break
+            if deadline is not None and time.perf_counter() > deadline:
+                child.kill()
+            time.sleep(0.02)
+        wall = time.perf_counter() - t0
+        child.returncode = os.waitstatus_to_exitcode(status)
+        done.set()
+        for t in threads:
+            t.join(timeout=5)
+    tail = b"".join(stderr_chunks).decode(errors="replace")[-2000:]
+    return ChildRun(child.returncode, wall, peak / 2**20, max(hwm.values(), default=0) / 2**20,
+                    sum(hwm.values()) / 2**20, samples, tail)
+
+
+def fit_power_law(x, y) -> tuple[float, float]:
+    """Least-squares fit of log(y) = a + b log(x); returns (exponent b, prefactor e^a).
+    Needs two or more distinct positive x with positive y."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    ok = (x > 0) & (y > 0)
+    if ok.sum() < 2 or np.unique(x[ok]).size < 2:
+        raise ValueError("a power-law fit needs two or more distinct positive points")
+    b, a = np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)
+    return float(b), float(math.exp(a))
+
+
+# --------------------------------------------------------------------------------- scenes
+@dataclass
+class Scene:
+    """A scene to refine: its database, image folder and feature-extraction times."""
+
+    name: str
+    kind: str  # "synthetic" or "real"
+    database: Path
+    images: Path
+    work: Path
+    sift: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+
+def synthetic_scene(work: Path, num_images: int, *, seed: int, sequential: int, nearest: int,
+                    points_per_image: int) -> Scene:
+    """The cached survey scene of ``num_images`` images (built on first use)."""
+    from colmap_miho.adapters.synthetic import make_survey_scene
+
+    params = {"num_images": num_images, "seed": seed, "sequential": sequential, "nearest": nearest,
+              "points_per_image": points_per_image}
+    tag = f"survey_n{num_images}_s{seed}_q{sequential}_k{nearest}_p{points_per_image}"
+    root = work / "synthetic" / tag
+    meta = root / "scene.json"
+    if not meta.is_file():
+        if root.exists():
+            import shutil
+
+            shutil.rmtree(root)
+        t0 = time.perf_counter()
+        sc = make_survey_scene(root, num_images=num_images, points_per_image=points_per_image,
+                               sequential=sequential, nearest=nearest, seed=seed)
+        tl = [p.track.length() for p in sc.gt_reconstruction.points3D.values()]
+        info = {**params, "pairs": len(sc.pairs), "points3D": len(tl), "mean_track_length": float(np.mean(tl)),
+                "max_track_length": int(np.max(tl)), "build_s": round(time.perf_counter() - t0, 2)}
+        meta.write_text(json.dumps(info, indent=2))
+    info = json.loads(meta.read_text())
+    return Scene(f"survey{num_images}", "synthetic", root / "database.db", root / "images", root, info=info)
+
+
+def real_scene(data: Path, work: Path, name: str) -> Scene | None:
+    """A real scene of ``data`` with its SIFT database (extracted on first use; see
+    :func:`sift_times`), or None when its images are missing."""
+    root = data / name
+    if not (root / "images").is_dir():
+        print(f"skip {name}: no images at {root / 'images'}", file=sys.stderr)
+        return None
+    w = work / "real" / name
+    return Scene(name, "real", w / "sift.db", root / "images", w)
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
+
+
+def sift_times(scene: Scene, *, threads: int, max_features: int, sample_images: int | None = None,
+               seed: int = 0) -> dict:
+    """pycolmap SIFT extraction + exhaustive matching times of the scene's images (CPU,
+    ``threads`` threads, one SIMPLE_RADIAL camera, as ``colmap_miho.sfm.extract_and_match``)
+    into ``work/sift.db``; cached in ``work/sift.json``.
+
+    With more than ``sample_images`` images only a random subset of that many is extracted and
+    matched exhaustively, and the times are scaled to the whole scene: extraction by
+    N / S images, matching by N (N - 1) / (S (S - 1)) pairs (``estimated``: true). Both are
+    per-image and per-pair costs on statistically alike images (the synthetic surveys);
+    a real scene is always run whole (its database is refine's input).
+    """
+    import pycolmap
+
+    from colmap_miho.sfm import colmap_log_to_file
+
+    meta = scene.work / "sift.json"
+    key = {"threads": threads, "max_features": max_features, "sample_images": sample_images, "seed": seed}
+    if meta.is_file():
+        old = json.loads(meta.read_text())
+        if all(old.get(k) == v for k, v in key.items()):
+            return old
+    names = sorted(p.name for p in scene.images.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    n = len(names)
+    if n < 2:
+        raise RuntimeError(f"{scene.images}: {n} image(s), need at least 2")
+    subset = names
+    if sample_images is not None and n > sample_images:
+        rng = np.random.default_rng(seed)
+        subset = sorted(rng.choice(names, size=sample_images, replace=False).tolist())
+    scene.work.mkdir(parents=True, exist_ok=True)
+    db = scene.work / "sift.db"
+    db.unlink(missing_ok=True)
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "SIMPLE_RADIAL"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = int(max_features)
+    extraction.num_threads = int(threads)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = int(threads)
+    with colmap_log_to_file(scene.work):
+        t0 = time.perf_counter()
+        pycolmap.extract_features(str(db), str(scene.images), image_names=subset if subset is not names else [],
+                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        t1 = time.perf_counter()
+        pycolmap.match_exhaustive(str(db), matching_options=matching, device=pycolmap.Device.cpu)
+        t2 = time.perf_counter()
+    from colmap_miho.adapters.database import ColmapDatabase
+
+    with ColmapDatabase(db) as handle:
+        pairs, matches = handle.num_verified_pairs(), handle.num_inlier_matches()
+    s = len(subset)
+    scale_pairs = n * (n - 1) / (s * (s - 1))
+    out = {**key, "num_images": n, "images_run": s, "estimated": s < n,
+           "seconds_extract": round((t1 - t0) * n / s, 2), "seconds_match": round((t2 - t1) * scale_pairs, 2),
+           "seconds_extract_run": round(t1 - t0, 2), "seconds_match_run": round(t2 - t1, 2),
+           "verified_pairs_run": pairs, "inlier_matches_run": matches}
+    meta.write_text(json.dumps(out, indent=2))
+    return out
+
+
+# --------------------------------------------------------------------------------- refine
+def refine_command(scene: Scene, out_db: Path, json_path: Path, *, workers: int, extra: list[str]) -> list[str]:
+    """The ``colmap-miho refine`` command line for ``scene`` (this checkout's code)."""
+    return [sys.executable, "-m", "colmap_miho.cli", "refine", "--database", str(scene.database),
+            "--images", str(scene.images), "--output", str(out_db), "--overwrite", "--workers", str(workers),
+            "--json", str(json_path), "-q", *extra]
+
+
+def _get(summary: dict, key: str):
+    """``summary[key]`` or ``summary["refine_stats"][key]``, None when absent."""
+    if key in summary:
+        return summary[key]
+    return summary.get("refine_stats", {}).get(key)
+
+
+def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float, timeout: float | None) -> dict:
+    """Run refine on ``scene`` in a child process; returns one row of figures."""
+    out_db = scene.work / "refined.db"
+    json_path = scene.work / "refine.json"
+    json_path.unlink(missing_ok=True)
+    path = [str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(path)}
+    run = run_measured(refine_command(scene, out_db, json_path, workers=workers, extra=extra),
+                       env=env, poll=poll, timeout=timeout)
+    if run.returncode != 0 or not json_path.is_file():
+        raise RuntimeError(f"refine failed on {scene.name} (exit {run.returncode}): {run.stderr_tail.strip()[-500:]}")
+    summary = json.loads(json_path.read_text())
+    secs = summary.get("seconds", {})
+    row = {
+        "scene": scene.name, "kind": scene.kind, "workers": workers,
+        "images": summary.get("num_images"), "pairs": summary.get("num_pairs"),
+        "matches": summary.get("matches_in"), "matches_kept": summary.get("matches_kept"),
+        "images_loaded": _get(summary, "images_loaded"), "image_decodes": _get(summary, "image_decodes"),
+        "levels": _get(summary, "levels"), "refine_s": secs.get("total"), "child_wall_s": round(run.wall_s, 2),
+        "seconds": secs, "rss_tree_mb": round(run.rss_tree_mb, 1), "hwm_max_mb": round(run.hwm_max_mb, 1),
+        "hwm_sum_mb": round(run.hwm_sum_mb, 1),
+        "rss_samples": run.samples, "scene_info": scene.info,
+    }
+    sift = scene.sift
+    if sift:
+        fm = sift["seconds_extract"] + sift["seconds_match"]
+        row.update(sift_extract_s=sift["seconds_extract"], sift_match_s=sift["seconds_match"],
+                   sift_total_s=round(fm, 2), sift_estimated=bool(sift.get("estimated")),
+                   sift_images_run=sift.get("images_run"))
+        if row["refine_s"] and fm > 0:
+            row["ratio"] = round(row["refine_s"] / fm, 3)
+    return row
+
+
+# -------------------------------------------------------------------------------- reports
+COLUMNS = ("scene", "images", "pairs", "matches", "refine_s", "read", "filter", "refine", "write",
+           "rss_tree_mb", "hwm_max_mb", "hwm_sum_mb", "images_loaded", "image_decodes", "levels",
+           "sift_total_s", "ratio", "sift_graph_s", "ratio_graph")
+
+
+def fmt(v) -> str:
+    """A table cell: ``n/a`` for None, floats with 2 decimals (1 above 100)."""
+    if v is None:
+        return NA
+    if isinstance(v, float):
+        return f"{v:.1f}" if abs(v) >= 100 else f"{v:.2f}"
+    return str(v)
+
+
+FIT_KEYS = ("refine_s", "filter", "refine", "rss_tree_mb", "hwm_max_mb")
+
+
+def _value(row: dict, key: str):
+    """A row's figure: its own key, else a stage's seconds, else a derived ratio."""
+    if key in row:
+        return row[key]
+    if key in row.get("seconds", {}):
+        return row["seconds"][key]
+    return derived(row).get(key)
+
+
+def derived(row: dict) -> dict:
+    """``sift_graph_s``: SIFT extraction + matching of only refine's pairs (the exhaustive
+    per-pair cost times refine's pair count: what a sequential / spatial matcher choosing the
+    same graph would spend), and ``ratio_graph`` = refine_s / sift_graph_s; {} without SIFT
+    figures."""
+    n, pairs = row.get("images"), row.get("pairs")
+    if not (row.get("sift_match_s") and n and n > 1 and pairs and row.get("refine_s")):
+        return {}
+    graph = row["sift_extract_s"] + row["sift_match_s"] / (n * (n - 1) / 2) * pairs
+    return {"sift_graph_s": round(graph, 2), "ratio_graph": round(row["refine_s"] / graph, 3)}
+
+
+def table(rows: list[dict]) -> str:
+    """A markdown table of the rows (stage seconds from the refine summary)."""
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for r in rows:
+        cells = [fmt(_value(r, c)) for c in COLUMNS]
+        if r.get("sift_estimated"):  # scaled from a sample of images (see sift_times)
+            for c in ("sift_total_s", "ratio", "sift_graph_s", "ratio_graph"):
+                cells[COLUMNS.index(c)] = "~" + cells[COLUMNS.index(c)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def fits(rows: list[dict]) -> dict:
+    """Exponents of refine seconds (total, filter and refine stages) and of peak RSS (tree,
+    single process) against matches over the synthetic rows; {} with fewer than two sizes."""
+    syn = [r for r in rows if r["kind"] == "synthetic" and r.get("matches")]
+    if len({r["matches"] for r in syn}) < 2:
+        return {}
+    m = [r["matches"] for r in syn]
+    out = {}
+    for key in FIT_KEYS:
+        y = [_value(r, key) or 0 for r in syn]
+        if sum(v > 0 for v in y) >= 2:
+            b, c = fit_power_law(m, y)
+            out[key] = {"exponent": round(b, 3), "prefactor": c}
+    return out
+
+
+def short_name(scene: str) -> str:
+    """A plot label: ``survey400`` -> ``400``, ``strecha_fountain_p11`` -> ``fountain``."""
+    if scene.startswith("survey"):
+        return scene[len("survey"):]
+    parts = scene.split("_")
+    return parts[1] if len(parts) > 1 else scene
+
+
+def plot(rows: list[dict], path: Path) -> bool:
+    """refine seconds and peak RSS against matches (log-log) with the fitted lines; False
+    when matplotlib is missing."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("matplotlib missing: no plot (pip install 'colmap-miho[plots]')", file=sys.stderr)
+        return False
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    syn = [r for r in rows if r["kind"] == "synthetic"]
+    real = [r for r in rows if r["kind"] == "real"]
+    f = fits(rows)
+    for ax, key, label in ((axes[0], "refine_s", "refine seconds"), (axes[1], "rss_tree_mb", "peak RSS, tree (MiB)")):
+        for group, marker, name in ((syn, "o", "synthetic survey"), (real, "s", "real (shared/data)")):
+            pts = [(r["matches"], r[key]) for r in group if r.get("matches") and r.get(key)]
+            if pts:
+                x, y = zip(*pts, strict=True)
+                ax.loglog(x, y, marker, label=name)
+                for r in group:
+                    if r.get("matches") and r.get(key):
+                        ax.annotate(short_name(r["scene"]), (r["matches"], r[key]), fontsize=7,
+                                    xytext=(3, 3), textcoords="offset points")
+        if key in f and syn:
+            xs = np.geomspace(min(r["matches"] for r in syn), max(r["matches"] for r in syn), 20)
+            ax.loglog(xs, f[key]["prefactor"] * xs ** f[key]["exponent"], "--",
+                      label=f"fit: exponent {f[key]['exponent']:.2f}")
+        if key == "refine_s":
+            for key2, marker, name in (("sift_total_s", "x", "SIFT extract + exhaustive match"),
+                                       ("sift_graph_s", "+", "SIFT extract + match of refine's pairs")):
+                pts = [(r["matches"], _value(r, key2)) for r in rows if r.get("matches") and _value(r, key2)]
+                if pts:
+                    x, y = zip(*pts, strict=True)
+                    ax.loglog(x, y, marker, label=name)
+        from matplotlib.ticker import LogLocator, ScalarFormatter
+
+        ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(ScalarFormatter())
+        ax.yaxis.set_minor_formatter(ScalarFormatter() if key != "refine_s" else plt.NullFormatter())
+        ax.xaxis.set_minor_formatter(plt.NullFormatter())
+        ax.set_xlabel("matches in")
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"colmap-miho refine, {rows[0]['workers']} worker(s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", type=int, nargs="*", default=list(SIZES), help="synthetic scene sizes (images)")
+    ap.add_argument("--scenes", nargs="*", default=[], help=f"real scenes of --data ({', '.join(SCENES)})")
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_scale"), help="scene cache")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results", help="scale.{md,json,png}")
+    ap.add_argument("--workers", type=int, default=2, help="refine --workers and SIFT threads")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sequential", type=int, default=2, help="pairs with the next N images")
+    ap.add_argument("--nearest", type=int, default=6, help="pairs with the N nearest camera centres")
+    ap.add_argument("--points-per-image", type=int, default=300)
+    ap.add_argument("--max-features", type=int, default=4096, help="SIFT features per image")
+    ap.add_argument("--no-sift", action="store_true", help="skip SIFT extraction + matching (no ratio)")
+    ap.add_argument("--sift-sample", type=int, default=20,
+                    help="synthetic scenes with more images: SIFT times scaled from this many random images")
+    ap.add_argument("--poll", type=float, default=0.05, help="RSS sampling period, seconds")
+    ap.add_argument("--timeout", type=float, default=None, help="kill a refine after this many seconds")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="refine --set KEY=VALUE")
+    ap.add_argument("--refine-arg", action="append", default=[], help="extra refine argument (repeatable)")
+    ap.add_argument("--report-only", action="store_true",
+                    help="measure nothing: rewrite scale.md and scale.png from --out/scale.json")
+    args = ap.parse_args(argv)
+    if any(n < 2 for n in args.sizes):
+        ap.error("--sizes must be >= 2 images")
+    if args.workers < 1:
+        ap.error("--workers must be >= 1")
+    if args.sift_sample < 2:
+        ap.error("--sift-sample must be >= 2 images")
+    unknown = [s for s in args.scenes if s not in SCENES and not (args.data / s).is_dir()]
+    if unknown:
+        ap.error(f"unknown scene(s) {', '.join(unknown)} (not in {args.data})")
+    try:
+        import psutil  # noqa: F401
+    except ImportError:
+        ap.error("psutil is needed for the RSS figures (pip install psutil)")
+
+    if args.report_only:
+        if not (args.out / "scale.json").is_file():
+            ap.error(f"--report-only: no {args.out / 'scale.json'}")
+        saved = json.loads((args.out / "scale.json").read_text())
+        args.workers = saved["workers"]
+        args.poll = saved.get("poll", args.poll)
+        args.sift_sample = saved.get("sift_sample", args.sift_sample)
+        print(write_report(saved["rows"], args, saved.get("refine_args", []), write_json=False,
+                           note=saved.get("note", "")))
+        return 0
+
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2
+    extra = [x for o in args.overrides for x in ("--set", o)] + list(args.refine_arg)
+    scenes: list[Scene] = []  # the real scenes first: small, and each is one target of its own
+    for name in args.scenes:
+        rs = real_scene(args.data, args.work, name)
+        if rs is not None:
+            scenes.append(rs)
+    for n in args.sizes:
+        t0 = time.perf_counter()
+        sc = synthetic_scene(args.work, n, seed=args.seed, sequential=args.sequential, nearest=args.nearest,
+                             points_per_image=args.points_per_image)
+        print(f"{sc.name}: scene ready in {time.perf_counter() - t0:.1f} s ({sc.info['pairs']} pairs, mean track "
+              f"{sc.info['mean_track_length']:.2f}, max {sc.info['max_track_length']})", file=sys.stderr)
+        scenes.append(sc)
+
+    rows: list[dict] = []
+    for sc in scenes:
+        t0 = time.perf_counter()
+        if not args.no_sift or sc.kind == "real":  # a real scene's database is the SIFT one
+            sample = args.sift_sample if sc.kind == "synthetic" else None
+            sc.sift = sift_times(sc, threads=args.workers, max_features=args.max_features, sample_images=sample,
+                                 seed=args.seed)
+        t_sift = time.perf_counter() - t0
+        row = measure_refine(sc, workers=args.workers, extra=extra, poll=args.poll, timeout=args.timeout)
+        rows.append(row)
+        print(f"{sc.name}: sift {t_sift:.1f} s (cached: ~0), refine child {row['child_wall_s']:.1f} s, "
+              f"{row['matches']} matches, peak RSS {row['rss_tree_mb']:.0f} MiB", file=sys.stderr)
+        text = write_report(rows, args, extra)  # after every scene: a long sweep cut short keeps its rows
+    print(text if rows else "no scene measured")
+    return 0
+
+
+def write_report(rows: list[dict], args, extra: list[str], *, write_json: bool = True, note: str = "") -> str:
+    """Write ``scale.md``, ``scale.json`` (unless not ``write_json``) and ``scale.png`` of
+    ``rows`` to ``args.out``; returns the markdown (with ``note`` below the table)."""
+    f = fits(rows)
+    md = [f"colmap-miho refine, {args.workers} worker(s), refine args: {' '.join(extra) or '-'}; "
+          f"refine_s = summary seconds.total, read/filter/refine/write = stage seconds; rss_tree_mb = peak "
+          f"summed RSS of refine + workers (psutil, {args.poll} s), hwm_max_mb / hwm_sum_mb = largest / sum of "
+          f"the per-process peak RSS (VmHWM); sift_total_s = pycolmap SIFT extraction + exhaustive matching "
+          f"({args.workers} threads); "
+          f"ratio = refine_s / sift_total_s (~: SIFT times scaled from {args.sift_sample} random images); "
+          f"sift_graph_s = SIFT extraction + matching of refine's pairs only (exhaustive per-pair cost x pairs), "
+          f"ratio_graph = refine_s / sift_graph_s",
+          "", table(rows), ""]
+    for key, v in f.items():
+        md.append(f"- fit {key} ~ matches^{v['exponent']:.3f} over the synthetic sizes")
+    if note:
+        md += ["", note]
+    text = "\n".join(md)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "scale.md").write_text(text + "\n")
+    if write_json:
+        meta = {"argv": sys.argv[1:], "refine_args": extra, "workers": args.workers, "poll": args.poll,
+                "sift_sample": args.sift_sample, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+                "cpu_count": os.cpu_count(), "fits": f, "rows": rows}
+        (args.out / "scale.json").write_text(json.dumps(meta, indent=2) + "\n")
+    plot(rows, args.out / "scale.png")
+    return text
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,121 @@
+"""The scale benchmark's measuring functions give the right numbers on tiny inputs."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("psutil")
+
+import bench_scale  # noqa: E402
+from bench_scale import (  # noqa: E402
+    Scene,
+    derived,
+    fit_power_law,
+    fits,
+    fmt,
+    measure_refine,
+    plot,
+    run_measured,
+    sift_times,
+    table,
+)
+
+from colmap_miho.adapters.database import ColmapDatabase  # noqa: E402
+from colmap_miho.adapters.synthetic import make_survey_scene  # noqa: E402
+
+HOLD = "import time, numpy as np; a = np.ones({mb} * 2**20 // 8); time.sleep({s})"
+
+
+def test_fit_power_law_recovers_the_exponent():
+    x = np.array([1e3, 4e3, 2e4, 1e5])
+    b, c = fit_power_law(x, 3.0 * x**1.5)
+    assert b == pytest.approx(1.5, abs=1e-9) and c == pytest.approx(3.0, rel=1e-9)
+    b, _ = fit_power_law(x, 2.0 * x)
+    assert b == pytest.approx(1.0, abs=1e-9)
+    with pytest.raises(ValueError, match="two or more"):
+        fit_power_law([5.0, 5.0], [1.0, 2.0])
+
+
+def test_run_measured_sees_the_child_and_its_workers():
+    # one process holding 200 MiB
+    one = run_measured([sys.executable, "-c", HOLD.format(mb=200, s=1.0)], poll=0.02)
+    assert one.returncode == 0 and one.wall_s >= 1.0
+    assert 200 < one.hwm_max_mb < 320 and 200 < one.rss_tree_mb <= one.hwm_sum_mb + 1 < 321
+    # a parent and a worker holding 150 MiB each at the same time: the tree sum sees both, the
+    # single-process maximum only one; the launching process's own size (this test's, after
+    # holding 400 MiB) does not leak into the child's figures as it does into ru_maxrss
+    big = np.ones(400 * 2**20 // 8)
+    hold = HOLD.format(mb=150, s=1.5)
+    code = f"import subprocess, sys; w = subprocess.Popen([sys.executable, '-c', {hold!r}]); {hold}; w.wait()"
+    two = run_measured([sys.executable, "-c", code], poll=0.02)
+    assert two.returncode == 0
+    del big
+    assert 300 < two.rss_tree_mb <= two.hwm_sum_mb + 1 < 451
+    assert 150 < two.hwm_max_mb < 250
+    bad = run_measured([sys.executable, "-c", "import sys; sys.exit(3)"])
+    assert bad.returncode == 3
+
+
+def test_table_and_fits_report_absent_keys_as_na(tmp_path):
+    rows = [{"scene": f"survey{n}", "kind": "synthetic", "workers": 2, "matches": m, "refine_s": 0.01 * m,
+             "rss_tree_mb": 100 + 0.001 * m, "hwm_max_mb": 90.0, "seconds": {"filter": 1.5}, "levels": 3}
+            for n, m in ((25, 1000), (50, 2000), (100, 4000))]
+    text = table(rows)
+    assert "| survey50 |" in text and "| 1.50 |" in text
+    # absent: images, pairs, read, refine, write, hwm_sum, images_loaded, image_decodes, and the
+    # four SIFT figures
+    assert fmt(None) == "n/a" and text.count("n/a") == 3 * 12
+    f = fits(rows)
+    assert f["refine_s"]["exponent"] == pytest.approx(1.0, abs=1e-9)
+    assert f["hwm_max_mb"]["exponent"] == pytest.approx(0.0, abs=1e-9)
+    assert 0 < f["rss_tree_mb"]["exponent"] < 0.1
+    assert f["filter"]["exponent"] == pytest.approx(0.0, abs=1e-9)
+    assert "refine" not in f  # no stage seconds given
+    assert fits(rows[:1]) == {}
+    # SIFT on the pair graph only: 10 images = 45 exhaustive pairs of 2 s; refine has 9 pairs
+    sift = {"images": 10, "pairs": 9, "refine_s": 6.0, "sift_extract_s": 12.0, "sift_match_s": 90.0}
+    assert derived(sift) == {"sift_graph_s": 30.0, "ratio_graph": 0.2}
+    assert derived({**sift, "sift_match_s": None}) == {}
+    if plot(rows, tmp_path / "scale.png"):
+        assert (tmp_path / "scale.png").stat().st_size > 10_000
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench_scale")
+    sc = make_survey_scene(root, num_images=6, points_per_image=60, width=320, height=240, seed=4)
+    return Scene("survey6", "synthetic", sc.database, sc.image_dir, root, info={"pairs": len(sc.pairs)})
+
+
+def test_measure_refine_reads_the_summary(tiny, monkeypatch):
+    with ColmapDatabase(tiny.database) as db:
+        pairs, matches = db.num_verified_pairs(), db.num_inlier_matches()
+    row = measure_refine(tiny, workers=1, extra=["--no-refine"], poll=0.02, timeout=300)
+    summary = json.loads((tiny.work / "refine.json").read_text())
+    assert row["images"] == 6 and row["pairs"] == pairs == tiny.info["pairs"] and row["matches"] == matches
+    assert row["refine_s"] == summary["seconds"]["total"] > 0
+    assert row["child_wall_s"] > row["refine_s"]  # the child also imports and starts
+    assert 50 < row["hwm_max_mb"] <= row["hwm_sum_mb"] and 50 < row["rss_tree_mb"] <= row["hwm_sum_mb"] + 1
+    assert row["levels"] is None  # --no-refine: no walk
+    assert "ratio" not in row  # no SIFT figures given
+    # a failing child (no summary written) is an error naming the scene and the child's stderr
+    monkeypatch.setattr(bench_scale, "refine_command", lambda *a, **k: [
+        sys.executable, "-c", "import sys; sys.exit('error: bad database')"])
+    with pytest.raises(RuntimeError, match="refine failed on survey6 .exit 1.: error: bad database"):
+        measure_refine(tiny, workers=1, extra=[], poll=0.02, timeout=60)
+
+
+def test_sift_times_scales_a_sample(tiny):
+    full = sift_times(tiny, threads=1, max_features=512)
+    assert full["estimated"] is False and full["images_run"] == 6 == full["num_images"]
+    assert full["seconds_match"] == full["seconds_match_run"]
+    part = sift_times(tiny, threads=1, max_features=512, sample_images=3, seed=1)
+    assert part["estimated"] is True and part["images_run"] == 3
+    # extraction scaled by 6 / 3 images, matching by 15 / 3 pairs (both rounded to 0.01 s)
+    assert part["seconds_extract"] == pytest.approx(2 * part["seconds_extract_run"], abs=0.016)
+    assert part["seconds_match"] == pytest.approx(5 * part["seconds_match_run"], abs=0.031)
+    assert sift_times(tiny, threads=1, max_features=512, sample_images=3, seed=1) == part  # cached
