@@ -5,7 +5,7 @@ Public API (imported on first use, so that ``colmap-miho --help`` starts without
     refine_database(database, image_dir, output=None, *, recipe=None, ...) -> RefineSummary
     extract_and_match(database, image_dir, ...); run_mapping(database, image_dir, output, ...)
     build_report(...); compare_databases(...)
-    filter_matches(pts1, pts2, *, method="mop_miho", config=None, seed=0) -> FilterResult
+    filter_matches(pts1, pts2, *, method="mop_miho", config=None, seed=0, device="cpu") -> FilterResult
     refine_pair(image1, image2, pts1, pts2, patch_homographies, *, move="auto", config=None)
         -> RefineResult
     refine_tracks(images, keypoints, pair_matches, pair_filter_results, *, config=None)

@@ -14,7 +14,6 @@ derived from the base seed and its image ids.
 
 from __future__ import annotations
 
-import inspect
 import math
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass
@@ -94,7 +93,7 @@ class FilterOptions:
         source: which matches are read (``pipeline.source``).
         seed: base seed; each pair's seed is :func:`~.workers.pair_seed` of it and the ids.
         memory_budget_bytes: ``pipeline.memory_budget_mb`` in bytes (sizes the chunks).
-        device: "cpu" or "cuda"; "cuda" is passed to the filter when it takes a device.
+        device: "cpu" (the numpy filter) or "cuda" (the torch filter on the GPU, in this process).
         progress: tqdm bar over pairs.
         database_name: the user's database, named in error messages (the stage reads a copy).
     """
@@ -156,19 +155,11 @@ def plan_chunks(pairs: list[PairRecord], max_matches: int) -> list[list[PairReco
 
 
 def filter_chunk(items: list[tuple[np.ndarray, np.ndarray, int]], cfg: FilterConfig,
-                 extra: dict) -> list[PairOutcome]:
-    """Task: filter the pairs ``items`` = ``[(pts1 (M, 2), pts2 (M, 2) pixels, seed), ...]``;
-    ``extra``: more keyword arguments of ``filter_matches`` (the device)."""
-    return [PairOutcome.of(filter_matches(p1, p2, method=cfg.method, config=cfg, seed=s, **extra))
+                 device: str = "cpu") -> list[PairOutcome]:
+    """Task: filter the pairs ``items`` = ``[(pts1 (M, 2), pts2 (M, 2) pixels, seed), ...]`` on
+    ``device`` ("cpu": numpy; "cuda": the torch path, see :func:`~colmap_miho.filtering.api.filter_matches`)."""
+    return [PairOutcome.of(filter_matches(p1, p2, method=cfg.method, config=cfg, seed=s, device=device))
             for p1, p2, s in items]
-
-
-def filter_device_kwargs(device: str) -> dict:
-    """``{"device": "cuda"}`` when the run is on CUDA and the filter takes a device, else ``{}``
-    (the filter then runs on the CPU)."""
-    if device == "cuda" and "device" in inspect.signature(filter_matches).parameters:
-        return {"device": device}
-    return {}
 
 
 def run_filter(db: ColmapDatabase, pairs: list[PairRecord], keypoints: dict[int, np.ndarray],
@@ -199,7 +190,6 @@ def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints
                    opts: FilterOptions, runner: Runner | None, store: RunStore) -> None:
     """Filter ``chunks`` in this process (``runner`` None) or as tasks of ``runner``, storing
     each finished chunk; chunks are read ahead at most :data:`IN_FLIGHT_PER_SLOT` per slot."""
-    extra = filter_device_kwargs(opts.device)
     first = store.next_filter_index()
     bar = None
     if opts.progress:
@@ -226,7 +216,7 @@ def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints
         if runner is None:
             for k, chunk in enumerate(chunks):
                 matches, items = read(chunk)
-                finish(first + k, chunk, matches, filter_chunk(items, cfg, extra))
+                finish(first + k, chunk, matches, filter_chunk(items, cfg, opts.device))
             return
         pending: dict[Future, tuple[int, list[PairRecord], list[np.ndarray]]] = {}
 
@@ -236,7 +226,7 @@ def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints
 
         for k, chunk in enumerate(chunks):
             matches, items = read(chunk)
-            pending[runner.submit(filter_chunk, items, cfg, extra)] = (first + k, chunk, matches)
+            pending[runner.submit(filter_chunk, items, cfg, opts.device)] = (first + k, chunk, matches)
             if len(pending) >= IN_FLIGHT_PER_SLOT * runner.slots:
                 collect(wait(list(pending), return_when=FIRST_COMPLETED).done)
         while pending:
