@@ -237,10 +237,23 @@ def sample_patches(
     o = offsets.to(torch.float32).reshape(J if per_job else 1, K * P, 2)
     if not isinstance(image, ImageStack):
         return _grid_sample(image, M, o).reshape(J, K, P), inside
+    # one image at a time (its unpadded view): jobs grouped by image with one sort and one
+    # device-to-host copy of the counts
+    counts = torch.bincount(image.index, minlength=image.stack.shape[0]).tolist()
+    sizes = image.slot_sizes.tolist()
+    if J and max(counts) == J:  # all jobs on one image
+        d = counts.index(J)
+        w, h = (int(v) for v in sizes[d])
+        return _grid_sample(image.stack[d, :h, :w], M, o).reshape(J, K, P), inside
+    order = torch.argsort(image.index, stable=True)
     values = torch.empty((J, K * P), dtype=torch.float32, device=image.device)
-    for d in torch.unique(image.index).tolist():
-        rows = torch.nonzero(image.index == d)[:, 0]
-        w, h = (int(v) for v in image.slot_sizes[d].tolist())
+    start = 0
+    for d, count in enumerate(counts):
+        if count == 0:
+            continue
+        rows = order[start : start + count]
+        start += count
+        w, h = (int(v) for v in sizes[d])
         vals = _grid_sample(image.stack[d, :h, :w], M[rows], o[rows] if per_job else o)
         values.index_copy_(0, rows, vals)
     return values.reshape(J, K, P), inside

@@ -77,20 +77,31 @@ CONFIGS = {
 def test_match_result_is_the_same_in_any_batch(name):
     cfg = CONFIGS[name]
     img1, img2, p1, p2, homs = _pair(0, n=130)
-    full = refine_pair(img1, img2, p1, p2, homs, config=cfg)
+    rng = np.random.default_rng(1)
+    extra = {}
+    if name == "walk":  # as the walk calls it: a second candidate pair, keypoint frames
+        local = homs.copy()
+        local[:, 1, :2, :2] += rng.normal(0.0, 0.02, (len(p1), 2, 2))
+        homs = np.stack([homs, local], axis=1)  # (N, 2 candidates, 2, 3, 3)
+        extra = {"affine1": np.eye(2) + rng.normal(0.0, 0.05, (len(p1), 2, 2)),
+                 "affine2": np.eye(2) + rng.normal(0.0, 0.05, (len(p1), 2, 2))}
+
+    def call(rows, config):
+        return refine_pair(img1, img2, p1[rows], p2[rows], homs[rows], config=config,
+                           **{k: v[rows] for k, v in extra.items()})
+
+    full = call(np.arange(len(p1)), cfg)
     st = full.stats
     # the scene exercises moves, rejections, flat and outside templates, singular pairs
     assert st["moved"] > 0.3 * st["n"] and st["outside"] > 0 and st["invalid_homography"] == 2
     assert full.rejected.any() and (st["gated_flat"] > 0 or cfg.min_template_std == 0)
-    rng = np.random.default_rng(1)
     perm = rng.permutation(len(p1))
     # the whole set shuffled, chunked by batch_size inside one call, on one thread (the
     # whole-batch call used torch's default thread count)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        part = refine_pair(img1, img2, p1[perm], p2[perm], homs[perm],
-                           config=NCCConfig(**{**cfg.__dict__, "batch_size": 13}))
+        part = call(perm, NCCConfig(**{**cfg.__dict__, "batch_size": 13}))
     finally:
         torch.set_num_threads(threads)
     _assert_same(full, perm, part)
@@ -98,8 +109,7 @@ def test_match_result_is_the_same_in_any_batch(name):
     start, k = 0, 0
     while start < len(perm):
         rows = perm[start:start + SUB_BATCHES[k % len(SUB_BATCHES)]]
-        part = refine_pair(img1, img2, p1[rows], p2[rows], homs[rows], config=cfg)
-        _assert_same(full, rows, part)
+        _assert_same(full, rows, call(rows, cfg))
         start, k = start + rows.size, k + 1
 
 
@@ -117,7 +127,8 @@ def test_stacked_pairs_match_each_pair_alone():
         rows = np.concatenate([np.arange(60)] * len(members))[order]
         stack = [ImageStack.build([torch.as_tensor(pairs[m][side]) for m in members], index, dev)
                  for side in (0, 1)]
-        pick = [np.stack([pairs[members[i]][f][r] for i, r in zip(index, rows, strict=True)]) for f in (2, 3, 4)]
+        pick = [np.stack([pairs[members[i]][f][r] for i, r in zip(index, rows, strict=True)])
+                for f in (2, 3, 4)]
         res = refine_pair(stack[0], stack[1], *pick, config=cfg)
         for i, m in enumerate(members):
             sel = index == i
