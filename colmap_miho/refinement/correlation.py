@@ -18,6 +18,9 @@ import torch.nn.functional as F
 MIN_CURVATURE = 1e-4
 #: template / window norms below this (intensity units, [0, 1] scale) count as flat.
 _EPS_NORM = 1e-6
+#: the grouped convolution of :func:`ncc_maps` runs on a multiple of this many groups (the
+#: SIMD width of oneDNN's depthwise kernels on AVX2; AVX-512 blocks by 16, a multiple).
+_GROUP_PAD = 8
 
 
 def normalize_templates(templates: torch.Tensor) -> torch.Tensor:
@@ -51,11 +54,19 @@ def ncc_maps(
     t = templates if normalized else normalize_templates(templates)
     w = windows - _mean64(windows)  # limits float32 cancellation
     # one grouped convolution per shape: oneDNN is 5-15x slower on groups with more than
-    # one output channel (measured, torch 2.13 CPU)
-    win4 = w.reshape(1, J, Sw, Sw)
-    tk = t.transpose(0, 1).contiguous()  # (K, J, St, St): each shape's kernels contiguous
+    # one output channel (measured, torch 2.13 CPU). The group count is padded to a multiple
+    # of _GROUP_PAD so that a lone match goes through the same depthwise kernel as a batch
+    # (one group is a plain convolution, which sums in another order)
+    pad = (-J) % _GROUP_PAD
+    tk = t.transpose(0, 1)  # (K, J, St, St)
+    wp = w
+    if pad:
+        wp = F.pad(w, (0, 0, 0, 0, 0, pad))
+        tk = F.pad(tk, (0, 0, 0, 0, 0, pad))
+    win4 = wp.reshape(1, J + pad, Sw, Sw)
+    tk = tk.contiguous()[:, :, None]  # (K, J + pad, 1, St, St): each shape's kernels contiguous
     num = torch.stack(
-        [F.conv2d(win4, tk[k, :, None], groups=J, stride=stride)[0] for k in range(K)], dim=1
+        [F.conv2d(win4, tk[k], groups=J + pad, stride=stride)[0, :J] for k in range(K)], dim=1
     )
     s1 = box_sum(w, St)
     s2 = box_sum(w.square(), St)

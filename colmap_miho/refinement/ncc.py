@@ -161,6 +161,10 @@ def refine_pair(
     Returns:
         :class:`RefineResult`. A match that cannot be refined (patch outside the image,
         singular homography, flat template) is returned unchanged and counted in ``stats``.
+        On the CPU each match's outputs are bitwise the same whatever the other matches of
+        the call (how many, their order, their images in an ImageStack), ``batch_size`` and
+        torch's thread count (tests/refinement/test_ncc_batch_invariance.py); on CUDA they
+        agree to float32 rounding.
 
     Raises:
         ValueError: on malformed inputs (shapes, dtypes, device).

@@ -13,14 +13,15 @@ import torch
 
 from .config import NCCConfig
 from .correlation import ellipse_masks, find_peaks, ncc_maps, structure_tensor
-from .warping import ImageStack, invert_homographies, sample_patches
+from .warping import ImageStack, invert_homographies, project, sample_patches
 
 
 def to_frame(H: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """(J, 2) points mapped by (J, 3, 3) homographies (w clamped positive)."""
-    num = (H[:, :2, :2] @ x[:, :, None])[..., 0] + H[:, :2, 2]
-    den = (H[:, 2:, :2] @ x[:, :, None])[..., 0] + H[:, 2:, 2]
-    return num / den.clamp_min(1e-12)
+    """(J, 2) points mapped by (J, 3, 3) homographies (w clamped positive; elementwise, so a
+    point's result does not depend on the others)."""
+    X, Y, W = project(H, x[:, 0], x[:, 1])
+    W = W.clamp_min(1e-12)
+    return torch.stack([X / W, Y / W], dim=1)
 
 
 def _templates(img_f, H_f_inv, c_f, win, offs, offs_coarse, cfg: NCCConfig):

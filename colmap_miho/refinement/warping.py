@@ -5,6 +5,12 @@ A patch homography ``H`` maps image pixels into a common (rectified) frame: ``c 
 Sampling a patch around a common-frame centre ``c`` reads the image at ``H^-1 (c + w)`` for the
 offsets ``w`` of a square grid, with ``torch.nn.functional.grid_sample`` (bilinear,
 ``align_corners=True``, which puts pixel centres at integers).
+
+On the CPU a job's samples are bitwise independent of the other jobs of the call (how many,
+in which order, which images are stacked with its own): the track walk groups matches
+differently with the chunking and must give the same result. So no GEMM and no reduction
+runs across jobs here: small matrix products are written out elementwise, and each job is
+sampled in the grid coordinates of its own image.
 """
 
 from __future__ import annotations
@@ -59,8 +65,8 @@ class ImageStack:
 
     Lets one batched call serve matches of many image pairs (the track walk on a GPU, where
     a call costs about the same for 100 matches as for 10000). Images are zero-padded to a
-    common size; the inside test uses each job's true image size, so a patch that counts as
-    inside never reads padding.
+    common size; a job reads only the unpadded view of its own image (samples outside it
+    read zero, as for that image alone), so its values do not depend on the other images.
 
     Attributes:
         stack: (D, Hmax, Wmax) float32.
@@ -141,6 +147,23 @@ def invert_homographies(H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return inv, valid
 
 
+def project(H: torch.Tensor, x: torch.Tensor, y: torch.Tensor
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Homogeneous image ``H [x; y; 1]`` of points, by elementwise products (no matmul, whose
+    rounding may depend on the batch size: a point's result must not depend on the others).
+
+    Args:
+        H: (J, 3, 3).
+        x, y: (J,) or (J, Q) coordinates, row j mapped by ``H[j]``.
+    Returns:
+        (X, Y, W) shaped like ``x``, each ``(H[r, 0] x + H[r, 1] y) + H[r, 2]``.
+    """
+    shape = (H.shape[0], 3) + (1,) * (x.ndim - 1)  # (J, 3, 1, ...) against (J, 1, ...)
+    h0, h1, h2 = (H[..., c].reshape(shape) for c in range(3))
+    xyw = h0 * x[:, None] + h1 * y[:, None] + h2
+    return xyw[:, 0], xyw[:, 1], xyw[:, 2]
+
+
 def apply_homographies(H: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Map points by per-batch homographies.
 
@@ -151,10 +174,10 @@ def apply_homographies(H: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor
         (mapped (J, P, 2), ok (J, P) bool); points that land at or behind the line at
         infinity get ``ok=False`` and a far-away coordinate.
     """
-    xh = pts @ H[:, :2, :2].transpose(1, 2) + H[:, None, :2, 2]
-    w = pts @ H[:, 2:, :2].transpose(1, 2) + H[:, None, 2:, 2]
-    ok = w[..., 0] > _MIN_W
-    out = xh / torch.where(ok, w[..., 0], torch.ones_like(w[..., 0]))[..., None]
+    X, Y, W = project(H, pts[..., 0], pts[..., 1])
+    ok = W > _MIN_W
+    w = torch.where(ok, W, torch.ones_like(W))
+    out = torch.stack([X / w, Y / w], dim=-1)
     out = torch.where(ok[..., None], out, torch.full_like(out, _FAR))
     return out, ok
 
@@ -171,6 +194,12 @@ def sample_patches(
     (``x = x_c + (B o - x_c (b . o)) / (1 + b . o)``, with ``H^-1 = [B | a]`` normalised so that
     the centre's homogeneous w is 1), which keeps sub-1e-3 pixel accuracy at a fraction of the
     cost of mapping every sample in float64.
+
+    A job's values are bitwise the same whatever the other jobs of the call (their number,
+    order, images, the sizes of the images stacked with its own): the sample positions are
+    computed by elementwise products and sums (a GEMM rounds differently with the batch
+    size), in the grid coordinates of the job's own image, and ``grid_sample`` (one
+    sample at a time) reads that image alone.
 
     Args:
         image: (H, W) float32, or an :class:`ImageStack` with one image per job.
@@ -192,58 +221,91 @@ def sample_patches(
     corners = centres[:, None, None, :] + (corner_off if per_job else corner_off[None])
     c_img, ok = apply_homographies(H_inv, corners.reshape(J, K * 4, 2))
     if isinstance(image, ImageStack):
-        h, w = image.stack.shape[1:]
-        wj, hj = image.sizes[:, 0:1], image.sizes[:, 1:2]  # (J, 1) each job's own image
+        size = image.sizes  # (J, 2) each job's own image
     else:
-        h, w = image.shape
-        wj, hj = w, h  # type: ignore[assignment]  # one image: plain ints, broadcast like (J, 1)
+        size = torch.tensor([[image.shape[1], image.shape[0]]], dtype=torch.float64,
+                            device=image.device).expand(J, 2)
     inside = (
         ok
         & (c_img[..., 0] >= 0)
-        & (c_img[..., 0] <= wj - 1)
+        & (c_img[..., 0] <= size[:, 0:1] - 1)
         & (c_img[..., 1] >= 0)
-        & (c_img[..., 1] <= hj - 1)
+        & (c_img[..., 1] <= size[:, 1:2] - 1)
     ).all(dim=1)
-    # centre in homogeneous image coordinates, normalised to w = 1
-    a = (H_inv[:, :, :2] @ centres[:, :, None])[..., 0] + H_inv[:, :, 2]  # (J, 3)
-    wc = a[:, 2:]
-    good = wc[:, 0] > 1e-8
+    M, good = _grid_maps(H_inv, centres, size)
     inside &= good
-    wc = torch.where(good[:, None], wc, torch.ones_like(wc))
-    xc = a[:, :2] / wc  # (J, 2) float64
-    scale64 = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], dtype=torch.float64,
-                           device=image.device)
-    Bn = H_inv[:, :, :2] / wc[:, :, None]  # (J, 3, 2): columns of H^-1 acting on offsets
-    num_m = ((Bn[:, :2] - xc[:, :, None] * Bn[:, 2:]) * scale64[None, :, None])  # (J, 2, 2)
-    base = xc * scale64 - 1.0  # (J, 2) grid coordinates of the centre
-    # grid = base + (num_m o) / den with den = 1 + b.o, written as q_xy / q_w where
-    # q = M [o; 1], M = [[num_m + base b^T, base], [b^T, 1]]; the grid is laid out job-major
-    # (J, KP) so that the sampled values need no transpose
-    M = torch.zeros((J, 3, 3), dtype=torch.float64, device=image.device)
-    M[:, :2, :2] = num_m + base[:, :, None] * Bn[:, 2][:, None, :]
+    o = offsets.to(torch.float32).reshape(J if per_job else 1, K * P, 2)
+    if not isinstance(image, ImageStack):
+        return _grid_sample(image, M, o).reshape(J, K, P), inside
+    # one image at a time (its unpadded view): jobs grouped by image with one sort and one
+    # device-to-host copy of the counts
+    counts = torch.bincount(image.index, minlength=image.stack.shape[0]).tolist()
+    sizes = image.slot_sizes.tolist()
+    if J and max(counts) == J:  # all jobs on one image
+        d = counts.index(J)
+        w, h = (int(v) for v in sizes[d])
+        return _grid_sample(image.stack[d, :h, :w], M, o).reshape(J, K, P), inside
+    order = torch.argsort(image.index, stable=True)
+    values = torch.empty((J, K * P), dtype=torch.float32, device=image.device)
+    start = 0
+    for d, count in enumerate(counts):
+        if count == 0:
+            continue
+        rows = order[start : start + count]
+        start += count
+        w, h = (int(v) for v in sizes[d])
+        vals = _grid_sample(image.stack[d, :h, :w], M[rows], o[rows] if per_job else o)
+        values.index_copy_(0, rows, vals)
+    return values.reshape(J, K, P), inside
+
+
+def _grid_maps(H_inv: torch.Tensor, centres: torch.Tensor, size: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per job, the 3x3 map M from common-frame offsets o to ``grid_sample`` coordinates of
+    the job's own image (``align_corners=True``): grid = (M [o; 1])_xy / (M [o; 1])_w.
+
+    Args:
+        H_inv: (J, 3, 3) float64; centres: (J, 2) float64 common frame; size: (J, 2) float64
+            (width, height) of each job's image.
+    Returns:
+        (M (J, 3, 3) float64, good (J,) bool: the centre maps in front of the camera).
+    """
+    X, Y, Wc = project(H_inv, centres[:, 0], centres[:, 1])
+    good = Wc > _MIN_W
+    wc = torch.where(good, Wc, torch.ones_like(Wc))
+    xc = torch.stack([X / wc, Y / wc], dim=1)  # (J, 2) float64 image pixels
+    scale = 2.0 / (size - 1.0).clamp_min(1.0)  # (J, 2) pixels -> grid units
+    Bn = H_inv[:, :, :2] / wc[:, None, None]  # (J, 3, 2): columns of H^-1 acting on offsets
+    b = Bn[:, 2]  # (J, 2)
+    num_m = (Bn[:, :2] - xc[:, :, None] * b[:, None, :]) * scale[:, :, None]  # (J, 2, 2)
+    base = xc * scale - 1.0  # (J, 2) grid coordinates of the centre
+    # grid = base + (num_m o) / (1 + b . o) = q_xy / q_w with q = M [o; 1]
+    M = torch.zeros((H_inv.shape[0], 3, 3), dtype=torch.float64, device=H_inv.device)
+    M[:, :2, :2] = num_m + base[:, :, None] * b[:, None, :]
     M[:, :2, 2] = base
-    M[:, 2, :2] = Bn[:, 2]
+    M[:, 2, :2] = b
     M[:, 2, 2] = 1.0
-    M32 = M.to(torch.float32)
-    if per_job:
-        o = offsets.reshape(J, K * P, 2).to(torch.float32)
-        o3 = torch.cat([o, torch.ones_like(o[..., :1])], -1)  # (J, KP, 3)
-        q = torch.bmm(M32, o3.transpose(1, 2))  # (J, 3, KP)
-    else:
-        flat = offsets.reshape(K * P, 2).to(torch.float32)
-        o3 = torch.cat([flat, torch.ones_like(flat[:, :1])], 1)  # (KP, 3)
-        # one GEMM for all jobs: (J*3, 3) @ (3, KP)
-        q = torch.mm(M32.reshape(J * 3, 3), o3.t()).view(J, 3, K * P)
-    grid = (q[:, :2] / q[:, 2:].clamp_min(1e-6)).transpose(1, 2)  # (J, KP, 2)
-    if isinstance(image, ImageStack):
-        # trilinear sampling of the (D, H, W) volume at integer depth = bilinear in the slice
-        d = image.stack.shape[0]
-        z = image.index.to(torch.float32) * (2.0 / max(d - 1, 1)) - (1.0 if d > 1 else 0.0)
-        grid = torch.cat([grid, z[:, None, None].expand(J, K * P, 1)], dim=-1)
-        out = F.grid_sample(image.stack[None, None], grid[None, None], mode="bilinear",
-                            padding_mode="zeros", align_corners=True)  # (1, 1, 1, J, KP)
-        return out.reshape(J, K, P), inside
+    return M, good
+
+
+def _grid_sample(image: torch.Tensor, M: torch.Tensor, o: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples (n, Q) float32 of one (H, W) image at grid = (M [o; 1])_xy /
+    (M [o; 1])_w for the n jobs of M (n, 3, 3) and the offsets o (1 or n, Q, 2) float32,
+    by elementwise float32 operations (no GEMM: each job's result is independent of n)."""
+    n, q = M.shape[0], o.shape[1]
+    M32 = M.to(torch.float32)[..., None]  # (n, 3, 3, 1)
+    ox, oy = o[..., 0].contiguous(), o[..., 1].contiguous()  # (1 or n, Q)
+
+    def row(r: int) -> torch.Tensor:
+        v = M32[:, r, 0] * ox
+        v += M32[:, r, 1] * oy
+        v += M32[:, r, 2]
+        return v  # (n, Q)
+
+    qw = row(2).clamp_min_(1e-6)
+    grid = torch.empty((n, q, 2), dtype=torch.float32, device=image.device)
+    torch.div(row(0), qw, out=grid[..., 0])
+    torch.div(row(1), qw, out=grid[..., 1])
     out = F.grid_sample(image[None, None], grid[None], mode="bilinear", padding_mode="zeros",
-                        align_corners=True)  # (1, 1, J, KP)
-    values = out[0, 0].reshape(J, K, P)
-    return values, inside
+                        align_corners=True)  # (1, 1, n, Q)
+    return out[0, 0]

@@ -249,7 +249,8 @@ def test_cuda_agrees_with_cpu(known_motion, perturbations):
 
 def test_image_stack_samples_like_separate_images():
     """Jobs reading images of different sizes from one padded stack get the values and the
-    inside flags of sampling each image on its own (the batched track walk relies on it)."""
+    inside flags of sampling each image on its own, bitwise, patches crossing the border
+    included (the batched track walk relies on it)."""
     from colmap_miho.refinement.warping import ImageStack, offset_grid, sample_patches
 
     rng = np.random.default_rng(0)
@@ -269,6 +270,5 @@ def test_image_stack_samples_like_separate_images():
     for j, k in enumerate(index):
         want, want_in = sample_patches(images[k], H[j:j + 1], centres[j:j + 1], offsets)
         assert bool(inside[j]) == bool(want_in[0])
-        if want_in[0]:
-            np.testing.assert_allclose(got[j].numpy(), want[0].numpy(), atol=1e-5)
+        np.testing.assert_array_equal(got[j].numpy(), want[0].numpy())
     assert inside.tolist() == [False, True, True, False, True, False]
