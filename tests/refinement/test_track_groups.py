@@ -207,17 +207,11 @@ def test_partition_of_a_group_and_no_walked_track():
         np.testing.assert_array_equal(merged[i], whole.keypoints[i])
 
 
-#: Real NCC: a match's result depends on the other matches of its refine call in the last
-#: float32 bits (measured: 4e-7 px for a call of 2 vs 6 matches, 5e-6 px for 1 vs 7; along a
-#: track up to 5e-5 px on a 6-image synthetic scene), and a group's calls hold fewer matches
-#: than the whole plan's. Everything else is exact.
-NCC_BATCH_PX = 1e-3
-
-
 def test_groups_on_real_images_move_keypoints_like_the_whole_walk(shared_data):
     """Real NCC (local affine pairs on, as shipped) on 5 Middlebury temple images: the walk of
     the groups for several image bounds refines the same keypoints against the same partners
-    as the whole walk, to the same positions up to the refiner's batch rounding."""
+    as the whole walk, to the same positions bit for bit (the NCC of a match does not depend on
+    the other matches of its refine call)."""
     import cv2
 
     from miho_bench.frontend import filtered_multiview_matches
@@ -241,7 +235,7 @@ def test_groups_on_real_images_move_keypoints_like_the_whole_walk(shared_data):
         for i in kps:
             np.testing.assert_array_equal(against[i], whole.refined_against[i])
             np.testing.assert_array_equal(merged[i] != kps[i], whole.keypoints[i] != kps[i])
-            np.testing.assert_allclose(merged[i], whole.keypoints[i], rtol=0, atol=NCC_BATCH_PX)
+            np.testing.assert_array_equal(merged[i], whole.keypoints[i])
 
 
 def test_groups_bounded_in_edges_cover_the_plan():
