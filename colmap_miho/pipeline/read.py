@@ -52,13 +52,15 @@ class ReadOutput:
 
 @dataclass(frozen=True, kw_only=True)
 class ReadStats:
-    """Counts of the read stage (``RefineSummary`` fields of the same names)."""
+    """Counts of the read stage (``RefineSummary`` fields of the same names; ``image_decodes``:
+    image files decoded to check them, when refining)."""
 
     num_images: int
     num_pairs: int
     pairs_passed: int
     keypoints_total: int
     images_missing: list[str] = field(default_factory=list)
+    image_decodes: int = 0
 
 
 def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats]:
@@ -99,7 +101,7 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
     stats = ReadStats(num_images=len(images), num_pairs=len(pairs),
                       pairs_passed=len(pairs) - len(to_filter),
                       keypoints_total=int(sum(len(k) for k in keypoints.values())),
-                      images_missing=missing_names)
+                      images_missing=missing_names, image_decodes=int(loader.decodes))
     return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats
 
 

@@ -84,6 +84,9 @@ class RefineSummary:
         refine_groups / refine_groups_resumed: track groups refined in all / taken from the
             store (0 when the refine stage does not report groups).
         resumed: the run continued an interrupted one.
+        image_decodes: image files decoded in the whole run, over all processes: the read
+            stage's check (once per image; kept in the cache when it fits) and the track walk's
+            (an image again in each worker whose groups need it and no longer cache it).
         seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
             "total").
     """
@@ -118,6 +121,7 @@ class RefineSummary:
     refine_groups: int = 0
     refine_groups_resumed: int = 0
     resumed: bool = False
+    image_decodes: int = 0
     refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
 
@@ -142,6 +146,7 @@ class RefineSummary:
             filter_chunks=filtered.chunks, filter_chunks_resumed=filtered.chunks_resumed,
             pairs_resumed=filtered.pairs_resumed, refine_groups=int(refine_stats.get("groups", 0)),
             refine_groups_resumed=int(refine_stats.get("groups_resumed", 0)), resumed=resumed,
+            image_decodes=read.image_decodes + int(refine_stats.get("image_decodes", 0)),
             refine_stats=refine_stats, seconds=seconds)
 
     def to_dict(self) -> dict:

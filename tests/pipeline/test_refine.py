@@ -298,6 +298,23 @@ def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
     assert 0 < s.max_displacement_px <= MAX_MOVE_PX
 
 
+def test_images_decoded_at_most_three_times_when_the_budget_holds_them(small_scene, tmp_path,
+                                                                       monkeypatch):
+    """The read stage's check keeps the decoded images in the cache: an in-process walk
+    decodes none again, and each of two workers decodes an image at most once."""
+    from colmap_miho.pipeline import stages
+
+    s = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "o.db", workers=1,
+                        device="cpu")
+    assert s.keypoints_moved > 0 and s.refine_stats["image_decodes"] == 0
+    assert s.image_decodes == s.num_images
+    monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)  # several groups, 2 workers
+    two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "two.db",
+                          workers=2, device="cpu")
+    assert two.refine_stats["workers"] == 2 and two.refine_groups >= 2
+    assert s.num_images < two.image_decodes <= 3 * s.num_images
+
+
 def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypatch):
     """Filtering pairs and refining whole tracks in 2 processes changes nothing."""
     from colmap_miho.pipeline import filter_stage, stages
@@ -312,6 +329,9 @@ def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypa
                           workers=2, device="cpu")
     assert one.workers == 1 and two.workers == 2 and two.refine_stats["workers"] == 2
     assert one.refine_groups == two.refine_groups >= 2
+    # each image decoded once to check it, then again where the two-image cache cannot hold
+    # a group's images, and in each worker that needs it
+    assert one.num_images <= one.image_decodes < two.image_decodes
     assert (one.matches_kept, one.keypoints_moved) == (two.matches_kept, two.keypoints_moved)
     with ColmapDatabase(one.output) as a, ColmapDatabase(two.output) as b:
         for im in a.images():
