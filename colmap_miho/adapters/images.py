@@ -256,6 +256,12 @@ class ImageLoader(Mapping):
             self._cache[image_id] = img
             self._cached_bytes += img.nbytes
 
+    def clear_cache(self) -> None:
+        """Drop every cached image (the work moves to worker processes with loaders of
+        their own: the memory budget is theirs now)."""
+        self._cache.clear()
+        self._cached_bytes = 0
+
     def _drop(self, image_id: int) -> None:
         img = self._cache.pop(image_id, None)
         if img is not None:

@@ -239,6 +239,38 @@ def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     return x, y, w
 
 
+def one_way_inside(h, X, Y, x2, y2, t2: float):
+    """Division-free one-way inlier test of a block of homographies, numpy or torch alike.
+
+    Args:
+        h: (K, 9, 1) homographies (row-major entries), each scaled by its sample's forward
+            sign, so that the quasi-affine test is ``w > 0``.
+        X, Y / x2, y2: (N,) source / destination coordinates.
+        t2: squared threshold, in the coordinates' units.
+    Returns:
+        (K, N) bool: ``w > 0`` and ``|u - x2 w|^2 + |v - y2 w|^2 <= t2 w^2``.
+    """
+    W = h[:, 6] * X
+    W += h[:, 7] * Y
+    W += h[:, 8]
+    U = h[:, 0] * X
+    U += h[:, 1] * Y
+    U += h[:, 2]
+    U -= W * x2
+    V = h[:, 3] * X
+    V += h[:, 4] * Y
+    V += h[:, 5]
+    V -= W * y2
+    U *= U
+    V *= V
+    U += V
+    ok = W > 0
+    W *= W
+    W *= t2
+    ok &= U <= W
+    return ok
+
+
 def to_unit_h33(H: np.ndarray) -> np.ndarray:
     """Scale ``(..., 3, 3)`` homographies so that ``H[2, 2] == 1`` where that entry is not
     tiny relative to the matrix; otherwise to unit Frobenius norm with ``H[2, 2] >= 0``."""

@@ -57,6 +57,7 @@ from .homography import (
     dlt,
     dlt_singular_value,
     four_point,
+    one_way_inside,
     project,
     triangle_orientations,
 )
@@ -259,25 +260,7 @@ def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
     counts = np.empty(K, dtype=np.int64)
     kb = max(1, block // max(n, 1))
     for a in range(0, K, kb):
-        h = Hs[a:a + kb]
-        W = h[:, 6] * X
-        W += h[:, 7] * Y
-        W += h[:, 8]
-        U = h[:, 0] * X
-        U += h[:, 1] * Y
-        U += h[:, 2]
-        U -= W * x2
-        V = h[:, 3] * X
-        V += h[:, 4] * Y
-        V += h[:, 5]
-        V -= W * y2
-        U *= U
-        V *= V
-        U += V
-        ok = W > 0
-        W *= W
-        W *= t2
-        ok &= U <= W
+        ok = one_way_inside(Hs[a:a + kb], X, Y, x2, y2, t2)
         counts[a:a + kb] = np.count_nonzero(ok, axis=1)
     return counts
 

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .config import FilterConfig
-from .homography import adjugate, dlt_singular_value, four_point, project
+from .homography import adjugate, dlt_singular_value, four_point, one_way_inside, project
 from .ransac import Hypotheses, NumpyScoring, Problem, checked_samples
 
 if TYPE_CHECKING:
@@ -216,26 +216,7 @@ class TorchScoring(NumpyScoring):
         counts = []
         kb = max(1, self._bound_block // max(n, 1))
         for a in range(0, K, kb):
-            h = Hs[a:a + kb]
-            W = h[:, 6] * X
-            W += h[:, 7] * Y
-            W += h[:, 8]
-            U = h[:, 0] * X
-            U += h[:, 1] * Y
-            U += h[:, 2]
-            U -= W * x2
-            V = h[:, 3] * X
-            V += h[:, 4] * Y
-            V += h[:, 5]
-            V -= W * y2
-            U *= U
-            V *= V
-            U += V
-            ok = W > 0
-            W *= W
-            W *= t2
-            ok &= U <= W
-            counts.append(ok.sum(1))
+            counts.append(one_way_inside(Hs[a:a + kb], X, Y, x2, y2, t2).sum(1))
         return torch.cat(counts)
 
     def singular_value_ok(self, problem: Problem, hyp: Hypotheses,

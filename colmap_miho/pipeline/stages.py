@@ -231,6 +231,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
                     finish(g, *_walk_group(loader, attach(g), ncc_config, track_config, affines,
                                            bar.update if bar is not None else None))
         else:
+            loader.clear_cache()  # the workers' loaders hold the images from here on
             _dispatch(runner, loader, groups, todo, use, attach,
                       (ncc_config, track_config, affines, image_budget_bytes), finish, bar)
     finally:

@@ -120,12 +120,13 @@ class _ChunkIndex:
     kept: int
 
 
-def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write ``arrays`` as ``path`` (npz): a temporary file, flushed, renamed onto it."""
+def _atomic_write(path: Path, write) -> None:
+    """Write ``path`` whole or not at all: ``write(file)`` fills a temporary file beside it,
+    (binary), which is flushed to disk and renamed onto ``path``; it is removed on any failure."""
     fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **arrays)  # type: ignore[arg-type]  # numpy stubs: allow_pickle kw
+            write(fh)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(name, path)
@@ -133,20 +134,14 @@ def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
         with contextlib.suppress(OSError):
             os.unlink(name)
         raise
+
+
+def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    _atomic_write(path, lambda fh: np.savez(fh, **arrays))  # type: ignore[arg-type]  # numpy stubs: allow_pickle kw
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(name, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(name)
-        raise
+    _atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
 
 
 class RunStore:

@@ -107,3 +107,15 @@ def test_add_images_keeps_the_cache(folder):
     assert loader.decodes == 3
     again = ImageLoader(**loader.state())
     assert again.names == loader.names and again.max_cached_bytes == 4000 and again.decodes == 0
+
+
+def test_clear_cache_frees_the_budget(folder):
+    root, names = folder
+    loader = ImageLoader(root, names, max_cached=None, max_cached_bytes=10**6)
+    for i in (1, 2, 3):
+        loader[i]
+    assert loader.cached_bytes == 1200 and loader.decodes == 3
+    loader.clear_cache()
+    assert loader.cached_bytes == 0 and not loader._cache
+    loader[1]
+    assert loader.decodes == 4 and loader.cached_bytes == 400  # decoded again, kept again
