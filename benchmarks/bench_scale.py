@@ -289,9 +289,11 @@ def sift_times(scene: Scene, *, threads: int, max_features: int, sample_images: 
 
 # --------------------------------------------------------------------------------- refine
 def refine_command(scene: Scene, out_db: Path, json_path: Path, *, workers: int, extra: list[str]) -> list[str]:
-    """The ``colmap-miho refine`` command line for ``scene`` (this checkout's code)."""
+    """The ``colmap-miho refine`` command line for ``scene`` (this checkout's code; ``--restart``:
+    every run measures the whole job, even after a killed one left its work)."""
     return [sys.executable, "-m", "colmap_miho.cli", "refine", "--database", str(scene.database),
-            "--images", str(scene.images), "--output", str(out_db), "--overwrite", "--workers", str(workers),
+            "--images", str(scene.images), "--output", str(out_db), "--overwrite", "--restart",
+            "--workers", str(workers),
             "--json", str(json_path), "-q", *extra]
 
 
