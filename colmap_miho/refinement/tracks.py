@@ -149,14 +149,15 @@ def refine_tracks(
 def _refiner(refine_fn, ncc_cfg: NCCConfig, trk_cfg: TrackConfig):
     """(refine function, device for batched levels or None)."""
     device: object = "cpu"  # "cpu" or the torch.device the NCC runs on
+    custom = refine_fn
     if refine_fn is None:
         from .ncc import refine_pair as refine_fn
         from .ncc import resolve_device
 
         device = resolve_device(ncc_cfg)
     use_batch = trk_cfg.batch_pairs
-    if use_batch is None:
-        use_batch = str(device).startswith("cuda")
+    if use_batch is None:  # the built-in refiner takes image stacks; a custom one may not
+        use_batch = custom is None
     return refine_fn, (device if use_batch else None)
 
 
