@@ -81,6 +81,25 @@ def _gt_keypoints(gt, stored: dict[int, int]) -> tuple[dict[int, np.ndarray], di
     return gt_kp, ids
 
 
+def _check_noise(outlier_ratio: float, noise_px: float) -> None:
+    if not 0 <= outlier_ratio < 1:
+        raise ValueError(f"outlier_ratio must be in [0, 1), got {outlier_ratio}")
+    if noise_px < 0:
+        raise ValueError(f"noise_px must be >= 0, got {noise_px}")
+
+
+def _scene_folder(out_dir: str | Path) -> tuple[Path, Path]:
+    """``out_dir/database.db`` (must not exist yet) and ``out_dir/images/`` (created)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    database = out / "database.db"
+    if database.exists():
+        raise ValueError(f"out_dir already holds a database: {database}")
+    image_dir = out / "images"
+    image_dir.mkdir(exist_ok=True)
+    return database, image_dir
+
+
 def make_synthetic_scene(
     out_dir: str | Path,
     *,
@@ -124,19 +143,10 @@ def make_synthetic_scene(
         raise ValueError(f"num_images must be >= 2, got {num_images}")
     if num_points < 8:
         raise ValueError(f"num_points must be >= 8, got {num_points}")
-    if not 0 <= outlier_ratio < 1:
-        raise ValueError(f"outlier_ratio must be in [0, 1), got {outlier_ratio}")
-    if noise_px < 0:
-        raise ValueError(f"noise_px must be >= 0, got {noise_px}")
+    _check_noise(outlier_ratio, noise_px)
     if keypoint_columns not in (2, 4, 6):
         raise ValueError(f"keypoint_columns must be 2, 4 or 6, got {keypoint_columns}")
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    database = out / "database.db"
-    if database.exists():
-        raise ValueError(f"out_dir already holds a database: {database}")
-    image_dir = out / "images"
-    image_dir.mkdir(exist_ok=True)
+    database, image_dir = _scene_folder(out_dir)
 
     opts = pycolmap.SyntheticDatasetOptions()
     opts.num_rigs = 1
@@ -164,7 +174,7 @@ def make_synthetic_scene(
     gt_kp, ids = _gt_keypoints(gt, stored)
     if render_images:
         pycolmap.synthesize_images(pycolmap.SyntheticImageOptions(), gt, str(image_dir))
-    log.debug("synthetic scene with %d images, %d points in %s", num_images, num_points, out)
+    log.debug("synthetic scene with %d images, %d points in %s", num_images, num_points, database.parent)
     return SyntheticScene(database, image_dir, gt, gt_kp, ids)
 
 
@@ -320,21 +330,12 @@ def make_survey_scene(
     """
     import pycolmap
 
-    if not 0 <= outlier_ratio < 1:
-        raise ValueError(f"outlier_ratio must be in [0, 1), got {outlier_ratio}")
-    if noise_px < 0:
-        raise ValueError(f"noise_px must be >= 0, got {noise_px}")
+    _check_noise(outlier_ratio, noise_px)
     if extra_keypoints < 0:
         raise ValueError(f"extra_keypoints must be >= 0, got {extra_keypoints}")
     layout = survey_layout(num_images, width=width, height=height, forward_overlap=forward_overlap,
                            side_overlap=side_overlap, points_per_image=points_per_image, seed=seed)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    database = out / "database.db"
-    if database.exists():
-        raise ValueError(f"out_dir already holds a database: {database}")
-    image_dir = out / "images"
-    image_dir.mkdir(exist_ok=True)
+    database, image_dir = _scene_folder(out_dir)
     rng = np.random.default_rng(seed + 1)
 
     # keypoints per image: true xy (COLMAP coordinates) and the point index each one sees
@@ -396,5 +397,6 @@ def make_survey_scene(
     gt_kp, ids = _gt_keypoints(gt, {k + 1: len(seen[k]) for k in range(num_images)})
     if render_images:
         pycolmap.synthesize_images(pycolmap.SyntheticImageOptions(), gt, str(image_dir))
-    log.debug("survey scene: %d images, %d points, %d pairs in %s", num_images, len(tracks), len(pairs), out)
+    log.debug("survey scene: %d images, %d points, %d pairs in %s", num_images, len(tracks), len(pairs),
+              database.parent)
     return SyntheticScene(database, image_dir, gt, gt_kp, ids, pairs)

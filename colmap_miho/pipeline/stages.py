@@ -22,6 +22,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, wait
 import numpy as np
 
 from ..adapters.images import ImageLoader
+from .executor import Runner
 
 log = logging.getLogger(__name__)
 
@@ -140,11 +141,10 @@ def _runs(groups: list, n: int) -> list[list[int]]:
 
 
 def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config, track_config, *,
-                     unrefined=None, runner=None, progress: bool = False,
+                     unrefined=None, runner: Runner, progress: bool = False,
                      image_budget_bytes: int | None = None,
                      done: Mapping[int, tuple[Moved, dict]] | None = None,
-                     on_group: Callable[[int, Moved, dict], None] | None = None,
-                     workers: int | None = None):
+                     on_group: Callable[[int, Moved, dict], None] | None = None):
     """Track-consistent NCC refinement over groups of whole tracks.
 
     Args:
@@ -156,7 +156,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         affines: image id -> (N, 2, 2) keypoint affine frames, or None.
         unrefined: (i, j) -> (M, 2) the other matches that reach the output database (pairs
             not filtered, failed, or with a missing image): they join tracks, never refine.
-        runner: a :class:`~.executor.Runner`; None: in this process (or ``workers``).
+        runner: a :class:`~.executor.Runner` (in this process, a process pool or Dask).
         progress: a tqdm bar over the keypoints to refine.
         image_budget_bytes: decoded image bytes one walking process may hold; sets the
             images of a group (:func:`max_images_for`; None: ``tracks.max_images_in_memory``).
@@ -169,8 +169,6 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         on_group: called in this process as each group finishes, with (group index, moved,
             stats); moved = image id -> (keypoint indices (K,) int64, positions (K, 2)
             float64) of the keypoints the group changed.
-        workers: without ``runner``: processes of a local pool (kept for callers that do not
-            pass a runner yet).
 
     Returns:
         (new keypoints dict, stats, processes used). Stats hold the plan's, the walk
@@ -178,14 +176,6 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         counts once per group that read / decoded it; the decodes of the loader's
         ``check_all`` are not in them), ``groups``, ``groups_resumed``, ``group_max_images``.
     """
-    if runner is None:
-        from .executor import open_runner
-
-        with open_runner(int(workers or 1)) as opened:
-            return run_refine_stage(loader, keypoints, pairs, affines, ncc_config, track_config,
-                                    unrefined=unrefined, runner=opened, progress=progress,
-                                    image_budget_bytes=image_budget_bytes, done=done,
-                                    on_group=on_group)
     build_track_plan, _, local_affine_of = _import_refinement()
     plan = build_track_plan(keypoints, {k: m for k, (m, _) in pairs.items()},
                             {k: r for k, (_, r) in pairs.items()}, unrefined_matches=unrefined,
