@@ -70,6 +70,7 @@ import numpy as np
 
 from ..enums import FilterMethod
 from .assign import assign_matches
+from .coherence import incoherent_planes
 from .config import FilterConfig
 from .homography import adjugate, to_unit_h33
 from .miho import apply_affine, build_problem, choose_rotation, sqrt_split
@@ -212,10 +213,19 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
 
     if cfg.miho_threshold == "full_search" and cfg.is_miho:
         problem = build_problem(x1, x2r, miho=True, full_match=False)  # keep: half-match
-    labels, support = assign_matches(scoring.error_sq(problem, mop.hyps, np.arange(n)), cfg.t_l,
-                                     rule=cfg.assignment, round_inliers=mop.round_inliers)
+    err2 = scoring.error_sq(problem, mop.hyps, np.arange(n))
+    hyps, round_inliers = mop.hyps, mop.round_inliers
+    labels, support = assign_matches(err2, cfg.t_l, rule=cfg.assignment, round_inliers=round_inliers)
+    if cfg.coherence:
+        drop = incoherent_planes(x1, x2, labels, err2 <= cfg.t_l**2)
+        stats["coherence_dropped"] = len(drop)
+        if len(drop):
+            alive = np.setdiff1d(np.arange(len(hyps)), drop)
+            hyps, err2, round_inliers = hyps.take(alive), err2[alive], round_inliers[alive]
+            labels, support = assign_matches(err2, cfg.t_l, rule=cfg.assignment,
+                                             round_inliers=round_inliers)
     t4 = time.perf_counter()
-    H, patch = _homographies_and_patch_pairs(mop.hyps, G, cfg, stats)
+    H, patch = _homographies_and_patch_pairs(hyps, G, cfg, stats)
     t5 = time.perf_counter()
     stats.update(time_assign=t4 - t3, time_split=t5 - t4, time_total=t5 - t0,
                  support=support.tolist())

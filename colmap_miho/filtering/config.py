@@ -63,6 +63,11 @@ class FilterConfig:
             inliers in the pool of the round that found it, and a match compatible with
             none is still kept, with its least-error homography, when that error is within
             t_l.
+        coherence: after assignment, drop the homographies whose matches mostly sit among
+            matches of other planes that they contradict (in both images), and re-assign
+            their matches (:mod:`colmap_miho.filtering.coherence`). Removes spurious planes
+            made of repeated-texture mismatches; off by default because it also drops a
+            few correct matches on multi-plane scenes (README, "Hard planar pairs").
     """
 
     method: FilterMethod = FilterMethod.MOP_MIHO
@@ -85,6 +90,7 @@ class FilterConfig:
     rotation_pairs: int = 20000
     miho_threshold: str = "full_search"
     assignment: str = "paper"
+    coherence: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", FilterMethod.parse(self.method, "method"))
