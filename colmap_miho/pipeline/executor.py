@@ -61,6 +61,11 @@ class Runner:
         self._wrap = wrap
 
     @property
+    def started(self) -> bool:
+        """Whether the executor runs already (a process pool that an earlier stage started)."""
+        return self._executor is not None
+
+    @property
     def parallel(self) -> bool:
         """Whether tasks go to other processes (False: call them in this process)."""
         return self._make is not None

@@ -29,6 +29,12 @@ log = logging.getLogger(__name__)
 #: Refinement runs in worker processes only with at least this many refinable matches each.
 MIN_MATCHES_PER_REFINE_WORKER = 2000
 
+#: When the filter stage did not start the process pool, refinement starts it only with at
+#: least this many refinable matches per worker: starting it costs about 2 s (each worker
+#: imports torch), the walk about 0.2 ms per match (fountain, one process). Dask clusters
+#: are started already.
+MIN_MATCHES_TO_START_WORKERS = 10_000
+
 #: Most refinable matches of one group of tracks, in units of
 #: :data:`MIN_MATCHES_PER_REFINE_WORKER`: a group is the unit of work handed to a worker and
 #: of what a resumed run keeps (a fixed number, so the groups do not depend on the runner).
@@ -206,7 +212,8 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
     for g in sorted(done):
         finish(g, *done[g], resumed=True)
     use = 1
-    if runner.parallel:
+    if runner.parallel and (runner.started or runner.kind == "dask"
+                            or n_edges >= MIN_MATCHES_TO_START_WORKERS * runner.slots):
         use = min(runner.slots, max(1, n_edges // MIN_MATCHES_PER_REFINE_WORKER), max(1, len(todo)))
     bar = None
     if progress:

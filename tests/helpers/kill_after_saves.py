@@ -42,5 +42,6 @@ if __name__ == "__main__":
     filter_stage.MAX_CHUNK_MATCHES = 1  # one pair per chunk: several chunks on a small scene
     PipelineConfig.image_budget_bytes = two_images  # type: ignore[method-assign]
     stages.MIN_MATCHES_PER_REFINE_WORKER = SMALL_WORKER_MATCHES  # several groups on a small scene
+    stages.MIN_MATCHES_TO_START_WORKERS = 0
     kill_after(sys.argv[1], int(sys.argv[2]))
     sys.exit(main(sys.argv[3:]))

@@ -23,7 +23,9 @@ def scene(tmp_path_factory):
 def test_local_cluster_equals_process_pool_and_one_process(scene, tmp_path, monkeypatch):
     # small scene: let the process pool take it too (it keeps small jobs in this process)
     monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
+    monkeypatch.setattr(filter_stage, "MIN_MATCHES_PER_FILTER_WORKER", 0)
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
     monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # several track groups
     one = refine_database(scene.database, scene.image_dir, tmp_path / "one.db", workers=1, device="cpu")
     pool = refine_database(scene.database, scene.image_dir, tmp_path / "pool.db", workers=2, device="cpu")

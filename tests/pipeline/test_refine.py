@@ -309,6 +309,7 @@ def test_images_decoded_at_most_three_times_when_the_budget_holds_them(small_sce
     assert s.keypoints_moved > 0 and s.refine_stats["image_decodes"] == 0
     assert s.image_decodes == s.num_images
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)  # several groups, 2 workers
+    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
     two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "two.db",
                           workers=2, device="cpu")
     assert two.refine_stats["workers"] == 2 and two.refine_groups >= 2
@@ -320,7 +321,9 @@ def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypa
     from colmap_miho.pipeline import filter_stage, stages
 
     monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
+    monkeypatch.setattr(filter_stage, "MIN_MATCHES_PER_FILTER_WORKER", 0)
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
     monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # several track groups
     # the CPU worker pool is what is tested (on a CUDA machine "auto" would use one GPU worker)
     one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db",

@@ -98,6 +98,7 @@ def test_run_killed_while_refining_resumes_its_groups(scene, reference, tmp_path
     assert len(_stored(out, "filter")) == 6 and _stored(out, "group") == ["group-000000.npz"]
     monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # the killed run's groups
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", SMALL_WORKER_MATCHES)
+    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
     js = tmp_path / "s.json"
     assert main(_args(scene, out, "--resume", "--json", str(js))) == 0
     summary = json.loads(js.read_text())

@@ -59,6 +59,7 @@ def test_same_keypoints_whatever_the_runner_and_budget(scene, monkeypatch):
     """Bit-identical keypoints in this process and in 2 worker processes, and with another
     budget (other groups, hence other refine calls: a match's NCC does not depend on them)."""
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 20)  # several groups, 2 workers
+    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
     one = _image_bytes(scene)
     with open_runner(1) as inline:
         ref, ref_stats, used = _run(scene, inline, 3 * one)
@@ -80,6 +81,7 @@ def test_same_keypoints_whatever_the_runner_and_budget(scene, monkeypatch):
 
 def test_resume_skips_done_groups_and_reports_each_group_once(scene, monkeypatch):
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 20)
+    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
     budget = 3 * _image_bytes(scene)
     seen: dict = {}
     with open_runner(1) as inline:
@@ -109,6 +111,7 @@ def test_each_image_decoded_once_when_the_budget_holds_the_tracks(scene, monkeyp
     stage's check decoded are the walk's: every image is decoded once in the whole run. With a
     budget under a track's image count, its group's walk reloads images (counted)."""
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 20)
+    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
     _, kps, pairs, _, _ = scene
     for n_images in (6, 2):
         budget = n_images * _image_bytes(scene)
