@@ -322,6 +322,7 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
         "images": summary.get("num_images"), "pairs": summary.get("num_pairs"),
         "matches": summary.get("matches_in"), "matches_kept": summary.get("matches_kept"),
         "images_loaded": _get(summary, "images_loaded"), "image_decodes": _get(summary, "image_decodes"),
+        "decodes_max": summary.get("image_decodes_max"),
         "levels": _get(summary, "levels"), "refine_s": secs.get("total"), "child_wall_s": round(run.wall_s, 2),
         "seconds": secs, "rss_tree_mb": round(run.rss_tree_mb, 1), "hwm_max_mb": round(run.hwm_max_mb, 1),
         "hwm_sum_mb": round(run.hwm_sum_mb, 1),
@@ -340,8 +341,8 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
 
 # -------------------------------------------------------------------------------- reports
 COLUMNS = ("scene", "images", "pairs", "matches", "refine_s", "read", "filter", "refine", "write",
-           "rss_tree_mb", "hwm_max_mb", "hwm_sum_mb", "images_loaded", "image_decodes", "levels",
-           "sift_total_s", "ratio", "sift_graph_s", "ratio_graph")
+           "rss_tree_mb", "hwm_max_mb", "hwm_sum_mb", "images_loaded", "image_decodes", "decodes_max",
+           "levels", "sift_total_s", "ratio", "sift_graph_s", "ratio_graph")
 
 
 def fmt(v) -> str:

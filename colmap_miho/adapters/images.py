@@ -13,7 +13,7 @@ one warning naming it, then ``None``.
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
@@ -165,6 +165,7 @@ class ImageLoader(Mapping):
     Attributes:
         decodes: image files decoded so far (by lookups that missed the cache and by
             :meth:`check_all`).
+        decoded: image id -> its decodes (the same count, per image).
         loads: decodes by lookups only.
     """
 
@@ -186,6 +187,7 @@ class ImageLoader(Mapping):
         self.problems: dict[int, str] = {}  # image id -> why it is not used
         self.loads = 0
         self.decodes = 0
+        self.decoded: Counter[int] = Counter()
 
     @property
     def cached_bytes(self) -> int:
@@ -227,7 +229,9 @@ class ImageLoader(Mapping):
             return self._cache[image_id]
         img = read_gray_float(self.path(image_id))
         self.loads += 1
-        self.decodes += img is not None or self.path(image_id).is_file()
+        if img is not None or self.path(image_id).is_file():
+            self.decodes += 1
+            self.decoded[image_id] += 1
         size = self.expected_sizes.get(image_id)
         if img is None:
             self._skip(image_id, "missing or unreadable")
@@ -286,7 +290,9 @@ class ImageLoader(Mapping):
             why = self.problems.get(image_id)
             if why is None and image_id not in self._cache:
                 img, why = _checked_decode(self.path(image_id), self.expected_sizes.get(image_id))
-                self.decodes += why not in _NOT_DECODED
+                if why not in _NOT_DECODED:
+                    self.decodes += 1
+                    self.decoded[image_id] += 1
                 if img is not None:
                     self._keep(image_id, img, evict=False)
             if why is not None:

@@ -61,6 +61,7 @@ class ReadStats:
     keypoints_total: int
     images_missing: list[str] = field(default_factory=list)
     image_decodes: int = 0
+    decoded_by_image: dict[int, int] = field(default_factory=dict)  # image id -> decodes
 
 
 def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats]:
@@ -101,7 +102,8 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
     stats = ReadStats(num_images=len(images), num_pairs=len(pairs),
                       pairs_passed=len(pairs) - len(to_filter),
                       keypoints_total=int(sum(len(k) for k in keypoints.values())),
-                      images_missing=missing_names, image_decodes=int(loader.decodes))
+                      images_missing=missing_names, image_decodes=int(loader.decodes),
+                      decoded_by_image=dict(loader.decoded))
     return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats
 
 

@@ -37,6 +37,7 @@ import logging
 import os
 import sqlite3
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -52,7 +53,7 @@ from . import stages
 from .executor import Runner, open_runner
 from .filter_stage import FilteredPairs, FilterOptions, FilterStats, run_filter
 from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
-from .stages import run_refine_stage
+from .stages import DECODED_BY_IMAGE, run_refine_stage
 from .store import RunStore, run_fingerprint, store_folder
 from .verify import run_verify
 from .write import WriteStats, run_write
@@ -87,6 +88,7 @@ class RefineSummary:
         image_decodes: image files decoded in the whole run, over all processes: the read
             stage's check (once per image; kept in the cache when it fits) and the track walk's
             (an image again in each worker whose groups need it and no longer cache it).
+        image_decodes_max: the most times one image was decoded in the run (same count).
         seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
             "total").
     """
@@ -122,6 +124,7 @@ class RefineSummary:
     refine_groups_resumed: int = 0
     resumed: bool = False
     image_decodes: int = 0
+    image_decodes_max: int = 0
     refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
 
@@ -131,6 +134,9 @@ class RefineSummary:
                     refine_stats: dict, write: WriteStats, seconds: dict[str, float]) -> RefineSummary:
         """Assemble the summary from the stages' stats."""
         pcfg = recipe.pipeline
+        refine_stats = dict(refine_stats)
+        per_image = Counter(read.decoded_by_image)
+        per_image.update({int(k): int(v) for k, v in refine_stats.pop(DECODED_BY_IMAGE, {}).items()})
         return cls(
             output=output, database=database, backup=backup, recipe=recipe.name,
             source=str(pcfg.source), refined=pcfg.refine, verified=pcfg.verify,
@@ -147,6 +153,7 @@ class RefineSummary:
             pairs_resumed=filtered.pairs_resumed, refine_groups=int(refine_stats.get("groups", 0)),
             refine_groups_resumed=int(refine_stats.get("groups_resumed", 0)), resumed=resumed,
             image_decodes=read.image_decodes + int(refine_stats.get("image_decodes", 0)),
+            image_decodes_max=max(per_image.values(), default=0),
             refine_stats=refine_stats, seconds=seconds)
 
     def to_dict(self) -> dict:

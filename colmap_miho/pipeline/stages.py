@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+from collections import Counter
 from collections.abc import Callable, Mapping
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 
@@ -45,6 +46,9 @@ GROUP_SIZE_IN_WORKER_MINIMUMS = 10
 def group_max_matches() -> int:
     """Most refinable matches of one group (part of a resumed run's plan key)."""
     return GROUP_SIZE_IN_WORKER_MINIMUMS * MIN_MATCHES_PER_REFINE_WORKER
+
+#: Key of the refine stage's stats holding image id -> decodes by the walk (all processes).
+DECODED_BY_IMAGE = "decoded_by_image"
 
 #: Bytes of one pixel of a decoded image (:class:`ImageLoader` keeps float32 gray).
 BYTES_PER_PIXEL = 4
@@ -89,11 +93,15 @@ def _moved_of(group, keypoints) -> Moved:
 
 
 def _walk_group(loader, group, ncc_config, track_config, affines, on_progress=None):
-    """Walk one group with ``loader``; returns (moved, numeric stats)."""
+    """Walk one group with ``loader``; returns (moved, stats): the numeric stats and
+    ``decoded_by_image`` (image id as text -> the images the walk decoded, JSON-ready)."""
     _, walk_tracks, _ = _import_refinement()
+    before = Counter(loader.decoded)
     tr = walk_tracks(loader, group, ncc_config=ncc_config, track_config=track_config,
                      affines=affines, progress=False, on_progress=on_progress)
-    return _moved_of(group, tr.keypoints), _numeric(tr.stats)
+    stats: dict = _numeric(tr.stats)
+    stats[DECODED_BY_IMAGE] = {str(k): int(v) for k, v in (loader.decoded - before).items()}
+    return _moved_of(group, tr.keypoints), stats
 
 
 def _walk_group_task(loader_state: dict, group, ncc_config, track_config, affines):
@@ -134,7 +142,10 @@ def _merge_walk_stats(plan_stats: dict, parts: list[dict]) -> dict:
         vals = [st[key] for st in parts if key in st]
         if vals:
             stats[key] = max(vals) if key in ("levels", "missing_images") else sum(vals)
-    return _numeric(stats)
+    decoded: Counter[int] = Counter()
+    for st in parts:
+        decoded.update({int(k): int(v) for k, v in st.get(DECODED_BY_IMAGE, {}).items()})
+    return {**_numeric(stats), DECODED_BY_IMAGE: dict(decoded)}
 
 
 def _runs(groups: list, n: int) -> list[list[int]]:

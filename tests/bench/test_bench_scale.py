@@ -66,9 +66,10 @@ def test_table_and_fits_report_absent_keys_as_na(tmp_path):
             for n, m in ((25, 1000), (50, 2000), (100, 4000))]
     text = table(rows)
     assert "| survey50 |" in text and "| 1.50 |" in text
-    # absent: images, pairs, read, refine, write, hwm_sum, images_loaded, image_decodes, and the
+    # absent: images, pairs, read, refine, write, hwm_sum, images_loaded, image_decodes,
+    # decodes_max, and the
     # four SIFT figures
-    assert fmt(None) == "n/a" and text.count("n/a") == 3 * 12
+    assert fmt(None) == "n/a" and text.count("n/a") == 3 * 13
     f = fits(rows)
     assert f["refine_s"]["exponent"] == pytest.approx(1.0, abs=1e-9)
     assert f["hwm_max_mb"]["exponent"] == pytest.approx(0.0, abs=1e-9)

@@ -307,13 +307,14 @@ def test_images_decoded_at_most_three_times_when_the_budget_holds_them(small_sce
     s = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "o.db", workers=1,
                         device="cpu")
     assert s.keypoints_moved > 0 and s.refine_stats["image_decodes"] == 0
-    assert s.image_decodes == s.num_images
+    assert s.image_decodes == s.num_images and s.image_decodes_max == 1
     monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)  # several groups, 2 workers
     monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
     two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "two.db",
                           workers=2, device="cpu")
     assert two.refine_stats["workers"] == 2 and two.refine_groups >= 2
     assert s.num_images < two.image_decodes <= 3 * s.num_images
+    assert 2 <= two.image_decodes_max <= 3  # the check, then at most once in each worker
 
 
 def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypatch):
@@ -335,6 +336,7 @@ def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypa
     # each image decoded once to check it, then again where the two-image cache cannot hold
     # a group's images, and in each worker that needs it
     assert one.num_images <= one.image_decodes < two.image_decodes
+    assert one.image_decodes_max <= two.image_decodes_max
     assert (one.matches_kept, one.keypoints_moved) == (two.matches_kept, two.keypoints_moved)
     with ColmapDatabase(one.output) as a, ColmapDatabase(two.output) as b:
         for im in a.images():
