@@ -239,6 +239,41 @@ def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     return x, y, w
 
 
+def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray):
+    """Squared transfer error of ``K`` homographies, and the homogeneous ``w``.
+
+    Args:
+        H: ``(K, 3, 3)`` (or broadcast like :func:`project`).
+        src, dst: ``(N, 2)`` (or ``(K, N, 2)``) source and destination pixels.
+
+    Returns:
+        ``(e, w)``, each ``(K, N)``: ``e = |H(src) - dst|^2`` in pixels squared, with the
+        same operations in the same order as :func:`project` followed by the squared
+        difference (so the same bits), but in place (fewer temporaries); ``w`` the
+        homogeneous coordinate before division. Where ``w == 0`` ``e`` is inf or nan (numpy
+        callers silence the warnings): the quasi-affinity test rejects those entries anyway.
+    """
+    h = H.reshape(tuple(H.shape[:-2]) + (9, 1))
+    X, Y = src[..., 0], src[..., 1]
+    w = h[..., 6, :] * X
+    w += h[..., 7, :] * Y
+    w += h[..., 8, :]
+    x = h[..., 0, :] * X
+    x += h[..., 1, :] * Y
+    x += h[..., 2, :]
+    x /= w
+    x -= dst[..., 0]
+    x *= x
+    y = h[..., 3, :] * X
+    y += h[..., 4, :] * Y
+    y += h[..., 5, :]
+    y /= w
+    y -= dst[..., 1]
+    y *= y
+    x += y
+    return x, w
+
+
 def one_way_inside(h, X, Y, x2, y2, t2: float):
     """Division-free one-way inlier test of a block of homographies, numpy or torch alike.
 

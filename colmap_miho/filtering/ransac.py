@@ -58,13 +58,25 @@ from .homography import (
     dlt_singular_value,
     four_point,
     one_way_inside,
-    project,
+    transfer_error_sq,
     triangle_orientations,
 )
 
 _DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
-_PAIR_I = np.array([0, 0, 0, 1, 1, 2])
-_PAIR_J = np.array([1, 2, 3, 2, 3, 3])
+_PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))  # the 6 point pairs of a sample
+
+
+def _apart(d: np.ndarray, t2: float) -> np.ndarray:
+    """``(...)`` bool from differences ``d`` ``(..., sets, 2)``: the squared distance is
+    at least ``t2`` in every set. Written out over the tiny trailing axes (numpy reductions
+    over axes of length 2-3 cost far more than the arithmetic); the squared distance is the
+    same ``dx * dx + dy * dy`` a ``sum(-1)`` gives, bit for bit."""
+    sq = d[..., 0] * d[..., 0]
+    sq += d[..., 1] * d[..., 1]
+    ok = sq[..., 0] >= t2
+    for k in range(1, sq.shape[-1]):
+        ok &= sq[..., k] >= t2
+    return ok
 
 
 @dataclass(frozen=True)
@@ -164,8 +176,10 @@ def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
     """``(B,)`` bool: the 4 points of each minimal sample ``(B, 4)`` are pairwise at least
     ``t_l`` pixels apart in every spread set (paper App. A.3)."""
     p = problem.spread_all[sample]  # (B, 4, sets, 2)
-    d = p[:, _PAIR_I] - p[:, _PAIR_J]  # (B, 6, sets, 2)
-    return np.all((d * d).sum(-1) >= t_l**2, axis=(1, 2))
+    ok = np.ones(len(sample), dtype=bool)
+    for i, j in _PAIRS:
+        ok &= _apart(p[:, i] - p[:, j], t_l**2)
+    return ok
 
 
 def checked_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
@@ -226,17 +240,69 @@ def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
     squared); ``inf`` where a projection breaks the quasi-affine sign of the hypothesis'
     sample. The torch path computes the same per-element formula stacked over halves and
     directions (``TorchScoring._error_sq``)."""
-    err = np.zeros((len(hyp), len(idx)))
-    for h in range(problem.num_halves):
-        src, dst = problem.src[h][idx], problem.dst[h][idx]
-        for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst), (hyp.Hinv, hyp.sign_inv, dst, src)):
-            x, y, w = project(mat[:, h], a)
-            e = (x - b[:, 0]) ** 2 + (y - b[:, 1]) ** 2
-            e[np.sign(w) != sgn[:, h, None]] = np.inf
-            np.maximum(err, e, out=err)
+    err = None
+    # w == 0 gives inf / nan errors; those entries break the quasi-affine sign and are set
+    # to inf below, after the max, exactly as if they had been set before it.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for h in range(problem.num_halves):
+            src, dst = problem.src[h][idx], problem.dst[h][idx]
+            for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst),
+                                   (hyp.Hinv, hyp.sign_inv, dst, src)):
+                e, w = transfer_error_sq(mat[:, h], a, b)
+                if err is None:
+                    err = e  # the max of 0 and e >= 0
+                else:
+                    np.maximum(err, e, out=err)
+                # sign(w) != sign of the sample <=> w * sign <= 0: the sign is +-1 and w is
+                # finite (finite homography and points).
+                w *= sgn[:, h, None]
+                np.copyto(err, np.inf, where=w <= 0)
+    assert err is not None  # a problem has at least one half
     if problem.error_scale != 1.0:
         err *= problem.error_scale**2
     return err
+
+
+def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float) -> np.ndarray:
+    """``(K, n)`` bool: ``error_sq(problem, hyp, idx) <= t2``, the same decisions bit for bit,
+    computed term by term (halves and directions): after each term only the matches that
+    some hypothesis still keeps are carried on.
+
+    The same because the error is a max of terms scaled by ``error_scale**2`` (a rounded
+    product is monotone, so ``max(a, b) s <= t2`` iff ``a s <= t2`` and ``b s <= t2``) and an
+    entry whose projection breaks the sample's sign is inf, i.e. outside.
+    """
+    K, n = len(hyp), len(idx)
+    s2 = problem.error_scale**2
+    ok: np.ndarray | None = None
+    cols: np.ndarray | None = None  # the matches still carried (None: all)
+    with np.errstate(divide="ignore", invalid="ignore"):  # w == 0: rejected by the sign
+        for h in range(problem.num_halves):
+            src, dst = problem.src[h][idx], problem.dst[h][idx]
+            for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst),
+                                   (hyp.Hinv, hyp.sign_inv, dst, src)):
+                if cols is not None:
+                    a, b = a[cols], b[cols]
+                e, w = transfer_error_sq(mat[:, h], a, b)
+                if s2 != 1.0:
+                    e *= s2
+                w *= sgn[:, h, None]  # w > 0 <=> sign(w) == the sample's sign (w finite)
+                inside = e <= t2
+                inside &= w > 0
+                if ok is None:
+                    ok = inside
+                else:
+                    ok &= inside
+                alive = np.flatnonzero(ok.any(axis=0))
+                if 4 * len(alive) < 3 * ok.shape[1]:
+                    ok = ok[:, alive]
+                    cols = alive if cols is None else cols[alive]
+    assert ok is not None  # a problem has at least one half
+    if cols is None:
+        return ok
+    mask = np.zeros((K, n), dtype=bool)
+    mask[:, cols] = ok
+    return mask
 
 
 def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
@@ -285,21 +351,22 @@ def _required_iters(w: float, w_loc: float, local_fraction: float, p: float) -> 
     return math.log(1.0 - p) / math.log1p(-p_all)
 
 
-def _greedy_buffer(cands: list[tuple[Hypotheses, np.ndarray]], best_mask: np.ndarray, z: int):
+def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: np.ndarray,
+                   z: int):
     """Top-z sub-optimal models ordered by inliers not covered by the best and the better
-    buffered ones (paper App. A.3, ``v_i >= v_{i+1}``)."""
+    buffered ones (paper App. A.3, ``v_i >= v_{i+1}``); ``cands`` as in :class:`_Search`."""
     if z == 0 or not cands:
         return []
     covered = best_mask.copy()
-    masks = np.stack([m for _, m in cands])
+    masks = np.stack([m for _, _, m in cands])
     chosen = []
     free = np.ones(len(cands), dtype=bool)
     for _ in range(min(z, len(cands))):
-        gain = np.where(free, (masks & ~covered).sum(1), -1)
+        gain = np.where(free, np.count_nonzero(masks & ~covered, axis=1), -1)
         k = int(np.argmax(gain))
         if gain[k] <= 0:
             break
-        chosen.append(cands[k][0])
+        chosen.append(cands[k][0].take(cands[k][1]))
         covered |= masks[k]
         free[k] = False
     return chosen
@@ -309,31 +376,32 @@ def _greedy_buffer(cands: list[tuple[Hypotheses, np.ndarray]], best_mask: np.nda
 class _Search:
     """State of one RANSAC run: the best model so far (``hyp``; ``err`` its squared errors on
     the pool, ``mask`` its t_l inliers, ``count`` their number, -1 before any model) and the
-    sub-optimal candidates ``(hypothesis, inlier mask)`` for the top-z buffer."""
+    sub-optimal candidates for the top-z buffer, ``(hypotheses, row, inlier mask)`` (the
+    candidate is row ``row`` of ``hypotheses``: taken out only if the buffer chooses it)."""
 
     t2: float
     hyp: Hypotheses | None = None
     err: np.ndarray | None = None
     count: int = -1
     mask: np.ndarray | None = None
-    cands: list[tuple[Hypotheses, np.ndarray]] = field(default_factory=list)
+    cands: list[tuple[Hypotheses, int, np.ndarray]] = field(default_factory=list)
 
     def consider(self, hyp: Hypotheses, masks: np.ndarray, err: np.ndarray | None = None) -> bool:
         """Take fully scored hypotheses: their t_l inlier ``masks`` ``(K, n_pool)`` and, when
         at hand, their squared errors ``err`` (otherwise the best's are computed at the end
         of the run); returns whether the best model changed. A replaced best and every other
         model with inliers become candidates."""
-        counts = masks.sum(1)
+        counts = np.count_nonzero(masks, axis=1)
         improved = False
         for k in np.argsort(-counts, kind="stable"):
             if counts[k] > self.count:
                 if self.hyp is not None and self.mask is not None:  # set together
-                    self.cands.append((self.hyp, self.mask))
+                    self.cands.append((self.hyp, 0, self.mask))
                 self.hyp, self.err = hyp.take(k), None if err is None else err[k]
                 self.count, self.mask = int(counts[k]), masks[k]
                 improved = True
             elif counts[k] > 0:
-                self.cands.append((hyp.take(k), masks[k]))
+                self.cands.append((hyp, int(k), masks[k]))
         return improved
 
 
@@ -360,8 +428,7 @@ class LocalCandidates:
 
     def far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Whether matches ``a`` and ``b`` (broadcast) are >= t_l apart in every spread set."""
-        d = self._spread[a] - self._spread[b]
-        return np.all((d * d).sum(-1) >= self._t2, axis=-1)
+        return _apart(self._spread[a] - self._spread[b], self._t2)
 
     def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
@@ -405,6 +472,10 @@ class _Sampler:
         self._spread = problem.spread_all[pool] if self.local else None  # (n, sets, 2)
         self._t2 = cfg.t_l**2
         self._known = np.zeros(n, dtype=bool)
+        # Per pool position, whether its neighbours i and j are >= t_l apart in every
+        # spread set (computed with the neighbour list, for the positions drawn as seeds).
+        self._nb_apart = np.zeros((n, self.k, self.k), dtype=bool) if self.local else None
+        self._apart_known = np.zeros(n, dtype=bool)
 
     def neighbours(self, pos: np.ndarray) -> np.ndarray:
         """``(len(pos), k)`` pool positions of the nearest pool matches at least t_l from each
@@ -457,13 +528,24 @@ class _Sampler:
             return 0.0
         return float(search.mask[nb[valid]].mean())
 
+    def _neighbours_apart(self, pos: np.ndarray) -> np.ndarray:
+        """``(len(pos), k, k)`` bool: neighbours ``i`` and ``j`` of each pool position are
+        at least t_l apart in every spread set (rows of missing neighbours are
+        meaningless); computed once per position."""
+        assert self._spread is not None and self._nb_apart is not None, "local sampling only"
+        todo = np.unique(pos[~self._apart_known[pos]])
+        if len(todo):
+            pts = self._spread[np.maximum(self._nb[todo], 0)]  # (m, k, sets, 2)
+            self._nb_apart[todo] = _apart(pts[:, :, None] - pts[:, None, :], self._t2)
+            self._apart_known[todo] = True
+        return self._nb_apart[pos]
+
     def _draw_local(self, rng: np.random.Generator, seeds: np.ndarray) -> np.ndarray:
         """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart
         (the seed itself where no such neighbour is left, which fails the spread test)."""
-        assert self._spread is not None, "local draws need local sampling"
         nb = self.neighbours(seeds)
+        apart = self._neighbours_apart(seeds)  # (L, k, k)
         free = nb >= 0  # (L, k) candidates still allowed
-        pts = self._spread[np.maximum(nb, 0)]  # (L, k, sets, 2)
         rows = np.arange(len(seeds))
         out = np.empty((len(seeds), 3), dtype=np.int64)
         for j in range(3):
@@ -471,8 +553,7 @@ class _Sampler:
             pick = np.argmax(key, axis=1)
             found = key[rows, pick] >= 0
             out[:, j] = np.where(found, nb[rows, pick], seeds)
-            d = pts - pts[rows, pick][:, None]
-            free &= np.all((d * d).sum(-1) >= self._t2, axis=-1)
+            free &= apart[rows, pick]
         return out
 
     def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
@@ -533,9 +614,9 @@ class NumpyScoring:
     def masks(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
               t2: float) -> tuple[np.ndarray, np.ndarray | None]:
         """``(masks, err)``: the inliers ``err <= t2`` ``(K, n)`` and the errors (``None``
-        where the kernel does not bring them back)."""
-        err = self.error_sq(problem, hyp, idx)
-        return err <= t2, err
+        where the kernel does not bring them back: here, :func:`inlier_masks` skips the
+        errors of matches already outside)."""
+        return inlier_masks(problem, hyp, idx, t2), None
 
     def screen(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
                cfg: FilterConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -561,6 +642,10 @@ class _BatchScores:
         self.pool, self.cfg, self.t2, self.reach = pool, cfg, t2, reach
         self.chunk = scoring.prefetch
         self.done = 0
+        # Singular-value test ahead of the masks (prefetch 0): in chunks that double from 8,
+        # never past reach; a hypothesis' result does not depend on what it is batched with.
+        self.sv_ahead = np.zeros(reach, dtype=bool)
+        self.sv_done, self.sv_chunk = 0, 8
         if self.chunk:
             self.sv = np.zeros(reach, dtype=bool)
             self.mask = np.zeros((reach, len(pool)), dtype=bool)
@@ -569,7 +654,7 @@ class _BatchScores:
         """``(keep, masks, err)`` for the positions ``pos``: those passing the singular-value
         test, their inlier masks and (when at hand) errors on the pool."""
         if not self.chunk:
-            keep = pos[self.scoring.singular_value_ok(self.problem, self.hyp.take(pos), self.cfg)]
+            keep = pos[self._sv_ok(pos)]
             if not len(keep):
                 return keep, np.zeros((0, len(self.pool)), dtype=bool), None
             masks, err = self.scoring.masks(self.problem, self.hyp.take(keep), self.pool, self.t2)
@@ -585,6 +670,20 @@ class _BatchScores:
             self.chunk *= 2
         keep = pos[self.sv[pos]]
         return keep, self.mask[keep], None
+
+    def _sv_ok(self, pos: np.ndarray) -> np.ndarray:
+        """The singular-value test of the positions ``pos`` (all below ``reach``), computed
+        ahead in doubling chunks."""
+        if len(pos) and pos[-1] >= self.sv_done:
+            stop = min(max(int(pos[-1]) + 1, self.sv_done + self.sv_chunk), self.reach)
+            todo = np.arange(self.sv_done, stop)
+            todo = todo[self.ub[todo] > 0]
+            if len(todo):
+                self.sv_ahead[todo] = self.scoring.singular_value_ok(
+                    self.problem, self.hyp.take(todo), self.cfg)
+            self.sv_done = stop
+            self.sv_chunk *= 2
+        return self.sv_ahead[pos]
 
 
 def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.ndarray,
