@@ -409,7 +409,7 @@ class LocalCandidates:
     """Candidate neighbours of local sampling for one filtering problem, shared by its MOP
     rounds: for each match, its ``4 k`` nearest matches in the joint ``(x1, x2)`` space
     (``k = local_neighbours``) and whether each lies at least t_l from it in every spread
-    set. Both are independent of the pool, so they are computed once per match, on demand."""
+    set. Both are independent of the pool, so they are computed once per match."""
 
     SEARCH = 4
 
@@ -432,8 +432,11 @@ class LocalCandidates:
 
     def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
-        (nearest first) and whether each is far enough for the spread test."""
-        todo = np.unique(idx[~self._known[idx]])
+        (nearest first) and whether each is far enough for the spread test. The first
+        time a match is missing, all missing ones are searched at once (one tree query:
+        local sampling reaches nearly every match, and a match's neighbours do not depend
+        on what it is queried with)."""
+        todo = np.flatnonzero(~self._known) if not self._known[idx].all() else idx[:0]
         if len(todo) and self._q:
             cand = self._tree.query(self.feats[todo], k=self._q + 1)[1][:, 1:]
             self._cand[todo] = cand
@@ -472,10 +475,6 @@ class _Sampler:
         self._spread = problem.spread_all[pool] if self.local else None  # (n, sets, 2)
         self._t2 = cfg.t_l**2
         self._known = np.zeros(n, dtype=bool)
-        # Per pool position, whether its neighbours i and j are >= t_l apart in every
-        # spread set (computed with the neighbour list, for the positions drawn as seeds).
-        self._nb_apart = np.zeros((n, self.k, self.k), dtype=bool) if self.local else None
-        self._apart_known = np.zeros(n, dtype=bool)
 
     def neighbours(self, pos: np.ndarray) -> np.ndarray:
         """``(len(pos), k)`` pool positions of the nearest pool matches at least t_l from each
@@ -528,24 +527,13 @@ class _Sampler:
             return 0.0
         return float(search.mask[nb[valid]].mean())
 
-    def _neighbours_apart(self, pos: np.ndarray) -> np.ndarray:
-        """``(len(pos), k, k)`` bool: neighbours ``i`` and ``j`` of each pool position are
-        at least t_l apart in every spread set (rows of missing neighbours are
-        meaningless); computed once per position."""
-        assert self._spread is not None and self._nb_apart is not None, "local sampling only"
-        todo = np.unique(pos[~self._apart_known[pos]])
-        if len(todo):
-            pts = self._spread[np.maximum(self._nb[todo], 0)]  # (m, k, sets, 2)
-            self._nb_apart[todo] = _apart(pts[:, :, None] - pts[:, None, :], self._t2)
-            self._apart_known[todo] = True
-        return self._nb_apart[pos]
-
     def _draw_local(self, rng: np.random.Generator, seeds: np.ndarray) -> np.ndarray:
         """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart
         (the seed itself where no such neighbour is left, which fails the spread test)."""
+        assert self._spread is not None, "local draws need local sampling"
         nb = self.neighbours(seeds)
-        apart = self._neighbours_apart(seeds)  # (L, k, k)
         free = nb >= 0  # (L, k) candidates still allowed
+        pts = self._spread[np.maximum(nb, 0)]  # (L, k, sets, 2)
         rows = np.arange(len(seeds))
         out = np.empty((len(seeds), 3), dtype=np.int64)
         for j in range(3):
@@ -553,7 +541,7 @@ class _Sampler:
             pick = np.argmax(key, axis=1)
             found = key[rows, pick] >= 0
             out[:, j] = np.where(found, nb[rows, pick], seeds)
-            free &= apart[rows, pick]
+            free &= _apart(pts - pts[rows, pick][:, None], self._t2)
         return out
 
     def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
