@@ -154,7 +154,9 @@ def _basis_map(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     P = array_module(p).swapaxes(p[:, :3], 1, 2)  # columns p0, p1, p2
     adj = adjugate(P)
     lam = (adj @ p[:, 3, :, None])[..., 0]  # det(P) * P^-1 p3
-    det = (P[:, 0, :] * adj[:, :, 0]).sum(-1)
+    det = P[:, 0, 0] * adj[:, 0, 0]  # the 3-term sum written out (same order, same bits)
+    det += P[:, 0, 1] * adj[:, 1, 0]
+    det += P[:, 0, 2] * adj[:, 2, 0]
     return P * lam[:, None, :], lam, det
 
 
@@ -188,8 +190,8 @@ def four_point(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray
     Bm, mu, det_q = _basis_map(xp.concatenate([dst, one], axis=2))
     H = normalise_scale(Bm @ adjugate(A))
     s_lam, s_mu = xp.sign(lam), xp.sign(mu)
-    s_det_a = xp.sign(det_p) * xp.prod(s_lam, axis=1)  # sign det(A)
-    s_det_b = xp.sign(det_q) * xp.prod(s_mu, axis=1)  # sign det(B)
+    s_det_a = xp.sign(det_p) * s_lam[:, 0] * s_lam[:, 1] * s_lam[:, 2]  # sign det(A)
+    s_det_b = xp.sign(det_q) * s_mu[:, 0] * s_mu[:, 1] * s_mu[:, 2]  # sign det(B)
     sign_fwd = xp.empty_like(src[..., 0])
     sign_inv = xp.empty_like(src[..., 0])
     sign_fwd[:, :3] = s_det_a[:, None] * s_mu * s_lam

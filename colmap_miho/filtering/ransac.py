@@ -194,6 +194,15 @@ def checked_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
     return sample[ok]
 
 
+def _one_sign(sg: np.ndarray) -> np.ndarray:
+    """``(B,)`` bool from signs ``sg`` ``(B, halves, 4)`` in {-1, 0, 1}: in every half the 4
+    signs are one nonzero sign (the products with the first are all 1)."""
+    ok = sg[:, :, 0] * sg[:, :, 1] > 0
+    ok &= sg[:, :, 0] * sg[:, :, 2] > 0
+    ok &= sg[:, :, 0] * sg[:, :, 3] > 0
+    return ok.all(axis=1)
+
+
 def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
                             ok: np.ndarray | None = None):
     """Fit and check hypotheses for minimal samples ``(B, 4)`` of global match indices.
@@ -217,9 +226,8 @@ def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterCon
     s_fwd = s_fwd.reshape(B, nh, 4)
     s_inv = s_inv.reshape(B, nh, 4)
     # Quasi-affinity of the sample: one nonzero sign of w per half and direction.
-    ok = np.all(np.isfinite(H), axis=(1, 2, 3))
-    for sg in (s_fwd, s_inv):
-        ok &= np.all(sg == sg[:, :, :1], axis=(1, 2)) & np.all(sg[:, :, 0] != 0, axis=1)
+    ok = np.isfinite(H.reshape(B, -1)).all(axis=1)
+    ok &= _one_sign(s_fwd.reshape(B, -1, 4)) & _one_sign(s_inv.reshape(B, -1, 4))
     H = H[ok]
     return Hypotheses(H, adjugate(H), s_fwd[ok, :, 0], s_inv[ok, :, 0], sample[ok])
 
@@ -269,11 +277,16 @@ def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float) 
     some hypothesis still keeps are carried on.
 
     The same because the error is a max of terms scaled by ``error_scale**2`` (a rounded
-    product is monotone, so ``max(a, b) s <= t2`` iff ``a s <= t2`` and ``b s <= t2``) and an
-    entry whose projection breaks the sample's sign is inf, i.e. outside.
+    product is monotone, so ``max(a, b) s <= t2`` iff ``a s <= t2`` and ``b s <= t2``; for a
+    power of two ``a s <= t2`` iff ``a <= t2 / s``, both exact) and an entry whose projection
+    breaks the sample's sign is inf, i.e. outside. Each homography is first multiplied by
+    its sample's sign (+-1): that negates ``w`` and the projected numerators exactly, so the
+    error keeps its bits and the sign test becomes ``w > 0``.
     """
     K, n = len(hyp), len(idx)
     s2 = problem.error_scale**2
+    if math.frexp(s2)[0] == 0.5:  # a power of two: scale the threshold instead
+        t2, s2 = t2 / s2, 1.0
     ok: np.ndarray | None = None
     cols: np.ndarray | None = None  # the matches still carried (None: all)
     with np.errstate(divide="ignore", invalid="ignore"):  # w == 0: rejected by the sign
@@ -283,12 +296,11 @@ def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float) 
                                    (hyp.Hinv, hyp.sign_inv, dst, src)):
                 if cols is not None:
                     a, b = a[cols], b[cols]
-                e, w = transfer_error_sq(mat[:, h], a, b)
+                e, w = transfer_error_sq(mat[:, h] * sgn[:, h, None, None], a, b)
                 if s2 != 1.0:
                     e *= s2
-                w *= sgn[:, h, None]  # w > 0 <=> sign(w) == the sample's sign (w finite)
                 inside = e <= t2
-                inside &= w > 0
+                inside &= w > 0  # the sample's sign (w is finite)
                 if ok is None:
                     ok = inside
                 else:
