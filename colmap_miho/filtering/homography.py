@@ -76,6 +76,7 @@ _ADJ = np.array([[4, 2, 1, 5, 0, 2, 3, 1, 0],
                  [8, 7, 5, 6, 8, 3, 7, 6, 4],
                  [5, 1, 2, 3, 2, 0, 4, 0, 1],
                  [7, 8, 4, 8, 6, 5, 6, 7, 3]])
+_ADJ_FLAT = _ADJ.reshape(-1)
 _ADJ_ON_DEVICE: dict = {}
 
 
@@ -86,13 +87,15 @@ def adjugate(H: np.ndarray) -> np.ndarray:
     entries at once (a few whole-array operations, which matters where each one is a kernel
     launch), with the same products and differences in numpy and torch.
     """
-    flat = H.reshape(tuple(H.shape[:-2]) + (9,))
-    idx = _ADJ
+    lead = tuple(H.shape[:-2])
+    idx = _ADJ_FLAT
     if not isinstance(H, np.ndarray):
         idx = _ADJ_ON_DEVICE.get(H.device)
         if idx is None:
-            idx = _ADJ_ON_DEVICE[H.device] = array_module(H).as_tensor(_ADJ, device=H.device)
-    adj = flat[..., idx[0]] * flat[..., idx[1]] - flat[..., idx[2]] * flat[..., idx[3]]
+            idx = _ADJ_ON_DEVICE[H.device] = array_module(H).as_tensor(_ADJ_FLAT,
+                                                                        device=H.device)
+    g = H.reshape(lead + (9,))[..., idx].reshape(lead + (4, 9))  # one gather for all factors
+    adj = g[..., 0, :] * g[..., 1, :] - g[..., 2, :] * g[..., 3, :]
     return adj.reshape(H.shape)
 
 
