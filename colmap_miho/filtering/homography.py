@@ -244,12 +244,14 @@ def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
     return x, y, w
 
 
-def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray):
+def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray, out: tuple | None = None):
     """Squared transfer error of ``K`` homographies, and the homogeneous ``w``.
 
     Args:
         H: ``(K, 3, 3)`` (or broadcast like :func:`project`).
         src, dst: ``(N, 2)`` (or ``(K, N, 2)``) source and destination pixels.
+        out: optional work arrays ``(e, w, y, tmp)``, each of the result's shape, reused
+            from call to call (see :func:`one_way_inside`).
 
     Returns:
         ``(e, w)``, each ``(K, N)``: ``e = |H(src) - dst|^2`` in pixels squared, with the
@@ -258,19 +260,28 @@ def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray):
         homogeneous coordinate before division. Where ``w == 0`` ``e`` is inf or nan (numpy
         callers silence the warnings): the quasi-affinity test rejects those entries anyway.
     """
+    xp = array_module(H)
     h = H.reshape(tuple(H.shape[:-2]) + (9, 1))
     X, Y = src[..., 0], src[..., 1]
-    w = h[..., 6, :] * X
-    w += h[..., 7, :] * Y
+    if out is None:
+        w = h[..., 6, :] * X
+        x, y, tmp = xp.empty_like(w), xp.empty_like(w), xp.empty_like(w)
+    else:
+        x, w, y, tmp = out
+        xp.multiply(h[..., 6, :], X, out=w)
+    xp.multiply(h[..., 7, :], Y, out=tmp)
+    w += tmp
     w += h[..., 8, :]
-    x = h[..., 0, :] * X
-    x += h[..., 1, :] * Y
+    xp.multiply(h[..., 0, :], X, out=x)
+    xp.multiply(h[..., 1, :], Y, out=tmp)
+    x += tmp
     x += h[..., 2, :]
     x /= w
     x -= dst[..., 0]
     x *= x
-    y = h[..., 3, :] * X
-    y += h[..., 4, :] * Y
+    xp.multiply(h[..., 3, :], X, out=y)
+    xp.multiply(h[..., 4, :], Y, out=tmp)
+    y += tmp
     y += h[..., 5, :]
     y /= w
     y -= dst[..., 1]
@@ -279,7 +290,7 @@ def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray):
     return x, w
 
 
-def one_way_inside(h, X, Y, x2, y2, t2: float):
+def one_way_inside(h, X, Y, x2, y2, t2: float, out: tuple | None = None):
     """Division-free one-way inlier test of a block of homographies, numpy or torch alike.
 
     Args:
@@ -287,27 +298,43 @@ def one_way_inside(h, X, Y, x2, y2, t2: float):
             sign, so that the quasi-affine test is ``w > 0``.
         X, Y / x2, y2: (N,) source / destination coordinates.
         t2: squared threshold, in the coordinates' units.
+        out: optional work arrays ``(W, U, V, T, ok, tmp)``, four float and two bool
+            ``(K, N)``, reused from call to call (numpy: a fresh array of this size costs its
+            page faults; measured 2.5x slower at 65 x 2000); the result is then ``ok``.
     Returns:
         (K, N) bool: ``w > 0`` and ``|u - x2 w|^2 + |v - y2 w|^2 <= t2 w^2``.
     """
-    W = h[:, 6] * X
-    W += h[:, 7] * Y
+    xp = array_module(h)
+    if out is None:
+        W = h[:, 6] * X
+        U, V, T = xp.empty_like(W), xp.empty_like(W), xp.empty_like(W)
+        ok, tmp = W > 0, W > 0  # bool work arrays (overwritten below)
+    else:
+        W, U, V, T, ok, tmp = out
+        xp.multiply(h[:, 6], X, out=W)
+    xp.multiply(h[:, 7], Y, out=T)
+    W += T
     W += h[:, 8]
-    U = h[:, 0] * X
-    U += h[:, 1] * Y
+    xp.multiply(h[:, 0], X, out=U)
+    xp.multiply(h[:, 1], Y, out=T)
+    U += T
     U += h[:, 2]
-    U -= W * x2
-    V = h[:, 3] * X
-    V += h[:, 4] * Y
+    xp.multiply(W, x2, out=T)
+    U -= T
+    xp.multiply(h[:, 3], X, out=V)
+    xp.multiply(h[:, 4], Y, out=T)
+    V += T
     V += h[:, 5]
-    V -= W * y2
+    xp.multiply(W, y2, out=T)
+    V -= T
     U *= U
     V *= V
     U += V
-    ok = W > 0
+    xp.greater(W, 0, out=ok)
     W *= W
     W *= t2
-    ok &= U <= W
+    xp.less_equal(U, W, out=tmp)
+    ok &= tmp
     return ok
 
 

@@ -271,7 +271,24 @@ def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
     return err
 
 
-def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float) -> np.ndarray:
+class _Scratch:
+    """Work arrays reused from call to call, by name: numpy pays the page faults of every
+    fresh array above malloc's mmap threshold (~128 KiB), which dominated the one-way bound."""
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+        """A C-contiguous array of ``shape`` and ``dtype`` (contents undefined)."""
+        size = math.prod(shape)
+        a = self._arrays.get(name)
+        if a is None or a.size < size or a.dtype != dtype:
+            a = self._arrays[name] = np.empty(size, dtype=dtype)
+        return a[:size].reshape(shape)
+
+
+def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
+                 scratch: _Scratch | None = None) -> np.ndarray:
     """``(K, n)`` bool: ``error_sq(problem, hyp, idx) <= t2``, the same decisions bit for bit,
     computed term by term (halves and directions): after each term only the matches that
     some hypothesis still keeps are carried on.
@@ -285,6 +302,7 @@ def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float) 
     """
     K, n = len(hyp), len(idx)
     s2 = problem.error_scale**2
+    scratch = _Scratch() if scratch is None else scratch
     if math.frexp(s2)[0] == 0.5:  # a power of two: scale the threshold instead
         t2, s2 = t2 / s2, 1.0
     ok: np.ndarray | None = None
@@ -296,7 +314,9 @@ def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float) 
                                    (hyp.Hinv, hyp.sign_inv, dst, src)):
                 if cols is not None:
                     a, b = a[cols], b[cols]
-                e, w = transfer_error_sq(mat[:, h] * sgn[:, h, None, None], a, b)
+                shape = (K, len(a))
+                work = tuple(scratch.get(name, shape, np.float64) for name in "ewyt")
+                e, w = transfer_error_sq(mat[:, h] * sgn[:, h, None, None], a, b, work)
                 if s2 != 1.0:
                     e *= s2
                 inside = e <= t2
@@ -318,7 +338,7 @@ def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float) 
 
 
 def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
-                  block: int = 131072) -> np.ndarray:
+                  block: int = 131072, scratch: _Scratch | None = None) -> np.ndarray:
     """Inliers ``(K,)`` under the first half's forward error only: an upper bound of the
     full inlier count (the full error is a max that includes this term).
 
@@ -337,8 +357,12 @@ def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
     Hs = (hyp.H[:, 0] * hyp.sign[:, 0, None, None]).astype(np.float32).reshape(K, 9, 1)
     counts = np.empty(K, dtype=np.int64)
     kb = max(1, block // max(n, 1))
+    scratch = _Scratch() if scratch is None else scratch
     for a in range(0, K, kb):
-        ok = one_way_inside(Hs[a:a + kb], X, Y, x2, y2, t2)
+        shape = (min(kb, K - a), n)
+        out = tuple(scratch.get(name, shape, np.float32) for name in "WUVT") + tuple(
+            scratch.get(name, shape, np.bool_) for name in ("ok", "tmp"))
+        ok = one_way_inside(Hs[a:a + kb], X, Y, x2, y2, t2, out)
         counts[a:a + kb] = np.count_nonzero(ok, axis=1)
     return counts
 
@@ -601,8 +625,9 @@ class NumpyScoring:
 
     def one_way_count(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
                       t2: float) -> np.ndarray:
-        """:func:`one_way_count`."""
-        return one_way_count(problem, hyp, idx, t2)
+        """:func:`one_way_count`, with work arrays kept for the next call."""
+        scratch = self.__dict__.setdefault("_scratch", _Scratch())
+        return one_way_count(problem, hyp, idx, t2, scratch=scratch)
 
     def singular_value_ok(self, problem: Problem, hyp: Hypotheses,
                           cfg: FilterConfig) -> np.ndarray:
@@ -618,7 +643,8 @@ class NumpyScoring:
         """``(masks, err)``: the inliers ``err <= t2`` ``(K, n)`` and the errors (``None``
         where the kernel does not bring them back: here, :func:`inlier_masks` skips the
         errors of matches already outside)."""
-        return inlier_masks(problem, hyp, idx, t2), None
+        scratch = self.__dict__.setdefault("_scratch", _Scratch())
+        return inlier_masks(problem, hyp, idx, t2, scratch), None
 
     def screen(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
                cfg: FilterConfig) -> tuple[np.ndarray, np.ndarray]:
