@@ -78,19 +78,30 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
     d2 = np.sqrt((dx2**2).sum(1))  # invariant to the candidates (isometries)
     lo, hi = np.minimum(d1, d2) - 1e-9, np.maximum(d1, d2) + 1e-9
     cands = _candidate_transforms(x2, reflections)
-    # m_i - m_j = (dx1 + R dx2) / 2: translations cancel, only the linear part matters.
-    R = np.stack([G[:2, :2] for G in cands])[:, :, :, None]  # (C, 2, 2, 1)
-    mx = dx1[:, 0] + R[:, 0, 0] * dx2[:, 0] + R[:, 0, 1] * dx2[:, 1]  # (C, P)
-    my = dx1[:, 1] + R[:, 1, 0] * dx2[:, 0] + R[:, 1, 1] * dx2[:, 1]
-    dm = np.sqrt(mx * mx + my * my) / 2
+    # m_i - m_j = (dx1 + R dx2) / 2: translations cancel, only the linear part matters. Its
+    # entries are 0 or +-1, so each coordinate is dx1 + or - one coordinate of dx2 (the zero
+    # term only changes the sign of a zero, which squaring removes): 4 squares per axis
+    # serve all the candidates.
+    squares: dict[tuple[int, float, float], np.ndarray] = {}
+
+    def square(axis: int, r: np.ndarray) -> np.ndarray:
+        """``(dx1[:, axis] + r[0] dx2[:, 0] + r[1] dx2[:, 1])^2`` for a row ``r`` of R."""
+        key = (axis, float(r[0]), float(r[1]))
+        if key not in squares:
+            assert sorted(np.abs(r)) == [0.0, 1.0], "rotations by multiples of 90 degrees"
+            v = dx1[:, axis] + (r[0] * dx2[:, 0] if r[0] else r[1] * dx2[:, 1])
+            squares[key] = v * v
+        return squares[key]
+
+    dm = np.stack([np.sqrt(square(0, G[0, :2]) + square(1, G[1, :2])) for G in cands]) / 2
     inside = (dm >= lo) & (dm <= hi)  # (C, P)
-    scores = inside.sum(1)
+    scores = np.count_nonzero(inside, axis=1)
     # Keep the identity unless a candidate beats it clearly on the same pairs (paired
     # z-score above _ROTATION_Z): where few matches are correct, pairs of outliers decide
     # the counts and their noise would otherwise turn an upright pair (measured: Oxford
     # pairs with 95% random matches added picked a mirrored frame and lost every match).
-    diff = inside.astype(np.int64) - inside[0]
-    spread = np.sqrt(np.maximum((diff * diff).sum(1), 1))
+    # The paired differences are -1, 0 or 1: their sum of squares counts the pairs that differ.
+    spread = np.sqrt(np.maximum(np.count_nonzero(inside != inside[0], axis=1), 1))
     z = (scores - scores[0]) / spread
     clear = np.flatnonzero(z > _ROTATION_Z)
     best = int(clear[np.argmax(scores[clear])]) if len(clear) else 0

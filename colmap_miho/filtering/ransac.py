@@ -58,13 +58,25 @@ from .homography import (
     dlt_singular_value,
     four_point,
     one_way_inside,
-    project,
+    transfer_error_sq,
     triangle_orientations,
 )
 
 _DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
-_PAIR_I = np.array([0, 0, 0, 1, 1, 2])
-_PAIR_J = np.array([1, 2, 3, 2, 3, 3])
+_PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))  # the 6 point pairs of a sample
+
+
+def _apart(d: np.ndarray, t2: float) -> np.ndarray:
+    """``(...)`` bool from differences ``d`` ``(..., sets, 2)``: the squared distance is
+    at least ``t2`` in every set. Written out over the tiny trailing axes (numpy reductions
+    over axes of length 2-3 cost far more than the arithmetic); the squared distance is the
+    same ``dx * dx + dy * dy`` a ``sum(-1)`` gives, bit for bit."""
+    sq = d[..., 0] * d[..., 0]
+    sq += d[..., 1] * d[..., 1]
+    ok = sq[..., 0] >= t2
+    for k in range(1, sq.shape[-1]):
+        ok &= sq[..., k] >= t2
+    return ok
 
 
 @dataclass(frozen=True)
@@ -164,8 +176,10 @@ def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
     """``(B,)`` bool: the 4 points of each minimal sample ``(B, 4)`` are pairwise at least
     ``t_l`` pixels apart in every spread set (paper App. A.3)."""
     p = problem.spread_all[sample]  # (B, 4, sets, 2)
-    d = p[:, _PAIR_I] - p[:, _PAIR_J]  # (B, 6, sets, 2)
-    return np.all((d * d).sum(-1) >= t_l**2, axis=(1, 2))
+    ok = np.ones(len(sample), dtype=bool)
+    for i, j in _PAIRS:
+        ok &= _apart(p[:, i] - p[:, j], t_l**2)
+    return ok
 
 
 def checked_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
@@ -178,6 +192,15 @@ def checked_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
         o2 = triangle_orientations(problem.x2[sample])
         ok &= np.all(o1 * o2 > 0, axis=1)
     return sample[ok]
+
+
+def _one_sign(sg: np.ndarray) -> np.ndarray:
+    """``(B,)`` bool from signs ``sg`` ``(B, halves, 4)`` in {-1, 0, 1}: in every half the 4
+    signs are one nonzero sign (the products with the first are all 1)."""
+    ok = sg[:, :, 0] * sg[:, :, 1] > 0
+    ok &= sg[:, :, 0] * sg[:, :, 2] > 0
+    ok &= sg[:, :, 0] * sg[:, :, 3] > 0
+    return ok.all(axis=1)
 
 
 def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
@@ -203,9 +226,8 @@ def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterCon
     s_fwd = s_fwd.reshape(B, nh, 4)
     s_inv = s_inv.reshape(B, nh, 4)
     # Quasi-affinity of the sample: one nonzero sign of w per half and direction.
-    ok = np.all(np.isfinite(H), axis=(1, 2, 3))
-    for sg in (s_fwd, s_inv):
-        ok &= np.all(sg == sg[:, :, :1], axis=(1, 2)) & np.all(sg[:, :, 0] != 0, axis=1)
+    ok = np.isfinite(H.reshape(B, -1)).all(axis=1)
+    ok &= _one_sign(s_fwd.reshape(B, -1, 4)) & _one_sign(s_inv.reshape(B, -1, 4))
     H = H[ok]
     return Hypotheses(H, adjugate(H), s_fwd[ok, :, 0], s_inv[ok, :, 0], sample[ok])
 
@@ -226,21 +248,99 @@ def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
     squared); ``inf`` where a projection breaks the quasi-affine sign of the hypothesis'
     sample. The torch path computes the same per-element formula stacked over halves and
     directions (``TorchScoring._error_sq``)."""
-    err = np.zeros((len(hyp), len(idx)))
-    for h in range(problem.num_halves):
-        src, dst = problem.src[h][idx], problem.dst[h][idx]
-        for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst), (hyp.Hinv, hyp.sign_inv, dst, src)):
-            x, y, w = project(mat[:, h], a)
-            e = (x - b[:, 0]) ** 2 + (y - b[:, 1]) ** 2
-            e[np.sign(w) != sgn[:, h, None]] = np.inf
-            np.maximum(err, e, out=err)
+    err = None
+    # w == 0 gives inf / nan errors; those entries break the quasi-affine sign and are set
+    # to inf below, after the max, exactly as if they had been set before it.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for h in range(problem.num_halves):
+            src, dst = problem.src[h][idx], problem.dst[h][idx]
+            for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst),
+                                   (hyp.Hinv, hyp.sign_inv, dst, src)):
+                e, w = transfer_error_sq(mat[:, h], a, b)
+                if err is None:
+                    err = e  # the max of 0 and e >= 0
+                else:
+                    np.maximum(err, e, out=err)
+                # sign(w) != sign of the sample <=> w * sign <= 0: the sign is +-1 and w is
+                # finite (finite homography and points).
+                w *= sgn[:, h, None]
+                np.copyto(err, np.inf, where=w <= 0)
+    assert err is not None  # a problem has at least one half
     if problem.error_scale != 1.0:
         err *= problem.error_scale**2
     return err
 
 
+class _Scratch:
+    """Work arrays reused from call to call, by name: a fresh numpy array above malloc's mmap
+    threshold (~128 KiB) can pay its page faults on every call (measured in isolation: the
+    one-way kernel on 65 x 2000 2.5x, a 32-hypothesis transfer error 3x faster reused).
+    Not for sharing between threads (one filter call's scoring runs in one thread)."""
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+        """A C-contiguous array of ``shape`` and ``dtype`` (contents undefined)."""
+        size = math.prod(shape)
+        a = self._arrays.get(name)
+        if a is None or a.size < size or a.dtype != dtype:
+            a = self._arrays[name] = np.empty(size, dtype=dtype)
+        return a[:size].reshape(shape)
+
+
+def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
+                 scratch: _Scratch | None = None) -> np.ndarray:
+    """``(K, n)`` bool: ``error_sq(problem, hyp, idx) <= t2``, the same decisions bit for bit,
+    computed term by term (halves and directions): after each term only the matches that
+    some hypothesis still keeps are carried on.
+
+    The same because the error is a max of terms scaled by ``error_scale**2`` (a rounded
+    product is monotone, so ``max(a, b) s <= t2`` iff ``a s <= t2`` and ``b s <= t2``; for a
+    power of two ``a s <= t2`` iff ``a <= t2 / s``, both exact) and an entry whose projection
+    breaks the sample's sign is inf, i.e. outside. Each homography is first multiplied by
+    its sample's sign (+-1): that negates ``w`` and the projected numerators exactly, so the
+    error keeps its bits and the sign test becomes ``w > 0``.
+    """
+    K, n = len(hyp), len(idx)
+    s2 = problem.error_scale**2
+    scratch = _Scratch() if scratch is None else scratch
+    if math.frexp(s2)[0] == 0.5:  # a power of two: scale the threshold instead
+        t2, s2 = t2 / s2, 1.0
+    ok: np.ndarray | None = None
+    cols: np.ndarray | None = None  # the matches still carried (None: all)
+    with np.errstate(divide="ignore", invalid="ignore"):  # w == 0: rejected by the sign
+        for h in range(problem.num_halves):
+            src, dst = problem.src[h][idx], problem.dst[h][idx]
+            for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst),
+                                   (hyp.Hinv, hyp.sign_inv, dst, src)):
+                if cols is not None:
+                    a, b = a[cols], b[cols]
+                shape = (K, len(a))
+                work = tuple(scratch.get(name, shape, np.float64) for name in "ewyt")
+                e, w = transfer_error_sq(mat[:, h] * sgn[:, h, None, None], a, b, work)
+                if s2 != 1.0:
+                    e *= s2
+                inside = e <= t2
+                inside &= w > 0  # the sample's sign (w is finite)
+                if ok is None:
+                    ok = inside
+                else:
+                    ok &= inside
+                alive = np.flatnonzero(ok.any(axis=0))
+                if 4 * len(alive) < 3 * ok.shape[1]:
+                    ok = ok[:, alive]
+                    cols = alive if cols is None else cols[alive]
+    assert ok is not None  # a problem has at least one half
+    if cols is None:
+        return ok
+    mask = np.zeros((K, n), dtype=bool)
+    mask[:, cols] = ok
+    return mask
+
+
 def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
-                  block: int = 131072) -> np.ndarray:
+                  block: int = 131072, scratch: _Scratch | None = None) -> np.ndarray:
     """Inliers ``(K,)`` under the first half's forward error only: an upper bound of the
     full inlier count (the full error is a max that includes this term).
 
@@ -259,8 +359,12 @@ def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
     Hs = (hyp.H[:, 0] * hyp.sign[:, 0, None, None]).astype(np.float32).reshape(K, 9, 1)
     counts = np.empty(K, dtype=np.int64)
     kb = max(1, block // max(n, 1))
+    scratch = _Scratch() if scratch is None else scratch
     for a in range(0, K, kb):
-        ok = one_way_inside(Hs[a:a + kb], X, Y, x2, y2, t2)
+        shape = (min(kb, K - a), n)
+        out = tuple(scratch.get(name, shape, np.float32) for name in "WUVT") + tuple(
+            scratch.get(name, shape, np.bool_) for name in ("ok", "tmp"))
+        ok = one_way_inside(Hs[a:a + kb], X, Y, x2, y2, t2, out)
         counts[a:a + kb] = np.count_nonzero(ok, axis=1)
     return counts
 
@@ -285,21 +389,22 @@ def _required_iters(w: float, w_loc: float, local_fraction: float, p: float) -> 
     return math.log(1.0 - p) / math.log1p(-p_all)
 
 
-def _greedy_buffer(cands: list[tuple[Hypotheses, np.ndarray]], best_mask: np.ndarray, z: int):
+def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: np.ndarray,
+                   z: int):
     """Top-z sub-optimal models ordered by inliers not covered by the best and the better
-    buffered ones (paper App. A.3, ``v_i >= v_{i+1}``)."""
+    buffered ones (paper App. A.3, ``v_i >= v_{i+1}``); ``cands`` as in :class:`_Search`."""
     if z == 0 or not cands:
         return []
     covered = best_mask.copy()
-    masks = np.stack([m for _, m in cands])
+    masks = np.stack([m for _, _, m in cands])
     chosen = []
     free = np.ones(len(cands), dtype=bool)
     for _ in range(min(z, len(cands))):
-        gain = np.where(free, (masks & ~covered).sum(1), -1)
+        gain = np.where(free, np.count_nonzero(masks & ~covered, axis=1), -1)
         k = int(np.argmax(gain))
         if gain[k] <= 0:
             break
-        chosen.append(cands[k][0])
+        chosen.append(cands[k][0].take(cands[k][1]))
         covered |= masks[k]
         free[k] = False
     return chosen
@@ -309,31 +414,32 @@ def _greedy_buffer(cands: list[tuple[Hypotheses, np.ndarray]], best_mask: np.nda
 class _Search:
     """State of one RANSAC run: the best model so far (``hyp``; ``err`` its squared errors on
     the pool, ``mask`` its t_l inliers, ``count`` their number, -1 before any model) and the
-    sub-optimal candidates ``(hypothesis, inlier mask)`` for the top-z buffer."""
+    sub-optimal candidates for the top-z buffer, ``(hypotheses, row, inlier mask)`` (the
+    candidate is row ``row`` of ``hypotheses``: taken out only if the buffer chooses it)."""
 
     t2: float
     hyp: Hypotheses | None = None
     err: np.ndarray | None = None
     count: int = -1
     mask: np.ndarray | None = None
-    cands: list[tuple[Hypotheses, np.ndarray]] = field(default_factory=list)
+    cands: list[tuple[Hypotheses, int, np.ndarray]] = field(default_factory=list)
 
     def consider(self, hyp: Hypotheses, masks: np.ndarray, err: np.ndarray | None = None) -> bool:
         """Take fully scored hypotheses: their t_l inlier ``masks`` ``(K, n_pool)`` and, when
         at hand, their squared errors ``err`` (otherwise the best's are computed at the end
         of the run); returns whether the best model changed. A replaced best and every other
         model with inliers become candidates."""
-        counts = masks.sum(1)
+        counts = np.count_nonzero(masks, axis=1)
         improved = False
         for k in np.argsort(-counts, kind="stable"):
             if counts[k] > self.count:
                 if self.hyp is not None and self.mask is not None:  # set together
-                    self.cands.append((self.hyp, self.mask))
+                    self.cands.append((self.hyp, 0, self.mask))
                 self.hyp, self.err = hyp.take(k), None if err is None else err[k]
                 self.count, self.mask = int(counts[k]), masks[k]
                 improved = True
             elif counts[k] > 0:
-                self.cands.append((hyp.take(k), masks[k]))
+                self.cands.append((hyp, int(k), masks[k]))
         return improved
 
 
@@ -341,7 +447,7 @@ class LocalCandidates:
     """Candidate neighbours of local sampling for one filtering problem, shared by its MOP
     rounds: for each match, its ``4 k`` nearest matches in the joint ``(x1, x2)`` space
     (``k = local_neighbours``) and whether each lies at least t_l from it in every spread
-    set. Both are independent of the pool, so they are computed once per match, on demand."""
+    set. Both are independent of the pool, so they are computed once per match."""
 
     SEARCH = 4
 
@@ -360,13 +466,15 @@ class LocalCandidates:
 
     def far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Whether matches ``a`` and ``b`` (broadcast) are >= t_l apart in every spread set."""
-        d = self._spread[a] - self._spread[b]
-        return np.all((d * d).sum(-1) >= self._t2, axis=-1)
+        return _apart(self._spread[a] - self._spread[b], self._t2)
 
     def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
-        (nearest first) and whether each is far enough for the spread test."""
-        todo = np.unique(idx[~self._known[idx]])
+        (nearest first) and whether each is far enough for the spread test. The first
+        time a match is missing, all missing ones are searched at once (one tree query:
+        local sampling reaches nearly every match, and a match's neighbours do not depend
+        on what it is queried with)."""
+        todo = np.flatnonzero(~self._known) if not self._known[idx].all() else idx[:0]
         if len(todo) and self._q:
             cand = self._tree.query(self.feats[todo], k=self._q + 1)[1][:, 1:]
             self._cand[todo] = cand
@@ -471,8 +579,7 @@ class _Sampler:
             pick = np.argmax(key, axis=1)
             found = key[rows, pick] >= 0
             out[:, j] = np.where(found, nb[rows, pick], seeds)
-            d = pts - pts[rows, pick][:, None]
-            free &= np.all((d * d).sum(-1) >= self._t2, axis=-1)
+            free &= _apart(pts - pts[rows, pick][:, None], self._t2)
         return out
 
     def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
@@ -503,10 +610,20 @@ class NumpyScoring:
 
     ``prefetch``: 0 scores exactly the hypotheses the search reaches; ``> 0`` screens them
     ahead in chunks of that many (then doubling), which gives the same result with fewer
-    round trips to a device (:class:`_BatchScores`).
+    calls (round trips to a device; numpy call overhead on the CPU) (:class:`_BatchScores`).
     """
 
-    prefetch = 0
+    #: Measured on the CPU: per-call overhead dominates groups of 4 hypotheses, so screening
+    #: ahead (4, 8, 16, ... at a time; at most twice the work the search needs) is faster.
+    prefetch = 4
+
+    def _work(self) -> _Scratch:
+        """This instance's work arrays (created on first use; one instance per filter
+        call)."""
+        work = self.__dict__.get("_scratch")
+        if work is None:
+            work = self.__dict__["_scratch"] = _Scratch()
+        return work
 
     def hypotheses(self, problem: Problem, sample: np.ndarray, cfg: FilterConfig,
                    ok: np.ndarray, pool: np.ndarray, t2: float) -> tuple[Hypotheses, np.ndarray]:
@@ -518,8 +635,8 @@ class NumpyScoring:
 
     def one_way_count(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
                       t2: float) -> np.ndarray:
-        """:func:`one_way_count`."""
-        return one_way_count(problem, hyp, idx, t2)
+        """:func:`one_way_count`, with work arrays kept for the next call."""
+        return one_way_count(problem, hyp, idx, t2, scratch=self._work())
 
     def singular_value_ok(self, problem: Problem, hyp: Hypotheses,
                           cfg: FilterConfig) -> np.ndarray:
@@ -533,15 +650,20 @@ class NumpyScoring:
     def masks(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
               t2: float) -> tuple[np.ndarray, np.ndarray | None]:
         """``(masks, err)``: the inliers ``err <= t2`` ``(K, n)`` and the errors (``None``
-        where the kernel does not bring them back)."""
-        err = self.error_sq(problem, hyp, idx)
-        return err <= t2, err
+        where the kernel does not bring them back: here, :func:`inlier_masks` skips the
+        errors of matches already outside)."""
+        return inlier_masks(problem, hyp, idx, t2, self._work()), None
 
     def screen(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
                cfg: FilterConfig) -> tuple[np.ndarray, np.ndarray]:
         """``(sv_ok, masks)``: the singular-value test ``(K,)`` and the inlier masks
-        ``(K, n)`` of all ``K`` hypotheses (rows failing the test are not used)."""
-        return self.singular_value_ok(problem, hyp, cfg), self.masks(problem, hyp, idx, t2)[0]
+        ``(K, n)`` of all ``K`` hypotheses (rows failing the test are not used: here they are
+        left empty)."""
+        sv = self.singular_value_ok(problem, hyp, cfg)
+        masks = np.zeros((len(hyp), len(idx)), dtype=bool)
+        if sv.any():
+            masks[sv] = self.masks(problem, hyp.take(np.flatnonzero(sv)), idx, t2)[0]
+        return sv, masks
 
 
 class _BatchScores:
