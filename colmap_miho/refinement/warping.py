@@ -61,43 +61,42 @@ def to_gray_tensor(image, device):
 
 @dataclass(frozen=True)
 class ImageStack:
-    """Several images for one batch of jobs: job j reads image ``index[j]`` of ``stack``.
+    """Several images for one batch of jobs: job j reads image ``index[j]`` of ``images``.
 
     Lets one batched call serve matches of many image pairs (the track walk on a GPU, where
-    a call costs about the same for 100 matches as for 10000). Images are zero-padded to a
-    common size; a job reads only the unpadded view of its own image (samples outside it
-    read zero, as for that image alone), so its values do not depend on the other images.
+    a call costs about the same for 100 matches as for 10000). The images keep their own
+    sizes (no padded copy); a job reads its own image only (samples outside it read zero,
+    as for that image alone), so its values do not depend on the other images.
 
     Attributes:
-        stack: (D, Hmax, Wmax) float32.
+        images: D (H_d, W_d) float32 tensors, on one device.
         slot_sizes: (D, 2) float64 (width, height) of each image.
         index: (J,) int64 image of each job.
     """
 
-    stack: torch.Tensor
+    images: tuple
     slot_sizes: torch.Tensor
     index: torch.Tensor
 
     @classmethod
     def build(cls, images: list[torch.Tensor], index, device: torch.device) -> ImageStack:
-        """Stack (H, W) float32 tensors; ``index`` (J,) picks each job's image."""
-        h = max(int(im.shape[0]) for im in images)
-        w = max(int(im.shape[1]) for im in images)
-        stack = torch.zeros((len(images), h, w), dtype=torch.float32, device=device)
-        for k, im in enumerate(images):
-            stack[k, : im.shape[0], : im.shape[1]] = im.to(device)
-        wh = torch.tensor([[im.shape[1], im.shape[0]] for im in images], dtype=torch.float64,
+        """Hold (H, W) float32 tensors (moved to ``device``, not copied when already
+        there); ``index`` (J,) picks each job's image."""
+        if not images:
+            raise ValueError("an ImageStack needs at least one image")
+        ims = tuple(im.to(device) for im in images)
+        wh = torch.tensor([[im.shape[1], im.shape[0]] for im in ims], dtype=torch.float64,
                           device=device)
-        return cls(stack, wh, torch.as_tensor(index, dtype=torch.int64, device=device))
+        return cls(ims, wh, torch.as_tensor(index, dtype=torch.int64, device=device))
 
     def with_index(self, index) -> ImageStack:
         """The same images, read by other jobs."""
-        return ImageStack(self.stack, self.slot_sizes,
-                          torch.as_tensor(index, dtype=torch.int64, device=self.stack.device))
+        return ImageStack(self.images, self.slot_sizes,
+                          torch.as_tensor(index, dtype=torch.int64, device=self.device))
 
     def rows(self, sel) -> ImageStack:
         """The same images for a subset (slice or index tensor) of the jobs."""
-        return ImageStack(self.stack, self.slot_sizes, self.index[sel])
+        return ImageStack(self.images, self.slot_sizes, self.index[sel])
 
     @property
     def sizes(self) -> torch.Tensor:
@@ -106,7 +105,7 @@ class ImageStack:
 
     @property
     def device(self) -> torch.device:
-        return self.stack.device
+        return self.index.device
 
 
 def offset_grid(radius: int, device: torch.device, dtype=torch.float64) -> torch.Tensor:
@@ -237,14 +236,11 @@ def sample_patches(
     o = offsets.to(torch.float32).reshape(J if per_job else 1, K * P, 2)
     if not isinstance(image, ImageStack):
         return _grid_sample(image, M, o).reshape(J, K, P), inside
-    # one image at a time (its unpadded view): jobs grouped by image with one sort and one
+    # one image at a time: jobs grouped by image with one sort and one
     # device-to-host copy of the counts
-    counts = torch.bincount(image.index, minlength=image.stack.shape[0]).tolist()
-    sizes = image.slot_sizes.tolist()
+    counts = torch.bincount(image.index, minlength=len(image.images)).tolist()
     if J and max(counts) == J:  # all jobs on one image
-        d = counts.index(J)
-        w, h = (int(v) for v in sizes[d])
-        return _grid_sample(image.stack[d, :h, :w], M, o).reshape(J, K, P), inside
+        return _grid_sample(image.images[counts.index(J)], M, o).reshape(J, K, P), inside
     order = torch.argsort(image.index, stable=True)
     values = torch.empty((J, K * P), dtype=torch.float32, device=image.device)
     start = 0
@@ -253,8 +249,7 @@ def sample_patches(
             continue
         rows = order[start : start + count]
         start += count
-        w, h = (int(v) for v in sizes[d])
-        vals = _grid_sample(image.stack[d, :h, :w], M[rows], o[rows] if per_job else o)
+        vals = _grid_sample(image.images[d], M[rows], o[rows] if per_job else o)
         values.index_copy_(0, rows, vals)
     return values.reshape(J, K, P), inside
 
