@@ -234,23 +234,24 @@ def sample_patches(
     M, good = _grid_maps(H_inv, centres, size)
     inside &= good
     o = offsets.to(torch.float32).reshape(J if per_job else 1, K * P, 2)
+    axes = None if per_job else _square_axes(o)
     if not isinstance(image, ImageStack):
-        return _grid_sample(image, M, o).reshape(J, K, P), inside
-    # one image at a time: jobs grouped by image with one sort and one
-    # device-to-host copy of the counts
+        return _sample(image, _grid(M, o, axes)).reshape(J, K, P), inside
+    # one image at a time: jobs grouped by image with one sort and one device-to-host copy
+    # of the counts; the grid of every job is computed at once, in that order
     counts = torch.bincount(image.index, minlength=len(image.images)).tolist()
     if J and max(counts) == J:  # all jobs on one image
-        return _grid_sample(image.images[counts.index(J)], M, o).reshape(J, K, P), inside
+        return _sample(image.images[counts.index(J)], _grid(M, o, axes)).reshape(J, K, P), inside
     order = torch.argsort(image.index, stable=True)
+    grid = _grid(M[order], o[order] if per_job else o, axes)
     values = torch.empty((J, K * P), dtype=torch.float32, device=image.device)
     start = 0
     for d, count in enumerate(counts):
         if count == 0:
             continue
-        rows = order[start : start + count]
+        sl = slice(start, start + count)
+        values.index_copy_(0, order[sl], _sample(image.images[d], grid[sl]))
         start += count
-        vals = _grid_sample(image.images[d], M[rows], o[rows] if per_job else o)
-        values.index_copy_(0, rows, vals)
     return values.reshape(J, K, P), inside
 
 
@@ -283,24 +284,63 @@ def _grid_maps(H_inv: torch.Tensor, centres: torch.Tensor, size: torch.Tensor
     return M, good
 
 
-def _grid_sample(image: torch.Tensor, M: torch.Tensor, o: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples (n, Q) float32 of one (H, W) image at grid = (M [o; 1])_xy /
-    (M [o; 1])_w for the n jobs of M (n, 3, 3) and the offsets o (1 or n, Q, 2) float32,
-    by elementwise float32 operations (no GEMM: each job's result is independent of n)."""
-    n, q = M.shape[0], o.shape[1]
-    M32 = M.to(torch.float32)[..., None]  # (n, 3, 3, 1)
-    ox, oy = o[..., 0].contiguous(), o[..., 1].contiguous()  # (1 or n, Q)
+def _square_axes(o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``(xs, ys)`` (S,) when the shared offsets o (1, S*S, 2) form a row-major square grid
+    (``o[y * S + x] = (xs[x], ys[y])``, as :func:`offset_grid`), else None."""
+    q = o.shape[1]
+    side = int(round(q**0.5))
+    if o.shape[0] != 1 or side * side != q:
+        return None
+    g = o[0].reshape(side, side, 2)
+    xs, ys = g[0, :, 0], g[:, 0, 1]
+    if not (torch.equal(g[..., 0], xs[None].expand(side, side))
+            and torch.equal(g[..., 1], ys[:, None].expand(side, side))):
+        return None
+    return xs.contiguous(), ys.contiguous()
 
-    def row(r: int) -> torch.Tensor:
-        v = M32[:, r, 0] * ox
-        v += M32[:, r, 1] * oy
-        v += M32[:, r, 2]
+
+def _grid(M: torch.Tensor, o: torch.Tensor, axes) -> torch.Tensor:
+    """``grid_sample`` coordinates (n, Q, 2) float32, grid = (M [o; 1])_xy / (M [o; 1])_w,
+    for the n jobs of M (n, 3, 3) and the offsets o (1 or n, Q, 2) float32 (``axes``: those
+    of :func:`_square_axes`, or None), by elementwise float32 operations (no GEMM: each
+    job's result is independent of n).
+
+    Every coordinate is ``(m0 ox + m1 oy) + m2`` rounded after each operation, then divided
+    by the clamped w. On a square grid of offsets the products are taken once per column
+    and per row (the same roundings); where every job's map is affine (w = 1 exactly) the
+    division, exact, is left out."""
+    n, q = M.shape[0], o.shape[1]
+    M32 = M.to(torch.float32)
+    grid = torch.empty((n, q, 2), dtype=torch.float32, device=M.device)
+    affine = bool((M32[:, 2, :2] == 0).all()) and bool((M32[:, 2, 2] == 1).all())
+
+    def row(r: int, out: torch.Tensor | None = None) -> torch.Tensor:
+        m = M32[:, r, :, None]  # (n, 3, 1)
+        if axes is None:
+            v = m[:, 0] * o[..., 0]
+            v += m[:, 1] * o[..., 1]
+        else:
+            xs, ys = axes
+            side = xs.shape[0]
+            v = torch.add((m[:, 0] * xs)[:, None, :], (m[:, 1] * ys)[:, :, None],
+                          out=None if out is None else out.view(n, side, side))
+            v = v.view(n, q) if out is None else out
+        v += m[:, 2]
         return v  # (n, Q)
 
-    qw = row(2).clamp_min_(1e-6)
-    grid = torch.empty((n, q, 2), dtype=torch.float32, device=image.device)
-    torch.div(row(0), qw, out=grid[..., 0])
-    torch.div(row(1), qw, out=grid[..., 1])
+    if affine and axes is not None:  # w = (0 ox + 0 oy) + 1 = 1 exactly
+        row(0, grid[..., 0])
+        row(1, grid[..., 1])
+    else:
+        qw = row(2).clamp_min_(1e-6)
+        torch.div(row(0), qw, out=grid[..., 0])
+        torch.div(row(1), qw, out=grid[..., 1])
+    return grid
+
+
+def _sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) (zeros
+    outside; ``align_corners=True``)."""
     out = F.grid_sample(image[None, None], grid[None], mode="bilinear", padding_mode="zeros",
                         align_corners=True)  # (1, 1, n, Q)
     return out[0, 0]
