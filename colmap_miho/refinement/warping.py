@@ -235,23 +235,29 @@ def sample_patches(
     inside &= good
     o = offsets.to(torch.float32).reshape(J if per_job else 1, K * P, 2)
     axes = None if per_job else _square_axes(o)
-    if not isinstance(image, ImageStack):
-        return _sample(image, _grid(M, o, axes)).reshape(J, K, P), inside
-    # one image at a time: jobs grouped by image with one sort and one device-to-host copy
-    # of the counts; the grid of every job is computed at once, in that order
-    counts = torch.bincount(image.index, minlength=len(image.images)).tolist()
-    if J and max(counts) == J:  # all jobs on one image
-        return _sample(image.images[counts.index(J)], _grid(M, o, axes)).reshape(J, K, P), inside
-    order = torch.argsort(image.index, stable=True)
-    grid = _grid(M[order], o[order] if per_job else o, axes)
-    values = torch.empty((J, K * P), dtype=torch.float32, device=image.device)
-    start = 0
-    for d, count in enumerate(counts):
+    # jobs grouped by image and by whether their map is affine (w = 1 exactly: no
+    # division), with one sort and one device-to-host copy of the group sizes
+    M32 = M.to(torch.float32)
+    persp = ((M32[:, 2, :2] != 0).any(dim=1) | (M32[:, 2, 2] != 1)).to(torch.int64)
+    n_img = len(image.images) if isinstance(image, ImageStack) else 1
+    key = 2 * image.index + persp if isinstance(image, ImageStack) else persp
+    counts = torch.bincount(key, minlength=2 * n_img).tolist()
+    if J and max(counts) == J:  # one group
+        g = counts.index(J)
+        img = image.images[g // 2] if isinstance(image, ImageStack) else image
+        return _sample(img, _grid(M32, o, axes, g % 2 == 0)).reshape(J, K, P), inside
+    order = torch.argsort(key, stable=True)
+    M32, o = M32[order], (o[order] if per_job else o)
+    parts, start = [], 0
+    for g, count in enumerate(counts):
         if count == 0:
             continue
         sl = slice(start, start + count)
-        values.index_copy_(0, order[sl], _sample(image.images[d], grid[sl]))
+        img = image.images[g // 2] if isinstance(image, ImageStack) else image
+        parts.append(_sample(img, _grid(M32[sl], o[sl] if per_job else o, axes, g % 2 == 0)))
         start += count
+    values = torch.empty((J, K * P), dtype=torch.float32, device=centres.device)
+    values.index_copy_(0, order, torch.cat(parts))
     return values.reshape(J, K, P), inside
 
 
@@ -299,26 +305,27 @@ def _square_axes(o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     return xs.contiguous(), ys.contiguous()
 
 
-def _grid(M: torch.Tensor, o: torch.Tensor, axes) -> torch.Tensor:
+def _grid(M32: torch.Tensor, o: torch.Tensor, axes, affine: bool) -> torch.Tensor:
     """``grid_sample`` coordinates (n, Q, 2) float32, grid = (M [o; 1])_xy / (M [o; 1])_w,
-    for the n jobs of M (n, 3, 3) and the offsets o (1 or n, Q, 2) float32 (``axes``: those
-    of :func:`_square_axes`, or None), by elementwise float32 operations (no GEMM: each
-    job's result is independent of n).
+    for the n jobs of M32 (n, 3, 3) float32 and the offsets o (1 or n, Q, 2) float32
+    (``axes``: those of :func:`_square_axes`, or None), by elementwise float32 operations
+    (no GEMM: each job's result is independent of n).
 
     Every coordinate is ``(m0 ox + m1 oy) + m2`` rounded after each operation, then divided
     by the clamped w. On a square grid of offsets the products are taken once per column
-    and per row (the same roundings); where every job's map is affine (w = 1 exactly) the
-    division, exact, is left out."""
-    n, q = M.shape[0], o.shape[1]
-    M32 = M.to(torch.float32)
-    grid = torch.empty((n, q, 2), dtype=torch.float32, device=M.device)
-    affine = bool((M32[:, 2, :2] == 0).all()) and bool((M32[:, 2, 2] == 1).all())
+    and per row (the same roundings). ``affine``: every job's map has the last row
+    (0, 0, 1), so w = (0 ox + 0 oy) + 1 = 1 exactly and the division, exact, is left out."""
+    n, q = M32.shape[0], o.shape[1]
+    grid = torch.empty((n, q, 2), dtype=torch.float32, device=M32.device)
 
     def row(r: int, out: torch.Tensor | None = None) -> torch.Tensor:
         m = M32[:, r, :, None]  # (n, 3, 1)
         if axes is None:
             v = m[:, 0] * o[..., 0]
             v += m[:, 1] * o[..., 1]
+            if out is not None:
+                out.copy_(v)
+                v = out
         else:
             xs, ys = axes
             side = xs.shape[0]
@@ -328,7 +335,7 @@ def _grid(M: torch.Tensor, o: torch.Tensor, axes) -> torch.Tensor:
         v += m[:, 2]
         return v  # (n, Q)
 
-    if affine and axes is not None:  # w = (0 ox + 0 oy) + 1 = 1 exactly
+    if affine:
         row(0, grid[..., 0])
         row(1, grid[..., 1])
     else:
