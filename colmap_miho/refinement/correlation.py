@@ -80,7 +80,9 @@ def ncc_maps(
 
 
 def _mean64(x: torch.Tensor) -> torch.Tensor:
-    return x.to(torch.float64).mean(dim=(-2, -1), keepdim=True).to(x.dtype)
+    """Mean over the last two axes, summed in float64 (the sum of ``x.to(float64)``,
+    without the float64 copy), in x's dtype."""
+    return x.mean(dim=(-2, -1), keepdim=True, dtype=torch.float64).to(x.dtype)
 
 
 def box_sum(x: torch.Tensor, size: int) -> torch.Tensor:

@@ -248,16 +248,16 @@ def sample_patches(
         return _sample(img, _grid(M32, o, axes, g % 2 == 0)).reshape(J, K, P), inside
     order = torch.argsort(key, stable=True)
     M32, o = M32[order], (o[order] if per_job else o)
-    parts, start = [], 0
+    values = torch.empty((J, K * P), dtype=torch.float32, device=centres.device)
+    start = 0
     for g, count in enumerate(counts):
         if count == 0:
             continue
         sl = slice(start, start + count)
         img = image.images[g // 2] if isinstance(image, ImageStack) else image
-        parts.append(_sample(img, _grid(M32[sl], o[sl] if per_job else o, axes, g % 2 == 0)))
+        values.index_copy_(0, order[sl],
+                           _sample(img, _grid(M32[sl], o[sl] if per_job else o, axes, g % 2 == 0)))
         start += count
-    values = torch.empty((J, K * P), dtype=torch.float32, device=centres.device)
-    values.index_copy_(0, order, torch.cat(parts))
     return values.reshape(J, K, P), inside
 
 
