@@ -235,10 +235,12 @@ class TrackPlan:
         e_ids = np.flatnonzero(unit >= 0)
         eu = unit[e_ids]
         img_a, img_b = self.node_image[self.edge_a[e_ids]], self.node_image[self.edge_b[e_ids]]
-        key = np.unique(np.stack([np.concatenate([eu, eu]), np.concatenate([img_a, img_b])], 1),
-                        axis=0)
-        bounds = np.searchsorted(key[:, 0], np.arange(anchors.size + 1))
-        images = [tuple(key[bounds[u]:bounds[u + 1], 1].tolist()) for u in range(anchors.size)]
+        # the (unit, image) pairs, sorted, as one int64 code each (np.unique on rows is slow)
+        ids, img = np.unique(np.concatenate([img_a, img_b]), return_inverse=True)
+        code = np.unique(np.concatenate([eu, eu]) * ids.size + img.reshape(-1))
+        key_unit, key_image = code // ids.size, ids[code % ids.size]
+        bounds = np.searchsorted(key_unit, np.arange(anchors.size + 1))
+        images = [tuple(key_image[bounds[u]:bounds[u + 1]].tolist()) for u in range(anchors.size)]
         order = sorted(range(anchors.size), key=lambda u: (images[u], u))
         n_edges = np.bincount(eu, minlength=anchors.size).tolist()
         limit = max_edges or eu.size
