@@ -52,22 +52,26 @@ def ncc_maps(
     Sw = windows.shape[-1]
     n = St * St
     t = templates if normalized else normalize_templates(templates)
-    w = windows - _mean64(windows)  # limits float32 cancellation
     # one grouped convolution per shape: oneDNN is 5-15x slower on groups with more than
     # one output channel (measured, torch 2.13 CPU). The group count is padded to a multiple
     # of _GROUP_PAD so that a lone match goes through the same depthwise kernel as a batch
-    # (one group is a plain convolution, which sums in another order)
+    # (one group is a plain convolution, which sums in another order); the mean-free
+    # windows and the kernels are written straight into the padded buffers
     pad = (-J) % _GROUP_PAD
-    tk = t.transpose(0, 1)  # (K, J, St, St)
-    wp = w
+    wp = windows.new_empty((J + pad, Sw, Sw))
+    tk = t.new_empty((K, J + pad, 1, St, St))  # each shape's kernels contiguous
     if pad:
-        wp = F.pad(w, (0, 0, 0, 0, 0, pad))
-        tk = F.pad(tk, (0, 0, 0, 0, 0, pad))
-    win4 = wp.reshape(1, J + pad, Sw, Sw)
-    tk = tk.contiguous()[:, :, None]  # (K, J + pad, 1, St, St): each shape's kernels contiguous
-    num = torch.stack(
-        [F.conv2d(win4, tk[k], groups=J + pad, stride=stride)[0, :J] for k in range(K)], dim=1
-    )
+        wp[J:] = 0.0
+        tk[:, J:] = 0.0
+    w = torch.sub(windows, _mean64(windows), out=wp[:J])  # limits float32 cancellation
+    tk[:, :J, 0] = t.transpose(0, 1)
+    win4 = wp[None]
+    if K == 1:
+        num = F.conv2d(win4, tk[0], groups=J + pad, stride=stride)[0, :J, None]
+    else:
+        num = torch.stack(
+            [F.conv2d(win4, tk[k], groups=J + pad, stride=stride)[0, :J] for k in range(K)],
+            dim=1)
     s1 = box_sum(w, St)
     s2 = box_sum(w.square(), St)
     w_norm = (s2 - s1.square() / n).clamp_min(0.0).sqrt()[:, None, ::stride, ::stride]
@@ -76,7 +80,9 @@ def ncc_maps(
 
 
 def _mean64(x: torch.Tensor) -> torch.Tensor:
-    return x.to(torch.float64).mean(dim=(-2, -1), keepdim=True).to(x.dtype)
+    """Mean over the last two axes, summed in float64 (the sum of ``x.to(float64)``,
+    without the float64 copy), in x's dtype."""
+    return x.mean(dim=(-2, -1), keepdim=True, dtype=torch.float64).to(x.dtype)
 
 
 def box_sum(x: torch.Tensor, size: int) -> torch.Tensor:
@@ -87,10 +93,18 @@ def box_sum(x: torch.Tensor, size: int) -> torch.Tensor:
     batch it is computed in. In float32 on the mean-free windows of :func:`ncc_maps`
     (values in [-1, 1], S = 41) the error is below 1e-5, far below the window norms that
     matter (a flat 21x21 template has a squared norm of about 0.04)."""
-    c = F.pad(x.cumsum(-1), (1, 0))
-    rows = c[..., size:] - c[..., :-size]  # (J, S, S - size + 1)
-    c = F.pad(rows.cumsum(-2), (0, 0, 1, 0))
-    return c[:, size:] - c[:, :-size]
+    J, S = x.shape[0], x.shape[-1]
+    o = S - size + 1
+    # window [j, j + size) = c[j + size - 1] - c[j - 1], the first one c[size - 1] - 0
+    c = x.cumsum(-1)
+    rows = x.new_empty((J, S, o))
+    rows[..., 0] = c[..., size - 1]
+    torch.sub(c[..., size:], c[..., : S - size], out=rows[..., 1:])
+    c = rows.cumsum(-2)
+    out = x.new_empty((J, o, o))
+    out[:, 0] = c[:, size - 1]
+    torch.sub(c[:, size:], c[:, : S - size], out=out[:, 1:])
+    return out
 
 
 def structure_tensor(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -38,7 +38,7 @@ def _fit(x1n: np.ndarray, x2n: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, n
 
 
 def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs: np.ndarray, *,
-                       k: int, max_residual_px: float) -> np.ndarray:
+                       k: int, max_residual_px: float, fit: np.ndarray | None = None) -> np.ndarray:
     """Per-match patch homography pairs ``(I, A^-1)`` from local affine fits.
 
     Args:
@@ -47,6 +47,10 @@ def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs:
         homs: (K, 2, 3, 3) float64 the filter's pairs, used where a fit is not possible.
         k: neighbours per fit (the match included).
         max_residual_px: neighbours off the first fit by more than this are dropped.
+        fit: optional (M,) bool, the matches whose pairs are wanted (their neighbours are
+            drawn from all matches of their cluster all the same); the others keep the
+            filter's pair unfitted. A match's pair does not depend on which others are
+            fitted with it.
     Returns:
         (M, 2, 3, 3) float64 pairs (A, B) with ``A x1 ~ B x2`` near each match.
     """
@@ -54,35 +58,52 @@ def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs:
     out = np.tile(np.eye(3), (m, 2, 1, 1))
     ok = labels >= 0
     out[ok] = homs[labels[ok]]
-    for lab in np.unique(labels[ok]):
+    want = ok if fit is None else ok & np.asarray(fit, bool)
+    by_size: dict[int, tuple[list, list]] = {}  # neighbours per fit -> (rows, neighbours)
+    for lab in np.unique(labels[want]):
         rows = np.flatnonzero(labels == lab)
         kk = min(k, rows.size)
         if kk < MIN_NEIGHBOURS:
             continue
-        _, nn = cKDTree(x1[rows]).query(x1[rows], k=kk)
-        nb = rows[nn]  # (n, kk)
-        c1, c2 = x1[rows], x2[rows]
-        x1n, x2n = x1[nb] - c1[:, None], x2[nb] - c2[:, None]  # centred on the match
-        w = np.ones(nb.shape)
-        for it in range(_ITERATIONS):
-            A, good = _fit(x1n, x2n, w)
-            pred = x1n @ A[:, :, :2].transpose(0, 2, 1) + A[:, None, :, 2]
-            r = np.linalg.norm(pred - x2n, axis=2)
-            # a gross outlier inflates every residual of the first fits: drop by the
-            # median residual first, by the absolute bound last
-            bound = max_residual_px if it == _ITERATIONS - 1 else np.maximum(
-                max_residual_px, 2.0 * np.median(r, axis=1, keepdims=True))
-            w = (r <= bound).astype(np.float64)
-        A, good2 = _fit(x1n, x2n, w)
-        good &= good2 & (w.sum(axis=1) >= MIN_NEIGHBOURS)
-        # full affine image 1 -> image 2 around the match: x2 = c2 + L (x1 - c1) + t
-        L, t = A[:, :, :2], A[:, :, 2]
-        det = np.linalg.det(L)
-        good &= det > 1e-3
-        H = np.tile(np.eye(3), (rows.size, 1, 1))
-        H[:, :2, :2] = L
-        H[:, :2, 2] = c2 + t - np.einsum("nij,nj->ni", L, c1)
+        q = np.flatnonzero(want[rows])
+        _, nn = cKDTree(x1[rows]).query(x1[rows[q]], k=kk)
+        got = by_size.setdefault(kk, ([], []))
+        got[0].append(rows[q])
+        got[1].append(rows[nn])
+    for rows_l, nb_l in by_size.values():
+        # clusters with the same neighbour count in one batch: every step below is per
+        # match (batched matmul, eigvalsh, solve, median act on each row alone)
+        rows, nb = np.concatenate(rows_l), np.concatenate(nb_l)  # (n,), (n, kk)
+        good, H = _fit_rows(x1, x2, rows, nb, max_residual_px)
         sel = rows[good]
         out[sel, 0] = np.eye(3)
         out[sel, 1] = np.linalg.inv(H[good])
     return out
+
+
+def _fit_rows(x1: np.ndarray, x2: np.ndarray, rows: np.ndarray, nb: np.ndarray,
+              max_residual_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Robust local affine maps image 1 -> image 2 at the matches ``rows`` from their
+    neighbours ``nb`` (n, kk): (well-fitted (n,) bool, H (n, 3, 3) float64)."""
+    c1, c2 = x1[rows], x2[rows]
+    x1n, x2n = x1[nb] - c1[:, None], x2[nb] - c2[:, None]  # centred on the match
+    w = np.ones(nb.shape)
+    for it in range(_ITERATIONS):
+        A, good = _fit(x1n, x2n, w)
+        pred = x1n @ A[:, :, :2].transpose(0, 2, 1) + A[:, None, :, 2]
+        r = np.linalg.norm(pred - x2n, axis=2)
+        # a gross outlier inflates every residual of the first fits: drop by the
+        # median residual first, by the absolute bound last
+        bound = max_residual_px if it == _ITERATIONS - 1 else np.maximum(
+            max_residual_px, 2.0 * np.median(r, axis=1, keepdims=True))
+        w = (r <= bound).astype(np.float64)
+    A, good2 = _fit(x1n, x2n, w)
+    good &= good2 & (w.sum(axis=1) >= MIN_NEIGHBOURS)
+    # full affine image 1 -> image 2 around the match: x2 = c2 + L (x1 - c1) + t
+    L, t = A[:, :, :2], A[:, :, 2]
+    det = np.linalg.det(L)
+    good &= det > 1e-3
+    H = np.tile(np.eye(3), (rows.size, 1, 1))
+    H[:, :2, :2] = L
+    H[:, :2, 2] = c2 + t - np.einsum("nij,nj->ni", L, c1)
+    return good, H

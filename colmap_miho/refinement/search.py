@@ -24,6 +24,13 @@ def to_frame(H: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return torch.stack([X / W, Y / W], dim=1)
 
 
+def _repeat(image, n: int):
+    """``image`` for ``n`` copies of its jobs, one after the other."""
+    if isinstance(image, ImageStack):
+        return ImageStack(image.images, image.slot_sizes, image.index.repeat(n))
+    return image
+
+
 def _templates(img_f, H_f_inv, c_f, win, offs, offs_coarse, cfg: NCCConfig):
     """Templates (J, K', St, St) to search at full resolution, and whether they are inside.
 
@@ -77,23 +84,39 @@ def evaluate_direction(
     """
     st = 2 * cfg.template_radius + 1
     sw = 2 * (cfg.template_radius + cfg.search_radius) + 1
-    maps, inside, valid, pass_of_k, templates, H_invs, frames = [], [], [], [], [], [], []
-    for p, (H, offs, offs_coarse) in enumerate(passes):
-        H_f_inv, ok_f = invert_homographies(H[:, f])
-        H_m_inv, ok_m = invert_homographies(H[:, m])
-        c_f = to_frame(H[:, f], x_f)
-        c_m = to_frame(H[:, m], x_m)
-        win, in_w = sample_patches(img_m, H_m_inv, c_m, win_off[None])
-        J = c_f.shape[0]
-        win = win.reshape(J, sw, sw)
-        tpl, in_t = _templates(img_f, H_f_inv, c_f, win, offs, offs_coarse, cfg)
-        maps.append(ncc_maps(win, tpl))
-        inside.append(in_t & in_w)
-        valid.append(ok_f & ok_m)
-        pass_of_k += [p] * tpl.shape[1]
-        templates.append(tpl)
-        H_invs.append(H_m_inv)
-        frames.append(c_m)
+    J, n_pass = x_f.shape[0], len(passes)
+    # the passes as one batch of n_pass * J jobs (pass-major): every job's samples and NCC
+    # are its own whatever the batch, and one call per step costs less than one per pass
+    H_f = torch.cat([H[:, f] for H, _, _ in passes])
+    H_m = torch.cat([H[:, m] for H, _, _ in passes])
+    H_f_inv, ok_f = invert_homographies(H_f)
+    H_m_inv, ok_m = invert_homographies(H_m)
+    c_f = to_frame(H_f, x_f.repeat(n_pass, 1))
+    c_m = to_frame(H_m, x_m.repeat(n_pass, 1))
+    win_all, in_w = sample_patches(_repeat(img_m, n_pass), H_m_inv, c_m, win_off[None])
+    win_all = win_all.reshape(n_pass * J, sw, sw)
+    plain = all(offs.shape[0] == 1 and torch.equal(offs, passes[0][1]) for _, offs, _ in passes)
+    if plain:  # one template shape, the same in every pass (no coarse choice of shapes)
+        tpl_all, in_t = sample_patches(_repeat(img_f, n_pass), H_f_inv, c_f, passes[0][1])
+        tpl_all = tpl_all.reshape(n_pass * J, 1, st, st)
+        map_all = ncc_maps(win_all, tpl_all)
+        templates = list(tpl_all.split(J))
+        maps = list(map_all.split(J))
+    else:
+        templates, maps, ins = [], [], []
+        for p, (_, offs, offs_coarse) in enumerate(passes):
+            sl = slice(p * J, (p + 1) * J)
+            tpl, in_p = _templates(img_f, H_f_inv[sl], c_f[sl], win_all[sl], offs, offs_coarse,
+                                   cfg)
+            templates.append(tpl)
+            maps.append(ncc_maps(win_all[sl], tpl))
+            ins.append(in_p)
+        in_t = torch.cat(ins)
+    pass_of_k = [p for p, tpl in enumerate(templates) for _ in range(tpl.shape[1])]
+    inside = list((in_t & in_w).split(J))
+    valid = list((ok_f & ok_m).split(J))
+    H_invs = list(H_m_inv.split(J))
+    frames = list(c_m.split(J))
     first_template = templates[0][:, 0]  # the unperturbed template of the first pass
     allmaps = torch.cat(maps, dim=1)
     lam_min, lam_max, dir_max = structure_tensor(first_template)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from .correlation import MIN_CURVATURE, ncc_maps, normalize_templates
-from .warping import offset_grid, sample_patches
+from .warping import ImageStack, offset_grid, sample_patches
 
 #: an iteration that moves a match by less than this (common-frame pixels) ends its refinement.
 _CONVERGED_PX = 1e-3
@@ -27,7 +27,7 @@ def _vertex(c0: torch.Tensor, cm: torch.Tensor, cp: torch.Tensor) -> torch.Tenso
 
 
 def iterate_subpixel(
-    image: torch.Tensor,
+    image: torch.Tensor | ImageStack,
     H_inv: torch.Tensor,
     centres: torch.Tensor,
     offset: torch.Tensor,
@@ -38,7 +38,8 @@ def iterate_subpixel(
     """Refine sub-pixel offsets of the template in the rectified search image.
 
     Args:
-        image: (H, W) float32, the image searched (the moving side).
+        image: (H, W) float32, the image searched (the moving side), or an
+            :class:`~.warping.ImageStack` with one image per match.
         H_inv: (n, 3, 3) float64, common frame -> image pixels of the moving side.
         centres: (n, 2) float64 common-frame position of the moving keypoint.
         offset: (n, 2) float64 current offset estimate (integer peak + parabola).
@@ -53,17 +54,22 @@ def iterate_subpixel(
         return offset
     ring = offset_grid(template_radius + 1, offset.device)[None]
     side = 2 * template_radius + 3
-    active = torch.ones(offset.shape[0], dtype=torch.bool, device=offset.device)
+    rows = torch.arange(offset.shape[0], device=offset.device)  # the matches still moving
     tpl = normalize_templates(templates[:, None])
+    offset = offset.clone()
     for _ in range(iterations):
-        win, _ = sample_patches(image, H_inv, centres + offset, ring)
-        m3 = ncc_maps(win.reshape(-1, side, side), tpl, normalized=True)[:, 0].to(torch.float64)
+        img = image.rows(rows) if isinstance(image, ImageStack) else image
+        win, _ = sample_patches(img, H_inv[rows], centres[rows] + offset[rows], ring)
+        m3 = ncc_maps(win.reshape(-1, side, side), tpl[rows], normalized=True)[:, 0]
+        m3 = m3.to(torch.float64)
         c0 = m3[:, 1, 1]
         step = torch.stack(
             [_vertex(c0, m3[:, 1, 0], m3[:, 1, 2]), _vertex(c0, m3[:, 0, 1], m3[:, 2, 1])], -1
         )
-        offset = offset + torch.where(active[:, None], step, torch.zeros_like(step))
-        active = active & (step.abs().amax(dim=1) >= _CONVERGED_PX)
-        if not bool(active.any()):
+        offset[rows] = offset[rows] + step
+        # a converged match is left out of the next iterations (its result does not
+        # depend on the others: sampling and NCC are per match)
+        rows = rows[step.abs().amax(dim=1) >= _CONVERGED_PX]
+        if rows.numel() == 0:
             break
     return offset

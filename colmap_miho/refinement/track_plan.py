@@ -91,6 +91,7 @@ class TrackPlan:
     source_pairs: np.ndarray | None = None
     source_rows: np.ndarray | None = None
     _local_cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _steps: list = field(default_factory=list, init=False, repr=False, compare=False)
 
     @property
     def num_nodes(self) -> int:
@@ -104,9 +105,10 @@ class TrackPlan:
     def local_pairs(self, p: int) -> np.ndarray | None:
         """(M_p, 2, 3, 3) local affine pairs of the edges of pair ``p`` (by ``edge_row``), or
         None without ``local_affine``. A plan over all output matches fits them on first use
-        to all of the pair's edges (the neighbourhood of every match) and keeps them until
-        :meth:`release_local`; a group carries those of its own edges
-        (:meth:`attach_local`).
+        (each from the neighbourhood of its match among all of the pair's edges) and keeps
+        them until :meth:`release_local`; a group carries those of its own edges
+        (:meth:`attach_local`). Only the edges the walk can refine along
+        (:meth:`walk_steps`) are fitted: the others keep the filter's pair.
 
         Raises:
             ValueError: a group whose local pairs were not attached.
@@ -128,7 +130,7 @@ class TrackPlan:
             k, max_residual_px = self.local_affine
             self._local_cache[p] = local_affine_pairs(
                 x1, x2, self.edge_label[lo:hi], self.pair_homs[p], k=k,
-                max_residual_px=max_residual_px)
+                max_residual_px=max_residual_px, fit=self.walk_steps()[lo:hi])
         return self._local_cache[p]
 
     def release_local(self, pairs) -> None:
@@ -233,10 +235,12 @@ class TrackPlan:
         e_ids = np.flatnonzero(unit >= 0)
         eu = unit[e_ids]
         img_a, img_b = self.node_image[self.edge_a[e_ids]], self.node_image[self.edge_b[e_ids]]
-        key = np.unique(np.stack([np.concatenate([eu, eu]), np.concatenate([img_a, img_b])], 1),
-                        axis=0)
-        bounds = np.searchsorted(key[:, 0], np.arange(anchors.size + 1))
-        images = [tuple(key[bounds[u]:bounds[u + 1], 1].tolist()) for u in range(anchors.size)]
+        # the (unit, image) pairs, sorted, as one int64 code each (np.unique on rows is slow)
+        ids, img = np.unique(np.concatenate([img_a, img_b]), return_inverse=True)
+        code = np.unique(np.concatenate([eu, eu]) * ids.size + img.reshape(-1))
+        key_unit, key_image = code // ids.size, ids[code % ids.size]
+        bounds = np.searchsorted(key_unit, np.arange(anchors.size + 1))
+        images = [tuple(key_image[bounds[u]:bounds[u + 1]].tolist()) for u in range(anchors.size)]
         order = sorted(range(anchors.size), key=lambda u: (images[u], u))
         n_edges = np.bincount(eu, minlength=anchors.size).tolist()
         limit = max_edges or eu.size
@@ -261,6 +265,30 @@ class TrackPlan:
         return [self.subset(e_sorted[e_bounds[b]:e_bounds[b + 1]],
                             a_sorted[a_bounds[b]:a_bounds[b + 1]])
                 for b in range(n) if e_bounds[b + 1] > e_bounds[b]]
+
+    def walk_steps(self) -> np.ndarray:
+        """(E,) bool: the edges the walk can refine along, the refinable edges from a node
+        of one level of the walk to a node of the next (level = refinable-edge hops from
+        the anchor; a node is refined at its level against a node of the level before, so
+        edges within a level or to unreached nodes are never used)."""
+        if not self._steps:
+            ok = self.refinable()
+            ea, eb = self.edge_a[ok], self.edge_b[ok]
+            level = np.full(self.num_nodes, -1, np.int64)
+            level[self.anchors] = 0
+            n = 0
+            while True:  # the walk's levels (tracks._level_groups)
+                fa, fb = level[ea] >= 0, level[eb] >= 0
+                new = np.concatenate([eb[fa & ~fb], ea[fb & ~fa]])
+                if not new.size:
+                    break
+                n += 1
+                level[new] = n
+            steps = np.zeros(self.edge_a.size, bool)
+            la, lb = level[ea], level[eb]
+            steps[ok] = (la >= 0) & (lb >= 0) & (np.abs(la - lb) == 1)
+            self._steps.append(steps)
+        return self._steps[0]
 
     def refinable(self) -> np.ndarray:
         """(E,) bool: edges the walk may refine along (labelled, track not frozen)."""

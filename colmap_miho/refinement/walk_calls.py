@@ -10,7 +10,7 @@ for 10000, so all groups of a level go into one call on stacked images
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -69,7 +69,9 @@ class WalkState:
 
     ``pos`` image_id -> (Ni, 2) current positions; ``score`` (T,) quality of each fixed
     node as a partner (NCC after refinement, +inf for anchors); ``moved`` (T,) bool;
-    ``out_disp`` / ``out_against`` the result arrays of :class:`~.tracks.TrackRefineResult`.
+    ``out_disp`` / ``out_against`` the result arrays of :class:`~.tracks.TrackRefineResult`;
+    ``gray`` the float32 tensors of the images of the last batched call (image_id ->
+    tensor), reused by the next call instead of converting the same images again.
     """
 
     plan: TrackPlan
@@ -83,6 +85,7 @@ class WalkState:
     out_disp: dict
     out_against: dict
     stats: dict
+    gray: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -181,8 +184,12 @@ def refine_batch(groups: list, ctx: WalkState, device) -> None:
     sizes = [c.pts_f.shape[0] for c in calls]
     idx_f = np.repeat([slot[c.fixed_id] for c in calls], sizes)
     idx_m = np.repeat([slot[c.moving_id] for c in calls], sizes)
-    stack_f = ImageStack.build([to_gray_tensor(ctx.images.get(i), device) for i in ids], idx_f,
-                               device)
+    for i in [i for i in ctx.gray if i not in slot]:  # hold this call's images only
+        del ctx.gray[i]
+    for i in ids:
+        if i not in ctx.gray:
+            ctx.gray[i] = to_gray_tensor(ctx.images.get(i), device)
+    stack_f = ImageStack.build([ctx.gray[i] for i in ids], idx_f, device)
     stack_m = stack_f.with_index(idx_m)
     aff = {}
     if any(c.aff_f is not None for c in calls):

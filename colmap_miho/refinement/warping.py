@@ -61,43 +61,42 @@ def to_gray_tensor(image, device):
 
 @dataclass(frozen=True)
 class ImageStack:
-    """Several images for one batch of jobs: job j reads image ``index[j]`` of ``stack``.
+    """Several images for one batch of jobs: job j reads image ``index[j]`` of ``images``.
 
     Lets one batched call serve matches of many image pairs (the track walk on a GPU, where
-    a call costs about the same for 100 matches as for 10000). Images are zero-padded to a
-    common size; a job reads only the unpadded view of its own image (samples outside it
-    read zero, as for that image alone), so its values do not depend on the other images.
+    a call costs about the same for 100 matches as for 10000). The images keep their own
+    sizes (no padded copy); a job reads its own image only (samples outside it read zero,
+    as for that image alone), so its values do not depend on the other images.
 
     Attributes:
-        stack: (D, Hmax, Wmax) float32.
+        images: D (H_d, W_d) float32 tensors, on one device.
         slot_sizes: (D, 2) float64 (width, height) of each image.
         index: (J,) int64 image of each job.
     """
 
-    stack: torch.Tensor
+    images: tuple
     slot_sizes: torch.Tensor
     index: torch.Tensor
 
     @classmethod
     def build(cls, images: list[torch.Tensor], index, device: torch.device) -> ImageStack:
-        """Stack (H, W) float32 tensors; ``index`` (J,) picks each job's image."""
-        h = max(int(im.shape[0]) for im in images)
-        w = max(int(im.shape[1]) for im in images)
-        stack = torch.zeros((len(images), h, w), dtype=torch.float32, device=device)
-        for k, im in enumerate(images):
-            stack[k, : im.shape[0], : im.shape[1]] = im.to(device)
-        wh = torch.tensor([[im.shape[1], im.shape[0]] for im in images], dtype=torch.float64,
+        """Hold (H, W) float32 tensors (moved to ``device``, not copied when already
+        there); ``index`` (J,) picks each job's image."""
+        if not images:
+            raise ValueError("an ImageStack needs at least one image")
+        ims = tuple(im.to(device) for im in images)
+        wh = torch.tensor([[im.shape[1], im.shape[0]] for im in ims], dtype=torch.float64,
                           device=device)
-        return cls(stack, wh, torch.as_tensor(index, dtype=torch.int64, device=device))
+        return cls(ims, wh, torch.as_tensor(index, dtype=torch.int64, device=device))
 
     def with_index(self, index) -> ImageStack:
         """The same images, read by other jobs."""
-        return ImageStack(self.stack, self.slot_sizes,
-                          torch.as_tensor(index, dtype=torch.int64, device=self.stack.device))
+        return ImageStack(self.images, self.slot_sizes,
+                          torch.as_tensor(index, dtype=torch.int64, device=self.device))
 
     def rows(self, sel) -> ImageStack:
         """The same images for a subset (slice or index tensor) of the jobs."""
-        return ImageStack(self.stack, self.slot_sizes, self.index[sel])
+        return ImageStack(self.images, self.slot_sizes, self.index[sel])
 
     @property
     def sizes(self) -> torch.Tensor:
@@ -106,7 +105,7 @@ class ImageStack:
 
     @property
     def device(self) -> torch.device:
-        return self.stack.device
+        return self.index.device
 
 
 def offset_grid(radius: int, device: torch.device, dtype=torch.float64) -> torch.Tensor:
@@ -235,27 +234,30 @@ def sample_patches(
     M, good = _grid_maps(H_inv, centres, size)
     inside &= good
     o = offsets.to(torch.float32).reshape(J if per_job else 1, K * P, 2)
-    if not isinstance(image, ImageStack):
-        return _grid_sample(image, M, o).reshape(J, K, P), inside
-    # one image at a time (its unpadded view): jobs grouped by image with one sort and one
-    # device-to-host copy of the counts
-    counts = torch.bincount(image.index, minlength=image.stack.shape[0]).tolist()
-    sizes = image.slot_sizes.tolist()
-    if J and max(counts) == J:  # all jobs on one image
-        d = counts.index(J)
-        w, h = (int(v) for v in sizes[d])
-        return _grid_sample(image.stack[d, :h, :w], M, o).reshape(J, K, P), inside
-    order = torch.argsort(image.index, stable=True)
-    values = torch.empty((J, K * P), dtype=torch.float32, device=image.device)
+    axes = None if per_job else _square_axes(o)
+    # jobs grouped by image and by whether their map is affine (w = 1 exactly: no
+    # division), with one sort and one device-to-host copy of the group sizes
+    M32 = M.to(torch.float32)
+    persp = ((M32[:, 2, :2] != 0).any(dim=1) | (M32[:, 2, 2] != 1)).to(torch.int64)
+    n_img = len(image.images) if isinstance(image, ImageStack) else 1
+    key = 2 * image.index + persp if isinstance(image, ImageStack) else persp
+    counts = torch.bincount(key, minlength=2 * n_img).tolist()
+    if J and max(counts) == J:  # one group
+        g = counts.index(J)
+        img = image.images[g // 2] if isinstance(image, ImageStack) else image
+        return _sample(img, _grid(M32, o, axes, g % 2 == 0)).reshape(J, K, P), inside
+    order = torch.argsort(key, stable=True)
+    M32, o = M32[order], (o[order] if per_job else o)
+    values = torch.empty((J, K * P), dtype=torch.float32, device=centres.device)
     start = 0
-    for d, count in enumerate(counts):
+    for g, count in enumerate(counts):
         if count == 0:
             continue
-        rows = order[start : start + count]
+        sl = slice(start, start + count)
+        img = image.images[g // 2] if isinstance(image, ImageStack) else image
+        values.index_copy_(0, order[sl],
+                           _sample(img, _grid(M32[sl], o[sl] if per_job else o, axes, g % 2 == 0)))
         start += count
-        w, h = (int(v) for v in sizes[d])
-        vals = _grid_sample(image.stack[d, :h, :w], M[rows], o[rows] if per_job else o)
-        values.index_copy_(0, rows, vals)
     return values.reshape(J, K, P), inside
 
 
@@ -288,24 +290,64 @@ def _grid_maps(H_inv: torch.Tensor, centres: torch.Tensor, size: torch.Tensor
     return M, good
 
 
-def _grid_sample(image: torch.Tensor, M: torch.Tensor, o: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples (n, Q) float32 of one (H, W) image at grid = (M [o; 1])_xy /
-    (M [o; 1])_w for the n jobs of M (n, 3, 3) and the offsets o (1 or n, Q, 2) float32,
-    by elementwise float32 operations (no GEMM: each job's result is independent of n)."""
-    n, q = M.shape[0], o.shape[1]
-    M32 = M.to(torch.float32)[..., None]  # (n, 3, 3, 1)
-    ox, oy = o[..., 0].contiguous(), o[..., 1].contiguous()  # (1 or n, Q)
+def _square_axes(o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``(xs, ys)`` (S,) when the shared offsets o (1, S*S, 2) form a row-major square grid
+    (``o[y * S + x] = (xs[x], ys[y])``, as :func:`offset_grid`), else None."""
+    q = o.shape[1]
+    side = int(round(q**0.5))
+    if o.shape[0] != 1 or side * side != q:
+        return None
+    g = o[0].reshape(side, side, 2)
+    xs, ys = g[0, :, 0], g[:, 0, 1]
+    if not (torch.equal(g[..., 0], xs[None].expand(side, side))
+            and torch.equal(g[..., 1], ys[:, None].expand(side, side))):
+        return None
+    return xs.contiguous(), ys.contiguous()
 
-    def row(r: int) -> torch.Tensor:
-        v = M32[:, r, 0] * ox
-        v += M32[:, r, 1] * oy
-        v += M32[:, r, 2]
+
+def _grid(M32: torch.Tensor, o: torch.Tensor, axes, affine: bool) -> torch.Tensor:
+    """``grid_sample`` coordinates (n, Q, 2) float32, grid = (M [o; 1])_xy / (M [o; 1])_w,
+    for the n jobs of M32 (n, 3, 3) float32 and the offsets o (1 or n, Q, 2) float32
+    (``axes``: those of :func:`_square_axes`, or None), by elementwise float32 operations
+    (no GEMM: each job's result is independent of n).
+
+    Every coordinate is ``(m0 ox + m1 oy) + m2`` rounded after each operation, then divided
+    by the clamped w. On a square grid of offsets the products are taken once per column
+    and per row (the same roundings). ``affine``: every job's map has the last row
+    (0, 0, 1), so w = (0 ox + 0 oy) + 1 = 1 exactly and the division, exact, is left out."""
+    n, q = M32.shape[0], o.shape[1]
+    grid = torch.empty((n, q, 2), dtype=torch.float32, device=M32.device)
+
+    def row(r: int, out: torch.Tensor | None = None) -> torch.Tensor:
+        m = M32[:, r, :, None]  # (n, 3, 1)
+        if axes is None:
+            v = m[:, 0] * o[..., 0]
+            v += m[:, 1] * o[..., 1]
+            if out is not None:
+                out.copy_(v)
+                v = out
+        else:
+            xs, ys = axes
+            side = xs.shape[0]
+            v = torch.add((m[:, 0] * xs)[:, None, :], (m[:, 1] * ys)[:, :, None],
+                          out=None if out is None else out.view(n, side, side))
+            v = v.view(n, q) if out is None else out
+        v += m[:, 2]
         return v  # (n, Q)
 
-    qw = row(2).clamp_min_(1e-6)
-    grid = torch.empty((n, q, 2), dtype=torch.float32, device=image.device)
-    torch.div(row(0), qw, out=grid[..., 0])
-    torch.div(row(1), qw, out=grid[..., 1])
+    if affine:
+        row(0, grid[..., 0])
+        row(1, grid[..., 1])
+    else:
+        qw = row(2).clamp_min_(1e-6)
+        torch.div(row(0), qw, out=grid[..., 0])
+        torch.div(row(1), qw, out=grid[..., 1])
+    return grid
+
+
+def _sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) (zeros
+    outside; ``align_corners=True``)."""
     out = F.grid_sample(image[None, None], grid[None], mode="bilinear", padding_mode="zeros",
                         align_corners=True)  # (1, 1, n, Q)
     return out[0, 0]

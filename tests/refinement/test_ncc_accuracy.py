@@ -116,3 +116,25 @@ def test_local_affine_pairs_fit_a_known_homography():
     few = local_affine_pairs(x1[:4], x2[:4], np.zeros(4, np.int64), 2 * eye, k=12,
                              max_residual_px=2.0)
     np.testing.assert_array_equal(few, np.tile(2 * np.eye(3), (4, 2, 1, 1)))
+
+
+def test_local_affine_pairs_of_some_matches_are_those_of_all():
+    """Fitting only some matches (``fit``) gives them bitwise the pairs of fitting every
+    match (neighbours still drawn from the whole cluster; clusters of different sizes are
+    batched together); the others keep the filter's pair."""
+    rng = np.random.default_rng(5)
+    H = np.array([[1.05, 0.03, 2.0], [-0.01, 0.97, -1.0], [5e-5, -2e-5, 1.0]])
+    x1 = rng.uniform(0, 400, (300, 2))
+    y = np.c_[x1, np.ones(len(x1))] @ H.T
+    x2 = y[:, :2] / y[:, 2:] + rng.normal(0, 0.3, (300, 2))
+    # clusters of 200, 60, 8 (fewer neighbours than k) and 4 (too few: no fit) matches
+    labels = np.repeat([0, 1, 2, 3, -1], [200, 60, 8, 4, 28])
+    homs = np.stack([np.stack([np.eye(3), np.eye(3) * (1 + c)]) for c in range(4)])
+    full = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0)
+    fit = rng.random(300) < 0.4
+    part = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit)
+    np.testing.assert_array_equal(part[fit], full[fit])
+    kept = ~fit & (labels >= 0)
+    np.testing.assert_array_equal(part[kept], homs[labels[kept]])
+    assert (full[kept] != part[kept]).any()  # those would have been fitted
+    np.testing.assert_array_equal(part[labels < 0], np.tile(np.eye(3), (28, 2, 1, 1)))

@@ -163,7 +163,8 @@ def test_groups_are_bounded_compact_and_deterministic(max_images):
 
 def test_local_pairs_are_those_of_the_whole_pair():
     """Lazy local affine pairs, per group, are bit-identical to fitting every pair over all of
-    its edges up front (what the plan did before); and a group must get them attached."""
+    its edges up front (what the plan did before) on the edges the walk can use; and a
+    group must get them attached."""
     kps, pm, res, unref = random_scene(5, n_tracks=900)
     plan = build_track_plan(kps, pm, res, unrefined_matches=unref, local_affine=LOCAL)
     starts = np.searchsorted(plan.edge_pair, np.arange(len(plan.pairs) + 1))
@@ -174,7 +175,7 @@ def test_local_pairs_are_those_of_the_whole_pair():
                                         kps[id2][plan.node_kp[plan.edge_b[sl]]],
                                         plan.edge_label[sl], plan.pair_homs[p], k=LOCAL[0],
                                         max_residual_px=LOCAL[1]))
-    fitted = 0
+    fitted = skipped = 0
     for g in plan.groups(3):
         with pytest.raises(ValueError, match="attach"):
             g.local_pairs(0)
@@ -182,11 +183,17 @@ def test_local_pairs_are_those_of_the_whole_pair():
         gs = np.searchsorted(full.edge_pair, np.arange(len(full.pairs) + 1))
         for q, p in enumerate(full.source_pairs):
             rows = full.source_rows[gs[q]:gs[q + 1]]
-            np.testing.assert_array_equal(full.local_pairs(q), eager[p][rows])
+            # the edges the walk can refine along; the others keep the filter's pair
+            step = plan.walk_steps()[starts[p] + rows]
+            np.testing.assert_array_equal(full.local_pairs(q)[step], eager[p][rows][step])
+            label = plan.edge_label[starts[p] + rows][~step]
+            np.testing.assert_array_equal(full.local_pairs(q)[~step],
+                                          plan.pair_homs[p][label])
+            skipped += int((~step).sum())
             fitted += int((eager[p][rows][:, 0] != np.eye(3)).any(axis=(1, 2)).sum() == 0)
         plan.release_local(full.source_pairs)
     assert not plan._local_cache
-    assert fitted > 0
+    assert fitted > 0 and skipped > 0
 
 
 def test_partition_of_a_group_and_no_walked_track():
@@ -306,3 +313,28 @@ def test_snake_order_of_a_level_decodes_fewer_images(monkeypatch):
         np.testing.assert_array_equal(snake.keypoints[i], plain.keypoints[i])
         np.testing.assert_array_equal(snake.refined_against[i], plain.refined_against[i])
     assert snake_images.decodes < plain_images.decodes
+
+
+@pytest.mark.parametrize("seed", [0, 4])
+def test_walk_refines_along_walk_steps_only(seed):
+    """Every keypoint the walk refines is refined against a partner joined to it by one of
+    :meth:`TrackPlan.walk_steps` (so the local pairs of the other edges are never read), and
+    the walk does use edges of every level."""
+    kps, pm, res, unref = random_scene(seed)
+    plan = build_track_plan(kps, pm, res, unrefined_matches=unref, local_affine=LOCAL)
+    steps = plan.walk_steps()
+    assert 0 < steps.sum() < plan.refinable().sum()
+    assert not (steps & ~plan.refinable()).any()
+    node = {(int(i), int(k)): n for n, (i, k) in enumerate(zip(plan.node_image, plan.node_kp,
+                                                                strict=True))}
+    allowed = {frozenset((int(a), int(b))) for a, b in zip(plan.edge_a[steps],
+                                                           plan.edge_b[steps], strict=True)}
+    walk = walk_tracks(_images(kps), plan, ncc_config=NCCConfig(rectification="both"),
+                       refine_fn=PullRefiner())
+    used = 0
+    for i, against in walk.refined_against.items():
+        for k in np.flatnonzero(against[:, 0] >= 0):
+            partner = node[(int(against[k, 0]), int(against[k, 1]))]
+            assert frozenset((node[(int(i), int(k))], partner)) in allowed
+            used += 1
+    assert used == walk.stats["refined"] > 200
