@@ -38,9 +38,10 @@ if TYPE_CHECKING:
 MIN_PAIRS_PER_WORKER = 4
 
 #: Below this many matches to filter per parallel slot, filtering runs in this process too:
-#: starting the pool costs about 2 s of wall time on 2 cores (each worker imports torch), the
-#: filter about 0.2 ms per match (measured on Middlebury temple, 33 pairs and 7.4k matches:
-#: 1.5-1.6 s in this process), so a pool pays off from about 10k matches per worker.
+#: the filter takes about 0.1-0.2 ms per match, and workers need the forkserver's imports
+#: (about 2 s, overlapping the parent's setup) and their inputs pickled. Measured on
+#: Middlebury temple (33 pairs, 7.4k matches, 2 cores): the filter stage took 0.7-1.0 s in 2
+#: workers and 1.0 s in this process, the whole run 4.3-4.7 s either way.
 MIN_MATCHES_PER_FILTER_WORKER = 10_000
 
 #: Bytes this process holds per match of a chunk in flight: positions (2 x 2 float64), indices

@@ -56,6 +56,7 @@ from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
 from .stages import DECODED_BY_IMAGE, run_refine_stage
 from .store import RunStore, run_fingerprint, store_folder
 from .verify import run_verify
+from .workers import start_forkserver
 from .write import WriteStats, run_write
 
 if TYPE_CHECKING:  # recipe.py imports this package's config: import it lazily
@@ -274,8 +275,11 @@ def refine_database(
     if not image_dir.is_dir():
         raise UserError(f"image folder not found: {image_dir}")
     rec = _resolve_recipe(recipe)
+    asked = max(1, int(workers) if workers else (os.cpu_count() or 1))
+    if asked > 1 and dask is None and str(device) != "cuda":
+        start_forkserver()  # the workers' imports run beside this process's from here on
     dev = _resolve_device(device)
-    n_workers = 1 if dev == "cuda" else max(1, int(workers) if workers else (os.cpu_count() or 1))
+    n_workers = 1 if dev == "cuda" else asked
     wc = WorkingCopy(database, Path(output) if output else None, in_place=in_place, overwrite=overwrite)
     check_distinct({"--database": database, "--images": image_dir},
                    {"--output": None if in_place else wc.output, "--json": json_path})

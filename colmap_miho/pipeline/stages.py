@@ -31,9 +31,9 @@ log = logging.getLogger(__name__)
 MIN_MATCHES_PER_REFINE_WORKER = 2000
 
 #: When the filter stage did not start the process pool, refinement starts it only with at
-#: least this many refinable matches per worker: starting it costs about 2 s (each worker
-#: imports torch), the walk about 0.2 ms per match (fountain, one process). Dask clusters
-#: are started already.
+#: least this many refinable matches per worker: the walk takes about 0.13 ms per match
+#: (fountain, one process), a worker's first group waits for the forkserver's imports (about
+#: 2 s) if they have not finished. Dask clusters are started already.
 MIN_MATCHES_TO_START_WORKERS = 10_000
 
 #: Most refinable matches of one group of tracks, in units of
