@@ -53,10 +53,10 @@ Speed (see ``benchmarks/bench_filter.py``; the reference implementation takes 1.
 and 2.3 s for MOP+MiHo on 1351 SIFT matches): closed-form minimal solver and sample signs
 (no SVD per hypothesis), exact one-way pre-scoring, full scoring only where it can change
 the best model, guided sampling with adaptive stopping, explained matches leave the pool.
-On 12 Oxford and 8 Strecha SIFT+NNR pairs it takes about 0.05 / 0.15 s (MOP) and 0.10 /
-0.31 s (MOP+MiHo) of CPU time per pair (Oxford / Strecha); up to 2000 valid hypotheses per
-round cost about 2x the time of the earlier sampler, whose samples mostly failed the spread
-test (README, "Hard planar pairs").
+On 12 Oxford and 8 Strecha SIFT+NNR pairs it takes about 0.035 / 0.10 s (MOP) and 0.06 /
+0.19 s (MOP+MiHo) of CPU time per pair (Oxford / Strecha, quiet machine); up to 2000 valid
+hypotheses per round cost about 2x the time of the earlier sampler, whose samples mostly
+failed the spread test (README, "Hard planar pairs").
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Where the pipeline's parallel work runs: this process, a local ``spawn`` process pool, or a
+"""Where the pipeline's parallel work runs: this process, a local process pool (forked by a
+``forkserver`` that imported torch once, see :mod:`.workers`), or a
 Dask cluster (a local one, or a running scheduler at ``tcp://host:port``).
 
 The stages see one :class:`Runner`: ``runner.slots`` says how many tasks run at once,

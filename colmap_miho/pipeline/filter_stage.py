@@ -32,9 +32,9 @@ if TYPE_CHECKING:
     from .executor import Runner
     from .store import RunStore
 
-#: Below this many pairs to filter per parallel slot, filtering runs in this process (a
-#: process-pool worker costs seconds to start: it imports torch). Dask runs always use the
-#: cluster (it is started already).
+#: Below this many pairs to filter per parallel slot, filtering runs in this process (handing
+#: work to a worker costs its pickled inputs and, early in a run, the wait for the
+#: forkserver's imports). Dask runs always use the cluster (it is started already).
 MIN_PAIRS_PER_WORKER = 4
 
 #: Below this many matches to filter per parallel slot, filtering runs in this process too:

@@ -20,10 +20,11 @@ output until the commit; a killed or failed run is continued with ``resume=True`
 and was given neither refuses to start.
 
 Parallelism: one :class:`~.executor.Runner` per run (:func:`~.executor.open_runner`) runs the
-filter's chunks and the refinement's track groups in this process, in ``spawn``-ed worker
-processes with one thread each, or on a Dask cluster (``dask``); only this process writes
-SQLite. Scripts that call :func:`refine_database` with ``workers > 1`` need the usual
-``if __name__ == "__main__":`` guard. All coordinates handled here are colmap-miho's
+filter's chunks and the refinement's track groups in this process, in worker processes with one
+thread each (forked from a forkserver that imported torch once), or on a Dask cluster
+(``dask``); only this process writes SQLite. Scripts that call :func:`refine_database` with
+``workers > 1`` need the usual ``if __name__ == "__main__":`` guard.
+All coordinates handled here are colmap-miho's
 (integer = pixel centre); the conversion to COLMAP's happens inside
 :mod:`colmap_miho.adapters.database`.
 """
@@ -245,8 +246,8 @@ def refine_database(
         overwrite: allow replacing an existing ``output``.
         workers: processes that filter pairs and refine tracks (default: all cores; 1 = all
             in this process), or the workers of a local Dask cluster. Small jobs stay in
-            this process (a worker costs an import of torch); results do not depend on the
-            worker count.
+            this process (below ~10k matches per worker, workers do not pay off); results do
+            not depend on the worker count.
         device: "cpu", "cuda" or "auto" for the torch work.
         seed: base seed; each pair's filter seed is derived from it and the pair's image ids.
         strict: a missing or unreadable image is an error instead of a warning.
