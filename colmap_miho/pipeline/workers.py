@@ -20,6 +20,7 @@ threads over track chunks were slower than one thread (the walk holds the GIL), 
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing
 import os
 import sys
@@ -28,6 +29,8 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 #: Seconds between two checks of the parent's pid by a worker's watchdog.
 PARENT_POLL_S = 0.5
@@ -100,9 +103,13 @@ def single_thread_children():
                 os.environ[k] = v
 
 
+_FORKSERVER_FAILED: list[str] = []  # why the forkserver could not start (then: spawn)
+
+
 def _context():
-    """The forkserver context where the platform has one (Linux, macOS), else spawn."""
-    if "forkserver" in multiprocessing.get_all_start_methods():
+    """The forkserver context where the platform has one (Linux, macOS) and it could be
+    started, else spawn."""
+    if "forkserver" in multiprocessing.get_all_start_methods() and not _FORKSERVER_FAILED:
         return multiprocessing.get_context("forkserver")
     return multiprocessing.get_context("spawn")
 
@@ -110,15 +117,20 @@ def _context():
 def start_forkserver() -> None:
     """Start the forkserver now (no-op where there is none, or when it runs already), with
     :data:`PRELOAD` imported and single-threaded BLAS / OpenMP in its environment: its
-    imports then run beside this process's work instead of in each new worker."""
+    imports then run beside this process's work instead of in each new worker. If it cannot
+    start (e.g. no writable temporary folder for its socket), pools use spawn."""
     ctx = _context()
     if ctx.get_start_method() != "forkserver":
         return
     from multiprocessing import forkserver
 
-    with single_thread_children():
-        ctx.set_forkserver_preload(list(PRELOAD))
-        forkserver.ensure_running()
+    try:
+        with single_thread_children():
+            ctx.set_forkserver_preload(list(PRELOAD))
+            forkserver.ensure_running()
+    except OSError as exc:
+        _FORKSERVER_FAILED.append(str(exc))
+        log.warning("worker processes are spawned (the forkserver did not start: %s)", exc)
 
 
 @contextlib.contextmanager
