@@ -89,3 +89,22 @@ def make_scene(rng: np.random.Generator, *, n_planes: int = 3, per_plane: int = 
     plane = np.concatenate(labels + [np.full(n_out, -1)])
     order = rng.permutation(len(x1))
     return PlaneScene(x1[order], x2[order], plane[order], np.stack(Hs))
+
+
+def assert_same_mop_runs(method: str, scoring_a, scoring_b, *, scene_seed: int,
+                         outlier_ratio: float) -> None:
+    """Two scorings of one MOP problem (a planted-plane scene) take the same search: the same
+    homographies, round inliers and loop counters, with at least 3 planes found."""
+    from colmap_miho.filtering.config import FilterConfig
+    from colmap_miho.filtering.miho import build_problem
+    from colmap_miho.filtering.mop import run_mop
+
+    sc = make_scene(np.random.default_rng(scene_seed), outlier_ratio=outlier_ratio)
+    cfg = FilterConfig(method=method)
+    problem = build_problem(sc.x1, sc.x2, miho=cfg.is_miho, full_match=True)
+    a = run_mop(problem, cfg, np.random.default_rng(0), scoring=scoring_a)
+    b = run_mop(problem, cfg, np.random.default_rng(0), scoring=scoring_b)
+    assert len(a.hyps) >= 3
+    np.testing.assert_array_equal(a.hyps.H, b.hyps.H)
+    np.testing.assert_array_equal(a.round_inliers, b.round_inliers)
+    assert a.stats == b.stats

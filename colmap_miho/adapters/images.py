@@ -165,7 +165,7 @@ class ImageLoader(Mapping):
     Attributes:
         decodes: image files decoded so far (by lookups that missed the cache and by
             :meth:`check_all`).
-        decoded: image id -> its decodes (the same count, per image).
+        decoded: image id -> times that image file was decoded.
         loads: decodes by lookups only.
     """
 
@@ -186,8 +186,12 @@ class ImageLoader(Mapping):
         self.missing: set[int] = set()
         self.problems: dict[int, str] = {}  # image id -> why it is not used
         self.loads = 0
-        self.decodes = 0
         self.decoded: Counter[int] = Counter()
+
+    @property
+    def decodes(self) -> int:
+        """Image files decoded so far (the sum of :attr:`decoded`)."""
+        return sum(self.decoded.values())
 
     @property
     def cached_bytes(self) -> int:
@@ -230,7 +234,6 @@ class ImageLoader(Mapping):
         img = read_gray_float(self.path(image_id))
         self.loads += 1
         if img is not None or self.path(image_id).is_file():
-            self.decodes += 1
             self.decoded[image_id] += 1
         size = self.expected_sizes.get(image_id)
         if img is None:
@@ -291,7 +294,6 @@ class ImageLoader(Mapping):
             if why is None and image_id not in self._cache:
                 img, why = _checked_decode(self.path(image_id), self.expected_sizes.get(image_id))
                 if why not in _NOT_DECODED:
-                    self.decodes += 1
                     self.decoded[image_id] += 1
                 if img is not None:
                     self._keep(image_id, img, evict=False)

@@ -60,8 +60,11 @@ class ReadStats:
     pairs_passed: int
     keypoints_total: int
     images_missing: list[str] = field(default_factory=list)
-    image_decodes: int = 0
     decoded_by_image: dict[int, int] = field(default_factory=dict)  # image id -> decodes
+
+    @property
+    def image_decodes(self) -> int:
+        return sum(self.decoded_by_image.values())
 
 
 def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats]:
@@ -102,8 +105,7 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
     stats = ReadStats(num_images=len(images), num_pairs=len(pairs),
                       pairs_passed=len(pairs) - len(to_filter),
                       keypoints_total=int(sum(len(k) for k in keypoints.values())),
-                      images_missing=missing_names, image_decodes=int(loader.decodes),
-                      decoded_by_image=dict(loader.decoded))
+                      images_missing=missing_names, decoded_by_image=dict(loader.decoded))
     return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats
 
 

@@ -54,11 +54,10 @@ def init_worker() -> None:
 
 
 def _pid_alive(pid: int) -> bool:
+    """Whether ``pid`` is a live process of ours (another user's: the pid was reused)."""
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by another user (pid reused)
+    except OSError:
         return False
     return True
 

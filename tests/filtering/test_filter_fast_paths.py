@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from planes import make_scene
+from planes import assert_same_mop_runs, make_scene
 
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.homography import project
 from colmap_miho.filtering.miho import _ROTATION_Z, _candidate_transforms, build_problem, choose_rotation
-from colmap_miho.filtering.mop import run_mop
 from colmap_miho.filtering.ransac import (
     Hypotheses,
     NumpyScoring,
@@ -117,13 +116,5 @@ class _Exact(NumpyScoring):
 
 @pytest.mark.parametrize("method", ["mop", "mop_miho"])
 def test_default_screening_ahead_gives_the_exact_search(method):
-    sc = make_scene(np.random.default_rng(11), outlier_ratio=0.6)
-    cfg = FilterConfig(method=method)
-    problem = build_problem(sc.x1, sc.x2, miho=cfg.is_miho, full_match=True)
     assert NumpyScoring.prefetch > 0
-    a = run_mop(problem, cfg, np.random.default_rng(0), scoring=NumpyScoring())
-    b = run_mop(problem, cfg, np.random.default_rng(0), scoring=_Exact())
-    assert len(a.hyps) >= 3
-    np.testing.assert_array_equal(a.hyps.H, b.hyps.H)
-    np.testing.assert_array_equal(a.round_inliers, b.round_inliers)
-    assert a.stats == b.stats
+    assert_same_mop_runs(method, NumpyScoring(), _Exact(), scene_seed=11, outlier_ratio=0.6)

@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from planes import make_scene
+from planes import assert_same_mop_runs, make_scene
 
 from colmap_miho import filter_matches
 from colmap_miho.enums import Device
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem
-from colmap_miho.filtering.mop import run_mop
-from colmap_miho.filtering.ransac import NumpyScoring, Problem, hypotheses_from_samples
+from colmap_miho.filtering.ransac import NumpyScoring, hypotheses_from_samples
 from colmap_miho.filtering.torch_scoring import TorchScoring, scoring_for_device
 
 torch = pytest.importorskip("torch")
@@ -139,15 +138,7 @@ class _Prefetching(NumpyScoring):
 def test_screening_ahead_gives_the_same_search(method):
     """Scoring hypotheses ahead in chunks (the device path's way) must not change what the
     search takes: numpy with and without prefetch give identical MOP runs."""
-    sc = make_scene(np.random.default_rng(5), outlier_ratio=0.5)
-    cfg = FilterConfig(method=method)
-    problem: Problem = build_problem(sc.x1, sc.x2, miho=cfg.is_miho, full_match=True)
-    a = run_mop(problem, cfg, np.random.default_rng(0), scoring=NumpyScoring())
-    b = run_mop(problem, cfg, np.random.default_rng(0), scoring=_Prefetching())
-    assert len(a.hyps) >= 3
-    np.testing.assert_array_equal(a.hyps.H, b.hyps.H)
-    np.testing.assert_array_equal(a.round_inliers, b.round_inliers)
-    assert a.stats == b.stats
+    assert_same_mop_runs(method, NumpyScoring(), _Prefetching(), scene_seed=5, outlier_ratio=0.5)
 
 
 # -- whole filter -----------------------------------------------------------------------------
