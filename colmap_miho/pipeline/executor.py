@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future
 
@@ -34,6 +35,11 @@ CONNECT_TIMEOUT_S = 20
 
 #: ``--dask`` value that starts a local cluster (``refine --dask`` without an address).
 LOCAL = "local"
+
+
+def _ready() -> bool:
+    """A task that only tells that a worker runs."""
+    return True
 
 
 def _one_thread_task(fn: Callable, *args):
@@ -79,6 +85,34 @@ class Runner:
         if self._executor is None:
             self._executor = self._make()
         return self._executor
+
+    def start_in_background(self) -> Callable[[], bool]:
+        """Start the executor in a background thread and return ``starting()``: True while
+        it is not ready to run a task. A process pool blocks the thread that starts it until
+        its forkserver has finished its imports (~2 s); meanwhile this process can work.
+        Call :meth:`executor` or :meth:`submit` only once ``starting()`` is False (a failed
+        start is raised by them then)."""
+        if self._make is None or self._executor is not None:
+            return lambda: False
+        failed: list[BaseException] = []
+
+        def start() -> None:
+            try:
+                self.executor().submit(_ready).result()
+            except BaseException as exc:  # surfaced by the next submit
+                failed.append(exc)
+
+        thread = threading.Thread(target=start, name="pool-start", daemon=True)
+        thread.start()
+
+        def starting() -> bool:
+            if thread.is_alive():
+                return True
+            if failed:
+                raise failed[0]
+            return False
+
+        return starting
 
     def submit(self, fn: Callable, *args) -> Future:
         """Submit ``fn(*args)``; inline runners call it now and return a finished future."""

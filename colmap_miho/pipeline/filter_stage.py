@@ -15,6 +15,7 @@ derived from the base seed and its image ids.
 from __future__ import annotations
 
 import math
+from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -198,7 +199,9 @@ def run_filter(db: ColmapDatabase, pairs: list[PairRecord], keypoints: dict[int,
 def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints, cfg: FilterConfig,
                    opts: FilterOptions, runner: Runner | None, store: RunStore) -> None:
     """Filter ``chunks`` in this process (``runner`` None) or as tasks of ``runner``, storing
-    each finished chunk; chunks are read ahead at most :data:`IN_FLIGHT_PER_SLOT` per slot."""
+    each finished chunk; chunks are read ahead at most :data:`IN_FLIGHT_PER_SLOT` per slot.
+    While a new process pool has not finished a chunk, this process filters chunks too
+    (results do not depend on where a pair is filtered: its seed is its own)."""
     first = store.next_filter_index()
     bar = None
     if opts.progress:
@@ -233,7 +236,15 @@ def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints
             for fut in futs:
                 finish(*pending.pop(fut), fut.result())
 
-        for k, chunk in enumerate(chunks):
+        todo = deque(enumerate(chunks))
+        # A process pool that is not running yet needs its forkserver's imports (~2 s):
+        # meanwhile this process filters chunks itself.
+        starting = runner.start_in_background() if runner.kind == "processes" else (lambda: False)
+        while todo and starting():
+            k, chunk = todo.popleft()
+            matches, items = read(chunk)
+            finish(first + k, chunk, matches, filter_chunk(items, cfg, opts.device))
+        for k, chunk in todo:
             matches, items = read(chunk)
             pending[runner.submit(filter_chunk, items, cfg, opts.device)] = (first + k, chunk, matches)
             if len(pending) >= IN_FLIGHT_PER_SLOT * runner.slots:

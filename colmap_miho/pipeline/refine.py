@@ -57,7 +57,7 @@ from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
 from .stages import DECODED_BY_IMAGE, run_refine_stage
 from .store import RunStore, run_fingerprint, store_folder
 from .verify import run_verify
-from .workers import start_forkserver
+from .workers import check_not_bootstrapping, start_forkserver
 from .write import WriteStats, run_write
 
 if TYPE_CHECKING:  # recipe.py imports this package's config: import it lazily
@@ -269,7 +269,10 @@ def refine_database(
             image missing, no pairs to process; an interrupted run's store found without
             ``resume`` or ``restart``, or ``resume`` with other inputs or options.
         ValueError: a bad recipe or option value (the message names it).
+        RunFailed: a worker process died (see :data:`~.workers.WORKER_DIED`), or this is
+            a worker importing a script that calls this without a ``__main__`` guard.
     """
+    check_not_bootstrapping()
     laps = _Laps()
     database = check_database_path(database)
     image_dir = Path(image_dir)

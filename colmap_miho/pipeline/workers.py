@@ -27,8 +27,11 @@ import sys
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
+
+from ..errors import RunFailed
 
 log = logging.getLogger(__name__)
 
@@ -143,11 +146,34 @@ def process_pool(workers: int, *, initializer=None, initargs: tuple = (), **kwar
                              **kwargs) as ex:
         try:
             yield ex
-        except BaseException:
+        except BaseException as exc:
             procs = list((getattr(ex, "_processes", None) or {}).values())  # shutdown forgets them
             ex.shutdown(wait=False, cancel_futures=True)
             _kill(procs)
+            if isinstance(exc, BrokenProcessPool):
+                raise RunFailed(WORKER_DIED) from exc
             raise
+
+
+def check_not_bootstrapping() -> None:
+    """Refuse to start a run inside a worker process that is still importing the main
+    script of its parent (a script that calls colmap_miho without an ``if __name__ ==
+    "__main__":`` guard): the run would start its own working copy and workers there.
+
+    Raises:
+        RunFailed: this process is such a worker (its parent then reports the dead worker).
+    """
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        raise RunFailed("colmap_miho was called while a worker process imported the main script: "
+                        "put the call under 'if __name__ == \"__main__\":'")
+
+
+#: The message of a run whose worker process ended abruptly.
+WORKER_DIED = (
+    "a worker process ended abruptly (killed, out of memory, or a crash in native code); if "
+    "you call colmap_miho from your own script, put the call under 'if __name__ == "
+    "\"__main__\":' (worker processes import the script that started them), or use one "
+    "worker (--workers 1)")
 
 
 def _kill(procs: list) -> None:

@@ -1,7 +1,10 @@
 """The filter stage's chunks: sized by the memory budget, and the output does not depend on
-them (bit-identical databases with one pair per chunk and with the default chunks)."""
+them (bit-identical databases with one pair per chunk and with the default chunks) nor on
+which process filtered them."""
 
 from __future__ import annotations
+
+from concurrent.futures import Future
 
 import pytest
 from helpers.db_contents import assert_same_database, database_rows
@@ -10,6 +13,7 @@ from colmap_miho.adapters.database import PairRecord
 from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.pipeline import filter_stage
 from colmap_miho.pipeline.config import PipelineConfig
+from colmap_miho.pipeline.executor import Runner
 from colmap_miho.pipeline.filter_stage import chunk_matches, plan_chunks
 from colmap_miho.pipeline.refine import refine_database
 from colmap_miho.recipe import load_recipe
@@ -66,3 +70,35 @@ def test_tiny_and_default_chunks_write_identical_databases(scene, tmp_path, monk
     # and the comparison can fail: the input differs from the output
     assert database_rows(scene.database)["matches"] != database_rows(ref.output)["matches"]
     assert not any(p.name.endswith(".miho-run") for p in tmp_path.iterdir())  # stores removed
+
+
+def test_this_process_filters_while_the_pool_starts(scene, tmp_path, monkeypatch):
+    """Chunks filtered here while the pool starts and chunks filtered by the pool make the
+    same database as one process (the pool is replaced by calls here that record the
+    chunks sent to it)."""
+    ref = refine_database(scene.database, scene.image_dir, tmp_path / "one.db", workers=1, device="cpu")
+    monkeypatch.setattr(filter_stage, "MAX_CHUNK_MATCHES", 1)  # one pair per chunk
+    monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
+    monkeypatch.setattr(filter_stage, "MIN_MATCHES_PER_FILTER_WORKER", 0)
+
+    def starting_for_three_chunks(self):
+        left = [3]
+
+        def starting() -> bool:
+            left[0] -= 1
+            return left[0] >= 0
+        return starting
+
+    sent = []
+
+    def submit(self, fn, *args):
+        sent.append(fn)
+        fut: Future = Future()
+        fut.set_result(fn(*args))
+        return fut
+
+    monkeypatch.setattr(Runner, "start_in_background", starting_for_three_chunks)
+    monkeypatch.setattr(Runner, "submit", submit)
+    two = refine_database(scene.database, scene.image_dir, tmp_path / "two.db", workers=2, device="cpu")
+    assert two.filter_chunks == 10 and len(sent) == 10 - 3
+    assert_same_database(ref.output, two.output)

@@ -4,12 +4,13 @@ results, a task's error reaches the caller, and a bad scheduler address is one c
 from __future__ import annotations
 
 import os
+import time
 
 import numpy as np
 import pytest
 
 from colmap_miho.errors import UserError
-from colmap_miho.pipeline.executor import LOCAL, open_runner
+from colmap_miho.pipeline.executor import LOCAL, Runner, open_runner
 
 
 def square_sum(seed: int, n: int) -> tuple[int, float, int]:
@@ -64,3 +65,28 @@ def test_unreachable_scheduler_is_one_clear_error(monkeypatch):
         pass
     with pytest.raises(UserError, match="scheduler address"), open_runner(2, "myhost:8786"):
         pass
+
+
+def test_a_pool_starts_in_the_background():
+    with open_runner(1) as inline:
+        assert inline.start_in_background()() is False  # nothing to start
+    with open_runner(2) as runner:
+        starting = runner.start_in_background()
+        deadline = time.monotonic() + 120
+        while starting() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert not starting() and runner.started
+        assert runner.start_in_background()() is False  # started already
+        assert runner.submit(square_sum, 1, 10).result()[2] != os.getpid()
+
+
+def test_a_failed_background_start_is_raised_by_starting():
+    def broken():
+        raise OSError("cannot start")
+
+    runner = Runner(2, "processes", make_executor=broken)
+    starting = runner.start_in_background()
+    deadline = time.monotonic() + 60
+    with pytest.raises(OSError, match="cannot start"):
+        while starting() and time.monotonic() < deadline:
+            time.sleep(0.01)

@@ -1,15 +1,22 @@
 """The worker pool: forked by the forkserver (which imported torch once), spawn when the
-forkserver cannot start."""
+forkserver cannot start; a dead worker, and a script without a ``__main__`` guard, are one
+clear error."""
 
 from __future__ import annotations
 
 import math
 import multiprocessing
 import os
+import subprocess
+import sys
 
 import pytest
+from helpers.db_contents import database_rows
 
+from colmap_miho.adapters.synthetic import make_synthetic_scene
+from colmap_miho.errors import RunFailed
 from colmap_miho.pipeline import workers
+from colmap_miho.pipeline.refine import refine_database
 
 pytestmark = pytest.mark.skipif("forkserver" not in multiprocessing.get_all_start_methods(),
                                 reason="no forkserver on this platform")
@@ -35,3 +42,45 @@ def test_pool_falls_back_to_spawn_when_the_forkserver_cannot_start(monkeypatch):
         assert ex.submit(math.sqrt, 16.0).result(timeout=120) == 4.0
         assert ex.submit(os.getppid).result(timeout=120) == os.getpid()
     assert workers._FORKSERVER_FAILED == ["no writable temporary folder"]
+
+
+def test_a_dead_worker_is_one_clear_error():
+    with pytest.raises(RunFailed, match="worker process ended abruptly.*__main__"):
+        with workers.process_pool(1) as ex:
+            ex.submit(os._exit, 3).result(timeout=120)
+
+
+def test_a_run_started_while_a_worker_imports_the_main_script_is_refused(monkeypatch, tmp_path):
+    monkeypatch.setattr(multiprocessing.current_process(), "_inheriting", True, raising=False)
+    with pytest.raises(RunFailed, match="__main__"):
+        refine_database(tmp_path / "missing.db", tmp_path)  # refused before looking at anything
+
+
+UNGUARDED = """
+from colmap_miho.pipeline import filter_stage, stages
+from colmap_miho.pipeline.refine import refine_database
+
+filter_stage.MIN_PAIRS_PER_WORKER = 1  # both stages use the workers even for this scene
+filter_stage.MIN_MATCHES_PER_FILTER_WORKER = 0
+stages.MIN_MATCHES_PER_REFINE_WORKER = 10
+stages.MIN_MATCHES_TO_START_WORKERS = 0
+refine_database({db!r}, {images!r}, {out!r}, workers=2, device="cpu")
+"""
+
+
+def test_a_script_without_a_main_guard_gets_the_fix_in_its_error(tmp_path):
+    """Python's workers import the script that started them; an unguarded call used to end
+    in a bare BrokenProcessPool (and started a second run in each worker)."""
+    scene = make_synthetic_scene(tmp_path / "scene", num_images=4, num_points=60, seed=3)
+    before = database_rows(scene.database)
+    script = tmp_path / "unguarded.py"
+    script.write_text(UNGUARDED.format(db=str(scene.database), images=str(scene.image_dir),
+                                       out=str(tmp_path / "out.db")))
+    run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                         cwd=tmp_path)
+    assert run.returncode != 0
+    last = run.stderr.strip().splitlines()[-1]
+    assert last.startswith("colmap_miho.errors.RunFailed: a worker process ended abruptly")
+    assert "if __name__ == \"__main__\":" in last
+    assert not (tmp_path / "out.db").exists()
+    assert database_rows(scene.database) == before  # the input is untouched
