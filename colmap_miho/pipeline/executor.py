@@ -87,19 +87,20 @@ class Runner:
         return self._executor
 
     def start_in_background(self) -> Callable[[], bool]:
-        """Start the executor in a background thread and return ``starting()``: True while
-        it is not ready to run a task. A process pool blocks the thread that starts it until
-        its forkserver has finished its imports (~2 s); meanwhile this process can work.
-        Call :meth:`executor` or :meth:`submit` only once ``starting()`` is False (a failed
-        start is raised by them then)."""
+        """Create the executor and start its workers from a background thread; returns
+        ``starting()``: True until a worker has run a first task. A process pool's first
+        task blocks the thread that submits it until the forkserver has finished its
+        imports (~2 s): meanwhile this process can work. Submit only once ``starting()``
+        is False; it raises the start's error, if any."""
         if self._make is None or self._executor is not None:
             return lambda: False
+        ex = self.executor()  # here: the pool's cleanup belongs to this thread
         failed: list[BaseException] = []
 
         def start() -> None:
             try:
-                self.executor().submit(_ready).result()
-            except BaseException as exc:  # surfaced by the next submit
+                ex.submit(_ready).result()
+            except BaseException as exc:
                 failed.append(exc)
 
         thread = threading.Thread(target=start, name="pool-start", daemon=True)

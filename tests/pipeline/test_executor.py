@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import time
+from concurrent.futures import Future
 
 import numpy as np
 import pytest
@@ -80,11 +81,16 @@ def test_a_pool_starts_in_the_background():
         assert runner.submit(square_sum, 1, 10).result()[2] != os.getpid()
 
 
-def test_a_failed_background_start_is_raised_by_starting():
-    def broken():
-        raise OSError("cannot start")
+def test_a_failed_pool_start_is_raised_by_starting():
+    class Broken:
+        """An executor whose workers cannot start: every task fails."""
 
-    runner = Runner(2, "processes", make_executor=broken)
+        def submit(self, fn, *args):
+            fut: Future = Future()
+            fut.set_exception(OSError("cannot start"))
+            return fut
+
+    runner = Runner(2, "processes", make_executor=Broken)
     starting = runner.start_in_background()
     deadline = time.monotonic() + 60
     with pytest.raises(OSError, match="cannot start"):
