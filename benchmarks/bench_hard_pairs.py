@@ -19,9 +19,14 @@ seconds per pair (median of ``--runs`` calls; the filter is single-threaded nump
 shared machine ``cpu`` is the better estimate of the time on an idle one). OpenCV MAGSAC++
 (``cv2.USAC_MAGSAC``, one homography, 0.75 px as in the paper's protocol and 3 px) runs
 beside the filters. The reference implementation's numbers quoted in issue 13 (its own
-planar pair set, not these pairs) are printed for comparison.
+planar pair set, not these pairs) are printed for comparison; ``--reference DIR`` runs the
+authors' MOP+MiHo and MOP themselves on these pairs, from a checkout of
+github.com/fb82/MiHo with its requirements (not shipped here;
+:class:`miho_bench.peers.ReferenceMiho`).
 
     python benchmarks/bench_hard_pairs.py                      # every method + MAGSAC++
+    python benchmarks/bench_hard_pairs.py --methods mop_miho,mop --no-magsac --runs 3 \\
+        --reference ~/src/MiHo                                 # side by side with the authors'
     python benchmarks/bench_hard_pairs.py --methods mop_miho --per-pair
     python benchmarks/bench_hard_pairs.py --methods mop_miho \\
         --variant uniform:sampling=uniform --variant ref:assignment=reference
@@ -46,7 +51,7 @@ from colmap_miho.filtering.config import FilterConfig
 from miho_bench.datasets import oxford_pairs
 from miho_bench.frontend_cache import load_inputs
 from miho_bench.match_errors import gt_error
-from miho_bench.peers import magsac_mask
+from miho_bench.peers import ReferenceMiho, magsac_mask
 
 OUTLIER_PX = 15.0
 GOOD_PX = 3.0
@@ -145,6 +150,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="extra config per method, 'name:key=value,...' (repeatable); the "
                          "plain default config always runs as 'default'")
     ap.add_argument("--no-magsac", action="store_true", help="skip OpenCV MAGSAC++")
+    ap.add_argument("--reference", metavar="DIR", default=None,
+                    help="also run the authors' MOP+MiHo and MOP from a checkout of "
+                         "github.com/fb82/MiHo (with its requirements installed)")
     ap.add_argument("--groups", default="wide,+out50,+out80,+out95")
     ap.add_argument("--max-matches", type=int, default=2000)
     ap.add_argument("--runs", type=int, default=1, help="timed calls per pair and method")
@@ -170,8 +178,14 @@ def main(argv: list[str] | None = None) -> int:
             runners.append((f"magsac++ H {t:g}px",
                             lambda p1, p2, t=t: magsac_mask(p1, p2, planar=True, threshold_px=t,
                                                             seed=args.seed)))
+    if args.reference:
+        ref = ReferenceMiho(args.reference)
+        for m in ("mop_miho", "mop"):
+            runners.append((f"reference {m}", lambda p1, p2, m=m: ref.mask(m, p1, p2)))
     rng = np.random.default_rng(0)  # warm-up outside the timings
-    filter_matches(rng.uniform(0, 500, (100, 2)), rng.uniform(0, 500, (100, 2)))
+    warm = rng.uniform(0, 500, (100, 2)), rng.uniform(0, 500, (100, 2))
+    for _, run in runners:
+        run(*warm)
     rows: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     for hp in pairs:
         for label, run in runners:

@@ -124,3 +124,49 @@ def colmap_verification_mask(pts1: np.ndarray, pts2: np.ndarray, shape1: tuple[i
     if inl.size:
         mask[inl[:, 0].astype(np.int64)] = True
     return mask
+
+
+class ReferenceMiho:
+    """The authors' reference MOP+MiHo / MOP (https://github.com/fb82/MiHo), run from a checkout
+    of it that the user provides (nothing of it is shipped here): ``src/miho.py`` (MOP+MiHo) and
+    ``src/miho_other.py`` (MOP), the modules the authors' ``run_bench.py`` calls, with their
+    default parameters, on the CPU with one torch thread (like the numpy filter here). A match is
+    kept when the reference assigns it a homography (``Hidx > -1``, the mask of its
+    ``refinement_miho(remove_bad=True)``). The reference seeds torch itself on every call.
+
+    Raises:
+        ImportError: the checkout is missing, or lacks one of the reference's own dependencies
+            (it imports PIL, OpenCV, matplotlib, torch and torchvision at module level).
+    """
+
+    def __init__(self, checkout: str) -> None:
+        import importlib
+        import os
+        import sys
+
+        if not os.path.isfile(os.path.join(checkout, "src", "miho.py")):
+            raise ImportError(f"no src/miho.py in {checkout}: give a checkout of github.com/fb82/MiHo")
+        sys.path.insert(0, os.path.abspath(checkout))
+        try:
+            self.modules = {"mop_miho": importlib.import_module("src.miho"),
+                            "mop": importlib.import_module("src.miho_other")}
+        except ImportError as exc:
+            raise ImportError(f"the reference in {checkout} cannot be imported ({exc}); install its "
+                              "requirements") from exc
+        finally:
+            sys.path.remove(os.path.abspath(checkout))
+
+    def mask(self, method: str, pts1: np.ndarray, pts2: np.ndarray) -> np.ndarray:
+        """Kept matches (N,) of the reference's ``method`` ("mop_miho" or "mop")."""
+        import torch
+
+        module = self.modules[method]
+        before = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            m = module.miho()
+            m.planar_clustering(torch.tensor(np.asarray(pts1), dtype=torch.float32),
+                                torch.tensor(np.asarray(pts2), dtype=torch.float32))
+            return (m.Hidx > -1).cpu().numpy().astype(bool)
+        finally:
+            torch.set_num_threads(before)

@@ -1,5 +1,7 @@
 """The paper's match metrics (averaged precision/recall, homography error/AUC) and the peers."""
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -61,3 +63,45 @@ def test_peers_separate_planted_outliers():
         assert precision > 0.9 and recall > 0.7, (precision, recall)
     assert magsac_mask(pts1[:5], pts2[:5]).sum() == 0
     assert isinstance(gms_available(), bool)
+
+
+FAKE_REFERENCE = '''
+import torch
+
+calls = []
+
+
+class miho:
+    """Stands in for the authors' class: keeps the matches with x1 < {cut}, records the call."""
+
+    def planar_clustering(self, pt1, pt2):
+        calls.append((pt1.dtype, pt2.shape, torch.get_num_threads()))
+        self.Hidx = torch.where(pt1[:, 0] < {cut}, 0, -1)
+'''
+
+
+def test_reference_runner_calls_the_authors_modules(tmp_path):
+    """The side-by-side runner imports src/miho.py (MOP+MiHo) and src/miho_other.py (MOP) from
+    the given checkout, calls them with float32 tensors and one torch thread, and keeps the
+    matches they assign to a homography (a fake checkout: the reference is not shipped)."""
+    import torch
+
+    from miho_bench.peers import ReferenceMiho
+
+    with pytest.raises(ImportError, match="fb82/MiHo"):
+        ReferenceMiho(str(tmp_path))
+    (tmp_path / "src").mkdir()
+    (tmp_path / "src" / "__init__.py").write_text("")
+    (tmp_path / "src" / "miho.py").write_text(FAKE_REFERENCE.format(cut=5))
+    (tmp_path / "src" / "miho_other.py").write_text(FAKE_REFERENCE.format(cut=2))
+    try:
+        ref = ReferenceMiho(str(tmp_path))
+        pts = np.stack([np.arange(8.0), np.zeros(8)], axis=1)
+        threads = torch.get_num_threads()
+        np.testing.assert_array_equal(ref.mask("mop_miho", pts, pts), np.arange(8) < 5)
+        np.testing.assert_array_equal(ref.mask("mop", pts, pts), np.arange(8) < 2)
+        assert ref.modules["mop_miho"].calls == [(torch.float32, (8, 2), 1)]
+        assert torch.get_num_threads() == threads  # restored
+    finally:
+        for name in ("src", "src.miho", "src.miho_other"):
+            sys.modules.pop(name, None)
