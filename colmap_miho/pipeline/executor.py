@@ -25,8 +25,8 @@ import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future
 
-from ..errors import UserError
-from .workers import init_worker, process_pool, single_thread_children
+from ..errors import RunFailed, UserError
+from .workers import SCRIPT_HINT, init_worker, process_pool, single_thread_children
 
 log = logging.getLogger(__name__)
 
@@ -173,9 +173,12 @@ def _dask_client(workers: int, dask: str):
     except ImportError:  # pragma: no cover - distributed is a dependency
         raise UserError("--dask needs the 'distributed' package: pip install distributed") from None
     if dask == LOCAL:
-        with LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
-                          dashboard_address=None, silence_logs=logging.ERROR) as cluster, \
-                Client(cluster) as client:
+        try:
+            cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
+                                   dashboard_address=None, silence_logs=logging.ERROR)
+        except RuntimeError as exc:  # "Nanny failed to start."
+            raise RunFailed(f"the local Dask cluster did not start ({exc}); {SCRIPT_HINT}") from exc
+        with cluster, Client(cluster) as client:
             log.info("started a local Dask cluster of %d workers at %s", workers, cluster.scheduler_address)
             yield client
         return

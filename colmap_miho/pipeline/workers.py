@@ -42,6 +42,14 @@ PARENT_POLL_S = 0.5
 PRELOAD = ("numpy", "torch", "colmap_miho.pipeline.filter_stage", "colmap_miho.pipeline.stages",
            "colmap_miho.refinement.ncc", "colmap_miho.refinement.tracks")
 
+#: What a script that starts workers needs (said by the errors of failed worker starts).
+SCRIPT_HINT = ("if you call colmap_miho from your own script, put the call under 'if __name__ == "
+               "\"__main__\":' (worker processes import the script that started them), or use "
+               "one worker (--workers 1)")
+
+#: The message of a run whose worker process ended abruptly.
+WORKER_DIED = f"a worker process ended abruptly (killed, out of memory, or a crash in native code); {SCRIPT_HINT}"
+
 _SINGLE_THREAD_ENV = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
 
 
@@ -167,13 +175,6 @@ def check_not_bootstrapping() -> None:
         raise RunFailed("colmap_miho was called while a worker process imported the main script: "
                         "put the call under 'if __name__ == \"__main__\":'")
 
-
-#: The message of a run whose worker process ended abruptly.
-WORKER_DIED = (
-    "a worker process ended abruptly (killed, out of memory, or a crash in native code); if "
-    "you call colmap_miho from your own script, put the call under 'if __name__ == "
-    "\"__main__\":' (worker processes import the script that started them), or use one "
-    "worker (--workers 1)")
 
 
 def _kill(procs: list) -> None:

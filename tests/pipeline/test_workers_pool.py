@@ -64,23 +64,28 @@ filter_stage.MIN_PAIRS_PER_WORKER = 1  # both stages use the workers even for th
 filter_stage.MIN_MATCHES_PER_FILTER_WORKER = 0
 stages.MIN_MATCHES_PER_REFINE_WORKER = 10
 stages.MIN_MATCHES_TO_START_WORKERS = 0
-refine_database({db!r}, {images!r}, {out!r}, workers=2, device="cpu")
+refine_database({db!r}, {images!r}, {out!r}, workers=2, device="cpu", dask={dask!r})
 """
 
 
-def test_a_script_without_a_main_guard_gets_the_fix_in_its_error(tmp_path):
-    """Python's workers import the script that started them; an unguarded call used to end
-    in a bare BrokenProcessPool (and started a second run in each worker)."""
+@pytest.mark.parametrize("dask, error", [
+    (None, "a worker process ended abruptly"),
+    ("local", "the local Dask cluster did not start"),
+])
+def test_a_script_without_a_main_guard_gets_the_fix_in_its_error(tmp_path, dask, error):
+    """Python's workers (and Dask's) import the script that started them; an unguarded call
+    used to end in a bare BrokenProcessPool or "Nanny failed to start" (and started a second
+    run in each worker)."""
     scene = make_synthetic_scene(tmp_path / "scene", num_images=4, num_points=60, seed=3)
     before = database_rows(scene.database)
     script = tmp_path / "unguarded.py"
     script.write_text(UNGUARDED.format(db=str(scene.database), images=str(scene.image_dir),
-                                       out=str(tmp_path / "out.db")))
+                                       out=str(tmp_path / "out.db"), dask=dask))
     run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
                          cwd=tmp_path)
     assert run.returncode != 0
     last = run.stderr.strip().splitlines()[-1]
-    assert last.startswith("colmap_miho.errors.RunFailed: a worker process ended abruptly")
+    assert last.startswith(f"colmap_miho.errors.RunFailed: {error}")
     assert "if __name__ == \"__main__\":" in last
     assert not (tmp_path / "out.db").exists()
     assert database_rows(scene.database) == before  # the input is untouched
