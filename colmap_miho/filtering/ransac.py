@@ -79,6 +79,18 @@ def _apart(d: np.ndarray, t2: float) -> np.ndarray:
     return ok
 
 
+def _apart_xy(dx: np.ndarray, dy: np.ndarray, t2: float) -> np.ndarray:
+    """:func:`_apart` from the differences' x and y ``(..., sets)`` apart (the same
+    ``dx * dx + dy * dy``, bit for bit); overwrites ``dx`` and ``dy``."""
+    dx *= dx
+    dy *= dy
+    dx += dy
+    ok = dx[..., 0] >= t2
+    for k in range(1, dx.shape[-1]):
+        ok &= dx[..., k] >= t2
+    return ok
+
+
 @dataclass(frozen=True)
 class Problem:
     """Point sets of one filtering problem (all ``(N, 2)`` float64 pixels: numpy arrays, or
@@ -455,7 +467,8 @@ class LocalCandidates:
         from scipy.spatial import cKDTree
 
         n = len(problem.x1)
-        self._spread = problem.spread_all
+        self._sx = np.ascontiguousarray(problem.spread_all[..., 0])  # (N, sets)
+        self._sy = np.ascontiguousarray(problem.spread_all[..., 1])
         self._t2 = cfg.t_l**2
         self.feats = np.concatenate([problem.x1, problem.x2], axis=1)
         self._tree = cKDTree(self.feats)
@@ -466,7 +479,7 @@ class LocalCandidates:
 
     def far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Whether matches ``a`` and ``b`` (broadcast) are >= t_l apart in every spread set."""
-        return _apart(self._spread[a] - self._spread[b], self._t2)
+        return _apart_xy(self._sx[a] - self._sx[b], self._sy[a] - self._sy[b], self._t2)
 
     def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
@@ -510,7 +523,9 @@ class _Sampler:
             self._pos[pool] = np.arange(n)
         self._pool_tree: cKDTree | None = None
         self._nb = np.full((n, self.k), -1, dtype=np.int64)  # -1 = no such neighbour
-        self._spread = problem.spread_all[pool] if self.local else None  # (n, sets, 2)
+        # (n, sets) x and y of the spread sets, apart: contiguous for the local draws
+        self._spread_x = problem.spread_all[pool, :, 0] if self.local else None
+        self._spread_y = problem.spread_all[pool, :, 1] if self.local else None
         self._t2 = cfg.t_l**2
         self._known = np.zeros(n, dtype=bool)
 
@@ -568,18 +583,23 @@ class _Sampler:
     def _draw_local(self, rng: np.random.Generator, seeds: np.ndarray) -> np.ndarray:
         """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart
         (the seed itself where no such neighbour is left, which fails the spread test)."""
-        assert self._spread is not None, "local draws need local sampling"
+        assert self._spread_x is not None and self._spread_y is not None, \
+            "local draws need local sampling"
         nb = self.neighbours(seeds)
         free = nb >= 0  # (L, k) candidates still allowed
-        pts = self._spread[np.maximum(nb, 0)]  # (L, k, sets, 2)
+        safe = np.maximum(nb, 0)
+        # x and y apart (contiguous): the same dx * dx + dy * dy as _apart, bit for bit.
+        px, py = self._spread_x[safe], self._spread_y[safe]  # (L, k, sets)
         rows = np.arange(len(seeds))
         out = np.empty((len(seeds), 3), dtype=np.int64)
         for j in range(3):
             key = np.where(free, rng.random(free.shape), -1.0)
             pick = np.argmax(key, axis=1)
-            found = key[rows, pick] >= 0
+            found = free[rows, pick]  # key >= 0 there: the drawn key of a free candidate
             out[:, j] = np.where(found, nb[rows, pick], seeds)
-            free &= _apart(pts - pts[rows, pick][:, None], self._t2)
+            if j < 2:  # what the last pick leaves free is not used
+                free &= _apart_xy(px - px[rows, pick][:, None], py - py[rows, pick][:, None],
+                                  self._t2)
         return out
 
     def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
