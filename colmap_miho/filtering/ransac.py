@@ -291,6 +291,28 @@ class _Scratch:
 
     def __init__(self) -> None:
         self._arrays: dict[str, np.ndarray] = {}
+        self._points_of: tuple[Problem, np.ndarray] | None = None
+        self._points: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+        self._points32: tuple[np.ndarray, np.ndarray] | None = None
+
+    def points(self, problem: Problem, idx: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+        """Per half, ``(src, dst)`` of the matches ``idx`` as ``(2, n)`` arrays (x row, y row,
+        each contiguous), kept while the same ``problem`` and ``idx`` objects come back (a
+        RANSAC run scores on one pool array, never changed in place)."""
+        key = self._points_of
+        if key is None or key[0] is not problem or key[1] is not idx:
+            self._points = tuple((problem.src[h][idx].T.copy(), problem.dst[h][idx].T.copy())
+                                 for h in range(problem.num_halves))
+            self._points32 = None
+            self._points_of = (problem, idx)
+        return self._points
+
+    def points32(self, problem: Problem, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The first half's ``(src, dst)`` of :meth:`points` in float32."""
+        pts = self.points(problem, idx)
+        if self._points32 is None:
+            self._points32 = (pts[0][0].astype(np.float32), pts[0][1].astype(np.float32))
+        return self._points32
 
     def get(self, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
         """A C-contiguous array of ``shape`` and ``dtype`` (contents undefined)."""
@@ -321,16 +343,18 @@ def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
         t2, s2 = t2 / s2, 1.0
     ok: np.ndarray | None = None
     cols: np.ndarray | None = None  # the matches still carried (None: all)
+    terms = 2 * problem.num_halves
     with np.errstate(divide="ignore", invalid="ignore"):  # w == 0: rejected by the sign
-        for h in range(problem.num_halves):
-            src, dst = problem.src[h][idx], problem.dst[h][idx]
+        for h, (src, dst) in enumerate(scratch.points(problem, idx)):  # (2, n) each
             for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst),
                                    (hyp.Hinv, hyp.sign_inv, dst, src)):
+                terms -= 1
                 if cols is not None:
-                    a, b = a[cols], b[cols]
-                shape = (K, len(a))
+                    a, b = a[:, cols], b[:, cols]
+                shape = (K, a.shape[1])
                 work = tuple(scratch.get(name, shape, np.float64) for name in "ewyt")
-                e, w = transfer_error_sq(mat[:, h] * sgn[:, h, None, None], a, b, work)
+                # (n, 2) views with contiguous x and y: the same values, read faster
+                e, w = transfer_error_sq(mat[:, h] * sgn[:, h, None, None], a.T, b.T, work)
                 if s2 != 1.0:
                     e *= s2
                 inside = e <= t2
@@ -339,6 +363,8 @@ def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
                     ok = inside
                 else:
                     ok &= inside
+                if not terms:  # the last term: nothing left to carry
+                    break
                 alive = np.flatnonzero(ok.any(axis=0))
                 if 4 * len(alive) < 3 * ok.shape[1]:
                     ok = ok[:, alive]
@@ -362,16 +388,15 @@ def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
     about 1e-4 px at 1000 px coordinates.
     """
     t2 = t2 / problem.error_scale**2
-    src = problem.src[0][idx].astype(np.float32)
-    dst = problem.dst[0][idx].astype(np.float32)
-    X, Y, x2, y2 = src[:, 0], src[:, 1], dst[:, 0], dst[:, 1]
+    scratch = _Scratch() if scratch is None else scratch
+    src, dst = scratch.points32(problem, idx)  # (2, n) float32 each
+    X, Y, x2, y2 = src[0], src[1], dst[0], dst[1]
     n = len(idx)
     K = len(hyp)
     # Sign-normalised so that the quasi-affine test is simply w > 0.
     Hs = (hyp.H[:, 0] * hyp.sign[:, 0, None, None]).astype(np.float32).reshape(K, 9, 1)
     counts = np.empty(K, dtype=np.int64)
     kb = max(1, block // max(n, 1))
-    scratch = _Scratch() if scratch is None else scratch
     for a in range(0, K, kb):
         shape = (min(kb, K - a), n)
         out = tuple(scratch.get(name, shape, np.float32) for name in "WUVT") + tuple(
