@@ -508,11 +508,13 @@ class LocalCandidates:
 
     def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
-        (nearest first) and whether each is far enough for the spread test. The first
-        time a match is missing, all missing ones are searched at once (one tree query:
-        local sampling reaches nearly every match, and a match's neighbours do not depend
-        on what it is queried with)."""
-        todo = np.flatnonzero(~self._known) if not self._known[idx].all() else idx[:0]
+        (nearest first) and whether each is far enough for the spread test. Matches are
+        searched when first asked for (one tree query per call for the missing ones; a
+        match's neighbours do not depend on what it is queried with: measured, local
+        sampling asks for 40-100% of the matches, 86% on average, over ~17 calls)."""
+        todo = idx[~self._known[idx]]
+        if len(todo):
+            todo = np.unique(todo)
         if len(todo) and self._q:
             cand = self._tree.query(self.feats[todo], k=self._q + 1)[1][:, 1:]
             self._cand[todo] = cand
