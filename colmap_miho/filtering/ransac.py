@@ -79,15 +79,15 @@ def _apart(d: np.ndarray, t2: float) -> np.ndarray:
     return ok
 
 
-def _apart_xy(dx: np.ndarray, dy: np.ndarray, t2: float) -> np.ndarray:
-    """:func:`_apart` from the differences' x and y ``(..., sets)`` apart (the same
-    ``dx * dx + dy * dy``, bit for bit); overwrites ``dx`` and ``dy``."""
+def _apart_sets(dx: np.ndarray, dy: np.ndarray, t2: float) -> np.ndarray:
+    """:func:`_apart` from the differences' x and y ``(sets, ...)`` apart, sets first (the
+    same ``dx * dx + dy * dy``, bit for bit); overwrites ``dx`` and ``dy``."""
     dx *= dx
     dy *= dy
     dx += dy
-    ok = dx[..., 0] >= t2
-    for k in range(1, dx.shape[-1]):
-        ok &= dx[..., k] >= t2
+    ok = dx[0] >= t2
+    for k in range(1, dx.shape[0]):
+        ok &= dx[k] >= t2
     return ok
 
 
@@ -116,12 +116,17 @@ class Problem:
     src_all: np.ndarray = field(init=False, repr=False)
     dst_all: np.ndarray = field(init=False, repr=False)
     spread_all: np.ndarray = field(init=False, repr=False)
+    # The spread sets by coordinate, (2, sets, N) (numpy only, None for torch): a gather
+    # along the last axis (np.take) costs several times less than one of 2-6 float rows.
+    spread_xy: np.ndarray | None = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         xp = array_module(self.x1)
         object.__setattr__(self, "src_all", xp.stack(self.src, axis=1))
         object.__setattr__(self, "dst_all", xp.stack(self.dst, axis=1))
         object.__setattr__(self, "spread_all", xp.stack(self.spread, axis=1))
+        object.__setattr__(self, "spread_xy", np.ascontiguousarray(
+            self.spread_all.transpose(2, 1, 0)) if xp is np else None)
 
     @property
     def num_halves(self) -> int:
@@ -187,10 +192,16 @@ def sample_signs(problem: Problem, H: np.ndarray, Hinv: np.ndarray, sample: np.n
 def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
     """``(B,)`` bool: the 4 points of each minimal sample ``(B, 4)`` are pairwise at least
     ``t_l`` pixels apart in every spread set (paper App. A.3)."""
-    p = problem.spread_all[sample]  # (B, 4, sets, 2)
+    if problem.spread_xy is None:  # torch
+        p = problem.spread_all[sample]  # (B, 4, sets, 2)
+        ok = np.ones(len(sample), dtype=bool)
+        for i, j in _PAIRS:
+            ok &= _apart(p[:, i] - p[:, j], t_l**2)
+        return ok
+    px, py = np.take(problem.spread_xy, sample.T, axis=2)  # (sets, 4, B) each
     ok = np.ones(len(sample), dtype=bool)
     for i, j in _PAIRS:
-        ok &= _apart(p[:, i] - p[:, j], t_l**2)
+        ok &= _apart_sets(px[:, i] - px[:, j], py[:, i] - py[:, j], t_l**2)
     return ok
 
 
@@ -492,8 +503,8 @@ class LocalCandidates:
         from scipy.spatial import cKDTree
 
         n = len(problem.x1)
-        self._sx = np.ascontiguousarray(problem.spread_all[..., 0])  # (N, sets)
-        self._sy = np.ascontiguousarray(problem.spread_all[..., 1])
+        assert problem.spread_xy is not None, "local sampling runs on the numpy problem"
+        self._sx, self._sy = problem.spread_xy  # (sets, N) each
         self._t2 = cfg.t_l**2
         self.feats = np.concatenate([problem.x1, problem.x2], axis=1)
         self._tree = cKDTree(self.feats)
@@ -504,7 +515,9 @@ class LocalCandidates:
 
     def far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Whether matches ``a`` and ``b`` (broadcast) are >= t_l apart in every spread set."""
-        return _apart_xy(self._sx[a] - self._sx[b], self._sy[a] - self._sy[b], self._t2)
+        sx, sy = self._sx, self._sy
+        return _apart_sets(np.take(sx, a, axis=1) - np.take(sx, b, axis=1),
+                           np.take(sy, a, axis=1) - np.take(sy, b, axis=1), self._t2)
 
     def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
@@ -550,9 +563,12 @@ class _Sampler:
             self._pos[pool] = np.arange(n)
         self._pool_tree: cKDTree | None = None
         self._nb = np.full((n, self.k), -1, dtype=np.int64)  # -1 = no such neighbour
-        # (n, sets) x and y of the spread sets, apart: contiguous for the local draws
-        self._spread_x = problem.spread_all[pool, :, 0] if self.local else None
-        self._spread_y = problem.spread_all[pool, :, 1] if self.local else None
+        # (sets, n) x and y of the spread sets of the pool, for the local draws
+        self._spread_x: np.ndarray | None = None
+        self._spread_y: np.ndarray | None = None
+        if self.local:
+            assert problem.spread_xy is not None, "local sampling runs on the numpy problem"
+            self._spread_x, self._spread_y = np.take(problem.spread_xy, pool, axis=2)
         self._t2 = cfg.t_l**2
         self._known = np.zeros(n, dtype=bool)
 
@@ -615,8 +631,9 @@ class _Sampler:
         nb = self.neighbours(seeds)
         free = nb >= 0  # (L, k) candidates still allowed
         safe = np.maximum(nb, 0)
-        # x and y apart (contiguous): the same dx * dx + dy * dy as _apart, bit for bit.
-        px, py = self._spread_x[safe], self._spread_y[safe]  # (L, k, sets)
+        # x and y apart, sets first: the same dx * dx + dy * dy as _apart, bit for bit.
+        px = np.take(self._spread_x, safe, axis=1)  # (sets, L, k)
+        py = np.take(self._spread_y, safe, axis=1)
         rows = np.arange(len(seeds))
         out = np.empty((len(seeds), 3), dtype=np.int64)
         for j in range(3):
@@ -625,8 +642,8 @@ class _Sampler:
             found = free[rows, pick]  # key >= 0 there: the drawn key of a free candidate
             out[:, j] = np.where(found, nb[rows, pick], seeds)
             if j < 2:  # what the last pick leaves free is not used
-                free &= _apart_xy(px - px[rows, pick][:, None], py - py[rows, pick][:, None],
-                                  self._t2)
+                free &= _apart_sets(px - px[:, rows, pick][:, :, None],
+                                    py - py[:, rows, pick][:, :, None], self._t2)
         return out
 
     def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
