@@ -363,7 +363,7 @@ def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
                 if cols is not None:
                     a, b = a[:, cols], b[:, cols]
                 shape = (K, a.shape[1])
-                work = tuple(scratch.get(name, shape, np.float64) for name in "ewyt")
+                work = tuple(scratch.get("ewyt", (4,) + shape, np.float64))  # 4 (K, n)
                 # (n, 2) views with contiguous x and y: the same values, read faster
                 e, w = transfer_error_sq(mat[:, h] * sgn[:, h, None, None], a.T, b.T, work)
                 if s2 != 1.0:
@@ -410,8 +410,8 @@ def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
     kb = max(1, block // max(n, 1))
     for a in range(0, K, kb):
         shape = (min(kb, K - a), n)
-        out = tuple(scratch.get(name, shape, np.float32) for name in "WUVT") + tuple(
-            scratch.get(name, shape, np.bool_) for name in ("ok", "tmp"))
+        out = tuple(scratch.get("WUVT", (4,) + shape, np.float32)) + tuple(
+            scratch.get("ok,tmp", (2,) + shape, np.bool_))
         ok = one_way_inside(Hs[a:a + kb], X, Y, x2, y2, t2, out)
         counts[a:a + kb] = np.count_nonzero(ok, axis=1)
     return counts
