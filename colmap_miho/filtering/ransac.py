@@ -734,6 +734,8 @@ class NumpyScoring:
         ``(K, n)`` of all ``K`` hypotheses (rows failing the test are not used: here they are
         left empty)."""
         sv = self.singular_value_ok(problem, hyp, cfg)
+        if sv.all():  # the usual case: no copy of the hypotheses, no scatter of the masks
+            return sv, self.masks(problem, hyp, idx, t2)[0]
         masks = np.zeros((len(hyp), len(idx)), dtype=bool)
         if sv.any():
             masks[sv] = self.masks(problem, hyp.take(np.flatnonzero(sv)), idx, t2)[0]
