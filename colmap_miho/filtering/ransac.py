@@ -644,16 +644,18 @@ class _Sampler:
         # x and y apart, sets first: the same dx * dx + dy * dy as _apart, bit for bit.
         px = np.take(self._spread_x, safe, axis=1)  # (sets, L, k)
         py = np.take(self._spread_y, safe, axis=1)
-        rows = np.arange(len(seeds))
+        sets = px.shape[0]
+        row_start = np.arange(len(seeds)) * nb.shape[1]  # flat index of each row's first
         out = np.empty((len(seeds), 3), dtype=np.int64)
         for j in range(3):
             key = np.where(free, rng.random(free.shape), -1.0)
-            pick = np.argmax(key, axis=1)
-            found = free[rows, pick]  # key >= 0 there: the drawn key of a free candidate
-            out[:, j] = np.where(found, nb[rows, pick], seeds)
+            at = row_start + np.argmax(key, axis=1)  # flat index of each row's pick
+            found = free.reshape(-1).take(at)  # key >= 0 there: a free candidate's key
+            out[:, j] = np.where(found, nb.reshape(-1).take(at), seeds)
             if j < 2:  # what the last pick leaves free is not used
-                free &= _apart_sets(px - px[:, rows, pick][:, :, None],
-                                    py - py[:, rows, pick][:, :, None], self._t2)
+                free &= _apart_sets(px - px.reshape(sets, -1).take(at, axis=1)[:, :, None],
+                                    py - py.reshape(sets, -1).take(at, axis=1)[:, :, None],
+                                    self._t2)
         return out
 
     def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
