@@ -275,21 +275,23 @@ def passes_singular_value_test(problem: Problem, hyp: Hypotheses, cfg: FilterCon
     return np.all(sv > cfg.min_singular_value, axis=1)
 
 
-def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
+def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray,
+             scratch: _Scratch | None = None) -> np.ndarray:
     """Squared MOP error ``(K, n)`` of hypotheses on the matches ``idx`` ``(n,)``: the max over
     halves and directions of the squared transfer error (times ``problem.error_scale``
     squared); ``inf`` where a projection breaks the quasi-affine sign of the hypothesis'
     sample. The torch path computes the same per-element formula stacked over halves and
     directions (``TorchScoring._error_sq``)."""
     err = None
+    # (2, n) coordinates per half (kept in ``scratch`` for the next call on the same pool)
+    points = (_Scratch() if scratch is None else scratch).points(problem, idx)
     # w == 0 gives inf / nan errors; those entries break the quasi-affine sign and are set
     # to inf below, after the max, exactly as if they had been set before it.
     with np.errstate(divide="ignore", invalid="ignore"):
-        for h in range(problem.num_halves):
-            src, dst = problem.src[h][idx], problem.dst[h][idx]
+        for h, (src, dst) in enumerate(points):
             for mat, sgn, a, b in ((hyp.H, hyp.sign, src, dst),
                                    (hyp.Hinv, hyp.sign_inv, dst, src)):
-                e, w = transfer_error_sq(mat[:, h], a, b)
+                e, w = transfer_error_sq(mat[:, h], a.T, b.T)  # (n, 2) views
                 if err is None:
                     err = e  # the max of 0 and e >= 0
                 else:
@@ -721,7 +723,7 @@ class NumpyScoring:
 
     def error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
         """:func:`error_sq`, float64 ``(K, n)`` numpy."""
-        return error_sq(problem, hyp, idx)
+        return error_sq(problem, hyp, idx, self._work())
 
     def masks(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
               t2: float) -> tuple[np.ndarray, np.ndarray | None]:
