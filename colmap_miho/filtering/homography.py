@@ -109,9 +109,22 @@ def normalise_scale(H: np.ndarray) -> np.ndarray:
 def _dlt_system(s: np.ndarray, d: np.ndarray) -> np.ndarray:
     """The DLT system ``A`` ``(B, 2M, 9)`` of ``(B, M, 2)`` (normalised) point sets, ``A h = 0``
     for ``d ~ H s`` with ``h`` the row-major entries of ``H``: two rows per point."""
-    # Stacked rather than assigned entry by entry: a few whole-array operations.
     xp = array_module(s)
     B, M, _ = s.shape
+    if xp is np:
+        # Filled by blocks (numpy: fewer calls than the stacks below, the same entries).
+        A = np.zeros((B, M, 2, 9))
+        nd = -d
+        A[:, :, 0, 0:2] = s
+        A[:, :, 0, 2] = 1.0
+        A[:, :, 1, 3:5] = s
+        A[:, :, 1, 5] = 1.0
+        A[:, :, 0, 6:8] = nd[..., 0:1] * s  # -u x, -u y
+        A[:, :, 1, 6:8] = nd[..., 1:2] * s  # -v x, -v y
+        A[:, :, :, 8] = nd
+        return A.reshape(B, 2 * M, 9)
+    # Stacked rather than assigned entry by entry: a few whole-array operations (a kernel
+    # launch each on a device).
     x, y, u, v = s[..., 0], s[..., 1], d[..., 0], d[..., 1]
     one, zero = xp.ones_like(x), xp.zeros_like(x)
     nu, nv = -u, -v

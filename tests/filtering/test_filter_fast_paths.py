@@ -9,8 +9,15 @@ import pytest
 from planes import assert_same_mop_runs, make_scene
 
 from colmap_miho.filtering.config import FilterConfig
-from colmap_miho.filtering.homography import project
-from colmap_miho.filtering.miho import _ROTATION_Z, _candidate_transforms, build_problem, choose_rotation
+from colmap_miho.filtering.homography import _dlt_system, project
+from colmap_miho.filtering.miho import (
+    _ROTATION_Z,
+    _candidate_transforms,
+    _differences,
+    _norms,
+    build_problem,
+    choose_rotation,
+)
 from colmap_miho.filtering.ransac import (
     Hypotheses,
     NumpyScoring,
@@ -108,6 +115,29 @@ def test_rotation_fix_matches_the_full_products(rotate, mirror):
                                     reflections=True)
     assert (idx, score) == _reference_rotation(sc.x1, sc.x2, np.random.default_rng(0), 20000, True)
     assert (idx != 0) == (rotate != 0 or mirror)  # the fix did turn the turned scenes
+
+
+@pytest.mark.parametrize("scale", [1.0, 1500.0, 1e7])
+def test_rotation_pair_differences_and_norms_match_the_row_formulas(scale):
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-scale, scale, (3000, 2))
+    i, j = rng.integers(0, 3000, 100000), rng.integers(0, 3000, 100000)
+    d = x[i] - x[j]
+    np.testing.assert_array_equal(_differences(x, i, j), d.T)
+    np.testing.assert_array_equal(_norms(d.T.copy()), np.sqrt((d**2).sum(1)))
+
+
+def test_dlt_system_blocks_match_the_stacked_rows():
+    rng = np.random.default_rng(4)
+    s, d = rng.normal(size=(300, 4, 2)), rng.normal(size=(300, 4, 2))
+    s[0, 0], d[1, 2] = 0.0, -0.0  # signed zeros keep their sign
+    x, y, u, v = s[..., 0], s[..., 1], d[..., 0], d[..., 1]
+    one, zero = np.ones_like(x), np.zeros_like(x)
+    even = np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], axis=-1)
+    odd = np.stack([zero, zero, zero, x, y, one, -v * x, -v * y, -v], axis=-1)
+    ref = np.stack([even, odd], axis=2).reshape(300, 8, 9)
+    # bit for bit (signed zeros included)
+    np.testing.assert_array_equal(_dlt_system(s, d).view(np.int64), ref.view(np.int64))
 
 
 class _Exact(NumpyScoring):
