@@ -1,0 +1,62 @@
+"""The walk's fast paths give the same bits as the plain forms they replace."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from colmap_miho.refinement import warping
+
+
+def _maps(n: int, affine: bool, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    scale = torch.tensor([[0.02, 0.01, 0.9], [0.01, 0.02, 0.9], [3e-4, 3e-4, 0.0]],
+                         dtype=torch.float64)
+    M = (torch.rand(n, 3, 3, generator=g, dtype=torch.float64) - 0.5) * scale
+    M[:, 2, 2] = 1.0
+    if affine:
+        M[:, 2, :2] = 0.0
+    return M.to(torch.float32)
+
+
+@pytest.mark.parametrize("affine", [True, False])
+@pytest.mark.parametrize("n,radius", [(1, 6), (5, 7), (128, 6), (40, 16)])
+def test_grid_square_matches_row_by_row(monkeypatch, affine, n, radius):
+    o = warping.offset_grid(radius, torch.device("cpu")).to(torch.float32)[None]
+    axes = warping._square_axes(o)
+    assert axes is not None
+    M32 = _maps(n, affine, seed=n + radius)
+    fast = warping._grid_square(M32, axes, affine)
+    monkeypatch.setattr(warping, "_SMALL_BATCH", -1)  # the row-by-row form
+    plain = warping._grid(M32, o, axes, affine)
+    general = warping._grid(M32, o, None, affine)  # no square-grid shortcut at all
+    assert fast.shape == plain.shape == (n, o.shape[1], 2)
+    assert torch.equal(fast, plain)
+    assert torch.equal(fast, general)
+
+
+def test_grid_square_division_is_checked():
+    """The non-affine form divides by w: a map with w != 1 must not be treated as affine."""
+    o = warping.offset_grid(3, torch.device("cpu")).to(torch.float32)[None]
+    axes = warping._square_axes(o)
+    M32 = _maps(4, affine=False, seed=1)
+    M32[:, 2, 0] = 0.05
+    assert not torch.equal(warping._grid_square(M32, axes, True),
+                           warping._grid_square(M32, axes, False))
+
+
+@pytest.mark.parametrize("n", [3, 300])
+def test_sample_patches_small_and_large_batches_agree(monkeypatch, n):
+    g = torch.Generator().manual_seed(7)
+    image = torch.rand(60, 80, generator=g)
+    H_inv = torch.eye(3, dtype=torch.float64).repeat(n, 1, 1)
+    H_inv[:, :2, :2] += (torch.rand(n, 2, 2, generator=g, dtype=torch.float64) - 0.5) * 0.2
+    H_inv[n // 2:, 2, :2] = 1e-4  # some perspective maps
+    centres = torch.rand(n, 2, generator=g, dtype=torch.float64) * torch.tensor([60.0, 40.0]) + 10
+    offs = warping.offset_grid(6, torch.device("cpu"))[None]
+    fast, in_fast = warping.sample_patches(image, H_inv, centres, offs)
+    monkeypatch.setattr(warping, "_SMALL_BATCH", -1)
+    plain, in_plain = warping.sample_patches(image, H_inv, centres, offs)
+    assert torch.equal(fast, plain) and torch.equal(in_fast, in_plain)
+    one = warping.sample_patches(image, H_inv[:1], centres[:1], offs)[0]
+    assert torch.equal(one[0], plain[0])
