@@ -21,6 +21,10 @@ _EPS_NORM = 1e-6
 #: the grouped convolution of :func:`ncc_maps` runs on a multiple of this many groups (the
 #: SIMD width of oneDNN's depthwise kernels on AVX2; AVX-512 blocks by 16, a multiple).
 _GROUP_PAD = 8
+#: :func:`ncc_maps` runs on blocks of jobs (a multiple of _GROUP_PAD) of about this many
+#: window pixels: the intermediates of a block stay in cache (blocks of 256 windows of
+#: 33 x 33 measured about 5% faster than one call on 1536, torch 2.13 CPU, one thread)
+_BLOCK_PIXELS = 256 * 33 * 33
 
 
 def normalize_templates(templates: torch.Tensor) -> torch.Tensor:
@@ -48,6 +52,21 @@ def ncc_maps(
         NCC of template k of job j with the window patch whose top-left corner is
         (stride x, stride y). Flat windows or templates give 0.
     """
+    J, Sw = windows.shape[0], windows.shape[-1]
+    block = max(_GROUP_PAD, _BLOCK_PIXELS // (Sw * Sw) // _GROUP_PAD * _GROUP_PAD)
+    if J <= block:
+        return _ncc_block(windows, templates, stride, normalized)
+    # blocks of jobs whose intermediates stay in cache (a job's maps do not depend on the
+    # other jobs of its call, so the blocks give the same bits as one call)
+    out = [_ncc_block(windows[i:i + block], templates[i:i + block], stride, normalized)
+           for i in range(0, J, block)]
+    return torch.cat(out)
+
+
+def _ncc_block(
+    windows: torch.Tensor, templates: torch.Tensor, stride: int, normalized: bool
+) -> torch.Tensor:
+    """:func:`ncc_maps` on one block of jobs."""
     J, K, St, _ = templates.shape
     Sw = windows.shape[-1]
     n = St * St
@@ -74,9 +93,15 @@ def ncc_maps(
             dim=1)
     s1 = box_sum(w, St)
     s2 = box_sum(w.square(), St)
-    w_norm = (s2 - s1.square() / n).clamp_min(0.0).sqrt()[:, None, ::stride, ::stride]
-    inv = torch.where(w_norm > _EPS_NORM, 1.0 / w_norm.clamp_min(_EPS_NORM), 0.0)
-    return (num * inv).clamp_(-1.0, 1.0)
+    # in place, the same operations as the plain form (tested against it):
+    #   w_norm = (s2 - s1.square() / n).clamp_min(0.0).sqrt()
+    #   inv = torch.where(w_norm > eps, 1.0 / w_norm.clamp_min(eps), 0.0)
+    #   (num * inv).clamp_(-1.0, 1.0)
+    # where 1.0 / x is torch's reciprocal(x) * 1.0, the product exact
+    w_norm = s2.sub_(s1.square_().div_(n)).clamp_min_(0.0).sqrt_()[:, None, ::stride, ::stride]
+    inv = w_norm.clamp_min(_EPS_NORM).reciprocal_()
+    inv.masked_fill_((w_norm > _EPS_NORM).logical_not_(), 0.0)
+    return num.mul_(inv).clamp_(-1.0, 1.0)
 
 
 def _mean64(x: torch.Tensor) -> torch.Tensor:

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+import torch.nn.functional as F
 
-from colmap_miho.refinement import warping
+from colmap_miho.refinement import correlation, warping
 
 
 def _maps(n: int, affine: bool, seed: int) -> torch.Tensor:
@@ -60,3 +61,38 @@ def test_sample_patches_small_and_large_batches_agree(monkeypatch, n):
     assert torch.equal(fast, plain) and torch.equal(in_fast, in_plain)
     one = warping.sample_patches(image, H_inv[:1], centres[:1], offs)[0]
     assert torch.equal(one[0], plain[0])
+
+
+def _plain_ncc_maps(windows, templates, stride=1):
+    """The NCC maps by the plain formula (out-of-place tail, one call for all jobs)."""
+    J, K, St, _ = templates.shape
+    n = St * St
+    t = correlation.normalize_templates(templates)
+    pad = (-J) % correlation._GROUP_PAD
+    w = windows - correlation._mean64(windows)
+    wp = torch.cat([w, w.new_zeros((pad,) + w.shape[1:])])
+    tk = torch.cat([t, t.new_zeros((pad,) + t.shape[1:])])
+    num = torch.stack([F.conv2d(wp[None], tk[:, k, None], groups=J + pad, stride=stride)[0, :J]
+                       for k in range(K)], dim=1)
+    s1 = correlation.box_sum(w, St)
+    s2 = correlation.box_sum(w.square(), St)
+    w_norm = (s2 - s1.square() / n).clamp_min(0.0).sqrt()[:, None, ::stride, ::stride]
+    inv = torch.where(w_norm > 1e-6, 1.0 / w_norm.clamp_min(1e-6), 0.0)
+    return (num * inv).clamp_(-1.0, 1.0)
+
+
+@pytest.mark.parametrize("J,K,sw,st,stride", [(5, 1, 15, 13, 1), (300, 1, 33, 13, 1),
+                                              (40, 3, 21, 9, 2), (1, 2, 23, 21, 1)])
+def test_ncc_maps_match_plain_formula(monkeypatch, J, K, sw, st, stride):
+    g = torch.Generator().manual_seed(J + sw)
+    windows = torch.rand(J, sw, sw, generator=g)
+    windows[2::4] = 0.25  # flat windows: zero maps
+    templates = torch.rand(J, K, st, st, generator=g)
+    templates[1::5] = 0.5  # flat templates
+    # small blocks: several blocks per call
+    monkeypatch.setattr(correlation, "_BLOCK_PIXELS", 16 * sw * sw)
+    fast = correlation.ncc_maps(windows, templates, stride)
+    plain = _plain_ncc_maps(windows, templates, stride)
+    assert fast.shape == plain.shape
+    assert torch.equal(fast, plain)
+    assert fast.abs().amax() > 0.01  # not all flat
