@@ -28,9 +28,6 @@ _SINGULAR_DET = 1e-12
 _MIN_W = 1e-8
 #: coordinates used for samples that cannot be mapped: far outside every image (reads zero).
 _FAR = -1.0e6
-#: batches of at most this many jobs get their square sample grids in one pass
-#: (:func:`_grid_square`: fewer calls; on larger batches the row-by-row form is faster)
-_SMALL_BATCH = 128
 
 
 @overload
@@ -318,9 +315,9 @@ def _grid(M32: torch.Tensor, o: torch.Tensor, axes, affine: bool) -> torch.Tenso
     by the clamped w. On a square grid of offsets the products are taken once per column
     and per row (the same roundings). ``affine``: every job's map has the last row
     (0, 0, 1), so w = (0 ox + 0 oy) + 1 = 1 exactly and the division, exact, is left out."""
-    n, q = M32.shape[0], o.shape[1]
-    if axes is not None and n <= _SMALL_BATCH:
+    if axes is not None:
         return _grid_square(M32, axes, affine)
+    n, q = M32.shape[0], o.shape[1]
     grid = torch.empty((n, q, 2), dtype=torch.float32, device=M32.device)
 
     def row(r: int, out: torch.Tensor | None = None) -> torch.Tensor:
@@ -354,23 +351,23 @@ def _grid_square(M32: torch.Tensor, axes: tuple[torch.Tensor, torch.Tensor], aff
                  ) -> torch.Tensor:
     """:func:`_grid` on a square grid of offsets (``axes`` = (xs, ys), (S,) each), all rows
     of M at once: coordinate r of offset (xs[x], ys[y]) is ``(m_r0 xs[x] + m_r1 ys[y]) +
-    m_r2`` (the products once per column and per row), written straight into the
-    interleaved (n, S*S, 2) grid. The same float32 operations in the same order as the
-    row-by-row form of :func:`_grid`, so the same bits, in five calls instead of about ten
-    (faster on small batches, slower on large ones)."""
+    m_r2`` (the products once per column and per row), then divided by the clamped w
+    unless affine. The same float32 operations in the same order as the row-by-row form,
+    so the same bits.
+
+    The coordinates are computed planar, (n, 2, S*S) (contiguous, vectorised), and returned
+    as an (n, S*S, 2) view of it: ``grid_sample`` reads a strided grid, and this is faster
+    than writing the interleaved grid (about 15% less time per :func:`sample_patches`,
+    measured, torch 2.13 CPU)."""
     xs, ys = axes
     n, side = M32.shape[0], xs.shape[0]
     nr = 2 if affine else 3  # w = 1 exactly for an affine map
     m = M32[:, :nr, :, None]  # (n, nr, 3, 1)
     v = torch.add((m[:, :, 0] * xs)[:, :, None, :], (m[:, :, 1] * ys)[:, :, :, None])
     v += m[:, :, 2, :, None]  # (n, nr, S_y, S_x)
-    grid = torch.empty((n, side, side, 2), dtype=torch.float32, device=M32.device)
-    g = grid.permute(0, 3, 1, 2)  # (n, 2, S_y, S_x) view of the interleaved grid
-    if affine:
-        g.copy_(v)
-    else:
-        torch.div(v[:, :2], v[:, 2:].clamp_min_(1e-6), out=g)
-    return grid.view(n, side * side, 2)
+    if not affine:
+        v = torch.div(v[:, :2], v[:, 2:].clamp_min_(1e-6))
+    return v.view(n, 2, side * side).transpose(1, 2)
 
 
 def _sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:

@@ -20,19 +20,32 @@ def _maps(n: int, affine: bool, seed: int) -> torch.Tensor:
     return M.to(torch.float32)
 
 
+def _rows_grid(M32, xs, ys, affine):
+    """Sample grid (n, S*S, 2) row by row: (m0 x + m1 y) + m2, divided by the clamped w."""
+    n, side = M32.shape[0], xs.shape[0]
+
+    def row(r):
+        m = M32[:, r, :, None]
+        v = (m[:, 0] * xs)[:, None, :] + (m[:, 1] * ys)[:, :, None]
+        return (v + m[:, 2, :, None]).reshape(n, side * side)
+
+    if affine:
+        return torch.stack([row(0), row(1)], dim=-1)
+    w = row(2).clamp_min(1e-6)
+    return torch.stack([row(0) / w, row(1) / w], dim=-1)
+
+
 @pytest.mark.parametrize("affine", [True, False])
 @pytest.mark.parametrize("n,radius", [(1, 6), (5, 7), (128, 6), (40, 16)])
-def test_grid_square_matches_row_by_row(monkeypatch, affine, n, radius):
+def test_grid_square_matches_row_by_row(affine, n, radius):
     o = warping.offset_grid(radius, torch.device("cpu")).to(torch.float32)[None]
     axes = warping._square_axes(o)
     assert axes is not None
     M32 = _maps(n, affine, seed=n + radius)
-    fast = warping._grid_square(M32, axes, affine)
-    monkeypatch.setattr(warping, "_SMALL_BATCH", -1)  # the row-by-row form
-    plain = warping._grid(M32, o, axes, affine)
+    fast = warping._grid(M32, o, axes, affine)
     general = warping._grid(M32, o, None, affine)  # no square-grid shortcut at all
-    assert fast.shape == plain.shape == (n, o.shape[1], 2)
-    assert torch.equal(fast, plain)
+    assert fast.shape == general.shape == (n, o.shape[1], 2)
+    assert torch.equal(fast, _rows_grid(M32, *axes, affine))
     assert torch.equal(fast, general)
 
 
@@ -47,7 +60,9 @@ def test_grid_square_division_is_checked():
 
 
 @pytest.mark.parametrize("n", [3, 300])
-def test_sample_patches_small_and_large_batches_agree(monkeypatch, n):
+def test_sample_patches_square_and_general_grids_agree(monkeypatch, n):
+    """The planar square grid (a strided view for grid_sample) samples the same bits as
+    the general interleaved grid, for affine and perspective maps, and for one job alone."""
     g = torch.Generator().manual_seed(7)
     image = torch.rand(60, 80, generator=g)
     H_inv = torch.eye(3, dtype=torch.float64).repeat(n, 1, 1)
@@ -56,11 +71,13 @@ def test_sample_patches_small_and_large_batches_agree(monkeypatch, n):
     centres = torch.rand(n, 2, generator=g, dtype=torch.float64) * torch.tensor([60.0, 40.0]) + 10
     offs = warping.offset_grid(6, torch.device("cpu"))[None]
     fast, in_fast = warping.sample_patches(image, H_inv, centres, offs)
-    monkeypatch.setattr(warping, "_SMALL_BATCH", -1)
+    monkeypatch.setattr(warping, "_square_axes", lambda o: None)
     plain, in_plain = warping.sample_patches(image, H_inv, centres, offs)
     assert torch.equal(fast, plain) and torch.equal(in_fast, in_plain)
-    one = warping.sample_patches(image, H_inv[:1], centres[:1], offs)[0]
-    assert torch.equal(one[0], plain[0])
+    monkeypatch.undo()
+    one = warping.sample_patches(image, H_inv[-1:], centres[-1:], offs)[0]
+    assert torch.equal(one[0], plain[-1])
+    assert plain.std() > 0.05
 
 
 def _plain_ncc_maps(windows, templates, stride=1):
