@@ -21,9 +21,9 @@ _EPS_NORM = 1e-6
 #: the grouped convolution of :func:`ncc_maps` runs on a multiple of this many groups (the
 #: SIMD width of oneDNN's depthwise kernels on AVX2; AVX-512 blocks by 16, a multiple).
 _GROUP_PAD = 8
-#: :func:`ncc_maps` runs on blocks of jobs (a multiple of _GROUP_PAD) of about this many
-#: window pixels: the intermediates of a block stay in cache (blocks of 256 windows of
-#: 33 x 33 measured about 5% faster than one call on 1536, torch 2.13 CPU, one thread)
+#: On the CPU :func:`ncc_maps` runs on blocks of jobs (a multiple of _GROUP_PAD) of about
+#: this many window pixels: the intermediates of a block stay in cache (blocks of 256 windows
+#: of 33 x 33 measured about 5% faster than one call on 1536, torch 2.13 CPU, one thread)
 _BLOCK_PIXELS = 256 * 33 * 33
 
 
@@ -54,7 +54,7 @@ def ncc_maps(
     """
     J, Sw = windows.shape[0], windows.shape[-1]
     block = max(_GROUP_PAD, _BLOCK_PIXELS // (Sw * Sw) // _GROUP_PAD * _GROUP_PAD)
-    if J <= block:
+    if J <= block or windows.device.type != "cpu":  # a GPU wants one big call
         return _ncc_block(windows, templates, stride, normalized)
     # blocks of jobs whose intermediates stay in cache (a job's maps do not depend on the
     # other jobs of its call, so the blocks give the same bits as one call)
