@@ -322,18 +322,11 @@ def _grid(M32: torch.Tensor, o: torch.Tensor, axes, affine: bool) -> torch.Tenso
 
     def row(r: int, out: torch.Tensor | None = None) -> torch.Tensor:
         m = M32[:, r, :, None]  # (n, 3, 1)
-        if axes is None:
-            v = m[:, 0] * o[..., 0]
-            v += m[:, 1] * o[..., 1]
-            if out is not None:
-                out.copy_(v)
-                v = out
-        else:
-            xs, ys = axes
-            side = xs.shape[0]
-            v = torch.add((m[:, 0] * xs)[:, None, :], (m[:, 1] * ys)[:, :, None],
-                          out=None if out is None else out.view(n, side, side))
-            v = v.view(n, q) if out is None else out
+        v = m[:, 0] * o[..., 0]
+        v += m[:, 1] * o[..., 1]
+        if out is not None:
+            out.copy_(v)
+            v = out
         v += m[:, 2]
         return v  # (n, Q)
 
