@@ -285,20 +285,14 @@ def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray, out: tupl
     xp.multiply(h[..., 7, :], Y, out=tmp)
     w += tmp
     w += h[..., 8, :]
-    xp.multiply(h[..., 0, :], X, out=x)
-    xp.multiply(h[..., 1, :], Y, out=tmp)
-    x += tmp
-    x += h[..., 2, :]
-    x /= w
-    x -= dst[..., 0]
-    x *= x
-    xp.multiply(h[..., 3, :], X, out=y)
-    xp.multiply(h[..., 4, :], Y, out=tmp)
-    y += tmp
-    y += h[..., 5, :]
-    y /= w
-    y -= dst[..., 1]
-    y *= y
+    for v, r, c in ((x, 0, 0), (y, 3, 1)):  # (x or y of H(src) - dst)^2, in place
+        xp.multiply(h[..., r, :], X, out=v)
+        xp.multiply(h[..., r + 1, :], Y, out=tmp)
+        v += tmp
+        v += h[..., r + 2, :]
+        v /= w
+        v -= dst[..., c]
+        v *= v
     x += y
     return x, w
 

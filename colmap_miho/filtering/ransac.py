@@ -66,22 +66,11 @@ _DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
 _PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))  # the 6 point pairs of a sample
 
 
-def _apart(d: np.ndarray, t2: float) -> np.ndarray:
-    """``(...)`` bool from differences ``d`` ``(..., sets, 2)``: the squared distance is
-    at least ``t2`` in every set. Written out over the tiny trailing axes (numpy reductions
-    over axes of length 2-3 cost far more than the arithmetic); the squared distance is the
-    same ``dx * dx + dy * dy`` a ``sum(-1)`` gives, bit for bit."""
-    sq = d[..., 0] * d[..., 0]
-    sq += d[..., 1] * d[..., 1]
-    ok = sq[..., 0] >= t2
-    for k in range(1, sq.shape[-1]):
-        ok &= sq[..., k] >= t2
-    return ok
-
-
 def _apart_sets(dx: np.ndarray, dy: np.ndarray, t2: float) -> np.ndarray:
-    """:func:`_apart` from the differences' x and y ``(sets, ...)`` apart, sets first (the
-    same ``dx * dx + dy * dy``, bit for bit); overwrites ``dx`` and ``dy``."""
+    """``(...)`` bool from the differences' x and y ``(sets, ...)``: the squared distance
+    ``dx * dx + dy * dy`` (the bits a ``sum`` over (x, y) gives) is at least ``t2`` in every
+    set. Written out over the tiny sets axis (numpy reductions over axes of length 2-3 cost
+    far more than the arithmetic); overwrites ``dx`` and ``dy``."""
     dx *= dx
     dy *= dy
     dx += dy
@@ -192,12 +181,7 @@ def sample_signs(problem: Problem, H: np.ndarray, Hinv: np.ndarray, sample: np.n
 def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
     """``(B,)`` bool: the 4 points of each minimal sample ``(B, 4)`` are pairwise at least
     ``t_l`` pixels apart in every spread set (paper App. A.3)."""
-    if problem.spread_xy is None:  # torch
-        p = problem.spread_all[sample]  # (B, 4, sets, 2)
-        ok = np.ones(len(sample), dtype=bool)
-        for i, j in _PAIRS:
-            ok &= _apart(p[:, i] - p[:, j], t_l**2)
-        return ok
+    assert problem.spread_xy is not None, "sampling runs on the numpy problem"
     px, py = np.take(problem.spread_xy, sample.T, axis=2)  # (sets, 4, B) each
     ok = np.ones(len(sample), dtype=bool)
     for i, j in _PAIRS:
@@ -643,7 +627,7 @@ class _Sampler:
         nb = self.neighbours(seeds)
         free = nb >= 0  # (L, k) candidates still allowed
         safe = np.maximum(nb, 0)
-        # x and y apart, sets first: the same dx * dx + dy * dy as _apart, bit for bit.
+        # x and y apart, sets first, as _apart_sets takes them.
         px = np.take(self._spread_x, safe, axis=1)  # (sets, L, k)
         py = np.take(self._spread_y, safe, axis=1)
         sets = px.shape[0]

@@ -22,7 +22,7 @@ from colmap_miho.filtering.ransac import (
     Hypotheses,
     NumpyScoring,
     Problem,
-    _apart,
+    _apart_sets,
     error_sq,
     hypotheses_from_samples,
     inlier_masks,
@@ -71,7 +71,9 @@ def test_apart_and_spread_test_match_the_reductions():
     rng = np.random.default_rng(0)
     pts = rng.uniform(0, 100, (500, 4, 3, 2))
     d = pts[:, 0] - pts[:, 1]
-    np.testing.assert_array_equal(_apart(d, 30.0**2), np.all((d * d).sum(-1) >= 30.0**2, axis=-1))
+    np.testing.assert_array_equal(_apart_sets(np.moveaxis(d[..., 0], -1, 0).copy(),
+                                              np.moveaxis(d[..., 1], -1, 0).copy(), 30.0**2),
+                                  np.all((d * d).sum(-1) >= 30.0**2, axis=-1))
     sc = make_scene(rng)
     problem = build_problem(sc.x1, sc.x2, miho=True)
     sample = rng.integers(0, len(sc.x1), (2000, 4))
