@@ -20,13 +20,9 @@ from __future__ import annotations
 
 import importlib
 import logging
-from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING
 
-try:
-    __version__ = version("colmap-miho")  # the one version source: pyproject.toml
-except PackageNotFoundError:  # a source tree that is not installed
-    __version__ = "0+unknown"
+from .version import __version__
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 

@@ -27,8 +27,8 @@ import sys
 import threading
 import time
 
-from . import __version__
 from .errors import Terminated, UserError
+from .version import __version__
 
 log = logging.getLogger("colmap_miho")
 

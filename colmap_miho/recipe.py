@@ -18,7 +18,7 @@ from importlib import resources
 from pathlib import Path
 
 from .filtering.config import FilterConfig
-from .pipeline.config import PipelineConfig
+from .pipeline_config import PipelineConfig
 from .refinement.config import NCCConfig, TrackConfig
 from .sfm import MappingConfig
 

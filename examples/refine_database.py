@@ -26,7 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     import pycolmap
 
     from colmap_miho.adapters.synthetic import make_synthetic_scene
-    from colmap_miho.pipeline.refine import refine_database
+    from colmap_miho.pipeline.run import refine_database
     from colmap_miho.recipe import load_recipe
 
     work = args.out or Path(tempfile.mkdtemp(prefix="colmap_miho_example_"))

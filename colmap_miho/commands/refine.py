@@ -71,7 +71,7 @@ def paths(args: argparse.Namespace) -> tuple[dict, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..pipeline.refine import refine_database
+    from ..pipeline.run import refine_database
     from ..recipe import load_recipe
 
     if args.workers is not None and args.workers < 1:

@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 PARENT_POLL_S = 0.5
 
 #: Modules the forkserver imports once for all the workers it forks.
-PRELOAD = ("numpy", "torch", "colmap_miho.pipeline.filter_stage", "colmap_miho.pipeline.stages",
+PRELOAD = ("numpy", "torch", "colmap_miho.pipeline.filter", "colmap_miho.pipeline.refine",
            "colmap_miho.refinement.ncc", "colmap_miho.refinement.tracks")
 
 #: What a script that starts workers needs (said by the errors of failed worker starts).

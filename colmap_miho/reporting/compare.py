@@ -331,7 +331,7 @@ def compare_databases(
     Returns:
         :class:`CompareResult`.
     """
-    from ..pipeline.refine import refine_database
+    from ..pipeline.run import refine_database
 
     recipe = _as_recipe(recipe)
     mapping = _mapping_config(recipe, mapper, seed)
@@ -431,7 +431,7 @@ def run_from_images(
     Raises:
         RunFailed: extraction found < 2 images, or mapping registered nothing.
     """
-    from ..pipeline.refine import refine_database
+    from ..pipeline.run import refine_database
     from ..sfm import extract_and_match, require_success, run_mapping
     from .report import build_report, write_report_json
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..enums import MatchSource
+from .enums import MatchSource
 
 #: ``pipeline.memory_budget_mb`` default (MiB) and smallest accepted value.
 DEFAULT_MEMORY_BUDGET_MB = 2048
@@ -26,7 +26,7 @@ class PipelineConfig:
         verify: re-run COLMAP's epipolar verification on the kept matches.
         memory_budget_mb: memory the run may use for its working data, in MiB (default
             2048, at least 256). It bounds the filter's chunks of pairs (the matches read,
-            filtered and held for the run store at once; see :func:`~.filter_stage.chunk_matches`)
+            filtered and held for the run store at once; see :func:`~colmap_miho.pipeline.filter.chunk_matches`)
             and the decoded images the refine stage keeps (:meth:`image_budget_bytes`: half
             of it, shared among the parallel tasks; it sets the images of a track group);
             results do not depend on it. Not bounded by it: the keypoints

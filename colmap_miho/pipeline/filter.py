@@ -24,9 +24,10 @@ import numpy as np
 
 from ..adapters.database import ColmapDatabase, PairRecord
 from ..enums import MatchSource
-from ..filtering.api import FilterResult, filter_matches
+from ..filtering.api import filter_matches
 from ..filtering.config import FilterConfig
 from .read import check_match_indices
+from .records import PairOutcome
 from .workers import pair_seed
 
 if TYPE_CHECKING:
@@ -63,34 +64,6 @@ CHUNKS_PER_SLOT = 4
 
 #: Chunks read ahead per parallel slot (one running, one queued).
 IN_FLIGHT_PER_SLOT = 2
-
-
-@dataclass(frozen=True)
-class PairOutcome:
-    """What the later stages need of one pair's :class:`~colmap_miho.filtering.api.FilterResult`
-    (``FilterResult``-like for :func:`~colmap_miho.refinement.track_plan.pair_rows`).
-
-    Attributes:
-        inliers: bool ``(M,)``, the matches kept (rows 1:1 with the pair's matches).
-        labels: int64 ``(M,)``, each kept match's homography, -1 for discarded ones.
-        patch_homographies: float64 ``(K, 2, 3, 3)``, see ``FilterResult``.
-        success: a plane was found (otherwise the pair is written back unchanged).
-    """
-
-    inliers: np.ndarray
-    labels: np.ndarray
-    patch_homographies: np.ndarray
-    success: bool
-
-    @classmethod
-    def of(cls, r: FilterResult) -> PairOutcome:
-        return cls(inliers=np.asarray(r.inliers, bool), labels=np.asarray(r.labels, np.int64),
-                   patch_homographies=np.asarray(r.patch_homographies, np.float64).reshape(-1, 2, 3, 3),
-                   success=bool(r.success))
-
-
-#: (image_id1, image_id2) -> (matches uint32 ``(M, 2)`` keypoint indices, the pair's outcome)
-FilteredPairs = dict[tuple[int, int], tuple[np.ndarray, PairOutcome]]
 
 
 @dataclass(frozen=True, kw_only=True)
