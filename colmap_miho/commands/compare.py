@@ -61,7 +61,8 @@ def paths(args) -> tuple[dict, dict]:
 
 def run(args) -> int:
     from ..extras import require
-    from ..reporting.compare import compare_databases, format_comparison
+    from ..pipeline.jobs import JobOptions, compare_databases
+    from ..reporting.compare import format_comparison
 
     require("matplotlib", "plots", "compare's figures")  # before the long mapping runs
     recipe = load_run_recipe(args)
@@ -70,8 +71,9 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     result = compare_databases(
         args.database, args.images, args.output, gt=args.gt, pairs=args.pairs, recipe=recipe,
-        repeats=args.repeats, gt_cameras=args.camera_from_gt, thresholds=thresholds, workers=args.workers,
-        device=args.device, progress=not args.quiet, verbose=args.verbose,
+        options=JobOptions(repeats=args.repeats, gt_cameras=args.camera_from_gt, thresholds=thresholds,
+                           workers=args.workers, device=args.device, progress=not args.quiet,
+                           verbose=args.verbose),
     )
     if not args.quiet:
         print(format_comparison(result))

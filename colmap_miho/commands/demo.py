@@ -39,7 +39,8 @@ def run(args) -> int:
     import time
 
     from ..extras import require
-    from ..reporting.compare import format_comparison, run_from_images
+    from ..pipeline.jobs import ExtractionOptions, JobOptions, run_from_images
+    from ..reporting.compare import format_comparison
     from ..reporting.demo_scene import make_demo_scene
 
     for module, purpose in (("skimage", "the demo scene"), ("matplotlib", "the demo's figures")):
@@ -55,8 +56,8 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     out = run_from_images(
         scene.image_dir, args.output, gt=scene.gt_dir, recipe=recipe, compare=True,
-        max_features=max_features, workers=args.workers, device=args.device, progress=not args.quiet,
-        verbose=args.verbose,
+        extraction=ExtractionOptions(max_features=max_features),
+        options=JobOptions(workers=args.workers, device=args.device, progress=not args.quiet, verbose=args.verbose),
     )
     if not args.quiet:
         print(format_comparison(out["result"]))

@@ -49,7 +49,8 @@ def paths(args) -> tuple[dict, dict]:
 def run(args) -> int:
     from ..errors import UserError
     from ..extras import require
-    from ..reporting.compare import format_comparison, run_from_images
+    from ..pipeline.jobs import ExtractionOptions, JobOptions, run_from_images
+    from ..reporting.compare import format_comparison
     from ..reporting.report import format_report
     from ._options import (
         auc_thresholds,
@@ -71,10 +72,11 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     out = run_from_images(
         args.images, args.output, gt=args.gt, recipe=recipe, compare=args.compare,
-        camera_mode=args.camera_mode, camera_model=args.extract_camera_model,
-        camera_params=args.extract_camera_params, max_features=args.max_features, repeats=args.repeats,
-        gt_cameras=args.camera_from_gt, thresholds=thresholds, workers=args.workers, device=args.device,
-        progress=not args.quiet, verbose=args.verbose,
+        extraction=ExtractionOptions(camera_mode=args.camera_mode, camera_model=args.extract_camera_model,
+                                     camera_params=args.extract_camera_params, max_features=args.max_features),
+        options=JobOptions(repeats=args.repeats, gt_cameras=args.camera_from_gt, thresholds=thresholds,
+                           workers=args.workers, device=args.device, progress=not args.quiet,
+                           verbose=args.verbose),
     )
     if not args.quiet:
         if args.compare:
