@@ -5,6 +5,8 @@ from __future__ import annotations
 from enum import Enum
 from typing import TypeVar
 
+from .errors import InvalidInput
+
 _E = TypeVar("_E", bound="StrEnum")
 
 
@@ -23,7 +25,7 @@ class StrEnum(str, Enum):
             return cls(str(value).lower())
         except ValueError:
             choices = ", ".join(m.value for m in cls)
-            raise ValueError(f"{name}={value!r} is not one of: {choices}") from None
+            raise InvalidInput(f"{name}={value!r} is not one of: {choices}") from None
 
     @classmethod
     def values(cls) -> list[str]:

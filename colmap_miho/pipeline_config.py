@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .enums import MatchSource
+from .errors import InvalidInput
 
 #: ``pipeline.memory_budget_mb`` default (MiB) and smallest accepted value.
 DEFAULT_MEMORY_BUDGET_MB = 2048
@@ -43,9 +44,9 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "source", MatchSource.parse(self.source, "source"))
         if self.min_matches < 4:
-            raise ValueError(f"min_matches must be >= 4, got {self.min_matches}")
+            raise InvalidInput(f"min_matches must be >= 4, got {self.min_matches}")
         if self.memory_budget_mb < MIN_MEMORY_BUDGET_MB:
-            raise ValueError(f"memory_budget_mb must be >= {MIN_MEMORY_BUDGET_MB}, got {self.memory_budget_mb}")
+            raise InvalidInput(f"memory_budget_mb must be >= {MIN_MEMORY_BUDGET_MB}, got {self.memory_budget_mb}")
 
     @property
     def memory_budget_bytes(self) -> int:

@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from .enums import CameraMode, Mapper, StrEnum
-from .errors import RunFailed
+from .errors import InvalidInput, RunFailed
 
 log = logging.getLogger(__name__)
 
@@ -148,12 +148,12 @@ def parse_camera_params(model: str, params: str) -> tuple[float, ...]:
         try:
             v = float(item)
         except ValueError:
-            raise ValueError(f"camera_params: {item.strip()!r} is not a number (in {params!r})") from None
+            raise InvalidInput(f"camera_params: {item.strip()!r} is not a number (in {params!r})") from None
         if not math.isfinite(v):
-            raise ValueError(f"camera_params: {item.strip()!r} is not a finite number")
+            raise InvalidInput(f"camera_params: {item.strip()!r} is not a finite number")
         values.append(v)
     if len(values) != n:
-        raise ValueError(f"camera_params: camera model {model.upper()} takes {n} parameters, got {len(values)} "
+        raise InvalidInput(f"camera_params: camera model {model.upper()} takes {n} parameters, got {len(values)} "
                          f"({params!r})")
     return tuple(values)
 
@@ -192,15 +192,15 @@ class MappingConfig:
         object.__setattr__(self, "refine_intrinsics", RefineIntrinsics.parse(self.refine_intrinsics,
                                                                              "refine_intrinsics"))
         if self.camera_params.strip() and not self.camera_model.strip():
-            raise ValueError("camera_params needs camera_model (the model the parameters belong to)")
+            raise InvalidInput("camera_params needs camera_model (the model the parameters belong to)")
         if self.camera_model.strip():
             parse_camera_params(self.camera_model, self.camera_params)
         if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+            raise InvalidInput(f"seed must be >= 0, got {self.seed}")
         if self.num_threads != -1 and self.num_threads < 1:
-            raise ValueError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
+            raise InvalidInput(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
         if self.min_num_matches < 0:
-            raise ValueError(f"min_num_matches must be >= 0, got {self.min_num_matches}")
+            raise InvalidInput(f"min_num_matches must be >= 0, got {self.min_num_matches}")
 
     def intrinsics(self):
         """The :class:`~colmap_miho.adapters.database.CameraIntrinsics` to write into every

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from ..enums import MatchSource
-from ..errors import DatabaseError
+from ..errors import DatabaseError, InvalidInput
 from .safety import check_database_path
 
 log = logging.getLogger(__name__)
@@ -248,7 +248,7 @@ class ColmapDatabase:
         xy = np.asarray(xy, dtype=np.float64)
         moved = np.asarray(moved, dtype=bool)
         if xy.shape != (raw.shape[0], 2) or moved.shape != (raw.shape[0],):
-            raise ValueError(
+            raise InvalidInput(
                 f"image {image_id}: xy must be ({raw.shape[0]}, 2) and moved ({raw.shape[0]},), "
                 f"got {xy.shape} and {moved.shape}"
             )
@@ -334,7 +334,7 @@ class ColmapDatabase:
         try:
             cam = pc.Camera.create_from_model_name(0, model, float(focal), int(width), int(height))
         except ValueError:
-            raise ValueError(f"camera_model={model!r} is not a COLMAP camera model "
+            raise InvalidInput(f"camera_model={model!r} is not a COLMAP camera model "
                              "(e.g. SIMPLE_RADIAL, PINHOLE, OPENCV)") from None
         camera_id = self.handle.write_camera(cam)
         rig = pc.Rig()
@@ -413,7 +413,7 @@ class ColmapDatabase:
     def keep_keypoint_columns(self, columns: int) -> None:
         """Rewrite every image's keypoints with their first ``columns`` columns (2, 4 or 6)."""
         if columns not in (2, 4, 6):
-            raise ValueError(f"columns must be 2, 4 or 6, got {columns}")
+            raise InvalidInput(f"columns must be 2, 4 or 6, got {columns}")
         for record in self.images():
             kp = self.raw_keypoints(record.image_id)
             self.handle.update_keypoints(record.image_id, np.ascontiguousarray(kp[:, :columns]))
@@ -467,7 +467,7 @@ class CameraIntrinsics:
 
     def __post_init__(self) -> None:
         if (self.width is None) != (self.height is None):
-            raise ValueError(f"camera intrinsics: give width and height together, got {self.width}x{self.height}")
+            raise InvalidInput(f"camera intrinsics: give width and height together, got {self.width}x{self.height}")
 
 
 def model_num_params(model: str) -> int:
@@ -480,7 +480,7 @@ def model_num_params(model: str) -> int:
 
     names = [n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"]
     if str(model).upper() not in names:
-        raise ValueError(f"unknown camera model {model!r}; one of: {', '.join(names)}")
+        raise InvalidInput(f"unknown camera model {model!r}; one of: {', '.join(names)}")
     return len(pycolmap.Camera.create_from_model_name(1, str(model).upper(), 1.0, 2, 2).params)
 
 
@@ -496,7 +496,7 @@ def _camera_from(old, intr: CameraIntrinsics):
                                                  int(old.width), int(old.height))
     if intr.params:
         if len(intr.params) != len(new.params):
-            raise ValueError(f"camera model {model} takes {len(new.params)} parameters, got {len(intr.params)}")
+            raise InvalidInput(f"camera model {model} takes {len(new.params)} parameters, got {len(intr.params)}")
         new.params = [float(v) for v in intr.params]
         new.has_prior_focal_length = True
     else:

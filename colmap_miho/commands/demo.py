@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..errors import InvalidInput
 from ._options import add_recipe_arguments, load_run_recipe, quiet_colmap
 
 HELP = "run the whole job on a built-in scene with exact ground truth (no downloads)"
@@ -31,7 +32,7 @@ def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ValueError(f"--size must look like 640x480, got {text!r}") from None
+        raise InvalidInput(f"--size must look like 640x480, got {text!r}") from None
     return w, h
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..enums import Mapper
-from ..errors import RunFailed
+from ..errors import InvalidInput, RunFailed
 from ..recipe import Recipe, load_recipe
 from ..reporting.compare import CompareResult, Evaluation, gt_intrinsics, write_comparison
 from ..sfm import MappingConfig
@@ -104,7 +104,7 @@ def map_repeats(database: Path, image_dir: Path, folder: Path, mapping: MappingC
     from ..sfm import run_mapping
 
     if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats}")
+        raise InvalidInput(f"repeats must be >= 1, got {repeats}")
     results = []
     for k in range(repeats):
         seed = mapping.seed + k
@@ -141,7 +141,7 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
     rec = _as_recipe(recipe)
     mapping = _mapping_config(rec, opts)
     if opts.gt_cameras and gt is None:
-        raise ValueError("taking the cameras from the GT needs --gt")
+        raise InvalidInput("taking the cameras from the GT needs --gt")
     intrinsics = gt_intrinsics(gt) if opts.gt_cameras and gt is not None else None
     output = Path(output)
     for sub in ("baseline", "refined", "plots"):
@@ -192,7 +192,7 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
     rec = _as_recipe(recipe)
     mapping = _mapping_config(rec, opts)
     if opts.gt_cameras and gt is None:
-        raise ValueError("taking the cameras from the GT needs --gt")
+        raise InvalidInput("taking the cameras from the GT needs --gt")
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     database = output / "database.db"

@@ -30,6 +30,7 @@ import numpy as np
 from ..adapters.database import ColmapDatabase
 from ..adapters.images import ImageLoader
 from ..enums import MatchSource
+from ..errors import InvalidInput
 from ..recipe import Recipe
 from .executor import Runner
 from .read import ReadOutput, read_affines
@@ -217,7 +218,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
     groups = plan.groups(max_images, group_max_matches())
     done = dict(done or {})
     if any(not 0 <= g < len(groups) for g in done):
-        raise ValueError(f"resumed group indices must be in 0..{len(groups) - 1} (were the "
+        raise InvalidInput(f"resumed group indices must be in 0..{len(groups) - 1} (were the "
                          "inputs or the image budget changed since?)")
     new = {i: np.array(keypoints[i], np.float64) for i in keypoints}
     group_stats: list[dict] = []

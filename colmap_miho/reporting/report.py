@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..adapters.hloc import read_pairs_file
+from ..errors import InvalidInput
 from . import pose_metrics as pm
 from .gt_model import CameraPose
 
@@ -60,7 +61,7 @@ def auc_thresholds(thresholds=None) -> tuple[float, ...]:
     given = DEFAULT_AUC_THRESHOLDS_DEG if thresholds is None else tuple(thresholds)
     for t in given:
         if not (isinstance(t, (int, float)) and math.isfinite(t) and t > 0):
-            raise ValueError(f"AUC thresholds must be positive numbers of degrees, got {t!r}")
+            raise InvalidInput(f"AUC thresholds must be positive numbers of degrees, got {t!r}")
     return tuple(sorted({float(t) for t in (*given, *pm.AUC_THRESHOLDS_DEG)}))
 
 
@@ -143,7 +144,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
-        raise ValueError(f"src and dst must be the same (N>=3, 3) shape, got {src.shape} and {dst.shape}")
+        raise InvalidInput(f"src and dst must be the same (N>=3, 3) shape, got {src.shape} and {dst.shape}")
     mu_s, mu_d = src.mean(0), dst.mean(0)
     xs, xd = src - mu_s, dst - mu_d
     cov = xd.T @ xs / len(src)
@@ -369,7 +370,7 @@ def build_report(
     from .gt_model import load_gt_poses, load_reconstruction, poses_from_reconstruction
 
     if reconstruction is None and model is None and (database is None or gt is None):
-        raise ValueError("give model or reconstruction, or database and gt")
+        raise InvalidInput("give model or reconstruction, or database and gt")
     thresholds = auc_thresholds(thresholds)
     rec = None
     if reconstruction is not None or model is not None:
