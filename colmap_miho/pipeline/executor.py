@@ -168,10 +168,10 @@ def open_runner(workers: int, dask: str | None = None) -> Iterator[Runner]:
 
 @contextlib.contextmanager
 def _dask_client(workers: int, dask: str):
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:  # pragma: no cover - distributed is a dependency
-        raise UserError("--dask needs the 'distributed' package: pip install distributed") from None
+    from ..extras import require
+
+    distributed = require("distributed", "dask", "--dask")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if dask == LOCAL:
         try:
             cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
