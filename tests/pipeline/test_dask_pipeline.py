@@ -7,12 +7,12 @@ import pytest
 from helpers.db_contents import assert_same_database
 from helpers.small_budget import two_images
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.pipeline import filter as filter_stage
 from colmap_miho.pipeline import refine as refine_stage
 from colmap_miho.pipeline.executor import LOCAL
 from colmap_miho.pipeline.run import refine_database
 from colmap_miho.pipeline_config import PipelineConfig
+from miho_bench.synthetic import make_synthetic_scene
 
 
 @pytest.fixture(scope="module")

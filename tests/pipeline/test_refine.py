@@ -11,11 +11,11 @@ import pytest
 from helpers.small_budget import two_images
 
 from colmap_miho.adapters.database import ColmapDatabase
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.pipeline import RefineSummary, refine_database
 from colmap_miho.pipeline_config import PipelineConfig
 from colmap_miho.recipe import load_recipe
+from miho_bench.synthetic import make_synthetic_scene
 
 # Measured on the 4-image, 120-point scene (seed 11, 20% planted outliers in the verified
 # matches, 1 px keypoint noise): MOP+MiHo removes 85-90% of the planted outliers and keeps

@@ -14,11 +14,11 @@ from helpers import HELPERS, REPO
 from helpers.db_contents import assert_same_database
 from helpers.small_budget import SMALL_WORKER_MATCHES, two_images
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.pipeline import refine as refine_stage
 from colmap_miho.pipeline.store import store_folder
 from colmap_miho.pipeline_config import PipelineConfig
+from miho_bench.synthetic import make_synthetic_scene
 
 #: Seconds the killed run may take (imports, copy, a few pairs).
 KILLED_RUN_TIMEOUT_S = 180

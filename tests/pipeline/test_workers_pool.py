@@ -13,10 +13,10 @@ import sys
 import pytest
 from helpers.db_contents import database_rows
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.errors import RunFailed
 from colmap_miho.pipeline import workers
 from colmap_miho.pipeline.run import refine_database
+from miho_bench.synthetic import make_synthetic_scene
 
 pytestmark = pytest.mark.skipif("forkserver" not in multiprocessing.get_all_start_methods(),
                                 reason="no forkserver on this platform")

@@ -10,11 +10,11 @@ import pytest
 
 from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.adapters.images import ImageLoader
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.filtering.api import filter_matches
 from colmap_miho.pipeline import refine as refine_stage
 from colmap_miho.pipeline.executor import open_runner
 from colmap_miho.refinement.config import NCCConfig, TrackConfig
+from miho_bench.synthetic import make_synthetic_scene
 
 NCC = NCCConfig(device="cpu", template_radius=6)
 TRACKS = TrackConfig()

@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.reporting import gt_model as gm
 from colmap_miho.reporting import report as rp
 from colmap_miho.sfm import run_mapping
+from miho_bench.synthetic import make_synthetic_scene
 
 # Measured on this scene (0.5 px noise, 10% outliers): model pose errors < 0.5 deg, AUC@5 ~0.93.
 MODEL_AUC5_MIN = 0.85

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .database import ColmapDatabase, colmap_to_pixel_centre
+from colmap_miho.adapters.database import ColmapDatabase, colmap_to_pixel_centre
 
 log = logging.getLogger(__name__)
 
