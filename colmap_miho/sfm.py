@@ -253,7 +253,7 @@ def run_mapping(
 
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
-        cfg = replace(cfg, mapper=cfg.mapper if mapper is None else mapper,
+        cfg = replace(cfg, mapper=cfg.mapper if mapper is None else Mapper.parse(mapper, "mapper"),
                       seed=cfg.seed if seed is None else seed)
     database = check_database_path(database)
     image_dir = Path(image_dir)
@@ -310,14 +310,14 @@ def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir:
 
     refine = _REFINE_FLAGS.get(cfg.refine_intrinsics)
     if cfg.mapper == Mapper.GLOBAL:
-        opts = pycolmap.GlobalPipelineOptions()
-        opts.random_seed = int(cfg.seed)
-        opts.num_threads = int(cfg.num_threads)
-        opts.min_num_matches = int(cfg.min_num_matches)
+        gopts = pycolmap.GlobalPipelineOptions()
+        gopts.random_seed = int(cfg.seed)
+        gopts.num_threads = int(cfg.num_threads)
+        gopts.min_num_matches = int(cfg.min_num_matches)
         if refine is not None:
-            ba = opts.mapper.bundle_adjustment
+            ba = gopts.mapper.bundle_adjustment
             ba.refine_focal_length, ba.refine_principal_point, ba.refine_extra_params = refine
-        return pycolmap.global_mapping(str(database), str(image_dir), str(models_dir), opts)
+        return pycolmap.global_mapping(str(database), str(image_dir), str(models_dir), gopts)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = int(cfg.seed)
     opts.num_threads = int(cfg.num_threads)

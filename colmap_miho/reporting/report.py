@@ -33,6 +33,7 @@ import itertools
 import logging
 import math
 import tempfile
+from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -274,7 +275,8 @@ def database_keypoint_accuracy(inliers: DatabaseInliers, gt: dict[str, CameraPos
 
     if not set(inliers.keypoints) & set(gt):
         log.warning("no database image is in the GT (names differ?): keypoint accuracy is empty")
-    return keypoint_accuracy(gt, inliers.keypoints, inliers.matches, **thresholds).to_dict()
+    cameras: dict[Hashable, object] = {name: pose for name, pose in gt.items()}
+    return keypoint_accuracy(cameras, inliers.keypoints, inliers.matches, **thresholds).to_dict()
 
 
 def two_view_pair_errors(
@@ -372,9 +374,9 @@ def build_report(
     if reconstruction is None and model is None and (database is None or gt is None):
         raise InvalidInput("give model or reconstruction, or database and gt")
     thresholds = auc_thresholds(thresholds)
-    rec = None
-    if reconstruction is not None or model is not None:
-        rec = reconstruction if reconstruction is not None else load_reconstruction(model)
+    rec = reconstruction
+    if rec is None and model is not None:
+        rec = load_reconstruction(model)
     report: dict = {"model": str(model) if model is not None else None}
     if rec is not None:
         report["reconstruction"] = reconstruction_stats(rec)
@@ -408,7 +410,7 @@ def build_report(
     else:
         model_err = {}
         report["gt"] = {"path": str(gt), "num_images": len(gt_poses)}
-    if database is not None:
+    if inliers is not None and db_matches is not None:  # a database was given
         if pairs is None:
             eval_pairs, src = default_eval_pairs(gt, gt_poses)
         elif isinstance(pairs, (str, Path)):
@@ -441,6 +443,12 @@ def _pct(x) -> str:
 
 def _px(x) -> str:
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.3f}"
+
+
+def _auc_order(key: str) -> float:
+    """Sort key of ``aucX`` keys: their threshold (keys of another kind last)."""
+    value = _auc_threshold(key)
+    return float("inf") if value is None else value
 
 
 def _auc_threshold(key: str) -> float | None:
@@ -493,7 +501,7 @@ def format_report(report: dict) -> str:
         keys = [("model (all GT pairs)", "model_pose_auc"), ("two-view E (db matches)", "two_view_pose_auc_E"),
                 ("two-view F (db, MAGSAC)", "two_view_pose_auc_F")]
         aucs = sorted({k for _, key in keys for k in report.get(key, {}) if _auc_threshold(k) is not None},
-                      key=_auc_threshold)
+                      key=_auc_order)
         lines.append(f"{'pose AUC (%)':<26}" + "".join(f"{'@' + k[3:]:>7}" for k in aucs)
                      + f"{'mAA':>7}{'pairs':>7}{'failed':>7}")
         for label, key in keys:
