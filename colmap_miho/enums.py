@@ -80,3 +80,26 @@ class CameraMode(StrEnum):
     PER_IMAGE = "per_image"
     PER_FOLDER = "per_folder"
     AUTO = "auto"  # COLMAP's: by image size and EXIF
+
+
+class Sampling(StrEnum):
+    """How the filter's RANSAC draws minimal samples."""
+
+    LOCAL = "local"  # NAPSAC-style: a share of the samples around a seed match
+    UNIFORM = "uniform"  # the paper's
+
+
+class MihoThreshold(StrEnum):
+    """What MiHo's thresholds t_l and t_h bound."""
+
+    HALF = "half"  # each half-match's transfer errors (paper, reference)
+    FULL = "full"  # the full match: twice the largest half-match error
+    FULL_SEARCH = "full_search"  # full match while MOP searches, half-matches at keep time
+
+
+class Assignment(StrEnum):
+    """Rule giving each kept match one homography (paper App. A.4)."""
+
+    PAPER = "paper"
+    MEDIAN = "median"
+    REFERENCE = "reference"
