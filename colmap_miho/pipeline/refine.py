@@ -201,15 +201,14 @@ def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
 
 
 def _resolve_device(device: Device | str) -> str:
-    """"cpu" or "cuda", by the refinement's resolver (torch is imported only if needed)."""
+    """"cpu" or "cuda", by the one resolver (torch is imported only if needed)."""
     device = Device.parse(device, "device")
     if device == Device.CPU:
         return "cpu"
-    from ..refinement.config import NCCConfig
-    from ..refinement.ncc import resolve_device
+    from ..devices import resolve_device
 
     try:
-        return resolve_device(NCCConfig(device=str(device))).type
+        return resolve_device(device).type
     except ValueError:
         raise UserError("--device cuda was asked for but torch sees no CUDA device") from None
 
@@ -408,7 +407,7 @@ def _refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, rec: Recipe, 
     ok = store.load_filtered()
     missing = read.loader.missing
     usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
-    ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
+    ncfg = dataclasses.replace(rec.ncc, device=Device(device)) if rec.ncc.device == "auto" else rec.ncc
     budget = rec.pipeline.image_budget_bytes(runner.slots)
     # the groups are numbered for one image budget: stored groups of another are walked again
     done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": stages.group_max_matches()})
