@@ -103,3 +103,26 @@ class Assignment(StrEnum):
     PAPER = "paper"
     MEDIAN = "median"
     REFERENCE = "reference"
+
+
+class Perturbations(StrEnum):
+    """Template shape sets of the NCC refinement (paper App. E, A_{rho,f})."""
+
+    NONE = "none"  # the patch homography pair itself (K = 1)
+    SMALL = "small"  # identity, rotations by +-15 degrees, factors 5/6 and 6/5 (K = 5)
+    PAPER = "paper"  # 5 rotations x 5 factors of the paper (K = 25)
+
+
+class Rectification(StrEnum):
+    """Patch homography pairs the track walk searches each match with."""
+
+    FILTER = "filter"  # the filter's plane of the match
+    LOCAL = "local"  # a local affine fit to the nearest matches of its cluster
+    BOTH = "both"  # both pairs; the higher NCC peak wins
+
+
+class CheckRule(StrEnum):
+    """How the second (``check_radius``) template search acts on a move."""
+
+    AGREE = "agree"  # the move stays only if both template sizes agree
+    NCC = "ncc"  # the second template's move replaces the first where its NCC is clearly higher

@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..devices import resolve_device
 from .config import FilterConfig
 from .homography import adjugate, dlt_singular_value, four_point, one_way_inside, project
 from .problem import Hypotheses, Problem
@@ -65,7 +66,8 @@ def scoring_for_device(device: str | torch.device | None = "cpu") -> NumpyScorin
         raise ValueError(f"device {device!r} needs torch, which is not installed") from None
     if isinstance(device, str):
         if device == "auto":
-            return TorchScoring("cuda") if torch.cuda.is_available() else NumpyScoring()
+            auto = resolve_device("auto")
+            return TorchScoring(auto) if auto.type == "cuda" else NumpyScoring()
         if device == TORCH_CPU:
             device = torch.device("cpu")
         else:

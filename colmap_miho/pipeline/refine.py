@@ -29,7 +29,7 @@ import numpy as np
 
 from ..adapters.database import ColmapDatabase
 from ..adapters.images import ImageLoader
-from ..enums import MatchSource
+from ..enums import Device, MatchSource
 from ..errors import InvalidInput
 from ..recipe import Recipe
 from .executor import Runner
@@ -370,7 +370,7 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
     ok = store.load_filtered()
     missing = read.loader.missing
     usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
-    ncfg = dataclasses.replace(recipe.ncc, device=device) if recipe.ncc.device == "auto" else recipe.ncc
+    ncfg = dataclasses.replace(recipe.ncc, device=Device(device)) if recipe.ncc.device == "auto" else recipe.ncc
     budget = recipe.pipeline.image_budget_bytes(runner.slots)
     # the groups are numbered for one image budget: stored groups of another are walked again
     done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": group_max_matches()})

@@ -65,15 +65,14 @@ def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
 
 
 def _resolve_device(device: Device | str) -> str:
-    """"cpu" or "cuda", by the refinement's resolver (torch is imported only if needed)."""
+    """"cpu" or "cuda", by the one resolver (torch is imported only if needed)."""
     device = Device.parse(device, "device")
     if device == Device.CPU:
         return "cpu"
-    from ..refinement.config import NCCConfig
-    from ..refinement.ncc import resolve_device
+    from ..devices import resolve_device
 
     try:
-        return resolve_device(NCCConfig(device=str(device))).type
+        return resolve_device(device).type
     except ValueError:
         raise UserError("--device cuda was asked for but torch sees no CUDA device") from None
 

@@ -30,7 +30,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from ..enums import MoveSide
+from .. import devices
+from ..enums import CheckRule, MoveSide
 from .config import DEFAULT_BATCH_SIZE, NCCConfig
 from .perturbations import perturbation_matrices
 from .search import evaluate_direction, to_frame
@@ -82,21 +83,16 @@ def _as_array(name: str, value, shape_tail: tuple[int, ...], n: int | None) -> n
     return arr
 
 
-def resolve_device(config: NCCConfig, *tensors) -> torch.device:
-    """The torch device ``config.device`` means for inputs ``tensors`` (see NCCConfig)."""
-    if config.device == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError("config.device='cuda' but torch sees no CUDA device")
-        return torch.device("cuda")
-    if config.device == "auto":
-        for t in tensors:
-            if isinstance(t, ImageStack):
-                return t.device  # built by the caller on the device it chose
-            if isinstance(t, torch.Tensor) and t.is_cuda:
-                return t.device
-        if torch.cuda.is_available():
-            return torch.device("cuda")
-    return torch.device("cpu")
+def resolve_device(config: NCCConfig, *inputs: object) -> torch.device:
+    """The torch device ``config.device`` means for ``inputs``: "auto" keeps the device of
+    the first image stack (built by the caller on the device it chose) or CUDA tensor among
+    them (:func:`colmap_miho.devices.resolve_device`)."""
+    inputs_on = None
+    for t in inputs:
+        if isinstance(t, ImageStack) or (isinstance(t, torch.Tensor) and t.is_cuda):
+            inputs_on = t.device
+            break
+    return devices.resolve_device(config.device, inputs_on)
 
 
 def _normalise_signs(homs: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
@@ -273,7 +269,7 @@ def _check_agreement(image1, image2, p1, p2, homs, side, cfg, affine1, affine2, 
         affine1=None if affine1 is None else affine1[rows],
         affine2=None if affine2 is None else affine2[rows])
     m = moved[rows]
-    if cfg.check_rule == "ncc":
+    if cfg.check_rule is CheckRule.NCC:
         # the smaller template wins where the larger one correlates clearly worse: the
         # larger one then spans what the rectification does not model (relief, occlusion)
         swap = (chk.moved_side == m) & (chk.ncc_after > after[rows] + cfg.check_ncc_margin)

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..enums import Rectification
 from .config import NCCConfig, TrackConfig
 from .track_plan import TrackPlan, build_track_plan
 from .walk_calls import (
@@ -75,7 +76,7 @@ class TrackRefineResult:
 
 def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
     """The plan's ``local_affine`` argument for an NCC configuration."""
-    if ncc_cfg.rectification == "filter":
+    if ncc_cfg.rectification is Rectification.FILTER:
         return None
     return ncc_cfg.local_affine_neighbours, ncc_cfg.local_affine_max_residual_px
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..enums import Rectification
 from .config import NCCConfig
 from .track_plan import TrackPlan
 
@@ -105,16 +106,16 @@ class _Call:
     aff_m: np.ndarray | None
 
 
-def _pairs_of(plan: TrackPlan, edges: np.ndarray, rectification: str) -> np.ndarray:
+def _pairs_of(plan: TrackPlan, edges: np.ndarray, rectification: Rectification) -> np.ndarray:
     """Patch homography pairs of edges of one pair: (n, 2, 3, 3) from the filter ("filter")
     or the local affine fits ("local"), or (n, 2, 2, 3, 3) both as candidates ("both")."""
     p = int(plan.edge_pair[edges[0]])
     filt = plan.pair_homs[p][plan.edge_label[edges]]
-    pair_local = None if rectification == "filter" else plan.local_pairs(p)
+    pair_local = None if rectification is Rectification.FILTER else plan.local_pairs(p)
     if pair_local is None:
         return filt
     local = pair_local[plan.edge_row[edges]]
-    return local if rectification == "local" else np.stack([filt, local], axis=1)
+    return local if rectification is Rectification.LOCAL else np.stack([filt, local], axis=1)
 
 
 def _orient(grp: Group, ctx: WalkState) -> _Call:
