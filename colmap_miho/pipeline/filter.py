@@ -40,10 +40,8 @@ if TYPE_CHECKING:
 MIN_PAIRS_PER_WORKER = 4
 
 #: Below this many matches to filter per parallel slot, filtering runs in this process too:
-#: the filter takes about 0.1-0.2 ms per match, and workers need the forkserver's imports
-#: (about 2 s, overlapping the parent's setup) and their inputs pickled. Measured on
-#: Middlebury temple (33 pairs, 7.4k matches, 2 cores): the filter stage took 0.7-1.0 s in 2
-#: workers and 1.0 s in this process, the whole run 4.3-4.7 s either way.
+#: workers need the forkserver's imports (overlapping the parent's setup) and their inputs
+#: pickled, which a small amount of filtering does not pay back.
 MIN_MATCHES_PER_FILTER_WORKER = 10_000
 
 #: Bytes this process holds per match of a chunk in flight: positions (2 x 2 float64), indices
@@ -56,7 +54,7 @@ BYTES_PER_MATCH_IN_FLIGHT = 160
 FILTER_BUDGET_SHARE = 0.25
 
 #: Most matches in one chunk whatever the budget: a chunk is the unit a resumed run skips
-#: (measured 0.05-0.3 s per pair of ~1000 matches: at most about a minute of one core's work).
+#: (about a minute of one core's work at most).
 MAX_CHUNK_MATCHES = 200_000
 
 #: A parallel run cuts its pairs into at least this many chunks per slot (load balance).

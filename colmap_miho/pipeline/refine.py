@@ -43,16 +43,15 @@ log = logging.getLogger(__name__)
 MIN_MATCHES_PER_REFINE_WORKER = 2000
 
 #: When the filter stage did not start the process pool, refinement starts it only with at
-#: least this many refinable matches per worker: the walk takes about 0.13 ms per match
-#: (fountain, one process), a worker's first group waits for the forkserver's imports (about
-#: 2 s) if they have not finished. Dask clusters are started already.
+#: least this many refinable matches per worker: a worker's first group waits for the
+#: forkserver's imports if they have not finished, which only a large enough share of the walk
+#: pays back. Dask clusters are started already.
 MIN_MATCHES_TO_START_WORKERS = 10_000
 
 #: Most refinable matches of one group of tracks, in units of
 #: :data:`MIN_MATCHES_PER_REFINE_WORKER`: a group is the unit of work handed to a worker and
 #: of what a resumed run keeps (a fixed number, so the groups do not depend on the runner).
 GROUP_SIZE_IN_WORKER_MINIMUMS = 10
-
 
 
 def group_max_matches() -> int:
@@ -314,11 +313,8 @@ def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> N
 
 @contextlib.contextmanager
 def _torch_threads(n: int | None):
-    """Run a block with ``n`` torch intra-op threads, then restore the caller's setting.
-
-    Measured on the 2-core machine (fountain, 55 pairs): the NCC walk took 54 s with one
-    torch thread and 4x longer with two (many small ops; threading overhead dominates).
-    """
+    """Run a block with ``n`` torch intra-op threads, then restore the caller's setting (the
+    walk's many small operations run faster on one thread: see :mod:`.workers`)."""
     if n is None:
         yield
         return

@@ -37,6 +37,7 @@ import logging
 import os
 import sqlite3
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..adapters.database import ColmapDatabase, validate_database
@@ -96,6 +97,9 @@ def refine_database(
     dask: str | None = None,
 ) -> RefineSummary:
     """Filter (MOP / MOP+MiHo) and refine (track-consistent NCC) a COLMAP database.
+
+    (The public entry point: its keyword arguments are the ``refine`` command's options, one
+    each, so that a script reads like the command line; the stages get them grouped.)
 
     Args:
         database: the input COLMAP database; never opened for writing (unless ``in_place``,
@@ -158,8 +162,9 @@ def refine_database(
     laps.lap("setup")
     try:
         with open_runner(n_workers, dask) as runner:
-            summary = _run_stages(database, image_dir, wc, store, runner, rec, dev, seed=seed, strict=strict,
-                                  progress=progress, json_path=json_path, resumed=resumed, laps=laps)
+            inputs = _RunInputs(database=database, image_dir=image_dir, recipe=rec, device=dev, seed=seed,
+                                strict=strict, progress=progress, json_path=json_path)
+            summary = _run_stages(inputs, wc, store, runner, resumed=resumed, laps=laps)
     except UserError as exc:  # one line: the error, then how to resume
         if not _keep_store(store):
             raise
@@ -197,10 +202,26 @@ def _resume_hint(store: RunStore) -> str:
             "--resume to continue it (or --restart to start again)")
 
 
-def _run_stages(database: Path, image_dir: Path, wc: WorkingCopy, store: RunStore, runner: Runner,
-                rec: Recipe, dev: str, *, seed: int, strict: bool, progress: bool,
-                json_path: str | os.PathLike | None, resumed: bool, laps: _Laps) -> RefineSummary:
+@dataclass(frozen=True, kw_only=True)
+class _RunInputs:
+    """What the stages of one run read: the user's database and images, the resolved recipe and
+    device (``"cpu"`` / ``"cuda"``), and the run options of :func:`refine_database`."""
+
+    database: Path
+    image_dir: Path
+    recipe: Recipe
+    device: str
+    seed: int
+    strict: bool
+    progress: bool
+    json_path: str | os.PathLike | None
+
+
+def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Runner, *, resumed: bool,
+                laps: _Laps) -> RefineSummary:
     """The stages on the working copy, then the commit; returns the summary."""
+    database, image_dir, rec, dev = inputs.database, inputs.image_dir, inputs.recipe, inputs.device
+    seed, strict, progress, json_path = inputs.seed, inputs.strict, inputs.progress, inputs.json_path
     pcfg = rec.pipeline
     try:
         with wc:
