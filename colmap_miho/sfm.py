@@ -138,7 +138,7 @@ def parse_camera_params(model: str, params: str) -> tuple[float, ...]:
         ValueError: unknown model, a value that is not a finite number, or a count that does not
             fit the model (one line naming the model and the count it takes).
     """
-    from .adapters.database import model_num_params
+    from .adapters.cameras import model_num_params
 
     n = model_num_params(model)
     if not params.strip():
@@ -203,9 +203,9 @@ class MappingConfig:
             raise InvalidInput(f"min_num_matches must be >= 0, got {self.min_num_matches}")
 
     def intrinsics(self):
-        """The :class:`~colmap_miho.adapters.database.CameraIntrinsics` to write into every
+        """The :class:`~colmap_miho.adapters.cameras.CameraIntrinsics` to write into every
         camera, or None when ``camera_model`` is empty."""
-        from .adapters.database import CameraIntrinsics
+        from .adapters.cameras import CameraIntrinsics
 
         if not self.camera_model.strip():
             return None
@@ -235,7 +235,7 @@ def run_mapping(
             files in it are replaced.
         config: mapper, seed, threads and ``min_num_matches`` (default :class:`MappingConfig`).
         mapper, seed: when given, replace ``config.mapper`` / ``config.seed``.
-        intrinsics: image name -> :class:`~colmap_miho.adapters.database.CameraIntrinsics`
+        intrinsics: image name -> :class:`~colmap_miho.adapters.cameras.CameraIntrinsics`
             written into those images' cameras of the copy after ``config.camera_model`` (e.g.
             the GT cameras, :func:`colmap_miho.reporting.compare.gt_intrinsics`).
         progress: tqdm bar of registered images (incremental only).

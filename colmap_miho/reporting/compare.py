@@ -81,10 +81,10 @@ def gt_intrinsics(gt: str | Path) -> dict:
         gt: GT COLMAP model folder (or dataset folder with ``gt_model/``).
 
     Returns:
-        image name -> :class:`colmap_miho.adapters.database.CameraIntrinsics` (model, params in
+        image name -> :class:`colmap_miho.adapters.cameras.CameraIntrinsics` (model, params in
         COLMAP's pixel convention, width, height): pass as ``run_mapping(intrinsics=...)``.
     """
-    from ..adapters.database import CameraIntrinsics
+    from ..adapters.cameras import CameraIntrinsics
     from .gt_model import load_reconstruction
 
     rec = load_reconstruction(gt)
