@@ -126,3 +126,11 @@ class CheckRule(StrEnum):
 
     AGREE = "agree"  # the move stays only if both template sizes agree
     NCC = "ncc"  # the second template's move replaces the first where its NCC is clearly higher
+
+
+class RunnerKind(StrEnum):
+    """Where a run's parallel work runs (the summary's ``runner``)."""
+
+    INLINE = "inline"  # in this process
+    PROCESSES = "processes"  # a local process pool
+    DASK = "dask"  # a Dask cluster, local or remote

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..adapters.database import ColmapDatabase, PairRecord
-from ..enums import MatchSource
+from ..enums import MatchSource, RunnerKind
 from ..filtering.api import filter_matches
 from ..filtering.config import FilterConfig
 from .read import check_match_indices
@@ -155,7 +155,7 @@ def run_filter(db: ColmapDatabase, pairs: list[PairRecord], keypoints: dict[int,
     todo = [p for p in pairs if (p.image_id1, p.image_id2) not in done]
     resumed = store.filter_counts()
     todo_matches = sum(p.num_matches for p in todo)
-    parallel = runner.parallel and (runner.kind == "dask" or (
+    parallel = runner.parallel and (runner.kind == RunnerKind.DASK or (
         len(todo) >= MIN_PAIRS_PER_WORKER * runner.slots
         and todo_matches >= MIN_MATCHES_PER_FILTER_WORKER * runner.slots))
     slots = runner.slots if parallel else 1
@@ -210,7 +210,7 @@ def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints
         todo = deque(enumerate(chunks))
         # A process pool that is not running yet needs its forkserver's imports (~2 s):
         # meanwhile this process filters chunks itself.
-        starting = runner.start_in_background() if runner.kind == "processes" else (lambda: False)
+        starting = runner.start_in_background() if runner.kind == RunnerKind.PROCESSES else (lambda: False)
         while todo and starting():
             k, chunk = todo.popleft()
             matches, items = read(chunk)

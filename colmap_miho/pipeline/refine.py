@@ -29,7 +29,7 @@ import numpy as np
 
 from ..adapters.database import ColmapDatabase
 from ..adapters.images import ImageLoader
-from ..enums import Device, MatchSource
+from ..enums import Device, MatchSource, RunnerKind
 from ..errors import InvalidInput
 from ..recipe import Recipe
 from .executor import Runner
@@ -234,7 +234,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
     for g in sorted(done):
         finish(g, *done[g], resumed=True)
     use = 1
-    if runner.parallel and (runner.started or runner.kind == "dask"
+    if runner.parallel and (runner.started or runner.kind == RunnerKind.DASK
                             or n_edges >= MIN_MATCHES_TO_START_WORKERS * runner.slots):
         use = min(runner.slots, max(1, n_edges // MIN_MATCHES_PER_REFINE_WORKER), max(1, len(todo)))
     bar = None

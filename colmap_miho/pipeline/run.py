@@ -250,7 +250,7 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 laps.lap("verify")
             summary = RefineSummary.from_stages(
                 output=database if wc.in_place else wc.output,  # in place: the user's path (a symlink stays one)
-                database=database, backup=wc.backup, recipe=rec, device=dev, runner=runner.kind,
+                database=database, backup=wc.backup, recipe=rec, device=dev, runner=str(runner.kind),
                 resumed=resumed, read=read_stats, filtered=filter_stats, refine=refine_stats,
                 write=write_stats, seconds=laps.total())
             if json_path:  # written beside its target now, renamed onto it with the commit
