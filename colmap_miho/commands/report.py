@@ -52,7 +52,8 @@ def paths(args) -> tuple[dict, dict]:
 
 def run(args) -> int:
     from ..errors import UserError
-    from ..reporting.report import build_report, format_report, write_report_json
+    from ..reporting.report import build_report, write_report_json
+    from ..reporting.report_text import format_report
     from ._options import auc_thresholds
 
     if args.model is None:

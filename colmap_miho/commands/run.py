@@ -51,7 +51,7 @@ def run(args) -> int:
     from ..extras import require
     from ..pipeline.jobs import ExtractionOptions, JobOptions, run_from_images
     from ..reporting.compare import format_comparison
-    from ..reporting.report import format_report
+    from ..reporting.report_text import format_report
     from ._options import (
         auc_thresholds,
         check_repeat_arguments,
