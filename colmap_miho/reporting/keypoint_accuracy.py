@@ -295,69 +295,14 @@ def keypoint_accuracy(
         raise ValueError(f"gauss_newton_steps must be >= 0, got {gauss_newton_steps}")
     min_track_views = int(min_track_views)
     keys = list(keypoints)
-    index = {k: i for i, k in enumerate(keys)}
     kps = [np.asarray(keypoints[k], dtype=np.float64).reshape(-1, 2) for k in keys]
     cams = {k: _camera(c) for k, c in cameras.items()}
-
-    # epipolar distances + the match list for the tracks
-    epi = []
-    track_matches = []
-    for (a, b), idx in matches.items():
-        if a not in index or b not in index:
-            raise ValueError(f"pair ({a!r}, {b!r}): no keypoints for {a if a not in index else b!r}")
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1, 2)
-        if len(idx) == 0:
-            continue
-        ia, ib = index[a], index[b]
-        if idx.min() < 0 or idx[:, 0].max() >= len(kps[ia]) or idx[:, 1].max() >= len(kps[ib]):
-            raise ValueError(f"pair ({a!r}, {b!r}): match index out of range "
-                             f"({len(kps[ia])} and {len(kps[ib])} keypoints)")
-        track_matches.append((ia, ib, idx))
-        if a in cams and b in cams:
-            F = fundamental_from_poses(*cams[a], *cams[b])
-            epi.append(symmetric_epipolar_distance(F, kps[ia][idx[:, 0]], kps[ib][idx[:, 1]]))
-    e = np.concatenate(epi) if epi else np.zeros(0)
+    e, track_matches = _epipolar_distances(keys, kps, cams, matches)
     nan = float("nan")
-
-    # tracks
-    nodes, labels = build_tracks([len(k) for k in kps], track_matches)
-    offset = np.concatenate([[0], np.cumsum([len(k) for k in kps])]).astype(np.int64)
-    img = np.searchsorted(offset, nodes, side="right") - 1
-    _, lab = np.unique(labels, return_inverse=True)
-    n_lab = int(lab.max()) + 1 if lab.size else 0
-    n_obs = np.bincount(lab, minlength=n_lab)
-    uniq_li = np.unique(lab * len(kps) + img) if lab.size else np.zeros(0, np.int64)
-    n_img = np.bincount(uniq_li // max(len(kps), 1), minlength=n_lab)
-    has_gt = np.array([k in cams for k in keys], dtype=bool)
-    gt_obs = has_gt[img] if img.size else np.zeros(0, bool)
-    gt_li = np.unique((lab * len(kps) + img)[gt_obs]) if lab.size else np.zeros(0, np.int64)
-    n_gt_img = np.bincount(gt_li // max(len(kps), 1), minlength=n_lab)
-    candidate = n_gt_img >= min_track_views
-    conflicting = candidate & (n_obs > n_img)
-    measured_tracks = candidate & ~conflicting
-
-    # padded (T, L) arrays of the GT observations of the measurable tracks
-    sel = measured_tracks[lab] & gt_obs
-    order = np.argsort(lab[sel], kind="stable")
-    t_lab, t_img, t_node = lab[sel][order], img[sel][order], nodes[sel][order]
-    track_ids, t_row = np.unique(t_lab, return_inverse=True)
-    T = len(track_ids)
-    counts = np.bincount(t_row, minlength=T)
-    L = int(counts.max()) if T else 0
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if T else np.zeros(0, np.int64)
-    slot = np.arange(len(t_row)) - starts[t_row] if T else np.zeros(0, np.int64)
-    Ks = np.stack([cams[k][0] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
-    Rs = np.stack([cams[k][1] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
-    ts = np.stack([cams[k][2] if k in cams else np.zeros(3) for k in keys]) if keys else np.zeros((0, 3))
-    Kp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
-    Rp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
-    tp = np.zeros((T, L, 3))
-    xy = np.zeros((T, L, 2))
-    valid = np.zeros((T, L), bool)
-    if T:
-        Kp[t_row, slot], Rp[t_row, slot], tp[t_row, slot] = Ks[t_img], Rs[t_img], ts[t_img]
-        xy[t_row, slot] = np.concatenate(kps)[t_node]
-        valid[t_row, slot] = True
+    tracks = _classify_tracks(keys, kps, cams, track_matches, min_track_views)
+    candidate, conflicting = tracks.candidate, tracks.conflicting
+    Kp, Rp, tp, xy, valid = _padded_observations(keys, kps, cams, tracks)
+    T = len(valid)
     _, res = triangulate_tracks(Kp, Rp, tp, xy, valid, gauss_newton_steps=int(gauss_newton_steps))
     worst = np.where(valid, res, 0.0).max(axis=1) if T else np.zeros(0)
     good = worst <= track_threshold_px
@@ -380,3 +325,97 @@ def keypoint_accuracy(
         track_threshold_px=float(track_threshold_px),
         min_track_views=min_track_views,
     )
+
+
+def _epipolar_distances(keys: list, kps: list[np.ndarray], cams: dict,
+                        matches: Mapping[tuple[Hashable, Hashable], np.ndarray]
+                        ) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
+    """Symmetric GT epipolar distances (px) of the matches between two GT images, and every
+    pair's matches as ``(image index a, image index b, (M, 2) int64 indices)`` for the tracks.
+
+    Raises:
+        ValueError: a pair naming an image without keypoints, or a match index out of range.
+    """
+    index = {k: i for i, k in enumerate(keys)}
+    epi = []
+    track_matches = []
+    for (a, b), idx in matches.items():
+        if a not in index or b not in index:
+            raise ValueError(f"pair ({a!r}, {b!r}): no keypoints for {a if a not in index else b!r}")
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1, 2)
+        if len(idx) == 0:
+            continue
+        ia, ib = index[a], index[b]
+        if idx.min() < 0 or idx[:, 0].max() >= len(kps[ia]) or idx[:, 1].max() >= len(kps[ib]):
+            raise ValueError(f"pair ({a!r}, {b!r}): match index out of range "
+                             f"({len(kps[ia])} and {len(kps[ib])} keypoints)")
+        track_matches.append((ia, ib, idx))
+        if a in cams and b in cams:
+            F = fundamental_from_poses(*cams[a], *cams[b])
+            epi.append(symmetric_epipolar_distance(F, kps[ia][idx[:, 0]], kps[ib][idx[:, 1]]))
+    return (np.concatenate(epi) if epi else np.zeros(0)), track_matches
+
+
+@dataclass(frozen=True)
+class _Tracks:
+    """The tracks of all matches: per observation its node, image index, GT flag and track
+    label; per track whether it is a candidate (seen by ``min_track_views`` GT images), a
+    conflicting one (two keypoints of one image) and so measured (candidate, not conflicting)."""
+
+    nodes: np.ndarray
+    img: np.ndarray
+    gt_obs: np.ndarray
+    lab: np.ndarray
+    candidate: np.ndarray
+    conflicting: np.ndarray
+    measured: np.ndarray
+
+
+def _classify_tracks(keys: list, kps: list[np.ndarray], cams: dict,
+                     track_matches: list[tuple[int, int, np.ndarray]], min_track_views: int) -> _Tracks:
+    """Union-find tracks of ``track_matches`` and their classes (see :class:`_Tracks`)."""
+    nodes, labels = build_tracks([len(k) for k in kps], track_matches)
+    offset = np.concatenate([[0], np.cumsum([len(k) for k in kps])]).astype(np.int64)
+    img = np.searchsorted(offset, nodes, side="right") - 1
+    _, lab = np.unique(labels, return_inverse=True)
+    n_lab = int(lab.max()) + 1 if lab.size else 0
+    n_obs = np.bincount(lab, minlength=n_lab)
+    uniq_li = np.unique(lab * len(kps) + img) if lab.size else np.zeros(0, np.int64)
+    n_img = np.bincount(uniq_li // max(len(kps), 1), minlength=n_lab)
+    has_gt = np.array([k in cams for k in keys], dtype=bool)
+    gt_obs = has_gt[img] if img.size else np.zeros(0, bool)
+    gt_li = np.unique((lab * len(kps) + img)[gt_obs]) if lab.size else np.zeros(0, np.int64)
+    n_gt_img = np.bincount(gt_li // max(len(kps), 1), minlength=n_lab)
+    candidate = n_gt_img >= min_track_views
+    conflicting = candidate & (n_obs > n_img)
+    return _Tracks(nodes=nodes, img=img, gt_obs=gt_obs, lab=lab, candidate=candidate, conflicting=conflicting,
+                   measured=candidate & ~conflicting)
+
+
+def _padded_observations(keys: list, kps: list[np.ndarray], cams: dict, tracks: _Tracks
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The GT observations of the measured tracks as padded ``(T, L)`` arrays: ``K`` and ``R``
+    (T, L, 3, 3), ``t`` (T, L, 3), keypoints (T, L, 2) pixels and the valid mask (T, L)."""
+    lab, img, nodes = tracks.lab, tracks.img, tracks.nodes
+    sel = tracks.measured[lab] & tracks.gt_obs
+    order = np.argsort(lab[sel], kind="stable")
+    t_lab, t_img, t_node = lab[sel][order], img[sel][order], nodes[sel][order]
+    track_ids, t_row = np.unique(t_lab, return_inverse=True)
+    T = len(track_ids)
+    counts = np.bincount(t_row, minlength=T)
+    L = int(counts.max()) if T else 0
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if T else np.zeros(0, np.int64)
+    slot = np.arange(len(t_row)) - starts[t_row] if T else np.zeros(0, np.int64)
+    Ks = np.stack([cams[k][0] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
+    Rs = np.stack([cams[k][1] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
+    ts = np.stack([cams[k][2] if k in cams else np.zeros(3) for k in keys]) if keys else np.zeros((0, 3))
+    Kp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
+    Rp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
+    tp = np.zeros((T, L, 3))
+    xy = np.zeros((T, L, 2))
+    valid = np.zeros((T, L), bool)
+    if T:
+        Kp[t_row, slot], Rp[t_row, slot], tp[t_row, slot] = Ks[t_img], Rs[t_img], ts[t_img]
+        xy[t_row, slot] = np.concatenate(kps)[t_node]
+        valid[t_row, slot] = True
+    return Kp, Rp, tp, xy, valid
