@@ -146,6 +146,34 @@ def write_features(h5: h5py.File, name: str, keypoints: np.ndarray, image_size: 
         grp.create_dataset("image_size", data=np.asarray(image_size, dtype=np.int64))
 
 
+def count_rows(h5: h5py.File, leaf: str) -> int:
+    """The total first dimension of every dataset named ``leaf`` (e.g. ``keypoints``), from the
+    shapes alone (nothing is read)."""
+    total = 0
+
+    def visit(path: str, obj) -> None:
+        nonlocal total
+        if isinstance(obj, h5py.Dataset) and path.rsplit("/", 1)[-1] == leaf and obj.shape:
+            total += int(obj.shape[0])
+
+    h5.visititems(visit)
+    return total
+
+
+def count_matches(h5: h5py.File) -> int:
+    """An upper bound of the matches of a matches file from its datasets' shapes alone: the
+    length of every ``matches0`` and the rows of every deep-image-matching (M, 2) array."""
+    total = 0
+
+    def visit(path: str, obj) -> None:
+        nonlocal total
+        if isinstance(obj, h5py.Dataset) and path.rsplit("/", 1)[-1] != SCORES0 and obj.shape:
+            total += int(obj.shape[0])
+
+    h5.visititems(visit)
+    return total
+
+
 # ---------------------------------------------------------------------------------------------
 # matches
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..adapters.paths import check_distinct, comparison_paths
 from ..errors import RunFailed
 from .tables import _fmt, comparison_markdown, comparison_rows, table_rows
 
@@ -264,10 +265,11 @@ def _write_plots(output: Path, baseline: dict, refined: dict, changes: dict) -> 
 def _write_tables(output: Path, baseline: dict, refined: dict, refine: dict, changes: dict, clouds: dict,
                   plot_files: list[Path]) -> tuple[Path, Path]:
     """compare.md and compare.json (the JSON without the per-pair rows)."""
+    from ..adapters.safety import write_text_atomic
     from .report import write_report_json
 
     md = output / "compare.md"
-    md.write_text(comparison_markdown(baseline, refined, refine), encoding="utf-8")
+    write_text_atomic(md, comparison_markdown(baseline, refined, refine))
     disp = changes["displacements"]
     summary_json = {
         "baseline": {k: v for k, v in baseline.items() if k != "pairs"},
@@ -337,8 +339,10 @@ def compare_databases(
     mapping = _mapping_config(recipe, mapper, seed)
     if gt_cameras and gt is None:
         raise ValueError("taking the cameras from the GT needs --gt")
-    intrinsics = gt_intrinsics(gt) if gt_cameras else None
     output = Path(output)
+    check_distinct(*comparison_paths(output, database=database, images=image_dir, gt=gt, repeats=repeats,
+                                     pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=mapping.seed))
+    intrinsics = gt_intrinsics(gt) if gt_cameras else None
     for sub in ("baseline", "refined", "plots"):
         (output / sub).mkdir(parents=True, exist_ok=True)
     database, image_dir = Path(database), Path(image_dir)
@@ -440,6 +444,8 @@ def run_from_images(
     if gt_cameras and gt is None:
         raise ValueError("taking the cameras from the GT needs --gt")
     output = Path(output)
+    check_distinct(*comparison_paths(output, images=image_dir, gt=gt, repeats=repeats, seed=mapping.seed,
+                                     compare=compare))
     output.mkdir(parents=True, exist_ok=True)
     database = output / "database.db"
     if database.exists():
