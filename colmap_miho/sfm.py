@@ -247,7 +247,7 @@ def run_mapping(
     Raises:
         DatabaseError: the database is missing or not a COLMAP database.
     """
-    from .adapters.database import count_images, write_camera_intrinsics
+    from .adapters.database import count_images, validate_database, write_camera_intrinsics
     from .adapters.paths import refuse_text_model
     from .adapters.safety import check_database_path, disk_full_error, is_disk_full, private_tempdir, read_copy
 
@@ -267,6 +267,7 @@ def run_mapping(
         with private_tempdir("colmap_miho_map_", output) as tmp:  # removed by the next run after a kill -9
             db_copy = Path(tmp) / "database.db"
             read_copy(database, db_copy)  # refuses a database in use or with a hot journal
+            validate_database(db_copy, name=database)  # e.g. a lying blob size: pycolmap would abort
             if cfg.intrinsics() is not None:
                 write_camera_intrinsics(db_copy, cfg.intrinsics())
             if intrinsics and not write_camera_intrinsics(db_copy, intrinsics):

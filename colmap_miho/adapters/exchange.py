@@ -22,6 +22,7 @@ from ..enums import MatchSource
 from . import hloc
 from .database import ColmapDatabase, validate_database, verify_geometry
 from .images import image_size
+from .paths import leaves_folder
 from .safety import (
     check_database_path,
     check_free_space,
@@ -154,6 +155,9 @@ def _write_images(db: ColmapDatabase, fh, images: Path, camera_model: str, singl
     shared: tuple[int, int, tuple[int, int], str] | None = None  # camera id, rig id, size, first image
     ncams = 0
     for name in tqdm(hloc.list_feature_images(fh), desc="images", unit="img", disable=not progress):
+        if leaves_folder(name):
+            raise ValueError(f"image {name!r} of {fh.filename} is named outside the image folder {images} "
+                             "(an absolute name or one with '..')")
         path = images / name
         if not path.is_file():
             raise FileNotFoundError(f"image {name!r} of {fh.filename} is not in the image folder {images}")
@@ -242,7 +246,7 @@ def export_hloc(
         with private_tempdir("colmap-miho-export-") as tmp:  # removed by the next run after a kill -9
             copy = Path(tmp) / "database.db"
             read_copy(database, copy)
-            validate_database(copy)
+            validate_database(copy, name=database)
             check_export_space(copy, features, matches, source, layout)
             # each file staged under a unique name beside its target, renamed when both are whole
             with staged_write(features) as tmp_feat, staged_write(matches) as tmp_match:

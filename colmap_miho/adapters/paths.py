@@ -171,6 +171,16 @@ def comparison_paths(output: str | os.PathLike, *, images: PathArg, database: Pa
     return inputs, outputs
 
 
+def leaves_folder(name: str) -> bool:
+    """True when the image name ``name`` (relative to the image folder, as COLMAP stores it)
+    is absolute or climbs out of the folder with ``..``: reading it would read a file outside
+    ``--images``. Judged on the name alone (symlinks inside the folder are the user's choice)."""
+    if not name or os.path.isabs(name) or name.startswith(("/", "\\")):
+        return True
+    parts = os.path.normpath(name.replace("\\", "/")).split("/")
+    return parts[0] == ".."
+
+
 def _clean(paths: Mapping[str, PathArg]) -> dict[str, Path]:
     return {label: Path(p) for label, p in paths.items() if p is not None and str(p) != ""}
 
