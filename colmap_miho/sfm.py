@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -231,8 +230,8 @@ def run_mapping(
     Args:
         database: COLMAP database (read through a private copy; never modified).
         image_dir: the image folder (colours of the 3D points).
-        output: folder for the model (cameras/images/points3D .bin); created. Existing model
-            files in it are replaced.
+        output: folder for the model (cameras/images/points3D .bin); created. An existing
+            binary model in it is replaced; a text model (a ground truth, say) is refused.
         config: mapper, seed, threads and ``min_num_matches`` (default :class:`MappingConfig`).
         mapper, seed: when given, replace ``config.mapper`` / ``config.seed``.
         intrinsics: image name -> :class:`~colmap_miho.adapters.cameras.CameraIntrinsics`
@@ -248,8 +247,9 @@ def run_mapping(
     Raises:
         DatabaseError: the database is missing or not a COLMAP database.
     """
-    from .adapters.database import count_images, write_camera_intrinsics
-    from .adapters.safety import check_database_path, read_copy
+    from .adapters.database import count_images, validate_database, write_camera_intrinsics
+    from .adapters.paths import refuse_text_model
+    from .adapters.safety import check_database_path, disk_full_error, is_disk_full, private_tempdir, read_copy
 
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
@@ -260,23 +260,30 @@ def run_mapping(
     if not image_dir.is_dir():
         raise NotADirectoryError(f"image folder not found: {image_dir}")
     output = Path(output)
+    refuse_text_model(output, "mapping output")
     output.mkdir(parents=True, exist_ok=True)
 
-    with tempfile.TemporaryDirectory(prefix="colmap_miho_map_", dir=output) as tmp:
-        db_copy = Path(tmp) / "database.db"
-        read_copy(database, db_copy)  # refuses a database in use or with a hot journal
-        if cfg.intrinsics() is not None:
-            write_camera_intrinsics(db_copy, cfg.intrinsics())
-        if intrinsics and not write_camera_intrinsics(db_copy, intrinsics):
-            log.warning("no database image has given intrinsics (names differ?): cameras unchanged")
-        num_images = count_images(db_copy)
-        models_dir = Path(tmp) / "models"
-        models_dir.mkdir()
-        t0 = time.perf_counter()
-        with colmap_log_to_file(output, verbose=verbose) as prefix:
-            models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None, label)
-        seconds = time.perf_counter() - t0
-        log_file = _latest_log(prefix)
+    try:
+        with private_tempdir("colmap_miho_map_", output) as tmp:  # removed by the next run after a kill -9
+            db_copy = Path(tmp) / "database.db"
+            read_copy(database, db_copy)  # refuses a database in use or with a hot journal
+            validate_database(db_copy, name=database)  # e.g. a lying blob size: pycolmap would abort
+            if cfg.intrinsics() is not None:
+                write_camera_intrinsics(db_copy, cfg.intrinsics())
+            if intrinsics and not write_camera_intrinsics(db_copy, intrinsics):
+                log.warning("no database image has given intrinsics (names differ?): cameras unchanged")
+            num_images = count_images(db_copy)
+            models_dir = Path(tmp) / "models"
+            models_dir.mkdir()
+            t0 = time.perf_counter()
+            with colmap_log_to_file(output, verbose=verbose) as prefix:
+                models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None, label)
+            seconds = time.perf_counter() - t0
+            log_file = _latest_log(prefix)
+    except (OSError, RuntimeError) as exc:  # pycolmap's SQLite says "database or disk is full"
+        if not is_disk_full(exc):
+            raise
+        raise disk_full_error(output, f"mapping {database}") from None
 
     if not models:
         log.warning("mapping found no model (%d images in the database)", num_images)
@@ -342,12 +349,12 @@ def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir:
 
 def _write_largest(models: dict, output: Path):
     """Write the model with the most registered images (then points) to ``output``, replacing
-    model files there; returns it."""
+    model files there (staged, read back, then renamed: see
+    :func:`~colmap_miho.adapters.safety.write_model_atomic`); returns it."""
+    from .adapters.safety import write_model_atomic
+
     best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
-    for stem in MODEL_FILES:
-        for ext in (".bin", ".txt"):
-            (output / f"{stem}{ext}").unlink(missing_ok=True)
-    best.write(str(output))
+    write_model_atomic(best, output)
     return best
 
 

@@ -56,11 +56,12 @@ def image_pair(pid: int) -> tuple[int, int]:
     return pid // MAX_IMAGE_ID, pid % MAX_IMAGE_ID
 
 
-def validate_database(path: str | Path) -> None:
+def validate_database(path: str | Path, name: str | Path | None = None) -> None:
     """Check that ``path`` is a COLMAP database (SQLite with COLMAP's tables).
 
     Opens ``path`` read-only with Python's sqlite3 and closes it again; call it on a working
-    copy, never while a pycolmap handle is open on the same file.
+    copy, never while a pycolmap handle is open on the same file; ``name`` (the user's file the
+    copy was made from) is the file the messages name (default ``path``).
 
     Raises:
         DatabaseError: missing file, not SQLite, or COLMAP tables missing; the message names
@@ -79,6 +80,36 @@ def validate_database(path: str | Path) -> None:
     missing = [t for t in REQUIRED_TABLES if t not in tables]
     if missing:
         raise DatabaseError(f"not a COLMAP database (missing tables: {', '.join(missing)}): {p}")
+    _check_blob_sizes(p, Path(name) if name is not None else p)
+
+
+#: (table, key column, bytes per value) of the array blobs pycolmap allocates by their
+#: ``rows`` and ``cols`` columns (a lying ``rows`` makes it ask for terabytes).
+_BLOB_TABLES = (("keypoints", "image_id", 4), ("matches", "pair_id", 4), ("two_view_geometries", "pair_id", 4))
+
+
+def _check_blob_sizes(p: Path, name: Path) -> None:
+    """Refuse a database whose array blobs do not hold ``rows * cols`` values.
+
+    Raises:
+        DatabaseError: naming the file, the table and the image (or pair) and both sizes.
+    """
+    con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
+    try:
+        for table, key, size in _BLOB_TABLES:
+            bad = con.execute(
+                f"SELECT {key}, rows, cols, length(data) FROM {table} WHERE rows < 0 OR cols < 0 OR "
+                f"(rows > 0 AND (data IS NULL OR rows * cols * {size} != length(data))) LIMIT 1").fetchone()
+            if bad is None:
+                continue
+            k, nrows, ncols, nbytes = bad
+            where = f"image {k}" if key == "image_id" else "pair of images {} and {}".format(*image_pair(k))
+            raise DatabaseError(f"database {name} is damaged: {table} of {where} says {nrows} x {ncols} values but "
+                                f"holds {nbytes or 0} bytes; rebuild it (or restore a backup)")
+    except sqlite3.DatabaseError as exc:
+        raise DatabaseError(f"not a COLMAP database ({exc}): {name}") from None
+    finally:
+        con.close()
 
 
 @dataclass(frozen=True)
@@ -226,14 +257,21 @@ class ColmapDatabase(DatabaseBuilder):
         return out
 
     def matches(self, image_id1: int, image_id2: int, source: MatchSource | str) -> np.ndarray:
-        """Matches of one pair from ``source``, uint32 (M, 2) ordered (image_id1, image_id2)."""
+        """Matches of one pair from ``source``, uint32 (M, 2) ordered (image_id1, image_id2);
+        a repeated row is kept once (first occurrence, order kept) with a warning."""
         source = MatchSource.parse(source, "source")
         if source == MatchSource.VERIFIED:
             m = self.handle.read_two_view_geometry(int(image_id1), int(image_id2)).inlier_matches
         else:
             m = self.handle.read_matches(int(image_id1), int(image_id2))
-        m = np.asarray(m, dtype=np.uint32)
-        return m.reshape(-1, 2)
+        m = np.asarray(m, dtype=np.uint32).reshape(-1, 2)
+        if len(m) > 1:  # a repeated (i, j) row would count twice in the filter and be written back
+            _, first = np.unique((m[:, 0].astype(np.uint64) << np.uint64(32)) | m[:, 1], return_index=True)
+            if len(first) < len(m):
+                log.warning("image pair %d-%d: %d repeated rows in its %s matches, counted once", image_id1,
+                            image_id2, len(m) - len(first), source)
+                m = m[np.sort(first)]
+        return m
 
     # -- writing ---------------------------------------------------------------------------
     def write_keypoints(self, image_id: int, xy: np.ndarray, moved: np.ndarray) -> int:

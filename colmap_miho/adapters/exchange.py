@@ -12,8 +12,7 @@ exactly.
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
+import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +23,19 @@ from ..errors import InvalidInput
 from . import hloc
 from .database import ColmapDatabase, validate_database, verify_geometry
 from .images import image_size
-from .safety import check_database_path, check_not_in_use, read_copy, remove_with_side_files
+from .paths import leaves_folder
+from .safety import (
+    check_database_path,
+    check_free_space,
+    check_integrity,
+    check_not_in_use,
+    disk_full_error,
+    is_disk_full,
+    private_tempdir,
+    publish_new_file,
+    read_copy,
+    staged_write,
+)
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +91,8 @@ def import_hloc(
     Cameras come from the image files (focal prior ``FOCAL_PRIOR * max(width, height)``).
     Keypoints are written as COLMAP's 6 columns (x, y, a11, a12, a21, a22); the affine shape is
     built from hloc's ``scales``/``oris`` when present, else identity. The database is written
-    to ``<database>.partial`` and renamed at the end: a failed import leaves nothing behind.
+    into a private folder beside it and moved onto its name at the end (only if no file
+    appeared there meanwhile): a failed import leaves nothing behind.
 
     Args:
         features, matches: the h5 files (layouts in :mod:`colmap_miho.adapters.hloc`).
@@ -106,23 +118,28 @@ def import_hloc(
     if keypoint_origin not in KEYPOINT_ORIGINS:
         raise InvalidInput(f"keypoint_origin={keypoint_origin!r} is not one of: {', '.join(KEYPOINT_ORIGINS)}")
     pair_list = hloc.read_pairs_file(pairs) if pairs is not None else None
-    partial = database.with_name(database.name + ".partial")
-    remove_with_side_files(partial)
     try:
-        with hloc.open_h5(features) as fh, hloc.open_h5(matches) as mh:
-            with ColmapDatabase.create(partial) as db, db.transaction():
-                ids, nkp, ncams = _write_images(db, fh, images, camera_model, single_camera,
-                                                keypoint_origin == "corner", progress)
-                npairs, nmatches = _write_matches(db, mh, ids, nkp, pair_list, verify, min_match_score, progress)
-        if verify:
-            verify_geometry(partial, seed=seed)
-        with ColmapDatabase(partial) as db:
-            nver, ninl = db.num_verified_pairs(), db.num_inlier_matches()
-        os.replace(partial, database)
-    except BaseException:
-        remove_with_side_files(partial)
-        raise
-    remove_with_side_files(partial)  # -wal/-shm leftovers of the partial name
+        # a private folder beside the new database (removed by the next run after a kill -9);
+        # the finished database is linked onto its name only if none appeared meanwhile
+        with private_tempdir(f".{database.name}.", database.parent) as tmp:
+            partial = tmp / "database.db"
+            with hloc.open_h5(features) as fh, hloc.open_h5(matches) as mh:
+                check_import_space(fh, mh, database.parent, verify)
+                with ColmapDatabase.create(partial) as db, db.transaction():
+                    ids, nkp, ncams = _write_images(db, fh, images, camera_model, single_camera,
+                                                    keypoint_origin == "corner", progress)
+                    npairs, nmatches = _write_matches(db, mh, ids, nkp, pair_list, verify, min_match_score,
+                                                      progress)
+            if verify:
+                verify_geometry(partial, seed=seed)
+            with ColmapDatabase(partial) as db:
+                nver, ninl = db.num_verified_pairs(), db.num_inlier_matches()
+            check_integrity(partial, database)
+            publish_new_file(partial, database)
+    except (OSError, RuntimeError, sqlite3.Error) as exc:
+        if not is_disk_full(exc):
+            raise
+        raise disk_full_error(database.parent, f"importing into {database}") from None
     return ImportStats(
         num_images=len(ids), num_cameras=ncams, num_keypoints=int(sum(nkp.values())), num_pairs=npairs,
         num_matches=nmatches, num_verified_pairs=nver, num_inlier_matches=ninl,
@@ -139,6 +156,9 @@ def _write_images(db: ColmapDatabase, fh, images: Path, camera_model: str, singl
     shared: tuple[int, int, tuple[int, int], str] | None = None  # camera id, rig id, size, first image
     ncams = 0
     for name in tqdm(hloc.list_feature_images(fh), desc="images", unit="img", disable=not progress):
+        if leaves_folder(name):
+            raise InvalidInput(f"image {name!r} of {fh.filename} is named outside the image folder {images} "
+                             "(an absolute name or one with '..')")
         path = images / name
         if not path.is_file():
             raise FileNotFoundError(f"image {name!r} of {fh.filename} is not in the image folder {images}")
@@ -222,33 +242,90 @@ def export_hloc(
     check_database_path(database)
     check_not_in_use(database)  # before the outputs' temporary files are created
 
-    tmp_feat = features.with_name(f".{features.name}.partial")
-    tmp_match = matches.with_name(f".{matches.name}.partial")
     nkp_total = npairs = nmatches = ndropped = 0
     try:
-        with tempfile.TemporaryDirectory(prefix="colmap-miho-export-") as tmp:
+        with private_tempdir("colmap-miho-export-") as tmp:  # removed by the next run after a kill -9
             copy = Path(tmp) / "database.db"
             read_copy(database, copy)
-            validate_database(copy)
-            with ColmapDatabase(copy) as db, hloc.open_h5(tmp_feat, "w") as fh, hloc.open_h5(tmp_match, "w") as mh:
-                records = db.images()
-                names = {r.image_id: r.name for r in records}
-                nkp: dict[int, int] = {}
-                for r in tqdm(records, desc="keypoints", unit="img", disable=not progress):
-                    xy = db.keypoints(r.image_id)
-                    hloc.write_features(fh, r.name, xy, image_size=(r.width, r.height))
-                    nkp[r.image_id] = len(xy)
-                    nkp_total += len(xy)
-                for pr in tqdm(db.pairs(source), desc="pairs", unit="pair", disable=not progress):
-                    m = db.matches(pr.image_id1, pr.image_id2, source)
-                    pm = hloc.PairMatches(names[pr.image_id1], names[pr.image_id2], m.astype(np.int64))
-                    ndropped += hloc.write_pair_matches(mh, pm, nkp[pr.image_id1], layout=layout)
-                    npairs += 1
-                    nmatches += len(m)
-        os.replace(tmp_feat, features)
-        os.replace(tmp_match, matches)
-    finally:
-        tmp_feat.unlink(missing_ok=True)
-        tmp_match.unlink(missing_ok=True)
+            validate_database(copy, name=database)
+            check_export_space(copy, features, matches, source, layout)
+            # each file staged under a unique name beside its target, renamed when both are whole
+            with staged_write(features) as tmp_feat, staged_write(matches) as tmp_match:
+                with ColmapDatabase(copy) as db, hloc.open_h5(tmp_feat, "w") as fh, \
+                        hloc.open_h5(tmp_match, "w") as mh:
+                    records = db.images()
+                    names = {r.image_id: r.name for r in records}
+                    nkp: dict[int, int] = {}
+                    for r in tqdm(records, desc="keypoints", unit="img", disable=not progress):
+                        xy = db.keypoints(r.image_id)
+                        hloc.write_features(fh, r.name, xy, image_size=(r.width, r.height))
+                        nkp[r.image_id] = len(xy)
+                        nkp_total += len(xy)
+                    for pr in tqdm(db.pairs(source), desc="pairs", unit="pair", disable=not progress):
+                        m = db.matches(pr.image_id1, pr.image_id2, source)
+                        pm = hloc.PairMatches(names[pr.image_id1], names[pr.image_id2], m.astype(np.int64))
+                        ndropped += hloc.write_pair_matches(mh, pm, nkp[pr.image_id1], layout=layout)
+                        npairs += 1
+                        nmatches += len(m)
+    except (OSError, RuntimeError) as exc:
+        if not is_disk_full(exc):
+            raise
+        raise disk_full_error(features.parent, f"exporting {database}") from None
     return ExportStats(num_images=len(nkp), num_keypoints=nkp_total, num_pairs=npairs,
                        num_matches=nmatches - ndropped, num_dropped=ndropped)
+
+
+#: Bytes per stored value and per HDF5 object, with a margin (measured on hloc-layout exports
+#: with h5py's default settings; an estimate for the free-space check only).
+H5_BYTES_PER_GROUP = 4096
+H5_MARGIN = 1.5
+
+
+def check_export_space(copy: Path, features: Path, matches: Path, source: MatchSource, layout: str) -> None:
+    """Refuse an export that would fill the disk (HDF5's library may crash the process when a
+    write fails): the estimated sizes of both files against the free space of their folders.
+
+    Args:
+        copy: the working copy of the database (read with Python's sqlite3, closed again).
+
+    Raises:
+        UserError: not enough free space (one line naming the folder and both sizes).
+    """
+    table = "two_view_geometries" if source == MatchSource.VERIFIED else "matches"
+    con = sqlite3.connect(f"file:{copy.resolve()}?mode=ro", uri=True)
+    try:
+        images, keypoints = con.execute("SELECT COUNT(*), COALESCE(SUM(rows), 0) FROM keypoints").fetchone()
+        pairs, rows = con.execute(f"SELECT COUNT(*), COALESCE(SUM(rows), 0) FROM {table} WHERE rows > 0").fetchone()
+    finally:
+        con.close()
+    feat = keypoints * 8 + images * H5_BYTES_PER_GROUP
+    # hloc: matches0 int32 + scores float32 per keypoint of image 0 (at most all its keypoints)
+    per_pair = (keypoints / max(images, 1)) * 8 if layout == "hloc" else 0.0
+    match = pairs * (per_pair + 2 * H5_BYTES_PER_GROUP) + (rows * 16 if layout == "dim" else 0)
+    need = {features.parent: feat * H5_MARGIN, matches.parent: match * H5_MARGIN}
+    if features.parent.resolve() == matches.parent.resolve():
+        need = {features.parent: (feat + match) * H5_MARGIN}
+    for folder, size in need.items():
+        check_free_space(folder, int(size) + (1 << 20), "the exported h5 files")
+
+
+#: Bytes the new database takes per keypoint (6 float32 columns) and per match (uint32 pair in
+#: the matches table and again in the two-view geometries), and the factor for SQLite's
+#: write-ahead log and page slack (measured on imports into a small tmpfs; see the tests).
+DB_BYTES_PER_KEYPOINT = 24
+DB_BYTES_PER_MATCH = 16
+DB_WRITE_FACTOR = 3
+
+
+def check_import_space(fh, mh, folder: Path, verify: bool) -> None:
+    """Refuse an import that would fill the disk (pycolmap aborts the process on some failed
+    SQLite writes): the size of the new database, from the h5 datasets' shapes (nothing is
+    read), against the free space of ``folder``.
+
+    Raises:
+        UserError: not enough free space (one line naming the folder and both sizes).
+    """
+    keypoints = hloc.count_rows(fh, "keypoints")
+    matches = hloc.count_matches(mh)
+    need = DB_WRITE_FACTOR * (keypoints * DB_BYTES_PER_KEYPOINT + matches * DB_BYTES_PER_MATCH)
+    check_free_space(folder, need + (4 << 20), "the new database")

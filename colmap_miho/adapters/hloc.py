@@ -104,20 +104,60 @@ def list_feature_images(h5: h5py.File) -> list[str]:
     return names
 
 
-def read_features(h5: h5py.File, name: str) -> ImageFeatures:
-    """Read the keypoints of image ``name``; ``ValueError`` naming the image on a bad shape."""
+#: The most memory one dataset of an h5 file may ask for when it is read (its shape times the
+#: bytes of the arrays made from it); the default memory budget of a run, ``pipeline.memory_budget_mb``.
+READ_BUDGET_BYTES = 2048 * 2**20
+#: Bytes held per keypoint while one image is imported: float64 (x, y), float32 shapes (2, 2)
+#: and COLMAP's 6 float32 columns.
+KEYPOINT_BYTES = 16 + 16 + 24
+
+
+def _dataset(h5: h5py.File, obj, what: str) -> h5py.Dataset:
+    if not isinstance(obj, h5py.Dataset):
+        raise InvalidInput(f"{h5.filename}: {what} is a group, expected a dataset")
+    return obj
+
+
+def _check_numeric(h5: h5py.File, ds: h5py.Dataset, what: str, kinds: str = "fiu") -> None:
+    """Refuse a dataset whose dtype is not a real number (bool, complex, strings, compound)."""
+    if ds.dtype.kind not in kinds:
+        expected = "integers" if kinds == "iu" else "real numbers"
+        raise InvalidInput(f"{h5.filename}: {what} have dtype {ds.dtype}, expected {expected}")
+
+
+def _check_budget(h5: h5py.File, nbytes: float, what: str, budget: int) -> None:
+    """Refuse, before reading, a dataset whose arrays would take more than ``budget`` bytes."""
+    if nbytes > budget:
+        raise InvalidInput(f"{h5.filename}: {what} would take {nbytes / 2**20:.0f} MiB in memory, more than the "
+                         f"budget of {budget / 2**20:.0f} MiB (a damaged or foreign file?)")
+
+
+def read_features(h5: h5py.File, name: str, *, budget_bytes: int = READ_BUDGET_BYTES) -> ImageFeatures:
+    """Read the keypoints of image ``name``.
+
+    Shapes and dtypes are checked before anything is read: ``keypoints`` (N, 2) real numbers
+    whose arrays fit ``budget_bytes``, then finite values; ``scores``/``scales``/``oris`` (N,)
+    real numbers, finite.
+
+    Raises:
+        ValueError: naming the file and the image.
+    """
     if name not in h5 or not isinstance(h5[name], h5py.Group) or "keypoints" not in h5[name]:
         raise InvalidInput(f"{h5.filename}: image {name!r} has no 'keypoints' group/dataset")
     grp = h5[name]
-    kp = np.asarray(grp["keypoints"][()], dtype=np.float64)
-    if kp.ndim != 2 or kp.shape[1] != 2:
-        raise InvalidInput(f"{h5.filename}: keypoints of image {name!r} have shape {kp.shape}, expected (N, 2)")
+    ds = _dataset(h5, grp["keypoints"], f"'keypoints' of image {name!r}")
+    what = f"keypoints of image {name!r}"
+    if len(ds.shape) != 2 or ds.shape[1] != 2:
+        raise InvalidInput(f"{h5.filename}: {what} have shape {ds.shape}, expected (N, 2)")
+    _check_numeric(h5, ds, what)
+    _check_budget(h5, ds.shape[0] * KEYPOINT_BYTES, f"{what} ({ds.shape[0]} rows)", budget_bytes)
+    kp = np.asarray(ds[()], dtype=np.float64)
     if not np.isfinite(kp).all():
-        raise InvalidInput(f"{h5.filename}: keypoints of image {name!r} contain NaN or inf")
+        raise InvalidInput(f"{h5.filename}: {what} contain NaN or inf")
     n = len(kp)
-    scores = _optional_vector(grp, "scores", n, name)
+    scores = _optional_vector(h5, grp, "scores", n, name)
     shapes = None
-    scales, oris = _optional_vector(grp, "scales", n, name), _optional_vector(grp, "oris", n, name)
+    scales, oris = _optional_vector(h5, grp, "scales", n, name), _optional_vector(h5, grp, "oris", n, name)
     if scales is not None and oris is not None:
         c, s = np.cos(oris), np.sin(oris)
         rotations = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
@@ -125,12 +165,17 @@ def read_features(h5: h5py.File, name: str) -> ImageFeatures:
     return ImageFeatures(name=name, keypoints=kp, scores=scores, shapes=shapes)
 
 
-def _optional_vector(grp: h5py.Group, key: str, n: int, name: str) -> np.ndarray | None:
+def _optional_vector(h5: h5py.File, grp: h5py.Group, key: str, n: int, name: str) -> np.ndarray | None:
     if key not in grp:
         return None
-    v = np.asarray(grp[key][()], dtype=np.float32).reshape(-1)
-    if len(v) != n:
-        raise InvalidInput(f"image {name!r}: '{key}' has {len(v)} values for {n} keypoints")
+    ds = _dataset(h5, grp[key], f"'{key}' of image {name!r}")
+    size = int(np.prod(ds.shape)) if ds.shape is not None else 0
+    if size != n:
+        raise InvalidInput(f"{h5.filename}: image {name!r}: '{key}' has {size} values for {n} keypoints")
+    _check_numeric(h5, ds, f"'{key}' of image {name!r}")
+    v = np.asarray(ds[()], dtype=np.float32).reshape(-1)
+    if not np.isfinite(v).all():
+        raise InvalidInput(f"{h5.filename}: image {name!r}: '{key}' contains NaN or inf")
     return v
 
 
@@ -146,6 +191,34 @@ def write_features(h5: h5py.File, name: str, keypoints: np.ndarray, image_size: 
     grp.create_dataset("keypoints", data=kp)
     if image_size is not None:
         grp.create_dataset("image_size", data=np.asarray(image_size, dtype=np.int64))
+
+
+def count_rows(h5: h5py.File, leaf: str) -> int:
+    """The total first dimension of every dataset named ``leaf`` (e.g. ``keypoints``), from the
+    shapes alone (nothing is read)."""
+    total = 0
+
+    def visit(path: str, obj) -> None:
+        nonlocal total
+        if isinstance(obj, h5py.Dataset) and path.rsplit("/", 1)[-1] == leaf and obj.shape:
+            total += int(obj.shape[0])
+
+    h5.visititems(visit)
+    return total
+
+
+def count_matches(h5: h5py.File) -> int:
+    """An upper bound of the matches of a matches file from its datasets' shapes alone: the
+    length of every ``matches0`` and the rows of every deep-image-matching (M, 2) array."""
+    total = 0
+
+    def visit(path: str, obj) -> None:
+        nonlocal total
+        if isinstance(obj, h5py.Dataset) and path.rsplit("/", 1)[-1] != SCORES0 and obj.shape:
+            total += int(obj.shape[0])
+
+    h5.visititems(visit)
+    return total
 
 
 # ---------------------------------------------------------------------------------------------
@@ -206,29 +279,39 @@ def _pair_datasets(h5: h5py.File) -> list[tuple[str, str]]:
     return out
 
 
-def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0: int, n1: int) -> PairMatches:
+def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0: int, n1: int,
+               budget_bytes: int = READ_BUDGET_BYTES) -> PairMatches:
+    """One pair's matches; shapes, dtypes and sizes checked before reading, indices after,
+    and repeated (i, j) rows dropped with a warning naming the pair."""
     label = f"pair ({name0!r}, {name1!r})"
     if layout == "hloc":
         grp = h5[key]
-        m0 = np.asarray(grp[MATCHES0][()])
-        if m0.ndim != 1 or not np.issubdtype(m0.dtype, np.integer):
-            raise InvalidInput(f"{label}: '{MATCHES0}' has shape {m0.shape} dtype {m0.dtype}, expected (N0,) integers")
-        if len(m0) != n0:
-            raise InvalidInput(f"{label}: '{MATCHES0}' has {len(m0)} entries but image {name0!r} has {n0} keypoints")
+        ds = _dataset(h5, grp[MATCHES0], f"{label}: '{MATCHES0}'")
+        if len(ds.shape) != 1 or ds.dtype.kind not in "iu":
+            raise InvalidInput(f"{label}: '{MATCHES0}' has shape {ds.shape} dtype {ds.dtype}, expected (N0,) integers")
+        if ds.shape[0] != n0:
+            raise InvalidInput(f"{label}: '{MATCHES0}' has {ds.shape[0]} entries but image {name0!r} "
+                               f"has {n0} keypoints")
+        m0 = np.asarray(ds[()])
         idx0 = np.flatnonzero(m0 > -1)
         matches = np.stack([idx0, m0[idx0]], axis=1).astype(np.int64)
         scores = None
         if SCORES0 in grp:
-            s0 = np.asarray(grp[SCORES0][()], dtype=np.float32).reshape(-1)
-            if len(s0) != n0:
-                raise InvalidInput(f"{label}: '{SCORES0}' has {len(s0)} entries, expected {n0}")
+            sd = _dataset(h5, grp[SCORES0], f"{label}: '{SCORES0}'")
+            if int(np.prod(sd.shape)) != n0 or sd.dtype.kind not in "fiu":
+                raise InvalidInput(f"{label}: '{SCORES0}' has shape {sd.shape} dtype {sd.dtype}, expected ({n0},) "
+                                 "real numbers")
+            s0 = np.asarray(sd[()], dtype=np.float32).reshape(-1)
             scores = s0[idx0]
     else:
-        matches = np.asarray(h5[key][()])
-        if matches.ndim != 2 or matches.shape[1] != 2 or not np.issubdtype(matches.dtype, np.integer):
-            raise InvalidInput(f"{label}: matches have shape {matches.shape} dtype {matches.dtype}, "
+        ds = _dataset(h5, h5[key], f"{label}: matches")
+        if len(ds.shape) != 2 or ds.shape[1] != 2 or ds.dtype.kind not in "iu":
+            raise InvalidInput(f"{label}: matches have shape {ds.shape} dtype {ds.dtype}, "
                              "expected (M, 2) integers")
-        matches = matches.astype(np.int64)
+        if ds.shape[0] > n0 * n1:
+            raise InvalidInput(f"{label}: {ds.shape[0]} matches, more than the {n0} x {n1} keypoint pairs")
+        _check_budget(h5, ds.shape[0] * 32, f"{label}: {ds.shape[0]} matches", budget_bytes)
+        matches = np.asarray(ds[()]).astype(np.int64)
         scores = None
     bad = (matches < 0) | (matches >= np.array([n0, n1]))
     if bad.any():
@@ -237,6 +320,14 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
             f"{label}: keypoint index out of range in match {row}: {matches[row].tolist()} "
             f"(images have {n0} and {n1} keypoints)"
         )
+    if len(matches) > 1:
+        _, first = np.unique(matches, axis=0, return_index=True)
+        if len(first) < len(matches):
+            keep = np.sort(first)
+            log.warning("%s: %d repeated match rows dropped (each (i, j) is stored once)", label,
+                        len(matches) - len(keep))
+            matches = matches[keep]
+            scores = scores[keep] if scores is not None else None
     return PairMatches(name0=name0, name1=name1, matches=matches, scores=scores)
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InvalidInput
+from .paths import leaves_folder
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +114,9 @@ def image_problem(path: str | Path, expected_size: tuple[int, int] | None = None
 
 #: :func:`_checked_decode` reasons given before any decoding.
 _NOT_DECODED = ("missing", "empty", "truncated (the file is cut short)")
+#: Why an image whose name is absolute or climbs out with ``..`` is not read.
+OUTSIDE = "named outside the image folder (an absolute name or one with '..')"
+
 
 
 def _checked_decode(path: str | Path, expected_size: tuple[int, int] | None = None
@@ -230,6 +234,9 @@ class ImageLoader(Mapping):
             raise KeyError(image_id)
         if image_id in self.missing:
             return None
+        if leaves_folder(self.names[image_id]):
+            self._skip(image_id, OUTSIDE)
+            return None
         if image_id in self._cache:
             self._cache.move_to_end(image_id)
             return self._cache[image_id]
@@ -293,6 +300,8 @@ class ImageLoader(Mapping):
         bad = []
         for image_id in self.names:
             why = self.problems.get(image_id)
+            if why is None and leaves_folder(self.names[image_id]):
+                why = OUTSIDE
             if why is None and image_id not in self._cache:
                 img, why = _checked_decode(self.path(image_id), self.expected_sizes.get(image_id))
                 if why not in _NOT_DECODED:

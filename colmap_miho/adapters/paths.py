@@ -53,15 +53,132 @@ def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     return resolve(a) == resolve(b)
 
 
+MODEL_STEMS = ("cameras", "images", "points3D", "rigs", "frames")
+#: Where a model folder argument may keep its model (see ``reporting.gt_model.resolve_model_dir``).
+MODEL_SUBFOLDERS = ("", "gt_model", "sparse/0", "0")
+
+
 def model_files(folder: PathArg, label: str) -> dict[str, Path]:
     """The COLMAP model files a command writes into ``folder`` (``cameras``, ``images``,
     ``points3D``, ``rigs``, ``frames``; .bin and .txt), labelled ``"<label> (<name>)"`` for
     :func:`check_distinct`; empty when ``folder`` is None."""
     if folder is None:
         return {}
-    names = [f"{stem}{ext}" for stem in ("cameras", "images", "points3D", "rigs", "frames")
-             for ext in (".bin", ".txt")]
+    names = [f"{stem}{ext}" for stem in MODEL_STEMS for ext in (".bin", ".txt")]
     return {f"{label} ({name})": Path(folder) / name for name in names}
+
+
+def model_input_files(folder: PathArg, label: str) -> dict[str, Path]:
+    """The model files a command may read for a model argument ``folder`` (the folder itself,
+    or a dataset folder with ``gt_model/``, ``sparse/0/`` or ``0/``), plus the dataset's
+    ``pairs_with_gt.txt``: inputs for :func:`check_distinct`, so that no output lands on a
+    file of the model; empty when ``folder`` is None."""
+    if folder is None:
+        return {}
+    out: dict[str, Path] = {}
+    for sub in MODEL_SUBFOLDERS:
+        where = Path(folder) / sub if sub else Path(folder)
+        out.update(model_files(where, f"{label}{'/' + sub if sub else ''}"))
+    out[f"{label} (pairs_with_gt.txt)"] = Path(folder) / "pairs_with_gt.txt"
+    return out
+
+
+#: More files than this in an input folder are not listed one by one (see :func:`folder_files`).
+MAX_LISTED_FILES = 200_000
+
+
+def folder_files(folder: PathArg, label: str) -> dict[str, Path]:
+    """Every file below the input folder ``folder`` (e.g. ``--images``: any of them may be read),
+    labelled ``"<label> (<relative path>)"``, for :func:`check_distinct`; empty when ``folder``
+    is None or not a folder. Hidden folders are skipped; at most :data:`MAX_LISTED_FILES`."""
+    if folder is None or not Path(folder).is_dir():
+        return {}
+    out: dict[str, Path] = {}
+    root = Path(folder)
+    for dirpath, dirnames, filenames in os.walk(root):
+        dirnames[:] = [d for d in dirnames if not d.startswith(".")]
+        for name in filenames:
+            path = Path(dirpath) / name
+            out[f"{label} ({path.relative_to(root)})"] = path
+            if len(out) >= MAX_LISTED_FILES:
+                return out
+    return out
+
+
+def text_model_in(folder: PathArg) -> list[str]:
+    """Names of the COLMAP text-model files (``cameras.txt``, ``images.txt``, ...) in ``folder``:
+    a mapping writes a binary model there and would delete them."""
+    if folder is None:
+        return []
+    return [f"{stem}.txt" for stem in MODEL_STEMS if (Path(folder) / f"{stem}.txt").is_file()]
+
+
+def refuse_text_model(folder: PathArg, label: str) -> None:
+    """Refuse to map into a folder that holds a COLMAP text model (e.g. a ground truth).
+
+    Raises:
+        UserError: (exit 2) naming the folder and its text files.
+    """
+    found = text_model_in(folder)
+    if found:
+        raise UserError(f"{label} {folder} holds a COLMAP text model ({', '.join(found)}) that mapping "
+                        "would replace: choose another folder or move that model away")
+
+
+def comparison_paths(output: str | os.PathLike, *, images: PathArg, database: PathArg = None,
+                     gt: PathArg = None, pairs: PathArg = None, repeats: int = 1, seed: int = 0,
+                     compare: bool = True) -> tuple[dict[str, Path], dict[str, Path]]:
+    """The inputs and outputs of ``compare`` (``compare=True``) or ``run`` for
+    :func:`check_distinct`: the files read inside ``images`` and ``gt``, and every file written
+    in ``output`` (databases, JSON, tables, plots, point clouds, the model files of every
+    mapping run: ``<side>/model``, ``<side>/runs/seed<S>/model``). ``run``'s
+    ``OUTPUT/database.db`` is an input when it exists (reused), else an output.
+
+    Raises:
+        UserError: the outputs overlap the inputs (:func:`check_distinct`), or a mapping run's
+            model folder holds a COLMAP text model (:func:`refuse_text_model`).
+    """
+    out = Path(output)
+    files = ["refined/database.db", "refined/refine.json"]
+    if compare:
+        files += ["compare.md", "compare.json", "baseline/report.json", "refined/report.json",
+                  "baseline/points.ply", "refined/points.ply",
+                  *(f"plots/{name}.png" for name in ("pose_error_curves", "keypoint_displacement",
+                                                     "matches_per_pair", "points_baseline", "points_refined"))]
+    else:
+        files.append("report.json")
+    outputs = {f"--output ({name})": out / name for name in files}
+    for side in ("baseline", "refined") if compare else ("refined",):
+        folders = [f"{side}/model"]
+        folders += [f"{side}/runs/seed{seed + k}/model" for k in range(1, max(1, repeats) if compare else 1)]
+        for folder in folders:
+            outputs.update(model_files(out / folder, f"--output ({folder})"))
+    inputs: dict[str, Path] = {}
+    for label, value in (("--database", database), ("--images", images), ("--gt", gt), ("--pairs", pairs)):
+        if value is not None:
+            inputs[label] = Path(value)
+    inputs.update(folder_files(images, "--images"))
+    inputs.update(model_input_files(gt, "--gt"))
+    if database is None:  # run: extraction writes OUTPUT/database.db, or reuses it
+        reused = out / "database.db"
+        if reused.exists():
+            inputs["--output (database.db, reused)"] = reused
+        else:
+            outputs["--output (database.db)"] = reused
+    check_distinct(inputs, outputs)  # first: an overlap names the input (a GT inside OUTPUT, say)
+    for model in sorted({p.parent for p in outputs.values() if p.name == "cameras.bin"}):
+        refuse_text_model(model, f"--output ({model.relative_to(out)})")
+    return inputs, outputs
+
+
+def leaves_folder(name: str) -> bool:
+    """True when the image name ``name`` (relative to the image folder, as COLMAP stores it)
+    is absolute or climbs out of the folder with ``..``: reading it would read a file outside
+    ``--images``. Judged on the name alone (symlinks inside the folder are the user's choice)."""
+    if not name or os.path.isabs(name) or name.startswith(("/", "\\")):
+        return True
+    parts = os.path.normpath(name.replace("\\", "/")).split("/")
+    return parts[0] == ".."
 
 
 def _clean(paths: Mapping[str, PathArg]) -> dict[str, Path]:
@@ -74,8 +191,10 @@ def check_distinct(inputs: Mapping[str, PathArg], outputs: Mapping[str, PathArg]
     Args:
         inputs: label (the option, e.g. ``"--database"``) -> a file or folder the command
             reads; None entries are skipped. An input database also protects its SQLite side
-            files (``-wal``, ``-shm``, ``-journal``).
+            files (``-wal``, ``-shm``, ``-journal``). A folder protects only itself: list the
+            files a command reads inside one (:func:`model_input_files`, :func:`folder_files`).
         outputs: label -> a file the command writes (replaced if it exists); None skipped.
+            List the files written inside output folders too (:func:`model_files`).
 
     Raises:
         UserError: (exit 2) an output is the same file as an input, one of its SQLite side
@@ -83,19 +202,43 @@ def check_distinct(inputs: Mapping[str, PathArg], outputs: Mapping[str, PathArg]
             both options and paths and says to choose another path.
     """
     ins, outs = _clean(inputs), _clean(outputs)
+    # one stat and one resolve per path: input folders may list thousands of files
+    by_identity: dict[tuple[int, int], str] = {}
+    by_path: dict[Path, str] = {}
+    for label, inp in ins.items():
+        ident = identity(inp)
+        if ident is not None:
+            by_identity.setdefault(ident, label)
+        by_path.setdefault(resolve(inp), label)
     for out_label, out in outs.items():
         if out.is_dir():
             raise UserError(f"{out_label} {out} is a folder; give a file name")
-        for in_label, inp in ins.items():
-            if same_file(out, inp):
-                raise UserError(f"{out_label} {out} is the same file as {in_label} {inp}; it would "
-                                f"be overwritten: choose another {out_label} path")
-            for suffix in SQLITE_SIDE_SUFFIXES:
-                if resolve(out) == Path(str(resolve(inp)) + suffix):
-                    raise UserError(f"{out_label} {out} is SQLite's {suffix} file of {in_label} "
-                                    f"{inp}: choose another {out_label} path")
+        ident, where = identity(out), resolve(out)
+        hit = by_identity.get(ident) if ident is not None else by_path.get(where)
+        if hit is not None:
+            raise UserError(f"{out_label} {out} is the same file as {hit} {ins[hit]}; it would "
+                            f"be overwritten: choose another {out_label} path")
+        for suffix in SQLITE_SIDE_SUFFIXES:
+            if where.name.endswith(suffix):
+                base = where.with_name(where.name[: -len(suffix)])
+                if base in by_path:
+                    label = by_path[base]
+                    raise UserError(f"{out_label} {out} is SQLite's {suffix} file of {label} "
+                                    f"{ins[label]}: choose another {out_label} path")
     labels = list(outs)
-    for k, a in enumerate(labels):
-        for b in labels[k + 1:]:
-            if same_file(outs[a], outs[b]):
-                raise UserError(f"{a} and {b} are the same file ({outs[a]}): choose another {b} path")
+    seen: dict[Path, str] = {}
+    for label in labels:
+        key = resolve(outs[label])
+        if key in seen:
+            raise UserError(f"{seen[key]} and {label} are the same file ({outs[label]}): "
+                            f"choose another {label} path")
+        seen[key] = label
+    linked: dict[tuple[int, int], str] = {}
+    for label in labels:  # hard links between existing outputs
+        ident = identity(outs[label])
+        if ident is None:
+            continue
+        if ident in linked:
+            a = linked[ident]
+            raise UserError(f"{a} and {label} are the same file ({outs[a]}): choose another {label} path")
+        linked[ident] = label

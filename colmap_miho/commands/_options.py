@@ -104,3 +104,4 @@ def quiet_colmap(verbose: bool) -> None:
         import pycolmap
 
         pycolmap.logging.minloglevel = 1
+

@@ -43,20 +43,15 @@ def add_arguments(parser) -> None:
 
 
 def paths(args) -> tuple[dict, dict]:
-    """Inputs and outputs for the CLI's overlap check (the files compare writes in --output);
-    a missing --gt is refused here, before the long mapping runs."""
-    from ..adapters.paths import model_files
+    """Inputs (the files read inside --images and --gt included) and outputs (every file compare
+    writes in --output) for the CLI's overlap check; a missing --gt, or a text model where a
+    mapping run will write, is refused here, before the long mapping runs."""
+    from ..adapters.paths import comparison_paths
 
     if args.gt is not None and not args.gt.exists():
         raise FileNotFoundError(f"--gt not found: {args.gt}")
-    out = args.output
-    outputs = {"--output (refined/database.db)": out / "refined" / "database.db",
-               "--output (refined/refine.json)": out / "refined" / "refine.json",
-               **{f"--output ({name})": out / name for name in ("compare.md", "compare.json",
-                                                                 "baseline/report.json", "refined/report.json")},
-               **model_files(out / "baseline" / "model", "--output (baseline/model)"),
-               **model_files(out / "refined" / "model", "--output (refined/model)")}
-    return {"--database": args.database, "--images": args.images, "--gt": args.gt, "--pairs": args.pairs}, outputs
+    return comparison_paths(args.output, database=args.database, images=args.images, gt=args.gt,
+                            pairs=args.pairs, repeats=args.repeats, seed=args.seed)
 
 
 def run(args) -> int:

@@ -27,9 +27,12 @@ def add_arguments(parser) -> None:
 
 def paths(args) -> tuple[dict, dict]:
     """Inputs and outputs for the CLI's overlap check (the model files written in --output)."""
-    from ..adapters.paths import model_files
+    from ..adapters.paths import folder_files, model_files
 
-    return {"--input": args.input, "--images": args.images}, model_files(args.output, "--output")
+    inputs = {"--input": args.input, "--images": args.images, **folder_files(args.images, "--images")}
+    if args.input.is_dir():
+        inputs.update(folder_files(args.input, "--input"))
+    return inputs, model_files(args.output, "--output")
 
 
 def run(args) -> int:

@@ -45,11 +45,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def paths(args: argparse.Namespace) -> tuple[dict, dict]:
-    """Inputs and outputs for the CLI's overlap check; the new database's folder must exist."""
+    """Inputs (the image files included) and outputs for the CLI's overlap check; the new
+    database's folder must exist."""
+    from ..adapters.paths import folder_files
+
     if not args.database.parent.is_dir():
         raise NotADirectoryError(f"--database folder does not exist: {args.database.parent} (create it first)")
     return ({"--features": args.features, "--matches": args.matches, "--pairs": args.pairs,
-             "--images": args.images}, {"--database": args.database})
+             "--images": args.images, **folder_files(args.images, "--images")}, {"--database": args.database})
 
 
 def run(args: argparse.Namespace) -> int:

@@ -35,12 +35,14 @@ def add_arguments(parser) -> None:
 
 
 def paths(args) -> tuple[dict, dict]:
-    """Inputs and outputs for the CLI's overlap check (the model files written in --output)."""
-    from ..adapters.paths import model_files
+    """Inputs (the image files included) and outputs (the model files written in --output) for
+    the CLI's overlap check; a text model in --output is refused (mapping writes a binary one)."""
+    from ..adapters.paths import folder_files, model_files, refuse_text_model
 
     if args.output.exists() and not args.output.is_dir():
         raise NotADirectoryError(f"--output {args.output} is a file; give a folder for the model")
-    return ({"--database": args.database, "--images": args.images},
+    refuse_text_model(args.output, "--output")
+    return ({"--database": args.database, "--images": args.images, **folder_files(args.images, "--images")},
             {"--json": args.json, **model_files(args.output, "--output")})
 
 
@@ -53,8 +55,10 @@ def run(args) -> int:
     result = run_mapping(args.database, args.images, args.output, config,
                          progress=not args.quiet, verbose=args.verbose)
     if args.json:
+        from ..adapters.safety import write_text_atomic
+
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result.to_dict(), indent=2), encoding="utf-8")
+        write_text_atomic(args.json, json.dumps(result.to_dict(), indent=2))
     require_success(result)
     if not args.quiet:
         print(f"{result.num_reg_images}/{result.num_images} images registered, {result.num_points3D} points "

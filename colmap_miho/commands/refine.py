@@ -63,11 +63,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def paths(args: argparse.Namespace) -> tuple[dict, dict]:
-    """Inputs and outputs for the CLI's overlap check (the default output included)."""
+    """Inputs (the image files included) and outputs (the default output included) for the
+    CLI's overlap check."""
+    from ..adapters.paths import folder_files
     from ..adapters.safety import default_output_path
 
     output = None if args.in_place else args.output or default_output_path(args.database)
-    return ({"--database": args.database, "--images": args.images},
+    return ({"--database": args.database, "--images": args.images, **folder_files(args.images, "--images")},
             {"--output": output, "--json": args.json_path})
 
 

@@ -41,12 +41,12 @@ def add_arguments(parser) -> None:
 
 def paths(args) -> tuple[dict, dict]:
     """Inputs and outputs for the CLI's overlap check."""
-    from ..adapters.paths import model_files
+    from ..adapters.paths import model_input_files
 
     if args.pairs is not None and not args.pairs.is_file():
         raise FileNotFoundError(f"--pairs not found: {args.pairs}")
     inputs = {"--model": args.model, "--database": args.database, "--gt": args.gt, "--pairs": args.pairs,
-              **model_files(args.model, "--model"), **model_files(args.gt, "--gt")}
+              **model_input_files(args.model, "--model"), **model_input_files(args.gt, "--gt")}
     return inputs, {"--json": args.json, "--ply": args.ply}
 
 

@@ -39,11 +39,15 @@ def add_arguments(parser) -> None:
 
 
 def paths(args) -> tuple[dict, dict]:
-    """Inputs and outputs for the CLI's overlap check; a missing --gt is refused before the
-    long runs."""
+    """Inputs (the files read inside --images and --gt included) and outputs (every file run
+    writes in --output) for the CLI's overlap check; a missing --gt, or a text model where a
+    mapping run will write, is refused here, before the long runs."""
+    from ..adapters.paths import comparison_paths
+
     if args.gt is not None and not args.gt.exists():
         raise FileNotFoundError(f"--gt not found: {args.gt}")
-    return {"--images": args.images, "--gt": args.gt}, {}
+    return comparison_paths(args.output, images=args.images, gt=args.gt, repeats=args.repeats, seed=args.seed,
+                            compare=args.compare)
 
 
 def run(args) -> int:

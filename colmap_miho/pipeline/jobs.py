@@ -22,6 +22,7 @@ import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from ..adapters.paths import check_distinct, comparison_paths
 from ..enums import Mapper
 from ..errors import InvalidInput, RunFailed
 from ..recipe import Recipe, load_recipe
@@ -142,8 +143,10 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
     mapping = _mapping_config(rec, opts)
     if opts.gt_cameras and gt is None:
         raise InvalidInput("taking the cameras from the GT needs --gt")
-    intrinsics = gt_intrinsics(gt) if opts.gt_cameras and gt is not None else None
     output = Path(output)
+    check_distinct(*comparison_paths(output, database=database, images=image_dir, gt=gt, repeats=opts.repeats,
+                                     pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=mapping.seed))
+    intrinsics = gt_intrinsics(gt) if opts.gt_cameras and gt is not None else None
     for sub in ("baseline", "refined", "plots"):
         (output / sub).mkdir(parents=True, exist_ok=True)
     database, image_dir = Path(database), Path(image_dir)
@@ -194,6 +197,8 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
     if opts.gt_cameras and gt is None:
         raise InvalidInput("taking the cameras from the GT needs --gt")
     output = Path(output)
+    check_distinct(*comparison_paths(output, images=image_dir, gt=gt, repeats=opts.repeats, seed=mapping.seed,
+                                     compare=compare))
     output.mkdir(parents=True, exist_ok=True)
     database = output / "database.db"
     if database.exists():

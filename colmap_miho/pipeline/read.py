@@ -80,6 +80,10 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
         raise DatabaseError(f"database has no images: {cfg.database_name}")
     names = {im.image_id: im.name for im in images}
     keypoints = {im.image_id: db.keypoints(im.image_id) for im in images}
+    for im in images:  # the filter would fail later on one pair, naming neither image nor file
+        if not np.isfinite(keypoints[im.image_id]).all():
+            raise DatabaseError(f"database {cfg.database_name}: keypoints of image {im.name!r} (id {im.image_id}) "
+                                "contain NaN or inf; extract or import that image's features again")
     pairs = db.pairs(pcfg.source)
     if not pairs:
         raise DatabaseError(

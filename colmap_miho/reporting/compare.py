@@ -235,10 +235,11 @@ def _write_plots(output: Path, baseline: dict, refined: dict, changes: dict) -> 
 def _write_tables(output: Path, baseline: dict, refined: dict, refine: dict, changes: dict, clouds: dict,
                   plot_files: list[Path]) -> tuple[Path, Path]:
     """compare.md and compare.json (the JSON without the per-pair rows)."""
+    from ..adapters.safety import write_text_atomic
     from .report import write_report_json
 
     md = output / "compare.md"
-    md.write_text(comparison_markdown(baseline, refined, refine), encoding="utf-8")
+    write_text_atomic(md, comparison_markdown(baseline, refined, refine))
     disp = changes["displacements"]
     summary_json = {
         "baseline": {k: v for k, v in baseline.items() if k != "pairs"},

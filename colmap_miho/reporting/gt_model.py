@@ -166,14 +166,13 @@ def write_colmap_model(poses: dict[str, CameraPose], out_dir: str | Path) -> Pat
             f"{t[0]:.15g} {t[1]:.15g} {t[2]:.15g} {cameras[key]} {name}"
         )
         img_lines.append("")  # no 2D points
-    (out / "cameras.txt").write_text(
-        "# CAMERA_ID MODEL WIDTH HEIGHT fx fy cx cy\n" + "\n".join(cam_lines) + "\n", encoding="utf-8"
-    )
-    (out / "images.txt").write_text(
-        "# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME\n# POINTS2D (none)\n" + "\n".join(img_lines) + "\n",
-        encoding="utf-8",
-    )
-    (out / "points3D.txt").write_text("# no points: ground truth has cameras only\n", encoding="utf-8")
+    from ..adapters.safety import write_text_atomic
+
+    # each file staged, size-checked and renamed: a full disk leaves no empty or short file
+    write_text_atomic(out / "cameras.txt", "# CAMERA_ID MODEL WIDTH HEIGHT fx fy cx cy\n" + "\n".join(cam_lines) + "\n")
+    write_text_atomic(out / "images.txt", "# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME\n# POINTS2D (none)\n"
+                      + "\n".join(img_lines) + "\n")
+    write_text_atomic(out / "points3D.txt", "# no points: ground truth has cameras only\n")
     return out
 
 

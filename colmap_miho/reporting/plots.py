@@ -23,6 +23,14 @@ def _pyplot():
     return plt
 
 
+def _save(fig, path: Path) -> None:
+    """``fig`` as a PNG at ``path``, whole or not at all (staged beside it, then renamed)."""
+    from ..adapters.safety import staged_write
+
+    with staged_write(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+
+
 def plot_pose_error_curves(
     curves: dict[str, dict[str, list[float]]], path: str | Path, *, max_deg: float = 20.0, title: str = ""
 ) -> Path:
@@ -66,7 +74,7 @@ def plot_pose_error_curves(
         fig.suptitle(title)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
     plt.close(fig)
     return path
 
@@ -94,7 +102,7 @@ def plot_displacement_histogram(displacements: np.ndarray, path: str | Path, *, 
     ax.set_title(title or f"{d.size} keypoints moved")
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
     plt.close(fig)
     return path
 
@@ -138,6 +146,6 @@ def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title:
         ax2.set_xticks(x, _short_labels(labels), rotation=90, fontsize=6)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    _save(fig, path)
     plt.close(fig)
     return path

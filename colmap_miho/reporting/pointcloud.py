@@ -13,6 +13,7 @@ alignment to a metric ground truth). Arrays: ``points`` (N, 3) float64, ``colors
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -73,11 +74,20 @@ def reconstruction_points(reconstruction) -> tuple[np.ndarray, np.ndarray]:
 
 def export_ply(reconstruction, path: str | Path) -> Path:
     """Write the 3D points of a ``pycolmap.Reconstruction`` with their colours to a binary PLY
-    (pycolmap's ``export_PLY``: float x, y, z and uchar red, green, blue). Returns the path."""
+    (pycolmap's ``export_PLY``: float x, y, z and uchar red, green, blue). The native writer
+    reports no failed write: it writes a staged file whose size is checked against its own
+    header before it is renamed onto ``path``. Returns the path.
+
+    Raises:
+        RunFailed: disk full (the file came out short); ``path`` is left as it was.
+    """
+    from ..adapters.safety import ply_size, staged_write
+
     path = Path(path)
     if not path.parent.is_dir():
         raise NotADirectoryError(f"output folder does not exist: {path.parent}")
-    reconstruction.export_PLY(str(path))
+    with staged_write(path, expected_size=ply_size) as tmp:
+        reconstruction.export_PLY(str(tmp))
     return path
 
 
@@ -97,10 +107,10 @@ def write_ply(points: np.ndarray, path: str | Path, colors: np.ndarray | None = 
         rows["red"], rows["green"], rows["blue"] = c[:, 0], c[:, 1], c[:, 2]
     props = "".join(f"property {'float' if t == '<f4' else 'uchar'} {n}\n" for n, t in fields)
     header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(p)}\n{props}end_header\n"
+    from ..adapters.safety import write_bytes_atomic
+
     path = Path(path)
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(rows.tobytes())
+    write_bytes_atomic(path, header.encode("ascii") + rows.tobytes())
     return path
 
 
@@ -309,7 +319,16 @@ def _render_open3d(p, c, path: Path, width: int, height: int) -> None:
     lo, hi = (p.min(0), p.max(0)) if len(p) else (np.zeros(3), np.ones(3))
     centre, extent = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) or 1.0
     r.setup_camera(60.0, centre, centre + np.array([0.0, -0.3, -1.2]) * extent, [0.0, -1.0, 0.0])
-    o3d.io.write_image(str(path), r.render_to_image())
+    from ..adapters.safety import staged_write
+
+    with staged_write(path) as tmp:
+        png = f"{tmp}.png"  # open3d picks the format by the suffix
+        try:
+            if not o3d.io.write_image(png, r.render_to_image()):
+                raise OSError(f"open3d could not write {path}")
+            os.replace(png, tmp)
+        finally:
+            Path(png).unlink(missing_ok=True)
 
 
 def _render_matplotlib(p, c, path: Path, width: int, height: int, title: str | None) -> None:
@@ -344,4 +363,7 @@ def _render_matplotlib(p, c, path: Path, width: int, height: int, title: str | N
     ax.set_ylabel("axis 3 (depth)")
     ax.set_zlabel("axis 2")
     ax.set_title(title or f"{len(p)} points ({len(p) - shown} far points not drawn)")
-    fig.savefig(path, dpi=dpi)
+    from ..adapters.safety import staged_write
+
+    with staged_write(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")

@@ -361,10 +361,13 @@ def json_safe(obj):
 
 
 def write_report_json(report: dict, path: str | Path) -> Path:
-    """Write ``report`` as indented JSON (NaN/inf as null); returns the path."""
+    """Write ``report`` as indented JSON (NaN/inf as null), whole or not at all (staged beside
+    the target, size checked, renamed; a symlink keeps its link); returns the path."""
     import json
+
+    from ..adapters.safety import write_text_atomic
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(json_safe(report), indent=2), encoding="utf-8")
+    write_text_atomic(path, json.dumps(json_safe(report), indent=2))
     return path

@@ -1,0 +1,122 @@
+"""Known bad data is a one-line error naming the file and the image or pair (or a warning),
+never a crash or a silent change of the result."""
+
+from __future__ import annotations
+
+import hashlib
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from colmap_miho.adapters.paths import leaves_folder
+from colmap_miho.cli import main
+
+
+def error_lines(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.strip() and line.startswith("ERROR")]
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _refine(db: Path, images: Path, *extra: str) -> list[str]:
+    return ["refine", "--database", str(db), "--images", str(images), "--workers", "1", "--no-refine", "-q", *extra]
+
+
+def _sql(db: Path, query: str, *args) -> list:
+    con = sqlite3.connect(db)
+    try:
+        rows = con.execute(query, args).fetchall()
+        con.commit()
+    finally:
+        con.close()
+    return rows
+
+
+def test_nan_keypoints_name_the_image(db_copy, scene, capfd):
+    image_id, rows, cols, data = _sql(db_copy, "SELECT image_id, rows, cols, data FROM keypoints LIMIT 1")[0]
+    kp = np.frombuffer(data, np.float32).reshape(rows, cols).copy()
+    kp[3, 1] = np.nan
+    _sql(db_copy, "UPDATE keypoints SET data = ? WHERE image_id = ?", kp.tobytes(), image_id)
+    name = _sql(db_copy, "SELECT name FROM images WHERE image_id = ?", image_id)[0][0]
+    digest = sha256(db_copy)
+    capfd.readouterr()
+    assert main(_refine(db_copy, scene.image_dir)) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"keypoints of image {name!r} (id {image_id}) contain NaN or inf" in lines[0], lines
+    assert str(db_copy) in lines[0] and sha256(db_copy) == digest
+
+
+@pytest.mark.parametrize("command", ["refine", "map", "export"])
+def test_a_lying_blob_size_is_one_line(command, db_copy, scene, tmp_path, capfd):
+    """``keypoints.rows`` far beyond the blob: pycolmap would ask for terabytes (bad_alloc)."""
+    image_id = _sql(db_copy, "SELECT image_id FROM keypoints LIMIT 1")[0][0]
+    _sql(db_copy, "UPDATE keypoints SET rows = 4000000000000 WHERE image_id = ?", image_id)
+    argv = {"refine": _refine(db_copy, scene.image_dir),
+            "map": ["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output",
+                    str(tmp_path / "m"), "-q"],
+            "export": ["export", "--database", str(db_copy), "--features", str(tmp_path / "f.h5"), "--matches",
+                       str(tmp_path / "m.h5"), "-q"]}[command]
+    capfd.readouterr()
+    assert main(argv) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1, lines
+    assert f"database {db_copy} is damaged: keypoints of image {image_id} says 4000000000000 x" in lines[0], lines
+
+
+def test_repeated_match_rows_are_counted_once(db_copy, scene, tmp_path, capfd):
+    pair_id, rows, data = _sql(db_copy, "SELECT pair_id, rows, data FROM two_view_geometries WHERE rows > 20 "
+                                        "LIMIT 1")[0]
+    m = np.frombuffer(data, np.uint32).reshape(rows, 2)
+    doubled = np.concatenate([m, m[:7]])
+    _sql(db_copy, "UPDATE two_view_geometries SET rows = ?, data = ? WHERE pair_id = ?", len(doubled),
+         doubled.tobytes(), pair_id)
+    out = tmp_path / "out.db"
+    capfd.readouterr()
+    assert main(_refine(db_copy, scene.image_dir, "--output", str(out))) == 0
+    assert "7 repeated rows in its verified matches, counted once" in capfd.readouterr().err
+    rows_out, data_out = _sql(out, "SELECT rows, data FROM two_view_geometries WHERE pair_id = ?", pair_id)[0]
+    kept = np.frombuffer(data_out, np.uint32).reshape(rows_out, 2)
+    assert len(np.unique(kept, axis=0)) == len(kept) <= len(m)
+
+
+def test_leaves_folder():
+    assert not leaves_folder("a.png") and not leaves_folder("sub/../a.png") and not leaves_folder("./x/y.jpg")
+    assert leaves_folder("../a.png") and leaves_folder("/etc/passwd") and leaves_folder("sub/../../a.png")
+    assert leaves_folder("") and leaves_folder("..\\a.png")
+
+
+def test_image_named_outside_the_folder_is_skipped_or_refused(db_copy, scene, tmp_path, capfd):
+    """A database name ``../<folder>/<image>`` would read the image from beside --images: a
+    warning and the image skipped; an error with --strict."""
+    image_id, name = _sql(db_copy, "SELECT image_id, name FROM images LIMIT 1")[0]
+    outside = f"../{scene.image_dir.name}/{name}"
+    _sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", outside, image_id)
+    refine = ["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--workers", "1", "-q"]
+    capfd.readouterr()
+    assert main([*refine, "--output", str(tmp_path / "a.db")]) == 0
+    err = capfd.readouterr().err
+    assert "named outside the image folder" in err and "it is skipped" in err, err
+    assert main([*refine, "--output", str(tmp_path / "b.db"), "--strict"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "named outside the image folder" in lines[0] and "--strict" in lines[0], lines
+
+
+def test_import_refuses_an_image_named_outside_the_folder(scene, tmp_path, capfd):
+    import h5py
+
+    feats, matches = tmp_path / "f.h5", tmp_path / "m.h5"
+    assert main(["export", "--database", str(scene.database), "--features", str(feats), "--matches",
+                 str(matches), "--layout", "dim", "-q"]) == 0
+    with h5py.File(feats, "r+") as fh:
+        first = next(iter(fh))
+        fh.move(first, f"../{first}")
+    capfd.readouterr()
+    code = main(["import", "--features", str(feats), "--matches", str(matches), "--images", str(scene.image_dir),
+                 "--database", str(tmp_path / "new.db"), "-q"])
+    lines = error_lines(capfd.readouterr().err)
+    assert code == 2 and len(lines) == 1 and "named outside the image folder" in lines[0], lines
+    assert not (tmp_path / "new.db").exists()
