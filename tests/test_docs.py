@@ -4,9 +4,9 @@ and every results table sits in a section that names the command producing it.""
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
-from conftest import REPO
-
+REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
 RESULTS = REPO / "docs" / "results.md"
 MAX_README_LINES = 300

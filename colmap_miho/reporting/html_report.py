@@ -3,7 +3,7 @@
 The page holds the side-by-side table (the rows of ``compare.json``), the cumulative pose-error
 curves, the verified matches per pair, the keypoint displacements (a histogram and, per image,
 where the moved keypoints lie), and a 3D view of the sparse models: cameras as frusta, points
-decimated to :data:`POINT_BUDGET` per model, one colour per model, each switchable from the
+decimated to a budget per model, one colour per model, each switchable from the
 legend or the buttons above the view.
 
 Charts are plotly figures (the ``plots`` extra); plotly's JavaScript bundle is embedded once in
@@ -11,9 +11,7 @@ the page, so it opens offline and with no CDN. Numeric arrays travel as base64 f
 keeps a page with two 50k-point clouds a few MB, most of it the bundle. Without plotly the
 writers log one line naming the extra and return None: the command itself still succeeds.
 
-The refined model is drawn in the baseline's frame: a similarity (Umeyama) fitted on the camera
-centres of the images both registered; with fewer than three such images each model keeps its
-own frame (the page says so).
+The 3D view and the models' geometry are :mod:`colmap_miho.reporting.model_view`.
 """
 
 from __future__ import annotations
@@ -24,21 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .model_view import COLORS, POINT_BUDGET, SIDE_LABEL, model_figure, moved_keypoints
 from .tables import comparison_rows
 
-__all__ = ["POINT_BUDGET", "camera_frusta", "decimate", "model_figure", "write_comparison_html",
-           "write_model_html"]
+__all__ = ["write_comparison_html", "write_model_html"]
 
 log = logging.getLogger(__name__)
-
-POINT_BUDGET = 50_000
-"""Most 3D points drawn per model (a seeded random subset beyond that)."""
-
-MAX_IMAGES_SHOWN = 24
-"""Images offered in the keypoint-displacement view (the ones with most moved keypoints)."""
-
-COLORS = {"baseline": "#7f7f7f", "refined": "#d62728", "model": "#1f77b4"}
-SIDE_LABEL = {"baseline": "baseline", "refined": "colmap-miho"}
 
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0 auto;max-width:1200px;
@@ -49,7 +38,6 @@ table.metrics{border-collapse:collapse;font-size:.92em}
 table.metrics th,table.metrics td{padding:3px 12px;border-bottom:1px solid #eee}
 table.metrics td.num{text-align:right;font-variant-numeric:tabular-nums}
 table.metrics th{text-align:left;background:#f5f5f5}
-td.better{color:#1a7f37;font-weight:600}
 """
 
 _PLOT_CONFIG = {"displaylogo": False, "responsive": True}
@@ -66,156 +54,6 @@ def _plotly():
         log.warning("%s; the page is skipped", exc)
         return None
     return go
-
-
-# --------------------------------------------------------------------------- geometry
-def decimate(num: int, budget: int = POINT_BUDGET, seed: int = 0) -> np.ndarray:
-    """Indices of at most ``budget`` of ``num`` items: all of them, or a seeded random subset in
-    increasing order. Returns (min(num, budget),) int64."""
-    if budget < 1:
-        raise ValueError(f"budget must be >= 1, got {budget}")
-    if num <= budget:
-        return np.arange(num, dtype=np.int64)
-    rng = np.random.default_rng(seed)
-    return np.sort(rng.choice(num, size=budget, replace=False)).astype(np.int64)
-
-
-def _poses(rec) -> dict[str, tuple[np.ndarray, np.ndarray, object]]:
-    """name -> (R_cam_from_world (3, 3), t (3,), camera) of the registered images."""
-    out = {}
-    for image in rec.images.values():
-        if not image.has_pose:
-            continue
-        pose = image.cam_from_world()
-        out[image.name] = (np.array(pose.rotation.matrix(), dtype=np.float64),
-                           np.array(pose.translation, dtype=np.float64), rec.cameras[image.camera_id])
-    return out
-
-
-def _centres(poses: dict) -> dict[str, np.ndarray]:
-    return {n: -R.T @ t for n, (R, t, _) in poses.items()}
-
-
-def camera_frusta(rec, size: float, transform=None) -> np.ndarray:
-    """Line segments of every registered camera's viewing frustum, for a 3D line plot.
-
-    Args:
-        rec: ``pycolmap.Reconstruction``.
-        size: depth of the frustum's image plane (model units).
-        transform: optional similarity ``(s, R, t)`` applied to the world points (``s R X + t``).
-
-    Returns:
-        (M, 3) float64 polyline vertices, NaN rows separating the cameras (plotly draws gaps).
-    """
-    chunks = []
-    for _, (R, t, cam) in sorted(_poses(rec).items()):
-        w, h = float(cam.width), float(cam.height)
-        corners_px = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
-        rays = np.asarray(cam.cam_from_img(corners_px), dtype=np.float64)  # (4, 2) normalised
-        corners = np.c_[rays, np.ones(4)]
-        corners *= size / np.linalg.norm(corners, axis=1, keepdims=True)
-        c = -R.T @ t
-        world = corners @ R + c  # R^T X_cam + C, row-wise
-        # apex -> each corner, then the image rectangle
-        path = np.stack([c, world[0], world[1], c, world[2], world[3], c, world[0], world[3], world[2], world[1]])
-        chunks += [path, np.full((1, 3), np.nan)]
-    if not chunks:
-        return np.zeros((0, 3))
-    out = np.concatenate(chunks)
-    if transform is not None:
-        s, Rt, tt = transform
-        out = s * out @ Rt.T + tt
-    return out
-
-
-def _alignment(rec_from, rec_to):
-    """Similarity mapping ``rec_from``'s world onto ``rec_to``'s, fitted on the camera centres
-    of the images both registered; None with fewer than three such images."""
-    from .report import umeyama
-
-    a, b = _centres(_poses(rec_from)), _centres(_poses(rec_to))
-    common = sorted(set(a) & set(b))
-    if len(common) < 3:
-        return None
-    src, dst = np.array([a[n] for n in common]), np.array([b[n] for n in common])
-    if np.linalg.matrix_rank(src - src.mean(0), tol=1e-9 * max(1.0, float(np.abs(src).max()))) < 2:
-        return None  # collinear centres leave a rotation free
-    return umeyama(src, dst)
-
-
-def _points(rec, transform=None) -> np.ndarray:
-    pts = rec.points3D
-    if not len(pts):
-        return np.zeros((0, 3))
-    xyz = np.array([pts[i].xyz for i in sorted(pts)], dtype=np.float64)
-    if transform is not None:
-        s, R, t = transform
-        xyz = s * xyz @ R.T + t
-    return xyz
-
-
-def model_figure(go, models: dict[str, object], *, budget: int = POINT_BUDGET, seed: int = 0):
-    """The 3D view: for each model (tag -> ``pycolmap.Reconstruction``, the first one's frame
-    is the view's) its decimated points and its camera frusta, with show/hide buttons.
-
-    Returns:
-        ``(figure, note)``: note says how the models were put in one frame (text).
-    """
-    tags = list(models)
-    ref = models[tags[0]]
-    transforms: dict[str, object] = {tags[0]: None}
-    aligned = True
-    for tag in tags[1:]:
-        transforms[tag] = _alignment(models[tag], ref)
-        aligned &= transforms[tag] is not None
-    centres = np.array(list(_centres(_poses(ref)).values()) or [np.zeros(3)])
-    spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1))) if len(centres) > 1 else 0.0
-    all_xyz = {tag: _points(models[tag], transforms[tag]) for tag in tags}
-    if spread <= 0:
-        pts = all_xyz[tags[0]]
-        spread = float(np.median(np.linalg.norm(pts - pts.mean(0), axis=1))) if len(pts) else 1.0
-    size = 0.2 * spread
-    fig = go.Figure()
-    traces_of: dict[str, list[int]] = {}
-    for k, tag in enumerate(tags):
-        xyz = all_xyz[tag]
-        keep = decimate(len(xyz), budget, seed + k) if len(xyz) else np.zeros(0, np.int64)
-        p = xyz[keep].astype(np.float32)
-        color = COLORS.get(tag, None)
-        name = SIDE_LABEL.get(tag, tag)
-        shown = f"{len(keep)} of {len(xyz)}" if len(keep) < len(xyz) else f"{len(xyz)}"
-        fig.add_trace(go.Scatter3d(x=p[:, 0], y=p[:, 1], z=p[:, 2], mode="markers", name=f"{name} points ({shown})",
-                                   legendgroup=tag, marker={"size": 1.6, "color": color, "opacity": 0.8},
-                                   hoverinfo="skip"))
-        fr = camera_frusta(models[tag], size, transforms[tag]).astype(np.float32)
-        n_cams = sum(1 for im in models[tag].images.values() if im.has_pose)
-        fig.add_trace(go.Scatter3d(x=fr[:, 0], y=fr[:, 1], z=fr[:, 2], mode="lines", name=f"{name} cameras ({n_cams})",
-                                   legendgroup=tag, line={"color": color, "width": 3}, hoverinfo="skip",
-                                   connectgaps=False))
-        traces_of[tag] = [2 * k, 2 * k + 1]
-    n = 2 * len(tags)
-    buttons = [{"label": "both" if len(tags) == 2 else "all", "method": "restyle", "args": [{"visible": [True] * n}]}]
-    if len(tags) > 1:
-        for tag in tags:
-            vis = [i in traces_of[tag] for i in range(n)]
-            buttons.append({"label": SIDE_LABEL.get(tag, tag), "method": "restyle", "args": [{"visible": vis}]})
-    fig.update_layout(
-        height=640, margin={"l": 0, "r": 0, "t": 40, "b": 0}, legend={"itemsizing": "constant", "x": 0, "y": 1},
-        scene={"aspectmode": "data", "xaxis": {"visible": False}, "yaxis": {"visible": False},
-               "zaxis": {"visible": False}},
-        updatemenus=[{"type": "buttons", "direction": "right", "x": 1, "xanchor": "right", "y": 1.06,
-                      "buttons": buttons, "showactive": True}] if len(tags) > 1 else [],
-    )
-    if len(tags) == 1:
-        note = "Model units. Drag to turn, scroll to zoom; click a legend entry to hide it."
-    elif aligned:
-        note = (f"The {SIDE_LABEL[tags[1]] if tags[1] in SIDE_LABEL else tags[1]} model is drawn in the "
-                f"{SIDE_LABEL.get(tags[0], tags[0])} model's frame (similarity fitted on the camera centres of "
-                "the images both registered). Drag to turn, scroll to zoom; the buttons or the legend show one "
-                "model or both.")
-    else:
-        note = "Fewer than three images are registered in both models: each model is drawn in its own frame."
-    return fig, note
 
 
 # --------------------------------------------------------------------------- charts
@@ -287,29 +125,6 @@ def _matches_figure(go, before: dict, after: dict):
                       xaxis={"title": "image pair (sorted by baseline matches; hover for names)", "type": "category"},
                       legend={"orientation": "h", "y": 1.08})
     return fig
-
-
-def _moved_keypoints(models: dict[str, object]) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """Per image registered in both models: the baseline keypoint positions (K, 2) of the
-    keypoints that moved and their displacements (K, 2) px, most moved images first.
-
-    COLMAP models keep every keypoint of a registered image as a ``point2D`` in keypoint
-    order, so the two models' rows correspond (refinement moves keypoints in place)."""
-    if set(models) != {"baseline", "refined"}:
-        return []
-    base = {im.name: im for im in models["baseline"].images.values() if im.has_pose}
-    out = []
-    for im in models["refined"].images.values():
-        b = base.get(im.name)
-        if b is None or not im.has_pose or len(b.points2D) != len(im.points2D) or not len(im.points2D):
-            continue
-        p0 = np.array([p.xy for p in b.points2D], dtype=np.float64)
-        d = np.array([p.xy for p in im.points2D], dtype=np.float64) - p0
-        moved = np.linalg.norm(d, axis=1) > 1e-6
-        if moved.any():
-            out.append((im.name, p0[moved], d[moved]))
-    out.sort(key=lambda r: (-len(r[1]), r[0]))
-    return out[:MAX_IMAGES_SHOWN]
 
 
 def _displacement_figure(go, displacements: np.ndarray, per_image: list, size: tuple[int, int] | None):
@@ -445,7 +260,7 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
                                  "Verified matches of each image pair in the two databases (log scale).", "pairs"))
     disp = np.asarray(changes.get("displacements", np.zeros(0)))
     sections.append(_section("Keypoint displacement",
-                             _figure_html(_displacement_figure(go, disp, _moved_keypoints(recs), _image_size(recs)),
+                             _figure_html(_displacement_figure(go, disp, moved_keypoints(recs), _image_size(recs)),
                                           "displacement"),
                              "How far refinement moved keypoints, and where in each image (pick an image above "
                              "the right panel; only registered images of both models are offered).", "keypoints"))

@@ -19,6 +19,7 @@ import pytest
 
 from colmap_miho.cli import main
 from colmap_miho.reporting import html_report as hr
+from colmap_miho.reporting import model_view as mv
 from colmap_miho.reporting.tables import comparison_rows
 
 pytest.importorskip("plotly")
@@ -44,19 +45,19 @@ def _page_rows(text: str) -> list[list[str]]:
 
 # --------------------------------------------------------------------------- pieces
 def test_decimate_keeps_all_or_a_seeded_sorted_subset():
-    assert np.array_equal(hr.decimate(5, 10), np.arange(5))
-    idx = hr.decimate(1000, 100, seed=3)
+    assert np.array_equal(mv.decimate(5, 10), np.arange(5))
+    idx = mv.decimate(1000, 100, seed=3)
     assert len(idx) == 100 and len(np.unique(idx)) == 100 and np.all(np.diff(idx) > 0) and idx.max() < 1000
-    assert np.array_equal(idx, hr.decimate(1000, 100, seed=3))
-    assert not np.array_equal(idx, hr.decimate(1000, 100, seed=4))
+    assert np.array_equal(idx, mv.decimate(1000, 100, seed=3))
+    assert not np.array_equal(idx, mv.decimate(1000, 100, seed=4))
     with pytest.raises(ValueError, match="budget"):
-        hr.decimate(10, 0)
+        mv.decimate(10, 0)
 
 
 def test_frusta_start_at_the_camera_and_reach_the_image_corners():
     rec = _scene()
     size = 0.5
-    lines = hr.camera_frusta(rec, size)
+    lines = mv.camera_frusta(rec, size)
     chunks = np.split(lines, np.where(np.isnan(lines[:, 0]))[0])
     chunks = [c[~np.isnan(c[:, 0])] for c in chunks if np.isfinite(c).any()]
     images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
@@ -81,11 +82,11 @@ def test_refined_model_is_drawn_in_the_baseline_frame():
     moved = pycolmap.Reconstruction(base)
     q = np.array([0.1, 0.2, 0.3, 0.9])
     moved.transform(pycolmap.Sim3d(2.5, pycolmap.Rotation3d(q / np.linalg.norm(q)), np.array([1.0, -2.0, 3.0])))
-    s, R, t = hr._alignment(moved, base)
-    got = s * hr._points(moved) @ R.T + t
-    assert np.allclose(got, hr._points(base), atol=COORD_TOL)
+    s, R, t = mv.alignment(moved, base)
+    got = s * mv.model_points(moved) @ R.T + t
+    assert np.allclose(got, mv.model_points(base), atol=COORD_TOL)
     # fewer than three shared images: no alignment, each model in its own frame
-    assert hr._alignment(moved, pycolmap.Reconstruction()) is None
+    assert mv.alignment(moved, pycolmap.Reconstruction()) is None
 
 
 def _reports(rec):
