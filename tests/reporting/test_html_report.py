@@ -174,10 +174,15 @@ def test_demo_page_in_headless_chromium(demo_run):
             rows = page.eval_on_selector_all(
                 "#metrics tbody tr", "rows => rows.map(r => Array.from(r.cells, c => c.textContent.trim()))")
             shot = page.locator("#models3d canvas").first.screenshot()  # the WebGL canvas alone
+            # the model buttons switch the traces: "baseline" leaves the baseline's points and cameras
+            page.locator("#models3d .updatemenu-button").nth(1).click()
+            page.wait_for_timeout(300)
+            visible = page.evaluate("() => document.getElementById('models3d').data.map(t => t.visible)")
         finally:
             browser.close()
     assert problems == []
     assert rows == expected
+    assert visible == [True, True, False, False]
     pixels = np.asarray(Image.open(io.BytesIO(shot)).convert("RGB")).reshape(-1, 3)
     colours = np.unique(pixels, axis=0)
     assert len(colours) >= MIN_DISTINCT_COLOURS, f"3D view looks blank: {len(colours)} colours"
