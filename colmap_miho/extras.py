@@ -1,7 +1,8 @@
 """Optional dependencies (the pyproject extras): import one, or fail with one line naming the extra.
 
 Extras: ``demo`` (scikit-image for the demo scene's textures, matplotlib for its plots),
-``plots`` (matplotlib: compare's figures, point-cloud pictures without open3d),
+``plots`` (matplotlib: compare's figures, point-cloud pictures without open3d; plotly:
+``report.html``; the ``demo`` extra includes it),
 ``pointcloud`` (open3d, see :mod:`colmap_miho.reporting.pointcloud`), ``dask`` (Dask's
 ``distributed``: ``refine --dask``).
 """

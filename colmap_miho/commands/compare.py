@@ -20,10 +20,11 @@ DESCRIPTION = (
     "Map the database as it is (baseline) and after `refine` (same mapper and seed), evaluate "
     "both (against --gt when given: pose AUCs at --auc-thresholds, and the keypoint accuracy of "
     "each database's inlier matches under the GT geometry), and write OUTPUT/compare.md, "
-    "compare.json and PNG plots (cumulative pose-error curves, keypoint displacements, matches "
-    "kept per pair). Known cameras: --camera-model/--camera-params or --camera-from-gt, with "
-    "--refine-intrinsics none. --repeats N maps each side N times and reports median and range. "
-    "The input database is never modified."
+    "compare.json, report.html (open it in a browser) and PNG plots (cumulative pose-error "
+    "curves, keypoint displacements, matches kept per pair). Known cameras: "
+    "--camera-model/--camera-params or --camera-from-gt, with --refine-intrinsics none. "
+    "--repeats N maps each side N times and reports median and range. The input database is "
+    "never modified."
 )
 ORDER = 50
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..enums import CameraMode
-from ._options import add_auc_arguments, add_recipe_arguments, add_repeat_arguments
+from ._options import ListAction, add_auc_arguments, add_recipe_arguments, add_repeat_arguments
 
 HELP = "from a folder of images: SIFT + exhaustive matching, refine, map, report (--compare: vs baseline)"
 DESCRIPTION = (
@@ -27,9 +27,10 @@ def add_arguments(parser) -> None:
                         help="COLMAP camera sharing (default: one camera for all images)")
     parser.add_argument("--camera-model", dest="extract_camera_model", default="SIMPLE_RADIAL",
                         help="COLMAP camera model (default SIMPLE_RADIAL)")
-    parser.add_argument("--camera-params", dest="extract_camera_params", default="",
-                        help="known intrinsics for --camera-model as COLMAP's comma-separated list "
-                             "(e.g. PINHOLE 'fx,fy,cx,cy', COLMAP pixel convention), written into the "
+    parser.add_argument("--camera-params", dest="extract_camera_params", default="", action=ListAction, join=True,
+                        metavar="P",
+                        help="known intrinsics for --camera-model, COLMAP's list with commas or spaces "
+                             "(e.g. PINHOLE 'fx,fy,cx,cy' or fx fy cx cy, COLMAP pixel convention), written into the "
                              "database and into the mapped copies; --refine-intrinsics none keeps them; "
                              "default: estimated")
     parser.add_argument("--max-features", type=int, default=8192, help="SIFT features per image (default 8192)")

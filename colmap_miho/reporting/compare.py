@@ -7,7 +7,7 @@ same pairs and ground truth, and writes side by side::
     OUTPUT/
       baseline/model/  baseline/report.json  [baseline/runs/seed<S>/model/ with repeats]
       refined/database.db  refined/refine.json  refined/model/  refined/report.json  [refined/runs/...]
-      compare.md  compare.json
+      compare.md  compare.json  report.html
       plots/pose_error_curves.png  plots/keypoint_displacement.png  plots/matches_per_pair.png
 
 With several mapping runs per side the reports get per-run rows, median and range
@@ -271,6 +271,7 @@ def write_comparison(output: Path, base_runs: list, ref_runs: list, *, databases
         refine: ``RefineSummary.to_dict()`` of the refined side.
         evaluation: the ground truth, pairs, seed and thresholds of both sides.
     """
+    from .html_report import write_comparison_html
     from .report import write_report_json
 
     ev = evaluation
@@ -290,6 +291,7 @@ def write_comparison(output: Path, base_runs: list, ref_runs: list, *, databases
             rep["pointcloud"] = clouds[tag]
         write_report_json(rep, output / tag / "report.json")
     md, js = _write_tables(output, baseline, refined, refine, changes, clouds, plot_files)
+    write_comparison_html(output / "report.html", baseline, refined, refine, changes)
     return CompareResult(output=output, baseline=baseline, refined=refined, refine=refine, markdown=md, json=js,
                          plots=plot_files)
 
@@ -305,6 +307,8 @@ def format_comparison(result: CompareResult) -> str:
     if runs:
         lines += ["", f"mapping figures: median [min-max] of {runs} runs per side"]
     lines += ["", f"table:  {result.markdown}", f"json:   {result.json}"]
+    if (result.output / "report.html").is_file():
+        lines.append(f"report: {result.output / 'report.html'}  (open in a browser)")
     lines += [f"plot:   {p}" for p in result.plots]
     return "\n".join(lines)
 

@@ -1,4 +1,4 @@
-"""Issue 14: no path, race, signal or full disk may cost a user their database.
+"""No path, race, signal or full disk may cost a user their database.
 
 Each test is one case of the misuse attack: the command must exit 1 or 2 with one line naming
 the user's file, and the database must stay byte-identical.

@@ -1,4 +1,4 @@
-"""Issue 13: local samples that pass the spread test, iterations counted on valid samples,
+"""Local samples that pass the spread test, iterations counted on valid samples,
 MiHo's tolerance (half-match vs full-match thresholds) and the rotation fix's margin."""
 
 from __future__ import annotations

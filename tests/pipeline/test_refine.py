@@ -285,7 +285,7 @@ def test_missing_image_is_filtered_not_refined(small_scene, tmp_path, capsys):
 
 def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
     """Grey and colour files are both used; an image of another size than its camera is
-    skipped (its keypoints do not belong to these pixels: issue 14), and named."""
+    skipped (its keypoints do not belong to these pixels), and named."""
     images = _copy_scene_images(small_scene, tmp_path / "imgs")
     names = sorted(p.name for p in images.iterdir())
     grey = cv2.imread(str(images / names[0]), cv2.IMREAD_GRAYSCALE)
