@@ -22,8 +22,7 @@ _EPS_NORM = 1e-6
 #: SIMD width of oneDNN's depthwise kernels on AVX2; AVX-512 blocks by 16, a multiple).
 _GROUP_PAD = 8
 #: On the CPU :func:`ncc_maps` runs on blocks of jobs (a multiple of _GROUP_PAD) of about
-#: this many window pixels: the intermediates of a block stay in cache (blocks of 256 windows
-#: of 33 x 33 measured about 5% faster than one call on 1536, torch 2.13 CPU, one thread)
+#: this many window pixels (256 windows of 33 x 33): the intermediates of a block stay in cache
 _BLOCK_PIXELS = 256 * 33 * 33
 
 
@@ -71,8 +70,8 @@ def _ncc_block(
     Sw = windows.shape[-1]
     n = St * St
     t = templates if normalized else normalize_templates(templates)
-    # one grouped convolution per shape: oneDNN is 5-15x slower on groups with more than
-    # one output channel (measured, torch 2.13 CPU). The group count is padded to a multiple
+    # one grouped convolution per shape: oneDNN is much slower on groups with more than
+    # one output channel. The group count is padded to a multiple
     # of _GROUP_PAD so that a lone match goes through the same depthwise kernel as a batch
     # (one group is a plain convolution, which sums in another order); the mean-free
     # windows and the kernels are written straight into the padded buffers

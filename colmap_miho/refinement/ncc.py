@@ -147,6 +147,7 @@ def refine_pair(
     affine2: ArrayInput | None = None,
     progress: bool = False,
 ) -> RefineResult:
+    # over 80 lines only by its docstring (the public entry point's inputs and guarantees)
     """Refine N matches by NCC template matching on rectified patches.
 
     Args:
