@@ -127,13 +127,19 @@ def test_model_page_from_the_cli(tmp_path):
     assert "model cameras (5)" in text
 
 
-def test_without_plotly_the_page_is_skipped_with_one_line(tmp_path, monkeypatch, caplog):
+def test_without_plotly_the_page_is_skipped_with_one_line(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "plotly", None)
     monkeypatch.setitem(sys.modules, "plotly.graph_objects", None)
-    with caplog.at_level(logging.WARNING, logger="colmap_miho"):
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = records.append  # type: ignore[method-assign]
+    hr.log.addHandler(handler)  # on the module's logger: whatever an earlier CLI run did to its parents
+    try:
         assert hr.write_model_html(tmp_path / "x.html", {}, None) is None
+    finally:
+        hr.log.removeHandler(handler)
     assert not (tmp_path / "x.html").exists()
-    lines = [r.getMessage() for r in caplog.records]
+    lines = [r.getMessage() for r in records]
     assert len(lines) == 1 and "pip install 'colmap-miho[plots]'" in lines[0]
 
 
