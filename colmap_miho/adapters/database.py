@@ -268,8 +268,12 @@ class ColmapDatabase(DatabaseBuilder):
         if len(m) > 1:  # a repeated (i, j) row would count twice in the filter and be written back
             _, first = np.unique((m[:, 0].astype(np.uint64) << np.uint64(32)) | m[:, 1], return_index=True)
             if len(first) < len(m):
-                log.warning("image pair %d-%d: %d repeated rows in its %s matches, counted once", image_id1,
-                            image_id2, len(m) - len(first), source)
+                # one warning per database (a damaged database has many), the rest at -v
+                level = logging.DEBUG if getattr(self, "_warned_repeats", False) else logging.WARNING
+                self._warned_repeats = True
+                log.log(level, "image pair %d-%d: %d repeated rows in its %s matches, counted once%s", image_id1,
+                        image_id2, len(m) - len(first), source,
+                        "" if level == logging.DEBUG else " (other pairs with repeated rows: see -v)")
                 m = m[np.sort(first)]
         return m
 

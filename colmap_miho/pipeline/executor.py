@@ -168,6 +168,23 @@ def open_runner(workers: int, dask: str | None = None) -> Iterator[Runner]:
 
 
 @contextlib.contextmanager
+def _quiet_dask():
+    """Dask's noise that is ours to silence: the "Sending large graph" UserWarning (the pair
+    chunks and image states are sent on purpose, once per task), and on Ctrl-C / SIGTERM the
+    tracebacks of distributed's threads while the cluster shuts down (the CLI prints one line)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sending large graph", category=UserWarning)
+        try:
+            yield
+        except KeyboardInterrupt:
+            for name in ("distributed", "tornado", "asyncio"):
+                logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+            raise
+
+
+@contextlib.contextmanager
 def _dask_client(workers: int, dask: str):
     from ..extras import require
 
@@ -179,18 +196,21 @@ def _dask_client(workers: int, dask: str):
                                    dashboard_address=None, silence_logs=logging.ERROR)
         except RuntimeError as exc:  # "Nanny failed to start."
             raise RunFailed(f"the local Dask cluster did not start ({exc}); {SCRIPT_HINT}") from exc
-        with cluster, Client(cluster) as client:
+        with cluster, Client(cluster) as client, _quiet_dask():
             log.info("started a local Dask cluster of %d workers at %s", workers, cluster.scheduler_address)
             yield client
         return
     if not dask.startswith(("tcp://", "tls://", "ucx://", "inproc://")):
         raise UserError(f"--dask {dask}: give a scheduler address like tcp://host:8786, or no value "
                         "for a local cluster")
+    from .scheduler_probe import check_dask_scheduler
+
+    check_dask_scheduler(dask, connect_timeout=CONNECT_TIMEOUT_S)  # Client would wait forever on a mute service
     try:
         client = Client(dask, timeout=f"{CONNECT_TIMEOUT_S}s")
     except (OSError, TimeoutError) as exc:
         raise UserError(f"--dask {dask}: cannot reach the Dask scheduler ({exc})") from None
-    with client:
+    with client, _quiet_dask():
         if not client.scheduler_info()["workers"]:
             client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
         yield client
