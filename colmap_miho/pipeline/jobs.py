@@ -29,6 +29,7 @@ from ..recipe import Recipe, load_recipe
 from ..reporting.compare import CompareResult, Evaluation, gt_intrinsics, write_comparison
 from ..sfm import MappingConfig
 from .run import refine_database
+from .summary import RefineSummary
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +118,15 @@ def map_repeats(database: Path, image_dir: Path, folder: Path, mapping: MappingC
     return results
 
 
+def _refine_into(database: Path, image_dir: Path, folder: Path, recipe: Recipe, opts: JobOptions,
+                 seed: int) -> RefineSummary:
+    """``refine_database`` into ``folder/database.db`` (with ``folder/refine.json``), replacing
+    an earlier job's output there."""
+    return refine_database(database, image_dir, folder / "database.db", recipe=recipe, overwrite=True,
+                           restart=True, workers=opts.workers, device=opts.device, seed=seed,
+                           progress=opts.progress, json_path=folder / "refine.json")
+
+
 def compare_databases(database: str | Path, image_dir: str | Path, output: str | Path, *,
                       recipe: Recipe | str | None = None, gt: str | Path | None = None, pairs: object = None,
                       options: JobOptions | None = None) -> CompareResult:
@@ -157,10 +167,7 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
 
     base_runs = map_side(database, "baseline")
     log.info("refining the matches (recipe %s)", rec.name)
-    summary = refine_database(database, image_dir, output / "refined" / "database.db", recipe=rec,
-                              overwrite=True, restart=True, workers=opts.workers, device=opts.device,
-                              seed=mapping.seed, progress=opts.progress,
-                              json_path=output / "refined" / "refine.json")
+    summary = _refine_into(database, image_dir, output / "refined", rec, opts, mapping.seed)
     ref_runs = map_side(summary.output, "refined")
     if not any(r.success for r in base_runs + ref_runs):
         raise RunFailed("mapping failed on both the baseline and the refined database")
@@ -215,10 +222,7 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
         out["result"] = res
         return out
     (output / "refined").mkdir(exist_ok=True)
-    summary = refine_database(database, image_dir, output / "refined" / "database.db", recipe=rec,
-                              overwrite=True, restart=True, workers=opts.workers, device=opts.device,
-                              seed=mapping.seed, progress=opts.progress,
-                              json_path=output / "refined" / "refine.json")
+    summary = _refine_into(database, image_dir, output / "refined", rec, opts, mapping.seed)
     res_map = require_success(run_mapping(summary.output, image_dir, output / "refined" / "model", mapping,
                                           intrinsics=gt_intrinsics(gt) if opts.gt_cameras and gt is not None
                                           else None, progress=opts.progress, verbose=opts.verbose))
