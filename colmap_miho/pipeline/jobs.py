@@ -222,7 +222,7 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
         out["result"] = res
         return out
     (output / "refined").mkdir(exist_ok=True)
-    summary = _refine_into(database, image_dir, output / "refined", rec, opts, mapping.seed)
+    summary = _refine_into(database, Path(image_dir), output / "refined", rec, opts, mapping.seed)
     res_map = require_success(run_mapping(summary.output, image_dir, output / "refined" / "model", mapping,
                                           intrinsics=gt_intrinsics(gt) if opts.gt_cameras and gt is not None
                                           else None, progress=opts.progress, verbose=opts.verbose))
