@@ -1,9 +1,9 @@
 """The only module that creates, reads and writes COLMAP databases (through pycolmap).
 
-It is also the only place with the half-pixel conversion: COLMAP stores keypoints with the
-image's top-left corner at (0, 0), so the centre of the top-left pixel is (0.5, 0.5);
-colmap-miho's arrays put pixel centres at integers (OpenCV, kornia). ``read`` subtracts
-:data:`HALF_PIXEL`, ``write`` adds it, each exactly once.
+It is also the only place that applies the half-pixel conversion of :mod:`.conventions`:
+COLMAP stores keypoints with the image's top-left corner at (0, 0), so the centre of the
+top-left pixel is (0.5, 0.5); colmap-miho's arrays put pixel centres at integers (OpenCV,
+kornia). ``read`` subtracts :data:`~.conventions.HALF_PIXEL`, ``write`` adds it, each exactly once.
 
 Open only a working copy (see :mod:`colmap_miho.adapters.safety`): pycolmap migrates the schema on
 open and creates an empty database for a missing path. Never hold a Python ``sqlite3``
@@ -24,36 +24,13 @@ import numpy as np
 from ..enums import MatchSource
 from ..errors import DatabaseError, InvalidInput
 from .cameras import CameraIntrinsics, camera_from
+from .conventions import colmap_to_pixel_centre, image_pair, pixel_centre_to_colmap
 from .database_build import DatabaseBuilder
 from .safety import check_database_path
 
 log = logging.getLogger(__name__)
 
-HALF_PIXEL = 0.5
 REQUIRED_TABLES = ("cameras", "images", "keypoints", "matches", "two_view_geometries")
-MAX_IMAGE_ID = 2147483647
-
-
-def colmap_to_pixel_centre(xy: np.ndarray) -> np.ndarray:
-    """COLMAP keypoint coordinates (N, 2) -> colmap-miho's (integer = pixel centre), float64."""
-    return np.asarray(xy, dtype=np.float64) - HALF_PIXEL
-
-
-def pixel_centre_to_colmap(xy: np.ndarray) -> np.ndarray:
-    """colmap-miho coordinates (N, 2) (integer = pixel centre) -> COLMAP's, float64."""
-    return np.asarray(xy, dtype=np.float64) + HALF_PIXEL
-
-
-def pair_id(image_id1: int, image_id2: int) -> int:
-    """COLMAP's pair id: 2147483647 * min + max."""
-    a, b = sorted((int(image_id1), int(image_id2)))
-    return MAX_IMAGE_ID * a + b
-
-
-def image_pair(pid: int) -> tuple[int, int]:
-    """Inverse of :func:`pair_id`: (smaller image id, larger image id)."""
-    pid = int(pid)
-    return pid // MAX_IMAGE_ID, pid % MAX_IMAGE_ID
 
 
 def validate_database(path: str | Path, name: str | Path | None = None) -> None:

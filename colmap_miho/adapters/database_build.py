@@ -3,31 +3,17 @@ their frames, keypoints and matches, through the open pycolmap handle of
 :class:`~colmap_miho.adapters.database.ColmapDatabase` (which opens and closes it).
 
 Coordinates in are colmap-miho's (integer = pixel centre) unless said otherwise; the +0.5 shift
-to COLMAP's convention is :func:`~colmap_miho.adapters.database.pixel_centre_to_colmap`.
+to COLMAP's convention is :func:`~colmap_miho.adapters.conventions.pixel_centre_to_colmap`.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..errors import InvalidInput
-
-if TYPE_CHECKING:
-    from .database import ImageRecord
-
-
-def _pixel_centre_to_colmap(xy: np.ndarray) -> np.ndarray:
-    from .database import pixel_centre_to_colmap
-
-    return pixel_centre_to_colmap(xy)
-
-
-def _image_pair(pid: int) -> tuple[int, int]:
-    from .database import image_pair
-
-    return image_pair(pid)
+from .conventions import image_pair, pixel_centre_to_colmap
 
 
 class DatabaseBuilder:
@@ -41,7 +27,7 @@ class DatabaseBuilder:
     def handle(self) -> Any:  # pragma: no cover - provided by ColmapDatabase
         raise NotImplementedError
 
-    def images(self) -> list[ImageRecord]:  # pragma: no cover - provided by ColmapDatabase
+    def images(self) -> list[Any]:  # pragma: no cover - provided by ColmapDatabase
         raise NotImplementedError
 
     def raw_keypoints(self, image_id: int) -> np.ndarray:  # pragma: no cover - provided by ColmapDatabase
@@ -91,7 +77,7 @@ class DatabaseBuilder:
         """
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         rows = np.zeros((len(xy), 6), dtype=np.float32)
-        rows[:, :2] = xy if colmap_coordinates else _pixel_centre_to_colmap(xy)
+        rows[:, :2] = xy if colmap_coordinates else pixel_centre_to_colmap(xy)
         if affines is not None:
             rows[:, 2:] = np.asarray(affines, dtype=np.float32).reshape(-1, 4)
         else:
@@ -132,7 +118,7 @@ class DatabaseBuilder:
         geometric verification would); the pairs must have a two-view geometry already."""
         pids, arrays = self.handle.read_all_matches()
         for pid, m in zip(pids, arrays, strict=True):
-            i, j = _image_pair(pid)
+            i, j = image_pair(pid)
             tvg = self.handle.read_two_view_geometry(i, j)
             tvg.inlier_matches = np.asarray(m, np.uint32)
             self.handle.update_two_view_geometry(i, j, tvg)

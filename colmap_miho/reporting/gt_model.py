@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..adapters.database import colmap_to_pixel_centre, pixel_centre_to_colmap
+from ..adapters.conventions import colmap_to_pixel_centre, pixel_centre_to_colmap
 from ..adapters.images import image_size
 from ..errors import InvalidInput
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from colmap_miho.adapters import hloc
-from colmap_miho.adapters.database import image_pair
+from colmap_miho.adapters.conventions import image_pair
 from colmap_miho.adapters.exchange import export_hloc, import_hloc
 from colmap_miho.cli import main
 from miho_bench.synthetic import make_synthetic_scene

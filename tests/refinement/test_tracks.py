@@ -344,7 +344,7 @@ def test_synthetic_scene_refinement(tmp_path):
     """
     pycolmap = pytest.importorskip("pycolmap")
     cv2 = pytest.importorskip("cv2")
-    from colmap_miho.adapters.database import colmap_to_pixel_centre, image_pair
+    from colmap_miho.adapters.conventions import colmap_to_pixel_centre, image_pair
     from miho_bench.synthetic import make_synthetic_scene
 
     scene = make_synthetic_scene(tmp_path / "scene", num_images=6, num_points=50,
