@@ -3,8 +3,8 @@
 Public API (imported on first use, so that ``colmap-miho --help`` starts without torch)::
 
     refine_database(database, image_dir, output=None, *, recipe=None, ...) -> RefineSummary
-    extract_and_match(database, image_dir, ...); run_mapping(database, image_dir, output, ...)
-    build_report(...); compare_databases(...)
+    extract_and_match(image_dir, database, ...); run_mapping(database, image_dir, output, ...)
+    build_report(...); compare_databases(database, image_dir, output, *, recipe=None, gt=None, ...)
     filter_matches(pts1, pts2, *, method="mop_miho", config=None, seed=0, device="cpu") -> FilterResult
     refine_pair(image1, image2, pts1, pts2, patch_homographies, *, move="auto", config=None)
         -> RefineResult

@@ -8,8 +8,9 @@ outputs)`` (label -> path): :func:`main` refuses any overlap before the command 
 :mod:`colmap_miho.adapters.paths`).
 
 Failures reach the user as one line (``ERROR: ...``, the traceback only with ``-v``) and an
-exit code: 2 bad input, 1 failed run, 130 Ctrl-C, 143 SIGTERM (handled like Ctrl-C: working
-files removed, the input untouched).
+exit code: 2 a user error (bad input: :class:`~colmap_miho.errors.UserError`, a missing or
+unwritable path), 1 a failed run or an internal error (with the ``-v`` hint), 130 Ctrl-C, 143
+SIGTERM (handled like Ctrl-C: working files removed, the input untouched).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """One place that resolves the paths a command reads and writes and refuses any overlap.
 
 A command that writes a file where it reads one destroys the user's data (``refine --json
-x.db --database x.db`` used to replace the database with the JSON summary). Every command
+x.db --database x.db`` would replace the database with the JSON summary). Every command
 therefore lists its inputs and outputs (``paths(args)`` in its module, see
 :mod:`colmap_miho.cli`) and :func:`check_distinct` compares them before any work starts:
 paths are resolved (symbolic links followed, ``..`` removed) and existing files are compared

@@ -162,7 +162,7 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
     Full scoring runs in descending order of the one-way upper bound, in small groups, until
     no remaining bound can beat the best count; the batch's two strongest (at least n
     possible inliers) are always scored, as buffer candidates. ``ub`` ``(K,)``: the one-way
-    bounds of ``hyp`` on ``pool`` (:func:`one_way_count`).
+    bounds of ``hyp`` on ``pool`` (:func:`~.scoring.one_way_count`).
     """
     order = np.argsort(-ub, kind="stable")
     ub = ub[order]

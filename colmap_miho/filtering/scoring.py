@@ -266,7 +266,7 @@ class NumpyScoring:
 
     ``prefetch``: 0 scores exactly the hypotheses the search reaches; ``> 0`` screens them
     ahead in chunks of that many (then doubling), which gives the same result with fewer
-    calls (round trips to a device; numpy call overhead on the CPU) (:class:`_BatchScores`).
+    calls (round trips to a device; numpy call overhead on the CPU) (:class:`~.ransac._BatchScores`).
     """
 
     #: On the CPU per-call overhead dominates groups of 4 hypotheses, so screening ahead

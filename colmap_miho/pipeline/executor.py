@@ -91,7 +91,7 @@ class Runner:
         """Create the executor and start its workers from a background thread; returns
         ``starting()``: True until a worker has run a first task. A process pool's first
         task blocks the thread that submits it until the forkserver has finished its
-        imports (~2 s): meanwhile this process can work. Submit only once ``starting()``
+        imports (numpy, torch): meanwhile this process can work. Submit only once ``starting()``
         is False; it raises the start's error, if any."""
         if self._make is None or self._executor is not None:
             return lambda: False

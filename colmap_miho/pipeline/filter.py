@@ -208,7 +208,7 @@ def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints
                 finish(*pending.pop(fut), fut.result())
 
         todo = deque(enumerate(chunks))
-        # A process pool that is not running yet needs its forkserver's imports (~2 s):
+        # A process pool that is not running yet needs its forkserver's imports (numpy, torch):
         # meanwhile this process filters chunks itself.
         starting = runner.start_in_background() if runner.kind == RunnerKind.PROCESSES else (lambda: False)
         while todo and starting():

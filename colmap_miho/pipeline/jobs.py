@@ -9,7 +9,7 @@ sides to :func:`colmap_miho.reporting.compare.write_comparison`, which evaluates
     OUTPUT/
       baseline/model/  baseline/report.json  [baseline/runs/seed<S>/model/ with repeats]
       refined/database.db  refined/refine.json  refined/model/  refined/report.json  [refined/runs/...]
-      compare.md  compare.json  plots/...
+      compare.md  compare.json  report.html  plots/...
 
 :func:`run_from_images` extracts SIFT features and matches them exhaustively (pycolmap, CPU)
 into ``OUTPUT/database.db``, then refines, maps and reports, or runs the comparison. The input

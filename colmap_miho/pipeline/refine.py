@@ -3,8 +3,8 @@
 :func:`run_refine` is the stage: it reads the filtered pairs back from the run store, walks
 them (:func:`run_refine_stage`) and returns the new keypoints with frozen :class:`RefineStats`.
 
-The :class:`~colmap_miho.refinement.track_plan.TrackPlan` of all output matches is cut into
-groups of whole walked tracks (:meth:`~colmap_miho.refinement.track_plan.TrackPlan.groups`),
+The :class:`~colmap_miho.refinement.plan.TrackPlan` of all output matches is cut into
+groups of whole walked tracks (:meth:`~colmap_miho.refinement.plan.TrackPlan.groups`),
 each using at most as many images as fit in the image budget; groups are numbered 0..G-1 in
 their schedule order (consecutive groups share images) and walked one after the other in
 this process, or spread over the runner's slots (:mod:`.executor`: a process pool or Dask)

@@ -24,9 +24,9 @@ filter's chunks and the refinement's track groups in this process, in worker pro
 thread each (forked from a forkserver that imported torch once), or on a Dask cluster
 (``dask``); only this process writes SQLite. Scripts that call :func:`refine_database` with
 ``workers > 1`` need the usual ``if __name__ == "__main__":`` guard.
-All coordinates handled here are colmap-miho's
-(integer = pixel centre); the conversion to COLMAP's happens inside
-:mod:`colmap_miho.adapters.database`.
+
+All coordinates handled here are colmap-miho's (integer = pixel centre); the conversion to
+COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
 """
 
 from __future__ import annotations

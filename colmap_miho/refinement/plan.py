@@ -24,7 +24,7 @@ class TrackPlan:
         pair_homs: per pair the (K, 2, 3, 3) float64 patch homography pairs (A, B),
             ``A x1 ~ B x2``.
         local_homs: None, or per pair the (M_p, 2, 3, 3) local affine pairs of its edges
-            (``local_affine``), indexed by ``edge_row``. Plans from :func:`build_track_plan`
+            (``local_affine``), indexed by ``edge_row``. Plans from :func:`~.track_plan.build_track_plan`
             compute them lazily, pair by pair (:meth:`TrackPlan.local_pairs`).
         edge_a, edge_b: (E,) int64 nodes of each edge, ``edge_a`` in the pair's first image.
         edge_pair: (E,) int64 pair of each edge.

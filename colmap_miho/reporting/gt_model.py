@@ -6,9 +6,10 @@ by image id.
 
 Pixel convention: :class:`CameraPose.K` uses the project's convention (integer = pixel centre).
 COLMAP *models* (cameras.txt / cameras.bin) put the top-left pixel centre at (0.5, 0.5), so the
-principal point is shifted by :data:`COLMAP_PRINCIPAL_POINT_OFFSET` when a model is read or
-written, in :func:`poses_from_reconstruction` and :func:`write_colmap_model` only. (Keypoints in
-databases are converted by ``colmap_miho.adapters.database``; this is the matching rule for models.)
+principal point is shifted by half a pixel (:data:`~colmap_miho.adapters.database.HALF_PIXEL`)
+when a model is read or written, in :func:`poses_from_reconstruction` and
+:func:`write_colmap_model` only, with the conversions of ``colmap_miho.adapters.database`` (the
+one home of the shift, which also converts the keypoints of databases).
 
 Dataset layouts supported (see the data README):
 

@@ -7,9 +7,10 @@ decimated to a budget per model, one colour per model, each switchable from the
 legend or the buttons above the view.
 
 Charts are plotly figures (the ``plots`` extra); plotly's JavaScript bundle is embedded once in
-the page, so it opens offline and with no CDN. Numeric arrays travel as base64 float32, which
-keeps a page with two 50k-point clouds a few MB, most of it the bundle. Without plotly the
-writers log one line naming the extra and return None: the command itself still succeeds.
+the page, so it opens offline and with no CDN. Numeric arrays travel as base64 float32 (4 bytes
+a value, a third more as text) rather than as decimal text; page sizes are in the results
+document (``docs/results.md``). Without plotly the writers log one line naming the extra and
+return None: the command itself still succeeds.
 
 The 3D view and the models' geometry are :mod:`colmap_miho.reporting.model_view`.
 """

@@ -318,8 +318,8 @@ def test_snake_order_of_a_level_decodes_fewer_images(monkeypatch):
 @pytest.mark.parametrize("seed", [0, 4])
 def test_walk_refines_along_walk_steps_only(seed):
     """Every keypoint the walk refines is refined against a partner joined to it by one of
-    :meth:`TrackPlan.walk_steps` (so the local pairs of the other edges are never read), and
-    the walk does use edges of every level."""
+    :meth:`~colmap_miho.refinement.plan.TrackPlan.walk_steps` (so the local pairs of the other
+    edges are never read), and the walk does use edges of every level."""
     kps, pm, res, unref = random_scene(seed)
     plan = build_track_plan(kps, pm, res, unrefined_matches=unref, local_affine=LOCAL)
     steps = plan.walk_steps()

@@ -32,7 +32,7 @@ def scene(tmp_path_factory):
 
 
 def test_compare_synthetic(scene, tmp_path, capsys):
-    """Filter-only recipe: NCC refinement end to end is covered by tests/test_demo.py (it costs
+    """Filter-only recipe: NCC refinement end to end is covered by tests/reporting/test_demo.py (it costs
     about 0.1 s per keypoint on 2 busy cores today, too slow to run twice)."""
     s, gt = scene
     before = sha(s.database)
