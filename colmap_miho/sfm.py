@@ -407,6 +407,7 @@ def extract_and_match(
     if not image_dir.is_dir():
         raise NotADirectoryError(f"image folder not found: {image_dir}")
     database.parent.mkdir(parents=True, exist_ok=True)
+    check_extraction_space(image_dir, database.parent, max_features)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     reader.camera_params = camera_params
@@ -432,3 +433,27 @@ def extract_and_match(
         raise RunFailed(f"feature extraction found {n} image(s) in {image_dir}; need at least 2")
     log.info("extracted %d images in %.1f s, matched exhaustively in %.1f s", n, t1 - t0, t2 - t1)
     return {"num_images": n, "seconds_extract": t1 - t0, "seconds_match": t2 - t1}
+
+
+#: Bytes a new database takes per extracted feature (6 float32 keypoint columns and a 128-byte
+#: SIFT descriptor), the fraction of features assumed matched per pair (two uint32 per match,
+#: in the matches and again in the two-view geometries) and the headroom for SQLite's
+#: write-ahead log: an estimate for the free-space check, pycolmap aborts on a full disk.
+FEATURE_BYTES = 24 + 128
+MATCHED_FRACTION = 0.25
+EXTRACTION_WRITE_FACTOR = 2
+
+
+def check_extraction_space(image_dir: Path, folder: Path, max_features: int) -> None:
+    """Refuse an extraction whose database would not fit the free space of ``folder``.
+
+    Raises:
+        UserError: one line naming the folder, the estimate and the free space.
+    """
+    from .adapters.safety import check_free_space
+
+    n = sum(1 for p in Path(image_dir).rglob("*") if p.is_file())
+    pairs = n * (n - 1) // 2
+    need = EXTRACTION_WRITE_FACTOR * (n * max_features * FEATURE_BYTES
+                                      + pairs * max_features * MATCHED_FRACTION * 16)
+    check_free_space(folder, int(need) + (4 << 20), f"extracting and matching {n} images")

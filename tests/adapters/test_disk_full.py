@@ -141,3 +141,13 @@ def test_refine_fits_the_space_it_asks_for(db_copy, scene, tmp_path):
         assert main(["refine", "--database", str(db), "--images", str(scene.image_dir), "--workers", "1",
                      "-q"]) == 0
         assert names(disk) == ["scene.db", "scene.miho.db"]
+
+
+def test_run_checks_free_space_before_extraction(scene, tmp_path, capfd):
+    with small_disk(tmp_path / "mnt", "1m") as disk:
+        fill(disk, leave=64 << 10)
+        capfd.readouterr()
+        assert main(["run", "--images", str(scene.image_dir), "--output", str(disk / "w"), "-q"]) == 2
+        lines = error_lines(capfd.readouterr().err)
+        assert len(lines) == 1 and f"not enough free space in {disk / 'w'}" in lines[0], lines
+        assert names(disk / "w") == []
