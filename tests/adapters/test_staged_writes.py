@@ -161,3 +161,20 @@ def test_refine_and_map_json_through_a_symlink(db_copy, scene, tmp_path):
         assert main([*argv, "--json", str(link), "-q"]) == 0
         assert link.is_symlink() and os.readlink(link) == str(target)
         assert json.loads(target.read_text()) != {}
+
+
+def test_a_new_file_never_replaces_one_that_appeared_meanwhile(tmp_path):
+    """import's last step: a database another run published first is kept, this one refused."""
+    from colmap_miho.adapters.safety import publish_new_file
+    from colmap_miho.errors import UserError
+
+    theirs = tmp_path / "new.db"
+    ours = tmp_path / "ours.tmp"
+    ours.write_bytes(b"ours")
+    publish_new_file(ours, theirs)
+    assert theirs.read_bytes() == b"ours" and not ours.exists()
+    again = tmp_path / "again.tmp"
+    again.write_bytes(b"second")
+    with pytest.raises(UserError, match="created by another program during the run"):
+        publish_new_file(again, theirs)
+    assert theirs.read_bytes() == b"ours"
