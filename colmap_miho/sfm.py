@@ -268,6 +268,7 @@ def run_mapping(
             db_copy = Path(tmp) / "database.db"
             read_copy(database, db_copy)  # refuses a database in use or with a hot journal
             validate_database(db_copy, name=database)  # e.g. a lying blob size: pycolmap would abort
+            _warn_names_outside(db_copy, database, image_dir)
             if cfg.intrinsics() is not None:
                 write_camera_intrinsics(db_copy, cfg.intrinsics())
             if intrinsics and not write_camera_intrinsics(db_copy, intrinsics):
@@ -302,6 +303,23 @@ def run_mapping(
         num_points3D=int(best.num_points3D()), seconds=seconds, cameras=_camera_rows(best),
         refine_intrinsics=cfg.refine_intrinsics.value, log_file=log_file, reconstruction=best,
     )
+
+
+def _warn_names_outside(copy: Path, database: Path, image_dir: Path) -> None:
+    """Warn about image names that leave the image folder (absolute, or with ``..``): the
+    mapper reads those files (for the points' colours) from outside ``image_dir``."""
+    import sqlite3
+
+    from .adapters.paths import leaves_folder
+
+    con = sqlite3.connect(f"file:{copy.resolve()}?mode=ro", uri=True)
+    try:
+        outside = [name for (name,) in con.execute("SELECT name FROM images") if leaves_folder(name)]
+    finally:
+        con.close()
+    if outside:
+        log.warning("%d image name(s) of %s lead outside the image folder %s (e.g. %r): the mapper reads them "
+                    "from there", len(outside), database, image_dir, outside[0])
 
 
 def _camera_rows(rec) -> list[dict]:

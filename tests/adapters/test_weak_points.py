@@ -120,3 +120,11 @@ def test_import_refuses_an_image_named_outside_the_folder(scene, tmp_path, capfd
     lines = error_lines(capfd.readouterr().err)
     assert code == 2 and len(lines) == 1 and "named outside the image folder" in lines[0], lines
     assert not (tmp_path / "new.db").exists()
+
+
+def test_map_warns_about_image_names_outside_the_folder(db_copy, scene, tmp_path, capfd):
+    image_id, name = _sql(db_copy, "SELECT image_id, name FROM images LIMIT 1")[0]
+    _sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", f"../{scene.image_dir.name}/{name}", image_id)
+    capfd.readouterr()
+    main(["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(tmp_path / "m")])
+    assert "1 image name(s) of" in capfd.readouterr().err
