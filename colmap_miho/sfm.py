@@ -268,6 +268,7 @@ def run_mapping(
             db_copy = Path(tmp) / "database.db"
             read_copy(database, db_copy)  # refuses a database in use or with a hot journal
             validate_database(db_copy, name=database)  # e.g. a lying blob size: pycolmap would abort
+            _warn_names_outside(db_copy, database, image_dir)
             if cfg.intrinsics() is not None:
                 write_camera_intrinsics(db_copy, cfg.intrinsics())
             if intrinsics and not write_camera_intrinsics(db_copy, intrinsics):
@@ -302,6 +303,23 @@ def run_mapping(
         num_points3D=int(best.num_points3D()), seconds=seconds, cameras=_camera_rows(best),
         refine_intrinsics=cfg.refine_intrinsics.value, log_file=log_file, reconstruction=best,
     )
+
+
+def _warn_names_outside(copy: Path, database: Path, image_dir: Path) -> None:
+    """Warn about image names that leave the image folder (absolute, or with ``..``): the
+    mapper reads those files (for the points' colours) from outside ``image_dir``."""
+    import sqlite3
+
+    from .adapters.paths import leaves_folder
+
+    con = sqlite3.connect(f"file:{copy.resolve()}?mode=ro", uri=True)
+    try:
+        outside = [name for (name,) in con.execute("SELECT name FROM images") if leaves_folder(name)]
+    finally:
+        con.close()
+    if outside:
+        log.warning("%d image name(s) of %s lead outside the image folder %s (e.g. %r): the mapper reads them "
+                    "from there", len(outside), database, image_dir, outside[0])
 
 
 def _camera_rows(rec) -> list[dict]:
@@ -407,6 +425,7 @@ def extract_and_match(
     if not image_dir.is_dir():
         raise NotADirectoryError(f"image folder not found: {image_dir}")
     database.parent.mkdir(parents=True, exist_ok=True)
+    check_extraction_space(image_dir, database.parent, max_features)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     reader.camera_params = camera_params
@@ -432,3 +451,27 @@ def extract_and_match(
         raise RunFailed(f"feature extraction found {n} image(s) in {image_dir}; need at least 2")
     log.info("extracted %d images in %.1f s, matched exhaustively in %.1f s", n, t1 - t0, t2 - t1)
     return {"num_images": n, "seconds_extract": t1 - t0, "seconds_match": t2 - t1}
+
+
+#: Bytes a new database takes per extracted feature (6 float32 keypoint columns and a 128-byte
+#: SIFT descriptor), the fraction of features assumed matched per pair (two uint32 per match,
+#: in the matches and again in the two-view geometries) and the headroom for SQLite's
+#: write-ahead log: an estimate for the free-space check, pycolmap aborts on a full disk.
+FEATURE_BYTES = 24 + 128
+MATCHED_FRACTION = 0.25
+EXTRACTION_WRITE_FACTOR = 2
+
+
+def check_extraction_space(image_dir: Path, folder: Path, max_features: int) -> None:
+    """Refuse an extraction whose database would not fit the free space of ``folder``.
+
+    Raises:
+        UserError: one line naming the folder, the estimate and the free space.
+    """
+    from .adapters.safety import check_free_space
+
+    n = sum(1 for p in Path(image_dir).rglob("*") if p.is_file())
+    pairs = n * (n - 1) // 2
+    need = EXTRACTION_WRITE_FACTOR * (n * max_features * FEATURE_BYTES
+                                      + pairs * max_features * MATCHED_FRACTION * 16)
+    check_free_space(folder, int(need) + (4 << 20), f"extracting and matching {n} images")

@@ -245,8 +245,9 @@ class ColmapDatabase(DatabaseBuilder):
         if len(m) > 1:  # a repeated (i, j) row would count twice in the filter and be written back
             _, first = np.unique((m[:, 0].astype(np.uint64) << np.uint64(32)) | m[:, 1], return_index=True)
             if len(first) < len(m):
-                # one warning per database (a damaged database has many), the rest at -v
-                level = logging.DEBUG if getattr(self, "_warned_repeats", False) else logging.WARNING
+                # said once per database (a damaged one has many), the rest at -v; dropping a
+                # repeat changes nothing a mapper would use, so it is no warning
+                level = logging.DEBUG if getattr(self, "_warned_repeats", False) else logging.INFO
                 self._warned_repeats = True
                 log.log(level, "image pair %d-%d: %d repeated rows in its %s matches, counted once%s", image_id1,
                         image_id2, len(m) - len(first), source,

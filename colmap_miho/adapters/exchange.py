@@ -310,11 +310,12 @@ def check_export_space(copy: Path, features: Path, matches: Path, source: MatchS
 
 
 #: Bytes the new database takes per keypoint (6 float32 columns) and per match (uint32 pair in
-#: the matches table and again in the two-view geometries), and the factor for SQLite's
-#: write-ahead log and page slack (measured on imports into a small tmpfs; see the tests).
+#: the matches table and again in the two-view geometries), and the headroom over that for
+#: SQLite's write-ahead log and page slack (the peak use of imports measured on a tmpfs stays
+#: well inside it).
 DB_BYTES_PER_KEYPOINT = 24
 DB_BYTES_PER_MATCH = 16
-DB_WRITE_FACTOR = 3
+DB_WRITE_FACTOR = 2
 
 
 def check_import_space(fh, mh, folder: Path, verify: bool) -> None:

@@ -531,6 +531,23 @@ def atomic_replace(tmp: Path, dst: Path) -> None:
     _fsync_dir(dst.parent)
 
 
+#: Free space a refine run needs beside its output, in database sizes: the working copy, its
+#: write-ahead log (up to the rewritten pages: about the copy again) and the run store of
+#: filtered pairs and refined groups, with a margin. pycolmap aborts the process (SIGABRT,
+#: in a destructor) when SQLite fills the disk, so the run must not start without it: runs on
+#: a small tmpfs failed from 2.6 database sizes down and passed from 2.8 up.
+WORKING_SPACE_FACTOR = 3.5
+#: Free space on top of :data:`WORKING_SPACE_FACTOR`, bytes (SQLite's pages and the -shm file
+#: of a small database).
+WORKING_SPACE_MARGIN = 1 << 20
+
+
+def working_space(size: int, *, in_place: bool = False) -> int:
+    """Bytes of free space a run on a database of ``size`` bytes needs beside its output (in
+    place: the backup too)."""
+    return int((WORKING_SPACE_FACTOR + (1 if in_place else 0)) * size) + WORKING_SPACE_MARGIN
+
+
 class WorkingCopy:
     """Plan and carry out the safe write of a processed database.
 
@@ -590,8 +607,7 @@ class WorkingCopy:
         check_not_in_use(self.database)
         _warn_leftover_copies(self.output)
         size = self.database.stat().st_size
-        # the copy, its WAL and the rewritten pages (about the copy again), and the backup
-        check_free_space(self.output.parent, (3 if self.in_place else 2) * size,
+        check_free_space(self.output.parent, working_space(size, in_place=self.in_place),
                          f"refining {self.database}" + (" in place (with its backup)" if self.in_place else ""))
         self._identity = file_identity(self.output if self.in_place else self.database)
         if self.in_place:
@@ -720,6 +736,10 @@ class WorkingCopy:
             remove_with_side_files(self.path)
             _WORKING_FILES.discard(self.path)
             self._drop_backup()
+        if isinstance(exc, (RuntimeError, sqlite3.Error)) and is_disk_full(exc):
+            # pycolmap's "database or disk is full" (a RuntimeError): a known condition, one line
+            raise RunFailed(f"disk full while writing in {self.output.parent}; {self.database} is unchanged and "
+                            "the working files were removed: free some space and retry") from None
 
 
 def _umask() -> int:

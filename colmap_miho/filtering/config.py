@@ -12,6 +12,13 @@ MAX_HYPOTHESES_BATCH = 8192
 #: Upper bound of the thresholds ``t_l`` / ``t_h`` in pixels: larger than any image side
 #: (``filter.t_l=1e308`` overflowed the squared thresholds).
 MAX_THRESHOLD_PX = 1e5
+#: Lower bound of ``t_l`` / ``t_h`` in pixels: far below keypoint noise; a smaller threshold
+#: (``1e-300`` squares to 0) keeps no match, which silently turns the filter off.
+MIN_THRESHOLD_PX = 1e-3
+#: Upper bound of ``max_iters`` (c_max): RANSAC hypotheses per round, each scored on every match.
+MAX_ITERS = 1_000_000
+#: Upper bound of ``local_neighbours``: the k-NN table of local sampling holds k per match.
+MAX_LOCAL_NEIGHBOURS = 1024
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -103,10 +110,13 @@ class FilterConfig:
         require_at_most("batch_size", self.batch_size, MAX_HYPOTHESES_BATCH,
                         "hypotheses scored at once are held in memory")
         require_at_most("t_l", self.t_l, MAX_THRESHOLD_PX, "pixels, larger than any image")
-        if not self.t_l > 0:
-            raise ValueError(f"t_l must be > 0 pixels, got {self.t_l}")
-        if self.t_h is not None and not 0 < self.t_h <= self.t_l:
-            raise ValueError(f"t_h must be in (0, t_l={self.t_l}], got {self.t_h}")
+        if not self.t_l >= MIN_THRESHOLD_PX:
+            raise ValueError(f"t_l must be >= {MIN_THRESHOLD_PX} pixels, got {self.t_l}")
+        if self.t_h is not None and not MIN_THRESHOLD_PX <= self.t_h <= self.t_l:
+            raise ValueError(f"t_h must be in [{MIN_THRESHOLD_PX}, t_l={self.t_l}] pixels, got {self.t_h}")
+        require_at_most("max_iters", self.max_iters, MAX_ITERS, "RANSAC hypotheses per round")
+        require_at_most("local_neighbours", self.local_neighbours, MAX_LOCAL_NEIGHBOURS,
+                        "neighbours held per match")
         if self.min_inliers is not None and self.min_inliers < 4:
             raise ValueError(f"min_inliers must be >= 4, got {self.min_inliers}")
         if self.max_failures < 1:

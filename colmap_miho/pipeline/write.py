@@ -37,6 +37,11 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
         cfg: ``source`` (a verified pair keeps its geometry model) and ``verify`` (the pairs'
             two-view geometries are deleted, for COLMAP to re-verify).
     """
+    from ..adapters.safety import check_free_space
+
+    # the transaction's write-ahead log grows up to the rewritten pages; pycolmap aborts the
+    # process when SQLite fills the disk, so the space is checked again after the long stages
+    check_free_space(db.path.parent, db.path.stat().st_size + (1 << 20), "writing the results")
     displacements = []
     with db.transaction():
         for image_id, old in keypoints.items():

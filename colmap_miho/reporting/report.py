@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import logging
 import math
-import tempfile
 from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,15 +132,16 @@ def read_database_inliers(database: str | Path) -> DatabaseInliers:
     come through :class:`colmap_miho.adapters.database.ColmapDatabase` (COLMAP's +0.5 px offset
     removed there).
     """
-    from ..adapters.database import ColmapDatabase
-    from ..adapters.safety import check_database_path, read_copy
+    from ..adapters.database import ColmapDatabase, validate_database
+    from ..adapters.safety import check_database_path, private_tempdir, read_copy
 
     database = check_database_path(database)
     kps: dict[str, np.ndarray] = {}
     matches: dict = {}
-    with tempfile.TemporaryDirectory(prefix="colmap_miho_report_") as tmp:
+    with private_tempdir("colmap_miho_report_") as tmp:  # removed by the next run after a kill -9
         copy = Path(tmp) / "database.db"
         read_copy(database, copy)  # refuses a database in use or with a hot journal
+        validate_database(copy, name=database)
         with ColmapDatabase(copy) as db:
             images = {r.image_id: r.name for r in db.images()}
             for pair in db.pairs("verified"):

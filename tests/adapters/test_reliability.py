@@ -394,6 +394,10 @@ def test_disk_full_while_copying_leaves_nothing_behind(db, scene, monkeypatch, c
     ("ncc.min_gain=nan", "min_gain must be a finite number"),
     ("filter.batch_size=100000000", "batch_size must be <= 8192"),
     ("filter.t_l=1e308", "t_l must be <= 100000"),
+    ("filter.t_l=1e-300", "t_l must be >= 0.001 pixels"),
+    ("filter.t_h=1e-300", "t_h must be in \\[0.001, t_l=15.0\\] pixels"),
+    ("filter.max_iters=100000000", "max_iters must be <= 1000000"),
+    ("filter.local_neighbours=100000", "local_neighbours must be <= 1024"),
 ])
 def test_unsafe_settings_are_one_line(setting, message, db, scene, capfd):
     capfd.readouterr()

@@ -147,3 +147,34 @@ def test_private_tempdir_is_removed_by_the_next_run_after_a_kill(tmp_path):
         with private_tempdir("colmap_miho_map_", tmp_path) as other:
             assert live.exists() and other.exists() and not left[0].exists()
     assert [p.name for p in tmp_path.iterdir()] == ["colmap_miho_map_mine"]
+
+
+def test_refine_and_map_json_through_a_symlink(db_copy, scene, tmp_path):
+    for argv in (["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--workers", "1",
+                  "--no-refine", "--output", str(tmp_path / "out.db")],
+                 ["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output",
+                  str(tmp_path / "model")]):
+        target = tmp_path / f"{argv[0]}-real.json"
+        target.write_text("{}")
+        link = tmp_path / f"{argv[0]}.json"
+        link.symlink_to(target)
+        assert main([*argv, "--json", str(link), "-q"]) == 0
+        assert link.is_symlink() and os.readlink(link) == str(target)
+        assert json.loads(target.read_text()) != {}
+
+
+def test_a_new_file_never_replaces_one_that_appeared_meanwhile(tmp_path):
+    """import's last step: a database another run published first is kept, this one refused."""
+    from colmap_miho.adapters.safety import publish_new_file
+    from colmap_miho.errors import UserError
+
+    theirs = tmp_path / "new.db"
+    ours = tmp_path / "ours.tmp"
+    ours.write_bytes(b"ours")
+    publish_new_file(ours, theirs)
+    assert theirs.read_bytes() == b"ours" and not ours.exists()
+    again = tmp_path / "again.tmp"
+    again.write_bytes(b"second")
+    with pytest.raises(UserError, match="created by another program during the run"):
+        publish_new_file(again, theirs)
+    assert theirs.read_bytes() == b"ours"

@@ -23,7 +23,7 @@ def sha256(path: Path) -> str:
 
 
 def _refine(db: Path, images: Path, *extra: str) -> list[str]:
-    return ["refine", "--database", str(db), "--images", str(images), "--workers", "1", "--no-refine", "-q", *extra]
+    return ["refine", "--database", str(db), "--images", str(images), "--workers", "1", "--no-refine", *extra, "-q"]
 
 
 def _sql(db: Path, query: str, *args) -> list:
@@ -76,7 +76,7 @@ def test_repeated_match_rows_are_counted_once(db_copy, scene, tmp_path, capfd):
          doubled.tobytes(), pair_id)
     out = tmp_path / "out.db"
     capfd.readouterr()
-    assert main(_refine(db_copy, scene.image_dir, "--output", str(out))) == 0
+    assert main(_refine(db_copy, scene.image_dir, "--output", str(out))[:-1]) == 0  # without -q: INFO shown
     assert "7 repeated rows in its verified matches, counted once" in capfd.readouterr().err
     rows_out, data_out = _sql(out, "SELECT rows, data FROM two_view_geometries WHERE pair_id = ?", pair_id)[0]
     kept = np.frombuffer(data_out, np.uint32).reshape(rows_out, 2)
@@ -120,3 +120,11 @@ def test_import_refuses_an_image_named_outside_the_folder(scene, tmp_path, capfd
     lines = error_lines(capfd.readouterr().err)
     assert code == 2 and len(lines) == 1 and "named outside the image folder" in lines[0], lines
     assert not (tmp_path / "new.db").exists()
+
+
+def test_map_warns_about_image_names_outside_the_folder(db_copy, scene, tmp_path, capfd):
+    image_id, name = _sql(db_copy, "SELECT image_id, name FROM images LIMIT 1")[0]
+    _sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", f"../{scene.image_dir.name}/{name}", image_id)
+    capfd.readouterr()
+    main(["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(tmp_path / "m")])
+    assert "1 image name(s) of" in capfd.readouterr().err

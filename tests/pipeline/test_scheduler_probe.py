@@ -95,3 +95,27 @@ def test_other_schemes_and_bad_addresses():
         check_dask_scheduler("tcp://nohost")
     with pytest.raises(UserError, match="cannot reach the Dask scheduler"):
         check_dask_scheduler("tcp://127.0.0.1:1", connect_timeout=2)
+
+
+def test_dask_noise_is_silenced_and_interrupts_quiet_its_loggers():
+    import logging
+    import warnings
+
+    from colmap_miho.pipeline.executor import _quiet_dask
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        with _quiet_dask():
+            warnings.warn("Sending large graph of size 12.5 MiB.\nThis may cause some slowdown.", UserWarning,
+                          stacklevel=1)
+            warnings.warn("another warning", UserWarning, stacklevel=1)
+    assert [str(w.message) for w in seen] == ["another warning"]
+    saved = {name: logging.getLogger(name).level for name in ("distributed", "tornado", "asyncio")}
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with _quiet_dask():
+                raise KeyboardInterrupt
+        assert all(logging.getLogger(name).level > logging.CRITICAL for name in saved)
+    finally:
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)

@@ -1,0 +1,153 @@
+"""A full disk anywhere is one line naming the disk, the input intact and nothing left filling
+it: pycolmap's "database or disk is full" included, and free space checked before the writes
+where a native library would abort. Real full disks are small tmpfs mounts (root only)."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from pathlib import Path
+
+from disk import fill, small_disk
+
+from colmap_miho.adapters.safety import is_disk_full
+from colmap_miho.cli import main
+
+
+def error_lines(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith("ERROR")]
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def names(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name != "filler")
+
+
+def test_sqlite_full_is_recognised():
+    import errno
+    import sqlite3
+
+    assert is_disk_full(RuntimeError("SQLite error [...]: database or disk is full"))
+    assert is_disk_full(sqlite3.OperationalError("database or disk is full"))
+    assert is_disk_full(OSError(errno.ENOSPC, "No space left on device"))
+    assert is_disk_full(OSError("Can't write data (file write failed: errno = 28, error message = "
+                                "'No space left on device')"))
+    assert not is_disk_full(RuntimeError("Check failed: x"))
+
+
+def test_pycolmap_disk_full_while_writing_is_one_line(db_copy, scene, monkeypatch, capfd):
+    """pycolmap raises ``RuntimeError: ... database or disk is full`` from some writes: a known
+    condition (exit 1, one line naming the folder), not "unexpected; report it"."""
+    import colmap_miho.pipeline.write as write_stage
+
+    def full(*args, **kwargs):
+        raise RuntimeError("[database.cc:123] SQLite error: database or disk is full")
+
+    monkeypatch.setattr(write_stage, "write_pair", full)
+    digest = sha256(db_copy)
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--workers", "1",
+                 "--no-refine", "-q"]) == 1
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"disk full while writing in {db_copy.parent}" in lines[0], lines
+    assert "unexpected" not in lines[0] and "--resume" in lines[0]  # the filtered pairs are kept
+    assert sha256(db_copy) == digest and names(db_copy.parent) == [".scene.miho.db.miho-run", "scene.db"]
+
+
+def _export(scene, folder: Path) -> tuple[Path, Path]:
+    feats, matches = folder / "features.h5", folder / "matches.h5"
+    assert main(["export", "--database", str(scene.database), "--features", str(feats), "--matches",
+                 str(matches), "-q"]) == 0
+    return feats, matches
+
+
+def test_import_checks_free_space_first(scene, tmp_path, capfd):
+    feats, matches = _export(scene, tmp_path)
+    with small_disk(tmp_path / "mnt", "1m") as disk:
+        fill(disk, leave=64 << 10)
+        capfd.readouterr()
+        assert main(["import", "--features", str(feats), "--matches", str(matches), "--images",
+                     str(scene.image_dir), "--database", str(disk / "new.db"), "-q"]) == 2
+        lines = error_lines(capfd.readouterr().err)
+        assert len(lines) == 1 and f"not enough free space in {disk}" in lines[0], lines
+        assert names(disk) == []
+
+
+def test_import_fits_a_disk_with_room(scene, tmp_path):
+    feats, matches = _export(scene, tmp_path)
+    with small_disk(tmp_path / "mnt", "16m") as disk:
+        assert main(["import", "--features", str(feats), "--matches", str(matches), "--images",
+                     str(scene.image_dir), "--database", str(disk / "new.db"), "-q"]) == 0
+        assert names(disk) == ["new.db"]
+
+
+def test_export_to_a_full_disk_is_one_line_and_leaves_nothing(scene, tmp_path, monkeypatch, capfd):
+    """No SIGSEGV from HDF5: free space is checked first; no h5 temporaries, no $TMPDIR copy."""
+    tmpdir = tmp_path / "tmpdir"
+    tmpdir.mkdir()
+    monkeypatch.setenv("TMPDIR", str(tmpdir))
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    with small_disk(tmp_path / "mnt", "1m") as disk:
+        fill(disk, leave=8 << 10)
+        capfd.readouterr()
+        assert main(["export", "--database", str(scene.database), "--features", str(disk / "f.h5"), "--matches",
+                     str(disk / "m.h5"), "-q"]) == 2
+        lines = error_lines(capfd.readouterr().err)
+        assert len(lines) == 1 and f"not enough free space in {disk}" in lines[0], lines
+        assert names(disk) == [] and list(tmpdir.iterdir()) == []
+
+
+def test_export_keeps_a_users_partial_files_and_names(scene, tmp_path):
+    mine = [tmp_path / ".f.h5.partial", tmp_path / "f.h5.partial", tmp_path / "mine.db.partial"]
+    for p in mine:
+        p.write_text("mine")
+    assert main(["export", "--database", str(scene.database), "--features", str(tmp_path / "f.h5"),
+                 "--matches", str(tmp_path / "m.h5"), "-q"]) == 0
+    assert all(p.read_text() == "mine" for p in mine)
+    assert names(tmp_path) == sorted([".f.h5.partial", "f.h5", "f.h5.partial", "m.h5", "mine.db.partial"])
+
+
+def test_refine_on_a_disk_too_small_is_refused_up_front(db_copy, scene, tmp_path, capfd):
+    """Just above the old 2x check pycolmap aborted (SIGABRT) in its SQLite writes: the check
+    now asks for the measured peak with a margin, so the run is refused before any work."""
+    size = db_copy.stat().st_size
+    with small_disk(tmp_path / "mnt", "16m") as disk:
+        db = disk / "scene.db"
+        shutil.copyfile(db_copy, db)
+        fill(disk, leave=int(2.2 * size))
+        digest = sha256(db)
+        capfd.readouterr()
+        code = main(["refine", "--database", str(db), "--images", str(scene.image_dir), "--workers", "1",
+                     "--no-refine", "-q"])
+        lines = error_lines(capfd.readouterr().err)
+        assert code == 2 and len(lines) == 1 and f"not enough free space in {disk}" in lines[0], lines
+        assert sha256(db) == digest and names(disk) == ["scene.db"]
+
+
+def test_refine_fits_the_space_it_asks_for(db_copy, scene, tmp_path):
+    """With exactly the free space the check asks for, a full run (filter, refine, write) ends."""
+    from colmap_miho.adapters.safety import working_space
+
+    size = db_copy.stat().st_size
+    with small_disk(tmp_path / "mnt", "16m") as disk:
+        db = disk / "scene.db"
+        shutil.copyfile(db_copy, db)
+        fill(disk, leave=working_space(size) + 4096)
+        assert main(["refine", "--database", str(db), "--images", str(scene.image_dir), "--workers", "1",
+                     "-q"]) == 0
+        assert names(disk) == ["scene.db", "scene.miho.db"]
+
+
+def test_run_checks_free_space_before_extraction(scene, tmp_path, capfd):
+    with small_disk(tmp_path / "mnt", "1m") as disk:
+        fill(disk, leave=64 << 10)
+        capfd.readouterr()
+        assert main(["run", "--images", str(scene.image_dir), "--output", str(disk / "w"), "-q"]) == 2
+        lines = error_lines(capfd.readouterr().err)
+        assert len(lines) == 1 and f"not enough free space in {disk / 'w'}" in lines[0], lines
+        assert names(disk / "w") == []
