@@ -32,6 +32,7 @@ import torch
 
 from ..enums import MoveSide
 from .config import DEFAULT_BATCH_SIZE, NCCConfig
+from .lsm_step import LSM_COUNTERS, lsm_step
 from .perturbations import perturbation_matrices
 from .search import evaluate_direction, to_frame
 from .subpixel import iterate_subpixel
@@ -57,7 +58,9 @@ class RefineResult:
             ``rejected_weak`` (peak below ``min_ncc``), ``rejected_disagree`` (not
             confirmed by the ``check_radius`` template),
             ``gated_flat``, ``gated_edge``, ``outside``, ``invalid_homography``,
-            ``seconds``, ``device``, ``shapes``).
+            ``seconds``, ``device``, ``shapes``; with ``config.lsm``, the counters of
+            :data:`~.lsm_step.LSM_COUNTERS`: ``lsm_applied``, ``lsm_not_converged``,
+            ``lsm_far``, ``lsm_imprecise``).
     """
 
     pts1: np.ndarray
@@ -203,6 +206,8 @@ def refine_pair(
     counts: dict[str, int | float | str] = dict.fromkeys(
         ["moved", "rejected_border", "rejected_gain", "rejected_weak", "gated_flat", "gated_edge", "outside",
          "invalid_homography"], 0)
+    if cfg.lsm:
+        counts.update(dict.fromkeys(LSM_COUNTERS, 0))
 
     shapes = torch.as_tensor(perturbation_matrices(cfg.perturbations), device=device)
     grid_t = offset_grid(cfg.template_radius, device)
@@ -321,7 +326,7 @@ def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, count
     counts["gated_edge"] += int(
         (none & h0["valid"] & h0["inside"] & ~h0["flat"] & h0["edge"]).sum()
     )
-    for d, (_f, m, r, h, usable) in enumerate(cand):
+    for d, (f, m, r, h, usable) in enumerate(cand):
         rows = (best == d) & usable
         gi = idx[rows]
         before[gi] = h["centre"][rows]
@@ -342,6 +347,12 @@ def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, count
         img_m = img[m].rows(sel) if isinstance(img[m], ImageStack) else img[m]
         off = iterate_subpixel(img_m, H_inv, frame, r["offset"][sel], r["template"][sel],
                                cfg.template_radius, cfg.subpixel_iterations)
+        if cfg.lsm:
+            img_f = img[f].rows(sel) if isinstance(img[f], ImageStack) else img[f]
+            off, lsm_counts = lsm_step(img_f, img_m, r["H_f_inv"][sel], r["frame_f"][sel],
+                                       H_inv, frame, off, cfg)
+            for key, value in lsm_counts.items():
+                counts[key] = counts.get(key, 0) + value
         new = to_frame(H_inv, frame + off).cpu().numpy()
         ok = idx[take]
         old = outs[m][ok]
