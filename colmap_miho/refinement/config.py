@@ -94,11 +94,12 @@ class NCCConfig:
         check_ncc_margin: NCC margin of the "ncc" rule.
         local_affine_max_residual_px: neighbours off the first local fit by more than this
             many pixels are dropped from the second.
-        lsm: after the NCC sub-pixel peak, align the fixed keypoint's template to the moving
-            side by least-squares matching (:mod:`.lsm`: affine + gain/offset, bicubic
-            samples, both patches in the match's common frame) and move the keypoint to
-            LSM's position where it passes the three tests below; elsewhere the NCC
-            position stays. Off by default (see ``recipes/mop_miho_lsm.toml``).
+        lsm: from the NCC peak (integer peak and parabola), align the fixed keypoint's
+            template to the moving side by least-squares matching (:mod:`.lsm`: affine +
+            gain/offset, bicubic samples, both patches in the match's common frame) and move
+            the keypoint to LSM's position where it passes the three tests below; elsewhere
+            the iterated parabolas (``subpixel_iterations``) refine the NCC peak as without
+            LSM. Off by default (see ``recipes/mop_miho_lsm.toml``).
         lsm_radius: half size of the LSM template in pixels (0: ``template_radius``).
         lsm_affine: estimate the 4 affine terms (8 parameters); False: shift and
             radiometry only.
@@ -107,7 +108,7 @@ class NCCConfig:
         lsm_tol_px: a match's Gauss-Newton iteration has converged once its shift update
             is below this (common-frame pixels).
         lsm_max_shift_px: LSM's position is used only within this distance (max over x and
-            y, common-frame pixels) of the NCC sub-pixel peak.
+            y, common-frame pixels) of the NCC peak.
         lsm_max_sigma_px: ... and only if the a-posteriori standard deviation of its shift
             (largest semi-axis of the error ellipse, common-frame pixels) is below this.
     """

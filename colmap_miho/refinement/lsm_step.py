@@ -1,6 +1,6 @@
 """The least-squares matching step of the NCC refinement and its acceptance rule.
 
-After the NCC sub-pixel peak of a match, the template around the fixed keypoint and the
+After the NCC peak of a match (integer peak and parabola), the template around the fixed keypoint and the
 search image around the moving keypoint are both read in the match's common frame (the
 winning homography pair of the NCC search), bicubically, and aligned by :func:`.lsm.lsm_align`
 from the NCC offset. LSM's position replaces the NCC one only where
@@ -11,7 +11,8 @@ from the NCC offset. LSM's position replaces the NCC one only where
 - the a-posteriori standard deviation of the shift is below ``lsm_max_sigma_px`` (flat and
   edge-like patches, and patches the model does not fit, fail this);
 
-elsewhere the NCC position stays. Each reason is counted.
+elsewhere the NCC refinement goes on as without LSM (iterated parabolas). Each reason is
+counted.
 """
 
 from __future__ import annotations
@@ -35,8 +36,9 @@ def lsm_step(
     frame_m: torch.Tensor,
     offset: torch.Tensor,
     cfg: NCCConfig,
-) -> tuple[torch.Tensor, dict[str, int]]:
-    """LSM-refined offsets of n matches, and the counters of :data:`LSM_COUNTERS`.
+) -> tuple[torch.Tensor, dict[str, int], torch.Tensor]:
+    """LSM-refined offsets of n matches, the counters of :data:`LSM_COUNTERS`, and which
+    matches LSM moved.
 
     Args:
         img_f, img_m: (H, W) float32 fixed-side and moving-side images, or
@@ -44,14 +46,17 @@ def lsm_step(
         H_f_inv, H_m_inv: (n, 3, 3) float64 common frame -> image pixels of each side.
         frame_f, frame_m: (n, 2) float64 common-frame positions of the fixed and the moving
             keypoint.
-        offset: (n, 2) float64 NCC sub-pixel offset of the moving side (common frame).
+        offset: (n, 2) float64 NCC offset of the moving side (common frame): the start of
+            LSM and the reference of ``lsm_max_shift_px``.
         cfg: ``lsm_*`` fields of :class:`~.config.NCCConfig`.
     Returns:
-        ((n, 2) float64 offsets: LSM's where accepted, else ``offset``; counters).
+        ((n, 2) float64 offsets: LSM's where accepted, else ``offset``; counters; (n,)
+        bool accepted).
     """
     n = offset.shape[0]
     if n == 0:
-        return offset, dict.fromkeys(LSM_COUNTERS, 0)
+        return offset, dict.fromkeys(LSM_COUNTERS, 0), torch.zeros(0, dtype=torch.bool,
+                                                                   device=offset.device)
     radius = cfg.lsm_radius or cfg.template_radius
     dev = offset.device
     rows = torch.arange(n, device=dev)
@@ -71,4 +76,4 @@ def lsm_step(
         "lsm_far": int(far.sum()),
         "lsm_imprecise": int(imprecise.sum()),
     }
-    return torch.where(ok[:, None], res.shift, offset), counts
+    return torch.where(ok[:, None], res.shift, offset), counts, ok

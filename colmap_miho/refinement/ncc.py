@@ -345,14 +345,25 @@ def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, count
         sel = torch.as_tensor(take, device=r["offset"].device)
         H_inv, frame = r["H_inv"][sel], r["frame_m"][sel]
         img_m = img[m].rows(sel) if isinstance(img[m], ImageStack) else img[m]
-        off = iterate_subpixel(img_m, H_inv, frame, r["offset"][sel], r["template"][sel],
-                               cfg.template_radius, cfg.subpixel_iterations)
+        off = r["offset"][sel]
+        todo = None  # the matches that get the iterated parabolas: all without LSM
         if cfg.lsm:
+            # LSM starts from the NCC peak's parabola; the matches it does not accept get
+            # the iterated parabolas, as without LSM
             img_f = img[f].rows(sel) if isinstance(img[f], ImageStack) else img[f]
-            off, lsm_counts = lsm_step(img_f, img_m, r["H_f_inv"][sel], r["frame_f"][sel],
-                                       H_inv, frame, off, cfg)
+            off, lsm_counts, accepted = lsm_step(img_f, img_m, r["H_f_inv"][sel],
+                                                 r["frame_f"][sel], H_inv, frame, off, cfg)
             for key, value in lsm_counts.items():
                 counts[key] = counts.get(key, 0) + value
+            todo = torch.nonzero(~accepted)[:, 0]
+        if todo is None:
+            off = iterate_subpixel(img_m, H_inv, frame, off, r["template"][sel],
+                                   cfg.template_radius, cfg.subpixel_iterations)
+        elif todo.numel():
+            img_t = img_m.rows(todo) if isinstance(img_m, ImageStack) else img_m
+            off[todo] = iterate_subpixel(img_t, H_inv[todo], frame[todo], off[todo],
+                                         r["template"][sel][todo], cfg.template_radius,
+                                         cfg.subpixel_iterations)
         new = to_frame(H_inv, frame + off).cpu().numpy()
         ok = idx[take]
         old = outs[m][ok]
