@@ -142,7 +142,7 @@ class NCCConfig:
     lsm_max_iterations: int = 10
     lsm_tol_px: float = 0.005
     lsm_max_shift_px: float = 0.5
-    lsm_max_sigma_px: float = 0.05
+    lsm_max_sigma_px: float = 0.1
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "move", MoveSide.parse(self.move, "move"))
