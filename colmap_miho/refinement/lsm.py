@@ -20,8 +20,9 @@ Sampling is bicubic (``grid_sample(mode="bicubic")``, Keys a = -0.75): bilinear 
 biases the values towards pixel centres (``tests/refinement/test_lsm.py`` measures the
 bilinear bias against bicubic on a known warp). The gradients are central differences of the
 bicubic samples, taken with :meth:`torch.Tensor.__getitem__` slices rather than kornia's
-``spatial_gradient``: kornia's runs a 3x3 ``conv2d`` over the batch, which costs more than two
-subtractions and whose rounding may depend on the batch size (oneDNN picks kernels by shape).
+``spatial_gradient``: kornia's pads and runs a 3x3 ``conv2d`` over the batch, which is several
+times slower than two subtractions on these small patches (``benchmarks/results/lsm.md``) and
+whose rounding may depend on the batch size (oneDNN picks kernels by shape).
 kornia's warps (``warp_affine``, ``warp_perspective``) sample whole images on a regular grid,
 not per-match point sets in several images, so they are not used either.
 
