@@ -87,6 +87,24 @@ class NCCConfig:
         check_ncc_margin: in [0, 2], NCC margin of the "ncc" rule.
         local_affine_max_residual_px: > 0, neighbours off the first local fit by more than
             this many pixels are dropped from the second.
+        lsm: from the NCC peak (integer peak and parabola), align the fixed keypoint's
+            template to the moving side by least-squares matching (:mod:`.lsm`: affine +
+            gain/offset, bicubic samples, both patches in the match's common frame) and move
+            the keypoint to LSM's position where it passes the three tests below; elsewhere
+            the iterated parabolas (``subpixel_iterations``) refine the NCC peak as without
+            LSM. Off by default (see ``recipes/mop_miho_lsm.toml``).
+        lsm_radius: in [0, ``MAX_WINDOW_RADIUS_PX``], half size of the LSM template in pixels
+            (0: ``template_radius``).
+        lsm_affine: estimate the 4 affine terms (8 parameters); False: shift and
+            radiometry only.
+        lsm_max_iterations: in [1, 50], Gauss-Newton steps at most; a match that has not
+            converged by then keeps its NCC position.
+        lsm_tol_px: in (0, 0.1], a match's Gauss-Newton iteration has converged once its shift
+            update is below this (common-frame pixels).
+        lsm_max_shift_px: > 0, LSM's position is used only within this distance (max over x
+            and y, common-frame pixels) of the NCC peak.
+        lsm_max_sigma_px: > 0, ... and only if the a-posteriori standard deviation of its
+            shift (largest semi-axis of the error ellipse, common-frame pixels) is below this.
     """
 
     template_radius: int = 10
@@ -112,6 +130,13 @@ class NCCConfig:
     check_ncc_margin: float = 0.03
     local_affine_neighbours: int = 12
     local_affine_max_residual_px: float = 2.0
+    lsm: bool = False
+    lsm_radius: int = 0
+    lsm_affine: bool = True
+    lsm_max_iterations: int = 10
+    lsm_tol_px: float = 0.005
+    lsm_max_shift_px: float = 0.5
+    lsm_max_sigma_px: float = 0.1
 
     def __post_init__(self) -> None:
         for name, choice in _CHOICES.items():
@@ -151,6 +176,17 @@ class NCCConfig:
         if not self.local_affine_max_residual_px > 0:
             raise ValueError(f"local_affine_max_residual_px must be > 0, got "
                              f"{self.local_affine_max_residual_px}")
+        if not 0 <= self.lsm_radius <= MAX_WINDOW_RADIUS_PX:
+            raise ValueError(f"lsm_radius must be in [0, {MAX_WINDOW_RADIUS_PX}] pixels "
+                             f"(0: template_radius), got {self.lsm_radius}")
+        if not 1 <= self.lsm_max_iterations <= 50:
+            raise ValueError(f"lsm_max_iterations must be in [1, 50], got {self.lsm_max_iterations}")
+        if not 0 < self.lsm_tol_px <= 0.1:
+            raise ValueError(f"lsm_tol_px must be in (0, 0.1] pixels, got {self.lsm_tol_px}")
+        if not self.lsm_max_shift_px > 0:
+            raise ValueError(f"lsm_max_shift_px must be > 0 pixels, got {self.lsm_max_shift_px}")
+        if not self.lsm_max_sigma_px > 0:
+            raise ValueError(f"lsm_max_sigma_px must be > 0 pixels, got {self.lsm_max_sigma_px}")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -34,6 +34,7 @@ import torch
 from .. import devices
 from ..enums import CheckRule, MoveSide
 from .config import DEFAULT_BATCH_SIZE, NCCConfig
+from .lsm_step import LSM_COUNTERS, lsm_step
 from .pair_inputs import ArrayInput, ImageInput, PairInputs, base_pairs, pair_inputs
 from .perturbations import perturbation_matrices
 from .search import Pass, evaluate_direction, to_frame
@@ -60,7 +61,9 @@ class RefineResult:
             ``rejected_weak`` (peak below ``min_ncc``), ``rejected_disagree`` (not
             confirmed by the ``check_radius`` template),
             ``gated_flat``, ``gated_edge``, ``outside``, ``invalid_homography``,
-            ``seconds``, ``device``, ``shapes``).
+            ``seconds``, ``device``, ``shapes``; with ``config.lsm``, the counters of
+            :data:`~.lsm_step.LSM_COUNTERS`: ``lsm_applied``, ``lsm_not_converged``,
+            ``lsm_far``, ``lsm_imprecise``).
     """
 
     pts1: np.ndarray
@@ -187,6 +190,8 @@ def refine_pair(
     device = resolve_device(cfg, image1, image2, pts1, patch_homographies)
     img = (to_gray_tensor(image1, device), to_gray_tensor(image2, device))
     out = _Outputs.unchanged(inp.p1, inp.p2)
+    if cfg.lsm:
+        out.counts.update(dict.fromkeys(LSM_COUNTERS, 0))
     offs = _Offsets.of(cfg, device)
     base = base_pairs(n, inp.affine1, inp.affine2)
     use_base = cfg.use_base_pair and not (
@@ -286,6 +291,27 @@ def _check_agreement(images: tuple[ImageInput, ImageInput], inp: PairInputs, hom
 Direction = tuple[int, int, dict[str, torch.Tensor]]
 
 
+def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], f: int, m: int,
+              r: dict[str, torch.Tensor], sel: torch.Tensor, cfg: NCCConfig, out: _Outputs) -> torch.Tensor:
+    """Sub-pixel offsets (J, 2) of the accepted moves ``sel`` of direction (fixed ``f``, moving
+    ``m``): least-squares matching from the NCC peak's parabola where ``cfg.lsm`` is on and it
+    passes its tests, the iterated parabolas elsewhere (all of them without LSM)."""
+    H_inv, frame, off = r["H_inv"][sel], r["frame_m"][sel], r["offset"][sel]
+    img_m = _rows(img[m], sel)
+    if not cfg.lsm:
+        return iterate_subpixel(img_m, H_inv, frame, off, r["template"][sel], cfg.template_radius,
+                                cfg.subpixel_iterations)
+    off, lsm_counts, accepted = lsm_step(_rows(img[f], sel), img_m, r["H_f_inv"][sel], r["frame_f"][sel],
+                                         H_inv, frame, off, cfg)
+    for key, value in lsm_counts.items():
+        out.add(key, int(value))
+    todo = torch.nonzero(~accepted)[:, 0]
+    if todo.numel():
+        off[todo] = iterate_subpixel(_rows(img_m, todo), H_inv[todo], frame[todo], off[todo],
+                                     r["template"][sel][todo], cfg.template_radius, cfg.subpixel_iterations)
+    return off
+
+
 def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack],
             sl: slice, cfg: NCCConfig, out: _Outputs) -> None:
     """Choose the direction per match, reject or accept its move, and refine the accepted
@@ -308,7 +334,7 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
     out.add("outside", int((none & h0["valid"] & ~h0["inside"]).sum()))
     out.add("gated_flat", int((none & h0["valid"] & h0["inside"] & h0["flat"]).sum()))
     out.add("gated_edge", int((none & h0["valid"] & h0["inside"] & ~h0["flat"] & h0["edge"]).sum()))
-    for d, (_f, m, r, h, usable) in enumerate(cand):
+    for d, (f, m, r, h, usable) in enumerate(cand):
         rows = (best == d) & usable
         gi = idx[rows]
         out.before[gi] = h["centre"][rows]
@@ -326,8 +352,7 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
             continue
         sel = torch.as_tensor(take, device=r["offset"].device)
         H_inv, frame = r["H_inv"][sel], r["frame_m"][sel]
-        off = iterate_subpixel(_rows(img[m], sel), H_inv, frame, r["offset"][sel], r["template"][sel],
-                               cfg.template_radius, cfg.subpixel_iterations)
+        off = _subpixel(img, f, m, r, sel, cfg, out)
         new = to_frame(H_inv, frame + off).cpu().numpy()
         ok = idx[take]
         old = out.pts[m][ok]

@@ -123,7 +123,9 @@ def evaluate_direction(
         ``zero`` (integer peak at zero offset), ``inside``, ``valid``, ``flat``, ``edge``,
         and for the sub-pixel step and the mapping back: ``offset`` (J, 2) float64
         common-frame offset of the peak, ``H_inv`` (J, 3, 3) and ``frame_m`` (J, 2) of the
-        winning pass, ``template`` (J, St, St) the winning template.
+        winning pass, ``template`` (J, St, St) the winning template; for least-squares
+        matching, ``H_f_inv`` (J, 3, 3) and ``frame_f`` (J, 2) of the fixed side in the
+        winning pass.
     """
     st = 2 * cfg.template_radius + 1
     sw = 2 * (cfg.template_radius + cfg.search_radius) + 1
@@ -157,6 +159,8 @@ def evaluate_direction(
     all_tpl = torch.cat(templates, dim=1)  # (J, sum K', St, St)
     H_inv = torch.stack(H_invs, dim=1)[rows, pass_idx]
     frame_m = torch.stack(frames, dim=1)[rows, pass_idx]
+    H_f_win = torch.stack(list(H_f_inv.split(J)), dim=1)[rows, pass_idx]
+    frame_f = torch.stack(list(c_f.split(J)), dim=1)[rows, pass_idx]
     tstd = first_template.reshape(J, -1).to(torch.float64).std(dim=1)
     ratio = torch.where(lam_max > 0, lam_min / lam_max.clamp_min(1e-20), torch.zeros_like(lam_max))
     return {
@@ -171,5 +175,7 @@ def evaluate_direction(
         "offset": torch.stack([pk["dx"], pk["dy"]], -1).to(torch.float64),
         "H_inv": H_inv,
         "frame_m": frame_m,
+        "H_f_inv": H_f_win,
+        "frame_f": frame_f,
         "template": all_tpl[rows, pk["k"]].reshape(J, st, st),
     }

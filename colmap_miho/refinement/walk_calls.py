@@ -17,6 +17,7 @@ import numpy as np
 
 from ..enums import Rectification
 from .config import NCCConfig
+from .lsm_step import LSM_COUNTERS
 from .plan import TrackPlan
 
 if TYPE_CHECKING:
@@ -160,6 +161,14 @@ def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displace
     st["rejected"] += int(np.asarray(rejected).sum())
 
 
+def _add_counters(res: object, ctx: WalkState) -> None:
+    """Add the refiner's least-squares matching counters (if any) to the walk's stats."""
+    stats = getattr(res, "stats", None) or {}
+    for key in LSM_COUNTERS:
+        if key in stats:
+            ctx.stats[key] = ctx.stats.get(key, 0) + int(stats[key])
+
+
 def chunks_by_images(groups: list[Group], max_images: int) -> Iterator[list[Group]]:
     """Consecutive runs of groups that together use at most ``max_images`` images."""
     chunk: list[Group] = []
@@ -216,6 +225,7 @@ def refine_batch(groups: list[Group], ctx: WalkState, device: torch.device) -> N
                         np.concatenate([c.homs for c in calls]), move="2", config=ctx.ncc_cfg,
                         **aff)
     ctx.stats["refine_calls"] += 1
+    _add_counters(res, ctx)
     start = 0
     for grp, call, n in zip(kept, calls, sizes, strict=True):
         seg = slice(start, start + n)
@@ -239,5 +249,6 @@ def refine_group(grp: Group, ctx: WalkState) -> None:
     res = ctx.refine_fn(img_f, img_m, call.pts_f, call.pts_m, call.homs, move="2",
                         config=ctx.ncc_cfg, **kwargs)
     ctx.stats["refine_calls"] += 1
+    _add_counters(res, ctx)
     _apply(grp, call, res.pts2, np.asarray(res.moved_side) == 2, np.asarray(res.displacement),
            res.rejected, res.ncc_after, ctx)
