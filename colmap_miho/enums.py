@@ -78,3 +78,10 @@ class CameraMode(StrEnum):
     PER_IMAGE = "per_image"
     PER_FOLDER = "per_folder"
     AUTO = "auto"  # COLMAP's: by image size and EXIF
+
+
+class PairCheckMode(StrEnum):
+    """What the pair check does with a pair that the rest of the pair graph contradicts."""
+
+    REMOVE = "remove"  # drop the pair's matches from the output database
+    FLAG = "flag"  # keep it; only report it

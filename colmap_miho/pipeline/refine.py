@@ -53,6 +53,7 @@ from ..errors import DatabaseError, RunFailed, UserError
 from . import stages
 from .executor import Runner, open_runner
 from .filter_stage import FilteredPairs, FilterOptions, FilterStats, run_filter
+from .pair_check import run_pair_check
 from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
 from .stages import DECODED_BY_IMAGE, run_refine_stage
 from .store import RunStore, run_fingerprint, store_folder
@@ -91,6 +92,8 @@ class RefineSummary:
             stage's check (once per image; kept in the cache when it fits) and the track walk's
             (an image again in each worker whose groups need it and no longer cache it).
         image_decodes_max: the most times one image was decoded in the run (same count).
+        pair_check: what the pair check removed or flagged, and why
+            (:meth:`~.pair_check.PairCheckStats.to_dict`; empty when it is off).
         seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
             "total").
     """
@@ -129,6 +132,7 @@ class RefineSummary:
     image_decodes_max: int = 0
     refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
+    pair_check: dict = field(default_factory=dict)
 
     @classmethod
     def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
@@ -184,6 +188,12 @@ class RefineSummary:
             lines.append(f"  resumed: {self.filter_chunks_resumed} of {self.filter_chunks} filter chunks "
                          f"({self.pairs_resumed} pairs) and {self.refine_groups_resumed} of "
                          f"{self.refine_groups} refine groups were finished before")
+        if self.pair_check:
+            pc = self.pair_check
+            done = f"{pc['pairs_removed']} removed" if pc["mode"] == "remove" else f"{pc['pairs_flagged']} flagged"
+            lines.append(f"  pair check: {pc['pairs_checked']} pairs, {pc['triangles']} triangles "
+                         f"({pc['triangles_broken']} broken), {done}"
+                         + "".join(f"\n    {' - '.join(w['images'])}: {w['reason']}" for w in pc["wrong_pairs"]))
         if self.images_missing:
             lines.append(f"  images not refined (missing/unreadable): {', '.join(self.images_missing)}")
         if self.backup:
@@ -357,9 +367,13 @@ def _run_stages(database: Path, image_dir: Path, wc: WorkingCopy, store: RunStor
                     source=pcfg.source, seed=seed, memory_budget_bytes=pcfg.memory_budget_bytes, device=dev,
                     progress=progress, database_name=str(database)), runner=runner, store=store)
                 laps.lap("filter")
-                new_keypoints, refine_stats = _refine(db, read, store, rec, dev, runner, progress)
+                removed, pair_check = run_pair_check(db, read, store, rec.pair_check, pcfg.source)
+                if rec.pair_check.enabled:
+                    laps.lap("pair_check")
+                new_keypoints, refine_stats = _refine(db, read, store, rec, dev, runner, progress, removed)
                 laps.lap("refine")
-                write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg)
+                write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg,
+                                        removed=removed)
                 laps.lap("write")
             if pcfg.verify:
                 run_verify(work_db)
@@ -369,6 +383,7 @@ def _run_stages(database: Path, image_dir: Path, wc: WorkingCopy, store: RunStor
                 database=database, backup=wc.backup, recipe=rec, device=dev, runner=runner.kind,
                 resumed=resumed, read=read_stats, filtered=filter_stats, refine_stats=refine_stats,
                 write=write_stats, seconds=laps.total())
+            summary.pair_check = pair_check
             if json_path:  # written beside its target now, renamed onto it with the commit
                 wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
             wc.commit()
@@ -398,14 +413,14 @@ def _check_writable_file(path: Path, label: str) -> None:
 
 
 def _refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, rec: Recipe, device: str,
-            runner: Runner, progress: bool) -> tuple[dict[int, np.ndarray], dict]:
+            runner: Runner, progress: bool, removed: set[tuple[int, int]]) -> tuple[dict[int, np.ndarray], dict]:
     """Refine stage on the stored pairs whose two images are readable, on ``runner``, skipping
     the track groups ``store`` holds and storing each finished one; returns the new keypoints
     and the summed refinement counters with the processes used (``{}`` when refinement is off
-    or nothing was filtered)."""
+    or nothing was filtered). The ``removed`` pairs (pair check) join no track."""
     if not rec.pipeline.refine or not store.filter_counts().pairs_ok:
         return read.keypoints, {}
-    ok = store.load_filtered()
+    ok = {k: v for k, v in store.load_filtered().items() if k not in removed}
     missing = read.loader.missing
     usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
     ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
@@ -414,7 +429,7 @@ def _refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, rec: Recipe, 
     done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": stages.group_max_matches()})
     new_keypoints, stats, used = run_refine_stage(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, rec.tracks,
-        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), runner=runner,
+        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source, removed), runner=runner,
         progress=progress, image_budget_bytes=budget, done=done, on_group=store.save_group)
     # the images skipped before the walk count as missing too: the same number as images_missing
     return new_keypoints, dict(stats, workers=used,
@@ -422,15 +437,15 @@ def _refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, rec: Recipe, 
 
 
 def _unrefined_matches(db: ColmapDatabase, ok: FilteredPairs, usable: FilteredPairs,
-                       source) -> dict[tuple[int, int], np.ndarray]:
+                       source, removed: set[tuple[int, int]]) -> dict[tuple[int, int], np.ndarray]:
     """Every match that reaches the output database but is not refined: the pairs too small to
     filter and the failed ones (written back unchanged), and the kept matches of pairs with a
     missing image. The walk joins them into tracks (they never refine), so a keypoint that moves
-    stays consistent with every partner COLMAP will see."""
+    stays consistent with every partner COLMAP will see. The ``removed`` pairs are left out."""
     out = {}
     for p in db.pairs(source):
         key = (p.image_id1, p.image_id2)
-        if key in usable:
+        if key in usable or key in removed:
             continue
         if key in ok:
             m, r = ok[key]
