@@ -157,3 +157,13 @@ def test_deterministic():
     a = check_pairs(scene.matches, scene.keypoints, PairCheckConfig())
     b = check_pairs(dict(reversed(list(scene.matches.items()))), scene.keypoints, PairCheckConfig())
     assert a.wrong == b.wrong and a.verdicts == b.verdicts
+
+
+def test_recipe_carries_the_pair_check():
+    from colmap_miho.recipe import load_recipe
+
+    assert not load_recipe(None).pair_check.enabled  # off by default
+    rec = load_recipe(None, ["pair_check.enabled=true", "pair_check.mode=flag", "pair_check.min_blame=3"])
+    assert rec.pair_check == PairCheckConfig(enabled=True, mode=PairCheckMode.FLAG, min_blame=3)
+    with pytest.raises(ValueError, match=r"\[pair_check\] min_blame_share"):
+        load_recipe(None, ["pair_check.min_blame_share=2"])
