@@ -193,7 +193,9 @@ class RefineSummary:
             done = f"{pc['pairs_removed']} removed" if pc["mode"] == "remove" else f"{pc['pairs_flagged']} flagged"
             lines.append(f"  pair check: {pc['pairs_checked']} pairs, {pc['triangles']} triangles "
                          f"({pc['triangles_broken']} broken), {done}"
-                         + "".join(f"\n    {' - '.join(w['images'])}: {w['reason']}" for w in pc["wrong_pairs"]))
+                         + "".join(f"\n    {' - '.join(w['images'])}: {w['reason']}" for w in pc["wrong_pairs"][:10])
+                         + (f"\n    ... and {len(pc['wrong_pairs']) - 10} more (see the JSON report)"
+                            if len(pc["wrong_pairs"]) > 10 else ""))
         if self.images_missing:
             lines.append(f"  images not refined (missing/unreadable): {', '.join(self.images_missing)}")
         if self.backup:
