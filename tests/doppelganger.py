@@ -3,7 +3,8 @@
 A wall (plane z = 0, x in [0, 40] m, y in [0, 8] m, y pointing down) carries two identical
 facades: facade B is facade A moved by ``FACADE_SHIFT`` along x (same points, same relief, so
 the same descriptors). Context points (unique) stand in front of the wall everywhere else.
-Near cameras (10 m from the wall) see a third of it; far cameras (22 m) see both facades.
+Near cameras (about 10 m from the wall, at varied heights and distances) see a third of it;
+far cameras (about 22 m) see both facades.
 
 A pair's matches: the points both images detect, except facade points whose copy is detected
 too (a ratio test rejects ambiguous matches); a share of random outlier matches. A doppelganger
