@@ -134,3 +134,10 @@ class RunnerKind(StrEnum):
     INLINE = "inline"  # in this process
     PROCESSES = "processes"  # a local process pool
     DASK = "dask"  # a Dask cluster, local or remote
+
+
+class PairCheckMode(StrEnum):
+    """What the pair check does with a pair that the rest of the pair graph contradicts."""
+
+    REMOVE = "remove"  # drop the pair's matches from the output database
+    FLAG = "flag"  # keep it; only report it

@@ -1,7 +1,7 @@
 """Recipes: named TOML files that set the configuration of every stage.
 
 A recipe has one table per stage (``[filter]``, ``[ncc]``, ``[tracks]``, ``[pipeline]``,
-``[mapping]``) whose keys are fields of the stage's dataclass; a missing table means the
+``[mapping]``, ``[pair_check]``) whose keys are fields of the stage's dataclass; a missing table means the
 dataclass defaults. Unknown tables or keys are errors, never silently ignored.
 ``--set section.key=value`` overrides are parsed with the field's type.
 """
@@ -22,6 +22,7 @@ from .filtering.config import FilterConfig
 from .pipeline_config import PipelineConfig
 from .refinement.config import NCCConfig, TrackConfig
 from .sfm import MappingConfig
+from .verification.config import PairCheckConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -43,6 +44,7 @@ class Recipe:
     tracks: TrackConfig = field(default_factory=TrackConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    pair_check: PairCheckConfig = field(default_factory=PairCheckConfig)
 
 
 SECTIONS: dict[str, type] = {
@@ -51,6 +53,7 @@ SECTIONS: dict[str, type] = {
     "tracks": TrackConfig,
     "pipeline": PipelineConfig,
     "mapping": MappingConfig,
+    "pair_check": PairCheckConfig,
 }
 
 

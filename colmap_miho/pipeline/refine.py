@@ -21,7 +21,7 @@ import contextlib
 import dataclasses
 import logging
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
 
@@ -354,9 +354,11 @@ class RefineStats:
 
 
 def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Recipe, device: str,
-               runner: Runner, progress: bool) -> tuple[dict[int, np.ndarray], RefineStats]:
+               runner: Runner, progress: bool, removed: Collection[tuple[int, int]] = ()
+               ) -> tuple[dict[int, np.ndarray], RefineStats]:
     """The refine stage on the stored pairs whose two images are readable, on ``runner``,
-    skipping the track groups ``store`` holds and storing each finished one.
+    skipping the track groups ``store`` holds and storing each finished one. The ``removed``
+    pairs (the pair check's) join no track.
 
     Returns:
         (image id -> new keypoints (N, 2) float64 pixels, the stage's :class:`RefineStats`);
@@ -364,7 +366,7 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
     """
     if not recipe.pipeline.refine or not store.filter_counts().pairs_ok:
         return read.keypoints, RefineStats()
-    ok = store.load_filtered()
+    ok = {k: v for k, v in store.load_filtered().items() if k not in removed}
     missing = read.loader.missing
     usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
     ncfg = dataclasses.replace(recipe.ncc, device=Device(device)) if recipe.ncc.device == "auto" else recipe.ncc
@@ -373,7 +375,7 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
     done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": group_max_matches()})
     new_keypoints, stats, used = run_refine_stage(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, recipe.tracks,
-        unrefined=_unrefined_matches(db, ok, usable, recipe.pipeline.source), runner=runner,
+        unrefined=_unrefined_matches(db, ok, usable, recipe.pipeline.source, removed), runner=runner,
         progress=progress, image_budget_bytes=budget, done=done, on_group=store.save_group)
     stats = dict(stats)
     decoded = {int(k): int(v) for k, v in stats.pop(DECODED_BY_IMAGE, {}).items()}
@@ -382,16 +384,16 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
     return new_keypoints, RefineStats(counters=counters, decoded_by_image=decoded)
 
 
-def _unrefined_matches(db: ColmapDatabase, ok: FilteredPairs, usable: FilteredPairs,
-                       source: MatchSource) -> dict[tuple[int, int], np.ndarray]:
+def _unrefined_matches(db: ColmapDatabase, ok: FilteredPairs, usable: FilteredPairs, source: MatchSource,
+                       removed: Collection[tuple[int, int]]) -> dict[tuple[int, int], np.ndarray]:
     """Every match that reaches the output database but is not refined: the pairs too small to
     filter and the failed ones (written back unchanged), and the kept matches of pairs with a
     missing image. The walk joins them into tracks (they never refine), so a keypoint that moves
-    stays consistent with every partner COLMAP will see."""
+    stays consistent with every partner COLMAP will see. The ``removed`` pairs are left out."""
     out = {}
     for p in db.pairs(source):
         key = (p.image_id1, p.image_id2)
-        if key in usable:
+        if key in usable or key in removed:
             continue
         if key in ok:
             m, r = ok[key]

@@ -48,6 +48,7 @@ from ..errors import DatabaseError, RunFailed, UserError
 from ..recipe import Recipe, load_recipe
 from .executor import Runner, open_runner
 from .filter import FilterOptions, run_filter
+from .pair_check import run_pair_check
 from .read import ReadConfig, run_read
 from .refine import run_refine
 from .store import RunStore, run_fingerprint, store_folder
@@ -241,9 +242,13 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                     source=pcfg.source, seed=seed, memory_budget_bytes=pcfg.memory_budget_bytes, device=dev,
                     progress=progress, database_name=str(database)), runner=runner, store=store)
                 laps.lap("filter")
-                new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress)
+                removed, pair_check = run_pair_check(db, read, store, rec.pair_check, pcfg.source)
+                if rec.pair_check.enabled:
+                    laps.lap("pair_check")
+                new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress, removed)
                 laps.lap("refine")
-                write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg)
+                write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg,
+                                        removed=removed)
                 laps.lap("write")
             if pcfg.verify:
                 run_verify(work_db)
@@ -253,6 +258,7 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 database=database, backup=wc.backup, recipe=rec, device=dev, runner=str(runner.kind),
                 resumed=resumed, read=read_stats, filtered=filter_stats, refine=refine_stats,
                 write=write_stats, seconds=laps.total())
+            summary.pair_check = pair_check
             if json_path:  # written beside its target now, renamed onto it with the commit
                 wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
             wc.commit()

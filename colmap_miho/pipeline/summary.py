@@ -39,6 +39,8 @@ class RefineSummary:
             stage's check (once per image; kept in the cache when it fits) and the track walk's
             (an image again in each worker whose groups need it and no longer cache it).
         image_decodes_max: the most times one image was decoded in the run (same count).
+        pair_check: what the pair check removed or flagged, and why
+            (:meth:`~.pair_check.PairCheckStats.to_dict`; empty when it is off).
         seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
             "total").
     """
@@ -77,6 +79,7 @@ class RefineSummary:
     image_decodes_max: int = 0
     refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
+    pair_check: dict = field(default_factory=dict)
 
     @classmethod
     def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
@@ -131,9 +134,23 @@ class RefineSummary:
             lines.append(f"  resumed: {self.filter_chunks_resumed} of {self.filter_chunks} filter chunks "
                          f"({self.pairs_resumed} pairs) and {self.refine_groups_resumed} of "
                          f"{self.refine_groups} refine groups were finished before")
+        if self.pair_check:
+            lines.append(_pair_check_line(self.pair_check))
         if self.images_missing:
             lines.append(f"  images not refined (missing/unreadable): {', '.join(self.images_missing)}")
         if self.backup:
             lines.append(f"  backup of the input: {self.backup}")
         lines.append("  seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in self.seconds.items()))
         return "\n".join(lines)
+
+
+def _pair_check_line(pc: dict) -> str:
+    """The summary's pair-check lines: counts, then at most 10 wrong pairs with their reasons."""
+    done = f"{pc['pairs_removed']} removed" if pc["mode"] == "remove" else f"{pc['pairs_flagged']} flagged"
+    line = (f"  pair check: {pc['pairs_checked']} pairs, {pc['triangles']} triangles "
+            f"({pc['triangles_broken']} broken), {done}")
+    line += "".join(f"\n    {' - '.join(w['images'])}: {w['reason']}" for w in pc["wrong_pairs"][:10])
+    if len(pc["wrong_pairs"]) > 10:
+        line += f"\n    ... and {len(pc['wrong_pairs']) - 10} more (see the JSON report)"
+    return line
+

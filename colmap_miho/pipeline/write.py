@@ -4,7 +4,7 @@ transaction on the working copy, the pairs chunk by chunk as the run store gives
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,7 +26,8 @@ class WriteStats:
 
 
 def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoints: dict[int, np.ndarray],
-              chunks: Iterable[FilteredPairs], cfg: PipelineConfig) -> WriteStats:
+              chunks: Iterable[FilteredPairs], cfg: PipelineConfig,
+              removed: Collection[tuple[int, int]] = ()) -> WriteStats:
     """Write what changed, in one transaction.
 
     Args:
@@ -36,6 +37,8 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
             once); their inlier matches replace the pair's matches.
         cfg: ``source`` (a verified pair keeps its geometry model) and ``verify`` (the pairs'
             two-view geometries are deleted, for COLMAP to re-verify).
+        removed: pairs (image_id1, image_id2) the pair check removed: written without matches
+            and without a two-view geometry, whether they were filtered or not.
     """
     from ..adapters.safety import check_free_space
 
@@ -53,10 +56,15 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
         written: list[tuple[int, int]] = []
         for ok in chunks:
             for (i, j), (m, r) in sorted(ok.items()):
+                if (i, j) in removed:
+                    continue
                 kept = m[np.asarray(r.inliers, bool)]
                 write_pair(db, i, j, kept, new_keypoints[i][kept[:, 0]], new_keypoints[j][kept[:, 1]],
                            keep_model=cfg.source == MatchSource.VERIFIED)
                 written.append((i, j))
+        none = np.zeros((0, 2), np.uint32)
+        for i, j in sorted(removed):
+            write_pair(db, i, j, none, np.zeros((0, 2)), np.zeros((0, 2)), keep_model=False)
         if cfg.verify:
             db.delete_two_view_geometries(sorted(written))
     d = np.concatenate(displacements) if displacements else np.zeros(0)

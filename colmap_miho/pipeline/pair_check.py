@@ -1,0 +1,92 @@
+"""Pair-check stage: after the filter, before the refinement, find the pairs the rest of the pair
+graph contradicts (:func:`colmap_miho.verification.check_pairs`) and remove or flag them.
+
+The graph is every pair that reaches the output database: the filtered pairs' kept matches
+(from the run store) and the pairs written back unchanged (too small to filter, or no plane
+found; from the database). The check is deterministic and cheap, so a resumed run computes it
+again from the stored filter chunks instead of storing it. Removed pairs are left out of the
+refinement (their matches join no track) and written back without matches or geometry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..adapters.database import ColmapDatabase
+from ..enums import MatchSource, PairCheckMode
+from ..verification import PairCheckConfig, check_pairs
+from .read import ReadOutput
+from .store import RunStore
+
+log = logging.getLogger(__name__)
+
+#: A pair of image ids (image_id1 < image_id2).
+Pair = tuple[int, int]
+
+
+@dataclass(frozen=True, kw_only=True)
+class PairCheckStats:
+    """What the pair check did (``RefineSummary.pair_check``; empty when it is off).
+
+    Attributes:
+        mode: "remove" or "flag".
+        pairs_checked: pairs in the graph (all that reach the output).
+        triangles / triangles_broken: triangles of the pair graph, and those in which every
+            pair's transfers mostly fail.
+        pairs_removed / pairs_flagged: pairs found wrong (removed in "remove" mode, only
+            reported in "flag" mode).
+        wrong_pairs: one entry per pair found wrong, in the order found: image names and ids,
+            the reason and the scores of :class:`~colmap_miho.verification.PairVerdict`.
+    """
+
+    mode: str
+    pairs_checked: int
+    triangles: int
+    triangles_broken: int
+    pairs_removed: int
+    pairs_flagged: int
+    wrong_pairs: list[dict] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """Plain JSON-ready data."""
+        return dataclasses.asdict(self)
+
+
+def pair_graph_matches(db: ColmapDatabase, store: RunStore, source: MatchSource) -> dict[Pair, np.ndarray]:
+    """Every pair's matches as they reach the output: the kept matches of the stored filtered
+    pairs, and the database's matches of the others (int64 ``(M, 2)``)."""
+    ok = store.load_filtered()
+    out: dict[Pair, np.ndarray] = {}
+    for p in db.pairs(source):
+        key = (p.image_id1, p.image_id2)
+        if key in ok:
+            m, r = ok[key]
+            out[key] = np.asarray(m, np.int64)[np.asarray(r.inliers, bool)]
+        else:
+            out[key] = db.matches(p.image_id1, p.image_id2, source).astype(np.int64)
+    return {k: v for k, v in out.items() if len(v)}
+
+
+def run_pair_check(db: ColmapDatabase, read: ReadOutput, store: RunStore, cfg: PairCheckConfig,
+                   source: MatchSource) -> tuple[set[Pair], dict]:
+    """Check the pair graph; returns the pairs to remove (empty when off or in "flag" mode)
+    and :meth:`PairCheckStats.to_dict` (``{}`` when off)."""
+    if not cfg.enabled:
+        return set(), {}
+    matches = pair_graph_matches(db, store, source)
+    result = check_pairs(matches, read.keypoints, cfg)
+    names = {im.image_id: im.name for im in db.images()}
+    wrong = [{"images": [names.get(i, str(i)), names.get(j, str(j))], "image_ids": [i, j],
+              **result.verdicts[(i, j)].to_dict()} for i, j in result.wrong]
+    remove = cfg.mode == PairCheckMode.REMOVE
+    stats = PairCheckStats(mode=str(cfg.mode), pairs_checked=len(matches), triangles=result.triangles,
+                           triangles_broken=result.triangles_broken,
+                           pairs_removed=len(wrong) if remove else 0, pairs_flagged=0 if remove else len(wrong),
+                           wrong_pairs=wrong)
+    for w in wrong:
+        log.info("pair check: %s %s - %s: %s", "removed" if remove else "flagged", *w["images"], w["reason"])
+    return (set(result.wrong) if remove else set()), stats.to_dict()

@@ -1,0 +1,91 @@
+"""Configuration of the pair check (pure dataclass, no I/O)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..enums import PairCheckMode
+from ..validation import require_finite
+
+
+@dataclass(frozen=True, kw_only=True)
+class PairCheckConfig:
+    """Parameters of the pair check: which image pairs the rest of the pair graph contradicts
+    (see :mod:`colmap_miho.verification.pair_graph`).
+
+    In each triangle of the pair graph (images i, j, k matched pairwise) every pair's matches
+    are carried into the third image by the other two pairs, through their matches or by
+    epipolar transfer; a transfer closes when it lands within ``transfer_tol_px`` of the
+    expected keypoint. A pair's transfers that mostly fail blame the two carrying pairs, the
+    others support them; pairs are removed worst first.
+
+    Defaults chosen with ``benchmarks/bench_pair_check.py`` on the demo, Middlebury temple and
+    Strecha fountain and entry, default and permissive COLMAP matching (no pair that agrees
+    with the GT cameras removed on any of them) and on the synthetic doppelganger scenes.
+
+    Attributes:
+        enabled: run the check (``refine``: between the filter and the refinement).
+        mode: "remove" (the pair's matches are dropped from the output) or "flag" (only
+            reported).
+        transfer_tol_px: pixels; a transfer that lands at most this far from the expected
+            keypoint closes (SIFT places one keypoint several times, with other
+            orientations, within a pixel or two).
+        min_transfers: counted transfers of one pair into one triangle's third image needed
+            for a vote; fewer: that transfer does not vote.
+        min_closed_share: a pair's transfer into a triangle's third image fails when the
+            closed share of its counted transfers is below this, in [0, 1].
+        min_relative_share: a transfer also fails when its closed share is below this times
+            the best of the triangle's three, in [0, 1] (0: off). It exposes two wrong pairs
+            that agree with each other (they carry the correct pair's unrepeated points
+            astray, its repeated ones right), at the cost of blaming weak correct pairs on
+            real scenes: off by default.
+        min_blame: blames a pair needs before it can be removed.
+        min_blame_share: share of blames among a pair's votes needed to remove it, in (0, 1].
+        min_angle_deg: degrees; epipolar transfers whose two lines meet at a smaller angle
+            (nearly collinear camera centres) are not counted.
+        max_transfers: matches per pair carried into each third image (spread over its rows);
+            bounds the time per triangle.
+        f_threshold_px: pixels; Sampson distance of the inliers of the fundamental matrix
+            fitted to each pair's matches.
+        min_f_matches: pairs with fewer matches get no fundamental matrix (too few to fit one
+            accurately): their triangles use matches only.
+        seed: base seed of the fundamental-matrix sampling (per pair: seed and its image ids).
+    """
+
+    enabled: bool = False
+    mode: PairCheckMode = PairCheckMode.REMOVE
+    transfer_tol_px: float = 4.0
+    min_transfers: int = 8
+    min_closed_share: float = 0.4
+    min_relative_share: float = 0.0
+    min_blame: int = 2
+    min_blame_share: float = 0.55
+    min_angle_deg: float = 5.0
+    max_transfers: int = 200
+    f_threshold_px: float = 1.5
+    min_f_matches: int = 50
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mode", PairCheckMode.parse(self.mode, "mode"))
+        require_finite(self)
+        if self.transfer_tol_px <= 0:
+            raise ValueError(f"transfer_tol_px must be > 0, got {self.transfer_tol_px}")
+        if self.min_transfers < 1:
+            raise ValueError(f"min_transfers must be >= 1, got {self.min_transfers}")
+        if not 0.0 <= self.min_closed_share <= 1.0:
+            raise ValueError(f"min_closed_share must be in [0, 1], got {self.min_closed_share}")
+        if not 0.0 <= self.min_relative_share <= 1.0:
+            raise ValueError(f"min_relative_share must be in [0, 1], got {self.min_relative_share}")
+        if not 0.0 <= self.min_angle_deg < 90.0:
+            raise ValueError(f"min_angle_deg must be in [0, 90), got {self.min_angle_deg}")
+        if self.max_transfers < 1:
+            raise ValueError(f"max_transfers must be >= 1, got {self.max_transfers}")
+        if self.f_threshold_px <= 0:
+            raise ValueError(f"f_threshold_px must be > 0, got {self.f_threshold_px}")
+        if self.min_f_matches < 8:
+            raise ValueError(f"min_f_matches must be >= 8 (the eight-point algorithm), got {self.min_f_matches}")
+        if self.min_blame < 1:
+            raise ValueError(f"min_blame must be >= 1, got {self.min_blame}")
+        if not 0.0 < self.min_blame_share <= 1.0:
+            raise ValueError(f"min_blame_share must be in (0, 1], got {self.min_blame_share}")

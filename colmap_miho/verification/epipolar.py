@@ -1,0 +1,105 @@
+"""Fundamental matrices of image pairs and epipolar transfer into a third image (numpy only).
+
+Conventions: points are float ``(M, 2)`` pixels; ``F_2from1`` satisfies
+``x2^T F_2from1 x1 = 0`` (homogeneous pixels), so ``F_2from1 @ x1`` is x1's epipolar line in
+image 2 and ``F_2from1.T`` is ``F_1from2``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Matches a fundamental matrix needs (the eight-point algorithm).
+MIN_F_MATCHES = 8
+#: Correspondences (spread over the rows) on which the sampled hypotheses are scored.
+SCORE_POINTS = 300
+
+
+def _normalise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hartley normalisation: homogeneous points ``(M, 3)`` with centroid 0 and mean
+    distance sqrt(2), and the ``(3, 3)`` transform that did it."""
+    c = x.mean(0)
+    s = np.sqrt(2.0) / max(float(np.mean(np.linalg.norm(x - c, axis=1))), 1e-12)
+    T = np.array([[s, 0.0, -s * c[0]], [0.0, s, -s * c[1]], [0.0, 0.0, 1.0]])
+    return np.column_stack([(x - c) * s, np.ones(len(x))]), T
+
+
+def _rank2(F: np.ndarray) -> np.ndarray:
+    """Closest rank-2 matrices of ``(..., 3, 3)`` (smallest singular value set to 0)."""
+    u, s, vt = np.linalg.svd(F)
+    s[..., 2] = 0.0
+    return (u * s[..., None, :]) @ vt
+
+
+def _solve(h1: np.ndarray, h2: np.ndarray) -> np.ndarray:
+    """Eight-point solutions of ``(..., K, 3)`` normalised correspondences: ``(..., 3, 3)``."""
+    A = (h2[..., :, None] * h1[..., None, :]).reshape(*h1.shape[:-1], 9)
+    _, vec = np.linalg.eigh(np.swapaxes(A, -1, -2) @ A)  # null vector: the smallest eigenvalue's
+    return _rank2(vec[..., :, 0].reshape(*h1.shape[:-2], 3, 3))
+
+
+def sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Squared Sampson distances (px^2) of ``(M, 2)`` correspondences under ``F_2from1``
+    ``(..., 3, 3)``: shape ``(..., M)``."""
+    h1 = np.column_stack([x1, np.ones(len(x1))])
+    h2 = np.column_stack([x2, np.ones(len(x2))])
+    Fx1 = h1 @ np.swapaxes(F, -1, -2)  # (..., M, 3)
+    Ftx2 = h2 @ F
+    num = np.sum(h2 * Fx1, axis=-1) ** 2
+    den = Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2
+    return num / np.maximum(den, 1e-30)
+
+
+def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *, hypotheses: int = 128,
+                    threshold_px: float = 1.5, max_points: int = 1000) -> np.ndarray | None:
+    """``F_2from1`` ``(3, 3)`` of correspondences ``x1, x2`` ``(M, 2)`` pixels: the best of
+    ``hypotheses`` random eight-point samples by inlier count (Sampson distance below
+    ``threshold_px``), refitted to its inliers; None with fewer than :data:`MIN_F_MATCHES`
+    matches or inliers. At most ``max_points`` correspondences (spread over the rows) are used."""
+    x1 = np.asarray(x1, np.float64)
+    x2 = np.asarray(x2, np.float64)
+    if len(x1) > max_points:
+        keep = np.linspace(0, len(x1) - 1, max_points).round().astype(np.int64)
+        x1, x2 = x1[keep], x2[keep]
+    m = len(x1)
+    if m < MIN_F_MATCHES:
+        return None
+    h1, T1 = _normalise(x1)
+    h2, T2 = _normalise(x2)
+    if m == MIN_F_MATCHES:
+        samples = np.arange(m)[None]
+    else:  # a sample that repeats a row is degenerate and simply scores low
+        samples = rng.integers(0, m, (hypotheses, MIN_F_MATCHES))
+    Fs = T2.T @ _solve(h1[samples], h2[samples]) @ T1
+    score = np.linspace(0, m - 1, min(m, SCORE_POINTS)).round().astype(np.int64)  # hypotheses scored on these
+    inl = sampson_sq(Fs, x1[score], x2[score]) < threshold_px**2
+    best = sampson_sq(Fs[int(np.argmax(inl.sum(1)))], x1, x2) < threshold_px**2
+    for _ in range(2):  # refit to the inliers, twice (the inlier set grows with a better F)
+        if best.sum() < MIN_F_MATCHES:
+            return None
+        F = T2.T @ _solve(h1[best][None], h2[best][None])[0] @ T1
+        best = sampson_sq(F, x1, x2) < threshold_px**2
+    return F / max(float(np.linalg.norm(F)), 1e-30)
+
+
+def transfer(F_3from1: np.ndarray, F_3from2: np.ndarray, x1: np.ndarray,
+             x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Epipolar transfer of correspondences ``x1 <-> x2`` ``(M, 2)`` into a third image: the
+    intersection of their two epipolar lines there.
+
+    Returns:
+        ``(points (M, 2) pixels, sin_angle (M,))``: the sine of the angle between the two
+        lines (near 0 when the three camera centres are nearly collinear, or the point
+        near their plane's trace: the transfer is then ill-conditioned); rows whose lines do
+        not meet get ``nan`` points.
+    """
+    l1 = np.column_stack([x1, np.ones(len(x1))]) @ F_3from1.T
+    l2 = np.column_stack([x2, np.ones(len(x2))]) @ F_3from2.T
+    p = np.cross(l1, l2)
+    n1 = np.hypot(l1[:, 0], l1[:, 1])
+    n2 = np.hypot(l2[:, 0], l2[:, 1])
+    sin = np.abs(l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0]) / np.maximum(n1 * n2, 1e-30)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pts = p[:, :2] / p[:, 2:3]
+    pts[~np.isfinite(pts).all(1)] = np.nan
+    return pts, sin

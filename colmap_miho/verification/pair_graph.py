@@ -1,0 +1,396 @@
+"""Pair check core: find the image pairs that the rest of the pair graph contradicts.
+
+A wrong pair (two windows of one facade, two sides of a symmetric building) holds matches
+that agree with one homography or epipolar geometry, so no filter that looks at the pair alone
+can reject them. The other pairs can. In a triangle of the pair graph (images i, j, k matched
+pairwise) each pair's matches are carried into the third image by the other two pairs
+(:func:`triangle_transfer`): through their matches (the scene point's track must reach one
+keypoint of the third image, not two copies of a repeated structure), or, where they do not
+match the point, by epipolar transfer (the fundamental matrices are fitted here from the
+matches: no intrinsics needed). With three correct pairs the transfers land on the right
+keypoints; one wrong pair sends them all astray.
+
+Each transfer that fails blames the two pairs that carried it, each that works supports them
+(:func:`carrier_votes`); the pairs with the most blame are removed first, and each removal takes
+its triangles' votes off the other pairs, so the correct pairs that shared triangles with a
+wrong one recover (:func:`check_pairs`). A pair without counted transfers is kept (there is no
+evidence against it), and a pair is only removed while one of its triangles is still present:
+its two images stay joined through the triangle's third image, so no removal splits the pair
+graph. The work grows with the triangles present (each pair intersects its two images'
+neighbour sets), not with the cube of the number of images.
+
+Pure: arrays in, a small result out; no I/O.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .config import PairCheckConfig
+from .epipolar import fit_fundamental, transfer
+
+#: An image pair (image_id1, image_id2) with image_id1 < image_id2.
+Pair = tuple[int, int]
+
+#: Grid cells per image side for :attr:`PairVerdict.coverage`.
+COVERAGE_GRID = 8
+
+
+@dataclass(frozen=True, kw_only=True)
+class PairVerdict:
+    """What the pair check found for one pair.
+
+    Attributes:
+        matches: the pair's matches.
+        strength: ``matches`` over the median match count of the pairs of its two images
+            (both images' pairs pooled, this one included); 1 = a typical pair of theirs.
+        coverage: share of the 8 x 8 grid cells over each image's keypoint extent that hold
+            one of the pair's matches, the smaller of the two images, in [0, 1].
+        triangles: triangles of the pair graph that contain the pair.
+        triangles_broken: of those, the ones where every pair's transfers mostly fail.
+        blame / support: votes of its triangles (see :func:`carrier_votes`), before any
+            removal.
+        transfers_closed / transfers_broken: the pair's own matches carried into the third
+            images of its triangles: the tracks it makes that stay consistent / that join two
+            places of one image (track conflicts).
+        wrong: removed (``mode = "remove"``) or flagged (``"flag"``).
+        reason: why, in words ("" for a pair kept).
+    """
+
+    matches: int
+    strength: float
+    coverage: float
+    triangles: int
+    triangles_broken: int
+    blame: int
+    support: int
+    transfers_closed: int
+    transfers_broken: int
+    wrong: bool
+    reason: str
+
+    def to_dict(self) -> dict:
+        """JSON-ready values (floats rounded to 3 decimals)."""
+        out = dataclasses.asdict(self)
+        out["strength"], out["coverage"] = round(self.strength, 3), round(self.coverage, 3)
+        return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class PairCheckResult:
+    """The pair check's verdicts.
+
+    Attributes:
+        verdicts: pair -> :class:`PairVerdict`, every input pair (keys image_id1 < image_id2).
+        wrong: the pairs found wrong, in the order they were taken out.
+        triangles / triangles_decided / triangles_broken: of the whole pair graph, before any
+            removal.
+    """
+
+    verdicts: dict[Pair, PairVerdict]
+    wrong: list[Pair]
+    triangles: int
+    triangles_decided: int
+    triangles_broken: int
+
+
+class _Lookup:
+    """Keypoint of one image -> the keypoint of the other image it is matched to (the first
+    match of a keypoint matched several times)."""
+
+    def __init__(self, src: np.ndarray, dst: np.ndarray) -> None:
+        order = np.argsort(src, kind="stable")
+        keys, vals = src[order], dst[order]
+        first = np.ones(len(keys), bool)
+        first[1:] = keys[1:] != keys[:-1]
+        self.keys, self.vals = keys[first], vals[first]
+
+    def __call__(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(values (Q,), found bool (Q,))``; values are 0 where not found."""
+        if not len(self.keys) or not len(query):
+            return np.zeros(len(query), np.int64), np.zeros(len(query), bool)
+        pos = np.minimum(np.searchsorted(self.keys, query), len(self.keys) - 1)
+        found = self.keys[pos] == query
+        return np.where(found, self.vals[pos], 0), found
+
+
+class _Graph:
+    """The pair graph: each pair's matches (both orientations), its fitted ``F_jfromi``, and a
+    search tree over every image's keypoints."""
+
+    def __init__(self, matches: Mapping[Pair, np.ndarray], keypoints: Mapping[int, np.ndarray],
+                 cfg: PairCheckConfig) -> None:
+        self.edges: list[Pair] = []
+        self.index: dict[Pair, int] = {}
+        self.oriented: dict[tuple[int, int], np.ndarray] = {}  # (a, b) -> int64 (M, 2) in a, b order
+        self.F: dict[tuple[int, int], np.ndarray] = {}  # (a, b) -> F_bfroma (3, 3)
+        self.look: dict[tuple[int, int], _Lookup] = {}
+        self.adj: dict[int, set[int]] = {}
+        self.keypoints = {int(k): np.asarray(v, np.float64)[:, :2] for k, v in keypoints.items()}
+        for (a, b), m in sorted(matches.items()):
+            if a == b:
+                raise ValueError(f"pair ({a}, {b}) joins an image to itself")
+            m = np.asarray(m, np.int64).reshape(-1, 2)
+            i, j = (a, b) if a < b else (b, a)
+            if (i, j) in self.index:
+                raise ValueError(f"pair ({i}, {j}) is given twice")
+            if a > b:
+                m = m[:, ::-1]
+            self.index[(i, j)] = len(self.edges)
+            self.edges.append((i, j))
+            self.oriented[(i, j)], self.oriented[(j, i)] = m, m[:, ::-1]
+            self.look[(i, j)], self.look[(j, i)] = _Lookup(m[:, 0], m[:, 1]), _Lookup(m[:, 1], m[:, 0])
+            rng = np.random.default_rng([cfg.seed, i, j])
+            F = None
+            if len(m) >= cfg.min_f_matches:
+                F = fit_fundamental(self.keypoints[i][m[:, 0]], self.keypoints[j][m[:, 1]], rng,
+                                    threshold_px=cfg.f_threshold_px)
+            if F is not None:
+                self.F[(i, j)], self.F[(j, i)] = F, F.T
+            self.adj.setdefault(i, set()).add(j)
+            self.adj.setdefault(j, set()).add(i)
+        self.trees: dict[int, cKDTree] = {}
+        self.boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def tree(self, image: int) -> tuple[cKDTree, tuple[np.ndarray, np.ndarray]]:
+        """The image's keypoint search tree and keypoint extent (min, max), built once."""
+        if image not in self.trees:
+            kp = self.keypoints[image]
+            self.trees[image] = cKDTree(kp)
+            self.boxes[image] = (kp.min(0), kp.max(0))
+        return self.trees[image], self.boxes[image]
+
+    def triangles(self) -> list[tuple[int, int, int]]:
+        """Every triangle (i < j < k) once: each pair's two neighbour sets intersected."""
+        out: list[tuple[int, int, int]] = []
+        for i, j in self.edges:
+            a, b = self.adj[i], self.adj[j]
+            common = a & b if len(a) <= len(b) else b & a
+            out.extend((i, j, k) for k in sorted(common) if k > j)
+        return out
+
+
+def _spread(n: int, cap: int) -> np.ndarray:
+    """At most ``cap`` row indices spread evenly over ``n`` rows."""
+    return np.arange(n) if n <= cap else np.linspace(0, n - 1, cap).round().astype(np.int64)
+
+
+def _within(xy_a: np.ndarray, xy_b: np.ndarray, tol: float) -> np.ndarray:
+    return np.sum((xy_a - xy_b) ** 2, axis=1) <= tol * tol
+
+
+def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckConfig) -> np.ndarray:
+    """Closed and broken transfers of one triangle, each pair's matches carried into the third
+    image: int64 ``(3, 2)``, rows for the pairs i-j, i-k, j-k of ``tri = (i, j, k)``.
+
+    A match (p, q) of the pair x-y lands in the third image z in one of two ways:
+
+    - through the other two pairs' matches (the track of the scene point): q's match r in y-z
+      and p's match r' in x-z must be one keypoint of z, or two within ``transfer_tol_px``;
+      with only one of them matched, the keypoint it reaches must lead back (through the other
+      pair) to within ``transfer_tol_px`` of p or q. A wrong pair joins two copies of a
+      repeated structure, so its tracks reach z at both copies.
+    - otherwise by epipolar transfer: the intersection of p's epipolar line from x-z and q's
+      from y-z must lie within ``transfer_tol_px`` of a keypoint of z (it lands anywhere when
+      one of the three pairs is wrong). Not counted where the two lines meet at less than
+      ``min_angle_deg`` (nearly collinear camera centres: the usual case for photos taken
+      along a street or around an object at one height) or outside z's keypoint extent, or
+      when a pair has no fitted F.
+
+    At most ``max_transfers`` matches per pair are carried (spread over its rows).
+    """
+    out = np.zeros((3, 2), np.int64)
+    i, j, k = tri
+    kp = graph.keypoints
+    min_sin = np.sin(np.deg2rad(cfg.min_angle_deg))
+    tol = cfg.transfer_tol_px
+    for row, (x, y, z) in enumerate(((i, j, k), (i, k, j), (j, k, i))):
+        m = graph.oriented[(x, y)]
+        m = m[_spread(len(m), cfg.max_transfers)]
+        p, q = m[:, 0], m[:, 1]
+        r_y, has_y = graph.look[(y, z)](q)  # through y-z
+        r_x, has_x = graph.look[(x, z)](p)  # through x-z
+        state = np.full(len(m), -1, np.int8)  # -1 not counted, 0 broken, 1 closed
+        both = has_x & has_y
+        state[both] = _within(kp[z][r_y[both]], kp[z][r_x[both]], tol)
+        only_y = np.flatnonzero(has_y & ~has_x)
+        back, ok = graph.look[(z, x)](r_y[only_y])
+        state[only_y[ok]] = _within(kp[x][back[ok]], kp[x][p[only_y[ok]]], tol)
+        only_x = np.flatnonzero(has_x & ~has_y)
+        back, ok = graph.look[(z, y)](r_x[only_x])
+        state[only_x[ok]] = _within(kp[y][back[ok]], kp[y][q[only_x[ok]]], tol)
+        rest = np.flatnonzero(state < 0)
+        Fx, Fy = graph.F.get((x, z)), graph.F.get((y, z))
+        if len(rest) and Fx is not None and Fy is not None and (x, y) in graph.F:
+            pts, sin = transfer(Fx, Fy, kp[x][p[rest]], kp[y][q[rest]])
+            tree, (lo, hi) = graph.tree(z)
+            ok = (sin >= min_sin) & np.isfinite(pts).all(1)
+            ok[ok] &= ((pts[ok] >= lo) & (pts[ok] <= hi)).all(1)
+            if ok.any():
+                d, _ = tree.query(pts[ok], k=1, distance_upper_bound=tol)
+                state[rest[ok]] = np.isfinite(d)
+        out[row] = np.count_nonzero(state == 1), np.count_nonzero(state == 0)
+    return out
+
+
+def triangle_state(cb: np.ndarray, cfg: PairCheckConfig) -> int:
+    """-1 undecided, 0 closed, 1 broken, from a triangle's ``(3, 2)`` closed / broken counts:
+    broken when the transfers of each of its pairs with at least ``min_transfers`` counted
+    mostly fail (closed share below ``min_closed_share``). One wrong pair breaks all three
+    transfers (it is used in each); a single failing transfer is more often a weak pair's
+    inaccurate F, or two wrong pairs that agree with each other (then the third pair's
+    matches are the ones that fail)."""
+    n = cb.sum(1)
+    counted = n >= cfg.min_transfers
+    if not counted.any():
+        return -1
+    share = cb[counted, 0] / n[counted]
+    return int(share.max() < cfg.min_closed_share)
+
+
+def carrier_votes(cb: np.ndarray, cfg: PairCheckConfig) -> np.ndarray:
+    """Votes of one triangle on its pairs i-j, i-k, j-k: int64 ``(3, 2)`` (blame, support).
+
+    A pair's matches are carried into the third image by the other two pairs. When at least
+    ``min_transfers`` of them are counted, the two carriers get one blame if the closed share
+    is below ``min_closed_share``, else one support. One wrong pair is a carrier of two of
+    the three transfers and is transferred in the third, so all three fail and every pair gets
+    two blames; two wrong pairs that agree (both join the same copies) carry each other's
+    matches correctly but not the correct pair's: each gets one blame and one support, the
+    correct pair two supports. Over a pair's triangles, a wrong pair collects at least as many
+    blames as supports; a correct pair mostly supports.
+    """
+    out = np.zeros((3, 2), np.int64)
+    carriers = ((1, 2), (0, 2), (0, 1))  # row r (pair r transferred) is carried by these pairs
+    n = cb.sum(1)
+    counted = n >= cfg.min_transfers
+    share = np.where(counted, cb[:, 0] / np.maximum(n, 1), 0.0)
+    best = share.max()
+    for r in range(3):
+        if counted[r]:
+            fail = share[r] < cfg.min_closed_share or share[r] < cfg.min_relative_share * best
+            for c in carriers[r]:
+                out[c, 0 if fail else 1] += 1
+    return out
+
+
+def _remove_worst_first(blame: np.ndarray, support: np.ndarray, strength: np.ndarray, votes: np.ndarray,
+                        tri_edges: np.ndarray, edge_tris: list[list[int]],
+                        cfg: PairCheckConfig) -> tuple[np.ndarray, list[int], dict[int, str]]:
+    """Remove the pair with the highest blame share (ties: more blame, then the weaker pair)
+    while one has at least ``min_blame`` blames and a share of at least ``min_blame_share``;
+    its triangles' votes leave the other pairs' counts (``blame``, ``support`` ``(E,)`` are
+    updated in place). A pair with blame is in a triangle still present, so its two images
+    stay joined through the triangle's third image: no removal disconnects the graph.
+
+    Returns:
+        ``(alive bool (E,), removed edge indices in order, edge index -> reason)``.
+    """
+    n_edges = len(blame)
+    alive_tri = np.ones(len(tri_edges), bool)
+    alive = np.ones(n_edges, bool)
+    removed: list[int] = []
+    why: dict[int, str] = {}
+    while True:
+        share = blame / np.maximum(blame + support, 1)
+        cand = alive & (blame >= cfg.min_blame) & (share >= cfg.min_blame_share)
+        if not cand.any():
+            break
+        idx = np.flatnonzero(cand)
+        e = int(idx[np.lexsort((strength[idx], -blame[idx], -share[idx]))[0]])
+        why[e] = (f"{int(blame[e])} of the {int(blame[e] + support[e])} votes of its triangles blame it "
+                  f"(relative strength {strength[e]:.2f})")
+        alive[e] = False
+        removed.append(e)
+        for t in edge_tris[e]:
+            if alive_tri[t]:
+                alive_tri[t] = False
+                np.subtract.at(blame, tri_edges[t], votes[t, :, 0])
+                np.subtract.at(support, tri_edges[t], votes[t, :, 1])
+    return alive, removed, why
+
+
+def _coverage(m: np.ndarray, kp1: np.ndarray, kp2: np.ndarray) -> float:
+    """Smaller share of grid cells (over each image's keypoint extent) holding a match."""
+    shares = []
+    for kp, idx in ((kp1, m[:, 0]), (kp2, m[:, 1])):
+        if not len(kp) or not len(idx):
+            return 0.0
+        lo, hi = kp.min(0), kp.max(0)
+        cell = np.floor((kp[idx] - lo) / np.maximum(hi - lo, 1e-9) * COVERAGE_GRID).clip(0, COVERAGE_GRID - 1)
+        shares.append(len(np.unique(cell[:, 0] * COVERAGE_GRID + cell[:, 1])) / COVERAGE_GRID**2)
+    return float(min(shares))
+
+
+def check_pairs(matches: Mapping[Pair, np.ndarray], keypoints: Mapping[int, np.ndarray],
+                cfg: PairCheckConfig) -> PairCheckResult:
+    """Judge every pair of a pair graph by the triangles it is in.
+
+    Args:
+        matches: (image_id1, image_id2) -> int ``(M, 2)`` keypoint indices in that order
+            (the matches that reach the output; either order of the two ids, each pair once).
+        keypoints: image id -> float ``(N, 2)`` keypoint positions in pixels, for every image
+            of ``matches``.
+        cfg: the thresholds (``mode`` is not used here: the caller removes or flags).
+
+    Returns:
+        A :class:`PairCheckResult` over all pairs (keys with image_id1 < image_id2).
+
+    Raises:
+        ValueError: a pair of one image with itself, or a pair given twice.
+    """
+    graph = _Graph(matches, keypoints, cfg)
+    n_edges = len(graph.edges)
+    tris = graph.triangles()
+    total = np.zeros(n_edges, np.int64)
+    own = np.zeros((n_edges, 2), np.int64)  # the pair's own transfers: closed, broken
+    tri_edges = np.zeros((len(tris), 3), np.int64)
+    tri_state = np.full(len(tris), -1, np.int8)  # -1 undecided, 0 closed, 1 broken
+    votes = np.zeros((len(tris), 3, 2), np.int64)  # per triangle and pair: blame, support
+    edge_tris: list[list[int]] = [[] for _ in range(n_edges)]
+    for t, (i, j, k) in enumerate(tris):
+        es = [graph.index[(i, j)], graph.index[(i, k)], graph.index[(j, k)]]
+        tri_edges[t] = es
+        cb = triangle_transfer(graph, (i, j, k), cfg)
+        tri_state[t] = triangle_state(cb, cfg)
+        votes[t] = carrier_votes(cb, cfg)
+        for r, e in enumerate(es):
+            edge_tris[e].append(t)
+            total[e] += 1
+            own[e] += cb[r]
+    blame = np.zeros(n_edges, np.int64)
+    support = np.zeros(n_edges, np.int64)
+    np.add.at(blame, tri_edges.ravel(), votes[:, :, 0].ravel())
+    np.add.at(support, tri_edges.ravel(), votes[:, :, 1].ravel())
+    blame0, support0 = blame.copy(), support.copy()
+    broken_tris = np.zeros(n_edges, np.int64)
+    np.add.at(broken_tris, tri_edges.ravel(), np.repeat(tri_state == 1, 3))
+
+    sizes = np.array([len(graph.oriented[e]) for e in graph.edges], np.int64)
+    per_image: dict[int, list[int]] = {}
+    for e, (i, j) in enumerate(graph.edges):
+        per_image.setdefault(i, []).append(int(sizes[e]))
+        per_image.setdefault(j, []).append(int(sizes[e]))
+    strength = np.array([sizes[e] / max(float(np.median(per_image[i] + per_image[j])), 1.0)
+                         for e, (i, j) in enumerate(graph.edges)])
+
+    alive, removed, why = _remove_worst_first(blame, support, strength, votes, tri_edges, edge_tris, cfg)
+
+    verdicts = {}
+    for e, (i, j) in enumerate(graph.edges):
+        m = graph.oriented[(i, j)]
+        verdicts[(i, j)] = PairVerdict(
+            matches=int(sizes[e]), strength=float(strength[e]),
+            coverage=_coverage(m, graph.keypoints[i], graph.keypoints[j]),
+            triangles=int(total[e]), triangles_broken=int(broken_tris[e]),
+            blame=int(blame0[e]), support=int(support0[e]),
+            transfers_closed=int(own[e, 0]), transfers_broken=int(own[e, 1]),
+            wrong=not alive[e], reason=why.get(e, ""))
+    return PairCheckResult(verdicts=verdicts, wrong=[graph.edges[e] for e in removed], triangles=len(tris),
+                           triangles_decided=int(np.count_nonzero(tri_state >= 0)),
+                           triangles_broken=int(np.count_nonzero(tri_state == 1)))
