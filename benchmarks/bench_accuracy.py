@@ -187,7 +187,7 @@ def main(argv=None) -> int:
 
     import pycolmap
 
-    from colmap_miho.pipeline.refine import refine_database
+    from colmap_miho.pipeline.run import refine_database
     from colmap_miho.recipe import load_recipe
     from colmap_miho.reporting.gt_model import load_gt_poses
 

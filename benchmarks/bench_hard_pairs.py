@@ -18,7 +18,7 @@ averaged over the pairs where they are defined; ``sec`` / ``cpu`` = mean wall / 
 seconds per pair (median of ``--runs`` calls; the filter is single-threaded numpy, so on a
 shared machine ``cpu`` is the better estimate of the time on an idle one). OpenCV MAGSAC++
 (``cv2.USAC_MAGSAC``, one homography, 0.75 px as in the paper's protocol and 3 px) runs
-beside the filters. The reference implementation's numbers quoted in issue 13 (its own
+beside the filters. The reference implementation's quoted numbers (on its own
 planar pair set, not these pairs) are printed for comparison; ``--reference DIR`` runs the
 authors' MOP+MiHo and MOP themselves on these pairs, from a checkout of
 github.com/fb82/MiHo with its requirements (not shipped here;
@@ -57,11 +57,11 @@ OUTLIER_PX = 15.0
 GOOD_PX = 3.0
 LEVELS = (0.5, 0.8, 0.95)
 SEQUENCES = ("graf", "boat", "bikes", "leuven")
-# Issue 13: the authors' reference and peers on its planar pair set (outlier removal, keep@3).
+# Quoted: the authors' reference and peers on their own planar pair set (outlier removal, keep@3).
 # Seconds: the reference's 0.6 s per pair on this machine class.
 QUOTED = (
-    ("reference MOP+MiHo (issue 13's pairs)", 0.889, 0.883, "0.6"),
-    ("MAGSAC++ one H (issue 13's pairs)", 0.99, 0.79, ""),
+    ("reference MOP+MiHo (quoted, its own pairs)", 0.889, 0.883, "0.6"),
+    ("MAGSAC++ one H (quoted, its own pairs)", 0.99, 0.79, ""),
 )
 
 

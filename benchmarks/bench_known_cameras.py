@@ -38,7 +38,7 @@ AUCS = (0.5, 1.0, 2.0, 5.0)
 
 def refined_database(db: Path, image_dir: Path, folder: Path, recipe, overrides: list[str], workers: int) -> Path:
     """``refine_database`` output of ``db`` under ``folder``, cached by recipe and overrides."""
-    from colmap_miho.pipeline.refine import refine_database
+    from colmap_miho.pipeline.run import refine_database
 
     tag = hashlib.sha1(" ".join([recipe.name, *overrides]).encode()).hexdigest()[:8]
     out = folder / f"refined_{recipe.name}_{tag}.db"

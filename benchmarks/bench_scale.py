@@ -1,6 +1,6 @@
 """How `colmap-miho refine` grows with the scene: time, memory, image reads, walk depth.
 
-Synthetic aerial surveys (``colmap_miho.adapters.synthetic.make_survey_scene``: serpentine
+Synthetic aerial surveys (``miho_bench.synthetic.make_survey_scene``: serpentine
 flight lines, a point seen by the few images around it, pairs = next ``--sequential`` images
 plus ``--nearest`` nearest camera centres, images rendered by ``pycolmap.synthesize_images``)
 at ``--sizes`` images, and the real scenes of ``../shared/data`` (``--scenes``, pycolmap SIFT +
@@ -188,7 +188,7 @@ class Scene:
 def synthetic_scene(work: Path, num_images: int, *, seed: int, sequential: int, nearest: int,
                     points_per_image: int) -> Scene:
     """The cached survey scene of ``num_images`` images (built on first use)."""
-    from colmap_miho.adapters.synthetic import make_survey_scene
+    from miho_bench.synthetic import make_survey_scene
 
     params = {"num_images": num_images, "seed": seed, "sequential": sequential, "nearest": nearest,
               "points_per_image": points_per_image}

@@ -55,8 +55,8 @@ def main(argv=None) -> int:
 
     import pycolmap
 
+    from colmap_miho.pipeline.jobs import JobOptions, compare_databases
     from colmap_miho.recipe import load_recipe
-    from colmap_miho.reporting.compare import compare_databases
     from colmap_miho.sfm import extract_and_match
 
     pycolmap.logging.minloglevel = 1
@@ -76,7 +76,8 @@ def main(argv=None) -> int:
         t_feat = time.perf_counter() - t0
         t0 = time.perf_counter()
         res = compare_databases(db, root / "images", work / f"compare{args.tag}", gt=root, recipe=recipe,
-                                workers=args.workers, repeats=args.repeats, gt_cameras=args.camera_from_gt)
+                                options=JobOptions(workers=args.workers, repeats=args.repeats,
+                                                   gt_cameras=args.camera_from_gt))
         t_cmp = time.perf_counter() - t0
         for side in ("baseline", "refined"):
             rep = getattr(res, side)

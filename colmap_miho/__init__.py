@@ -20,13 +20,9 @@ from __future__ import annotations
 
 import importlib
 import logging
-from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING
 
-try:
-    __version__ = version("colmap-miho")  # the one version source: pyproject.toml
-except PackageNotFoundError:  # a source tree that is not installed
-    __version__ = "0+unknown"
+from .version import __version__
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
@@ -35,11 +31,11 @@ if TYPE_CHECKING:  # what static tools see; at run time the table below imports 
     from .filtering.api import FilterResult, filter_matches
     from .filtering.config import FilterConfig
     from .pipeline import PipelineConfig, RefineSummary, refine_database
+    from .pipeline.jobs import compare_databases
     from .recipe import Recipe, load_recipe
     from .refinement.config import NCCConfig, TrackConfig
     from .refinement.ncc import RefineResult, refine_pair
     from .refinement.tracks import TrackRefineResult, refine_tracks
-    from .reporting.compare import compare_databases
     from .reporting.report import build_report
     from .sfm import MappingResult, extract_and_match, run_mapping
 
@@ -64,7 +60,7 @@ _LAZY = {
     "run_mapping": "colmap_miho.sfm",
     "MappingResult": "colmap_miho.sfm",
     "build_report": "colmap_miho.reporting.report",
-    "compare_databases": "colmap_miho.reporting.compare",
+    "compare_databases": "colmap_miho.pipeline.jobs",
 }
 
 __all__ = [

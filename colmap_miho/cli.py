@@ -27,8 +27,8 @@ import sys
 import threading
 import time
 
-from . import __version__
 from .errors import Terminated, UserError
+from .version import __version__
 
 log = logging.getLogger("colmap_miho")
 
@@ -156,8 +156,11 @@ def _notes(exc: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; return the process exit code (0 ok, 1 failed run, 2 bad input, 130 Ctrl-C,
-    143 SIGTERM)."""
+    """Run the CLI; return the process exit code: 0 ok, 1 failed run or internal error (any
+    exception that is not a :class:`~colmap_miho.errors.UserError`, e.g. a plain ``ValueError``
+    from a bug, with the ``-v`` hint), 2 bad input (a ``UserError`` such as
+    :class:`~colmap_miho.errors.InvalidInput`, or a missing / unwritable path), 130 Ctrl-C,
+    143 SIGTERM."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):
@@ -180,8 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:
         log.error("%s", _one_line(exc))
         return exc.exit_code
-    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError,
-            PermissionError) as exc:
+    except (FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, PermissionError) as exc:
+        # a path the user gave that is missing, of the wrong kind or not allowed
         log.error("%s", _one_line(exc))
         return 2
     except Terminated as exc:

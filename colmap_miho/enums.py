@@ -5,6 +5,8 @@ from __future__ import annotations
 from enum import Enum
 from typing import TypeVar
 
+from .errors import InvalidInput
+
 _E = TypeVar("_E", bound="StrEnum")
 
 
@@ -23,7 +25,7 @@ class StrEnum(str, Enum):
             return cls(str(value).lower())
         except ValueError:
             choices = ", ".join(m.value for m in cls)
-            raise ValueError(f"{name}={value!r} is not one of: {choices}") from None
+            raise InvalidInput(f"{name}={value!r} is not one of: {choices}") from None
 
     @classmethod
     def values(cls) -> list[str]:
@@ -78,3 +80,57 @@ class CameraMode(StrEnum):
     PER_IMAGE = "per_image"
     PER_FOLDER = "per_folder"
     AUTO = "auto"  # COLMAP's: by image size and EXIF
+
+
+class Sampling(StrEnum):
+    """How the filter's RANSAC draws minimal samples."""
+
+    LOCAL = "local"  # NAPSAC-style: a share of the samples around a seed match
+    UNIFORM = "uniform"  # the paper's
+
+
+class MihoThreshold(StrEnum):
+    """What MiHo's thresholds t_l and t_h bound."""
+
+    HALF = "half"  # each half-match's transfer errors (paper, reference)
+    FULL = "full"  # the full match: twice the largest half-match error
+    FULL_SEARCH = "full_search"  # full match while MOP searches, half-matches at keep time
+
+
+class Assignment(StrEnum):
+    """Rule giving each kept match one homography (paper App. A.4)."""
+
+    PAPER = "paper"
+    MEDIAN = "median"
+    REFERENCE = "reference"
+
+
+class Perturbations(StrEnum):
+    """Template shape sets of the NCC refinement (paper App. E, A_{rho,f})."""
+
+    NONE = "none"  # the patch homography pair itself (K = 1)
+    SMALL = "small"  # identity, rotations by +-15 degrees, factors 5/6 and 6/5 (K = 5)
+    PAPER = "paper"  # 5 rotations x 5 factors of the paper (K = 25)
+
+
+class Rectification(StrEnum):
+    """Patch homography pairs the track walk searches each match with."""
+
+    FILTER = "filter"  # the filter's plane of the match
+    LOCAL = "local"  # a local affine fit to the nearest matches of its cluster
+    BOTH = "both"  # both pairs; the higher NCC peak wins
+
+
+class CheckRule(StrEnum):
+    """How the second (``check_radius``) template search acts on a move."""
+
+    AGREE = "agree"  # the move stays only if both template sizes agree
+    NCC = "ncc"  # the second template's move replaces the first where its NCC is clearly higher
+
+
+class RunnerKind(StrEnum):
+    """Where a run's parallel work runs (the summary's ``runner``)."""
+
+    INLINE = "inline"  # in this process
+    PROCESSES = "processes"  # a local process pool
+    DASK = "dask"  # a Dask cluster, local or remote

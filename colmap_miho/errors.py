@@ -9,6 +9,13 @@ class UserError(Exception):
     exit_code = 2
 
 
+class InvalidInput(UserError, ValueError):
+    """A bad value from the user: an option, a recipe value, or the contents of an input file.
+
+    A ``ValueError`` too, so that callers of the Python API catch it as one; the CLI reports it
+    on one line with exit code 2, while any other ``ValueError`` is an internal error (exit 1)."""
+
+
 class DatabaseError(UserError):
     """The database is missing, not a COLMAP database, locked, or inconsistent."""
 

@@ -1,8 +1,10 @@
 """Optional dependencies (the pyproject extras): import one, or fail with one line naming the extra.
 
 Extras: ``demo`` (scikit-image for the demo scene's textures, matplotlib for its plots),
-``plots`` (matplotlib: compare's figures, point-cloud pictures without open3d),
-``pointcloud`` (open3d, see :mod:`colmap_miho.reporting.pointcloud`).
+``plots`` (matplotlib: compare's figures, point-cloud pictures without open3d; plotly:
+``report.html``; the ``demo`` extra includes it),
+``pointcloud`` (open3d, see :mod:`colmap_miho.reporting.pointcloud`), ``dask`` (Dask's
+``distributed``: ``refine --dask``).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from types import ModuleType
 
 from .errors import UserError
 
-PACKAGE_OF = {"matplotlib": "matplotlib", "skimage": "scikit-image", "open3d": "open3d"}
+PACKAGE_OF = {"matplotlib": "matplotlib", "skimage": "scikit-image", "open3d": "open3d", "distributed": "distributed"}
 
 
 class MissingExtraError(UserError):

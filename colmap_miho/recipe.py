@@ -17,8 +17,9 @@ from enum import Enum
 from importlib import resources
 from pathlib import Path
 
+from .errors import InvalidInput
 from .filtering.config import FilterConfig
-from .pipeline.config import PipelineConfig
+from .pipeline_config import PipelineConfig
 from .refinement.config import NCCConfig, TrackConfig
 from .sfm import MappingConfig
 
@@ -63,12 +64,12 @@ def _read_recipe_text(name_or_path: str) -> tuple[str, str]:
     path = Path(name_or_path)
     if path.suffix == ".toml" or path.exists():
         if not path.is_file():
-            raise ValueError(f"recipe file not found: {path}")
+            raise InvalidInput(f"recipe file not found: {path}")
         return path.stem, path.read_text(encoding="utf-8")
     root = resources.files("colmap_miho.recipes")
     candidate = root / f"{name_or_path}.toml"
     if not candidate.is_file():
-        raise ValueError(
+        raise InvalidInput(
             f"unknown recipe {name_or_path!r}; shipped recipes: {', '.join(available_recipes())}"
             " (or give a path to a .toml file)"
         )
@@ -99,24 +100,24 @@ def _coerce(value, annotation, where: str):
             return True
         if text in ("0", "false", "no", "off"):
             return False
-        raise ValueError(f"{where}: expected true or false, got {value!r}")
+        raise InvalidInput(f"{where}: expected true or false, got {value!r}")
     if annotation is int:
         if isinstance(value, bool):
-            raise ValueError(f"{where}: expected an integer, got {value!r}")
+            raise InvalidInput(f"{where}: expected an integer, got {value!r}")
         try:
             as_float = float(value)
         except (TypeError, ValueError):
-            raise ValueError(f"{where}: expected an integer, got {value!r}") from None
+            raise InvalidInput(f"{where}: expected an integer, got {value!r}") from None
         if not as_float.is_integer():
-            raise ValueError(f"{where}: expected an integer, got {value!r}")
+            raise InvalidInput(f"{where}: expected an integer, got {value!r}")
         return int(as_float)
     if annotation is float:
         if isinstance(value, bool):
-            raise ValueError(f"{where}: expected a number, got {value!r}")
+            raise InvalidInput(f"{where}: expected a number, got {value!r}")
         try:
             return float(value)
         except (TypeError, ValueError):
-            raise ValueError(f"{where}: expected a number, got {value!r}") from None
+            raise InvalidInput(f"{where}: expected a number, got {value!r}") from None
     if isinstance(annotation, type) and issubclass(annotation, Enum):
         return annotation.parse(value, where)  # type: ignore[attr-defined]
     if annotation is str:
@@ -135,7 +136,7 @@ def _build_section(section: str, values: dict, base=None):
     kwargs = {}
     for key, value in values.items():
         if key not in types_ or key not in names:
-            raise ValueError(
+            raise InvalidInput(
                 f"unknown key {section}.{key}; valid keys: "
                 + ", ".join(f"{section}.{n}" for n in names)
             )
@@ -145,7 +146,7 @@ def _build_section(section: str, values: dict, base=None):
             return cls(**kwargs)
         return dataclasses.replace(base, **kwargs)
     except ValueError as exc:
-        raise ValueError(f"[{section}] {exc}") from None
+        raise InvalidInput(f"[{section}] {exc}") from None
 
 
 def parse_overrides(overrides: list[str] | None) -> dict[str, dict[str, str]]:
@@ -153,16 +154,16 @@ def parse_overrides(overrides: list[str] | None) -> dict[str, dict[str, str]]:
     parsed: dict[str, dict[str, str]] = {}
     for item in overrides or []:
         if "=" not in item:
-            raise ValueError(f"--set expects section.key=value, got {item!r}")
+            raise InvalidInput(f"--set expects section.key=value, got {item!r}")
         key, value = item.split("=", 1)
         if "." not in key:
-            raise ValueError(
+            raise InvalidInput(
                 f"--set key {key!r} needs a section: one of {', '.join(SECTIONS)} "
                 "(for example filter.t_l=12)"
             )
         section, name = key.strip().split(".", 1)
         if section not in SECTIONS:
-            raise ValueError(f"--set {key!r}: unknown section {section!r}; one of {', '.join(SECTIONS)}")
+            raise InvalidInput(f"--set {key!r}: unknown section {section!r}; one of {', '.join(SECTIONS)}")
         parsed.setdefault(section, {})[name.strip()] = value.strip()
     return parsed
 
@@ -178,16 +179,16 @@ def load_recipe(name_or_path: str | None = None, overrides: list[str] | None = N
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"recipe {name!r} is not valid TOML: {exc}") from None
+        raise InvalidInput(f"recipe {name!r} is not valid TOML: {exc}") from None
     description = str(data.pop("description", ""))
     data.pop("name", None)
     for section in data:
         if section not in SECTIONS:
-            raise ValueError(
+            raise InvalidInput(
                 f"recipe {name!r}: unknown table [{section}]; valid tables: {', '.join(SECTIONS)}"
             )
         if not isinstance(data[section], dict):
-            raise ValueError(f"recipe {name!r}: {section} must be a table")
+            raise InvalidInput(f"recipe {name!r}: {section} must be a table")
     configs = {s: _build_section(s, data.get(s, {})) for s in SECTIONS}
     for section, values in parse_overrides(overrides).items():
         configs[section] = _build_section(section, values, base=configs[section])

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from .enums import CameraMode, Mapper, StrEnum
-from .errors import RunFailed
+from .errors import InvalidInput, RunFailed
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +137,7 @@ def parse_camera_params(model: str, params: str) -> tuple[float, ...]:
         ValueError: unknown model, a value that is not a finite number, or a count that does not
             fit the model (one line naming the model and the count it takes).
     """
-    from .adapters.database import model_num_params
+    from .adapters.cameras import model_num_params
 
     n = model_num_params(model)
     if not params.strip():
@@ -147,12 +147,12 @@ def parse_camera_params(model: str, params: str) -> tuple[float, ...]:
         try:
             v = float(item)
         except ValueError:
-            raise ValueError(f"camera_params: {item.strip()!r} is not a number (in {params!r})") from None
+            raise InvalidInput(f"camera_params: {item.strip()!r} is not a number (in {params!r})") from None
         if not math.isfinite(v):
-            raise ValueError(f"camera_params: {item.strip()!r} is not a finite number")
+            raise InvalidInput(f"camera_params: {item.strip()!r} is not a finite number")
         values.append(v)
     if len(values) != n:
-        raise ValueError(f"camera_params: camera model {model.upper()} takes {n} parameters, got {len(values)} "
+        raise InvalidInput(f"camera_params: camera model {model.upper()} takes {n} parameters, got {len(values)} "
                          f"({params!r})")
     return tuple(values)
 
@@ -191,20 +191,20 @@ class MappingConfig:
         object.__setattr__(self, "refine_intrinsics", RefineIntrinsics.parse(self.refine_intrinsics,
                                                                              "refine_intrinsics"))
         if self.camera_params.strip() and not self.camera_model.strip():
-            raise ValueError("camera_params needs camera_model (the model the parameters belong to)")
+            raise InvalidInput("camera_params needs camera_model (the model the parameters belong to)")
         if self.camera_model.strip():
             parse_camera_params(self.camera_model, self.camera_params)
         if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+            raise InvalidInput(f"seed must be >= 0, got {self.seed}")
         if self.num_threads != -1 and self.num_threads < 1:
-            raise ValueError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
+            raise InvalidInput(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
         if self.min_num_matches < 0:
-            raise ValueError(f"min_num_matches must be >= 0, got {self.min_num_matches}")
+            raise InvalidInput(f"min_num_matches must be >= 0, got {self.min_num_matches}")
 
     def intrinsics(self):
-        """The :class:`~colmap_miho.adapters.database.CameraIntrinsics` to write into every
+        """The :class:`~colmap_miho.adapters.cameras.CameraIntrinsics` to write into every
         camera, or None when ``camera_model`` is empty."""
-        from .adapters.database import CameraIntrinsics
+        from .adapters.cameras import CameraIntrinsics
 
         if not self.camera_model.strip():
             return None
@@ -234,7 +234,7 @@ def run_mapping(
             binary model in it is replaced; a text model (a ground truth, say) is refused.
         config: mapper, seed, threads and ``min_num_matches`` (default :class:`MappingConfig`).
         mapper, seed: when given, replace ``config.mapper`` / ``config.seed``.
-        intrinsics: image name -> :class:`~colmap_miho.adapters.database.CameraIntrinsics`
+        intrinsics: image name -> :class:`~colmap_miho.adapters.cameras.CameraIntrinsics`
             written into those images' cameras of the copy after ``config.camera_model`` (e.g.
             the GT cameras, :func:`colmap_miho.reporting.compare.gt_intrinsics`).
         progress: tqdm bar of registered images (incremental only).
@@ -253,7 +253,7 @@ def run_mapping(
 
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
-        cfg = replace(cfg, mapper=cfg.mapper if mapper is None else mapper,
+        cfg = replace(cfg, mapper=cfg.mapper if mapper is None else Mapper.parse(mapper, "mapper"),
                       seed=cfg.seed if seed is None else seed)
     database = check_database_path(database)
     image_dir = Path(image_dir)
@@ -335,14 +335,14 @@ def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir:
 
     refine = _REFINE_FLAGS.get(cfg.refine_intrinsics)
     if cfg.mapper == Mapper.GLOBAL:
-        opts = pycolmap.GlobalPipelineOptions()
-        opts.random_seed = int(cfg.seed)
-        opts.num_threads = int(cfg.num_threads)
-        opts.min_num_matches = int(cfg.min_num_matches)
+        gopts = pycolmap.GlobalPipelineOptions()
+        gopts.random_seed = int(cfg.seed)
+        gopts.num_threads = int(cfg.num_threads)
+        gopts.min_num_matches = int(cfg.min_num_matches)
         if refine is not None:
-            ba = opts.mapper.bundle_adjustment
+            ba = gopts.mapper.bundle_adjustment
             ba.refine_focal_length, ba.refine_principal_point, ba.refine_extra_params = refine
-        return pycolmap.global_mapping(str(database), str(image_dir), str(models_dir), opts)
+        return pycolmap.global_mapping(str(database), str(image_dir), str(models_dir), gopts)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = int(cfg.seed)
     opts.num_threads = int(cfg.num_threads)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import math
 
+from .errors import InvalidInput
+
 
 def require_finite(cfg) -> None:
     """Refuse ``inf`` and ``nan`` in every float field of the dataclass instance ``cfg``
@@ -16,7 +18,7 @@ def require_finite(cfg) -> None:
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
         if isinstance(value, float) and not math.isfinite(value):
-            raise ValueError(f"{f.name} must be a finite number, got {value}")
+            raise InvalidInput(f"{f.name} must be a finite number, got {value}")
 
 
 def require_at_most(name: str, value, limit, why: str) -> None:
@@ -26,4 +28,4 @@ def require_at_most(name: str, value, limit, why: str) -> None:
         ValueError: names the field, the value, the limit and ``why``.
     """
     if value is not None and value > limit:
-        raise ValueError(f"{name} must be <= {limit} ({why}), got {value}")
+        raise InvalidInput(f"{name} must be <= {limit} ({why}), got {value}")

@@ -1,7 +1,7 @@
 """Example: filter and refine a COLMAP database from Python, then map it.
 
-Builds a small synthetic scene (pycolmap, offline, with planted outlier matches and 1 px
-keypoint noise) unless a database and an image folder are given, runs
+Renders the small built-in demo scene (the one ``colmap-miho demo`` uses; needs the ``demo``
+extra) and matches it with COLMAP's SIFT, unless a database and an image folder are given, runs
 ``colmap_miho.pipeline.refine_database`` (the input is never modified; the result is written
 beside it as ``<stem>.miho.db``) and maps the result with pycolmap.
 
@@ -25,14 +25,16 @@ def main(argv: list[str] | None = None) -> int:
 
     import pycolmap
 
-    from colmap_miho.adapters.synthetic import make_synthetic_scene
-    from colmap_miho.pipeline.refine import refine_database
+    from colmap_miho.pipeline.run import refine_database
     from colmap_miho.recipe import load_recipe
+    from colmap_miho.reporting.demo_scene import make_demo_scene
+    from colmap_miho.sfm import extract_and_match
 
     work = args.out or Path(tempfile.mkdtemp(prefix="colmap_miho_example_"))
     if args.database is None:
-        scene = make_synthetic_scene(work / "scene", num_images=4, num_points=120, outlier_ratio=0.2, noise_px=1.0)
-        database, images = scene.database, scene.image_dir
+        scene = make_demo_scene(work / "scene", num_images=4, width=480, height=360)
+        database, images = work / "database.db", scene.image_dir
+        extract_and_match(images, database, max_features=1024)
     else:
         database, images = args.database, args.images
 

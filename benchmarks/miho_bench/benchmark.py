@@ -1,4 +1,4 @@
-"""The paper's match-filtering benchmark on real pairs with ground truth (issue: evaluation).
+"""The paper's match-filtering benchmark on real pairs with ground truth.
 
 For every front end (offline SIFT+NNR, corner-like GFTT, COLMAP's own matches), every dataset
 and every GT pair it runs a list of *pipelines* - no filter, MAGSAC, MOP / MOP* / MOP+MiHo /

@@ -95,10 +95,10 @@ def colmap_verification_mask(pts1: np.ndarray, pts2: np.ndarray, shape1: tuple[i
     """COLMAP's own two-view geometric verification (``pycolmap.estimate_two_view_geometry``,
     default options). Cameras: SIMPLE_PINHOLE from K when given, else a 1.2 * max(w, h) focal
     prior. pycolmap expects COLMAP coordinates (+0.5), converted by the database layer's
-    :func:`~colmap_miho.adapters.database.pixel_centre_to_colmap`."""
+    :func:`~colmap_miho.adapters.conventions.pixel_centre_to_colmap`."""
     import pycolmap
 
-    from colmap_miho.adapters.database import pixel_centre_to_colmap
+    from colmap_miho.adapters.conventions import pixel_centre_to_colmap
 
     n = len(pts1)
     if n < 8:

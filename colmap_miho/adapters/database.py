@@ -1,9 +1,9 @@
 """The only module that creates, reads and writes COLMAP databases (through pycolmap).
 
-It is also the only place with the half-pixel conversion: COLMAP stores keypoints with the
-image's top-left corner at (0, 0), so the centre of the top-left pixel is (0.5, 0.5);
-colmap-miho's arrays put pixel centres at integers (OpenCV, kornia). ``read`` subtracts
-:data:`HALF_PIXEL`, ``write`` adds it, each exactly once.
+It is also the only place that applies the half-pixel conversion of :mod:`.conventions`:
+COLMAP stores keypoints with the image's top-left corner at (0, 0), so the centre of the
+top-left pixel is (0.5, 0.5); colmap-miho's arrays put pixel centres at integers (OpenCV,
+kornia). ``read`` subtracts :data:`~.conventions.HALF_PIXEL`, ``write`` adds it, each exactly once.
 
 Open only a working copy (see :mod:`colmap_miho.adapters.safety`): pycolmap migrates the schema on
 open and creates an empty database for a missing path. Never hold a Python ``sqlite3``
@@ -22,36 +22,15 @@ from typing import Any
 import numpy as np
 
 from ..enums import MatchSource
-from ..errors import DatabaseError
+from ..errors import DatabaseError, InvalidInput
+from .cameras import CameraIntrinsics, camera_from
+from .conventions import colmap_to_pixel_centre, image_pair, pixel_centre_to_colmap
+from .database_build import DatabaseBuilder
 from .safety import check_database_path
 
 log = logging.getLogger(__name__)
 
-HALF_PIXEL = 0.5
 REQUIRED_TABLES = ("cameras", "images", "keypoints", "matches", "two_view_geometries")
-MAX_IMAGE_ID = 2147483647
-
-
-def colmap_to_pixel_centre(xy: np.ndarray) -> np.ndarray:
-    """COLMAP keypoint coordinates (N, 2) -> colmap-miho's (integer = pixel centre), float64."""
-    return np.asarray(xy, dtype=np.float64) - HALF_PIXEL
-
-
-def pixel_centre_to_colmap(xy: np.ndarray) -> np.ndarray:
-    """colmap-miho coordinates (N, 2) (integer = pixel centre) -> COLMAP's, float64."""
-    return np.asarray(xy, dtype=np.float64) + HALF_PIXEL
-
-
-def pair_id(image_id1: int, image_id2: int) -> int:
-    """COLMAP's pair id: 2147483647 * min + max."""
-    a, b = sorted((int(image_id1), int(image_id2)))
-    return MAX_IMAGE_ID * a + b
-
-
-def image_pair(pid: int) -> tuple[int, int]:
-    """Inverse of :func:`pair_id`: (smaller image id, larger image id)."""
-    pid = int(pid)
-    return pid // MAX_IMAGE_ID, pid % MAX_IMAGE_ID
 
 
 def validate_database(path: str | Path, name: str | Path | None = None) -> None:
@@ -133,11 +112,12 @@ class PairRecord:
 _KEEP_MODEL_CONFIGS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
 
 
-class ColmapDatabase:
+class ColmapDatabase(DatabaseBuilder):
     """A pycolmap handle on a (working copy of a) COLMAP database, with array helpers.
 
     All coordinates in and out are colmap-miho's: (x, y) float64 pixels, integer = pixel
     centre. Matches are uint32 (M, 2) keypoint indices ordered (image_id1, image_id2) as given.
+    The methods that fill a new database come from :class:`~.database_build.DatabaseBuilder`.
 
     Args:
         path: an existing COLMAP database file (checked first: pycolmap would create it).
@@ -291,7 +271,7 @@ class ColmapDatabase:
         xy = np.asarray(xy, dtype=np.float64)
         moved = np.asarray(moved, dtype=bool)
         if xy.shape != (raw.shape[0], 2) or moved.shape != (raw.shape[0],):
-            raise ValueError(
+            raise InvalidInput(
                 f"image {image_id}: xy must be ({raw.shape[0]}, 2) and moved ({raw.shape[0]},), "
                 f"got {xy.shape} and {moved.shape}"
             )
@@ -362,105 +342,6 @@ class ColmapDatabase:
         tvg.H = H if H is not None and np.all(np.isfinite(H)) else np.eye(3)
         return tvg
 
-    # -- building a new database (hloc import, synthetic scenes) ----------------------------
-    def add_camera(self, model: str, width: int, height: int, focal: float) -> tuple[int, int]:
-        """Write a camera of COLMAP model ``model`` (``focal`` prior in pixels, pycolmap's
-        default principal point and distortion) and a rig with it as reference sensor.
-
-        Returns:
-            ``(camera_id, rig_id)``.
-
-        Raises:
-            ValueError: ``model`` is not a COLMAP camera model (the message names it).
-        """
-        pc = self._pycolmap
-        try:
-            cam = pc.Camera.create_from_model_name(0, model, float(focal), int(width), int(height))
-        except ValueError:
-            raise ValueError(f"camera_model={model!r} is not a COLMAP camera model "
-                             "(e.g. SIMPLE_RADIAL, PINHOLE, OPENCV)") from None
-        camera_id = self.handle.write_camera(cam)
-        rig = pc.Rig()
-        rig.add_ref_sensor(pc.sensor_t(pc.SensorType.CAMERA, camera_id))
-        return int(camera_id), int(self.handle.write_rig(rig))
-
-    def add_image(self, name: str, camera_id: int, rig_id: int) -> int:
-        """Write image ``name`` (path relative to the image folder) of camera ``camera_id`` and
-        its frame in rig ``rig_id``; returns the new image id."""
-        pc = self._pycolmap
-        image_id = self.handle.write_image(pc.Image(name=name, camera_id=int(camera_id)))
-        frame = pc.Frame()
-        frame.rig_id = int(rig_id)
-        frame.add_data_id(pc.data_t(pc.sensor_t(pc.SensorType.CAMERA, int(camera_id)), image_id))
-        self.handle.write_frame(frame)
-        return int(image_id)
-
-    def add_keypoints(self, image_id: int, xy: np.ndarray, affines: np.ndarray | None = None, *,
-                      colmap_coordinates: bool = False) -> None:
-        """Write the keypoints of a new image as COLMAP's 6 columns (x, y, a11, a12, a21, a22).
-
-        Args:
-            xy: float (N, 2) positions, integer = pixel centre (shifted by +0.5 here), or
-                already in COLMAP's convention when ``colmap_coordinates``.
-            affines: float (N, 2, 2) local affine frames (columns = local axes, pixels), or
-                None for the identity.
-        """
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        rows = np.zeros((len(xy), 6), dtype=np.float32)
-        rows[:, :2] = xy if colmap_coordinates else pixel_centre_to_colmap(xy)
-        if affines is not None:
-            rows[:, 2:] = np.asarray(affines, dtype=np.float32).reshape(-1, 4)
-        else:
-            rows[:, 2], rows[:, 5] = 1.0, 1.0
-        self.handle.write_keypoints(int(image_id), rows)
-
-    def add_matches(self, image_id1: int, image_id2: int, matches: np.ndarray, *,
-                    as_inliers: bool = False) -> None:
-        """Write the matches of a new pair, uint32 (M, 2) keypoint indices ordered
-        (image_id1, image_id2); ``as_inliers`` also stores them all as the inliers of an
-        UNCALIBRATED two-view geometry (no verification)."""
-        m = np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2)
-        self.handle.write_matches(int(image_id1), int(image_id2), m)
-        if as_inliers:
-            tvg = self._pycolmap.TwoViewGeometry()
-            tvg.config = self._pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
-            tvg.inlier_matches = m
-            self.handle.write_two_view_geometry(int(image_id1), int(image_id2), tvg)
-
-    def synthesize(self, dataset_options, noise_options=None):
-        """Fill this new database with ``pycolmap.synthesize_dataset(dataset_options)``.
-
-        With ``noise_options`` (``pycolmap.SyntheticNoiseOptions``) the stored keypoints are
-        then moved by ``pycolmap.synthesize_noise``.
-
-        Returns:
-            The noise-free ground-truth ``pycolmap.Reconstruction`` (COLMAP coordinates).
-        """
-        pc = self._pycolmap
-        rec = pc.synthesize_dataset(dataset_options, self.handle)
-        gt = pc.Reconstruction(rec)
-        if noise_options is not None:
-            pc.synthesize_noise(noise_options, rec, self.handle)
-        return gt
-
-    def store_raw_matches_as_inliers(self) -> None:
-        """Make every pair's two-view-geometry inliers equal to its raw ``matches`` (as a weak
-        geometric verification would); the pairs must have a two-view geometry already."""
-        pids, arrays = self.handle.read_all_matches()
-        for pid, m in zip(pids, arrays, strict=True):
-            i, j = image_pair(pid)
-            tvg = self.handle.read_two_view_geometry(i, j)
-            tvg.inlier_matches = np.asarray(m, np.uint32)
-            self.handle.update_two_view_geometry(i, j, tvg)
-
-    def keep_keypoint_columns(self, columns: int) -> None:
-        """Rewrite every image's keypoints with their first ``columns`` columns (2, 4 or 6)."""
-        if columns not in (2, 4, 6):
-            raise ValueError(f"columns must be 2, 4 or 6, got {columns}")
-        for record in self.images():
-            kp = self.raw_keypoints(record.image_id)
-            self.handle.update_keypoints(record.image_id, np.ascontiguousarray(kp[:, :columns]))
-
     def delete_two_view_geometries(self, pairs: list[tuple[int, int]]) -> None:
         """Delete the two-view geometry rows of ``pairs`` (before COLMAP re-verification)."""
         for i, j in pairs:
@@ -488,63 +369,6 @@ def verify_geometry(path: str | Path, *, seed: int = 0) -> None:
     opts = pycolmap.TwoViewGeometryOptions()
     opts.ransac.random_seed = int(seed)
     pycolmap.geometric_verification(str(path), two_view_geometry_options=opts)
-
-
-# --------------------------------------------------------------------------- camera intrinsics
-@dataclass(frozen=True, kw_only=True)
-class CameraIntrinsics:
-    """Intrinsics to write into a database camera.
-
-    Attributes:
-        model: COLMAP camera model name (``PINHOLE``, ``SIMPLE_RADIAL``, ...).
-        params: the model's parameters in COLMAP's order and pixel convention (the image's
-            top-left corner at (0, 0)); empty = keep the camera's mean focal length, principal
-            point at the image centre, zero distortion.
-        width, height: image size in pixels the parameters belong to; None = not checked.
-    """
-
-    model: str
-    params: tuple[float, ...] = ()
-    width: int | None = None
-    height: int | None = None
-
-    def __post_init__(self) -> None:
-        if (self.width is None) != (self.height is None):
-            raise ValueError(f"camera intrinsics: give width and height together, got {self.width}x{self.height}")
-
-
-def model_num_params(model: str) -> int:
-    """Number of parameters of the COLMAP camera model ``model`` (a name, any case).
-
-    Raises:
-        ValueError: unknown model name (the message lists the known ones).
-    """
-    import pycolmap
-
-    names = [n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"]
-    if str(model).upper() not in names:
-        raise ValueError(f"unknown camera model {model!r}; one of: {', '.join(names)}")
-    return len(pycolmap.Camera.create_from_model_name(1, str(model).upper(), 1.0, 2, 2).params)
-
-
-def _camera_from(old, intr: CameraIntrinsics):
-    import pycolmap
-
-    if (intr.width is not None and intr.height is not None
-            and (int(intr.width), int(intr.height)) != (int(old.width), int(old.height))):
-        raise DatabaseError(f"camera {old.camera_id} is {old.width}x{old.height} px but the intrinsics given "
-                            f"are for {intr.width}x{intr.height} px")
-    model = str(intr.model).upper()
-    new = pycolmap.Camera.create_from_model_name(int(old.camera_id), model, float(old.mean_focal_length()),
-                                                 int(old.width), int(old.height))
-    if intr.params:
-        if len(intr.params) != len(new.params):
-            raise ValueError(f"camera model {model} takes {len(new.params)} parameters, got {len(intr.params)}")
-        new.params = [float(v) for v in intr.params]
-        new.has_prior_focal_length = True
-    else:
-        new.has_prior_focal_length = bool(old.has_prior_focal_length)
-    return new
 
 
 def write_camera_intrinsics(path: str | Path, intrinsics: CameraIntrinsics | dict[str, CameraIntrinsics]) -> int:
@@ -579,7 +403,7 @@ def write_camera_intrinsics(path: str | Path, intrinsics: CameraIntrinsics | dic
                     raise DatabaseError(f"camera {cam} is shared by images with different intrinsics "
                                         f"(e.g. {image.name}); extract with one camera per image")
                 wanted[cam] = intr
-        new = {cam: _camera_from(cameras[cam], intr) for cam, intr in wanted.items()}
+        new = {cam: camera_from(cameras[cam], intr) for cam, intr in wanted.items()}
         for camera in new.values():
             db.handle.update_camera(camera)
     log.debug("wrote the intrinsics of %d camera(s) into %s", len(new), path)

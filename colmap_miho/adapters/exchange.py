@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..enums import MatchSource
+from ..errors import InvalidInput
 from . import hloc
 from .database import ColmapDatabase, validate_database, verify_geometry
 from .images import image_size
@@ -115,7 +116,7 @@ def import_hloc(
     if not images.is_dir():
         raise NotADirectoryError(f"{images}: image folder not found")
     if keypoint_origin not in KEYPOINT_ORIGINS:
-        raise ValueError(f"keypoint_origin={keypoint_origin!r} is not one of: {', '.join(KEYPOINT_ORIGINS)}")
+        raise InvalidInput(f"keypoint_origin={keypoint_origin!r} is not one of: {', '.join(KEYPOINT_ORIGINS)}")
     pair_list = hloc.read_pairs_file(pairs) if pairs is not None else None
     try:
         # a private folder beside the new database (removed by the next run after a kill -9);
@@ -156,7 +157,7 @@ def _write_images(db: ColmapDatabase, fh, images: Path, camera_model: str, singl
     ncams = 0
     for name in tqdm(hloc.list_feature_images(fh), desc="images", unit="img", disable=not progress):
         if leaves_folder(name):
-            raise ValueError(f"image {name!r} of {fh.filename} is named outside the image folder {images} "
+            raise InvalidInput(f"image {name!r} of {fh.filename} is named outside the image folder {images} "
                              "(an absolute name or one with '..')")
         path = images / name
         if not path.is_file():
@@ -165,7 +166,7 @@ def _write_images(db: ColmapDatabase, fh, images: Path, camera_model: str, singl
         if single_camera and shared is not None:
             cam_id, rig_id, first_size, first = shared
             if size != first_size:
-                raise ValueError(f"--single-camera: image {name!r} is {size[0]}x{size[1]} "
+                raise InvalidInput(f"--single-camera: image {name!r} is {size[0]}x{size[1]} "
                                  f"but {first!r} is {first_size[0]}x{first_size[1]}")
         else:
             cam_id, rig_id = db.add_camera(camera_model, size[0], size[1], FOCAL_PRIOR * max(size))
@@ -230,14 +231,14 @@ def export_hloc(
     database, features, matches = Path(database), Path(features), Path(matches)
     source = MatchSource.parse(source, "source")
     if layout not in EXPORT_LAYOUTS:
-        raise ValueError(f"layout={layout!r} is not one of: {', '.join(EXPORT_LAYOUTS)}")
+        raise InvalidInput(f"layout={layout!r} is not one of: {', '.join(EXPORT_LAYOUTS)}")
     for out in (features, matches):
         if out.exists() and not overwrite:
             raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
         if not out.parent.is_dir():
             raise NotADirectoryError(f"output folder does not exist: {out.parent}")
     if features.resolve() == matches.resolve():
-        raise ValueError("--features and --matches must be different files")
+        raise InvalidInput("--features and --matches must be different files")
     check_database_path(database)
     check_not_in_use(database)  # before the outputs' temporary files are created
 

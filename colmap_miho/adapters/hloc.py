@@ -31,6 +31,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from ..errors import InvalidInput
+
 log = logging.getLogger(__name__)
 
 MATCHES0 = "matches0"
@@ -53,11 +55,11 @@ def open_h5(path: str | Path, mode: str = "r") -> h5py.File:
     if mode == "r" and not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
     if mode == "r" and not h5py.is_hdf5(path):
-        raise ValueError(f"{path}: not an HDF5 file")
+        raise InvalidInput(f"{path}: not an HDF5 file")
     try:
         return h5py.File(path, mode)
     except OSError as exc:  # truncated or damaged: h5py's message does not name the file
-        raise ValueError(f"{path}: cannot open the HDF5 file, damaged or truncated ({exc})") from None
+        raise InvalidInput(f"{path}: cannot open the HDF5 file, damaged or truncated ({exc})") from None
 
 
 @dataclass(frozen=True)
@@ -98,7 +100,7 @@ def list_feature_images(h5: h5py.File) -> list[str]:
 
     h5.visititems(visit)
     if not names:
-        raise ValueError(f"{h5.filename}: no group with a 'keypoints' dataset (not a features file?)")
+        raise InvalidInput(f"{h5.filename}: no group with a 'keypoints' dataset (not a features file?)")
     return names
 
 
@@ -112,7 +114,7 @@ KEYPOINT_BYTES = 16 + 16 + 24
 
 def _dataset(h5: h5py.File, obj, what: str) -> h5py.Dataset:
     if not isinstance(obj, h5py.Dataset):
-        raise ValueError(f"{h5.filename}: {what} is a group, expected a dataset")
+        raise InvalidInput(f"{h5.filename}: {what} is a group, expected a dataset")
     return obj
 
 
@@ -120,13 +122,13 @@ def _check_numeric(h5: h5py.File, ds: h5py.Dataset, what: str, kinds: str = "fiu
     """Refuse a dataset whose dtype is not a real number (bool, complex, strings, compound)."""
     if ds.dtype.kind not in kinds:
         expected = "integers" if kinds == "iu" else "real numbers"
-        raise ValueError(f"{h5.filename}: {what} have dtype {ds.dtype}, expected {expected}")
+        raise InvalidInput(f"{h5.filename}: {what} have dtype {ds.dtype}, expected {expected}")
 
 
 def _check_budget(h5: h5py.File, nbytes: float, what: str, budget: int) -> None:
     """Refuse, before reading, a dataset whose arrays would take more than ``budget`` bytes."""
     if nbytes > budget:
-        raise ValueError(f"{h5.filename}: {what} would take {nbytes / 2**20:.0f} MiB in memory, more than the "
+        raise InvalidInput(f"{h5.filename}: {what} would take {nbytes / 2**20:.0f} MiB in memory, more than the "
                          f"budget of {budget / 2**20:.0f} MiB (a damaged or foreign file?)")
 
 
@@ -141,17 +143,17 @@ def read_features(h5: h5py.File, name: str, *, budget_bytes: int = READ_BUDGET_B
         ValueError: naming the file and the image.
     """
     if name not in h5 or not isinstance(h5[name], h5py.Group) or "keypoints" not in h5[name]:
-        raise ValueError(f"{h5.filename}: image {name!r} has no 'keypoints' group/dataset")
+        raise InvalidInput(f"{h5.filename}: image {name!r} has no 'keypoints' group/dataset")
     grp = h5[name]
     ds = _dataset(h5, grp["keypoints"], f"'keypoints' of image {name!r}")
     what = f"keypoints of image {name!r}"
     if len(ds.shape) != 2 or ds.shape[1] != 2:
-        raise ValueError(f"{h5.filename}: {what} have shape {ds.shape}, expected (N, 2)")
+        raise InvalidInput(f"{h5.filename}: {what} have shape {ds.shape}, expected (N, 2)")
     _check_numeric(h5, ds, what)
     _check_budget(h5, ds.shape[0] * KEYPOINT_BYTES, f"{what} ({ds.shape[0]} rows)", budget_bytes)
     kp = np.asarray(ds[()], dtype=np.float64)
     if not np.isfinite(kp).all():
-        raise ValueError(f"{h5.filename}: {what} contain NaN or inf")
+        raise InvalidInput(f"{h5.filename}: {what} contain NaN or inf")
     n = len(kp)
     scores = _optional_vector(h5, grp, "scores", n, name)
     shapes = None
@@ -169,11 +171,11 @@ def _optional_vector(h5: h5py.File, grp: h5py.Group, key: str, n: int, name: str
     ds = _dataset(h5, grp[key], f"'{key}' of image {name!r}")
     size = int(np.prod(ds.shape)) if ds.shape is not None else 0
     if size != n:
-        raise ValueError(f"{h5.filename}: image {name!r}: '{key}' has {size} values for {n} keypoints")
+        raise InvalidInput(f"{h5.filename}: image {name!r}: '{key}' has {size} values for {n} keypoints")
     _check_numeric(h5, ds, f"'{key}' of image {name!r}")
     v = np.asarray(ds[()], dtype=np.float32).reshape(-1)
     if not np.isfinite(v).all():
-        raise ValueError(f"{h5.filename}: image {name!r}: '{key}' contains NaN or inf")
+        raise InvalidInput(f"{h5.filename}: image {name!r}: '{key}' contains NaN or inf")
     return v
 
 
@@ -182,7 +184,7 @@ def write_features(h5: h5py.File, name: str, keypoints: np.ndarray, image_size: 
     ``image_size`` (width, height) as hloc stores it. Replaces an existing group of that name."""
     kp = np.asarray(keypoints, dtype=np.float32)
     if kp.ndim != 2 or kp.shape[1] != 2:
-        raise ValueError(f"keypoints of image {name!r} have shape {kp.shape}, expected (N, 2)")
+        raise InvalidInput(f"keypoints of image {name!r} have shape {kp.shape}, expected (N, 2)")
     if name in h5:
         del h5[name]
     grp = h5.create_group(name)
@@ -232,7 +234,7 @@ class _NameIndex:
         for n in self.names:
             other = self.by_flat.setdefault(flat_name(n), n)
             if other != n:
-                raise ValueError(f"images {other!r} and {n!r} have the same hloc pair name {flat_name(n)!r}")
+                raise InvalidInput(f"images {other!r} and {n!r} have the same hloc pair name {flat_name(n)!r}")
 
     def lookup(self, part: str) -> str | None:
         return part if part in self.names else self.by_flat.get(part)
@@ -249,9 +251,9 @@ class _NameIndex:
             half = [key[i + 1 :] if self.lookup(key[:i]) else key[:i]
                     for i, ch in enumerate(key) if ch in "/_" and (self.lookup(key[:i]) or self.lookup(key[i + 1 :]))]
             what = f"image {half[0]!r}" if len(half) == 1 else "an image"
-            raise ValueError(f"pair {key!r} in the matches file names {what} that is not in the features file")
+            raise InvalidInput(f"pair {key!r} in the matches file names {what} that is not in the features file")
         if len(found) > 1:
-            raise ValueError(f"pair {key!r} is ambiguous: it splits into {sorted(found)}")
+            raise InvalidInput(f"pair {key!r} is ambiguous: it splits into {sorted(found)}")
         return found.pop()
 
 
@@ -267,7 +269,7 @@ def _pair_datasets(h5: h5py.File) -> list[tuple[str, str]]:
             out.append((obj.parent.name.strip("/"), "hloc"))
         elif leaf != SCORES0 and MATCHES0 not in obj.parent:
             if len(obj.shape) != 2 or obj.shape[1] != 2 or not np.issubdtype(obj.dtype, np.integer):
-                raise ValueError(
+                raise InvalidInput(
                     f"{h5.filename}: dataset {path!r} (shape {obj.shape}, {obj.dtype}) is neither hloc's "
                     f"'{MATCHES0}' nor a deep-image-matching (M, 2) integer match array (not a matches file?)"
                 )
@@ -286,9 +288,10 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
         grp = h5[key]
         ds = _dataset(h5, grp[MATCHES0], f"{label}: '{MATCHES0}'")
         if len(ds.shape) != 1 or ds.dtype.kind not in "iu":
-            raise ValueError(f"{label}: '{MATCHES0}' has shape {ds.shape} dtype {ds.dtype}, expected (N0,) integers")
+            raise InvalidInput(f"{label}: '{MATCHES0}' has shape {ds.shape} dtype {ds.dtype}, expected (N0,) integers")
         if ds.shape[0] != n0:
-            raise ValueError(f"{label}: '{MATCHES0}' has {ds.shape[0]} entries but image {name0!r} has {n0} keypoints")
+            raise InvalidInput(f"{label}: '{MATCHES0}' has {ds.shape[0]} entries but image {name0!r} "
+                               f"has {n0} keypoints")
         m0 = np.asarray(ds[()])
         idx0 = np.flatnonzero(m0 > -1)
         matches = np.stack([idx0, m0[idx0]], axis=1).astype(np.int64)
@@ -296,24 +299,24 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
         if SCORES0 in grp:
             sd = _dataset(h5, grp[SCORES0], f"{label}: '{SCORES0}'")
             if int(np.prod(sd.shape)) != n0 or sd.dtype.kind not in "fiu":
-                raise ValueError(f"{label}: '{SCORES0}' has shape {sd.shape} dtype {sd.dtype}, expected ({n0},) "
+                raise InvalidInput(f"{label}: '{SCORES0}' has shape {sd.shape} dtype {sd.dtype}, expected ({n0},) "
                                  "real numbers")
             s0 = np.asarray(sd[()], dtype=np.float32).reshape(-1)
             scores = s0[idx0]
     else:
         ds = _dataset(h5, h5[key], f"{label}: matches")
         if len(ds.shape) != 2 or ds.shape[1] != 2 or ds.dtype.kind not in "iu":
-            raise ValueError(f"{label}: matches have shape {ds.shape} dtype {ds.dtype}, "
+            raise InvalidInput(f"{label}: matches have shape {ds.shape} dtype {ds.dtype}, "
                              "expected (M, 2) integers")
         if ds.shape[0] > n0 * n1:
-            raise ValueError(f"{label}: {ds.shape[0]} matches, more than the {n0} x {n1} keypoint pairs")
+            raise InvalidInput(f"{label}: {ds.shape[0]} matches, more than the {n0} x {n1} keypoint pairs")
         _check_budget(h5, ds.shape[0] * 32, f"{label}: {ds.shape[0]} matches", budget_bytes)
         matches = np.asarray(ds[()]).astype(np.int64)
         scores = None
     bad = (matches < 0) | (matches >= np.array([n0, n1]))
     if bad.any():
         row = int(np.flatnonzero(bad.any(axis=1))[0])
-        raise ValueError(
+        raise InvalidInput(
             f"{label}: keypoint index out of range in match {row}: {matches[row].tolist()} "
             f"(images have {n0} and {n1} keypoints)"
         )
@@ -356,9 +359,9 @@ def iter_matches(
     for key, layout, name0, name1, reverse in todo:
         for n in (name0, name1):
             if n not in num_keypoints:
-                raise ValueError(f"pair ({name0!r}, {name1!r}): image {n!r} is not in the features file")
+                raise InvalidInput(f"pair ({name0!r}, {name1!r}): image {n!r} is not in the features file")
         if name0 == name1:
-            raise ValueError(f"pair ({name0!r}, {name1!r}) matches an image with itself")
+            raise InvalidInput(f"pair ({name0!r}, {name1!r}) matches an image with itself")
         unordered = frozenset((name0, name1))
         if unordered in seen:
             log.debug("pair (%s, %s) seen already: skipped", name0, name1)
@@ -380,7 +383,7 @@ def _find_pair(h5: h5py.File, name0: str, name1: str) -> tuple[str, str, str, st
                 return key, layout, name0, name1, reverse
             if layout == "dim" and isinstance(obj, h5py.Dataset):
                 return key, layout, name0, name1, reverse
-    raise ValueError(f"pair ({name0!r}, {name1!r}) from the pairs list is not in the matches file {h5.filename}")
+    raise InvalidInput(f"pair ({name0!r}, {name1!r}) from the pairs list is not in the matches file {h5.filename}")
 
 
 def write_pair_matches(
@@ -395,7 +398,7 @@ def write_pair_matches(
         h5.create_dataset(f"{pm.name0}/{pm.name1}", data=m)
         return 0
     if layout != "hloc":
-        raise ValueError(f"layout={layout!r} is not one of: hloc, dim")
+        raise InvalidInput(f"layout={layout!r} is not one of: hloc, dim")
     m0 = np.full(num_keypoints0, -1, dtype=np.int32)
     s0 = np.zeros(num_keypoints0, dtype=np.float32)
     first = np.unique(m[:, 0], return_index=True)[1]
@@ -433,6 +436,6 @@ def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
                 continue
             parts = line.split()
             if len(parts) < 2:
-                raise ValueError(f"{path}:{lineno}: expected 'name0 name1 ...', got {line!r}")
+                raise InvalidInput(f"{path}:{lineno}: expected 'name0 name1 ...', got {line!r}")
             pairs.append((parts[0], parts[1]))
     return pairs

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InvalidInput
 from .paths import leaves_folder
 
 log = logging.getLogger(__name__)
@@ -178,9 +179,9 @@ class ImageLoader(Mapping):
                  max_cached: int | None = 8, max_cached_bytes: int | None = None,
                  expected_sizes: Mapping[int, tuple[int, int]] | None = None) -> None:
         if max_cached is not None and max_cached < 1:
-            raise ValueError(f"max_cached must be >= 1, got {max_cached}")
+            raise InvalidInput(f"max_cached must be >= 1, got {max_cached}")
         if max_cached_bytes is not None and max_cached_bytes < 0:
-            raise ValueError(f"max_cached_bytes must be >= 0, got {max_cached_bytes}")
+            raise InvalidInput(f"max_cached_bytes must be >= 0, got {max_cached_bytes}")
         self.image_dir = Path(image_dir)
         self.names = {int(k): str(v) for k, v in names.items()}
         self.max_cached = None if max_cached is None else int(max_cached)

@@ -141,7 +141,7 @@ def comparison_paths(output: str | os.PathLike, *, images: PathArg, database: Pa
     out = Path(output)
     files = ["refined/database.db", "refined/refine.json"]
     if compare:
-        files += ["compare.md", "compare.json", "baseline/report.json", "refined/report.json",
+        files += ["compare.md", "compare.json", "report.html", "baseline/report.json", "refined/report.json",
                   "baseline/points.ply", "refined/points.ply",
                   *(f"plots/{name}.png" for name in ("pose_error_curves", "keypoint_displacement",
                                                      "matches_per_pair", "points_baseline", "points_refined"))]

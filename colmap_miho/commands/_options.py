@@ -2,7 +2,45 @@
 
 from __future__ import annotations
 
+import argparse
+
 from ..enums import Device, Mapper
+
+
+def list_items(values) -> list[str]:
+    """The items of a list option given as ``a,b,c``, ``a b c`` or both mixed (``a,b c``):
+    every token split on commas, empty pieces dropped."""
+    return [item for value in ([values] if isinstance(values, str) else values)
+            for item in value.split(",") if item.strip()]
+
+
+class ListAction(argparse.Action):
+    """A list option (``nargs="+"``) that takes ``a,b,c`` as well as ``a b c``.
+
+    ``item_type`` converts each item (argparse's one-line error for a bad one); with
+    ``join=True`` the option keeps COLMAP's comma-separated text instead (``"fx,fy,cx,cy"``),
+    checked later by whoever reads it.
+    """
+
+    def __init__(self, option_strings, dest, *, item_type=str, join: bool = False, **kwargs):
+        kwargs.setdefault("nargs", "+")
+        super().__init__(option_strings, dest, **kwargs)
+        self.item_type, self.join = item_type, join
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        items = list_items(values)
+        if not items:
+            raise argparse.ArgumentError(self, "expected at least one value")
+        if self.join:
+            setattr(namespace, self.dest, ",".join(item.strip() for item in items))
+            return
+        converted = []
+        for item in items:
+            try:
+                converted.append(self.item_type(item))
+            except ValueError:
+                raise argparse.ArgumentError(self, f"invalid {self.item_type.__name__} value: {item!r}") from None
+        setattr(namespace, self.dest, converted)
 
 
 def add_recipe_arguments(parser) -> None:
@@ -35,16 +73,17 @@ def add_camera_arguments(parser) -> None:
     parser.add_argument("--camera-model", default=None,
                         help="COLMAP camera model written into every camera of the mapped copy (e.g. PINHOLE); "
                              "the input database is never changed")
-    parser.add_argument("--camera-params", default=None,
-                        help="known intrinsics for --camera-model as COLMAP's comma-separated list (e.g. PINHOLE "
-                             "'fx,fy,cx,cy', COLMAP pixel convention); with --refine-intrinsics none they are kept")
+    parser.add_argument("--camera-params", default=None, action=ListAction, join=True, metavar="P",
+                        help="known intrinsics for --camera-model, COLMAP's list with commas or spaces (e.g. PINHOLE "
+                             "'fx,fy,cx,cy' or fx fy cx cy, COLMAP pixel convention); with --refine-intrinsics none "
+                             "they are kept")
 
 
 def add_auc_arguments(parser) -> None:
     """``--auc-thresholds`` (degrees), read with :func:`auc_thresholds`."""
-    parser.add_argument("--auc-thresholds", type=float, nargs="+", default=None, metavar="DEG",
-                        help="pose-AUC thresholds in degrees (default 0.5 1 2 5 10 20; 5, 10 and 20 are always "
-                             "reported)")
+    parser.add_argument("--auc-thresholds", action=ListAction, item_type=float, default=None, metavar="DEG",
+                        help="pose-AUC thresholds in degrees, with commas or spaces (default 0.5,1,2,5,10,20; 5, 10 "
+                             "and 20 are always reported)")
 
 
 def auc_thresholds(args) -> tuple[float, ...]:

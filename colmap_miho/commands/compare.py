@@ -20,10 +20,11 @@ DESCRIPTION = (
     "Map the database as it is (baseline) and after `refine` (same mapper and seed), evaluate "
     "both (against --gt when given: pose AUCs at --auc-thresholds, and the keypoint accuracy of "
     "each database's inlier matches under the GT geometry), and write OUTPUT/compare.md, "
-    "compare.json and PNG plots (cumulative pose-error curves, keypoint displacements, matches "
-    "kept per pair). Known cameras: --camera-model/--camera-params or --camera-from-gt, with "
-    "--refine-intrinsics none. --repeats N maps each side N times and reports median and range. "
-    "The input database is never modified."
+    "compare.json, report.html (open it in a browser) and PNG plots (cumulative pose-error "
+    "curves, keypoint displacements, matches kept per pair). Known cameras: "
+    "--camera-model/--camera-params or --camera-from-gt, with --refine-intrinsics none. "
+    "--repeats N maps each side N times and reports median and range. The input database is "
+    "never modified."
 )
 ORDER = 50
 
@@ -56,7 +57,8 @@ def paths(args) -> tuple[dict, dict]:
 
 def run(args) -> int:
     from ..extras import require
-    from ..reporting.compare import compare_databases, format_comparison
+    from ..pipeline.jobs import JobOptions, compare_databases
+    from ..reporting.compare import format_comparison
 
     require("matplotlib", "plots", "compare's figures")  # before the long mapping runs
     recipe = load_run_recipe(args)
@@ -65,8 +67,9 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     result = compare_databases(
         args.database, args.images, args.output, gt=args.gt, pairs=args.pairs, recipe=recipe,
-        repeats=args.repeats, gt_cameras=args.camera_from_gt, thresholds=thresholds, workers=args.workers,
-        device=args.device, progress=not args.quiet, verbose=args.verbose,
+        options=JobOptions(repeats=args.repeats, gt_cameras=args.camera_from_gt, thresholds=thresholds,
+                           workers=args.workers, device=args.device, progress=not args.quiet,
+                           verbose=args.verbose),
     )
     if not args.quiet:
         print(format_comparison(result))

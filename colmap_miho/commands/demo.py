@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..errors import InvalidInput
 from ._options import add_recipe_arguments, load_run_recipe, quiet_colmap
 
 HELP = "run the whole job on a built-in scene with exact ground truth (no downloads)"
@@ -31,7 +32,7 @@ def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ValueError(f"--size must look like 640x480, got {text!r}") from None
+        raise InvalidInput(f"--size must look like 640x480, got {text!r}") from None
     return w, h
 
 
@@ -39,7 +40,8 @@ def run(args) -> int:
     import time
 
     from ..extras import require
-    from ..reporting.compare import format_comparison, run_from_images
+    from ..pipeline.jobs import ExtractionOptions, JobOptions, run_from_images
+    from ..reporting.compare import format_comparison
     from ..reporting.demo_scene import make_demo_scene
 
     for module, purpose in (("skimage", "the demo scene"), ("matplotlib", "the demo's figures")):
@@ -55,8 +57,8 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     out = run_from_images(
         scene.image_dir, args.output, gt=scene.gt_dir, recipe=recipe, compare=True,
-        max_features=max_features, workers=args.workers, device=args.device, progress=not args.quiet,
-        verbose=args.verbose,
+        extraction=ExtractionOptions(max_features=max_features),
+        options=JobOptions(workers=args.workers, device=args.device, progress=not args.quiet, verbose=args.verbose),
     )
     if not args.quiet:
         print(format_comparison(out["result"]))

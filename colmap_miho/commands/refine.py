@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ..enums import Device, MatchSource
+from ..errors import InvalidInput
 
 #: ``--dask`` without a value: a local cluster (``pipeline.executor.LOCAL``; not imported
 #: here, the parser is built without importing the pipeline).
@@ -73,11 +74,11 @@ def paths(args: argparse.Namespace) -> tuple[dict, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..pipeline.refine import refine_database
+    from ..pipeline.run import refine_database
     from ..recipe import load_recipe
 
     if args.workers is not None and args.workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        raise InvalidInput(f"--workers must be >= 1, got {args.workers}")
     overrides = list(args.overrides)
     if args.source:
         overrides.append(f"pipeline.source={args.source}")

@@ -35,6 +35,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="RANSAC seed of the two-view protocols")
     add_auc_arguments(parser)
     parser.add_argument("--json", type=Path, default=None, help="write the full report as JSON")
+    parser.add_argument("--html", type=Path, default=None,
+                        help="also write a self-contained HTML page (table, pose-error curves with --gt, a 3D view "
+                             "of the model) to open in a browser (needs the plots extra)")
     parser.add_argument("--ply", type=Path, default=None,
                         help="also export the model's 3D points (with colours) as PLY")
 
@@ -47,12 +50,13 @@ def paths(args) -> tuple[dict, dict]:
         raise FileNotFoundError(f"--pairs not found: {args.pairs}")
     inputs = {"--model": args.model, "--database": args.database, "--gt": args.gt, "--pairs": args.pairs,
               **model_input_files(args.model, "--model"), **model_input_files(args.gt, "--gt")}
-    return inputs, {"--json": args.json, "--ply": args.ply}
+    return inputs, {"--json": args.json, "--ply": args.ply, "--html": args.html}
 
 
 def run(args) -> int:
     from ..errors import UserError
-    from ..reporting.report import build_report, format_report, write_report_json
+    from ..reporting.report import build_report, write_report_json
+    from ..reporting.report_text import format_report
     from ._options import auc_thresholds
 
     if args.model is None:
@@ -75,6 +79,12 @@ def run(args) -> int:
         export_ply(load_reconstruction(args.model), args.ply)
         if not args.quiet:
             print(f"points written to {args.ply}")
+    if args.html:
+        from ..reporting.html_report import write_model_html
+
+        args.html.parent.mkdir(parents=True, exist_ok=True)
+        if write_model_html(args.html, report, args.model) is not None and not args.quiet:
+            print(f"page written to {args.html}")
     if args.json:
         write_report_json(report, args.json)
         if not args.quiet:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..enums import CameraMode
-from ._options import add_auc_arguments, add_recipe_arguments, add_repeat_arguments
+from ._options import ListAction, add_auc_arguments, add_recipe_arguments, add_repeat_arguments
 
 HELP = "from a folder of images: SIFT + exhaustive matching, refine, map, report (--compare: vs baseline)"
 DESCRIPTION = (
@@ -27,9 +27,10 @@ def add_arguments(parser) -> None:
                         help="COLMAP camera sharing (default: one camera for all images)")
     parser.add_argument("--camera-model", dest="extract_camera_model", default="SIMPLE_RADIAL",
                         help="COLMAP camera model (default SIMPLE_RADIAL)")
-    parser.add_argument("--camera-params", dest="extract_camera_params", default="",
-                        help="known intrinsics for --camera-model as COLMAP's comma-separated list "
-                             "(e.g. PINHOLE 'fx,fy,cx,cy', COLMAP pixel convention), written into the "
+    parser.add_argument("--camera-params", dest="extract_camera_params", default="", action=ListAction, join=True,
+                        metavar="P",
+                        help="known intrinsics for --camera-model, COLMAP's list with commas or spaces "
+                             "(e.g. PINHOLE 'fx,fy,cx,cy' or fx fy cx cy, COLMAP pixel convention), written into the "
                              "database and into the mapped copies; --refine-intrinsics none keeps them; "
                              "default: estimated")
     parser.add_argument("--max-features", type=int, default=8192, help="SIFT features per image (default 8192)")
@@ -53,8 +54,9 @@ def paths(args) -> tuple[dict, dict]:
 def run(args) -> int:
     from ..errors import UserError
     from ..extras import require
-    from ..reporting.compare import format_comparison, run_from_images
-    from ..reporting.report import format_report
+    from ..pipeline.jobs import ExtractionOptions, JobOptions, run_from_images
+    from ..reporting.compare import format_comparison
+    from ..reporting.report_text import format_report
     from ._options import (
         auc_thresholds,
         check_repeat_arguments,
@@ -75,10 +77,11 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     out = run_from_images(
         args.images, args.output, gt=args.gt, recipe=recipe, compare=args.compare,
-        camera_mode=args.camera_mode, camera_model=args.extract_camera_model,
-        camera_params=args.extract_camera_params, max_features=args.max_features, repeats=args.repeats,
-        gt_cameras=args.camera_from_gt, thresholds=thresholds, workers=args.workers, device=args.device,
-        progress=not args.quiet, verbose=args.verbose,
+        extraction=ExtractionOptions(camera_mode=args.camera_mode, camera_model=args.extract_camera_model,
+                                     camera_params=args.extract_camera_params, max_features=args.max_features),
+        options=JobOptions(repeats=args.repeats, gt_cameras=args.camera_from_gt, thresholds=thresholds,
+                           workers=args.workers, device=args.device, progress=not args.quiet,
+                           verbose=args.verbose),
     )
     if not args.quiet:
         if args.compare:

@@ -1,62 +1,43 @@
 """Public entry point of the MOP / MOP+MiHo match filter.
 
-``filter_matches(pts1, pts2)`` implements the paper's MOP (Sec. 3.1, App. A), MOP* (App. D),
-MOP+MiHo (Sec. 3.2, App. B, C) and the VSAC half-homography split, and returns which matches
-survive, the homography each one is assigned to, and the homography pairs that bring both
-images into one common frame for patch-based refinement (NCC).
+``filter_matches(pts1, pts2)`` runs the paper's MOP (Sec. 3.1, App. A), MOP* (App. D),
+MOP+MiHo (Sec. 3.2, App. B, C) or the VSAC half-homography split on ``(N, 2)`` pixel matches,
+and returns which matches survive, the homography each one is assigned to, and the
+homography pairs that bring both images into one common frame for patch-based refinement.
 
-Where this implementation differs from the paper (all are :class:`FilterConfig` fields):
+Where this implementation departs from the paper (each one a :class:`FilterConfig` field):
 
-- Guided sampling (``sampling="local"``, default): 3/4 of the minimal samples are drawn
-  around a random seed match (NAPSAC-style) among neighbours at least t_l apart, so that
-  they pass the spread test, and the adaptive stopping bound accounts for it;
-  ``sampling="uniform"`` is the paper's. c_min, c_max and the bound count the samples that
-  pass the spread test (a draw that fails it is no hypothesis). Everything else (spread,
-  singular-value, quasi-affinity and reflection checks, top-5 buffer, adaptive threshold,
-  failure counter) is the paper's. One-way pre-scoring is an exact bound, not an
-  approximation.
-- Assignment (App. A.4, ``assignment``): the paper's median rule, with both homographies
-  eligible when a match is compatible with exactly two (the reference does the same; the
-  plain median would always pick the larger plane); ``"median"`` and the reference's
-  round-based rule are options.
-- Stop at ``max_failures=3`` failures in a row (paper); the reference implementation stops
-  at the 4th.
-- Thresholds: t_h = t_l / 2 (paper; the reference uses 7 px). MiHo errors are the max of
-  the four transfer errors against the midpoint with the same thresholds (paper and
-  reference, ``miho_threshold="half"``): a match may then be about twice as far off as
-  MOP allows. Default ``"full_search"``: while MOP searches planes (RANSAC scores, strict
-  and relaxed pool removal) the thresholds bound the full match (twice the largest half
-  error), the final keep / assignment uses the paper's half-match errors; ``"full"`` uses
-  the full match for both. Measured in ``benchmarks/bench_hard_pairs.py`` and
-  ``benchmarks/bench_filter.py`` (README): the half-match tolerance in the search lets
-  planes that mix in gross outliers win rounds; the full-match tolerance at keep time
-  drops correct matches on the non-planar Strecha scenes.
-- The rotation fix is applied to MOP+MiHo and VSAC and may also pick a mirrored image 2
-  (``rotation_fix_reflections``, App. C's suggested extension); it keeps the identity
-  unless another candidate wins by a clear margin (3 standard deviations on the same
-  random pairs), so that outlier noise cannot turn an upright pair. For MOP+MiHo*, a pair
-  whose best pre-alignment is mirrored is rejected (``success=False``): MiHo's midpoint
-  frame degenerates there and the star variants assume no reflections. Plain MOP* needs no
-  rule: its reflection check rejects the samples of a mirrored plane.
-- By default the computation runs on the CPU in numpy; torch inputs (CPU or CUDA) are
-  accepted and copied to the CPU. With ``device="cuda"`` (or another torch device, or
-  ``"torch-cpu"``) the heavy RANSAC kernels (batched minimal solver, one-way bounds,
-  singular-value test, full scoring) run in torch on that device while sampling (same
-  seed, same samples) and the bookkeeping stay in numpy: the same result up to
-  floating-point ties (``filtering/torch_scoring.py``, ``tests/filtering/test_filter_torch.py``).
-  A MOP round is a chain of ~100 small batched operations on arrays of (128-1024
-  hypotheses x N matches) where per-call latency, not arithmetic, dominates: torch on the
-  CPU takes about 1.7x numpy's CPU time for them (``benchmarks/bench_filter.py --device
-  torch-cpu --torch-threads 1``), so numpy stays the CPU default.
+- ``sampling``: guided (NAPSAC-style) minimal samples by default, so that they pass the
+  spread test, with an adaptive bound that accounts for it; ``"uniform"`` is the paper's.
+  c_min, c_max and the bound count the samples that pass the spread test (a draw that fails
+  it is no hypothesis). One-way pre-scoring is an exact bound, not an approximation.
+- ``assignment``: the paper's median rule, with both homographies eligible when a match is
+  compatible with exactly two (as in the reference; the plain median would always pick the
+  larger plane); ``"median"`` and the reference's round-based rule are options.
+- ``max_failures``: 3 failures in a row (paper); the reference stops at the 4th.
+- ``t_h``: t_l / 2 (paper; the reference uses 7 px).
+- ``miho_threshold``: what MiHo's thresholds bound (half-match errors as in the paper, the
+  full match, or the full match while searching and half-matches at keep time, the
+  default). The half-match tolerance in the search lets planes that mix in gross outliers
+  win rounds; the full-match tolerance at keep time drops correct matches on non-planar
+  scenes.
+- ``rotation_fix_reflections``: the rotation fix (MOP+MiHo and VSAC) may also pick a
+  mirrored image 2 (App. C's suggested extension); it keeps the identity unless another
+  candidate wins by a clear margin (3 standard deviations on the same random pairs), so
+  that outlier noise cannot turn an upright pair. For MOP+MiHo* a pair whose best
+  pre-alignment is mirrored fails (``success=False``): MiHo's midpoint frame degenerates
+  there and the star variants assume no reflections.
 
-Speed (see ``benchmarks/bench_filter.py``; the reference implementation takes 1.4 s for MOP
-and 2.3 s for MOP+MiHo on 1351 SIFT matches): closed-form minimal solver and sample signs
-(no SVD per hypothesis), exact one-way pre-scoring, full scoring only where it can change
-the best model, guided sampling with adaptive stopping, explained matches leave the pool.
-On 12 Oxford and 8 Strecha SIFT+NNR pairs it takes about 0.035 / 0.10 s (MOP) and 0.06 /
-0.19 s (MOP+MiHo) of CPU time per pair (Oxford / Strecha, quiet machine); up to 2000 valid
-hypotheses per round cost about 2x the time of the earlier sampler, whose samples mostly
-failed the spread test (README, "Hard planar pairs").
+``device``: numpy on the CPU by default (torch inputs are copied to the CPU); with a torch
+device the heavy RANSAC kernels run in torch there while sampling (same seed, same samples)
+and the bookkeeping stay in numpy, giving the same result up to floating-point ties
+(:mod:`.torch_scoring`). A MOP round is a chain of small batched operations on
+``(hypotheses, matches)`` arrays where per-call latency, not arithmetic, dominates, which is
+why numpy stays the CPU default.
+
+Speed comes from the closed-form minimal solver and sample signs (no SVD per hypothesis),
+exact one-way pre-scoring, full scoring only where it can change the best model, guided
+sampling with adaptive stopping, and explained matches leaving the pool.
 """
 
 from __future__ import annotations
@@ -68,13 +49,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..enums import FilterMethod
+from ..enums import FilterMethod, MihoThreshold
 from .assign import assign_matches
 from .coherence import incoherent_planes
 from .config import FilterConfig
 from .homography import adjugate, to_unit_h33
 from .miho import apply_affine, build_problem, choose_rotation, sqrt_split
-from .mop import run_mop
+from .mop import MopOutput, run_mop
+from .problem import Hypotheses
 from .torch_scoring import scoring_for_device
 
 if TYPE_CHECKING:
@@ -202,7 +184,7 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
     x2r = apply_affine(G, x2) if stats["rotation_index"] else x2
     t2 = time.perf_counter()
 
-    problem = build_problem(x1, x2r, miho=cfg.is_miho, full_match=cfg.miho_threshold != "half")
+    problem = build_problem(x1, x2r, miho=cfg.is_miho, full_match=cfg.miho_threshold != MihoThreshold.HALF)
     mop = run_mop(problem, cfg, rng, progress=progress, scoring=scoring)
     stats.update(mop.stats)
     t3 = time.perf_counter()
@@ -211,19 +193,10 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
         stats["time_total"] = time.perf_counter() - t0
         return _failure(n, cfg.method, stats, "no homography with enough inliers")
 
-    if cfg.miho_threshold == "full_search" and cfg.is_miho:
+    if cfg.miho_threshold == MihoThreshold.FULL_SEARCH and cfg.is_miho:
         problem = build_problem(x1, x2r, miho=True, full_match=False)  # keep: half-match
     err2 = scoring.error_sq(problem, mop.hyps, np.arange(n))
-    hyps, round_inliers = mop.hyps, mop.round_inliers
-    labels, support = assign_matches(err2, cfg.t_l, rule=cfg.assignment, round_inliers=round_inliers)
-    if cfg.coherence:
-        drop = incoherent_planes(x1, x2, labels, err2 <= cfg.t_l**2)
-        stats["coherence_dropped"] = len(drop)
-        if len(drop):
-            alive = np.setdiff1d(np.arange(len(hyps)), drop)
-            hyps, err2, round_inliers = hyps.take(alive), err2[alive], round_inliers[alive]
-            labels, support = assign_matches(err2, cfg.t_l, rule=cfg.assignment,
-                                             round_inliers=round_inliers)
+    hyps, labels, support = _assign(x1, x2, mop, err2, cfg, stats)
     t4 = time.perf_counter()
     H, patch = _homographies_and_patch_pairs(hyps, G, cfg, stats)
     t5 = time.perf_counter()
@@ -243,6 +216,25 @@ def _resolve_config(method: str | FilterMethod | None, config: FilterConfig | No
     if method is not None:
         return dataclasses.replace(config, method=FilterMethod.parse(method, "method"))
     return config
+
+
+def _assign(x1: np.ndarray, x2: np.ndarray, mop: MopOutput, err2: np.ndarray, cfg: FilterConfig,
+            stats: dict) -> tuple[Hypotheses, np.ndarray, np.ndarray]:
+    """``(hyps, labels, support)``: MOP's homographies that stay (all but the incoherent ones
+    when ``cfg.coherence``), each match's label ``(N,)`` and each homography's support
+    ``(K,)`` (:func:`assign_matches`), from the squared keep-time errors ``err2`` ``(K, N)``
+    of MOP's homographies on the matches ``x1``, ``x2`` ``(N, 2)``."""
+    hyps, round_inliers = mop.hyps, mop.round_inliers
+    labels, support = assign_matches(err2, cfg.t_l, rule=cfg.assignment, round_inliers=round_inliers)
+    if cfg.coherence:
+        drop = incoherent_planes(x1, x2, labels, err2 <= cfg.t_l**2)
+        stats["coherence_dropped"] = len(drop)
+        if len(drop):
+            alive = np.setdiff1d(np.arange(len(hyps)), drop)
+            hyps, err2, round_inliers = hyps.take(alive), err2[alive], round_inliers[alive]
+            labels, support = assign_matches(err2, cfg.t_l, rule=cfg.assignment,
+                                             round_inliers=round_inliers)
+    return hyps, labels, support
 
 
 def _rotation_fix(x1: np.ndarray, x2: np.ndarray, cfg: FilterConfig, rng: np.random.Generator,

@@ -27,10 +27,11 @@ from __future__ import annotations
 
 import numpy as np
 
-RULES = ("paper", "median", "reference")
+from ..enums import Assignment
 
 
-def assign_matches(err2: np.ndarray, t_l: float, top: int = 5, *, rule: str = "paper",
+def assign_matches(err2: np.ndarray, t_l: float, top: int = 5, *,
+                   rule: str | Assignment = Assignment.PAPER,
                    round_inliers: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Assign each match to one homography.
 
@@ -51,14 +52,13 @@ def assign_matches(err2: np.ndarray, t_l: float, top: int = 5, *, rule: str = "p
         ValueError: unknown ``rule``, or ``"reference"`` without ``round_inliers`` of shape
             ``(K, N)``.
     """
-    if rule not in RULES:
-        raise ValueError(f"rule must be one of {', '.join(RULES)}, got {rule!r}")
+    rule = Assignment.parse(rule, "rule")
     K, N = err2.shape
     labels = np.full(N, -1, dtype=np.int64)
     if K == 0 or N == 0:
         return labels, np.zeros(K, dtype=np.int64)
     kept = np.any(err2 <= t_l**2, axis=0)
-    if rule == "reference":
+    if rule == Assignment.REFERENCE:
         if round_inliers is None or round_inliers.shape != (K, N):
             raise ValueError(f"rule='reference' needs round_inliers of shape {(K, N)}")
         compat = round_inliers & (err2 <= t_l**2)
@@ -73,7 +73,7 @@ def assign_matches(err2: np.ndarray, t_l: float, top: int = 5, *, rule: str = "p
     lo = ranked[np.maximum((m - 1) // 2, 0), cols]
     hi = ranked[np.maximum(m // 2, 0), cols]
     q = np.where(m % 2 == 1, lo, (lo + hi) / 2.0)
-    if rule != "median":
+    if rule != Assignment.MEDIAN:
         q = np.where(m == 2, hi, q)  # two compatible: both eligible, the errors decide
     eligible = compat & (support[:, None] >= q[None, :])
     cost = np.where(eligible, err2, np.inf)

@@ -20,15 +20,11 @@ Rule, on the kept matches after assignment (App. A.4):
    re-assigned among the remaining homographies with the same assignment rule; a match
    compatible with none of them is dropped.
 
-Constants (``k = 8``, ``min_share = 0.75``, ``plane_share = 0.5``) were set once, on the first
-try, and not fitted: the per-match and per-plane shares were swept over 0.34-1.0 on the
-Oxford (planar) and Strecha (multi-plane) pairs and every setting ranks the same way.
-Measured (README, "Hard planar pairs"; ``benchmarks/bench_hard_pairs.py``,
-``benchmarks/bench_filter.py``): on the Oxford pairs it drops no match within 3 px of the GT
-homography (outlier removal on the native wide baselines 0.886 -> 0.916 with the default
-MiHo tolerance, 0.932 -> 0.973 with ``miho_threshold="full"``); on the 8 multi-plane Strecha
-pairs it drops 303 of 11529 kept matches, 37 of them within 3 px of their epipolar line, which
-is why it is an option.
+Constants (``k = 8``, ``min_share = 0.75``, ``plane_share = 0.5``) were set once and not
+fitted: the ranking of the filters does not depend on them. It is an option because on
+multi-plane scenes it also drops a few correct matches; its effect on planar and multi-plane
+pairs is measured by ``benchmarks/bench_hard_pairs.py`` and ``benchmarks/bench_filter.py``
+(results document).
 """
 
 from __future__ import annotations

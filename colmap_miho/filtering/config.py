@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..enums import FilterMethod
+from ..enums import Assignment, FilterMethod, MihoThreshold, Sampling
 from ..validation import require_at_most, require_finite
 
 #: Upper bound of ``batch_size``: each batch scores that many homographies on every match.
@@ -40,8 +40,9 @@ class FilterConfig:
             DLT system (paper: 0.05).
         buffer_size: z, size of the top-z sub-optimal model buffer (paper: 5).
         rotation_fix: MiHo's 90-degree rotation pre-alignment (App. C).
-        sampling: "local" (default, NAPSAC-style guided minimal samples, see
-            ``filtering/ransac.py``) or "uniform" (the paper's).
+        sampling: ``"local"`` (default, NAPSAC-style guided minimal samples, see
+            :mod:`~colmap_miho.filtering.sampling`) or ``"uniform"`` (the paper's), a
+            :class:`~colmap_miho.enums.Sampling`.
         local_neighbours: neighbourhood size k of local sampling (joint (x1, x2) space).
         local_fraction: share of the minimal samples drawn locally (rest uniform).
         batch_size: hypotheses drawn per vectorised batch; the adaptive stopping test runs
@@ -57,7 +58,7 @@ class FilterConfig:
             against the midpoint, so a full match may be about twice as far off as MOP
             allows. ``"full"``: the full match, i.e. twice the largest half-match error
             (which bounds ``|H1 x1 - H2 x2|`` in the midpoint frame), the same tolerance as
-            MOP's. ``"full_search"`` (default, chosen by measurement, see the README): the
+            MOP's. ``"full_search"`` (default, chosen on the hard-pairs benchmark): the
             full match while MOP searches planes, the half-matches when the found planes
             keep and assign matches. Ignored by the other methods.
         assignment: App. A.4 rule giving each kept match one homography. ``"paper"``: the
@@ -74,7 +75,7 @@ class FilterConfig:
             matches of other planes that they contradict (in both images), and re-assign
             their matches (:mod:`colmap_miho.filtering.coherence`). Removes spurious planes
             made of repeated-texture mismatches; off by default because it also drops a
-            few correct matches on multi-plane scenes (README, "Hard planar pairs").
+            few correct matches on multi-plane scenes.
     """
 
     method: FilterMethod = FilterMethod.MOP_MIHO
@@ -88,19 +89,23 @@ class FilterConfig:
     min_singular_value: float = 0.05
     buffer_size: int = 5
     rotation_fix: bool = True
-    sampling: str = "local"
+    sampling: Sampling = Sampling.LOCAL
     local_neighbours: int = 8
     local_fraction: float = 0.75
     batch_size: int = 128
     refit_iters: int = 1
     rotation_fix_reflections: bool = True
     rotation_pairs: int = 20000
-    miho_threshold: str = "full_search"
-    assignment: str = "paper"
+    miho_threshold: MihoThreshold = MihoThreshold.FULL_SEARCH
+    assignment: Assignment = Assignment.PAPER
     coherence: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", FilterMethod.parse(self.method, "method"))
+        object.__setattr__(self, "sampling", Sampling.parse(self.sampling, "sampling"))
+        object.__setattr__(self, "miho_threshold",
+                           MihoThreshold.parse(self.miho_threshold, "miho_threshold"))
+        object.__setattr__(self, "assignment", Assignment.parse(self.assignment, "assignment"))
         require_finite(self)
         require_at_most("batch_size", self.batch_size, MAX_HYPOTHESES_BATCH,
                         "hypotheses scored at once are held in memory")
@@ -127,8 +132,6 @@ class FilterConfig:
             raise ValueError(f"min_singular_value must be >= 0, got {self.min_singular_value}")
         if self.buffer_size < 0:
             raise ValueError(f"buffer_size must be >= 0, got {self.buffer_size}")
-        if self.sampling not in ("local", "uniform"):
-            raise ValueError(f"sampling must be local or uniform, got {self.sampling!r}")
         if self.local_neighbours < 3:
             raise ValueError(f"local_neighbours must be >= 3, got {self.local_neighbours}")
         if not 0 <= self.local_fraction <= 1:
@@ -137,12 +140,6 @@ class FilterConfig:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.refit_iters < 0:
             raise ValueError(f"refit_iters must be >= 0, got {self.refit_iters}")
-        if self.miho_threshold not in ("half", "full", "full_search"):
-            raise ValueError(
-                f"miho_threshold must be half, full or full_search, got {self.miho_threshold!r}")
-        if self.assignment not in ("paper", "median", "reference"):
-            raise ValueError(
-                f"assignment must be paper, median or reference, got {self.assignment!r}")
         if self.rotation_pairs < 0:
             raise ValueError(f"rotation_pairs must be >= 0, got {self.rotation_pairs}")
 

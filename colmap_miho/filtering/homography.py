@@ -183,8 +183,7 @@ def four_point(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray
     same homography as the minimal (normalised) DLT, computed as ``B adj(A)`` where ``A``,
     ``B`` send the projective basis to the source and destination points, with 3x3 adjugates
     only: a whole batch is a handful of vectorised operations. Hartley normalisation is not
-    needed here: measured residual on the 4 points <= 1e-7 px at 1500 px coordinates, the
-    same as with it.
+    needed here: the residual on the 4 points is as small without it.
 
     The same factors give, without projecting anything, the signs of the homogeneous ``w``
     of the 4 source points under ``H`` and of the 4 destination points under ``adj(H)``
@@ -238,8 +237,7 @@ def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
         coordinates (``w`` divided out) and the homogeneous ``w`` before division (its sign
         is used by the quasi-affinity test).
     """
-    # Explicit broadcasting: measured several times faster than a matmul with inner
-    # dimension 2-3 on this machine class.
+    # Explicit broadcasting: a matmul with inner dimension 2-3 is slower.
     h = H.reshape(tuple(H.shape[:-2]) + (9, 1))
     X, Y = pts[..., 0], pts[..., 1]
     w = h[..., 6, :] * X
@@ -307,7 +305,7 @@ def one_way_inside(h, X, Y, x2, y2, t2: float, out: tuple | None = None):
         t2: squared threshold, in the coordinates' units.
         out: optional work arrays ``(W, U, V, T, ok, tmp)``, four float and two bool
             ``(K, N)``, reused from call to call (numpy: a fresh array of this size costs its
-            page faults; measured 2.5x slower at 65 x 2000); the result is then ``ok``.
+            page faults on every call); the result is then ``ok``.
     Returns:
         (K, N) bool: ``w > 0`` and ``|u - x2 w|^2 + |v - y2 w|^2 <= t2 w^2``.
     """

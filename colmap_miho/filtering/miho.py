@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .ransac import Problem
+from .problem import Problem
 
 _ROTATION_Z = 3.0  # paired z-score a non-identity pre-alignment needs over the identity
 
@@ -113,8 +113,8 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
     scores = np.count_nonzero(inside, axis=1)
     # Keep the identity unless a candidate beats it clearly on the same pairs (paired
     # z-score above _ROTATION_Z): where few matches are correct, pairs of outliers decide
-    # the counts and their noise would otherwise turn an upright pair (measured: Oxford
-    # pairs with 95% random matches added picked a mirrored frame and lost every match).
+    # the counts and their noise would otherwise turn an upright pair (with mostly random
+    # matches, a mirrored frame can win and lose every match).
     # The paired differences are -1, 0 or 1: their sum of squares counts the pairs that differ.
     spread = np.sqrt(np.maximum(np.count_nonzero(inside != inside[0], axis=1), 1))
     z = (scores - scores[0]) / spread

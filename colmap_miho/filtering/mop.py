@@ -22,8 +22,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..enums import Sampling
 from .config import FilterConfig
-from .ransac import Hypotheses, LocalCandidates, NumpyScoring, Problem, ransac_round
+from .problem import Hypotheses, Problem
+from .ransac import ransac_round
+from .sampling import LocalCandidates
+from .scoring import NumpyScoring
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +53,7 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
     kept: list[Hypotheses] = []
     held: list[np.ndarray] = []
     failures = 0
-    candidates = LocalCandidates(problem, cfg) if cfg.sampling == "local" else None
+    candidates = LocalCandidates(problem, cfg) if cfg.sampling == Sampling.LOCAL else None
     stats = {"rounds": 0, "failures": 0, "drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
     bar = None
     if progress:

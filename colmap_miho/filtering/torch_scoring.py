@@ -2,7 +2,7 @@
 
 ``filter_matches(..., device=...)`` picks where the kernels run (:func:`scoring_for_device`):
 
-- ``"cpu"`` or ``None`` (default): numpy on the CPU (:class:`~.ransac.NumpyScoring`).
+- ``"cpu"`` or ``None`` (default): numpy on the CPU (:class:`~.scoring.NumpyScoring`).
 - ``"cuda"``, ``"cuda:1"``, any other torch device string, or a ``torch.device`` object
   (``torch.device("cpu")`` included): torch float64 on that device (:class:`TorchScoring`).
 - ``"torch-cpu"``: torch on the CPU, the torch path where no GPU is lent (tests, timing).
@@ -14,28 +14,24 @@ over the pool, the normalised-DLT singular-value test and the full two-way float
 inlier masks of the hypotheses the search reaches (bootstrap buffer included), the errors
 of each round's best model and of the final assignment. The formulas are the numpy path's
 own (:mod:`.homography` takes numpy arrays or tensors; the full errors are
-:func:`.ransac.error_sq`'s per-element formula stacked over halves and directions), in the
+:func:`.scoring.error_sq`'s per-element formula stacked over halves and directions), in the
 same order. Sampling (the same
 ``numpy.random.Generator``, so a seed draws the same samples),
 the spread and reflection checks, the search's bookkeeping, the top-z buffer, the
 least-squares refit and the assignment rule stay in numpy: they are cheap, sequential, and
 keeping them on the host keeps both paths alike. Up to floating-point ties (a bound or an
 error landing on the other side of a threshold, which can then change the random stream),
-both paths give the same matches, labels and homographies. Measured on the CPU device
-(``tests/filtering/test_filter_torch.py``, ``benchmarks/bench_filter.py --device torch-cpu``,
-``benchmarks/check_cuda.py --device cpu``): identical flags and labels on every synthetic
-scene, the 20 bench_filter pairs and the 55 fountain-P11 pairs.
+both paths give the same matches, labels and homographies
+(``tests/filtering/test_filter_torch.py``; ``benchmarks/bench_filter.py --device torch-cpu``
+and ``benchmarks/check_cuda.py --device cpu`` compare them on real pairs).
 
 Round trips: one per batch for the hypotheses and their bounds, and one per chunk of
 full scores (``TorchScoring.prefetch`` hypotheses screened ahead, doubling; the search takes
 the same ones in the same order as numpy, see :class:`~.ransac._BatchScores`), plus a few
 per MOP round (bootstrap, the best's errors, refit). The work is a chain of small
-operations: a MOP+MiHo fountain SIFT pair (1613 matches, 15 rounds, 26 batches) is about
-6.5k kernel launches and 80 round trips, so on a GPU launch latency, not arithmetic, sets
-the time per pair. On the CPU, torch (1 thread) takes about 1.7x numpy's CPU time (0.21 vs
-0.12 s per pair for MOP, 0.40 vs 0.23 s for MOP+MiHo on the 20 bench_filter pairs); with
-torch's default thread pool on a busy 2-core machine it was 10-40x slower. numpy stays the
-CPU default.
+operations (thousands of kernel launches per pair), so on a GPU launch latency, not
+arithmetic, sets the time per pair; on the CPU, torch's per-call overhead makes it slower
+than numpy, which stays the CPU default.
 """
 
 from __future__ import annotations
@@ -45,9 +41,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..devices import resolve_device
 from .config import FilterConfig
 from .homography import adjugate, dlt_singular_value, four_point, one_way_inside, project
-from .ransac import Hypotheses, NumpyScoring, Problem, checked_samples
+from .problem import Hypotheses, Problem
+from .sampling import checked_samples
+from .scoring import NumpyScoring
 
 if TYPE_CHECKING:
     import torch
@@ -67,7 +66,8 @@ def scoring_for_device(device: str | torch.device | None = "cpu") -> NumpyScorin
         raise ValueError(f"device {device!r} needs torch, which is not installed") from None
     if isinstance(device, str):
         if device == "auto":
-            return TorchScoring("cuda") if torch.cuda.is_available() else NumpyScoring()
+            auto = resolve_device("auto")
+            return TorchScoring(auto) if auto.type == "cuda" else NumpyScoring()
         if device == TORCH_CPU:
             device = torch.device("cpu")
         else:
@@ -88,7 +88,7 @@ def scoring_for_device(device: str | torch.device | None = "cpu") -> NumpyScorin
 
 
 class TorchScoring(NumpyScoring):
-    """:class:`~.ransac.NumpyScoring`'s kernels in torch float64 on ``device`` (the one-way
+    """:class:`~.scoring.NumpyScoring`'s kernels in torch float64 on ``device`` (the one-way
     bound in float32, as in numpy). Takes and returns numpy, like its parent; the problem's
     points are copied to the device once per problem and each pool once per round."""
 
@@ -158,7 +158,7 @@ class TorchScoring(NumpyScoring):
     # -- kernels --------------------------------------------------------------------------
     def hypotheses(self, problem: Problem, sample: np.ndarray, cfg: FilterConfig,
                    ok: np.ndarray, pool: np.ndarray, t2: float) -> tuple[Hypotheses, np.ndarray]:
-        """:func:`~.ransac.hypotheses_from_samples` and their one-way bounds on ``pool``:
+        """:func:`~.scoring.hypotheses_from_samples` and their one-way bounds on ``pool``:
         minimal solver, quasi-affinity of the samples and bounds on the device, one
         transfer back."""
         sample = checked_samples(problem, sample, cfg, ok)
@@ -196,7 +196,7 @@ class TorchScoring(NumpyScoring):
 
     def one_way_count(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
                       t2: float) -> np.ndarray:
-        """:func:`~.ransac.one_way_count` (float32, division-free) on the device."""
+        """:func:`~.scoring.one_way_count` (float32, division-free) on the device."""
         Hs = self._tensor((hyp.H[:, 0] * hyp.sign[:, 0, None, None]).astype(np.float32))
         return self._host(self._bounds(problem, Hs, idx, t2)).astype(np.int64)
 
@@ -221,11 +221,11 @@ class TorchScoring(NumpyScoring):
 
     def singular_value_ok(self, problem: Problem, hyp: Hypotheses,
                           cfg: FilterConfig) -> np.ndarray:
-        """:func:`~.ransac.passes_singular_value_test` on the device."""
+        """:func:`~.scoring.passes_singular_value_test` on the device."""
         return self._host(self._sv_ok(problem, self._tensor(hyp.sample), cfg))
 
     def _sv_ok(self, problem: Problem, sample: Any, cfg: FilterConfig) -> Any:
-        """:func:`~.ransac.passes_singular_value_test` of the samples ``(K, 4)`` (device)."""
+        """:func:`~.scoring.passes_singular_value_test` of the samples ``(K, 4)`` (device)."""
         P = self._problem(problem)
         K, nh = sample.shape[0], problem.num_halves
         src = P.src_all[sample].permute(0, 2, 1, 3).reshape(K * nh, 4, 2)
@@ -234,7 +234,7 @@ class TorchScoring(NumpyScoring):
         return (sv > cfg.min_singular_value).all(1)
 
     def _error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> Any:
-        """:func:`~.ransac.error_sq` on the device ``(K, n)``: the same formula, element by
+        """:func:`~.scoring.error_sq` on the device ``(K, n)``: the same formula, element by
         element, over all halves and both directions at once (a handful of launches; a
         masked fill, since a boolean-mask assignment would synchronise a GPU)."""
         mats, signs = self._hyp(hyp)
@@ -249,7 +249,7 @@ class TorchScoring(NumpyScoring):
         return err
 
     def error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
-        """:func:`~.ransac.error_sq` on the device, brought back as float64 numpy."""
+        """:func:`~.scoring.error_sq` on the device, brought back as float64 numpy."""
         return self._host(self._error_sq(problem, hyp, idx))
 
     def masks(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,

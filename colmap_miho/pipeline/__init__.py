@@ -1,12 +1,17 @@
-"""The ``refine`` pipeline: read -> filter -> refine -> write -> verify, on a working copy.
+"""The ``refine`` pipeline: read -> filter -> refine -> write -> verify, on a working copy, and the
+whole jobs built on it.
 
-:func:`refine_database` (in :mod:`.refine`) runs the stages in the order of the data flow, one
-``run_<stage>`` call each: :mod:`.read`, :mod:`.filter_stage`, :mod:`.stages` (the NCC
-refinement), :mod:`.write`, :mod:`.verify`; :mod:`.workers` holds the process-pool helpers;
-:class:`PipelineConfig` is the recipe's ``pipeline`` table.
+:func:`refine_database` (:mod:`.run`) calls the stages in the order of the data flow, one
+``run_<stage>`` call each, every one returning its outputs and frozen stats: :mod:`.read`,
+:mod:`.filter`, :mod:`.refine` (the NCC walk), :mod:`.write`, :mod:`.verify`.
+:mod:`.records` holds what passes between stages, :mod:`.summary` the run's
+:class:`RefineSummary`, :mod:`.store` the resumable run store, :mod:`.executor` and
+:mod:`.workers` the process pool and Dask runners, :mod:`.jobs` the whole jobs of ``run``,
+``compare`` and ``demo`` (extraction, refinement, mapping, comparison).
 """
 
-from .config import PipelineConfig
-from .refine import RefineSummary, refine_database
+from ..pipeline_config import PipelineConfig
+from .run import refine_database
+from .summary import RefineSummary
 
 __all__ = ["PipelineConfig", "RefineSummary", "refine_database"]

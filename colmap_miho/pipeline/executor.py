@@ -25,6 +25,7 @@ import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future
 
+from ..enums import RunnerKind
 from ..errors import RunFailed, UserError
 from .workers import SCRIPT_HINT, init_worker, process_pool, single_thread_children
 
@@ -53,15 +54,15 @@ class Runner:
 
     Attributes:
         slots: tasks that run at once (1 in-process).
-        kind: "inline", "processes" or "dask".
+        kind: a :class:`~colmap_miho.enums.RunnerKind`.
         address: the Dask scheduler's address ("" otherwise).
     """
 
-    def __init__(self, slots: int, kind: str, address: str = "",
+    def __init__(self, slots: int, kind: RunnerKind | str, address: str = "",
                  make_executor: Callable[[], Executor] | None = None,
                  wrap: bool = False) -> None:
         self.slots = max(1, int(slots))
-        self.kind = kind
+        self.kind = RunnerKind.parse(kind, "kind")
         self.address = address
         self._make = make_executor
         self._executor: Executor | None = None
@@ -144,19 +145,19 @@ def open_runner(workers: int, dask: str | None = None) -> Iterator[Runner]:
     """
     if dask is None:
         if workers <= 1:
-            yield Runner(1, "inline")
+            yield Runner(1, RunnerKind.INLINE)
             return
         with contextlib.ExitStack() as stack:
             def start() -> Executor:
                 stack.enter_context(single_thread_children())
                 return stack.enter_context(process_pool(workers, initializer=init_worker))
 
-            yield Runner(workers, "processes", make_executor=start)
+            yield Runner(workers, RunnerKind.PROCESSES, make_executor=start)
         return
     with _dask_client(workers, dask) as client:
         slots = sum(int(w.get("nthreads", 1)) for w in client.scheduler_info()["workers"].values())
         ex = client.get_executor(pure=False)
-        runner = Runner(max(1, slots), "dask", address=str(client.scheduler.address),
+        runner = Runner(max(1, slots), RunnerKind.DASK, address=str(client.scheduler.address),
                         make_executor=lambda: ex, wrap=True)
         try:
             yield runner
@@ -185,10 +186,10 @@ def _quiet_dask():
 
 @contextlib.contextmanager
 def _dask_client(workers: int, dask: str):
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:  # pragma: no cover - distributed is a dependency
-        raise UserError("--dask needs the 'distributed' package: pip install distributed") from None
+    from ..extras import require
+
+    distributed = require("distributed", "dask", "--dask")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if dask == LOCAL:
         try:
             cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,

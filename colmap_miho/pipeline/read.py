@@ -12,7 +12,7 @@ from ..adapters.database import ColmapDatabase, PairRecord
 from ..adapters.images import ImageLoader
 from ..enums import MatchSource
 from ..errors import DatabaseError, UserError
-from .config import PipelineConfig
+from ..pipeline_config import PipelineConfig
 
 
 @dataclass(frozen=True, kw_only=True)

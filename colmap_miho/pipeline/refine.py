@@ -1,428 +1,388 @@
-"""``refine_database``: filter and refine the matches of a COLMAP database, safely.
+"""Refine stage of ``refine_database``: the track-consistent NCC walk over groups of tracks.
 
-Data flow (one stage after the other, each ``run_<stage>`` returning its outputs and a small
-stats dataclass that :class:`RefineSummary` is assembled from)::
+:func:`run_refine` is the stage: it reads the filtered pairs back from the run store, walks
+them (:func:`run_refine_stage`) and returns the new keypoints with frozen :class:`RefineStats`.
 
-    safe working copy -> read (:mod:`.read`) -> filter the pairs chunk by chunk
-      (:mod:`.filter_stage`, MOP / MOP+MiHo) into the run store (:mod:`.store`)
-      -> track-consistent NCC refinement (:mod:`.stages`) -> write back chunk by chunk
-      (:mod:`.write`: keypoints, matches, two_view_geometries)
-      -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
+The :class:`~colmap_miho.refinement.track_plan.TrackPlan` of all output matches is cut into
+groups of whole walked tracks (:meth:`~colmap_miho.refinement.track_plan.TrackPlan.groups`),
+each using at most as many images as fit in the image budget; groups are numbered 0..G-1 in
+their schedule order (consecutive groups share images) and walked one after the other in
+this process, or spread over the runner's slots (:mod:`.executor`: a process pool or Dask)
+as contiguous runs of groups, one group of each run in flight at a time, so that a worker
+keeps the images the next group of its run needs.
 
-The input database is never opened for writing; see :mod:`colmap_miho.adapters.safety`.
-
-Memory: ``pipeline.memory_budget_mb`` (``refine --memory-budget``) sizes the filter's chunks
-and the refine stage's image cache (see :class:`~.config.PipelineConfig`).
-
-Resuming: finished filter chunks and refine groups are kept in the run store beside the
-output until the commit; a killed or failed run is continued with ``resume=True``
-(``refine --resume``), and ``restart=True`` discards them. A run that finds finished work
-and was given neither refuses to start.
-
-Parallelism: one :class:`~.executor.Runner` per run (:func:`~.executor.open_runner`) runs the
-filter's chunks and the refinement's track groups in this process, in worker processes with one
-thread each (forked from a forkserver that imported torch once), or on a Dask cluster
-(``dask``); only this process writes SQLite. Scripts that call :func:`refine_database` with
-``workers > 1`` need the usual ``if __name__ == "__main__":`` guard.
-All coordinates handled here are colmap-miho's
-(integer = pixel centre); the conversion to COLMAP's happens inside
-:mod:`colmap_miho.adapters.database`.
+Results do not depend on the runner, its slots or the budget: groups are whole tracks, which
+never share a keypoint, and each group's walk is exactly the whole plan's walk of its tracks.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import errno
-import json
 import logging
-import os
-import sqlite3
-import time
 from collections import Counter
+from collections.abc import Callable, Mapping
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..adapters.database import ColmapDatabase, validate_database
-from ..adapters.paths import check_distinct
-from ..adapters.safety import WorkingCopy, check_database_path
-from ..enums import Device
-from ..errors import DatabaseError, RunFailed, UserError
-from . import stages
-from .executor import Runner, open_runner
-from .filter_stage import FilteredPairs, FilterOptions, FilterStats, run_filter
-from .read import ReadConfig, ReadOutput, ReadStats, read_affines, run_read
-from .stages import DECODED_BY_IMAGE, run_refine_stage
-from .store import RunStore, run_fingerprint, store_folder
-from .verify import run_verify
-from .workers import check_not_bootstrapping, start_forkserver
-from .write import WriteStats, run_write
-
-if TYPE_CHECKING:  # recipe.py imports this package's config: import it lazily
-    from ..recipe import Recipe
+from ..adapters.database import ColmapDatabase
+from ..adapters.images import ImageLoader
+from ..enums import Device, MatchSource, RunnerKind
+from ..errors import InvalidInput
+from ..recipe import Recipe
+from .executor import Runner
+from .read import ReadOutput, read_affines
+from .records import FilteredPairs
+from .store import RunStore
 
 log = logging.getLogger(__name__)
 
+#: Refinement runs in worker processes only with at least this many refinable matches each.
+MIN_MATCHES_PER_REFINE_WORKER = 2000
 
-@dataclass
-class RefineSummary:
-    """What ``refine_database`` did. Counters are over image pairs / matches / keypoints.
+#: When the filter stage did not start the process pool, refinement starts it only with at
+#: least this many refinable matches per worker: a worker's first group waits for the
+#: forkserver's imports if they have not finished, which only a large enough share of the walk
+#: pays back. Dask clusters are started already.
+MIN_MATCHES_TO_START_WORKERS = 10_000
 
-    Attributes:
-        output: path of the written database.
-        backup: timestamped copy of the input (``in_place`` only), else None.
-        pairs_filtered: pairs with at least ``pipeline.min_matches`` matches, filtered.
-        pairs_passed: pairs with fewer matches, left unchanged.
-        pairs_failed: filtered pairs for which the filter found no plane; left unchanged.
-        matches_in / matches_kept / matches_removed: over the filtered (successful) pairs.
-        keypoints_moved: keypoints whose position changed (each moves at most once).
-        median_displacement_px / max_displacement_px: over the moved keypoints, pixels.
-        images_missing: names of images that could not be read (not refined).
-        runner: where the parallel work ran: "inline", "processes" or "dask".
-        memory_budget_mb: ``pipeline.memory_budget_mb`` of the run.
-        filter_chunks / filter_chunks_resumed: chunks of pairs filtered in all / taken from
-            an interrupted run's store; pairs_resumed: the pairs of those chunks.
-        refine_groups / refine_groups_resumed: track groups refined in all / taken from the
-            store (0 when the refine stage does not report groups).
-        resumed: the run continued an interrupted one.
-        image_decodes: image files decoded in the whole run, over all processes: the read
-            stage's check (once per image; kept in the cache when it fits) and the track walk's
-            (an image again in each worker whose groups need it and no longer cache it).
-        image_decodes_max: the most times one image was decoded in the run (same count).
-        seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
-            "total").
-    """
-
-    output: Path
-    database: Path
-    backup: Path | None = None
-    recipe: str = ""
-    source: str = ""
-    refined: bool = True
-    verified: bool = False
-    workers: int = 1
-    device: str = "cpu"
-    num_images: int = 0
-    num_pairs: int = 0
-    pairs_filtered: int = 0
-    pairs_passed: int = 0
-    pairs_failed: int = 0
-    matches_in: int = 0
-    matches_kept: int = 0
-    matches_removed: int = 0
-    keypoints_total: int = 0
-    keypoints_moved: int = 0
-    median_displacement_px: float = 0.0
-    max_displacement_px: float = 0.0
-    images_missing: list[str] = field(default_factory=list)
-    runner: str = "inline"
-    memory_budget_mb: int = 0
-    filter_chunks: int = 0
-    filter_chunks_resumed: int = 0
-    pairs_resumed: int = 0
-    refine_groups: int = 0
-    refine_groups_resumed: int = 0
-    resumed: bool = False
-    image_decodes: int = 0
-    image_decodes_max: int = 0
-    refine_stats: dict = field(default_factory=dict)
-    seconds: dict[str, float] = field(default_factory=dict)
-
-    @classmethod
-    def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
-                    device: str, runner: str, resumed: bool, read: ReadStats, filtered: FilterStats,
-                    refine_stats: dict, write: WriteStats, seconds: dict[str, float]) -> RefineSummary:
-        """Assemble the summary from the stages' stats."""
-        pcfg = recipe.pipeline
-        refine_stats = dict(refine_stats)
-        per_image = Counter(read.decoded_by_image)
-        per_image.update({int(k): int(v) for k, v in refine_stats.pop(DECODED_BY_IMAGE, {}).items()})
-        return cls(
-            output=output, database=database, backup=backup, recipe=recipe.name,
-            source=str(pcfg.source), refined=pcfg.refine, verified=pcfg.verify,
-            workers=filtered.workers, device=device, num_images=read.num_images,
-            num_pairs=read.num_pairs, pairs_filtered=filtered.pairs_filtered,
-            pairs_passed=read.pairs_passed, pairs_failed=filtered.pairs_failed,
-            matches_in=filtered.matches_in, matches_kept=filtered.matches_kept,
-            matches_removed=filtered.matches_removed, keypoints_total=read.keypoints_total,
-            keypoints_moved=write.keypoints_moved,
-            median_displacement_px=write.median_displacement_px,
-            max_displacement_px=write.max_displacement_px,
-            images_missing=list(read.images_missing), runner=runner, memory_budget_mb=pcfg.memory_budget_mb,
-            filter_chunks=filtered.chunks, filter_chunks_resumed=filtered.chunks_resumed,
-            pairs_resumed=filtered.pairs_resumed, refine_groups=int(refine_stats.get("groups", 0)),
-            refine_groups_resumed=int(refine_stats.get("groups_resumed", 0)), resumed=resumed,
-            image_decodes=read.image_decodes + int(refine_stats.get("image_decodes", 0)),
-            image_decodes_max=max(per_image.values(), default=0),
-            refine_stats=refine_stats, seconds=seconds)
-
-    def to_dict(self) -> dict:
-        """Plain JSON-ready data (paths as strings, seconds rounded to ms)."""
-        out = dataclasses.asdict(self)
-        for key in ("output", "database", "backup"):
-            out[key] = None if out[key] is None else str(out[key])
-        out["seconds"] = {k: round(v, 3) for k, v in self.seconds.items()}
-        return out
-
-    def format(self) -> str:
-        """A one-screen human summary."""
-        kept_pct = 100.0 * self.matches_kept / self.matches_in if self.matches_in else 0.0
-        lines = [
-            f"colmap-miho refine: {self.database} -> {self.output}",
-            f"  recipe {self.recipe}, source {self.source}, refine {'on' if self.refined else 'off'}, "
-            f"verify {'on' if self.verified else 'off'}, {self.workers} worker(s) ({self.runner}), {self.device}",
-            f"  images {self.num_images}, pairs {self.num_pairs}: {self.pairs_filtered} filtered, "
-            f"{self.pairs_passed} too small (unchanged), {self.pairs_failed} no plane found (unchanged)",
-            f"  matches {self.matches_in} -> kept {self.matches_kept} ({kept_pct:.1f}%), "
-            f"removed {self.matches_removed}",
-            f"  keypoints moved {self.keypoints_moved} of {self.keypoints_total}, median displacement "
-            f"{self.median_displacement_px:.2f} px, max {self.max_displacement_px:.2f} px",
-        ]
-        if self.resumed:
-            lines.append(f"  resumed: {self.filter_chunks_resumed} of {self.filter_chunks} filter chunks "
-                         f"({self.pairs_resumed} pairs) and {self.refine_groups_resumed} of "
-                         f"{self.refine_groups} refine groups were finished before")
-        if self.images_missing:
-            lines.append(f"  images not refined (missing/unreadable): {', '.join(self.images_missing)}")
-        if self.backup:
-            lines.append(f"  backup of the input: {self.backup}")
-        lines.append("  seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in self.seconds.items()))
-        return "\n".join(lines)
+#: Most refinable matches of one group of tracks, in units of
+#: :data:`MIN_MATCHES_PER_REFINE_WORKER`: a group is the unit of work handed to a worker and
+#: of what a resumed run keeps (a fixed number, so the groups do not depend on the runner).
+GROUP_SIZE_IN_WORKER_MINIMUMS = 10
 
 
-def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
-    from ..recipe import Recipe, load_recipe
+def group_max_matches() -> int:
+    """Most refinable matches of one group (part of a resumed run's plan key)."""
+    return GROUP_SIZE_IN_WORKER_MINIMUMS * MIN_MATCHES_PER_REFINE_WORKER
 
-    if isinstance(recipe, Recipe):
-        return recipe
-    return load_recipe(None if recipe is None else str(recipe))
+#: Key of the refine stage's stats holding image id -> decodes by the walk (all processes).
+DECODED_BY_IMAGE = "decoded_by_image"
 
+#: Bytes of one pixel of a decoded image (:class:`ImageLoader` keeps float32 gray).
+BYTES_PER_PIXEL = 4
 
-def _resolve_device(device: Device | str) -> str:
-    """"cpu" or "cuda", by the refinement's resolver (torch is imported only if needed)."""
-    device = Device.parse(device, "device")
-    if device == Device.CPU:
-        return "cpu"
-    from ..refinement.config import NCCConfig
-    from ..refinement.ncc import resolve_device
+#: (image id, keypoint indices (K,) int64, new positions (K, 2) float64) per image of a group.
+Moved = dict[int, tuple[np.ndarray, np.ndarray]]
 
-    try:
-        return resolve_device(NCCConfig(device=str(device))).type
-    except ValueError:
-        raise UserError("--device cuda was asked for but torch sees no CUDA device") from None
+#: The loader of this worker process, kept from one task to the next (image reuse).
+_WORKER_LOADER: ImageLoader | None = None
 
 
-def refine_database(
-    database: str | os.PathLike,
-    image_dir: str | os.PathLike,
-    output: str | os.PathLike | None = None,
-    *,
-    recipe: Recipe | str | os.PathLike | None = None,
-    in_place: bool = False,
-    overwrite: bool = False,
-    workers: int | None = None,
-    device: Device | str = "auto",
-    seed: int = 0,
-    strict: bool = False,
-    progress: bool = False,
-    json_path: str | os.PathLike | None = None,
-    resume: bool = False,
-    restart: bool = False,
-    dask: str | None = None,
-) -> RefineSummary:
-    """Filter (MOP / MOP+MiHo) and refine (track-consistent NCC) a COLMAP database.
+def _import_refinement():
+    """The track plan and walk, imported only when a run refines (they import torch)."""
+    from ..refinement import track_plan, tracks
+
+    return track_plan.build_track_plan, tracks.walk_tracks, tracks.local_affine_of
+
+
+def max_images_for(loader: ImageLoader, image_ids, budget_bytes: int | None,
+                   fallback: int) -> int:
+    """Images a group may use (at least 2): as many of the largest of ``image_ids`` (decoded,
+    from the loader's expected sizes) as fit in ``budget_bytes`` and in the loader's own
+    bounds (so that a group's images stay cached during its walk); ``fallback`` when none of
+    these bounds is known."""
+    sizes = [b for b in (loader.image_bytes(i) for i in image_ids) if b]
+    bounds = [loader.max_cached] if loader.max_cached is not None else []
+    for budget in (budget_bytes, loader.max_cached_bytes):
+        if budget is not None and sizes:
+            bounds.append(int(budget) // max(sizes))
+    return max(2, min(bounds) if bounds else int(fallback))
+
+
+def _moved_of(group, keypoints) -> Moved:
+    """The keypoints of ``group``'s images that its walk changed: image -> (idx, xy)."""
+    out: Moved = {}
+    for i, arr in keypoints.items():
+        arr = np.asarray(arr, np.float64)
+        idx = np.flatnonzero(np.any(arr != group.keypoints[i], axis=1))
+        if idx.size:
+            out[int(i)] = (idx.astype(np.int64), arr[idx].copy())
+    return out
+
+
+def _walk_group(loader, group, ncc_config, track_config, affines, on_progress=None):
+    """Walk one group with ``loader``; returns (moved, stats): the numeric stats and
+    ``decoded_by_image`` (image id as text -> the images the walk decoded, JSON-ready)."""
+    _, walk_tracks, _ = _import_refinement()
+    before = Counter(loader.decoded)
+    tr = walk_tracks(loader, group, ncc_config=ncc_config, track_config=track_config,
+                     affines=affines, progress=False, on_progress=on_progress)
+    stats: dict = _numeric(tr.stats)
+    stats[DECODED_BY_IMAGE] = {str(k): int(v) for k, v in (loader.decoded - before).items()}
+    return _moved_of(group, tr.keypoints), stats
+
+
+def _walk_group_task(loader_state: dict, group, ncc_config, track_config, affines):
+    """Worker task: walk one group with this process's loader (created on first use, then
+    kept with its cache, so the next group of the same run finds its shared images)."""
+    global _WORKER_LOADER
+    state = dict(loader_state)
+    names, sizes = state.pop("names"), state.pop("expected_sizes")
+    loader = _WORKER_LOADER
+    if loader is None or {k: getattr(loader, k) for k in state} != state:
+        loader = _WORKER_LOADER = ImageLoader(names=names, expected_sizes=sizes, **state)
+    else:
+        loader.add_images(names, sizes)
+    return _walk_group(loader, group, ncc_config, track_config, affines)
+
+
+def _group_args(loader: ImageLoader, group, affines, budget_bytes: int | None
+                ) -> tuple[dict, Mapping | None]:
+    """What a worker needs besides the group: the loader settings (bytes bounded by
+    ``budget_bytes`` when given) with the group's images only, and the affine frames of the
+    group's images."""
+    ids = group.image_ids
+    state = dict(loader.state(), max_cached_bytes=budget_bytes or loader.max_cached_bytes)
+    state["names"] = {i: loader.names[i] for i in ids}
+    state["expected_sizes"] = {i: loader.expected_sizes[i] for i in ids
+                               if i in loader.expected_sizes}
+    aff = None if affines is None else {i: affines[i] for i in ids if i in affines}
+    return state, aff
+
+
+def _merge_walk_stats(plan_stats: dict, parts: list[dict]) -> dict:
+    """The plan's stats, the groups' counters summed (``levels``, ``missing_images``: the
+    largest of one group)."""
+    from ..refinement.tracks import WALK_COUNTERS
+
+    stats = dict(plan_stats)
+    for key in WALK_COUNTERS + ("missing_images", "images_loaded", "image_decodes", "seconds"):
+        vals = [st[key] for st in parts if key in st]
+        if vals:
+            stats[key] = max(vals) if key in ("levels", "missing_images") else sum(vals)
+    decoded: Counter[int] = Counter()
+    for st in parts:
+        decoded.update({int(k): int(v) for k, v in st.get(DECODED_BY_IMAGE, {}).items()})
+    return {**_numeric(stats), DECODED_BY_IMAGE: dict(decoded)}
+
+
+def _runs(groups: list, n: int) -> list[list[int]]:
+    """``n`` contiguous runs of group indices, balanced by keypoints to refine (empty runs
+    left out)."""
+    work = np.cumsum([g.to_refine for g in groups], dtype=np.float64)
+    cut = np.searchsorted(work, work[-1] * np.arange(1, n) / n, side="right")
+    bounds = [0, *sorted(set(cut.tolist())), len(groups)]
+    return [list(range(a, b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+
+
+def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config, track_config, *,
+                     unrefined=None, runner: Runner, progress: bool = False,
+                     image_budget_bytes: int | None = None,
+                     done: Mapping[int, tuple[Moved, dict]] | None = None,
+                     on_group: Callable[[int, Moved, dict], None] | None = None):
+    """Track-consistent NCC refinement over groups of whole tracks.
 
     Args:
-        database: the input COLMAP database; never opened for writing (unless ``in_place``,
-            and even then only replaced atomically at the end, after a backup).
-        image_dir: folder the database's image names are relative to.
-        output: the database to write; default ``<stem>.miho.db`` beside the input.
-        recipe: a :class:`~colmap_miho.recipe.Recipe`, a shipped recipe name or a TOML path
-            (default ``mop_miho_ncc``); its ``pipeline`` table chooses the match source,
-            ``min_matches``, refinement, re-verification and the memory budget.
-        in_place: replace ``database`` itself, after copying it to a timestamped backup.
-        overwrite: allow replacing an existing ``output``.
-        workers: processes that filter pairs and refine tracks (default: all cores; 1 = all
-            in this process), or the workers of a local Dask cluster. Small jobs stay in
-            this process (below ~10k matches per worker, workers do not pay off); results do
-            not depend on the worker count.
-        device: "cpu", "cuda" or "auto" for the torch work.
-        seed: base seed; each pair's filter seed is derived from it and the pair's image ids.
-        strict: a missing or unreadable image is an error instead of a warning.
-        progress: show tqdm progress bars.
-        json_path: also write :meth:`RefineSummary.to_dict` as JSON to this file.
-        resume: continue an interrupted run from its run store (``.<output name>.miho-run``
-            beside the output); the inputs and options must be those of that run.
-        restart: discard an interrupted run's store and start again.
-        dask: None (no Dask), ``"local"`` (a local Dask cluster of ``workers`` processes) or
-            a scheduler address ``tcp://host:8786``; the workers must see ``image_dir`` at
-            the same path.
+        loader: the run's image loader (walks in this process use it; workers build their own
+            with its settings, :meth:`ImageLoader.state`).
+        keypoints: image id -> (N, 2) float64 pixels (integer = pixel centre).
+        pairs: (i, j) -> (matches (M, 2), FilterResult with rows 1:1) of the filtered pairs
+            whose images are present.
+        affines: image id -> (N, 2, 2) keypoint affine frames, or None.
+        unrefined: (i, j) -> (M, 2) the other matches that reach the output database (pairs
+            not filtered, failed, or with a missing image): they join tracks, never refine.
+        runner: a :class:`~.executor.Runner` (in this process, a process pool or Dask).
+        progress: a tqdm bar over the keypoints to refine.
+        image_budget_bytes: decoded image bytes one walking process may hold; sets the
+            images of a group (:func:`max_images_for`; None: ``tracks.max_images_in_memory``).
+            Workers' loaders keep at most this many bytes (or the run loader's bound). Groups
+            (and so ``done``'s indices) depend on the inputs and on this budget only; groups
+            hold at most :func:`group_max_matches`
+            refinable matches (20,000).
+        done: group index -> (moved, stats) of groups finished by an earlier run of the same
+            inputs (resume): not walked again, their moved keypoints applied.
+        on_group: called in this process as each group finishes, with (group index, moved,
+            stats); moved = image id -> (keypoint indices (K,) int64, positions (K, 2)
+            float64) of the keypoints the group changed.
 
     Returns:
-        A :class:`RefineSummary`.
-
-    Raises:
-        DatabaseError: missing or non-COLMAP database, database in use.
-        UserError: bad image folder, existing output without ``overwrite``, strict and an
-            image missing, no pairs to process; an interrupted run's store found without
-            ``resume`` or ``restart``, or ``resume`` with other inputs or options.
-        ValueError: a bad recipe or option value (the message names it).
-        RunFailed: a worker process died (see :data:`~.workers.WORKER_DIED`), or this is
-            a worker importing a script that calls this without a ``__main__`` guard.
+        (new keypoints dict, stats, processes used). Stats hold the plan's, the walk
+        counters summed over groups (``images_loaded`` and ``image_decodes`` too: an image
+        counts once per group that read / decoded it; the decodes of the loader's
+        ``check_all`` are not in them), ``groups``, ``groups_resumed``, ``group_max_images``.
     """
-    check_not_bootstrapping()
-    laps = _Laps()
-    database = check_database_path(database)
-    image_dir = Path(image_dir)
-    if not image_dir.is_dir():
-        raise UserError(f"image folder not found: {image_dir}")
-    rec = _resolve_recipe(recipe)
-    asked = max(1, int(workers) if workers else (os.cpu_count() or 1))
-    if asked > 1 and dask is None and str(device) != "cuda":
-        start_forkserver()  # the workers' imports run beside this process's from here on
-    dev = _resolve_device(device)
-    n_workers = 1 if dev == "cuda" else asked
-    wc = WorkingCopy(database, Path(output) if output else None, in_place=in_place, overwrite=overwrite)
-    check_distinct({"--database": database, "--images": image_dir},
-                   {"--output": None if in_place else wc.output, "--json": json_path})
-    if json_path:
-        _check_writable_file(Path(json_path), "--json")
-    store = RunStore.open(store_folder(wc.output), run_fingerprint(database, image_dir, rec, seed, dev),
-                          resume=resume, restart=restart)
-    resumed = store.has_work()
-    laps.lap("setup")
+    build_track_plan, _, local_affine_of = _import_refinement()
+    plan = build_track_plan(keypoints, {k: m for k, (m, _) in pairs.items()},
+                            {k: r for k, (_, r) in pairs.items()}, unrefined_matches=unrefined,
+                            duplicate_px=track_config.duplicate_px,
+                            local_affine=local_affine_of(ncc_config))
+    n_edges = int(plan.refinable().sum())
+    if not n_edges:
+        return keypoints, _numeric(plan.stats), 1
+    max_images = max_images_for(loader, plan.image_ids, image_budget_bytes,
+                                track_config.max_images_in_memory)
+    groups = plan.groups(max_images, group_max_matches())
+    done = dict(done or {})
+    if any(not 0 <= g < len(groups) for g in done):
+        raise InvalidInput(f"resumed group indices must be in 0..{len(groups) - 1} (were the "
+                         "inputs or the image budget changed since?)")
+    new = {i: np.array(keypoints[i], np.float64) for i in keypoints}
+    group_stats: list[dict] = []
+    attach = _LocalPairs(plan, groups, skip=done)
+
+    def finish(g: int, moved: Moved, st: dict, *, resumed: bool = False) -> None:
+        for i, (idx, xy) in moved.items():
+            new[i][idx] = xy
+        group_stats.append(st)
+        if not resumed and on_group is not None:
+            on_group(g, moved, st)
+
+    todo = [g for g in range(len(groups)) if g not in done]
+    for g in sorted(done):
+        finish(g, *done[g], resumed=True)
+    use = 1
+    if runner.parallel and (runner.started or runner.kind == RunnerKind.DASK
+                            or n_edges >= MIN_MATCHES_TO_START_WORKERS * runner.slots):
+        use = min(runner.slots, max(1, n_edges // MIN_MATCHES_PER_REFINE_WORKER), max(1, len(todo)))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=plan.to_refine, desc="NCC tracks" + (f" ({use} workers)" if use > 1 else ""),
+                   unit="kp", initial=sum(groups[g].to_refine for g in done))
     try:
-        with open_runner(n_workers, dask) as runner:
-            summary = _run_stages(database, image_dir, wc, store, runner, rec, dev, seed=seed, strict=strict,
-                                  progress=progress, json_path=json_path, resumed=resumed, laps=laps)
-    except UserError as exc:  # one line: the error, then how to resume
-        if not _keep_store(store):
-            raise
-        raise type(exc)(f"{exc}; {_resume_hint(store)}") from exc
-    except BaseException as exc:  # the CLI prints the note on the error's one line
-        if _keep_store(store):
-            _add_note(exc, _resume_hint(store))
-        raise
-    store.remove()
-    log.info("wrote %s", summary.output)
-    return summary
+        if use <= 1:
+            with _torch_threads(1 if ncc_config.device != "cuda" else None):
+                for g in todo:
+                    finish(g, *_walk_group(loader, attach(g), ncc_config, track_config, affines,
+                                           bar.update if bar is not None else None))
+        else:
+            loader.clear_cache()  # the workers' loaders hold the images from here on
+            _dispatch(runner, loader, groups, todo, use, attach,
+                      (ncc_config, track_config, affines, image_budget_bytes), finish, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+    stats = _merge_walk_stats(plan.stats, group_stats)
+    stats.update(groups=len(groups), groups_resumed=len(done), group_max_images=max_images)
+    return new, stats, use
 
 
-def _keep_store(store: RunStore) -> bool:
-    """After a failure: keep the store when it holds finished work (else remove it); True
-    when kept."""
-    if store.has_work():
-        store.close()
-        return True
-    store.remove()
-    return False
+class _LocalPairs:
+    """``attach(g)``: group ``g`` with its local affine pairs; a pair's are fitted when the
+    first group that uses it is attached and forgotten once the last one is."""
+
+    def __init__(self, plan, groups: list, skip) -> None:
+        self.plan, self.groups = plan, groups
+        self.left: dict[int, int] = {}
+        for g, grp in enumerate(groups):
+            if g not in skip:
+                for p in grp.source_pairs.tolist():
+                    self.left[p] = self.left.get(p, 0) + 1
+
+    def __call__(self, g: int):
+        grp = self.plan.attach_local(self.groups[g])
+        for p in self.groups[g].source_pairs.tolist():
+            self.left[p] -= 1
+            if not self.left[p]:
+                self.plan.release_local([p])
+        return grp
 
 
-def _add_note(exc: BaseException, note: str) -> None:
-    """``exc.add_note(note)`` (Python >= 3.11), or the same ``__notes__`` list on 3.10."""
-    add = getattr(exc, "add_note", None)
-    if add is not None:
-        add(note)
-    else:  # pragma: no cover - Python 3.10
-        exc.__notes__ = [*getattr(exc, "__notes__", []), note]  # type: ignore[attr-defined]
+def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> None:
+    """Walk the ``todo`` groups on the runner: ``use`` contiguous runs, one group of each run
+    in flight at a time (the worker that finished a group is the idle one, so it usually gets
+    the next group of its run and finds the shared images in its cache). ``args``: (NCC
+    config, track config, affines, image budget)."""
+    ncc_config, track_config, affines, budget = args
+    runs = [[todo[k] for k in r] for r in _runs([groups[g] for g in todo], use)]
+    pending: dict[Future, tuple[int, int]] = {}
+
+    def submit(r: int) -> None:
+        if runs[r]:
+            g = runs[r].pop(0)
+            state, aff = _group_args(loader, groups[g], affines, budget)
+            pending[runner.submit(_walk_group_task, state, attach(g), ncc_config, track_config,
+                                  aff)] = (r, g)
+
+    for r in range(len(runs)):
+        submit(r)
+    while pending:
+        finished, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+        for fut in sorted(finished, key=lambda f: pending[f][1]):
+            r, g = pending.pop(fut)
+            moved, st = fut.result()  # a failed group stops the run now
+            finish(g, moved, st)
+            if bar is not None:
+                bar.update(groups[g].to_refine)
+            submit(r)
 
 
-def _resume_hint(store: RunStore) -> str:
-    return (f"the finished work of this run is kept in {store.folder}: run the same command with "
-            "--resume to continue it (or --restart to start again)")
+@contextlib.contextmanager
+def _torch_threads(n: int | None):
+    """Run a block with ``n`` torch intra-op threads, then restore the caller's setting (the
+    walk's many small operations run faster on one thread: see :mod:`.workers`)."""
+    if n is None:
+        yield
+        return
+    import torch
 
-
-def _run_stages(database: Path, image_dir: Path, wc: WorkingCopy, store: RunStore, runner: Runner,
-                rec: Recipe, dev: str, *, seed: int, strict: bool, progress: bool,
-                json_path: str | os.PathLike | None, resumed: bool, laps: _Laps) -> RefineSummary:
-    """The stages on the working copy, then the commit; returns the summary."""
-    pcfg = rec.pipeline
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
     try:
-        with wc:
-            laps.lap("copy")
-            work_db = wc.path
-            assert work_db is not None  # set on entering the block
-            try:
-                validate_database(work_db)
-            except DatabaseError as exc:  # name the user's file, not the hidden working copy
-                raise DatabaseError(str(exc).replace(str(work_db), str(database))) from None
-            with ColmapDatabase(work_db) as db:
-                read, read_stats = run_read(db, ReadConfig(
-                    pipeline=pcfg, image_dir=image_dir, image_budget_bytes=pcfg.image_budget_bytes(runner.slots),
-                    strict=strict, database_name=database))
-                laps.lap("read")
-                filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
-                    source=pcfg.source, seed=seed, memory_budget_bytes=pcfg.memory_budget_bytes, device=dev,
-                    progress=progress, database_name=str(database)), runner=runner, store=store)
-                laps.lap("filter")
-                new_keypoints, refine_stats = _refine(db, read, store, rec, dev, runner, progress)
-                laps.lap("refine")
-                write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg)
-                laps.lap("write")
-            if pcfg.verify:
-                run_verify(work_db)
-                laps.lap("verify")
-            summary = RefineSummary.from_stages(
-                output=database if wc.in_place else wc.output,  # in place: the user's path (a symlink stays one)
-                database=database, backup=wc.backup, recipe=rec, device=dev, runner=runner.kind,
-                resumed=resumed, read=read_stats, filtered=filter_stats, refine_stats=refine_stats,
-                write=write_stats, seconds=laps.total())
-            if json_path:  # written beside its target now, renamed onto it with the commit
-                wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
-            wc.commit()
-    except OSError as exc:
-        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
-            raise
-        raise RunFailed(f"disk full while writing in {wc.output.parent}; {database} is unchanged and the "
-                        "working files were removed: free some space and retry") from None
-    except sqlite3.Error as exc:
-        raise RunFailed(f"SQLite error while writing the copy of {database} ({exc}); {database} is "
-                        "unchanged and the working files were removed") from None
-    return summary
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
-def _check_writable_file(path: Path, label: str) -> None:
-    """Refuse, before any work, an output file whose folder is missing or read-only.
+def _numeric(stats: dict) -> dict:
+    return {k: v for k, v in stats.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
 
-    Raises:
-        UserError: the message names the option and the path.
+
+@dataclass(frozen=True)
+class RefineStats:
+    """Counts of the refine stage.
+
+    Attributes:
+        counters: the walk's counters summed over its track groups, with ``workers`` (the
+            processes used), ``missing_images`` and ``groups`` / ``groups_resumed`` /
+            ``image_decodes``; empty when refinement is off or nothing was filtered (the
+            summary's ``refine_stats``).
+        decoded_by_image: image id -> decodes by the walk, over all processes.
     """
-    if path.is_dir():
-        raise UserError(f"{label} {path} is a folder; give a file name")
-    if not path.parent.is_dir():
-        raise UserError(f"{label} folder does not exist: {path.parent}")
-    if not os.access(path.parent, os.W_OK | os.X_OK):
-        raise UserError(f"{label} {path}: cannot write in {path.parent} (read-only folder)")
+
+    counters: Mapping[str, float] = field(default_factory=dict)
+    decoded_by_image: Mapping[int, int] = field(default_factory=dict)
+
+    def count(self, key: str) -> int:
+        """``counters[key]`` as an int (0 when absent)."""
+        return int(self.counters.get(key, 0))
 
 
-def _refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, rec: Recipe, device: str,
-            runner: Runner, progress: bool) -> tuple[dict[int, np.ndarray], dict]:
-    """Refine stage on the stored pairs whose two images are readable, on ``runner``, skipping
-    the track groups ``store`` holds and storing each finished one; returns the new keypoints
-    and the summed refinement counters with the processes used (``{}`` when refinement is off
-    or nothing was filtered)."""
-    if not rec.pipeline.refine or not store.filter_counts().pairs_ok:
-        return read.keypoints, {}
+def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Recipe, device: str,
+               runner: Runner, progress: bool) -> tuple[dict[int, np.ndarray], RefineStats]:
+    """The refine stage on the stored pairs whose two images are readable, on ``runner``,
+    skipping the track groups ``store`` holds and storing each finished one.
+
+    Returns:
+        (image id -> new keypoints (N, 2) float64 pixels, the stage's :class:`RefineStats`);
+        the read keypoints and empty stats when refinement is off or nothing was filtered.
+    """
+    if not recipe.pipeline.refine or not store.filter_counts().pairs_ok:
+        return read.keypoints, RefineStats()
     ok = store.load_filtered()
     missing = read.loader.missing
     usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
-    ncfg = dataclasses.replace(rec.ncc, device=device) if rec.ncc.device == "auto" else rec.ncc
-    budget = rec.pipeline.image_budget_bytes(runner.slots)
+    ncfg = dataclasses.replace(recipe.ncc, device=Device(device)) if recipe.ncc.device == "auto" else recipe.ncc
+    budget = recipe.pipeline.image_budget_bytes(runner.slots)
     # the groups are numbered for one image budget: stored groups of another are walked again
-    done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": stages.group_max_matches()})
+    done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": group_max_matches()})
     new_keypoints, stats, used = run_refine_stage(
-        read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, rec.tracks,
-        unrefined=_unrefined_matches(db, ok, usable, rec.pipeline.source), runner=runner,
+        read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, recipe.tracks,
+        unrefined=_unrefined_matches(db, ok, usable, recipe.pipeline.source), runner=runner,
         progress=progress, image_budget_bytes=budget, done=done, on_group=store.save_group)
+    stats = dict(stats)
+    decoded = {int(k): int(v) for k, v in stats.pop(DECODED_BY_IMAGE, {}).items()}
     # the images skipped before the walk count as missing too: the same number as images_missing
-    return new_keypoints, dict(stats, workers=used,
-                               missing_images=max(int(stats.get("missing_images", 0)), len(missing)))
+    counters = dict(stats, workers=used, missing_images=max(int(stats.get("missing_images", 0)), len(missing)))
+    return new_keypoints, RefineStats(counters=counters, decoded_by_image=decoded)
 
 
 def _unrefined_matches(db: ColmapDatabase, ok: FilteredPairs, usable: FilteredPairs,
-                       source) -> dict[tuple[int, int], np.ndarray]:
+                       source: MatchSource) -> dict[tuple[int, int], np.ndarray]:
     """Every match that reaches the output database but is not refined: the pairs too small to
     filter and the failed ones (written back unchanged), and the kept matches of pairs with a
     missing image. The walk joins them into tracks (they never refine), so a keypoint that moves
@@ -438,20 +398,3 @@ def _unrefined_matches(db: ColmapDatabase, ok: FilteredPairs, usable: FilteredPa
         else:
             out[key] = db.matches(p.image_id1, p.image_id2, source)
     return out
-
-
-class _Laps:
-    """Wall time per stage: each :meth:`lap` records the time since the previous one."""
-
-    def __init__(self) -> None:
-        self.start = self.last = time.perf_counter()
-        self.seconds: dict[str, float] = {}
-
-    def lap(self, name: str) -> None:
-        now = time.perf_counter()
-        self.seconds[name] = now - self.last
-        self.last = now
-
-    def total(self) -> dict[str, float]:
-        self.seconds["total"] = time.perf_counter() - self.start
-        return self.seconds

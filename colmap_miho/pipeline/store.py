@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from .filter_stage import FilteredPairs, PairOutcome
+from ..version import __version__
+from .records import FilteredPairs, PairOutcome
 
 log = logging.getLogger(__name__)
 
@@ -65,8 +66,6 @@ def store_folder(output: Path) -> Path:
 
 def run_fingerprint(database: Path, image_dir: Path, recipe, seed: int, device: str) -> dict:
     """What a run's stored work depends on, as plain JSON data (compared on resume)."""
-    from .. import __version__
-
     st = Path(database).stat()
     tables = {}
     for name in RESULT_TABLES:

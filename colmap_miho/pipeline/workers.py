@@ -2,19 +2,19 @@
 and per-pair seeds that do not depend on the worker count or order.
 
 Workers are forked from a ``forkserver`` (where the platform has one; ``spawn`` elsewhere) that
-has imported numpy, torch and the pipeline once (:data:`PRELOAD`): a spawned worker imported
-torch itself, about 2 s of CPU per worker, paid again by every worker of every run (on fountain
-with 2 workers the first track group of each worker took 3.6 s instead of 1.8 s).
+has imported numpy, torch and the pipeline once (:data:`PRELOAD`): a spawned worker would
+import torch itself, seconds of CPU paid again by every worker of every run.
 :func:`start_forkserver` starts the server early, so that its imports overlap the parent's own
 work. Forking from the server is safe: it is single-threaded and has never run torch work.
 
 Workers die with their parent: each runs a watchdog thread that ends the worker as soon as
-its parent process is gone (SIGKILL of the parent used to leave 0.5 GB orphans running for
-good), and a pool left by an exception (a failed pair, Ctrl-C, SIGTERM) kills its workers
+its parent process is gone (a SIGKILL of the parent must not leave orphans running), and a
+pool left by an exception (a failed pair, Ctrl-C, SIGTERM) kills its workers
 instead of waiting for their current task.
 
-Measured on the 2-core machine: one torch thread is 4x faster than two for the NCC walk, and
-threads over track chunks were slower than one thread (the walk holds the GIL), hence processes.
+One torch thread per process: the NCC walk is many small tensor operations, where intra-op
+threads cost more than they give, and threads over track chunks would share the GIL, hence
+processes (the measurements are in ``docs/results.md``).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 PARENT_POLL_S = 0.5
 
 #: Modules the forkserver imports once for all the workers it forks.
-PRELOAD = ("numpy", "torch", "colmap_miho.pipeline.filter_stage", "colmap_miho.pipeline.stages",
+PRELOAD = ("numpy", "torch", "colmap_miho.pipeline.filter", "colmap_miho.pipeline.refine",
            "colmap_miho.refinement.ncc", "colmap_miho.refinement.tracks")
 
 #: What a script that starts workers needs (said by the errors of failed worker starts).

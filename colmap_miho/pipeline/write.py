@@ -11,8 +11,8 @@ import numpy as np
 
 from ..adapters.database import ColmapDatabase
 from ..enums import MatchSource
-from .config import PipelineConfig
-from .filter_stage import FilteredPairs
+from ..pipeline_config import PipelineConfig
+from .records import FilteredPairs
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..enums import MoveSide
+from ..enums import CheckRule, Device, MoveSide, Perturbations, Rectification, StrEnum
 from ..validation import require_at_most, require_finite
 
 #: matches per batched NCC call when ``NCCConfig.batch_size`` is None, per device type.
@@ -14,91 +14,84 @@ DEFAULT_BATCH_SIZE = {"cpu": 512, "cuda": 4096}
 MAX_WINDOW_RADIUS_PX = 64
 #: Upper bound of ``NCCConfig.batch_size`` (matches per batched call).
 MAX_NCC_BATCH = 65536
+#: the closed choices of :class:`NCCConfig`, parsed from strings (recipes, ``--set``).
+_CHOICES: dict[str, type[StrEnum]] = {"move": MoveSide, "perturbations": Perturbations, "device": Device,
+            "rectification": Rectification, "check_rule": CheckRule}
 
 
 @dataclass(frozen=True, kw_only=True)
 class NCCConfig:
-    """Parameters of the pairwise NCC refinement (paper App. E).
+    """Parameters of the pairwise NCC refinement and of its track walk (paper Sec. 3.3, App. E).
 
-    Defaults chosen by measurement (``benchmarks/bench_ncc.py``, Oxford graf and boat 1->2
-    with GT patch homographies, SIFT and GFTT front ends): the 25 "paper" shapes and the
-    5 "small" ones are never more accurate than "none" (e.g. graf SIFT 0.26 vs 0.24 px,
-    graf GFTT 0.28 vs 0.22 px) and cost 2-4x more; the cornerness gate and ``min_gain`` > 0
-    only lose good moves there; rejecting border peaks matters on ambiguous content (on the
-    pycolmap synthetic scene it keeps the track-relative error at 1.9 px instead of 5.4 px);
-    3 sub-pixel iterations bring the error on a known homography from 0.16 to 0.05 px.
-
-    Track walk defaults chosen with ``benchmarks/bench_accuracy.py`` (GT track residual
-    median, demo + Middlebury temple + Strecha fountain and entry, COLMAP default and
-    permissive matching, change vs the input database): with the filter's planes and
-    r = 10 the residual rose on the demo (+27%/+35%) and the temple (+39%/+57%); searching
-    each match with both the filter's pair and a local affine pair (``rectification =
-    "both"``) removes most of that (demo -54%/-47%); r = 6 is what keeps the temple from
-    getting worse (r = 10: +9%/+32%, r = 6: -16%/-2%) at a cost of 2-10 points on the
-    Strecha scenes (r = 6: -36% to -38%; r = 10: -38% to -48%), so the shipped NCC recipes
-    set ``template_radius = 6``. The pairwise default stays at the paper's 10: with an exact
-    homography (no relief) the larger template is the more precise (0.05 vs 0.10 px on
-    Oxford graf with a known warp).
+    A template of radius r around the fixed keypoint is searched over offsets up to s around
+    the moving keypoint, both resampled through the match's patch homography pair. NCC
+    values are in [-1, 1]; lengths are image pixels unless said otherwise.
 
     Attributes:
-        template_radius: r, half size of the template in pixels (paper: 10, 21x21 patch;
-            the shipped NCC recipes use 6, 13x13: see below).
-        search_radius: half size of the offset search in pixels (paper: 10).
-        perturbations: which template shapes are tried on the extended pair: "none" (the
-            pair itself), "paper" (App. E's A_{rho,f}: 5 rotations x 5 factors, applied to
-            the template only; not the reference's 25 shapes, its own anisotropic scalings
-            times rotations, through which it samples inversely) or "small" (identity,
-            +-15 degrees, factors 5/6 and 6/5).
-        use_base_pair: also try the base pair (identity / keypoint affine frame).
-        ellipse_mask: NCC* - restrict the search to the structure-tensor ellipse. The
-            tensor is taken from the (unperturbed) template; the semi-axis along the edge
-            is ``search_radius * sqrt(lambda_min / lambda_max)`` floored at 0.5 px (the
-            paper says about 1 px); with ``reject_border`` a peak held back by the mask (not
-            a local maximum of the unmasked map) is rejected like a border peak.
-        min_gain: a move of at least one pixel is applied only if it raises NCC by at least
-            this much (NCC in [-1, 1]).
-        min_ncc: a move is applied only if its NCC peak reaches this (in [-1, 1]; -1 = no
-            floor): a weak peak is more likely wrong than right.
+        template_radius: r >= 1, template half size (pixels; (2r + 1)^2 patch). The paper's
+            10 is the most precise under an exact homography; the shipped NCC recipes use 6,
+            which suffers less from relief in the track walk.
+        search_radius: s >= 1, half size of the offset search (pixels; paper: 10);
+            r + s <= ``MAX_WINDOW_RADIUS_PX``.
+        perturbations: :class:`~colmap_miho.enums.Perturbations`, the template shapes tried
+            on the extended pair: "none" (the pair itself), "paper" (App. E's A_{rho,f},
+            5 rotations x 5 factors, applied to the template only; the reference applies its
+            own 25 anisotropic scalings x rotations by inverse sampling) or "small" (identity,
+            +-15 degrees, factors 5/6 and 6/5). More shapes cost proportionally more.
+        use_base_pair: also try the base pair (identity, or the keypoint affine frames).
+        ellipse_mask: NCC*, restrict the search to the structure-tensor ellipse of the
+            (unperturbed) template: semi-axis s along the gradient and
+            ``s * sqrt(lambda_min / lambda_max)`` along the edge, floored at 0.5 px (the
+            paper: about 1 px). With ``reject_border`` a peak held back by the mask (not a
+            local maximum of the unmasked map) is rejected like a border peak.
+        min_gain: >= 0, a move of at least one pixel is applied only if it raises NCC by at
+            least this much.
+        min_ncc: in [-1, 1], a move is applied only if its NCC peak reaches this (-1: no
+            floor); a weak peak is more likely wrong than right.
         reject_border: reject moves whose peak lies on the border of the search window (or
-            is held back by the NCC* ellipse).
-        cornerness_gate: skip edge-like patches (structure-tensor test).
-        min_cornerness: threshold of the gate (lambda_min / lambda_max of the patch).
-        min_template_std: templates whose intensity standard deviation is below this
+            is held back by the NCC* ellipse): the true peak may lie outside it.
+        cornerness_gate: skip edge-like patches (structure-tensor test): along an edge the
+            peak is not located.
+        min_cornerness: in [0, 1], threshold of the gate on lambda_min / lambda_max.
+        min_template_std: >= 0, templates whose intensity standard deviation is below this
             ([0, 1] intensity scale; uint8 images are divided by 255) are flat and never
             moved (NCC is undefined on them).
-        move: which side may move, "1", "2" or "auto" (the paper's: the higher NCC moves).
+        move: :class:`~colmap_miho.enums.MoveSide`, which side may move: "1", "2" or "auto"
+            (the paper's: the direction with the higher NCC peak moves).
         coarse_shapes: with several template shapes, choose the shape by NCC on a stride-2
-            grid of offsets and search the full grid with that shape only (about 3x
-            cheaper for "paper"; False evaluates every shape at every offset).
-        subpixel_iterations: after the parabola fit on the integer NCC map, re-sample the
-            window at the sub-pixel estimate and fit again on the 3x3 neighbourhood this many
-            times (0 = the paper's single fit).
-        batch_size: matches per batched call (bounds memory); None picks 512 on the CPU
-            and 4096 on CUDA (``benchmarks/check_cuda.py`` on an H100: 2549 matches with
-            the 25 shapes take 0.21 s in chunks of 512 and 0.05 s in chunks of 4096; on the
-            CPU larger chunks gain nothing).
-        device: "cpu", "cuda" or "auto" (the device of CUDA tensor inputs, else CUDA when
-            torch sees one, else the CPU).
-        rectification: the patch homography pairs of the track walk: "filter" (the
-            filter's plane of each match), "local" (a local affine fit to the
-            ``local_affine_neighbours`` nearest matches of its cluster, :mod:`.rectify`) or
-            "both" (each match searched with both; the higher NCC peak wins).
-        local_affine_neighbours: matches (the match included) of each local affine fit.
-        check_radius: 0 (off), or the radius of a second template (another size than
-            ``template_radius``): a move is applied only if the search with that template
-            moves the same keypoint to within ``check_px`` pixels of it (both sizes agree;
-            a peak biased by the patch's content rarely is at both sizes).
-        check_px: agreement of the two template sizes, pixels.
-        check_rule: "agree" (above) or "ncc": the ``check_radius`` template's move replaces
-            the other where its NCC peak is higher by more than ``check_ncc_margin``.
-        check_ncc_margin: NCC margin of the "ncc" rule.
-        local_affine_max_residual_px: neighbours off the first local fit by more than this
-            many pixels are dropped from the second.
+            grid of offsets, then search the full grid with that shape only (about 3x
+            cheaper for "paper"); False evaluates every shape at every offset.
+        subpixel_iterations: in [0, 10], re-centred fits after the parabola on the integer
+            NCC map: the window is re-sampled at the sub-pixel estimate and fitted again on
+            its 3x3 neighbourhood (0 = the paper's single fit, which is biased towards
+            integer offsets).
+        batch_size: >= 1 and <= ``MAX_NCC_BATCH``, matches per batched call (bounds memory);
+            None picks ``DEFAULT_BATCH_SIZE`` for the device type (a GPU wants large calls).
+        device: :class:`~colmap_miho.enums.Device`; "auto" is the device of CUDA tensor (or
+            image stack) inputs, else CUDA when torch sees one, else the CPU
+            (:func:`colmap_miho.devices.resolve_device`).
+        rectification: :class:`~colmap_miho.enums.Rectification`, the patch homography
+            pairs of the track walk: "filter" (the filter's plane of each match), "local" (a
+            local affine fit to the ``local_affine_neighbours`` nearest matches of its
+            cluster, :mod:`.rectify`) or "both" (each match searched with both; the higher
+            NCC peak wins). The filter's planes ignore relief; a local fit follows it.
+        local_affine_neighbours: >= 6, matches (the match included) of each local affine fit.
+        check_radius: 0 (off), or the radius (pixels, not ``template_radius``) of a second
+            template search that confirms each move (see ``check_rule``): a peak biased by
+            the patch's content is rarely at the same place for both sizes.
+        check_px: > 0, pixels within which the two template sizes must agree ("agree").
+        check_rule: :class:`~colmap_miho.enums.CheckRule`: "agree" (a move stays only if the
+            ``check_radius`` search moves the same keypoint to within ``check_px`` of it) or
+            "ncc" (the ``check_radius`` template's move replaces the other where its NCC
+            peak is higher by more than ``check_ncc_margin``).
+        check_ncc_margin: in [0, 2], NCC margin of the "ncc" rule.
+        local_affine_max_residual_px: > 0, neighbours off the first local fit by more than
+            this many pixels are dropped from the second.
     """
 
     template_radius: int = 10
     search_radius: int = 10
-    perturbations: str = "none"
+    perturbations: Perturbations = Perturbations.NONE
     use_base_pair: bool = True
     ellipse_mask: bool = False
     min_gain: float = 0.0
@@ -111,17 +104,18 @@ class NCCConfig:
     coarse_shapes: bool = True
     subpixel_iterations: int = 3
     batch_size: int | None = None
-    device: str = "auto"
-    rectification: str = "both"
+    device: Device = Device.AUTO
+    rectification: Rectification = Rectification.BOTH
     check_radius: int = 0
     check_px: float = 0.25
-    check_rule: str = "agree"
+    check_rule: CheckRule = CheckRule.AGREE
     check_ncc_margin: float = 0.03
     local_affine_neighbours: int = 12
     local_affine_max_residual_px: float = 2.0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "move", MoveSide.parse(self.move, "move"))
+        for name, choice in _CHOICES.items():
+            object.__setattr__(self, name, choice.parse(getattr(self, name), name))
         require_finite(self)
         require_at_most("template_radius + search_radius", self.template_radius + self.search_radius,
                         MAX_WINDOW_RADIUS_PX, "the search window of every match is held in memory")
@@ -130,10 +124,6 @@ class NCCConfig:
             raise ValueError(f"template_radius must be >= 1 pixel, got {self.template_radius}")
         if self.search_radius < 1:
             raise ValueError(f"search_radius must be >= 1 pixel, got {self.search_radius}")
-        if self.perturbations not in ("none", "small", "paper"):
-            raise ValueError(
-                f"perturbations must be none, small or paper, got {self.perturbations!r}"
-            )
         if self.min_gain < 0:
             raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
         if not -1 <= self.min_ncc <= 1:
@@ -148,14 +138,9 @@ class NCCConfig:
             )
         if self.batch_size is not None and self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
-        if self.rectification not in ("filter", "local", "both"):
-            raise ValueError(f"rectification must be filter, local or both, got "
-                             f"{self.rectification!r}")
         if self.check_radius < 0 or self.check_radius == self.template_radius:
             raise ValueError(f"check_radius must be 0 (off) or >= 1 and not template_radius, "
                              f"got {self.check_radius}")
-        if self.check_rule not in ("agree", "ncc"):
-            raise ValueError(f"check_rule must be agree or ncc, got {self.check_rule!r}")
         if not 0 <= self.check_ncc_margin <= 2:
             raise ValueError(f"check_ncc_margin must be in [0, 2], got {self.check_ncc_margin}")
         if not self.check_px > 0:
@@ -166,8 +151,6 @@ class NCCConfig:
         if not self.local_affine_max_residual_px > 0:
             raise ValueError(f"local_affine_max_residual_px must be > 0, got "
                              f"{self.local_affine_max_residual_px}")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -186,10 +169,9 @@ class TrackConfig:
         batch_pairs: refine all image pairs of a walk level in one NCC call (images stacked,
             at most ``max_images_in_memory`` per call) instead of one call per pair and side
             (True). The result is bit-identical either way (a match's NCC does not depend on
-            its call); the batched walk is faster on the CPU too (fountain-P11, 113k matches:
-            refine stage 13.6-15.9 s against 19.8-20.0 s with 2 workers, 21 s against 32 s
-            with one; temple 2.0-2.5 s against 3.0-4.7 s). None (default): batched with the
-            built-in refiner on every device; a custom ``refine_fn`` gets one call per pair.
+            its call); the batched walk makes fewer, larger calls, which is faster on the CPU
+            too. None (default): batched with the built-in refiner on every device; a custom
+            ``refine_fn`` gets one call per pair.
     """
 
     max_images_in_memory: int = 8

@@ -22,8 +22,7 @@ _EPS_NORM = 1e-6
 #: SIMD width of oneDNN's depthwise kernels on AVX2; AVX-512 blocks by 16, a multiple).
 _GROUP_PAD = 8
 #: On the CPU :func:`ncc_maps` runs on blocks of jobs (a multiple of _GROUP_PAD) of about
-#: this many window pixels: the intermediates of a block stay in cache (blocks of 256 windows
-#: of 33 x 33 measured about 5% faster than one call on 1536, torch 2.13 CPU, one thread)
+#: this many window pixels (256 windows of 33 x 33): the intermediates of a block stay in cache
 _BLOCK_PIXELS = 256 * 33 * 33
 
 
@@ -71,8 +70,8 @@ def _ncc_block(
     Sw = windows.shape[-1]
     n = St * St
     t = templates if normalized else normalize_templates(templates)
-    # one grouped convolution per shape: oneDNN is 5-15x slower on groups with more than
-    # one output channel (measured, torch 2.13 CPU). The group count is padded to a multiple
+    # one grouped convolution per shape: oneDNN is much slower on groups with more than
+    # one output channel. The group count is padded to a multiple
     # of _GROUP_PAD so that a lone match goes through the same depthwise kernel as a batch
     # (one group is a plain convolution, which sums in another order); the mean-free
     # windows and the kernels are written straight into the padded buffers
@@ -186,6 +185,20 @@ def ellipse_masks(
     return q <= 1.0 + 1e-6
 
 
+def parabola_vertex(
+    c0: torch.Tensor, cm: torch.Tensor, cp: torch.Tensor, valid: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Vertex offset of the 1-D parabola through (-1, cm), (0, c0), (1, cp) (App. E's
+    sub-pixel step), clamped to [-0.5, 0.5]; zero where ``valid`` is False or the curvature
+    is too flat to trust (``MIN_CURVATURE``). All tensors have one shape."""
+    den = cm - 2.0 * c0 + cp
+    ok = den < -MIN_CURVATURE
+    if valid is not None:
+        ok = valid & ok
+    d = 0.5 * (cm - cp) / torch.where(ok, den, torch.ones_like(den))
+    return torch.where(ok, d.clamp(-0.5, 0.5), torch.zeros_like(d))
+
+
 def find_peaks(maps: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Best shape and offset of each job, with 1-D parabolic sub-pixel refinement.
 
@@ -210,17 +223,11 @@ def find_peaks(maps: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str
     best = maps[torch.arange(J, device=maps.device), k]  # (J, So, So)
     jj = torch.arange(J, device=maps.device)
 
-    def vertex(c0, cm, cp, valid):
-        den = cm - 2.0 * c0 + cp
-        ok = valid & (den < -MIN_CURVATURE)
-        d = 0.5 * (cm - cp) / torch.where(ok, den, torch.ones_like(den))
-        return torch.where(ok, d.clamp(-0.5, 0.5), torch.zeros_like(d))
-
     vx = (ix > 0) & (ix < So - 1)
     vy = (iy > 0) & (iy < So - 1)
     c0 = best[jj, iy, ix]
-    sub_x = vertex(c0, best[jj, iy, (ix - 1).clamp_min(0)], best[jj, iy, (ix + 1).clamp_max(So - 1)], vx)
-    sub_y = vertex(c0, best[jj, (iy - 1).clamp_min(0), ix], best[jj, (iy + 1).clamp_max(So - 1), ix], vy)
+    sub_x = parabola_vertex(c0, best[jj, iy, (ix - 1).clamp_min(0)], best[jj, iy, (ix + 1).clamp_max(So - 1)], vx)
+    sub_y = parabola_vertex(c0, best[jj, (iy - 1).clamp_min(0), ix], best[jj, (iy + 1).clamp_max(So - 1), ix], vy)
     border = ~(vx & vy)
     if mask is not None:
         # a peak held back by the mask is not a local maximum of the unmasked map

@@ -25,15 +25,18 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
-from ..enums import MoveSide
+from .. import devices
+from ..enums import CheckRule, MoveSide
 from .config import DEFAULT_BATCH_SIZE, NCCConfig
+from .pair_inputs import ArrayInput, ImageInput, PairInputs, base_pairs, pair_inputs
 from .perturbations import perturbation_matrices
-from .search import evaluate_direction, to_frame
+from .search import Pass, evaluate_direction, to_frame
 from .subpixel import iterate_subpixel
 from .warping import ImageStack, offset_grid, to_gray_tensor
 
@@ -70,74 +73,81 @@ class RefineResult:
     stats: dict = field(default_factory=dict)
 
 
-def _as_array(name: str, value, shape_tail: tuple[int, ...], n: int | None) -> np.ndarray:
-    if isinstance(value, torch.Tensor):
-        value = value.detach().cpu().numpy()
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
-        tail = ", ".join(map(str, shape_tail))
-        raise ValueError(f"{name} must have shape (N, {tail}), got {arr.shape}")
-    if n is not None and arr.shape[0] != n:
-        raise ValueError(f"{name} has {arr.shape[0]} rows, expected {n}")
-    return arr
+def resolve_device(config: NCCConfig, *inputs: object) -> torch.device:
+    """The torch device ``config.device`` means for ``inputs``: "auto" keeps the device of
+    the first image stack (built by the caller on the device it chose) or CUDA tensor among
+    them (:func:`colmap_miho.devices.resolve_device`)."""
+    inputs_on = None
+    for t in inputs:
+        if isinstance(t, ImageStack) or (isinstance(t, torch.Tensor) and t.is_cuda):
+            inputs_on = t.device
+            break
+    return devices.resolve_device(config.device, inputs_on)
 
 
-def resolve_device(config: NCCConfig, *tensors) -> torch.device:
-    """The torch device ``config.device`` means for inputs ``tensors`` (see NCCConfig)."""
-    if config.device == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError("config.device='cuda' but torch sees no CUDA device")
-        return torch.device("cuda")
-    if config.device == "auto":
-        for t in tensors:
-            if isinstance(t, ImageStack):
-                return t.device  # built by the caller on the device it chose
-            if isinstance(t, torch.Tensor) and t.is_cuda:
-                return t.device
-        if torch.cuda.is_available():
-            return torch.device("cuda")
-    return torch.device("cpu")
+@dataclass
+class _Outputs:
+    """The arrays :func:`refine_pair` fills in (N rows, see :class:`RefineResult`) and its
+    counters."""
+
+    pts: tuple[np.ndarray, np.ndarray]
+    before: np.ndarray
+    after: np.ndarray
+    moved: np.ndarray
+    disp: np.ndarray
+    rejected: np.ndarray
+    counts: dict[str, int | float | str]
+
+    @classmethod
+    def unchanged(cls, p1: np.ndarray, p2: np.ndarray) -> _Outputs:
+        n = p1.shape[0]
+        counts: dict[str, int | float | str] = dict.fromkeys(
+            ["moved", "rejected_border", "rejected_gain", "rejected_weak", "gated_flat", "gated_edge",
+             "outside", "invalid_homography"], 0)
+        return cls(pts=(p1.copy(), p2.copy()), before=np.full(n, np.nan), after=np.full(n, np.nan),
+                   moved=np.zeros(n, np.int8), disp=np.zeros(n), rejected=np.zeros(n, bool),
+                   counts=counts)
+
+    def add(self, key: str, value: int) -> None:
+        count = self.counts[key]
+        assert isinstance(count, int)
+        self.counts[key] = count + value
 
 
-def _normalise_signs(homs: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """Homographies are defined up to scale, sign included: flip each A (B) so that the
-    homogeneous w of A x1 (B x2) is positive, as the patch sampling expects."""
-    homs = homs.copy()
-    for side, p in ((0, p1), (1, p2)):
-        w = np.einsum("nj,nj->n", homs[:, side, 2, :2], p) + homs[:, side, 2, 2]
-        homs[w < 0, side] *= -1.0
-    return homs
+@dataclass(frozen=True)
+class _Offsets:
+    """Sample offsets of one :func:`refine_pair` call, on its device."""
 
+    shapes: torch.Tensor  # (K, 2, 2) template shapes M
+    grid_t: torch.Tensor  # (P, 2) template pixels, radius r
+    tpl: torch.Tensor  # (K, P, 2) M w
+    tpl_coarse: torch.Tensor  # (K, Pc, 2) the same every 2 px
+    win: torch.Tensor  # (Pw, 2) search window, radius r + s
 
-def _base_pairs(n: int, affine1, affine2) -> np.ndarray:
-    """(N, 2, 3, 3) base pair: identity, or the inverse keypoint affine frames scaled to keep
-    about one common-frame pixel per image pixel."""
-    base = np.tile(np.eye(3), (n, 2, 1, 1))
-    if affine1 is None:
-        return base
-    det1 = np.abs(np.linalg.det(affine1))
-    det2 = np.abs(np.linalg.det(affine2))
-    ok = (det1 > 1e-12) & (det2 > 1e-12)
-    scale = np.sqrt(np.sqrt(np.where(ok, det1 * det2, 1.0)))
-    for side, aff in ((0, affine1), (1, affine2)):
-        inv = np.linalg.inv(np.where(ok[:, None, None], aff, np.eye(2)))
-        base[ok, side, :2, :2] = scale[ok, None, None] * inv[ok]
-    return base
+    @classmethod
+    def of(cls, cfg: NCCConfig, device: torch.device) -> _Offsets:
+        shapes = torch.as_tensor(perturbation_matrices(cfg.perturbations), device=device)
+        grid_t = offset_grid(cfg.template_radius, device)
+        grid_c = 2.0 * offset_grid(cfg.template_radius // 2, device)  # every 2 px
+        return cls(shapes=shapes, grid_t=grid_t, tpl=grid_t[None] @ shapes.transpose(1, 2),
+                   tpl_coarse=grid_c[None] @ shapes.transpose(1, 2),
+                   win=offset_grid(cfg.template_radius + cfg.search_radius, device))
 
 
 def refine_pair(
-    image1,
-    image2,
-    pts1,
-    pts2,
-    patch_homographies,
+    image1: ImageInput,
+    image2: ImageInput,
+    pts1: ArrayInput,
+    pts2: ArrayInput,
+    patch_homographies: ArrayInput,
     *,
     move: str | MoveSide | None = None,
     config: NCCConfig | None = None,
-    affine1=None,
-    affine2=None,
+    affine1: ArrayInput | None = None,
+    affine2: ArrayInput | None = None,
     progress: bool = False,
 ) -> RefineResult:
+    # over 80 lines only by its docstring (the public entry point's inputs and guarantees)
     """Refine N matches by NCC template matching on rectified patches.
 
     Args:
@@ -172,52 +182,20 @@ def refine_pair(
     t0 = time.perf_counter()
     cfg = config if config is not None else NCCConfig()
     side = MoveSide.parse(cfg.move if move is None else move, "move")
-    p1 = _as_array("pts1", pts1, (2,), None)
-    n = p1.shape[0]
-    p2 = _as_array("pts2", pts2, (2,), n)
-    homs = patch_homographies
-    if isinstance(homs, torch.Tensor):
-        homs = homs.detach().cpu().numpy()
-    homs = np.asarray(homs, dtype=np.float64)
-    extra = []
-    if homs.ndim == 5:  # (N, P, 2, 3, 3): P candidate pairs per match
-        extra = [_normalise_signs(_as_array("patch_homographies[:, k]", homs[:, k], (2, 3, 3), n),
-                                  p1, p2) for k in range(1, homs.shape[1])]
-        homs = homs[:, 0]
-    homs = _as_array("patch_homographies", homs, (2, 3, 3), n)
-    if (affine1 is None) != (affine2 is None):
-        raise ValueError("affine1 and affine2 must be given together")
-    if affine1 is not None:
-        affine1 = _as_array("affine1", affine1, (2, 2), n)
-        affine2 = _as_array("affine2", affine2, (2, 2), n)
-    homs = _normalise_signs(homs, p1, p2)
+    inp = pair_inputs(pts1, pts2, patch_homographies, affine1, affine2)
+    n = inp.p1.shape[0]
     device = resolve_device(cfg, image1, image2, pts1, patch_homographies)
     img = (to_gray_tensor(image1, device), to_gray_tensor(image2, device))
-
-    out1, out2 = p1.copy(), p2.copy()
-    before = np.full(n, np.nan)
-    after = np.full(n, np.nan)
-    moved = np.zeros(n, np.int8)
-    disp = np.zeros(n)
-    rejected = np.zeros(n, bool)
-    counts: dict[str, int | float | str] = dict.fromkeys(
-        ["moved", "rejected_border", "rejected_gain", "rejected_weak", "gated_flat", "gated_edge", "outside",
-         "invalid_homography"], 0)
-
-    shapes = torch.as_tensor(perturbation_matrices(cfg.perturbations), device=device)
-    grid_t = offset_grid(cfg.template_radius, device)
-    tpl_off = grid_t[None] @ shapes.transpose(1, 2)  # (K, P, 2): M w
-    grid_c = 2.0 * offset_grid(cfg.template_radius // 2, device)  # every 2 px
-    tpl_off_coarse = grid_c[None] @ shapes.transpose(1, 2)
-    win_off = offset_grid(cfg.template_radius + cfg.search_radius, device)
-    base = _base_pairs(n, affine1, affine2)
+    out = _Outputs.unchanged(inp.p1, inp.p2)
+    offs = _Offsets.of(cfg, device)
+    base = base_pairs(n, inp.affine1, inp.affine2)
     use_base = cfg.use_base_pair and not (
-        affine1 is None and np.allclose(homs, np.eye(3), atol=1e-12)
+        inp.affine1 is None and np.allclose(inp.homs, np.eye(3), atol=1e-12)
     )
     directions = {MoveSide.SECOND: [(0, 1)], MoveSide.FIRST: [(1, 0)]}.get(side, [(0, 1), (1, 0)])
 
     batch = cfg.batch_size or DEFAULT_BATCH_SIZE.get(device.type, 512)
-    chunks = range(0, n, batch)
+    chunks: Iterable[int] = range(0, n, batch)
     if progress:
         from tqdm import tqdm
 
@@ -225,83 +203,94 @@ def refine_pair(
     with torch.no_grad():
         for start in chunks:
             sl = slice(start, min(start + batch, n))
-            x = (torch.as_tensor(p1[sl], device=device), torch.as_tensor(p2[sl], device=device))
-            H_ext = torch.as_tensor(homs[sl], device=device)
-            pairs: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]] = [
-                (H_ext, tpl_off, tpl_off_coarse)]
-            pairs += [(torch.as_tensor(h[sl], device=device), grid_t[None], None) for h in extra]
+            x = (torch.as_tensor(inp.p1[sl], device=device),
+                 torch.as_tensor(inp.p2[sl], device=device))
+            passes: list[Pass] = [(torch.as_tensor(inp.homs[sl], device=device), offs.tpl,
+                                   offs.tpl_coarse)]
+            passes += [(torch.as_tensor(h[sl], device=device), offs.grid_t[None], None)
+                       for h in inp.extra]
             if use_base:
-                pairs.append((torch.as_tensor(base[sl], device=device), grid_t[None], None))
-            cimg = tuple(im.rows(sl) if isinstance(im, ImageStack) else im for im in img)
+                passes.append((torch.as_tensor(base[sl], device=device), offs.grid_t[None], None))
+            cimg = (_rows(img[0], sl), _rows(img[1], sl))
             res = [
-                (f, m, evaluate_direction(cimg[f], cimg[m], x[f], x[m], pairs, f, m, win_off, cfg))
+                (f, m, evaluate_direction(cimg[f], cimg[m], x[f], x[m], passes, f, m, offs.win, cfg))
                 for f, m in directions
             ]
-            _decide(res, cimg, sl, cfg, (out1, out2), before, after, moved, disp, rejected,
-                    counts)
+            _decide(res, cimg, sl, cfg, out)
 
-    if cfg.check_radius and moved.any():
-        _check_agreement(image1, image2, p1, p2, patch_homographies, side, cfg, affine1, affine2,
-                         (out1, out2), after, before, moved, disp, rejected, counts)
-    counts.update(
+    if cfg.check_radius and out.moved.any():
+        _check_agreement((image1, image2), inp, patch_homographies, side, cfg, out)
+    out.counts.update(
         n=n,
         seconds=time.perf_counter() - t0,
         device=str(device),
-        shapes=int(shapes.shape[0]) + len(extra) + int(use_base),
+        shapes=int(offs.shapes.shape[0]) + len(inp.extra) + int(use_base),
         directions=len(directions),
     )
-    logger.debug("refine_pair: %s", counts)
+    logger.debug("refine_pair: %s", out.counts)
     return RefineResult(
-        pts1=out1, pts2=out2, ncc_before=before, ncc_after=after, moved_side=moved,
-        displacement=disp, rejected=rejected, stats=counts,
+        pts1=out.pts[0], pts2=out.pts[1], ncc_before=out.before, ncc_after=out.after,
+        moved_side=out.moved, displacement=out.disp, rejected=out.rejected, stats=out.counts,
     )
 
 
-def _check_agreement(image1, image2, p1, p2, homs, side, cfg, affine1, affine2, outs, after,
-                     before, moved, disp, rejected, counts) -> None:
+def _rows(image: torch.Tensor | ImageStack, sel: slice | torch.Tensor) -> torch.Tensor | ImageStack:
+    """The images of the jobs ``sel`` (a plain image serves every job)."""
+    return image.rows(sel) if isinstance(image, ImageStack) else image
+
+
+def _check_agreement(images: tuple[ImageInput, ImageInput], inp: PairInputs, homs: ArrayInput,
+                     side: MoveSide, cfg: NCCConfig, out: _Outputs) -> None:
     """Undo the moves that a second search with a ``check_radius`` template does not confirm
-    (other side moved, or the two positions more than ``check_px`` apart)."""
-    rows = np.flatnonzero(moved > 0)
-    sub = torch.as_tensor(rows) if isinstance(image1, ImageStack) else None
-    def pick(im):
+    (other side moved, or the two positions more than ``check_px`` apart); with the "ncc"
+    rule, take its moves where they correlate clearly better instead."""
+    rows = np.flatnonzero(out.moved > 0)
+    sub = torch.as_tensor(rows) if isinstance(images[0], ImageStack) else None
+
+    def pick(im: ImageInput) -> ImageInput:
         return im.rows(sub.to(im.device)) if isinstance(im, ImageStack) and sub is not None else im
 
-    homs = homs.detach().cpu().numpy() if isinstance(homs, torch.Tensor) else np.asarray(homs)
+    h = homs.detach().cpu().numpy() if isinstance(homs, torch.Tensor) else np.asarray(homs)
     chk = refine_pair(
-        pick(image1), pick(image2), p1[rows], p2[rows], homs[rows], move=side,
+        pick(images[0]), pick(images[1]), inp.p1[rows], inp.p2[rows], h[rows], move=side,
         config=replace(cfg, template_radius=cfg.check_radius, check_radius=0),
-        affine1=None if affine1 is None else affine1[rows],
-        affine2=None if affine2 is None else affine2[rows])
-    m = moved[rows]
-    if cfg.check_rule == "ncc":
+        affine1=None if inp.affine1 is None else inp.affine1[rows],
+        affine2=None if inp.affine2 is None else inp.affine2[rows])
+    m = out.moved[rows]
+    if cfg.check_rule is CheckRule.NCC:
         # the smaller template wins where the larger one correlates clearly worse: the
         # larger one then spans what the rectification does not model (relief, occlusion)
-        swap = (chk.moved_side == m) & (chk.ncc_after > after[rows] + cfg.check_ncc_margin)
+        swap = (chk.moved_side == m) & (chk.ncc_after > out.after[rows] + cfg.check_ncc_margin)
         sel = rows[swap]
-        for side_out, chk_pts in ((outs[0], chk.pts1), (outs[1], chk.pts2)):
+        for side_out, chk_pts in ((out.pts[0], chk.pts1), (out.pts[1], chk.pts2)):
             side_out[sel] = chk_pts[swap]
-        disp[sel] = chk.displacement[swap]
-        after[sel] = chk.ncc_after[swap]
-        counts["smaller_template"] = int(sel.size)
+        out.disp[sel] = chk.displacement[swap]
+        out.after[sel] = chk.ncc_after[swap]
+        out.counts["smaller_template"] = int(sel.size)
         return
-    mine = np.where((m == 1)[:, None], outs[0][rows], outs[1][rows])
+    mine = np.where((m == 1)[:, None], out.pts[0][rows], out.pts[1][rows])
     theirs = np.where((m == 1)[:, None], chk.pts1, chk.pts2)
     agree = (chk.moved_side == m) & (np.linalg.norm(mine - theirs, axis=1) <= cfg.check_px)
     undo = rows[~agree]
-    outs[0][undo] = p1[undo]
-    outs[1][undo] = p2[undo]
-    moved[undo] = 0
-    disp[undo] = 0.0
-    rejected[undo] = True
-    after[undo] = before[undo]
-    counts["moved"] -= int(undo.size)
-    counts["rejected_disagree"] = int(undo.size)
+    out.pts[0][undo] = inp.p1[undo]
+    out.pts[1][undo] = inp.p2[undo]
+    out.moved[undo] = 0
+    out.disp[undo] = 0.0
+    out.rejected[undo] = True
+    out.after[undo] = out.before[undo]
+    out.add("moved", -int(undo.size))
+    out.counts["rejected_disagree"] = int(undo.size)
 
 
-def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, counts) -> None:
+#: one direction's search: (fixed side, moving side, :func:`.search.evaluate_direction`'s dict).
+Direction = tuple[int, int, dict[str, torch.Tensor]]
+
+
+def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack],
+            sl: slice, cfg: NCCConfig, out: _Outputs) -> None:
     """Choose the direction per match, reject or accept its move, and refine the accepted
     moves to sub-pixel accuracy (only those: the losing direction needs no sub-pixel step).
-    Writes into the output arrays."""
+    Writes into ``out``."""
     cand = []
     for f, m, r in res:
         host = {k: r[k].cpu().numpy() for k in
@@ -315,38 +304,35 @@ def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, count
     idx = np.arange(sl.start, sl.stop)
     none = ~np.stack([u for *_, u in cand]).any(axis=0)
     h0 = cand[0][3]  # count why nothing could be used, once per match
-    counts["invalid_homography"] += int((none & ~h0["valid"]).sum())
-    counts["outside"] += int((none & h0["valid"] & ~h0["inside"]).sum())
-    counts["gated_flat"] += int((none & h0["valid"] & h0["inside"] & h0["flat"]).sum())
-    counts["gated_edge"] += int(
-        (none & h0["valid"] & h0["inside"] & ~h0["flat"] & h0["edge"]).sum()
-    )
+    out.add("invalid_homography", int((none & ~h0["valid"]).sum()))
+    out.add("outside", int((none & h0["valid"] & ~h0["inside"]).sum()))
+    out.add("gated_flat", int((none & h0["valid"] & h0["inside"] & h0["flat"]).sum()))
+    out.add("gated_edge", int((none & h0["valid"] & h0["inside"] & ~h0["flat"] & h0["edge"]).sum()))
     for d, (_f, m, r, h, usable) in enumerate(cand):
         rows = (best == d) & usable
         gi = idx[rows]
-        before[gi] = h["centre"][rows]
-        after[gi] = h["centre"][rows]
+        out.before[gi] = h["centre"][rows]
+        out.after[gi] = h["centre"][rows]
         on_border = h["border"][rows] & cfg.reject_border
         small_gain = ~h["zero"][rows] & (h["peak"][rows] - h["centre"][rows] < cfg.min_gain)
         weak = ~h["zero"][rows] & (h["peak"][rows] < cfg.min_ncc)
         reject = on_border | small_gain | weak
-        counts["rejected_border"] += int(on_border.sum())
-        counts["rejected_gain"] += int((small_gain & ~on_border).sum())
-        counts["rejected_weak"] += int((weak & ~small_gain & ~on_border).sum())
-        rejected[gi[reject]] = True
+        out.add("rejected_border", int(on_border.sum()))
+        out.add("rejected_gain", int((small_gain & ~on_border).sum()))
+        out.add("rejected_weak", int((weak & ~small_gain & ~on_border).sum()))
+        out.rejected[gi[reject]] = True
         take = np.flatnonzero(rows)[~reject]
         if take.size == 0:
             continue
         sel = torch.as_tensor(take, device=r["offset"].device)
         H_inv, frame = r["H_inv"][sel], r["frame_m"][sel]
-        img_m = img[m].rows(sel) if isinstance(img[m], ImageStack) else img[m]
-        off = iterate_subpixel(img_m, H_inv, frame, r["offset"][sel], r["template"][sel],
+        off = iterate_subpixel(_rows(img[m], sel), H_inv, frame, r["offset"][sel], r["template"][sel],
                                cfg.template_radius, cfg.subpixel_iterations)
         new = to_frame(H_inv, frame + off).cpu().numpy()
         ok = idx[take]
-        old = outs[m][ok]
-        outs[m][ok] = new
-        disp[ok] = np.linalg.norm(new - old, axis=1)
-        moved[ok] = m + 1
-        after[ok] = h["peak"][take]
-        counts["moved"] += int(ok.size)
+        old = out.pts[m][ok]
+        out.pts[m][ok] = new
+        out.disp[ok] = np.linalg.norm(new - old, axis=1)
+        out.moved[ok] = m + 1
+        out.after[ok] = h["peak"][take]
+        out.add("moved", int(ok.size))

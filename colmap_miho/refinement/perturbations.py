@@ -16,10 +16,10 @@ import math
 
 import numpy as np
 
+from ..enums import Perturbations
+
 PAPER_ROTATIONS_DEG = (-30.0, -15.0, 0.0, 15.0, 30.0)
 PAPER_FACTORS = (5.0 / 7.0, 5.0 / 6.0, 1.0, 6.0 / 5.0, 7.0 / 5.0)
-
-PERTURBATION_SETS = ("none", "small", "paper")
 
 
 def shape_matrix(rho_deg: float, factor: float) -> np.ndarray:
@@ -29,21 +29,20 @@ def shape_matrix(rho_deg: float, factor: float) -> np.ndarray:
     return np.array([[factor * c, -factor * s], [s, c]], dtype=np.float64)
 
 
-def perturbation_matrices(name: str) -> np.ndarray:
+def perturbation_matrices(name: Perturbations | str) -> np.ndarray:
     """Template shapes of a named set as an array (K, 2, 2) float64; the identity comes first.
 
     - ``"none"``: only the identity (K = 1).
     - ``"small"``: identity, rotations by +-15 degrees, factors 5/6 and 6/5 (K = 5).
     - ``"paper"``: the 5 rotations x 5 factors of the paper (K = 25, identity included once).
     """
-    if name == "none":
+    name = Perturbations.parse(name, "perturbations")
+    if name is Perturbations.NONE:
         return np.eye(2)[None].copy()
-    if name == "small":
+    if name is Perturbations.SMALL:
         shapes = [(0.0, 1.0), (-15.0, 1.0), (15.0, 1.0), (0.0, 5.0 / 6.0), (0.0, 6.0 / 5.0)]
-    elif name == "paper":
+    else:  # PAPER
         shapes = [(0.0, 1.0)] + [
             (r, f) for r in PAPER_ROTATIONS_DEG for f in PAPER_FACTORS if (r, f) != (0.0, 1.0)
         ]
-    else:
-        raise ValueError(f"perturbations must be one of {PERTURBATION_SETS}, got {name!r}")
     return np.stack([shape_matrix(r, f) for r, f in shapes])

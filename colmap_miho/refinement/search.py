@@ -24,14 +24,27 @@ def to_frame(H: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return torch.stack([X / W, Y / W], dim=1)
 
 
-def _repeat(image, n: int):
+#: one pass of the search: (J, 2, 3, 3) float64 homography pairs, template offsets (K, P, 2),
+#: the same shapes sampled every 2 px (K, Pc, 2) or None.
+Pass = tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]
+
+
+def _repeat(image: torch.Tensor | ImageStack, n: int) -> torch.Tensor | ImageStack:
     """``image`` for ``n`` copies of its jobs, one after the other."""
     if isinstance(image, ImageStack):
         return ImageStack(image.images, image.slot_sizes, image.index.repeat(n))
     return image
 
 
-def _templates(img_f, H_f_inv, c_f, win, offs, offs_coarse, cfg: NCCConfig):
+def _templates(
+    img_f: torch.Tensor | ImageStack,
+    H_f_inv: torch.Tensor,
+    c_f: torch.Tensor,
+    win: torch.Tensor,
+    offs: torch.Tensor,
+    offs_coarse: torch.Tensor | None,
+    cfg: NCCConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Templates (J, K', St, St) to search at full resolution, and whether they are inside.
 
     With several shapes and ``cfg.coarse_shapes`` the best shape per match is chosen on the
@@ -43,6 +56,7 @@ def _templates(img_f, H_f_inv, c_f, win, offs, offs_coarse, cfg: NCCConfig):
         return tpl.reshape(J, -1, st, st), inside
     # shapes compared with templates sampled every 2 px against the window's even pixels:
     # about 4x fewer samples and 10x fewer multiply-adds than a full-resolution search
+    assert offs_coarse is not None  # given with every multi-shape pass
     tpl_c, inside = sample_patches(img_f, H_f_inv, c_f, offs_coarse)
     sc = int(round(offs_coarse.shape[1] ** 0.5))
     coarse = ncc_maps(win[:, ::2, ::2], tpl_c.reshape(J, -1, sc, sc))
@@ -54,12 +68,41 @@ def _templates(img_f, H_f_inv, c_f, win, offs, offs_coarse, cfg: NCCConfig):
     return tpl.reshape(J, 2, st, st), inside & in_full
 
 
+def _search_passes(
+    img_f: torch.Tensor | ImageStack,
+    H_f_inv: torch.Tensor,
+    c_f: torch.Tensor,
+    win_all: torch.Tensor,
+    passes: list[Pass],
+    cfg: NCCConfig,
+) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
+    """Templates (J, K', St, St) and NCC maps (J, K', So, So) of each pass, and whether each
+    of the n_pass * J templates is inside its image (pass-major, like ``win_all``)."""
+    n_pass = len(passes)
+    J = win_all.shape[0] // n_pass
+    st = 2 * cfg.template_radius + 1
+    plain = all(offs.shape[0] == 1 and torch.equal(offs, passes[0][1]) for _, offs, _ in passes)
+    if plain:  # one template shape, the same in every pass (no coarse choice of shapes)
+        tpl_all, in_t = sample_patches(_repeat(img_f, n_pass), H_f_inv, c_f, passes[0][1])
+        tpl_all = tpl_all.reshape(n_pass * J, 1, st, st)
+        map_all = ncc_maps(win_all, tpl_all)
+        return list(tpl_all.split(J)), list(map_all.split(J)), in_t
+    templates, maps, ins = [], [], []
+    for p, (_, offs, offs_coarse) in enumerate(passes):
+        sl = slice(p * J, (p + 1) * J)
+        tpl, in_p = _templates(img_f, H_f_inv[sl], c_f[sl], win_all[sl], offs, offs_coarse, cfg)
+        templates.append(tpl)
+        maps.append(ncc_maps(win_all[sl], tpl))
+        ins.append(in_p)
+    return templates, maps, torch.cat(ins)
+
+
 def evaluate_direction(
     img_f: torch.Tensor | ImageStack,
     img_m: torch.Tensor | ImageStack,
     x_f: torch.Tensor,
     x_m: torch.Tensor,
-    passes: list,
+    passes: list[Pass],
     f: int,
     m: int,
     win_off: torch.Tensor,
@@ -70,8 +113,8 @@ def evaluate_direction(
     Args:
         img_f, img_m: (H, W) float32 fixed-side and moving-side images.
         x_f, x_m: (J, 2) float64 keypoints of the fixed and moving side.
-        passes: list of (H (J, 2, 3, 3) float64 pairs, template offsets (K, P, 2), the same
-            shapes sampled every 2 px (K, Pc, 2) or None).
+        passes: :data:`Pass` tuples: (J, 2, 3, 3) float64 homography pairs, template
+            offsets (K, P, 2), the same shapes sampled every 2 px (K, Pc, 2) or None.
         f, m: index (0 or 1) of the fixed and moving side within each pair.
         win_off: (Pw, 2) offsets of the search window (radius r + s).
         cfg: the refinement parameters.
@@ -95,23 +138,7 @@ def evaluate_direction(
     c_m = to_frame(H_m, x_m.repeat(n_pass, 1))
     win_all, in_w = sample_patches(_repeat(img_m, n_pass), H_m_inv, c_m, win_off[None])
     win_all = win_all.reshape(n_pass * J, sw, sw)
-    plain = all(offs.shape[0] == 1 and torch.equal(offs, passes[0][1]) for _, offs, _ in passes)
-    if plain:  # one template shape, the same in every pass (no coarse choice of shapes)
-        tpl_all, in_t = sample_patches(_repeat(img_f, n_pass), H_f_inv, c_f, passes[0][1])
-        tpl_all = tpl_all.reshape(n_pass * J, 1, st, st)
-        map_all = ncc_maps(win_all, tpl_all)
-        templates = list(tpl_all.split(J))
-        maps = list(map_all.split(J))
-    else:
-        templates, maps, ins = [], [], []
-        for p, (_, offs, offs_coarse) in enumerate(passes):
-            sl = slice(p * J, (p + 1) * J)
-            tpl, in_p = _templates(img_f, H_f_inv[sl], c_f[sl], win_all[sl], offs, offs_coarse,
-                                   cfg)
-            templates.append(tpl)
-            maps.append(ncc_maps(win_all[sl], tpl))
-            ins.append(in_p)
-        in_t = torch.cat(ins)
+    templates, maps, in_t = _search_passes(img_f, H_f_inv, c_f, win_all, passes, cfg)
     pass_of_k = [p for p, tpl in enumerate(templates) for _ in range(tpl.shape[1])]
     inside = list((in_t & in_w).split(J))
     valid = list((ok_f & ok_m).split(J))

@@ -21,296 +21,22 @@ Rules (documented once, here):
   (SIFT keeps one keypoint per dominant orientation at the same position) and are walked
   like the others.
 
-Pure numpy/scipy: no images, no torch.
+The plan itself is :class:`.plan.TrackPlan`. Pure numpy/scipy: no images, no torch.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from .plan import TrackPlan
 
-@dataclass(frozen=True)
-class TrackPlan:
-    """Tracks over ``T`` keypoint nodes and ``E`` match edges.
-
-    Attributes:
-        keypoints: image_id -> (Ni, 2) float64 input positions (integer = pixel centre).
-        node_image, node_kp: (T,) int64 image id and keypoint index of each node; nodes are
-            ordered by (image_id, keypoint_index).
-        pairs: the image pairs (id1, id2); ``edge_pair`` indexes it.
-        pair_homs: per pair the (K, 2, 3, 3) float64 patch homography pairs (A, B),
-            ``A x1 ~ B x2``.
-        local_homs: None, or per pair the (M_p, 2, 3, 3) local affine pairs of its edges
-            (``local_affine``), indexed by ``edge_row``. Plans from :func:`build_track_plan`
-            compute them lazily, pair by pair (:meth:`TrackPlan.local_pairs`).
-        edge_a, edge_b: (E,) int64 nodes of each edge, ``edge_a`` in the pair's first image.
-        edge_pair: (E,) int64 pair of each edge.
-        edge_row: (E,) int64 row of each edge among its pair's edges.
-        edge_label: (E,) int64 homography pair of each edge in ``pair_homs``; -1: joins
-            tracks, never refines.
-        track: (T,) int64 track of each node, -1 for nodes without an edge.
-        anchors: (A,) int64 anchor node of each walked track.
-        frozen: (T,) bool nodes of frozen (conflicting) tracks.
-        to_refine: keypoints the walk will refine (reachable from an anchor, anchors not
-            counted).
-        local_affine: (k neighbours, max residual px) of the local affine pairs, or None.
-        source_pairs: None for a plan over all output matches; for a group
-            (:meth:`TrackPlan.groups`) the (P',) int64 index of each of its pairs in the
-            plan it came from.
-        source_rows: None, or for a group the (E',) int64 row of each edge among its pair's
-            edges in the plan it came from.
-        stats: ``tracks`` (tracks with >= 2 keypoints), ``conflicting_tracks`` (two
-            keypoints of one image), ``frozen_tracks``, ``frozen_keypoints``,
-            ``keypoints_in_tracks``, ``anchors``, ``unrefinable_matches`` (edges without
-            a homography), ``unreached_keypoints`` (in walked tracks, not reachable from
-            the anchor over refinable edges).
-    """
-
-    keypoints: dict
-    node_image: np.ndarray
-    node_kp: np.ndarray
-    pairs: tuple
-    pair_homs: tuple
-    local_homs: tuple | None
-    edge_a: np.ndarray
-    edge_b: np.ndarray
-    edge_pair: np.ndarray
-    edge_row: np.ndarray
-    edge_label: np.ndarray
-    track: np.ndarray
-    anchors: np.ndarray
-    frozen: np.ndarray
-    to_refine: int
-    stats: dict = field(default_factory=dict)
-    local_affine: tuple | None = None
-    source_pairs: np.ndarray | None = None
-    source_rows: np.ndarray | None = None
-    _local_cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
-    _steps: list = field(default_factory=list, init=False, repr=False, compare=False)
-
-    @property
-    def num_nodes(self) -> int:
-        return int(self.node_image.size)
-
-    @property
-    def image_ids(self) -> list:
-        """The images of this plan's keypoints, sorted."""
-        return sorted(self.keypoints)
-
-    def local_pairs(self, p: int) -> np.ndarray | None:
-        """(M_p, 2, 3, 3) local affine pairs of the edges of pair ``p`` (by ``edge_row``), or
-        None without ``local_affine``. A plan over all output matches fits them on first use
-        (each from the neighbourhood of its match among all of the pair's edges) and keeps
-        them until :meth:`release_local`; a group carries those of its own edges
-        (:meth:`attach_local`). Only the edges the walk can refine along
-        (:meth:`walk_steps`) are fitted: the others keep the filter's pair.
-
-        Raises:
-            ValueError: a group whose local pairs were not attached.
-        """
-        if self.local_homs is not None:
-            return self.local_homs[p]
-        if self.local_affine is None:
-            return None
-        if self.source_pairs is not None:
-            raise ValueError("this group has no local affine pairs: attach them with "
-                             "attach_local of the plan it came from")
-        if p not in self._local_cache:
-            from .rectify import local_affine_pairs
-
-            lo, hi = np.searchsorted(self.edge_pair, [p, p + 1])
-            id1, id2 = self.pairs[p]
-            x1 = self.keypoints[id1][self.node_kp[self.edge_a[lo:hi]]]
-            x2 = self.keypoints[id2][self.node_kp[self.edge_b[lo:hi]]]
-            k, max_residual_px = self.local_affine
-            self._local_cache[p] = local_affine_pairs(
-                x1, x2, self.edge_label[lo:hi], self.pair_homs[p], k=k,
-                max_residual_px=max_residual_px, fit=self.walk_steps()[lo:hi])
-        return self._local_cache[p]
-
-    def release_local(self, pairs) -> None:
-        """Forget the local affine pairs of ``pairs`` (pair indices); they are fitted again,
-        identically, if asked for later."""
-        for p in np.asarray(pairs, np.int64).reshape(-1):
-            self._local_cache.pop(int(p), None)
-
-    def attach_local(self, group: TrackPlan) -> TrackPlan:
-        """``group`` (from :meth:`groups` of this plan) with the local affine pairs of its
-        edges, fitted in this plan (over each pair's full edge set, so they are those a walk of
-        this whole plan uses); itself when this plan has no ``local_affine``."""
-        if self.local_affine is None or group.local_homs is not None:
-            return group
-        if group.source_pairs is None or group.source_rows is None:
-            raise ValueError("attach_local takes a group made by groups() of this plan")
-        starts = np.searchsorted(group.edge_pair, np.arange(len(group.pairs) + 1))
-        rows = group.source_rows
-        local = []
-        for q, sp in enumerate(group.source_pairs):
-            fitted = self.local_pairs(int(sp))
-            assert fitted is not None  # local_affine is set
-            local.append(fitted[rows[starts[q]:starts[q + 1]]])
-        return replace(group, local_homs=tuple(local))
-
-    def walked_units(self) -> tuple[np.ndarray, np.ndarray]:
-        """The walk's independent units: per edge the (E,) int64 walked component it belongs
-        to (-1: not refinable, or not reachable from its track's anchor over refinable
-        edges), and per unit its anchor node (U,) int64. Units are numbered in anchor
-        order."""
-        ok = self.refinable()
-        unit = np.full(self.edge_a.size, -1, np.int64)
-        if not ok.any() or not self.anchors.size:
-            return unit, np.zeros(0, np.int64)
-        total = self.num_nodes
-        ea, eb = self.edge_a[ok], self.edge_b[ok]
-        _, comp = connected_components(
-            coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
-        of_comp = np.full(comp.max() + 1, -1, np.int64)
-        of_comp[comp[self.anchors]] = np.arange(self.anchors.size)
-        unit[ok] = of_comp[comp[ea]]
-        return unit, self.anchors
-
-    def subset(self, edges: np.ndarray, anchors: np.ndarray) -> TrackPlan:
-        """A compact plan of whole walked units: the refinable ``edges`` (indices, all the
-        edges of the units of ``anchors``) and ``anchors`` (nodes). Only its own nodes,
-        edges, pairs and the keypoint arrays of its images are kept, re-indexed in the same
-        order (node order is (image_id, keypoint_index) as here, pairs as here), so its walk
-        moves its keypoints exactly as a walk of this whole plan does."""
-        edges = np.sort(np.asarray(edges, np.int64))
-        ea, eb = self.edge_a[edges], self.edge_b[edges]
-        nodes = np.unique(np.concatenate([ea, eb, anchors]))
-        used_pairs, edge_pair = np.unique(self.edge_pair[edges], return_inverse=True)
-        edge_pair = edge_pair.astype(np.int64).reshape(-1)
-        node_image = self.node_image[nodes]
-        src_pairs = used_pairs if self.source_pairs is None else self.source_pairs[used_pairs]
-        rows = self.edge_row[edges]
-        src_rows = rows if self.source_rows is None else self.source_rows[edges]
-        local = None
-        if self.local_homs is not None:
-            starts = np.searchsorted(edge_pair, np.arange(used_pairs.size + 1))
-            local = tuple(self.local_homs[int(p)][rows[starts[q]:starts[q + 1]]]
-                          for q, p in enumerate(used_pairs))
-        _, track = np.unique(self.track[nodes], return_inverse=True)
-        new_a, new_b = np.searchsorted(nodes, ea), np.searchsorted(nodes, eb)
-        new_anchors = np.searchsorted(nodes, np.asarray(anchors, np.int64))
-        return TrackPlan(
-            keypoints={int(i): self.keypoints[int(i)] for i in np.unique(node_image)},
-            node_image=node_image, node_kp=self.node_kp[nodes],
-            pairs=tuple(self.pairs[int(p)] for p in used_pairs),
-            pair_homs=tuple(self.pair_homs[int(p)] for p in used_pairs), local_homs=local,
-            edge_a=new_a, edge_b=new_b, edge_pair=edge_pair,
-            edge_row=np.arange(edge_pair.size) - np.searchsorted(edge_pair, edge_pair),
-            edge_label=self.edge_label[edges], track=track.astype(np.int64).reshape(-1),
-            anchors=new_anchors, frozen=np.zeros(nodes.size, bool),
-            to_refine=int(nodes.size - new_anchors.size), stats={},
-            local_affine=self.local_affine, source_pairs=src_pairs, source_rows=src_rows)
-
-    def groups(self, max_images: int, max_edges: int | None = None) -> list[TrackPlan]:
-        """Whole walked units (the part of a track its anchor reaches over refinable
-        edges) packed into compact groups (:meth:`subset`) of at most ``max_images``
-        distinct images and at most ``max_edges`` refinable edges each. A unit over
-        ``max_images`` images (its walk needs them all anyway) raises its group's image bound
-        to its own image count; one over ``max_edges`` is a group alone.
-
-        Schedule: units sorted by their sorted image ids (lexicographically; ties by
-        anchor), then swept in that order, a new group started when the next unit would
-        exceed a bound; so consecutive groups share images and an image stops being needed
-        once the sweep has passed the units that start with it. Deterministic: the same
-        plan and bounds give the same groups in the same order. Walking the
-        groups one by one moves exactly the keypoints a walk of the whole plan moves, to the
-        same positions (units never share a keypoint). Local affine pairs are not included:
-        :meth:`attach_local` adds them, group by group.
-        """
-        if max_images < 1:
-            raise ValueError(f"max_images must be >= 1, got {max_images}")
-        if max_edges is not None and max_edges < 1:
-            raise ValueError(f"max_edges must be >= 1 or None, got {max_edges}")
-        unit, anchors = self.walked_units()
-        if not anchors.size:
-            return []
-        e_ids = np.flatnonzero(unit >= 0)
-        eu = unit[e_ids]
-        img_a, img_b = self.node_image[self.edge_a[e_ids]], self.node_image[self.edge_b[e_ids]]
-        # the (unit, image) pairs, sorted, as one int64 code each (np.unique on rows is slow)
-        ids, img = np.unique(np.concatenate([img_a, img_b]), return_inverse=True)
-        code = np.unique(np.concatenate([eu, eu]) * ids.size + img.reshape(-1))
-        key_unit, key_image = code // ids.size, ids[code % ids.size]
-        bounds = np.searchsorted(key_unit, np.arange(anchors.size + 1))
-        images = [tuple(key_image[bounds[u]:bounds[u + 1]].tolist()) for u in range(anchors.size)]
-        order = sorted(range(anchors.size), key=lambda u: (images[u], u))
-        n_edges = np.bincount(eu, minlength=anchors.size).tolist()
-        limit = max_edges or eu.size
-        group_of = np.empty(anchors.size, np.int64)
-        g, current, edges, cap = -1, set[int](), 0, max_images
-        for u in order:
-            both = current | set(images[u])
-            edges += n_edges[u]
-            if g < 0 or len(both) > max(cap, len(images[u])) or edges > limit:
-                g, both, edges, cap = g + 1, set(images[u]), n_edges[u], max_images
-            group_of[u] = g
-            current, cap = both, max(cap, len(images[u]))
-        return self._split(e_ids, group_of[eu], anchors, group_of, g + 1)
-
-    def _split(self, e_ids, edge_group, anchors, anchor_group, n) -> list[TrackPlan]:
-        """Compact plans of the edges ``e_ids`` by their group ``edge_group`` (0..n-1)."""
-        e_sorted = e_ids[np.argsort(edge_group, kind="stable")]
-        e_bounds = np.searchsorted(np.sort(edge_group), np.arange(n + 1))
-        a_order = np.argsort(anchor_group, kind="stable")
-        a_sorted = anchors[a_order]
-        a_bounds = np.searchsorted(anchor_group[a_order], np.arange(n + 1))
-        return [self.subset(e_sorted[e_bounds[b]:e_bounds[b + 1]],
-                            a_sorted[a_bounds[b]:a_bounds[b + 1]])
-                for b in range(n) if e_bounds[b + 1] > e_bounds[b]]
-
-    def walk_steps(self) -> np.ndarray:
-        """(E,) bool: the edges the walk can refine along, the refinable edges from a node
-        of one level of the walk to a node of the next (level = refinable-edge hops from
-        the anchor; a node is refined at its level against a node of the level before, so
-        edges within a level or to unreached nodes are never used)."""
-        if not self._steps:
-            ok = self.refinable()
-            ea, eb = self.edge_a[ok], self.edge_b[ok]
-            level = np.full(self.num_nodes, -1, np.int64)
-            level[self.anchors] = 0
-            n = 0
-            while True:  # the walk's levels (tracks._level_groups)
-                fa, fb = level[ea] >= 0, level[eb] >= 0
-                new = np.concatenate([eb[fa & ~fb], ea[fb & ~fa]])
-                if not new.size:
-                    break
-                n += 1
-                level[new] = n
-            steps = np.zeros(self.edge_a.size, bool)
-            la, lb = level[ea], level[eb]
-            steps[ok] = (la >= 0) & (lb >= 0) & (np.abs(la - lb) == 1)
-            self._steps.append(steps)
-        return self._steps[0]
-
-    def refinable(self) -> np.ndarray:
-        """(E,) bool: edges the walk may refine along (labelled, track not frozen)."""
-        return (self.edge_label >= 0) & ~self.frozen[self.edge_a]
-
-    def partition(self, n: int) -> list[TrackPlan]:
-        """At most ``n`` compact plans (:meth:`subset`) of whole walked units, balanced by
-        refinable edges (greedy: the biggest unit to the lightest part). Parts never share a
-        keypoint, so their results merge without conflict. Empty parts are left out."""
-        if n < 1:
-            raise ValueError(f"n must be >= 1, got {n}")
-        unit, anchors = self.walked_units()
-        e_ids = np.flatnonzero(unit >= 0)
-        sizes = np.bincount(unit[e_ids], minlength=anchors.size)
-        order = np.argsort(-sizes, kind="stable")
-        load = np.zeros(n)
-        part_of = np.zeros(anchors.size, np.int64)
-        for u in order:
-            b = int(np.argmin(load))
-            part_of[u] = b
-            load[b] += sizes[u]
-        return self._split(e_ids, part_of[unit[e_ids]], anchors, part_of, n)
+#: an image pair (image_id1, image_id2).
+Pair = tuple[int, int]
 
 
 def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,
@@ -327,7 +53,7 @@ def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,
     return int(hit[comp[nodes]].sum() - anchors.size)
 
 
-def _check_matches(pair, m, keypoints) -> np.ndarray:
+def _check_matches(pair: Pair, m: np.ndarray, keypoints: Mapping[int, np.ndarray]) -> np.ndarray:
     m = np.asarray(m)
     if m.ndim != 2 or m.shape[1] != 2:
         if m.size == 0:
@@ -345,7 +71,7 @@ def _check_matches(pair, m, keypoints) -> np.ndarray:
     return m
 
 
-def pair_rows(pair, matches: np.ndarray, result) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pair_rows(pair: Pair, matches: np.ndarray, result: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The output rows of one filtered pair: rows of ``result`` are 1:1 with ``matches``.
 
     Args:
@@ -393,7 +119,13 @@ def _nodes(keypoints: Mapping) -> tuple[dict, dict, np.ndarray, np.ndarray]:
     return kps, offset, node_image, node_kp
 
 
-def _edges(kps, offset, pair_matches, pair_filter_results, unrefined_matches):
+def _edges(
+    kps: dict[int, np.ndarray],
+    offset: dict[int, int],
+    pair_matches: Mapping[Pair, np.ndarray],
+    pair_filter_results: Mapping[Pair, Any],
+    unrefined_matches: Mapping[Pair, np.ndarray] | None,
+) -> tuple[tuple[Pair, ...], tuple[np.ndarray, ...], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Edge arrays over all output matches, in (pair, row) order."""
     pairs = sorted(set(pair_matches) | set(unrefined_matches or {}))
     homs, ea, eb, ep, el = [], [], [], [], []
@@ -423,7 +155,8 @@ def _edges(kps, offset, pair_matches, pair_filter_results, unrefined_matches):
     return tuple(pairs), tuple(homs), cat(ea), cat(eb), cat(ep), cat(el)
 
 
-def _conflicts(track, nodes, node_image, pos, duplicate_px) -> tuple[np.ndarray, np.ndarray]:
+def _conflicts(track: np.ndarray, nodes: np.ndarray, node_image: np.ndarray, pos: np.ndarray,
+               duplicate_px: float) -> tuple[np.ndarray, np.ndarray]:
     """(n_tracks,) bool: tracks with two keypoints of one image more than ``duplicate_px``
     apart; and (n_tracks,) bool: tracks with two keypoints of one image at all."""
     n_tracks = int(track.max()) + 1

@@ -2,7 +2,7 @@
 
 Pairwise NCC may move either keypoint of a match, so one keypoint would get different
 positions in different pairs, which COLMAP cannot store (one position per keypoint index).
-Here the tracks of all output matches come from one :class:`~.track_plan.TrackPlan` (anchors,
+Here the tracks of all output matches come from one :class:`~.plan.TrackPlan` (anchors,
 frozen tracks and unrefinable matches are decided there). Each walked track is walked
 breadth-first from its anchor, level by level, over refinable edges. Each free keypoint
 adjacent to an already fixed one is refined against it (template from the fixed side) and
@@ -24,13 +24,21 @@ import logging
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..devices import resolve_device
+from ..enums import Rectification
 from .config import NCCConfig, TrackConfig
-from .track_plan import TrackPlan, build_track_plan
+from .plan import TrackPlan
+from .track_plan import build_track_plan
+
+if TYPE_CHECKING:
+    import torch
 from .walk_calls import (
     Group,
+    Images,
     ImageSource,
     WalkState,
     chunks_by_images,
@@ -56,7 +64,7 @@ class TrackRefineResult:
         refined_against: image_id -> (Ni, 2) int64 ``(image_id, keypoint_index)`` of the fixed
             keypoint each keypoint was refined against, ``(-1, -1)`` for anchors and keypoints
             that were never refined.
-        stats: the plan's (:class:`~.track_plan.TrackPlan`), and ``levels`` (walk depth),
+        stats: the plan's (:class:`~.plan.TrackPlan`), and ``levels`` (walk depth),
             ``refined`` (refine attempts), ``refined_against_moved`` (attempts whose partner
             had itself moved), ``moved``, ``rejected``, ``skipped`` (keypoints left
             unrefined because an image was missing), ``missing_images``, ``refine_calls``,
@@ -64,7 +72,7 @@ class TrackRefineResult:
             walk decoded, only when ``images`` counts them in ``decodes``, like
             :class:`~colmap_miho.adapters.images.ImageLoader`), ``seconds``.
             The result holds the images of the plan's keypoints only (for a group of
-            :meth:`~.track_plan.TrackPlan.groups`: its own images).
+            :meth:`~.plan.TrackPlan.groups`: its own images).
     """
 
     keypoints: dict
@@ -75,12 +83,13 @@ class TrackRefineResult:
 
 def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
     """The plan's ``local_affine`` argument for an NCC configuration."""
-    if ncc_cfg.rectification == "filter":
+    if ncc_cfg.rectification is Rectification.FILTER:
         return None
     return ncc_cfg.local_affine_neighbours, ncc_cfg.local_affine_max_residual_px
 
 
-def _resolve_configs(config, ncc_config, track_config) -> tuple[NCCConfig, TrackConfig]:
+def _resolve_configs(config: object, ncc_config: NCCConfig | None,
+                     track_config: TrackConfig | None) -> tuple[NCCConfig, TrackConfig]:
     ncc, trk = NCCConfig(), TrackConfig()
     if isinstance(config, tuple):
         ncc, trk = config
@@ -95,13 +104,13 @@ def _resolve_configs(config, ncc_config, track_config) -> tuple[NCCConfig, Track
 
 
 def refine_tracks(
-    images,
+    images: Images,
     keypoints: Mapping,
     pair_matches: Mapping,
     pair_filter_results: Mapping,
     *,
     unrefined_matches: Mapping | None = None,
-    config=None,
+    config: object = None,
     ncc_config: NCCConfig | None = None,
     track_config: TrackConfig | None = None,
     affines: Mapping | None = None,
@@ -146,22 +155,26 @@ def refine_tracks(
                        progress=progress, on_progress=on_progress, refine_fn=refine_fn)
 
 
-def _refiner(refine_fn, ncc_cfg: NCCConfig, trk_cfg: TrackConfig):
+def _refiner(refine_fn: Callable | None, ncc_cfg: NCCConfig,
+             trk_cfg: TrackConfig) -> tuple[Callable, torch.device | None]:
     """(refine function, device for batched levels or None)."""
-    device: object = "cpu"  # "cpu" or the torch.device the NCC runs on
-    custom = refine_fn
-    if refine_fn is None:
-        from .ncc import refine_pair as refine_fn
-        from .ncc import resolve_device
-
-        device = resolve_device(ncc_cfg)
     use_batch = trk_cfg.batch_pairs
     if use_batch is None:  # the built-in refiner takes image stacks; a custom one may not
-        use_batch = custom is None
-    return refine_fn, (device if use_batch else None)
+        use_batch = refine_fn is None
+    if refine_fn is not None:  # a custom refiner gets its image stacks on the CPU
+        if not use_batch:
+            return refine_fn, None
+        import torch
+
+        return refine_fn, torch.device("cpu")
+    from .ncc import refine_pair
+
+    device = resolve_device(ncc_cfg.device)
+    return refine_pair, (device if use_batch else None)
 
 
-def _level_groups(plan: TrackPlan, ea, eb, e_ids, fixed, score) -> list[Group] | None:
+def _level_groups(plan: TrackPlan, ea: np.ndarray, eb: np.ndarray, e_ids: np.ndarray,
+                  fixed: np.ndarray, score: np.ndarray) -> list[Group] | None:
     """The groups of the next level: every free node with a fixed neighbour, paired with
     its best-scoring fixed neighbour (ties: lowest node id), grouped by (pair, side).
     None when no free node has a fixed neighbour."""
@@ -207,7 +220,7 @@ def cache_order(groups: list[Group], level: int) -> list[Group]:
 
 
 def walk_tracks(
-    images,
+    images: Images,
     plan: TrackPlan,
     *,
     ncc_config: NCCConfig | None = None,
@@ -270,7 +283,7 @@ def walk_tracks(
     stats["missing_images"] = len(source.missing)
     stats["images_loaded"] = len(source.used)
     if isinstance(decodes_before, int):
-        stats["image_decodes"] = int(images.decodes) - decodes_before
+        stats["image_decodes"] = int(getattr(images, "decodes", 0)) - decodes_before
     stats["seconds"] = time.perf_counter() - t0
     logger.info("refine_tracks: %s", stats)
     return TrackRefineResult(keypoints=out_kp, displacement=out_disp,

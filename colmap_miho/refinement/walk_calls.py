@@ -2,20 +2,28 @@
 
 :mod:`.tracks` decides which keypoints move against which; this module turns a level's
 groups (edges of one pair whose keypoints on one side move) into calls of the pairwise
-refiner and writes the results back. On CUDA a call costs about the same for 100 matches as
-for 10000, so all groups of a level go into one call on stacked images
+refiner and writes the results back. On CUDA a call costs little more for many matches than
+for few, so all groups of a level go into one call on stacked images
 (:class:`~.warping.ImageStack`), at most ``max_images`` images a call.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..enums import Rectification
 from .config import NCCConfig
-from .track_plan import TrackPlan
+from .plan import TrackPlan
+
+if TYPE_CHECKING:
+    import torch
+
+#: images by id: a Mapping (``.get``) or a callable; None (or absent) means missing.
+Images = Mapping[int, np.ndarray | None] | Callable[[int], np.ndarray | None]
 
 
 @dataclass(frozen=True)
@@ -42,7 +50,8 @@ class ImageSource:
     :class:`colmap_miho.adapters.images.ImageLoader`) bounds its own memory; a plain dict
     holds everything already; a callable is called on every use."""
 
-    def __init__(self, images):
+    def __init__(self, images: Images) -> None:
+        self._load: Callable[[int], np.ndarray | None]
         if isinstance(images, Mapping):
             self._load = images.get
         elif callable(images):
@@ -52,7 +61,7 @@ class ImageSource:
         self.missing: set = set()
         self.used: set = set()
 
-    def get(self, image_id):
+    def get(self, image_id: int) -> np.ndarray | None:
         if image_id in self.missing:
             return None
         img = self._load(image_id)
@@ -94,8 +103,8 @@ class _Call:
     (fixed side first; (n, 2, 3, 3) or (n, P, 2, 3, 3) candidates) and affine frames (or
     None)."""
 
-    fixed_id: object
-    moving_id: object
+    fixed_id: int
+    moving_id: int
     fixed_idx: np.ndarray
     moving_idx: np.ndarray
     pts_f: np.ndarray
@@ -105,16 +114,16 @@ class _Call:
     aff_m: np.ndarray | None
 
 
-def _pairs_of(plan: TrackPlan, edges: np.ndarray, rectification: str) -> np.ndarray:
+def _pairs_of(plan: TrackPlan, edges: np.ndarray, rectification: Rectification) -> np.ndarray:
     """Patch homography pairs of edges of one pair: (n, 2, 3, 3) from the filter ("filter")
     or the local affine fits ("local"), or (n, 2, 2, 3, 3) both as candidates ("both")."""
     p = int(plan.edge_pair[edges[0]])
     filt = plan.pair_homs[p][plan.edge_label[edges]]
-    pair_local = None if rectification == "filter" else plan.local_pairs(p)
+    pair_local = None if rectification is Rectification.FILTER else plan.local_pairs(p)
     if pair_local is None:
         return filt
     local = pair_local[plan.edge_row[edges]]
-    return local if rectification == "local" else np.stack([filt, local], axis=1)
+    return local if rectification is Rectification.LOCAL else np.stack([filt, local], axis=1)
 
 
 def _orient(grp: Group, ctx: WalkState) -> _Call:
@@ -133,8 +142,8 @@ def _orient(grp: Group, ctx: WalkState) -> _Call:
                  aff2, aff1)
 
 
-def _apply(grp: Group, call: _Call, new, moved, displacement, rejected, ncc_after,
-           ctx: WalkState) -> None:
+def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displacement: np.ndarray,
+           rejected: np.ndarray, ncc_after: np.ndarray, ctx: WalkState) -> None:
     """Write one group's refinement result: ``moved`` says which of its keypoints moved to
     ``new``; every one of them is fixed from now on, with ``ncc_after`` as partner score."""
     st = ctx.stats
@@ -151,9 +160,9 @@ def _apply(grp: Group, call: _Call, new, moved, displacement, rejected, ncc_afte
     st["rejected"] += int(np.asarray(rejected).sum())
 
 
-def chunks_by_images(groups: list, max_images: int):
+def chunks_by_images(groups: list[Group], max_images: int) -> Iterator[list[Group]]:
     """Consecutive runs of groups that together use at most ``max_images`` images."""
-    chunk: list = []
+    chunk: list[Group] = []
     ids: set = set()
     for grp in groups:
         both = ids | set(grp.pair)
@@ -166,7 +175,7 @@ def chunks_by_images(groups: list, max_images: int):
         yield chunk
 
 
-def refine_batch(groups: list, ctx: WalkState, device) -> None:
+def refine_batch(groups: list[Group], ctx: WalkState, device: torch.device) -> None:
     """Refine several groups in one call of the pairwise refiner, on stacked images."""
     from .warping import ImageStack, to_gray_tensor
 
@@ -188,7 +197,9 @@ def refine_batch(groups: list, ctx: WalkState, device) -> None:
         del ctx.gray[i]
     for i in ids:
         if i not in ctx.gray:
-            ctx.gray[i] = to_gray_tensor(ctx.images.get(i), device)
+            img = ctx.images.get(i)
+            assert img is not None  # groups with a missing image were skipped above
+            ctx.gray[i] = to_gray_tensor(img, device)
     stack_f = ImageStack.build([ctx.gray[i] for i in ids], idx_f, device)
     stack_m = stack_f.with_index(idx_m)
     aff = {}

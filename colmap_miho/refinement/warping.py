@@ -15,6 +15,7 @@ sampled in the grid coordinates of its own image.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import overload
 
@@ -28,13 +29,17 @@ _SINGULAR_DET = 1e-12
 _MIN_W = 1e-8
 #: coordinates used for samples that cannot be mapped: far outside every image (reads zero).
 _FAR = -1.0e6
+#: per-job image indices: (J,) int numpy array, tensor or sequence.
+IndexLike = np.ndarray | torch.Tensor | Sequence[int]
 
 
 @overload
 def to_gray_tensor(image: ImageStack, device: torch.device) -> ImageStack: ...
 @overload
 def to_gray_tensor(image: np.ndarray | torch.Tensor, device: torch.device) -> torch.Tensor: ...
-def to_gray_tensor(image, device):
+def to_gray_tensor(
+    image: np.ndarray | torch.Tensor | ImageStack, device: torch.device
+) -> torch.Tensor | ImageStack:
     """Image as a float32 tensor (H, W) on ``device`` (an :class:`ImageStack` is returned
     as is).
 
@@ -64,7 +69,7 @@ class ImageStack:
     """Several images for one batch of jobs: job j reads image ``index[j]`` of ``images``.
 
     Lets one batched call serve matches of many image pairs (the track walk on a GPU, where
-    a call costs about the same for 100 matches as for 10000). The images keep their own
+    a call costs little more for many matches than for few). The images keep their own
     sizes (no padded copy); a job reads its own image only (samples outside it read zero,
     as for that image alone), so its values do not depend on the other images.
 
@@ -79,7 +84,7 @@ class ImageStack:
     index: torch.Tensor
 
     @classmethod
-    def build(cls, images: list[torch.Tensor], index, device: torch.device) -> ImageStack:
+    def build(cls, images: list[torch.Tensor], index: IndexLike, device: torch.device) -> ImageStack:
         """Hold (H, W) float32 tensors (moved to ``device``, not copied when already
         there); ``index`` (J,) picks each job's image."""
         if not images:
@@ -89,12 +94,12 @@ class ImageStack:
                           device=device)
         return cls(ims, wh, torch.as_tensor(index, dtype=torch.int64, device=device))
 
-    def with_index(self, index) -> ImageStack:
+    def with_index(self, index: IndexLike) -> ImageStack:
         """The same images, read by other jobs."""
         return ImageStack(self.images, self.slot_sizes,
                           torch.as_tensor(index, dtype=torch.int64, device=self.device))
 
-    def rows(self, sel) -> ImageStack:
+    def rows(self, sel: slice | torch.Tensor) -> ImageStack:
         """The same images for a subset (slice or index tensor) of the jobs."""
         return ImageStack(self.images, self.slot_sizes, self.index[sel])
 
@@ -108,7 +113,7 @@ class ImageStack:
         return self.index.device
 
 
-def offset_grid(radius: int, device: torch.device, dtype=torch.float64) -> torch.Tensor:
+def offset_grid(radius: int, device: torch.device, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """Integer offsets of a (2r+1) x (2r+1) square, (P, 2) as (x, y), row-major (y outer),
     so that a tensor (..., P) reshapes to (..., 2r+1, 2r+1) indexed [y, x]."""
     r = torch.arange(-radius, radius + 1, device=device, dtype=dtype)
@@ -305,7 +310,8 @@ def _square_axes(o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     return xs.contiguous(), ys.contiguous()
 
 
-def _grid(M32: torch.Tensor, o: torch.Tensor, axes, affine: bool) -> torch.Tensor:
+def _grid(M32: torch.Tensor, o: torch.Tensor, axes: tuple[torch.Tensor, torch.Tensor] | None,
+          affine: bool) -> torch.Tensor:
     """``grid_sample`` coordinates (n, Q, 2) float32, grid = (M [o; 1])_xy / (M [o; 1])_w,
     for the n jobs of M32 (n, 3, 3) float32 and the offsets o (1 or n, Q, 2) float32
     (``axes``: those of :func:`_square_axes`, or None), by elementwise float32 operations
@@ -350,8 +356,7 @@ def _grid_square(M32: torch.Tensor, axes: tuple[torch.Tensor, torch.Tensor], aff
 
     The coordinates are computed planar, (n, 2, S*S) (contiguous, vectorised), and returned
     as an (n, S*S, 2) view of it: ``grid_sample`` reads a strided grid, and this is faster
-    than writing the interleaved grid (about 15% less time per :func:`sample_patches`,
-    measured, torch 2.13 CPU)."""
+    than writing the interleaved grid."""
     xs, ys = axes
     n, side = M32.shape[0], xs.shape[0]
     nr = 2 if affine else 3  # w = 1 exactly for an affine map

@@ -1,22 +1,18 @@
-"""Baseline vs colmap-miho on one database, and the whole job from a folder of images.
+"""Baseline vs colmap-miho, side by side: the evaluation of both mapped sides and the files.
 
-:func:`compare_databases` maps the database as it is (baseline) and after
-:func:`colmap_miho.pipeline.refine_database`, evaluates both with the same pairs and ground
-truth, and writes side by side::
+:func:`write_comparison` takes the mapping runs of the database as it is (baseline) and after
+refinement (run by :func:`colmap_miho.pipeline.jobs.compare_databases`), evaluates both with the
+same pairs and ground truth, and writes side by side::
 
     OUTPUT/
       baseline/model/  baseline/report.json  [baseline/runs/seed<S>/model/ with repeats]
       refined/database.db  refined/refine.json  refined/model/  refined/report.json  [refined/runs/...]
-      compare.md  compare.json
+      compare.md  compare.json  report.html
       plots/pose_error_curves.png  plots/keypoint_displacement.png  plots/matches_per_pair.png
 
-Both sides are mapped with the recipe's ``mapping`` config (known cameras: ``camera_model`` /
-``camera_params``, or the GT's cameras with ``gt_cameras``; ``refine_intrinsics``), ``repeats``
-times each (:mod:`colmap_miho.reporting.repeats`: per-run rows, median, range).
-
-:func:`run_from_images` extracts SIFT features and matches them exhaustively (pycolmap, CPU)
-into ``OUTPUT/database.db``, then refines, maps and reports, or runs the comparison.
-The input database is never modified (everything reads copies).
+With several mapping runs per side the reports get per-run rows, median and range
+(:mod:`colmap_miho.reporting.repeats`). The databases are never modified (everything reads
+copies).
 """
 
 from __future__ import annotations
@@ -28,12 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..adapters.paths import check_distinct, comparison_paths
-from ..errors import RunFailed
 from .tables import _fmt, comparison_markdown, comparison_rows, table_rows
 
-__all__ = ["CompareResult", "compare_databases", "comparison_markdown", "comparison_rows", "evaluate_side",
-           "format_comparison", "gt_intrinsics", "map_repeats", "match_changes", "run_from_images", "table_rows"]
+__all__ = ["CompareResult", "comparison_markdown", "comparison_rows", "evaluate_side", "format_comparison",
+           "gt_intrinsics", "match_changes", "table_rows", "write_comparison"]
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +54,25 @@ class CompareResult:
     plots: list[Path] = field(default_factory=list)
 
 
+@dataclass(frozen=True, kw_only=True)
+class Evaluation:
+    """What both sides are scored against.
+
+    Attributes:
+        gt: GT COLMAP model folder (or dataset folder with ``gt_model/``); None: only
+            reconstruction statistics are compared.
+        pairs: pairs for the two-view AUCs (list or file); None: the dataset's
+            ``pairs_with_gt.txt`` if present, else all GT pairs. Both sides use the same pairs.
+        seed: seed of the two-view protocols.
+        thresholds: pose-AUC thresholds in degrees (None: 0.5/1/2/5/10/20).
+    """
+
+    gt: Path | None = None
+    pairs: object = None
+    seed: int = 0
+    thresholds: object = None
+
+
 # --------------------------------------------------------------------------- known cameras
 def gt_intrinsics(gt: str | Path) -> dict:
     """The cameras of a GT model by image name, to map with known intrinsics.
@@ -68,10 +81,10 @@ def gt_intrinsics(gt: str | Path) -> dict:
         gt: GT COLMAP model folder (or dataset folder with ``gt_model/``).
 
     Returns:
-        image name -> :class:`colmap_miho.adapters.database.CameraIntrinsics` (model, params in
+        image name -> :class:`colmap_miho.adapters.cameras.CameraIntrinsics` (model, params in
         COLMAP's pixel convention, width, height): pass as ``run_mapping(intrinsics=...)``.
     """
-    from ..adapters.database import CameraIntrinsics
+    from ..adapters.cameras import CameraIntrinsics
     from .gt_model import load_reconstruction
 
     rec = load_reconstruction(gt)
@@ -173,49 +186,6 @@ def _point_clouds(output: Path, base_map, ref_map, plot_files: list) -> dict:
     return out
 
 
-def _mapping_config(recipe, mapper: str | None, seed: int | None):
-    """The recipe's ``mapping`` config with the ``mapper`` / ``seed`` overrides applied."""
-    from dataclasses import replace
-
-    cfg = recipe.mapping
-    if mapper is not None:
-        cfg = replace(cfg, mapper=mapper)
-    if seed is not None:
-        cfg = replace(cfg, seed=seed)
-    return cfg
-
-
-def _as_recipe(recipe):
-    from ..recipe import Recipe, load_recipe
-
-    return recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
-
-
-def map_repeats(database: Path, image_dir: Path, folder: Path, mapping, *, repeats: int = 1,
-                intrinsics: dict | None = None, tag: str = "", progress: bool = False,
-                verbose: bool = False) -> list:
-    """Map ``database`` ``repeats`` times with seeds ``mapping.seed + k``.
-
-    Run 0 writes ``folder/model`` (the model the report and plots use), run k >= 1
-    ``folder/runs/seed<S>/model``. Returns the ``MappingResult`` of each run.
-    """
-    from dataclasses import replace
-
-    from ..sfm import run_mapping
-
-    if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats}")
-    results = []
-    for k in range(repeats):
-        seed = mapping.seed + k
-        out = folder / "model" if k == 0 else folder / "runs" / f"seed{seed}" / "model"
-        label = f"{tag} run {k + 1}/{repeats}" if repeats > 1 else f"{tag} mapping".strip()
-        log.info("%s: mapping (seed %d)", tag or "mapping", seed)
-        results.append(run_mapping(database, image_dir, out, replace(mapping, seed=seed), intrinsics=intrinsics,
-                                   progress=progress, label=label, verbose=verbose))
-    return results
-
-
 def _evaluate(model_ok: bool, model: Path, database: Path | None, gt, pairs, seed: int, thresholds) -> dict:
     from .report import build_report, json_safe
 
@@ -289,94 +259,39 @@ def _write_tables(output: Path, baseline: dict, refined: dict, refine: dict, cha
     return md, write_report_json(summary_json, output / "compare.json")
 
 
-# --------------------------------------------------------------------------- compare
-def compare_databases(
-    database: str | Path,
-    image_dir: str | Path,
-    output: str | Path,
-    *,
-    gt: str | Path | None = None,
-    pairs=None,
-    recipe=None,
-    mapper: str | None = None,
-    seed: int | None = None,
-    repeats: int = 1,
-    gt_cameras: bool = False,
-    thresholds=None,
-    workers: int | None = None,
-    device: str = "auto",
-    progress: bool = False,
-    verbose: bool = False,
-) -> CompareResult:
-    """Map and evaluate ``database`` as it is and after ``refine_database``; write tables/plots.
+def write_comparison(output: Path, base_runs: list, ref_runs: list, *, databases: tuple[Path, Path],
+                     refine: dict, evaluation: Evaluation) -> CompareResult:
+    """Evaluate both sides and write their reports, the plots, ``compare.md`` and ``compare.json``.
 
     Args:
-        database: COLMAP database (never modified).
-        image_dir: its image folder.
-        output: comparison folder (created; files in it are replaced).
-        gt: GT COLMAP model folder (or dataset folder with ``gt_model/``); without it only
-            reconstruction statistics are compared.
-        pairs: pairs for the two-view AUCs (list or file); default: the dataset's
-            ``pairs_with_gt.txt`` if present, else all GT pairs. Both sides use the same pairs.
-        recipe: Recipe, recipe name or TOML path: ``refine_database``'s stages and the
-            ``mapping`` config of both sides (mapper, seed, threads, cameras, refine_intrinsics).
-        mapper, seed: when given, replace the recipe's ``mapping.mapper`` / ``mapping.seed``
-            (the seed is also refinement's and the two-view protocols').
-        repeats: mapping runs per side, seeds ``seed, seed + 1, ...``; with more than one the
-            reports get a ``repeats`` section (per-run rows, median, min, max).
-        gt_cameras: write the GT model's intrinsics into the mapped copies (needs ``gt``;
-            combine with ``mapping.refine_intrinsics = "none"`` to keep them).
-        thresholds: pose-AUC thresholds in degrees (default 0.5/1/2/5/10/20).
-        workers, device: ``refine_database`` options.
-        progress, verbose: bars (one per mapping run) and COLMAP's log on the terminal.
-
-    Returns:
-        :class:`CompareResult`.
+        output: the comparison folder (``baseline/``, ``refined/`` and ``plots/`` exist).
+        base_runs, ref_runs: the ``MappingResult`` of each mapping run of each side (run 0's
+            model is the one evaluated in full and drawn).
+        databases: (baseline database, refined database).
+        refine: ``RefineSummary.to_dict()`` of the refined side.
+        evaluation: the ground truth, pairs, seed and thresholds of both sides.
     """
-    from ..pipeline.refine import refine_database
+    from .html_report import write_comparison_html
+    from .report import write_report_json
 
-    recipe = _as_recipe(recipe)
-    mapping = _mapping_config(recipe, mapper, seed)
-    if gt_cameras and gt is None:
-        raise ValueError("taking the cameras from the GT needs --gt")
-    output = Path(output)
-    check_distinct(*comparison_paths(output, database=database, images=image_dir, gt=gt, repeats=repeats,
-                                     pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=mapping.seed))
-    intrinsics = gt_intrinsics(gt) if gt_cameras else None
-    for sub in ("baseline", "refined", "plots"):
-        (output / sub).mkdir(parents=True, exist_ok=True)
-    database, image_dir = Path(database), Path(image_dir)
-
-    common = {"repeats": repeats, "intrinsics": intrinsics, "progress": progress, "verbose": verbose}
-    base_runs = map_repeats(database, image_dir, output / "baseline", mapping, tag="baseline", **common)
-    log.info("refining the matches (recipe %s)", recipe.name)
-    summary = refine_database(database, image_dir, output / "refined" / "database.db", recipe=recipe,
-                              overwrite=True, restart=True, workers=workers, device=device, seed=mapping.seed,
-                              progress=progress,
-                              json_path=output / "refined" / "refine.json")
-    refine = summary.to_dict()
-    ref_runs = map_repeats(summary.output, image_dir, output / "refined", mapping, tag="refined", **common)
-    if not any(r.success for r in base_runs + ref_runs):
-        raise RunFailed("mapping failed on both the baseline and the refined database")
-
-    if gt is not None and pairs is None:
+    ev = evaluation
+    pairs = ev.pairs
+    if ev.gt is not None and pairs is None:
         from .gt_model import load_gt_poses
         from .report import default_eval_pairs
 
-        pairs, _ = default_eval_pairs(gt, load_gt_poses(gt))
-    baseline = evaluate_side(base_runs, database, gt, pairs, mapping.seed, thresholds)
-    refined = evaluate_side(ref_runs, summary.output, gt, pairs, mapping.seed, thresholds)
-
-    changes = match_changes(database, summary.output)
+        pairs, _ = default_eval_pairs(ev.gt, load_gt_poses(ev.gt))
+    baseline = evaluate_side(base_runs, databases[0], ev.gt, pairs, ev.seed, ev.thresholds)
+    refined = evaluate_side(ref_runs, databases[1], ev.gt, pairs, ev.seed, ev.thresholds)
+    changes = match_changes(*databases)
     plot_files = _write_plots(output, baseline, refined, changes)
     clouds = _point_clouds(output, base_runs[0], ref_runs[0], plot_files)
-    from .report import write_report_json
-
     for tag, rep in (("baseline", baseline), ("refined", refined)):
         if tag in clouds:
             rep["pointcloud"] = clouds[tag]
         write_report_json(rep, output / tag / "report.json")
     md, js = _write_tables(output, baseline, refined, refine, changes, clouds, plot_files)
+    write_comparison_html(output / "report.html", baseline, refined, refine, changes)
     return CompareResult(output=output, baseline=baseline, refined=refined, refine=refine, markdown=md, json=js,
                          plots=plot_files)
 
@@ -392,90 +307,9 @@ def format_comparison(result: CompareResult) -> str:
     if runs:
         lines += ["", f"mapping figures: median [min-max] of {runs} runs per side"]
     lines += ["", f"table:  {result.markdown}", f"json:   {result.json}"]
+    if (result.output / "report.html").is_file():
+        lines.append(f"report: {result.output / 'report.html'}  (open in a browser)")
     lines += [f"plot:   {p}" for p in result.plots]
     return "\n".join(lines)
 
-
-# --------------------------------------------------------------------------- from images
-def run_from_images(
-    image_dir: str | Path,
-    output: str | Path,
-    *,
-    gt: str | Path | None = None,
-    recipe=None,
-    compare: bool = False,
-    camera_mode: str = "single",
-    camera_model: str = "SIMPLE_RADIAL",
-    camera_params: str = "",
-    max_features: int = 8192,
-    mapper: str | None = None,
-    seed: int | None = None,
-    repeats: int = 1,
-    gt_cameras: bool = False,
-    thresholds=None,
-    workers: int | None = None,
-    device: str = "auto",
-    progress: bool = False,
-    verbose: bool = False,
-) -> dict:
-    """The whole job from a folder of images: SIFT + exhaustive matching, refine, map, report.
-
-    Writes ``OUTPUT/database.db`` (COLMAP's features and matches, kept as the baseline input;
-    ``camera_model`` / ``camera_params`` are the extraction's camera, a prior only: the
-    recipe's ``mapping`` config decides what mapping keeps). Without ``compare``:
-    ``OUTPUT/refined/{database.db, refine.json, model/}`` and ``OUTPUT/report.json``. With
-    ``compare``: :func:`compare_databases` into ``OUTPUT`` (``repeats``, ``gt_cameras`` and
-    ``thresholds`` are passed on; without ``compare`` only ``gt_cameras`` and ``thresholds``
-    apply).
-
-    Returns:
-        ``{"database", "features", "report" | "compare"}`` (a JSON-ready dict; with compare
-        the :class:`CompareResult` is under ``"result"`` too).
-
-    Raises:
-        RunFailed: extraction found < 2 images, or mapping registered nothing.
-    """
-    from ..pipeline.refine import refine_database
-    from ..sfm import extract_and_match, require_success, run_mapping
-    from .report import build_report, write_report_json
-
-    recipe = _as_recipe(recipe)
-    mapping = _mapping_config(recipe, mapper, seed)
-    if gt_cameras and gt is None:
-        raise ValueError("taking the cameras from the GT needs --gt")
-    output = Path(output)
-    check_distinct(*comparison_paths(output, images=image_dir, gt=gt, repeats=repeats, seed=mapping.seed,
-                                     compare=compare))
-    output.mkdir(parents=True, exist_ok=True)
-    database = output / "database.db"
-    if database.exists():
-        log.info("reusing the features and matches in %s", database)
-        features = {"reused": True}
-    else:
-        features = extract_and_match(image_dir, database, camera_mode=camera_mode, camera_model=camera_model,
-                                     camera_params=camera_params, max_features=max_features, verbose=verbose)
-    out: dict = {"database": str(database), "features": features}
-    if compare:
-        res = compare_databases(database, image_dir, output, gt=gt, recipe=recipe, mapper=mapper, seed=seed,
-                                repeats=repeats, gt_cameras=gt_cameras, thresholds=thresholds, workers=workers,
-                                device=device, progress=progress, verbose=verbose)
-        out["compare"] = str(res.json)
-        out["result"] = res
-        return out
-    (output / "refined").mkdir(exist_ok=True)
-    summary = refine_database(database, image_dir, output / "refined" / "database.db", recipe=recipe,
-                              overwrite=True, restart=True, workers=workers, device=device, seed=mapping.seed,
-                              progress=progress,
-                              json_path=output / "refined" / "refine.json")
-    res = require_success(run_mapping(summary.output, image_dir, output / "refined" / "model", mapping,
-                                      intrinsics=gt_intrinsics(gt) if gt_cameras else None, progress=progress,
-                                      verbose=verbose))
-    report = build_report(res.output, reconstruction=res.reconstruction,
-                          database=summary.output if gt is not None else None, gt=gt, seed=mapping.seed,
-                          thresholds=thresholds)
-    report["refine"] = summary.to_dict()
-    report["mapping"] = res.to_dict()
-    out["report"] = str(write_report_json(report, output / "report.json"))
-    out["report_dict"] = report
-    return out
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InvalidInput
 from .gt_model import CameraPose, write_colmap_model
 
 log = logging.getLogger(__name__)
@@ -220,9 +221,9 @@ def make_demo_scene(
     import cv2
 
     if num_images < 3:
-        raise ValueError(f"num_images must be >= 3, got {num_images}")
+        raise InvalidInput(f"num_images must be >= 3, got {num_images}")
     if width < 160 or height < 120:
-        raise ValueError(f"width x height must be at least 160 x 120, got {width} x {height}")
+        raise InvalidInput(f"width x height must be at least 160 x 120, got {width} x {height}")
     root = Path(out_dir)
     image_dir = root / "images"
     image_dir.mkdir(parents=True, exist_ok=True)

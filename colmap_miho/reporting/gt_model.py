@@ -27,8 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..adapters.database import colmap_to_pixel_centre, pixel_centre_to_colmap
+from ..adapters.conventions import colmap_to_pixel_centre, pixel_centre_to_colmap
 from ..adapters.images import image_size
+from ..errors import InvalidInput
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +99,7 @@ def resolve_model_dir(path: str | Path) -> Path:
     for cand in (path, path / "gt_model", path / "sparse" / "0", path / "0"):
         if (cand / "images.txt").is_file() or (cand / "images.bin").is_file():
             return cand
-    raise ValueError(
+    raise InvalidInput(
         f"{path} is not a COLMAP model folder (no images.txt/images.bin in it, its gt_model/ or 0/)"
     )
 
@@ -112,7 +113,7 @@ def load_reconstruction(path: str | Path):
         return pycolmap.Reconstruction(str(model_dir))
     except (RuntimeError, IndexError, ValueError) as exc:  # pycolmap's errors on a truncated file
         msg = " ".join(str(exc).split())
-        raise ValueError(f"cannot read the COLMAP model in {model_dir} (damaged or truncated file? "
+        raise InvalidInput(f"cannot read the COLMAP model in {model_dir} (damaged or truncated file? "
                          f"{msg}); write it again") from None
 
 
@@ -123,7 +124,7 @@ def load_gt_poses(path: str | Path) -> dict[str, CameraPose]:
     """
     poses = poses_from_reconstruction(load_reconstruction(path))
     if not poses:
-        raise ValueError(f"the ground-truth model at {path} has no posed images")
+        raise InvalidInput(f"the ground-truth model at {path} has no posed images")
     return poses
 
 
@@ -145,7 +146,7 @@ def write_colmap_model(poses: dict[str, CameraPose], out_dir: str | Path) -> Pat
         The output folder (created if needed).
     """
     if not poses:
-        raise ValueError("poses is empty: nothing to write")
+        raise InvalidInput("poses is empty: nothing to write")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cameras: dict[tuple, int] = {}
@@ -190,7 +191,7 @@ def _rescale(K: np.ndarray, size_from: tuple[int, int], size_to: tuple[int, int]
         return K
     sx, sy = size_to[0] / size_from[0], size_to[1] / size_from[1]
     if abs(sx - sy) > 1e-3:
-        raise ValueError(f"{name}: GT size {size_from} and image size {size_to} differ in aspect")
+        raise InvalidInput(f"{name}: GT size {size_from} and image size {size_to} differ in aspect")
     log.info("%s: scaling GT intrinsics by %.4g (GT %dx%d, image %dx%d)", name, sx, *size_from, *size_to)
     S = np.diag([sx, sy, 1.0])
     # pixel-centre convention: x' + 0.5 = s (x + 0.5)
@@ -212,9 +213,9 @@ def read_strecha_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.nd
         C = np.array(vals[7], dtype=np.float64)
         w, h = int(vals[8][0]), int(vals[8][1])
     except (IndexError, ValueError) as exc:
-        raise ValueError(f"{path}: not a Strecha .camera file ({exc})") from None
+        raise InvalidInput(f"{path}: not a Strecha .camera file ({exc})") from None
     if K.shape != (3, 3) or R_c2w.shape != (3, 3) or C.shape != (3,):
-        raise ValueError(f"{path}: not a Strecha .camera file (bad K/R/C shapes)")
+        raise InvalidInput(f"{path}: not a Strecha .camera file (bad K/R/C shapes)")
     R = project_to_so3(R_c2w.T)
     return K, R, -R @ C, (w, h)
 
@@ -237,7 +238,7 @@ def strecha_poses(gt_dir: str | Path, image_dir: str | Path) -> dict[str, Camera
         K = _rescale(K, size, img_size, name)
         out[name] = CameraPose(name=name, K=K, R=R, t=t, width=img_size[0], height=img_size[1])
     if not out:
-        raise ValueError(f"no <image>.camera file in {gt_dir} matches an image of {image_dir}")
+        raise InvalidInput(f"no <image>.camera file in {gt_dir} matches an image of {image_dir}")
     return out
 
 
@@ -246,7 +247,7 @@ def _find_par_file(path: Path) -> Path:
         return path
     found = sorted(path.glob("*_par.txt"))
     if len(found) != 1:
-        raise ValueError(f"expected exactly one *_par.txt in {path}, found {len(found)}")
+        raise InvalidInput(f"expected exactly one *_par.txt in {path}, found {len(found)}")
     return found[0]
 
 
@@ -259,7 +260,7 @@ def middlebury_poses(par_path: str | Path, image_dir: str | Path) -> dict[str, C
     out: dict[str, CameraPose] = {}
     for fields in lines[1:]:
         if len(fields) != 22:
-            raise ValueError(f"{par}: expected 22 fields per line, got {len(fields)}: {' '.join(fields[:3])} ...")
+            raise InvalidInput(f"{par}: expected 22 fields per line, got {len(fields)}: {' '.join(fields[:3])} ...")
         name = fields[0]
         if name not in names:
             log.warning("%s: %s is not in %s", par.name, name, image_dir)
@@ -271,7 +272,7 @@ def middlebury_poses(par_path: str | Path, image_dir: str | Path) -> dict[str, C
             t=v[18:21], width=w, height=h,
         )
     if not out:
-        raise ValueError(f"no image of {par} found in {image_dir}")
+        raise InvalidInput(f"no image of {par} found in {image_dir}")
     return out
 
 
@@ -283,6 +284,6 @@ def convert_gt(fmt: str, input_path: str | Path, image_dir: str | Path, output: 
     elif fmt == "middlebury":
         poses = middlebury_poses(input_path, image_dir)
     else:
-        raise ValueError(f"format={fmt!r} is not one of: strecha, middlebury")
+        raise InvalidInput(f"format={fmt!r} is not one of: strecha, middlebury")
     write_colmap_model(poses, output)
     return poses

@@ -32,6 +32,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .track_geometry import GAUSS_NEWTON_STEPS, fundamental_from_poses, symmetric_epipolar_distance, triangulate_tracks
+
 EPIPOLAR_THRESHOLD_PX = 2.0
 """A stored inlier match farther than this (px, symmetric) from its GT epipolar line is counted
 in ``epipolar_share_above``."""
@@ -43,11 +45,6 @@ keypoints of different 3D points, so its residuals measure matching errors, not 
 MIN_TRACK_VIEWS = 3
 """Tracks seen by fewer GT images are not measured (two views leave the residual nearly free)."""
 
-GAUSS_NEWTON_STEPS = 5
-"""Gauss-Newton steps on the reprojection error after the DLT (converged well before 5 on
-sub-pixel noise)."""
-
-_MIN_DEPTH = 1e-9  # a point at or behind a camera (depth below this) does not triangulate
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -104,121 +101,6 @@ def _camera(cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if K.shape != (3, 3) or R.shape != (3, 3) or t.reshape(-1).shape != (3,):
         raise ValueError(f"a camera needs K (3, 3), R (3, 3), t (3,); got {K.shape}, {R.shape}, {t.shape}")
     return K, R, t.reshape(3)
-
-
-def fundamental_from_poses(K1, R1, t1, K2, R2, t2) -> np.ndarray:
-    """GT fundamental matrix ``F`` (3, 3) with ``x2^T F x1 = 0`` for pixel points (pixel-centre
-    convention), from two world-to-camera poses."""
-    R = R2 @ R1.T
-    t = t2 - R @ t1
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    return np.linalg.inv(K2).T @ tx @ R @ np.linalg.inv(K1)
-
-
-def symmetric_epipolar_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Symmetric epipolar distance (px) of point pairs: ``(d(x2, F x1) + d(x1, F^T x2)) / 2``.
-
-    Args:
-        F: (3, 3) fundamental matrix, ``x2^T F x1 = 0``.
-        x1, x2: (M, 2) pixel points.
-
-    Returns:
-        (M,) float64 distances.
-    """
-    x1 = np.asarray(x1, dtype=np.float64).reshape(-1, 2)
-    x2 = np.asarray(x2, dtype=np.float64).reshape(-1, 2)
-    h1 = np.column_stack([x1, np.ones(len(x1))])
-    h2 = np.column_stack([x2, np.ones(len(x2))])
-    l2 = h1 @ F.T  # lines in image 2
-    l1 = h2 @ F  # lines in image 1
-    alg = np.abs(np.sum(h2 * l2, axis=1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = alg / np.hypot(l2[:, 0], l2[:, 1])
-        d1 = alg / np.hypot(l1[:, 0], l1[:, 1])
-    return 0.5 * (d1 + d2)
-
-
-# --------------------------------------------------------------------------- triangulation
-def triangulate_tracks(
-    K: np.ndarray, R: np.ndarray, t: np.ndarray, xy: np.ndarray, valid: np.ndarray,
-    *, gauss_newton_steps: int = GAUSS_NEWTON_STEPS,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Triangulate T tracks of up to L observations with known cameras; vectorised over tracks.
-
-    Linear DLT on normalised coordinates (``K^-1 x``), then ``gauss_newton_steps`` Gauss-Newton
-    steps on the pixel reprojection error (a step that does not lower a track's error is not
-    taken).
-
-    Args:
-        K, R, t: (T, L, 3, 3), (T, L, 3, 3), (T, L, 3) camera of each observation (world-to-camera).
-        xy: (T, L, 2) observed pixels (integer = pixel centre).
-        valid: (T, L) bool, which slots hold an observation (>= 2 per track).
-
-    Returns:
-        ``(X (T, 3), residual (T, L))``: the points and the pixel reprojection error of each
-        observation (0 at invalid slots; ``inf`` at every slot of a track whose point lies
-        behind or on one of its cameras).
-    """
-    valid = np.asarray(valid, dtype=bool)
-    w = valid[..., None].astype(np.float64)
-    T = xy.shape[0]
-    if T == 0:
-        return np.zeros((0, 3)), np.zeros(valid.shape)
-    # DLT rows x * P3 - P1, y * P3 - P2 with P = [R | t] and x = normalised coordinates
-    h = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
-    xn = np.einsum("tlij,tlj->tli", np.linalg.inv(np.where(valid[..., None, None], K, np.eye(3))), h)
-    xn = xn[..., :2] / xn[..., 2:3]
-    P = np.concatenate([R, t[..., None]], axis=-1)  # (T, L, 3, 4)
-    rows = np.stack([xn[..., 0:1] * P[..., 2, :] - P[..., 0, :], xn[..., 1:2] * P[..., 2, :] - P[..., 1, :]],
-                    axis=2)  # (T, L, 2, 4)
-    A = (rows * w[..., None]).reshape(T, -1, 4)
-    _, _, Vt = np.linalg.svd(A)
-    Xh = Vt[:, -1, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        X = Xh[:, :3] / Xh[:, 3:4]
-    X = np.where(np.isfinite(X), X, 0.0)
-    KR = K @ R  # (T, L, 3, 3)
-    Kt = np.einsum("tlij,tlj->tli", K, t)
-
-    def project(X):
-        p = np.einsum("tlij,tj->tli", KR, X) + Kt
-        z = p[..., 2]
-        zs = np.where(np.abs(z) > _MIN_DEPTH, z, _MIN_DEPTH)
-        return p[..., :2] / zs[..., None], zs
-
-    def cost(X):
-        uv, _ = project(X)
-        return (((uv - xy) ** 2).sum(-1) * valid).sum(-1)
-
-    c = cost(X)
-    for _ in range(gauss_newton_steps):
-        uv, z = project(X)
-        r = (uv - xy) * w  # (T, L, 2)
-        # d(uv)/dp = [[1/z, 0, -u/z], [0, 1/z, -v/z]]; dp/dX = K R
-        Jp = np.zeros(uv.shape[:-1] + (2, 3))
-        Jp[..., 0, 0] = 1.0 / z
-        Jp[..., 1, 1] = 1.0 / z
-        Jp[..., 0, 2] = -uv[..., 0] / z
-        Jp[..., 1, 2] = -uv[..., 1] / z
-        J = (Jp @ KR) * w[..., None]  # (T, L, 2, 3)
-        JtJ = np.einsum("tlai,tlaj->tij", J, J)
-        Jtr = np.einsum("tlai,tla->ti", J, r)
-        JtJ = JtJ + 1e-12 * np.trace(JtJ, axis1=1, axis2=2)[:, None, None] * np.eye(3)
-        ok = np.abs(np.linalg.det(JtJ)) > 0
-        step = np.zeros_like(X)
-        if ok.any():
-            step[ok] = np.linalg.solve(JtJ[ok], -Jtr[ok][..., None])[..., 0]
-        Xn = X + step
-        cn = cost(Xn)
-        better = np.isfinite(cn) & (cn < c)
-        X = np.where(better[:, None], Xn, X)
-        c = np.where(better, cn, c)
-    uv, _ = project(X)
-    depth = np.einsum("tlj,tj->tl", R[..., 2, :], X) + t[..., 2]
-    res = np.linalg.norm(uv - xy, axis=-1) * valid
-    behind = ((depth <= _MIN_DEPTH) & valid).any(axis=1)
-    res[behind] = np.where(valid[behind], np.inf, 0.0)
-    return X, res
 
 
 # --------------------------------------------------------------------------- tracks
@@ -295,69 +177,14 @@ def keypoint_accuracy(
         raise ValueError(f"gauss_newton_steps must be >= 0, got {gauss_newton_steps}")
     min_track_views = int(min_track_views)
     keys = list(keypoints)
-    index = {k: i for i, k in enumerate(keys)}
     kps = [np.asarray(keypoints[k], dtype=np.float64).reshape(-1, 2) for k in keys]
     cams = {k: _camera(c) for k, c in cameras.items()}
-
-    # epipolar distances + the match list for the tracks
-    epi = []
-    track_matches = []
-    for (a, b), idx in matches.items():
-        if a not in index or b not in index:
-            raise ValueError(f"pair ({a!r}, {b!r}): no keypoints for {a if a not in index else b!r}")
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1, 2)
-        if len(idx) == 0:
-            continue
-        ia, ib = index[a], index[b]
-        if idx.min() < 0 or idx[:, 0].max() >= len(kps[ia]) or idx[:, 1].max() >= len(kps[ib]):
-            raise ValueError(f"pair ({a!r}, {b!r}): match index out of range "
-                             f"({len(kps[ia])} and {len(kps[ib])} keypoints)")
-        track_matches.append((ia, ib, idx))
-        if a in cams and b in cams:
-            F = fundamental_from_poses(*cams[a], *cams[b])
-            epi.append(symmetric_epipolar_distance(F, kps[ia][idx[:, 0]], kps[ib][idx[:, 1]]))
-    e = np.concatenate(epi) if epi else np.zeros(0)
+    e, track_matches = _epipolar_distances(keys, kps, cams, matches)
     nan = float("nan")
-
-    # tracks
-    nodes, labels = build_tracks([len(k) for k in kps], track_matches)
-    offset = np.concatenate([[0], np.cumsum([len(k) for k in kps])]).astype(np.int64)
-    img = np.searchsorted(offset, nodes, side="right") - 1
-    _, lab = np.unique(labels, return_inverse=True)
-    n_lab = int(lab.max()) + 1 if lab.size else 0
-    n_obs = np.bincount(lab, minlength=n_lab)
-    uniq_li = np.unique(lab * len(kps) + img) if lab.size else np.zeros(0, np.int64)
-    n_img = np.bincount(uniq_li // max(len(kps), 1), minlength=n_lab)
-    has_gt = np.array([k in cams for k in keys], dtype=bool)
-    gt_obs = has_gt[img] if img.size else np.zeros(0, bool)
-    gt_li = np.unique((lab * len(kps) + img)[gt_obs]) if lab.size else np.zeros(0, np.int64)
-    n_gt_img = np.bincount(gt_li // max(len(kps), 1), minlength=n_lab)
-    candidate = n_gt_img >= min_track_views
-    conflicting = candidate & (n_obs > n_img)
-    measured_tracks = candidate & ~conflicting
-
-    # padded (T, L) arrays of the GT observations of the measurable tracks
-    sel = measured_tracks[lab] & gt_obs
-    order = np.argsort(lab[sel], kind="stable")
-    t_lab, t_img, t_node = lab[sel][order], img[sel][order], nodes[sel][order]
-    track_ids, t_row = np.unique(t_lab, return_inverse=True)
-    T = len(track_ids)
-    counts = np.bincount(t_row, minlength=T)
-    L = int(counts.max()) if T else 0
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if T else np.zeros(0, np.int64)
-    slot = np.arange(len(t_row)) - starts[t_row] if T else np.zeros(0, np.int64)
-    Ks = np.stack([cams[k][0] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
-    Rs = np.stack([cams[k][1] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
-    ts = np.stack([cams[k][2] if k in cams else np.zeros(3) for k in keys]) if keys else np.zeros((0, 3))
-    Kp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
-    Rp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
-    tp = np.zeros((T, L, 3))
-    xy = np.zeros((T, L, 2))
-    valid = np.zeros((T, L), bool)
-    if T:
-        Kp[t_row, slot], Rp[t_row, slot], tp[t_row, slot] = Ks[t_img], Rs[t_img], ts[t_img]
-        xy[t_row, slot] = np.concatenate(kps)[t_node]
-        valid[t_row, slot] = True
+    tracks = _classify_tracks(keys, kps, cams, track_matches, min_track_views)
+    candidate, conflicting = tracks.candidate, tracks.conflicting
+    Kp, Rp, tp, xy, valid = _padded_observations(keys, kps, cams, tracks)
+    T = len(valid)
     _, res = triangulate_tracks(Kp, Rp, tp, xy, valid, gauss_newton_steps=int(gauss_newton_steps))
     worst = np.where(valid, res, 0.0).max(axis=1) if T else np.zeros(0)
     good = worst <= track_threshold_px
@@ -380,3 +207,97 @@ def keypoint_accuracy(
         track_threshold_px=float(track_threshold_px),
         min_track_views=min_track_views,
     )
+
+
+def _epipolar_distances(keys: list, kps: list[np.ndarray], cams: dict,
+                        matches: Mapping[tuple[Hashable, Hashable], np.ndarray]
+                        ) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
+    """Symmetric GT epipolar distances (px) of the matches between two GT images, and every
+    pair's matches as ``(image index a, image index b, (M, 2) int64 indices)`` for the tracks.
+
+    Raises:
+        ValueError: a pair naming an image without keypoints, or a match index out of range.
+    """
+    index = {k: i for i, k in enumerate(keys)}
+    epi = []
+    track_matches = []
+    for (a, b), idx in matches.items():
+        if a not in index or b not in index:
+            raise ValueError(f"pair ({a!r}, {b!r}): no keypoints for {a if a not in index else b!r}")
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1, 2)
+        if len(idx) == 0:
+            continue
+        ia, ib = index[a], index[b]
+        if idx.min() < 0 or idx[:, 0].max() >= len(kps[ia]) or idx[:, 1].max() >= len(kps[ib]):
+            raise ValueError(f"pair ({a!r}, {b!r}): match index out of range "
+                             f"({len(kps[ia])} and {len(kps[ib])} keypoints)")
+        track_matches.append((ia, ib, idx))
+        if a in cams and b in cams:
+            F = fundamental_from_poses(*cams[a], *cams[b])
+            epi.append(symmetric_epipolar_distance(F, kps[ia][idx[:, 0]], kps[ib][idx[:, 1]]))
+    return (np.concatenate(epi) if epi else np.zeros(0)), track_matches
+
+
+@dataclass(frozen=True)
+class _Tracks:
+    """The tracks of all matches: per observation its node, image index, GT flag and track
+    label; per track whether it is a candidate (seen by ``min_track_views`` GT images), a
+    conflicting one (two keypoints of one image) and so measured (candidate, not conflicting)."""
+
+    nodes: np.ndarray
+    img: np.ndarray
+    gt_obs: np.ndarray
+    lab: np.ndarray
+    candidate: np.ndarray
+    conflicting: np.ndarray
+    measured: np.ndarray
+
+
+def _classify_tracks(keys: list, kps: list[np.ndarray], cams: dict,
+                     track_matches: list[tuple[int, int, np.ndarray]], min_track_views: int) -> _Tracks:
+    """Union-find tracks of ``track_matches`` and their classes (see :class:`_Tracks`)."""
+    nodes, labels = build_tracks([len(k) for k in kps], track_matches)
+    offset = np.concatenate([[0], np.cumsum([len(k) for k in kps])]).astype(np.int64)
+    img = np.searchsorted(offset, nodes, side="right") - 1
+    _, lab = np.unique(labels, return_inverse=True)
+    n_lab = int(lab.max()) + 1 if lab.size else 0
+    n_obs = np.bincount(lab, minlength=n_lab)
+    uniq_li = np.unique(lab * len(kps) + img) if lab.size else np.zeros(0, np.int64)
+    n_img = np.bincount(uniq_li // max(len(kps), 1), minlength=n_lab)
+    has_gt = np.array([k in cams for k in keys], dtype=bool)
+    gt_obs = has_gt[img] if img.size else np.zeros(0, bool)
+    gt_li = np.unique((lab * len(kps) + img)[gt_obs]) if lab.size else np.zeros(0, np.int64)
+    n_gt_img = np.bincount(gt_li // max(len(kps), 1), minlength=n_lab)
+    candidate = n_gt_img >= min_track_views
+    conflicting = candidate & (n_obs > n_img)
+    return _Tracks(nodes=nodes, img=img, gt_obs=gt_obs, lab=lab, candidate=candidate, conflicting=conflicting,
+                   measured=candidate & ~conflicting)
+
+
+def _padded_observations(keys: list, kps: list[np.ndarray], cams: dict, tracks: _Tracks
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The GT observations of the measured tracks as padded ``(T, L)`` arrays: ``K`` and ``R``
+    (T, L, 3, 3), ``t`` (T, L, 3), keypoints (T, L, 2) pixels and the valid mask (T, L)."""
+    lab, img, nodes = tracks.lab, tracks.img, tracks.nodes
+    sel = tracks.measured[lab] & tracks.gt_obs
+    order = np.argsort(lab[sel], kind="stable")
+    t_lab, t_img, t_node = lab[sel][order], img[sel][order], nodes[sel][order]
+    track_ids, t_row = np.unique(t_lab, return_inverse=True)
+    T = len(track_ids)
+    counts = np.bincount(t_row, minlength=T)
+    L = int(counts.max()) if T else 0
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]) if T else np.zeros(0, np.int64)
+    slot = np.arange(len(t_row)) - starts[t_row] if T else np.zeros(0, np.int64)
+    Ks = np.stack([cams[k][0] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
+    Rs = np.stack([cams[k][1] if k in cams else np.eye(3) for k in keys]) if keys else np.zeros((0, 3, 3))
+    ts = np.stack([cams[k][2] if k in cams else np.zeros(3) for k in keys]) if keys else np.zeros((0, 3))
+    Kp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
+    Rp = np.broadcast_to(np.eye(3), (T, L, 3, 3)).copy()
+    tp = np.zeros((T, L, 3))
+    xy = np.zeros((T, L, 2))
+    valid = np.zeros((T, L), bool)
+    if T:
+        Kp[t_row, slot], Rp[t_row, slot], tp[t_row, slot] = Ks[t_img], Rs[t_img], ts[t_img]
+        xy[t_row, slot] = np.concatenate(kps)[t_node]
+        valid[t_row, slot] = True
+    return Kp, Rp, tp, xy, valid

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InvalidInput
+
 log = logging.getLogger(__name__)
 
 OPEN3D_MISSING = "open3d is not installed: pip install 'colmap-miho[pointcloud]' (or pip install 'open3d>=0.18')"
@@ -48,9 +50,9 @@ def require_open3d():
 def _check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {p.shape}")
+        raise InvalidInput(f"{name} must have shape (N, 3), got {p.shape}")
     if not np.isfinite(p).all():
-        raise ValueError(f"{name} contain NaN or inf")
+        raise InvalidInput(f"{name} contain NaN or inf")
     return p
 
 
@@ -97,7 +99,7 @@ def write_ply(points: np.ndarray, path: str | Path, colors: np.ndarray | None = 
     if colors is not None:
         c = np.asarray(colors)
         if c.shape != p.shape:
-            raise ValueError(f"colors must have shape {p.shape}, got {c.shape}")
+            raise InvalidInput(f"colors must have shape {p.shape}, got {c.shape}")
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
     rows = np.empty(len(p), dtype=fields)
     rows["x"], rows["y"], rows["z"] = p[:, 0], p[:, 1], p[:, 2]
@@ -119,34 +121,34 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     path = Path(path)
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
-            raise ValueError(f"{path}: not a PLY file")
+            raise InvalidInput(f"{path}: not a PLY file")
         fields: list[tuple[str, str]] = []
         count = None
         in_vertex = False
         while True:
             line = f.readline()
             if not line:
-                raise ValueError(f"{path}: PLY header without end_header")
+                raise InvalidInput(f"{path}: PLY header without end_header")
             words = line.decode("ascii", "replace").split()
             if not words or words[0] in ("comment", "obj_info"):
                 continue
             if words[0] == "format" and words[1] != "binary_little_endian":
-                raise ValueError(f"{path}: PLY format {words[1]} not supported (binary_little_endian only)")
+                raise InvalidInput(f"{path}: PLY format {words[1]} not supported (binary_little_endian only)")
             if words[0] == "element":
                 if words[1] == "vertex":
                     count, in_vertex = int(words[2]), True
                 elif count is None:
-                    raise ValueError(f"{path}: PLY element {words[1]!r} before the vertices is not supported")
+                    raise InvalidInput(f"{path}: PLY element {words[1]!r} before the vertices is not supported")
                 else:
                     in_vertex = False
             elif words[0] == "property" and in_vertex:
                 if words[1] == "list" or words[1] not in _PLY_TYPES:
-                    raise ValueError(f"{path}: vertex property {' '.join(words[1:])!r} not supported")
+                    raise InvalidInput(f"{path}: vertex property {' '.join(words[1:])!r} not supported")
                 fields.append((words[2], _PLY_TYPES[words[1]]))
             elif words[0] == "end_header":
                 break
         if count is None or not {"x", "y", "z"} <= {n for n, _ in fields}:
-            raise ValueError(f"{path}: no vertex element with x, y, z")
+            raise InvalidInput(f"{path}: no vertex element with x, y, z")
         rows = np.frombuffer(f.read(np.dtype(fields).itemsize * count), dtype=fields, count=count)
     xyz = np.stack([rows["x"], rows["y"], rows["z"]], axis=1).astype(np.float64)
     names = {n for n, _ in fields}
@@ -171,7 +173,7 @@ def _knn_distances(points: np.ndarray, k: int) -> np.ndarray:
 
 def _backend(backend: str) -> str:
     if backend not in ("auto", "open3d", "scipy"):
-        raise ValueError(f"backend={backend!r} is not one of: auto, open3d, scipy")
+        raise InvalidInput(f"backend={backend!r} is not one of: auto, open3d, scipy")
     if backend == "auto":
         return "open3d" if have_open3d() else "scipy"
     if backend == "open3d":
@@ -187,9 +189,9 @@ def statistical_outliers(points: np.ndarray, *, nb_neighbors: int = 20, std_rati
     (ddof 1). ``backend``: "open3d" (open3d itself), "scipy" (cKDTree, same rule) or "auto"."""
     p = _check_points(points)
     if nb_neighbors < 1:
-        raise ValueError(f"nb_neighbors must be >= 1, got {nb_neighbors}")
+        raise InvalidInput(f"nb_neighbors must be >= 1, got {nb_neighbors}")
     if std_ratio <= 0:
-        raise ValueError(f"std_ratio must be > 0, got {std_ratio}")
+        raise InvalidInput(f"std_ratio must be > 0, got {std_ratio}")
     if len(p) <= nb_neighbors:
         return np.zeros(len(p), dtype=bool)
     if _backend(backend) == "open3d":
@@ -246,7 +248,7 @@ def cloud_to_cloud(a: np.ndarray, b: np.ndarray, *, backend: str = "auto") -> di
     """
     pa, pb = _check_points(a, "a"), _check_points(b, "b")
     if len(pa) == 0 or len(pb) == 0:
-        raise ValueError(f"both clouds need points, got {len(pa)} and {len(pb)}")
+        raise InvalidInput(f"both clouds need points, got {len(pa)} and {len(pb)}")
     bk = _backend(backend)
     out: dict = {"backend": bk}
     for key, src, dst in (("a_to_b", pa, pb), ("b_to_a", pb, pa)):
@@ -281,10 +283,10 @@ def render_cloud_png(points: np.ndarray, colors: np.ndarray | None, path: str | 
     global _renderer_failed
     p = _check_points(points)
     if backend not in ("auto", "open3d", "matplotlib"):
-        raise ValueError(f"backend={backend!r} is not one of: auto, open3d, matplotlib")
+        raise InvalidInput(f"backend={backend!r} is not one of: auto, open3d, matplotlib")
     c = None if colors is None else np.asarray(colors, dtype=np.float64).reshape(-1, 3) / 255.0
     if c is not None and len(c) != len(p):
-        raise ValueError(f"colors must have {len(p)} rows, got {len(c)}")
+        raise InvalidInput(f"colors must have {len(p)} rows, got {len(c)}")
     path = Path(path)
     if backend == "open3d" or (backend == "auto" and _renderer_failed is None and have_open3d()):
         try:

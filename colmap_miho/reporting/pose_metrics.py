@@ -235,12 +235,14 @@ def pose_from_essential(
         return TwoViewPoseResult(success=False, num_matches=n, reason=f"findEssentialMat: {exc}")
     if E is None or E.shape[0] < 3:
         return TwoViewPoseResult(success=False, num_matches=n, reason="no essential matrix")
-    best = None
+    best: tuple[int, np.ndarray, np.ndarray] | None = None
     for k in range(E.shape[0] // 3):
         Ek = E[3 * k: 3 * k + 3]
-        n_in, R, t, _ = cv2.recoverPose(Ek, n1, n2, np.eye(3), 1e9, mask=mask.copy())
+        # cv2's stubs declare the 5-output overload (with triangulated points) first
+        n_in, R, t, _ = cv2.recoverPose(Ek, n1, n2, np.eye(3), 1e9, mask=mask.copy())[:4]
         if best is None or n_in > best[0]:
-            best = (n_in, R, t.reshape(3))
+            best = (int(n_in), R, t.reshape(3))
+    assert best is not None  # E holds at least one 3x3 block
     n_in, R, t = best
     err = pose_error_deg(R, t, R_gt, t_gt, fold=True)
     return TwoViewPoseResult(

@@ -38,9 +38,9 @@ def _leaves(d: dict, prefix: tuple = ()) -> dict[tuple, float]:
     out = {}
     for k, v in d.items():
         if isinstance(v, dict):
-            out.update(_leaves(v, (*prefix, k)))
+            out.update(_leaves(v, prefix + (k,)))
         elif isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool):
-            out[(*prefix, k)] = float(v)
+            out[prefix + (k,)] = float(v)
     return out
 
 

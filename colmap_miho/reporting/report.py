@@ -29,17 +29,19 @@ changes the caller's file (pycolmap migrates the schema of a database it opens).
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
+from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..adapters.hloc import read_pairs_file
+from ..errors import InvalidInput
 from . import pose_metrics as pm
 from .gt_model import CameraPose
+from .model_errors import absolute_errors, gt_pairs, model_pair_errors
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +61,7 @@ def auc_thresholds(thresholds=None) -> tuple[float, ...]:
     given = DEFAULT_AUC_THRESHOLDS_DEG if thresholds is None else tuple(thresholds)
     for t in given:
         if not (isinstance(t, (int, float)) and math.isfinite(t) and t > 0):
-            raise ValueError(f"AUC thresholds must be positive numbers of degrees, got {t!r}")
+            raise InvalidInput(f"AUC thresholds must be positive numbers of degrees, got {t!r}")
     return tuple(sorted({float(t) for t in (*given, *pm.AUC_THRESHOLDS_DEG)}))
 
 
@@ -98,97 +100,6 @@ def pointcloud_figures(rec) -> dict:
     except (ImportError, RuntimeError, ValueError) as exc:
         log.info("point-cloud figures skipped: %s", exc)
         return {}
-
-
-# --------------------------------------------------------------------------- pose accuracy
-def gt_pairs(gt: dict[str, CameraPose]) -> list[tuple[str, str]]:
-    """All pairs of GT image names, (name1 < name2), sorted."""
-    return list(itertools.combinations(sorted(gt), 2))
-
-
-def model_pair_errors(
-    est: dict[str, CameraPose], gt: dict[str, CameraPose], pairs: list[tuple[str, str]] | None = None
-) -> dict[tuple[str, str], float]:
-    """Relative-pose error (degrees) of each GT pair from the reconstructed poses.
-
-    Args:
-        est: reconstructed poses by image name (registered images only).
-        gt: GT poses by image name.
-        pairs: pairs to evaluate (default: all GT pairs).
-
-    Returns:
-        ``{(name1, name2): error}``; ``inf`` when an image of the pair is not registered.
-    """
-    out = {}
-    for a, b in pairs if pairs is not None else gt_pairs(gt):
-        if a not in est or b not in est:
-            out[(a, b)] = math.inf
-            continue
-        R_gt, t_gt = pm.relative_pose(gt[a].R, gt[a].t, gt[b].R, gt[b].t)
-        R_es, t_es = pm.relative_pose(est[a].R, est[a].t, est[b].R, est[b].t)
-        out[(a, b)] = pm.pose_error_deg(R_es, t_es, R_gt, t_gt, fold=False)
-    return out
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity ``dst ~ s R src + t`` minimising the squared error (Umeyama 1991).
-
-    Args:
-        src, dst: (N, 3) corresponding points, N >= 3 not collinear.
-
-    Returns:
-        ``(s, R (3, 3), t (3,))``.
-    """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
-        raise ValueError(f"src and dst must be the same (N>=3, 3) shape, got {src.shape} and {dst.shape}")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / len(src)
-    U, D, Vt = np.linalg.svd(cov)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    var_s = (xs**2).sum() / len(src)
-    s = float(np.trace(np.diag(D) @ S) / var_s) if var_s > 0 else 1.0
-    t = mu_d - s * R @ mu_s
-    return s, R, t
-
-
-def absolute_errors(est: dict[str, CameraPose], gt: dict[str, CameraPose]) -> dict:
-    """Rotation (deg) and camera-centre errors (GT units) after aligning centres with Umeyama.
-
-    Returns a dict with ``num_aligned``, ``scale`` and median/mean/max of both errors, plus
-    ``center_error_rel`` = median centre error / median distance of the GT centres to their
-    centroid (unit-free). Fewer than 3 common images gives ``num_aligned`` and NaNs.
-    """
-    names = sorted(set(est) & set(gt))
-    nan = float("nan")
-    empty = {"num_aligned": len(names), "scale": nan, "rotation_error_deg": {"median": nan, "mean": nan, "max": nan},
-             "center_error": {"median": nan, "mean": nan, "max": nan}, "center_error_rel": nan}
-    if len(names) < 3:
-        return empty
-    c_est = np.array([est[n].center for n in names])
-    c_gt = np.array([gt[n].center for n in names])
-    try:
-        s, R, t = umeyama(c_est, c_gt)
-    except np.linalg.LinAlgError:
-        return empty
-    c_al = (s * (R @ c_est.T)).T + t
-    cerr = np.linalg.norm(c_al - c_gt, axis=1)
-    # world-to-camera rotation in the GT frame: R_est R^T
-    rerr = np.array([pm.rotation_error_deg(est[n].R @ R.T, gt[n].R) for n in names])
-    spread = float(np.median(np.linalg.norm(c_gt - c_gt.mean(0), axis=1)))
-
-    def stats(x):
-        return {"median": float(np.median(x)), "mean": float(np.mean(x)), "max": float(np.max(x))}
-
-    return {
-        "num_aligned": len(names), "scale": s, "rotation_error_deg": stats(rerr), "center_error": stats(cerr),
-        "center_error_rel": float(np.median(cerr) / spread) if spread > 0 else nan,
-    }
 
 
 # --------------------------------------------------------------------------- database matches
@@ -273,7 +184,8 @@ def database_keypoint_accuracy(inliers: DatabaseInliers, gt: dict[str, CameraPos
 
     if not set(inliers.keypoints) & set(gt):
         log.warning("no database image is in the GT (names differ?): keypoint accuracy is empty")
-    return keypoint_accuracy(gt, inliers.keypoints, inliers.matches, **thresholds).to_dict()
+    cameras: dict[Hashable, object] = {name: pose for name, pose in gt.items()}
+    return keypoint_accuracy(cameras, inliers.keypoints, inliers.matches, **thresholds).to_dict()
 
 
 def two_view_pair_errors(
@@ -369,11 +281,11 @@ def build_report(
     from .gt_model import load_gt_poses, load_reconstruction, poses_from_reconstruction
 
     if reconstruction is None and model is None and (database is None or gt is None):
-        raise ValueError("give model or reconstruction, or database and gt")
+        raise InvalidInput("give model or reconstruction, or database and gt")
     thresholds = auc_thresholds(thresholds)
-    rec = None
-    if reconstruction is not None or model is not None:
-        rec = reconstruction if reconstruction is not None else load_reconstruction(model)
+    rec = reconstruction
+    if rec is None and model is not None:
+        rec = load_reconstruction(model)
     report: dict = {"model": str(model) if model is not None else None}
     if rec is not None:
         report["reconstruction"] = reconstruction_stats(rec)
@@ -407,7 +319,7 @@ def build_report(
     else:
         model_err = {}
         report["gt"] = {"path": str(gt), "num_images": len(gt_poses)}
-    if database is not None:
+    if inliers is not None and db_matches is not None:  # a database was given
         if pairs is None:
             eval_pairs, src = default_eval_pairs(gt, gt_poses)
         elif isinstance(pairs, (str, Path)):
@@ -431,88 +343,6 @@ def build_report(
         for (a, b), r in sorted(rows.items())
     ]
     return report
-
-
-# --------------------------------------------------------------------------- text output
-def _pct(x) -> str:
-    return "  -  " if x is None or (isinstance(x, float) and math.isnan(x)) else f"{100 * x:5.1f}"
-
-
-def _px(x) -> str:
-    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.3f}"
-
-
-def _auc_threshold(key: str) -> float | None:
-    """The threshold of an ``aucX`` key, or None for any other key."""
-    if not key.startswith("auc"):
-        return None
-    try:
-        return float(key[3:])
-    except ValueError:
-        return None
-
-
-def format_keypoint_accuracy(ka: dict) -> list[str]:
-    """Text lines of a ``keypoint_accuracy`` section (see :mod:`.keypoint_accuracy`)."""
-    share = ka.get("epipolar_share_above")
-    wrong = ka.get("wrong_track_share")
-    return [
-        f"keypoint accuracy under GT geometry ({ka['num_matches']} inlier matches, "
-        f"{ka['num_tracks']} tracks seen by >= {ka['min_track_views']} GT images)",
-        f"  epipolar distance median {_px(ka.get('epipolar_median_px'))} px, "
-        f"{_pct(share).strip()}% above {ka['epipolar_threshold_px']:g} px",
-        f"  GT track residual (tracks <= {ka['track_threshold_px']:g} px: {ka['num_measured_tracks']} tracks, "
-        f"{ka['num_measured_observations']} observations): median {_px(ka.get('residual_median_px'))}, "
-        f"mean {_px(ka.get('residual_mean_px'))}, p90 {_px(ka.get('residual_p90_px'))} px",
-        f"  wrong tracks (> {ka['track_threshold_px']:g} px): {ka['num_wrong_tracks']} "
-        f"({_pct(wrong).strip()}%); conflicting (two keypoints of one image): {ka['num_conflicting_tracks']}",
-    ]
-
-
-def format_report(report: dict) -> str:
-    """A readable multi-line table of a report dict (AUCs in percent)."""
-    lines = []
-    r = report.get("reconstruction")
-    if r:
-        lines += [
-            f"reconstruction  {r['num_reg_images']}/{r['num_images']} images registered, "
-            f"{r['num_points3D']} points, {r['num_observations']} observations",
-            f"                mean track length {r['mean_track_length']:.2f}, "
-            + (f"mean observations per image {r['mean_observations_per_image']:.1f}, "
-               if "mean_observations_per_image" in r else "")
-            + f"mean reprojection error {r['mean_reprojection_error']:.3f} px",
-        ]
-    pc = report.get("pointcloud") or {}
-    if pc.get("num_points"):
-        lines.append(f"                sparse cloud: {100 * pc['outlier_share']:.1f}% statistical outliers, "
-                     f"median spacing {pc['spacing_median']:.3g} model units")
-    if any(k in report for k in ("model_pose_auc", "two_view_pose_auc_E", "two_view_pose_auc_F")):
-        if lines:
-            lines.append("")
-        keys = [("model (all GT pairs)", "model_pose_auc"), ("two-view E (db matches)", "two_view_pose_auc_E"),
-                ("two-view F (db, MAGSAC)", "two_view_pose_auc_F")]
-        aucs = sorted({k for _, key in keys for k in report.get(key, {}) if _auc_threshold(k) is not None},
-                      key=_auc_threshold)
-        lines.append(f"{'pose AUC (%)':<26}" + "".join(f"{'@' + k[3:]:>7}" for k in aucs)
-                     + f"{'mAA':>7}{'pairs':>7}{'failed':>7}")
-        for label, key in keys:
-            if key in report:
-                a = report[key]
-                lines.append(f"{label:<26}" + "".join(f"{_pct(a.get(k)):>7}" for k in aucs)
-                             + f"{_pct(a['maa']):>7}{a['num_pairs']:>7}{a['num_failed']:>7}")
-        ab = report.get("absolute", {})
-        if ab.get("num_aligned", 0) >= 3:
-            lines.append("")
-            lines.append(
-                f"after similarity alignment ({ab['num_aligned']} images): rotation error median "
-                f"{ab['rotation_error_deg']['median']:.3f} deg (max {ab['rotation_error_deg']['max']:.3f}), "
-                f"centre error median {ab['center_error']['median']:.4g} GT units "
-                f"({100 * ab['center_error_rel']:.2f}% of the camera spread)"
-            )
-    if report.get("keypoint_accuracy"):
-        lines.append("")
-        lines += format_keypoint_accuracy(report["keypoint_accuracy"])
-    return "\n".join(lines)
 
 
 def json_safe(obj):

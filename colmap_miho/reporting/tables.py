@@ -40,10 +40,10 @@ _AUC_SECTIONS = (("model pose", "model_pose_auc"), ("two-view E", "two_view_pose
 
 
 def _auc_rows(section: str, label: str, reports: tuple[dict, ...]) -> list[tuple]:
-    from .report import _auc_threshold
+    from .report_text import auc_order, auc_threshold_of
 
-    keys = sorted({k for rep in reports for k in (rep.get(section) or {}) if _auc_threshold(k) is not None},
-                  key=_auc_threshold)
+    keys = sorted({k for rep in reports for k in (rep.get(section) or {}) if auc_threshold_of(k) is not None},
+                  key=auc_order)
     rows = [(f"{label} AUC@{k[3:]} (%)", (section, k), "%") for k in keys]
     if section == "model_pose_auc":
         rows.append(("model pose mAA (%)", (section, "maa"), "%"))

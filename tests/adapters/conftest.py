@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
+from miho_bench.synthetic import make_synthetic_scene
 
 
 @pytest.fixture(scope="module")

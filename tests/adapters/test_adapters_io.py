@@ -7,7 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from colmap_miho.adapters.database import HALF_PIXEL, ColmapDatabase
+from colmap_miho.adapters.conventions import HALF_PIXEL
+from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.adapters.hloc import read_pairs_file
 from colmap_miho.adapters.images import image_size, read_gray_float, read_gray_uint8, read_image
 

@@ -9,16 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from colmap_miho.adapters.database import (
-    HALF_PIXEL,
-    ColmapDatabase,
-    colmap_to_pixel_centre,
-    pixel_centre_to_colmap,
-    validate_database,
-)
+from colmap_miho.adapters.conventions import HALF_PIXEL, colmap_to_pixel_centre, pixel_centre_to_colmap
+from colmap_miho.adapters.database import ColmapDatabase, validate_database
 from colmap_miho.adapters.images import ImageLoader, read_gray_float
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.errors import DatabaseError
+from miho_bench.synthetic import make_synthetic_scene
 
 # The synthetic scene's keypoint noise is Gaussian with this sigma per axis; the median 2D
 # error of Gaussian noise is sigma * sqrt(2 ln 2) ~ 1.18 sigma (measured 1.11 on seed 0).

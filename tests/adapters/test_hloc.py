@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from colmap_miho.adapters import hloc
-from colmap_miho.adapters.database import image_pair
+from colmap_miho.adapters.conventions import image_pair
 from colmap_miho.adapters.exchange import export_hloc, import_hloc
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
+from miho_bench.synthetic import make_synthetic_scene
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -329,7 +329,7 @@ def test_import_bad_options(tiny, capsys):
 def test_refine_then_export_round_trip(scene, h5files, tmp_path):
     """hloc files -> database -> refine -> export: the files carry the refined database exactly."""
     try:
-        from colmap_miho.pipeline.refine import refine_database
+        from colmap_miho.pipeline.run import refine_database
     except ImportError as exc:  # the refine stage is built by another helper
         pytest.skip(f"refine not available: {exc}")
     db = tmp_path / "in.db"

@@ -73,7 +73,7 @@ def test_binary_gt_inside_the_output_is_refused(db_copy, scene, tmp_path, capfd)
 
 def test_job_runners_check_their_own_paths(db_copy, scene, tmp_path):
     """The Python API refuses the same overlap (no CLI in front of it)."""
-    from colmap_miho.reporting.compare import compare_databases, run_from_images
+    from colmap_miho.pipeline.jobs import compare_databases, run_from_images
 
     gt = tmp_path / "w" / "refined" / "model"
     gt.mkdir(parents=True)

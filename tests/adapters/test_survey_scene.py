@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from colmap_miho.adapters.database import ColmapDatabase
-from colmap_miho.adapters.synthetic import make_survey_scene, survey_layout, survey_pairs
+from miho_bench.synthetic import make_survey_scene, survey_layout, survey_pairs
 
 
 def test_survey_tracks_are_short_and_match_the_overlap():

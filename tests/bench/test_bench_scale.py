@@ -25,7 +25,7 @@ from bench_scale import (  # noqa: E402
 )
 
 from colmap_miho.adapters.database import ColmapDatabase  # noqa: E402
-from colmap_miho.adapters.synthetic import make_survey_scene  # noqa: E402
+from miho_bench.synthetic import make_survey_scene  # noqa: E402
 
 HOLD = "import time, numpy as np; a = np.ones({mb} * 2**20 // 8); time.sleep({s})"
 

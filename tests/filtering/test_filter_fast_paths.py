@@ -18,15 +18,13 @@ from colmap_miho.filtering.miho import (
     build_problem,
     choose_rotation,
 )
-from colmap_miho.filtering.ransac import (
-    Hypotheses,
+from colmap_miho.filtering.problem import Hypotheses, Problem
+from colmap_miho.filtering.sampling import apart_sets, spread_ok
+from colmap_miho.filtering.scoring import (
     NumpyScoring,
-    Problem,
-    _apart_sets,
     error_sq,
     hypotheses_from_samples,
     inlier_masks,
-    spread_ok,
 )
 
 
@@ -71,7 +69,7 @@ def test_apart_and_spread_test_match_the_reductions():
     rng = np.random.default_rng(0)
     pts = rng.uniform(0, 100, (500, 4, 3, 2))
     d = pts[:, 0] - pts[:, 1]
-    np.testing.assert_array_equal(_apart_sets(np.moveaxis(d[..., 0], -1, 0).copy(),
+    np.testing.assert_array_equal(apart_sets(np.moveaxis(d[..., 0], -1, 0).copy(),
                                               np.moveaxis(d[..., 1], -1, 0).copy(), 30.0**2),
                                   np.all((d * d).sum(-1) >= 30.0**2, axis=-1))
     sc = make_scene(rng)

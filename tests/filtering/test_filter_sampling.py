@@ -1,4 +1,4 @@
-"""Issue 13: local samples that pass the spread test, iterations counted on valid samples,
+"""Local samples that pass the spread test, iterations counted on valid samples,
 MiHo's tolerance (half-match vs full-match thresholds) and the rotation fix's margin."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from planes import make_scene
 from colmap_miho import filter_matches
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem, choose_rotation
-from colmap_miho.filtering.ransac import _Sampler, ransac_round, spread_ok
+from colmap_miho.filtering.ransac import ransac_round
+from colmap_miho.filtering.sampling import Sampler, spread_ok
 
 
 def _dense_plane(rng, n=400, step=6.0):
@@ -31,7 +32,7 @@ def test_local_samples_pass_the_spread_test(miho):
     problem = build_problem(x1, x2, miho=miho)
     cfg = FilterConfig(local_fraction=1.0)
     pool = np.arange(len(x1))
-    sampler = _Sampler(problem, pool, cfg)
+    sampler = Sampler(problem, pool, cfg)
     sample = sampler.draw(np.random.default_rng(1), 2000)
     ok = spread_ok(problem, sample, cfg.t_l)
     # The 8 nearest matches in (x1, x2) fail the test on this grid; 88% of the drawn samples

@@ -20,7 +20,7 @@ from colmap_miho import filter_matches
 from colmap_miho.enums import Device
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem
-from colmap_miho.filtering.ransac import NumpyScoring, hypotheses_from_samples
+from colmap_miho.filtering.scoring import NumpyScoring, hypotheses_from_samples
 from colmap_miho.filtering.torch_scoring import TorchScoring, scoring_for_device
 
 torch = pytest.importorskip("torch")

@@ -10,13 +10,13 @@ import pytest
 from helpers.db_contents import assert_same_database, database_rows
 
 from colmap_miho.adapters.database import PairRecord
-from colmap_miho.adapters.synthetic import make_synthetic_scene
-from colmap_miho.pipeline import filter_stage
-from colmap_miho.pipeline.config import PipelineConfig
+from colmap_miho.pipeline import filter as filter_stage
 from colmap_miho.pipeline.executor import Runner
-from colmap_miho.pipeline.filter_stage import chunk_matches, plan_chunks
-from colmap_miho.pipeline.refine import refine_database
+from colmap_miho.pipeline.filter import chunk_matches, plan_chunks
+from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline_config import PipelineConfig
 from colmap_miho.recipe import load_recipe
+from miho_bench.synthetic import make_synthetic_scene
 
 
 def _pairs(*counts):

@@ -96,3 +96,14 @@ def test_a_failed_pool_start_is_raised_by_starting():
     with pytest.raises(OSError, match="cannot start"):
         while starting() and time.monotonic() < deadline:
             time.sleep(0.01)
+
+
+def test_dask_without_the_extra_names_it(monkeypatch):
+    """``--dask`` where Dask's ``distributed`` is not installed: one line naming the extra."""
+    import sys
+
+    from colmap_miho.extras import MissingExtraError
+
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
+    with pytest.raises(MissingExtraError, match=r"pip install 'colmap-miho\[dask\]'"), open_runner(2, LOCAL):
+        pass

@@ -11,11 +11,11 @@ import pytest
 from helpers.small_budget import two_images
 
 from colmap_miho.adapters.database import ColmapDatabase
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
-from colmap_miho.pipeline.config import PipelineConfig
-from colmap_miho.pipeline.refine import RefineSummary, refine_database
+from colmap_miho.pipeline import RefineSummary, refine_database
+from colmap_miho.pipeline_config import PipelineConfig
 from colmap_miho.recipe import load_recipe
+from miho_bench.synthetic import make_synthetic_scene
 
 # Measured on the 4-image, 120-point scene (seed 11, 20% planted outliers in the verified
 # matches, 1 px keypoint noise): MOP+MiHo removes 85-90% of the planted outliers and keeps
@@ -285,7 +285,7 @@ def test_missing_image_is_filtered_not_refined(small_scene, tmp_path, capsys):
 
 def test_grey_colour_and_different_sizes(small_scene, tmp_path, capsys):
     """Grey and colour files are both used; an image of another size than its camera is
-    skipped (its keypoints do not belong to these pixels: issue 14), and named."""
+    skipped (its keypoints do not belong to these pixels), and named."""
     images = _copy_scene_images(small_scene, tmp_path / "imgs")
     names = sorted(p.name for p in images.iterdir())
     grey = cv2.imread(str(images / names[0]), cv2.IMREAD_GRAYSCALE)
@@ -302,14 +302,14 @@ def test_images_decoded_at_most_three_times_when_the_budget_holds_them(small_sce
                                                                        monkeypatch):
     """The read stage's check keeps the decoded images in the cache: an in-process walk
     decodes none again, and each of two workers decodes an image at most once."""
-    from colmap_miho.pipeline import stages
+    from colmap_miho.pipeline import refine as refine_stage
 
     s = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "o.db", workers=1,
                         device="cpu")
     assert s.keypoints_moved > 0 and s.refine_stats["image_decodes"] == 0
     assert s.image_decodes == s.num_images and s.image_decodes_max == 1
-    monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)  # several groups, 2 workers
-    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", 10)  # several groups, 2 workers
+    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
     two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "two.db",
                           workers=2, device="cpu")
     assert two.refine_stats["workers"] == 2 and two.refine_groups >= 2
@@ -319,12 +319,13 @@ def test_images_decoded_at_most_three_times_when_the_budget_holds_them(small_sce
 
 def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypatch):
     """Filtering pairs and refining whole tracks in 2 processes changes nothing."""
-    from colmap_miho.pipeline import filter_stage, stages
+    from colmap_miho.pipeline import filter as filter_stage
+    from colmap_miho.pipeline import refine as refine_stage
 
     monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
     monkeypatch.setattr(filter_stage, "MIN_MATCHES_PER_FILTER_WORKER", 0)
-    monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", 10)
-    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
     monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # several track groups
     # the CPU worker pool is what is tested (on a CUDA machine "auto" would use one GPU worker)
     one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db",

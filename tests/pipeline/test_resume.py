@@ -14,11 +14,11 @@ from helpers import HELPERS, REPO
 from helpers.db_contents import assert_same_database
 from helpers.small_budget import SMALL_WORKER_MATCHES, two_images
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
-from colmap_miho.pipeline import stages
-from colmap_miho.pipeline.config import PipelineConfig
+from colmap_miho.pipeline import refine as refine_stage
 from colmap_miho.pipeline.store import store_folder
+from colmap_miho.pipeline_config import PipelineConfig
+from miho_bench.synthetic import make_synthetic_scene
 
 #: Seconds the killed run may take (imports, copy, a few pairs).
 KILLED_RUN_TIMEOUT_S = 180
@@ -97,8 +97,8 @@ def test_run_killed_while_refining_resumes_its_groups(scene, reference, tmp_path
     _killed_run(scene, out, "group", 1)
     assert len(_stored(out, "filter")) == 6 and _stored(out, "group") == ["group-000000.npz"]
     monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # the killed run's groups
-    monkeypatch.setattr(stages, "MIN_MATCHES_PER_REFINE_WORKER", SMALL_WORKER_MATCHES)
-    monkeypatch.setattr(stages, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", SMALL_WORKER_MATCHES)
+    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
     js = tmp_path / "s.json"
     assert main(_args(scene, out, "--resume", "--json", str(js))) == 0
     summary = json.loads(js.read_text())

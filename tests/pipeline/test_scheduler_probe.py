@@ -69,8 +69,8 @@ def test_a_talking_service_is_not_a_scheduler():
 
 
 def test_refine_on_a_mute_service_is_one_line(mute_server, tmp_path, monkeypatch, capsys):
-    from colmap_miho.adapters.synthetic import make_synthetic_scene
     from colmap_miho.cli import main
+    from miho_bench.synthetic import make_synthetic_scene
 
     scene = make_synthetic_scene(tmp_path / "s", num_images=3, num_points=40, render_images=False, seed=2)
     monkeypatch.setattr(scheduler_probe, "HANDSHAKE_TIMEOUT_S", 1.0)

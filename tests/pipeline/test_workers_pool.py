@@ -13,10 +13,10 @@ import sys
 import pytest
 from helpers.db_contents import database_rows
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.errors import RunFailed
 from colmap_miho.pipeline import workers
-from colmap_miho.pipeline.refine import refine_database
+from colmap_miho.pipeline.run import refine_database
+from miho_bench.synthetic import make_synthetic_scene
 
 pytestmark = pytest.mark.skipif("forkserver" not in multiprocessing.get_all_start_methods(),
                                 reason="no forkserver on this platform")
@@ -57,13 +57,14 @@ def test_a_run_started_while_a_worker_imports_the_main_script_is_refused(monkeyp
 
 
 UNGUARDED = """
-from colmap_miho.pipeline import filter_stage, stages
-from colmap_miho.pipeline.refine import refine_database
+from colmap_miho.pipeline import filter as filter_stage
+from colmap_miho.pipeline import refine as refine_stage
+from colmap_miho.pipeline.run import refine_database
 
 filter_stage.MIN_PAIRS_PER_WORKER = 1  # both stages use the workers even for this scene
 filter_stage.MIN_MATCHES_PER_FILTER_WORKER = 0
-stages.MIN_MATCHES_PER_REFINE_WORKER = 10
-stages.MIN_MATCHES_TO_START_WORKERS = 0
+refine_stage.MIN_MATCHES_PER_REFINE_WORKER = 10
+refine_stage.MIN_MATCHES_TO_START_WORKERS = 0
 refine_database({db!r}, {images!r}, {out!r}, workers=2, device="cpu", dask={dask!r})
 """
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from colmap_miho.enums import CheckRule, Device, Perturbations, Rectification
 from colmap_miho.refinement.config import NCCConfig
 from colmap_miho.refinement.ncc import refine_pair
 from colmap_miho.refinement.perturbations import perturbation_matrices
@@ -56,9 +57,21 @@ def test_config_validation_names_the_field():
         ({"subpixel_iterations": -1}, "subpixel_iterations"),
         ({"min_template_std": -1.0}, "min_template_std"),
         ({"move": "3"}, "move"),
+        ({"rectification": "global"}, "rectification"),
+        ({"check_rule": "both"}, "check_rule"),
+        ({"device": "tpu"}, "device"),
     ]:
         with pytest.raises(ValueError, match=field):
             NCCConfig(**kwargs)
+
+
+def test_closed_choices_parse_strings_into_enums():
+    """Recipes and ``--set`` give strings; the config holds the enum members (equal to them)."""
+    cfg = NCCConfig(perturbations="Paper", rectification="local", check_rule="ncc", device="cpu")
+    assert cfg.perturbations is Perturbations.PAPER and cfg.perturbations == "paper"
+    assert cfg.rectification is Rectification.LOCAL
+    assert cfg.check_rule is CheckRule.NCC
+    assert cfg.device is Device.CPU
 
 
 def test_perturbation_sets():

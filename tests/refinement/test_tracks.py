@@ -344,8 +344,8 @@ def test_synthetic_scene_refinement(tmp_path):
     """
     pycolmap = pytest.importorskip("pycolmap")
     cv2 = pytest.importorskip("cv2")
-    from colmap_miho.adapters.database import colmap_to_pixel_centre, image_pair
-    from colmap_miho.adapters.synthetic import make_synthetic_scene
+    from colmap_miho.adapters.conventions import colmap_to_pixel_centre, image_pair
+    from miho_bench.synthetic import make_synthetic_scene
 
     scene = make_synthetic_scene(tmp_path / "scene", num_images=6, num_points=50,
                                  outlier_ratio=0.0, noise_px=1.0, seed=0, render_images=False)

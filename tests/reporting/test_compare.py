@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.reporting.compare import comparison_markdown, match_changes
+from miho_bench.synthetic import make_synthetic_scene
 
 # Measured on this synthetic scene (0.5 px noise, 20% planted outliers in the verified
 # matches): model pose AUC@5 ~0.99 on both sides.

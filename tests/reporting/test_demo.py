@@ -59,13 +59,6 @@ def test_demo_defaults_and_bad_args(tmp_path):
         make_demo_scene(tmp_path, num_images=2)
 
 
-@pytest.fixture(scope="module")
-def demo_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("demo")
-    rc = main(["demo", "--quick", "--output", str(out), "-q", "--workers", "1"])
-    return rc, out
-
-
 @pytest.mark.slow
 def test_demo_quick_end_to_end(demo_run):
     rc, out = demo_run
@@ -83,6 +76,7 @@ def test_demo_quick_end_to_end(demo_run):
     # the keypoint-accuracy rows (GT track residuals, epipolar distance) are in the demo's table
     assert "| GT track residual median (px) |" in (out / "compare.md").read_text()
     assert cmp["baseline"]["keypoint_accuracy"]["num_measured_tracks"] > 0
+    assert (out / "report.html").stat().st_size > 1_000_000  # plotly's bundle is inside
 
 
 @pytest.mark.slow

@@ -184,7 +184,7 @@ SYN_MEDIAN_RANGE = (0.38, 0.58)
 
 @pytest.fixture(scope="module")
 def synthetic(tmp_path_factory):
-    from colmap_miho.adapters.synthetic import make_synthetic_scene
+    from miho_bench.synthetic import make_synthetic_scene
 
     root = tmp_path_factory.mktemp("ka")
     out = {}

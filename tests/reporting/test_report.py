@@ -7,11 +7,12 @@ import json
 import numpy as np
 import pytest
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.reporting import gt_model as gm
+from colmap_miho.reporting import model_errors
 from colmap_miho.reporting import report as rp
 from colmap_miho.sfm import run_mapping
+from miho_bench.synthetic import make_synthetic_scene
 
 # Measured on this scene (0.5 px noise, 10% outliers): model pose errors < 0.5 deg, AUC@5 ~0.93.
 MODEL_AUC5_MIN = 0.85
@@ -79,7 +80,7 @@ def test_unregistered_image_counts_as_failure():
           for i in range(4)}
     est = dict(gt)
     est.pop("3.png")
-    errs = rp.model_pair_errors(est, gt)
+    errs = model_errors.model_pair_errors(est, gt)
     assert len(errs) == 6 and sum(np.isinf(list(errs.values()))) == 3
     # identical poses: arccos of 1 - 1 ulp is already 1.2e-6 degrees
     assert max(e for e in errs.values() if np.isfinite(e)) < 1e-4
@@ -90,7 +91,7 @@ def test_umeyama_recovers_similarity():
     src = rng.normal(size=(10, 3))
     R = gm.project_to_so3(rng.normal(size=(3, 3)))
     dst = 2.5 * src @ R.T + np.array([1.0, -2.0, 3.0])
-    s, R_est, t = rp.umeyama(src, dst)
+    s, R_est, t = model_errors.umeyama(src, dst)
     assert s == pytest.approx(2.5) and np.allclose(R_est, R) and np.allclose(t, [1, -2, 3])
 
 

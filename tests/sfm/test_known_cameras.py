@@ -12,7 +12,6 @@ import shutil
 import numpy as np
 import pytest
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.reporting import pose_metrics as pm
 from colmap_miho.reporting.report import (
@@ -27,6 +26,7 @@ from colmap_miho.sfm import (
     parse_camera_params,
     run_mapping,
 )
+from miho_bench.synthetic import make_synthetic_scene
 
 WIDTH, HEIGHT = 640, 480
 FOCAL = 1.2 * WIDTH  # make_synthetic_scene's default

@@ -6,9 +6,9 @@ import hashlib
 
 import pytest
 
-from colmap_miho.adapters.synthetic import make_synthetic_scene
 from colmap_miho.cli import main
 from colmap_miho.sfm import MappingConfig, run_mapping
+from miho_bench.synthetic import make_synthetic_scene
 
 
 def sha(path):

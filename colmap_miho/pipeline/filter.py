@@ -23,10 +23,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..adapters.database import ColmapDatabase, PairRecord
-from ..enums import MatchSource
-from ..filtering.api import FilterResult, filter_matches
+from ..enums import MatchSource, RunnerKind
+from ..filtering.api import filter_matches
 from ..filtering.config import FilterConfig
 from .read import check_match_indices
+from .records import PairOutcome
 from .workers import pair_seed
 
 if TYPE_CHECKING:
@@ -39,10 +40,8 @@ if TYPE_CHECKING:
 MIN_PAIRS_PER_WORKER = 4
 
 #: Below this many matches to filter per parallel slot, filtering runs in this process too:
-#: the filter takes about 0.1-0.2 ms per match, and workers need the forkserver's imports
-#: (about 2 s, overlapping the parent's setup) and their inputs pickled. Measured on
-#: Middlebury temple (33 pairs, 7.4k matches, 2 cores): the filter stage took 0.7-1.0 s in 2
-#: workers and 1.0 s in this process, the whole run 4.3-4.7 s either way.
+#: workers need the forkserver's imports (overlapping the parent's setup) and their inputs
+#: pickled, which a small amount of filtering does not pay back.
 MIN_MATCHES_PER_FILTER_WORKER = 10_000
 
 #: Bytes this process holds per match of a chunk in flight: positions (2 x 2 float64), indices
@@ -55,7 +54,7 @@ BYTES_PER_MATCH_IN_FLIGHT = 160
 FILTER_BUDGET_SHARE = 0.25
 
 #: Most matches in one chunk whatever the budget: a chunk is the unit a resumed run skips
-#: (measured 0.05-0.3 s per pair of ~1000 matches: at most about a minute of one core's work).
+#: (about a minute of one core's work at most).
 MAX_CHUNK_MATCHES = 200_000
 
 #: A parallel run cuts its pairs into at least this many chunks per slot (load balance).
@@ -63,34 +62,6 @@ CHUNKS_PER_SLOT = 4
 
 #: Chunks read ahead per parallel slot (one running, one queued).
 IN_FLIGHT_PER_SLOT = 2
-
-
-@dataclass(frozen=True)
-class PairOutcome:
-    """What the later stages need of one pair's :class:`~colmap_miho.filtering.api.FilterResult`
-    (``FilterResult``-like for :func:`~colmap_miho.refinement.track_plan.pair_rows`).
-
-    Attributes:
-        inliers: bool ``(M,)``, the matches kept (rows 1:1 with the pair's matches).
-        labels: int64 ``(M,)``, each kept match's homography, -1 for discarded ones.
-        patch_homographies: float64 ``(K, 2, 3, 3)``, see ``FilterResult``.
-        success: a plane was found (otherwise the pair is written back unchanged).
-    """
-
-    inliers: np.ndarray
-    labels: np.ndarray
-    patch_homographies: np.ndarray
-    success: bool
-
-    @classmethod
-    def of(cls, r: FilterResult) -> PairOutcome:
-        return cls(inliers=np.asarray(r.inliers, bool), labels=np.asarray(r.labels, np.int64),
-                   patch_homographies=np.asarray(r.patch_homographies, np.float64).reshape(-1, 2, 3, 3),
-                   success=bool(r.success))
-
-
-#: (image_id1, image_id2) -> (matches uint32 ``(M, 2)`` keypoint indices, the pair's outcome)
-FilteredPairs = dict[tuple[int, int], tuple[np.ndarray, PairOutcome]]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -184,7 +155,7 @@ def run_filter(db: ColmapDatabase, pairs: list[PairRecord], keypoints: dict[int,
     todo = [p for p in pairs if (p.image_id1, p.image_id2) not in done]
     resumed = store.filter_counts()
     todo_matches = sum(p.num_matches for p in todo)
-    parallel = runner.parallel and (runner.kind == "dask" or (
+    parallel = runner.parallel and (runner.kind == RunnerKind.DASK or (
         len(todo) >= MIN_PAIRS_PER_WORKER * runner.slots
         and todo_matches >= MIN_MATCHES_PER_FILTER_WORKER * runner.slots))
     slots = runner.slots if parallel else 1
@@ -239,7 +210,7 @@ def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints
         todo = deque(enumerate(chunks))
         # A process pool that is not running yet needs its forkserver's imports (~2 s):
         # meanwhile this process filters chunks itself.
-        starting = runner.start_in_background() if runner.kind == "processes" else (lambda: False)
+        starting = runner.start_in_background() if runner.kind == RunnerKind.PROCESSES else (lambda: False)
         while todo and starting():
             k, chunk = todo.popleft()
             matches, items = read(chunk)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..enums import MatchSource
+from .enums import MatchSource
+from .errors import InvalidInput
 
 #: ``pipeline.memory_budget_mb`` default (MiB) and smallest accepted value.
 DEFAULT_MEMORY_BUDGET_MB = 2048
@@ -26,7 +27,7 @@ class PipelineConfig:
         verify: re-run COLMAP's epipolar verification on the kept matches.
         memory_budget_mb: memory the run may use for its working data, in MiB (default
             2048, at least 256). It bounds the filter's chunks of pairs (the matches read,
-            filtered and held for the run store at once; see :func:`~.filter_stage.chunk_matches`)
+            filtered and held for the run store at once; see :func:`~colmap_miho.pipeline.filter.chunk_matches`)
             and the decoded images the refine stage keeps (:meth:`image_budget_bytes`: half
             of it, shared among the parallel tasks; it sets the images of a track group);
             results do not depend on it. Not bounded by it: the keypoints
@@ -43,9 +44,9 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "source", MatchSource.parse(self.source, "source"))
         if self.min_matches < 4:
-            raise ValueError(f"min_matches must be >= 4, got {self.min_matches}")
+            raise InvalidInput(f"min_matches must be >= 4, got {self.min_matches}")
         if self.memory_budget_mb < MIN_MEMORY_BUDGET_MB:
-            raise ValueError(f"memory_budget_mb must be >= {MIN_MEMORY_BUDGET_MB}, got {self.memory_budget_mb}")
+            raise InvalidInput(f"memory_budget_mb must be >= {MIN_MEMORY_BUDGET_MB}, got {self.memory_budget_mb}")
 
     @property
     def memory_budget_bytes(self) -> int:

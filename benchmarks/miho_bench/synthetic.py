@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .database import ColmapDatabase, colmap_to_pixel_centre
+from colmap_miho.adapters.conventions import colmap_to_pixel_centre
+from colmap_miho.adapters.database import ColmapDatabase
 
 log = logging.getLogger(__name__)
 

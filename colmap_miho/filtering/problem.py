@@ -1,0 +1,95 @@
+"""The data of one RANSAC problem of MOP (paper App. A.3, B): the point sets that a
+hypothesis is fitted to (:class:`Problem`) and a stack of hypotheses (:class:`Hypotheses`).
+
+A problem has one or more *halves* (source, destination) point sets that share the same
+minimal sample. Plain MOP has one half ``(x1 -> x2)``; MiHo has two, ``(x1 -> m)`` and
+``(m -> x2)`` with ``m`` the midpoint (App. B). A match is an inlier of a hypothesis iff, for
+every half, its two-way transfer error is within the threshold and both projections keep the
+quasi-affine sign of the minimal sample (App. A.3), i.e. the error is the max over all halves
+and both directions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .homography import array_module
+
+
+@dataclass(frozen=True)
+class Problem:
+    """Point sets of one filtering problem (all ``(N, 2)`` float64 pixels: numpy arrays, or
+    torch tensors for the device copy of :class:`~colmap_miho.filtering.torch_scoring.TorchScoring`).
+
+    Attributes:
+        src, dst: per half, the source and destination points; a hypothesis holds one
+            homography per half mapping ``src`` to ``dst``.
+        spread: point sets in which the 4 sample points must be at least t_l apart.
+        x1, x2: the two images' points (reflection check, local-sampling features).
+        error_scale: factor applied to every transfer error before the thresholds (1 for
+            MOP; 2 for MiHo with thresholds on the full match, see
+            ``FilterConfig.miho_threshold``).
+    """
+
+    src: tuple[np.ndarray, ...]
+    dst: tuple[np.ndarray, ...]
+    spread: tuple[np.ndarray, ...]
+    x1: np.ndarray
+    x2: np.ndarray
+    error_scale: float = 1.0
+    # Stacked copies (N, halves or sets, 2) so that a batch needs one gather, not a loop.
+    src_all: np.ndarray = field(init=False, repr=False)
+    dst_all: np.ndarray = field(init=False, repr=False)
+    spread_all: np.ndarray = field(init=False, repr=False)
+    # The spread sets by coordinate, (2, sets, N) (numpy only, None for torch): a gather
+    # along the last axis (np.take) costs several times less than one of 2-6 float rows.
+    spread_xy: np.ndarray | None = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        xp = array_module(self.x1)
+        object.__setattr__(self, "src_all", xp.stack(self.src, axis=1))
+        object.__setattr__(self, "dst_all", xp.stack(self.dst, axis=1))
+        object.__setattr__(self, "spread_all", xp.stack(self.spread, axis=1))
+        object.__setattr__(self, "spread_xy", np.ascontiguousarray(
+            self.spread_all.transpose(2, 1, 0)) if xp is np else None)
+
+    @property
+    def num_halves(self) -> int:
+        return len(self.src)
+
+
+@dataclass
+class Hypotheses:
+    """A stack of ``K`` hypotheses: ``H`` and its adjugate ``Hinv`` ``(K, halves, 3, 3)``,
+    quasi-affine reference signs ``sign``/``sign_inv`` ``(K, halves)`` and the minimal
+    samples ``sample`` ``(K, 4)`` (global match indices), numpy arrays."""
+
+    H: np.ndarray
+    Hinv: np.ndarray
+    sign: np.ndarray
+    sign_inv: np.ndarray
+    sample: np.ndarray
+
+    def __len__(self) -> int:
+        return self.H.shape[0]
+
+    def take(self, idx) -> Hypotheses:
+        idx = np.atleast_1d(np.asarray(idx))
+        return Hypotheses(self.H[idx], self.Hinv[idx], self.sign[idx], self.sign_inv[idx],
+                          self.sample[idx])
+
+    @staticmethod
+    def concat(items: list[Hypotheses]) -> Hypotheses:
+        items = [h for h in items if len(h)]
+        if not items:
+            return Hypotheses.empty(1)
+        return Hypotheses(*(np.concatenate([getattr(h, f) for h in items]) for f in
+                            ("H", "Hinv", "sign", "sign_inv", "sample")))
+
+    @staticmethod
+    def empty(halves: int) -> Hypotheses:
+        return Hypotheses(np.zeros((0, halves, 3, 3)), np.zeros((0, halves, 3, 3)),
+                          np.zeros((0, halves)), np.zeros((0, halves)),
+                          np.zeros((0, 4), dtype=np.int64))

@@ -1,0 +1,247 @@
+"""Minimal samples of a RANSAC run (paper App. A.3): draws, the spread test, local candidates.
+
+``FilterConfig.sampling``: ``"uniform"`` is the paper's; ``"local"`` draws a seed match
+uniformly and the other three among its ``local_neighbours`` nearest matches in the joint
+``(x1, x2)`` space (NAPSAC-style) that lie at least t_l from the seed and from each other in
+every spread set, for a ``local_fraction`` of the samples. Plain nearest neighbours are
+mostly closer than t_l to each other, so such samples would mostly fail the spread test.
+The adaptive bound (:func:`required_iters`) uses the all-inlier probability of that mixture
+(for local samples ``w * w_loc^3`` with ``w_loc`` the measured inlier fraction among the
+inliers' neighbours).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..enums import Sampling
+from .config import FilterConfig
+from .homography import triangle_orientations
+from .problem import Problem
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
+_PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))  # the 6 point pairs of a sample
+
+
+def apart_sets(dx: np.ndarray, dy: np.ndarray, t2: float) -> np.ndarray:
+    """``(...)`` bool from the differences' x and y ``(sets, ...)``: the squared distance
+    ``dx * dx + dy * dy`` (the bits a ``sum`` over (x, y) gives) is at least ``t2`` in every
+    set. Written out over the tiny sets axis (numpy reductions over axes of length 2-3 cost
+    far more than the arithmetic); overwrites ``dx`` and ``dy``."""
+    dx *= dx
+    dy *= dy
+    dx += dy
+    ok = dx[0] >= t2
+    for k in range(1, dx.shape[0]):
+        ok &= dx[k] >= t2
+    return ok
+
+
+def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
+    """``(B,)`` bool: the 4 points of each minimal sample ``(B, 4)`` are pairwise at least
+    ``t_l`` pixels apart in every spread set (paper App. A.3)."""
+    assert problem.spread_xy is not None, "sampling runs on the numpy problem"
+    px, py = np.take(problem.spread_xy, sample.T, axis=2)  # (sets, 4, B) each
+    ok = np.ones(len(sample), dtype=bool)
+    for i, j in _PAIRS:
+        ok &= apart_sets(px[:, i] - px[:, j], py[:, i] - py[:, j], t_l**2)
+    return ok
+
+
+def checked_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
+                    ok: np.ndarray | None = None) -> np.ndarray:
+    """The minimal samples ``(B, 4)`` that pass the spread test (unless its result ``ok``
+    ``(B,)`` is given) and, for MOP*, the reflection check (App. D)."""
+    ok = spread_ok(problem, sample, cfg.t_l) if ok is None else ok.copy()
+    if cfg.reflection_check and ok.any():
+        o1 = triangle_orientations(problem.x1[sample])
+        o2 = triangle_orientations(problem.x2[sample])
+        ok &= np.all(o1 * o2 > 0, axis=1)
+    return sample[ok]
+
+
+def required_iters(w: float, w_loc: float, local_fraction: float, p: float) -> float:
+    """Adaptive RANSAC bound: draws needed for confidence ``p`` that one minimal sample is
+    all inliers, with inlier ratio ``w``, ``w_loc`` among the inliers' local neighbours and
+    a ``local_fraction`` of the samples drawn locally (``inf`` when none can be)."""
+    p_all = local_fraction * w * w_loc**3 + (1.0 - local_fraction) * w**4
+    if p_all <= 0:
+        return math.inf
+    if p_all >= 1:
+        return 0.0
+    return math.log(1.0 - p) / math.log1p(-p_all)
+
+
+class LocalCandidates:
+    """Candidate neighbours of local sampling for one filtering problem, shared by its MOP
+    rounds: for each match, its ``4 k`` nearest matches in the joint ``(x1, x2)`` space
+    (``k = local_neighbours``) and whether each lies at least t_l from it in every spread
+    set. Both are independent of the pool, so they are computed once per match."""
+
+    SEARCH = 4
+
+    def __init__(self, problem: Problem, cfg: FilterConfig) -> None:
+        from scipy.spatial import cKDTree
+
+        n = len(problem.x1)
+        assert problem.spread_xy is not None, "local sampling runs on the numpy problem"
+        self._sx, self._sy = problem.spread_xy  # (sets, N) each
+        self._t2 = cfg.t_l**2
+        self.feats = np.concatenate([problem.x1, problem.x2], axis=1)
+        self._tree = cKDTree(self.feats)
+        self._q = max(min(n, self.SEARCH * cfg.local_neighbours + 1) - 1, 0)
+        self._cand = np.full((n, self._q), -1, dtype=np.int64)
+        self._far = np.zeros((n, self._q), dtype=bool)
+        self._known = np.zeros(n, dtype=bool)
+
+    def far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Whether matches ``a`` and ``b`` (broadcast) are >= t_l apart in every spread set."""
+        sx, sy = self._sx, self._sy
+        return apart_sets(np.take(sx, a, axis=1) - np.take(sx, b, axis=1),
+                           np.take(sy, a, axis=1) - np.take(sy, b, axis=1), self._t2)
+
+    def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
+        (nearest first) and whether each is far enough for the spread test. Matches are
+        searched when first asked for (one tree query per call for the missing ones; a
+        match's neighbours do not depend on what it is queried with, and local sampling
+        asks for most matches over a few calls)."""
+        todo = idx[~self._known[idx]]
+        if len(todo):
+            todo = np.unique(todo)
+        if len(todo) and self._q:
+            cand = self._tree.query(self.feats[todo], k=self._q + 1)[1][:, 1:]
+            self._cand[todo] = cand
+            self._far[todo] = self.far(cand, todo[:, None])
+        self._known[todo] = True
+        return self._cand[idx], self._far[idx]
+
+
+class Sampler:
+    """Minimal samples over the pool: uniform, or a ``local_fraction`` of them drawn around
+    a seed match among its ``local_neighbours`` nearest pool matches in ``(x1, x2)`` space.
+
+    Local samples are drawn so that they pass the spread test: a seed's neighbours are the
+    nearest of its :class:`LocalCandidates` that are still in the pool and lie at least t_l
+    from it in every spread set (image 1, image 2 and, for MiHo, the midpoints; where fewer
+    than k of them are left in the pool, the nearest in the pool are searched anew), and the
+    three others are drawn one by one among the neighbours at least t_l from those already
+    drawn. A seed without three such neighbours gives a sample that fails the spread test.
+    Neighbour lists are computed once per pool position, on demand.
+    """
+
+    def __init__(self, problem: Problem, pool: np.ndarray, cfg: FilterConfig,
+                 candidates: LocalCandidates | None = None) -> None:
+        n = len(pool)
+        self.pool = pool
+        self.k = cfg.local_neighbours
+        self.local = cfg.sampling == Sampling.LOCAL and n > cfg.local_neighbours + 1
+        self.fraction = cfg.local_fraction if self.local else 0.0
+        self._cands: LocalCandidates | None = None
+        if self.local:
+            self._cands = candidates if candidates is not None else LocalCandidates(problem, cfg)
+            self._pos = np.full(len(problem.x1), -1, dtype=np.int64)  # global -> pool position
+            self._pos[pool] = np.arange(n)
+        self._pool_tree: cKDTree | None = None
+        self._nb = np.full((n, self.k), -1, dtype=np.int64)  # -1 = no such neighbour
+        # (sets, n) x and y of the spread sets of the pool, for the local draws
+        self._spread_x: np.ndarray | None = None
+        self._spread_y: np.ndarray | None = None
+        if self.local:
+            assert problem.spread_xy is not None, "local sampling runs on the numpy problem"
+            self._spread_x, self._spread_y = np.take(problem.spread_xy, pool, axis=2)
+        self._t2 = cfg.t_l**2
+        self._known = np.zeros(n, dtype=bool)
+
+    def neighbours(self, pos: np.ndarray) -> np.ndarray:
+        """``(len(pos), k)`` pool positions of the nearest pool matches at least t_l from each
+        of the pool positions ``pos`` in every spread set (-1 where there are fewer than k)."""
+        todo = np.unique(pos[~self._known[pos]])
+        if len(todo):
+            assert self._cands is not None, "neighbours are searched with local sampling only"
+            cand, far = self._cands.get(self.pool[todo])
+            cand_pos = np.where(cand >= 0, self._pos[np.maximum(cand, 0)], -1)
+            nb = self._first_k(cand_pos, far & (cand_pos >= 0))
+            # Where earlier rounds removed too many of the candidates, search the pool itself.
+            short = np.flatnonzero((nb < 0).any(axis=1))
+            if len(short):
+                nb[short] = self._first_k(*self._pool_candidates(todo[short]))
+            self._nb[todo] = nb
+            self._known[todo] = True
+        return self._nb[pos]
+
+    def _first_k(self, cand: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """The first k candidates (pool positions, nearest first) where ``ok``, -1 padded."""
+        order = np.argsort(~ok, axis=1, kind="stable")[:, : self.k]
+        nb = np.take_along_axis(cand, order, axis=1)
+        nb[~np.take_along_axis(ok, order, axis=1)] = -1
+        if nb.shape[1] < self.k:
+            nb = np.pad(nb, ((0, 0), (0, self.k - nb.shape[1])), constant_values=-1)
+        return nb
+
+    def _pool_candidates(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest pool matches of pool positions ``pos`` (as pool positions) and whether
+        each is far enough for the spread test, from a k-d tree over the pool."""
+        cands = self._cands
+        assert cands is not None, "neighbours are searched with local sampling only"
+        if self._pool_tree is None:
+            from scipy.spatial import cKDTree
+
+            self._pool_tree = cKDTree(cands.feats[self.pool])
+        q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
+        cand = self._pool_tree.query(cands.feats[self.pool[pos]], k=q)[1][:, 1:]
+        return cand, cands.far(self.pool[cand], self.pool[pos][:, None])
+
+    def local_inlier_fraction(self, mask: np.ndarray | None, count: int) -> float:
+        """Share of the best model's inliers (``mask`` ``(n_pool,)``, ``count`` of them) among
+        the neighbours of (up to 256) of them."""
+        if self._cands is None or mask is None or count <= 0:
+            return 0.0
+        inl = np.flatnonzero(mask)
+        probe = inl[np.linspace(0, len(inl) - 1, min(len(inl), 256)).astype(np.int64)]
+        nb = self.neighbours(probe)
+        valid = nb >= 0
+        if not valid.any():
+            return 0.0
+        return float(mask[nb[valid]].mean())
+
+    def _draw_local(self, rng: np.random.Generator, seeds: np.ndarray) -> np.ndarray:
+        """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart
+        (the seed itself where no such neighbour is left, which fails the spread test)."""
+        assert self._spread_x is not None and self._spread_y is not None, \
+            "local draws need local sampling"
+        nb = self.neighbours(seeds)
+        free = nb >= 0  # (L, k) candidates still allowed
+        safe = np.maximum(nb, 0)
+        # x and y apart, sets first, as apart_sets takes them.
+        px = np.take(self._spread_x, safe, axis=1)  # (sets, L, k)
+        py = np.take(self._spread_y, safe, axis=1)
+        sets = px.shape[0]
+        row_start = np.arange(len(seeds)) * nb.shape[1]  # flat index of each row's first
+        out = np.empty((len(seeds), 3), dtype=np.int64)
+        for j in range(3):
+            key = np.where(free, rng.random(free.shape), -1.0)
+            at = row_start + np.argmax(key, axis=1)  # flat index of each row's pick
+            found = free.reshape(-1).take(at)  # key >= 0 there: a free candidate's key
+            out[:, j] = np.where(found, nb.reshape(-1).take(at), seeds)
+            if j < 2:  # what the last pick leaves free is not used
+                free &= apart_sets(px - px.reshape(sets, -1).take(at, axis=1)[:, :, None],
+                                    py - py.reshape(sets, -1).take(at, axis=1)[:, :, None],
+                                    self._t2)
+        return out
+
+    def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
+        """``(size, 4)`` global match indices, seed match first."""
+        n = len(self.pool)
+        seeds = rng.integers(0, n, size)
+        others = rng.integers(0, n, (size, 3))
+        if self.local:
+            is_local = np.flatnonzero(rng.random(size) < self.fraction)
+            if len(is_local):
+                others[is_local] = self._draw_local(rng, seeds[is_local])
+        return self.pool[np.concatenate([seeds[:, None], others], axis=1)]

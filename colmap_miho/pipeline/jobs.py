@@ -1,0 +1,236 @@
+"""Whole jobs built on :func:`~colmap_miho.pipeline.run.refine_database`: the comparison of a
+database mapped as it is and after refinement, and the job from a folder of images.
+
+:func:`compare_databases` maps the database as it is (baseline) and after refinement with the
+recipe's ``mapping`` config (known cameras: ``camera_model`` / ``camera_params``, or the GT's
+cameras with ``gt_cameras``; ``refine_intrinsics``), ``repeats`` times each, then hands both
+sides to :func:`colmap_miho.reporting.compare.write_comparison`, which evaluates them and writes::
+
+    OUTPUT/
+      baseline/model/  baseline/report.json  [baseline/runs/seed<S>/model/ with repeats]
+      refined/database.db  refined/refine.json  refined/model/  refined/report.json  [refined/runs/...]
+      compare.md  compare.json  plots/...
+
+:func:`run_from_images` extracts SIFT features and matches them exhaustively (pycolmap, CPU)
+into ``OUTPUT/database.db``, then refines, maps and reports, or runs the comparison. The input
+database is never modified (everything reads copies).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from ..adapters.paths import check_distinct, comparison_paths
+from ..enums import Mapper
+from ..errors import InvalidInput, RunFailed
+from ..recipe import Recipe, load_recipe
+from ..reporting.compare import CompareResult, Evaluation, gt_intrinsics, write_comparison
+from ..sfm import MappingConfig
+from .run import refine_database
+from .summary import RefineSummary
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ExtractionOptions", "JobOptions", "compare_databases", "map_repeats", "run_from_images"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class JobOptions:
+    """How a whole job maps, evaluates and runs.
+
+    Attributes:
+        mapper, seed: when given, replace the recipe's ``mapping.mapper`` / ``mapping.seed``
+            (the seed is also the refinement's and the two-view protocols').
+        repeats: mapping runs per side, seeds ``seed, seed + 1, ...``; with more than one the
+            reports get a ``repeats`` section (per-run rows, median, min, max).
+        gt_cameras: write the GT model's intrinsics into the mapped copies (needs ``gt``;
+            combine with ``mapping.refine_intrinsics = "none"`` to keep them).
+        thresholds: pose-AUC thresholds in degrees (None: 0.5/1/2/5/10/20).
+        workers, device: ``refine_database`` options.
+        progress, verbose: bars (one per mapping run) and COLMAP's log on the terminal.
+    """
+
+    mapper: str | None = None
+    seed: int | None = None
+    repeats: int = 1
+    gt_cameras: bool = False
+    thresholds: object = None
+    workers: int | None = None
+    device: str = "auto"
+    progress: bool = False
+    verbose: bool = False
+
+
+@dataclass(frozen=True, kw_only=True)
+class ExtractionOptions:
+    """SIFT extraction of :func:`run_from_images`: the camera is a prior only (the recipe's
+    ``mapping`` config decides what mapping keeps).
+
+    Attributes:
+        camera_mode: "single" (one camera for all images), "per_folder" or "per_image".
+        camera_model, camera_params: COLMAP camera model name and its comma-separated
+            parameters ("" = estimated from the image size).
+        max_features: SIFT features per image.
+    """
+
+    camera_mode: str = "single"
+    camera_model: str = "SIMPLE_RADIAL"
+    camera_params: str = ""
+    max_features: int = 8192
+
+
+def _as_recipe(recipe: Recipe | str | None) -> Recipe:
+    return recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
+
+
+def _mapping_config(recipe: Recipe, opts: JobOptions) -> MappingConfig:
+    """The recipe's ``mapping`` config with the ``mapper`` / ``seed`` overrides applied."""
+    cfg = recipe.mapping
+    if opts.mapper is not None:
+        cfg = replace(cfg, mapper=Mapper.parse(opts.mapper, "mapper"))
+    if opts.seed is not None:
+        cfg = replace(cfg, seed=opts.seed)
+    return cfg
+
+
+def map_repeats(database: Path, image_dir: Path, folder: Path, mapping: MappingConfig, *, repeats: int = 1,
+                intrinsics: dict | None = None, tag: str = "", progress: bool = False,
+                verbose: bool = False) -> list:
+    """Map ``database`` ``repeats`` times with seeds ``mapping.seed + k``.
+
+    Run 0 writes ``folder/model`` (the model the report and plots use), run k >= 1
+    ``folder/runs/seed<S>/model``. Returns the ``MappingResult`` of each run.
+    """
+    from ..sfm import run_mapping
+
+    if repeats < 1:
+        raise InvalidInput(f"repeats must be >= 1, got {repeats}")
+    results = []
+    for k in range(repeats):
+        seed = mapping.seed + k
+        out = folder / "model" if k == 0 else folder / "runs" / f"seed{seed}" / "model"
+        label = f"{tag} run {k + 1}/{repeats}" if repeats > 1 else f"{tag} mapping".strip()
+        log.info("%s: mapping (seed %d)", tag or "mapping", seed)
+        results.append(run_mapping(database, image_dir, out, replace(mapping, seed=seed), intrinsics=intrinsics,
+                                   progress=progress, label=label, verbose=verbose))
+    return results
+
+
+def _refine_into(database: Path, image_dir: Path, folder: Path, recipe: Recipe, opts: JobOptions,
+                 seed: int) -> RefineSummary:
+    """``refine_database`` into ``folder/database.db`` (with ``folder/refine.json``), replacing
+    an earlier job's output there."""
+    return refine_database(database, image_dir, folder / "database.db", recipe=recipe, overwrite=True,
+                           restart=True, workers=opts.workers, device=opts.device, seed=seed,
+                           progress=opts.progress, json_path=folder / "refine.json")
+
+
+def compare_databases(database: str | Path, image_dir: str | Path, output: str | Path, *,
+                      recipe: Recipe | str | None = None, gt: str | Path | None = None, pairs: object = None,
+                      options: JobOptions | None = None) -> CompareResult:
+    """Map and evaluate ``database`` as it is and after ``refine_database``; write tables/plots.
+
+    Args:
+        database: COLMAP database (never modified).
+        image_dir: its image folder.
+        output: comparison folder (created; files in it are replaced).
+        recipe: Recipe, recipe name or TOML path: ``refine_database``'s stages and the
+            ``mapping`` config of both sides (mapper, seed, threads, cameras, refine_intrinsics).
+        gt: GT COLMAP model folder (or dataset folder with ``gt_model/``); without it only
+            reconstruction statistics are compared.
+        pairs: pairs for the two-view AUCs (list or file); default: the dataset's
+            ``pairs_with_gt.txt`` if present, else all GT pairs. Both sides use the same pairs.
+        options: :class:`JobOptions` (mapper, seed, repeats, GT cameras, thresholds, workers,
+            device, progress, verbose).
+
+    Returns:
+        :class:`~colmap_miho.reporting.compare.CompareResult`.
+    """
+    opts = options or JobOptions()
+    rec = _as_recipe(recipe)
+    mapping = _mapping_config(rec, opts)
+    if opts.gt_cameras and gt is None:
+        raise InvalidInput("taking the cameras from the GT needs --gt")
+    output = Path(output)
+    check_distinct(*comparison_paths(output, database=database, images=image_dir, gt=gt, repeats=opts.repeats,
+                                     pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=mapping.seed))
+    intrinsics = gt_intrinsics(gt) if opts.gt_cameras and gt is not None else None
+    for sub in ("baseline", "refined", "plots"):
+        (output / sub).mkdir(parents=True, exist_ok=True)
+    database, image_dir = Path(database), Path(image_dir)
+
+    def map_side(db: Path, tag: str) -> list:
+        return map_repeats(db, image_dir, output / tag, mapping, repeats=opts.repeats, intrinsics=intrinsics,
+                           tag=tag, progress=opts.progress, verbose=opts.verbose)
+
+    base_runs = map_side(database, "baseline")
+    log.info("refining the matches (recipe %s)", rec.name)
+    summary = _refine_into(database, image_dir, output / "refined", rec, opts, mapping.seed)
+    ref_runs = map_side(summary.output, "refined")
+    if not any(r.success for r in base_runs + ref_runs):
+        raise RunFailed("mapping failed on both the baseline and the refined database")
+    return write_comparison(output, base_runs, ref_runs, databases=(database, summary.output),
+                            refine=summary.to_dict(),
+                            evaluation=Evaluation(gt=None if gt is None else Path(gt), pairs=pairs,
+                                                  seed=mapping.seed, thresholds=opts.thresholds))
+
+
+def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe | str | None = None,
+                    gt: str | Path | None = None, compare: bool = False,
+                    extraction: ExtractionOptions | None = None, options: JobOptions | None = None) -> dict:
+    """The whole job from a folder of images: SIFT + exhaustive matching, refine, map, report.
+
+    Writes ``OUTPUT/database.db`` (COLMAP's features and matches, kept as the baseline input).
+    Without ``compare``: ``OUTPUT/refined/{database.db, refine.json, model/}`` and
+    ``OUTPUT/report.json``. With ``compare``: :func:`compare_databases` into ``OUTPUT`` (without
+    ``compare`` only the ``gt_cameras`` and ``thresholds`` of ``options`` apply to the report).
+
+    Returns:
+        ``{"database", "features", "report" | "compare"}`` (a JSON-ready dict; with compare
+        the :class:`~colmap_miho.reporting.compare.CompareResult` is under ``"result"`` too).
+
+    Raises:
+        RunFailed: extraction found < 2 images, or mapping registered nothing.
+    """
+    from ..reporting.report import build_report, write_report_json
+    from ..sfm import extract_and_match, require_success, run_mapping
+
+    opts = options or JobOptions()
+    ext = extraction or ExtractionOptions()
+    rec = _as_recipe(recipe)
+    mapping = _mapping_config(rec, opts)
+    if opts.gt_cameras and gt is None:
+        raise InvalidInput("taking the cameras from the GT needs --gt")
+    output = Path(output)
+    check_distinct(*comparison_paths(output, images=image_dir, gt=gt, repeats=opts.repeats, seed=mapping.seed,
+                                     compare=compare))
+    output.mkdir(parents=True, exist_ok=True)
+    database = output / "database.db"
+    if database.exists():
+        log.info("reusing the features and matches in %s", database)
+        features: dict = {"reused": True}
+    else:
+        features = extract_and_match(image_dir, database, camera_mode=ext.camera_mode, camera_model=ext.camera_model,
+                                     camera_params=ext.camera_params, max_features=ext.max_features,
+                                     verbose=opts.verbose)
+    out: dict = {"database": str(database), "features": features}
+    if compare:
+        res = compare_databases(database, image_dir, output, gt=gt, recipe=rec, options=opts)
+        out["compare"] = str(res.json)
+        out["result"] = res
+        return out
+    (output / "refined").mkdir(exist_ok=True)
+    summary = _refine_into(database, Path(image_dir), output / "refined", rec, opts, mapping.seed)
+    res_map = require_success(run_mapping(summary.output, image_dir, output / "refined" / "model", mapping,
+                                          intrinsics=gt_intrinsics(gt) if opts.gt_cameras and gt is not None
+                                          else None, progress=opts.progress, verbose=opts.verbose))
+    report = build_report(res_map.output, reconstruction=res_map.reconstruction,
+                          database=summary.output if gt is not None else None, gt=gt, seed=mapping.seed,
+                          thresholds=opts.thresholds)
+    report["refine"] = summary.to_dict()
+    report["mapping"] = res_map.to_dict()
+    out["report"] = str(write_report_json(report, output / "report.json"))
+    out["report_dict"] = report
+    return out

@@ -1,0 +1,298 @@
+"""``refine_database``: filter and refine the matches of a COLMAP database, safely.
+
+Data flow (one stage after the other, each ``run_<stage>`` returning its outputs and a small
+stats dataclass that :class:`RefineSummary` is assembled from)::
+
+    safe working copy -> read (:mod:`.read`) -> filter the pairs chunk by chunk
+      (:mod:`.filter`, MOP / MOP+MiHo) into the run store (:mod:`.store`)
+      -> track-consistent NCC refinement (:mod:`.refine`) -> write back chunk by chunk
+      (:mod:`.write`: keypoints, matches, two_view_geometries)
+      -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
+
+The input database is never opened for writing; see :mod:`colmap_miho.adapters.safety`.
+
+Memory: ``pipeline.memory_budget_mb`` (``refine --memory-budget``) sizes the filter's chunks
+and the refine stage's image cache (see :class:`~colmap_miho.pipeline_config.PipelineConfig`).
+
+Resuming: finished filter chunks and refine groups are kept in the run store beside the
+output until the commit; a killed or failed run is continued with ``resume=True``
+(``refine --resume``), and ``restart=True`` discards them. A run that finds finished work
+and was given neither refuses to start.
+
+Parallelism: one :class:`~.executor.Runner` per run (:func:`~.executor.open_runner`) runs the
+filter's chunks and the refinement's track groups in this process, in worker processes with one
+thread each (forked from a forkserver that imported torch once), or on a Dask cluster
+(``dask``); only this process writes SQLite. Scripts that call :func:`refine_database` with
+``workers > 1`` need the usual ``if __name__ == "__main__":`` guard.
+All coordinates handled here are colmap-miho's
+(integer = pixel centre); the conversion to COLMAP's happens inside
+:mod:`colmap_miho.adapters.database`.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+import sqlite3
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..adapters.database import ColmapDatabase, validate_database
+from ..adapters.paths import check_distinct
+from ..adapters.safety import WorkingCopy, check_database_path
+from ..enums import Device
+from ..errors import DatabaseError, RunFailed, UserError
+from ..recipe import Recipe, load_recipe
+from .executor import Runner, open_runner
+from .filter import FilterOptions, run_filter
+from .read import ReadConfig, run_read
+from .refine import run_refine
+from .store import RunStore, run_fingerprint, store_folder
+from .summary import RefineSummary
+from .verify import run_verify
+from .workers import check_not_bootstrapping, start_forkserver
+from .write import run_write
+
+log = logging.getLogger(__name__)
+
+
+def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
+    if isinstance(recipe, Recipe):
+        return recipe
+    return load_recipe(None if recipe is None else str(recipe))
+
+
+def _resolve_device(device: Device | str) -> str:
+    """"cpu" or "cuda", by the one resolver (torch is imported only if needed)."""
+    device = Device.parse(device, "device")
+    if device == Device.CPU:
+        return "cpu"
+    from ..devices import resolve_device
+
+    try:
+        return resolve_device(device).type
+    except ValueError:
+        raise UserError("--device cuda was asked for but torch sees no CUDA device") from None
+
+
+def refine_database(
+    database: str | os.PathLike,
+    image_dir: str | os.PathLike,
+    output: str | os.PathLike | None = None,
+    *,
+    recipe: Recipe | str | os.PathLike | None = None,
+    in_place: bool = False,
+    overwrite: bool = False,
+    workers: int | None = None,
+    device: Device | str = "auto",
+    seed: int = 0,
+    strict: bool = False,
+    progress: bool = False,
+    json_path: str | os.PathLike | None = None,
+    resume: bool = False,
+    restart: bool = False,
+    dask: str | None = None,
+) -> RefineSummary:
+    """Filter (MOP / MOP+MiHo) and refine (track-consistent NCC) a COLMAP database.
+
+    (The public entry point: its keyword arguments are the ``refine`` command's options, one
+    each, so that a script reads like the command line; the stages get them grouped.)
+
+    Args:
+        database: the input COLMAP database; never opened for writing (unless ``in_place``,
+            and even then only replaced atomically at the end, after a backup).
+        image_dir: folder the database's image names are relative to.
+        output: the database to write; default ``<stem>.miho.db`` beside the input.
+        recipe: a :class:`~colmap_miho.recipe.Recipe`, a shipped recipe name or a TOML path
+            (default ``mop_miho_ncc``); its ``pipeline`` table chooses the match source,
+            ``min_matches``, refinement, re-verification and the memory budget.
+        in_place: replace ``database`` itself, after copying it to a timestamped backup.
+        overwrite: allow replacing an existing ``output``.
+        workers: processes that filter pairs and refine tracks (default: all cores; 1 = all
+            in this process), or the workers of a local Dask cluster. Small jobs stay in
+            this process (below ~10k matches per worker, workers do not pay off); results do
+            not depend on the worker count.
+        device: "cpu", "cuda" or "auto" for the torch work.
+        seed: base seed; each pair's filter seed is derived from it and the pair's image ids.
+        strict: a missing or unreadable image is an error instead of a warning.
+        progress: show tqdm progress bars.
+        json_path: also write :meth:`RefineSummary.to_dict` as JSON to this file.
+        resume: continue an interrupted run from its run store (``.<output name>.miho-run``
+            beside the output); the inputs and options must be those of that run.
+        restart: discard an interrupted run's store and start again.
+        dask: None (no Dask), ``"local"`` (a local Dask cluster of ``workers`` processes) or
+            a scheduler address ``tcp://host:8786``; the workers must see ``image_dir`` at
+            the same path.
+
+    Returns:
+        A :class:`RefineSummary`.
+
+    Raises:
+        DatabaseError: missing or non-COLMAP database, database in use.
+        UserError: bad image folder, existing output without ``overwrite``, strict and an
+            image missing, no pairs to process; an interrupted run's store found without
+            ``resume`` or ``restart``, or ``resume`` with other inputs or options.
+        ValueError: a bad recipe or option value (the message names it).
+        RunFailed: a worker process died (see :data:`~.workers.WORKER_DIED`), or this is
+            a worker importing a script that calls this without a ``__main__`` guard.
+    """
+    check_not_bootstrapping()
+    laps = _Laps()
+    database = check_database_path(database)
+    image_dir = Path(image_dir)
+    if not image_dir.is_dir():
+        raise UserError(f"image folder not found: {image_dir}")
+    rec = _resolve_recipe(recipe)
+    asked = max(1, int(workers) if workers else (os.cpu_count() or 1))
+    if asked > 1 and dask is None and str(device) != "cuda":
+        start_forkserver()  # the workers' imports run beside this process's from here on
+    dev = _resolve_device(device)
+    n_workers = 1 if dev == "cuda" else asked
+    wc = WorkingCopy(database, Path(output) if output else None, in_place=in_place, overwrite=overwrite)
+    check_distinct({"--database": database, "--images": image_dir},
+                   {"--output": None if in_place else wc.output, "--json": json_path})
+    if json_path:
+        _check_writable_file(Path(json_path), "--json")
+    store = RunStore.open(store_folder(wc.output), run_fingerprint(database, image_dir, rec, seed, dev),
+                          resume=resume, restart=restart)
+    resumed = store.has_work()
+    laps.lap("setup")
+    try:
+        with open_runner(n_workers, dask) as runner:
+            inputs = _RunInputs(database=database, image_dir=image_dir, recipe=rec, device=dev, seed=seed,
+                                strict=strict, progress=progress, json_path=json_path)
+            summary = _run_stages(inputs, wc, store, runner, resumed=resumed, laps=laps)
+    except UserError as exc:  # one line: the error, then how to resume
+        if not _keep_store(store):
+            raise
+        raise type(exc)(f"{exc}; {_resume_hint(store)}") from exc
+    except BaseException as exc:  # the CLI prints the note on the error's one line
+        if _keep_store(store):
+            _add_note(exc, _resume_hint(store))
+        raise
+    store.remove()
+    log.info("wrote %s", summary.output)
+    return summary
+
+
+def _keep_store(store: RunStore) -> bool:
+    """After a failure: keep the store when it holds finished work (else remove it); True
+    when kept."""
+    if store.has_work():
+        store.close()
+        return True
+    store.remove()
+    return False
+
+
+def _add_note(exc: BaseException, note: str) -> None:
+    """``exc.add_note(note)`` (Python >= 3.11), or the same ``__notes__`` list on 3.10."""
+    add = getattr(exc, "add_note", None)
+    if add is not None:
+        add(note)
+    else:  # pragma: no cover - Python 3.10
+        exc.__notes__ = [*getattr(exc, "__notes__", []), note]  # type: ignore[attr-defined]
+
+
+def _resume_hint(store: RunStore) -> str:
+    return (f"the finished work of this run is kept in {store.folder}: run the same command with "
+            "--resume to continue it (or --restart to start again)")
+
+
+@dataclass(frozen=True, kw_only=True)
+class _RunInputs:
+    """What the stages of one run read: the user's database and images, the resolved recipe and
+    device (``"cpu"`` / ``"cuda"``), and the run options of :func:`refine_database`."""
+
+    database: Path
+    image_dir: Path
+    recipe: Recipe
+    device: str
+    seed: int
+    strict: bool
+    progress: bool
+    json_path: str | os.PathLike | None
+
+
+def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Runner, *, resumed: bool,
+                laps: _Laps) -> RefineSummary:
+    """The stages on the working copy, then the commit; returns the summary."""
+    database, image_dir, rec, dev = inputs.database, inputs.image_dir, inputs.recipe, inputs.device
+    seed, strict, progress, json_path = inputs.seed, inputs.strict, inputs.progress, inputs.json_path
+    pcfg = rec.pipeline
+    try:
+        with wc:
+            laps.lap("copy")
+            work_db = wc.path
+            assert work_db is not None  # set on entering the block
+            try:
+                validate_database(work_db)
+            except DatabaseError as exc:  # name the user's file, not the hidden working copy
+                raise DatabaseError(str(exc).replace(str(work_db), str(database))) from None
+            with ColmapDatabase(work_db) as db:
+                read, read_stats = run_read(db, ReadConfig(
+                    pipeline=pcfg, image_dir=image_dir, image_budget_bytes=pcfg.image_budget_bytes(runner.slots),
+                    strict=strict, database_name=database))
+                laps.lap("read")
+                filter_stats = run_filter(db, read.to_filter, read.keypoints, rec.filter, FilterOptions(
+                    source=pcfg.source, seed=seed, memory_budget_bytes=pcfg.memory_budget_bytes, device=dev,
+                    progress=progress, database_name=str(database)), runner=runner, store=store)
+                laps.lap("filter")
+                new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress)
+                laps.lap("refine")
+                write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg)
+                laps.lap("write")
+            if pcfg.verify:
+                run_verify(work_db)
+                laps.lap("verify")
+            summary = RefineSummary.from_stages(
+                output=database if wc.in_place else wc.output,  # in place: the user's path (a symlink stays one)
+                database=database, backup=wc.backup, recipe=rec, device=dev, runner=str(runner.kind),
+                resumed=resumed, read=read_stats, filtered=filter_stats, refine=refine_stats,
+                write=write_stats, seconds=laps.total())
+            if json_path:  # written beside its target now, renamed onto it with the commit
+                wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
+            wc.commit()
+    except OSError as exc:
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        raise RunFailed(f"disk full while writing in {wc.output.parent}; {database} is unchanged and the "
+                        "working files were removed: free some space and retry") from None
+    except sqlite3.Error as exc:
+        raise RunFailed(f"SQLite error while writing the copy of {database} ({exc}); {database} is "
+                        "unchanged and the working files were removed") from None
+    return summary
+
+
+def _check_writable_file(path: Path, label: str) -> None:
+    """Refuse, before any work, an output file whose folder is missing or read-only.
+
+    Raises:
+        UserError: the message names the option and the path.
+    """
+    if path.is_dir():
+        raise UserError(f"{label} {path} is a folder; give a file name")
+    if not path.parent.is_dir():
+        raise UserError(f"{label} folder does not exist: {path.parent}")
+    if not os.access(path.parent, os.W_OK | os.X_OK):
+        raise UserError(f"{label} {path}: cannot write in {path.parent} (read-only folder)")
+
+
+class _Laps:
+    """Wall time per stage: each :meth:`lap` records the time since the previous one."""
+
+    def __init__(self) -> None:
+        self.start = self.last = time.perf_counter()
+        self.seconds: dict[str, float] = {}
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.seconds[name] = now - self.last
+        self.last = now
+
+    def total(self) -> dict[str, float]:
+        self.seconds["total"] = time.perf_counter() - self.start
+        return self.seconds

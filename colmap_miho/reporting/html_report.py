@@ -1,0 +1,314 @@
+"""``report.html``: one self-contained page to read a comparison (or one model) in a browser.
+
+The page holds the side-by-side table (the rows of ``compare.json``), the cumulative pose-error
+curves, the verified matches per pair, the keypoint displacements (a histogram and, per image,
+where the moved keypoints lie), and a 3D view of the sparse models: cameras as frusta, points
+decimated to a budget per model, one colour per model, each switchable from the
+legend or the buttons above the view.
+
+Charts are plotly figures (the ``plots`` extra); plotly's JavaScript bundle is embedded once in
+the page, so it opens offline and with no CDN. Numeric arrays travel as base64 float32, which
+keeps a page with two 50k-point clouds a few MB, most of it the bundle. Without plotly the
+writers log one line naming the extra and return None: the command itself still succeeds.
+
+The 3D view and the models' geometry are :mod:`colmap_miho.reporting.model_view`.
+"""
+
+from __future__ import annotations
+
+import html
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..adapters.safety import write_text_atomic
+from .model_view import COLORS, POINT_BUDGET, SIDE_LABEL, model_figure, moved_keypoints
+from .tables import comparison_rows
+
+__all__ = ["write_comparison_html", "write_model_html"]
+
+log = logging.getLogger(__name__)
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0 auto;max-width:1200px;
+padding:0 16px 40px;color:#222}
+h1{font-size:1.5em;margin:18px 0 4px}h2{font-size:1.15em;margin:28px 0 6px;border-bottom:1px solid #ddd}
+p.note{color:#555;font-size:.92em;margin:4px 0}
+table.metrics{border-collapse:collapse;font-size:.92em}
+table.metrics th,table.metrics td{padding:3px 12px;border-bottom:1px solid #eee}
+table.metrics td.num{text-align:right;font-variant-numeric:tabular-nums}
+table.metrics th{text-align:left;background:#f5f5f5}
+"""
+
+_PLOT_CONFIG = {"displaylogo": False, "responsive": True}
+
+
+def _plotly():
+    """plotly's ``graph_objects`` module, or None with one logged line naming the extra."""
+    from ..extras import MissingExtraError, require
+
+    try:
+        require("plotly", "plots", "report.html")
+        import plotly.graph_objects as go
+    except MissingExtraError as exc:
+        log.warning("%s; the page is skipped", exc)
+        return None
+    return go
+
+
+# --------------------------------------------------------------------------- charts
+_CURVE_METRICS = (("model poses (all GT pairs)", "model", "model_pose_auc"),
+                  ("two-view E", "E", "two_view_pose_auc_E"),
+                  ("two-view F (+MAGSAC)", "F", "two_view_pose_auc_F"))
+
+
+def _pose_curves_figure(go, reports: dict[str, dict], max_deg: float = 20.0):
+    """Cumulative pose-error curves (fraction of pairs with error <= x deg), one panel per
+    metric present; None when no report has per-pair errors."""
+    from plotly.subplots import make_subplots
+
+    panels = []
+    for title, key, sec in _CURVE_METRICS:
+        series = {}
+        for tag, rep in reports.items():
+            errs = [p.get(key) for p in rep.get("pairs", []) if key in p]
+            if errs:
+                series[tag] = (np.array([np.inf if e is None else e for e in errs], dtype=np.float64), rep.get(sec))
+        if series:
+            panels.append((title, series))
+    if not panels:
+        return None
+    fig = make_subplots(rows=1, cols=len(panels), subplot_titles=[t for t, _ in panels], horizontal_spacing=0.06)
+    for col, (_, series) in enumerate(panels, start=1):
+        finite = np.concatenate([e[np.isfinite(e)] for e, _ in series.values()])
+        # zoom in when every error is small: the curve's shape is the information
+        hi = max_deg if finite.size == 0 else float(min(max_deg, max(1.0, np.ceil(1.5 * np.quantile(finite, 0.95)))))
+        xs = np.linspace(0.0, hi, 401)
+        for tag, (e, auc) in series.items():
+            recall = (e[None, :] <= xs[:, None]).mean(axis=1)
+            aucs = "" if not auc else "<br>AUC@5/10/20 " + "/".join(
+                "-" if auc.get(k) is None else f"{100 * auc[k]:.1f}" for k in ("auc5", "auc10", "auc20"))
+            name = SIDE_LABEL.get(tag, tag)
+            fig.add_trace(go.Scatter(x=xs.astype(np.float32), y=recall.astype(np.float32), mode="lines",
+                                     name=name, legendgroup=tag, showlegend=col == 1,
+                                     line={"color": COLORS.get(tag), "width": 2},
+                                     hovertemplate=f"{name}: %{{y:.1%}} of pairs within %{{x:.2f}} deg"
+                                                   f"{aucs}<extra></extra>"),
+                          row=1, col=col)
+        fig.update_xaxes(title_text="pose error (deg)", range=[0, hi], row=1, col=col)
+        fig.update_yaxes(range=[0, 1.02], row=1, col=col, tickformat=".0%")
+    fig.update_yaxes(title_text="pairs with error <= x", row=1, col=1)
+    fig.update_layout(height=380, margin={"l": 60, "r": 20, "t": 40, "b": 50},
+                      legend={"orientation": "h", "y": -0.2})
+    return fig
+
+
+def _matches_figure(go, before: dict, after: dict):
+    """Verified matches per pair, baseline vs refined, pairs sorted by the baseline's count."""
+    labels = sorted(before, key=lambda k: (-before[k], k))
+    b = np.array([before[k] for k in labels], dtype=np.float64)
+    a = np.array([after.get(k, 0) for k in labels], dtype=np.float64)
+    kept = np.where(b > 0, 100 * a / np.maximum(b, 1), 0.0)
+    from .plots import _short_labels
+
+    names = [k.replace("|", " - ") for k in labels]
+    x = _short_labels(labels) if len(set(_short_labels(labels))) == len(labels) else names
+    fig = go.Figure()
+    fig.add_trace(go.Bar(x=x, y=b, name=f"baseline ({int(b.sum())})", marker_color=COLORS["baseline"],
+                         customdata=names, hovertemplate="%{customdata}<br>baseline %{y:d}<extra></extra>"))
+    fig.add_trace(go.Bar(x=x, y=a, name=f"colmap-miho ({int(a.sum())})", marker_color=COLORS["refined"],
+                         customdata=np.c_[np.array(names, dtype=object), np.round(kept, 1)],
+                         hovertemplate="%{customdata[0]}<br>colmap-miho %{y:d} (%{customdata[1]}% kept)"
+                                       "<extra></extra>"))
+    fig.update_layout(barmode="group", height=380, margin={"l": 60, "r": 20, "t": 20, "b": 50},
+                      yaxis={"type": "log", "title": "verified matches"},
+                      xaxis={"title": "image pair (sorted by baseline matches; hover for names)", "type": "category"},
+                      legend={"orientation": "h", "y": 1.08})
+    return fig
+
+
+def _displacement_figure(go, displacements: np.ndarray, per_image: list, size: tuple[int, int] | None):
+    """Histogram of the displacements (px) and, per image, where the moved keypoints lie
+    (coloured by how far they moved; an image picker above the right panel)."""
+    from plotly.subplots import make_subplots
+
+    d = np.asarray(displacements, dtype=np.float64).reshape(-1)
+    cols = 2 if per_image else 1
+    titles = [f"{d.size} keypoints moved"] + (["where they moved (image coordinates, px)"] if per_image else [])
+    fig = make_subplots(rows=1, cols=cols, subplot_titles=titles, horizontal_spacing=0.1)
+    hi = max(float(np.quantile(d, 0.99)), 1e-3) if d.size else 1.0
+    fig.add_trace(go.Histogram(x=np.clip(d, 0, hi).astype(np.float32), nbinsx=40, marker_color=COLORS["refined"],
+                               name="keypoints", showlegend=False,
+                               hovertemplate="%{x} px: %{y} keypoints<extra></extra>"), row=1, col=1)
+    fig.update_xaxes(title_text=f"displacement (px, clipped at {hi:.2f})", row=1, col=1)
+    fig.update_yaxes(title_text="keypoints", row=1, col=1)
+    buttons = []
+    for k, (name, p0, dd) in enumerate(per_image):
+        mag = np.linalg.norm(dd, axis=1)
+        fig.add_trace(go.Scattergl(
+            x=p0[:, 0].astype(np.float32), y=p0[:, 1].astype(np.float32), mode="markers", name=name,
+            visible=k == 0, showlegend=False,
+            marker={"size": 5, "color": mag.astype(np.float32), "colorscale": "Viridis", "cmin": 0, "cmax": hi,
+                    "colorbar": {"title": {"text": "px"}, "x": 1.02}},
+            customdata=np.c_[dd, mag].astype(np.float32),
+            hovertemplate="(%{x:.1f}, %{y:.1f}) moved %{customdata[2]:.3f} px<br>"
+                          "dx %{customdata[0]:.3f}, dy %{customdata[1]:.3f}<extra></extra>"), row=1, col=2)
+        vis = [True] + [j == k for j in range(len(per_image))]
+        buttons.append({"label": f"{name} ({len(p0)})", "method": "restyle", "args": [{"visible": vis}]})
+    if per_image:
+        if size is not None:
+            fig.update_xaxes(range=[0, size[0]], row=1, col=2)
+            fig.update_yaxes(range=[size[1], 0], row=1, col=2)
+        else:
+            fig.update_yaxes(autorange="reversed", row=1, col=2)
+        fig.update_yaxes(scaleanchor="x2", row=1, col=2)
+        fig.update_layout(updatemenus=[{"buttons": buttons, "direction": "down", "x": 1.0, "xanchor": "right",
+                                        "y": 1.18, "showactive": True}])
+    fig.update_layout(height=440, margin={"l": 60, "r": 20, "t": 70, "b": 50})
+    return fig
+
+
+# --------------------------------------------------------------------------- page
+def _table_html(rows: Sequence[tuple[str, ...]], header: tuple[str, ...]) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = []
+    for row in rows:
+        cells = [f"<td>{html.escape(row[0])}</td>"] + [f'<td class="num">{html.escape(c)}</td>' for c in row[1:]]
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f'<table class="metrics" id="metrics"><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
+
+
+def _figure_html(fig, div_id: str) -> str:
+    return fig.to_html(full_html=False, include_plotlyjs=False, div_id=div_id, config=_PLOT_CONFIG)
+
+
+def _page(title: str, sections: list[str]) -> str:
+    from plotly.offline import get_plotlyjs
+
+    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<title>{html.escape(title)}</title><style>{_CSS}</style>"
+            f"<script type=\"text/javascript\">{get_plotlyjs()}</script></head><body>"
+            f"<h1>{html.escape(title)}</h1>{''.join(sections)}</body></html>\n")
+
+
+def _section(title: str, body: str, note: str = "", section_id: str = "") -> str:
+    sid = f' id="{section_id}"' if section_id else ""
+    note_html = f'<p class="note">{html.escape(note)}</p>' if note else ""
+    return f"<section{sid}><h2>{html.escape(title)}</h2>{note_html}{body}</section>"
+
+
+def _load_model(path):
+    """A ``pycolmap.Reconstruction`` from a model folder, or None (logged) when unreadable."""
+    from .gt_model import load_reconstruction
+
+    if path is None:
+        return None
+    if not isinstance(path, (str, Path)):
+        return path
+    try:
+        return load_reconstruction(path)
+    except (FileNotFoundError, ValueError) as exc:
+        log.info("3D view: model %s skipped (%s)", path, exc)
+        return None
+
+
+def _image_size(models: dict) -> tuple[int, int] | None:
+    for rec in models.values():
+        for cam in rec.cameras.values():
+            return int(cam.width), int(cam.height)
+    return None
+
+
+def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refine: dict, changes: dict, *,
+                          models: dict | None = None, budget: int = POINT_BUDGET,
+                          title: str = "colmap-miho comparison") -> Path | None:
+    """Write the comparison page.
+
+    Args:
+        path: the HTML file (usually ``OUTPUT/report.html``; its folder must exist).
+        baseline, refined: report dicts of both sides (with their ``pairs`` rows for the curves).
+        refine: ``RefineSummary.to_dict()`` (the recipe line under the table).
+        changes: :func:`colmap_miho.reporting.compare.match_changes`'s dict (matches per pair,
+            displacements).
+        models: ``{"baseline": m, "refined": m}``, each a model folder or a
+            ``pycolmap.Reconstruction``; default ``baseline/model`` and ``refined/model`` next to
+            ``path``. A missing model (mapping failed) is left out of the 3D view.
+        budget: most points drawn per model.
+
+    Returns:
+        The path written, or None when plotly is missing (one warning logged).
+    """
+    go = _plotly()
+    if go is None:
+        return None
+    path = Path(path)
+    if models is None:
+        models = {tag: path.parent / tag / "model" for tag in ("baseline", "refined")}
+    recs = {tag: rec for tag, m in models.items() if (rec := _load_model(m)) is not None}
+    rows = comparison_rows(baseline, refined)
+    sections = [_section("Side by side", _table_html(rows, ("metric", "baseline", "colmap-miho")),
+                         _summary_note(baseline, refine), "table")]
+    curves = _pose_curves_figure(go, {"baseline": baseline, "refined": refined})
+    if curves is not None:
+        sections.append(_section("Pose error", _figure_html(curves, "pose-curves"),
+                                 "Fraction of image pairs whose relative-pose error is at most x degrees "
+                                 "(max of rotation and translation-direction errors; higher is better).",
+                                 "pose"))
+    before, after = changes.get("matches_before", {}), changes.get("matches_after", {})
+    if before:
+        sections.append(_section("Matches per pair", _figure_html(_matches_figure(go, before, after), "matches"),
+                                 "Verified matches of each image pair in the two databases (log scale).", "pairs"))
+    disp = np.asarray(changes.get("displacements", np.zeros(0)))
+    sections.append(_section("Keypoint displacement",
+                             _figure_html(_displacement_figure(go, disp, moved_keypoints(recs), _image_size(recs)),
+                                          "displacement"),
+                             "How far refinement moved keypoints, and where in each image (pick an image above "
+                             "the right panel; only registered images of both models are offered).", "keypoints"))
+    if recs:
+        fig, note = model_figure(go, recs, budget=budget)
+        sections.append(_section("Sparse models", _figure_html(fig, "models3d"), note, "models"))
+    write_text_atomic(path, _page(title, sections))
+    return path
+
+
+def _summary_note(baseline: dict, refine: dict) -> str:
+    parts = []
+    runs = baseline.get("repeats", {}).get("num_runs")
+    if runs:
+        parts.append(f"Mapping figures: median [min-max] of {runs} runs per side.")
+    if refine:
+        parts.append(f"Recipe {refine.get('recipe', '')}: {refine.get('matches_kept', 0)} of "
+                     f"{refine.get('matches_in', 0)} matches kept, {refine.get('keypoints_moved', 0)} keypoints moved.")
+    return " ".join(parts)
+
+
+def write_model_html(path: str | Path, report: dict, model, *, budget: int = POINT_BUDGET,
+                     title: str = "colmap-miho report") -> Path | None:
+    """Write the page of one model: its report table, pose-error curves (with GT) and 3D view.
+
+    Args:
+        path: the HTML file (its folder must exist).
+        report: :func:`colmap_miho.reporting.report.build_report`'s dict.
+        model: model folder or ``pycolmap.Reconstruction`` (None: no 3D view).
+
+    Returns:
+        The path written, or None when plotly is missing (one warning logged).
+    """
+    go = _plotly()
+    if go is None:
+        return None
+    path = Path(path)
+    rows = [(label, value) for label, value, _ in comparison_rows(report, {})]
+    sections = [_section("Report", _table_html(rows, ("metric", "value")), "", "table")]
+    curves = _pose_curves_figure(go, {"model": report})
+    if curves is not None:
+        sections.append(_section("Pose error", _figure_html(curves, "pose-curves"),
+                                 "Fraction of image pairs whose relative-pose error is at most x degrees.", "pose"))
+    rec = _load_model(model)
+    if rec is not None:
+        fig, note = model_figure(go, {"model": rec}, budget=budget)
+        sections.append(_section("Sparse model", _figure_html(fig, "models3d"), note, "models"))
+    write_text_atomic(path, _page(title, sections))
+    return path

@@ -1,0 +1,197 @@
+"""report.html: the page's pieces on synthetic models, and the demo's page in a real browser.
+
+The browser test drives the system's Chromium (Debian's ``chromium`` package) with Playwright
+(the ``test`` extra); it skips, saying why, where either is missing or the browser cannot start.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import re
+import shutil
+import sys
+
+import numpy as np
+import pytest
+
+from colmap_miho.cli import main
+from colmap_miho.reporting import html_report as hr
+from colmap_miho.reporting import model_view as mv
+from colmap_miho.reporting.tables import comparison_rows
+
+pytest.importorskip("plotly")
+
+# float32 storage of the drawn coordinates: ~1e-7 relative; the synthetic scenes span ~10 units
+COORD_TOL = 1e-4
+# a blank (or failed) WebGL canvas is one flat colour; points, frusta and shading give hundreds
+MIN_DISTINCT_COLOURS = 20
+
+
+def _scene(num_points=300, num_frames=5, seed=0):
+    import pycolmap
+
+    opts = pycolmap.SyntheticDatasetOptions(num_rigs=1, num_cameras_per_rig=1, num_frames_per_rig=num_frames,
+                                            num_points3D=num_points)
+    return pycolmap.synthesize_dataset(opts)
+
+
+def _page_rows(text: str) -> list[list[str]]:
+    body = re.search(r'<table class="metrics" id="metrics">.*?<tbody>(.*?)</tbody>', text, re.S).group(1)
+    return [re.findall(r"<td[^>]*>(.*?)</td>", row) for row in re.findall(r"<tr>(.*?)</tr>", body)]
+
+
+# --------------------------------------------------------------------------- pieces
+def test_decimate_keeps_all_or_a_seeded_sorted_subset():
+    assert np.array_equal(mv.decimate(5, 10), np.arange(5))
+    idx = mv.decimate(1000, 100, seed=3)
+    assert len(idx) == 100 and len(np.unique(idx)) == 100 and np.all(np.diff(idx) > 0) and idx.max() < 1000
+    assert np.array_equal(idx, mv.decimate(1000, 100, seed=3))
+    assert not np.array_equal(idx, mv.decimate(1000, 100, seed=4))
+    with pytest.raises(ValueError, match="budget"):
+        mv.decimate(10, 0)
+
+
+def test_frusta_start_at_the_camera_and_reach_the_image_corners():
+    rec = _scene()
+    size = 0.5
+    lines = mv.camera_frusta(rec, size)
+    chunks = np.split(lines, np.where(np.isnan(lines[:, 0]))[0])
+    chunks = [c[~np.isnan(c[:, 0])] for c in chunks if np.isfinite(c).any()]
+    images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    assert len(chunks) == len(images) == 5
+    for path, im in zip(chunks, images, strict=True):
+        cam = rec.cameras[im.camera_id]
+        centre = np.asarray(im.projection_center())
+        assert np.allclose(path[0], centre, atol=1e-9)
+        corners = path[[1, 2, 4, 5]]
+        assert np.allclose(np.linalg.norm(corners - centre, axis=1), size, rtol=1e-9)
+        pose = im.cam_from_world()
+        in_cam = corners @ np.asarray(pose.rotation.matrix()).T + np.asarray(pose.translation)
+        px = np.asarray(cam.img_from_cam(in_cam))
+        w, h = cam.width, cam.height
+        assert np.allclose(px, [[0, 0], [w, 0], [w, h], [0, h]], atol=1e-6)
+
+
+def test_refined_model_is_drawn_in_the_baseline_frame():
+    import pycolmap
+
+    base = _scene()
+    moved = pycolmap.Reconstruction(base)
+    q = np.array([0.1, 0.2, 0.3, 0.9])
+    moved.transform(pycolmap.Sim3d(2.5, pycolmap.Rotation3d(q / np.linalg.norm(q)), np.array([1.0, -2.0, 3.0])))
+    s, R, t = mv.alignment(moved, base)
+    got = s * mv.model_points(moved) @ R.T + t
+    assert np.allclose(got, mv.model_points(base), atol=COORD_TOL)
+    # fewer than three shared images: no alignment, each model in its own frame
+    assert mv.alignment(moved, pycolmap.Reconstruction()) is None
+
+
+def _reports(rec):
+    from colmap_miho.reporting.report import build_report
+
+    rep = build_report(reconstruction=rec)
+    rep["pairs"] = [{"name1": "a", "name2": "b", "model": 0.4}, {"name1": "a", "name2": "c", "model": None}]
+    rep["model_pose_auc"] = {"auc5": 0.5, "auc10": 0.5, "auc20": 0.5}
+    return rep
+
+
+def test_comparison_page_is_self_contained_with_the_table_and_the_budget(tmp_path):
+    base, ref = _scene(num_points=400), _scene(num_points=400)
+    baseline, refined = _reports(base), _reports(ref)
+    refined["reconstruction"]["num_points3D"] = 399  # a difference the table must show
+    changes = {"matches_before": {"a|b": 100, "a|c": 50}, "matches_after": {"a|b": 90},
+               "displacements": np.array([0.1, 0.2, 0.5])}
+    path = hr.write_comparison_html(tmp_path / "report.html", baseline, refined, {"recipe": "r"}, changes,
+                                    models={"baseline": base, "refined": ref}, budget=100)
+    text = path.read_text()
+    assert _page_rows(text) == [list(r) for r in comparison_rows(baseline, refined)]
+    assert ["3D points", "400", "399"] in _page_rows(text)
+    assert not re.search(r"<script[^>]+src=", text)  # nothing fetched: the bundle is inline
+    assert text.count("Plotly.newPlot") == 4  # pose curves, matches, displacement, 3D
+    assert "baseline points (100 of 400)" in text and "colmap-miho points (100 of 400)" in text
+
+
+def test_model_page_from_the_cli(tmp_path):
+    rec = _scene()
+    model = tmp_path / "model"
+    model.mkdir()
+    rec.write(str(model))
+    page = tmp_path / "out" / "one.html"
+    assert main(["report", "--model", str(model), "--html", str(page), "-q"]) == 0
+    text = page.read_text()
+    rows = dict((r[0], r[1]) for r in _page_rows(text))
+    assert rows["registered images"] == "5" and rows["3D points"] == str(rec.num_points3D())
+    assert "model cameras (5)" in text
+
+
+def test_without_plotly_the_page_is_skipped_with_one_line(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "plotly", None)
+    monkeypatch.setitem(sys.modules, "plotly.graph_objects", None)
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = records.append  # type: ignore[method-assign]
+    hr.log.addHandler(handler)  # on the module's logger: whatever an earlier CLI run did to its parents
+    try:
+        assert hr.write_model_html(tmp_path / "x.html", {}, None) is None
+    finally:
+        hr.log.removeHandler(handler)
+    assert not (tmp_path / "x.html").exists()
+    lines = [r.getMessage() for r in records]
+    assert len(lines) == 1 and "pip install 'colmap-miho[plots]'" in lines[0]
+
+
+# --------------------------------------------------------------------------- real browser
+def _chromium() -> str:
+    for name in (os.environ.get("COLMAP_MIHO_CHROMIUM", ""), "chromium", "chromium-browser", "google-chrome"):
+        if name and (found := shutil.which(name)):
+            return found
+    pytest.skip("no Chromium on PATH (Debian: apt-get install chromium)")
+
+
+@pytest.mark.slow
+def test_demo_page_in_headless_chromium(demo_run):
+    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (test extra)")
+    from PIL import Image
+
+    rc, out = demo_run
+    assert rc == 0
+    page_file = out / "report.html"
+    table = json.loads((out / "compare.json").read_text())["rows"]
+    expected = [[r["metric"], r["baseline"], r["refined"]] for r in table]
+    executable = _chromium()
+    problems: list[str] = []
+    with sync_api.sync_playwright() as pw:
+        try:
+            # software WebGL (SwiftShader): the 3D view needs it on a machine without a GPU
+            browser = pw.chromium.launch(executable_path=executable, args=[
+                "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+        except Exception as exc:  # noqa: BLE001 - any launch failure is a reason to skip
+            pytest.skip(f"Chromium at {executable} did not start: {' '.join(str(exc).split())[:200]}")
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 900})
+            page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+            page.on("pageerror", lambda e: problems.append(str(e)))
+            page.goto(page_file.as_uri())
+            page.wait_for_selector("#models3d canvas", timeout=30_000)
+            page.wait_for_timeout(1500)  # the WebGL scene draws after the layout
+            rows = page.eval_on_selector_all(
+                "#metrics tbody tr", "rows => rows.map(r => Array.from(r.cells, c => c.textContent.trim()))")
+            shot = page.locator("#models3d canvas").first.screenshot()  # the WebGL canvas alone
+            # the model buttons switch the traces: "baseline" leaves the baseline's points and cameras
+            page.locator("#models3d .updatemenu-button").nth(1).click()
+            page.wait_for_timeout(300)
+            visible = page.evaluate("() => document.getElementById('models3d').data.map(t => t.visible)")
+        finally:
+            browser.close()
+    assert problems == []
+    assert rows == expected
+    assert visible == [True, True, False, False]
+    pixels = np.asarray(Image.open(io.BytesIO(shot)).convert("RGB")).reshape(-1, 3)
+    colours = np.unique(pixels, axis=0)
+    assert len(colours) >= MIN_DISTINCT_COLOURS, f"3D view looks blank: {len(colours)} colours"
+    # the refined model's points and cameras (red) are drawn
+    red = (pixels[:, 0] > 150) & (pixels[:, 1] < 110) & (pixels[:, 2] < 110)
+    assert red.sum() > 200
