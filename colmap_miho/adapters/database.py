@@ -13,6 +13,7 @@ synthetic scenes) are made with :meth:`ColmapDatabase.create`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sqlite3
 from dataclasses import dataclass
@@ -151,9 +152,14 @@ class ColmapDatabase(DatabaseBuilder):
 
     # -- lifecycle -------------------------------------------------------------------------
     def close(self) -> None:
-        if self._db is not None:
-            self._db.close()
-            self._db = None
+        db, self._db = self._db, None
+        if db is None:
+            return
+        try:
+            db.close()
+        except RuntimeError:
+            _never_free(db)  # its destructor would close it again, throw and abort the process
+            raise
 
     def __enter__(self) -> ColmapDatabase:
         return self
@@ -348,9 +354,38 @@ class ColmapDatabase(DatabaseBuilder):
             if self.handle.exists_two_view_geometry(int(i), int(j)):
                 self.handle.delete_two_view_geometry(int(i), int(j))
 
+    @contextlib.contextmanager
     def transaction(self):
-        """A pycolmap transaction (speed only: it commits even when the block raises)."""
-        return self._pycolmap.DatabaseTransaction(self.handle)
+        """A pycolmap transaction (speed only: it commits even when the block raises). When the
+        commit fails (a full disk), the transaction and the database handle are never freed:
+        their C++ destructors would retry the write, throw and abort the process."""
+        tx = self._pycolmap.DatabaseTransaction(self.handle)
+        tx.__enter__()
+        try:
+            yield tx
+        except BaseException:
+            try:
+                tx.__exit__(None, None, None)
+            except RuntimeError:
+                _never_free(tx)
+                _never_free(self._db)
+            raise
+        try:
+            tx.__exit__(None, None, None)
+        except RuntimeError:
+            _never_free(tx)
+            _never_free(self._db)
+            raise
+
+
+def _never_free(obj) -> None:
+    """Keep ``obj`` (a pycolmap handle whose last write failed) alive until the process ends:
+    pycolmap's destructors retry a failed SQLite write, and a C++ destructor that throws aborts
+    the process (SIGABRT) after the one-line error was printed."""
+    import ctypes
+
+    if obj is not None:
+        ctypes.pythonapi.Py_IncRef(ctypes.py_object(obj))
 
 
 def count_images(path: str | Path) -> int:

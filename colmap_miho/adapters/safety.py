@@ -533,9 +533,9 @@ def atomic_replace(tmp: Path, dst: Path) -> None:
 
 #: Free space a refine run needs beside its output, in database sizes: the working copy, its
 #: write-ahead log (up to the rewritten pages: about the copy again) and the run store of
-#: filtered pairs and refined groups, with a margin. pycolmap aborts the process (SIGABRT,
-#: in a destructor) when SQLite fills the disk, so the run must not start without it: runs on
-#: a small tmpfs failed from 2.6 database sizes down and passed from 2.8 up.
+#: filtered pairs and refined groups, with a margin over the peak measured on a small tmpfs
+#: (``test_refine_fits_the_space_it_asks_for`` runs with exactly this much). A write that
+#: still fills the disk ends with one line (see ``ColmapDatabase.transaction``).
 WORKING_SPACE_FACTOR = 3.5
 #: Free space on top of :data:`WORKING_SPACE_FACTOR`, bytes (SQLite's pages and the -shm file
 #: of a small database).

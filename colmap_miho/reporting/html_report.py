@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..adapters.safety import write_text_atomic
 from .model_view import COLORS, POINT_BUDGET, SIDE_LABEL, model_figure, moved_keypoints
 from .tables import comparison_rows
 
@@ -269,7 +270,7 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
     if recs:
         fig, note = model_figure(go, recs, budget=budget)
         sections.append(_section("Sparse models", _figure_html(fig, "models3d"), note, "models"))
-    path.write_text(_page(title, sections), encoding="utf-8")
+    write_text_atomic(path, _page(title, sections))
     return path
 
 
@@ -310,5 +311,5 @@ def write_model_html(path: str | Path, report: dict, model, *, budget: int = POI
     if rec is not None:
         fig, note = model_figure(go, {"model": rec}, budget=budget)
         sections.append(_section("Sparse model", _figure_html(fig, "models3d"), note, "models"))
-    path.write_text(_page(title, sections), encoding="utf-8")
+    write_text_atomic(path, _page(title, sections))
     return path

@@ -151,3 +151,36 @@ def test_run_checks_free_space_before_extraction(scene, tmp_path, capfd):
         lines = error_lines(capfd.readouterr().err)
         assert len(lines) == 1 and f"not enough free space in {disk / 'w'}" in lines[0], lines
         assert names(disk / "w") == []
+
+
+BYPASS_SPACE_CHECK = """
+import sys
+import colmap_miho.adapters.safety as safety
+safety.check_free_space = lambda *args, **kwargs: None  # let the disk fill during the write
+from colmap_miho.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_disk_filling_during_the_write_is_one_line_not_an_abort(db_copy, scene, tmp_path):
+    """The free-space check skipped (another program fills the disk meanwhile, say): SQLite's
+    commit fails inside pycolmap, whose destructors would retry it and abort the process; the
+    handles are kept instead and the run ends with one line, exit 1."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "bypass.py"
+    script.write_text(BYPASS_SPACE_CHECK)
+    size = db_copy.stat().st_size
+    with small_disk(tmp_path / "mnt", "16m") as disk:
+        db = disk / "scene.db"
+        shutil.copyfile(db_copy, db)
+        fill(disk, leave=int(2.2 * size))
+        digest = sha256(db)
+        done = subprocess.run([sys.executable, str(script), "refine", "--database", str(db), "--images",
+                               str(scene.image_dir), "--workers", "1", "--no-refine", "-q"],
+                              capture_output=True, text=True, timeout=300)
+        lines = [line for line in done.stderr.splitlines() if line.strip()]
+        assert done.returncode == 1, done.stderr[-2000:]
+        assert len(lines) == 1 and f"disk full while writing in {disk}" in lines[0], lines
+        assert sha256(db) == digest and names(disk) == [".scene.miho.db.miho-run", "scene.db"]
