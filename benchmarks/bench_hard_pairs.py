@@ -117,7 +117,7 @@ def build_pairs(root: Path, cache: Path, max_matches: int, groups: set[str]) -> 
 
 def parse_variant(text: str) -> tuple[str, dict]:
     """``name:key=value,key=value`` -> (name, overrides) with values parsed as Python literals
-    where possible (``true``/``false`` accepted)."""
+    where possible (``true``/``false``/``none`` accepted)."""
     name, _, rest = text.partition(":")
     over = {}
     for item in filter(None, rest.split(",")):
@@ -125,6 +125,8 @@ def parse_variant(text: str) -> tuple[str, dict]:
         low = v.lower()
         if low in ("true", "false"):
             over[k] = low == "true"
+        elif low == "none":
+            over[k] = None
         else:
             try:
                 over[k] = int(v)
