@@ -12,7 +12,7 @@ cameras (tracks seen by >= 3 GT images; tracks above 4 px are "wrong", counted a
     python benchmarks/bench_accuracy.py [--data ../shared/data] [--work /tmp/bench_accuracy]
         [--scenes demo middlebury_temple_sparse_ring strecha_fountain_p11 strecha_entry_p10]
         [--settings default permissive] [--recipe mop_miho_ncc] [--set ncc.template_radius=6]
-        [--variant NAME[:key=value,key=value]] ... [--workers 2] [--json out.json]
+        [--variant NAME[:key=value,key=value]] ... [--workers 2] [--seed 0] [--json out.json]
 
 A variant is a name and ``--set`` overrides on top of ``--recipe`` and the global ``--set``s;
 the special key ``recipe=NAME`` swaps the base recipe for that variant, e.g.::
@@ -180,6 +180,8 @@ def main(argv=None) -> int:
     ap.add_argument("--variant", dest="variants", action="append", default=[], metavar="NAME[:K=V,K=V]",
                     help="a variant to run (repeatable); 'recipe=NAME' swaps the base recipe")
     ap.add_argument("--workers", type=int, default=2, help="refine_database workers (default 2)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="refine_database seed (another seed shows the run-to-run spread)")
     ap.add_argument("--max-features", type=int, default=4096, help="SIFT features per image (demo: 2048)")
     ap.add_argument("--json", type=Path, default=None, help="write the rows as JSON")
     args = ap.parse_args(argv)
@@ -215,7 +217,7 @@ def main(argv=None) -> int:
                 out = args.work / scene / setting / "variants" / f"{name}.db"
                 out.parent.mkdir(parents=True, exist_ok=True)
                 summary = refine_database(db, image_dir, out, recipe=recipes[name], overwrite=True, restart=True,
-                                          workers=args.workers, seed=0)
+                                          workers=args.workers, seed=args.seed)
                 k = measure(summary.output, gt)
                 b, a = base.get("residual_median_px"), k.get("residual_median_px")
                 rows.append({

@@ -28,6 +28,7 @@ github.com/fb82/MiHo with its requirements (not shipped here;
     python benchmarks/bench_hard_pairs.py --methods mop_miho,mop --no-magsac --runs 3 \\
         --reference ~/src/MiHo                                 # side by side with the authors'
     python benchmarks/bench_hard_pairs.py --methods mop_miho --per-pair
+    python benchmarks/bench_hard_pairs.py --methods mop_miho --no-magsac --profile  # RANSAC counters
     python benchmarks/bench_hard_pairs.py --methods mop_miho \\
         --variant uniform:sampling=uniform --variant ref:assignment=reference
 
@@ -116,7 +117,7 @@ def build_pairs(root: Path, cache: Path, max_matches: int, groups: set[str]) -> 
 
 def parse_variant(text: str) -> tuple[str, dict]:
     """``name:key=value,key=value`` -> (name, overrides) with values parsed as Python literals
-    where possible (``true``/``false`` accepted)."""
+    where possible (``true``/``false``/``none`` accepted)."""
     name, _, rest = text.partition(":")
     over = {}
     for item in filter(None, rest.split(",")):
@@ -124,6 +125,8 @@ def parse_variant(text: str) -> tuple[str, dict]:
         low = v.lower()
         if low in ("true", "false"):
             over[k] = low == "true"
+        elif low == "none":
+            over[k] = None
         else:
             try:
                 over[k] = int(v)
@@ -158,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", type=int, default=1, help="timed calls per pair and method")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--per-pair", action="store_true", help="print one line per pair")
+    ap.add_argument("--profile", action="store_true",
+                    help="also print the filters' RANSAC counters per pair and CPU ms per MOP round")
     args = ap.parse_args(argv)
     root = data_root()
     if not (root / "README.md").is_file():
@@ -167,12 +172,19 @@ def main(argv: list[str] | None = None) -> int:
     pairs = build_pairs(root, cache, args.max_matches, set(args.groups.split(",")))
     variants = [("default", {})] + [parse_variant(v) for v in args.variant]
     runners = []
+    counters: dict[str, list[dict]] = {}  # per filter: the stats of each call (--profile)
+
+    def run_filter(p1, p2, cfg: FilterConfig, label: str) -> np.ndarray:
+        c0 = time.process_time()
+        res = filter_matches(p1, p2, config=cfg, seed=args.seed)
+        counters.setdefault(label, []).append({**res.stats, "cpu": time.process_time() - c0})
+        return res.inliers
+
     for m in args.methods.split(","):
         for vname, over in variants:
             cfg = FilterConfig(method=m, **over)
             label = m if vname == "default" else f"{m}/{vname}"
-            runners.append((label, lambda p1, p2, c=cfg: filter_matches(p1, p2, config=c,
-                                                                         seed=args.seed).inliers))
+            runners.append((label, lambda p1, p2, c=cfg, lab=label: run_filter(p1, p2, c, lab)))
     if not args.no_magsac:
         for t in (0.75, 3.0):
             runners.append((f"magsac++ H {t:g}px",
@@ -186,6 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     warm = rng.uniform(0, 500, (100, 2)), rng.uniform(0, 500, (100, 2))
     for _, run in runners:
         run(*warm)
+    counters.clear()
     rows: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
     for hp in pairs:
         for label, run in runners:
@@ -226,7 +239,26 @@ def main(argv: list[str] | None = None) -> int:
     for name, rem, keep, sec in QUOTED:
         print(f"| {name} | " + " | ".join("" for _ in groups) + f" | {rem:.3f} | {keep:.3f} | "
               f"{sec} | |")
+    if args.profile:
+        print_profile(counters)
     return 0
+
+
+PROFILE_KEYS = ("rounds", "drawn", "samples", "valid", "full_scored")
+
+
+def print_profile(counters: dict[str, list[dict]]) -> None:
+    """Mean RANSAC counters per pair (MOP rounds, minimal samples drawn, samples passing the
+    spread test, valid hypotheses, fully scored ones) and CPU ms per MOP round, per filter."""
+    print("\n| filter | calls | " + " | ".join(f"{k} / pair" for k in PROFILE_KEYS)
+          + " | cpu ms / pair | cpu ms / round |")
+    print("|" + "---|" * (len(PROFILE_KEYS) + 4))
+    for label, calls in counters.items():
+        means = [np.mean([c.get(k, 0) for c in calls]) for k in PROFILE_KEYS]
+        cpu = sum(c["cpu"] for c in calls)
+        rounds = max(sum(c.get("rounds", 0) for c in calls), 1)
+        print(f"| {label} | {len(calls)} | " + " | ".join(f"{v:.1f}" for v in means)
+              + f" | {1000 * cpu / len(calls):.1f} | {1000 * cpu / rounds:.2f} |")
 
 
 if __name__ == "__main__":

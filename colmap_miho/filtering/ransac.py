@@ -1,21 +1,22 @@
 """One RANSAC run of MOP (paper App. A.3), batched and guided: the round loop.
 
 Per run, hypotheses are drawn in batches (``FilterConfig.batch_size``, growing to 8x when
-the stopping bound is far). For each batch: minimal-sample spread test (>= t_l in every
-image), reflection check (MOP*, App. D), closed-form 4-point homographies with the sample's
-quasi-affine signs (both ways, every half) from the same factors, then a one-way float32
-error count on the pool, which bounds the full inlier count from above. Hypotheses are then
-fully scored (two-way, every half, float64) in descending order of that bound until none
-left can beat the best, so the best model is the one exhaustive scoring would pick; the
-normalised-DLT singular-value test (> 0.05) runs just before full scoring, which rejects
-exactly the hypotheses the paper rejects among those that can matter. Buffer candidates are
-the two strongest of each batch with at least n possible inliers (the paper considers every
-hypothesis; a weaker one could not enter a buffer of models worth bootstrapping). The run
-stops at the adaptive bound for confidence ``p`` (never before ``min_iters``, never after
-``max_iters``). Iterations are the samples that pass the spread test: a draw that fails it
-is not a hypothesis, so it counts neither towards c_min / c_max nor against the bound
-(samples that the reflection or quasi-affinity checks reject do count). At most
-``10 x max_iters`` samples are drawn, for pools where almost nothing is spread out.
+the stopping bound is far, by at most ``batch_growth`` from one batch to the next). For each
+batch: minimal-sample spread test (>= t_l in every image), reflection check (MOP*, App. D),
+closed-form 4-point homographies with the sample's quasi-affine signs (both ways, every
+half) from the same factors, then a one-way float32 error count on the pool, which bounds
+the full inlier count from above. Hypotheses are then fully scored (two-way, every half,
+float64) in descending order of that bound until none left can beat the best, so the best
+model is the one exhaustive scoring would pick; the normalised-DLT singular-value test (>
+0.05) runs just before full scoring, which rejects exactly the hypotheses the paper rejects
+among those that can matter. Buffer candidates are the two strongest of each batch with at
+least n possible inliers (the paper considers every hypothesis; a weaker one could not enter
+a buffer of models worth bootstrapping). The run stops at the adaptive bound for confidence
+``p`` (never before ``min_iters``, never after c_max, ``FilterConfig.iteration_cap``).
+Iterations are the samples that pass the spread test: a draw that fails it is not a
+hypothesis, so it counts neither towards c_min / c_max nor against the bound (samples that
+the reflection or quasi-affinity checks reject do count). At most ``10 x c_max`` samples are
+drawn, for pools where almost nothing is spread out.
 
 Sampling is :mod:`.sampling`; the heavy kernels run in :class:`~.scoring.NumpyScoring`
 (numpy, the default) or its torch twin
@@ -106,7 +107,7 @@ class _Search:
 def _required(search: _Search, sampler: Sampler, n: int, cfg: FilterConfig) -> float:
     """Adaptive iteration bound for the current best model (``max_iters`` before any)."""
     if search.count <= 0:
-        return float(cfg.max_iters)
+        return float(cfg.iteration_cap)
     return required_iters(search.count / n, sampler.local_inlier_fraction(search.mask, search.count),
                            sampler.fraction, cfg.confidence)
 
@@ -233,19 +234,23 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         stats["full_scored"] += len(boot)
     sampler = Sampler(problem, pool, cfg, candidates)
     required = _required(search, sampler, n, cfg)
+    last = cfg.batch_size
     # Iterations are the samples that pass the spread test: a draw that fails it is not a
     # hypothesis and counts neither towards c_min / c_max nor against the adaptive bound
     # (samples rejected by the reflection or quasi-affinity checks do count: they are
     # hypotheses found wrong). A pool where almost no sample is spread out stops after
     # _DRAW_CAP x c_max draws.
-    while (stats["samples"] < (target := max(cfg.min_iters, min(required, cfg.max_iters)))
-           and stats["drawn"] < _DRAW_CAP * cfg.max_iters):
+    cap = cfg.iteration_cap
+    while (stats["samples"] < (target := max(cfg.min_iters, min(required, cap)))
+           and stats["drawn"] < _DRAW_CAP * cap):
         # Small batches while the bound may still drop, bigger ones when it will not; sized
-        # by the share of spread-out draws so far.
+        # by the share of spread-out draws so far, growing by at most batch_growth.
         size = cfg.batch_size
         if search.count > 0:
             rate = max(stats["samples"] / max(stats["drawn"], 1), 0.05)
-            size = int(min(max(size, (target - stats["samples"]) / rate), 8 * size))
+            most = 8 * size if not cfg.batch_growth else min(8 * size, last * cfg.batch_growth)
+            size = int(min(max(size, (target - stats["samples"]) / rate), most))
+        last = size
         sample = sampler.draw(rng, size)
         stats["drawn"] += size
         ok = spread_ok(problem, sample, cfg.t_l)

@@ -3,6 +3,8 @@ MiHo's tolerance (half-match vs full-match thresholds) and the rotation fix's ma
 
 from __future__ import annotations
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 from planes import make_scene
@@ -61,6 +63,46 @@ def test_iterations_count_spread_out_samples():
     assert st["samples"] >= cfg.min_iters  # c_min counts samples that pass the spread test
     assert st["drawn"] >= st["samples"] >= st["valid"]
     assert res.count >= 280  # the plane is found
+
+
+
+def test_iteration_cap_follows_the_method_unless_given():
+    assert FilterConfig(method="mop_miho", max_iters=None).iteration_cap == 500
+    assert FilterConfig(method="mop_miho_star", max_iters=None).iteration_cap == 500
+    assert FilterConfig(method="mop", max_iters=None).iteration_cap == 2000
+    assert FilterConfig(method="mop_miho", max_iters=700).iteration_cap == 700
+    with pytest.raises(ValueError, match="min_iters"):
+        FilterConfig(method="mop_miho", max_iters=None, min_iters=600)
+    with pytest.raises(ValueError, match="batch_growth"):
+        FilterConfig(batch_growth=0.5)
+
+
+def test_batch_growth_bounds_each_batch(monkeypatch):
+    # One plane among twice as many random matches, uniform sampling: the first batch's best
+    # model is weak, so without a growth limit the next batch is sized by its far bound.
+    rng = np.random.default_rng(3)
+    x1, x2 = _dense_plane(rng, n=300)
+    x1, x2 = np.r_[x1, rng.uniform(0, 600, (600, 2))], np.r_[x2, rng.uniform(0, 600, (600, 2))]
+    problem = build_problem(x1, x2, miho=False)
+    sizes: list[int] = []
+    draw = Sampler.draw
+
+    def recorded(self, rng, size):
+        sizes.append(size)
+        return draw(self, rng, size)
+
+    monkeypatch.setattr(Sampler, "draw", recorded)
+    runs = {}
+    for growth in (0.0, 2.0):
+        sizes.clear()
+        cfg = FilterConfig(method="mop", sampling="uniform", batch_size=32, batch_growth=growth)
+        res, _ = ransac_round(problem, np.arange(len(x1)), cfg, np.random.default_rng(1), [])
+        assert res is not None and res.count >= 290  # the plane is found either way
+        runs[growth] = list(sizes)
+    assert all(s <= 8 * 32 for s in runs[0.0] + runs[2.0])
+    assert max(b / a for a, b in pairwise(runs[0.0])) > 2  # the limit can bite
+    assert all(b <= 2 * a for a, b in pairwise(runs[2.0]))
+    assert sum(runs[2.0]) < sum(runs[0.0])
 
 
 def _plane_with_offsets(offsets):

@@ -1,0 +1,28 @@
+"""The filter profiling benchmarks add up the filter's own RANSAC counters."""
+
+from __future__ import annotations
+
+import numpy as np
+from bench_filter_scenes import COUNTERS, Pair, run_pass
+from bench_hard_pairs import print_profile
+from planes import make_scene
+
+from colmap_miho import filter_matches
+from colmap_miho.filtering.config import FilterConfig
+
+
+def test_run_pass_sums_the_counters_of_every_pair(capsys):
+    scenes = [make_scene(np.random.default_rng(s), outlier_ratio=0.5) for s in (1, 2)]
+    pairs = [Pair(sc.x1, sc.x2, seed=7 + k) for k, sc in enumerate(scenes)]
+    configs = {"fast": FilterConfig(batch_growth=2, max_iters=None), "default": FilterConfig()}
+    out = run_pass(pairs, configs)
+    for name, cfg in configs.items():
+        results = [filter_matches(p.pts1, p.pts2, config=cfg, seed=p.seed) for p in pairs]
+        for key in COUNTERS:
+            assert out[name][key] == sum(r.stats[key] for r in results)
+        assert out[name]["kept"] == sum(r.num_inliers for r in results)
+        assert out[name]["cpu"] > 0
+    # the cap of 500 per round draws fewer samples than 2000 on these pairs
+    assert out["fast"]["samples"] < out["default"]["samples"]
+    print_profile({"x": [{"rounds": 4, "drawn": 10, "cpu": 0.02}]})
+    assert "| x | 1 | 4.0 | 10.0 | 0.0 | 0.0 | 0.0 | 20.0 | 5.00 |" in capsys.readouterr().out
