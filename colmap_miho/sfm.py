@@ -249,7 +249,8 @@ def run_mapping(
     """
     from .adapters.database import count_images, validate_database, write_camera_intrinsics
     from .adapters.paths import refuse_text_model
-    from .adapters.safety import check_database_path, disk_full_error, is_disk_full, private_tempdir, read_copy
+    from .adapters.safety import check_database_path, read_copy
+    from .adapters.staged_write import disk_full_error, is_disk_full, private_tempdir
 
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
@@ -368,8 +369,8 @@ def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir:
 def _write_largest(models: dict, output: Path):
     """Write the model with the most registered images (then points) to ``output``, replacing
     model files there (staged, read back, then renamed: see
-    :func:`~colmap_miho.adapters.safety.write_model_atomic`); returns it."""
-    from .adapters.safety import write_model_atomic
+    :func:`~colmap_miho.adapters.staged_write.write_model_atomic`); returns it."""
+    from .adapters.staged_write import write_model_atomic
 
     best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
     write_model_atomic(best, output)

@@ -24,18 +24,9 @@ from . import hloc
 from .database import ColmapDatabase, validate_database, verify_geometry
 from .images import image_size
 from .paths import leaves_folder
-from .safety import (
-    check_database_path,
-    check_free_space,
-    check_integrity,
-    check_not_in_use,
-    disk_full_error,
-    is_disk_full,
-    private_tempdir,
-    publish_new_file,
-    read_copy,
-    staged_write,
-)
+from .safety import check_database_path, check_free_space, check_integrity, check_not_in_use, read_copy
+from .staged_write import disk_full_error, is_disk_full, private_tempdir, staged_write
+from .working_copy import publish_new_file
 
 log = logging.getLogger(__name__)
 

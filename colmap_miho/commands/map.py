@@ -55,7 +55,7 @@ def run(args) -> int:
     result = run_mapping(args.database, args.images, args.output, config,
                          progress=not args.quiet, verbose=args.verbose)
     if args.json:
-        from ..adapters.safety import write_text_atomic
+        from ..adapters.staged_write import write_text_atomic
 
         args.json.parent.mkdir(parents=True, exist_ok=True)
         write_text_atomic(args.json, json.dumps(result.to_dict(), indent=2))

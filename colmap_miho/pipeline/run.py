@@ -42,7 +42,8 @@ from pathlib import Path
 
 from ..adapters.database import ColmapDatabase, validate_database
 from ..adapters.paths import check_distinct
-from ..adapters.safety import WorkingCopy, check_database_path
+from ..adapters.safety import check_database_path
+from ..adapters.working_copy import WorkingCopy
 from ..enums import Device
 from ..errors import DatabaseError, RunFailed, UserError
 from ..recipe import Recipe, load_recipe

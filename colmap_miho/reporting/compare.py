@@ -235,7 +235,7 @@ def _write_plots(output: Path, baseline: dict, refined: dict, changes: dict) -> 
 def _write_tables(output: Path, baseline: dict, refined: dict, refine: dict, changes: dict, clouds: dict,
                   plot_files: list[Path]) -> tuple[Path, Path]:
     """compare.md and compare.json (the JSON without the per-pair rows)."""
-    from ..adapters.safety import write_text_atomic
+    from ..adapters.staged_write import write_text_atomic
     from .report import write_report_json
 
     md = output / "compare.md"

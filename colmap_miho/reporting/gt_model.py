@@ -167,7 +167,7 @@ def write_colmap_model(poses: dict[str, CameraPose], out_dir: str | Path) -> Pat
             f"{t[0]:.15g} {t[1]:.15g} {t[2]:.15g} {cameras[key]} {name}"
         )
         img_lines.append("")  # no 2D points
-    from ..adapters.safety import write_text_atomic
+    from ..adapters.staged_write import write_text_atomic
 
     # each file staged, size-checked and renamed: a full disk leaves no empty or short file
     write_text_atomic(out / "cameras.txt", "# CAMERA_ID MODEL WIDTH HEIGHT fx fy cx cy\n" + "\n".join(cam_lines) + "\n")

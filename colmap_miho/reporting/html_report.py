@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..adapters.safety import write_text_atomic
+from ..adapters.staged_write import write_text_atomic
 from .model_view import COLORS, POINT_BUDGET, SIDE_LABEL, model_figure, moved_keypoints
 from .tables import comparison_rows
 

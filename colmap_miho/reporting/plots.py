@@ -25,7 +25,7 @@ def _pyplot():
 
 def _save(fig, path: Path) -> None:
     """``fig`` as a PNG at ``path``, whole or not at all (staged beside it, then renamed)."""
-    from ..adapters.safety import staged_write
+    from ..adapters.staged_write import staged_write
 
     with staged_write(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")

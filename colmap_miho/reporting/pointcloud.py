@@ -81,7 +81,7 @@ def export_ply(reconstruction, path: str | Path) -> Path:
     Raises:
         RunFailed: disk full (the file came out short); ``path`` is left as it was.
     """
-    from ..adapters.safety import ply_size, staged_write
+    from ..adapters.staged_write import ply_size, staged_write
 
     path = Path(path)
     if not path.parent.is_dir():
@@ -107,7 +107,7 @@ def write_ply(points: np.ndarray, path: str | Path, colors: np.ndarray | None = 
         rows["red"], rows["green"], rows["blue"] = c[:, 0], c[:, 1], c[:, 2]
     props = "".join(f"property {'float' if t == '<f4' else 'uchar'} {n}\n" for n, t in fields)
     header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(p)}\n{props}end_header\n"
-    from ..adapters.safety import write_bytes_atomic
+    from ..adapters.staged_write import write_bytes_atomic
 
     path = Path(path)
     write_bytes_atomic(path, header.encode("ascii") + rows.tobytes())
@@ -319,7 +319,7 @@ def _render_open3d(p, c, path: Path, width: int, height: int) -> None:
     lo, hi = (p.min(0), p.max(0)) if len(p) else (np.zeros(3), np.ones(3))
     centre, extent = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) or 1.0
     r.setup_camera(60.0, centre, centre + np.array([0.0, -0.3, -1.2]) * extent, [0.0, -1.0, 0.0])
-    from ..adapters.safety import staged_write
+    from ..adapters.staged_write import staged_write
 
     with staged_write(path) as tmp:
         png = f"{tmp}.png"  # open3d picks the format by the suffix
@@ -363,7 +363,7 @@ def _render_matplotlib(p, c, path: Path, width: int, height: int, title: str | N
     ax.set_ylabel("axis 3 (depth)")
     ax.set_zlabel("axis 2")
     ax.set_title(title or f"{len(p)} points ({len(p) - shown} far points not drawn)")
-    from ..adapters.safety import staged_write
+    from ..adapters.staged_write import staged_write
 
     with staged_write(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")

@@ -133,7 +133,8 @@ def read_database_inliers(database: str | Path) -> DatabaseInliers:
     removed there).
     """
     from ..adapters.database import ColmapDatabase, validate_database
-    from ..adapters.safety import check_database_path, private_tempdir, read_copy
+    from ..adapters.safety import check_database_path, read_copy
+    from ..adapters.staged_write import private_tempdir
 
     database = check_database_path(database)
     kps: dict[str, np.ndarray] = {}
@@ -365,7 +366,7 @@ def write_report_json(report: dict, path: str | Path) -> Path:
     the target, size checked, renamed; a symlink keeps its link); returns the path."""
     import json
 
-    from ..adapters.safety import write_text_atomic
+    from ..adapters.staged_write import write_text_atomic
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from disk import fill, small_disk
 
-from colmap_miho.adapters.safety import is_disk_full
+from colmap_miho.adapters.staged_write import is_disk_full
 from colmap_miho.cli import main
 
 
@@ -131,7 +131,7 @@ def test_refine_on_a_disk_too_small_is_refused_up_front(db_copy, scene, tmp_path
 
 def test_refine_fits_the_space_it_asks_for(db_copy, scene, tmp_path):
     """With exactly the free space the check asks for, a full run (filter, refine, write) ends."""
-    from colmap_miho.adapters.safety import working_space
+    from colmap_miho.adapters.working_copy import working_space
 
     size = db_copy.stat().st_size
     with small_disk(tmp_path / "mnt", "16m") as disk:

@@ -18,7 +18,7 @@ import pytest
 from helpers import REPO, start_at_write
 
 from colmap_miho.adapters.paths import check_distinct, same_file
-from colmap_miho.adapters.safety import WorkingCopy
+from colmap_miho.adapters.working_copy import WorkingCopy
 from colmap_miho.cli import main
 from colmap_miho.errors import DatabaseError, UserError
 

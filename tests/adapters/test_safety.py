@@ -13,13 +13,8 @@ from pathlib import Path
 import pytest
 from helpers import start_at_write
 
-from colmap_miho.adapters.safety import (
-    WorkingCopy,
-    backup_path,
-    check_database_path,
-    check_not_in_use,
-    default_output_path,
-)
+from colmap_miho.adapters.safety import backup_path, check_database_path, check_not_in_use, default_output_path
+from colmap_miho.adapters.working_copy import WorkingCopy
 from colmap_miho.cli import main
 from colmap_miho.errors import DatabaseError, UserError
 
@@ -147,7 +142,7 @@ def test_sigkill_mid_write_leaves_input_identical(db_copy, scene, tmp_path, capf
     left = leftovers(db_copy.parent)
     assert left and all(name.startswith(".out.db.") for name in left)
     # the next run says so, names it, and leaves it alone (another run might own it)
-    from colmap_miho.adapters.safety import leftover_copies
+    from colmap_miho.adapters.working_copy import leftover_copies
 
     copies = [name for name in left if name.endswith(".tmp")]  # the rest: its -wal, -shm
     assert len(copies) == 1 and [f.name for f in leftover_copies(out)] == copies

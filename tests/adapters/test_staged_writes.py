@@ -10,12 +10,7 @@ from pathlib import Path
 import pytest
 from disk import fill, small_disk
 
-from colmap_miho.adapters.safety import (
-    private_tempdir,
-    staged_write,
-    write_model_atomic,
-    write_text_atomic,
-)
+from colmap_miho.adapters.staged_write import private_tempdir, staged_write, write_model_atomic, write_text_atomic
 from colmap_miho.cli import main
 from colmap_miho.errors import RunFailed
 
@@ -135,7 +130,7 @@ def test_private_tempdir_is_removed_by_the_next_run_after_a_kill(tmp_path):
     import subprocess
     import sys
 
-    code = ("import os, sys; from colmap_miho.adapters.safety import private_tempdir\n"
+    code = ("import os, sys; from colmap_miho.adapters.staged_write import private_tempdir\n"
             "with private_tempdir('colmap_miho_map_', sys.argv[1]) as d:\n"
             "    (d / 'database.db').write_bytes(b'x' * 1000); os._exit(9)\n")
     subprocess.run([sys.executable, "-c", code, str(tmp_path)], check=False)
@@ -165,7 +160,7 @@ def test_refine_and_map_json_through_a_symlink(db_copy, scene, tmp_path):
 
 def test_a_new_file_never_replaces_one_that_appeared_meanwhile(tmp_path):
     """import's last step: a database another run published first is kept, this one refused."""
-    from colmap_miho.adapters.safety import publish_new_file
+    from colmap_miho.adapters.working_copy import publish_new_file
     from colmap_miho.errors import UserError
 
     theirs = tmp_path / "new.db"

@@ -1,0 +1,269 @@
+"""Writing a user-visible file whole or not at all, and telling a full disk from other errors.
+
+Every file a command writes goes through :func:`staged_write`: a unique hidden name beside the
+target, flushed, its size checked after close (a native writer's silence is not trusted), then
+renamed onto the target; removed on failure. A symlink target keeps its link. Private temporary
+folders (:func:`private_tempdir`) are locked while in use and removed by the next run after a kill.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import logging
+import os
+import shutil
+import sqlite3
+import tempfile
+from pathlib import Path
+
+from ..errors import RunFailed, UserError
+from .safety import _WORKING_FILES, _fsync_dir, _umask
+
+log = logging.getLogger(__name__)
+
+DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+#: What SQLite (through pycolmap's RuntimeError) says when the disk is full.
+SQLITE_FULL_TEXT = ("database or disk is full", "disk i/o error", "no space left on device")
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """True for a full disk: ENOSPC / EDQUOT / EFBIG, SQLite's ``SQLITE_FULL`` and pycolmap's
+    ``RuntimeError: ... database or disk is full``."""
+    if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
+        return True
+    if isinstance(exc, (OSError, RuntimeError, sqlite3.Error)):  # h5py's OSError carries no errno
+        text = str(exc).lower()
+        return any(t in text for t in SQLITE_FULL_TEXT)
+    return False
+
+
+def disk_full_error(folder: Path, what: str) -> RunFailed:
+    """The one-line error of a full disk: it names the file system's folder and what was kept."""
+    free = ""
+    with contextlib.suppress(OSError):
+        free = f" ({shutil.disk_usage(folder).free / 1e6:.1f} MB free)"
+    return RunFailed(f"disk full in {folder}{free} while {what}; nothing was written under the output name "
+                     "and the working files were removed: free some space and retry")
+
+
+def write_target(path: str | os.PathLike) -> Path:
+    """The file that writing ``path`` should replace: a symlink's target (the link is kept and
+    shows the new content), else ``path`` itself."""
+    p = Path(path)
+    return p.resolve() if p.is_symlink() else p
+
+
+def _new_staging_name(target: Path) -> Path:
+    """A new, empty, uniquely named hidden file ``.<name>.<random>.tmp`` beside ``target``
+    (never a fixed name: two runs, or a user's own file, are never touched)."""
+    try:
+        fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except FileNotFoundError:
+        raise UserError(f"cannot write {target}: its folder {target.parent} does not exist") from None
+    except OSError as exc:
+        if is_disk_full(exc):
+            raise disk_full_error(target.parent, f"writing {target}") from None
+        raise UserError(f"cannot write {target}: {exc.strerror or exc}") from None
+    os.close(fd)
+    return Path(name)
+
+
+def _check_written(tmp: Path, target: Path, expected_size: int | None) -> None:
+    """Flush ``tmp`` to disk and check its size (``expected_size``, else > 0): a native writer
+    that hits a full disk often says nothing and leaves a short or empty file."""
+    with open(tmp, "rb+") as fh:
+        os.fsync(fh.fileno())
+        size = os.fstat(fh.fileno()).st_size
+    if (size != expected_size) if expected_size is not None else size == 0:
+        want = f"{expected_size} bytes expected" if expected_size is not None else "an empty file"
+        raise disk_full_error(target.parent, f"writing {target} ({size} bytes written, {want})")
+
+
+@contextlib.contextmanager
+def staged_write(path: str | os.PathLike, *, expected_size=None):
+    """Write one output file whole or not at all: the one rule of every file a command writes.
+
+    Yields a new, uniquely named hidden file beside the target (see :func:`write_target`: a
+    symlink's target is written and the link kept) for the caller (or a native writer) to
+    fill. After the block it is flushed to disk, its size checked (``expected_size``: bytes,
+    or a callable taking the written path, e.g. :func:`ply_size`; default: not empty), and
+    renamed onto the target; on any failure it is removed and the target left as it was.
+
+    Raises:
+        RunFailed: disk full (one line naming the folder), or a short write.
+        UserError: a missing or read-only folder.
+    """
+    target = write_target(path)
+    tmp = _new_staging_name(target)
+    _WORKING_FILES.add(tmp)
+    try:
+        try:
+            yield tmp
+            try:
+                expected = expected_size(tmp) if callable(expected_size) else expected_size
+            except ValueError as exc:  # no readable header: cut short
+                raise disk_full_error(target.parent, f"writing {target} ({exc})") from None
+            _check_written(tmp, target, expected)
+            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private
+            os.replace(tmp, target)
+        except OSError as exc:
+            if is_disk_full(exc):
+                raise disk_full_error(target.parent, f"writing {target}") from None
+            raise
+        except RuntimeError as exc:
+            if is_disk_full(exc):
+                raise disk_full_error(target.parent, f"writing {target}") from None
+            raise
+        _fsync_dir(target.parent)
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        _WORKING_FILES.discard(tmp)
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
+    """:func:`staged_write` of ``data``; returns the path written (a symlink's target)."""
+    with staged_write(path, expected_size=len(data)) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+    return write_target(path)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """:func:`staged_write` of ``text`` (UTF-8); returns the path written."""
+    return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def ply_size(path: Path) -> int:
+    """The size a binary PLY file must have by its own header (vertex count times the bytes of
+    its properties, plus the header): checks the output of a native PLY writer.
+
+    Raises:
+        ValueError: no readable header (a write cut short before it ended).
+    """
+    sizes = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+             "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+    with open(path, "rb") as fh:
+        head = fh.read(65536)
+    end = head.find(b"end_header\n")
+    if not head.startswith(b"ply") or end < 0:
+        raise ValueError(f"{len(head)} bytes, no complete PLY header")
+    total, count, row = end + len(b"end_header\n"), 0, 0
+    for line in head[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if words[:1] == ["element"]:
+            total += count * row
+            count, row = int(words[2]), 0
+        elif words[:1] == ["property"] and words[1] != "list":
+            row += sizes.get(words[1], 0)
+    return total + count * row
+
+
+def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool = False) -> Path:
+    """Write a ``pycolmap.Reconstruction`` into ``folder`` without trusting the native writer:
+    it writes into a new hidden folder beside ``folder``, which is read back (the counts of
+    cameras, images and points must match), then each file is renamed into ``folder`` and the
+    model files of the other format (.bin / .txt) left there are removed.
+
+    Raises:
+        RunFailed: disk full (the read-back fails or differs); ``folder`` is left as it was.
+    """
+    import pycolmap
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        stage = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    except OSError as exc:
+        if is_disk_full(exc):
+            raise disk_full_error(folder.parent, f"writing the model {folder}") from None
+        raise
+    _WORKING_FILES.add(stage)
+    try:
+        try:
+            if text:
+                reconstruction.write_text(str(stage))
+            else:
+                reconstruction.write(str(stage))
+            for f in stage.iterdir():
+                with open(f, "rb+") as fh:
+                    os.fsync(fh.fileno())
+            back = pycolmap.Reconstruction(str(stage))
+            counts = (back.num_cameras(), back.num_images(), back.num_points3D())
+            if counts != (reconstruction.num_cameras(), reconstruction.num_images(), reconstruction.num_points3D()):
+                raise RuntimeError("database or disk is full: the model read back differs")
+        except (OSError, RuntimeError, ValueError, IndexError) as exc:
+            if isinstance(exc, OSError) and not is_disk_full(exc):
+                raise
+            raise disk_full_error(folder.parent, f"writing the model {folder}") from None
+        written = {f.name for f in stage.iterdir()}
+        for f in sorted(stage.iterdir()):
+            os.replace(f, folder / f.name)
+        from .paths import MODEL_STEMS
+
+        for stem in MODEL_STEMS:
+            for ext in (".bin", ".txt"):
+                if f"{stem}{ext}" not in written:
+                    (folder / f"{stem}{ext}").unlink(missing_ok=True)
+        _fsync_dir(folder)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        _WORKING_FILES.discard(stage)
+    return folder
+
+
+#: The lock file inside a :func:`private_tempdir`: held while its run lives.
+_TEMPDIR_LOCK = ".colmap-miho.lock"
+
+
+@contextlib.contextmanager
+def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
+    """A new temporary folder (``parent``, default ``$TMPDIR``) removed on exit, and also by
+    the next run after a ``kill -9``: the folder holds a lock file locked (``flock``) while its
+    run lives, and earlier folders of the same ``prefix`` whose lock nobody holds are removed
+    first (only folders with that lock file: never a user's folder).
+
+    Raises:
+        RunFailed: disk full while creating it.
+    """
+    where = Path(parent) if parent is not None else Path(tempfile.gettempdir())
+    _remove_stale_tempdirs(where, prefix)
+    try:
+        path = Path(tempfile.mkdtemp(prefix=prefix, dir=where))
+        lock = open(path / _TEMPDIR_LOCK, "w")  # noqa: SIM115 - held open for the folder's life
+    except OSError as exc:
+        if is_disk_full(exc):
+            raise disk_full_error(where, "creating a working folder") from None
+        raise
+    fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+    _WORKING_FILES.add(path)
+    try:
+        yield path
+    finally:
+        lock.close()
+        shutil.rmtree(path, ignore_errors=True)
+        _WORKING_FILES.discard(path)
+
+
+def _remove_stale_tempdirs(parent: Path, prefix: str) -> None:
+    with contextlib.suppress(OSError):
+        for folder in parent.glob(f"{prefix}*"):
+            lock_file = folder / _TEMPDIR_LOCK
+            if not folder.is_dir() or not lock_file.is_file():
+                continue
+            try:
+                fd = os.open(lock_file, os.O_RDWR)
+            except OSError:
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:  # a live run holds it
+                continue
+            finally:
+                os.close(fd)
+            shutil.rmtree(folder, ignore_errors=True)
+            log.info("removed %s, left by an interrupted earlier run", folder)

@@ -1,0 +1,319 @@
+"""The working copy of a user's database: every stage works on a private copy beside the output,
+and only the commit publishes it (a new file, or an atomic replace of the input with a backup
+when in place). A crash, Ctrl-C or kill at any moment leaves the input as it was.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sqlite3
+import stat
+import tempfile
+from pathlib import Path
+
+from ..errors import DatabaseError, RunFailed, UserError
+from .safety import (
+    _PENDING_BACKUPS,
+    _WORKING_FILES,
+    SIDE_SUFFIXES,
+    _fsync_dir,
+    _locked_by_other_process,
+    _umask,
+    _unused_stamped_name,
+    backup_path,
+    check_free_space,
+    check_integrity,
+    check_not_in_use,
+    copy_file,
+    default_output_path,
+    file_identity,
+    remove_with_side_files,
+    side_files,
+)
+from .staged_write import _check_written, _new_staging_name, is_disk_full, write_target
+
+log = logging.getLogger(__name__)
+
+#: Free space a refine run needs beside its output, in database sizes: the working copy, its
+#: write-ahead log (up to the rewritten pages: about the copy again) and the run store of
+#: filtered pairs and refined groups, with a margin over the peak measured on a small tmpfs
+#: (``test_refine_fits_the_space_it_asks_for`` runs with exactly this much). A write that
+#: still fills the disk ends with one line (see ``ColmapDatabase.transaction``).
+WORKING_SPACE_FACTOR = 3.5
+
+
+#: Free space on top of :data:`WORKING_SPACE_FACTOR`, bytes (SQLite's pages and the -shm file
+#: of a small database).
+WORKING_SPACE_MARGIN = 1 << 20
+
+
+def working_space(size: int, *, in_place: bool = False) -> int:
+    """Bytes of free space a run on a database of ``size`` bytes needs beside its output (in
+    place: the backup too)."""
+    return int((WORKING_SPACE_FACTOR + (1 if in_place else 0)) * size) + WORKING_SPACE_MARGIN
+
+
+class WorkingCopy:
+    """Plan and carry out the safe write of a processed database.
+
+    Use as a context manager: ``path`` is a temporary copy of the input beside the output.
+    Call :meth:`commit` after all writes (and after every database handle on ``path`` is
+    closed) to move it onto the output. Leaving the block without commit, or with an
+    exception, deletes the temporary copy (and, in place, the now useless backup); the input
+    is never written.
+
+    The checks made at the start are made again at commit time, right before the replace:
+    an output that appeared meanwhile (another run) is not replaced without ``overwrite``; an
+    output another SQLite client holds open is never replaced (SQLite would later apply that
+    client's journal to the new file); in place, the input must be unchanged (device, inode,
+    size, mtime and header), else the result is kept beside it under a visible name.
+
+    Args:
+        database: the input database (checked, not opened). In place on a symlink, the link's
+            target is replaced and the link kept.
+        output: the output path, or None for ``<stem>.miho.db`` beside the input.
+        in_place: replace the input itself, after copying it to a timestamped backup.
+        overwrite: allow replacing an existing ``output``.
+    """
+
+    def __init__(self, database: Path, output: Path | None = None, *, in_place: bool = False,
+                 overwrite: bool = False) -> None:
+        self.database = Path(database)
+        if in_place and output is not None and Path(output).resolve() != self.database.resolve():
+            raise UserError("use either --output or --in-place, not both")
+        self.in_place = in_place
+        self.overwrite = overwrite
+        # in place on a symlink: replace the real file (beside it), keep the link
+        if in_place:
+            self.output = self.database.resolve()
+        else:
+            self.output = Path(output) if output else default_output_path(self.database)
+        if not in_place:
+            if self.output.resolve() == self.database.resolve() or _same_inode(self.output, self.database):
+                raise UserError(f"output {self.output} is the input database; use --in-place to replace it")
+            if self.output.is_dir():
+                raise UserError(f"output {self.output} is a folder; give a database file name")
+            if self.output.exists() and not overwrite:
+                raise UserError(f"output {self.output} exists; pass --overwrite to replace it")
+            if not self.output.parent.is_dir():
+                raise UserError(f"output folder does not exist: {self.output.parent}")
+            if self.output.exists():
+                check_not_in_use(self.output)
+        if not os.access(self.output.parent, os.W_OK | os.X_OK):
+            raise UserError(f"cannot write in {self.output.parent} (read-only folder); "
+                            + ("copy the database to a writable folder" if in_place else "choose another --output"))
+        self.backup: Path | None = None
+        self.path: Path | None = None
+        self.committed = False
+        self._identity: tuple | None = None
+        self._side: list[tuple[Path, Path]] = []
+
+    def __enter__(self) -> WorkingCopy:
+        check_not_in_use(self.database)
+        _warn_leftover_copies(self.output)
+        size = self.database.stat().st_size
+        check_free_space(self.output.parent, working_space(size, in_place=self.in_place),
+                         f"refining {self.database}" + (" in place (with its backup)" if self.in_place else ""))
+        self._identity = file_identity(self.output if self.in_place else self.database)
+        if self.in_place:
+            backup = backup_path(self.output)
+            copy_file(self.database, backup)
+            self.backup = backup
+            _PENDING_BACKUPS[backup] = (self.output, self._identity)
+            log.info("backup of the input written to %s", self.backup)
+        try:
+            fd, name = tempfile.mkstemp(prefix=f".{self.output.name}.", suffix=".tmp", dir=self.output.parent)
+        except OSError as exc:
+            self._drop_backup()
+            raise UserError(f"cannot create a working copy in {self.output.parent}: {exc.strerror}") from None
+        os.close(fd)
+        self.path = Path(name)
+        _WORKING_FILES.add(self.path)
+        try:
+            copy_file(self.database, self.path)
+            check_integrity(self.path, self.database)
+            # mkstemp makes the file private (0600): give the result the input's permissions
+            os.chmod(self.path, stat.S_IMODE(self.database.stat().st_mode))
+        except BaseException:
+            remove_with_side_files(self.path)
+            self._drop_backup()
+            raise
+        return self
+
+    def stage_side_file(self, path: str | os.PathLike, text: str) -> None:
+        """Write ``text`` now to a new hidden file beside ``path`` (flushed, size checked);
+        :meth:`commit` renames it onto ``path`` right after the database (so a bad path fails
+        before anything is replaced, and no side file describes a result that was not
+        committed). A symlink ``path`` keeps its link: its target is replaced.
+
+        Raises:
+            UserError: the file cannot be written (missing or read-only folder, disk full).
+        """
+        target = write_target(path)
+        data = text.encode("utf-8")
+        try:
+            tmp = _new_staging_name(target)
+        except UserError as exc:
+            raise UserError(f"{exc}; nothing was replaced") from None
+        try:
+            with open(tmp, "wb") as fh:
+                fh.write(data)
+            _check_written(tmp, target, len(data))
+        except (OSError, UserError) as exc:
+            tmp.unlink(missing_ok=True)
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+            raise UserError(f"cannot write {target}: {why}; nothing was replaced") from None
+        os.chmod(tmp, 0o666 & ~_umask())
+        self._side.append((tmp, target))
+
+    def commit(self) -> Path:
+        """Check again, then atomically move the working copy onto the output; returns it.
+
+        Raises:
+            UserError: the output appeared meanwhile (no ``overwrite``), or is held open.
+            DatabaseError: in place, the input changed during the run; the result is kept
+                beside it (named in the message) and the input is left as it is.
+        """
+        if self.path is None:
+            raise RuntimeError("commit() outside the with block")
+        if self.in_place:
+            self._check_input_unchanged()
+            check_not_in_use(self.output)
+        elif self.output.exists() or self.output.is_symlink():
+            if not self.overwrite:
+                raise UserError(f"output {self.output} was created by another program during the run; "
+                                "nothing was replaced (pass --overwrite to replace it)")
+            check_not_in_use(self.output)
+        for s in SIDE_SUFFIXES:
+            side = Path(str(self.path) + s)
+            if side.exists():
+                raise DatabaseError(f"working copy {self.path} is still open ({side.name} exists)")
+        with open(self.path, "rb+") as fh:
+            os.fsync(fh.fileno())
+        if self.in_place or self.overwrite:
+            os.replace(self.path, self.output)
+        else:
+            _rename_no_replace(self.path, self.output)
+        _WORKING_FILES.discard(self.path)
+        if self.backup is not None:
+            _PENDING_BACKUPS.pop(self.backup, None)  # the replaced input lives on in it
+        _fsync_dir(self.output.parent)
+        self.committed = True
+        for tmp, target in self._side:
+            os.replace(tmp, target)
+        self._side.clear()
+        return self.output
+
+    def _check_input_unchanged(self) -> None:
+        if self.path is None:
+            raise RuntimeError("no working copy to check against")
+        try:
+            now = file_identity(self.output)
+        except OSError:
+            now = None
+        if now == self._identity:
+            return
+        kept = _visible_name(self.output)
+        os.replace(self.path, kept)
+        self.path = None
+        raise DatabaseError(
+            f"database {self.database} changed during the run (another program wrote it), so it "
+            f"was not replaced; the result, made from its earlier state, is kept in {kept} and "
+            f"that state in the backup {self.backup}: rerun on the database as it is now")
+
+    def _drop_backup(self) -> None:
+        """Delete the backup of an in-place run that replaced nothing (the input is as it was)."""
+        if self.backup is None:
+            return
+        try:
+            unchanged = file_identity(self.output) == self._identity
+        except OSError:
+            unchanged = False
+        if unchanged:
+            self.backup.unlink(missing_ok=True)
+            _PENDING_BACKUPS.pop(self.backup, None)
+            self.backup = None
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        for tmp, _ in self._side:
+            tmp.unlink(missing_ok=True)
+        if not self.committed and self.path is not None:  # None: kept beside a changed input
+            remove_with_side_files(self.path)
+            _WORKING_FILES.discard(self.path)
+            self._drop_backup()
+        if isinstance(exc, (RuntimeError, sqlite3.Error)) and is_disk_full(exc):
+            # pycolmap's "database or disk is full" (a RuntimeError): a known condition, one line
+            raise RunFailed(f"disk full while writing in {self.output.parent}; {self.database} is unchanged and "
+                            "the working files were removed: free some space and retry") from None
+
+
+
+
+def _same_inode(a: Path, b: Path) -> bool:
+    try:
+        sa, sb = os.stat(a), os.stat(b)
+    except OSError:
+        return False
+    return (sa.st_dev, sa.st_ino) == (sb.st_dev, sb.st_ino)
+
+
+def _visible_name(database: Path) -> Path:
+    """``<stem>.miho-<time>.db`` beside ``database``, not existing yet."""
+    return _unused_stamped_name(database, lambda stamp: f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
+
+
+def publish_new_file(src: Path, dst: Path) -> None:
+    """Move the finished, closed file ``src`` onto the NEW name ``dst`` (flushed first): only
+    if nothing appeared at ``dst`` meanwhile (another run), atomically where hard links work.
+
+    Raises:
+        UserError: ``dst`` exists.
+    """
+    with open(src, "rb+") as fh:
+        os.fsync(fh.fileno())
+    _rename_no_replace(src, dst)
+    _fsync_dir(dst.parent)
+
+
+def _rename_no_replace(src: Path, dst: Path) -> None:
+    """Move ``src`` to ``dst`` only if ``dst`` does not exist, atomically where the file
+    system supports hard links (a race with another run cannot replace its result).
+
+    Raises:
+        UserError: ``dst`` exists.
+    """
+    try:
+        os.link(src, dst)
+    except FileExistsError:
+        raise UserError(f"output {dst} was created by another program during the run; nothing "
+                        "was replaced (pass --overwrite to replace it)") from None
+    except OSError:  # no hard links here (some network/FAT file systems): check, then rename
+        if dst.exists():
+            raise UserError(f"output {dst} was created by another program during the run; nothing "
+                            "was replaced (pass --overwrite to replace it)") from None
+        os.replace(src, dst)
+        return
+    src.unlink()
+
+
+def leftover_copies(output: Path) -> list[Path]:
+    """Hidden working copies of ``output`` that an earlier run left behind (a run killed with
+    SIGKILL or a power cut cannot delete its own), oldest first. Copies that another process
+    holds open (a run still going) are not listed."""
+    found = [f for f in Path(output).parent.glob(f".{Path(output).name}.*.tmp")
+             if f.is_file() and not _locked_by_other_process(f)]
+    return sorted(found, key=lambda f: f.stat().st_mtime)
+
+
+def _warn_leftover_copies(output: Path) -> None:
+    found = leftover_copies(output)
+    if found:
+        mb = sum(g.stat().st_size for f in found for g in [f, *side_files(f)]) / 1e6
+        log.warning(
+            "%d working cop%s of %s left by an interrupted earlier run (%.0f MB with their "
+            "-wal/-shm files; never the input or a result, safe to delete once no other "
+            "colmap-miho run writes %s): %s",
+            len(found), "y" if len(found) == 1 else "ies", output.name, mb, output.name,
+            ", ".join(f.name for f in found),
+        )
