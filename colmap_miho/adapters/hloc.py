@@ -19,6 +19,9 @@ Matches file, three pair layouts, told apart per pair:
 This module knows nothing of COLMAP: coordinates stay in the pixel-centre convention here.
 The COLMAP database side is :mod:`colmap_miho.adapters.exchange` (``import`` and ``export``
 commands).
+
+(Over 400 lines on purpose: both hloc h5 layouts, read and write, stay side by side so that
+they remain each other's inverse.)
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import h5py
 import numpy as np
 
 from ..errors import InvalidInput
+from .h5_checks import KEYPOINT_BYTES, READ_BUDGET_BYTES, check_budget, check_dataset, check_numeric
 
 log = logging.getLogger(__name__)
 
@@ -104,34 +108,6 @@ def list_feature_images(h5: h5py.File) -> list[str]:
     return names
 
 
-#: The most memory one dataset of an h5 file may ask for when it is read (its shape times the
-#: bytes of the arrays made from it); the default memory budget of a run, ``pipeline.memory_budget_mb``.
-READ_BUDGET_BYTES = 2048 * 2**20
-#: Bytes held per keypoint while one image is imported: float64 (x, y), float32 shapes (2, 2)
-#: and COLMAP's 6 float32 columns.
-KEYPOINT_BYTES = 16 + 16 + 24
-
-
-def _dataset(h5: h5py.File, obj, what: str) -> h5py.Dataset:
-    if not isinstance(obj, h5py.Dataset):
-        raise InvalidInput(f"{h5.filename}: {what} is a group, expected a dataset")
-    return obj
-
-
-def _check_numeric(h5: h5py.File, ds: h5py.Dataset, what: str, kinds: str = "fiu") -> None:
-    """Refuse a dataset whose dtype is not a real number (bool, complex, strings, compound)."""
-    if ds.dtype.kind not in kinds:
-        expected = "integers" if kinds == "iu" else "real numbers"
-        raise InvalidInput(f"{h5.filename}: {what} have dtype {ds.dtype}, expected {expected}")
-
-
-def _check_budget(h5: h5py.File, nbytes: float, what: str, budget: int) -> None:
-    """Refuse, before reading, a dataset whose arrays would take more than ``budget`` bytes."""
-    if nbytes > budget:
-        raise InvalidInput(f"{h5.filename}: {what} would take {nbytes / 2**20:.0f} MiB in memory, more than the "
-                         f"budget of {budget / 2**20:.0f} MiB (a damaged or foreign file?)")
-
-
 def read_features(h5: h5py.File, name: str, *, budget_bytes: int = READ_BUDGET_BYTES) -> ImageFeatures:
     """Read the keypoints of image ``name``.
 
@@ -145,12 +121,12 @@ def read_features(h5: h5py.File, name: str, *, budget_bytes: int = READ_BUDGET_B
     if name not in h5 or not isinstance(h5[name], h5py.Group) or "keypoints" not in h5[name]:
         raise InvalidInput(f"{h5.filename}: image {name!r} has no 'keypoints' group/dataset")
     grp = h5[name]
-    ds = _dataset(h5, grp["keypoints"], f"'keypoints' of image {name!r}")
+    ds = check_dataset(h5, grp["keypoints"], f"'keypoints' of image {name!r}")
     what = f"keypoints of image {name!r}"
     if len(ds.shape) != 2 or ds.shape[1] != 2:
         raise InvalidInput(f"{h5.filename}: {what} have shape {ds.shape}, expected (N, 2)")
-    _check_numeric(h5, ds, what)
-    _check_budget(h5, ds.shape[0] * KEYPOINT_BYTES, f"{what} ({ds.shape[0]} rows)", budget_bytes)
+    check_numeric(h5, ds, what)
+    check_budget(h5, ds.shape[0] * KEYPOINT_BYTES, f"{what} ({ds.shape[0]} rows)", budget_bytes)
     kp = np.asarray(ds[()], dtype=np.float64)
     if not np.isfinite(kp).all():
         raise InvalidInput(f"{h5.filename}: {what} contain NaN or inf")
@@ -168,11 +144,11 @@ def read_features(h5: h5py.File, name: str, *, budget_bytes: int = READ_BUDGET_B
 def _optional_vector(h5: h5py.File, grp: h5py.Group, key: str, n: int, name: str) -> np.ndarray | None:
     if key not in grp:
         return None
-    ds = _dataset(h5, grp[key], f"'{key}' of image {name!r}")
+    ds = check_dataset(h5, grp[key], f"'{key}' of image {name!r}")
     size = int(np.prod(ds.shape)) if ds.shape is not None else 0
     if size != n:
         raise InvalidInput(f"{h5.filename}: image {name!r}: '{key}' has {size} values for {n} keypoints")
-    _check_numeric(h5, ds, f"'{key}' of image {name!r}")
+    check_numeric(h5, ds, f"'{key}' of image {name!r}")
     v = np.asarray(ds[()], dtype=np.float32).reshape(-1)
     if not np.isfinite(v).all():
         raise InvalidInput(f"{h5.filename}: image {name!r}: '{key}' contains NaN or inf")
@@ -286,7 +262,7 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
     label = f"pair ({name0!r}, {name1!r})"
     if layout == "hloc":
         grp = h5[key]
-        ds = _dataset(h5, grp[MATCHES0], f"{label}: '{MATCHES0}'")
+        ds = check_dataset(h5, grp[MATCHES0], f"{label}: '{MATCHES0}'")
         if len(ds.shape) != 1 or ds.dtype.kind not in "iu":
             raise InvalidInput(f"{label}: '{MATCHES0}' has shape {ds.shape} dtype {ds.dtype}, expected (N0,) integers")
         if ds.shape[0] != n0:
@@ -297,20 +273,20 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
         matches = np.stack([idx0, m0[idx0]], axis=1).astype(np.int64)
         scores = None
         if SCORES0 in grp:
-            sd = _dataset(h5, grp[SCORES0], f"{label}: '{SCORES0}'")
+            sd = check_dataset(h5, grp[SCORES0], f"{label}: '{SCORES0}'")
             if int(np.prod(sd.shape)) != n0 or sd.dtype.kind not in "fiu":
                 raise InvalidInput(f"{label}: '{SCORES0}' has shape {sd.shape} dtype {sd.dtype}, expected ({n0},) "
                                  "real numbers")
             s0 = np.asarray(sd[()], dtype=np.float32).reshape(-1)
             scores = s0[idx0]
     else:
-        ds = _dataset(h5, h5[key], f"{label}: matches")
+        ds = check_dataset(h5, h5[key], f"{label}: matches")
         if len(ds.shape) != 2 or ds.shape[1] != 2 or ds.dtype.kind not in "iu":
             raise InvalidInput(f"{label}: matches have shape {ds.shape} dtype {ds.dtype}, "
                              "expected (M, 2) integers")
         if ds.shape[0] > n0 * n1:
             raise InvalidInput(f"{label}: {ds.shape[0]} matches, more than the {n0} x {n1} keypoint pairs")
-        _check_budget(h5, ds.shape[0] * 32, f"{label}: {ds.shape[0]} matches", budget_bytes)
+        check_budget(h5, ds.shape[0] * 32, f"{label}: {ds.shape[0]} matches", budget_bytes)
         matches = np.asarray(ds[()]).astype(np.int64)
         scores = None
     bad = (matches < 0) | (matches >= np.array([n0, n1]))

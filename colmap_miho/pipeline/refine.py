@@ -13,6 +13,9 @@ keeps the images the next group of its run needs.
 
 Results do not depend on the runner, its slots or the budget: groups are whole tracks, which
 never share a keypoint, and each group's walk is exactly the whole plan's walk of its tracks.
+
+(Over 400 lines on purpose: the stage and its scheduling of track groups over the runner's
+slots are one unit; the walk itself is in :mod:`colmap_miho.refinement`.)
 """
 
 from __future__ import annotations
