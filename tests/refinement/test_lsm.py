@@ -140,11 +140,12 @@ def _same(a: dict, b: dict, rows) -> None:
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_result_is_bitwise_independent_of_the_batch(threads):
+@pytest.mark.parametrize("radius", [6, 8])
+def test_result_is_bitwise_independent_of_the_batch(threads, radius):
     """Each match's result is the same alone, in any subset, in any order, and next to the
     matches of another image in an ImageStack."""
-    img_a, H_a, c_a, tpl_a, _ = _problem("camera", seed=1, radius=6)
-    img_b, H_b, c_b, tpl_b, _ = _problem("astronaut", seed=2, radius=6)
+    img_a, H_a, c_a, tpl_a, _ = _problem("camera", seed=1, radius=radius)
+    img_b, H_b, c_b, tpl_b, _ = _problem("astronaut", seed=2, radius=radius)
     n_a = 60
     H = torch.cat([H_a[:n_a], H_b[:40]])
     c = torch.cat([c_a[:n_a], c_b[:40]])
