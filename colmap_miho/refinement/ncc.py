@@ -194,6 +194,10 @@ def refine_pair(
         affine1 = _as_array("affine1", affine1, (2, 2), n)
         affine2 = _as_array("affine2", affine2, (2, 2), n)
     homs = _normalise_signs(homs, p1, p2)
+    # keypoint scales (pixels) of each side, for LSM templates sized by the keypoint
+    kp_scales = None
+    if affine1 is not None and cfg.lsm and cfg.lsm_radius_per_scale > 0:
+        kp_scales = tuple(np.sqrt(np.abs(np.linalg.det(a))) for a in (affine1, affine2))
     device = resolve_device(cfg, image1, image2, pts1, patch_homographies)
     img = (to_gray_tensor(image1, device), to_gray_tensor(image2, device))
 
@@ -243,7 +247,7 @@ def refine_pair(
                 for f, m in directions
             ]
             _decide(res, cimg, sl, cfg, (out1, out2), before, after, moved, disp, rejected,
-                    counts)
+                    counts, kp_scales)
 
     if cfg.check_radius and moved.any():
         _check_agreement(image1, image2, p1, p2, patch_homographies, side, cfg, affine1, affine2,
@@ -303,7 +307,8 @@ def _check_agreement(image1, image2, p1, p2, homs, side, cfg, affine1, affine2, 
     counts["rejected_disagree"] = int(undo.size)
 
 
-def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, counts) -> None:
+def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, counts,
+            kp_scales=None) -> None:
     """Choose the direction per match, reject or accept its move, and refine the accepted
     moves to sub-pixel accuracy (only those: the losing direction needs no sub-pixel step).
     Writes into the output arrays."""
@@ -351,8 +356,10 @@ def _decide(res, img, sl, cfg, outs, before, after, moved, disp, rejected, count
             # LSM starts from the NCC peak's parabola; the matches it does not accept get
             # the iterated parabolas, as without LSM
             img_f = img[f].rows(sel) if isinstance(img[f], ImageStack) else img[f]
+            scale_f = None if kp_scales is None else kp_scales[f][idx[take]]
             off, lsm_counts, accepted = lsm_step(img_f, img_m, r["H_f_inv"][sel],
-                                                 r["frame_f"][sel], H_inv, frame, off, cfg)
+                                                 r["frame_f"][sel], H_inv, frame, off, cfg,
+                                                 scale_f)
             for key, value in lsm_counts.items():
                 counts[key] = counts.get(key, 0) + value
             todo = torch.nonzero(~accepted)[:, 0]
