@@ -95,6 +95,10 @@ class NCCConfig:
             LSM. Off by default (see ``recipes/mop_miho_lsm.toml``).
         lsm_radius: in [0, ``MAX_WINDOW_RADIUS_PX``], half size of the LSM template in pixels
             (0: ``template_radius``).
+        lsm_radius_per_scale: >= 0; 0 (off), or LSM templates sized by the fixed keypoint: radius
+            ``round(lsm_radius_per_scale * scale)`` pixels, clamped to [4, the fixed radius
+            above], where the keypoints carry an affine shape (scale = sqrt |det| of the
+            frame; COLMAP's 4- and 6-column keypoints); the fixed radius elsewhere.
         lsm_affine: estimate the 4 affine terms (8 parameters); False: shift and
             radiometry only.
         lsm_max_iterations: in [1, 50], Gauss-Newton steps at most; a match that has not
@@ -132,6 +136,7 @@ class NCCConfig:
     local_affine_max_residual_px: float = 2.0
     lsm: bool = False
     lsm_radius: int = 0
+    lsm_radius_per_scale: float = 0.0
     lsm_affine: bool = True
     lsm_max_iterations: int = 10
     lsm_tol_px: float = 0.005
@@ -179,6 +184,9 @@ class NCCConfig:
         if not 0 <= self.lsm_radius <= MAX_WINDOW_RADIUS_PX:
             raise ValueError(f"lsm_radius must be in [0, {MAX_WINDOW_RADIUS_PX}] pixels "
                              f"(0: template_radius), got {self.lsm_radius}")
+        if not self.lsm_radius_per_scale >= 0:
+            raise ValueError(f"lsm_radius_per_scale must be >= 0 (0: off), got "
+                             f"{self.lsm_radius_per_scale}")
         if not 1 <= self.lsm_max_iterations <= 50:
             raise ValueError(f"lsm_max_iterations must be in [1, 50], got {self.lsm_max_iterations}")
         if not 0 < self.lsm_tol_px <= 0.1:

@@ -123,6 +123,7 @@ def lsm_align(
     u = offset_grid(radius, dev, f32)  # (P, 2)
     P = u.shape[0]
     n_par = 8 if affine else 4
+    p_pad = -(-P // 16) * 16  # float32 row length, a multiple of 64 bytes
     tpl = templates.reshape(J, P).to(f32)
     t = shift0.to(f64).clone()
     A = torch.eye(2, dtype=f64, device=dev).repeat(J, 1, 1)
@@ -155,30 +156,35 @@ def lsm_align(
             r0[rows] = fm - gain0 * gm
         a1, a0 = r1[rows], r0[rows]
         a1f = a1.to(f32)[:, None]
-        Jm = torch.empty((n, n_par, P), dtype=f32, device=dev)
-        sx, sy = Jm[:, 0], Jm[:, 1]
+        # rows: the p Jacobian columns, then the residual; one batched product gives the
+        # normal matrix N, the right-hand side b = J^T e and e^T e
+        # each row padded with zeros to a multiple of 64 bytes: every match's matrix then
+        # starts equally aligned wherever it sits in the batch, and the batched product
+        # takes the same path for it (unaligned rows were seen to round differently)
+        Jm = torch.empty((n, n_par + 1, p_pad), dtype=f32, device=dev)
+        Jm[:, :, P:] = 0.0
+        sx, sy = Jm[:, 0, :P], Jm[:, 1, :P]
         torch.sub(vals[:, 1:-1, 2:], vals[:, 1:-1, :-2], out=sx.view(n, S, S))
         torch.sub(vals[:, 2:, 1:-1], vals[:, :-2, 1:-1], out=sy.view(n, S, S))
         sx.mul_(0.5 * a1f)
         sy.mul_(0.5 * a1f)
-        Jm[:, 2] = 1.0
-        Jm[:, 3] = g
+        Jm[:, 2, :P] = 1.0
+        Jm[:, 3, :P] = g
         if affine:
-            torch.mul(sx, u[:, 0], out=Jm[:, 4])
-            torch.mul(sx, u[:, 1], out=Jm[:, 5])
-            torch.mul(sy, u[:, 0], out=Jm[:, 6])
-            torch.mul(sy, u[:, 1], out=Jm[:, 7])
-        resid = f - (a0.to(f32)[:, None] + a1f * g)  # (n, P)
-        N = torch.bmm(Jm, Jm.transpose(1, 2)).to(f64)  # (n, p, p)
-        # (a matrix-vector bmm of one match takes another path than a batch's: rounds
-        # differently)
-        b = (Jm * resid[:, None, :]).sum(dim=2, dtype=f64)[:, :, None]  # (n, p, 1)
+            torch.mul(sx, u[:, 0], out=Jm[:, 4, :P])
+            torch.mul(sx, u[:, 1], out=Jm[:, 5, :P])
+            torch.mul(sy, u[:, 0], out=Jm[:, 6, :P])
+            torch.mul(sy, u[:, 1], out=Jm[:, 7, :P])
+        torch.sub(f, a0.to(f32)[:, None] + a1f * g, out=Jm[:, n_par, :P])  # residuals e
+        NN = torch.bmm(Jm, Jm.transpose(1, 2)).to(f64)  # (n, p + 1, p + 1)
+        N = NN[:, :n_par, :n_par]
+        b = NN[:, :n_par, n_par:]  # (n, p, 1)
         L, info = torch.linalg.cholesky_ex(N)
         ok = info == 0
         L = torch.where(ok[:, None, None], L, eye_p)
         sol = torch.cholesky_solve(torch.cat([b, eye_rhs.expand(n, n_par, 2)], dim=2), L)
         x = sol[:, :, 0]
-        var0 = resid.square().sum(dim=1, dtype=f64) / (P - n_par)
+        var0 = NN[:, n_par, n_par] / (P - n_par)
         d0, d1 = x[:, 0], x[:, 1]
         step = torch.stack([Ar[:, 0, 0] * d0 + Ar[:, 0, 1] * d1,
                             Ar[:, 1, 0] * d0 + Ar[:, 1, 1] * d1], dim=-1)

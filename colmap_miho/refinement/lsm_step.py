@@ -17,12 +17,15 @@ counted.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from .config import NCCConfig
 from .lsm import frame_sampler, lsm_align
 from .warping import ImageStack
 
+#: smallest template radius (pixels) of keypoint-sized LSM templates.
+MIN_RADIUS = 4
 #: counters of :func:`lsm_step`, in the refine stats.
 LSM_COUNTERS = ("lsm_applied", "lsm_not_converged", "lsm_far", "lsm_imprecise")
 
@@ -36,6 +39,7 @@ def lsm_step(
     frame_m: torch.Tensor,
     offset: torch.Tensor,
     cfg: NCCConfig,
+    scales: np.ndarray | None = None,
 ) -> tuple[torch.Tensor, dict[str, int], torch.Tensor]:
     """LSM-refined offsets of n matches, the counters of :data:`LSM_COUNTERS`, and which
     matches LSM moved.
@@ -49,6 +53,11 @@ def lsm_step(
         offset: (n, 2) float64 NCC offset of the moving side (common frame): the start of
             LSM and the reference of ``lsm_max_shift_px``.
         cfg: ``lsm_*`` fields of :class:`~.config.NCCConfig`.
+        scales: (n,) float64 scale (pixels) of the fixed keypoints, or None; with
+            ``cfg.lsm_radius_per_scale`` > 0 each match's template radius is
+            ``round(lsm_radius_per_scale * scale)`` clamped to [``MIN_RADIUS``, the fixed
+            radius], else every match gets the fixed radius (``lsm_radius`` or
+            ``template_radius``).
     Returns:
         ((n, 2) float64 offsets: LSM's where accepted, else ``offset``; counters; (n,)
         bool accepted).
@@ -59,21 +68,34 @@ def lsm_step(
                                                                    device=offset.device)
     radius = cfg.lsm_radius or cfg.template_radius
     dev = offset.device
-    rows = torch.arange(n, device=dev)
-    eye = torch.eye(2, dtype=torch.float64, device=dev).expand(n, 2, 2)
-    zero = torch.zeros((n, 2), dtype=torch.float64, device=dev)
-    tpl = frame_sampler(img_f, H_f_inv, frame_f)(rows, eye, zero, radius)
-    res = lsm_align(frame_sampler(img_m, H_m_inv, frame_m), tpl, offset,
-                    affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations, tol_px=cfg.lsm_tol_px,
-                    max_shift_px=cfg.lsm_max_shift_px)
-    far = (res.shift - offset).abs().amax(dim=1) > cfg.lsm_max_shift_px
-    not_conv = ~res.converged & ~far
-    imprecise = res.converged & ~far & ~(res.sigma_max <= cfg.lsm_max_sigma_px)
-    ok = res.converged & ~far & ~imprecise
+    radii = np.full(n, radius)
+    if scales is not None and cfg.lsm_radius_per_scale > 0:
+        radii = np.clip(np.rint(cfg.lsm_radius_per_scale * np.asarray(scales)), MIN_RADIUS,
+                        max(radius, MIN_RADIUS)).astype(int)
+    shift = torch.empty_like(offset)
+    sigma_max = torch.empty(n, dtype=torch.float64, device=dev)
+    converged = torch.empty(n, dtype=torch.bool, device=dev)
+    for r in np.unique(radii).tolist():  # one batch per radius (a match's own radius)
+        rows = torch.as_tensor(np.flatnonzero(radii == r), device=dev)
+        k = rows.numel()
+        eye = torch.eye(2, dtype=torch.float64, device=dev).expand(k, 2, 2)
+        zero = torch.zeros((k, 2), dtype=torch.float64, device=dev)
+        sub_f = img_f.rows(rows) if isinstance(img_f, ImageStack) else img_f
+        sub_m = img_m.rows(rows) if isinstance(img_m, ImageStack) else img_m
+        every = torch.arange(k, device=dev)
+        tpl = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows])(every, eye, zero, r)
+        res = lsm_align(frame_sampler(sub_m, H_m_inv[rows], frame_m[rows]), tpl, offset[rows],
+                        affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
+                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
+        shift[rows], sigma_max[rows], converged[rows] = res.shift, res.sigma_max, res.converged
+    far = (shift - offset).abs().amax(dim=1) > cfg.lsm_max_shift_px
+    not_conv = ~converged & ~far
+    imprecise = converged & ~far & ~(sigma_max <= cfg.lsm_max_sigma_px)
+    ok = converged & ~far & ~imprecise
     counts = {
         "lsm_applied": int(ok.sum()),
         "lsm_not_converged": int(not_conv.sum()),
         "lsm_far": int(far.sum()),
         "lsm_imprecise": int(imprecise.sum()),
     }
-    return torch.where(ok[:, None], res.shift, offset), counts, ok
+    return torch.where(ok[:, None], shift, offset), counts, ok

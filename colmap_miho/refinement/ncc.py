@@ -100,6 +100,9 @@ class _Outputs:
     disp: np.ndarray
     rejected: np.ndarray
     counts: dict[str, int | float | str]
+    #: keypoint scales (pixels, sqrt |det| of the affine frames) of each side, for LSM
+    #: templates sized by the keypoint; None when not used
+    kp_scales: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def unchanged(cls, p1: np.ndarray, p2: np.ndarray) -> _Outputs:
@@ -192,6 +195,9 @@ def refine_pair(
     out = _Outputs.unchanged(inp.p1, inp.p2)
     if cfg.lsm:
         out.counts.update(dict.fromkeys(LSM_COUNTERS, 0))
+        if cfg.lsm_radius_per_scale > 0 and inp.affine1 is not None and inp.affine2 is not None:
+            out.kp_scales = (np.sqrt(np.abs(np.linalg.det(inp.affine1))),
+                             np.sqrt(np.abs(np.linalg.det(inp.affine2))))
     offs = _Offsets.of(cfg, device)
     base = base_pairs(n, inp.affine1, inp.affine2)
     use_base = cfg.use_base_pair and not (
@@ -291,18 +297,22 @@ def _check_agreement(images: tuple[ImageInput, ImageInput], inp: PairInputs, hom
 Direction = tuple[int, int, dict[str, torch.Tensor]]
 
 
-def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], f: int, m: int,
-              r: dict[str, torch.Tensor], sel: torch.Tensor, cfg: NCCConfig, out: _Outputs) -> torch.Tensor:
-    """Sub-pixel offsets (J, 2) of the accepted moves ``sel`` of direction (fixed ``f``, moving
-    ``m``): least-squares matching from the NCC peak's parabola where ``cfg.lsm`` is on and it
-    passes its tests, the iterated parabolas elsewhere (all of them without LSM)."""
+def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], direction: tuple[int, int],
+              r: dict[str, torch.Tensor], rows: tuple[torch.Tensor, np.ndarray], cfg: NCCConfig,
+              out: _Outputs) -> torch.Tensor:
+    """Sub-pixel offsets (J, 2) of the accepted moves of ``direction`` (fixed ``f``, moving
+    ``m``), ``rows`` = (their rows in the chunk, their match indices): least-squares matching
+    from the NCC peak's parabola where ``cfg.lsm`` is on and it passes its tests, the iterated
+    parabolas elsewhere (all of them without LSM)."""
+    (f, m), (sel, matches) = direction, rows
     H_inv, frame, off = r["H_inv"][sel], r["frame_m"][sel], r["offset"][sel]
     img_m = _rows(img[m], sel)
     if not cfg.lsm:
         return iterate_subpixel(img_m, H_inv, frame, off, r["template"][sel], cfg.template_radius,
                                 cfg.subpixel_iterations)
+    scale_f = None if out.kp_scales is None else out.kp_scales[f][matches]
     off, lsm_counts, accepted = lsm_step(_rows(img[f], sel), img_m, r["H_f_inv"][sel], r["frame_f"][sel],
-                                         H_inv, frame, off, cfg)
+                                         H_inv, frame, off, cfg, scale_f)
     for key, value in lsm_counts.items():
         out.add(key, int(value))
     todo = torch.nonzero(~accepted)[:, 0]
@@ -352,7 +362,7 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
             continue
         sel = torch.as_tensor(take, device=r["offset"].device)
         H_inv, frame = r["H_inv"][sel], r["frame_m"][sel]
-        off = _subpixel(img, f, m, r, sel, cfg, out)
+        off = _subpixel(img, (f, m), r, (sel, idx[take]), cfg, out)
         new = to_frame(H_inv, frame + off).cpu().numpy()
         ok = idx[take]
         old = out.pts[m][ok]

@@ -140,11 +140,12 @@ def _same(a: dict, b: dict, rows) -> None:
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_result_is_bitwise_independent_of_the_batch(threads):
+@pytest.mark.parametrize("radius", [6, 8])
+def test_result_is_bitwise_independent_of_the_batch(threads, radius):
     """Each match's result is the same alone, in any subset, in any order, and next to the
     matches of another image in an ImageStack."""
-    img_a, H_a, c_a, tpl_a, _ = _problem("camera", seed=1, radius=6)
-    img_b, H_b, c_b, tpl_b, _ = _problem("astronaut", seed=2, radius=6)
+    img_a, H_a, c_a, tpl_a, _ = _problem("camera", seed=1, radius=radius)
+    img_b, H_b, c_b, tpl_b, _ = _problem("astronaut", seed=2, radius=radius)
     n_a = 60
     H = torch.cat([H_a[:n_a], H_b[:40]])
     c = torch.cat([c_a[:n_a], c_b[:40]])
@@ -173,13 +174,9 @@ def test_result_is_bitwise_independent_of_the_batch(threads):
     assert full["converged"].float().mean() > 0.9
 
 
-def test_refine_pair_with_lsm_lowers_the_error_on_a_known_homography():
-    """The pairwise refiner with ``lsm=True``: on a perspective warp with gain/offset of a
-    photograph, LSM's positions are closer to the truth than NCC's, and every LSM outcome
-    is counted."""
-    from colmap_miho.refinement.config import NCCConfig
-    from colmap_miho.refinement.ncc import refine_pair
-
+def _homography_pair():
+    """(image 1, image 2, pts1, true pts2, start pts2, patch homography pairs): a perspective
+    warp with gain/offset of a photograph, starts up to 1.5 px off."""
     img1 = _gray("astronaut")
     h, w = img1.shape
     H = np.array([[0.97, 0.06, 9.3], [-0.04, 1.02, -6.1], [4e-5, -3e-5, 1.0]])
@@ -194,6 +191,17 @@ def test_refine_pair_with_lsm_lowers_the_error_on_a_known_homography():
     rng = np.random.default_rng(0)
     pts2 = truth + rng.uniform(-1.5, 1.5, truth.shape)
     homs = np.tile(np.stack([np.eye(3), np.linalg.inv(H)]), (len(pts1), 1, 1, 1))
+    return img1, img2, pts1, truth, pts2, homs
+
+
+def test_refine_pair_with_lsm_lowers_the_error_on_a_known_homography():
+    """The pairwise refiner with ``lsm=True``: on a perspective warp with gain/offset of a
+    photograph, LSM's positions are closer to the truth than NCC's, and every LSM outcome
+    is counted."""
+    from colmap_miho.refinement.config import NCCConfig
+    from colmap_miho.refinement.ncc import refine_pair
+
+    img1, img2, pts1, truth, pts2, homs = _homography_pair()
     err = {}
     for lsm in (False, True):
         cfg = NCCConfig(device="cpu", move="2", template_radius=6, lsm=lsm)
@@ -206,3 +214,29 @@ def test_refine_pair_with_lsm_lowers_the_error_on_a_known_homography():
             assert counted == res.stats["moved"]
             assert res.stats["lsm_applied"] > 0.5 * res.stats["moved"]
     assert err[True] < 0.7 * err[False], err
+
+
+def test_keypoint_sized_templates_are_per_match():
+    """With ``lsm_radius_per_scale`` each match's LSM template follows its keypoint's scale
+    (affine frames of scales 1-5 px: radii 4-8); a match's result is the same in any
+    subset, and LSM still beats NCC alone."""
+    from colmap_miho.refinement.config import NCCConfig
+    from colmap_miho.refinement.ncc import refine_pair
+
+    img1, img2, pts1, truth, pts2, homs = _homography_pair()
+    n = len(pts1)
+    scales = np.random.default_rng(1).uniform(1.0, 5.0, n)
+    aff = scales[:, None, None] * np.eye(2)
+    kw = {"config": NCCConfig(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
+                              lsm_radius_per_scale=2.0)}
+    full = refine_pair(img1, img2, pts1, pts2, homs, affine1=aff, affine2=aff, **kw)
+    rows = np.random.default_rng(2).permutation(n)[: n // 3]
+    part = refine_pair(img1, img2, pts1[rows], pts2[rows], homs[rows], affine1=aff[rows],
+                       affine2=aff[rows], **kw)
+    assert np.array_equal(full.pts2[rows], part.pts2)
+    ncc = refine_pair(img1, img2, pts1, pts2, homs, affine1=aff, affine2=aff,
+                      config=NCCConfig(device="cpu", move="2", template_radius=6))
+    moved = full.moved_side == 2
+    e_lsm = np.median(np.linalg.norm(full.pts2[moved] - truth[moved], axis=1))
+    e_ncc = np.median(np.linalg.norm(ncc.pts2[moved] - truth[moved], axis=1))
+    assert e_lsm < 0.8 * e_ncc, (e_lsm, e_ncc)

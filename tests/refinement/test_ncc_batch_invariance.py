@@ -69,7 +69,7 @@ CONFIGS = {
     "paper": NCCConfig(device="cpu", perturbations="paper", ellipse_mask=True,
                        template_radius=5, search_radius=4),
     # least-squares matching after the NCC peak (bicubic samples, per-match Gauss-Newton)
-    "lsm": NCCConfig(device="cpu", move="2", template_radius=6, lsm=True),
+    "lsm": NCCConfig(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8),
     # 3x3 templates: a convolution of one group would sum in another order than a batch
     "tiny": NCCConfig(device="cpu", template_radius=1, search_radius=3, min_template_std=0.0),
 }
