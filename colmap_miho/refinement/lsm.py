@@ -96,6 +96,9 @@ def lsm_align(
 ) -> LSMResult:
     """Align J templates to the search images by Gauss-Newton, each match on its own.
 
+    (Long on purpose: one Gauss-Newton loop whose per-match stop, normal equations and
+    precision share their batched tensors; split, each piece would pass them all around.)
+
     Args:
         sampler: reads the search images (see :data:`Sampler`); must be elementwise per
             match for the result to be batch independent.
