@@ -367,18 +367,20 @@ class ColmapDatabase(DatabaseBuilder):
         try:
             yield tx
         except BaseException:
-            try:
-                tx.__exit__(None, None, None)
-            except RuntimeError:
-                _never_free(tx)
-                _never_free(self._db)
+            self._end_transaction(tx, reraise=False)  # the block's own error is the one raised
             raise
+        self._end_transaction(tx, reraise=True)
+
+    def _end_transaction(self, tx: Any, *, reraise: bool) -> None:
+        """Commit (or roll back) ``tx``; when that fails, keep ``tx`` and the handle alive until
+        the process ends (see :func:`_never_free`) and raise the error only if ``reraise``."""
         try:
             tx.__exit__(None, None, None)
         except RuntimeError:
             _never_free(tx)
             _never_free(self._db)
-            raise
+            if reraise:
+                raise
 
 
 def _never_free(obj) -> None:

@@ -85,6 +85,19 @@ def _as_recipe(recipe: Recipe | str | None) -> Recipe:
     return recipe if isinstance(recipe, Recipe) else load_recipe(recipe)
 
 
+def _job_recipe(recipe: Recipe | str | None, opts: JobOptions, gt: str | Path | None
+                ) -> tuple[Recipe, MappingConfig]:
+    """The job's recipe and its mapping config with ``opts``' overrides.
+
+    Raises:
+        InvalidInput: GT cameras asked for without a GT.
+    """
+    if opts.gt_cameras and gt is None:
+        raise InvalidInput("taking the cameras from the GT needs --gt")
+    rec = _as_recipe(recipe)
+    return rec, _mapping_config(rec, opts)
+
+
 def _mapping_config(recipe: Recipe, opts: JobOptions) -> MappingConfig:
     """The recipe's ``mapping`` config with the ``mapper`` / ``seed`` overrides applied."""
     cfg = recipe.mapping
@@ -149,10 +162,7 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
         :class:`~colmap_miho.reporting.compare.CompareResult`.
     """
     opts = options or JobOptions()
-    rec = _as_recipe(recipe)
-    mapping = _mapping_config(rec, opts)
-    if opts.gt_cameras and gt is None:
-        raise InvalidInput("taking the cameras from the GT needs --gt")
+    rec, mapping = _job_recipe(recipe, opts, gt)
     output = Path(output)
     check_distinct(*comparison_paths(output, database=database, images=image_dir, gt=gt, repeats=opts.repeats,
                                      pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=mapping.seed))
@@ -200,10 +210,7 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
 
     opts = options or JobOptions()
     ext = extraction or ExtractionOptions()
-    rec = _as_recipe(recipe)
-    mapping = _mapping_config(rec, opts)
-    if opts.gt_cameras and gt is None:
-        raise InvalidInput("taking the cameras from the GT needs --gt")
+    rec, mapping = _job_recipe(recipe, opts, gt)
     output = Path(output)
     check_distinct(*comparison_paths(output, images=image_dir, gt=gt, repeats=opts.repeats, seed=mapping.seed,
                                      compare=compare))
