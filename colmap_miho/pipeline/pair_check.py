@@ -72,11 +72,11 @@ def pair_graph_matches(db: ColmapDatabase, store: RunStore, source: MatchSource)
 
 
 def run_pair_check(db: ColmapDatabase, read: ReadOutput, store: RunStore, cfg: PairCheckConfig,
-                   source: MatchSource) -> tuple[set[Pair], dict]:
+                   source: MatchSource) -> tuple[set[Pair], PairCheckStats | None]:
     """Check the pair graph; returns the pairs to remove (empty when off or in "flag" mode)
-    and :meth:`PairCheckStats.to_dict` (``{}`` when off)."""
+    and the stage's :class:`PairCheckStats` (None when off)."""
     if not cfg.enabled:
-        return set(), {}
+        return set(), None
     matches = pair_graph_matches(db, store, source)
     result = check_pairs(matches, read.keypoints, cfg)
     names = {im.image_id: im.name for im in db.images()}
@@ -89,4 +89,4 @@ def run_pair_check(db: ColmapDatabase, read: ReadOutput, store: RunStore, cfg: P
                            wrong_pairs=wrong)
     for w in wrong:
         log.info("pair check: %s %s - %s: %s", "removed" if remove else "flagged", *w["images"], w["reason"])
-    return (set(result.wrong) if remove else set()), stats.to_dict()
+    return (set(result.wrong) if remove else set()), stats

@@ -259,7 +259,7 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 database=database, backup=wc.backup, recipe=rec, device=dev, runner=str(runner.kind),
                 resumed=resumed, read=read_stats, filtered=filter_stats, refine=refine_stats,
                 write=write_stats, seconds=laps.total())
-            summary.pair_check = pair_check
+            summary.pair_check = {} if pair_check is None else pair_check.to_dict()
             if json_path:  # written beside its target now, renamed onto it with the commit
                 wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
             wc.commit()
