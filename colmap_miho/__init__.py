@@ -32,7 +32,7 @@ if TYPE_CHECKING:  # what static tools see; at run time the table below imports 
     from .filtering.api import FilterResult, filter_matches
     from .filtering.config import FilterConfig
     from .pipeline import PipelineConfig, RefineSummary, refine_database
-    from .pipeline.jobs import compare_databases
+    from .pipeline.jobs import ExtractionOptions, JobOptions, compare_databases
     from .recipe import Recipe, load_recipe
     from .refinement.config import NCCConfig, TrackConfig
     from .refinement.ncc import RefineResult, refine_pair
@@ -62,12 +62,16 @@ _LAZY = {
     "MappingResult": "colmap_miho.sfm",
     "build_report": "colmap_miho.reporting.report",
     "compare_databases": "colmap_miho.pipeline.jobs",
+    "JobOptions": "colmap_miho.pipeline.jobs",
+    "ExtractionOptions": "colmap_miho.pipeline.jobs",
 }
 
 __all__ = [
+    "ExtractionOptions",
     "FilterConfig",
     "FilterMethod",
     "FilterResult",
+    "JobOptions",
     "MappingResult",
     "MoveSide",
     "NCCConfig",

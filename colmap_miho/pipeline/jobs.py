@@ -19,11 +19,12 @@ database is never modified (everything reads copies).
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..adapters.paths import check_distinct, comparison_paths
-from ..enums import Mapper
+from ..enums import CameraMode, Device, Mapper
 from ..errors import InvalidInput, RunFailed
 from ..recipe import Recipe, load_recipe
 from ..reporting.compare import CompareResult, Evaluation, gt_intrinsics, write_comparison
@@ -52,15 +53,22 @@ class JobOptions:
         progress, verbose: bars (one per mapping run) and COLMAP's log on the terminal.
     """
 
-    mapper: str | None = None
+    mapper: Mapper | None = None
     seed: int | None = None
     repeats: int = 1
     gt_cameras: bool = False
-    thresholds: object = None
+    thresholds: Sequence[float] | None = None
     workers: int | None = None
-    device: str = "auto"
+    device: Device = Device.AUTO
     progress: bool = False
     verbose: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mapper is not None:
+            object.__setattr__(self, "mapper", Mapper.parse(self.mapper, "mapper"))
+        object.__setattr__(self, "device", Device.parse(self.device, "device"))
+        if self.repeats < 1:
+            raise InvalidInput(f"repeats must be >= 1, got {self.repeats}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -75,10 +83,15 @@ class ExtractionOptions:
         max_features: SIFT features per image.
     """
 
-    camera_mode: str = "single"
+    camera_mode: CameraMode = CameraMode.SINGLE
     camera_model: str = "SIMPLE_RADIAL"
     camera_params: str = ""
     max_features: int = 8192
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "camera_mode", CameraMode.parse(self.camera_mode, "camera_mode"))
+        if self.max_features < 1:
+            raise InvalidInput(f"max_features must be >= 1, got {self.max_features}")
 
 
 def _as_recipe(recipe: Recipe | str | None) -> Recipe:
@@ -102,7 +115,7 @@ def _mapping_config(recipe: Recipe, opts: JobOptions) -> MappingConfig:
     """The recipe's ``mapping`` config with the ``mapper`` / ``seed`` overrides applied."""
     cfg = recipe.mapping
     if opts.mapper is not None:
-        cfg = replace(cfg, mapper=Mapper.parse(opts.mapper, "mapper"))
+        cfg = replace(cfg, mapper=opts.mapper)
     if opts.seed is not None:
         cfg = replace(cfg, seed=opts.seed)
     return cfg
