@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sqlite3
 import stat
 import tempfile
 from pathlib import Path
@@ -242,12 +241,10 @@ class WorkingCopy:
             remove_with_side_files(self.path)
             _WORKING_FILES.discard(self.path)
             self._drop_backup()
-        if isinstance(exc, (RuntimeError, sqlite3.Error)) and is_disk_full(exc):
-            # pycolmap's "database or disk is full" (a RuntimeError): a known condition, one line
+        if exc is not None and is_disk_full(exc):
+            # ENOSPC / EDQUOT, SQLite's or pycolmap's "database or disk is full": one line
             raise RunFailed(f"disk full while writing in {self.output.parent}; {self.database} is unchanged and "
                             "the working files were removed: free some space and retry") from None
-
-
 
 
 def _same_inode(a: Path, b: Path) -> bool:

@@ -31,7 +31,6 @@ COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
 
 from __future__ import annotations
 
-import errno
 import json
 import logging
 import os
@@ -263,12 +262,7 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
             if json_path:  # written beside its target now, renamed onto it with the commit
                 wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
             wc.commit()
-    except OSError as exc:
-        if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
-            raise
-        raise RunFailed(f"disk full while writing in {wc.output.parent}; {database} is unchanged and the "
-                        "working files were removed: free some space and retry") from None
-    except sqlite3.Error as exc:
+    except sqlite3.Error as exc:  # a full disk is the working copy's one-line error already
         raise RunFailed(f"SQLite error while writing the copy of {database} ({exc}); {database} is "
                         "unchanged and the working files were removed") from None
     return summary
