@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import argparse
 
-from colmap_miho.pipeline.refine import refine_database
+from colmap_miho.pipeline.run import refine_database
 from colmap_miho.recipe import load_recipe
 
 
