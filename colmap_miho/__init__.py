@@ -5,9 +5,10 @@ Public API (imported on first use, so that ``colmap-miho --help`` starts without
     refine_database(database, image_dir, output=None, *, recipe=None, ...) -> RefineSummary
     extract_and_match(image_dir, database, ...); run_mapping(database, image_dir, output, ...)
     build_report(...); compare_databases(database, image_dir, output, *, recipe=None, gt=None, ...)
-    filter_matches(pts1, pts2, *, method="mop_miho", config=None, seed=0, device="cpu") -> FilterResult
-    refine_pair(image1, image2, pts1, pts2, patch_homographies, *, move="auto", config=None)
-        -> RefineResult
+    filter_matches(pts1, pts2, *, method=None, config=None, seed=0, device="cpu") -> FilterResult
+        (method None: config.method, or "mop_miho" without a config)
+    refine_pair(image1, image2, pts1, pts2, patch_homographies, *, move=None, config=None)
+        -> RefineResult   (move None: config.move, "auto" by default)
     refine_tracks(images, keypoints, pair_matches, pair_filter_results, *, config=None)
         -> TrackRefineResult
     load_recipe(name_or_path=None, overrides=None) -> Recipe
