@@ -132,8 +132,13 @@ class Sampler:
     than k of them are left in the pool, the nearest in the pool are searched anew), and the
     three others are drawn one by one among the neighbours at least t_l from those already
     drawn. A seed without three such neighbours gives a sample that fails the spread test.
-    Neighbour lists are computed once per pool position, on demand.
+    Neighbour lists are computed once per pool position, on demand (all of a small pool at
+    the first call).
     """
+
+    #: Pools of at most this many matches have every match's neighbours searched at the first
+    #: call.
+    ALL_AT_ONCE = 256
 
     def __init__(self, problem: Problem, pool: np.ndarray, cfg: FilterConfig,
                  candidates: LocalCandidates | None = None) -> None:
@@ -161,7 +166,12 @@ class Sampler:
     def neighbours(self, pos: np.ndarray) -> np.ndarray:
         """``(len(pos), k)`` pool positions of the nearest pool matches at least t_l from each
         of the pool positions ``pos`` in every spread set (-1 where there are fewer than k)."""
-        todo = np.unique(pos[~self._known[pos]])
+        if len(self.pool) <= self.ALL_AT_ONCE and not self._known.any():
+            # A small pool: a round's draws reach nearly every match, so all are searched in
+            # one call (each match's neighbours do not depend on which others are searched).
+            todo = np.arange(len(self.pool))
+        else:
+            todo = np.unique(pos[~self._known[pos]])
         if len(todo):
             assert self._cands is not None, "neighbours are searched with local sampling only"
             cand, far = self._cands.get(self.pool[todo])

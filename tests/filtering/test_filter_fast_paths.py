@@ -9,7 +9,7 @@ import pytest
 from planes import assert_same_mop_runs, make_scene
 
 from colmap_miho.filtering.config import FilterConfig
-from colmap_miho.filtering.homography import _dlt_system, project
+from colmap_miho.filtering.homography import _dlt_system, dlt, project
 from colmap_miho.filtering.miho import (
     _ROTATION_Z,
     _candidate_transforms,
@@ -19,6 +19,7 @@ from colmap_miho.filtering.miho import (
     choose_rotation,
 )
 from colmap_miho.filtering.problem import Hypotheses, Problem
+from colmap_miho.filtering.ransac import _refit
 from colmap_miho.filtering.sampling import apart_sets, spread_ok
 from colmap_miho.filtering.scoring import (
     NumpyScoring,
@@ -138,6 +139,25 @@ def test_dlt_system_blocks_match_the_stacked_rows():
     ref = np.stack([even, odd], axis=2).reshape(300, 8, 9)
     # bit for bit (signed zeros included)
     np.testing.assert_array_equal(_dlt_system(s, d).view(np.int64), ref.view(np.int64))
+
+
+def test_refit_of_both_halves_in_one_batch_matches_one_fit_per_half():
+    sc = make_scene(np.random.default_rng(8), outlier_ratio=0.3)
+    problem = build_problem(sc.x1, sc.x2, miho=True, full_match=True)
+    rng = np.random.default_rng(1)
+    checked = 0
+    for _ in range(40):
+        idx = rng.choice(len(sc.x1), size=int(rng.integers(5, 300)), replace=False)
+        hyp = hypotheses_from_samples(problem, idx[None, :4], FilterConfig())
+        if not len(hyp):
+            continue
+        checked += 1
+        refit = _refit(problem, hyp, idx)
+        assert refit is not None
+        for h in range(problem.num_halves):  # bit for bit
+            one = dlt(problem.src[h][idx][None], problem.dst[h][idx][None])[0][0]
+            np.testing.assert_array_equal(refit.H[0, h], one)
+    assert checked >= 10
 
 
 class _Exact(NumpyScoring):

@@ -13,7 +13,7 @@ from colmap_miho import filter_matches
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem, choose_rotation
 from colmap_miho.filtering.ransac import ransac_round
-from colmap_miho.filtering.sampling import Sampler, spread_ok
+from colmap_miho.filtering.sampling import LocalCandidates, Sampler, spread_ok
 
 
 def _dense_plane(rng, n=400, step=6.0):
@@ -49,6 +49,48 @@ def test_local_samples_pass_the_spread_test(miho):
     listed = (nb[:, :, None] == sample[:, None, 1:]).any(axis=1)
     assert np.all(listed | (sample[:, 1:] == sample[:, :1]))
     assert np.all(listed[ok])
+
+
+def _brute_neighbours(problem, pool, cfg):
+    """Pool neighbours by their definition, from sorted distances (global match indices)."""
+    feats = np.c_[problem.x1, problem.x2]
+    k, search = cfg.local_neighbours, LocalCandidates.SEARCH * cfg.local_neighbours
+    in_pool = np.zeros(len(feats), dtype=bool)
+    in_pool[pool] = True
+    out = np.full((len(pool), k), -1)
+    searched = 0  # rows whose own candidates had too few left
+    for row, p in enumerate(pool):
+        order = np.argsort(np.linalg.norm(feats - feats[p], axis=1), kind="stable")
+        far = np.all(((problem.spread_all[order] - problem.spread_all[p]) ** 2).sum(-1)
+                     >= cfg.t_l**2, axis=1)
+        listed = order[1:search + 1][(in_pool & far[np.argsort(order)])[order[1:search + 1]]]
+        if len(listed) < k:  # too few left among the match's own candidates: the pool's nearest
+            searched += 1
+            window = order[in_pool[order]][1:search + 1]
+            listed = window[far[np.argsort(order)][window]]
+        out[row, :min(k, len(listed))] = listed[:k]
+    return out, searched
+
+
+@pytest.mark.parametrize("pool_size", [60, 200, 400])
+def test_pool_neighbours_match_their_definition(pool_size, monkeypatch):
+    # A grid closer than t_l: most nearest neighbours are too close for the spread test.
+    x1, x2 = _dense_plane(np.random.default_rng(5))
+    problem = build_problem(x1, x2, miho=True)
+    cfg = FilterConfig()
+    pool = np.sort(np.random.default_rng(pool_size).choice(len(x1), pool_size, replace=False))
+    ref, searched = _brute_neighbours(problem, pool, cfg)
+    assert searched > 0.5 * pool_size if pool_size < 400 else searched == 0
+    got = []
+    for all_at_once in (Sampler.ALL_AT_ONCE, 0):  # every match at the first call, or on demand
+        monkeypatch.setattr(Sampler, "ALL_AT_ONCE", all_at_once)
+        sampler = Sampler(problem, pool, cfg, LocalCandidates(problem, cfg))
+        pos = np.random.default_rng(0).permutation(pool_size)
+        nb = np.concatenate([sampler.neighbours(part) for part in np.array_split(pos, 3)])
+        nb = nb[np.argsort(pos)]
+        got.append(np.where(nb >= 0, pool[np.maximum(nb, 0)], -1))
+    np.testing.assert_array_equal(got[0], ref)
+    np.testing.assert_array_equal(got[1], ref)
 
 
 def test_iterations_count_spread_out_samples():
