@@ -20,8 +20,8 @@ class PairCheckConfig:
     others support them; pairs are removed worst first.
 
     Defaults chosen with ``benchmarks/bench_pair_check.py`` on the demo, Middlebury temple and
-    Strecha fountain and entry, default and permissive COLMAP matching (no pair that agrees
-    with the GT cameras removed on any of them) and on the synthetic doppelganger scenes.
+    Strecha fountain and entry, default and permissive COLMAP matching, and on the synthetic
+    doppelganger scenes (several seeds); what they find there is in ``docs/results.md``.
 
     Attributes:
         enabled: run the check (``refine``: between the filter and the refinement).
@@ -39,6 +39,14 @@ class PairCheckConfig:
             that agree with each other (they carry the correct pair's unrepeated points
             astray, its repeated ones right), at the cost of blaming weak correct pairs on
             real scenes: off by default.
+        trust_iterations: rounds of trust weighting before each removal (0: every vote
+            counts fully). A triangle's votes on a pair count as much as the triangle's two
+            other pairs are trusted, and a pair's trust is ``(1 - its weighted blame share)
+            ** trust_power``: two wrong pairs that agree with each other close their shared
+            triangles, but each is blamed by its other triangles, so the support they give
+            each other fades (see :func:`~colmap_miho.verification.pair_graph.settle_trust`).
+        trust_power: exponent of the trust of a pair from its weighted blame share, > 0
+            (larger: a blamed pair's votes fade faster).
         min_blame: blames a pair needs before it can be removed.
         min_blame_share: share of blames among a pair's votes needed to remove it, in (0, 1].
         min_angle_deg: degrees; epipolar transfers whose two lines meet at a smaller angle
@@ -58,6 +66,8 @@ class PairCheckConfig:
     min_transfers: int = 8
     min_closed_share: float = 0.4
     min_relative_share: float = 0.0
+    trust_iterations: int = 10
+    trust_power: float = 2.0
     min_blame: int = 2
     min_blame_share: float = 0.55
     min_angle_deg: float = 5.0
@@ -85,6 +95,10 @@ class PairCheckConfig:
             raise ValueError(f"f_threshold_px must be > 0, got {self.f_threshold_px}")
         if self.min_f_matches < 8:
             raise ValueError(f"min_f_matches must be >= 8 (the eight-point algorithm), got {self.min_f_matches}")
+        if self.trust_iterations < 0:
+            raise ValueError(f"trust_iterations must be >= 0, got {self.trust_iterations}")
+        if self.trust_power <= 0:
+            raise ValueError(f"trust_power must be > 0, got {self.trust_power}")
         if self.min_blame < 1:
             raise ValueError(f"min_blame must be >= 1, got {self.min_blame}")
         if not 0.0 < self.min_blame_share <= 1.0:

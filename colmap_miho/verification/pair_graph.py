@@ -279,14 +279,59 @@ def carrier_votes(cb: np.ndarray, cfg: PairCheckConfig) -> np.ndarray:
     return out
 
 
+#: Row r of a triangle (pair r) and its two other pairs: the carriers of its transfer, and the
+#: pairs whose trust weighs the triangle's votes on pair r.
+_OTHERS = np.array([[1, 2], [0, 2], [0, 1]])
+
+
+def _weighted_votes(votes: np.ndarray, tri_edges: np.ndarray, alive_tri: np.ndarray,
+                    trust: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Blame and support ``(E,)`` of every pair, each present triangle's votes on a pair
+    weighted by the product of the trust of the triangle's two other pairs."""
+    w = trust[tri_edges[:, _OTHERS[:, 0]]] * trust[tri_edges[:, _OTHERS[:, 1]]] * alive_tri[:, None]
+    blame = np.zeros(len(trust))
+    support = np.zeros(len(trust))
+    np.add.at(blame, tri_edges.ravel(), (votes[:, :, 0] * w).ravel())
+    np.add.at(support, tri_edges.ravel(), (votes[:, :, 1] * w).ravel())
+    return blame, support
+
+
+def settle_trust(votes: np.ndarray, tri_edges: np.ndarray, alive_tri: np.ndarray, alive: np.ndarray,
+                 cfg: PairCheckConfig) -> np.ndarray:
+    """Trust of every pair in [0, 1] ``(E,)``: ``cfg.trust_iterations`` rounds of
+    ``trust = (1 - weighted blame share) ** cfg.trust_power`` from all ones (removed pairs: 0).
+
+    This is loop-consistency inference in the spirit of Zach et al. (2010), "Disambiguating
+    visual relations using loop constraints", on the triangles of the pair graph: a closed
+    triangle is evidence that its pairs are right only if the pairs that closed it are
+    themselves trusted. Two wrong pairs that join the same copies of a repeated structure
+    close their shared triangles (they agree), so counted votes alone let them support each
+    other; each is also blamed by the triangles it shares with correct pairs, its trust drops,
+    and the support it gives the other fades with it. A correct pair is blamed mostly by
+    triangles holding a wrong pair, whose weight fades the same way.
+
+    Args:
+        votes: float ``(T, 3, 2)``, per triangle and pair (rows i-j, i-k, j-k): blame, support.
+        tri_edges: int ``(T, 3)`` pair indices of each triangle.
+        alive_tri / alive: bool ``(T,)`` / ``(E,)``: triangles and pairs still present.
+    """
+    trust = alive.astype(np.float64)
+    for _ in range(cfg.trust_iterations):
+        blame, support = _weighted_votes(votes, tri_edges, alive_tri, trust)
+        trust = np.where(alive, (1.0 - blame / np.maximum(blame + support, 1e-12)) ** cfg.trust_power, 0.0)
+    return trust
+
+
 def _remove_worst_first(blame: np.ndarray, support: np.ndarray, strength: np.ndarray, votes: np.ndarray,
                         tri_edges: np.ndarray, edge_tris: list[list[int]],
                         cfg: PairCheckConfig) -> tuple[np.ndarray, list[int], dict[int, str]]:
-    """Remove the pair with the highest blame share (ties: more blame, then the weaker pair)
-    while one has at least ``min_blame`` blames and a share of at least ``min_blame_share``;
-    its triangles' votes leave the other pairs' counts (``blame``, ``support`` ``(E,)`` are
-    updated in place). A pair with blame is in a triangle still present, so its two images
-    stay joined through the triangle's third image: no removal disconnects the graph.
+    """Remove the pair with the highest trust-weighted blame share (ties: more blame, then the
+    weaker pair) while one has at least ``min_blame`` blames and a weighted share of at least
+    ``min_blame_share``; its triangles' votes leave the other pairs' counts (``blame``,
+    ``support`` ``(E,)``, the unweighted counts, are updated in place) and the trust of every
+    pair is settled again (:func:`settle_trust`; with ``trust_iterations = 0`` every vote
+    counts fully). A pair with blame is in a triangle still present, so its two images stay
+    joined through the triangle's third image: no removal disconnects the graph.
 
     Returns:
         ``(alive bool (E,), removed edge indices in order, edge index -> reason)``.
@@ -294,17 +339,21 @@ def _remove_worst_first(blame: np.ndarray, support: np.ndarray, strength: np.nda
     n_edges = len(blame)
     alive_tri = np.ones(len(tri_edges), bool)
     alive = np.ones(n_edges, bool)
+    fvotes = votes.astype(np.float64)
     removed: list[int] = []
     why: dict[int, str] = {}
     while True:
-        share = blame / np.maximum(blame + support, 1)
+        trust = settle_trust(fvotes, tri_edges, alive_tri, alive, cfg)
+        w_blame, w_support = _weighted_votes(fvotes, tri_edges, alive_tri, trust)
+        share = w_blame / np.maximum(w_blame + w_support, 1e-12)
+        share[w_blame <= 0] = 0.0
         cand = alive & (blame >= cfg.min_blame) & (share >= cfg.min_blame_share)
         if not cand.any():
             break
         idx = np.flatnonzero(cand)
         e = int(idx[np.lexsort((strength[idx], -blame[idx], -share[idx]))[0]])
-        why[e] = (f"{int(blame[e])} of the {int(blame[e] + support[e])} votes of its triangles blame it "
-                  f"(relative strength {strength[e]:.2f})")
+        why[e] = (f"{int(blame[e])} of the {int(blame[e] + support[e])} votes of its triangles blame it, "
+                  f"{share[e]:.2f} of their weight (relative strength {strength[e]:.2f})")
         alive[e] = False
         removed.append(e)
         for t in edge_tris[e]:
