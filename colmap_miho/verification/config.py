@@ -47,6 +47,14 @@ class PairCheckConfig:
             each other fades (see :func:`~colmap_miho.verification.pair_graph.settle_trust`).
         trust_power: exponent of the trust of a pair from its weighted blame share, > 0
             (larger: a blamed pair's votes fade faster).
+        confirm_triangles: a pair the vote removed is kept when its own matches, carried
+            through the matches of two kept pairs trusted at least ``confirm_trust``, close
+            (at least ``min_transfers``, a share of at least ``confirm_share``) in this many
+            triangles (0: off). Wrong pairs join different scene points, so only other wrong
+            pairs can confirm them; a correct pair whose fundamental matrix is inaccurate
+            (few matches, wide baseline) is confirmed by its neighbours' tracks.
+        confirm_share: see ``confirm_triangles``, in (0, 1].
+        confirm_trust: see ``confirm_triangles``, in [0, 1].
         min_blame: blames a pair needs before it can be removed.
         min_blame_share: share of blames among a pair's votes needed to remove it, in (0, 1].
         min_angle_deg: degrees; epipolar transfers whose two lines meet at a smaller angle
@@ -68,6 +76,9 @@ class PairCheckConfig:
     min_relative_share: float = 0.0
     trust_iterations: int = 10
     trust_power: float = 2.0
+    confirm_triangles: int = 3
+    confirm_share: float = 0.8
+    confirm_trust: float = 0.5
     min_blame: int = 2
     min_blame_share: float = 0.55
     min_angle_deg: float = 5.0
@@ -99,6 +110,12 @@ class PairCheckConfig:
             raise ValueError(f"trust_iterations must be >= 0, got {self.trust_iterations}")
         if self.trust_power <= 0:
             raise ValueError(f"trust_power must be > 0, got {self.trust_power}")
+        if self.confirm_triangles < 0:
+            raise ValueError(f"confirm_triangles must be >= 0, got {self.confirm_triangles}")
+        if not 0.0 < self.confirm_share <= 1.0:
+            raise ValueError(f"confirm_share must be in (0, 1], got {self.confirm_share}")
+        if not 0.0 <= self.confirm_trust <= 1.0:
+            raise ValueError(f"confirm_trust must be in [0, 1], got {self.confirm_trust}")
         if self.min_blame < 1:
             raise ValueError(f"min_blame must be >= 1, got {self.min_blame}")
         if not 0.0 < self.min_blame_share <= 1.0:

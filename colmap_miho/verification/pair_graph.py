@@ -13,7 +13,10 @@ keypoints; one wrong pair sends them all astray.
 Each transfer that fails blames the two pairs that carried it, each that works supports them
 (:func:`carrier_votes`); the pairs with the most blame are removed first, and each removal takes
 its triangles' votes off the other pairs, so the correct pairs that shared triangles with a
-wrong one recover (:func:`check_pairs`). A pair without counted transfers is kept (there is no
+wrong one recover (:func:`check_pairs`). Votes are weighted by trust (:func:`settle_trust`), so
+wrong pairs that agree with each other stop supporting each other, and a removed pair whose
+tracks the kept, trusted pairs confirm in several triangles is kept after all
+(:func:`confirming_triangles`). A pair without counted transfers is kept (there is no
 evidence against it), and a pair is only removed while one of its triangles is still present:
 its two images stay joined through the triangle's third image, so no removal splits the pair
 graph. The work grows with the triangles present (each pair intersects its two images'
@@ -58,6 +61,9 @@ class PairVerdict:
         transfers_closed / transfers_broken: the pair's own matches carried into the third
             images of its triangles: the tracks it makes that stay consistent / that join two
             places of one image (track conflicts).
+        confirmed_triangles: triangles, among those whose two other pairs are kept and
+            trusted after the removals, in which the pair's tracks stay consistent (see
+            :func:`confirming_triangles`).
         wrong: removed (``mode = "remove"``) or flagged (``"flag"``).
         reason: why, in words ("" for a pair kept).
     """
@@ -71,6 +77,7 @@ class PairVerdict:
     support: int
     transfers_closed: int
     transfers_broken: int
+    confirmed_triangles: int
     wrong: bool
     reason: str
 
@@ -186,7 +193,8 @@ def _within(xy_a: np.ndarray, xy_b: np.ndarray, tol: float) -> np.ndarray:
 
 def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckConfig) -> np.ndarray:
     """Closed and broken transfers of one triangle, each pair's matches carried into the third
-    image: int64 ``(3, 2)``, rows for the pairs i-j, i-k, j-k of ``tri = (i, j, k)``.
+    image: int64 ``(3, 4)``, rows for the pairs i-j, i-k, j-k of ``tri = (i, j, k)``, columns
+    (closed, broken) through the tracks, then (closed, broken) by epipolar transfer.
 
     A match (p, q) of the pair x-y lands in the third image z in one of two ways:
 
@@ -204,7 +212,7 @@ def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckCo
 
     At most ``max_transfers`` matches per pair are carried (spread over its rows).
     """
-    out = np.zeros((3, 2), np.int64)
+    out = np.zeros((3, 4), np.int64)
     i, j, k = tri
     kp = graph.keypoints
     min_sin = np.sin(np.deg2rad(cfg.min_angle_deg))
@@ -224,6 +232,7 @@ def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckCo
         only_x = np.flatnonzero(has_x & ~has_y)
         back, ok = graph.look[(z, y)](r_x[only_x])
         state[only_x[ok]] = _within(kp[y][back[ok]], kp[y][q[only_x[ok]]], tol)
+        out[row, :2] = np.count_nonzero(state == 1), np.count_nonzero(state == 0)
         rest = np.flatnonzero(state < 0)
         Fx, Fy = graph.F.get((x, z)), graph.F.get((y, z))
         if len(rest) and Fx is not None and Fy is not None and (x, y) in graph.F:
@@ -234,7 +243,7 @@ def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckCo
             if ok.any():
                 d, _ = tree.query(pts[ok], k=1, distance_upper_bound=tol)
                 state[rest[ok]] = np.isfinite(d)
-        out[row] = np.count_nonzero(state == 1), np.count_nonzero(state == 0)
+        out[row, 2:] = np.count_nonzero(state[rest] == 1), np.count_nonzero(state[rest] == 0)
     return out
 
 
@@ -364,6 +373,39 @@ def _remove_worst_first(blame: np.ndarray, support: np.ndarray, strength: np.nda
     return alive, removed, why
 
 
+def confirming_triangles(tracks: np.ndarray, votes: np.ndarray, tri_edges: np.ndarray, alive: np.ndarray,
+                         cfg: PairCheckConfig) -> np.ndarray:
+    """Per pair ``(E,)``: the triangles in which its own matches, carried into the third image
+    through the matches of the two other pairs, reach one keypoint there (consistent tracks,
+    no track conflict): at least ``min_transfers`` closed and a closed share of at least
+    ``confirm_share``, where both other pairs are kept (``alive``) and trusted (at least
+    ``confirm_trust`` after the removals, :func:`settle_trust`).
+
+    This is the track-conflict test of Wilson & Snavely (2013) and Heinly et al. (2014) in its
+    positive form, on the pairs the vote removed. A wrong pair joins the tracks of two
+    different scene points, so two correct pairs never carry its matches to one keypoint;
+    only other wrong pairs that join the same copies can, hence the count of triangles. A
+    correct pair removed because its fundamental matrix, fitted to few matches, carries
+    other pairs' points astray by epipolar transfer, still has its tracks confirmed by the
+    strong pairs around it.
+
+    Args:
+        tracks: int ``(T, 3, 2)``: per triangle and pair, its transfers through the tracks
+            (closed, broken).
+        votes: float ``(T, 3, 2)``: the triangles' votes (blame, support), for the trust.
+        tri_edges: int ``(T, 3)``; alive: bool ``(E,)``, the pairs kept.
+    """
+    both = alive[tri_edges].all(1)
+    trust = settle_trust(votes, tri_edges, both, alive, cfg)
+    ok = alive & (trust >= cfg.confirm_trust)
+    carriers_ok = ok[tri_edges[:, _OTHERS[:, 0]]] & ok[tri_edges[:, _OTHERS[:, 1]]]
+    closed, broken = tracks[:, :, 0], tracks[:, :, 1]
+    good = carriers_ok & (closed >= cfg.min_transfers) & (closed >= cfg.confirm_share * (closed + broken))
+    out = np.zeros(len(alive), np.int64)
+    np.add.at(out, tri_edges.ravel(), good.ravel().astype(np.int64))
+    return out
+
+
 def _coverage(m: np.ndarray, kp1: np.ndarray, kp2: np.ndarray) -> float:
     """Smaller share of grid cells (over each image's keypoint extent) holding a match."""
     shares = []
@@ -401,11 +443,14 @@ def check_pairs(matches: Mapping[Pair, np.ndarray], keypoints: Mapping[int, np.n
     tri_edges = np.zeros((len(tris), 3), np.int64)
     tri_state = np.full(len(tris), -1, np.int8)  # -1 undecided, 0 closed, 1 broken
     votes = np.zeros((len(tris), 3, 2), np.int64)  # per triangle and pair: blame, support
+    tracks = np.zeros((len(tris), 3, 2), np.int64)  # per triangle and pair: closed, broken through tracks
     edge_tris: list[list[int]] = [[] for _ in range(n_edges)]
     for t, (i, j, k) in enumerate(tris):
         es = [graph.index[(i, j)], graph.index[(i, k)], graph.index[(j, k)]]
         tri_edges[t] = es
-        cb = triangle_transfer(graph, (i, j, k), cfg)
+        cb4 = triangle_transfer(graph, (i, j, k), cfg)
+        tracks[t] = cb4[:, :2]
+        cb = cb4[:, :2] + cb4[:, 2:]
         tri_state[t] = triangle_state(cb, cfg)
         votes[t] = carrier_votes(cb, cfg)
         for r, e in enumerate(es):
@@ -429,6 +474,11 @@ def check_pairs(matches: Mapping[Pair, np.ndarray], keypoints: Mapping[int, np.n
                          for e, (i, j) in enumerate(graph.edges)])
 
     alive, removed, why = _remove_worst_first(blame, support, strength, votes, tri_edges, edge_tris, cfg)
+    confirmed = confirming_triangles(tracks, votes.astype(np.float64), tri_edges, alive, cfg)
+    if cfg.confirm_triangles:
+        kept = [e for e in removed if confirmed[e] >= cfg.confirm_triangles]
+        alive[kept] = True
+        removed = [e for e in removed if not alive[e]]
 
     verdicts = {}
     for e, (i, j) in enumerate(graph.edges):
@@ -439,7 +489,7 @@ def check_pairs(matches: Mapping[Pair, np.ndarray], keypoints: Mapping[int, np.n
             triangles=int(total[e]), triangles_broken=int(broken_tris[e]),
             blame=int(blame0[e]), support=int(support0[e]),
             transfers_closed=int(own[e, 0]), transfers_broken=int(own[e, 1]),
-            wrong=not alive[e], reason=why.get(e, ""))
+            confirmed_triangles=int(confirmed[e]), wrong=not alive[e], reason=why.get(e, "") if not alive[e] else "")
     return PairCheckResult(verdicts=verdicts, wrong=[graph.edges[e] for e in removed], triangles=len(tris),
                            triangles_decided=int(np.count_nonzero(tri_state >= 0)),
                            triangles_broken=int(np.count_nonzero(tri_state == 1)))

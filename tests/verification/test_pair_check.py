@@ -12,7 +12,7 @@ from doppelganger import FOCAL, HEIGHT, WIDTH, make_doppelganger_scene
 from colmap_miho.enums import PairCheckMode
 from colmap_miho.verification import PairCheckConfig, check_pairs
 from colmap_miho.verification.epipolar import fit_fundamental, sampson_sq, transfer
-from colmap_miho.verification.pair_graph import _Graph, settle_trust
+from colmap_miho.verification.pair_graph import _Graph, confirming_triangles, settle_trust
 
 #: Sampson distance (px) of noise-free correspondences under the fitted F.
 F_FIT_TOL_PX = 0.05
@@ -107,6 +107,8 @@ def test_pair_order_and_duplicates():
                                           ("min_blame_share", 0.0), ("min_angle_deg", 90.0),
                                           ("min_f_matches", 7), ("mode", "drop"),
                                           ("trust_iterations", -1), ("trust_power", 0.0),
+                                          ("confirm_triangles", -1), ("confirm_share", 0.0),
+                                          ("confirm_trust", 1.5),
                                           ("transfer_tol_px", float("nan"))])
 def test_config_refuses_bad_values(field, value):
     with pytest.raises(ValueError, match=field):
@@ -215,3 +217,53 @@ def test_agreeing_doppelgangers_found_with_trust_weighting():
     assert found[10] >= MIN_RECALL_MANY * wrong_total
     assert found[0] < MAX_RECALL_COUNTED * wrong_total
     assert false_total <= MAX_FALSE_SHARE * correct_total
+
+
+def test_confirming_triangles_count_consistent_tracks_of_kept_trusted_pairs():
+    """Pair 0 (removed) is in four triangles with kept pairs 1-8; its tracks close in the first
+    three (one of them through pair 7, which is removed too: not counted) and break in the
+    fourth. Only triangles whose two other pairs are kept and trusted count."""
+    tri_edges = np.array([[0, 1, 2], [0, 3, 4], [0, 5, 7], [0, 6, 8], [1, 2, 3], [3, 4, 5], [5, 6, 8]])
+    tracks = np.zeros((len(tri_edges), 3, 2), np.int64)
+    tracks[:, :, 0] = 40  # every pair's tracks close, except:
+    tracks[3, 0] = [5, 40]  # pair 0 in triangle 3: track conflicts
+    votes = np.zeros((len(tri_edges), 3, 2))
+    votes[:, :, 1] = 2  # all support (trusted)
+    alive = np.ones(9, bool)
+    alive[[0, 7]] = False
+    cfg = PairCheckConfig()
+    n = confirming_triangles(tracks, votes, tri_edges, alive, cfg)
+    assert n[0] == 2
+    votes[1] = [[0, 0], [2, 0], [2, 0]]  # triangle 1 now blames pairs 3 and 4: their trust drops
+    votes[5] = [[2, 0], [2, 0], [2, 0]]
+    assert confirming_triangles(tracks, votes, tri_edges, alive, cfg)[0] == 1
+
+
+def test_confirmation_keeps_a_correct_pair_with_an_inaccurate_geometry():
+    """A weak correct pair (60 matches kept) whose fundamental matrix is perturbed, as a weak
+    pair's inaccurate F carries other pairs' points astray by epipolar transfer, is removed by
+    the vote; its tracks, confirmed by the pairs around it, keep it."""
+    from colmap_miho.verification import pair_graph
+
+    scene = make_doppelganger_scene(seed=1, fooled_prob=0.0)
+    victim = (5, 21)
+    matches = dict(scene.matches)
+    matches[victim] = matches[victim][:60]
+    real_graph = pair_graph._Graph
+
+    class SkewedGraph(real_graph):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            F = self.F[victim]
+            F = F + np.random.default_rng(0).normal(0, 1, (3, 3)) * np.abs(F).mean() * 0.3
+            self.F[victim], self.F[victim[::-1]] = F, F.T
+
+    try:
+        pair_graph._Graph = SkewedGraph  # type: ignore[misc]
+        off = check_pairs(matches, scene.keypoints, PairCheckConfig(confirm_triangles=0))
+        on = check_pairs(matches, scene.keypoints, PairCheckConfig())
+    finally:
+        pair_graph._Graph = real_graph  # type: ignore[misc]
+    assert off.wrong == [victim]
+    assert on.wrong == [] and on.verdicts[victim].confirmed_triangles >= PairCheckConfig().confirm_triangles
+    assert not on.verdicts[victim].reason
