@@ -39,6 +39,8 @@ class PairCheckConfig:
             that agree with each other (they carry the correct pair's unrepeated points
             astray, its repeated ones right), at the cost of blaming weak correct pairs on
             real scenes: off by default.
+        transferred_votes: a counted transfer votes on the pair transferred too, not only on
+            its two carriers (the transfer is a loop through all three pairs).
         trust_iterations: rounds of trust weighting before each removal (0: every vote
             counts fully). A triangle's votes on a pair count as much as the triangle's two
             other pairs are trusted, and a pair's trust is ``(1 - its weighted blame share)
@@ -74,6 +76,7 @@ class PairCheckConfig:
     min_transfers: int = 8
     min_closed_share: float = 0.4
     min_relative_share: float = 0.0
+    transferred_votes: bool = True
     trust_iterations: int = 10
     trust_power: float = 2.0
     confirm_triangles: int = 3

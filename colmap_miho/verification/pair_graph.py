@@ -267,12 +267,15 @@ def carrier_votes(cb: np.ndarray, cfg: PairCheckConfig) -> np.ndarray:
 
     A pair's matches are carried into the third image by the other two pairs. When at least
     ``min_transfers`` of them are counted, the two carriers get one blame if the closed share
-    is below ``min_closed_share``, else one support. One wrong pair is a carrier of two of
-    the three transfers and is transferred in the third, so all three fail and every pair gets
-    two blames; two wrong pairs that agree (both join the same copies) carry each other's
-    matches correctly but not the correct pair's: each gets one blame and one support, the
-    correct pair two supports. Over a pair's triangles, a wrong pair collects at least as many
-    blames as supports; a correct pair mostly supports.
+    is below ``min_closed_share``, else one support; with ``transferred_votes`` the pair
+    transferred gets the same vote (a transfer is a loop through all three pairs: when it
+    fails, any of them may be the wrong one). One wrong pair is a carrier of two of the three
+    transfers and is transferred in the third, so all three fail and every pair is blamed;
+    two wrong pairs that agree (both join the same copies) carry each other's matches
+    correctly but not the correct pair's: each gets blame and support, the correct pair
+    mostly support. The transfers of a wrong pair whose images lie far apart often count
+    only its own (the others land outside its images), so without ``transferred_votes`` its
+    failures blame only the two correct carriers.
     """
     out = np.zeros((3, 2), np.int64)
     carriers = ((1, 2), (0, 2), (0, 1))  # row r (pair r transferred) is carried by these pairs
@@ -283,7 +286,7 @@ def carrier_votes(cb: np.ndarray, cfg: PairCheckConfig) -> np.ndarray:
     for r in range(3):
         if counted[r]:
             fail = share[r] < cfg.min_closed_share or share[r] < cfg.min_relative_share * best
-            for c in carriers[r]:
+            for c in carriers[r] + ((r,) if cfg.transferred_votes else ()):
                 out[c, 0 if fail else 1] += 1
     return out
 
