@@ -16,8 +16,10 @@ class PairCheckConfig:
     In each triangle of the pair graph (images i, j, k matched pairwise) every pair's matches
     are carried into the third image by the other two pairs, through their matches or by
     epipolar transfer; a transfer closes when it lands within ``transfer_tol_px`` of the
-    expected keypoint. A pair's transfers that mostly fail blame the two carrying pairs, the
-    others support them; pairs are removed worst first.
+    expected keypoint. A pair's transfers that mostly fail blame the two carrying pairs (and
+    the pair itself, ``transferred_votes``), the others support them; the votes are weighted
+    by the trust of the triangle's other pairs, pairs are removed worst first, and a removed
+    pair whose tracks the kept pairs confirm is kept after all.
 
     Defaults chosen with ``benchmarks/bench_pair_check.py`` on the demo, Middlebury temple and
     Strecha fountain and entry, default and permissive COLMAP matching, and on the synthetic
