@@ -14,7 +14,7 @@ kept matches to the GT epipolar lines exceeds ``--wrong-px`` (4 px). Counted: wr
         [--settings default permissive] [--synthetic-seeds 0 1 2 3 4] [--set key=value ...]
         [--cost] [--json out.json]
 
-``--set`` overrides ``pair_check`` fields (e.g. ``--set min_broken_share=0.4``). ``--cost``
+``--set`` overrides ``pair_check`` fields (e.g. ``--set trust_iterations=0``). ``--cost``
 also times a full ``refine`` of fountain (default setting) with the check on, and reports the
 check's share of the refine stage's time.
 """

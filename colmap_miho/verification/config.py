@@ -16,12 +16,14 @@ class PairCheckConfig:
     In each triangle of the pair graph (images i, j, k matched pairwise) every pair's matches
     are carried into the third image by the other two pairs, through their matches or by
     epipolar transfer; a transfer closes when it lands within ``transfer_tol_px`` of the
-    expected keypoint. A pair's transfers that mostly fail blame the two carrying pairs, the
-    others support them; pairs are removed worst first.
+    expected keypoint. A pair's transfers that mostly fail blame the two carrying pairs (and
+    the pair itself, ``transferred_votes``), the others support them; the votes are weighted
+    by the trust of the triangle's other pairs, pairs are removed worst first, and a removed
+    pair whose tracks the kept pairs confirm is kept after all.
 
     Defaults chosen with ``benchmarks/bench_pair_check.py`` on the demo, Middlebury temple and
-    Strecha fountain and entry, default and permissive COLMAP matching (no pair that agrees
-    with the GT cameras removed on any of them) and on the synthetic doppelganger scenes.
+    Strecha fountain and entry, default and permissive COLMAP matching, and on the synthetic
+    doppelganger scenes (several seeds); what they find there is in ``docs/results.md``.
 
     Attributes:
         enabled: run the check (``refine``: between the filter and the refinement).
@@ -39,6 +41,24 @@ class PairCheckConfig:
             that agree with each other (they carry the correct pair's unrepeated points
             astray, its repeated ones right), at the cost of blaming weak correct pairs on
             real scenes: off by default.
+        transferred_votes: a counted transfer votes on the pair transferred too, not only on
+            its two carriers (the transfer is a loop through all three pairs).
+        trust_iterations: rounds of trust weighting before each removal (0: every vote
+            counts fully). A triangle's votes on a pair count as much as the triangle's two
+            other pairs are trusted, and a pair's trust is ``(1 - its weighted blame share)
+            ** trust_power``: two wrong pairs that agree with each other close their shared
+            triangles, but each is blamed by its other triangles, so the support they give
+            each other fades (see :func:`~colmap_miho.verification.pair_graph.settle_trust`).
+        trust_power: exponent of the trust of a pair from its weighted blame share, > 0
+            (larger: a blamed pair's votes fade faster).
+        confirm_triangles: a pair the vote removed is kept when its own matches, carried
+            through the matches of two kept pairs trusted at least ``confirm_trust``, close
+            (at least ``min_transfers``, a share of at least ``confirm_share``) in this many
+            triangles (0: off). Wrong pairs join different scene points, so only other wrong
+            pairs can confirm them; a correct pair whose fundamental matrix is inaccurate
+            (few matches, wide baseline) is confirmed by its neighbours' tracks.
+        confirm_share: see ``confirm_triangles``, in (0, 1].
+        confirm_trust: see ``confirm_triangles``, in [0, 1].
         min_blame: blames a pair needs before it can be removed.
         min_blame_share: share of blames among a pair's votes needed to remove it, in (0, 1].
         min_angle_deg: degrees; epipolar transfers whose two lines meet at a smaller angle
@@ -58,6 +78,12 @@ class PairCheckConfig:
     min_transfers: int = 8
     min_closed_share: float = 0.4
     min_relative_share: float = 0.0
+    transferred_votes: bool = True
+    trust_iterations: int = 10
+    trust_power: float = 2.0
+    confirm_triangles: int = 3
+    confirm_share: float = 0.8
+    confirm_trust: float = 0.5
     min_blame: int = 2
     min_blame_share: float = 0.55
     min_angle_deg: float = 5.0
@@ -85,6 +111,16 @@ class PairCheckConfig:
             raise ValueError(f"f_threshold_px must be > 0, got {self.f_threshold_px}")
         if self.min_f_matches < 8:
             raise ValueError(f"min_f_matches must be >= 8 (the eight-point algorithm), got {self.min_f_matches}")
+        if self.trust_iterations < 0:
+            raise ValueError(f"trust_iterations must be >= 0, got {self.trust_iterations}")
+        if self.trust_power <= 0:
+            raise ValueError(f"trust_power must be > 0, got {self.trust_power}")
+        if self.confirm_triangles < 0:
+            raise ValueError(f"confirm_triangles must be >= 0, got {self.confirm_triangles}")
+        if not 0.0 < self.confirm_share <= 1.0:
+            raise ValueError(f"confirm_share must be in (0, 1], got {self.confirm_share}")
+        if not 0.0 <= self.confirm_trust <= 1.0:
+            raise ValueError(f"confirm_trust must be in [0, 1], got {self.confirm_trust}")
         if self.min_blame < 1:
             raise ValueError(f"min_blame must be >= 1, got {self.min_blame}")
         if not 0.0 < self.min_blame_share <= 1.0:

@@ -13,7 +13,10 @@ keypoints; one wrong pair sends them all astray.
 Each transfer that fails blames the two pairs that carried it, each that works supports them
 (:func:`carrier_votes`); the pairs with the most blame are removed first, and each removal takes
 its triangles' votes off the other pairs, so the correct pairs that shared triangles with a
-wrong one recover (:func:`check_pairs`). A pair without counted transfers is kept (there is no
+wrong one recover (:func:`check_pairs`). Votes are weighted by trust (:func:`settle_trust`), so
+wrong pairs that agree with each other stop supporting each other, and a removed pair whose
+tracks the kept, trusted pairs confirm in several triangles is kept after all
+(:func:`confirming_triangles`). A pair without counted transfers is kept (there is no
 evidence against it), and a pair is only removed while one of its triangles is still present:
 its two images stay joined through the triangle's third image, so no removal splits the pair
 graph. The work grows with the triangles present (each pair intersects its two images'
@@ -58,6 +61,9 @@ class PairVerdict:
         transfers_closed / transfers_broken: the pair's own matches carried into the third
             images of its triangles: the tracks it makes that stay consistent / that join two
             places of one image (track conflicts).
+        confirmed_triangles: triangles, among those whose two other pairs are kept and
+            trusted after the removals, in which the pair's tracks stay consistent (see
+            :func:`confirming_triangles`).
         wrong: removed (``mode = "remove"``) or flagged (``"flag"``).
         reason: why, in words ("" for a pair kept).
     """
@@ -71,6 +77,7 @@ class PairVerdict:
     support: int
     transfers_closed: int
     transfers_broken: int
+    confirmed_triangles: int
     wrong: bool
     reason: str
 
@@ -186,7 +193,8 @@ def _within(xy_a: np.ndarray, xy_b: np.ndarray, tol: float) -> np.ndarray:
 
 def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckConfig) -> np.ndarray:
     """Closed and broken transfers of one triangle, each pair's matches carried into the third
-    image: int64 ``(3, 2)``, rows for the pairs i-j, i-k, j-k of ``tri = (i, j, k)``.
+    image: int64 ``(3, 4)``, rows for the pairs i-j, i-k, j-k of ``tri = (i, j, k)``, columns
+    (closed, broken) through the tracks, then (closed, broken) by epipolar transfer.
 
     A match (p, q) of the pair x-y lands in the third image z in one of two ways:
 
@@ -204,7 +212,7 @@ def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckCo
 
     At most ``max_transfers`` matches per pair are carried (spread over its rows).
     """
-    out = np.zeros((3, 2), np.int64)
+    out = np.zeros((3, 4), np.int64)
     i, j, k = tri
     kp = graph.keypoints
     min_sin = np.sin(np.deg2rad(cfg.min_angle_deg))
@@ -224,6 +232,7 @@ def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckCo
         only_x = np.flatnonzero(has_x & ~has_y)
         back, ok = graph.look[(z, y)](r_x[only_x])
         state[only_x[ok]] = _within(kp[y][back[ok]], kp[y][q[only_x[ok]]], tol)
+        out[row, :2] = np.count_nonzero(state == 1), np.count_nonzero(state == 0)
         rest = np.flatnonzero(state < 0)
         Fx, Fy = graph.F.get((x, z)), graph.F.get((y, z))
         if len(rest) and Fx is not None and Fy is not None and (x, y) in graph.F:
@@ -234,7 +243,7 @@ def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckCo
             if ok.any():
                 d, _ = tree.query(pts[ok], k=1, distance_upper_bound=tol)
                 state[rest[ok]] = np.isfinite(d)
-        out[row] = np.count_nonzero(state == 1), np.count_nonzero(state == 0)
+        out[row, 2:] = np.count_nonzero(state[rest] == 1), np.count_nonzero(state[rest] == 0)
     return out
 
 
@@ -258,12 +267,15 @@ def carrier_votes(cb: np.ndarray, cfg: PairCheckConfig) -> np.ndarray:
 
     A pair's matches are carried into the third image by the other two pairs. When at least
     ``min_transfers`` of them are counted, the two carriers get one blame if the closed share
-    is below ``min_closed_share``, else one support. One wrong pair is a carrier of two of
-    the three transfers and is transferred in the third, so all three fail and every pair gets
-    two blames; two wrong pairs that agree (both join the same copies) carry each other's
-    matches correctly but not the correct pair's: each gets one blame and one support, the
-    correct pair two supports. Over a pair's triangles, a wrong pair collects at least as many
-    blames as supports; a correct pair mostly supports.
+    is below ``min_closed_share``, else one support; with ``transferred_votes`` the pair
+    transferred gets the same vote (a transfer is a loop through all three pairs: when it
+    fails, any of them may be the wrong one). One wrong pair is a carrier of two of the three
+    transfers and is transferred in the third, so all three fail and every pair is blamed;
+    two wrong pairs that agree (both join the same copies) carry each other's matches
+    correctly but not the correct pair's: each gets blame and support, the correct pair
+    mostly support. The transfers of a wrong pair whose images lie far apart often count
+    only its own (the others land outside its images), so without ``transferred_votes`` its
+    failures blame only the two correct carriers.
     """
     out = np.zeros((3, 2), np.int64)
     carriers = ((1, 2), (0, 2), (0, 1))  # row r (pair r transferred) is carried by these pairs
@@ -274,19 +286,64 @@ def carrier_votes(cb: np.ndarray, cfg: PairCheckConfig) -> np.ndarray:
     for r in range(3):
         if counted[r]:
             fail = share[r] < cfg.min_closed_share or share[r] < cfg.min_relative_share * best
-            for c in carriers[r]:
+            for c in carriers[r] + ((r,) if cfg.transferred_votes else ()):
                 out[c, 0 if fail else 1] += 1
     return out
+
+
+#: Row r of a triangle (pair r) and its two other pairs: the carriers of its transfer, and the
+#: pairs whose trust weighs the triangle's votes on pair r.
+_OTHERS = np.array([[1, 2], [0, 2], [0, 1]])
+
+
+def _weighted_votes(votes: np.ndarray, tri_edges: np.ndarray, alive_tri: np.ndarray,
+                    trust: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Blame and support ``(E,)`` of every pair, each present triangle's votes on a pair
+    weighted by the product of the trust of the triangle's two other pairs."""
+    w = trust[tri_edges[:, _OTHERS[:, 0]]] * trust[tri_edges[:, _OTHERS[:, 1]]] * alive_tri[:, None]
+    blame = np.zeros(len(trust))
+    support = np.zeros(len(trust))
+    np.add.at(blame, tri_edges.ravel(), (votes[:, :, 0] * w).ravel())
+    np.add.at(support, tri_edges.ravel(), (votes[:, :, 1] * w).ravel())
+    return blame, support
+
+
+def settle_trust(votes: np.ndarray, tri_edges: np.ndarray, alive_tri: np.ndarray, alive: np.ndarray,
+                 cfg: PairCheckConfig) -> np.ndarray:
+    """Trust of every pair in [0, 1] ``(E,)``: ``cfg.trust_iterations`` rounds of
+    ``trust = (1 - weighted blame share) ** cfg.trust_power`` from all ones (removed pairs: 0).
+
+    This is loop-consistency inference in the spirit of Zach et al. (2010), "Disambiguating
+    visual relations using loop constraints", on the triangles of the pair graph: a closed
+    triangle is evidence that its pairs are right only if the pairs that closed it are
+    themselves trusted. Two wrong pairs that join the same copies of a repeated structure
+    close their shared triangles (they agree), so counted votes alone let them support each
+    other; each is also blamed by the triangles it shares with correct pairs, its trust drops,
+    and the support it gives the other fades with it. A correct pair is blamed mostly by
+    triangles holding a wrong pair, whose weight fades the same way.
+
+    Args:
+        votes: float ``(T, 3, 2)``, per triangle and pair (rows i-j, i-k, j-k): blame, support.
+        tri_edges: int ``(T, 3)`` pair indices of each triangle.
+        alive_tri / alive: bool ``(T,)`` / ``(E,)``: triangles and pairs still present.
+    """
+    trust = alive.astype(np.float64)
+    for _ in range(cfg.trust_iterations):
+        blame, support = _weighted_votes(votes, tri_edges, alive_tri, trust)
+        trust = np.where(alive, (1.0 - blame / np.maximum(blame + support, 1e-12)) ** cfg.trust_power, 0.0)
+    return trust
 
 
 def _remove_worst_first(blame: np.ndarray, support: np.ndarray, strength: np.ndarray, votes: np.ndarray,
                         tri_edges: np.ndarray, edge_tris: list[list[int]],
                         cfg: PairCheckConfig) -> tuple[np.ndarray, list[int], dict[int, str]]:
-    """Remove the pair with the highest blame share (ties: more blame, then the weaker pair)
-    while one has at least ``min_blame`` blames and a share of at least ``min_blame_share``;
-    its triangles' votes leave the other pairs' counts (``blame``, ``support`` ``(E,)`` are
-    updated in place). A pair with blame is in a triangle still present, so its two images
-    stay joined through the triangle's third image: no removal disconnects the graph.
+    """Remove the pair with the highest trust-weighted blame share (ties: more blame, then the
+    weaker pair) while one has at least ``min_blame`` blames and a weighted share of at least
+    ``min_blame_share``; its triangles' votes leave the other pairs' counts (``blame``,
+    ``support`` ``(E,)``, the unweighted counts, are updated in place) and the trust of every
+    pair is settled again (:func:`settle_trust`; with ``trust_iterations = 0`` every vote
+    counts fully). A pair with blame is in a triangle still present, so its two images stay
+    joined through the triangle's third image: no removal disconnects the graph.
 
     Returns:
         ``(alive bool (E,), removed edge indices in order, edge index -> reason)``.
@@ -294,17 +351,21 @@ def _remove_worst_first(blame: np.ndarray, support: np.ndarray, strength: np.nda
     n_edges = len(blame)
     alive_tri = np.ones(len(tri_edges), bool)
     alive = np.ones(n_edges, bool)
+    fvotes = votes.astype(np.float64)
     removed: list[int] = []
     why: dict[int, str] = {}
     while True:
-        share = blame / np.maximum(blame + support, 1)
+        trust = settle_trust(fvotes, tri_edges, alive_tri, alive, cfg)
+        w_blame, w_support = _weighted_votes(fvotes, tri_edges, alive_tri, trust)
+        share = w_blame / np.maximum(w_blame + w_support, 1e-12)
+        share[w_blame <= 0] = 0.0
         cand = alive & (blame >= cfg.min_blame) & (share >= cfg.min_blame_share)
         if not cand.any():
             break
         idx = np.flatnonzero(cand)
         e = int(idx[np.lexsort((strength[idx], -blame[idx], -share[idx]))[0]])
-        why[e] = (f"{int(blame[e])} of the {int(blame[e] + support[e])} votes of its triangles blame it "
-                  f"(relative strength {strength[e]:.2f})")
+        why[e] = (f"{int(blame[e])} of the {int(blame[e] + support[e])} votes of its triangles blame it, "
+                  f"{share[e]:.2f} of their weight (relative strength {strength[e]:.2f})")
         alive[e] = False
         removed.append(e)
         for t in edge_tris[e]:
@@ -313,6 +374,39 @@ def _remove_worst_first(blame: np.ndarray, support: np.ndarray, strength: np.nda
                 np.subtract.at(blame, tri_edges[t], votes[t, :, 0])
                 np.subtract.at(support, tri_edges[t], votes[t, :, 1])
     return alive, removed, why
+
+
+def confirming_triangles(tracks: np.ndarray, votes: np.ndarray, tri_edges: np.ndarray, alive: np.ndarray,
+                         cfg: PairCheckConfig) -> np.ndarray:
+    """Per pair ``(E,)``: the triangles in which its own matches, carried into the third image
+    through the matches of the two other pairs, reach one keypoint there (consistent tracks,
+    no track conflict): at least ``min_transfers`` closed and a closed share of at least
+    ``confirm_share``, where both other pairs are kept (``alive``) and trusted (at least
+    ``confirm_trust`` after the removals, :func:`settle_trust`).
+
+    This is the track-conflict test of Wilson & Snavely (2013) and Heinly et al. (2014) in its
+    positive form, on the pairs the vote removed. A wrong pair joins the tracks of two
+    different scene points, so two correct pairs never carry its matches to one keypoint;
+    only other wrong pairs that join the same copies can, hence the count of triangles. A
+    correct pair removed because its fundamental matrix, fitted to few matches, carries
+    other pairs' points astray by epipolar transfer, still has its tracks confirmed by the
+    strong pairs around it.
+
+    Args:
+        tracks: int ``(T, 3, 2)``: per triangle and pair, its transfers through the tracks
+            (closed, broken).
+        votes: float ``(T, 3, 2)``: the triangles' votes (blame, support), for the trust.
+        tri_edges: int ``(T, 3)``; alive: bool ``(E,)``, the pairs kept.
+    """
+    both = alive[tri_edges].all(1)
+    trust = settle_trust(votes, tri_edges, both, alive, cfg)
+    ok = alive & (trust >= cfg.confirm_trust)
+    carriers_ok = ok[tri_edges[:, _OTHERS[:, 0]]] & ok[tri_edges[:, _OTHERS[:, 1]]]
+    closed, broken = tracks[:, :, 0], tracks[:, :, 1]
+    good = carriers_ok & (closed >= cfg.min_transfers) & (closed >= cfg.confirm_share * (closed + broken))
+    out = np.zeros(len(alive), np.int64)
+    np.add.at(out, tri_edges.ravel(), good.ravel().astype(np.int64))
+    return out
 
 
 def _coverage(m: np.ndarray, kp1: np.ndarray, kp2: np.ndarray) -> float:
@@ -352,11 +446,14 @@ def check_pairs(matches: Mapping[Pair, np.ndarray], keypoints: Mapping[int, np.n
     tri_edges = np.zeros((len(tris), 3), np.int64)
     tri_state = np.full(len(tris), -1, np.int8)  # -1 undecided, 0 closed, 1 broken
     votes = np.zeros((len(tris), 3, 2), np.int64)  # per triangle and pair: blame, support
+    tracks = np.zeros((len(tris), 3, 2), np.int64)  # per triangle and pair: closed, broken through tracks
     edge_tris: list[list[int]] = [[] for _ in range(n_edges)]
     for t, (i, j, k) in enumerate(tris):
         es = [graph.index[(i, j)], graph.index[(i, k)], graph.index[(j, k)]]
         tri_edges[t] = es
-        cb = triangle_transfer(graph, (i, j, k), cfg)
+        cb4 = triangle_transfer(graph, (i, j, k), cfg)
+        tracks[t] = cb4[:, :2]
+        cb = cb4[:, :2] + cb4[:, 2:]
         tri_state[t] = triangle_state(cb, cfg)
         votes[t] = carrier_votes(cb, cfg)
         for r, e in enumerate(es):
@@ -380,6 +477,11 @@ def check_pairs(matches: Mapping[Pair, np.ndarray], keypoints: Mapping[int, np.n
                          for e, (i, j) in enumerate(graph.edges)])
 
     alive, removed, why = _remove_worst_first(blame, support, strength, votes, tri_edges, edge_tris, cfg)
+    confirmed = confirming_triangles(tracks, votes.astype(np.float64), tri_edges, alive, cfg)
+    if cfg.confirm_triangles:
+        kept = [e for e in removed if confirmed[e] >= cfg.confirm_triangles]
+        alive[kept] = True
+        removed = [e for e in removed if not alive[e]]
 
     verdicts = {}
     for e, (i, j) in enumerate(graph.edges):
@@ -390,7 +492,7 @@ def check_pairs(matches: Mapping[Pair, np.ndarray], keypoints: Mapping[int, np.n
             triangles=int(total[e]), triangles_broken=int(broken_tris[e]),
             blame=int(blame0[e]), support=int(support0[e]),
             transfers_closed=int(own[e, 0]), transfers_broken=int(own[e, 1]),
-            wrong=not alive[e], reason=why.get(e, ""))
+            confirmed_triangles=int(confirmed[e]), wrong=not alive[e], reason=why.get(e, "") if not alive[e] else "")
     return PairCheckResult(verdicts=verdicts, wrong=[graph.edges[e] for e in removed], triangles=len(tris),
                            triangles_decided=int(np.count_nonzero(tri_state >= 0)),
                            triangles_broken=int(np.count_nonzero(tri_state == 1)))
