@@ -112,6 +112,8 @@ class NCCConfig:
         lsm_antialias: >= 0 pixels; 0 (off), or the blur assumed in each image: where one
             view sees a match at a finer scale than the other, LSM reads it smoothed to the
             coarser view's blur (:mod:`.lsm_step`).
+        lsm_only: a move LSM does not accept is rejected (the keypoint keeps its position)
+            rather than placed by the iterated parabolas; counted as ``rejected_lsm``.
     """
 
     template_radius: int = 10
@@ -146,6 +148,7 @@ class NCCConfig:
     lsm_max_shift_px: float = 0.5
     lsm_max_sigma_px: float = 0.1
     lsm_antialias: float = 0.0
+    lsm_only: bool = False
 
     def __post_init__(self) -> None:
         for name, choice in _CHOICES.items():

@@ -314,3 +314,23 @@ def test_frame_jacobian_matches_finite_differences():
     num = torch.stack([(f(p[0] + eps * e) - f(p[0] - eps * e)) / (2 * eps)
                        for e in torch.eye(2, dtype=torch.float64)], dim=1)
     assert torch.allclose(frame_jacobian(H, p)[0], num, atol=1e-7)
+
+
+def test_lsm_only_moves_where_lsm_accepted():
+    """With ``lsm_only`` a move LSM does not accept is rejected: the keypoint keeps its
+    input position, the moved count is LSM's accepted count, and the moves that remain sit
+    where plain LSM puts them."""
+    from colmap_miho.refinement.config import NCCConfig
+    from colmap_miho.refinement.ncc import refine_pair
+
+    img1, img2, pts1, _, pts2, homs = _homography_pair()
+    base = dict(device="cpu", move="2", template_radius=6, lsm=True, lsm_max_sigma_px=0.02)
+    plain = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig(**base))
+    only = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig(**base, lsm_only=True))
+    assert plain.stats["lsm_applied"] < plain.stats["moved"]  # the bound rejects some
+    assert only.stats["moved"] == only.stats["lsm_applied"] == plain.stats["lsm_applied"]
+    assert only.stats["rejected_lsm"] == plain.stats["moved"] - plain.stats["lsm_applied"]
+    kept = only.moved_side == 0
+    assert np.array_equal(only.pts2[kept], pts2[kept])
+    moved = only.moved_side == 2
+    assert np.array_equal(only.pts2[moved], plain.pts2[moved])
