@@ -35,8 +35,8 @@ from .warping import ImageStack
 
 #: smallest template radius (pixels) of keypoint-sized LSM templates.
 MIN_RADIUS = 4
-#: smallest anti-aliasing blur (pixels of the finer view) applied; below it a side is read
-#: unsmoothed (bicubic interpolation itself smooths about this much).
+#: smallest anti-aliasing blur (pixels of the finer view) applied; a side that needs less is
+#: read unsmoothed (9 samples per pixel are not spent on a blur below the pixel scale).
 MIN_BLUR_PX = 0.2
 #: counters of :func:`lsm_step`, in the refine stats.
 LSM_COUNTERS = ("lsm_applied", "lsm_not_converged", "lsm_far", "lsm_imprecise")
