@@ -12,6 +12,9 @@ listed but not counted in the summary.
 
     python benchmarks/bench_lsm_pairs.py [--homographies filter|gt] [--targets 2 3 4]
         [--set template_radius=6 --set lsm_max_sigma_px=0.1]
+        [--variant NAME:lsm_only=true,lsm_antialias=0.5 ...]
+
+Each ``--variant`` adds a column: the LSM configuration with its own ``NCCConfig`` overrides.
 
 Data: ``$COLMAP_MIHO_DATA`` or ``<repo>/../shared/data``.
 """
@@ -67,6 +70,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES))
     ap.add_argument("--set", dest="sets", action="append", default=[], metavar="FIELD=VALUE",
                     help="NCCConfig override for both runs (repeatable)")
+    ap.add_argument("--variant", dest="variants", action="append", default=[],
+                    metavar="NAME:FIELD=VALUE,...", help="one more LSM column (repeatable)")
     ap.add_argument("--min-matches", type=int, default=50)
     args = ap.parse_args(argv)
     root = data_root() / "oxford_affine"
@@ -74,13 +79,20 @@ def main(argv=None) -> int:
         print(f"data folder not found: {root}", file=sys.stderr)
         return 2
     base = NCCConfig(device="cpu", **parse_sets(args.sets))
-    cfgs = {"ncc": base, "lsm": NCCConfig(**{**{f.name: getattr(base, f.name) for f in fields(base)},
-                                              "lsm": True})}
-    print(f"patch homographies: {args.homographies}; NCCConfig overrides: {args.sets or 'none'}")
+    lsm = NCCConfig(**{**{f.name: getattr(base, f.name) for f in fields(base)}, "lsm": True})
+    cfgs = {"ncc": base, "lsm": lsm}
+    for item in args.variants:
+        name, _, sets = item.partition(":")
+        cfgs[name] = NCCConfig(**{**{f.name: getattr(lsm, f.name) for f in fields(lsm)},
+                                  **parse_sets([s for s in sets.split(",") if s])})
+    extra_names = list(cfgs)[2:]
+    print(f"patch homographies: {args.homographies}; NCCConfig overrides: {args.sets or 'none'}; "
+          f"variants: {args.variants or 'none'}")
     print(f"{'pair':12s} {'n':>5s} {'before':>7s} {'ncc':>7s} {'lsm':>7s} {'ncc/bef':>8s} "
-          f"{'lsm/bef':>8s} {'lsm/ncc':>8s} applied/moved")
-    ratios = {"ncc": [], "lsm": []}
-    worse = {"ncc": 0, "lsm": 0}
+          f"{'lsm/bef':>8s} {'lsm/ncc':>8s} applied/moved"
+          + "".join(f" {name + '/bef':>10s}" for name in extra_names))
+    ratios: dict[str, list[float]] = {name: [] for name in cfgs}
+    worse = dict.fromkeys(cfgs, 0)
     for seq in args.sequences:
         for pair in oxford_pairs(root / seq, targets=tuple(args.targets)):
             img1, img2 = pair.image1(), pair.image2()
@@ -108,7 +120,7 @@ def main(argv=None) -> int:
                     extra = f"{r.stats.get('lsm_applied', 0)}/{r.stats['moved']}"
             row = (f"{label:12s} {n:5d} {med0:7.3f} {med['ncc']:7.3f} {med['lsm']:7.3f} "
                    f"{med['ncc'] / med0:8.3f} {med['lsm'] / med0:8.3f} {med['lsm'] / med['ncc']:8.3f} "
-                   f"{extra}")
+                   f"{extra}" + "".join(f" {med[name] / med0:10.3f}" for name in extra_names))
             print(row + ("" if n >= args.min_matches else "  (too few: not counted)"))
             if n >= args.min_matches:
                 for name in ratios:

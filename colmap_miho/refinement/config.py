@@ -109,6 +109,11 @@ class NCCConfig:
             and y, common-frame pixels) of the NCC peak.
         lsm_max_sigma_px: > 0, ... and only if the a-posteriori standard deviation of its
             shift (largest semi-axis of the error ellipse, common-frame pixels) is below this.
+        lsm_antialias: >= 0 pixels; 0 (off), or the blur assumed in each image: where one
+            view sees a match at a finer scale than the other, LSM reads it smoothed to the
+            coarser view's blur (:mod:`.lsm_step`).
+        lsm_only: a move LSM does not accept is rejected (the keypoint keeps its position)
+            rather than placed by the iterated parabolas; counted as ``rejected_lsm``.
     """
 
     template_radius: int = 10
@@ -142,6 +147,8 @@ class NCCConfig:
     lsm_tol_px: float = 0.005
     lsm_max_shift_px: float = 0.5
     lsm_max_sigma_px: float = 0.1
+    lsm_antialias: float = 0.0
+    lsm_only: bool = False
 
     def __post_init__(self) -> None:
         for name, choice in _CHOICES.items():
@@ -195,6 +202,8 @@ class NCCConfig:
             raise ValueError(f"lsm_max_shift_px must be > 0 pixels, got {self.lsm_max_shift_px}")
         if not self.lsm_max_sigma_px > 0:
             raise ValueError(f"lsm_max_sigma_px must be > 0 pixels, got {self.lsm_max_sigma_px}")
+        if not self.lsm_antialias >= 0:
+            raise ValueError(f"lsm_antialias must be >= 0 pixels (0: off), got {self.lsm_antialias}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -216,11 +225,18 @@ class TrackConfig:
             its call); the batched walk makes fewer, larger calls, which is faster on the CPU
             too. None (default): batched with the built-in refiner on every device; a custom
             ``refine_fn`` gets one call per pair.
+        align_to_anchor: align every keypoint of a track to the track's anchor (one
+            reference per track) rather than to the partner it is matched with: a keypoint
+            two or more matches away from the anchor is searched against the anchor's patch,
+            rectified through the chain of patch homography pairs that leads to it, so the
+            errors of the keypoints between do not add up along the chain. False: each
+            keypoint is aligned to its partner (which may itself have just moved).
     """
 
     max_images_in_memory: int = 8
     batch_pairs: bool | None = None
     duplicate_px: float = 1.0
+    align_to_anchor: bool = False
 
     def __post_init__(self) -> None:
         if not self.duplicate_px >= 0:

@@ -13,6 +13,15 @@ from the NCC offset. LSM's position replaces the NCC one only where
 
 elsewhere the NCC refinement goes on as without LSM (iterated parabolas). Each reason is
 counted.
+
+Anti-aliasing (``lsm_antialias`` > 0): where one view sees the match at a finer scale than
+the other (the local scale ``sqrt |det J|`` of its frame -> image map at the match is
+larger), its samples are smoothed so that both sides carry the blur of the coarser view:
+a Gaussian of ``lsm_antialias * sqrt(ratio^2 - 1)`` of its own pixels (the coarser view's
+blur, ``lsm_antialias`` pixels of its own, brought to the finer view's pixels, less the
+finer view's own). The Gaussian is a 3 x 3 stencil of bicubic samples along the image axes
+(equal weights, spacing ``sigma sqrt(3/2)``: the variance of a Gaussian of ``sigma``), so
+the smoothing costs samples at the affected matches only and stays per match.
 """
 
 from __future__ import annotations
@@ -21,11 +30,14 @@ import numpy as np
 import torch
 
 from .config import NCCConfig
-from .lsm import frame_sampler, lsm_align
+from .lsm import Sampler, frame_sampler, lsm_align
 from .warping import ImageStack
 
 #: smallest template radius (pixels) of keypoint-sized LSM templates.
 MIN_RADIUS = 4
+#: smallest anti-aliasing blur (pixels of the finer view) applied; a side that needs less is
+#: read unsmoothed (9 samples per pixel are not spent on a blur below the pixel scale).
+MIN_BLUR_PX = 0.2
 #: counters of :func:`lsm_step`, in the refine stats.
 LSM_COUNTERS = ("lsm_applied", "lsm_not_converged", "lsm_far", "lsm_imprecise")
 
@@ -83,8 +95,14 @@ def lsm_step(
         sub_f = img_f.rows(rows) if isinstance(img_f, ImageStack) else img_f
         sub_m = img_m.rows(rows) if isinstance(img_m, ImageStack) else img_m
         every = torch.arange(k, device=dev)
-        tpl = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows])(every, eye, zero, r)
-        res = lsm_align(frame_sampler(sub_m, H_m_inv[rows], frame_m[rows]), tpl, offset[rows],
+        samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows])
+        samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows])
+        if cfg.lsm_antialias > 0:
+            samp_f, samp_m = _antialiased(samp_f, samp_m, H_f_inv[rows], frame_f[rows],
+                                          H_m_inv[rows], frame_m[rows] + offset[rows],
+                                          cfg.lsm_antialias)
+        tpl = samp_f(every, eye, zero, r)
+        res = lsm_align(samp_m, tpl, offset[rows],
                         affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
                         tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
         shift[rows], sigma_max[rows], converged[rows] = res.shift, res.sigma_max, res.converged
@@ -99,3 +117,52 @@ def lsm_step(
         "lsm_imprecise": int(imprecise.sum()),
     }
     return torch.where(ok[:, None], shift, offset), counts, ok
+
+
+def frame_jacobian(H_inv: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """(n, 2, 2) float64 Jacobians of the maps ``H_inv`` (n, 3, 3) (frame -> image pixels) at
+    the frame points ``p`` (n, 2): image pixels per frame pixel."""
+    xh = H_inv[:, :, :2] @ p[:, :, None] + H_inv[:, :, 2:]  # (n, 3, 1)
+    w = xh[:, 2:, :]
+    x = xh[:, :2, :] / w
+    return (H_inv[:, :2, :2] - x * H_inv[:, 2:, :2]) / w
+
+
+def _blurred(sampler: Sampler, step: torch.Tensor, blur: torch.Tensor) -> Sampler:
+    """``sampler`` whose matches ``blur`` ((n,) bool) are read as the mean of a 3 x 3 stencil
+    of samples ``t + step_j o``, o in {-1, 0, 1}^2 (``step`` (n, 2, 2) float64: frame
+    offsets of one stencil step along the image's x and y)."""
+    offsets = [(i, j) for j in (-1, 0, 1) for i in (-1, 0, 1)]
+
+    def sample(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
+        out = sampler(rows, A, t, radius)
+        on = blur[rows]
+        if not bool(on.any()):
+            return out
+        sel = torch.nonzero(on)[:, 0]
+        sub, A_s, t_s, st = rows[sel], A[sel], t[sel], step[rows[sel]]
+        acc = torch.zeros_like(out[sel])
+        for i, j in offsets:
+            acc += sampler(sub, A_s, t_s + i * st[:, :, 0] + j * st[:, :, 1], radius)
+        out[sel] = acc / len(offsets)
+        return out
+
+    return sample
+
+
+def _antialiased(samp_f: Sampler, samp_m: Sampler, H_f_inv: torch.Tensor, at_f: torch.Tensor,
+                 H_m_inv: torch.Tensor, at_m: torch.Tensor, base_px: float) -> tuple[Sampler, Sampler]:
+    """The two samplers with the finer view of each match smoothed to the coarser one's blur
+    (see the module docstring); ``at_f`` / ``at_m`` (n, 2) frame points of the match."""
+    J_f, J_m = frame_jacobian(H_f_inv, at_f), frame_jacobian(H_m_inv, at_m)
+    s_f = torch.linalg.det(J_f).abs().sqrt()
+    s_m = torch.linalg.det(J_m).abs().sqrt()
+    ratio = torch.maximum(s_f, s_m) / torch.minimum(s_f, s_m).clamp_min(1e-12)
+    sigma = base_px * (ratio.square() - 1).clamp_min(0).sqrt()  # finer view's pixels
+    blur = sigma >= MIN_BLUR_PX
+    h = sigma * 1.5**0.5
+    # one stencil step of h image pixels along the image's axes, in frame pixels: J^-1 h
+    step_f = torch.linalg.inv(J_f) * h[:, None, None]
+    step_m = torch.linalg.inv(J_m) * h[:, None, None]
+    return (_blurred(samp_f, step_f, blur & (s_f > s_m)),
+            _blurred(samp_m, step_m, blur & (s_m > s_f)))

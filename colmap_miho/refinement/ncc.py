@@ -195,6 +195,8 @@ def refine_pair(
     out = _Outputs.unchanged(inp.p1, inp.p2)
     if cfg.lsm:
         out.counts.update(dict.fromkeys(LSM_COUNTERS, 0))
+        if cfg.lsm_only:
+            out.counts["rejected_lsm"] = 0
         if cfg.lsm_radius_per_scale > 0 and inp.affine1 is not None and inp.affine2 is not None:
             out.kp_scales = (np.sqrt(np.abs(np.linalg.det(inp.affine1))),
                              np.sqrt(np.abs(np.linalg.det(inp.affine2))))
@@ -299,27 +301,31 @@ Direction = tuple[int, int, dict[str, torch.Tensor]]
 
 def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], direction: tuple[int, int],
               r: dict[str, torch.Tensor], rows: tuple[torch.Tensor, np.ndarray], cfg: NCCConfig,
-              out: _Outputs) -> torch.Tensor:
+              out: _Outputs) -> tuple[torch.Tensor, np.ndarray]:
     """Sub-pixel offsets (J, 2) of the accepted moves of ``direction`` (fixed ``f``, moving
     ``m``), ``rows`` = (their rows in the chunk, their match indices): least-squares matching
     from the NCC peak's parabola where ``cfg.lsm`` is on and it passes its tests, the iterated
-    parabolas elsewhere (all of them without LSM)."""
+    parabolas elsewhere (all of them without LSM); and (J,) bool, the moves to apply (all but
+    those LSM did not accept, with ``cfg.lsm_only``)."""
     (f, m), (sel, matches) = direction, rows
     H_inv, frame, off = r["H_inv"][sel], r["frame_m"][sel], r["offset"][sel]
     img_m = _rows(img[m], sel)
+    every = np.ones(sel.numel(), bool)
     if not cfg.lsm:
         return iterate_subpixel(img_m, H_inv, frame, off, r["template"][sel], cfg.template_radius,
-                                cfg.subpixel_iterations)
+                                cfg.subpixel_iterations), every
     scale_f = None if out.kp_scales is None else out.kp_scales[f][matches]
     off, lsm_counts, accepted = lsm_step(_rows(img[f], sel), img_m, r["H_f_inv"][sel], r["frame_f"][sel],
                                          H_inv, frame, off, cfg, scale_f)
     for key, value in lsm_counts.items():
         out.add(key, int(value))
+    if cfg.lsm_only:
+        return off, accepted.cpu().numpy()
     todo = torch.nonzero(~accepted)[:, 0]
     if todo.numel():
         off[todo] = iterate_subpixel(_rows(img_m, todo), H_inv[todo], frame[todo], off[todo],
                                      r["template"][sel][todo], cfg.template_radius, cfg.subpixel_iterations)
-    return off
+    return off, every
 
 
 def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack],
@@ -362,7 +368,15 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
             continue
         sel = torch.as_tensor(take, device=r["offset"].device)
         H_inv, frame = r["H_inv"][sel], r["frame_m"][sel]
-        off = _subpixel(img, (f, m), r, (sel, idx[take]), cfg, out)
+        off, apply = _subpixel(img, (f, m), r, (sel, idx[take]), cfg, out)
+        if not apply.all():  # lsm_only: the moves LSM did not accept are rejected
+            out.rejected[idx[take[~apply]]] = True
+            out.add("rejected_lsm", int((~apply).sum()))
+            keep = torch.as_tensor(np.flatnonzero(apply), device=off.device)
+            take, sel, off = take[apply], sel[keep], off[keep]
+            H_inv, frame = H_inv[keep], frame[keep]
+            if take.size == 0:
+                continue
         new = to_frame(H_inv, frame + off).cpu().numpy()
         ok = idx[take]
         old = out.pts[m][ok]

@@ -31,17 +31,28 @@ Images = Mapping[int, np.ndarray | None] | Callable[[int], np.ndarray | None]
 class Group:
     """Edges ``edges`` (indices into the plan's edge arrays) of ``pair`` whose side-``side``
     keypoints (nodes ``free``) move at this level, each against the fixed node
-    ``partner``."""
+    ``partner``; with ``reference`` (nodes, all in one image, None: the partners), each
+    is aligned to its reference node instead, through the partner edge's homography pair
+    composed with the partner's map from the reference image (:attr:`WalkState.to_ref`)."""
 
     pair: tuple
     side: int
     edges: np.ndarray
     free: np.ndarray
     partner: np.ndarray
+    reference: np.ndarray | None = None
 
     @property
     def size(self) -> int:
         return int(self.edges.size)
+
+    def images(self, plan: TrackPlan) -> tuple:
+        """The image ids this group's refine call reads: the pair's, or (reference image,
+        moving image)."""
+        if self.reference is None:
+            return tuple(self.pair)
+        moving = self.pair[1] if self.side == 2 else self.pair[0]
+        return int(plan.node_image[self.reference[0]]), moving
 
 
 class ImageSource:
@@ -96,6 +107,9 @@ class WalkState:
     out_against: dict
     stats: dict
     gray: dict = field(default_factory=dict)
+    #: (T, 3, 3) float64 map from the reference image's pixels to each fixed node's image
+    #: pixels (identity at the references), or None: every keypoint is aligned to its partner
+    to_ref: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -138,9 +152,40 @@ def _orient(grp: Group, ctx: WalkState) -> _Call:
         aff1 = np.asarray(ctx.affines[id1])[k1]
         aff2 = np.asarray(ctx.affines[id2])[k2]
     if grp.side == 2:
-        return _Call(id1, id2, k1, k2, ctx.pos[id1][k1], ctx.pos[id2][k2], homs, aff1, aff2)
-    return _Call(id2, id1, k2, k1, ctx.pos[id2][k2], ctx.pos[id1][k1], np.flip(homs, axis=-3),
-                 aff2, aff1)
+        call = _Call(id1, id2, k1, k2, ctx.pos[id1][k1], ctx.pos[id2][k2], homs, aff1, aff2)
+    else:
+        call = _Call(id2, id1, k2, k1, ctx.pos[id2][k2], ctx.pos[id1][k1],
+                     np.flip(homs, axis=-3), aff2, aff1)
+    if grp.reference is None or ctx.to_ref is None:
+        return call
+    # the fixed side becomes the reference node: its image, position, frame, and the
+    # partner's pair composed with the partner's map from the reference image
+    ref_id = int(plan.node_image[grp.reference[0]])
+    ref_kp = plan.node_kp[grp.reference]
+    to_ref = ctx.to_ref[grp.partner]  # (n, 3, 3) reference pixels -> partner pixels
+    h = np.array(call.homs, dtype=np.float64, copy=True)
+    if h.ndim == 4:
+        h[:, 0] = h[:, 0] @ to_ref
+    else:
+        h[:, :, 0] = h[:, :, 0] @ to_ref[:, None]
+    aff_f = None
+    if call.aff_f is not None and ctx.affines is not None and ref_id in ctx.affines:
+        aff_f = np.asarray(ctx.affines[ref_id])[ref_kp]
+    return _Call(ref_id, call.moving_id, ref_kp, call.moving_idx, ctx.pos[ref_id][ref_kp],
+                 call.pts_m, h, aff_f, call.aff_m if aff_f is not None else None)
+
+
+def _chain(call: _Call, grp: Group, ctx: WalkState) -> None:
+    """Record each free node's map from its reference image (see :attr:`WalkState.to_ref`):
+    the call's moving-side homography, inverted, after its fixed-side one (the local
+    candidate where there are several)."""
+    if ctx.to_ref is None:
+        return
+    h = call.homs if call.homs.ndim == 4 else call.homs[:, -1]
+    m = np.linalg.solve(h[:, 1], h[:, 0])  # fixed-side pixels -> moving-side pixels
+    if grp.reference is None:
+        m = m @ ctx.to_ref[grp.partner]
+    ctx.to_ref[grp.free] = m
 
 
 def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displacement: np.ndarray,
@@ -150,11 +195,14 @@ def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displace
     st = ctx.stats
     idx = call.moving_idx
     st["refined"] += grp.size
-    st["refined_against_moved"] += int(ctx.moved[grp.partner].sum())
+    st["refined_against_moved"] += int(ctx.moved[grp.partner if grp.reference is None
+                                                 else grp.reference].sum())
     ctx.pos[call.moving_id][idx[moved]] = new[moved]
     ctx.out_disp[call.moving_id][idx[moved]] = displacement[moved]
-    ctx.out_against[call.moving_id][idx, 0] = ctx.plan.node_image[grp.partner]
-    ctx.out_against[call.moving_id][idx, 1] = ctx.plan.node_kp[grp.partner]
+    against = grp.partner if grp.reference is None else grp.reference
+    ctx.out_against[call.moving_id][idx, 0] = ctx.plan.node_image[against]
+    ctx.out_against[call.moving_id][idx, 1] = ctx.plan.node_kp[against]
+    _chain(call, grp, ctx)
     ctx.moved[grp.free[moved]] = True
     ctx.score[grp.free] = np.nan_to_num(np.asarray(ncc_after, np.float64), nan=-np.inf)
     st["moved"] += int(moved.sum())
@@ -169,15 +217,18 @@ def _add_counters(res: object, ctx: WalkState) -> None:
             ctx.stats[key] = ctx.stats.get(key, 0) + int(stats[key])
 
 
-def chunks_by_images(groups: list[Group], max_images: int) -> Iterator[list[Group]]:
-    """Consecutive runs of groups that together use at most ``max_images`` images."""
+def chunks_by_images(groups: list[Group], max_images: int,
+                     plan: TrackPlan | None = None) -> Iterator[list[Group]]:
+    """Consecutive runs of groups that together use at most ``max_images`` images (groups
+    with a ``reference`` need the ``plan`` to tell their images)."""
     chunk: list[Group] = []
     ids: set = set()
     for grp in groups:
-        both = ids | set(grp.pair)
+        mine = set(grp.pair) if plan is None else set(grp.images(plan))
+        both = ids | mine
         if chunk and len(both) > max_images:
             yield chunk
-            chunk, both = [], set(grp.pair)
+            chunk, both = [], mine
         chunk.append(grp)
         ids = both
     if chunk:
@@ -190,7 +241,7 @@ def refine_batch(groups: list[Group], ctx: WalkState, device: torch.device) -> N
 
     calls, kept = [], []
     for grp in groups:
-        if ctx.images.get(grp.pair[0]) is None or ctx.images.get(grp.pair[1]) is None:
+        if any(ctx.images.get(i) is None for i in grp.images(ctx.plan)):
             ctx.stats["skipped"] += grp.size
             continue
         calls.append(_orient(grp, ctx))
@@ -235,17 +286,17 @@ def refine_batch(groups: list[Group], ctx: WalkState, device: torch.device) -> N
 
 
 def refine_group(grp: Group, ctx: WalkState) -> None:
-    """One refine call: the edges of one group, on the pair's two images."""
-    id1, id2 = grp.pair
-    img1, img2 = ctx.images.get(id1), ctx.images.get(id2)
-    if img1 is None or img2 is None:
+    """One refine call: the edges of one group, on its two images."""
+    ids = grp.images(ctx.plan)
+    img_a, img_b = ctx.images.get(ids[0]), ctx.images.get(ids[1])
+    if img_a is None or img_b is None:
         ctx.stats["skipped"] += grp.size
         return
     call = _orient(grp, ctx)
     kwargs = {}
     if call.aff_f is not None:
         kwargs = {"affine1": call.aff_f, "affine2": call.aff_m}
-    img_f, img_m = (img1, img2) if grp.side == 2 else (img2, img1)
+    img_f, img_m = (img_a, img_b) if call.fixed_id == ids[0] else (img_b, img_a)
     res = ctx.refine_fn(img_f, img_m, call.pts_f, call.pts_m, call.homs, move="2",
                         config=ctx.ncc_cfg, **kwargs)
     ctx.stats["refine_calls"] += 1

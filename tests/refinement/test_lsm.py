@@ -240,3 +240,97 @@ def test_keypoint_sized_templates_are_per_match():
     e_lsm = np.median(np.linalg.norm(full.pts2[moved] - truth[moved], axis=1))
     e_ncc = np.median(np.linalg.norm(ncc.pts2[moved] - truth[moved], axis=1))
     assert e_lsm < 0.8 * e_ncc, (e_lsm, e_ncc)
+
+
+def _scaled_pair(scale: float):
+    """(image 1, image 2, pts1, true pts2, start pts2, homography pairs): image 2 is image 1
+    seen ``scale`` times as large (< 1: farther), rendered as a camera would (smoothed to
+    its own pixel size first, 0.5 px of its own), with gain/offset; starts up to 1.5 px off."""
+    img1 = _gray("camera")
+    h, w = img1.shape
+    H = np.array([[scale * 0.99, 0.04 * scale, 9.3], [-0.03 * scale, scale * 1.01, -6.1],
+                  [2e-5, -1e-5, 1.0]])
+    pre = cv2.GaussianBlur(img1, (0, 0), 0.5 * np.sqrt(1 / scale**2 - 1))
+    img2 = 0.9 * cv2.warpPerspective(pre, H, (w, h), flags=cv2.INTER_LANCZOS4) + 0.05
+    pts1 = cv2.goodFeaturesToTrack((img1 * 255).astype(np.uint8), 400, 0.01, 10)
+    pts1 = pts1.reshape(-1, 2).astype(np.float64)
+    x = np.c_[pts1, np.ones(len(pts1))] @ H.T
+    truth = x[:, :2] / x[:, 2:]
+    keep = ((truth > 40).all(axis=1) & (truth[:, 0] < w - 40) & (truth[:, 1] < h - 40)
+            & (pts1 > 40).all(axis=1) & (pts1[:, 0] < w - 40) & (pts1[:, 1] < h - 40))
+    pts1, truth = pts1[keep], truth[keep]
+    pts2 = truth + np.random.default_rng(0).uniform(-1.5, 1.5, truth.shape)
+    homs = np.tile(np.stack([np.eye(3), np.linalg.inv(H)]), (len(pts1), 1, 1, 1))
+    return img1, img2, pts1, truth, pts2, homs
+
+
+#: with image 2 at half / 0.7 the scale of image 1, anti-aliased LSM's median error is at
+#: most this fraction of plain LSM's.
+ANTIALIAS_GAIN = 0.6
+
+
+@pytest.mark.parametrize("scale", [0.5, 0.7])
+def test_antialiasing_the_finer_view_lowers_the_error(scale):
+    """The finer view (image 1) smoothed to the coarser one's blur before LSM reads it: the
+    two patches then differ by the geometric and radiometric model alone."""
+    from colmap_miho.refinement.config import NCCConfig
+    from colmap_miho.refinement.ncc import refine_pair
+
+    img1, img2, pts1, truth, pts2, homs = _scaled_pair(scale)
+    err = {}
+    for aa in (0.0, 0.5):
+        cfg = NCCConfig(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
+                        lsm_antialias=aa)
+        res = refine_pair(img1, img2, pts1, pts2, homs, config=cfg)
+        err[aa] = np.median(np.linalg.norm(res.pts2 - truth, axis=1))
+    assert err[0.5] < ANTIALIAS_GAIN * err[0.0], err
+
+
+def test_antialiased_lsm_is_per_match():
+    """A match's anti-aliased LSM result is bitwise the same in any subset of the call."""
+    from colmap_miho.refinement.config import NCCConfig
+    from colmap_miho.refinement.ncc import refine_pair
+
+    img1, img2, pts1, _, pts2, homs = _scaled_pair(0.6)
+    cfg = NCCConfig(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
+                    lsm_antialias=0.5)
+    full = refine_pair(img1, img2, pts1, pts2, homs, config=cfg)
+    rows = np.random.default_rng(3).permutation(len(pts1))[: len(pts1) // 3]
+    part = refine_pair(img1, img2, pts1[rows], pts2[rows], homs[rows], config=cfg)
+    assert np.array_equal(full.pts2[rows], part.pts2)
+
+
+def test_frame_jacobian_matches_finite_differences():
+    from colmap_miho.refinement.lsm_step import frame_jacobian
+
+    H = torch.tensor([[[1.1, 0.2, 5.0], [-0.1, 0.9, 3.0], [1e-3, -2e-3, 1.0]]], dtype=torch.float64)
+    p = torch.tensor([[40.0, 25.0]], dtype=torch.float64)
+
+    def f(q):
+        v = H[0] @ torch.cat([q, torch.ones(1, dtype=torch.float64)])
+        return v[:2] / v[2]
+
+    eps = 1e-6
+    num = torch.stack([(f(p[0] + eps * e) - f(p[0] - eps * e)) / (2 * eps)
+                       for e in torch.eye(2, dtype=torch.float64)], dim=1)
+    assert torch.allclose(frame_jacobian(H, p)[0], num, atol=1e-7)
+
+
+def test_lsm_only_moves_where_lsm_accepted():
+    """With ``lsm_only`` a move LSM does not accept is rejected: the keypoint keeps its
+    input position, the moved count is LSM's accepted count, and the moves that remain sit
+    where plain LSM puts them."""
+    from colmap_miho.refinement.config import NCCConfig
+    from colmap_miho.refinement.ncc import refine_pair
+
+    img1, img2, pts1, _, pts2, homs = _homography_pair()
+    base = dict(device="cpu", move="2", template_radius=6, lsm=True, lsm_max_sigma_px=0.02)
+    plain = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig(**base))
+    only = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig(**base, lsm_only=True))
+    assert plain.stats["lsm_applied"] < plain.stats["moved"]  # the bound rejects some
+    assert only.stats["moved"] == only.stats["lsm_applied"] == plain.stats["lsm_applied"]
+    assert only.stats["rejected_lsm"] == plain.stats["moved"] - plain.stats["lsm_applied"]
+    kept = only.moved_side == 0
+    assert np.array_equal(only.pts2[kept], pts2[kept])
+    moved = only.moved_side == 2
+    assert np.array_equal(only.pts2[moved], plain.pts2[moved])
