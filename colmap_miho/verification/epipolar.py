@@ -40,14 +40,22 @@ def _solve(h1: np.ndarray, h2: np.ndarray) -> np.ndarray:
 
 def sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Squared Sampson distances (px^2) of ``(M, 2)`` correspondences under ``F_2from1``
-    ``(..., 3, 3)``: shape ``(..., M)``."""
-    h1 = np.column_stack([x1, np.ones(len(x1))])
-    h2 = np.column_stack([x2, np.ones(len(x2))])
-    Fx1 = h1 @ np.swapaxes(F, -1, -2)  # (..., M, 3)
-    Ftx2 = h2 @ F
-    num = np.sum(h2 * Fx1, axis=-1) ** 2
-    den = Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2
-    return num / np.maximum(den, 1e-30)
+    ``(..., 3, 3)``: shape ``(..., M)``.
+
+    All matrices' epipolar lines come from two matrix products over the stacked rows of the
+    ``F`` (one for ``F x1``, one for the first two rows of ``F^T x2``), not one small product
+    per matrix: scoring many RANSAC hypotheses at once is then one BLAS call each way."""
+    F = np.asarray(F, np.float64)
+    lead = F.shape[:-2]
+    Fs = F.reshape(-1, 3, 3)
+    n, m = len(Fs), len(x1)
+    h1 = np.column_stack([x1, np.ones(m)])
+    h2 = np.column_stack([x2, np.ones(m)])
+    Fx1 = (Fs.reshape(-1, 3) @ h1.T).reshape(n, 3, m)  # epipolar lines of x1 in image 2
+    Ftx2 = (np.swapaxes(Fs, 1, 2)[:, :2].reshape(-1, 3) @ h2.T).reshape(n, 2, m)  # of x2 in image 1, (a, b)
+    num = (Fx1[:, 0] * h2[:, 0] + Fx1[:, 1] * h2[:, 1] + Fx1[:, 2]) ** 2
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    return (num / np.maximum(den, 1e-30)).reshape(*lead, m)
 
 
 def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *, hypotheses: int = 128,
