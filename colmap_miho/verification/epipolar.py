@@ -13,6 +13,10 @@ import numpy as np
 MIN_F_MATCHES = 8
 #: Correspondences (spread over the rows) on which the sampled hypotheses are scored.
 SCORE_POINTS = 300
+#: Hypotheses solved and scored together in :func:`fit_fundamental`.
+HYPOTHESIS_BATCH = 32
+#: Probability that :func:`fit_fundamental` has scored an all-inlier sample when it stops early.
+CONFIDENCE = 0.999
 
 
 def _normalise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -58,12 +62,30 @@ def sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     return (num / np.maximum(den, 1e-30)).reshape(*lead, m)
 
 
+def hypotheses_needed(inlier_share: float, confidence: float) -> float:
+    """Eight-point samples to draw so that at least one is all inliers with probability
+    ``confidence``, given an inlier share in [0, 1] (the classical RANSAC bound,
+    ``log(1 - confidence) / log(1 - share^8)``); ``inf`` without inliers."""
+    clean = inlier_share**MIN_F_MATCHES
+    if clean <= 0.0:
+        return float("inf")
+    if clean >= 1.0:
+        return 1.0
+    return float(np.log1p(-confidence) / np.log1p(-clean))
+
+
 def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *, hypotheses: int = 128,
-                    threshold_px: float = 1.5, max_points: int = 1000) -> np.ndarray | None:
+                    threshold_px: float = 1.5, max_points: int = 1000, batch: int = HYPOTHESIS_BATCH,
+                    confidence: float = CONFIDENCE) -> np.ndarray | None:
     """``F_2from1`` ``(3, 3)`` of correspondences ``x1, x2`` ``(M, 2)`` pixels: the best of
-    ``hypotheses`` random eight-point samples by inlier count (Sampson distance below
+    at most ``hypotheses`` random eight-point samples by inlier count (Sampson distance below
     ``threshold_px``), refitted to its inliers; None with fewer than :data:`MIN_F_MATCHES`
-    matches or inliers. At most ``max_points`` correspondences (spread over the rows) are used."""
+    matches or inliers. At most ``max_points`` correspondences (spread over the rows) are used.
+
+    The samples are drawn at once and scored ``batch`` at a time; the search stops early once
+    the best inlier share so far makes an all-inlier sample among those scored likely
+    (:func:`hypotheses_needed` at ``confidence``). The filtered matches the pair check fits
+    are mostly inliers, so one batch usually suffices."""
     x1 = np.asarray(x1, np.float64)
     x2 = np.asarray(x2, np.float64)
     if len(x1) > max_points:
@@ -78,10 +100,18 @@ def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
         samples = np.arange(m)[None]
     else:  # a sample that repeats a row is degenerate and simply scores low
         samples = rng.integers(0, m, (hypotheses, MIN_F_MATCHES))
-    Fs = T2.T @ _solve(h1[samples], h2[samples]) @ T1
     score = np.linspace(0, m - 1, min(m, SCORE_POINTS)).round().astype(np.int64)  # hypotheses scored on these
-    inl = sampson_sq(Fs, x1[score], x2[score]) < threshold_px**2
-    best = sampson_sq(Fs[int(np.argmax(inl.sum(1)))], x1, x2) < threshold_px**2
+    best_F, best_count = np.zeros((3, 3)), -1  # replaced by the first batch's best
+    for start in range(0, len(samples), max(batch, 1)):
+        chunk = samples[start:start + max(batch, 1)]
+        Fs = T2.T @ _solve(h1[chunk], h2[chunk]) @ T1
+        counts = (sampson_sq(Fs, x1[score], x2[score]) < threshold_px**2).sum(1)
+        top = int(np.argmax(counts))
+        if counts[top] > best_count:
+            best_F, best_count = Fs[top], int(counts[top])
+        if start + len(chunk) >= hypotheses_needed(best_count / len(score), confidence):
+            break
+    best = sampson_sq(best_F, x1, x2) < threshold_px**2
     for _ in range(2):  # refit to the inliers, twice (the inlier set grows with a better F)
         if best.sum() < MIN_F_MATCHES:
             return None
