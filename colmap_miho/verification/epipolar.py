@@ -133,7 +133,9 @@ def transfer(F_3from1: np.ndarray, F_3from2: np.ndarray, x1: np.ndarray,
     """
     l1 = np.column_stack([x1, np.ones(len(x1))]) @ F_3from1.T
     l2 = np.column_stack([x2, np.ones(len(x2))]) @ F_3from2.T
-    p = np.cross(l1, l2)
+    p = np.column_stack([l1[:, 1] * l2[:, 2] - l1[:, 2] * l2[:, 1],  # the lines' cross product, written out
+                         l1[:, 2] * l2[:, 0] - l1[:, 0] * l2[:, 2],
+                         l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0]])
     n1 = np.hypot(l1[:, 0], l1[:, 1])
     n2 = np.hypot(l2[:, 0], l2[:, 1])
     sin = np.abs(l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0]) / np.maximum(n1 * n2, 1e-30)

@@ -163,6 +163,15 @@ class _Graph:
             self.adj.setdefault(j, set()).add(i)
         self.trees: dict[int, cKDTree] = {}
         self.boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._carried: dict[tuple[tuple[int, int], int], np.ndarray] = {}
+
+    def carried(self, pair: tuple[int, int], cap: int) -> np.ndarray:
+        """At most ``cap`` of the oriented pair's matches, spread over its rows: int64
+        ``(<= cap, 2)``, taken once per oriented pair."""
+        if (pair, cap) not in self._carried:
+            m = self.oriented[pair]
+            self._carried[(pair, cap)] = m[_spread(len(m), cap)]
+        return self._carried[(pair, cap)]
 
     def box(self, image: int) -> tuple[np.ndarray, np.ndarray]:
         """The image's keypoint extent (min ``(2,)``, max ``(2,)``) in pixels, computed once."""
@@ -223,8 +232,7 @@ def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckCo
     min_sin = np.sin(np.deg2rad(cfg.min_angle_deg))
     tol = cfg.transfer_tol_px
     for row, (x, y, z) in enumerate(((i, j, k), (i, k, j), (j, k, i))):
-        m = graph.oriented[(x, y)]
-        m = m[_spread(len(m), cfg.max_transfers)]
+        m = graph.carried((x, y), cfg.max_transfers)
         p, q = m[:, 0], m[:, 1]
         r_y, has_y = graph.look[(y, z)](q)  # through y-z
         r_x, has_x = graph.look[(x, z)](p)  # through x-z

@@ -142,6 +142,25 @@ def test_transfer_lands_on_the_third_projection():
     assert np.abs(pts[good] - x3[good]).max() < TRANSFER_TOL_PX
 
 
+def test_transfer_equals_the_cross_product_of_the_lines():
+    rng = np.random.default_rng(4)
+    F1, F2 = rng.normal(size=(2, 3, 3))
+    x1, x2 = rng.uniform(0, 1000, (2, 50, 2))
+    pts, _ = transfer(F1, F2, x1, x2)
+    p = np.cross(np.column_stack([x1, np.ones(50)]) @ F1.T, np.column_stack([x2, np.ones(50)]) @ F2.T)
+    np.testing.assert_array_equal(pts, p[:, :2] / p[:, 2:])
+
+
+def test_carried_matches_are_spread_and_taken_once():
+    m = {(1, 2): np.column_stack([np.arange(10), np.arange(10)])}
+    kp = {1: np.zeros((10, 2)), 2: np.zeros((10, 2))}
+    g = _Graph(m, kp, PairCheckConfig(min_f_matches=50))
+    c = g.carried((2, 1), 4)
+    np.testing.assert_array_equal(c, [[0, 0], [3, 3], [6, 6], [9, 9]])
+    assert g.carried((2, 1), 4) is c
+    np.testing.assert_array_equal(g.carried((1, 2), 20), m[(1, 2)])
+
+
 def test_triangles_are_those_of_the_graph():
     rng = np.random.default_rng(1)
     pairs = [p for p in itertools.combinations(range(1, 9), 2) if rng.random() < 0.5]
