@@ -13,6 +13,10 @@ import numpy as np
 MIN_F_MATCHES = 8
 #: Correspondences (spread over the rows) on which the sampled hypotheses are scored.
 SCORE_POINTS = 300
+#: Hypotheses solved and scored together in :func:`fit_fundamental`.
+HYPOTHESIS_BATCH = 32
+#: Probability that :func:`fit_fundamental` has scored an all-inlier sample when it stops early.
+CONFIDENCE = 0.999
 
 
 def _normalise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -40,22 +44,48 @@ def _solve(h1: np.ndarray, h2: np.ndarray) -> np.ndarray:
 
 def sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Squared Sampson distances (px^2) of ``(M, 2)`` correspondences under ``F_2from1``
-    ``(..., 3, 3)``: shape ``(..., M)``."""
-    h1 = np.column_stack([x1, np.ones(len(x1))])
-    h2 = np.column_stack([x2, np.ones(len(x2))])
-    Fx1 = h1 @ np.swapaxes(F, -1, -2)  # (..., M, 3)
-    Ftx2 = h2 @ F
-    num = np.sum(h2 * Fx1, axis=-1) ** 2
-    den = Fx1[..., 0] ** 2 + Fx1[..., 1] ** 2 + Ftx2[..., 0] ** 2 + Ftx2[..., 1] ** 2
-    return num / np.maximum(den, 1e-30)
+    ``(..., 3, 3)``: shape ``(..., M)``.
+
+    All matrices' epipolar lines come from two matrix products over the stacked rows of the
+    ``F`` (one for ``F x1``, one for the first two rows of ``F^T x2``), not one small product
+    per matrix: scoring many RANSAC hypotheses at once is then one BLAS call each way."""
+    F = np.asarray(F, np.float64)
+    lead = F.shape[:-2]
+    Fs = F.reshape(-1, 3, 3)
+    n, m = len(Fs), len(x1)
+    h1 = np.column_stack([x1, np.ones(m)])
+    h2 = np.column_stack([x2, np.ones(m)])
+    Fx1 = (Fs.reshape(-1, 3) @ h1.T).reshape(n, 3, m)  # epipolar lines of x1 in image 2
+    Ftx2 = (np.swapaxes(Fs, 1, 2)[:, :2].reshape(-1, 3) @ h2.T).reshape(n, 2, m)  # of x2 in image 1, (a, b)
+    num = (Fx1[:, 0] * h2[:, 0] + Fx1[:, 1] * h2[:, 1] + Fx1[:, 2]) ** 2
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    return (num / np.maximum(den, 1e-30)).reshape(*lead, m)
+
+
+def hypotheses_needed(inlier_share: float, confidence: float) -> float:
+    """Eight-point samples to draw so that at least one is all inliers with probability
+    ``confidence``, given an inlier share in [0, 1] (the classical RANSAC bound,
+    ``log(1 - confidence) / log(1 - share^8)``); ``inf`` without inliers."""
+    clean = inlier_share**MIN_F_MATCHES
+    if clean <= 0.0:
+        return float("inf")
+    if clean >= 1.0:
+        return 1.0
+    return float(np.log1p(-confidence) / np.log1p(-clean))
 
 
 def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *, hypotheses: int = 128,
-                    threshold_px: float = 1.5, max_points: int = 1000) -> np.ndarray | None:
+                    threshold_px: float = 1.5, max_points: int = 1000, batch: int = HYPOTHESIS_BATCH,
+                    confidence: float = CONFIDENCE) -> np.ndarray | None:
     """``F_2from1`` ``(3, 3)`` of correspondences ``x1, x2`` ``(M, 2)`` pixels: the best of
-    ``hypotheses`` random eight-point samples by inlier count (Sampson distance below
+    at most ``hypotheses`` random eight-point samples by inlier count (Sampson distance below
     ``threshold_px``), refitted to its inliers; None with fewer than :data:`MIN_F_MATCHES`
-    matches or inliers. At most ``max_points`` correspondences (spread over the rows) are used."""
+    matches or inliers. At most ``max_points`` correspondences (spread over the rows) are used.
+
+    The samples are drawn at once and scored ``batch`` at a time; the search stops early once
+    the best inlier share so far makes an all-inlier sample among those scored likely
+    (:func:`hypotheses_needed` at ``confidence``). The filtered matches the pair check fits
+    are mostly inliers, so one batch usually suffices."""
     x1 = np.asarray(x1, np.float64)
     x2 = np.asarray(x2, np.float64)
     if len(x1) > max_points:
@@ -70,10 +100,18 @@ def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
         samples = np.arange(m)[None]
     else:  # a sample that repeats a row is degenerate and simply scores low
         samples = rng.integers(0, m, (hypotheses, MIN_F_MATCHES))
-    Fs = T2.T @ _solve(h1[samples], h2[samples]) @ T1
     score = np.linspace(0, m - 1, min(m, SCORE_POINTS)).round().astype(np.int64)  # hypotheses scored on these
-    inl = sampson_sq(Fs, x1[score], x2[score]) < threshold_px**2
-    best = sampson_sq(Fs[int(np.argmax(inl.sum(1)))], x1, x2) < threshold_px**2
+    best_F, best_count = np.zeros((3, 3)), -1  # replaced by the first batch's best
+    for start in range(0, len(samples), max(batch, 1)):
+        chunk = samples[start:start + max(batch, 1)]
+        Fs = T2.T @ _solve(h1[chunk], h2[chunk]) @ T1
+        counts = (sampson_sq(Fs, x1[score], x2[score]) < threshold_px**2).sum(1)
+        top = int(np.argmax(counts))
+        if counts[top] > best_count:
+            best_F, best_count = Fs[top], int(counts[top])
+        if start + len(chunk) >= hypotheses_needed(best_count / len(score), confidence):
+            break
+    best = sampson_sq(best_F, x1, x2) < threshold_px**2
     for _ in range(2):  # refit to the inliers, twice (the inlier set grows with a better F)
         if best.sum() < MIN_F_MATCHES:
             return None
@@ -95,7 +133,9 @@ def transfer(F_3from1: np.ndarray, F_3from2: np.ndarray, x1: np.ndarray,
     """
     l1 = np.column_stack([x1, np.ones(len(x1))]) @ F_3from1.T
     l2 = np.column_stack([x2, np.ones(len(x2))]) @ F_3from2.T
-    p = np.cross(l1, l2)
+    p = np.column_stack([l1[:, 1] * l2[:, 2] - l1[:, 2] * l2[:, 1],  # the lines' cross product, written out
+                         l1[:, 2] * l2[:, 0] - l1[:, 0] * l2[:, 2],
+                         l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0]])
     n1 = np.hypot(l1[:, 0], l1[:, 1])
     n2 = np.hypot(l2[:, 0], l2[:, 1])
     sin = np.abs(l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0]) / np.maximum(n1 * n2, 1e-30)

@@ -163,14 +163,28 @@ class _Graph:
             self.adj.setdefault(j, set()).add(i)
         self.trees: dict[int, cKDTree] = {}
         self.boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._carried: dict[tuple[tuple[int, int], int], np.ndarray] = {}
+
+    def carried(self, pair: tuple[int, int], cap: int) -> np.ndarray:
+        """At most ``cap`` of the oriented pair's matches, spread over its rows: int64
+        ``(<= cap, 2)``, taken once per oriented pair."""
+        if (pair, cap) not in self._carried:
+            m = self.oriented[pair]
+            self._carried[(pair, cap)] = m[_spread(len(m), cap)]
+        return self._carried[(pair, cap)]
+
+    def box(self, image: int) -> tuple[np.ndarray, np.ndarray]:
+        """The image's keypoint extent (min ``(2,)``, max ``(2,)``) in pixels, computed once."""
+        if image not in self.boxes:
+            kp = self.keypoints[image]
+            self.boxes[image] = (kp.min(0), kp.max(0))
+        return self.boxes[image]
 
     def tree(self, image: int) -> tuple[cKDTree, tuple[np.ndarray, np.ndarray]]:
         """The image's keypoint search tree and keypoint extent (min, max), built once."""
         if image not in self.trees:
-            kp = self.keypoints[image]
-            self.trees[image] = cKDTree(kp)
-            self.boxes[image] = (kp.min(0), kp.max(0))
-        return self.trees[image], self.boxes[image]
+            self.trees[image] = cKDTree(self.keypoints[image])
+        return self.trees[image], self.box(image)
 
     def triangles(self) -> list[tuple[int, int, int]]:
         """Every triangle (i < j < k) once: each pair's two neighbour sets intersected."""
@@ -218,8 +232,7 @@ def triangle_transfer(graph: _Graph, tri: tuple[int, int, int], cfg: PairCheckCo
     min_sin = np.sin(np.deg2rad(cfg.min_angle_deg))
     tol = cfg.transfer_tol_px
     for row, (x, y, z) in enumerate(((i, j, k), (i, k, j), (j, k, i))):
-        m = graph.oriented[(x, y)]
-        m = m[_spread(len(m), cfg.max_transfers)]
+        m = graph.carried((x, y), cfg.max_transfers)
         p, q = m[:, 0], m[:, 1]
         r_y, has_y = graph.look[(y, z)](q)  # through y-z
         r_x, has_x = graph.look[(x, z)](p)  # through x-z
@@ -409,13 +422,16 @@ def confirming_triangles(tracks: np.ndarray, votes: np.ndarray, tri_edges: np.nd
     return out
 
 
-def _coverage(m: np.ndarray, kp1: np.ndarray, kp2: np.ndarray) -> float:
-    """Smaller share of grid cells (over each image's keypoint extent) holding a match."""
+def _coverage(graph: _Graph, pair: Pair) -> float:
+    """Smaller share of grid cells (over each image's keypoint extent) holding a match of
+    ``pair``."""
+    m = graph.oriented[pair]
     shares = []
-    for kp, idx in ((kp1, m[:, 0]), (kp2, m[:, 1])):
+    for image, idx in ((pair[0], m[:, 0]), (pair[1], m[:, 1])):
+        kp = graph.keypoints[image]
         if not len(kp) or not len(idx):
             return 0.0
-        lo, hi = kp.min(0), kp.max(0)
+        lo, hi = graph.box(image)
         cell = np.floor((kp[idx] - lo) / np.maximum(hi - lo, 1e-9) * COVERAGE_GRID).clip(0, COVERAGE_GRID - 1)
         shares.append(len(np.unique(cell[:, 0] * COVERAGE_GRID + cell[:, 1])) / COVERAGE_GRID**2)
     return float(min(shares))
@@ -485,10 +501,8 @@ def check_pairs(matches: Mapping[Pair, np.ndarray], keypoints: Mapping[int, np.n
 
     verdicts = {}
     for e, (i, j) in enumerate(graph.edges):
-        m = graph.oriented[(i, j)]
         verdicts[(i, j)] = PairVerdict(
-            matches=int(sizes[e]), strength=float(strength[e]),
-            coverage=_coverage(m, graph.keypoints[i], graph.keypoints[j]),
+            matches=int(sizes[e]), strength=float(strength[e]), coverage=_coverage(graph, (i, j)),
             triangles=int(total[e]), triangles_broken=int(broken_tris[e]),
             blame=int(blame0[e]), support=int(support0[e]),
             transfers_closed=int(own[e, 0]), transfers_broken=int(own[e, 1]),
