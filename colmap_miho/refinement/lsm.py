@@ -140,6 +140,8 @@ def lsm_align(
     eye_p = torch.eye(n_par, dtype=f64, device=dev)
     eye2 = torch.eye(2, dtype=f64, device=dev)
     r0 = r1 = torch.zeros(0, dtype=f64, device=dev)
+    jm_buf = torch.zeros((J, n_par + 1, p_pad), dtype=f32, device=dev)
+    jm_buf[:, 2, :P] = 1.0
     for it in range(max_iterations):
         n = act.numel()
         if n == 0:
@@ -154,13 +156,12 @@ def lsm_align(
         # each row padded with zeros to a multiple of 64 bytes: every match's matrix then
         # starts equally aligned wherever it sits in the batch, and the batched product
         # takes the same path for it (unaligned rows were seen to round differently)
-        Jm = torch.empty((n, n_par + 1, p_pad), dtype=f32, device=dev)
-        Jm[:, :, P:] = 0.0
+        # (one buffer for all iterations: the padding and the row of ones are written once)
+        Jm = jm_buf[:n]
         sxy = Jm[:, :2, :P].view(n, 2, S, S)
         torch.sub(vals[:, 1:-1, 2:], vals[:, 1:-1, :-2], out=sxy[:, 0])
         torch.sub(vals[:, 2:, 1:-1], vals[:, :-2, 1:-1], out=sxy[:, 1])
         sxy.mul_((0.5 * r1f)[:, :, None, None])
-        Jm[:, 2, :P] = 1.0
         Jm[:, 3, :P] = g
         if affine:
             torch.mul(Jm[:, :2, None, :P], u.T[None, None], out=Jm[:, 4:8, :P].view(n, 2, 2, P))
@@ -258,18 +259,18 @@ def _initial_radiometry(f: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor,
 def _shift_sigma(A: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Standard deviations (n, 2) of t = A d and the largest semi-axis (n,) of its error
     ellipse, from the covariance C (n, 2, 2) of d (elementwise: A C A^T)."""
-    AC = A[:, :, 0, None] * C[:, None, 0, :] + A[:, :, 1, None] * C[:, None, 1, :]
-    cxx = AC[:, 0, 0] * A[:, 0, 0] + AC[:, 0, 1] * A[:, 0, 1]
-    cyy = AC[:, 1, 0] * A[:, 1, 0] + AC[:, 1, 1] * A[:, 1, 1]
-    cxy = AC[:, 0, 0] * A[:, 1, 0] + AC[:, 0, 1] * A[:, 1, 1]
+    AC = (A[:, :, :, None] * C[:, None, :, :]).sum(dim=2)  # AC[i, j] = A[i, 0] C[0, j] + A[i, 1] C[1, j]
+    cc = (AC * A).sum(dim=2)  # (cxx, cyy): AC[i, 0] A[i, 0] + AC[i, 1] A[i, 1]
+    cxx, cyy = cc.unbind(dim=1)
+    cxy = (AC[:, 0] * A[:, 1]).sum(dim=1)
     lam = 0.5 * (cxx + cyy) + torch.sqrt((0.5 * (cxx - cyy)).square() + cxy.square())
-    return torch.stack([cxx, cyy], -1).clamp_min(0).sqrt(), lam.clamp_min(0).sqrt()
+    return cc.clamp_min(0).sqrt(), lam.clamp_min(0).sqrt()
 
 
 def _regular(A: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
     """(n,) bool: A's singular values within [1/_MAX_SCALE, _MAX_SCALE] and its determinant
     positive (no reflection), the gain within [1/_MAX_GAIN, _MAX_GAIN]."""
-    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+    a, b, c, d = A.reshape(-1, 4).unbind(dim=1)
     det = a * d - b * c
     fro2 = a * a + b * b + c * c + d * d
     disc = (fro2.square() - 4 * det.square()).clamp_min(0).sqrt()
