@@ -322,20 +322,14 @@ def frame_sampler(
                        ((Br[:, :, :2] * c[:, None]).sum(dim=2) + Br[:, :, 2])[:, :, None]],
                       dim=2).to(torch.float32)
         side = 2 * radius + 1
-        ax = torch.arange(-radius, radius + 1, dtype=torch.float32, device=t.device)
-        m = M[:, :, :, None]  # (n, 3, 3, 1)
-        v = (m[:, :, 0] * ax)[:, :, None, :] + (m[:, :, 1] * ax)[:, :, :, None]
-        v += m[:, :, 2, :, None]  # (n, 3, side_y, side_x)
-        v = v[:, :2] / v[:, 2:].clamp_min(1e-6)
-        grid = v.view(n, 2, side * side).transpose(1, 2)  # (n, Q, 2)
         if index is None:
-            return _grid_sample(ims[0], grid, mode).view(n, side, side)
+            return _grid_sample(ims[0], _frame_grid(M, radius), mode).view(n, side, side)
         idx = index[rows]
         counts = torch.bincount(idx, minlength=len(ims)).tolist()
         if n and max(counts) == n:  # one image
-            return _grid_sample(ims[counts.index(n)], grid, mode).view(n, side, side)
-        order = torch.argsort(idx, stable=True)
-        grid = grid[order]
+            return _grid_sample(ims[counts.index(n)], _frame_grid(M, radius), mode).view(n, side, side)
+        order = torch.argsort(idx, stable=True)  # the matches grouped by image
+        grid = _frame_grid(M[order], radius)
         parts, lo = [], 0
         for k, cnt in enumerate(counts):
             if cnt:
@@ -346,6 +340,18 @@ def frame_sampler(
         return out.view(n, side, side)
 
     return sample
+
+
+def _frame_grid(M: torch.Tensor, radius: int) -> torch.Tensor:
+    """Grid coordinates (n, Q, 2) float32 of the (2 radius + 1)^2 offsets u (row-major) under
+    the maps M (n, 3, 3) float32: (M u)_xy / (M u)_w, elementwise, built in grid_sample's
+    layout."""
+    side = 2 * radius + 1
+    ax = torch.arange(-radius, radius + 1, dtype=torch.float32, device=M.device)
+    m = M.transpose(1, 2)[:, :, None, None, :]  # (n, 3, 1, 1, 3): column j of M, rows last
+    v = (m[:, 0] * ax[None, :, None]) + (m[:, 1] * ax[:, None, None])  # (n, S_y, S_x, 3)
+    v += m[:, 2]
+    return (v[..., :2] / v[..., 2:].clamp_min(1e-6)).view(-1, side * side, 2)
 
 
 def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
