@@ -26,6 +26,13 @@ whose rounding may depend on the batch size (oneDNN picks kernels by shape).
 kornia's warps (``warp_affine``, ``warp_perspective``) sample whole images on a regular grid,
 not per-match point sets in several images, so they are not used either.
 
+The loop runs on the matches still iterating only (their state is compacted as matches stop)
+and the sampler composes each match's map to grid coordinates once per call. The
+inverse-compositional form (the template's gradients: a Jacobian and normal matrix formed once)
+is not used: its fixed point is not this sum of squares' minimum but differs from it by the
+gradient noise, which on real scenes is of the order of the precision sought, so it would still
+need full steps to finish, and those dominate the cost.
+
 On the CPU a match's result is bitwise the same whatever the other matches of the call: the
 sample positions are elementwise products, every reduction runs over one match's own pixels,
 and the normal equations are per-match matrix products and solves (tested).
@@ -344,14 +351,19 @@ def frame_sampler(
 
 def _frame_grid(M: torch.Tensor, radius: int) -> torch.Tensor:
     """Grid coordinates (n, Q, 2) float32 of the (2 radius + 1)^2 offsets u (row-major) under
-    the maps M (n, 3, 3) float32: (M u)_xy / (M u)_w, elementwise, built in grid_sample's
-    layout."""
+    the maps M (n, 3, 3) float32: (M u)_xy / (M u)_w, elementwise. The three planes are
+    formed with the grid's x axis innermost (vectorised), then divided into grid_sample's
+    interleaved layout."""
     side = 2 * radius + 1
     ax = torch.arange(-radius, radius + 1, dtype=torch.float32, device=M.device)
-    m = M.transpose(1, 2)[:, :, None, None, :]  # (n, 3, 1, 1, 3): column j of M, rows last
-    v = (m[:, 0] * ax[None, :, None]) + (m[:, 1] * ax[:, None, None])  # (n, S_y, S_x, 3)
-    v += m[:, 2]
-    return (v[..., :2] / v[..., 2:].clamp_min(1e-6)).view(-1, side * side, 2)
+    m = M[:, :, :, None]  # (n, 3, 3, 1)
+    v = (m[:, :, 0] * ax)[:, :, None, :] + (m[:, :, 1] * ax)[:, :, :, None]  # (n, 3, S_y, S_x)
+    v += m[:, :, 2, :, None]
+    out = torch.empty((M.shape[0], side, side, 2), dtype=torch.float32, device=M.device)
+    w = v[:, 2].clamp_min_(1e-6)
+    torch.div(v[:, 0], w, out=out[..., 0])
+    torch.div(v[:, 1], w, out=out[..., 1])
+    return out.view(-1, side * side, 2)
 
 
 def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
