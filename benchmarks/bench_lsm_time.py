@@ -6,12 +6,14 @@ shipped ``mop_miho_ncc``) and ``--lsm-recipe`` (default ``mop_miho_lsm``: 17x17 
 plus ``--set`` overrides, ``--repeats`` times each, alternating, and prints for every run the
 refine stage's wall time and the CPU time of the whole run (this process and its worker
 processes, the workers sampled every 0.2 s, so up to 0.2 s of each worker's end is missed).
-The filter stage costs the same in both runs, so the CPU difference is the LSM step's. On a
+The filter stage costs the same in both runs, so the CPU difference is the LSM step's. With
+``--workers 1`` (everything in this process) ``--lsm-share`` also prints the CPU time of the
+refine stage and of the LSM step inside it (``refine_pair``'s calls of ``lsm_step``). On a
 shared machine compare runs taken back to back only, and prefer the CPU times.
 
     python benchmarks/bench_lsm_time.py --database DB --images DIR [--repeats 3] [--workers 2]
         [--ncc-recipe recipes/mop_miho_ncc.toml] [--lsm-recipe recipes/mop_miho_lsm.toml]
-        [--set ncc.lsm_radius=6]
+        [--set ncc.lsm_radius=6] [--lsm-share]
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import threading
+import time
 from pathlib import Path
 
 from colmap_miho.pipeline.run import refine_database
@@ -74,6 +77,27 @@ class CpuMeter:
         self.seconds = self._own() - self._before + kids
 
 
+class StageClock:
+    """Process CPU seconds spent in ``module.name`` while installed (one thread: this
+    process's time is the function's)."""
+
+    def __init__(self, module, name: str) -> None:
+        self.module, self.name, self.seconds = module, name, 0.0
+        self._orig = getattr(module, name)
+
+        def timed(*args, **kwargs):
+            t = time.process_time()
+            try:
+                return self._orig(*args, **kwargs)
+            finally:
+                self.seconds += time.process_time() - t
+
+        setattr(module, name, timed)
+
+    def remove(self) -> None:
+        setattr(self.module, self.name, self._orig)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--database", required=True)
@@ -84,17 +108,35 @@ def main(argv=None) -> int:
     ap.add_argument("--ncc-recipe", default=str(REPO / "recipes" / "mop_miho_ncc.toml"))
     ap.add_argument("--lsm-recipe", default=str(REPO / "recipes" / "mop_miho_lsm.toml"))
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="LSM run overrides")
+    ap.add_argument("--lsm-share", action="store_true",
+                    help="with --workers 1: CPU time of the refine stage and of the LSM step in it")
     args = ap.parse_args(argv)
+    if args.lsm_share and args.workers != 1:
+        ap.error("--lsm-share needs --workers 1 (the stages run in this process)")
     recipes = {"ncc": load_recipe(args.ncc_recipe, []),
                "lsm": load_recipe(args.lsm_recipe, ["ncc.lsm=true", *args.overrides])}
     times: dict[str, list[tuple[float, float]]] = {k: [] for k in recipes}
     for _ in range(args.repeats):
         for name, rec in recipes.items():
-            with CpuMeter() as cpu:
-                s = refine_database(args.database, args.images, f"{args.output_dir}/bench_lsm_time_{name}.db",
-                                    recipe=rec, overwrite=True, restart=True, workers=args.workers, seed=0)
+            clocks = []
+            if args.lsm_share:
+                import colmap_miho.pipeline.run as run_mod
+                import colmap_miho.refinement.ncc as ncc_mod
+
+                clocks = [StageClock(run_mod, "run_refine"), StageClock(ncc_mod, "lsm_step")]
+            try:
+                with CpuMeter() as cpu:
+                    s = refine_database(args.database, args.images, f"{args.output_dir}/bench_lsm_time_{name}.db",
+                                        recipe=rec, overwrite=True, restart=True, workers=args.workers, seed=0)
+            finally:
+                for c in clocks:
+                    c.remove()
             times[name].append((s.seconds["refine"], cpu.seconds))
-            print(f"{name}: refine {s.seconds['refine']:.1f} s wall, run {cpu.seconds:.1f} s CPU", flush=True)
+            share = ""
+            if clocks:
+                share = (f"; refine stage {clocks[0].seconds:.1f} s CPU, LSM step {clocks[1].seconds:.1f} s CPU"
+                         f" ({100 * clocks[1].seconds / max(clocks[0].seconds, 1e-9):.0f}%)")
+            print(f"{name}: refine {s.seconds['refine']:.1f} s wall, run {cpu.seconds:.1f} s CPU{share}", flush=True)
     for name, ts in times.items():
         print(f"{name}: refine wall " + ", ".join(f"{w:.1f}" for w, _ in ts) + " s; run CPU "
               + ", ".join(f"{c:.1f}" for _, c in ts) + " s")
