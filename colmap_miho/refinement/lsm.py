@@ -134,7 +134,7 @@ def lsm_align(
     P = u.shape[0]
     n_par = 8 if affine else 4
     p_pad = -(-P // 16) * 16  # float32 row length, a multiple of 64 bytes
-    out = _Outputs.start(J, dev)
+    out = _Outputs.start(shift0.to(f64))
     # the state of the matches still iterating (rows ``act`` of the outputs), compacted as
     # matches stop: every per-iteration operation runs on the active matches only
     act = torch.arange(J, device=dev)
@@ -212,7 +212,8 @@ def lsm_align(
 @dataclass
 class _Outputs:
     """The outputs of :func:`lsm_align`, filled as matches stop (rows of the J matches);
-    a match that never ran (``max_iterations`` = 0 is not allowed) keeps the start values."""
+    a match that took no step (``max_iterations`` < 1) keeps its start: shift0, A = I, r0 = 0,
+    r1 = 1, no precision, not converged."""
 
     shift: torch.Tensor
     sigma: torch.Tensor
@@ -225,9 +226,10 @@ class _Outputs:
     iterations: torch.Tensor
 
     @classmethod
-    def start(cls, J: int, dev: torch.device) -> _Outputs:
-        f64 = torch.float64
-        return cls(shift=torch.zeros((J, 2), dtype=f64, device=dev),
+    def start(cls, shift0: torch.Tensor) -> _Outputs:
+        """Outputs for the (J, 2) float64 starting shifts."""
+        J, dev, f64 = shift0.shape[0], shift0.device, torch.float64
+        return cls(shift=shift0.clone(),
                    sigma=torch.full((J, 2), float("inf"), dtype=f64, device=dev),
                    sigma_max=torch.full((J,), float("inf"), dtype=f64, device=dev),
                    affine=torch.eye(2, dtype=f64, device=dev).repeat(J, 1, 1),
