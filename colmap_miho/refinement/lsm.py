@@ -26,6 +26,13 @@ whose rounding may depend on the batch size (oneDNN picks kernels by shape).
 kornia's warps (``warp_affine``, ``warp_perspective``) sample whole images on a regular grid,
 not per-match point sets in several images, so they are not used either.
 
+The loop runs on the matches still iterating only (their state is compacted as matches stop)
+and the sampler composes each match's map to grid coordinates once per call. The
+inverse-compositional form (the template's gradients: a Jacobian and normal matrix formed once)
+is not used: its fixed point is not this sum of squares' minimum but differs from it by the
+gradient noise, which on real scenes is of the order of the precision sought, so it would still
+need full steps to finish, and those dominate the cost.
+
 On the CPU a match's result is bitwise the same whatever the other matches of the call: the
 sample positions are elementwise products, every reduction runs over one match's own pixels,
 and the normal equations are per-match matrix products and solves (tested).
@@ -127,119 +134,152 @@ def lsm_align(
     P = u.shape[0]
     n_par = 8 if affine else 4
     p_pad = -(-P // 16) * 16  # float32 row length, a multiple of 64 bytes
+    out = _Outputs.start(shift0.to(f64))
+    # the state of the matches still iterating (rows ``act`` of the outputs), compacted as
+    # matches stop: every per-iteration operation runs on the active matches only
+    act = torch.arange(J, device=dev)
     tpl = templates.reshape(J, P).to(f32)
-    t = shift0.to(f64).clone()
+    start = shift0.to(f64)
+    t = start.clone()
     A = torch.eye(2, dtype=f64, device=dev).repeat(J, 1, 1)
-    r0 = torch.zeros(J, dtype=f64, device=dev)
-    r1 = torch.ones(J, dtype=f64, device=dev)
-    sigma = torch.full((J, 2), float("inf"), dtype=f64, device=dev)
-    sigma_max = torch.full((J,), float("inf"), dtype=f64, device=dev)
-    s0 = torch.full((J,), float("nan"), dtype=f64, device=dev)
-    converged = torch.zeros(J, dtype=torch.bool, device=dev)
-    iters = torch.zeros(J, dtype=torch.int64, device=dev)
     eye_rhs = torch.zeros((1, n_par, 2), dtype=f64, device=dev)
     eye_rhs[0, 0, 0] = eye_rhs[0, 1, 1] = 1.0
     eye_p = torch.eye(n_par, dtype=f64, device=dev)
-    rows = torch.arange(J, device=dev)  # the matches still iterating
+    eye2 = torch.eye(2, dtype=f64, device=dev)
+    r0 = r1 = torch.zeros(0, dtype=f64, device=dev)
+    jm_buf = torch.zeros((J, n_par + 1, p_pad), dtype=f32, device=dev)
+    jm_buf[:, 2, :P] = 1.0
     for it in range(max_iterations):
-        if rows.numel() == 0:
+        n = act.numel()
+        if n == 0:
             break
-        n = rows.numel()
-        Ar, tr = A[rows], t[rows]
-        vals = sampler(rows, Ar, tr, radius + 1).to(f32)  # (n, S + 2, S + 2)
+        vals = sampler(act, A, t, radius + 1).to(f32)  # (n, S + 2, S + 2)
         g = vals[:, 1:-1, 1:-1].reshape(n, P)
-        f = tpl[rows]
         if it == 0:  # radiometry matching the first patch's mean and spread
-            fm, gm = f.mean(dim=1, dtype=f64), g.mean(dim=1, dtype=f64)
-            fs = (f - fm[:, None]).square().sum(dim=1, dtype=f64).sqrt()
-            gs = (g - gm[:, None]).square().sum(dim=1, dtype=f64).sqrt()
-            gain0 = torch.where((gs > 1e-12) & (fs > 1e-12), fs / gs.clamp_min(1e-12),
-                                torch.ones_like(gs))
-            r1[rows] = gain0
-            r0[rows] = fm - gain0 * gm
-        a1, a0 = r1[rows], r0[rows]
-        a1f = a1.to(f32)[:, None]
+            r0, r1 = _initial_radiometry(tpl, g)
+        r1f = r1.to(f32)[:, None]
         # rows: the p Jacobian columns, then the residual; one batched product gives the
         # normal matrix N, the right-hand side b = J^T e and e^T e
         # each row padded with zeros to a multiple of 64 bytes: every match's matrix then
         # starts equally aligned wherever it sits in the batch, and the batched product
         # takes the same path for it (unaligned rows were seen to round differently)
-        Jm = torch.empty((n, n_par + 1, p_pad), dtype=f32, device=dev)
-        Jm[:, :, P:] = 0.0
-        sx, sy = Jm[:, 0, :P], Jm[:, 1, :P]
-        torch.sub(vals[:, 1:-1, 2:], vals[:, 1:-1, :-2], out=sx.view(n, S, S))
-        torch.sub(vals[:, 2:, 1:-1], vals[:, :-2, 1:-1], out=sy.view(n, S, S))
-        sx.mul_(0.5 * a1f)
-        sy.mul_(0.5 * a1f)
-        Jm[:, 2, :P] = 1.0
+        # (one buffer for all iterations: the padding and the row of ones are written once)
+        Jm = jm_buf[:n]
+        sxy = Jm[:, :2, :P].view(n, 2, S, S)
+        torch.sub(vals[:, 1:-1, 2:], vals[:, 1:-1, :-2], out=sxy[:, 0])
+        torch.sub(vals[:, 2:, 1:-1], vals[:, :-2, 1:-1], out=sxy[:, 1])
+        sxy.mul_((0.5 * r1f)[:, :, None, None])
         Jm[:, 3, :P] = g
         if affine:
-            torch.mul(sx, u[:, 0], out=Jm[:, 4, :P])
-            torch.mul(sx, u[:, 1], out=Jm[:, 5, :P])
-            torch.mul(sy, u[:, 0], out=Jm[:, 6, :P])
-            torch.mul(sy, u[:, 1], out=Jm[:, 7, :P])
-        torch.sub(f, a0.to(f32)[:, None] + a1f * g, out=Jm[:, n_par, :P])  # residuals e
+            torch.mul(Jm[:, :2, None, :P], u.T[None, None], out=Jm[:, 4:8, :P].view(n, 2, 2, P))
+        torch.sub(tpl, r0.to(f32)[:, None] + r1f * g, out=Jm[:, n_par, :P])  # residuals e
         NN = torch.bmm(Jm, Jm.transpose(1, 2)).to(f64)  # (n, p + 1, p + 1)
-        N = NN[:, :n_par, :n_par]
-        b = NN[:, :n_par, n_par:]  # (n, p, 1)
-        L, info = torch.linalg.cholesky_ex(N)
+        L, info = torch.linalg.cholesky_ex(NN[:, :n_par, :n_par])
         ok = info == 0
         L = torch.where(ok[:, None, None], L, eye_p)
-        sol = torch.cholesky_solve(torch.cat([b, eye_rhs.expand(n, n_par, 2)], dim=2), L)
-        x = sol[:, :, 0]
+        sol = torch.cholesky_solve(torch.cat([NN[:, :n_par, n_par:], eye_rhs.expand(n, n_par, 2)],
+                                             dim=2), L)
+        x = torch.where(ok[:, None], sol[:, :, 0], 0.0)
         var0 = NN[:, n_par, n_par] / (P - n_par)
-        d0, d1 = x[:, 0], x[:, 1]
-        step = torch.stack([Ar[:, 0, 0] * d0 + Ar[:, 0, 1] * d1,
-                            Ar[:, 1, 0] * d0 + Ar[:, 1, 1] * d1], dim=-1)
-        step = torch.where(ok[:, None], step, torch.zeros_like(step))
-        sg, sm = _shift_sigma(Ar, var0[:, None, None] * sol[:, :2, 1:])
-        inf = torch.full_like(sm, float("inf"))
-        sigma[rows] = torch.where(ok[:, None], sg, inf[:, None].expand(n, 2))
-        sigma_max[rows] = torch.where(ok, sm, inf)
-        s0[rows] = var0.sqrt()
-        t_new = tr + step
-        zero = torch.zeros_like(a1)
-        r1_new = a1 + torch.where(ok, x[:, 3], zero)
-        a_new = Ar
-        if affine:
-            D = torch.where(ok[:, None], x[:, 4:8], torch.zeros_like(x[:, 4:8]))
-            a_new = torch.stack([
-                torch.stack([Ar[:, 0, 0] * (1 + D[:, 0]) + Ar[:, 0, 1] * D[:, 2],
-                             Ar[:, 0, 0] * D[:, 1] + Ar[:, 0, 1] * (1 + D[:, 3])], -1),
-                torch.stack([Ar[:, 1, 0] * (1 + D[:, 0]) + Ar[:, 1, 1] * D[:, 2],
-                             Ar[:, 1, 0] * D[:, 1] + Ar[:, 1, 1] * (1 + D[:, 3])], -1),
-            ], dim=1)
-        t[rows] = t_new
-        A[rows] = a_new
-        r0[rows] = a0 + torch.where(ok, x[:, 2], zero)
-        r1[rows] = r1_new
-        iters[rows] += 1
-        regular = ok & _regular(a_new, r1_new)
+        step = (A * x[:, None, :2]).sum(dim=2)  # A d
+        sg, sm = _shift_sigma(A, var0[:, None, None] * sol[:, :2, 1:])
+        sg = torch.where(ok[:, None], sg, float("inf"))
+        sm = torch.where(ok, sm, float("inf"))
+        t = t + step
+        r0 = r0 + x[:, 2]
+        r1 = r1 + x[:, 3]
+        if affine:  # A (I + D)
+            E = eye2 + x[:, 4:8].view(n, 2, 2)
+            A = (A[:, :, :, None] * E[:, None, :, :]).sum(dim=2)
+        regular = ok & _regular(A, r1)
         small = step.abs().amax(dim=1) < tol_px
         done = ~regular | small
         if max_shift_px is not None:
-            done |= (t_new - shift0[rows].to(f64)).abs().amax(dim=1) > max_shift_px
-        converged[rows] = regular & small
-        rows = rows[~done]
-    return LSMResult(shift=t, sigma=sigma, sigma_max=sigma_max, affine=A, gain=r1, offset=r0,
-                     residual_std=s0, converged=converged, iterations=iters)
+            done |= (t - start).abs().amax(dim=1) > max_shift_px
+        if it == max_iterations - 1:
+            done = torch.ones_like(done)
+        fin = torch.nonzero(done)[:, 0]
+        out.write(act[fin], t[fin], sg[fin], sm[fin], A[fin], r1[fin], r0[fin],
+                  var0[fin].sqrt(), (regular & small)[fin], it + 1)
+        if fin.numel() < n:
+            keep = torch.nonzero(~done)[:, 0]
+            act, tpl, start, t, A, r0, r1 = (v[keep] for v in (act, tpl, start, t, A, r0, r1))
+        else:
+            act = act[:0]
+    return out.result()
+
+
+@dataclass
+class _Outputs:
+    """The outputs of :func:`lsm_align`, filled as matches stop (rows of the J matches);
+    a match that took no step (``max_iterations`` < 1) keeps its start: shift0, A = I, r0 = 0,
+    r1 = 1, no precision, not converged."""
+
+    shift: torch.Tensor
+    sigma: torch.Tensor
+    sigma_max: torch.Tensor
+    affine: torch.Tensor
+    gain: torch.Tensor
+    offset: torch.Tensor
+    residual_std: torch.Tensor
+    converged: torch.Tensor
+    iterations: torch.Tensor
+
+    @classmethod
+    def start(cls, shift0: torch.Tensor) -> _Outputs:
+        """Outputs for the (J, 2) float64 starting shifts."""
+        J, dev, f64 = shift0.shape[0], shift0.device, torch.float64
+        return cls(shift=shift0.clone(),
+                   sigma=torch.full((J, 2), float("inf"), dtype=f64, device=dev),
+                   sigma_max=torch.full((J,), float("inf"), dtype=f64, device=dev),
+                   affine=torch.eye(2, dtype=f64, device=dev).repeat(J, 1, 1),
+                   gain=torch.ones(J, dtype=f64, device=dev),
+                   offset=torch.zeros(J, dtype=f64, device=dev),
+                   residual_std=torch.full((J,), float("nan"), dtype=f64, device=dev),
+                   converged=torch.zeros(J, dtype=torch.bool, device=dev),
+                   iterations=torch.zeros(J, dtype=torch.int64, device=dev))
+
+    def write(self, rows: torch.Tensor, t: torch.Tensor, sigma: torch.Tensor, sigma_max: torch.Tensor,
+              A: torch.Tensor, gain: torch.Tensor, offset: torch.Tensor, s0: torch.Tensor,
+              converged: torch.Tensor, iterations: int) -> None:
+        """The final values of the matches ``rows`` (they stop here)."""
+        self.shift[rows], self.sigma[rows], self.sigma_max[rows] = t, sigma, sigma_max
+        self.affine[rows], self.gain[rows], self.offset[rows] = A, gain, offset
+        self.residual_std[rows], self.converged[rows] = s0, converged
+        self.iterations[rows] = iterations
+
+    def result(self) -> LSMResult:
+        return LSMResult(shift=self.shift, sigma=self.sigma, sigma_max=self.sigma_max,
+                         affine=self.affine, gain=self.gain, offset=self.offset,
+                         residual_std=self.residual_std, converged=self.converged,
+                         iterations=self.iterations)
+
+
+def _initial_radiometry(f: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(r0, r1) (n,) float64 that match g's mean and spread to f's (r1 = 1 where either
+    patch is flat); f, g (n, P) float32."""
+    fm, gm = f.mean(dim=1, dtype=torch.float64), g.mean(dim=1, dtype=torch.float64)
+    fs = (f - fm[:, None]).square().sum(dim=1, dtype=torch.float64).sqrt()
+    gs = (g - gm[:, None]).square().sum(dim=1, dtype=torch.float64).sqrt()
+    gain0 = torch.where((gs > 1e-12) & (fs > 1e-12), fs / gs.clamp_min(1e-12), torch.ones_like(gs))
+    return fm - gain0 * gm, gain0
 
 
 def _shift_sigma(A: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Standard deviations (n, 2) of t = A d and the largest semi-axis (n,) of its error
     ellipse, from the covariance C (n, 2, 2) of d (elementwise: A C A^T)."""
-    AC = A[:, :, 0, None] * C[:, None, 0, :] + A[:, :, 1, None] * C[:, None, 1, :]
-    cxx = AC[:, 0, 0] * A[:, 0, 0] + AC[:, 0, 1] * A[:, 0, 1]
-    cyy = AC[:, 1, 0] * A[:, 1, 0] + AC[:, 1, 1] * A[:, 1, 1]
-    cxy = AC[:, 0, 0] * A[:, 1, 0] + AC[:, 0, 1] * A[:, 1, 1]
+    AC = (A[:, :, :, None] * C[:, None, :, :]).sum(dim=2)  # AC[i, j] = A[i, 0] C[0, j] + A[i, 1] C[1, j]
+    cc = (AC * A).sum(dim=2)  # (cxx, cyy): AC[i, 0] A[i, 0] + AC[i, 1] A[i, 1]
+    cxx, cyy = cc.unbind(dim=1)
+    cxy = (AC[:, 0] * A[:, 1]).sum(dim=1)
     lam = 0.5 * (cxx + cyy) + torch.sqrt((0.5 * (cxx - cyy)).square() + cxy.square())
-    return torch.stack([cxx, cyy], -1).clamp_min(0).sqrt(), lam.clamp_min(0).sqrt()
+    return cc.clamp_min(0).sqrt(), lam.clamp_min(0).sqrt()
 
 
 def _regular(A: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
     """(n,) bool: A's singular values within [1/_MAX_SCALE, _MAX_SCALE] and its determinant
     positive (no reflection), the gain within [1/_MAX_GAIN, _MAX_GAIN]."""
-    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+    a, b, c, d = A.reshape(-1, 4).unbind(dim=1)
     det = a * d - b * c
     fro2 = a * a + b * b + c * c + d * d
     disc = (fro2.square() - 4 * det.square()).clamp_min(0).sqrt()
@@ -267,43 +307,72 @@ def frame_sampler(
         mode: ``grid_sample`` interpolation, "bicubic" or "bilinear" (for comparison).
     """
 
+    J = centres.shape[0]
+    dev = centres.device
+    f64 = torch.float64
+    if isinstance(image, ImageStack):
+        size, index, ims = image.sizes, image.index, image.images
+    else:
+        size = torch.tensor([[image.shape[1], image.shape[0]]], dtype=f64, device=dev).expand(J, 2)
+        index, ims = None, (image,)
+    # B = S H_inv per match, S pixels -> grid units (align_corners); then
+    # M = B [[A, c + t], [0, 0, 1]] for each call's A and t
+    sc = 2.0 / (size - 1.0).clamp_min(1.0)
+    Sm = torch.zeros((J, 3, 3), dtype=f64, device=dev)
+    Sm[:, 0, 0], Sm[:, 1, 1], Sm[:, 0, 2], Sm[:, 1, 2], Sm[:, 2, 2] = sc[:, 0], sc[:, 1], -1.0, -1.0, 1.0
+    B = _mul3(Sm, H_inv.to(f64))
+
     def sample(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
         n = rows.numel()
-        if isinstance(image, ImageStack):
-            sub = image.rows(rows)
-            size, idx, ims = sub.sizes, sub.index, sub.images
-        else:
-            size = torch.tensor([[image.shape[1], image.shape[0]]], dtype=torch.float64,
-                                device=t.device).expand(n, 2)
-            idx, ims = None, (image,)
-        # M = S H_inv [[A, c + t], [0, 0, 1]] with S pixels -> grid units (align_corners)
-        H = H_inv[rows]
+        Br = B[rows]
         c = centres[rows] + t
-        sc = 2.0 / (size - 1.0).clamp_min(1.0)
-        Sm = torch.zeros((n, 3, 3), dtype=torch.float64, device=t.device)
-        Sm[:, 0, 0], Sm[:, 1, 1], Sm[:, 0, 2], Sm[:, 1, 2], Sm[:, 2, 2] = sc[:, 0], sc[:, 1], -1.0, -1.0, 1.0
-        K = torch.zeros((n, 3, 3), dtype=torch.float64, device=t.device)
-        K[:, :2, :2], K[:, :2, 2], K[:, 2, 2] = A, c, 1.0
-        M = _mul3(Sm, _mul3(H, K)).to(torch.float32)
+        # M[:, :, :2] = B[:, :, :2] A, M[:, :, 2] = B[:, :, :2] c + B[:, :, 2] (elementwise)
+        M = torch.cat([(Br[:, :, :2, None] * A[:, None]).sum(dim=2),
+                       ((Br[:, :, :2] * c[:, None]).sum(dim=2) + Br[:, :, 2])[:, :, None]],
+                      dim=2).to(torch.float32)
         side = 2 * radius + 1
-        ax = torch.arange(-radius, radius + 1, dtype=torch.float32, device=t.device)
-        m = M[:, :, :, None]  # (n, 3, 3, 1)
-        v = (m[:, :, 0] * ax)[:, :, None, :] + (m[:, :, 1] * ax)[:, :, :, None]
-        v += m[:, :, 2, :, None]  # (n, 3, side_y, side_x)
-        v = v[:, :2] / v[:, 2:].clamp_min(1e-6)
-        grid = v.view(n, 2, side * side).transpose(1, 2)  # (n, Q, 2)
-        if idx is None:
-            out = F.grid_sample(ims[0][None, None], grid[None], mode=mode,
-                                padding_mode="border", align_corners=True)[0, 0]
-            return out.view(n, side, side)
+        if index is None:
+            return _grid_sample(ims[0], _frame_grid(M, radius), mode).view(n, side, side)
+        idx = index[rows]
+        counts = torch.bincount(idx, minlength=len(ims)).tolist()
+        if n and max(counts) == n:  # one image
+            return _grid_sample(ims[counts.index(n)], _frame_grid(M, radius), mode).view(n, side, side)
+        order = torch.argsort(idx, stable=True)  # the matches grouped by image
+        grid = _frame_grid(M[order], radius)
+        parts, lo = [], 0
+        for k, cnt in enumerate(counts):
+            if cnt:
+                parts.append(_grid_sample(ims[k], grid[lo:lo + cnt], mode))
+                lo += cnt
         out = torch.empty((n, side * side), dtype=torch.float32, device=t.device)
-        for k in torch.unique(idx).tolist():
-            sel = torch.nonzero(idx == k)[:, 0]
-            out[sel] = F.grid_sample(ims[k][None, None], grid[sel][None], mode=mode,
-                                     padding_mode="border", align_corners=True)[0, 0]
+        out[order] = torch.cat(parts)
         return out.view(n, side, side)
 
     return sample
+
+
+def _frame_grid(M: torch.Tensor, radius: int) -> torch.Tensor:
+    """Grid coordinates (n, Q, 2) float32 of the (2 radius + 1)^2 offsets u (row-major) under
+    the maps M (n, 3, 3) float32: (M u)_xy / (M u)_w, elementwise. The three planes are
+    formed with the grid's x axis innermost (vectorised), then divided into grid_sample's
+    interleaved layout."""
+    side = 2 * radius + 1
+    ax = torch.arange(-radius, radius + 1, dtype=torch.float32, device=M.device)
+    m = M[:, :, :, None]  # (n, 3, 3, 1)
+    v = (m[:, :, 0] * ax)[:, :, None, :] + (m[:, :, 1] * ax)[:, :, :, None]  # (n, 3, S_y, S_x)
+    v += m[:, :, 2, :, None]
+    out = torch.empty((M.shape[0], side, side, 2), dtype=torch.float32, device=M.device)
+    w = v[:, 2].clamp_min_(1e-6)
+    torch.div(v[:, 0], w, out=out[..., 0])
+    torch.div(v[:, 1], w, out=out[..., 1])
+    return out.view(-1, side * side, 2)
+
+
+def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
+    """Samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) in grid units
+    (``align_corners=True``, border values outside)."""
+    return F.grid_sample(image[None, None], grid[None], mode=mode, padding_mode="border",
+                         align_corners=True)[0, 0]
 
 
 def _mul3(X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:

@@ -334,3 +334,38 @@ def test_lsm_only_moves_where_lsm_accepted():
     assert np.array_equal(only.pts2[kept], pts2[kept])
     moved = only.moved_side == 2
     assert np.array_equal(only.pts2[moved], plain.pts2[moved])
+
+
+#: positions read by frame_sampler (float32 grid) against a float64 mapping of every sample (px).
+SAMPLE_POS_TOL_PX = 1e-4
+
+
+@pytest.mark.parametrize("stack", [False, True])
+def test_frame_sampler_reads_the_mapped_positions(stack):
+    """``frame_sampler`` reads match j's image at ``H_inv[j] (c[j] + t + A u)`` (the map
+    composed once per match, grouped by image in a stack): on a smooth ramp image the value
+    is the x coordinate of the sample, so the values give the positions read (bilinear
+    sampling: it reproduces a ramp exactly; grid_sample's bicubic, a = -0.75, does not)."""
+    h, w = 200, 300
+    ramp = torch.arange(w, dtype=torch.float32)[None].expand(h, w).contiguous()
+    rng = np.random.default_rng(3)
+    J, r = 12, 3
+    H = np.tile(np.eye(3), (J, 1, 1))
+    H[:, :2, :2] += rng.uniform(-0.1, 0.1, (J, 2, 2))
+    H[:, :2, 2] = rng.uniform(-5, 5, (J, 2))
+    H[:, 2, :2] = rng.uniform(-2e-4, 2e-4, (J, 2))
+    c = torch.tensor(rng.uniform(80, 120, (J, 2)))
+    A = torch.tensor(np.eye(2) + rng.uniform(-0.2, 0.2, (J, 2, 2)))
+    t = torch.tensor(rng.uniform(-1, 1, (J, 2)))
+    image = ImageStack.build([ramp, ramp + 0.0], torch.tensor(rng.integers(0, 2, J)),
+                             torch.device("cpu")) if stack else ramp
+    rows = torch.tensor([5, 0, 7, 3, 11])
+    vals = frame_sampler(image, torch.tensor(H), c, "bilinear")(rows, A[rows], t[rows], r)
+    u = offset_grid(r, torch.device("cpu")).numpy()
+    for k, j in enumerate(rows.tolist()):
+        p = c[j].numpy() + t[j].numpy() + u @ A[j].numpy().T
+        q = np.c_[p, np.ones(len(p))] @ H[j].T
+        x = q[:, 0] / q[:, 2]
+        got = vals[k].reshape(-1).numpy()
+        err = np.abs(got - x).max()
+        assert err < SAMPLE_POS_TOL_PX, err
