@@ -134,7 +134,7 @@ def lsm_align(
     P = u.shape[0]
     n_par = 8 if affine else 4
     p_pad = -(-P // 16) * 16  # float32 row length, a multiple of 64 bytes
-    out = _Outputs.start(shift0.to(f64))
+    out = _start_outputs(shift0.to(f64))
     # the state of the matches still iterating (rows ``act`` of the outputs), compacted as
     # matches stop: every per-iteration operation runs on the active matches only
     act = torch.arange(J, device=dev)
@@ -199,60 +199,40 @@ def lsm_align(
         if it == max_iterations - 1:
             done = torch.ones_like(done)
         fin = torch.nonzero(done)[:, 0]
-        out.write(act[fin], t[fin], sg[fin], sm[fin], A[fin], r1[fin], r0[fin],
-                  var0[fin].sqrt(), (regular & small)[fin], it + 1)
+        _write_outputs(out, act[fin], t[fin], sg[fin], sm[fin], A[fin], r1[fin], r0[fin],
+                       var0[fin].sqrt(), (regular & small)[fin], it + 1)
         if fin.numel() < n:
             keep = torch.nonzero(~done)[:, 0]
             act, tpl, start, t, A, r0, r1 = (v[keep] for v in (act, tpl, start, t, A, r0, r1))
         else:
             act = act[:0]
-    return out.result()
+    return out
 
 
-@dataclass
-class _Outputs:
-    """The outputs of :func:`lsm_align`, filled as matches stop (rows of the J matches);
-    a match that took no step (``max_iterations`` < 1) keeps its start: shift0, A = I, r0 = 0,
-    r1 = 1, no precision, not converged."""
+def _start_outputs(shift0: torch.Tensor) -> LSMResult:
+    """The result of J matches before any step, filled row by row as matches stop
+    (:func:`_write_outputs`): a match that takes no step (``max_iterations`` < 1) keeps its
+    start: shift0 ((J, 2) float64), A = I, r0 = 0, r1 = 1, no precision, not converged."""
+    J, dev, f64 = shift0.shape[0], shift0.device, torch.float64
+    return LSMResult(shift=shift0.clone(),
+                     sigma=torch.full((J, 2), float("inf"), dtype=f64, device=dev),
+                     sigma_max=torch.full((J,), float("inf"), dtype=f64, device=dev),
+                     affine=torch.eye(2, dtype=f64, device=dev).repeat(J, 1, 1),
+                     gain=torch.ones(J, dtype=f64, device=dev),
+                     offset=torch.zeros(J, dtype=f64, device=dev),
+                     residual_std=torch.full((J,), float("nan"), dtype=f64, device=dev),
+                     converged=torch.zeros(J, dtype=torch.bool, device=dev),
+                     iterations=torch.zeros(J, dtype=torch.int64, device=dev))
 
-    shift: torch.Tensor
-    sigma: torch.Tensor
-    sigma_max: torch.Tensor
-    affine: torch.Tensor
-    gain: torch.Tensor
-    offset: torch.Tensor
-    residual_std: torch.Tensor
-    converged: torch.Tensor
-    iterations: torch.Tensor
 
-    @classmethod
-    def start(cls, shift0: torch.Tensor) -> _Outputs:
-        """Outputs for the (J, 2) float64 starting shifts."""
-        J, dev, f64 = shift0.shape[0], shift0.device, torch.float64
-        return cls(shift=shift0.clone(),
-                   sigma=torch.full((J, 2), float("inf"), dtype=f64, device=dev),
-                   sigma_max=torch.full((J,), float("inf"), dtype=f64, device=dev),
-                   affine=torch.eye(2, dtype=f64, device=dev).repeat(J, 1, 1),
-                   gain=torch.ones(J, dtype=f64, device=dev),
-                   offset=torch.zeros(J, dtype=f64, device=dev),
-                   residual_std=torch.full((J,), float("nan"), dtype=f64, device=dev),
-                   converged=torch.zeros(J, dtype=torch.bool, device=dev),
-                   iterations=torch.zeros(J, dtype=torch.int64, device=dev))
-
-    def write(self, rows: torch.Tensor, t: torch.Tensor, sigma: torch.Tensor, sigma_max: torch.Tensor,
-              A: torch.Tensor, gain: torch.Tensor, offset: torch.Tensor, s0: torch.Tensor,
-              converged: torch.Tensor, iterations: int) -> None:
-        """The final values of the matches ``rows`` (they stop here)."""
-        self.shift[rows], self.sigma[rows], self.sigma_max[rows] = t, sigma, sigma_max
-        self.affine[rows], self.gain[rows], self.offset[rows] = A, gain, offset
-        self.residual_std[rows], self.converged[rows] = s0, converged
-        self.iterations[rows] = iterations
-
-    def result(self) -> LSMResult:
-        return LSMResult(shift=self.shift, sigma=self.sigma, sigma_max=self.sigma_max,
-                         affine=self.affine, gain=self.gain, offset=self.offset,
-                         residual_std=self.residual_std, converged=self.converged,
-                         iterations=self.iterations)
+def _write_outputs(out: LSMResult, rows: torch.Tensor, t: torch.Tensor, sigma: torch.Tensor,
+                   sigma_max: torch.Tensor, A: torch.Tensor, gain: torch.Tensor, offset: torch.Tensor,
+                   s0: torch.Tensor, converged: torch.Tensor, iterations: int) -> None:
+    """The final values of the matches ``rows`` (they stop here), written into ``out``'s tensors."""
+    out.shift[rows], out.sigma[rows], out.sigma_max[rows] = t, sigma, sigma_max
+    out.affine[rows], out.gain[rows], out.offset[rows] = A, gain, offset
+    out.residual_std[rows], out.converged[rows] = s0, converged
+    out.iterations[rows] = iterations
 
 
 def _initial_radiometry(f: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
