@@ -19,9 +19,10 @@ the other (the local scale ``sqrt |det J|`` of its frame -> image map at the mat
 larger), its samples are smoothed so that both sides carry the blur of the coarser view:
 a Gaussian of ``lsm_antialias * sqrt(ratio^2 - 1)`` of its own pixels (the coarser view's
 blur, ``lsm_antialias`` pixels of its own, brought to the finer view's pixels, less the
-finer view's own). The Gaussian is a 3 x 3 stencil of bicubic samples along the image axes
-(equal weights, spacing ``sigma sqrt(3/2)``: the variance of a Gaussian of ``sigma``), so
-the smoothing costs samples at the affected matches only and stays per match.
+finer view's own). The Gaussian is approximated by the mean of 4 bicubic samples at
+``(+-sigma, +-sigma)`` along the image axes (the variance of a Gaussian of ``sigma`` on each
+axis), so the smoothing costs samples at the affected matches only and stays per match; a
+3 x 3 stencil of the same variance was measured slightly more accurate at over twice the cost.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from .warping import ImageStack
 #: smallest template radius (pixels) of keypoint-sized LSM templates.
 MIN_RADIUS = 4
 #: smallest anti-aliasing blur (pixels of the finer view) applied; a side that needs less is
-#: read unsmoothed (9 samples per pixel are not spent on a blur below the pixel scale).
+#: read unsmoothed (4 samples per pixel are not spent on a blur below the pixel scale).
 MIN_BLUR_PX = 0.2
 #: counters of :func:`lsm_step`, in the refine stats.
 LSM_COUNTERS = ("lsm_applied", "lsm_not_converged", "lsm_far", "lsm_imprecise")
@@ -129,10 +130,10 @@ def frame_jacobian(H_inv: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 
 
 def _blurred(sampler: Sampler, step: torch.Tensor, blur: torch.Tensor) -> Sampler:
-    """``sampler`` whose matches ``blur`` ((n,) bool) are read as the mean of a 3 x 3 stencil
-    of samples ``t + step_j o``, o in {-1, 0, 1}^2 (``step`` (n, 2, 2) float64: frame
-    offsets of one stencil step along the image's x and y)."""
-    offsets = [(i, j) for j in (-1, 0, 1) for i in (-1, 0, 1)]
+    """``sampler`` whose matches ``blur`` ((n,) bool) are read as the mean of the 4 samples
+    ``t + step o``, o in {-1, 1}^2 (``step`` (n, 2, 2) float64: columns = the frame offsets of
+    one step along the image's x and y)."""
+    offsets = [(i, j) for j in (-1, 1) for i in (-1, 1)]
 
     def sample(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
         out = sampler(rows, A, t, radius)
@@ -160,9 +161,8 @@ def _antialiased(samp_f: Sampler, samp_m: Sampler, H_f_inv: torch.Tensor, at_f: 
     ratio = torch.maximum(s_f, s_m) / torch.minimum(s_f, s_m).clamp_min(1e-12)
     sigma = base_px * (ratio.square() - 1).clamp_min(0).sqrt()  # finer view's pixels
     blur = sigma >= MIN_BLUR_PX
-    h = sigma * 1.5**0.5
-    # one stencil step of h image pixels along the image's axes, in frame pixels: J^-1 h
-    step_f = torch.linalg.inv(J_f) * h[:, None, None]
-    step_m = torch.linalg.inv(J_m) * h[:, None, None]
+    # one step of sigma image pixels along the image's axes, in frame pixels: J^-1 sigma
+    step_f = torch.linalg.inv(J_f) * sigma[:, None, None]
+    step_m = torch.linalg.inv(J_m) * sigma[:, None, None]
     return (_blurred(samp_f, step_f, blur & (s_f > s_m)),
             _blurred(samp_m, step_m, blur & (s_m > s_f)))
