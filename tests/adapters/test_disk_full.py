@@ -4,8 +4,10 @@ where a native library would abort. Real full disks are small tmpfs mounts (root
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
 
 from disk import fill, small_disk
@@ -24,6 +26,17 @@ def sha256(path: Path) -> str:
 
 def names(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir() if p.name != "filler")
+
+
+@contextlib.contextmanager
+def db_on_small_disk(db_copy: Path, tmp_path: Path, leave: int) -> Iterator[tuple[Path, Path]]:
+    """(disk, database): a copy of ``db_copy`` on a 16 MB file system filled to ``leave``
+    free bytes."""
+    with small_disk(tmp_path / "mnt", "16m") as disk:
+        db = disk / "scene.db"
+        shutil.copyfile(db_copy, db)
+        fill(disk, leave=leave)
+        yield disk, db
 
 
 def test_sqlite_full_is_recognised():
@@ -116,10 +129,7 @@ def test_refine_on_a_disk_too_small_is_refused_up_front(db_copy, scene, tmp_path
     """Just above the old 2x check pycolmap aborted (SIGABRT) in its SQLite writes: the check
     now asks for the measured peak with a margin, so the run is refused before any work."""
     size = db_copy.stat().st_size
-    with small_disk(tmp_path / "mnt", "16m") as disk:
-        db = disk / "scene.db"
-        shutil.copyfile(db_copy, db)
-        fill(disk, leave=int(2.2 * size))
+    with db_on_small_disk(db_copy, tmp_path, leave=int(2.2 * size)) as (disk, db):
         digest = sha256(db)
         capfd.readouterr()
         code = main(["refine", "--database", str(db), "--images", str(scene.image_dir), "--workers", "1",
@@ -134,10 +144,7 @@ def test_refine_fits_the_space_it_asks_for(db_copy, scene, tmp_path):
     from colmap_miho.adapters.working_copy import working_space
 
     size = db_copy.stat().st_size
-    with small_disk(tmp_path / "mnt", "16m") as disk:
-        db = disk / "scene.db"
-        shutil.copyfile(db_copy, db)
-        fill(disk, leave=working_space(size) + 4096)
+    with db_on_small_disk(db_copy, tmp_path, leave=working_space(size) + 4096) as (disk, db):
         assert main(["refine", "--database", str(db), "--images", str(scene.image_dir), "--workers", "1",
                      "-q"]) == 0
         assert names(disk) == ["scene.db", "scene.miho.db"]
@@ -172,10 +179,7 @@ def test_disk_filling_during_the_write_is_one_line_not_an_abort(db_copy, scene, 
     script = tmp_path / "bypass.py"
     script.write_text(BYPASS_SPACE_CHECK)
     size = db_copy.stat().st_size
-    with small_disk(tmp_path / "mnt", "16m") as disk:
-        db = disk / "scene.db"
-        shutil.copyfile(db_copy, db)
-        fill(disk, leave=int(2.2 * size))
+    with db_on_small_disk(db_copy, tmp_path, leave=int(2.2 * size)) as (disk, db):
         digest = sha256(db)
         done = subprocess.run([sys.executable, str(script), "refine", "--database", str(db), "--images",
                                str(scene.image_dir), "--workers", "1", "--no-refine", "-q"],
