@@ -69,12 +69,18 @@ def required_iters(w: float, w_loc: float, local_fraction: float, p: float) -> f
     """Adaptive RANSAC bound: draws needed for confidence ``p`` that one minimal sample is
     all inliers, with inlier ratio ``w``, ``w_loc`` among the inliers' local neighbours and
     a ``local_fraction`` of the samples drawn locally (``inf`` when none can be)."""
-    p_all = local_fraction * w * w_loc**3 + (1.0 - local_fraction) * w**4
-    if p_all <= 0:
+    return draws_for_confidence(local_fraction * w * w_loc**3 + (1.0 - local_fraction) * w**4, p)
+
+
+def draws_for_confidence(p_clean: float, confidence: float) -> float:
+    """The classical RANSAC bound: random samples to draw so that at least one is all
+    inliers with probability ``confidence``, when one sample is with probability
+    ``p_clean`` (``inf`` when none can be, 0 when every one is)."""
+    if p_clean <= 0:
         return math.inf
-    if p_all >= 1:
+    if p_clean >= 1:
         return 0.0
-    return math.log(1.0 - p) / math.log1p(-p_all)
+    return math.log(1.0 - confidence) / math.log1p(-p_clean)
 
 
 class LocalCandidates:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..filtering.sampling import draws_for_confidence
+
 #: Matches a fundamental matrix needs (the eight-point algorithm).
 MIN_F_MATCHES = 8
 #: Correspondences (spread over the rows) on which the sampled hypotheses are scored.
@@ -64,14 +66,12 @@ def sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
 
 def hypotheses_needed(inlier_share: float, confidence: float) -> float:
     """Eight-point samples to draw so that at least one is all inliers with probability
-    ``confidence``, given an inlier share in [0, 1] (the classical RANSAC bound,
-    ``log(1 - confidence) / log(1 - share^8)``); ``inf`` without inliers."""
-    clean = inlier_share**MIN_F_MATCHES
-    if clean <= 0.0:
-        return float("inf")
-    if clean >= 1.0:
+    ``confidence``, given an inlier share in [0, 1] (the classical RANSAC bound of
+    :func:`~colmap_miho.filtering.sampling.draws_for_confidence`); 1 when every match is an
+    inlier, ``inf`` without inliers."""
+    if inlier_share >= 1.0:
         return 1.0
-    return float(np.log1p(-confidence) / np.log1p(-clean))
+    return draws_for_confidence(inlier_share**MIN_F_MATCHES, confidence)
 
 
 def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *, hypotheses: int = 128,
