@@ -114,6 +114,10 @@ class NCCConfig:
             coarser view's blur (:mod:`.lsm_step`).
         lsm_only: a move LSM does not accept is rejected (the keypoint keeps its position)
             rather than placed by the iterated parabolas; counted as ``rejected_lsm``.
+        match_blur: before the search, smooth the sharper image of each image pair to the
+            other's blur, estimated from the pair's own matches (:mod:`.blur`); counted as
+            ``blur_pairs`` and ``blur_matched``. A match's result then depends on the other
+            matches of its image pair in the call (through the estimate), not on other pairs.
     """
 
     template_radius: int = 10
@@ -149,6 +153,7 @@ class NCCConfig:
     lsm_max_sigma_px: float = 0.1
     lsm_antialias: float = 0.0
     lsm_only: bool = False
+    match_blur: bool = False
 
     def __post_init__(self) -> None:
         for name, choice in _CHOICES.items():

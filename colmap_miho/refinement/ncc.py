@@ -33,6 +33,7 @@ import torch
 
 from .. import devices
 from ..enums import CheckRule, MoveSide
+from .blur import match_blur
 from .config import DEFAULT_BATCH_SIZE, NCCConfig
 from .lsm_step import LSM_COUNTERS, lsm_step
 from .pair_inputs import ArrayInput, ImageInput, PairInputs, base_pairs, pair_inputs
@@ -193,6 +194,9 @@ def refine_pair(
     device = resolve_device(cfg, image1, image2, pts1, patch_homographies)
     img = (to_gray_tensor(image1, device), to_gray_tensor(image2, device))
     out = _Outputs.unchanged(inp.p1, inp.p2)
+    if cfg.match_blur:
+        img, blur_counts = match_blur(img, inp.p1, inp.p2, inp.homs)
+        out.counts.update(blur_counts)
     if cfg.lsm:
         out.counts.update(dict.fromkeys(LSM_COUNTERS, 0))
         if cfg.lsm_only:
