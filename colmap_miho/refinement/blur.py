@@ -235,5 +235,6 @@ def match_blur(
             out.append(ImageStack.build(list(im.images) + new_images[s], new_index[s], device)
                        if new_images[s] else im)
         else:
-            out.append(plain[s] if plain[s] is not None else im)
+            kept = plain[s]
+            out.append(im if kept is None else kept)
     return (out[0], out[1]), counts
