@@ -7,8 +7,10 @@ from dataclasses import dataclass
 from ..enums import CheckRule, Device, MoveSide, Perturbations, Rectification, StrEnum
 from ..validation import require_at_most, require_finite
 
-#: matches per batched NCC call when ``NCCConfig.batch_size`` is None, per device type.
-DEFAULT_BATCH_SIZE = {"cpu": 512, "cuda": 4096}
+#: matches per batched NCC call when ``NCCConfig.batch_size`` is None, per device type (on
+#: the CPU, large enough that the fixed cost of a call's few hundred small tensor operations
+#: is spread over many matches; the chunk's search windows then take tens of MB).
+DEFAULT_BATCH_SIZE = {"cpu": 2048, "cuda": 4096}
 #: Upper bound of ``template_radius + search_radius`` (pixels): each match holds a
 #: (2 (r_t + r_s) + 1)^2 window per perturbation (paper: 10 + 10); 1000 tried to allocate 320 GB.
 MAX_WINDOW_RADIUS_PX = 64

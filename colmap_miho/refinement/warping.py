@@ -29,6 +29,10 @@ _SINGULAR_DET = 1e-12
 _MIN_W = 1e-8
 #: coordinates used for samples that cannot be mapped: far outside every image (reads zero).
 _FAR = -1.0e6
+#: :func:`sample_values` samples each run of consecutive jobs of one image (and map kind)
+#: into its rows of the output when there are at most this many runs, else it sorts the jobs
+#: by image once (fewer, larger ``grid_sample`` calls).
+_MAX_RUNS = 64
 #: per-job image indices: (J,) int numpy array, tensor or sequence.
 IndexLike = np.ndarray | torch.Tensor | Sequence[int]
 
@@ -217,18 +221,13 @@ def sample_patches(
         in front of the camera and inside the image, so the whole patch does).
     """
     J = centres.shape[0]
-    per_job = offsets.ndim == 4
     K, P = offsets.shape[-3], offsets.shape[-2]
     side = int(round(P**0.5))
     corner_idx = torch.tensor([0, side - 1, P - side, P - 1], device=offsets.device)
     corner_off = offsets[..., corner_idx, :]
-    corners = centres[:, None, None, :] + (corner_off if per_job else corner_off[None])
+    corners = centres[:, None, None, :] + (corner_off if offsets.ndim == 4 else corner_off[None])
     c_img, ok = apply_homographies(H_inv, corners.reshape(J, K * 4, 2))
-    if isinstance(image, ImageStack):
-        size = image.sizes  # (J, 2) each job's own image
-    else:
-        size = torch.tensor([[image.shape[1], image.shape[0]]], dtype=torch.float64,
-                            device=image.device).expand(J, 2)
+    size = _job_sizes(image, J)
     inside = (
         ok
         & (c_img[..., 0] >= 0)
@@ -236,24 +235,61 @@ def sample_patches(
         & (c_img[..., 1] >= 0)
         & (c_img[..., 1] <= size[:, 1:2] - 1)
     ).all(dim=1)
-    M, good = _grid_maps(H_inv, centres, size)
-    inside &= good
+    values, good = sample_values(image, H_inv, centres, offsets)
+    return values, inside & good
+
+
+def _job_sizes(image: torch.Tensor | ImageStack, n: int) -> torch.Tensor:
+    """(n, 2) float64 (width, height) of each job's image."""
+    if isinstance(image, ImageStack):
+        return image.sizes
+    return torch.tensor([[image.shape[1], image.shape[0]]], dtype=torch.float64,
+                        device=image.device).expand(n, 2)
+
+
+def sample_values(
+    image: torch.Tensor | ImageStack,
+    H_inv: torch.Tensor,
+    centres: torch.Tensor,
+    offsets: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The samples of :func:`sample_patches` (the same bits) without its inside test (the
+    patch corners), for callers that do not need it.
+
+    Args: as :func:`sample_patches`.
+    Returns:
+        (values (J, K, P) float32, good (J,) bool: the centre maps in front of the camera).
+    """
+    J = centres.shape[0]
+    per_job = offsets.ndim == 4
+    K, P = offsets.shape[-3], offsets.shape[-2]
+    M, good = _grid_maps(H_inv, centres, _job_sizes(image, J))
     o = offsets.to(torch.float32).reshape(J if per_job else 1, K * P, 2)
     axes = None if per_job else _square_axes(o)
     # jobs grouped by image and by whether their map is affine (w = 1 exactly: no
-    # division), with one sort and one device-to-host copy of the group sizes
+    # division): run by run where the jobs come in few runs (no sort, no gather), else
+    # sorted by group
     M32 = M.to(torch.float32)
     persp = ((M32[:, 2, :2] != 0).any(dim=1) | (M32[:, 2, 2] != 1)).to(torch.int64)
-    n_img = len(image.images) if isinstance(image, ImageStack) else 1
     key = 2 * image.index + persp if isinstance(image, ImageStack) else persp
+    values = torch.empty((J, K * P), dtype=torch.float32, device=centres.device)
+    if J == 0:
+        return values.reshape(J, K, P), good
+    cut = torch.nonzero(key[1:] != key[:-1])[:, 0] + 1
+    if cut.numel() <= _MAX_RUNS:
+        bounds = [0, *(cut.tolist()), J]
+        keys = key[torch.as_tensor(bounds[:-1], device=key.device)].tolist()
+        for a, b, g in zip(bounds[:-1], bounds[1:], keys, strict=True):
+            img = image.images[g // 2] if isinstance(image, ImageStack) else image
+            run = _sample(img, _grid(M32[a:b], o[a:b] if per_job else o, axes, g % 2 == 0))
+            if b - a == J:  # one run: no copy
+                return run.reshape(J, K, P), good
+            values[a:b] = run
+        return values.reshape(J, K, P), good
+    n_img = len(image.images) if isinstance(image, ImageStack) else 1
     counts = torch.bincount(key, minlength=2 * n_img).tolist()
-    if J and max(counts) == J:  # one group
-        g = counts.index(J)
-        img = image.images[g // 2] if isinstance(image, ImageStack) else image
-        return _sample(img, _grid(M32, o, axes, g % 2 == 0)).reshape(J, K, P), inside
     order = torch.argsort(key, stable=True)
     M32, o = M32[order], (o[order] if per_job else o)
-    values = torch.empty((J, K * P), dtype=torch.float32, device=centres.device)
     start = 0
     for g, count in enumerate(counts):
         if count == 0:
@@ -263,7 +299,7 @@ def sample_patches(
         values.index_copy_(0, order[sl],
                            _sample(img, _grid(M32[sl], o[sl] if per_job else o, axes, g % 2 == 0)))
         start += count
-    return values.reshape(J, K, P), inside
+    return values.reshape(J, K, P), good
 
 
 def _grid_maps(H_inv: torch.Tensor, centres: torch.Tensor, size: torch.Tensor

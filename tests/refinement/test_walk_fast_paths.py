@@ -113,3 +113,30 @@ def test_ncc_maps_match_plain_formula(monkeypatch, J, K, sw, st, stride):
     assert fast.shape == plain.shape
     assert torch.equal(fast, plain)
     assert fast.abs().amax() > 0.01  # not all flat
+
+
+@pytest.mark.parametrize("max_runs", [0, 10**6])
+@pytest.mark.parametrize("runs", ["consecutive", "interleaved"])
+def test_sample_values_runs_and_sorted_groups_agree(monkeypatch, runs, max_runs):
+    """Jobs sampled run by run and jobs sorted and gathered by image (forced by
+    ``_MAX_RUNS``), in a few consecutive runs or interleaved, sample the bits of each job
+    sampled alone, affine and perspective maps mixed; ``sample_patches`` gives the same
+    values."""
+    monkeypatch.setattr(warping, "_MAX_RUNS", max_runs)
+    g = torch.Generator().manual_seed(11)
+    images = [torch.rand(50, 70, generator=g), torch.rand(64, 48, generator=g)]
+    n = 96
+    index = (torch.arange(n) // (n // 4)) % 2 if runs == "consecutive" else torch.arange(n) % 2
+    H_inv = torch.eye(3, dtype=torch.float64).repeat(n, 1, 1)
+    H_inv[:, :2, :2] += (torch.rand(n, 2, 2, generator=g, dtype=torch.float64) - 0.5) * 0.2
+    H_inv[slice(None, None, 3) if runs == "interleaved" else slice(0, 10), 2, :2] = 2e-4
+    centres = torch.rand(n, 2, generator=g, dtype=torch.float64) * 30.0 + 10.0
+    offs = warping.offset_grid(5, torch.device("cpu"))[None]
+    stack = warping.ImageStack.build(images, index, torch.device("cpu"))
+    got, good = warping.sample_values(stack, H_inv, centres, offs)
+    assert bool(good.all())
+    for j in range(n):
+        alone, _ = warping.sample_values(images[int(index[j])], H_inv[j:j + 1], centres[j:j + 1], offs)
+        assert torch.equal(got[j], alone[0])
+    assert torch.equal(got, warping.sample_patches(stack, H_inv, centres, offs)[0])
+    assert got.std() > 0.05
