@@ -33,7 +33,7 @@ import numpy as np
 from .config import FilterConfig
 from .homography import adjugate, dlt
 from .problem import Hypotheses, Problem
-from .sampling import LocalCandidates, Sampler, required_iters, spread_ok
+from .sampling import LocalCandidates, Sampler, required_iters
 from .scoring import NumpyScoring, sample_signs
 
 _DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
@@ -232,7 +232,7 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         boot = Hypotheses.concat(buffer)
         search.consider(boot, *scoring.masks(problem, boot, pool, search.t2))
         stats["full_scored"] += len(boot)
-    sampler = Sampler(problem, pool, cfg, candidates)
+    sampler = Sampler(problem, pool, cfg, candidates, compiled=scoring.compiled)
     required = _required(search, sampler, n, cfg)
     last = cfg.batch_size
     # Iterations are the samples that pass the spread test: a draw that fails it is not a
@@ -253,7 +253,7 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         last = size
         sample = sampler.draw(rng, size)
         stats["drawn"] += size
-        ok = spread_ok(problem, sample, cfg.t_l)
+        ok = scoring.spread_ok(problem, sample, cfg.t_l)
         stats["samples"] += int(ok.sum())
         hyp, ub = scoring.hypotheses(problem, sample, cfg, ok, pool, search.t2)
         stats["valid"] += len(hyp)
