@@ -499,6 +499,128 @@ def _singular_value_ok(sample, src_all, dst_all, min_sv):
     return ok
 
 
+def _normalising(pts, out, T):
+    """Hartley normalisation of ``pts[M, 2]``: ``out[M, 2]`` the normalised points and
+    ``T[3, 3]`` the similarity (:func:`.homography.normalise_points`)."""
+    M = pts.shape[0]
+    cx = 0.0
+    cy = 0.0
+    for i in range(M):
+        cx += pts[i, 0]
+        cy += pts[i, 1]
+    cx /= M
+    cy /= M
+    dist = 0.0
+    for i in range(M):
+        out[i, 0] = pts[i, 0] - cx
+        out[i, 1] = pts[i, 1] - cy
+        dist += np.sqrt(out[i, 0] ** 2 + out[i, 1] ** 2)
+    scale = np.sqrt(2.0) / max(dist / M, 1e-12)
+    for i in range(M):
+        out[i, 0] *= scale
+        out[i, 1] *= scale
+    T[:] = 0.0
+    T[0, 0] = scale
+    T[1, 1] = scale
+    T[0, 2] = -scale * cx
+    T[1, 2] = -scale * cy
+    T[2, 2] = 1.0
+
+
+def _refit(idx, src_all, dst_all, sample):
+    """See :func:`refit`."""
+    nh = src_all.shape[1]
+    M = idx.shape[0]
+    H = np.empty((nh, 3, 3))
+    Hinv = np.empty((nh, 3, 3))
+    sign = np.empty(nh)
+    sign_inv = np.empty(nh)
+    p = np.empty((M, 2))
+    q = np.empty((M, 2))
+    s = np.empty((M, 2))
+    d = np.empty((M, 2))
+    T1 = np.empty((3, 3))
+    T2 = np.empty((3, 3))
+    row = np.empty(9)
+    e = np.empty(9)
+    adj = np.empty(9)
+    for h in range(nh):
+        for i in range(M):
+            for c in range(2):
+                p[i, c] = src_all[idx[i], h, c]
+                q[i, c] = dst_all[idx[i], h, c]
+        _normalising(p, s, T1)
+        _normalising(q, d, T2)
+        ata = np.zeros((9, 9))
+        for i in range(M):
+            x, y, u, v = s[i, 0], s[i, 1], d[i, 0], d[i, 1]
+            for r in range(2):
+                row[:] = 0.0
+                if r == 0:
+                    row[0] = x
+                    row[1] = y
+                    row[2] = 1.0
+                    row[6] = -u * x
+                    row[7] = -u * y
+                    row[8] = -u
+                else:
+                    row[3] = x
+                    row[4] = y
+                    row[5] = 1.0
+                    row[6] = -v * x
+                    row[7] = -v * y
+                    row[8] = -v
+                for a in range(9):
+                    if row[a] != 0.0:
+                        for b in range(9):
+                            ata[a, b] += row[a] * row[b]
+        vecs = np.linalg.eigh(ata)[1]
+        Hn = np.empty((3, 3))
+        for a in range(9):
+            Hn[a // 3, a % 3] = vecs[a, 0]  # the smallest eigenvalue's eigenvector
+        for a in range(9):
+            e[a] = T2[a // 3, a % 3]
+        _adjugate(e, adj)
+        Ht = np.empty((3, 3))
+        for r in range(3):
+            for c in range(3):
+                Ht[r, c] = adj[3 * r] * Hn[0, c] + adj[3 * r + 1] * Hn[1, c] + adj[3 * r + 2] * Hn[2, c]
+        norm = 0.0
+        for r in range(3):
+            for c in range(3):
+                v = Ht[r, 0] * T1[0, c] + Ht[r, 1] * T1[1, c] + Ht[r, 2] * T1[2, c]
+                e[3 * r + c] = v
+                norm += v * v
+        norm = max(np.sqrt(norm), 1e-300)
+        for a in range(9):
+            e[a] /= norm
+            if not np.isfinite(e[a]):
+                return False, H, Hinv, sign, sign_inv
+        _adjugate(e, adj)
+        for direction in range(2):
+            m = e if direction == 0 else adj
+            pts = src_all if direction == 0 else dst_all
+            first = 0.0
+            for i in range(4):
+                j = sample[i]
+                w = m[6] * pts[j, h, 0] + m[7] * pts[j, h, 1] + m[8]
+                sg = _sign(w)
+                if i == 0:
+                    if sg == 0.0:
+                        return False, H, Hinv, sign, sign_inv
+                    first = sg
+                elif sg != first:
+                    return False, H, Hinv, sign, sign_inv
+            if direction == 0:
+                sign[h] = first
+            else:
+                sign_inv[h] = first
+        for a in range(9):
+            H[h, a // 3, a % 3] = e[a]
+            Hinv[h, a // 3, a % 3] = adj[a]
+    return True, H, Hinv, sign, sign_inv
+
+
 def _compiled() -> dict[str, Any]:
     """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
     global _KERNELS
@@ -509,12 +631,12 @@ def _compiled() -> dict[str, Any]:
         # exception; those entries fail the sign test.
         jit = numba.njit(cache=True, nogil=True, error_model="numpy")
         helpers = {f.__name__: jit(f) for f in (_sign, _adjugate, _basis_map, _one_sign, _orientation,
-                                                  _transfer, _rows, _far, _normalise4)}
+                                                  _transfer, _rows, _far, _normalise4, _normalising)}
         g = globals()
         g.update(helpers)
         _KERNELS = {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local,
                                                   _inlier_masks, _error_sq, _neighbours,
-                                                  _singular_value_ok)}
+                                                  _singular_value_ok, _refit)}
     return _KERNELS
 
 
@@ -603,3 +725,16 @@ def singular_value_ok(sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarr
     half (:func:`.scoring.passes_singular_value_test`; the eigenvalues of ``A A^T`` from
     LAPACK as numpy's, the products summed in another order)."""
     return _compiled()["_singular_value_ok"](sample, src_all, dst_all, float(min_sv))
+
+
+def refit(idx: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, sample: np.ndarray):
+    """Least-squares normalised DLT of every half on the matches ``idx`` ``(M,)`` (global,
+    ``M >= 5``), checked against the quasi-affine signs of the minimal ``sample`` ``(4,)``
+    (``ransac._refit``: the smallest eigenvector of ``A^T A`` by LAPACK, as numpy's, the
+    products summed in another order).
+
+    Returns ``(ok, H, Hinv, sign, sign_inv)``: whether the fit is finite and keeps one
+    nonzero sign of ``w`` on the sample's 4 points (every half, both ways), ``(halves, 3,
+    3)`` unit-norm homographies and adjugates and ``(halves,)`` signs.
+    """
+    return _compiled()["_refit"](idx, src_all, dst_all, sample)

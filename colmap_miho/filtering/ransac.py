@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import kernels
 from .config import FilterConfig
 from .homography import adjugate, dlt
 from .problem import Hypotheses, Problem
@@ -191,7 +192,7 @@ def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _
     (the refit itself runs in numpy; its errors through ``scoring``)."""
     assert search.hyp is not None and search.mask is not None, "no best model"
     for _ in range(cfg.refit_iters):
-        refit = _refit(problem, search.hyp, pool[search.mask])
+        refit = _refit(problem, search.hyp, pool[search.mask], scoring.compiled)
         if refit is None:
             break
         err = scoring.error_sq(problem, refit, pool)[0]
@@ -270,11 +271,19 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
     return RoundResult(search.hyp, search.err, search.count, stats), buffer
 
 
-def _refit(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> Hypotheses | None:
+def _refit(problem: Problem, hyp: Hypotheses, idx: np.ndarray,
+           compiled: bool = False) -> Hypotheses | None:
     """Least-squares normalised DLT of every half on the matches ``idx`` (global indices);
-    ``None`` when degenerate or when the sample loses its quasi-affine consistency."""
+    ``None`` when degenerate or when the sample loses its quasi-affine consistency
+    (``compiled``: :func:`.kernels.refit`)."""
     if len(idx) < 5:
         return None
+    if compiled:
+        ok, H, Hinv, sign, sign_inv = kernels.refit(idx, problem.src_all, problem.dst_all,
+                                                    hyp.sample[0])
+        if not ok:
+            return None
+        return Hypotheses(H[None], Hinv[None], sign[None], sign_inv[None], hyp.sample.copy())
     # Every half in one batched fit: contiguous per half, the same bits as one fit each (a
     # strided copy would change the order of the centroid's sums).
     src = np.ascontiguousarray(np.take(problem.src_all, idx, axis=0).transpose(1, 0, 2))

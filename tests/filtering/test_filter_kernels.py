@@ -16,12 +16,14 @@ from colmap_miho import filter_matches
 from colmap_miho.filtering import kernels
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem
+from colmap_miho.filtering.ransac import _refit
 from colmap_miho.filtering.sampling import Sampler, checked_samples, spread_ok
 from colmap_miho.filtering.scoring import NumpyScoring, hypotheses_from_samples
 
 pytest.importorskip("numba")
 
 H_ATOL = 1e-12  # entries of unit-Frobenius-norm homographies
+REFIT_ATOL = 1e-9  # the same, least-squares refits (an eigenvector of A^T A: less well set)
 BOUND_OFF = 0.01  # share of hypotheses whose one-way bound may differ (by one inlier)
 SAME_FLAGS = 0.999  # share of matches with the same inlier flag, whole filter
 
@@ -141,3 +143,31 @@ def test_singular_value_test_is_the_same(miho):
     assert 0 < want.sum() < len(want)
     got = NumpyScoring(compiled=True).singular_value_ok(problem, hyp, cfg)
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_refit_matches_numpy(miho):
+    """The least-squares refit of the best model: the same acceptance, homographies up to
+    their sign (an eigenvector's sign is arbitrary) to ``REFIT_ATOL``, the same inliers."""
+    cfg = FilterConfig(method="mop_miho" if miho else "mop")
+    sc, problem, rng = _problem(miho)
+    hyp = hypotheses_from_samples(problem, _samples(sc, rng), cfg)
+    pool = np.arange(len(sc.x1))
+    masks = NumpyScoring(compiled=False).masks(problem, hyp, pool, cfg.t_l**2)[0]
+    fitted = 0
+    for k in np.flatnonzero(masks.sum(axis=1) >= 5)[:150]:
+        want = _refit(problem, hyp.take(k), pool[masks[k]])
+        got = _refit(problem, hyp.take(k), pool[masks[k]], compiled=True)
+        assert (got is None) == (want is None)
+        if want is None:
+            continue
+        assert got is not None
+        fitted += 1
+        flip = np.sign(np.sum(got.H * want.H, axis=(2, 3)))[..., None, None]  # (1, halves)
+        np.testing.assert_allclose(got.H * flip, want.H, rtol=0, atol=REFIT_ATOL)
+        np.testing.assert_allclose(got.Hinv, want.Hinv, rtol=0, atol=REFIT_ATOL)
+        np.testing.assert_array_equal(got.sign * flip[..., 0, 0], want.sign)
+        ref = NumpyScoring(compiled=False)
+        np.testing.assert_array_equal(ref.masks(problem, got, pool, cfg.t_l**2)[0],
+                                      ref.masks(problem, want, pool, cfg.t_l**2)[0])
+    assert fitted > 50
