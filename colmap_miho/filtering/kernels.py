@@ -19,14 +19,18 @@ from numba's on-disk cache (``cache=True``).
 
 from __future__ import annotations
 
+import functools
 import importlib.util
+import threading
 from typing import Any
 
 import numpy as np
 
 _KERNELS: dict[str, Any] | None = None
+_LOCK = threading.Lock()
 
 
+@functools.cache
 def available() -> bool:
     """Whether numba can be imported (the compiled kernels are used then)."""
     return importlib.util.find_spec("numba") is not None
@@ -621,23 +625,56 @@ def _refit(idx, src_all, dst_all, sample):
     return True, H, Hinv, sign, sign_inv
 
 
+def _rotation_counts(dx1, dx2, lo, hi, rows):
+    """See :func:`rotation_counts`."""
+    C = rows.shape[0]
+    P = dx1.shape[1]
+    scores = np.zeros(C, dtype=np.int64)
+    differ = np.zeros(C, dtype=np.int64)
+    for p in range(P):
+        first = False
+        for c in range(C):
+            sq = 0.0
+            for axis in range(2):
+                r0, r1 = rows[c, axis, 0], rows[c, axis, 1]
+                v = dx1[axis, p] + (r0 * dx2[0, p] if r0 != 0.0 else r1 * dx2[1, p])
+                if axis == 0:
+                    sq = v * v
+                else:
+                    sq += v * v
+            dm = np.sqrt(sq) / 2
+            inside = dm >= lo[p] and dm <= hi[p]
+            if c == 0:
+                first = inside
+            scores[c] += inside
+            differ[c] += inside != first
+    return scores, differ
+
+
 def _compiled() -> dict[str, Any]:
     """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
     global _KERNELS
     if _KERNELS is None:
-        import numba
-
-        # numpy error model: a float division by zero gives inf / nan (as in numpy), not an
-        # exception; those entries fail the sign test.
-        jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-        helpers = {f.__name__: jit(f) for f in (_sign, _adjugate, _basis_map, _one_sign, _orientation,
-                                                  _transfer, _rows, _far, _normalise4, _normalising)}
-        g = globals()
-        g.update(helpers)
-        _KERNELS = {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local,
-                                                  _inlier_masks, _error_sq, _neighbours,
-                                                  _singular_value_ok, _refit)}
+        with _LOCK:
+            if _KERNELS is None:
+                _KERNELS = _jit_all()
     return _KERNELS
+
+
+def _jit_all() -> dict[str, Any]:
+    """Jit every kernel; the helpers they call replace their Python versions in this
+    module's namespace (numba resolves a kernel's callees there when it compiles it)."""
+    import numba
+
+    # numpy's error model: a float division by zero gives inf / nan (as in numpy), not an
+    # exception; those entries fail the sign test.
+    jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    helpers = (_sign, _adjugate, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
+               _normalise4, _normalising)
+    globals().update({f.__name__: jit(f) for f in helpers})
+    return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
+                                         _error_sq, _neighbours, _singular_value_ok, _refit,
+                                         _rotation_counts)}
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
@@ -738,3 +775,14 @@ def refit(idx: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, sample: np.
     3)`` unit-norm homographies and adjugates and ``(halves,)`` signs.
     """
     return _compiled()["_refit"](idx, src_all, dst_all, sample)
+
+
+def rotation_counts(dx1: np.ndarray, dx2: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                    rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pair counts of the rotation fix's candidates (:func:`.miho.choose_rotation`, the same
+    decisions): for candidate linear parts ``rows`` ``(C, 2, 2)`` (entries 0 or +-1, one
+    nonzero per row), the pairs whose midpoint distance ``|dx1 + R dx2| / 2`` lies in
+    ``[lo, hi]`` (``(P,)`` each; ``dx1``, ``dx2`` ``(2, P)`` pair differences in each image),
+    and how many of them differ from candidate 0's. Returns ``(scores, differ)``, ``(C,)``
+    int64 each."""
+    return _compiled()["_rotation_counts"](dx1, dx2, lo, hi, rows)

@@ -171,3 +171,20 @@ def test_refit_matches_numpy(miho):
         np.testing.assert_array_equal(ref.masks(problem, got, pool, cfg.t_l**2)[0],
                                       ref.masks(problem, want, pool, cfg.t_l**2)[0])
     assert fitted > 50
+
+
+@pytest.mark.parametrize("reflections", [False, True])
+def test_rotation_choice_is_the_same(reflections):
+    """The rotation fix's counts, compiled against numpy: the same choice and count on
+    turned, mirrored and upright scenes, with all pairs and with sampled pairs."""
+    from colmap_miho.filtering.miho import choose_rotation
+
+    for seed, (deg, mirror) in enumerate([(0, False), (90, False), (180, False), (270, True)]):
+        sc = make_scene(np.random.default_rng(seed), per_plane=60, rotate_deg=deg, mirror=mirror)
+        for pairs in (0, 5000):
+            want = choose_rotation(sc.x1, sc.x2, np.random.default_rng(seed), pairs=pairs,
+                                   reflections=reflections, compiled=False)
+            got = choose_rotation(sc.x1, sc.x2, np.random.default_rng(seed), pairs=pairs,
+                                  reflections=reflections, compiled=True)
+            np.testing.assert_array_equal(got[0], want[0])
+            assert got[1:] == want[1:] and want[2] > 0
