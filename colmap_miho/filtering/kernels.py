@@ -5,13 +5,18 @@ with one call, which is what a batch on a pool of a few hundred matches costs.
 - :func:`hypotheses`: reflection check, closed-form 4-point solver with the sample's
   quasi-affine signs, adjugates and the one-way float32 inlier bound on the pool, fused
   (:func:`.scoring.hypotheses_from_samples` then :func:`.scoring.one_way_count`);
-- :func:`draw_local`: the three local draws around the seeds (``Sampler._draw_local``).
+- :func:`draw_local` and :func:`pool_neighbours`: the local draws and the pool's neighbour
+  lists (``Sampler``);
+- :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring
+  (:mod:`.scoring`); :func:`refit`: the least-squares refit of a run's best model;
+- :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`).
 
 The numpy functions stay the reference (and the path when numba is not installed); the tests
-check each kernel against them. The spread test and the local draws are the same decisions
-bit for bit; the solver's sums run in a fixed order where numpy's matmul (BLAS) may fuse or
-reorder them, so homographies can differ in the last bits, and with them, rarely, a
-borderline inlier decision.
+check each kernel against them. The spread test, the draws, the neighbour lists, the masks,
+the errors and the rotation counts are the same decisions / bits for the same inputs; the
+solver, the singular values and the refit add their products in a fixed order where numpy's
+matmul (BLAS) may fuse or reorder them, so homographies can differ in the last bits, and
+with them, rarely, a borderline decision.
 
 numba is imported on first use (:func:`available`), and the kernels compile then or load
 from numba's on-disk cache (``cache=True``).
