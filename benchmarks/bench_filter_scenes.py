@@ -19,7 +19,12 @@ every pair with the pair's own seed (as ``refine`` does). Per scene, setting and
 
 A variant is a name and :class:`~colmap_miho.filtering.config.FilterConfig` overrides
 (``name:key=value,key=value``); the first variant is always ``default`` (the recipe's
-filter, ``mop_miho`` with paper defaults).
+filter, ``mop_miho`` with paper defaults). The key ``kernels=numpy`` runs a variant on the
+numpy reference kernels instead of the compiled ones (:mod:`colmap_miho.filtering.kernels`),
+so that both are timed pair by pair in one process. ``--extra NAME=DB`` adds a database of
+another layout (e.g. ``bench_scale.py``'s synthetic survey ``.../synthetic/survey_n50_.../
+database.db``). The first filter call of the process (numba's import and cache load,
+scipy's k-d tree) is timed apart, before the passes, and printed as ``cold start``.
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from bench_hard_pairs import parse_variant
 from colmap_miho import filter_matches
 from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.enums import MatchSource
+from colmap_miho.filtering import kernels
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.pipeline.workers import pair_seed
 
@@ -70,11 +76,15 @@ def scene_pairs(db_path: Path, source: str) -> list[Pair]:
     return [Pair(data[f"p1_{k}"], data[f"p2_{k}"], int(data[f"seed_{k}"])) for k in range(n)]
 
 
-def run_pass(pairs: list[Pair], configs: dict[str, FilterConfig]) -> dict[str, dict]:
-    """One pass of every variant over ``pairs`` (variants back to back on each pair)."""
+def run_pass(pairs: list[Pair], configs: dict[str, FilterConfig],
+             numpy_kernels: frozenset[str] = frozenset()) -> dict[str, dict]:
+    """One pass of every variant over ``pairs`` (variants back to back on each pair); the
+    variants named in ``numpy_kernels`` run on the numpy reference kernels."""
     out = {name: {"cpu": 0.0, "kept": 0, "masks": [], **dict.fromkeys(COUNTERS, 0)} for name in configs}
+    compiled = kernels.available
     for p in pairs:
         for name, cfg in configs.items():
+            kernels.available = (lambda: False) if name in numpy_kernels else compiled
             c0 = time.process_time()
             r = filter_matches(p.pts1, p.pts2, config=cfg, seed=p.seed)
             row = out[name]
@@ -83,7 +93,16 @@ def run_pass(pairs: list[Pair], configs: dict[str, FilterConfig]) -> dict[str, d
             row["masks"].append(r.inliers)
             for key in COUNTERS:
                 row[key] += r.stats.get(key, 0)
+    kernels.available = compiled
     return out
+
+
+def cold_start() -> float:
+    """Process CPU seconds of the first filter call (a small synthetic pair)."""
+    rng = np.random.default_rng(0)
+    c0 = time.process_time()
+    filter_matches(rng.uniform(0, 500, (300, 2)), rng.uniform(0, 500, (300, 2)), seed=0)
+    return time.process_time() - c0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -98,11 +117,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variant", action="append", default=[], help="name:key=value,... (repeatable)")
     ap.add_argument("--repeat", type=int, default=1, help="passes; CPU time is their median")
     ap.add_argument("--max-pairs", type=int, default=0, help="first N pairs per scene (0 = all)")
+    ap.add_argument("--extra", action="append", default=[], metavar="NAME=DB",
+                    help="another database to filter, all its pairs (repeatable)")
     args = ap.parse_args(argv)
     variants = [("default", {})] + [parse_variant(v) for v in args.variant]
+    numpy_kernels = frozenset(name for name, over in variants if over.pop("kernels", None) == "numpy")
     configs = {name: FilterConfig(**over) for name, over in variants}
+    print(f"cold start: {cold_start():.2f} CPU s (first filter call of the process)")
     print("scene/setting | variant | pairs | matches | cpu s | rounds | drawn | samples | valid | "
           "scored | ms/round | kept | same")
+    jobs: list[tuple[str, Path]] = []
     for scene in args.scenes:
         found = scene_inputs(scene, args.data, args.work)
         if found is None:
@@ -110,22 +134,25 @@ def main(argv: list[str] | None = None) -> int:
             continue
         for setting in args.settings:
             db = build_database(found[0], args.work / scene, setting, MAX_FEATURES.get(scene, args.max_features))
-            pairs = scene_pairs(db, args.source)
-            if args.max_pairs:
-                pairs = pairs[: args.max_pairs]
-            matches = sum(len(p.pts1) for p in pairs)
-            passes = [run_pass(pairs, configs) for _ in range(args.repeat)]
-            first = np.concatenate(passes[0]["default"]["masks"]) if pairs else np.zeros(0, bool)
-            for name in configs:
-                row = passes[0][name]
-                cpu = float(np.median([p[name]["cpu"] for p in passes]))
-                n = max(len(pairs), 1)
-                mask = np.concatenate(row["masks"]) if pairs else first
-                same = float(np.mean(mask == first)) if len(first) else float("nan")
-                per = " | ".join(f"{row[k] / n:.1f}" for k in COUNTERS)
-                ms = 1000 * cpu / max(row["rounds"], 1)
-                print(f"{scene}/{setting} | {name} | {len(pairs)} | {matches} | {cpu:.2f} | {per} | "
-                      f"{ms:.1f} | {row['kept']} | {same:.4f}", flush=True)
+            jobs.append((f"{scene}/{setting}", db))
+    jobs += [(name, Path(db)) for name, _, db in (e.partition("=") for e in args.extra)]
+    for label, db in jobs:
+        pairs = scene_pairs(db, args.source)
+        if args.max_pairs:
+            pairs = pairs[: args.max_pairs]
+        matches = sum(len(p.pts1) for p in pairs)
+        passes = [run_pass(pairs, configs, numpy_kernels) for _ in range(args.repeat)]
+        first = np.concatenate(passes[0]["default"]["masks"]) if pairs else np.zeros(0, bool)
+        for name in configs:
+            row = passes[0][name]
+            cpu = float(np.median([p[name]["cpu"] for p in passes]))
+            n = max(len(pairs), 1)
+            mask = np.concatenate(row["masks"]) if pairs else first
+            same = float(np.mean(mask == first)) if len(first) else float("nan")
+            per = " | ".join(f"{row[k] / n:.1f}" for k in COUNTERS)
+            ms = 1000 * cpu / max(row["rounds"], 1)
+            print(f"{label} | {name} | {len(pairs)} | {matches} | {cpu:.2f} | {per} | "
+                  f"{ms:.1f} | {row['kept']} | {same:.4f}", flush=True)
     return 0
 
 

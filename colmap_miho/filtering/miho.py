@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import kernels
 from .problem import Problem
 
 _ROTATION_Z = 3.0  # paired z-score a non-identity pre-alignment needs over the identity
@@ -60,13 +61,16 @@ def _norms(d: np.ndarray) -> np.ndarray:
 
 
 def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
-                    pairs: int = 20000, reflections: bool = False) -> tuple[np.ndarray, int, int]:
+                    pairs: int = 20000, reflections: bool = False,
+                    compiled: bool | None = None) -> tuple[np.ndarray, int, int]:
     """Pick the image-2 pre-alignment of the rotation fix (App. C).
 
     Args:
         x1, x2: ``(N, 2)`` matched pixels.
         pairs: random match pairs scored (0 = all ``N (N - 1) / 2`` pairs).
         reflections: also try the four mirrored variants.
+        compiled: count with the compiled kernel (:func:`.kernels.rotation_counts`, the
+            same counts); ``None``: when numba is installed.
 
     The identity is kept unless another candidate's count exceeds it by more than three
     standard deviations of the paired difference (same pairs), so that outlier noise
@@ -93,6 +97,11 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
     d2 = _norms(dx2)  # invariant to the candidates (isometries)
     lo, hi = np.minimum(d1, d2) - 1e-9, np.maximum(d1, d2) + 1e-9
     cands = _candidate_transforms(x2, reflections)
+    if kernels.available() if compiled is None else compiled:
+        rows = np.ascontiguousarray(np.stack([G[:2, :2] for G in cands]))
+        scores, differ = kernels.rotation_counts(np.ascontiguousarray(dx1),
+                                                 np.ascontiguousarray(dx2), lo, hi, rows)
+        return _pick_rotation(cands, scores, differ)
     # m_i - m_j = (dx1 + R dx2) / 2: translations cancel, only the linear part matters. Its
     # entries are 0 or +-1, so each coordinate is dx1 + or - one coordinate of dx2 (the zero
     # term only changes the sign of a zero, which squaring removes): 4 squares per axis
@@ -116,7 +125,15 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
     # the counts and their noise would otherwise turn an upright pair (with mostly random
     # matches, a mirrored frame can win and lose every match).
     # The paired differences are -1, 0 or 1: their sum of squares counts the pairs that differ.
-    spread = np.sqrt(np.maximum(np.count_nonzero(inside != inside[0], axis=1), 1))
+    return _pick_rotation(cands, scores, np.count_nonzero(inside != inside[0], axis=1))
+
+
+def _pick_rotation(cands: list[np.ndarray], scores: np.ndarray,
+                   differ: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """:func:`choose_rotation`'s choice from the candidates' pair counts ``scores`` ``(C,)``
+    and the pairs ``differ`` ``(C,)`` where each candidate's decision differs from the
+    identity's."""
+    spread = np.sqrt(np.maximum(differ, 1))
     z = (scores - scores[0]) / spread
     clear = np.flatnonzero(z > _ROTATION_Z)
     best = int(clear[np.argmax(scores[clear])]) if len(clear) else 0

@@ -19,9 +19,10 @@ the reflection or quasi-affinity checks reject do count). At most ``10 x c_max``
 drawn, for pools where almost nothing is spread out.
 
 Sampling is :mod:`.sampling`; the heavy kernels run in :class:`~.scoring.NumpyScoring`
-(numpy, the default) or its torch twin
+(the default: compiled by numba where it is installed, :mod:`.kernels`, else numpy) or its
+torch twin
 :class:`~colmap_miho.filtering.torch_scoring.TorchScoring` (any torch device), passed as
-``scoring``; sampling and the search's bookkeeping are numpy for both.
+``scoring``; sampling and the search's bookkeeping run on the host for both.
 """
 
 from __future__ import annotations
@@ -30,10 +31,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import kernels
 from .config import FilterConfig
 from .homography import adjugate, dlt
 from .problem import Hypotheses, Problem
-from .sampling import LocalCandidates, Sampler, required_iters, spread_ok
+from .sampling import LocalCandidates, Sampler, required_iters
 from .scoring import NumpyScoring, sample_signs
 
 _DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
@@ -191,7 +193,7 @@ def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _
     (the refit itself runs in numpy; its errors through ``scoring``)."""
     assert search.hyp is not None and search.mask is not None, "no best model"
     for _ in range(cfg.refit_iters):
-        refit = _refit(problem, search.hyp, pool[search.mask])
+        refit = _refit(problem, search.hyp, pool[search.mask], scoring.compiled)
         if refit is None:
             break
         err = scoring.error_sq(problem, refit, pool)[0]
@@ -232,7 +234,7 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         boot = Hypotheses.concat(buffer)
         search.consider(boot, *scoring.masks(problem, boot, pool, search.t2))
         stats["full_scored"] += len(boot)
-    sampler = Sampler(problem, pool, cfg, candidates)
+    sampler = Sampler(problem, pool, cfg, candidates, compiled=scoring.compiled)
     required = _required(search, sampler, n, cfg)
     last = cfg.batch_size
     # Iterations are the samples that pass the spread test: a draw that fails it is not a
@@ -253,7 +255,7 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
         last = size
         sample = sampler.draw(rng, size)
         stats["drawn"] += size
-        ok = spread_ok(problem, sample, cfg.t_l)
+        ok = scoring.spread_ok(problem, sample, cfg.t_l)
         stats["samples"] += int(ok.sum())
         hyp, ub = scoring.hypotheses(problem, sample, cfg, ok, pool, search.t2)
         stats["valid"] += len(hyp)
@@ -270,11 +272,19 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
     return RoundResult(search.hyp, search.err, search.count, stats), buffer
 
 
-def _refit(problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> Hypotheses | None:
+def _refit(problem: Problem, hyp: Hypotheses, idx: np.ndarray,
+           compiled: bool = False) -> Hypotheses | None:
     """Least-squares normalised DLT of every half on the matches ``idx`` (global indices);
-    ``None`` when degenerate or when the sample loses its quasi-affine consistency."""
+    ``None`` when degenerate or when the sample loses its quasi-affine consistency
+    (``compiled``: :func:`.kernels.refit`)."""
     if len(idx) < 5:
         return None
+    if compiled:
+        ok, H, Hinv, sign, sign_inv = kernels.refit(idx, problem.src_all, problem.dst_all,
+                                                    hyp.sample[0])
+        if not ok:
+            return None
+        return Hypotheses(H[None], Hinv[None], sign[None], sign_inv[None], hyp.sample.copy())
     # Every half in one batched fit: contiguous per half, the same bits as one fit each (a
     # strided copy would change the order of the centroid's sums).
     src = np.ascontiguousarray(np.take(problem.src_all, idx, axis=0).transpose(1, 0, 2))

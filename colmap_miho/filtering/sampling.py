@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..enums import Sampling
+from . import kernels
 from .config import FilterConfig
 from .homography import triangle_orientations
 from .problem import Problem
@@ -147,8 +148,9 @@ class Sampler:
     ALL_AT_ONCE = 256
 
     def __init__(self, problem: Problem, pool: np.ndarray, cfg: FilterConfig,
-                 candidates: LocalCandidates | None = None) -> None:
+                 candidates: LocalCandidates | None = None, compiled: bool = False) -> None:
         n = len(pool)
+        self.compiled = compiled  # local draws by the compiled kernel (.kernels.draw_local)
         self.pool = pool
         self.k = cfg.local_neighbours
         self.local = cfg.sampling == Sampling.LOCAL and n > cfg.local_neighbours + 1
@@ -159,6 +161,7 @@ class Sampler:
             self._pos = np.full(len(problem.x1), -1, dtype=np.int64)  # global -> pool position
             self._pos[pool] = np.arange(n)
         self._pool_tree: cKDTree | None = None
+        self._feats: np.ndarray | None = None  # (n, 4) the pool's (x1, x2), compiled search
         self._nb = np.full((n, self.k), -1, dtype=np.int64)  # -1 = no such neighbour
         # (sets, n) x and y of the spread sets of the pool, for the local draws
         self._spread_x: np.ndarray | None = None
@@ -178,7 +181,18 @@ class Sampler:
             todo = np.arange(len(self.pool))
         else:
             todo = np.unique(pos[~self._known[pos]])
-        if len(todo):
+        if len(todo) and self.compiled:
+            assert self._cands is not None, "neighbours are searched with local sampling only"
+            assert self._spread_x is not None and self._spread_y is not None
+            if self._feats is None:
+                self._feats = np.ascontiguousarray(self._cands.feats[self.pool])
+            cand, far = self._cands.get(self.pool[todo])
+            q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
+            self._nb[todo] = kernels.pool_neighbours(todo, cand, far, self._pos, self._feats,
+                                                     self._spread_x, self._spread_y, self._t2,
+                                                     self.k, q)
+            self._known[todo] = True
+        elif len(todo):
             assert self._cands is not None, "neighbours are searched with local sampling only"
             cand, far = self._cands.get(self.pool[todo])
             cand_pos = np.where(cand >= 0, self._pos[np.maximum(cand, 0)], -1)
@@ -232,6 +246,10 @@ class Sampler:
         assert self._spread_x is not None and self._spread_y is not None, \
             "local draws need local sampling"
         nb = self.neighbours(seeds)
+        if self.compiled:
+            # The same keys as the three rng.random calls below, drawn at once.
+            keys = rng.random((3,) + nb.shape)
+            return kernels.draw_local(nb, keys, seeds, self._spread_x, self._spread_y, self._t2)
         free = nb >= 0  # (L, k) candidates still allowed
         safe = np.maximum(nb, 0)
         # x and y apart, sets first, as apart_sets takes them.

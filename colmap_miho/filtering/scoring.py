@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from . import kernels
 from .config import FilterConfig
 from .homography import (
     adjugate,
@@ -22,7 +23,7 @@ from .homography import (
     transfer_error_sq,
 )
 from .problem import Hypotheses, Problem
-from .sampling import checked_samples
+from .sampling import checked_samples, spread_ok
 
 
 def sample_signs(problem: Problem, H: np.ndarray, Hinv: np.ndarray, sample: np.ndarray):
@@ -146,6 +147,7 @@ class _Scratch:
         self._points_of: tuple[Problem, np.ndarray] | None = None
         self._points: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
         self._points32: tuple[np.ndarray, np.ndarray] | None = None
+        self._stacked: np.ndarray | None = None
 
     def points(self, problem: Problem, idx: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
         """Per half, ``(src, dst)`` of the matches ``idx`` as ``(2, n)`` arrays (x row, y row,
@@ -156,8 +158,17 @@ class _Scratch:
             self._points = tuple((problem.src[h][idx].T.copy(), problem.dst[h][idx].T.copy())
                                  for h in range(problem.num_halves))
             self._points32 = None
+            self._stacked = None
             self._points_of = (problem, idx)
         return self._points
+
+    def stacked(self, problem: Problem, idx: np.ndarray) -> np.ndarray:
+        """:meth:`points` as one ``(halves, 2, 2, n)`` array (half, source / destination,
+        x / y, match)."""
+        pts = self.points(problem, idx)
+        if self._stacked is None:
+            self._stacked = np.ascontiguousarray(np.stack([np.stack(p) for p in pts]))
+        return self._stacked
 
     def points32(self, problem: Problem, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The first half's ``(src, dst)`` of :meth:`points` in float32."""
@@ -272,6 +283,22 @@ class NumpyScoring:
     #: On the CPU per-call overhead dominates groups of 4 hypotheses, so screening ahead
     #: (4, 8, 16, ... at a time; at most twice the work the search needs) pays.
     prefetch = 4
+    #: Whether the batch kernels run compiled (set per instance by the constructor; a
+    #: subclass that does not call it keeps numpy).
+    compiled = False
+
+    def __init__(self, compiled: bool | None = None) -> None:
+        """``compiled``: run the batch kernels (spread test, minimal solver and one-way
+        bound, local draws) compiled by numba (:mod:`.kernels`); ``None``: when numba is
+        installed. ``False`` runs the numpy reference."""
+        self.compiled = kernels.available() if compiled is None else compiled
+
+    def spread_ok(self, problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
+        """:func:`~.sampling.spread_ok` (compiled or numpy)."""
+        if self.compiled:
+            assert problem.spread_xy is not None, "sampling runs on the numpy problem"
+            return kernels.spread_ok(problem.spread_xy, sample, t_l**2)
+        return spread_ok(problem, sample, t_l)
 
     def _work(self) -> _Scratch:
         """This instance's work arrays (created on first use; one instance per filter
@@ -283,7 +310,14 @@ class NumpyScoring:
 
     def hypotheses(self, problem: Problem, sample: np.ndarray, cfg: FilterConfig,
                    ok: np.ndarray, pool: np.ndarray, t2: float) -> tuple[Hypotheses, np.ndarray]:
-        """:func:`hypotheses_from_samples` and their :func:`one_way_count` on ``pool``."""
+        """:func:`hypotheses_from_samples` and their :func:`one_way_count` on ``pool``
+        (compiled: one fused kernel)."""
+        if self.compiled:
+            src, dst = self._work().points32(problem, pool)
+            H, Hinv, sign, sign_inv, smp, ub = kernels.hypotheses(
+                sample, ok, problem.x1, problem.x2, problem.src_all, problem.dst_all,
+                cfg.reflection_check, src, dst, t2 / problem.error_scale**2)
+            return Hypotheses(H, Hinv, sign, sign_inv, smp), ub
         hyp = hypotheses_from_samples(problem, sample, cfg, ok)
         if not len(hyp):
             return hyp, np.zeros(0, dtype=np.int64)
@@ -297,10 +331,16 @@ class NumpyScoring:
     def singular_value_ok(self, problem: Problem, hyp: Hypotheses,
                           cfg: FilterConfig) -> np.ndarray:
         """:func:`passes_singular_value_test`."""
+        if self.compiled:
+            return kernels.singular_value_ok(hyp.sample, problem.src_all, problem.dst_all,
+                                             cfg.min_singular_value)
         return passes_singular_value_test(problem, hyp, cfg)
 
     def error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> np.ndarray:
-        """:func:`error_sq`, float64 ``(K, n)`` numpy."""
+        """:func:`error_sq`, float64 ``(K, n)`` numpy (compiled: the same bits)."""
+        if self.compiled:
+            return kernels.error_sq(hyp.H, hyp.Hinv, hyp.sign, hyp.sign_inv,
+                                    self._work().stacked(problem, idx), problem.error_scale**2)
         return error_sq(problem, hyp, idx, self._work())
 
     def masks(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
@@ -308,6 +348,12 @@ class NumpyScoring:
         """``(masks, err)``: the inliers ``err <= t2`` ``(K, n)`` and the errors (``None``
         where the kernel does not bring them back: here, :func:`inlier_masks` skips the
         errors of matches already outside)."""
+        if self.compiled:
+            s2 = problem.error_scale**2
+            if math.frexp(s2)[0] == 0.5:  # a power of two: as inlier_masks does
+                t2, s2 = t2 / s2, 1.0
+            return kernels.inlier_masks(hyp.H, hyp.Hinv, hyp.sign, hyp.sign_inv,
+                                        self._work().stacked(problem, idx), t2, s2), None
         return inlier_masks(problem, hyp, idx, t2, self._work()), None
 
     def screen(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,

@@ -26,3 +26,17 @@ def test_run_pass_sums_the_counters_of_every_pair(capsys):
     assert out["fast"]["samples"] < out["default"]["samples"]
     print_profile({"x": [{"rounds": 4, "drawn": 10, "cpu": 0.02}]})
     assert "| x | 1 | 4.0 | 10.0 | 0.0 | 0.0 | 0.0 | 20.0 | 5.00 |" in capsys.readouterr().out
+
+
+def test_numpy_kernel_variant_keeps_the_same_matches():
+    """A ``kernels=numpy`` variant runs the reference kernels on the same pairs: the same
+    kept matches here, and the compiled kernels are back in place after the pass."""
+    from colmap_miho.filtering import kernels
+
+    sc = make_scene(np.random.default_rng(3), outlier_ratio=0.5)
+    pairs = [Pair(sc.x1, sc.x2, seed=11)]
+    before = kernels.available
+    out = run_pass(pairs, {"default": FilterConfig(), "numpy": FilterConfig()}, frozenset({"numpy"}))
+    assert kernels.available is before
+    np.testing.assert_array_equal(out["numpy"]["masks"][0], out["default"]["masks"][0])
+    assert out["numpy"]["kept"] == out["default"]["kept"] > 0

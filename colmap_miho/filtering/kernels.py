@@ -1,0 +1,793 @@
+"""Compiled (numba) kernels of a RANSAC batch: each replaces a chain of small numpy calls
+with one call, which is what a batch on a pool of a few hundred matches costs.
+
+- :func:`spread_ok`: the spread test of minimal samples (:func:`.sampling.spread_ok`);
+- :func:`hypotheses`: reflection check, closed-form 4-point solver with the sample's
+  quasi-affine signs, adjugates and the one-way float32 inlier bound on the pool, fused
+  (:func:`.scoring.hypotheses_from_samples` then :func:`.scoring.one_way_count`);
+- :func:`draw_local` and :func:`pool_neighbours`: the local draws and the pool's neighbour
+  lists (``Sampler``);
+- :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring
+  (:mod:`.scoring`); :func:`refit`: the least-squares refit of a run's best model;
+- :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`).
+
+The numpy functions stay the reference (and the path when numba is not installed); the tests
+check each kernel against them. The spread test, the draws, the neighbour lists, the masks,
+the errors and the rotation counts are the same decisions / bits for the same inputs; the
+solver, the singular values and the refit add their products in a fixed order where numpy's
+matmul (BLAS) may fuse or reorder them, so homographies can differ in the last bits, and
+with them, rarely, a borderline decision.
+
+numba is imported on first use (:func:`available`), and the kernels compile then or load
+from numba's on-disk cache (``cache=True``).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import threading
+from typing import Any
+
+import numpy as np
+
+_KERNELS: dict[str, Any] | None = None
+_LOCK = threading.Lock()
+
+
+@functools.cache
+def available() -> bool:
+    """Whether numba can be imported (the compiled kernels are used then)."""
+    return importlib.util.find_spec("numba") is not None
+
+
+def _sign(v: float) -> float:
+    """-1, 0 or 1 (0 for nan: a nan sign fails every sign test, as numpy's nan sign does)."""
+    if v > 0:
+        return 1.0
+    if v < 0:
+        return -1.0
+    return 0.0
+
+
+def _adjugate(e, out) -> None:
+    """``out[9]`` = the adjugate of the row-major 3x3 ``e[9]`` (the products and differences
+    of :func:`.homography.adjugate`)."""
+    out[0] = e[4] * e[8] - e[5] * e[7]
+    out[1] = e[2] * e[7] - e[1] * e[8]
+    out[2] = e[1] * e[5] - e[2] * e[4]
+    out[3] = e[5] * e[6] - e[3] * e[8]
+    out[4] = e[0] * e[8] - e[2] * e[6]
+    out[5] = e[2] * e[3] - e[0] * e[5]
+    out[6] = e[3] * e[7] - e[4] * e[6]
+    out[7] = e[1] * e[6] - e[0] * e[7]
+    out[8] = e[0] * e[4] - e[1] * e[3]
+
+
+def _basis_map(px, py, A, lam, work):
+    """Fill ``A[9]`` (row-major ``P diag(lam)``) and ``lam[3]`` for the 4 points ``px[4]``,
+    ``py[4]`` (:func:`.homography._basis_map`); returns ``det(P)``. ``work[18]`` scratch."""
+    P = work[:9]
+    adj = work[9:18]
+    for c in range(3):
+        P[c] = px[c]
+        P[3 + c] = py[c]
+        P[6 + c] = 1.0
+    _adjugate(P, adj)
+    for r in range(3):
+        lam[r] = adj[3 * r] * px[3] + adj[3 * r + 1] * py[3] + adj[3 * r + 2]
+    det = P[0] * adj[0]
+    det += P[1] * adj[3]
+    det += P[2] * adj[6]
+    for r in range(3):
+        for c in range(3):
+            A[3 * r + c] = P[3 * r + c] * lam[c]
+    return det
+
+
+def _one_sign(s) -> bool:
+    """The 4 signs ``s[4]`` are one nonzero sign."""
+    return s[0] * s[1] > 0 and s[0] * s[2] > 0 and s[0] * s[3] > 0
+
+
+def _spread_ok(spread_xy, sample, t2):
+    """``(B,)`` bool: see :func:`spread_ok`."""
+    B = sample.shape[0]
+    sets = spread_xy.shape[1]
+    ok = np.ones(B, dtype=np.bool_)
+    for b in range(B):
+        good = True
+        for i in range(3):
+            a = sample[b, i]
+            for j in range(i + 1, 4):
+                c = sample[b, j]
+                for s in range(sets):
+                    dx = spread_xy[0, s, a] - spread_xy[0, s, c]
+                    dy = spread_xy[1, s, a] - spread_xy[1, s, c]
+                    dx *= dx
+                    dy *= dy
+                    dx += dy
+                    if not dx >= t2:
+                        good = False
+                        break
+                if not good:
+                    break
+            if not good:
+                break
+        ok[b] = good
+    return ok
+
+
+_TRIANGLES = ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3))
+
+
+def _orientation(pts, i, j, k) -> float:
+    """Signed doubled area of the triangle of points ``i, j, k`` of ``pts`` ``(N, 2)``
+    (:func:`.homography.triangle_orientations`)."""
+    ax = pts[j, 0] - pts[i, 0]
+    ay = pts[j, 1] - pts[i, 1]
+    bx = pts[k, 0] - pts[i, 0]
+    by = pts[k, 1] - pts[i, 1]
+    return ax * by - ay * bx
+
+
+def _hypotheses(sample, ok, x1, x2, src_all, dst_all, reflection, X, Y, x2p, y2p, t2):
+    """See :func:`hypotheses`: ``(K, H, Hinv, sign, sign_inv, sample_out, ub)``, the first
+    ``K`` rows of each output valid."""
+    B = sample.shape[0]
+    nh = src_all.shape[1]
+    n = X.shape[0]
+    H = np.empty((B, nh, 3, 3))
+    Hinv = np.empty((B, nh, 3, 3))
+    sign = np.empty((B, nh))
+    sign_inv = np.empty((B, nh))
+    out_sample = np.empty((B, 4), dtype=np.int64)
+    ub = np.zeros(B, dtype=np.int64)
+    px = np.empty(4)
+    py = np.empty(4)
+    qx = np.empty(4)
+    qy = np.empty(4)
+    A = np.empty(9)
+    Bm = np.empty(9)
+    adjA = np.empty(9)
+    Hm = np.empty(9)
+    Hi = np.empty(9)
+    lam = np.empty(3)
+    mu = np.empty(3)
+    work = np.empty(18)
+    s_fwd = np.empty(4)
+    s_inv = np.empty(4)
+    h32 = np.empty(9, dtype=np.float32)
+    K = 0
+    for b in range(B):
+        if not ok[b]:
+            continue
+        if reflection:
+            good = True
+            for t in range(4):
+                i, j, k = _TRIANGLES[t]
+                o1 = _orientation(x1, sample[b, i], sample[b, j], sample[b, k])
+                o2 = _orientation(x2, sample[b, i], sample[b, j], sample[b, k])
+                if not o1 * o2 > 0:
+                    good = False
+                    break
+            if not good:
+                continue
+        valid = True
+        for h in range(nh):
+            for i in range(4):
+                m = sample[b, i]
+                px[i] = src_all[m, h, 0]
+                py[i] = src_all[m, h, 1]
+                qx[i] = dst_all[m, h, 0]
+                qy[i] = dst_all[m, h, 1]
+            det_p = _basis_map(px, py, A, lam, work)
+            det_q = _basis_map(qx, qy, Bm, mu, work)
+            _adjugate(A, adjA)
+            norm = 0.0
+            for r in range(3):
+                for c in range(3):
+                    v = Bm[3 * r] * adjA[c] + Bm[3 * r + 1] * adjA[3 + c] + Bm[3 * r + 2] * adjA[6 + c]
+                    Hm[3 * r + c] = v
+                    norm += v * v
+            norm = max(np.sqrt(norm), 1e-300)
+            for e in range(9):
+                Hm[e] /= norm
+                if not np.isfinite(Hm[e]):
+                    valid = False
+            sl0, sl1, sl2 = _sign(lam[0]), _sign(lam[1]), _sign(lam[2])
+            sm0, sm1, sm2 = _sign(mu[0]), _sign(mu[1]), _sign(mu[2])
+            sdp, sdq = _sign(det_p), _sign(det_q)
+            s_det_a = sdp * sl0 * sl1 * sl2
+            s_det_b = sdq * sm0 * sm1 * sm2
+            s_fwd[0] = s_det_a * sm0 * sl0
+            s_fwd[1] = s_det_a * sm1 * sl1
+            s_fwd[2] = s_det_a * sm2 * sl2
+            s_fwd[3] = s_det_a * sdq * sdp
+            s_ab = s_det_a * s_det_b
+            s_inv[0] = s_ab * sl0 * sm0
+            s_inv[1] = s_ab * sl1 * sm1
+            s_inv[2] = s_ab * sl2 * sm2
+            s_inv[3] = s_ab * sdp * sdq
+            if not (_one_sign(s_fwd) and _one_sign(s_inv)):
+                valid = False
+            if not valid:
+                break
+            _adjugate(Hm, Hi)
+            for r in range(3):
+                for c in range(3):
+                    H[K, h, r, c] = Hm[3 * r + c]
+                    Hinv[K, h, r, c] = Hi[3 * r + c]
+            sign[K, h] = s_fwd[0]
+            sign_inv[K, h] = s_inv[0]
+        if not valid:
+            continue
+        for i in range(4):
+            out_sample[K, i] = sample[b, i]
+        # One-way bound: first half, forward, float32, division-free, sign-normalised.
+        for e in range(9):
+            h32[e] = np.float32(H[K, 0, e // 3, e % 3] * sign[K, 0])
+        count = 0
+        for i in range(n):
+            xi = X[i]
+            yi = Y[i]
+            W = h32[6] * xi
+            W += h32[7] * yi
+            W += h32[8]
+            U = h32[0] * xi
+            U += h32[1] * yi
+            U += h32[2]
+            U -= W * x2p[i]
+            V = h32[3] * xi
+            V += h32[4] * yi
+            V += h32[5]
+            V -= W * y2p[i]
+            U *= U
+            V *= V
+            U += V
+            W2 = W * W
+            W2 *= t2
+            if W > 0 and U <= W2:
+                count += 1
+        ub[K] = count
+        K += 1
+    return K, H, Hinv, sign, sign_inv, out_sample, ub
+
+
+def _draw_local(nb, keys, seeds, spread_x, spread_y, t2):
+    """See :func:`draw_local`."""
+    L, k = nb.shape
+    sets = spread_x.shape[0]
+    out = np.empty((L, 3), dtype=np.int64)
+    free = np.empty(k, dtype=np.bool_)
+    for r in range(L):
+        for c in range(k):
+            free[c] = nb[r, c] >= 0
+        for j in range(3):
+            best = -2.0
+            at = 0
+            for c in range(k):
+                key = keys[j, r, c] if free[c] else -1.0
+                if key > best:
+                    best = key
+                    at = c
+            if not free[at]:
+                out[r, j] = seeds[r]
+                # nothing is free: later picks find nothing either
+                for jj in range(j + 1, 3):
+                    out[r, jj] = seeds[r]
+                break
+            pick = nb[r, at]
+            out[r, j] = pick
+            if j < 2:
+                for c in range(k):
+                    if not free[c]:
+                        continue
+                    q = nb[r, c]
+                    for s in range(sets):
+                        dx = spread_x[s, q] - spread_x[s, pick]
+                        dy = spread_y[s, q] - spread_y[s, pick]
+                        dx *= dx
+                        dy *= dy
+                        dx += dy
+                        if not dx >= t2:
+                            free[c] = False
+                            break
+    return out
+
+
+def _transfer(h, X, Y, u, v):
+    """``(e, w)``: squared transfer error of the point ``(X, Y)`` to ``(u, v)`` under the
+    row-major ``h[9]``, and its ``w`` (:func:`.homography.transfer_error_sq`'s operations, in
+    its order)."""
+    w = h[6] * X
+    w += h[7] * Y
+    w += h[8]
+    x = h[0] * X
+    x += h[1] * Y
+    x += h[2]
+    x /= w
+    x -= u
+    x *= x
+    y = h[3] * X
+    y += h[4] * Y
+    y += h[5]
+    y /= w
+    y -= v
+    y *= y
+    x += y
+    return x, w
+
+
+def _rows(H, sign, Hinv, sign_inv, k, scaled, out):
+    """``out[2 * halves, 9]``: hypothesis ``k``'s forward and backward matrices, half by
+    half, times their sample's signs when ``scaled`` (an exact change: the signs are +-1)."""
+    for h in range(H.shape[1]):
+        for e in range(9):
+            f, b = H[k, h, e // 3, e % 3], Hinv[k, h, e // 3, e % 3]
+            if scaled:
+                f *= sign[k, h]
+                b *= sign_inv[k, h]
+            out[2 * h, e] = f
+            out[2 * h + 1, e] = b
+
+
+def _inlier_masks(H, Hinv, sign, sign_inv, pts, t2, s2):
+    """See :func:`inlier_masks`."""
+    K = H.shape[0]
+    terms = 2 * H.shape[1]
+    n = pts.shape[3]
+    out = np.zeros((K, n), dtype=np.bool_)
+    hk = np.empty((terms, 9))
+    for k in range(K):
+        _rows(H, sign, Hinv, sign_inv, k, True, hk)
+        for i in range(n):
+            inside = True
+            for t in range(terms):
+                h, d = t // 2, t % 2
+                e, w = _transfer(hk[t], pts[h, d, 0, i], pts[h, d, 1, i],
+                                 pts[h, 1 - d, 0, i], pts[h, 1 - d, 1, i])
+                if s2 != 1.0:
+                    e *= s2
+                if not (e <= t2 and w > 0):
+                    inside = False
+                    break
+            out[k, i] = inside
+    return out
+
+
+def _error_sq(H, Hinv, sign, sign_inv, pts, s2):
+    """See :func:`error_sq`."""
+    K = H.shape[0]
+    terms = 2 * H.shape[1]
+    n = pts.shape[3]
+    out = np.empty((K, n))
+    hk = np.empty((terms, 9))
+    for k in range(K):
+        _rows(H, sign, Hinv, sign_inv, k, False, hk)
+        for i in range(n):
+            err = 0.0
+            for t in range(terms):
+                h, d = t // 2, t % 2
+                e, w = _transfer(hk[t], pts[h, d, 0, i], pts[h, d, 1, i],
+                                 pts[h, 1 - d, 0, i], pts[h, 1 - d, 1, i])
+                w *= sign[k, h] if d == 0 else sign_inv[k, h]
+                if not w > 0:
+                    e = np.inf
+                if not e <= err:  # the max; nan only where w == 0, made inf above
+                    err = e
+            if s2 != 1.0:
+                err *= s2
+            out[k, i] = err
+    return out
+
+
+def _far(sx, sy, a, b, t2) -> bool:
+    """Matches ``a`` and ``b`` are at least ``sqrt(t2)`` apart in every set of ``sx``, ``sy``
+    ``(sets, n)`` (:func:`.sampling.apart_sets`' operations)."""
+    for s in range(sx.shape[0]):
+        dx = sx[s, a] - sx[s, b]
+        dy = sy[s, a] - sy[s, b]
+        dx *= dx
+        dy *= dy
+        dx += dy
+        if not dx >= t2:
+            return False
+    return True
+
+
+def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
+    """See :func:`pool_neighbours`."""
+    m = todo.shape[0]
+    n = feats.shape[0]
+    dims = feats.shape[1]
+    nb = np.full((m, k), -1, dtype=np.int64)
+    best_d = np.empty(q)
+    best_j = np.empty(q, dtype=np.int64)
+    for r in range(m):
+        cnt = 0
+        for c in range(cand.shape[1]):
+            g = cand[r, c]
+            if g < 0 or not far[r, c]:
+                continue
+            p = pos[g]
+            if p < 0:
+                continue
+            nb[r, cnt] = p
+            cnt += 1
+            if cnt == k:
+                break
+        if cnt == k:
+            continue
+        # Too few left in the pool: the q nearest pool matches (the first is the match
+        # itself), nearest first, ties by position.
+        a = todo[r]
+        filled = 0
+        for j in range(n):
+            d = 0.0
+            for e in range(dims):
+                t = feats[j, e] - feats[a, e]
+                d += t * t
+            if filled == q and not d < best_d[q - 1]:
+                continue
+            at = filled if filled < q else q - 1
+            while at > 0 and best_d[at - 1] > d:
+                if at < q:
+                    best_d[at] = best_d[at - 1]
+                    best_j[at] = best_j[at - 1]
+                at -= 1
+            best_d[at] = d
+            best_j[at] = j
+            if filled < q:
+                filled += 1
+        cnt = 0
+        for c in range(1, filled):
+            j = best_j[c]
+            if _far(sx, sy, j, a, t2):
+                nb[r, cnt] = j
+                cnt += 1
+                if cnt == k:
+                    break
+        for c in range(cnt, k):
+            nb[r, c] = -1
+    return nb
+
+
+def _normalise4(pts, out):
+    """Hartley-normalised copy ``out[4, 2]`` of the 4 points ``pts[4, 2]``
+    (:func:`.homography._normalised`)."""
+    cx = (pts[0, 0] + pts[1, 0] + pts[2, 0] + pts[3, 0]) / 4
+    cy = (pts[0, 1] + pts[1, 1] + pts[2, 1] + pts[3, 1]) / 4
+    dist = 0.0
+    for i in range(4):
+        out[i, 0] = pts[i, 0] - cx
+        out[i, 1] = pts[i, 1] - cy
+        dist += np.sqrt(out[i, 0] ** 2 + out[i, 1] ** 2)
+    scale = np.sqrt(2.0) / max(dist / 4, 1e-12)
+    for i in range(4):
+        out[i, 0] *= scale
+        out[i, 1] *= scale
+
+
+def _singular_value_ok(sample, src_all, dst_all, min_sv):
+    """See :func:`singular_value_ok`."""
+    K = sample.shape[0]
+    nh = src_all.shape[1]
+    ok = np.ones(K, dtype=np.bool_)
+    p = np.empty((4, 2))
+    q = np.empty((4, 2))
+    s = np.empty((4, 2))
+    d = np.empty((4, 2))
+    A = np.zeros((8, 9))
+    for k in range(K):
+        for h in range(nh):
+            for i in range(4):
+                for c in range(2):
+                    p[i, c] = src_all[sample[k, i], h, c]
+                    q[i, c] = dst_all[sample[k, i], h, c]
+            _normalise4(p, s)
+            _normalise4(q, d)
+            for i in range(4):
+                x, y, u, v = s[i, 0], s[i, 1], d[i, 0], d[i, 1]
+                A[2 * i, 0] = x
+                A[2 * i, 1] = y
+                A[2 * i, 2] = 1.0
+                A[2 * i, 6] = -u * x
+                A[2 * i, 7] = -u * y
+                A[2 * i, 8] = -u
+                A[2 * i + 1, 3] = x
+                A[2 * i + 1, 4] = y
+                A[2 * i + 1, 5] = 1.0
+                A[2 * i + 1, 6] = -v * x
+                A[2 * i + 1, 7] = -v * y
+                A[2 * i + 1, 8] = -v
+            ev = np.linalg.eigvalsh(A @ A.T)
+            if not np.sqrt(max(ev[0], 0.0)) > min_sv:
+                ok[k] = False
+                break
+    return ok
+
+
+def _normalising(pts, out, T):
+    """Hartley normalisation of ``pts[M, 2]``: ``out[M, 2]`` the normalised points and
+    ``T[3, 3]`` the similarity (:func:`.homography.normalise_points`)."""
+    M = pts.shape[0]
+    cx = 0.0
+    cy = 0.0
+    for i in range(M):
+        cx += pts[i, 0]
+        cy += pts[i, 1]
+    cx /= M
+    cy /= M
+    dist = 0.0
+    for i in range(M):
+        out[i, 0] = pts[i, 0] - cx
+        out[i, 1] = pts[i, 1] - cy
+        dist += np.sqrt(out[i, 0] ** 2 + out[i, 1] ** 2)
+    scale = np.sqrt(2.0) / max(dist / M, 1e-12)
+    for i in range(M):
+        out[i, 0] *= scale
+        out[i, 1] *= scale
+    T[:] = 0.0
+    T[0, 0] = scale
+    T[1, 1] = scale
+    T[0, 2] = -scale * cx
+    T[1, 2] = -scale * cy
+    T[2, 2] = 1.0
+
+
+def _refit(idx, src_all, dst_all, sample):
+    """See :func:`refit`."""
+    nh = src_all.shape[1]
+    M = idx.shape[0]
+    H = np.empty((nh, 3, 3))
+    Hinv = np.empty((nh, 3, 3))
+    sign = np.empty(nh)
+    sign_inv = np.empty(nh)
+    p = np.empty((M, 2))
+    q = np.empty((M, 2))
+    s = np.empty((M, 2))
+    d = np.empty((M, 2))
+    T1 = np.empty((3, 3))
+    T2 = np.empty((3, 3))
+    row = np.empty(9)
+    e = np.empty(9)
+    adj = np.empty(9)
+    for h in range(nh):
+        for i in range(M):
+            for c in range(2):
+                p[i, c] = src_all[idx[i], h, c]
+                q[i, c] = dst_all[idx[i], h, c]
+        _normalising(p, s, T1)
+        _normalising(q, d, T2)
+        ata = np.zeros((9, 9))
+        for i in range(M):
+            x, y, u, v = s[i, 0], s[i, 1], d[i, 0], d[i, 1]
+            for r in range(2):
+                row[:] = 0.0
+                if r == 0:
+                    row[0] = x
+                    row[1] = y
+                    row[2] = 1.0
+                    row[6] = -u * x
+                    row[7] = -u * y
+                    row[8] = -u
+                else:
+                    row[3] = x
+                    row[4] = y
+                    row[5] = 1.0
+                    row[6] = -v * x
+                    row[7] = -v * y
+                    row[8] = -v
+                for a in range(9):
+                    if row[a] != 0.0:
+                        for b in range(9):
+                            ata[a, b] += row[a] * row[b]
+        vecs = np.linalg.eigh(ata)[1]
+        Hn = np.empty((3, 3))
+        for a in range(9):
+            Hn[a // 3, a % 3] = vecs[a, 0]  # the smallest eigenvalue's eigenvector
+        for a in range(9):
+            e[a] = T2[a // 3, a % 3]
+        _adjugate(e, adj)
+        Ht = np.empty((3, 3))
+        for r in range(3):
+            for c in range(3):
+                Ht[r, c] = adj[3 * r] * Hn[0, c] + adj[3 * r + 1] * Hn[1, c] + adj[3 * r + 2] * Hn[2, c]
+        norm = 0.0
+        for r in range(3):
+            for c in range(3):
+                v = Ht[r, 0] * T1[0, c] + Ht[r, 1] * T1[1, c] + Ht[r, 2] * T1[2, c]
+                e[3 * r + c] = v
+                norm += v * v
+        norm = max(np.sqrt(norm), 1e-300)
+        for a in range(9):
+            e[a] /= norm
+            if not np.isfinite(e[a]):
+                return False, H, Hinv, sign, sign_inv
+        _adjugate(e, adj)
+        for direction in range(2):
+            m = e if direction == 0 else adj
+            pts = src_all if direction == 0 else dst_all
+            first = 0.0
+            for i in range(4):
+                j = sample[i]
+                w = m[6] * pts[j, h, 0] + m[7] * pts[j, h, 1] + m[8]
+                sg = _sign(w)
+                if i == 0:
+                    if sg == 0.0:
+                        return False, H, Hinv, sign, sign_inv
+                    first = sg
+                elif sg != first:
+                    return False, H, Hinv, sign, sign_inv
+            if direction == 0:
+                sign[h] = first
+            else:
+                sign_inv[h] = first
+        for a in range(9):
+            H[h, a // 3, a % 3] = e[a]
+            Hinv[h, a // 3, a % 3] = adj[a]
+    return True, H, Hinv, sign, sign_inv
+
+
+def _rotation_counts(dx1, dx2, lo, hi, rows):
+    """See :func:`rotation_counts`."""
+    C = rows.shape[0]
+    P = dx1.shape[1]
+    scores = np.zeros(C, dtype=np.int64)
+    differ = np.zeros(C, dtype=np.int64)
+    for p in range(P):
+        first = False
+        for c in range(C):
+            sq = 0.0
+            for axis in range(2):
+                r0, r1 = rows[c, axis, 0], rows[c, axis, 1]
+                v = dx1[axis, p] + (r0 * dx2[0, p] if r0 != 0.0 else r1 * dx2[1, p])
+                if axis == 0:
+                    sq = v * v
+                else:
+                    sq += v * v
+            dm = np.sqrt(sq) / 2
+            inside = dm >= lo[p] and dm <= hi[p]
+            if c == 0:
+                first = inside
+            scores[c] += inside
+            differ[c] += inside != first
+    return scores, differ
+
+
+def _compiled() -> dict[str, Any]:
+    """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
+    global _KERNELS
+    if _KERNELS is None:
+        with _LOCK:
+            if _KERNELS is None:
+                _KERNELS = _jit_all()
+    return _KERNELS
+
+
+def _jit_all() -> dict[str, Any]:
+    """Jit every kernel; the helpers they call replace their Python versions in this
+    module's namespace (numba resolves a kernel's callees there when it compiles it)."""
+    import numba
+
+    # numpy's error model: a float division by zero gives inf / nan (as in numpy), not an
+    # exception; those entries fail the sign test.
+    jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+    helpers = (_sign, _adjugate, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
+               _normalise4, _normalising)
+    globals().update({f.__name__: jit(f) for f in helpers})
+    return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
+                                         _error_sq, _neighbours, _singular_value_ok, _refit,
+                                         _rotation_counts)}
+
+
+def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
+    """``(B,)`` bool: the 4 matches of each minimal sample ``(B, 4)`` (global indices) are
+    pairwise at least ``sqrt(t2)`` pixels apart in every spread set; ``spread_xy``
+    ``(2, sets, N)`` float64 (``Problem.spread_xy``)."""
+    return _compiled()["_spread_ok"](spread_xy, sample, float(t2))
+
+
+def hypotheses(sample: np.ndarray, ok: np.ndarray, x1: np.ndarray, x2: np.ndarray,
+               src_all: np.ndarray, dst_all: np.ndarray, reflection: bool,
+               pool_src: np.ndarray, pool_dst: np.ndarray, t2: float):
+    """Hypotheses of the minimal samples ``(B, 4)`` (global indices) that pass ``ok`` ``(B,)``
+    (the spread test), the reflection check when ``reflection`` and the quasi-affinity of the
+    sample (every half, both ways), with their one-way inlier bounds on the pool.
+
+    Args:
+        x1, x2: ``(N, 2)`` the two images' points (reflection check).
+        src_all, dst_all: ``(N, halves, 2)`` float64 pixels of every half.
+        pool_src, pool_dst: ``(2, n)`` float32 x and y rows of the pool's first half.
+        t2: squared threshold of the one-way bound, in the pool coordinates' units.
+
+    Returns:
+        ``(H, Hinv, sign, sign_inv, sample, ub)`` of the ``K`` survivors, in sample order:
+        ``(K, halves, 3, 3)`` unit-norm homographies and adjugates, ``(K, halves)`` signs of
+        the first sample point's ``w`` forward and backward, ``(K, 4)`` samples and ``(K,)``
+        int64 one-way inlier counts.
+    """
+    K, H, Hinv, sign, sign_inv, smp, ub = _compiled()["_hypotheses"](
+        sample, ok, x1, x2, src_all, dst_all, bool(reflection), pool_src[0], pool_src[1],
+        pool_dst[0], pool_dst[1], np.float32(t2))
+    return H[:K], Hinv[:K], sign[:K], sign_inv[:K], smp[:K], ub[:K]
+
+
+def draw_local(nb: np.ndarray, keys: np.ndarray, seeds: np.ndarray, spread_x: np.ndarray,
+               spread_y: np.ndarray, t2: float) -> np.ndarray:
+    """``(L, 3)`` pool positions drawn one by one among each seed's neighbours ``nb``
+    ``(L, k)`` (pool positions, -1 = none): the free neighbour of the largest key ``keys[j]``
+    ``(3, L, k)`` uniform in [0, 1), then only those at least ``sqrt(t2)`` from it in every
+    spread set ``spread_x``, ``spread_y`` ``(sets, n)`` stay free; the seed where none is
+    free."""
+    return _compiled()["_draw_local"](nb, keys, seeds, spread_x, spread_y, float(t2))
+
+
+def inlier_masks(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
+                 pts: np.ndarray, t2: float, s2: float) -> np.ndarray:
+    """``(K, n)`` bool: the squared error of each hypothesis (``H``, ``Hinv`` ``(K, halves,
+    3, 3)``, signs ``(K, halves)``) on each match, times ``s2``, is at most ``t2`` in every
+    half and direction, with ``w`` of the sample's sign (:func:`.scoring.inlier_masks`, the
+    same decisions for the same hypotheses). ``pts`` ``(halves, 2, 2, n)``: per half, source
+    then destination, x row then y row."""
+    return _compiled()["_inlier_masks"](H, Hinv, sign, sign_inv, pts, float(t2), float(s2))
+
+
+def error_sq(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
+             pts: np.ndarray, s2: float) -> np.ndarray:
+    """``(K, n)`` float64: the max over halves and directions of the squared transfer error,
+    ``inf`` where ``w`` breaks the sample's sign, times ``s2`` (:func:`.scoring.error_sq`,
+    the same bits); arguments as :func:`inlier_masks`."""
+    return _compiled()["_error_sq"](H, Hinv, sign, sign_inv, pts, float(s2))
+
+
+def pool_neighbours(todo: np.ndarray, cand: np.ndarray, far: np.ndarray, pos: np.ndarray,
+                    feats: np.ndarray, spread_x: np.ndarray, spread_y: np.ndarray, t2: float,
+                    k: int, q: int) -> np.ndarray:
+    """``(m, k)`` pool positions of the nearest pool matches at least ``sqrt(t2)`` from each
+    of the pool positions ``todo`` ``(m,)`` in every spread set, -1 padded
+    (``Sampler.neighbours``).
+
+    The first ``k`` of the problem-wide candidates ``cand`` ``(m, c)`` (global indices,
+    nearest first, -1 = none) that are ``far`` ``(m, c)`` enough and in the pool (``pos``
+    ``(N,)``: global index -> pool position, -1 outside); where fewer than ``k``, the first
+    ``k`` far enough among the ``q - 1`` nearest pool matches in ``feats`` ``(n, dims)``
+    (exhaustive search, ties by pool position). ``spread_x``, ``spread_y``: ``(sets, n)``
+    of the pool.
+    """
+    return _compiled()["_neighbours"](todo, cand, far, pos, feats, spread_x, spread_y,
+                                      float(t2), int(k), int(q))
+
+
+def singular_value_ok(sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray,
+                      min_sv: float) -> np.ndarray:
+    """``(K,)`` bool: the Hartley-normalised minimal DLT system (``8 x 9``) of each sample
+    ``(K, 4)`` (global indices) has its smallest singular value above ``min_sv`` in every
+    half (:func:`.scoring.passes_singular_value_test`; the eigenvalues of ``A A^T`` from
+    LAPACK as numpy's, the products summed in another order)."""
+    return _compiled()["_singular_value_ok"](sample, src_all, dst_all, float(min_sv))
+
+
+def refit(idx: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, sample: np.ndarray):
+    """Least-squares normalised DLT of every half on the matches ``idx`` ``(M,)`` (global,
+    ``M >= 5``), checked against the quasi-affine signs of the minimal ``sample`` ``(4,)``
+    (``ransac._refit``: the smallest eigenvector of ``A^T A`` by LAPACK, as numpy's, the
+    products summed in another order).
+
+    Returns ``(ok, H, Hinv, sign, sign_inv)``: whether the fit is finite and keeps one
+    nonzero sign of ``w`` on the sample's 4 points (every half, both ways), ``(halves, 3,
+    3)`` unit-norm homographies and adjugates and ``(halves,)`` signs.
+    """
+    return _compiled()["_refit"](idx, src_all, dst_all, sample)
+
+
+def rotation_counts(dx1: np.ndarray, dx2: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                    rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pair counts of the rotation fix's candidates (:func:`.miho.choose_rotation`, the same
+    decisions): for candidate linear parts ``rows`` ``(C, 2, 2)`` (entries 0 or +-1, one
+    nonzero per row), the pairs whose midpoint distance ``|dx1 + R dx2| / 2`` lies in
+    ``[lo, hi]`` (``(P,)`` each; ``dx1``, ``dx2`` ``(2, P)`` pair differences in each image),
+    and how many of them differ from candidate 0's. Returns ``(scores, differ)``, ``(C,)``
+    int64 each."""
+    return _compiled()["_rotation_counts"](dx1, dx2, lo, hi, rows)

@@ -1,0 +1,190 @@
+"""The compiled (numba) batch kernels against their numpy reference.
+
+The spread test, the local draws, the inlier masks and the errors are the same decisions /
+bits for the same inputs; the minimal solver sums in a fixed order where numpy's matmul may
+not, so its homographies agree to ``H_ATOL`` (unit-norm matrices) and the one-way float32
+bound to within one inlier on at most ``BOUND_OFF`` of the hypotheses.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from planes import make_scene
+
+from colmap_miho import filter_matches
+from colmap_miho.filtering import kernels
+from colmap_miho.filtering.config import FilterConfig
+from colmap_miho.filtering.miho import build_problem
+from colmap_miho.filtering.ransac import _refit
+from colmap_miho.filtering.sampling import Sampler, checked_samples, spread_ok
+from colmap_miho.filtering.scoring import NumpyScoring, hypotheses_from_samples
+
+pytest.importorskip("numba")
+
+H_ATOL = 1e-12  # entries of unit-Frobenius-norm homographies
+REFIT_ATOL = 1e-9  # the same, least-squares refits (an eigenvector of A^T A: less well set)
+BOUND_OFF = 0.01  # share of hypotheses whose one-way bound may differ (by one inlier)
+SAME_FLAGS = 0.999  # share of matches with the same inlier flag, whole filter
+
+
+def _problem(miho: bool, seed: int = 3):
+    rng = np.random.default_rng(seed)
+    sc = make_scene(rng, n_planes=3, per_plane=120, outlier_ratio=0.5)
+    return sc, build_problem(sc.x1, sc.x2, miho=miho, full_match=miho), rng
+
+
+def _samples(sc, rng, n=768):
+    """Random minimal samples, a third of them within one plane (valid hypotheses)."""
+    plane0 = np.flatnonzero(sc.plane == 0)
+    return np.concatenate([rng.integers(0, len(sc.x1), (2 * n // 3, 4)),
+                           plane0[rng.integers(0, len(plane0), (n // 3, 4))]])
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_spread_test_is_the_same(miho):
+    sc, problem, rng = _problem(miho)
+    sample = _samples(sc, rng, 3000)
+    for t_l in (5.0, 15.0, 40.0):
+        want = spread_ok(problem, sample, t_l)
+        assert 0 < want.sum() < len(want)
+        got = NumpyScoring(compiled=True).spread_ok(problem, sample, t_l)
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("method", ["mop", "mop_star", "mop_miho", "mop_miho_star"])
+def test_hypotheses_and_bounds_match_numpy(method):
+    cfg = FilterConfig(method=method)
+    sc, problem, rng = _problem(cfg.is_miho)
+    sample = _samples(sc, rng)
+    ok = spread_ok(problem, sample, cfg.t_l)
+    pool = np.sort(rng.choice(len(sc.x1), 2 * len(sc.x1) // 3, replace=False))
+    t2 = cfg.t_l**2
+    ref = NumpyScoring(compiled=False)
+    want, want_ub = ref.hypotheses(problem, sample, cfg, ok, pool, t2)
+    got, got_ub = NumpyScoring(compiled=True).hypotheses(problem, sample, cfg, ok, pool, t2)
+    assert len(want) > 200 and len(got) == len(want)
+    if cfg.reflection_check:  # the check rejects some samples that pass the rest
+        assert len(checked_samples(problem, sample, cfg, ok)) < ok.sum()
+    np.testing.assert_array_equal(got.sample, want.sample)
+    np.testing.assert_array_equal(got.sign, want.sign)
+    np.testing.assert_array_equal(got.sign_inv, want.sign_inv)
+    np.testing.assert_allclose(got.H, want.H, rtol=0, atol=H_ATOL)
+    np.testing.assert_allclose(got.Hinv, want.Hinv, rtol=0, atol=H_ATOL)
+    assert want_ub.max() > 50  # some hypotheses hit a plane: the bounds are informative
+    off = np.abs(got_ub - want_ub)
+    assert off.max() <= 1 and np.mean(off > 0) <= BOUND_OFF
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_masks_and_errors_are_the_same_bits(miho):
+    cfg = FilterConfig(method="mop_miho" if miho else "mop")
+    sc, problem, rng = _problem(miho)
+    sample = _samples(sc, rng)
+    hyp = hypotheses_from_samples(problem, sample, cfg, spread_ok(problem, sample, cfg.t_l))
+    pool = np.sort(rng.choice(len(sc.x1), 2 * len(sc.x1) // 3, replace=False))
+    ref, fast = NumpyScoring(compiled=False), NumpyScoring(compiled=True)
+    err = ref.error_sq(problem, hyp, pool)
+    assert np.isinf(err).any() and (err <= cfg.t_l**2).any()
+    np.testing.assert_array_equal(fast.error_sq(problem, hyp, pool), err)
+    for t2 in (cfg.t_l**2, cfg.strict_threshold**2):
+        np.testing.assert_array_equal(fast.masks(problem, hyp, pool, t2)[0],
+                                      ref.masks(problem, hyp, pool, t2)[0])
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_local_draws_are_the_same(miho):
+    sc, problem, rng = _problem(miho)
+    cfg = FilterConfig(local_fraction=1.0)
+    pool = np.sort(rng.choice(len(sc.x1), 300, replace=False))
+    ref = Sampler(problem, pool, cfg).draw(np.random.default_rng(7), 1000)
+    got = Sampler(problem, pool, cfg, compiled=True).draw(np.random.default_rng(7), 1000)
+    np.testing.assert_array_equal(got, ref)
+
+
+@pytest.mark.parametrize("method", ["mop", "mop_miho"])
+def test_whole_filter_agrees(method, monkeypatch):
+    """The whole filter, compiled against numpy, on synthetic scenes."""
+    cfg = FilterConfig(method=method)
+    for seed in range(3):
+        sc, _, _ = _problem(False, seed)
+        got = filter_matches(sc.x1, sc.x2, config=cfg, seed=seed)
+        with monkeypatch.context() as m:
+            m.setattr(kernels, "available", lambda: False)
+            want = filter_matches(sc.x1, sc.x2, config=cfg, seed=seed)
+        assert np.mean(got.inliers == want.inliers) >= SAME_FLAGS
+        assert got.num_homographies == want.num_homographies
+
+
+@pytest.mark.parametrize("miho", [False, True])
+@pytest.mark.parametrize("pool_size", [60, 200, 330])
+def test_neighbours_are_the_same(miho, pool_size):
+    """The compiled search (problem-wide candidates, then an exhaustive search of the pool
+    where too few of them are left) against the numpy one (k-d tree over the pool)."""
+    sc, problem, rng = _problem(miho)
+    cfg = FilterConfig()
+    pool = np.sort(rng.choice(len(sc.x1), pool_size, replace=False))
+    ref = Sampler(problem, pool, cfg)
+    got = Sampler(problem, pool, cfg, compiled=True)
+    pos = rng.permutation(pool_size)
+    for part in np.array_split(pos, 3):  # searched over several calls, as the rounds do
+        np.testing.assert_array_equal(got.neighbours(part), ref.neighbours(part))
+    nb = ref.neighbours(np.arange(pool_size))
+    assert (nb >= 0).any()
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_singular_value_test_is_the_same(miho):
+    cfg = FilterConfig(method="mop_miho" if miho else "mop")
+    sc, problem, rng = _problem(miho)
+    sample = _samples(sc, rng, 3000)
+    hyp = hypotheses_from_samples(problem, sample, cfg)
+    want = NumpyScoring(compiled=False).singular_value_ok(problem, hyp, cfg)
+    assert 0 < want.sum() < len(want)
+    got = NumpyScoring(compiled=True).singular_value_ok(problem, hyp, cfg)
+    np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_refit_matches_numpy(miho):
+    """The least-squares refit of the best model: the same acceptance, homographies up to
+    their sign (an eigenvector's sign is arbitrary) to ``REFIT_ATOL``, the same inliers."""
+    cfg = FilterConfig(method="mop_miho" if miho else "mop")
+    sc, problem, rng = _problem(miho)
+    hyp = hypotheses_from_samples(problem, _samples(sc, rng), cfg)
+    pool = np.arange(len(sc.x1))
+    masks = NumpyScoring(compiled=False).masks(problem, hyp, pool, cfg.t_l**2)[0]
+    fitted = 0
+    for k in np.flatnonzero(masks.sum(axis=1) >= 5)[:150]:
+        want = _refit(problem, hyp.take(k), pool[masks[k]])
+        got = _refit(problem, hyp.take(k), pool[masks[k]], compiled=True)
+        assert (got is None) == (want is None)
+        if want is None:
+            continue
+        assert got is not None
+        fitted += 1
+        flip = np.sign(np.sum(got.H * want.H, axis=(2, 3)))[..., None, None]  # (1, halves)
+        np.testing.assert_allclose(got.H * flip, want.H, rtol=0, atol=REFIT_ATOL)
+        np.testing.assert_allclose(got.Hinv, want.Hinv, rtol=0, atol=REFIT_ATOL)
+        np.testing.assert_array_equal(got.sign * flip[..., 0, 0], want.sign)
+        ref = NumpyScoring(compiled=False)
+        np.testing.assert_array_equal(ref.masks(problem, got, pool, cfg.t_l**2)[0],
+                                      ref.masks(problem, want, pool, cfg.t_l**2)[0])
+    assert fitted > 50
+
+
+@pytest.mark.parametrize("reflections", [False, True])
+def test_rotation_choice_is_the_same(reflections):
+    """The rotation fix's counts, compiled against numpy: the same choice and count on
+    turned, mirrored and upright scenes, with all pairs and with sampled pairs."""
+    from colmap_miho.filtering.miho import choose_rotation
+
+    for seed, (deg, mirror) in enumerate([(0, False), (90, False), (180, False), (270, True)]):
+        sc = make_scene(np.random.default_rng(seed), per_plane=60, rotate_deg=deg, mirror=mirror)
+        for pairs in (0, 5000):
+            want = choose_rotation(sc.x1, sc.x2, np.random.default_rng(seed), pairs=pairs,
+                                   reflections=reflections, compiled=False)
+            got = choose_rotation(sc.x1, sc.x2, np.random.default_rng(seed), pairs=pairs,
+                                  reflections=reflections, compiled=True)
+            np.testing.assert_array_equal(got[0], want[0])
+            assert got[1:] == want[1:] and want[2] > 0
