@@ -156,7 +156,9 @@ def lsm_align(
         if n == 0:
             break
         vals = sampler(act, A, t, radius + 1).to(f32)  # (n, S + 2, S + 2)
-        g = vals[:, 1:-1, 1:-1].reshape(n, P)
+        Jm = jm_buf[:n]
+        Jm[:, 3, :P].view(n, S, S).copy_(vals[:, 1:-1, 1:-1])
+        g = Jm[:, 3, :P]  # the patch, row 3 of the Jacobian (the gain's column)
         if it == 0:  # radiometry matching the first patch's mean and spread
             r0, r1 = _initial_radiometry(tpl, g)
         r1f = r1.to(f32)[:, None]
@@ -166,12 +168,10 @@ def lsm_align(
         # starts equally aligned wherever it sits in the batch, and the batched product
         # takes the same path for it (unaligned rows were seen to round differently)
         # (one buffer for all iterations: the padding and the row of ones are written once)
-        Jm = jm_buf[:n]
         sxy = Jm[:, :2, :P].view(n, 2, S, S)
         torch.sub(vals[:, 1:-1, 2:], vals[:, 1:-1, :-2], out=sxy[:, 0])
         torch.sub(vals[:, 2:, 1:-1], vals[:, :-2, 1:-1], out=sxy[:, 1])
         sxy.mul_((0.5 * r1f)[:, :, None, None])
-        Jm[:, 3, :P] = g
         if affine:
             torch.mul(Jm[:, :2, None, :P], u.T[None, None], out=Jm[:, 4:8, :P].view(n, 2, 2, P))
         torch.sub(tpl, r0.to(f32)[:, None] + r1f * g, out=Jm[:, n_par, :P])  # residuals e
