@@ -23,6 +23,11 @@ finer view's own). The Gaussian is approximated by the mean of 4 bicubic samples
 ``(+-sigma, +-sigma)`` along the image axes (the variance of a Gaussian of ``sigma`` on each
 axis), so the smoothing costs samples at the affected matches only and stays per match; a
 3 x 3 stencil of the same variance was measured slightly more accurate at over twice the cost.
+Smoothing whole images once per blur level instead (kornia's ``gaussian_blur2d``) would cost
+more than the samples: an image is loaded many times per run and a match's blur varies
+continuously. Smoothing a crop around each match once costs about what the samples it saves
+cost, as the crop must cover the whole iteration. A 3-sample stencil of the same mean and
+covariance (a triangle) skews the blur and loses accuracy (docs/results.md).
 """
 
 from __future__ import annotations
