@@ -54,6 +54,8 @@ DEFAULT_TOL_PX = 1e-3
 _MAX_SCALE = 2.0
 #: gains r1 outside [1 / _MAX_GAIN, _MAX_GAIN] mark a degenerate alignment.
 _MAX_GAIN = 5.0
+#: the 4 blur taps (i, j) of a blurred read: the sample at t + i step_x + j step_y.
+_BLUR_TAPS = ((-1, -1), (1, -1), (-1, 1), (1, 1))
 
 #: ``sampler(rows, A, t, radius)`` -> (n, S, S) values of the search images at the
 #: common-frame offsets ``t + A u`` from each match's centre, u on the (S = 2 radius + 1)^2
@@ -154,7 +156,9 @@ def lsm_align(
         if n == 0:
             break
         vals = sampler(act, A, t, radius + 1).to(f32)  # (n, S + 2, S + 2)
-        g = vals[:, 1:-1, 1:-1].reshape(n, P)
+        Jm = jm_buf[:n]
+        Jm[:, 3, :P].view(n, S, S).copy_(vals[:, 1:-1, 1:-1])
+        g = Jm[:, 3, :P]  # the patch, row 3 of the Jacobian (the gain's column)
         if it == 0:  # radiometry matching the first patch's mean and spread
             r0, r1 = _initial_radiometry(tpl, g)
         r1f = r1.to(f32)[:, None]
@@ -164,12 +168,10 @@ def lsm_align(
         # starts equally aligned wherever it sits in the batch, and the batched product
         # takes the same path for it (unaligned rows were seen to round differently)
         # (one buffer for all iterations: the padding and the row of ones are written once)
-        Jm = jm_buf[:n]
         sxy = Jm[:, :2, :P].view(n, 2, S, S)
         torch.sub(vals[:, 1:-1, 2:], vals[:, 1:-1, :-2], out=sxy[:, 0])
         torch.sub(vals[:, 2:, 1:-1], vals[:, :-2, 1:-1], out=sxy[:, 1])
         sxy.mul_((0.5 * r1f)[:, :, None, None])
-        Jm[:, 3, :P] = g
         if affine:
             torch.mul(Jm[:, :2, None, :P], u.T[None, None], out=Jm[:, 4:8, :P].view(n, 2, 2, P))
         torch.sub(tpl, r0.to(f32)[:, None] + r1f * g, out=Jm[:, n_par, :P])  # residuals e
@@ -273,18 +275,25 @@ def frame_sampler(
     H_inv: torch.Tensor,
     centres: torch.Tensor,
     mode: str = "bicubic",
+    blur: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> Sampler:
     """A :data:`Sampler` of the rectified search images: match j reads its image at
     ``H_inv[j] (centres[j] + t + A u)``.
 
     The map from the grid ``u`` to ``grid_sample`` coordinates is composed per match in
-    float64 (elementwise), then evaluated in float32 once per grid column and row.
+    float64 (elementwise), then evaluated in float32 once per grid column and row. A blurred
+    match's 4 shifted reads are 4 more maps in the same ``grid_sample`` calls (one call per
+    image of the matches read), and their mean is summed in a fixed order per match.
 
     Args:
         image: (H, W) float32, or an :class:`~.warping.ImageStack` with one image per match.
         H_inv: (J, 3, 3) float64, common frame -> image pixels (integer = pixel centre).
         centres: (J, 2) float64 common-frame centre of each match.
         mode: ``grid_sample`` interpolation, "bicubic" or "bilinear" (for comparison).
+        blur: None, or ((J,) bool ``on``, (J, 2, 2) float64 ``step``): match j with ``on``
+            reads the mean of the 4 samples at ``t + step[j] o``, o in {-1, 1}^2 (the
+            columns of ``step``: frame offsets of one blur step along the image's x and y;
+            see :mod:`.lsm_step`).
     """
 
     J = centres.shape[0]
@@ -303,6 +312,28 @@ def frame_sampler(
     B = _mul3(Sm, H_inv.to(f64))
 
     def sample(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
+        if blur is None:
+            return read(rows, A, t, radius)
+        on = blur[0][rows]
+        if not bool(on.any()):
+            return read(rows, A, t, radius)
+        sel, keep = torch.nonzero(on)[:, 0], torch.nonzero(~on)[:, 0]
+        nb, nk, side = sel.numel(), keep.numel(), 2 * radius + 1
+        st, t_s = blur[1][rows[sel]], t[sel]
+        t4 = torch.stack([t_s + i * st[:, :, 0] + j * st[:, :, 1] for i, j in _BLUR_TAPS], dim=1)
+        v = read(torch.cat([rows[keep], rows[sel].repeat_interleave(len(_BLUR_TAPS))]),
+                 torch.cat([A[keep], A[sel].repeat_interleave(len(_BLUR_TAPS), dim=0)]),
+                 torch.cat([t[keep], t4.view(-1, 2)]), radius)
+        out = torch.empty((rows.numel(), side, side), dtype=torch.float32, device=t.device)
+        out[keep] = v[:nk]
+        taps = v[nk:].view(nb, len(_BLUR_TAPS), side, side)
+        acc = taps[:, 0] + taps[:, 1]
+        for k in range(2, len(_BLUR_TAPS)):
+            acc += taps[:, k]
+        out[sel] = acc / len(_BLUR_TAPS)
+        return out
+
+    def read(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
         n = rows.numel()
         Br = B[rows]
         c = centres[rows] + t

@@ -23,6 +23,11 @@ finer view's own). The Gaussian is approximated by the mean of 4 bicubic samples
 ``(+-sigma, +-sigma)`` along the image axes (the variance of a Gaussian of ``sigma`` on each
 axis), so the smoothing costs samples at the affected matches only and stays per match; a
 3 x 3 stencil of the same variance was measured slightly more accurate at over twice the cost.
+Smoothing whole images once per blur level instead (kornia's ``gaussian_blur2d``) would cost
+more than the samples: an image is loaded many times per run and a match's blur varies
+continuously. Smoothing a crop around each match once costs about what the samples it saves
+cost, as the crop must cover the whole iteration. A 3-sample stencil of the same mean and
+covariance (a triangle) skews the blur and loses accuracy (docs/results.md).
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy as np
 import torch
 
 from .config import NCCConfig
-from .lsm import Sampler, frame_sampler, lsm_align
+from .lsm import frame_sampler, lsm_align
 from .warping import ImageStack
 
 #: smallest template radius (pixels) of keypoint-sized LSM templates.
@@ -96,12 +101,12 @@ def lsm_step(
         sub_f = img_f.rows(rows) if isinstance(img_f, ImageStack) else img_f
         sub_m = img_m.rows(rows) if isinstance(img_m, ImageStack) else img_m
         every = torch.arange(k, device=dev)
-        samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows])
-        samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows])
+        blur_f = blur_m = None
         if cfg.lsm_antialias > 0:
-            samp_f, samp_m = _antialiased(samp_f, samp_m, H_f_inv[rows], frame_f[rows],
-                                          H_m_inv[rows], frame_m[rows] + offset[rows],
-                                          cfg.lsm_antialias)
+            blur_f, blur_m = _antialias_blur(H_f_inv[rows], frame_f[rows], H_m_inv[rows],
+                                             frame_m[rows] + offset[rows], cfg.lsm_antialias)
+        samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur=blur_f)
+        samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur=blur_m)
         tpl = samp_f(every, eye, zero, r)
         res = lsm_align(samp_m, tpl, offset[rows],
                         affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
@@ -129,32 +134,12 @@ def frame_jacobian(H_inv: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     return (H_inv[:, :2, :2] - x * H_inv[:, 2:, :2]) / w
 
 
-def _blurred(sampler: Sampler, step: torch.Tensor, blur: torch.Tensor) -> Sampler:
-    """``sampler`` whose matches ``blur`` ((n,) bool) are read as the mean of the 4 samples
-    ``t + step o``, o in {-1, 1}^2 (``step`` (n, 2, 2) float64: columns = the frame offsets of
-    one step along the image's x and y)."""
-    offsets = [(i, j) for j in (-1, 1) for i in (-1, 1)]
-
-    def sample(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
-        out = sampler(rows, A, t, radius)
-        on = blur[rows]
-        if not bool(on.any()):
-            return out
-        sel = torch.nonzero(on)[:, 0]
-        sub, A_s, t_s, st = rows[sel], A[sel], t[sel], step[rows[sel]]
-        acc = torch.zeros_like(out[sel])
-        for i, j in offsets:
-            acc += sampler(sub, A_s, t_s + i * st[:, :, 0] + j * st[:, :, 1], radius)
-        out[sel] = acc / len(offsets)
-        return out
-
-    return sample
-
-
-def _antialiased(samp_f: Sampler, samp_m: Sampler, H_f_inv: torch.Tensor, at_f: torch.Tensor,
-                 H_m_inv: torch.Tensor, at_m: torch.Tensor, base_px: float) -> tuple[Sampler, Sampler]:
-    """The two samplers with the finer view of each match smoothed to the coarser one's blur
-    (see the module docstring); ``at_f`` / ``at_m`` (n, 2) frame points of the match."""
+def _antialias_blur(H_f_inv: torch.Tensor, at_f: torch.Tensor, H_m_inv: torch.Tensor,
+                    at_m: torch.Tensor, base_px: float
+                    ) -> tuple[tuple[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
+    """The ``blur`` arguments of :func:`.lsm.frame_sampler` for the fixed and the moving side:
+    the finer view of each match smoothed to the coarser one's blur (see the module
+    docstring); ``at_f`` / ``at_m`` (n, 2) frame points of the match."""
     J_f, J_m = frame_jacobian(H_f_inv, at_f), frame_jacobian(H_m_inv, at_m)
     s_f = torch.linalg.det(J_f).abs().sqrt()
     s_m = torch.linalg.det(J_m).abs().sqrt()
@@ -164,5 +149,4 @@ def _antialiased(samp_f: Sampler, samp_m: Sampler, H_f_inv: torch.Tensor, at_f: 
     # one step of sigma image pixels along the image's axes, in frame pixels: J^-1 sigma
     step_f = torch.linalg.inv(J_f) * sigma[:, None, None]
     step_m = torch.linalg.inv(J_m) * sigma[:, None, None]
-    return (_blurred(samp_f, step_f, blur & (s_f > s_m)),
-            _blurred(samp_m, step_m, blur & (s_m > s_f)))
+    return (blur & (s_f > s_m), step_f), (blur & (s_m > s_f), step_m)
