@@ -239,8 +239,8 @@ class TrackConfig:
             template from the aligned patches, then align to it); 0: the star pass alone.
         multiphoto_star_first: the joint step first aligns every observation to the anchor
             alone (the star of pairwise alignments, from the walk's result), then runs the
-            consensus passes from there. False: the first template is built at the walk's
-            positions.
+            consensus passes from there. False (default): the first template is built at the
+            walk's positions.
     """
 
     max_images_in_memory: int = 8
@@ -249,7 +249,7 @@ class TrackConfig:
     align_to_anchor: bool = False
     multiphoto_lsm: bool = False
     multiphoto_iterations: int = 3
-    multiphoto_star_first: bool = True
+    multiphoto_star_first: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.multiphoto_iterations <= 10:

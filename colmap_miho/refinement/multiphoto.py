@@ -94,7 +94,7 @@ def joint_lsm(
     cfg: NCCConfig,
     iterations: int,
     *,
-    star_first: bool = True,
+    star_first: bool = False,
 ) -> JointResult:
     """Align the observations of tracks jointly to leave-one-out consensus templates.
 
@@ -114,7 +114,9 @@ def joint_lsm(
             early once no accepted shift changes by ``lsm_tol_px``.
         star_first: before them, one pass that aligns every observation to the reference
             alone (the star of pairwise alignments), so that the first consensus template
-            is built from aligned patches.
+            is built from aligned patches. Needed from a poor start: each consensus pass
+            removes only part of the template's misalignment (the other views' errors are
+            in it). After the walk the start is already aligned.
     Returns:
         :class:`JointResult`.
     """
@@ -221,7 +223,7 @@ def _coarsest_blur(samp: Sampler, H_inv: torch.Tensor, centres: torch.Tensor, tr
 
 
 def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
-               star_first: bool = True) -> None:
+               star_first: bool = False) -> None:
     """Run :func:`joint_lsm` on the tracks the walk reached and write the accepted moves into
     ``ctx`` (positions, displacements, ``refined_against`` = the anchor) and its stats.
 
@@ -237,9 +239,11 @@ def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
     anchor_of_track = np.full(int(plan.track.max(initial=-1)) + 1, -1, np.int64)
     anchor_of_track[plan.track[plan.anchors]] = plan.anchors
     nodes = np.flatnonzero(reach)
-    if nodes.size:
-        ok_img = np.array([ctx.images.get(int(i)) is not None for i in plan.node_image[nodes]])
-        nodes = nodes[ok_img]
+    loaded = {i: ctx.images.get(i) for i in np.unique(plan.node_image[nodes]).tolist()}
+    gray = {i: ctx.gray[i] if i in ctx.gray else to_gray_tensor(img, device)
+            for i, img in loaded.items() if img is not None}  # each image converted once
+    del loaded
+    nodes = nodes[np.isin(plan.node_image[nodes], list(gray))]
     trk = plan.track[nodes]
     is_ref = anchor_of_track[trk] == nodes
     has_ref = np.zeros(anchor_of_track.size, bool)
@@ -260,15 +264,16 @@ def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
         while hi < starts.size and ends[hi] - starts[lo] <= CHUNK_OBSERVATIONS:
             hi += 1
         seg = slice(int(starts[lo]), int(ends[hi - 1]))
-        _joint_chunk(ctx, nodes[seg], trk[seg], is_ref[seg], device, (iterations, star_first),
+        _joint_chunk(ctx, gray, nodes[seg], trk[seg], is_ref[seg], (iterations, star_first),
                      anchor_of_track)
         lo = hi
 
 
-def _joint_chunk(ctx: WalkState, nodes: np.ndarray, trk: np.ndarray, is_ref: np.ndarray,
-                 device: torch.device, passes: tuple[int, bool], anchor_of_track: np.ndarray) -> None:
-    """One batched :func:`joint_lsm` call over whole tracks (``nodes`` grouped by track);
-    ``passes`` = (iterations, star_first)."""
+def _joint_chunk(ctx: WalkState, gray: dict, nodes: np.ndarray, trk: np.ndarray, is_ref: np.ndarray,
+                 passes: tuple[int, bool], anchor_of_track: np.ndarray) -> None:
+    """One batched :func:`joint_lsm` call over whole tracks (``nodes`` grouped by track) on
+    the images ``gray`` (image id -> (H, W) float32 tensor); ``passes`` = (iterations,
+    star_first)."""
     plan = ctx.plan
     assert ctx.to_ref is not None
     img_of, kp_of = plan.node_image[nodes], plan.node_kp[nodes]
@@ -284,15 +289,8 @@ def _joint_chunk(ctx: WalkState, nodes: np.ndarray, trk: np.ndarray, is_ref: np.
     H = Td @ H  # the chain, translated to the walk's position
     ids = list(dict.fromkeys(img_of.tolist()))
     slot = {i: k for k, i in enumerate(ids)}
-    tensors = []
-    for i in ids:
-        if i not in ctx.gray:
-            img = ctx.images.get(i)
-            assert img is not None  # nodes of missing images were dropped
-            tensors.append(to_gray_tensor(img, device))
-        else:
-            tensors.append(ctx.gray[i])
-    stack = ImageStack.build(tensors, [slot[i] for i in img_of.tolist()], device)
+    device = gray[ids[0]].device
+    stack = ImageStack.build([gray[i] for i in ids], [slot[i] for i in img_of.tolist()], device)
     _, tr_local = np.unique(trk, return_inverse=True)
     f64 = torch.float64
     H_t = torch.as_tensor(H, dtype=f64, device=device)
