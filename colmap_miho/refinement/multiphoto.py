@@ -40,6 +40,7 @@ radius (``lsm_radius`` or ``template_radius``) for all.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -60,9 +61,9 @@ MIN_OBSERVATIONS = 3
 #: observations per batched call at most (whole tracks; a larger track is a call alone).
 CHUNK_OBSERVATIONS = 4096
 #: counters of the joint pass, in the refine stats: tracks and non-reference observations
-#: aligned, then the outcome of each observation.
+#: aligned, the outcome of each observation, and the pass's wall-clock seconds.
 MULTIPHOTO_COUNTERS = ("joint_tracks", "joint_observations", "joint_applied",
-                       "joint_not_converged", "joint_far", "joint_imprecise")
+                       "joint_not_converged", "joint_far", "joint_imprecise", "joint_seconds")
 
 
 @dataclass(frozen=True)
@@ -128,7 +129,7 @@ def joint_lsm(
         return JointResult(torch.zeros((0, 2), dtype=f64, device=dev),
                            torch.zeros(0, dtype=f64, device=dev),
                            torch.zeros(0, dtype=torch.bool, device=dev),
-                           dict.fromkeys(MULTIPHOTO_COUNTERS[2:], 0))
+                           dict.fromkeys(MULTIPHOTO_COUNTERS[2:6], 0))
     T = int(track.max()) + 1
     radius = cfg.lsm_radius or cfg.template_radius
     samp = frame_sampler(images, H_inv, centres)
@@ -230,9 +231,18 @@ def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
     The observations are the track's keypoints with a chain from the anchor
     (:attr:`~.walk_calls.WalkState.to_ref` finite), in tracks of at least
     :data:`MIN_OBSERVATIONS` of them, in images that load."""
-    plan, to_ref = ctx.plan, ctx.to_ref
+    t0 = time.perf_counter()
     for key in MULTIPHOTO_COUNTERS:
         ctx.stats.setdefault(key, 0)
+    try:
+        _joint_tracks(ctx, device, iterations, star_first)
+    finally:
+        ctx.stats["joint_seconds"] += time.perf_counter() - t0
+
+
+def _joint_tracks(ctx: WalkState, device: torch.device, iterations: int, star_first: bool) -> None:
+    """The body of :func:`joint_pass`."""
+    plan, to_ref = ctx.plan, ctx.to_ref
     if to_ref is None or plan.anchors.size == 0:
         return
     reach = np.isfinite(to_ref).all(axis=(1, 2)) & (plan.track >= 0)
