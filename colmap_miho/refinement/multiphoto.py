@@ -1,15 +1,23 @@
 """Joint multi-photo least-squares matching of whole tracks, after the walk.
 
-The walk aligns each keypoint to one fixed neighbour, so the image noise of that neighbour's
-patch is copied into the alignment. Here every track of at least ``MIN_OBSERVATIONS``
+The walk aligns each keypoint to one fixed neighbour (the anchor, or a partner that may have
+moved itself), whose patch alone is the template. Here every track of at least ``MIN_OBSERVATIONS``
 observations is aligned jointly, in the spirit of multi-photo LSM (Gruen & Baltsavias): the
 reference observation (the track's anchor, which never moves) defines the geometry (the
 common frame is the anchor image's pixels, centred on the anchor keypoint), and every other
 observation is aligned by :func:`.lsm.lsm_align` (affine + gain/offset) to a *consensus
 template*: the mean of the track's patches, each read at its current alignment and brought
 to the reference's radiometry (``r0 + r1 g``), the reference's own patch included. The
-passes iterate (align -> rebuild the template -> align), so the template's noise falls with
-the number of views instead of being the reference's alone.
+passes iterate (rebuild the template -> align), starting from the walk's positions (or, with
+``star_first``, from one pass against the reference alone).
+
+With the reference held fixed, each view's error at the joint fixed point is, to first order
+in the image noise, its own noise less the reference's, as for the star of pairwise
+alignments to the reference: the reference's noise is common to the track (a consistent
+shift of the point in the reference frame). The consensus changes the non-linear part: a
+template that is not one view's appearance, so more patches converge and pass the precision
+gate. Each consensus pass removes only part of the template's misalignment (the other views'
+errors are in it), so from a poor start the star pass should come first.
 
 Each observation's template leaves its own patch out (leave-one-out mean): a template that
 held it would pull the alignment towards its current position by a share of 1 / (number of
