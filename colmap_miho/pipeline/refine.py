@@ -150,10 +150,12 @@ def _merge_walk_stats(plan_stats: dict, parts: list[dict]) -> dict:
     """The plan's stats, the groups' counters summed (``levels``, ``missing_images``: the
     largest of one group)."""
     from ..refinement.lsm_step import LSM_COUNTERS
+    from ..refinement.multiphoto import MULTIPHOTO_COUNTERS
     from ..refinement.tracks import WALK_COUNTERS
 
     stats = dict(plan_stats)
-    for key in WALK_COUNTERS + LSM_COUNTERS + ("missing_images", "images_loaded", "image_decodes", "seconds"):
+    for key in (WALK_COUNTERS + LSM_COUNTERS + MULTIPHOTO_COUNTERS
+                + ("missing_images", "images_loaded", "image_decodes", "seconds")):
         vals = [st[key] for st in parts if key in st]
         if vals:
             stats[key] = max(vals) if key in ("levels", "missing_images") else sum(vals)

@@ -238,14 +238,31 @@ class TrackConfig:
             rectified through the chain of patch homography pairs that leads to it, so the
             errors of the keypoints between do not add up along the chain. False: each
             keypoint is aligned to its partner (which may itself have just moved).
+        multiphoto_lsm: after the walk, align every observation of each track of three or
+            more jointly to a consensus template of all of them, the anchor held fixed
+            (:mod:`colmap_miho.refinement.multiphoto`; uses the ``lsm_*`` fields of
+            :class:`NCCConfig`). False: the walk's result stands.
+        multiphoto_iterations: in [0, 10], consensus passes of the joint step (rebuild the
+            template from the aligned patches, then align to it); 0: the star pass alone.
+        multiphoto_star_first: the joint step first aligns every observation to the anchor
+            alone (the star of pairwise alignments, from the walk's result), then runs the
+            consensus passes from there. False (default): the first template is built at the
+            walk's positions.
     """
 
     max_images_in_memory: int = 8
     batch_pairs: bool | None = None
     duplicate_px: float = 1.0
     align_to_anchor: bool = False
+    multiphoto_lsm: bool = False
+    multiphoto_iterations: int = 3
+    multiphoto_star_first: bool = False
 
     def __post_init__(self) -> None:
+        if not 0 <= self.multiphoto_iterations <= 10:
+            raise ValueError(f"multiphoto_iterations must be in [0, 10], got {self.multiphoto_iterations}")
+        if self.multiphoto_iterations == 0 and not self.multiphoto_star_first:
+            raise ValueError("multiphoto_iterations = 0 needs multiphoto_star_first (no pass left)")
         if not self.duplicate_px >= 0:
             raise ValueError(f"duplicate_px must be >= 0 pixels, got {self.duplicate_px}")
         if self.max_images_in_memory < 2:

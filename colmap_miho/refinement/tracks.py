@@ -70,7 +70,9 @@ class TrackRefineResult:
             unrefined because an image was missing), ``missing_images``, ``refine_calls``,
             ``images_loaded`` (distinct images read), ``image_decodes`` (image files the
             walk decoded, only when ``images`` counts them in ``decodes``, like
-            :class:`~colmap_miho.adapters.images.ImageLoader`), ``seconds``.
+            :class:`~colmap_miho.adapters.images.ImageLoader`), ``seconds``; with
+            ``TrackConfig.multiphoto_lsm`` the joint pass's
+            :data:`~.multiphoto.MULTIPHOTO_COUNTERS` too.
             The result holds the images of the plan's keypoints only (for a group of
             :meth:`~.plan.TrackPlan.groups`: its own images).
     """
@@ -272,6 +274,7 @@ def walk_tracks(
         of_track[plan.track[plan.anchors]] = plan.anchors
         has = plan.track >= 0
         anchor_of[has] = of_track[plan.track[has]]
+    if trk_cfg.align_to_anchor or trk_cfg.multiphoto_lsm:  # each node's chain from its anchor
         to_ref = np.full((plan.num_nodes, 3, 3), np.nan)
         to_ref[plan.anchors] = np.eye(3)
     ctx = WalkState(plan, out_kp, affines, source, ncc_cfg, refine_fn, score,
@@ -304,6 +307,11 @@ def walk_tracks(
                     advance(grp.size)
             for grp in groups:
                 fixed[grp.free] = True
+        if trk_cfg.multiphoto_lsm:
+            from .multiphoto import joint_pass
+
+            joint_pass(ctx, batched or resolve_device(ncc_cfg.device), trk_cfg.multiphoto_iterations,
+                       star_first=trk_cfg.multiphoto_star_first)
     finally:
         if bar is not None:
             bar.close()

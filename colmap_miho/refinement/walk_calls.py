@@ -108,7 +108,8 @@ class WalkState:
     stats: dict
     gray: dict = field(default_factory=dict)
     #: (T, 3, 3) float64 map from the reference image's pixels to each fixed node's image
-    #: pixels (identity at the references), or None: every keypoint is aligned to its partner
+    #: pixels (identity at the references), or None where neither ``align_to_anchor`` nor the
+    #: joint pass (``multiphoto_lsm``) reads it
     to_ref: np.ndarray | None = None
 
 

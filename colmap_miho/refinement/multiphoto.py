@@ -1,0 +1,330 @@
+"""Joint multi-photo least-squares matching of whole tracks, after the walk.
+
+The walk aligns each keypoint to one fixed neighbour (the anchor, or a partner that may have
+moved itself), whose patch alone is the template. Here every track of at least ``MIN_OBSERVATIONS``
+observations is aligned jointly, in the spirit of multi-photo LSM (Gruen & Baltsavias): the
+reference observation (the track's anchor, which never moves) defines the geometry (the
+common frame is the anchor image's pixels, centred on the anchor keypoint), and every other
+observation is aligned by :func:`.lsm.lsm_align` (affine + gain/offset) to a *consensus
+template*: the mean of the track's patches, each read at its current alignment and brought
+to the reference's radiometry (``r0 + r1 g``), the reference's own patch included. The
+passes iterate (rebuild the template -> align), starting from the walk's positions (or, with
+``star_first``, from one pass against the reference alone).
+
+With the reference held fixed, each view's error at the joint fixed point is, to first order
+in the image noise, its own noise less the reference's, as for the star of pairwise
+alignments to the reference: the reference's noise is common to the track (a consistent
+shift of the point in the reference frame). The consensus changes the non-linear part: a
+template that is not one view's appearance, so more patches converge and pass the precision
+gate. Each consensus pass removes only part of the template's misalignment (the other views'
+errors are in it), so from a poor start the star pass should come first.
+
+Each observation's template leaves its own patch out (leave-one-out mean): a template that
+held it would pull the alignment towards its current position by a share of 1 / (number of
+patches). Observations not accepted in a pass (see below) leave the template for the next
+one and restart from the walk's position. A track of 3 observations thus aligns each
+non-reference view to the mean of the reference and the other view.
+
+Maps between views: the walk composes, for every keypoint it reached, the patch homography
+pairs along its chain from the anchor (:attr:`.walk_calls.WalkState.to_ref`: anchor-image
+pixels -> its image pixels). Its translation is replaced by the walk's result (the chain maps
+the anchor keypoint to the walk's position), so the pass starts where the walk ended and the
+chain only supplies the local shape of the map, which LSM's affine refines.
+
+Acceptance is the pairwise LSM step's (:mod:`.lsm_step`): converged at the last pass, the
+shift from the walk's position within ``lsm_max_shift_px``, the shift's a-posteriori
+standard deviation below ``lsm_max_sigma_px``. An accepted observation moves to
+``H_inv (c + t)``; the others keep the walk's result. Every observation is thus aligned
+relative to the same fixed reference; its final position is the walk's or this pass's.
+
+Anti-aliasing (``lsm_antialias`` > 0): every observation is smoothed to the blur of the
+track's coarsest view (the smallest local scale ``sqrt |det J|`` of its frame -> image map),
+with :mod:`.lsm_step`'s 4-sample Gaussian, so all patches of the consensus carry one blur.
+
+Batched in torch on the device of the walk; observations are processed in chunks of whole
+tracks. Per-keypoint template radius (``lsm_radius_per_scale``) is not used here: one
+radius (``lsm_radius`` or ``template_radius``) for all.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from .config import NCCConfig
+from .lsm import Sampler, frame_sampler, lsm_align
+from .lsm_step import MIN_BLUR_PX, _blurred, frame_jacobian
+from .search import to_frame
+from .warping import ImageStack, to_gray_tensor
+
+if TYPE_CHECKING:
+    from .walk_calls import WalkState
+
+#: tracks with fewer observations (reference included) are left to the walk.
+MIN_OBSERVATIONS = 3
+#: observations per batched call at most (whole tracks; a larger track is a call alone).
+CHUNK_OBSERVATIONS = 4096
+#: counters of the joint pass, in the refine stats: tracks and non-reference observations
+#: aligned, the outcome of each observation, and the pass's wall-clock seconds.
+MULTIPHOTO_COUNTERS = ("joint_tracks", "joint_observations", "joint_applied",
+                       "joint_not_converged", "joint_far", "joint_imprecise", "joint_seconds")
+
+
+@dataclass(frozen=True)
+class JointResult:
+    """Output of :func:`joint_lsm` (N observations; common-frame pixels).
+
+    Attributes:
+        shift: (N, 2) float64 final shift t from each observation's start (0 for references
+            and for observations not accepted).
+        sigma_max: (N,) float64 largest semi-axis of t's standard error ellipse (+inf for
+            references).
+        accepted: (N,) bool observations moved (never a reference).
+        counts: ``joint_applied``, ``joint_not_converged``, ``joint_far``, ``joint_imprecise``
+            over the non-reference observations.
+    """
+
+    shift: torch.Tensor
+    sigma_max: torch.Tensor
+    accepted: torch.Tensor
+    counts: dict
+
+
+def joint_lsm(
+    images: torch.Tensor | ImageStack,
+    H_inv: torch.Tensor,
+    centres: torch.Tensor,
+    track: torch.Tensor,
+    is_ref: torch.Tensor,
+    cfg: NCCConfig,
+    iterations: int,
+    *,
+    star_first: bool = False,
+) -> JointResult:
+    """Align the observations of tracks jointly to leave-one-out consensus templates.
+
+    Args:
+        images: (H, W) float32 image, or an :class:`~.warping.ImageStack` with one image per
+            observation (N rows).
+        H_inv: (N, 3, 3) float64 common frame (the track's reference image pixels) -> the
+            observation's image pixels; ``H_inv[o] (centres[o])`` is its start position.
+        centres: (N, 2) float64 the track's reference keypoint (common frame), the same for
+            all observations of a track.
+        track: (N,) int64 track of each observation, 0..T-1.
+        is_ref: (N,) bool, exactly one reference per track (held fixed; its ``H_inv`` maps
+            the frame to its own image).
+        cfg: ``lsm_*`` fields of :class:`~.config.NCCConfig` (radius, affine, iterations,
+            tolerance, shift and precision bounds, anti-aliasing).
+        iterations: consensus passes (rebuild the template -> align), >= 0; stops
+            early once no accepted shift changes by ``lsm_tol_px``.
+        star_first: before them, one pass that aligns every observation to the reference
+            alone (the star of pairwise alignments), so that the first consensus template
+            is built from aligned patches. Needed from a poor start: each consensus pass
+            removes only part of the template's misalignment (the other views' errors are
+            in it). After the walk the start is already aligned.
+    Returns:
+        :class:`JointResult`.
+    """
+    if iterations < 0 or iterations + star_first < 1:
+        raise ValueError(f"joint_lsm needs a pass: iterations={iterations}, star_first={star_first}")
+    N = H_inv.shape[0]
+    dev, f64 = H_inv.device, torch.float64
+    if N == 0:
+        return JointResult(torch.zeros((0, 2), dtype=f64, device=dev),
+                           torch.zeros(0, dtype=f64, device=dev),
+                           torch.zeros(0, dtype=torch.bool, device=dev),
+                           dict.fromkeys(MULTIPHOTO_COUNTERS[2:6], 0))
+    T = int(track.max()) + 1
+    radius = cfg.lsm_radius or cfg.template_radius
+    samp = frame_sampler(images, H_inv, centres)
+    if cfg.lsm_antialias > 0:
+        samp = _coarsest_blur(samp, H_inv, centres, track, T, cfg.lsm_antialias)
+    ref_of = torch.zeros(T, dtype=torch.int64, device=dev)
+    ref_rows = torch.nonzero(is_ref)[:, 0]
+    ref_of[track[ref_rows]] = ref_rows
+    mov = torch.nonzero(~is_ref)[:, 0]
+    every = torch.arange(N, device=dev)
+    eye = torch.eye(2, dtype=f64, device=dev).expand(N, 2, 2).clone()
+    t = torch.zeros((N, 2), dtype=f64, device=dev)
+    A = eye.clone()
+    g0 = samp(every, A, t, radius).reshape(N, -1)
+    r0_init, r1_init = _match_to(g0, g0[ref_of[track]])
+    r0, r1 = r0_init.clone(), r1_init.clone()
+    member = torch.ones(N, dtype=torch.bool, device=dev)
+    sigma = torch.full((N,), float("inf"), dtype=f64, device=dev)
+    conv = torch.zeros(N, dtype=torch.bool, device=dev)
+
+    def sub(rows: torch.Tensor, A_: torch.Tensor, t_: torch.Tensor, r: int) -> torch.Tensor:
+        return samp(mov[rows], A_, t_, r)
+
+    passes = [True] * star_first + [False] * iterations  # True: the reference alone
+    for it, star in enumerate(passes):
+        g = g0 if it == 0 else samp(every, A, t, radius).reshape(N, -1)
+        tpl = _leave_one_out(r0[:, None] + r1[:, None] * g.to(f64), is_ref if star else member,
+                             track, T)
+        side = 2 * radius + 1
+        res = lsm_align(sub, tpl[mov].to(torch.float32).view(-1, side, side), t[mov],
+                        affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
+                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
+        prev = t[mov].clone()
+        t[mov], A[mov], r0[mov], r1[mov] = res.shift, res.affine, res.offset, res.gain
+        sigma[mov], conv[mov] = res.sigma_max, res.converged
+        ok = _accept(t[mov], sigma[mov], conv[mov], cfg)
+        member[mov] = ok
+        bad = mov[~ok]  # restart from the walk's position, out of the template
+        t[bad], A[bad], r0[bad], r1[bad] = 0.0, eye[bad], r0_init[bad], r1_init[bad]
+        moved = (res.shift - prev)[ok].abs()
+        if it > star_first and (moved.numel() == 0 or float(moved.max()) < cfg.lsm_tol_px):
+            break
+    shift = torch.where(member[:, None] & ~is_ref[:, None], t, 0.0)
+    far = res.shift.abs().amax(dim=1) > cfg.lsm_max_shift_px
+    conv_m, sig_m = res.converged, res.sigma_max
+    not_conv = ~conv_m & ~far
+    imprecise = conv_m & ~far & ~(sig_m <= cfg.lsm_max_sigma_px)
+    accepted = member & ~is_ref
+    counts = {"joint_applied": int(accepted.sum()), "joint_not_converged": int(not_conv.sum()),
+              "joint_far": int(far.sum()), "joint_imprecise": int(imprecise.sum())}
+    sigma_out = torch.where(is_ref, float("inf"), sigma)
+    return JointResult(shift, sigma_out, accepted, counts)
+
+
+def _accept(t: torch.Tensor, sigma: torch.Tensor, conv: torch.Tensor, cfg: NCCConfig) -> torch.Tensor:
+    """(n,) bool: converged, shift within ``lsm_max_shift_px`` of the start, precise."""
+    return conv & (t.abs().amax(dim=1) <= cfg.lsm_max_shift_px) & (sigma <= cfg.lsm_max_sigma_px)
+
+
+def _match_to(g: torch.Tensor, f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(r0, r1) (n,) float64 with ``r0 + r1 g`` of f's mean and spread (r1 = 1 where either
+    is flat); g, f (n, P)."""
+    g, f = g.to(torch.float64), f.to(torch.float64)
+    gm, fm = g.mean(dim=1), f.mean(dim=1)
+    gs, fs = (g - gm[:, None]).std(dim=1), (f - fm[:, None]).std(dim=1)
+    r1 = torch.where((gs > 1e-12) & (fs > 1e-12), fs / gs.clamp_min(1e-12), torch.ones_like(gs))
+    return fm - r1 * gm, r1
+
+
+def _leave_one_out(v: torch.Tensor, member: torch.Tensor, track: torch.Tensor, T: int) -> torch.Tensor:
+    """(N, P) per observation the mean of its track's member patches ``v`` (N, P) other than
+    its own (its own is left out only where it is a member; the reference always is)."""
+    w = member.to(v.dtype)
+    total = torch.zeros((T, v.shape[1]), dtype=v.dtype, device=v.device).index_add_(0, track, v * w[:, None])
+    count = torch.zeros(T, dtype=v.dtype, device=v.device).index_add_(0, track, w)
+    own = (count[track] - w).clamp_min(1.0)
+    return (total[track] - v * w[:, None]) / own[:, None]
+
+
+def _coarsest_blur(samp: Sampler, H_inv: torch.Tensor, centres: torch.Tensor, track: torch.Tensor,
+                   T: int, base_px: float) -> Sampler:
+    """``samp`` with every observation smoothed to the blur of its track's coarsest view (see
+    the module docstring)."""
+    J = frame_jacobian(H_inv, centres)
+    s = torch.linalg.det(J).abs().sqrt()
+    s_min = torch.full((T,), float("inf"), dtype=s.dtype, device=s.device)
+    s_min = s_min.scatter_reduce(0, track, s, reduce="amin")
+    ratio = s / s_min[track].clamp_min(1e-12)
+    sigma = base_px * (ratio.square() - 1).clamp_min(0).sqrt()  # own pixels
+    step = torch.linalg.inv(J) * sigma[:, None, None]
+    return _blurred(samp, step, sigma >= MIN_BLUR_PX)
+
+
+def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
+               star_first: bool = False) -> None:
+    """Run :func:`joint_lsm` on the tracks the walk reached and write the accepted moves into
+    ``ctx`` (positions, displacements, ``refined_against`` = the anchor) and its stats.
+
+    The observations are the track's keypoints with a chain from the anchor
+    (:attr:`~.walk_calls.WalkState.to_ref` finite), in tracks of at least
+    :data:`MIN_OBSERVATIONS` of them, in images that load."""
+    t0 = time.perf_counter()
+    for key in MULTIPHOTO_COUNTERS:
+        ctx.stats.setdefault(key, 0)
+    try:
+        _joint_tracks(ctx, device, iterations, star_first)
+    finally:
+        ctx.stats["joint_seconds"] += time.perf_counter() - t0
+
+
+def _joint_tracks(ctx: WalkState, device: torch.device, iterations: int, star_first: bool) -> None:
+    """The body of :func:`joint_pass`."""
+    plan, to_ref = ctx.plan, ctx.to_ref
+    if to_ref is None or plan.anchors.size == 0:
+        return
+    reach = np.isfinite(to_ref).all(axis=(1, 2)) & (plan.track >= 0)
+    anchor_of_track = np.full(int(plan.track.max(initial=-1)) + 1, -1, np.int64)
+    anchor_of_track[plan.track[plan.anchors]] = plan.anchors
+    nodes = np.flatnonzero(reach)
+    loaded = {i: ctx.images.get(i) for i in np.unique(plan.node_image[nodes]).tolist()}
+    gray = {i: ctx.gray[i] if i in ctx.gray else to_gray_tensor(img, device)
+            for i, img in loaded.items() if img is not None}  # each image converted once
+    del loaded
+    nodes = nodes[np.isin(plan.node_image[nodes], list(gray))]
+    trk = plan.track[nodes]
+    is_ref = anchor_of_track[trk] == nodes
+    has_ref = np.zeros(anchor_of_track.size, bool)
+    has_ref[trk[is_ref]] = True
+    n_obs = np.bincount(trk, minlength=anchor_of_track.size)
+    keep = has_ref[trk] & (n_obs[trk] >= MIN_OBSERVATIONS)
+    nodes, trk, is_ref = nodes[keep], trk[keep], is_ref[keep]
+    if nodes.size == 0:
+        return
+    order = np.argsort(trk, kind="stable")
+    nodes, trk, is_ref = nodes[order], trk[order], is_ref[order]
+    bounds = np.flatnonzero(np.diff(trk)) + 1
+    starts = np.concatenate([[0], bounds])
+    ends = np.concatenate([bounds, [trk.size]])
+    lo = 0
+    while lo < starts.size:  # chunks of whole tracks
+        hi = lo + 1
+        while hi < starts.size and ends[hi] - starts[lo] <= CHUNK_OBSERVATIONS:
+            hi += 1
+        seg = slice(int(starts[lo]), int(ends[hi - 1]))
+        _joint_chunk(ctx, gray, nodes[seg], trk[seg], is_ref[seg], (iterations, star_first),
+                     anchor_of_track)
+        lo = hi
+
+
+def _joint_chunk(ctx: WalkState, gray: dict, nodes: np.ndarray, trk: np.ndarray, is_ref: np.ndarray,
+                 passes: tuple[int, bool], anchor_of_track: np.ndarray) -> None:
+    """One batched :func:`joint_lsm` call over whole tracks (``nodes`` grouped by track) on
+    the images ``gray`` (image id -> (H, W) float32 tensor); ``passes`` = (iterations,
+    star_first)."""
+    plan = ctx.plan
+    assert ctx.to_ref is not None
+    img_of, kp_of = plan.node_image[nodes], plan.node_kp[nodes]
+    anchor = anchor_of_track[trk]
+    pos = np.stack([ctx.pos[int(i)][int(k)] for i, k in zip(img_of, kp_of, strict=True)])
+    c = np.stack([ctx.pos[int(i)][int(k)] for i, k in
+                  zip(plan.node_image[anchor], plan.node_kp[anchor], strict=True)])
+    H = ctx.to_ref[nodes].copy()
+    ch = np.einsum("nij,nj->ni", H, np.concatenate([c, np.ones((c.shape[0], 1))], axis=1))
+    d = pos - ch[:, :2] / ch[:, 2:]
+    Td = np.tile(np.eye(3), (nodes.size, 1, 1))
+    Td[:, :2, 2] = d
+    H = Td @ H  # the chain, translated to the walk's position
+    ids = list(dict.fromkeys(img_of.tolist()))
+    slot = {i: k for k, i in enumerate(ids)}
+    device = gray[ids[0]].device
+    stack = ImageStack.build([gray[i] for i in ids], [slot[i] for i in img_of.tolist()], device)
+    _, tr_local = np.unique(trk, return_inverse=True)
+    f64 = torch.float64
+    H_t = torch.as_tensor(H, dtype=f64, device=device)
+    c_t = torch.as_tensor(c, dtype=f64, device=device)
+    res = joint_lsm(stack, H_t, c_t, torch.as_tensor(tr_local, dtype=torch.int64, device=device),
+                    torch.as_tensor(is_ref, device=device), ctx.ncc_cfg, passes[0],
+                    star_first=passes[1])
+    new = to_frame(H_t, c_t + res.shift).cpu().numpy()
+    acc = res.accepted.cpu().numpy()
+    st = ctx.stats
+    st["joint_tracks"] += int(np.unique(trk).size)
+    st["joint_observations"] += int((~is_ref).sum())
+    for key, val in res.counts.items():
+        st[key] += int(val)
+    for o in np.flatnonzero(acc):
+        i, k = int(img_of[o]), int(kp_of[o])
+        ctx.pos[i][k] = new[o]
+        ctx.out_disp[i][k] = float(np.linalg.norm(new[o] - plan.keypoints[i][k]))
+        ctx.out_against[i][k] = (plan.node_image[anchor[o]], plan.node_kp[anchor[o]])
