@@ -64,6 +64,21 @@ def _adjugate(e, out) -> None:
     out[8] = e[0] * e[4] - e[1] * e[3]
 
 
+def _normalised(e) -> bool:
+    """Scale the 9 entries ``e`` to unit Frobenius norm (in place; the norm at least 1e-300);
+    whether all of them are finite then."""
+    norm = 0.0
+    for a in range(9):
+        norm += e[a] * e[a]
+    norm = max(np.sqrt(norm), 1e-300)
+    finite = True
+    for a in range(9):
+        e[a] /= norm
+        if not np.isfinite(e[a]):
+            finite = False
+    return finite
+
+
 def _basis_map(px, py, A, lam, work):
     """Fill ``A[9]`` (row-major ``P diag(lam)``) and ``lam[3]`` for the 4 points ``px[4]``,
     ``py[4]`` (:func:`.homography._basis_map`); returns ``det(P)``. ``work[18]`` scratch."""
@@ -184,17 +199,12 @@ def _hypotheses(sample, ok, x1, x2, src_all, dst_all, reflection, X, Y, x2p, y2p
             det_p = _basis_map(px, py, A, lam, work)
             det_q = _basis_map(qx, qy, Bm, mu, work)
             _adjugate(A, adjA)
-            norm = 0.0
             for r in range(3):
                 for c in range(3):
-                    v = Bm[3 * r] * adjA[c] + Bm[3 * r + 1] * adjA[3 + c] + Bm[3 * r + 2] * adjA[6 + c]
-                    Hm[3 * r + c] = v
-                    norm += v * v
-            norm = max(np.sqrt(norm), 1e-300)
-            for e in range(9):
-                Hm[e] /= norm
-                if not np.isfinite(Hm[e]):
-                    valid = False
+                    Hm[3 * r + c] = (Bm[3 * r] * adjA[c] + Bm[3 * r + 1] * adjA[3 + c]
+                                     + Bm[3 * r + 2] * adjA[6 + c])
+            if not _normalised(Hm):
+                valid = False
             sl0, sl1, sl2 = _sign(lam[0]), _sign(lam[1]), _sign(lam[2])
             sm0, sm1, sm2 = _sign(mu[0]), _sign(mu[1]), _sign(mu[2])
             sdp, sdq = _sign(det_p), _sign(det_q)
@@ -594,17 +604,11 @@ def _refit(idx, src_all, dst_all, sample):
         for r in range(3):
             for c in range(3):
                 Ht[r, c] = adj[3 * r] * Hn[0, c] + adj[3 * r + 1] * Hn[1, c] + adj[3 * r + 2] * Hn[2, c]
-        norm = 0.0
         for r in range(3):
             for c in range(3):
-                v = Ht[r, 0] * T1[0, c] + Ht[r, 1] * T1[1, c] + Ht[r, 2] * T1[2, c]
-                e[3 * r + c] = v
-                norm += v * v
-        norm = max(np.sqrt(norm), 1e-300)
-        for a in range(9):
-            e[a] /= norm
-            if not np.isfinite(e[a]):
-                return False, H, Hinv, sign, sign_inv
+                e[3 * r + c] = Ht[r, 0] * T1[0, c] + Ht[r, 1] * T1[1, c] + Ht[r, 2] * T1[2, c]
+        if not _normalised(e):
+            return False, H, Hinv, sign, sign_inv
         _adjugate(e, adj)
         for direction in range(2):
             m = e if direction == 0 else adj
@@ -674,7 +678,7 @@ def _jit_all() -> dict[str, Any]:
     # numpy's error model: a float division by zero gives inf / nan (as in numpy), not an
     # exception; those entries fail the sign test.
     jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-    helpers = (_sign, _adjugate, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
+    helpers = (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
                _normalise4, _normalising)
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
