@@ -56,8 +56,8 @@ import numpy as np
 import torch
 
 from .config import NCCConfig
-from .lsm import Sampler, frame_sampler, lsm_align
-from .lsm_step import MIN_BLUR_PX, _blurred, frame_jacobian
+from .lsm import frame_sampler, lsm_align
+from .lsm_step import MIN_BLUR_PX, frame_jacobian
 from .search import to_frame
 from .warping import ImageStack, to_gray_tensor
 
@@ -140,9 +140,9 @@ def joint_lsm(
                            dict.fromkeys(MULTIPHOTO_COUNTERS[2:6], 0))
     T = int(track.max()) + 1
     radius = cfg.lsm_radius or cfg.template_radius
-    samp = frame_sampler(images, H_inv, centres)
-    if cfg.lsm_antialias > 0:
-        samp = _coarsest_blur(samp, H_inv, centres, track, T, cfg.lsm_antialias)
+    blur = (_coarsest_blur(H_inv, centres, track, T, cfg.lsm_antialias)
+            if cfg.lsm_antialias > 0 else None)
+    samp = frame_sampler(images, H_inv, centres, blur=blur)
     ref_of = torch.zeros(T, dtype=torch.int64, device=dev)
     ref_rows = torch.nonzero(is_ref)[:, 0]
     ref_of[track[ref_rows]] = ref_rows
@@ -217,10 +217,10 @@ def _leave_one_out(v: torch.Tensor, member: torch.Tensor, track: torch.Tensor, T
     return (total[track] - v * w[:, None]) / own[:, None]
 
 
-def _coarsest_blur(samp: Sampler, H_inv: torch.Tensor, centres: torch.Tensor, track: torch.Tensor,
-                   T: int, base_px: float) -> Sampler:
-    """``samp`` with every observation smoothed to the blur of its track's coarsest view (see
-    the module docstring)."""
+def _coarsest_blur(H_inv: torch.Tensor, centres: torch.Tensor, track: torch.Tensor,
+                   T: int, base_px: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``blur`` argument of :func:`.lsm.frame_sampler` that smooths every observation to
+    the blur of its track's coarsest view (see the module docstring)."""
     J = frame_jacobian(H_inv, centres)
     s = torch.linalg.det(J).abs().sqrt()
     s_min = torch.full((T,), float("inf"), dtype=s.dtype, device=s.device)
@@ -228,7 +228,7 @@ def _coarsest_blur(samp: Sampler, H_inv: torch.Tensor, centres: torch.Tensor, tr
     ratio = s / s_min[track].clamp_min(1e-12)
     sigma = base_px * (ratio.square() - 1).clamp_min(0).sqrt()  # own pixels
     step = torch.linalg.inv(J) * sigma[:, None, None]
-    return _blurred(samp, step, sigma >= MIN_BLUR_PX)
+    return sigma >= MIN_BLUR_PX, step
 
 
 def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
