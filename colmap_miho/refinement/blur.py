@@ -31,7 +31,6 @@ the stack for those matches only, so a match's result still depends on its own p
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,6 +38,7 @@ import torch
 
 from .lsm import frame_sampler
 from .lsm_step import frame_jacobian
+from .search import to_frame
 from .warping import ImageStack
 
 logger = logging.getLogger(__name__)
@@ -68,24 +68,12 @@ class BlurChoice:
     ncc: tuple[float, float]
 
 
-def _gaussian_kernels(sigmas: tuple[float, ...], margin: int, device: torch.device) -> torch.Tensor:
-    """(L, 2 margin + 1) float32 normalised 1-D Gaussians."""
-    x = torch.arange(-margin, margin + 1, dtype=torch.float32, device=device)
-    k = torch.exp(-0.5 * (x[None] / torch.tensor(sigmas, dtype=torch.float32, device=device)[:, None]) ** 2)
-    return k / k.sum(dim=1, keepdim=True)
-
-
 def _ncc(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """NCC of patches ``a`` and ``b`` (..., n, s, s) -> (..., n)."""
     a = a - a.mean(dim=(-2, -1), keepdim=True)
     b = b - b.mean(dim=(-2, -1), keepdim=True)
     den = (a.square().sum(dim=(-2, -1)) * b.square().sum(dim=(-2, -1))).sqrt().clamp_min(1e-12)
     return (a * b).sum(dim=(-2, -1)) / den
-
-
-def sign_test_p(wins: int, n: int) -> float:
-    """One-sided sign test: the probability of at least ``wins`` of ``n`` fair coin flips."""
-    return sum(math.comb(n, i) for i in range(wins, n + 1)) / 2.0**n
 
 
 def estimate_blur(
@@ -107,6 +95,10 @@ def estimate_blur(
     n = frame1.shape[0]
     if n == 0:
         return BlurChoice(0, 0.0, (float("nan"), float("nan")))
+    # imported here: they take seconds to import, and only this option needs them
+    from kornia.filters import get_gaussian_kernel1d
+    from scipy.stats import binom
+
     margin = int(np.ceil(3 * max(BLUR_LEVELS_PX)))
     big = PATCH_RADIUS + margin
     rows = torch.arange(n, device=frame1.device)
@@ -116,7 +108,8 @@ def estimate_blur(
                for im, Hi, fr in ((image1, H1_inv, frame1), (image2, H2_inv, frame2))]
     centre = slice(margin, margin + 2 * PATCH_RADIUS + 1)
     plain = [p[:, centre, centre] for p in patches]
-    kernels = _gaussian_kernels(BLUR_LEVELS_PX, margin, frame1.device)
+    sigmas = torch.tensor(BLUR_LEVELS_PX, dtype=torch.float32, device=frame1.device)[:, None]
+    kernels = get_gaussian_kernel1d(2 * margin + 1, sigmas, device=frame1.device)  # (L, 2m+1)
     base_each = _ncc(plain[0], plain[1])  # (n,)
     base = float(base_each.median())
     each = [_ncc(sm, plain[1 - side].expand_as(sm))  # 2 x (L, n)
@@ -131,7 +124,7 @@ def estimate_blur(
             if not (scores[side][k] > best[0] and scores[1 - side][k] < base):
                 continue
             wins = int((each[side][k] > each[1 - side][k]).sum())
-            if sign_test_p(wins, n) < level:
+            if binom.sf(wins - 1, n, 0.5) < level:  # one-sided sign test
                 best = (scores[side][k], side + 1, sigma)
     score, side, sigma = best
     if side == 0:
@@ -167,9 +160,7 @@ def _frames(p: np.ndarray, H: np.ndarray, device: torch.device) -> tuple[torch.T
     """Common-frame positions (n, 2) of the pixels ``p`` (n, 2) under ``H`` (n, 3, 3) (image
     -> frame), and the inverse maps (n, 3, 3), float64 on ``device``."""
     Ht = torch.as_tensor(H, dtype=torch.float64, device=device)
-    pt = torch.as_tensor(p, dtype=torch.float64, device=device)
-    xh = Ht[:, :, :2] @ pt[:, :, None] + Ht[:, :, 2:]
-    return (xh[:, :2, 0] / xh[:, 2:, 0]), torch.linalg.inv(Ht)
+    return to_frame(Ht, torch.as_tensor(p, dtype=torch.float64, device=device)), torch.linalg.inv(Ht)
 
 
 def _sample_rows(n: int) -> np.ndarray:
