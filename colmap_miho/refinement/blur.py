@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from .lsm import frame_sampler
-from .lsm_step import frame_jacobian
+from .lsm_step import frame_jacobian, local_scale
 from .search import to_frame
 from .warping import ImageStack
 
@@ -130,7 +130,7 @@ def estimate_blur(
     if side == 0:
         return BlurChoice(0, 0.0, (base, base))
     H_inv, frame = (H1_inv, frame1) if side == 1 else (H2_inv, frame2)
-    scale = float(torch.linalg.det(frame_jacobian(H_inv, frame)).abs().sqrt().median())
+    scale = float(local_scale(frame_jacobian(H_inv, frame)).median())
     return BlurChoice(side, sigma * scale, (base, score))
 
 

@@ -112,16 +112,9 @@ def lsm_step(
                         affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
                         tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
         shift[rows], sigma_max[rows], converged[rows] = res.shift, res.sigma_max, res.converged
-    far = (shift - offset).abs().amax(dim=1) > cfg.lsm_max_shift_px
-    not_conv = ~converged & ~far
-    imprecise = converged & ~far & ~(sigma_max <= cfg.lsm_max_sigma_px)
-    ok = converged & ~far & ~imprecise
-    counts = {
-        "lsm_applied": int(ok.sum()),
-        "lsm_not_converged": int(not_conv.sum()),
-        "lsm_far": int(far.sum()),
-        "lsm_imprecise": int(imprecise.sum()),
-    }
+    outcome = lsm_outcomes(shift - offset, sigma_max, converged, cfg)
+    ok = outcome["applied"]
+    counts = {f"lsm_{key}": int(mask.sum()) for key, mask in outcome.items()}
     return torch.where(ok[:, None], shift, offset), counts, ok
 
 
@@ -141,12 +134,35 @@ def _antialias_blur(H_f_inv: torch.Tensor, at_f: torch.Tensor, H_m_inv: torch.Te
     the finer view of each match smoothed to the coarser one's blur (see the module
     docstring); ``at_f`` / ``at_m`` (n, 2) frame points of the match."""
     J_f, J_m = frame_jacobian(H_f_inv, at_f), frame_jacobian(H_m_inv, at_m)
-    s_f = torch.linalg.det(J_f).abs().sqrt()
-    s_m = torch.linalg.det(J_m).abs().sqrt()
-    ratio = torch.maximum(s_f, s_m) / torch.minimum(s_f, s_m).clamp_min(1e-12)
-    sigma = base_px * (ratio.square() - 1).clamp_min(0).sqrt()  # finer view's pixels
-    blur = sigma >= MIN_BLUR_PX
+    s_f, s_m = local_scale(J_f), local_scale(J_m)
+    coarse = torch.minimum(s_f, s_m)
+    return smoothing_to(J_f, s_f, coarse, base_px), smoothing_to(J_m, s_m, coarse, base_px)
+
+
+def lsm_outcomes(moved: torch.Tensor, sigma_max: torch.Tensor, converged: torch.Tensor,
+                 cfg: NCCConfig) -> dict[str, torch.Tensor]:
+    """The acceptance rule (module docstring) of n LSM results: (n,) bool masks ``applied``,
+    ``not_converged``, ``far``, ``imprecise`` (disjoint, together every match); ``moved``
+    (n, 2) each shift from its start (common-frame pixels), ``sigma_max`` (n,) and
+    ``converged`` (n,) as :class:`.lsm.LSMResult` gives them."""
+    far = moved.abs().amax(dim=1) > cfg.lsm_max_shift_px
+    imprecise = converged & ~far & ~(sigma_max <= cfg.lsm_max_sigma_px)
+    return {"applied": converged & ~far & ~imprecise, "not_converged": ~converged & ~far,
+            "far": far, "imprecise": imprecise}
+
+
+def local_scale(J: torch.Tensor) -> torch.Tensor:
+    """(n,) image pixels per frame pixel, sqrt |det J|, of the (n, 2, 2) Jacobians ``J``."""
+    return torch.linalg.det(J).abs().sqrt()
+
+
+def smoothing_to(J: torch.Tensor, scale: torch.Tensor, coarse: torch.Tensor,
+                 base_px: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``blur`` argument of :func:`.lsm.frame_sampler` that smooths a view (Jacobians ``J``
+    (n, 2, 2), local scale ``scale`` (n,)) to the blur of a coarser view of scale ``coarse``
+    (n,): a Gaussian of ``base_px * sqrt(ratio^2 - 1)`` of its own pixels (ratio = scale /
+    coarse; none where the view is not finer), taken where it reaches ``MIN_BLUR_PX``."""
+    ratio = scale / coarse.clamp_min(1e-12)
+    sigma = base_px * (ratio.square() - 1).clamp_min(0).sqrt()  # this view's pixels
     # one step of sigma image pixels along the image's axes, in frame pixels: J^-1 sigma
-    step_f = torch.linalg.inv(J_f) * sigma[:, None, None]
-    step_m = torch.linalg.inv(J_m) * sigma[:, None, None]
-    return (blur & (s_f > s_m), step_f), (blur & (s_m > s_f), step_m)
+    return sigma >= MIN_BLUR_PX, torch.linalg.inv(J) * sigma[:, None, None]

@@ -57,7 +57,7 @@ import torch
 
 from .config import NCCConfig
 from .lsm import frame_sampler, lsm_align
-from .lsm_step import MIN_BLUR_PX, frame_jacobian
+from .lsm_step import frame_jacobian, local_scale, lsm_outcomes, smoothing_to
 from .search import to_frame
 from .warping import ImageStack, to_gray_tensor
 
@@ -173,7 +173,7 @@ def joint_lsm(
         prev = t[mov].clone()
         t[mov], A[mov], r0[mov], r1[mov] = res.shift, res.affine, res.offset, res.gain
         sigma[mov], conv[mov] = res.sigma_max, res.converged
-        ok = _accept(t[mov], sigma[mov], conv[mov], cfg)
+        ok = lsm_outcomes(t[mov], sigma[mov], conv[mov], cfg)["applied"]
         member[mov] = ok
         bad = mov[~ok]  # restart from the walk's position, out of the template
         t[bad], A[bad], r0[bad], r1[bad] = 0.0, eye[bad], r0_init[bad], r1_init[bad]
@@ -181,20 +181,12 @@ def joint_lsm(
         if it > star_first and (moved.numel() == 0 or float(moved.max()) < cfg.lsm_tol_px):
             break
     shift = torch.where(member[:, None] & ~is_ref[:, None], t, 0.0)
-    far = res.shift.abs().amax(dim=1) > cfg.lsm_max_shift_px
-    conv_m, sig_m = res.converged, res.sigma_max
-    not_conv = ~conv_m & ~far
-    imprecise = conv_m & ~far & ~(sig_m <= cfg.lsm_max_sigma_px)
+    last = lsm_outcomes(res.shift, res.sigma_max, res.converged, cfg)
     accepted = member & ~is_ref
-    counts = {"joint_applied": int(accepted.sum()), "joint_not_converged": int(not_conv.sum()),
-              "joint_far": int(far.sum()), "joint_imprecise": int(imprecise.sum())}
+    counts = {"joint_applied": int(accepted.sum()),
+              **{f"joint_{key}": int(last[key].sum()) for key in ("not_converged", "far", "imprecise")}}
     sigma_out = torch.where(is_ref, float("inf"), sigma)
     return JointResult(shift, sigma_out, accepted, counts)
-
-
-def _accept(t: torch.Tensor, sigma: torch.Tensor, conv: torch.Tensor, cfg: NCCConfig) -> torch.Tensor:
-    """(n,) bool: converged, shift within ``lsm_max_shift_px`` of the start, precise."""
-    return conv & (t.abs().amax(dim=1) <= cfg.lsm_max_shift_px) & (sigma <= cfg.lsm_max_sigma_px)
 
 
 def _match_to(g: torch.Tensor, f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -222,13 +214,10 @@ def _coarsest_blur(H_inv: torch.Tensor, centres: torch.Tensor, track: torch.Tens
     """The ``blur`` argument of :func:`.lsm.frame_sampler` that smooths every observation to
     the blur of its track's coarsest view (see the module docstring)."""
     J = frame_jacobian(H_inv, centres)
-    s = torch.linalg.det(J).abs().sqrt()
+    s = local_scale(J)
     s_min = torch.full((T,), float("inf"), dtype=s.dtype, device=s.device)
     s_min = s_min.scatter_reduce(0, track, s, reduce="amin")
-    ratio = s / s_min[track].clamp_min(1e-12)
-    sigma = base_px * (ratio.square() - 1).clamp_min(0).sqrt()  # own pixels
-    step = torch.linalg.inv(J) * sigma[:, None, None]
-    return sigma >= MIN_BLUR_PX, step
+    return smoothing_to(J, s, s_min[track], base_px)
 
 
 def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
