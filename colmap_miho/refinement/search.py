@@ -13,7 +13,15 @@ import torch
 
 from .config import NCCConfig
 from .correlation import ellipse_masks, find_peaks, ncc_maps, structure_tensor
-from .warping import ImageStack, invert_homographies, project, sample_patches
+from .warping import (
+    ImageStack,
+    invert_homographies,
+    offset_grid,
+    patch_inside,
+    project,
+    sample_patches,
+    sample_values,
+)
 
 
 def to_frame(H: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -34,6 +42,11 @@ def _repeat(image: torch.Tensor | ImageStack, n: int) -> torch.Tensor | ImageSta
     if isinstance(image, ImageStack):
         return ImageStack(image.images, image.slot_sizes, image.index.repeat(n))
     return image
+
+
+def _take(image: torch.Tensor | ImageStack, rows: torch.Tensor) -> torch.Tensor | ImageStack:
+    """``image`` for the jobs ``rows`` only (a plain image serves every job)."""
+    return image.rows(rows) if isinstance(image, ImageStack) else image
 
 
 def _templates(
@@ -110,6 +123,11 @@ def evaluate_direction(
 ) -> dict[str, torch.Tensor]:
     """Best NCC peak over all passes and shapes for J matches in one direction.
 
+    With ``cfg.inner_radius`` (0 < s0 < s) the offsets up to s0 are searched first, in
+    every pass; only the matches whose best peak there lies on that smaller window's border
+    (or is held back by the NCC* mask) are searched again over the full radius s. A match
+    whose near peak is a local maximum keeps it even where a higher one lies farther out.
+
     Args:
         img_f, img_m: (H, W) float32 fixed-side and moving-side images.
         x_f, x_m: (J, 2) float64 keypoints of the fixed and moving side.
@@ -127,8 +145,41 @@ def evaluate_direction(
         matching, ``H_f_inv`` (J, 3, 3) and ``frame_f`` (J, 2) of the fixed side in the
         winning pass.
     """
+    s0 = cfg.inner_radius
+    if not 0 < s0 < cfg.search_radius:
+        return _evaluate(img_f, img_m, x_f, x_m, passes, (f, m), (win_off, None), cfg.search_radius, cfg)
+    near = offset_grid(cfg.template_radius + s0, win_off.device, win_off.dtype)
+    r = _evaluate(img_f, img_m, x_f, x_m, passes, (f, m), (near, win_off), s0, cfg)
+    # the inside test is the full window's already: only usable matches are searched again
+    far = torch.nonzero(r["border"] & r["valid"] & r["inside"] & ~r["flat"])[:, 0]
+    if far.numel():
+        full = _evaluate(_take(img_f, far), _take(img_m, far), x_f[far], x_m[far],
+                         [(H[far], offs, coarse) for H, offs, coarse in passes], (f, m),
+                         (win_off, None), cfg.search_radius, cfg)
+        for key, value in full.items():
+            r[key][far] = value
+    return r
+
+
+def _evaluate(
+    img_f: torch.Tensor | ImageStack,
+    img_m: torch.Tensor | ImageStack,
+    x_f: torch.Tensor,
+    x_m: torch.Tensor,
+    passes: list[Pass],
+    sides: tuple[int, int],
+    windows: tuple[torch.Tensor, torch.Tensor | None],
+    radius: int,
+    cfg: NCCConfig,
+) -> dict[str, torch.Tensor]:
+    """:func:`evaluate_direction` over offsets up to ``radius`` (<= ``cfg.search_radius``):
+    ``sides`` = (f, m); ``windows`` = the window offsets (Pw, 2) of radius r + ``radius``,
+    and the offsets whose square the inside test checks instead (the full window's), or
+    None (the window's own)."""
+    f, m = sides
+    win_off, outer = windows
     st = 2 * cfg.template_radius + 1
-    sw = 2 * (cfg.template_radius + cfg.search_radius) + 1
+    sw = 2 * (cfg.template_radius + radius) + 1
     J, n_pass = x_f.shape[0], len(passes)
     # the passes as one batch of n_pass * J jobs (pass-major): every job's samples and NCC
     # are its own whatever the batch, and one call per step costs less than one per pass
@@ -138,7 +189,11 @@ def evaluate_direction(
     H_m_inv, ok_m = invert_homographies(H_m)
     c_f = to_frame(H_f, x_f.repeat(n_pass, 1))
     c_m = to_frame(H_m, x_m.repeat(n_pass, 1))
-    win_all, in_w = sample_patches(_repeat(img_m, n_pass), H_m_inv, c_m, win_off[None])
+    if outer is None:
+        win_all, in_w = sample_patches(_repeat(img_m, n_pass), H_m_inv, c_m, win_off[None])
+    else:
+        win_all, in_w = sample_values(_repeat(img_m, n_pass), H_m_inv, c_m, win_off[None])
+        in_w = in_w & patch_inside(_repeat(img_m, n_pass), H_m_inv, c_m, outer[None])
     win_all = win_all.reshape(n_pass * J, sw, sw)
     templates, maps, in_t = _search_passes(img_f, H_f_inv, c_f, win_all, passes, cfg)
     pass_of_k = [p for p, tpl in enumerate(templates) for _ in range(tpl.shape[1])]
@@ -149,9 +204,11 @@ def evaluate_direction(
     first_template = templates[0][:, 0]  # the unperturbed template of the first pass
     allmaps = torch.cat(maps, dim=1)
     lam_min, lam_max, dir_max = structure_tensor(first_template)
-    mask = (
-        ellipse_masks(lam_min, lam_max, dir_max, cfg.search_radius) if cfg.ellipse_mask else None
-    )
+    mask = None
+    if cfg.ellipse_mask:  # the full search's ellipse, cut to the offsets searched here
+        mask = ellipse_masks(lam_min, lam_max, dir_max, cfg.search_radius)
+        cut = cfg.search_radius - radius
+        mask = mask[:, cut:mask.shape[1] - cut, cut:mask.shape[2] - cut]
     pk = find_peaks(allmaps, mask)
     J = allmaps.shape[0]
     rows = torch.arange(J, device=allmaps.device)

@@ -220,6 +220,19 @@ def sample_patches(
         (values (J, K, P) float32, inside (J,) bool: the patch corners of every shape map
         in front of the camera and inside the image, so the whole patch does).
     """
+    values, good = sample_values(image, H_inv, centres, offsets)
+    return values, patch_inside(image, H_inv, centres, offsets) & good
+
+
+def patch_inside(
+    image: torch.Tensor | ImageStack,
+    H_inv: torch.Tensor,
+    centres: torch.Tensor,
+    offsets: torch.Tensor,
+) -> torch.Tensor:
+    """The inside test of :func:`sample_patches` alone (no sample read): (J,) bool, the
+    corners of every shape's square of offsets map in front of the camera and inside the
+    job's image. Arguments as :func:`sample_patches`."""
     J = centres.shape[0]
     K, P = offsets.shape[-3], offsets.shape[-2]
     side = int(round(P**0.5))
@@ -228,15 +241,13 @@ def sample_patches(
     corners = centres[:, None, None, :] + (corner_off if offsets.ndim == 4 else corner_off[None])
     c_img, ok = apply_homographies(H_inv, corners.reshape(J, K * 4, 2))
     size = _job_sizes(image, J)
-    inside = (
+    return (
         ok
         & (c_img[..., 0] >= 0)
         & (c_img[..., 0] <= size[:, 0:1] - 1)
         & (c_img[..., 1] >= 0)
         & (c_img[..., 1] <= size[:, 1:2] - 1)
     ).all(dim=1)
-    values, good = sample_values(image, H_inv, centres, offsets)
-    return values, inside & good
 
 
 def _job_sizes(image: torch.Tensor | ImageStack, n: int) -> torch.Tensor:

@@ -72,6 +72,8 @@ CONFIGS = {
     "lsm": NCCConfig(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8),
     # 3x3 templates: a convolution of one group would sum in another order than a batch
     "tiny": NCCConfig(device="cpu", template_radius=1, search_radius=3, min_template_std=0.0),
+    # the near offsets first, the full radius only where the near peak is on its border
+    "inner": NCCConfig(device="cpu", move="2", template_radius=6, inner_radius=2),
 }
 
 
