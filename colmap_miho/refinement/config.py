@@ -122,11 +122,11 @@ class NCCConfig:
             matches of its image pair in the call (through the estimate), not on other pairs.
         inner_radius: 0 (off), or s0 in [1, s): search the offsets up to s0 first (every
             homography pair, every shape) and the full ``search_radius`` only for the matches
-            whose best peak there lies on the border of that smaller window (or is held back
-            by the NCC* ellipse), so that a farther peak is still followed. A match whose
-            near peak is a local maximum keeps it, where the full search would take a
-            higher peak farther out. Which matches lie inside the image is decided on the
-            full window either way.
+            where the peak of some pair (or shape) lies on the border of that smaller window
+            (or is held back by the NCC* ellipse), so that a peak farther out is still
+            followed. A match whose pairs all peak inside the smaller window keeps the best
+            of those local maxima, where the full search would take a higher peak farther
+            out. Which matches lie inside the image is decided on the full window either way.
     """
 
     template_radius: int = 10

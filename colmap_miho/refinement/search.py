@@ -124,9 +124,11 @@ def evaluate_direction(
     """Best NCC peak over all passes and shapes for J matches in one direction.
 
     With ``cfg.inner_radius`` (0 < s0 < s) the offsets up to s0 are searched first, in
-    every pass; only the matches whose best peak there lies on that smaller window's border
-    (or is held back by the NCC* mask) are searched again over the full radius s. A match
-    whose near peak is a local maximum keeps it even where a higher one lies farther out.
+    every pass; only the matches where the peak of some pass (or shape) lies on that
+    smaller window's border (or is held back by the NCC* mask), climbing outwards, are
+    searched again over the full radius s, in every pass. A match whose passes all peak
+    inside the smaller window keeps the best of those peaks even where a higher one lies
+    farther out.
 
     Args:
         img_f, img_m: (H, W) float32 fixed-side and moving-side images.
@@ -151,7 +153,7 @@ def evaluate_direction(
     near = offset_grid(cfg.template_radius + s0, win_off.device, win_off.dtype)
     r = _evaluate(img_f, img_m, x_f, x_m, passes, (f, m), (near, win_off), s0, cfg)
     # the inside test is the full window's already: only usable matches are searched again
-    far = torch.nonzero(r["border"] & r["valid"] & r["inside"] & ~r["flat"])[:, 0]
+    far = torch.nonzero(r.pop("near_border") & r["valid"] & r["inside"] & ~r["flat"])[:, 0]
     if far.numel():
         full = _evaluate(_take(img_f, far), _take(img_m, far), x_f[far], x_m[far],
                          [(H[far], offs, coarse) for H, offs, coarse in passes], (f, m),
@@ -210,6 +212,12 @@ def _evaluate(
         cut = cfg.search_radius - radius
         mask = mask[:, cut:mask.shape[1] - cut, cut:mask.shape[2] - cut]
     pk = find_peaks(allmaps, mask)
+    near_border = None
+    if outer is not None:  # the peak of each pass and shape on its own: any on the border?
+        K = allmaps.shape[1]
+        each = find_peaks(allmaps.reshape(-1, 1, *allmaps.shape[2:]),
+                          None if mask is None else mask.repeat_interleave(K, dim=0))
+        near_border = each["border"].reshape(-1, K).any(dim=1)
     J = allmaps.shape[0]
     rows = torch.arange(J, device=allmaps.device)
     pass_idx = torch.as_tensor(pass_of_k, device=allmaps.device)[pk["k"]]
@@ -220,7 +228,7 @@ def _evaluate(
     frame_f = torch.stack(list(c_f.split(J)), dim=1)[rows, pass_idx]
     tstd = first_template.reshape(J, -1).to(torch.float64).std(dim=1)
     ratio = torch.where(lam_max > 0, lam_min / lam_max.clamp_min(1e-20), torch.zeros_like(lam_max))
-    return {
+    out = {
         "peak": pk["peak"].to(torch.float64),
         "centre": pk["centre"].to(torch.float64),
         "border": pk["border"],
@@ -236,3 +244,6 @@ def _evaluate(
         "frame_f": frame_f,
         "template": all_tpl[rows, pk["k"]].reshape(J, st, st),
     }
+    if near_border is not None:
+        out["near_border"] = near_border
+    return out
