@@ -120,13 +120,14 @@ class NCCConfig:
             other's blur, estimated from the pair's own matches (:mod:`.blur`); counted as
             ``blur_pairs`` and ``blur_matched``. A match's result then depends on the other
             matches of its image pair in the call (through the estimate), not on other pairs.
-        inner_radius: 0 (off), or s0 in [1, s): search the offsets up to s0 first (every
-            homography pair, every shape) and the full ``search_radius`` only for the matches
-            where the peak of some pair (or shape) lies on the border of that smaller window
-            (or is held back by the NCC* ellipse), so that a peak farther out is still
-            followed. A match whose pairs all peak inside the smaller window keeps the best
-            of those local maxima, where the full search would take a higher peak farther
-            out. Which matches lie inside the image is decided on the full window either way.
+        inner_radius: >= 0 pixels; 0 (off, as is any s0 >= s), or s0 in [1, s): search the
+            offsets up to s0 first (every homography pair, every shape) and the full
+            ``search_radius`` only for the matches where the peak of some pair (or shape)
+            lies on the border of that smaller window (or is held back by the NCC* ellipse),
+            so that a peak farther out is still followed. A match whose pairs all peak
+            inside the smaller window keeps the best of those local maxima, where the full
+            search would take a higher peak farther out. Which matches lie inside the image
+            is decided on the full window either way.
     """
 
     template_radius: int = 10
@@ -217,9 +218,8 @@ class NCCConfig:
             raise ValueError(f"lsm_max_shift_px must be > 0 pixels, got {self.lsm_max_shift_px}")
         if not self.lsm_max_sigma_px > 0:
             raise ValueError(f"lsm_max_sigma_px must be > 0 pixels, got {self.lsm_max_sigma_px}")
-        if not (self.inner_radius == 0 or 0 < self.inner_radius < self.search_radius):
-            raise ValueError(f"inner_radius must be 0 (off) or in [1, search_radius), got "
-                             f"{self.inner_radius}")
+        if self.inner_radius < 0:
+            raise ValueError(f"inner_radius must be >= 0 pixels (0: off), got {self.inner_radius}")
         if not self.lsm_antialias >= 0:
             raise ValueError(f"lsm_antialias must be >= 0 pixels (0: off), got {self.lsm_antialias}")
 

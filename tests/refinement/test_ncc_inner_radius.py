@@ -29,10 +29,11 @@ def _texture(rng: np.random.Generator, h: int = 240, w: int = 320) -> np.ndarray
 
 
 def test_config_validation():
-    for bad in (-1, 10, 12):
-        with pytest.raises(ValueError, match="inner_radius"):
-            NCCConfig(search_radius=10, inner_radius=bad)
-    assert NCCConfig(search_radius=10, inner_radius=9).inner_radius == 9
+    with pytest.raises(ValueError, match="inner_radius"):
+        NCCConfig(inner_radius=-1)
+    # a radius at or above the search radius leaves the full search (a recipe's inner radius
+    # must not forbid a smaller search radius)
+    assert NCCConfig(search_radius=2, inner_radius=2).inner_radius == 2
 
 
 @pytest.mark.parametrize("offset_px", [1.0, 2.5, 4.0])
@@ -53,7 +54,9 @@ def test_far_peaks_are_still_followed(offset_px):
     homs = np.tile(np.stack([np.eye(3), np.linalg.inv(H_SCENE)]), (n, 1, 1, 1))
     res = {s0: refine_pair(img1, img2, pts1, pts2, homs, move="2",
                            config=NCCConfig(device="cpu", template_radius=6, inner_radius=s0))
-           for s0 in (0, 2)}
+           for s0 in (0, 2, 10)}
+    for name in ("pts2", "ncc_after", "moved_side", "rejected"):  # 10 = s: the full search
+        np.testing.assert_array_equal(getattr(res[10], name), getattr(res[0], name))
     assert res[2].stats["moved"] == res[0].stats["moved"] >= 0.95 * n
     np.testing.assert_array_equal(res[2].moved_side, res[0].moved_side)
     np.testing.assert_allclose(res[2].pts2, res[0].pts2, atol=SAME_POSITION_PX)
