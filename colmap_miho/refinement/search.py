@@ -4,7 +4,9 @@ For a chunk of J matches and each homography pair ("pass": the filter's extended
 template shapes, then the base pair), the search window is sampled once around the moving
 keypoint and the templates around the fixed keypoint, both in the pair's common frame. With
 several template shapes and ``coarse_shapes``, the shape is chosen on a stride-2 grid first
-and only the chosen shape (and the unperturbed one) is searched at full resolution.
+and only the chosen shape (and the unperturbed one) is searched at full resolution. With
+``inner_radius`` the offsets near the keypoint are searched first, the full radius only for the
+matches whose peaks climb out of that smaller window.
 """
 
 from __future__ import annotations
