@@ -276,6 +276,7 @@ def frame_sampler(
     centres: torch.Tensor,
     mode: str = "bicubic",
     blur: tuple[torch.Tensor, torch.Tensor] | None = None,
+    blur_px: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> Sampler:
     """A :data:`Sampler` of the rectified search images: match j reads its image at
     ``H_inv[j] (centres[j] + t + A u)``.
@@ -294,7 +295,14 @@ def frame_sampler(
             reads the mean of the 4 samples at ``t + step[j] o``, o in {-1, 1}^2 (the
             columns of ``step``: frame offsets of one blur step along the image's x and y;
             see :mod:`.lsm_step`).
+        blur_px: None, or ((J,) bool ``on``, (J,) float64 ``sigma``): match j with ``on``
+            reads the mean of the 4 samples at ``(x + i sigma[j], y + j sigma[j])``, o = (i, j)
+            in {-1, 1}^2, (x, y) each sample's image position (pixels): the same smoothing
+            along the image's own axes, exactly (``blur`` gives it at the match's centre, to
+            first order). Not with ``blur``.
     """
+    if blur is not None and blur_px is not None:
+        raise ValueError("frame_sampler takes blur or blur_px, not both")
 
     J = centres.shape[0]
     dev = centres.device
@@ -312,18 +320,26 @@ def frame_sampler(
     B = _mul3(Sm, H_inv.to(f64))
 
     def sample(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
-        if blur is None:
+        spec = blur if blur is not None else blur_px
+        if spec is None:
             return read(rows, A, t, radius)
-        on = blur[0][rows]
+        on = spec[0][rows]
         if not bool(on.any()):
             return read(rows, A, t, radius)
         sel, keep = torch.nonzero(on)[:, 0], torch.nonzero(~on)[:, 0]
         nb, nk, side = sel.numel(), keep.numel(), 2 * radius + 1
-        st, t_s = blur[1][rows[sel]], t[sel]
-        t4 = torch.stack([t_s + i * st[:, :, 0] + j * st[:, :, 1] for i, j in _BLUR_TAPS], dim=1)
-        v = read(torch.cat([rows[keep], rows[sel].repeat_interleave(len(_BLUR_TAPS))]),
-                 torch.cat([A[keep], A[sel].repeat_interleave(len(_BLUR_TAPS), dim=0)]),
-                 torch.cat([t[keep], t4.view(-1, 2)]), radius)
+        nt = len(_BLUR_TAPS)
+        rows4 = torch.cat([rows[keep], rows[sel].repeat_interleave(nt)])
+        A4 = torch.cat([A[keep], A[sel].repeat_interleave(nt, dim=0)])
+        if blur is not None:
+            st, t_s = blur[1][rows[sel]], t[sel]
+            t4 = torch.stack([t_s + i * st[:, :, 0] + j * st[:, :, 1] for i, j in _BLUR_TAPS], dim=1)
+            v = read(rows4, A4, torch.cat([t[keep], t4.view(-1, 2)]), radius)
+        else:
+            sg = spec[1][rows[sel]].to(f64)
+            o4 = torch.stack([torch.stack([i * sg, j * sg], dim=1) for i, j in _BLUR_TAPS], dim=1)
+            off = torch.cat([torch.zeros((nk, 2), dtype=f64, device=dev), o4.view(-1, 2)])
+            v = read(rows4, A4, torch.cat([t[keep], t[sel].repeat_interleave(nt, dim=0)]), radius, off)
         out = torch.empty((rows.numel(), side, side), dtype=torch.float32, device=t.device)
         out[keep] = v[:nk]
         taps = v[nk:].view(nb, len(_BLUR_TAPS), side, side)
@@ -333,7 +349,10 @@ def frame_sampler(
         out[sel] = acc / len(_BLUR_TAPS)
         return out
 
-    def read(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
+    def read(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int,
+             off: torch.Tensor | None = None) -> torch.Tensor:
+        """(n, S, S) samples; ``off`` (n, 2) float64 image pixels added to every sample
+        position of a row (after the map), or None."""
         n = rows.numel()
         Br = B[rows]
         c = centres[rows] + t
@@ -342,14 +361,17 @@ def frame_sampler(
                        ((Br[:, :, :2] * c[:, None]).sum(dim=2) + Br[:, :, 2])[:, :, None]],
                       dim=2).to(torch.float32)
         side = 2 * radius + 1
+        # the image offsets in grid units (float32, added to the float32 grid)
+        offg = None if off is None else (off * sc[rows]).to(torch.float32)[:, None, :]
         if index is None:
-            return _grid_sample(ims[0], _frame_grid(M, radius), mode).view(n, side, side)
+            return _grid_sample(ims[0], _shifted(_frame_grid(M, radius), offg), mode).view(n, side, side)
         idx = index[rows]
         counts = torch.bincount(idx, minlength=len(ims)).tolist()
         if n and max(counts) == n:  # one image
-            return _grid_sample(ims[counts.index(n)], _frame_grid(M, radius), mode).view(n, side, side)
+            return _grid_sample(ims[counts.index(n)], _shifted(_frame_grid(M, radius), offg),
+                                mode).view(n, side, side)
         order = torch.argsort(idx, stable=True)  # the matches grouped by image
-        grid = _frame_grid(M[order], radius)
+        grid = _shifted(_frame_grid(M[order], radius), None if offg is None else offg[order])
         parts, lo = [], 0
         for k, cnt in enumerate(counts):
             if cnt:
@@ -377,6 +399,11 @@ def _frame_grid(M: torch.Tensor, radius: int) -> torch.Tensor:
     torch.div(v[:, 0], w, out=out[..., 0])
     torch.div(v[:, 1], w, out=out[..., 1])
     return out.view(-1, side * side, 2)
+
+
+def _shifted(grid: torch.Tensor, off: torch.Tensor | None) -> torch.Tensor:
+    """``grid`` (n, Q, 2) plus ``off`` (n, 1, 2) (in place), or ``grid`` where ``off`` is None."""
+    return grid if off is None else grid.add_(off)
 
 
 def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
