@@ -120,6 +120,10 @@ class NCCConfig:
             other's blur, estimated from the pair's own matches (:mod:`.blur`); counted as
             ``blur_pairs`` and ``blur_matched``. A match's result then depends on the other
             matches of its image pair in the call (through the estimate), not on other pairs.
+        lsm_cubic_a: in [-1, 0], the cubic convolution parameter of LSM's bicubic reads:
+            -0.75 (Keys; ``grid_sample``'s bicubic) or -0.5 (Catmull-Rom, which reproduces
+            quadratics: less bias of a sub-pixel read). The torch path (CUDA) reads -0.75 with
+            ``grid_sample`` and other values with its own gather of the 16 taps.
     """
 
     template_radius: int = 10
@@ -156,6 +160,7 @@ class NCCConfig:
     lsm_antialias: float = 0.0
     lsm_only: bool = False
     match_blur: bool = False
+    lsm_cubic_a: float = -0.75
 
     def __post_init__(self) -> None:
         for name, choice in _CHOICES.items():
@@ -211,6 +216,8 @@ class NCCConfig:
             raise ValueError(f"lsm_max_sigma_px must be > 0 pixels, got {self.lsm_max_sigma_px}")
         if not self.lsm_antialias >= 0:
             raise ValueError(f"lsm_antialias must be >= 0 pixels (0: off), got {self.lsm_antialias}")
+        if not -1.0 <= self.lsm_cubic_a <= 0.0:
+            raise ValueError(f"lsm_cubic_a must be in [-1, 0], got {self.lsm_cubic_a}")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -277,6 +277,7 @@ def frame_sampler(
     mode: str = "bicubic",
     blur: tuple[torch.Tensor, torch.Tensor] | None = None,
     blur_px: tuple[torch.Tensor, torch.Tensor] | None = None,
+    cubic_a: float = -0.75,
 ) -> Sampler:
     """A :data:`Sampler` of the rectified search images: match j reads its image at
     ``H_inv[j] (centres[j] + t + A u)``.
@@ -300,6 +301,9 @@ def frame_sampler(
             in {-1, 1}^2, (x, y) each sample's image position (pixels): the same smoothing
             along the image's own axes, exactly (``blur`` gives it at the match's centre, to
             first order). Not with ``blur``.
+        cubic_a: the cubic convolution parameter of ``mode="bicubic"``: -0.75 reads with
+            ``grid_sample``; any other value (e.g. -0.5, Catmull-Rom) gathers the 16 taps of
+            each sample itself, with the same border rule.
     """
     if blur is not None and blur_px is not None:
         raise ValueError("frame_sampler takes blur or blur_px, not both")
@@ -318,6 +322,11 @@ def frame_sampler(
     Sm = torch.zeros((J, 3, 3), dtype=f64, device=dev)
     Sm[:, 0, 0], Sm[:, 1, 1], Sm[:, 0, 2], Sm[:, 1, 2], Sm[:, 2, 2] = sc[:, 0], sc[:, 1], -1.0, -1.0, 1.0
     B = _mul3(Sm, H_inv.to(f64))
+
+    def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
+        if mode == "bicubic" and cubic_a != -0.75:
+            return _cubic_sample(image, grid, cubic_a)
+        return _grid_sample_torch(image, grid, mode)
 
     def sample(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
         spec = blur if blur is not None else blur_px
@@ -406,7 +415,37 @@ def _shifted(grid: torch.Tensor, off: torch.Tensor | None) -> torch.Tensor:
     return grid if off is None else grid.add_(off)
 
 
-def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
+def _cubic_sample(image: torch.Tensor, grid: torch.Tensor, a: float) -> torch.Tensor:
+    """Samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) in grid units
+    (``align_corners=True``): bicubic with the cubic convolution parameter ``a``, each tap
+    clamped to the image (``grid_sample``'s bicubic and border rule, any ``a``)."""
+    h, w = image.shape
+    x = (grid[..., 0] + 1) * 0.5 * (w - 1)
+    y = (grid[..., 1] + 1) * 0.5 * (h - 1)
+    fx, fy = x.floor(), y.floor()
+
+    def weights(t: torch.Tensor) -> list[torch.Tensor]:
+        def far(d: torch.Tensor) -> torch.Tensor:  # 1 < |d| < 2
+            return ((a * d - 5 * a) * d + 8 * a) * d - 4 * a
+
+        def near(d: torch.Tensor) -> torch.Tensor:  # |d| <= 1
+            return ((a + 2) * d - (a + 3)) * d * d + 1
+        return [far(t + 1), near(t), near(1 - t), far(2 - t)]
+
+    wx, wy = weights(x - fx), weights(y - fy)
+    flat = image.reshape(-1)
+    cols = [(fx + (k - 1)).clamp(0, w - 1).long() for k in range(4)]
+    out = torch.zeros_like(x)
+    for r in range(4):
+        row = (fy + (r - 1)).clamp(0, h - 1).long() * w
+        v = flat[row + cols[0]] * wx[0]
+        for k in range(1, 4):
+            v = v + flat[row + cols[k]] * wx[k]
+        out = out + v * wy[r]
+    return out
+
+
+def _grid_sample_torch(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
     """Samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) in grid units
     (``align_corners=True``, border values outside)."""
     return F.grid_sample(image[None, None], grid[None], mode=mode, padding_mode="border",

@@ -42,6 +42,9 @@ from .warping import ImageStack
 
 #: Keys' cubic convolution parameter of ``grid_sample``'s bicubic mode.
 KEYS_A = -0.75
+#: taps per axis of a smoothed read in fixed loops (blurs up to 1 px); wider ones loop on
+#: their own span.
+_FIXED_SPAN = 6
 
 _KERNEL: Any = None
 _LOCK = threading.Lock()
@@ -140,7 +143,7 @@ def _smoothed(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, 
     """:func:`_read` smoothed: the mean of the 4 bicubic reads at ``(x +- sigma, y +- sigma)``
     of each position (x, y) (image pixels), as one read with the 4 reads' merged taps (the
     mean is separable: (1/2 the sum of the x weights at x - sigma and x + sigma) times the
-    same in y, over the columns and rows either touches). ``cw`` (2, S, >= span) float64 and
+    same in y, over the columns and rows either touches). ``cw`` (2, S, >= max(span, 6)) float64 and
     ``base`` (4, S) int64 (first column, first row, and how many of each) are work space;
     span = 4 + floor(x + sigma) - floor(x - sigma), at most 5 + 2 sigma."""
     h, w = img.shape
@@ -155,9 +158,7 @@ def _smoothed(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, 
     m22 = H[2, 0] * cx + H[2, 1] * cy + H[2, 2]
     side = 2 * radius + 1
     cwx, cwy = cw[0], cw[1]
-    span = cw.shape[2]
     fw, fh = w + 1.0, h + 1.0
-    a2, a3, a4, a5, a8 = a + 2.0, a + 3.0, 4.0 * a, 5.0 * a, 8.0 * a
     for iy in range(side):
         uy = float(iy - radius)
         bx, by, bw = m01 * uy + m02, m11 * uy + m12, m21 * uy + m22
@@ -166,36 +167,26 @@ def _smoothed(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, 
             hw = max(m20 * ux + bw, 1e-6)
             px = (m00 * ux + bx) / hw
             py = (m10 * ux + by) / hw
-            for c in range(span):
-                cwx[ix, c] = 0.0
-                cwy[ix, c] = 0.0
-            for axis in range(2):
-                p, lim, wv = (px, fw, cwx) if axis == 0 else (py, fh, cwy)
-                f0 = 0.0
-                for o in range(2):
-                    x = min(max(p - sigma if o == 0 else p + sigma, -2.0), lim)
-                    fx = np.floor(x)
-                    if o == 0:
-                        f0 = fx
-                        base[axis, ix] = int(fx) - 1
-                    k = int(fx - f0)
-                    base[2 + axis, ix] = k + 4
-                    t = x - fx
-                    q = t + 1.0
-                    wv[ix, k] += 0.5 * (((a * q - a5) * q + a8) * q - a4)
-                    wv[ix, k + 1] += 0.5 * ((a2 * t - a3) * t * t + 1.0)
-                    q = 1.0 - t
-                    wv[ix, k + 2] += 0.5 * ((a2 * q - a3) * q * q + 1.0)
-                    q = 2.0 - t
-                    wv[ix, k + 3] += 0.5 * (((a * q - a5) * q + a8) * q - a4)
+            base[0, ix], base[2, ix] = _merged(px, sigma, fw, a, cwx, ix)
+            base[1, ix], base[3, ix] = _merged(py, sigma, fh, a, cwy, ix)
         for ix in range(side):
             x0, y0, nx, ny = base[0, ix], base[1, ix], base[2, ix], base[3, ix]
             v = 0.0
-            if x0 >= 0 and x0 + nx <= w and y0 >= 0 and y0 + ny <= h:
-                for r in range(ny):
+            inside = x0 >= 0 and x0 + _FIXED_SPAN <= w and y0 >= 0 and y0 + _FIXED_SPAN <= h
+            if inside and nx <= 5 and ny <= 5:
+                # the common cases in fixed loops: 5 x 5 taps (blurs up to 0.5 px) ...
+                for r in range(5):
                     row = img[y0 + r]
                     acc = 0.0
-                    for c in range(nx):
+                    for c in range(5):
+                        acc += row[x0 + c] * cwx[ix, c]
+                    v += acc * cwy[ix, r]
+            elif inside and nx <= _FIXED_SPAN and ny <= _FIXED_SPAN:
+                # ... and 6 x 6 (up to 1 px); zero weights past the span
+                for r in range(_FIXED_SPAN):
+                    row = img[y0 + r]
+                    acc = 0.0
+                    for c in range(_FIXED_SPAN):
                         acc += row[x0 + c] * cwx[ix, c]
                     v += acc * cwy[ix, r]
             else:
@@ -206,6 +197,36 @@ def _smoothed(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, 
                         acc += row[min(max(x0 + c, 0), w - 1)] * cwx[ix, c]
                     v += acc * cwy[ix, r]
             out[iy, ix] = v
+
+
+def _merged(p: float, sigma: float, lim: float, a: float, wv, ix: int) -> tuple[int, int]:
+    """Half the sum of the cubic weights of the reads at ``p - sigma`` and ``p + sigma`` (one
+    axis; positions clamped to [-2, ``lim``]) into ``wv[ix, :n]``; returns (the first tap's
+    index, n), n = 4 + floor(p + sigma) - floor(p - sigma)."""
+    xa = min(max(p - sigma, -2.0), lim)
+    xb = min(max(p + sigma, -2.0), lim)
+    fa, fb = np.floor(xa), np.floor(xb)
+    k = int(fb - fa)
+    for c in range(4, max(k + 4, _FIXED_SPAN)):
+        wv[ix, c] = 0.0
+    a2, a3, a4, a5, a8 = a + 2.0, a + 3.0, 4.0 * a, 5.0 * a, 8.0 * a
+    t = xa - fa
+    q = t + 1.0
+    wv[ix, 0] = 0.5 * (((a * q - a5) * q + a8) * q - a4)
+    wv[ix, 1] = 0.5 * ((a2 * t - a3) * t * t + 1.0)
+    q = 1.0 - t
+    wv[ix, 2] = 0.5 * ((a2 * q - a3) * q * q + 1.0)
+    q = 2.0 - t
+    wv[ix, 3] = 0.5 * (((a * q - a5) * q + a8) * q - a4)
+    t = xb - fb
+    q = t + 1.0
+    wv[ix, k] += 0.5 * (((a * q - a5) * q + a8) * q - a4)
+    wv[ix, k + 1] += 0.5 * ((a2 * t - a3) * t * t + 1.0)
+    q = 1.0 - t
+    wv[ix, k + 2] += 0.5 * ((a2 * q - a3) * q * q + 1.0)
+    q = 2.0 - t
+    wv[ix, k + 3] += 0.5 * (((a * q - a5) * q + a8) * q - a4)
+    return int(fa) - 1, k + 4
 
 
 def _read_blurred(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float,
@@ -239,7 +260,7 @@ def _lsm_matches(img_f, img_m, rows, H_f, c_f, H_m, c_m, on_f, sigma_f, on_m, si
     for q in range(rows.shape[0]):
         j = rows[q]
         sg_max = max(sg_max, sigma_f[j] if on_f[j] else 0.0, sigma_m[j] if on_m[j] else 0.0)
-    cw = np.empty((2, side + 2, int(2.0 * sg_max) + 6))
+    cw = np.empty((2, side + 2, max(int(2.0 * sg_max) + 6, _FIXED_SPAN)))
     base = np.empty((4, side + 2), np.int64)
     for q in range(rows.shape[0]):
         j = rows[q]
@@ -394,7 +415,7 @@ def _kernel() -> Any:
                 fused = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
                 dots = numba.njit(cache=True, nogil=True, error_model="numpy",
                                   fastmath={"reassoc", "contract"})
-                globals().update({f.__name__: fused(f) for f in (_read, _smoothed)})
+                globals().update({f.__name__: fused(f) for f in (_merged, _read, _smoothed)})
                 globals().update({"_read_blurred": jit(_read_blurred), "_dot": dots(_dot)})
                 _KERNEL = jit(_lsm_matches)
     return _KERNEL
