@@ -33,6 +33,10 @@ is not used: its fixed point is not this sum of squares' minimum but differs fro
 gradient noise, which on real scenes is of the order of the precision sought, so it would still
 need full steps to finish, and those dominate the cost.
 
+The LSM step of the NCC refinement (:mod:`.lsm_step`) runs these functions on CUDA; on CPU
+tensors it runs :mod:`.lsm_kernel`, the same iteration compiled per match, which is tested
+against them.
+
 On the CPU a match's result is bitwise the same whatever the other matches of the call: the
 sample positions are elementwise products, every reduction runs over one match's own pixels,
 and the normal equations are per-match matrix products and solves (tested).

@@ -16,8 +16,11 @@ shifted bicubic reads of :func:`.lsm.frame_sampler` (its ``blur_px``), read as o
 
 Differences from the torch path, all at float rounding: positions are formed in float64
 pixels (the torch path rounds them to float32 grid units first), samples, gradients and
-the normal matrix are float64 (float32 there), and the Cholesky factor and solves are
-written out here (LAPACK there). The tests bound the difference (``test_lsm_kernel.py``).
+the normal matrix are float64 (float32 there), the reads use fused multiply-adds and the
+dot products of the normal matrix a vectorised order of summation (both fixed when the
+kernel compiles), and the Cholesky factor and solves are written out here (LAPACK there).
+A match whose shift update is within rounding of the tolerance can stop a step earlier or
+later on one path than on the other. The tests bound the differences (``test_lsm_kernel.py``).
 
 A match's result depends on its own inputs only: the loop over matches is serial and
 every quantity of a match is computed by the same code whatever the other matches are.
@@ -37,7 +40,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .lsm import _MAX_GAIN, _MAX_SCALE, LSMResult
+from .lsm import _MAX_GAIN, _MAX_SCALE, DEFAULT_TOL_PX, LSMResult
 from .warping import ImageStack
 
 #: Keys' cubic convolution parameter of ``grid_sample``'s bicubic mode.
@@ -451,7 +454,7 @@ def lsm_frames(
     blur_m: tuple[torch.Tensor, torch.Tensor] | None = None,
     affine: bool = True,
     max_iterations: int = 10,
-    tol_px: float = 1e-3,
+    tol_px: float = DEFAULT_TOL_PX,
     max_shift_px: float | None = None,
     cubic_a: float = KEYS_A,
 ) -> LSMResult:
@@ -491,8 +494,10 @@ def lsm_frames(
     iterations = np.zeros(n, np.int64)
     kernel = _kernel()
     key = idx_f * len(ims_m) + idx_m
-    for k in np.unique(key).tolist():  # one call per (fixed image, moving image)
-        rows = np.flatnonzero(key == k).astype(np.int64)
+    order = np.argsort(key, kind="stable")
+    keys, first = np.unique(key[order], return_index=True)
+    for k, lo, hi in zip(keys.tolist(), first.tolist(), [*first[1:].tolist(), n], strict=True):
+        rows = order[lo:hi].astype(np.int64)  # one call per (fixed image, moving image)
         kernel(ims_f[k // len(ims_m)], ims_m[k % len(ims_m)], rows, H_f, c_f, H_m, c_m, on_f, sigma_f,
                on_m, sigma_m, s0, int(radius), bool(affine), int(max_iterations), float(tol_px),
                math.inf if max_shift_px is None else float(max_shift_px), float(cubic_a),

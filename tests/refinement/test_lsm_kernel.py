@@ -195,3 +195,22 @@ def test_lsm_step_runs_the_kernel_on_the_cpu():
     both = ok_k & ok_t
     assert ((off_k - off_t)[both].abs().amax(dim=1) < SHIFT_TOL_PX).float().mean() >= SAME_STOP_SHARE
     assert abs(counts_k["lsm_applied"] - counts_t["lsm_applied"]) <= (1 - SAME_STOP_SHARE) * len(c)
+
+
+def test_torch_smoothed_reads_of_a_stack_are_per_image():
+    """The torch path's smoothed reads (``blur_px``) of an ImageStack with the matches of two
+    images interleaved equal each image's reads alone (the image offsets follow the matches
+    when the sampler groups them by image)."""
+    img1, img2, _, Hm, c, start = _problem("camera", 9)
+    J = c.shape[0]
+    idx = torch.as_tensor(np.arange(J) % 2)
+    stack = ImageStack.build([img2, img1], idx, torch.device("cpu"))
+    on, sg = _blur(J, 10)
+    A = torch.eye(2, dtype=torch.float64).expand(J, 2, 2)
+    both = frame_sampler(stack, Hm, c, blur_px=(on, sg))(torch.arange(J), A, start, RADIUS)
+    for k, img in enumerate((img2, img1)):
+        rows = torch.nonzero(idx == k)[:, 0]
+        alone = frame_sampler(img, Hm[rows], c[rows], blur_px=(on[rows], sg[rows]))(
+            torch.arange(rows.numel()), A[rows], start[rows], RADIUS)
+        assert torch.equal(both[rows], alone)
+    assert not torch.equal(both[on], frame_sampler(stack, Hm, c)(torch.arange(J), A, start, RADIUS)[on])
