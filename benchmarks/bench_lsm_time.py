@@ -8,17 +8,21 @@ refine stage's wall time and the CPU time of the whole run (this process and its
 processes, the workers sampled every 0.2 s, so up to 0.2 s of each worker's end is missed).
 The filter stage costs the same in both runs, so the CPU difference is the LSM step's. With
 ``--workers 1`` (everything in this process) ``--lsm-share`` also prints the CPU time of the
-refine stage and of the LSM step inside it (``refine_pair``'s calls of ``lsm_step``). On a
-shared machine compare runs taken back to back only, and prefer the CPU times.
+refine stage and of the LSM step inside it (``refine_pair``'s calls of ``lsm_step``). With
+``--torch-lsm`` (``--workers 1``) a third run per repeat, ``lsm_torch``, takes the LSM recipe
+with the LSM step on its torch path (``lsm_step(..., compiled=False)``, the reference of the
+compiled kernel that CPU runs use). On a shared machine compare runs taken back to back only,
+and prefer the CPU times.
 
     python benchmarks/bench_lsm_time.py --database DB --images DIR [--repeats 3] [--workers 2]
         [--ncc-recipe recipes/mop_miho_ncc.toml] [--lsm-recipe recipes/mop_miho_lsm.toml]
-        [--set ncc.lsm_radius=6] [--lsm-share]
+        [--set ncc.lsm_radius=6] [--lsm-share] [--torch-lsm]
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import statistics
 import threading
 import time
@@ -110,19 +114,26 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="LSM run overrides")
     ap.add_argument("--lsm-share", action="store_true",
                     help="with --workers 1: CPU time of the refine stage and of the LSM step in it")
+    ap.add_argument("--torch-lsm", action="store_true",
+                    help="with --workers 1: also time the LSM recipe with the LSM step's torch path")
     args = ap.parse_args(argv)
-    if args.lsm_share and args.workers != 1:
-        ap.error("--lsm-share needs --workers 1 (the stages run in this process)")
+    if (args.lsm_share or args.torch_lsm) and args.workers != 1:
+        ap.error("--lsm-share and --torch-lsm need --workers 1 (the stages run in this process)")
     recipes = {"ncc": load_recipe(args.ncc_recipe, []),
                "lsm": load_recipe(args.lsm_recipe, ["ncc.lsm=true", *args.overrides])}
+    if args.torch_lsm:
+        recipes["lsm_torch"] = recipes["lsm"]
+    import colmap_miho.pipeline.run as run_mod
+    import colmap_miho.refinement.ncc as ncc_mod
+
+    step = ncc_mod.lsm_step
     times: dict[str, list[tuple[float, float]]] = {k: [] for k in recipes}
     for _ in range(args.repeats):
         for name, rec in recipes.items():
             clocks = []
+            if name == "lsm_torch":
+                ncc_mod.lsm_step = functools.partial(step, compiled=False)
             if args.lsm_share:
-                import colmap_miho.pipeline.run as run_mod
-                import colmap_miho.refinement.ncc as ncc_mod
-
                 clocks = [StageClock(run_mod, "run_refine"), StageClock(ncc_mod, "lsm_step")]
             try:
                 with CpuMeter() as cpu:
@@ -131,6 +142,7 @@ def main(argv=None) -> int:
             finally:
                 for c in clocks:
                     c.remove()
+                ncc_mod.lsm_step = step
             times[name].append((s.seconds["refine"], cpu.seconds))
             share = ""
             if clocks:
@@ -141,8 +153,9 @@ def main(argv=None) -> int:
         print(f"{name}: refine wall " + ", ".join(f"{w:.1f}" for w, _ in ts) + " s; run CPU "
               + ", ".join(f"{c:.1f}" for _, c in ts) + " s")
     med = {k: (statistics.median(w for w, _ in ts), statistics.median(c for _, c in ts)) for k, ts in times.items()}
-    print(f"median refine wall lsm / ncc = {med['lsm'][0] / med['ncc'][0]:.2f}; median run CPU "
-          f"lsm - ncc = {med['lsm'][1] - med['ncc'][1]:.1f} s")
+    for name in [k for k in med if k != "ncc"]:
+        print(f"median refine wall {name} / ncc = {med[name][0] / med['ncc'][0]:.2f}; median run CPU "
+              f"{name} - ncc = {med[name][1] - med['ncc'][1]:.1f} s")
     return 0
 
 

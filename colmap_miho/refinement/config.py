@@ -128,6 +128,10 @@ class NCCConfig:
             inside the smaller window keeps the best of those local maxima, where the full
             search would take a higher peak farther out. Which matches lie inside the image
             is decided on the full window either way.
+        lsm_cubic_a: in [-1, 0], the cubic convolution parameter of LSM's bicubic reads:
+            -0.75 (Keys; ``grid_sample``'s bicubic) or -0.5 (Catmull-Rom, which reproduces
+            quadratics: less bias of a sub-pixel read). The torch path (CUDA) reads -0.75 with
+            ``grid_sample`` and other values with its own gather of the 16 taps.
     """
 
     template_radius: int = 10
@@ -165,6 +169,7 @@ class NCCConfig:
     lsm_only: bool = False
     match_blur: bool = False
     inner_radius: int = 0
+    lsm_cubic_a: float = -0.75
 
     def __post_init__(self) -> None:
         for name, choice in _CHOICES.items():
@@ -222,6 +227,8 @@ class NCCConfig:
             raise ValueError(f"inner_radius must be >= 0 pixels (0: off), got {self.inner_radius}")
         if not self.lsm_antialias >= 0:
             raise ValueError(f"lsm_antialias must be >= 0 pixels (0: off), got {self.lsm_antialias}")
+        if not -1.0 <= self.lsm_cubic_a <= 0.0:
+            raise ValueError(f"lsm_cubic_a must be in [-1, 0], got {self.lsm_cubic_a}")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -33,6 +33,10 @@ is not used: its fixed point is not this sum of squares' minimum but differs fro
 gradient noise, which on real scenes is of the order of the precision sought, so it would still
 need full steps to finish, and those dominate the cost.
 
+The LSM step of the NCC refinement (:mod:`.lsm_step`) runs these functions on CUDA; on CPU
+tensors it runs :mod:`.lsm_kernel`, the same iteration compiled per match, which is tested
+against them.
+
 On the CPU a match's result is bitwise the same whatever the other matches of the call: the
 sample positions are elementwise products, every reduction runs over one match's own pixels,
 and the normal equations are per-match matrix products and solves (tested).
@@ -276,6 +280,8 @@ def frame_sampler(
     centres: torch.Tensor,
     mode: str = "bicubic",
     blur: tuple[torch.Tensor, torch.Tensor] | None = None,
+    blur_px: tuple[torch.Tensor, torch.Tensor] | None = None,
+    cubic_a: float = -0.75,
 ) -> Sampler:
     """A :data:`Sampler` of the rectified search images: match j reads its image at
     ``H_inv[j] (centres[j] + t + A u)``.
@@ -294,7 +300,17 @@ def frame_sampler(
             reads the mean of the 4 samples at ``t + step[j] o``, o in {-1, 1}^2 (the
             columns of ``step``: frame offsets of one blur step along the image's x and y;
             see :mod:`.lsm_step`).
+        blur_px: None, or ((J,) bool ``on``, (J,) float64 ``sigma``): match j with ``on``
+            reads the mean of the 4 samples at ``(x + i sigma[j], y + j sigma[j])``, o = (i, j)
+            in {-1, 1}^2, (x, y) each sample's image position (pixels): the same smoothing
+            along the image's own axes, exactly (``blur`` gives it at the match's centre, to
+            first order). Not with ``blur``.
+        cubic_a: the cubic convolution parameter of ``mode="bicubic"``: -0.75 reads with
+            ``grid_sample``; any other value (e.g. -0.5, Catmull-Rom) gathers the 16 taps of
+            each sample itself, with the same border rule.
     """
+    if blur is not None and blur_px is not None:
+        raise ValueError("frame_sampler takes blur or blur_px, not both")
 
     J = centres.shape[0]
     dev = centres.device
@@ -311,19 +327,32 @@ def frame_sampler(
     Sm[:, 0, 0], Sm[:, 1, 1], Sm[:, 0, 2], Sm[:, 1, 2], Sm[:, 2, 2] = sc[:, 0], sc[:, 1], -1.0, -1.0, 1.0
     B = _mul3(Sm, H_inv.to(f64))
 
+    def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
+        if mode == "bicubic" and cubic_a != -0.75:
+            return _cubic_sample(image, grid, cubic_a)
+        return _grid_sample_torch(image, grid, mode)
+
     def sample(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
-        if blur is None:
+        spec = blur if blur is not None else blur_px
+        if spec is None:
             return read(rows, A, t, radius)
-        on = blur[0][rows]
+        on = spec[0][rows]
         if not bool(on.any()):
             return read(rows, A, t, radius)
         sel, keep = torch.nonzero(on)[:, 0], torch.nonzero(~on)[:, 0]
         nb, nk, side = sel.numel(), keep.numel(), 2 * radius + 1
-        st, t_s = blur[1][rows[sel]], t[sel]
-        t4 = torch.stack([t_s + i * st[:, :, 0] + j * st[:, :, 1] for i, j in _BLUR_TAPS], dim=1)
-        v = read(torch.cat([rows[keep], rows[sel].repeat_interleave(len(_BLUR_TAPS))]),
-                 torch.cat([A[keep], A[sel].repeat_interleave(len(_BLUR_TAPS), dim=0)]),
-                 torch.cat([t[keep], t4.view(-1, 2)]), radius)
+        nt = len(_BLUR_TAPS)
+        rows4 = torch.cat([rows[keep], rows[sel].repeat_interleave(nt)])
+        A4 = torch.cat([A[keep], A[sel].repeat_interleave(nt, dim=0)])
+        if blur is not None:
+            st, t_s = blur[1][rows[sel]], t[sel]
+            t4 = torch.stack([t_s + i * st[:, :, 0] + j * st[:, :, 1] for i, j in _BLUR_TAPS], dim=1)
+            v = read(rows4, A4, torch.cat([t[keep], t4.view(-1, 2)]), radius)
+        else:
+            sg = spec[1][rows[sel]].to(f64)
+            o4 = torch.stack([torch.stack([i * sg, j * sg], dim=1) for i, j in _BLUR_TAPS], dim=1)
+            off = torch.cat([torch.zeros((nk, 2), dtype=f64, device=dev), o4.view(-1, 2)])
+            v = read(rows4, A4, torch.cat([t[keep], t[sel].repeat_interleave(nt, dim=0)]), radius, off)
         out = torch.empty((rows.numel(), side, side), dtype=torch.float32, device=t.device)
         out[keep] = v[:nk]
         taps = v[nk:].view(nb, len(_BLUR_TAPS), side, side)
@@ -333,7 +362,10 @@ def frame_sampler(
         out[sel] = acc / len(_BLUR_TAPS)
         return out
 
-    def read(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
+    def read(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int,
+             off: torch.Tensor | None = None) -> torch.Tensor:
+        """(n, S, S) samples; ``off`` (n, 2) float64 image pixels added to every sample
+        position of a row (after the map), or None."""
         n = rows.numel()
         Br = B[rows]
         c = centres[rows] + t
@@ -342,14 +374,17 @@ def frame_sampler(
                        ((Br[:, :, :2] * c[:, None]).sum(dim=2) + Br[:, :, 2])[:, :, None]],
                       dim=2).to(torch.float32)
         side = 2 * radius + 1
+        # the image offsets in grid units (float32, added to the float32 grid)
+        offg = None if off is None else (off * sc[rows]).to(torch.float32)[:, None, :]
         if index is None:
-            return _grid_sample(ims[0], _frame_grid(M, radius), mode).view(n, side, side)
+            return _grid_sample(ims[0], _shifted(_frame_grid(M, radius), offg), mode).view(n, side, side)
         idx = index[rows]
         counts = torch.bincount(idx, minlength=len(ims)).tolist()
         if n and max(counts) == n:  # one image
-            return _grid_sample(ims[counts.index(n)], _frame_grid(M, radius), mode).view(n, side, side)
+            return _grid_sample(ims[counts.index(n)], _shifted(_frame_grid(M, radius), offg),
+                                mode).view(n, side, side)
         order = torch.argsort(idx, stable=True)  # the matches grouped by image
-        grid = _frame_grid(M[order], radius)
+        grid = _shifted(_frame_grid(M[order], radius), None if offg is None else offg[order])
         parts, lo = [], 0
         for k, cnt in enumerate(counts):
             if cnt:
@@ -379,7 +414,42 @@ def _frame_grid(M: torch.Tensor, radius: int) -> torch.Tensor:
     return out.view(-1, side * side, 2)
 
 
-def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
+def _shifted(grid: torch.Tensor, off: torch.Tensor | None) -> torch.Tensor:
+    """``grid`` (n, Q, 2) plus ``off`` (n, 1, 2) (in place), or ``grid`` where ``off`` is None."""
+    return grid if off is None else grid.add_(off)
+
+
+def _cubic_sample(image: torch.Tensor, grid: torch.Tensor, a: float) -> torch.Tensor:
+    """Samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) in grid units
+    (``align_corners=True``): bicubic with the cubic convolution parameter ``a``, each tap
+    clamped to the image (``grid_sample``'s bicubic and border rule, any ``a``)."""
+    h, w = image.shape
+    x = (grid[..., 0] + 1) * 0.5 * (w - 1)
+    y = (grid[..., 1] + 1) * 0.5 * (h - 1)
+    fx, fy = x.floor(), y.floor()
+
+    def weights(t: torch.Tensor) -> list[torch.Tensor]:
+        def far(d: torch.Tensor) -> torch.Tensor:  # 1 < |d| < 2
+            return ((a * d - 5 * a) * d + 8 * a) * d - 4 * a
+
+        def near(d: torch.Tensor) -> torch.Tensor:  # |d| <= 1
+            return ((a + 2) * d - (a + 3)) * d * d + 1
+        return [far(t + 1), near(t), near(1 - t), far(2 - t)]
+
+    wx, wy = weights(x - fx), weights(y - fy)
+    flat = image.reshape(-1)
+    cols = [(fx + (k - 1)).clamp(0, w - 1).long() for k in range(4)]
+    out = torch.zeros_like(x)
+    for r in range(4):
+        row = (fy + (r - 1)).clamp(0, h - 1).long() * w
+        v = flat[row + cols[0]] * wx[0]
+        for k in range(1, 4):
+            v = v + flat[row + cols[k]] * wx[k]
+        out = out + v * wy[r]
+    return out
+
+
+def _grid_sample_torch(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
     """Samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) in grid units
     (``align_corners=True``, border values outside)."""
     return F.grid_sample(image[None, None], grid[None], mode=mode, padding_mode="border",

@@ -14,14 +14,20 @@ from the NCC offset. LSM's position replaces the NCC one only where
 elsewhere the NCC refinement goes on as without LSM (iterated parabolas). Each reason is
 counted.
 
+On CPU tensors (with numba) the step runs :func:`.lsm_kernel.lsm_frames`, one compiled loop
+per match; the torch path (:func:`.lsm.frame_sampler` and :func:`.lsm.lsm_align`) runs on
+CUDA and is the kernel's reference (they agree to float rounding).
+
 Anti-aliasing (``lsm_antialias`` > 0): where one view sees the match at a finer scale than
 the other (the local scale ``sqrt |det J|`` of its frame -> image map at the match is
 larger), its samples are smoothed so that both sides carry the blur of the coarser view:
 a Gaussian of ``lsm_antialias * sqrt(ratio^2 - 1)`` of its own pixels (the coarser view's
 blur, ``lsm_antialias`` pixels of its own, brought to the finer view's pixels, less the
 finer view's own). The Gaussian is approximated by the mean of 4 bicubic samples at
-``(+-sigma, +-sigma)`` along the image axes (the variance of a Gaussian of ``sigma`` on each
-axis), so the smoothing costs samples at the affected matches only and stays per match; a
+``(+-sigma, +-sigma)`` image pixels from each sample's position, along the image axes (the
+variance of a Gaussian of ``sigma`` on each axis; the mean is separable, so the compiled
+kernel reads it as one sample with the 4 samples' taps merged), so the smoothing costs
+samples at the affected matches only and stays per match; a
 3 x 3 stencil of the same variance was measured slightly more accurate at over twice the cost.
 Smoothing whole images once per blur level instead (kornia's ``gaussian_blur2d``) would cost
 more than the samples: an image is loaded many times per run and a match's blur varies
@@ -35,6 +41,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from . import lsm_kernel
 from .config import NCCConfig
 from .lsm import frame_sampler, lsm_align
 from .warping import ImageStack
@@ -58,6 +65,8 @@ def lsm_step(
     offset: torch.Tensor,
     cfg: NCCConfig,
     scales: np.ndarray | None = None,
+    *,
+    compiled: bool | None = None,
 ) -> tuple[torch.Tensor, dict[str, int], torch.Tensor]:
     """LSM-refined offsets of n matches, the counters of :data:`LSM_COUNTERS`, and which
     matches LSM moved.
@@ -76,6 +85,9 @@ def lsm_step(
             ``round(lsm_radius_per_scale * scale)`` clamped to [``MIN_RADIUS``, the fixed
             radius], else every match gets the fixed radius (``lsm_radius`` or
             ``template_radius``).
+        compiled: run :func:`.lsm_kernel.lsm_frames` (CPU tensors only) rather than the
+            torch path (:func:`.lsm.frame_sampler` and :func:`.lsm.lsm_align`); None: where
+            the tensors are on the CPU and numba is installed.
     Returns:
         ((n, 2) float64 offsets: LSM's where accepted, else ``offset``; counters; (n,)
         bool accepted).
@@ -86,6 +98,8 @@ def lsm_step(
                                                                    device=offset.device)
     radius = cfg.lsm_radius or cfg.template_radius
     dev = offset.device
+    if compiled is None:
+        compiled = dev.type == "cpu" and lsm_kernel.available()
     radii = np.full(n, radius)
     if scales is not None and cfg.lsm_radius_per_scale > 0:
         radii = np.clip(np.rint(cfg.lsm_radius_per_scale * np.asarray(scales)), MIN_RADIUS,
@@ -105,12 +119,20 @@ def lsm_step(
         if cfg.lsm_antialias > 0:
             blur_f, blur_m = _antialias_blur(H_f_inv[rows], frame_f[rows], H_m_inv[rows],
                                              frame_m[rows] + offset[rows], cfg.lsm_antialias)
-        samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur=blur_f)
-        samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur=blur_m)
-        tpl = samp_f(every, eye, zero, r)
-        res = lsm_align(samp_m, tpl, offset[rows],
-                        affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
-                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
+        if compiled:
+            res = lsm_kernel.lsm_frames(sub_f, sub_m, H_f_inv[rows], frame_f[rows], H_m_inv[rows],
+                                        frame_m[rows], offset[rows], r, blur_f=blur_f, blur_m=blur_m,
+                                        affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
+                                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px,
+                                        cubic_a=cfg.lsm_cubic_a)
+        else:
+            samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur_px=blur_f,
+                                   cubic_a=cfg.lsm_cubic_a)
+            samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur_px=blur_m,
+                                   cubic_a=cfg.lsm_cubic_a)
+            res = lsm_align(samp_m, samp_f(every, eye, zero, r), offset[rows],
+                            affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
+                            tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
         shift[rows], sigma_max[rows], converged[rows] = res.shift, res.sigma_max, res.converged
     outcome = lsm_outcomes(shift - offset, sigma_max, converged, cfg)
     ok = outcome["applied"]
@@ -130,13 +152,14 @@ def frame_jacobian(H_inv: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 def _antialias_blur(H_f_inv: torch.Tensor, at_f: torch.Tensor, H_m_inv: torch.Tensor,
                     at_m: torch.Tensor, base_px: float
                     ) -> tuple[tuple[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
-    """The ``blur`` arguments of :func:`.lsm.frame_sampler` for the fixed and the moving side:
-    the finer view of each match smoothed to the coarser one's blur (see the module
+    """The ``blur_px`` arguments of :func:`.lsm.frame_sampler` for the fixed and the moving
+    side: the finer view of each match smoothed to the coarser one's blur (see the module
     docstring); ``at_f`` / ``at_m`` (n, 2) frame points of the match."""
-    J_f, J_m = frame_jacobian(H_f_inv, at_f), frame_jacobian(H_m_inv, at_m)
-    s_f, s_m = local_scale(J_f), local_scale(J_m)
+    s_f = local_scale(frame_jacobian(H_f_inv, at_f))
+    s_m = local_scale(frame_jacobian(H_m_inv, at_m))
     coarse = torch.minimum(s_f, s_m)
-    return smoothing_to(J_f, s_f, coarse, base_px), smoothing_to(J_m, s_m, coarse, base_px)
+    sg_f, sg_m = blur_sigma(s_f, coarse, base_px), blur_sigma(s_m, coarse, base_px)
+    return (sg_f >= MIN_BLUR_PX, sg_f), (sg_m >= MIN_BLUR_PX, sg_m)
 
 
 def lsm_outcomes(moved: torch.Tensor, sigma_max: torch.Tensor, converged: torch.Tensor,
@@ -156,13 +179,20 @@ def local_scale(J: torch.Tensor) -> torch.Tensor:
     return torch.linalg.det(J).abs().sqrt()
 
 
+def blur_sigma(scale: torch.Tensor, coarse: torch.Tensor, base_px: float) -> torch.Tensor:
+    """(n,) the Gaussian (pixels of its own) that smooths a view of local scale ``scale`` (n,)
+    to the blur of a coarser view of scale ``coarse`` (n,): ``base_px * sqrt(ratio^2 - 1)``,
+    ratio = scale / coarse (0 where the view is not finer)."""
+    ratio = scale / coarse.clamp_min(1e-12)
+    return base_px * (ratio.square() - 1).clamp_min(0).sqrt()
+
+
 def smoothing_to(J: torch.Tensor, scale: torch.Tensor, coarse: torch.Tensor,
                  base_px: float) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``blur`` argument of :func:`.lsm.frame_sampler` that smooths a view (Jacobians ``J``
     (n, 2, 2), local scale ``scale`` (n,)) to the blur of a coarser view of scale ``coarse``
     (n,): a Gaussian of ``base_px * sqrt(ratio^2 - 1)`` of its own pixels (ratio = scale /
     coarse; none where the view is not finer), taken where it reaches ``MIN_BLUR_PX``."""
-    ratio = scale / coarse.clamp_min(1e-12)
-    sigma = base_px * (ratio.square() - 1).clamp_min(0).sqrt()  # this view's pixels
+    sigma = blur_sigma(scale, coarse, base_px)
     # one step of sigma image pixels along the image's axes, in frame pixels: J^-1 sigma
     return sigma >= MIN_BLUR_PX, torch.linalg.inv(J) * sigma[:, None, None]
