@@ -269,7 +269,9 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
 
 class _LocalPairs:
     """``attach(g)``: group ``g`` with its local affine pairs; a pair's are fitted when the
-    first group that uses it is attached and forgotten once the last one is."""
+    first group that uses it is attached and forgotten once the last one is.
+    ``attach.inputs(g)``: group ``g`` with what it needs to fit its own (in the worker that
+    walks it, so that this process does not fit them while the workers wait; the same bits)."""
 
     def __init__(self, plan, groups: list, skip) -> None:
         self.plan, self.groups = plan, groups
@@ -287,6 +289,9 @@ class _LocalPairs:
                 self.plan.release_local([p])
         return grp
 
+    def inputs(self, g: int):
+        return self.plan.with_local_inputs(self.groups[g])
+
 
 def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> None:
     """Walk the ``todo`` groups on the runner: ``use`` contiguous runs, one group of each run
@@ -301,8 +306,8 @@ def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> N
         if runs[r]:
             g = runs[r].pop(0)
             state, aff = _group_args(loader, groups[g], affines, budget)
-            pending[runner.submit(_walk_group_task, state, attach(g), ncc_config, track_config,
-                                  aff)] = (r, g)
+            pending[runner.submit(_walk_group_task, state, attach.inputs(g), ncc_config,
+                                  track_config, aff)] = (r, g)
 
     for r in range(len(runs)):
         submit(r)
