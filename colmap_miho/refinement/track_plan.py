@@ -33,10 +33,19 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from ..enums import Rectification
+from .config import NCCConfig
 from .plan import TrackPlan
 
 #: an image pair (image_id1, image_id2).
 Pair = tuple[int, int]
+
+
+def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
+    """The plan's ``local_affine`` argument for an NCC configuration."""
+    if ncc_cfg.rectification is Rectification.FILTER:
+        return None
+    return ncc_cfg.local_affine_neighbours, ncc_cfg.local_affine_max_residual_px
 
 
 def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,
