@@ -9,7 +9,8 @@ with one call, which is what a batch on a pool of a few hundred matches costs.
   lists (``Sampler``);
 - :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring
   (:mod:`.scoring`); :func:`refit`: the least-squares refit of a run's best model;
-- :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`).
+- :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`);
+- :func:`greedy_cover`: the choice of a run's top-z buffer (``ransac._greedy_buffer``).
 
 The numpy functions stay the reference (and the path when numba is not installed); the tests
 check each kernel against them. The spread test, the draws, the neighbour lists, the masks,
@@ -660,6 +661,35 @@ def _rotation_counts(dx1, dx2, lo, hi, rows):
     return scores, differ
 
 
+def _greedy_cover(masks, covered, z):
+    """See :func:`greedy_cover`."""
+    C, n = masks.shape
+    cov = covered.copy()
+    free = np.ones(C, dtype=np.bool_)
+    chosen = np.empty(min(z, C), dtype=np.int64)
+    m = 0
+    for _ in range(min(z, C)):
+        best, at = 0, -1
+        for c in range(C):
+            if not free[c]:
+                continue
+            gain = 0
+            for i in range(n):
+                if masks[c, i] and not cov[i]:
+                    gain += 1
+            if gain > best:
+                best, at = gain, c
+        if at < 0:
+            break
+        chosen[m] = at
+        m += 1
+        free[at] = False
+        for i in range(n):
+            if masks[at, i]:
+                cov[i] = True
+    return chosen[:m]
+
+
 def _compiled() -> dict[str, Any]:
     """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
     global _KERNELS
@@ -683,7 +713,7 @@ def _jit_all() -> dict[str, Any]:
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
-                                         _rotation_counts)}
+                                         _rotation_counts, _greedy_cover)}
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
@@ -795,3 +825,11 @@ def rotation_counts(dx1: np.ndarray, dx2: np.ndarray, lo: np.ndarray, hi: np.nda
     and how many of them differ from candidate 0's. Returns ``(scores, differ)``, ``(C,)``
     int64 each."""
     return _compiled()["_rotation_counts"](dx1, dx2, lo, hi, rows)
+
+
+def greedy_cover(masks: np.ndarray, covered: np.ndarray, z: int) -> np.ndarray:
+    """The top-z buffer's choice (``ransac._greedy_buffer``, the same): up to ``z`` rows of
+    the candidates' inlier ``masks`` ``(C, n)`` bool, each the one (first of equals) with the
+    most inliers not ``covered`` ``(n,)`` bool by the best model and the rows chosen before
+    it, while that gain is positive. Returns their ``(<= z,)`` int64 row indices in order."""
+    return _compiled()["_greedy_cover"](masks, covered, int(z))

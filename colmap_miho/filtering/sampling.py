@@ -12,6 +12,7 @@ inliers' neighbours).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -84,6 +85,24 @@ def draws_for_confidence(p_clean: float, confidence: float) -> float:
     return math.log(1.0 - confidence) / math.log1p(-p_clean)
 
 
+def _unknown(idx: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """The sorted distinct entries of ``idx`` (indices into ``known`` ``(n,)`` bool) that are
+    not ``known`` (``np.unique`` of them, by a mask: cheaper for short arrays)."""
+    need = np.zeros(known.shape[0], dtype=bool)
+    need[idx] = True
+    need &= ~known
+    return np.flatnonzero(need)
+
+
+@functools.lru_cache(maxsize=4096)
+def _probe_rows(n: int) -> np.ndarray:
+    """``(min(n, 256),)`` int64 rows evenly spread over ``n`` (``linspace``, truncated), kept
+    per ``n`` (read-only: a round asks for them after every improvement)."""
+    rows = np.linspace(0, n - 1, min(n, 256)).astype(np.int64)
+    rows.flags.writeable = False
+    return rows
+
+
 class LocalCandidates:
     """Candidate neighbours of local sampling for one filtering problem, shared by its MOP
     rounds: for each match, its ``4 k`` nearest matches in the joint ``(x1, x2)`` space
@@ -118,9 +137,7 @@ class LocalCandidates:
         searched when first asked for (one tree query per call for the missing ones; a
         match's neighbours do not depend on what it is queried with, and local sampling
         asks for most matches over a few calls)."""
-        todo = idx[~self._known[idx]]
-        if len(todo):
-            todo = np.unique(todo)
+        todo = _unknown(idx, self._known)
         if len(todo) and self._q:
             cand = self._tree.query(self.feats[todo], k=self._q + 1)[1][:, 1:]
             self._cand[todo] = cand
@@ -180,7 +197,7 @@ class Sampler:
             # one call (each match's neighbours do not depend on which others are searched).
             todo = np.arange(len(self.pool))
         else:
-            todo = np.unique(pos[~self._known[pos]])
+            todo = _unknown(pos, self._known)
         if len(todo) and self.compiled:
             assert self._cands is not None, "neighbours are searched with local sampling only"
             assert self._spread_x is not None and self._spread_y is not None
@@ -233,7 +250,7 @@ class Sampler:
         if self._cands is None or mask is None or count <= 0:
             return 0.0
         inl = np.flatnonzero(mask)
-        probe = inl[np.linspace(0, len(inl) - 1, min(len(inl), 256)).astype(np.int64)]
+        probe = inl[_probe_rows(len(inl))]
         nb = self.neighbours(probe)
         valid = nb >= 0
         if not valid.any():

@@ -188,3 +188,30 @@ def test_rotation_choice_is_the_same(reflections):
                                   reflections=reflections, compiled=True)
             np.testing.assert_array_equal(got[0], want[0])
             assert got[1:] == want[1:] and want[2] > 0
+
+
+@pytest.mark.parametrize("z", [0, 1, 5, 40])
+def test_buffer_choice_is_the_same(z):
+    """The compiled top-z buffer choice against the numpy greedy cover, on candidate masks
+    with ties, empty rows and rows the best model covers, so that the cover stops early."""
+    from colmap_miho.filtering.problem import Hypotheses
+    from colmap_miho.filtering.ransac import _greedy_buffer
+
+    rng = np.random.default_rng(z)
+    hyp = Hypotheses(*(rng.normal(size=(30,) + s) for s in ((1, 3, 3), (1, 3, 3), (1,), (1,))),
+                     rng.integers(0, 100, (30, 4)))
+    masks = rng.random((30, 200)) < rng.uniform(0.0, 0.3, (30, 1))
+    masks[3] = masks[7]  # a tie: the first wins
+    masks[11] = False
+    best = rng.random(200) < 0.4
+    masks[12] = best  # covered entirely: never chosen
+    cands = [(hyp, k, masks[k]) for k in range(30)]
+    ref = _greedy_buffer(cands, best, z)
+    got = _greedy_buffer(cands, best, z, compiled=True)
+    assert len(got) == len(ref) <= z
+    for a, b in zip(got, ref, strict=True):
+        np.testing.assert_array_equal(a.sample, b.sample)
+    rows = kernels.greedy_cover(masks, best, z).tolist()
+    assert 7 not in rows and 11 not in rows and 12 not in rows
+    if z >= 5:
+        assert len(rows) >= 5
