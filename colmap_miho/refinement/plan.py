@@ -12,6 +12,21 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 
+def distinct(values: np.ndarray, size: int | None = None) -> np.ndarray:
+    """The sorted distinct entries of the int64 array ``values`` (``np.unique``'s result):
+    by a mask when they are known to lie in ``0..size-1``, else by a sort (numpy's default
+    ``unique`` hashes, several times slower on the plan's arrays)."""
+    values = np.asarray(values).reshape(-1)
+    if size is not None:
+        seen = np.zeros(size, dtype=bool)
+        seen[values] = True
+        return np.flatnonzero(seen).astype(values.dtype, copy=False)
+    out = np.sort(values)
+    if out.size:
+        out = out[np.concatenate([[True], out[1:] != out[:-1]])]
+    return out
+
+
 @dataclass(frozen=True)
 class TrackPlan:
     """Tracks over ``T`` keypoint nodes and ``E`` match edges.
@@ -173,7 +188,9 @@ class TrackPlan:
             lo, hi = np.searchsorted(self.edge_pair, [sp, sp + 1])
             rows = group.source_rows[starts[q]:starts[q + 1]]
             labels = self.edge_label[lo:hi]
-            keep = np.flatnonzero(np.isin(labels, np.unique(labels[rows])))
+            used = np.zeros(len(self.pair_homs[sp]) + 1, dtype=bool)  # last: label -1
+            used[labels[rows]] = True
+            keep = np.flatnonzero(used[labels])
             id1, id2 = self.pairs[sp]
             ea, eb = self.edge_a[lo:hi][keep], self.edge_b[lo:hi][keep]
             inputs.append((self.keypoints[id1][self.node_kp[ea]],
@@ -207,7 +224,7 @@ class TrackPlan:
         moves its keypoints exactly as a walk of this whole plan does."""
         edges = np.sort(np.asarray(edges, np.int64))
         ea, eb = self.edge_a[edges], self.edge_b[edges]
-        nodes = np.unique(np.concatenate([ea, eb, anchors]))
+        nodes = distinct(np.concatenate([ea, eb, anchors]), self.num_nodes)
         used_pairs, edge_pair = np.unique(self.edge_pair[edges], return_inverse=True)
         edge_pair = edge_pair.astype(np.int64).reshape(-1)
         node_image = self.node_image[nodes]
@@ -223,7 +240,7 @@ class TrackPlan:
         new_a, new_b = np.searchsorted(nodes, ea), np.searchsorted(nodes, eb)
         new_anchors = np.searchsorted(nodes, np.asarray(anchors, np.int64))
         return TrackPlan(
-            keypoints={int(i): self.keypoints[int(i)] for i in np.unique(node_image)},
+            keypoints={int(i): self.keypoints[int(i)] for i in distinct(node_image)},
             node_image=node_image, node_kp=self.node_kp[nodes],
             pairs=tuple(self.pairs[int(p)] for p in used_pairs),
             pair_homs=tuple(self.pair_homs[int(p)] for p in used_pairs), local_homs=local,
@@ -262,7 +279,7 @@ class TrackPlan:
         img_a, img_b = self.node_image[self.edge_a[e_ids]], self.node_image[self.edge_b[e_ids]]
         # the (unit, image) pairs, sorted, as one int64 code each (np.unique on rows is slow)
         ids, img = np.unique(np.concatenate([img_a, img_b]), return_inverse=True)
-        code = np.unique(np.concatenate([eu, eu]) * ids.size + img.reshape(-1))
+        code = distinct(np.concatenate([eu, eu]) * ids.size + img.reshape(-1))
         key_unit, key_image = code // ids.size, ids[code % ids.size]
         bounds = np.searchsorted(key_unit, np.arange(anchors.size + 1))
         images = [tuple(key_image[bounds[u]:bounds[u + 1]].tolist()) for u in range(anchors.size)]

@@ -35,7 +35,7 @@ from scipy.sparse.csgraph import connected_components
 
 from ..enums import Rectification
 from .config import NCCConfig
-from .plan import TrackPlan
+from .plan import TrackPlan, distinct
 
 #: an image pair (image_id1, image_id2).
 Pair = tuple[int, int]
@@ -56,7 +56,7 @@ def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,
     _, comp = connected_components(
         coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
     if nodes is None:
-        nodes = np.unique(np.concatenate([ea, eb]))
+        nodes = distinct(np.concatenate([ea, eb]), total)
     hit = np.zeros(comp.max() + 1, bool)
     hit[comp[anchors]] = True
     return int(hit[comp[nodes]].sum() - anchors.size)
@@ -228,7 +228,7 @@ def build_track_plan(
     if ea.size:
         _, comp = connected_components(
             coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
-        nodes = np.unique(np.concatenate([ea, eb]))
+        nodes = distinct(np.concatenate([ea, eb]), total)
         _, track[nodes] = np.unique(comp[nodes], return_inverse=True)
         pos = np.concatenate(list(kps.values()))[nodes]
         conflict, any_two = _conflicts(track, nodes, node_image, pos, duplicate_px)

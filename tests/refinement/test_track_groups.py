@@ -365,3 +365,14 @@ def test_walk_refines_along_walk_steps_only(seed):
             assert frozenset((node[(int(i), int(k))], partner)) in allowed
             used += 1
     assert used == walk.stats["refined"] > 200
+
+
+def test_distinct_is_numpys_unique():
+    from colmap_miho.refinement.plan import distinct
+
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 7, 5000):
+        v = rng.integers(0, 300, n)
+        np.testing.assert_array_equal(distinct(v, 300), np.unique(v))
+        np.testing.assert_array_equal(distinct(v * 1_000_003 - 17), np.unique(v * 1_000_003 - 17))
+        assert distinct(v, 300).dtype == np.unique(v).dtype
