@@ -690,6 +690,64 @@ def _greedy_cover(masks, covered, z):
     return chosen[:m]
 
 
+def _nearest(feats, todo, q, x0, y0, cell, nx, ny, start, members):
+    """See :func:`nearest`."""
+    m = todo.shape[0]
+    dims = feats.shape[1]
+    out = np.empty((m, q), dtype=np.int64)
+    best_d = np.empty(q)
+    best_j = np.empty(q, dtype=np.int64)
+    for r in range(m):
+        a = todo[r]
+        ax, ay = feats[a, 0], feats[a, 1]
+        cx = min(max(int((ax - x0) / cell), 0), nx - 1)
+        cy = min(max(int((ay - y0) / cell), 0), ny - 1)
+        filled = 0
+        ring = 0
+        while True:
+            for gy in range(cy - ring, cy + ring + 1):
+                if gy < 0 or gy >= ny:
+                    continue
+                edge = gy == cy - ring or gy == cy + ring
+                step = 1 if edge else 2 * ring
+                gx = cx - ring
+                while gx <= cx + ring:
+                    if 0 <= gx < nx:
+                        c = gy * nx + gx
+                        for t in range(start[c], start[c + 1]):
+                            j = members[t]
+                            d = 0.0
+                            for e in range(dims):
+                                v = feats[j, e] - feats[a, e]
+                                d += v * v
+                            if filled == q and not (d < best_d[q - 1]
+                                                    or (d == best_d[q - 1] and j < best_j[q - 1])):
+                                continue
+                            at = filled if filled < q else q - 1
+                            while at > 0 and (best_d[at - 1] > d
+                                              or (best_d[at - 1] == d and best_j[at - 1] > j)):
+                                best_d[at] = best_d[at - 1]
+                                best_j[at] = best_j[at - 1]
+                                at -= 1
+                            best_d[at] = d
+                            best_j[at] = j
+                            if filled < q:
+                                filled += 1
+                    gx += step if ring > 0 else 1
+            if ring >= nx and ring >= ny:
+                break
+            if filled == q:
+                # every point not searched yet lies outside the searched square of cells
+                margin = min(ax - (x0 + (cx - ring) * cell), x0 + (cx + ring + 1) * cell - ax,
+                             ay - (y0 + (cy - ring) * cell), y0 + (cy + ring + 1) * cell - ay)
+                if margin > 0 and margin * margin > best_d[q - 1]:
+                    break
+            ring += 1
+        for c in range(q):
+            out[r, c] = best_j[c]
+    return out
+
+
 def _compiled() -> dict[str, Any]:
     """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
     global _KERNELS
@@ -713,7 +771,7 @@ def _jit_all() -> dict[str, Any]:
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
-                                         _rotation_counts, _greedy_cover)}
+                                         _rotation_counts, _greedy_cover, _nearest)}
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
@@ -833,3 +891,37 @@ def greedy_cover(masks: np.ndarray, covered: np.ndarray, z: int) -> np.ndarray:
     most inliers not ``covered`` ``(n,)`` bool by the best model and the rows chosen before
     it, while that gain is positive. Returns their ``(<= z,)`` int64 row indices in order."""
     return _compiled()["_greedy_cover"](masks, covered, int(z))
+
+
+class NearestGrid:
+    """Exact ``q`` nearest neighbours of points ``feats`` ``(N, dims)`` float64 among
+    themselves (Euclidean, the squared distance summed over dims in order, as scipy's k-d
+    tree sums it), by a compiled search of a grid over the first two coordinates (about
+    ``PER_CELL`` points a cell), rings of cells outwards until no point outside can come
+    closer. Ties (equal distances) by index."""
+
+    PER_CELL = 4
+    MAX_CELLS = 1024
+
+    def __init__(self, feats: np.ndarray) -> None:
+        self.feats = np.ascontiguousarray(feats, dtype=np.float64)
+        xy = self.feats[:, :2]
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        span = np.maximum(hi - lo, 1e-9)
+        # at most MAX_CELLS cells a side: every point lies in the cell of its coordinates
+        self.cell = float(max(np.sqrt(span[0] * span[1] * self.PER_CELL / len(xy)),
+                              span.max() / self.MAX_CELLS, 1e-9))
+        self.nx, self.ny = (int(v) for v in span // self.cell + 1)
+        self.x0, self.y0 = float(lo[0]), float(lo[1])
+        gx = np.clip(((xy[:, 0] - self.x0) / self.cell).astype(np.int64), 0, self.nx - 1)
+        gy = np.clip(((xy[:, 1] - self.y0) / self.cell).astype(np.int64), 0, self.ny - 1)
+        cell_of = gy * self.nx + gx
+        self.members = np.argsort(cell_of, kind="stable")
+        self.start = np.searchsorted(cell_of[self.members], np.arange(self.nx * self.ny + 1))
+
+    def query(self, todo: np.ndarray, q: int) -> np.ndarray:
+        """``(len(todo), q)`` int64: the ``q`` nearest points of each point ``todo``
+        (indices), nearest first (the point itself, or a copy of it, first)."""
+        return _compiled()["_nearest"](self.feats, np.asarray(todo, np.int64), int(q), self.x0,
+                                       self.y0, self.cell, self.nx, self.ny, self.start,
+                                       self.members)

@@ -215,3 +215,34 @@ def test_buffer_choice_is_the_same(z):
     assert 7 not in rows and 11 not in rows and 12 not in rows
     if z >= 5:
         assert len(rows) >= 5
+
+
+@pytest.mark.parametrize("layout", ["scene", "duplicates", "line", "cluster", "tiny"])
+def test_nearest_grid_is_the_k_d_tree(layout):
+    """The compiled grid search against scipy's k-d tree: the same distances in the same
+    order for every point (the squared distances summed as scipy sums them), and where the
+    indices differ the points are equidistant; ties by index."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(1)
+    sc, _, _ = _problem(False)
+    feats = np.concatenate([sc.x1, sc.x2], axis=1)
+    if layout == "duplicates":
+        feats = np.concatenate([feats, feats[::3]])
+    elif layout == "line":  # all on one horizontal line in image 1: a degenerate grid
+        feats[:, 1] = 7.0
+    elif layout == "cluster":  # a dense cluster and far outliers
+        feats = np.concatenate([rng.normal(300, 2, (500, 4)), rng.uniform(0, 5000, (20, 4))])
+    elif layout == "tiny":
+        feats = feats[:5]
+    q = min(len(feats), 33)
+    d_ref, i_ref = cKDTree(feats).query(feats, k=q)
+    got = kernels.NearestGrid(feats).query(np.arange(len(feats)), q)
+    diff = feats[got] - feats[:, None]
+    d2 = diff[..., 0] ** 2 + diff[..., 1] ** 2 + diff[..., 2] ** 2 + diff[..., 3] ** 2
+    np.testing.assert_array_equal(np.sqrt(d2), d_ref.reshape(len(feats), q))
+    assert np.all((np.diff(d2, axis=1) > 0) | ((np.diff(d2, axis=1) == 0) & (np.diff(got, axis=1) > 0)))
+    if layout == "duplicates":
+        assert (got != i_ref).any()  # ties in another order than the tree's
+    part = rng.permutation(len(feats))[: max(1, len(feats) // 3)]
+    np.testing.assert_array_equal(kernels.NearestGrid(feats).query(part, q), got[part])
