@@ -20,7 +20,10 @@ matmul (BLAS) may fuse or reorder them, so homographies can differ in the last b
 with them, rarely, a borderline decision.
 
 numba is imported on first use (:func:`available`), and the kernels compile then or load
-from numba's on-disk cache (``cache=True``).
+from numba's on-disk cache (``cache=True``); :func:`warm` loads them ahead (the worker
+processes' forkserver does, :mod:`.preload`, so that workers fork with them loaded).
+:class:`NearestGrid` is the compiled path's neighbour search for local sampling (the numpy
+path keeps scipy's k-d tree).
 """
 
 from __future__ import annotations
@@ -925,3 +928,22 @@ class NearestGrid:
         return _compiled()["_nearest"](self.feats, np.asarray(todo, np.int64), int(q), self.x0,
                                        self.y0, self.cell, self.nx, self.ny, self.start,
                                        self.members)
+
+
+def warm() -> bool:
+    """Load every compiled kernel now (numba's import, then each kernel from its cache, or
+    compiled), by filtering a small synthetic pair; returns whether the kernels are
+    available. Never raises: a process that cannot load them loads them when it filters
+    (where the error shows)."""
+    try:
+        if not available():
+            return False
+        from .api import filter_matches
+
+        rng = np.random.default_rng(0)
+        x1 = rng.uniform(0, 500, (300, 2))
+        filter_matches(x1, x1 + rng.normal(0, 0.5, x1.shape), seed=0)
+        filter_matches(x1, rng.uniform(0, 500, (300, 2)), seed=0)
+        return _KERNELS is not None
+    except Exception:  # noqa: BLE001 - warming is optional; filtering reports the error
+        return False
