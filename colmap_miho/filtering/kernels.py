@@ -644,23 +644,30 @@ def _rotation_counts(dx1, dx2, lo, hi, rows):
     P = dx1.shape[1]
     scores = np.zeros(C, dtype=np.int64)
     differ = np.zeros(C, dtype=np.int64)
-    for p in range(P):
-        first = False
-        for c in range(C):
-            sq = 0.0
-            for axis in range(2):
-                r0, r1 = rows[c, axis, 0], rows[c, axis, 1]
-                v = dx1[axis, p] + (r0 * dx2[0, p] if r0 != 0.0 else r1 * dx2[1, p])
-                if axis == 0:
-                    sq = v * v
-                else:
-                    sq += v * v
+    first = np.zeros(P, dtype=np.bool_)
+    x1, y1 = dx1[0], dx1[1]
+    for c in range(C):
+        # each row of the linear part has one nonzero entry, +-1: the coordinate
+        # dx1 + r0 dx2[0] + r1 dx2[1] is dx1 + (that entry) x (that coordinate of dx2)
+        k0 = 0 if rows[c, 0, 0] != 0.0 else 1
+        k1 = 0 if rows[c, 1, 0] != 0.0 else 1
+        g0, g1 = rows[c, 0, k0], rows[c, 1, k1]
+        a0, a1 = dx2[k0], dx2[k1]
+        sc = 0
+        df = 0
+        for p in range(P):
+            v0 = x1[p] + g0 * a0[p]
+            v1 = y1[p] + g1 * a1[p]
+            sq = v0 * v0
+            sq += v1 * v1
             dm = np.sqrt(sq) / 2
             inside = dm >= lo[p] and dm <= hi[p]
             if c == 0:
-                first = inside
-            scores[c] += inside
-            differ[c] += inside != first
+                first[p] = inside
+            sc += inside
+            df += inside != first[p]
+        scores[c] = sc
+        differ[c] = df
     return scores, differ
 
 
