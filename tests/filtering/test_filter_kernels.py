@@ -246,3 +246,22 @@ def test_nearest_grid_is_the_k_d_tree(layout):
         assert (got != i_ref).any()  # ties in another order than the tree's
     part = rng.permutation(len(feats))[: max(1, len(feats) // 3)]
     np.testing.assert_array_equal(kernels.NearestGrid(feats).query(part, q), got[part])
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_neighbours_of_a_small_problem_are_the_same(miho):
+    """A problem of at most Sampler.ALL_AT_ONCE matches: the compiled sampler searches the
+    pool exhaustively (no problem-wide candidates) and finds the numpy sampler's neighbours,
+    on the whole problem and on a pool that earlier rounds thinned out."""
+    rng = np.random.default_rng(4)
+    sc = make_scene(rng, n_planes=2, per_plane=80, outlier_ratio=0.3)
+    assert len(sc.x1) <= Sampler.ALL_AT_ONCE
+    problem = build_problem(sc.x1, sc.x2, miho=miho, full_match=miho)
+    cfg = FilterConfig()
+    for pool in (np.arange(len(sc.x1)), np.sort(rng.choice(len(sc.x1), 60, replace=False))):
+        ref = Sampler(problem, pool, cfg)
+        got = Sampler(problem, pool, cfg, compiled=True)
+        pos = np.arange(len(pool))
+        want = ref.neighbours(pos)
+        np.testing.assert_array_equal(got.neighbours(pos), want)
+        assert (want >= 0).any() and got._cands is not None and got._cands._grid is None
