@@ -220,7 +220,7 @@ class Sampler:
             q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
             if len(self._cands.feats) <= self.ALL_AT_ONCE:
                 # A small problem: the kernel's exhaustive search of the pool costs less than
-                # the k-d tree's candidates, and finds the same neighbours (the candidates'
+                # the problem-wide candidates, and finds the same neighbours (the candidates'
                 # first k in the pool are the pool's nearest; equidistant ones are the same
                 # point, so their order does not change any draw's coordinates).
                 cand = np.full((len(todo), 0), -1, dtype=np.int64)
