@@ -9,7 +9,8 @@ with one call, which is what a batch on a pool of a few hundred matches costs.
   lists (``Sampler``);
 - :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring
   (:mod:`.scoring`); :func:`refit`: the least-squares refit of a run's best model;
-- :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`).
+- :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`);
+- :func:`greedy_cover`: the choice of a run's top-z buffer (``ransac._greedy_buffer``).
 
 The numpy functions stay the reference (and the path when numba is not installed); the tests
 check each kernel against them. The spread test, the draws, the neighbour lists, the masks,
@@ -19,7 +20,10 @@ matmul (BLAS) may fuse or reorder them, so homographies can differ in the last b
 with them, rarely, a borderline decision.
 
 numba is imported on first use (:func:`available`), and the kernels compile then or load
-from numba's on-disk cache (``cache=True``).
+from numba's on-disk cache (``cache=True``); :func:`warm` loads them ahead (the worker
+processes' forkserver does, :mod:`.preload`, so that workers fork with them loaded).
+:class:`NearestGrid` is the compiled path's neighbour search for local sampling (the numpy
+path keeps scipy's k-d tree).
 """
 
 from __future__ import annotations
@@ -640,24 +644,118 @@ def _rotation_counts(dx1, dx2, lo, hi, rows):
     P = dx1.shape[1]
     scores = np.zeros(C, dtype=np.int64)
     differ = np.zeros(C, dtype=np.int64)
-    for p in range(P):
-        first = False
-        for c in range(C):
-            sq = 0.0
-            for axis in range(2):
-                r0, r1 = rows[c, axis, 0], rows[c, axis, 1]
-                v = dx1[axis, p] + (r0 * dx2[0, p] if r0 != 0.0 else r1 * dx2[1, p])
-                if axis == 0:
-                    sq = v * v
-                else:
-                    sq += v * v
+    first = np.zeros(P, dtype=np.bool_)
+    x1, y1 = dx1[0], dx1[1]
+    for c in range(C):
+        # each row of the linear part has one nonzero entry, +-1: the coordinate
+        # dx1 + r0 dx2[0] + r1 dx2[1] is dx1 + (that entry) x (that coordinate of dx2)
+        k0 = 0 if rows[c, 0, 0] != 0.0 else 1
+        k1 = 0 if rows[c, 1, 0] != 0.0 else 1
+        g0, g1 = rows[c, 0, k0], rows[c, 1, k1]
+        a0, a1 = dx2[k0], dx2[k1]
+        sc = 0
+        df = 0
+        for p in range(P):
+            v0 = x1[p] + g0 * a0[p]
+            v1 = y1[p] + g1 * a1[p]
+            sq = v0 * v0
+            sq += v1 * v1
             dm = np.sqrt(sq) / 2
             inside = dm >= lo[p] and dm <= hi[p]
             if c == 0:
-                first = inside
-            scores[c] += inside
-            differ[c] += inside != first
+                first[p] = inside
+            sc += inside
+            df += inside != first[p]
+        scores[c] = sc
+        differ[c] = df
     return scores, differ
+
+
+def _greedy_cover(masks, covered, z):
+    """See :func:`greedy_cover`."""
+    C, n = masks.shape
+    cov = covered.copy()
+    free = np.ones(C, dtype=np.bool_)
+    chosen = np.empty(min(z, C), dtype=np.int64)
+    m = 0
+    for _ in range(min(z, C)):
+        best, at = 0, -1
+        for c in range(C):
+            if not free[c]:
+                continue
+            gain = 0
+            for i in range(n):
+                if masks[c, i] and not cov[i]:
+                    gain += 1
+            if gain > best:
+                best, at = gain, c
+        if at < 0:
+            break
+        chosen[m] = at
+        m += 1
+        free[at] = False
+        for i in range(n):
+            if masks[at, i]:
+                cov[i] = True
+    return chosen[:m]
+
+
+def _nearest(feats, todo, q, x0, y0, cell, nx, ny, start, members):
+    """See :func:`nearest`."""
+    m = todo.shape[0]
+    dims = feats.shape[1]
+    out = np.empty((m, q), dtype=np.int64)
+    best_d = np.empty(q)
+    best_j = np.empty(q, dtype=np.int64)
+    for r in range(m):
+        a = todo[r]
+        ax, ay = feats[a, 0], feats[a, 1]
+        cx = min(max(int((ax - x0) / cell), 0), nx - 1)
+        cy = min(max(int((ay - y0) / cell), 0), ny - 1)
+        filled = 0
+        ring = 0
+        while True:
+            for gy in range(cy - ring, cy + ring + 1):
+                if gy < 0 or gy >= ny:
+                    continue
+                edge = gy == cy - ring or gy == cy + ring
+                step = 1 if edge else 2 * ring
+                gx = cx - ring
+                while gx <= cx + ring:
+                    if 0 <= gx < nx:
+                        c = gy * nx + gx
+                        for t in range(start[c], start[c + 1]):
+                            j = members[t]
+                            d = 0.0
+                            for e in range(dims):
+                                v = feats[j, e] - feats[a, e]
+                                d += v * v
+                            if filled == q and not (d < best_d[q - 1]
+                                                    or (d == best_d[q - 1] and j < best_j[q - 1])):
+                                continue
+                            at = filled if filled < q else q - 1
+                            while at > 0 and (best_d[at - 1] > d
+                                              or (best_d[at - 1] == d and best_j[at - 1] > j)):
+                                best_d[at] = best_d[at - 1]
+                                best_j[at] = best_j[at - 1]
+                                at -= 1
+                            best_d[at] = d
+                            best_j[at] = j
+                            if filled < q:
+                                filled += 1
+                    gx += step if ring > 0 else 1
+            if ring >= nx and ring >= ny:
+                break
+            if filled == q:
+                # every point not searched yet lies outside the searched square of cells
+                margin = min(ax - (x0 + (cx - ring) * cell), x0 + (cx + ring + 1) * cell - ax,
+                             ay - (y0 + (cy - ring) * cell), y0 + (cy + ring + 1) * cell - ay)
+                if margin > 0 and margin * margin > best_d[q - 1]:
+                    break
+            ring += 1
+        for c in range(q):
+            out[r, c] = best_j[c]
+    return out
 
 
 def _compiled() -> dict[str, Any]:
@@ -683,7 +781,7 @@ def _jit_all() -> dict[str, Any]:
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
-                                         _rotation_counts)}
+                                         _rotation_counts, _greedy_cover, _nearest)}
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
@@ -795,3 +893,64 @@ def rotation_counts(dx1: np.ndarray, dx2: np.ndarray, lo: np.ndarray, hi: np.nda
     and how many of them differ from candidate 0's. Returns ``(scores, differ)``, ``(C,)``
     int64 each."""
     return _compiled()["_rotation_counts"](dx1, dx2, lo, hi, rows)
+
+
+def greedy_cover(masks: np.ndarray, covered: np.ndarray, z: int) -> np.ndarray:
+    """The top-z buffer's choice (``ransac._greedy_buffer``, the same): up to ``z`` rows of
+    the candidates' inlier ``masks`` ``(C, n)`` bool, each the one (first of equals) with the
+    most inliers not ``covered`` ``(n,)`` bool by the best model and the rows chosen before
+    it, while that gain is positive. Returns their ``(<= z,)`` int64 row indices in order."""
+    return _compiled()["_greedy_cover"](masks, covered, int(z))
+
+
+class NearestGrid:
+    """Exact ``q`` nearest neighbours of points ``feats`` ``(N, dims)`` float64 among
+    themselves (Euclidean, the squared distance summed over dims in order, as scipy's k-d
+    tree sums it), by a compiled search of a grid over the first two coordinates (about
+    ``PER_CELL`` points a cell), rings of cells outwards until no point outside can come
+    closer. Ties (equal distances) by index."""
+
+    PER_CELL = 4
+    MAX_CELLS = 1024
+
+    def __init__(self, feats: np.ndarray) -> None:
+        self.feats = np.ascontiguousarray(feats, dtype=np.float64)
+        xy = self.feats[:, :2]
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        span = np.maximum(hi - lo, 1e-9)
+        # at most MAX_CELLS cells a side: every point lies in the cell of its coordinates
+        self.cell = float(max(np.sqrt(span[0] * span[1] * self.PER_CELL / len(xy)),
+                              span.max() / self.MAX_CELLS, 1e-9))
+        self.nx, self.ny = (int(v) for v in span // self.cell + 1)
+        self.x0, self.y0 = float(lo[0]), float(lo[1])
+        gx = np.clip(((xy[:, 0] - self.x0) / self.cell).astype(np.int64), 0, self.nx - 1)
+        gy = np.clip(((xy[:, 1] - self.y0) / self.cell).astype(np.int64), 0, self.ny - 1)
+        cell_of = gy * self.nx + gx
+        self.members = np.argsort(cell_of, kind="stable")
+        self.start = np.searchsorted(cell_of[self.members], np.arange(self.nx * self.ny + 1))
+
+    def query(self, todo: np.ndarray, q: int) -> np.ndarray:
+        """``(len(todo), q)`` int64: the ``q`` nearest points of each point ``todo``
+        (indices), nearest first (the point itself, or a copy of it, first)."""
+        return _compiled()["_nearest"](self.feats, np.asarray(todo, np.int64), int(q), self.x0,
+                                       self.y0, self.cell, self.nx, self.ny, self.start,
+                                       self.members)
+
+
+def warm() -> bool:
+    """Load every compiled kernel now (numba's import, then each kernel from its cache, or
+    compiled), by filtering a small synthetic pair; returns whether the kernels are
+    available. Never raises: a process that cannot load them loads them when it filters
+    (where the error shows)."""
+    try:
+        if not available():
+            return False
+        from .api import filter_matches
+
+        rng = np.random.default_rng(0)
+        x1 = rng.uniform(0, 500, (300, 2))
+        filter_matches(x1, x1 + rng.normal(0, 0.5, x1.shape), seed=0)
+        filter_matches(x1, rng.uniform(0, 500, (300, 2)), seed=0)
+        return _KERNELS is not None
+    except Exception:  # noqa: BLE001 - warming is optional; filtering reports the error
+        return False

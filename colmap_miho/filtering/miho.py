@@ -14,6 +14,8 @@ App. B, C).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from . import kernels
@@ -22,10 +24,9 @@ from .problem import Problem
 _ROTATION_Z = 3.0  # paired z-score a non-identity pre-alignment needs over the identity
 
 
-def _candidate_transforms(x2: np.ndarray, reflections: bool) -> list[np.ndarray]:
-    """3x3 affine maps of image 2 (rotations by k*90 degrees about the points' centroid,
-    then optionally a mirror about the vertical axis through it), identity first."""
-    c = x2.mean(axis=0)
+@functools.cache
+def _linear_parts(reflections: bool) -> tuple[np.ndarray, ...]:
+    """The 2x2 linear parts of :func:`_candidate_transforms` (computed once; read-only)."""
     out = []
     for mirror in (False, True) if reflections else (False,):
         for k in range(4):
@@ -33,10 +34,30 @@ def _candidate_transforms(x2: np.ndarray, reflections: bool) -> list[np.ndarray]
             R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]).round(12)
             if mirror:
                 R = R @ np.diag([-1.0, 1.0])
-            G = np.eye(3)
-            G[:2, :2] = R
-            G[:2, 2] = c - R @ c
-            out.append(G)
+            R.flags.writeable = False
+            out.append(R)
+    return tuple(out)
+
+
+@functools.lru_cache(maxsize=64)
+def _all_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``np.triu_indices(n, 1)``, kept per ``n`` (read-only)."""
+    i, j = np.triu_indices(n, 1)
+    i.flags.writeable = False
+    j.flags.writeable = False
+    return i, j
+
+
+def _candidate_transforms(x2: np.ndarray, reflections: bool) -> list[np.ndarray]:
+    """3x3 affine maps of image 2 (rotations by k*90 degrees about the points' centroid,
+    then optionally a mirror about the vertical axis through it), identity first."""
+    c = x2.mean(axis=0)
+    out = []
+    for R in _linear_parts(reflections):
+        G = np.eye(3)
+        G[:2, :2] = R
+        G[:2, 2] = c - R @ c
+        out.append(G)
     return out
 
 
@@ -85,7 +106,7 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
     if N < 2:
         return np.eye(3), 0, 0
     if pairs == 0 or pairs >= N * (N - 1) // 2:
-        i, j = np.triu_indices(N, 1)
+        i, j = _all_pairs(N)
     else:
         i = rng.integers(0, N, pairs)
         j = rng.integers(0, N, pairs)

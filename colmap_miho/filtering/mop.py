@@ -53,7 +53,8 @@ def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
     kept: list[Hypotheses] = []
     held: list[np.ndarray] = []
     failures = 0
-    candidates = LocalCandidates(problem, cfg) if cfg.sampling == Sampling.LOCAL else None
+    candidates = (LocalCandidates(problem, cfg, compiled=getattr(scoring, "compiled", False))
+                  if cfg.sampling == Sampling.LOCAL else None)
     stats = {"rounds": 0, "failures": 0, "drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
     bar = None
     if progress:

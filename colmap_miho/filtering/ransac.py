@@ -53,13 +53,17 @@ class RoundResult:
 
 
 def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: np.ndarray,
-                   z: int):
+                   z: int, compiled: bool = False):
     """Top-z sub-optimal models ordered by inliers not covered by the best and the better
-    buffered ones (paper App. A.3, ``v_i >= v_{i+1}``); ``cands`` as in :class:`_Search`."""
+    buffered ones (paper App. A.3, ``v_i >= v_{i+1}``); ``cands`` as in :class:`_Search`
+    (``compiled``: the choice by :func:`.kernels.greedy_cover`, the same)."""
     if z == 0 or not cands:
         return []
-    covered = best_mask.copy()
     masks = np.stack([m for _, _, m in cands])
+    if compiled:
+        return [cands[k][0].take(cands[k][1])
+                for k in kernels.greedy_cover(masks, best_mask, z).tolist()]
+    covered = best_mask.copy()
     chosen = []
     free = np.ones(len(cands), dtype=bool)
     for _ in range(min(z, len(cands))):
@@ -87,22 +91,25 @@ class _Search:
     mask: np.ndarray | None = None
     cands: list[tuple[Hypotheses, int, np.ndarray]] = field(default_factory=list)
 
-    def consider(self, hyp: Hypotheses, masks: np.ndarray, err: np.ndarray | None = None) -> bool:
+    def consider(self, hyp: Hypotheses, masks: np.ndarray, err: np.ndarray | None = None,
+                 rows: np.ndarray | None = None) -> bool:
         """Take fully scored hypotheses: their t_l inlier ``masks`` ``(K, n_pool)`` and, when
         at hand, their squared errors ``err`` (otherwise the best's are computed at the end
         of the run); returns whether the best model changed. A replaced best and every other
-        model with inliers become candidates."""
-        counts = np.count_nonzero(masks, axis=1)
+        model with inliers become candidates. Row ``k`` of ``masks`` is hypothesis
+        ``rows[k]`` of ``hyp`` (``None``: ``k``; a candidate keeps ``hyp`` and its row)."""
+        counts = masks.sum(axis=1)
         improved = False
-        for k in np.argsort(-counts, kind="stable"):
+        for k in np.argsort(-counts, kind="stable").tolist():
+            row = k if rows is None else int(rows[k])
             if counts[k] > self.count:
                 if self.hyp is not None and self.mask is not None:  # set together
                     self.cands.append((self.hyp, 0, self.mask))
-                self.hyp, self.err = hyp.take(k), None if err is None else err[k]
+                self.hyp, self.err = hyp.take(row), None if err is None else err[k]
                 self.count, self.mask = int(counts[k]), masks[k]
                 improved = True
             elif counts[k] > 0:
-                self.cands.append((hyp, int(k), masks[k]))
+                self.cands.append((hyp, row, masks[k]))
         return improved
 
 
@@ -115,8 +122,9 @@ def _required(search: _Search, sampler: Sampler, n: int, cfg: FilterConfig) -> f
 
 
 class _BatchScores:
-    """Full scores of one batch's hypotheses ``hyp`` (sorted by their one-way bound ``ub``),
-    computed on demand for the positions :func:`_score_batch` reaches.
+    """Full scores of one batch's hypotheses ``hyp`` in the ``order`` of their one-way bound
+    (position ``i`` is ``hyp`` row ``order[i]``; ``ub`` sorted), computed on demand for the
+    positions :func:`_score_batch` reaches.
 
     With ``scoring.prefetch == 0`` exactly the positions asked for are scored (singular-value
     test, then the errors of the survivors). Otherwise positions are screened ahead, in
@@ -125,9 +133,11 @@ class _BatchScores:
     hypotheses in the same order, so the result is the same.
     """
 
-    def __init__(self, scoring: NumpyScoring, problem: Problem, hyp: Hypotheses, ub: np.ndarray,
-                 pool: np.ndarray, cfg: FilterConfig, t2: float, reach: int) -> None:
+    def __init__(self, scoring: NumpyScoring, problem: Problem, hyp: Hypotheses,
+                 order: np.ndarray, ub: np.ndarray, pool: np.ndarray, cfg: FilterConfig,
+                 t2: float, reach: int) -> None:
         self.scoring, self.problem, self.hyp, self.ub = scoring, problem, hyp, ub
+        self.order = order
         self.pool, self.cfg, self.t2, self.reach = pool, cfg, t2, reach
         self.chunk = scoring.prefetch
         self.done = 0
@@ -135,14 +145,18 @@ class _BatchScores:
             self.sv = np.zeros(reach, dtype=bool)
             self.mask = np.zeros((reach, len(pool)), dtype=bool)
 
+    def at(self, pos: np.ndarray) -> Hypotheses:
+        """The hypotheses at positions ``pos`` of the order."""
+        return self.hyp.take(self.order[pos])
+
     def get(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """``(keep, masks, err)`` for the positions ``pos``: those passing the singular-value
         test, their inlier masks and (when at hand) errors on the pool."""
         if not self.chunk:
-            keep = pos[self.scoring.singular_value_ok(self.problem, self.hyp.take(pos), self.cfg)]
+            keep = pos[self.scoring.singular_value_ok(self.problem, self.at(pos), self.cfg)]
             if not len(keep):
                 return keep, np.zeros((0, len(self.pool)), dtype=bool), None
-            masks, err = self.scoring.masks(self.problem, self.hyp.take(keep), self.pool, self.t2)
+            masks, err = self.scoring.masks(self.problem, self.at(keep), self.pool, self.t2)
             return keep, masks, err
         if len(pos) and pos[-1] >= self.done:
             stop = min(max(int(pos[-1]) + 1, self.done + self.chunk), self.reach)
@@ -150,7 +164,7 @@ class _BatchScores:
             todo = todo[self.ub[todo] > 0]
             if len(todo):
                 self.sv[todo], self.mask[todo] = self.scoring.screen(
-                    self.problem, self.hyp.take(todo), self.pool, self.t2, self.cfg)
+                    self.problem, self.at(todo), self.pool, self.t2, self.cfg)
             self.done = stop
             self.chunk *= 2
         keep = pos[self.sv[pos]]
@@ -173,7 +187,7 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
     # The best count only rises, so no group starting past the bounds above it is reached.
     first = max(int(np.count_nonzero(ub > search.count)), n_buf)
     reach = min(len(ub), -(-first // 4) * 4)
-    scores = _BatchScores(scoring, problem, hyp.take(order), ub, pool, cfg, search.t2, reach)
+    scores = _BatchScores(scoring, problem, hyp, order, ub, pool, cfg, search.t2, reach)
     improved = False
     start = 0
     while start < len(order) and (ub[start] > search.count or start < n_buf):
@@ -183,7 +197,7 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
         if not len(keep):
             continue
         stats["full_scored"] += len(keep)
-        improved |= search.consider(scores.hyp.take(keep), masks, err)
+        improved |= search.consider(scores.hyp, masks, err, rows=scores.order[keep])
     return improved
 
 
@@ -267,7 +281,7 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
     if search.err is None:  # the scoring kept only masks: the best's errors, once
         search.err = scoring.error_sq(problem, search.hyp, pool)[0]
     assert search.mask is not None  # set together with hyp
-    buffer = _greedy_buffer(search.cands, search.mask, cfg.buffer_size)
+    buffer = _greedy_buffer(search.cands, search.mask, cfg.buffer_size, scoring.compiled)
     stats["required_iters"] = required
     return RoundResult(search.hyp, search.err, search.count, stats), buffer
 

@@ -12,6 +12,7 @@ inliers' neighbours).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -84,6 +85,24 @@ def draws_for_confidence(p_clean: float, confidence: float) -> float:
     return math.log(1.0 - confidence) / math.log1p(-p_clean)
 
 
+def _unknown(idx: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """The sorted distinct entries of ``idx`` (indices into ``known`` ``(n,)`` bool) that are
+    not ``known`` (``np.unique`` of them, by a mask: cheaper for short arrays)."""
+    need = np.zeros(known.shape[0], dtype=bool)
+    need[idx] = True
+    need &= ~known
+    return np.flatnonzero(need)
+
+
+@functools.lru_cache(maxsize=4096)
+def _probe_rows(n: int) -> np.ndarray:
+    """``(min(n, 256),)`` int64 rows evenly spread over ``n`` (``linspace``, truncated), kept
+    per ``n`` (read-only: a round asks for them after every improvement)."""
+    rows = np.linspace(0, n - 1, min(n, 256)).astype(np.int64)
+    rows.flags.writeable = False
+    return rows
+
+
 class LocalCandidates:
     """Candidate neighbours of local sampling for one filtering problem, shared by its MOP
     rounds: for each match, its ``4 k`` nearest matches in the joint ``(x1, x2)`` space
@@ -92,15 +111,19 @@ class LocalCandidates:
 
     SEARCH = 4
 
-    def __init__(self, problem: Problem, cfg: FilterConfig) -> None:
-        from scipy.spatial import cKDTree
-
+    def __init__(self, problem: Problem, cfg: FilterConfig, compiled: bool = False) -> None:
+        """``compiled``: search by :class:`.kernels.NearestGrid` (ties by index) instead of
+        scipy's k-d tree (ties in its own order); the same neighbours but for the order of
+        equidistant ones."""
         n = len(problem.x1)
+        self.compiled = compiled
         assert problem.spread_xy is not None, "local sampling runs on the numpy problem"
         self._sx, self._sy = problem.spread_xy  # (sets, N) each
         self._t2 = cfg.t_l**2
         self.feats = np.concatenate([problem.x1, problem.x2], axis=1)
-        self._tree = cKDTree(self.feats)
+        # built on the first search
+        self._tree: cKDTree | None = None
+        self._grid: kernels.NearestGrid | None = None
         self._q = max(min(n, self.SEARCH * cfg.local_neighbours + 1) - 1, 0)
         self._cand = np.full((n, self._q), -1, dtype=np.int64)
         self._far = np.zeros((n, self._q), dtype=bool)
@@ -118,11 +141,18 @@ class LocalCandidates:
         searched when first asked for (one tree query per call for the missing ones; a
         match's neighbours do not depend on what it is queried with, and local sampling
         asks for most matches over a few calls)."""
-        todo = idx[~self._known[idx]]
-        if len(todo):
-            todo = np.unique(todo)
+        todo = _unknown(idx, self._known)
         if len(todo) and self._q:
-            cand = self._tree.query(self.feats[todo], k=self._q + 1)[1][:, 1:]
+            if self.compiled:
+                if self._grid is None:
+                    self._grid = kernels.NearestGrid(self.feats)
+                cand = self._grid.query(todo, self._q + 1)[:, 1:]
+            else:
+                if self._tree is None:
+                    from scipy.spatial import cKDTree
+
+                    self._tree = cKDTree(self.feats)
+                cand = self._tree.query(self.feats[todo], k=self._q + 1)[1][:, 1:]
             self._cand[todo] = cand
             self._far[todo] = self.far(cand, todo[:, None])
         self._known[todo] = True
@@ -157,7 +187,8 @@ class Sampler:
         self.fraction = cfg.local_fraction if self.local else 0.0
         self._cands: LocalCandidates | None = None
         if self.local:
-            self._cands = candidates if candidates is not None else LocalCandidates(problem, cfg)
+            self._cands = (candidates if candidates is not None
+                           else LocalCandidates(problem, cfg, compiled=compiled))
             self._pos = np.full(len(problem.x1), -1, dtype=np.int64)  # global -> pool position
             self._pos[pool] = np.arange(n)
         self._pool_tree: cKDTree | None = None
@@ -180,14 +211,22 @@ class Sampler:
             # one call (each match's neighbours do not depend on which others are searched).
             todo = np.arange(len(self.pool))
         else:
-            todo = np.unique(pos[~self._known[pos]])
+            todo = _unknown(pos, self._known)
         if len(todo) and self.compiled:
             assert self._cands is not None, "neighbours are searched with local sampling only"
             assert self._spread_x is not None and self._spread_y is not None
             if self._feats is None:
                 self._feats = np.ascontiguousarray(self._cands.feats[self.pool])
-            cand, far = self._cands.get(self.pool[todo])
             q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
+            if len(self._cands.feats) <= self.ALL_AT_ONCE:
+                # A small problem: the kernel's exhaustive search of the pool costs less than
+                # the problem-wide candidates, and finds the same neighbours (the candidates'
+                # first k in the pool are the pool's nearest; equidistant ones are the same
+                # point, so their order does not change any draw's coordinates).
+                cand = np.full((len(todo), 0), -1, dtype=np.int64)
+                far = np.zeros((len(todo), 0), dtype=bool)
+            else:
+                cand, far = self._cands.get(self.pool[todo])
             self._nb[todo] = kernels.pool_neighbours(todo, cand, far, self._pos, self._feats,
                                                      self._spread_x, self._spread_y, self._t2,
                                                      self.k, q)
@@ -233,7 +272,7 @@ class Sampler:
         if self._cands is None or mask is None or count <= 0:
             return 0.0
         inl = np.flatnonzero(mask)
-        probe = inl[np.linspace(0, len(inl) - 1, min(len(inl), 256)).astype(np.int64)]
+        probe = inl[_probe_rows(len(inl))]
         nb = self.neighbours(probe)
         valid = nb >= 0
         if not valid.any():

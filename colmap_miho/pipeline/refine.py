@@ -74,11 +74,22 @@ Moved = dict[int, tuple[np.ndarray, np.ndarray]]
 _WORKER_LOADER: ImageLoader | None = None
 
 
-def _import_refinement():
-    """The track plan and walk, imported only when a run refines (they import torch)."""
-    from ..refinement import track_plan, tracks
+def _import_plan():
+    """The track plan, imported only when a run refines (numpy and scipy: a process whose
+    workers walk never imports the walk, nor so torch)."""
+    from ..refinement import track_plan
 
-    return track_plan.build_track_plan, tracks.walk_tracks, tracks.local_affine_of
+    return track_plan.build_track_plan, track_plan.local_affine_of
+
+
+def _walk_counters() -> tuple[str, ...]:
+    """The walk's counters that the groups' stats sum (imports the walk)."""
+    from ..refinement.lsm_step import LSM_COUNTERS
+    from ..refinement.multiphoto import MULTIPHOTO_COUNTERS
+    from ..refinement.tracks import WALK_COUNTERS
+
+    return (WALK_COUNTERS + LSM_COUNTERS + MULTIPHOTO_COUNTERS
+            + ("missing_images", "images_loaded", "image_decodes", "seconds"))
 
 
 def max_images_for(loader: ImageLoader, image_ids, budget_bytes: int | None,
@@ -107,13 +118,16 @@ def _moved_of(group, keypoints) -> Moved:
 
 
 def _walk_group(loader, group, ncc_config, track_config, affines, on_progress=None):
-    """Walk one group with ``loader``; returns (moved, stats): the numeric stats and
-    ``decoded_by_image`` (image id as text -> the images the walk decoded, JSON-ready)."""
-    _, walk_tracks, _ = _import_refinement()
+    """Walk one group with ``loader``; returns (moved, stats): the walk's counters
+    (:func:`_walk_counters`, those it has) and ``decoded_by_image`` (image id as text -> the
+    images the walk decoded, JSON-ready)."""
+    from ..refinement.tracks import walk_tracks
+
     before = Counter(loader.decoded)
     tr = walk_tracks(loader, group, ncc_config=ncc_config, track_config=track_config,
                      affines=affines, progress=False, on_progress=on_progress)
-    stats: dict = _numeric(tr.stats)
+    numeric = _numeric(tr.stats)
+    stats: dict = {k: numeric[k] for k in _walk_counters() if k in numeric}
     stats[DECODED_BY_IMAGE] = {str(k): int(v) for k, v in (loader.decoded - before).items()}
     return _moved_of(group, tr.keypoints), stats
 
@@ -148,14 +162,11 @@ def _group_args(loader: ImageLoader, group, affines, budget_bytes: int | None
 
 def _merge_walk_stats(plan_stats: dict, parts: list[dict]) -> dict:
     """The plan's stats, the groups' counters summed (``levels``, ``missing_images``: the
-    largest of one group)."""
-    from ..refinement.lsm_step import LSM_COUNTERS
-    from ..refinement.multiphoto import MULTIPHOTO_COUNTERS
-    from ..refinement.tracks import WALK_COUNTERS
-
+    largest of one group). The groups' stats hold only counters (:func:`_walk_group`), so
+    this process needs no import of the walk."""
     stats = dict(plan_stats)
-    for key in (WALK_COUNTERS + LSM_COUNTERS + MULTIPHOTO_COUNTERS
-                + ("missing_images", "images_loaded", "image_decodes", "seconds")):
+    keys = dict.fromkeys(k for st in parts for k in st if k != DECODED_BY_IMAGE)
+    for key in keys:
         vals = [st[key] for st in parts if key in st]
         if vals:
             stats[key] = max(vals) if key in ("levels", "missing_images") else sum(vals)
@@ -210,7 +221,7 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
         counts once per group that read / decoded it; the decodes of the loader's
         ``check_all`` are not in them), ``groups``, ``groups_resumed``, ``group_max_images``.
     """
-    build_track_plan, _, local_affine_of = _import_refinement()
+    build_track_plan, local_affine_of = _import_plan()
     plan = build_track_plan(keypoints, {k: m for k, (m, _) in pairs.items()},
                             {k: r for k, (_, r) in pairs.items()}, unrefined_matches=unrefined,
                             duplicate_px=track_config.duplicate_px,
@@ -269,7 +280,9 @@ def run_refine_stage(loader: ImageLoader, keypoints, pairs, affines, ncc_config,
 
 class _LocalPairs:
     """``attach(g)``: group ``g`` with its local affine pairs; a pair's are fitted when the
-    first group that uses it is attached and forgotten once the last one is."""
+    first group that uses it is attached and forgotten once the last one is.
+    ``attach.inputs(g)``: group ``g`` with what it needs to fit its own (in the worker that
+    walks it, so that this process does not fit them while the workers wait; the same bits)."""
 
     def __init__(self, plan, groups: list, skip) -> None:
         self.plan, self.groups = plan, groups
@@ -287,6 +300,9 @@ class _LocalPairs:
                 self.plan.release_local([p])
         return grp
 
+    def inputs(self, g: int):
+        return self.plan.with_local_inputs(self.groups[g])
+
 
 def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> None:
     """Walk the ``todo`` groups on the runner: ``use`` contiguous runs, one group of each run
@@ -301,8 +317,8 @@ def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> N
         if runs[r]:
             g = runs[r].pop(0)
             state, aff = _group_args(loader, groups[g], affines, budget)
-            pending[runner.submit(_walk_group_task, state, attach(g), ncc_config, track_config,
-                                  aff)] = (r, g)
+            pending[runner.submit(_walk_group_task, state, attach.inputs(g), ncc_config,
+                                  track_config, aff)] = (r, g)
 
     for r in range(len(runs)):
         submit(r)

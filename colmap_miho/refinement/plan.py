@@ -12,6 +12,21 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 
+def distinct(values: np.ndarray, size: int | None = None) -> np.ndarray:
+    """The sorted distinct entries of the int64 array ``values`` (``np.unique``'s result):
+    by a mask when they are known to lie in ``0..size-1``, else by a sort (numpy's default
+    ``unique`` hashes, several times slower on the plan's arrays)."""
+    values = np.asarray(values).reshape(-1)
+    if size is not None:
+        seen = np.zeros(size, dtype=bool)
+        seen[values] = True
+        return np.flatnonzero(seen).astype(values.dtype, copy=False)
+    out = np.sort(values)
+    if out.size:
+        out = out[np.concatenate([[True], out[1:] != out[:-1]])]
+    return out
+
+
 @dataclass(frozen=True)
 class TrackPlan:
     """Tracks over ``T`` keypoint nodes and ``E`` match edges.
@@ -42,6 +57,12 @@ class TrackPlan:
             plan it came from.
         source_rows: None, or for a group the (E',) int64 row of each edge among its pair's
             edges in the plan it came from.
+        local_inputs: None, or for a group (:meth:`TrackPlan.with_local_inputs`) per pair
+            what its own walk needs to fit the local affine pairs of its edges: ``(x1, x2,
+            labels, at, fit)``, the (n, 2) float64 positions and (n,) int64 labels of the
+            source pair's edges in the clusters of this group's edges (in the source's row
+            order), the (E'_p,) int64 index into them of each of this group's edges of the
+            pair and (E'_p,) bool whether the walk refines along it.
         stats: ``tracks`` (tracks with >= 2 keypoints), ``conflicting_tracks`` (two
             keypoints of one image), ``frozen_tracks``, ``frozen_keypoints``,
             ``keypoints_in_tracks``, ``anchors``, ``unrefinable_matches`` (edges without
@@ -68,6 +89,7 @@ class TrackPlan:
     local_affine: tuple | None = None
     source_pairs: np.ndarray | None = None
     source_rows: np.ndarray | None = None
+    local_inputs: tuple | None = None
     _local_cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
     _steps: list = field(default_factory=list, init=False, repr=False, compare=False)
 
@@ -88,6 +110,8 @@ class TrackPlan:
         (:meth:`attach_local`). Only the edges the walk can refine along
         (:meth:`walk_steps`) are fitted: the others keep the filter's pair.
 
+        A group with :attr:`local_inputs` fits its own on first use, the same bits.
+
         Raises:
             ValueError: a group whose local pairs were not attached.
         """
@@ -95,6 +119,18 @@ class TrackPlan:
             return self.local_homs[p]
         if self.local_affine is None:
             return None
+        if self.local_inputs is not None:
+            if p not in self._local_cache:
+                from .rectify import local_affine_pairs
+
+                x1, x2, labels, at, fit = self.local_inputs[p]
+                want = np.zeros(labels.size, bool)
+                want[at[fit]] = True
+                k, max_residual_px = self.local_affine
+                self._local_cache[p] = local_affine_pairs(
+                    x1, x2, labels, self.pair_homs[p], k=k, max_residual_px=max_residual_px,
+                    fit=want)[at]
+            return self._local_cache[p]
         if self.source_pairs is not None:
             raise ValueError("this group has no local affine pairs: attach them with "
                              "attach_local of the plan it came from")
@@ -134,6 +170,34 @@ class TrackPlan:
             local.append(fitted[rows[starts[q]:starts[q + 1]]])
         return replace(group, local_homs=tuple(local))
 
+    def with_local_inputs(self, group: TrackPlan) -> TrackPlan:
+        """``group`` (from :meth:`groups` of this plan) with what it needs to fit the local
+        affine pairs of its edges itself (:attr:`local_inputs`; e.g. in the worker that walks
+        it, instead of here): per pair, the edges of the clusters its own edges belong to.
+        A match's fit depends only on the edges of its cluster, so these are the pairs
+        :meth:`attach_local` gives, bit for bit. Itself when this plan has no
+        ``local_affine``."""
+        if self.local_affine is None or group.local_homs is not None:
+            return group
+        if group.source_pairs is None or group.source_rows is None:
+            raise ValueError("with_local_inputs takes a group made by groups() of this plan")
+        starts = np.searchsorted(group.edge_pair, np.arange(len(group.pairs) + 1))
+        steps = self.walk_steps()
+        inputs = []
+        for q, sp in enumerate(group.source_pairs.tolist()):
+            lo, hi = np.searchsorted(self.edge_pair, [sp, sp + 1])
+            rows = group.source_rows[starts[q]:starts[q + 1]]
+            labels = self.edge_label[lo:hi]
+            used = np.zeros(len(self.pair_homs[sp]) + 1, dtype=bool)  # last: label -1
+            used[labels[rows]] = True
+            keep = np.flatnonzero(used[labels])
+            id1, id2 = self.pairs[sp]
+            ea, eb = self.edge_a[lo:hi][keep], self.edge_b[lo:hi][keep]
+            inputs.append((self.keypoints[id1][self.node_kp[ea]],
+                           self.keypoints[id2][self.node_kp[eb]], labels[keep],
+                           np.searchsorted(keep, rows), steps[lo:hi][rows]))
+        return replace(group, local_inputs=tuple(inputs))
+
     def walked_units(self) -> tuple[np.ndarray, np.ndarray]:
         """The walk's independent units: per edge the (E,) int64 walked component it belongs
         to (-1: not refinable, or not reachable from its track's anchor over refinable
@@ -160,7 +224,7 @@ class TrackPlan:
         moves its keypoints exactly as a walk of this whole plan does."""
         edges = np.sort(np.asarray(edges, np.int64))
         ea, eb = self.edge_a[edges], self.edge_b[edges]
-        nodes = np.unique(np.concatenate([ea, eb, anchors]))
+        nodes = distinct(np.concatenate([ea, eb, anchors]), self.num_nodes)
         used_pairs, edge_pair = np.unique(self.edge_pair[edges], return_inverse=True)
         edge_pair = edge_pair.astype(np.int64).reshape(-1)
         node_image = self.node_image[nodes]
@@ -176,7 +240,7 @@ class TrackPlan:
         new_a, new_b = np.searchsorted(nodes, ea), np.searchsorted(nodes, eb)
         new_anchors = np.searchsorted(nodes, np.asarray(anchors, np.int64))
         return TrackPlan(
-            keypoints={int(i): self.keypoints[int(i)] for i in np.unique(node_image)},
+            keypoints={int(i): self.keypoints[int(i)] for i in distinct(node_image)},
             node_image=node_image, node_kp=self.node_kp[nodes],
             pairs=tuple(self.pairs[int(p)] for p in used_pairs),
             pair_homs=tuple(self.pair_homs[int(p)] for p in used_pairs), local_homs=local,
@@ -215,7 +279,7 @@ class TrackPlan:
         img_a, img_b = self.node_image[self.edge_a[e_ids]], self.node_image[self.edge_b[e_ids]]
         # the (unit, image) pairs, sorted, as one int64 code each (np.unique on rows is slow)
         ids, img = np.unique(np.concatenate([img_a, img_b]), return_inverse=True)
-        code = np.unique(np.concatenate([eu, eu]) * ids.size + img.reshape(-1))
+        code = distinct(np.concatenate([eu, eu]) * ids.size + img.reshape(-1))
         key_unit, key_image = code // ids.size, ids[code % ids.size]
         bounds = np.searchsorted(key_unit, np.arange(anchors.size + 1))
         images = [tuple(key_image[bounds[u]:bounds[u + 1]].tolist()) for u in range(anchors.size)]

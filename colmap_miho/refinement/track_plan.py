@@ -33,10 +33,19 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .plan import TrackPlan
+from ..enums import Rectification
+from .config import NCCConfig
+from .plan import TrackPlan, distinct
 
 #: an image pair (image_id1, image_id2).
 Pair = tuple[int, int]
+
+
+def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
+    """The plan's ``local_affine`` argument for an NCC configuration."""
+    if ncc_cfg.rectification is Rectification.FILTER:
+        return None
+    return ncc_cfg.local_affine_neighbours, ncc_cfg.local_affine_max_residual_px
 
 
 def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,
@@ -47,7 +56,7 @@ def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,
     _, comp = connected_components(
         coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
     if nodes is None:
-        nodes = np.unique(np.concatenate([ea, eb]))
+        nodes = distinct(np.concatenate([ea, eb]), total)
     hit = np.zeros(comp.max() + 1, bool)
     hit[comp[anchors]] = True
     return int(hit[comp[nodes]].sum() - anchors.size)
@@ -219,7 +228,7 @@ def build_track_plan(
     if ea.size:
         _, comp = connected_components(
             coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
-        nodes = np.unique(np.concatenate([ea, eb]))
+        nodes = distinct(np.concatenate([ea, eb]), total)
         _, track[nodes] = np.unique(comp[nodes], return_inverse=True)
         pos = np.concatenate(list(kps.values()))[nodes]
         conflict, any_two = _conflicts(track, nodes, node_image, pos, duplicate_px)

@@ -29,10 +29,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..devices import resolve_device
-from ..enums import Rectification
 from .config import NCCConfig, TrackConfig
 from .plan import TrackPlan
-from .track_plan import build_track_plan
+from .track_plan import build_track_plan, local_affine_of
 
 if TYPE_CHECKING:
     import torch
@@ -81,13 +80,6 @@ class TrackRefineResult:
     displacement: dict
     refined_against: dict
     stats: dict = field(default_factory=dict)
-
-
-def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
-    """The plan's ``local_affine`` argument for an NCC configuration."""
-    if ncc_cfg.rectification is Rectification.FILTER:
-        return None
-    return ncc_cfg.local_affine_neighbours, ncc_cfg.local_affine_max_residual_px
 
 
 def _resolve_configs(config: object, ncc_config: NCCConfig | None,

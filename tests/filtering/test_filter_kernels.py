@@ -188,3 +188,80 @@ def test_rotation_choice_is_the_same(reflections):
                                   reflections=reflections, compiled=True)
             np.testing.assert_array_equal(got[0], want[0])
             assert got[1:] == want[1:] and want[2] > 0
+
+
+@pytest.mark.parametrize("z", [0, 1, 5, 40])
+def test_buffer_choice_is_the_same(z):
+    """The compiled top-z buffer choice against the numpy greedy cover, on candidate masks
+    with ties, empty rows and rows the best model covers, so that the cover stops early."""
+    from colmap_miho.filtering.problem import Hypotheses
+    from colmap_miho.filtering.ransac import _greedy_buffer
+
+    rng = np.random.default_rng(z)
+    hyp = Hypotheses(*(rng.normal(size=(30,) + s) for s in ((1, 3, 3), (1, 3, 3), (1,), (1,))),
+                     rng.integers(0, 100, (30, 4)))
+    masks = rng.random((30, 200)) < rng.uniform(0.0, 0.3, (30, 1))
+    masks[3] = masks[7]  # a tie: the first wins
+    masks[11] = False
+    best = rng.random(200) < 0.4
+    masks[12] = best  # covered entirely: never chosen
+    cands = [(hyp, k, masks[k]) for k in range(30)]
+    ref = _greedy_buffer(cands, best, z)
+    got = _greedy_buffer(cands, best, z, compiled=True)
+    assert len(got) == len(ref) <= z
+    for a, b in zip(got, ref, strict=True):
+        np.testing.assert_array_equal(a.sample, b.sample)
+    rows = kernels.greedy_cover(masks, best, z).tolist()
+    assert 7 not in rows and 11 not in rows and 12 not in rows
+    if z >= 5:
+        assert len(rows) >= 5
+
+
+@pytest.mark.parametrize("layout", ["scene", "duplicates", "line", "cluster", "tiny"])
+def test_nearest_grid_is_the_k_d_tree(layout):
+    """The compiled grid search against scipy's k-d tree: the same distances in the same
+    order for every point (the squared distances summed as scipy sums them), and where the
+    indices differ the points are equidistant; ties by index."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(1)
+    sc, _, _ = _problem(False)
+    feats = np.concatenate([sc.x1, sc.x2], axis=1)
+    if layout == "duplicates":
+        feats = np.concatenate([feats, feats[::3]])
+    elif layout == "line":  # all on one horizontal line in image 1: a degenerate grid
+        feats[:, 1] = 7.0
+    elif layout == "cluster":  # a dense cluster and far outliers
+        feats = np.concatenate([rng.normal(300, 2, (500, 4)), rng.uniform(0, 5000, (20, 4))])
+    elif layout == "tiny":
+        feats = feats[:5]
+    q = min(len(feats), 33)
+    d_ref, i_ref = cKDTree(feats).query(feats, k=q)
+    got = kernels.NearestGrid(feats).query(np.arange(len(feats)), q)
+    diff = feats[got] - feats[:, None]
+    d2 = diff[..., 0] ** 2 + diff[..., 1] ** 2 + diff[..., 2] ** 2 + diff[..., 3] ** 2
+    np.testing.assert_array_equal(np.sqrt(d2), d_ref.reshape(len(feats), q))
+    assert np.all((np.diff(d2, axis=1) > 0) | ((np.diff(d2, axis=1) == 0) & (np.diff(got, axis=1) > 0)))
+    if layout == "duplicates":
+        assert (got != i_ref).any()  # ties in another order than the tree's
+    part = rng.permutation(len(feats))[: max(1, len(feats) // 3)]
+    np.testing.assert_array_equal(kernels.NearestGrid(feats).query(part, q), got[part])
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_neighbours_of_a_small_problem_are_the_same(miho):
+    """A problem of at most Sampler.ALL_AT_ONCE matches: the compiled sampler searches the
+    pool exhaustively (no problem-wide candidates) and finds the numpy sampler's neighbours,
+    on the whole problem and on a pool that earlier rounds thinned out."""
+    rng = np.random.default_rng(4)
+    sc = make_scene(rng, n_planes=2, per_plane=80, outlier_ratio=0.3)
+    assert len(sc.x1) <= Sampler.ALL_AT_ONCE
+    problem = build_problem(sc.x1, sc.x2, miho=miho, full_match=miho)
+    cfg = FilterConfig()
+    for pool in (np.arange(len(sc.x1)), np.sort(rng.choice(len(sc.x1), 60, replace=False))):
+        ref = Sampler(problem, pool, cfg)
+        got = Sampler(problem, pool, cfg, compiled=True)
+        pos = np.arange(len(pool))
+        want = ref.neighbours(pos)
+        np.testing.assert_array_equal(got.neighbours(pos), want)
+        assert (want >= 0).any() and got._cands is not None and got._cands._grid is None

@@ -29,6 +29,21 @@ def test_workers_come_from_the_forkserver():
     assert os.getpid() not in ppids  # their parent is the server, not this process
 
 
+def _kernels_loaded() -> bool:
+    from colmap_miho.filtering import kernels
+
+    return kernels._KERNELS is not None
+
+
+def test_workers_start_with_the_compiled_filter_kernels_loaded():
+    """The forkserver loads the filter kernels once; a worker forked from it has them before
+    it filters anything (where numba is installed)."""
+    pytest.importorskip("numba")
+    assert "colmap_miho.filtering.preload" in workers.PRELOAD
+    with workers.process_pool(1) as ex:
+        assert ex.submit(_kernels_loaded).result(timeout=300)
+
+
 def test_pool_falls_back_to_spawn_when_the_forkserver_cannot_start(monkeypatch):
     from multiprocessing import forkserver
 

@@ -196,6 +196,33 @@ def test_local_pairs_are_those_of_the_whole_pair():
     assert fitted > 0 and skipped > 0
 
 
+def test_groups_fit_their_own_local_pairs_with_the_same_bits():
+    """A group given its local inputs (as a worker gets it, pickled) fits the same local
+    affine pairs as the plan attaches, bit for bit, from the edges of its own clusters only."""
+    kps, pm, res, unref = random_scene(6, n_tracks=900)
+    plan = build_track_plan(kps, pm, res, unrefined_matches=unref, local_affine=LOCAL)
+    moved = 0
+    for g in plan.groups(3):
+        own = pickle.loads(pickle.dumps(plan.with_local_inputs(g)))
+        attached = plan.attach_local(g)
+        assert own.local_homs is None and len(own.local_inputs) == len(own.pairs)
+        for q in range(len(own.pairs)):
+            x1, _, labels, at, fit = own.local_inputs[q]
+            assert at.size == fit.size == int((own.edge_pair == q).sum())
+            own_labels = own.edge_label[own.edge_pair == q]
+            np.testing.assert_array_equal(np.unique(labels), np.unique(own_labels))
+            np.testing.assert_array_equal(own.local_pairs(q), attached.local_pairs(q))
+            fitted = own.local_pairs(q) != own.pair_homs[q][own_labels]
+            moved += int(fitted.any(axis=(1, 2, 3)).sum())
+        plan.release_local(attached.source_pairs)
+    assert moved > 0
+    nolocal = build_track_plan(kps, pm, res, unrefined_matches=unref)
+    g = nolocal.groups(3)[0]
+    assert nolocal.with_local_inputs(g) is g and g.local_pairs(0) is None
+    with pytest.raises(ValueError, match="groups"):
+        plan.with_local_inputs(plan)
+
+
 def test_partition_of_a_group_and_no_walked_track():
     kps = {1: np.zeros((1, 2)), 2: np.zeros((1, 2))}
     pm = {(1, 2): np.array([[0, 0]])}
@@ -338,3 +365,14 @@ def test_walk_refines_along_walk_steps_only(seed):
             assert frozenset((node[(int(i), int(k))], partner)) in allowed
             used += 1
     assert used == walk.stats["refined"] > 200
+
+
+def test_distinct_is_numpys_unique():
+    from colmap_miho.refinement.plan import distinct
+
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 7, 5000):
+        v = rng.integers(0, 300, n)
+        np.testing.assert_array_equal(distinct(v, 300), np.unique(v))
+        np.testing.assert_array_equal(distinct(v * 1_000_003 - 17), np.unique(v * 1_000_003 - 17))
+        assert distinct(v, 300).dtype == np.unique(v).dtype
