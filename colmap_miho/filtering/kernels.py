@@ -410,6 +410,23 @@ def _far(sx, sy, a, b, t2) -> bool:
     return True
 
 
+def _push_nearest(best_d, best_j, filled, d, j) -> int:
+    """Candidate ``j`` at squared distance ``d`` into the sorted buffers ``best_d`` /
+    ``best_j`` (q = their length; ``filled`` entries used), nearest first, ties by index;
+    returns the new ``filled``."""
+    q = best_d.shape[0]
+    if filled == q and not (d < best_d[q - 1] or (d == best_d[q - 1] and j < best_j[q - 1])):
+        return filled
+    at = filled if filled < q else q - 1
+    while at > 0 and (best_d[at - 1] > d or (best_d[at - 1] == d and best_j[at - 1] > j)):
+        best_d[at] = best_d[at - 1]
+        best_j[at] = best_j[at - 1]
+        at -= 1
+    best_d[at] = d
+    best_j[at] = j
+    return filled + 1 if filled < q else filled
+
+
 def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
     """See :func:`pool_neighbours`."""
     m = todo.shape[0]
@@ -442,18 +459,7 @@ def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
             for e in range(dims):
                 t = feats[j, e] - feats[a, e]
                 d += t * t
-            if filled == q and not d < best_d[q - 1]:
-                continue
-            at = filled if filled < q else q - 1
-            while at > 0 and best_d[at - 1] > d:
-                if at < q:
-                    best_d[at] = best_d[at - 1]
-                    best_j[at] = best_j[at - 1]
-                at -= 1
-            best_d[at] = d
-            best_j[at] = j
-            if filled < q:
-                filled += 1
+            filled = _push_nearest(best_d, best_j, filled, d, j)
         cnt = 0
         for c in range(1, filled):
             j = best_j[c]
@@ -730,19 +736,7 @@ def _nearest(feats, todo, q, x0, y0, cell, nx, ny, start, members):
                             for e in range(dims):
                                 v = feats[j, e] - feats[a, e]
                                 d += v * v
-                            if filled == q and not (d < best_d[q - 1]
-                                                    or (d == best_d[q - 1] and j < best_j[q - 1])):
-                                continue
-                            at = filled if filled < q else q - 1
-                            while at > 0 and (best_d[at - 1] > d
-                                              or (best_d[at - 1] == d and best_j[at - 1] > j)):
-                                best_d[at] = best_d[at - 1]
-                                best_j[at] = best_j[at - 1]
-                                at -= 1
-                            best_d[at] = d
-                            best_j[at] = j
-                            if filled < q:
-                                filled += 1
+                            filled = _push_nearest(best_d, best_j, filled, d, j)
                     gx += step if ring > 0 else 1
             if ring >= nx and ring >= ny:
                 break
@@ -777,7 +771,7 @@ def _jit_all() -> dict[str, Any]:
     # exception; those entries fail the sign test.
     jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     helpers = (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
-               _normalise4, _normalising)
+               _normalise4, _normalising, _push_nearest)
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,

@@ -59,6 +59,23 @@ def available() -> bool:
     return importlib.util.find_spec("numba") is not None
 
 
+def _compose(H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float
+             ) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """The 9 entries (row-major) of M = H [[A, c], [0, 0, 1]]: the image's homogeneous
+    coordinates of the offsets u (``H`` (3, 3) frame -> image pixels, A = [[a00, a01], [a10,
+    a11]], c = (cx, cy))."""
+    m00 = H[0, 0] * a00 + H[0, 1] * a10
+    m01 = H[0, 0] * a01 + H[0, 1] * a11
+    m02 = H[0, 0] * cx + H[0, 1] * cy + H[0, 2]
+    m10 = H[1, 0] * a00 + H[1, 1] * a10
+    m11 = H[1, 0] * a01 + H[1, 1] * a11
+    m12 = H[1, 0] * cx + H[1, 1] * cy + H[1, 2]
+    m20 = H[2, 0] * a00 + H[2, 1] * a10
+    m21 = H[2, 0] * a01 + H[2, 1] * a11
+    m22 = H[2, 0] * cx + H[2, 1] * cy + H[2, 2]
+    return m00, m01, m02, m10, m11, m12, m20, m21, m22
+
+
 def _read(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float,
           radius: int, a: float, out, add: bool, wts, taps) -> None:
     """``out`` (S, S), S = 2 radius + 1, [y, x]: ``img`` (h, w) read bicubically at
@@ -69,15 +86,7 @@ def _read(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11:
     loop without branches, then read."""
     h, w = img.shape
     # M = H [[A, c], [0, 0, 1]]: the image's homogeneous coordinates of u
-    m00 = H[0, 0] * a00 + H[0, 1] * a10
-    m01 = H[0, 0] * a01 + H[0, 1] * a11
-    m02 = H[0, 0] * cx + H[0, 1] * cy + H[0, 2]
-    m10 = H[1, 0] * a00 + H[1, 1] * a10
-    m11 = H[1, 0] * a01 + H[1, 1] * a11
-    m12 = H[1, 0] * cx + H[1, 1] * cy + H[1, 2]
-    m20 = H[2, 0] * a00 + H[2, 1] * a10
-    m21 = H[2, 0] * a01 + H[2, 1] * a11
-    m22 = H[2, 0] * cx + H[2, 1] * cy + H[2, 2]
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = _compose(H, cx, cy, a00, a01, a10, a11)
     side = 2 * radius + 1
     wx, wy, xi, yi = wts[0], wts[1], taps[0], taps[1]
     # positions beyond 2 pixels outside the image read its border (all 4 taps clamped) as
@@ -150,15 +159,7 @@ def _smoothed(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, 
     ``base`` (4, S) int64 (first column, first row, and how many of each) are work space;
     span = 4 + floor(x + sigma) - floor(x - sigma), at most 5 + 2 sigma."""
     h, w = img.shape
-    m00 = H[0, 0] * a00 + H[0, 1] * a10
-    m01 = H[0, 0] * a01 + H[0, 1] * a11
-    m02 = H[0, 0] * cx + H[0, 1] * cy + H[0, 2]
-    m10 = H[1, 0] * a00 + H[1, 1] * a10
-    m11 = H[1, 0] * a01 + H[1, 1] * a11
-    m12 = H[1, 0] * cx + H[1, 1] * cy + H[1, 2]
-    m20 = H[2, 0] * a00 + H[2, 1] * a10
-    m21 = H[2, 0] * a01 + H[2, 1] * a11
-    m22 = H[2, 0] * cx + H[2, 1] * cy + H[2, 2]
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = _compose(H, cx, cy, a00, a01, a10, a11)
     side = 2 * radius + 1
     cwx, cwy = cw[0], cw[1]
     fw, fh = w + 1.0, h + 1.0
@@ -418,7 +419,7 @@ def _kernel() -> Any:
                 fused = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
                 dots = numba.njit(cache=True, nogil=True, error_model="numpy",
                                   fastmath={"reassoc", "contract"})
-                globals().update({f.__name__: fused(f) for f in (_merged, _read, _smoothed)})
+                globals().update({f.__name__: fused(f) for f in (_compose, _merged, _read, _smoothed)})
                 globals().update({"_read_blurred": jit(_read_blurred), "_dot": dots(_dot)})
                 _KERNEL = jit(_lsm_matches)
     return _KERNEL
