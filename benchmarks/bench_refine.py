@@ -11,6 +11,10 @@ Usage::
 
     python benchmarks/bench_refine.py [--scene DIR] [--workers N] [--repeats 3] [--map] [--compare-verify]
         [--recipe mop_miho_ncc] [--set key=value ...] [--max-features 8192] [--database PATH]
+        [--matching default|permissive]
+
+``--matching permissive`` matches with the permissive SIFT options of ``bench_accuracy.py``
+(ratio 0.95, no cross-check) instead of COLMAP's defaults; the matching time is then that run's.
 
 ``--database PATH`` keeps the built database at PATH (with its extraction and matching times
 in PATH.json) and reuses it on the next run with the same options, so that repeated timings
@@ -34,8 +38,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def build_database(image_dir: Path, db: Path, max_features: int) -> tuple[float, float]:
+def build_database(image_dir: Path, db: Path, max_features: int, matching: str = "default"
+                   ) -> tuple[float, float]:
     import pycolmap
+    from bench_accuracy import SETTINGS
 
     t = time.perf_counter()
     pycolmap.extract_features(
@@ -45,7 +51,10 @@ def build_database(image_dir: Path, db: Path, max_features: int) -> tuple[float,
     )
     t_extract = time.perf_counter() - t
     t = time.perf_counter()
-    pycolmap.match_exhaustive(str(db), device=pycolmap.Device.cpu)
+    options = pycolmap.FeatureMatchingOptions()
+    for key, value in SETTINGS[matching].items():
+        setattr(options.sift, key, value)
+    pycolmap.match_exhaustive(str(db), matching_options=options, device=pycolmap.Device.cpu)
     return t_extract, time.perf_counter() - t
 
 
@@ -54,16 +63,18 @@ def _database(args: argparse.Namespace, image_dir: Path, tmp: Path) -> tuple[Pat
     ``args.database`` (built there once, its times in a JSON file beside it)."""
     if args.database is None:
         db = tmp / "database.db"
-        return (db, *build_database(image_dir, db, args.max_features), False)
+        return (db, *build_database(image_dir, db, args.max_features, args.matching), False)
     meta_path = args.database.with_name(args.database.name + ".json")
     key = {"scene": str(args.scene.resolve()), "max_features": args.max_features}
+    if args.matching != "default":  # keys of databases built before the option stay valid
+        key["matching"] = args.matching
     if args.database.exists() and meta_path.exists():
         meta = json.loads(meta_path.read_text())
         if meta.get("key") == key:
             return args.database, meta["extract_s"], meta["match_s"], True
     args.database.unlink(missing_ok=True)
     args.database.parent.mkdir(parents=True, exist_ok=True)
-    t_extract, t_match = build_database(image_dir, args.database, args.max_features)
+    t_extract, t_match = build_database(image_dir, args.database, args.max_features, args.matching)
     meta_path.write_text(json.dumps({"key": key, "extract_s": t_extract, "match_s": t_match}))
     return args.database, t_extract, t_match, False
 
@@ -99,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--database", type=Path, default=None,
                         help="keep the built database here and reuse it when it exists")
+    parser.add_argument("--matching", choices=("default", "permissive"), default="default",
+                        help="COLMAP's default SIFT matching, or permissive (ratio 0.95, no cross-check)")
     args = parser.parse_args(argv)
 
     import pycolmap
