@@ -59,6 +59,20 @@ def available() -> bool:
     return importlib.util.find_spec("numba") is not None
 
 
+def _cubic(t: float, a: float) -> tuple[float, float, float, float]:
+    """The cubic convolution kernel (parameter ``a``) at the taps -1, 0, 1, 2 from the floor
+    of a position ``t`` (in [0, 1)) past it."""
+    a2, a3, a4, a5, a8 = a + 2.0, a + 3.0, 4.0 * a, 5.0 * a, 8.0 * a
+    s = t + 1.0
+    w0 = ((a * s - a5) * s + a8) * s - a4
+    w1 = (a2 * t - a3) * t * t + 1.0
+    s = 1.0 - t
+    w2 = (a2 * s - a3) * s * s + 1.0
+    s = 2.0 - t
+    w3 = ((a * s - a5) * s + a8) * s - a4
+    return w0, w1, w2, w3
+
+
 def _compose(H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float
              ) -> tuple[float, float, float, float, float, float, float, float, float]:
     """The 9 entries (row-major) of M = H [[A, c], [0, 0, 1]]: the image's homogeneous
@@ -92,7 +106,6 @@ def _read(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11:
     # positions beyond 2 pixels outside the image read its border (all 4 taps clamped) as
     # at 2 pixels: clamping them first keeps the integer conversion in range
     fw, fh = w + 1.0, h + 1.0
-    a2, a3, a4, a5, a8 = a + 2.0, a + 3.0, 4.0 * a, 5.0 * a, 8.0 * a
     for iy in range(side):
         uy = float(iy - radius)
         bx, by, bw = m01 * uy + m02, m11 * uy + m12, m21 * uy + m22
@@ -103,22 +116,8 @@ def _read(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11:
             y = min(max((m10 * ux + by) / hw, -2.0), fh)
             fx, fy = np.floor(x), np.floor(y)
             # the cubic convolution kernel (parameter a) at the taps -1, 0, 1, 2 from the floor
-            t = x - fx
-            s = t + 1.0
-            wx[0, ix] = ((a * s - a5) * s + a8) * s - a4
-            wx[1, ix] = (a2 * t - a3) * t * t + 1.0
-            s = 1.0 - t
-            wx[2, ix] = (a2 * s - a3) * s * s + 1.0
-            s = 2.0 - t
-            wx[3, ix] = ((a * s - a5) * s + a8) * s - a4
-            t = y - fy
-            s = t + 1.0
-            wy[0, ix] = ((a * s - a5) * s + a8) * s - a4
-            wy[1, ix] = (a2 * t - a3) * t * t + 1.0
-            s = 1.0 - t
-            wy[2, ix] = (a2 * s - a3) * s * s + 1.0
-            s = 2.0 - t
-            wy[3, ix] = ((a * s - a5) * s + a8) * s - a4
+            wx[0, ix], wx[1, ix], wx[2, ix], wx[3, ix] = _cubic(x - fx, a)
+            wy[0, ix], wy[1, ix], wy[2, ix], wy[3, ix] = _cubic(y - fy, a)
             xi[ix] = int(fx) - 1
             yi[ix] = int(fy) - 1
         for ix in range(side):
@@ -213,23 +212,16 @@ def _merged(p: float, sigma: float, lim: float, a: float, wv, ix: int) -> tuple[
     k = int(fb - fa)
     for c in range(4, max(k + 4, _FIXED_SPAN)):
         wv[ix, c] = 0.0
-    a2, a3, a4, a5, a8 = a + 2.0, a + 3.0, 4.0 * a, 5.0 * a, 8.0 * a
-    t = xa - fa
-    q = t + 1.0
-    wv[ix, 0] = 0.5 * (((a * q - a5) * q + a8) * q - a4)
-    wv[ix, 1] = 0.5 * ((a2 * t - a3) * t * t + 1.0)
-    q = 1.0 - t
-    wv[ix, 2] = 0.5 * ((a2 * q - a3) * q * q + 1.0)
-    q = 2.0 - t
-    wv[ix, 3] = 0.5 * (((a * q - a5) * q + a8) * q - a4)
-    t = xb - fb
-    q = t + 1.0
-    wv[ix, k] += 0.5 * (((a * q - a5) * q + a8) * q - a4)
-    wv[ix, k + 1] += 0.5 * ((a2 * t - a3) * t * t + 1.0)
-    q = 1.0 - t
-    wv[ix, k + 2] += 0.5 * ((a2 * q - a3) * q * q + 1.0)
-    q = 2.0 - t
-    wv[ix, k + 3] += 0.5 * (((a * q - a5) * q + a8) * q - a4)
+    w0, w1, w2, w3 = _cubic(xa - fa, a)
+    wv[ix, 0] = 0.5 * w0
+    wv[ix, 1] = 0.5 * w1
+    wv[ix, 2] = 0.5 * w2
+    wv[ix, 3] = 0.5 * w3
+    w0, w1, w2, w3 = _cubic(xb - fb, a)
+    wv[ix, k] += 0.5 * w0
+    wv[ix, k + 1] += 0.5 * w1
+    wv[ix, k + 2] += 0.5 * w2
+    wv[ix, k + 3] += 0.5 * w3
     return int(fa) - 1, k + 4
 
 
@@ -419,7 +411,7 @@ def _kernel() -> Any:
                 fused = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
                 dots = numba.njit(cache=True, nogil=True, error_model="numpy",
                                   fastmath={"reassoc", "contract"})
-                globals().update({f.__name__: fused(f) for f in (_compose, _merged, _read, _smoothed)})
+                globals().update({f.__name__: fused(f) for f in (_cubic, _compose, _merged, _read, _smoothed)})
                 globals().update({"_read_blurred": jit(_read_blurred), "_dot": dots(_dot)})
                 _KERNEL = jit(_lsm_matches)
     return _KERNEL
