@@ -39,7 +39,7 @@ import torch
 from .lsm import frame_sampler
 from .lsm_step import frame_jacobian, local_scale
 from .search import to_frame
-from .warping import ImageStack
+from .warping import ImageStack, job_images
 
 logger = logging.getLogger(__name__)
 
@@ -204,7 +204,7 @@ def match_blur(
         f1, H1_inv = _frames(p1[sub], homs[sub, 0], device)
         f2, H2_inv = _frames(p2[sub], homs[sub, 1], device)
         pick = torch.as_tensor(sub, device=device)
-        views = [im.rows(pick) if isinstance(im, ImageStack) else im for im in (im1, im2)]
+        views = [job_images(im, pick) for im in (im1, im2)]
         choice = estimate_blur(views[0], views[1], f1, f2, H1_inv, H2_inv)
         logger.debug("blur matching: %d matches, %s", members.size, choice)
         if choice.side == 0:

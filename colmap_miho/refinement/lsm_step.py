@@ -44,7 +44,7 @@ import torch
 from . import lsm_kernel
 from .config import NCCConfig
 from .lsm import frame_sampler, lsm_align
-from .warping import ImageStack
+from .warping import ImageStack, job_images
 
 #: smallest template radius (pixels) of keypoint-sized LSM templates.
 MIN_RADIUS = 4
@@ -112,8 +112,7 @@ def lsm_step(
         k = rows.numel()
         eye = torch.eye(2, dtype=torch.float64, device=dev).expand(k, 2, 2)
         zero = torch.zeros((k, 2), dtype=torch.float64, device=dev)
-        sub_f = img_f.rows(rows) if isinstance(img_f, ImageStack) else img_f
-        sub_m = img_m.rows(rows) if isinstance(img_m, ImageStack) else img_m
+        sub_f, sub_m = job_images(img_f, rows), job_images(img_m, rows)
         every = torch.arange(k, device=dev)
         blur_f = blur_m = None
         if cfg.lsm_antialias > 0:

@@ -40,7 +40,7 @@ from .pair_inputs import ArrayInput, ImageInput, PairInputs, base_pairs, pair_in
 from .perturbations import perturbation_matrices
 from .search import Pass, evaluate_direction, to_frame
 from .subpixel import iterate_subpixel
-from .warping import ImageStack, offset_grid, to_gray_tensor
+from .warping import ImageStack, job_images, offset_grid, to_gray_tensor
 
 logger = logging.getLogger(__name__)
 
@@ -228,7 +228,7 @@ def refine_pair(
                        for h in inp.extra]
             if use_base:
                 passes.append((torch.as_tensor(base[sl], device=device), offs.grid_t[None], None))
-            cimg = (_rows(img[0], sl), _rows(img[1], sl))
+            cimg = (job_images(img[0], sl), job_images(img[1], sl))
             res = [
                 (f, m, evaluate_direction(cimg[f], cimg[m], x[f], x[m], passes, f, m, offs.win, cfg))
                 for f, m in directions
@@ -249,11 +249,6 @@ def refine_pair(
         pts1=out.pts[0], pts2=out.pts[1], ncc_before=out.before, ncc_after=out.after,
         moved_side=out.moved, displacement=out.disp, rejected=out.rejected, stats=out.counts,
     )
-
-
-def _rows(image: torch.Tensor | ImageStack, sel: slice | torch.Tensor) -> torch.Tensor | ImageStack:
-    """The images of the jobs ``sel`` (a plain image serves every job)."""
-    return image.rows(sel) if isinstance(image, ImageStack) else image
 
 
 def _check_agreement(images: tuple[ImageInput, ImageInput], inp: PairInputs, homs: ArrayInput,
@@ -313,13 +308,13 @@ def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], 
     those LSM did not accept, with ``cfg.lsm_only``)."""
     (f, m), (sel, matches) = direction, rows
     H_inv, frame, off = r["H_inv"][sel], r["frame_m"][sel], r["offset"][sel]
-    img_m = _rows(img[m], sel)
+    img_m = job_images(img[m], sel)
     every = np.ones(sel.numel(), bool)
     if not cfg.lsm:
         return iterate_subpixel(img_m, H_inv, frame, off, r["template"][sel], cfg.template_radius,
                                 cfg.subpixel_iterations), every
     scale_f = None if out.kp_scales is None else out.kp_scales[f][matches]
-    off, lsm_counts, accepted = lsm_step(_rows(img[f], sel), img_m, r["H_f_inv"][sel], r["frame_f"][sel],
+    off, lsm_counts, accepted = lsm_step(job_images(img[f], sel), img_m, r["H_f_inv"][sel], r["frame_f"][sel],
                                          H_inv, frame, off, cfg, scale_f)
     for key, value in lsm_counts.items():
         out.add(key, int(value))
@@ -327,7 +322,7 @@ def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], 
         return off, accepted.cpu().numpy()
     todo = torch.nonzero(~accepted)[:, 0]
     if todo.numel():
-        off[todo] = iterate_subpixel(_rows(img_m, todo), H_inv[todo], frame[todo], off[todo],
+        off[todo] = iterate_subpixel(job_images(img_m, todo), H_inv[todo], frame[todo], off[todo],
                                      r["template"][sel][todo], cfg.template_radius, cfg.subpixel_iterations)
     return off, every
 

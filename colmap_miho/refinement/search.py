@@ -18,6 +18,7 @@ from .correlation import ellipse_masks, find_peaks, ncc_maps, structure_tensor
 from .warping import (
     ImageStack,
     invert_homographies,
+    job_images,
     offset_grid,
     patch_inside,
     project,
@@ -44,11 +45,6 @@ def _repeat(image: torch.Tensor | ImageStack, n: int) -> torch.Tensor | ImageSta
     if isinstance(image, ImageStack):
         return ImageStack(image.images, image.slot_sizes, image.index.repeat(n))
     return image
-
-
-def _take(image: torch.Tensor | ImageStack, rows: torch.Tensor) -> torch.Tensor | ImageStack:
-    """``image`` for the jobs ``rows`` only (a plain image serves every job)."""
-    return image.rows(rows) if isinstance(image, ImageStack) else image
 
 
 def _templates(
@@ -157,7 +153,7 @@ def evaluate_direction(
     # the inside test is the full window's already: only usable matches are searched again
     far = torch.nonzero(r.pop("near_border") & r["valid"] & r["inside"] & ~r["flat"])[:, 0]
     if far.numel():
-        full = _evaluate(_take(img_f, far), _take(img_m, far), x_f[far], x_m[far],
+        full = _evaluate(job_images(img_f, far), job_images(img_m, far), x_f[far], x_m[far],
                          [(H[far], offs, coarse) for H, offs, coarse in passes], (f, m),
                          (win_off, None), cfg.search_radius, cfg)
         for key, value in full.items():

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 
 from .correlation import ncc_maps, normalize_templates, parabola_vertex
-from .warping import ImageStack, offset_grid, sample_values
+from .warping import ImageStack, job_images, offset_grid, sample_values
 
 #: an iteration that moves a match by less than this (common-frame pixels) ends its refinement.
 _CONVERGED_PX = 1e-3
@@ -48,7 +48,7 @@ def iterate_subpixel(
     tpl = normalize_templates(templates[:, None])
     offset = offset.clone()
     for _ in range(iterations):
-        img = image.rows(rows) if isinstance(image, ImageStack) else image
+        img = job_images(image, rows)
         win, _ = sample_values(img, H_inv[rows], centres[rows] + offset[rows], ring)
         m3 = ncc_maps(win.reshape(-1, side, side), tpl[rows], normalized=True)[:, 0]
         m3 = m3.to(torch.float64)

@@ -117,6 +117,13 @@ class ImageStack:
         return self.index.device
 
 
+def job_images(image: torch.Tensor | ImageStack, rows: slice | torch.Tensor
+               ) -> torch.Tensor | ImageStack:
+    """The images of the jobs ``rows`` (slice or index tensor): the stack's rows, or a plain
+    image, which serves every job."""
+    return image.rows(rows) if isinstance(image, ImageStack) else image
+
+
 def offset_grid(radius: int, device: torch.device, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """Integer offsets of a (2r+1) x (2r+1) square, (P, 2) as (x, y), row-major (y outer),
     so that a tensor (..., P) reshapes to (..., 2r+1, 2r+1) indexed [y, x]."""
