@@ -8,13 +8,16 @@ nearest matches (in image 1) of the same cluster, re-fitted without the neighbou
 it (by twice the median residual, then by ``max_residual_px``). Matches with too few neighbours keep the filter's
 pair.
 
-Pure numpy/scipy.
+The fits run compiled (:mod:`.affine_kernel`) where numba is installed; :func:`_fit_rows` is
+the numpy reference (and the path without numba). Pure numpy/scipy otherwise.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from . import affine_kernel
 
 #: re-weighted fits before the last one.
 _ITERATIONS = 3
@@ -38,7 +41,8 @@ def _fit(x1n: np.ndarray, x2n: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, n
 
 
 def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs: np.ndarray, *,
-                       k: int, max_residual_px: float, fit: np.ndarray | None = None) -> np.ndarray:
+                       k: int, max_residual_px: float, fit: np.ndarray | None = None,
+                       compiled: bool | None = None) -> np.ndarray:
     """Per-match patch homography pairs ``(I, A^-1)`` from local affine fits.
 
     Args:
@@ -51,6 +55,8 @@ def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs:
             drawn from all matches of their cluster all the same); the others keep the
             filter's pair unfitted. A match's pair does not depend on which others are
             fitted with it.
+        compiled: fit with :mod:`.affine_kernel` (True) or numpy (False; the two differ
+            at float rounding); None: compiled where numba is installed.
     Returns:
         (M, 2, 3, 3) float64 pairs (A, B) with ``A x1 ~ B x2`` near each match.
     """
@@ -59,6 +65,8 @@ def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs:
     ok = labels >= 0
     out[ok] = homs[labels[ok]]
     want = ok if fit is None else ok & np.asarray(fit, bool)
+    if compiled is None:
+        compiled = affine_kernel.available()
     by_size: dict[int, tuple[list, list]] = {}  # neighbours per fit -> (rows, neighbours)
     for lab in np.unique(labels[want]):
         rows = np.flatnonzero(labels == lab)
@@ -74,10 +82,17 @@ def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs:
         # clusters with the same neighbour count in one batch: every step below is per
         # match (batched matmul, eigvalsh, solve, median act on each row alone)
         rows, nb = np.concatenate(rows_l), np.concatenate(nb_l)  # (n,), (n, kk)
-        good, H = _fit_rows(x1, x2, rows, nb, max_residual_px)
+        if compiled:
+            good, _, H_inv = affine_kernel.fit_rows(
+                x1, x2, rows, nb, max_residual_px=max_residual_px, iterations=_ITERATIONS,
+                min_neighbours=MIN_NEIGHBOURS)
+            H_inv = H_inv[good]
+        else:
+            good, H = _fit_rows(x1, x2, rows, nb, max_residual_px)
+            H_inv = np.linalg.inv(H[good])
         sel = rows[good]
         out[sel, 0] = np.eye(3)
-        out[sel, 1] = np.linalg.inv(H[good])
+        out[sel, 1] = H_inv
     return out
 
 

@@ -1,0 +1,220 @@
+"""Compiled (numba) local affine fits: one loop per match, for :mod:`.rectify`.
+
+:func:`fit_rows` does what :func:`.rectify._fit_rows` (the numpy reference, and the path
+without numba) does for a batch of matches with their neighbours: the weighted least-squares
+affine map image 1 -> image 2 around each match, re-fitted without the neighbours that miss it
+(by twice the median residual, then by the absolute bound), the well-fitted test and the full
+affine map; and also its inverse. The numpy path spends its time in a few dozen batched calls
+per batch (matmul, eigvalsh, solve, median, inv), each looping over tiny 3 x 3 problems with
+the overhead of a LAPACK call per matrix; here each match's fits run in registers.
+
+Differences from the numpy path, all at float rounding: the 3 x 3 normal equations are solved
+by Gaussian elimination with partial pivoting written out here (LAPACK's LU there, whose
+rounding depends on the BLAS kernels the machine selects), the conditioning test takes the
+extreme eigenvalues of the normal matrix in closed form (trigonometric solution of the
+characteristic cubic; LAPACK's ``syevd`` there) and the inverse of the affine map is formed
+in closed form (LU there). Sums run in the order of the neighbours, without fused
+multiply-adds, so results do not depend on the machine. The tests bound the differences
+(``test_affine_kernel.py``).
+
+A match's result depends on its own inputs only (its neighbours' positions).
+
+numba is imported on first use (:func:`available`); the kernel compiles then or loads from
+numba's on-disk cache (``cache=True``).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import math
+import threading
+from typing import Any
+
+import numpy as np
+
+#: conditioning bound of the normal matrix: smallest eigenvalue over largest (as the
+#: numpy path's).
+MIN_EIGEN_RATIO = 1e-8
+#: smallest determinant of the linear part of a well-fitted map (as the numpy path's).
+MIN_DET = 1e-3
+
+_KERNEL: Any = None
+_LOCK = threading.Lock()
+
+
+@functools.cache
+def available() -> bool:
+    """Whether numba can be imported (the compiled kernel is used then)."""
+    return importlib.util.find_spec("numba") is not None
+
+
+def _extreme_eigenvalues(S) -> tuple[float, float]:
+    """(smallest, largest) eigenvalue of the symmetric (3, 3) ``S`` (closed form)."""
+    a, b, c = S[0, 0], S[1, 1], S[2, 2]
+    d, e, f = S[0, 1], S[0, 2], S[1, 2]
+    p1 = d * d + e * e + f * f
+    if p1 == 0.0:
+        return min(a, min(b, c)), max(a, max(b, c))
+    q = (a + b + c) / 3.0
+    aq, bq, cq = a - q, b - q, c - q
+    p = math.sqrt((aq * aq + bq * bq + cq * cq + 2.0 * p1) / 6.0)
+    aq, bq, cq, d, e, f = aq / p, bq / p, cq / p, d / p, e / p, f / p
+    half_det = 0.5 * (aq * (bq * cq - f * f) - d * (d * cq - f * e) + e * (d * f - bq * e))
+    phi = math.acos(min(max(half_det, -1.0), 1.0)) / 3.0
+    return q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0), q + 2.0 * p * math.cos(phi)
+
+
+def _solve3(M, B) -> None:
+    """Solve ``M X = B`` in place (``M`` (3, 3) becomes its LU factors, ``B`` (3, 2) becomes
+    ``X``): Gaussian elimination with partial pivoting."""
+    for j in range(3):
+        p = j
+        for i in range(j + 1, 3):
+            if abs(M[i, j]) > abs(M[p, j]):
+                p = i
+        if p != j:
+            for c in range(3):
+                M[j, c], M[p, c] = M[p, c], M[j, c]
+            for c in range(2):
+                B[j, c], B[p, c] = B[p, c], B[j, c]
+        for i in range(j + 1, 3):
+            M[i, j] = M[i, j] / M[j, j]
+            for c in range(j + 1, 3):
+                M[i, c] = M[i, c] - M[i, j] * M[j, c]
+    for c in range(2):
+        for i in range(3):
+            for q in range(i):
+                B[i, c] = B[i, c] - M[i, q] * B[q, c]
+        for i in range(2, -1, -1):
+            for q in range(i + 1, 3):
+                B[i, c] = B[i, c] - M[i, q] * B[q, c]
+            B[i, c] = B[i, c] / M[i, i]
+
+
+def _fit(x1n, x2n, w, A, M, B) -> bool:
+    """Weighted least squares ``x2n ~ A [x1n; 1]`` over the (k, 2) centred neighbours with
+    (k,) weights ``w``: ``A`` (2, 3) filled; returns whether the normal matrix is
+    well-conditioned (an ill-conditioned one is replaced by the identity, as the numpy
+    path)."""
+    k = x1n.shape[0]
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for j in range(k):
+                xa = x1n[j, a] if a < 2 else 1.0
+                xb = x1n[j, b] if b < 2 else 1.0
+                s += (xa * w[j]) * xb
+            M[a, b] = s
+        for b in range(2):
+            s = 0.0
+            for j in range(k):
+                xa = x1n[j, a] if a < 2 else 1.0
+                s += (xa * w[j]) * x2n[j, b]
+            B[a, b] = s
+    lo, hi = _extreme_eigenvalues(M)
+    ok = math.isfinite(lo) and math.isfinite(hi) and lo > MIN_EIGEN_RATIO * hi
+    if not ok:
+        for a in range(3):
+            for b in range(3):
+                M[a, b] = 1.0 if a == b else 0.0
+    _solve3(M, B)
+    for c in range(2):
+        for a in range(3):
+            A[c, a] = B[a, c]
+    return ok
+
+
+def _fit_matches(x1, x2, rows, nb, max_residual_px, iterations, min_neighbours, good, H, H_inv):
+    """Per match ``rows[i]`` with neighbours ``nb[i]`` (module docstring): ``good[i]``,
+    ``H[i]`` (3, 3) affine image 1 -> image 2 and ``H_inv[i]`` its inverse (identity where
+    not good)."""
+    n, k = nb.shape
+    x1n, x2n = np.empty((k, 2)), np.empty((k, 2))
+    w, r, srt = np.empty(k), np.empty(k), np.empty(k)
+    A, M, B = np.empty((2, 3)), np.empty((3, 3)), np.empty((3, 2))
+    for i in range(n):
+        c = rows[i]
+        for j in range(k):
+            for d in range(2):
+                x1n[j, d] = x1[nb[i, j], d] - x1[c, d]
+                x2n[j, d] = x2[nb[i, j], d] - x2[c, d]
+            w[j] = 1.0
+        ok = False
+        for it in range(iterations):
+            ok = _fit(x1n, x2n, w, A, M, B)
+            for j in range(k):
+                dx = (x1n[j, 0] * A[0, 0] + x1n[j, 1] * A[0, 1]) + A[0, 2] - x2n[j, 0]
+                dy = (x1n[j, 0] * A[1, 0] + x1n[j, 1] * A[1, 1]) + A[1, 2] - x2n[j, 1]
+                r[j] = math.sqrt(dx * dx + dy * dy)
+            bound = max_residual_px
+            if it < iterations - 1:  # the median residual first, the absolute bound last
+                srt[:] = r
+                srt.sort()
+                h = k // 2
+                median = srt[h] if k % 2 else 0.5 * (srt[h - 1] + srt[h])
+                bound = max(max_residual_px, 2.0 * median)
+            for j in range(k):
+                w[j] = 1.0 if r[j] <= bound else 0.0
+        ok = _fit(x1n, x2n, w, A, M, B) and ok
+        kept = 0.0
+        for j in range(k):
+            kept += w[j]
+        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+        good[i] = ok and kept >= min_neighbours and det > MIN_DET
+        # x2 = c2 + L (x1 - c1) + t
+        tx = x2[c, 0] + A[0, 2] - (A[0, 0] * x1[c, 0] + A[0, 1] * x1[c, 1])
+        ty = x2[c, 1] + A[1, 2] - (A[1, 0] * x1[c, 0] + A[1, 1] * x1[c, 1])
+        H[i, 0, 0], H[i, 0, 1], H[i, 0, 2] = A[0, 0], A[0, 1], tx
+        H[i, 1, 0], H[i, 1, 1], H[i, 1, 2] = A[1, 0], A[1, 1], ty
+        H[i, 2, 0], H[i, 2, 1], H[i, 2, 2] = 0.0, 0.0, 1.0
+        if good[i]:
+            i00, i01, i10, i11 = A[1, 1] / det, -A[0, 1] / det, -A[1, 0] / det, A[0, 0] / det
+            H_inv[i, 0, 0], H_inv[i, 0, 1], H_inv[i, 0, 2] = i00, i01, -(i00 * tx + i01 * ty)
+            H_inv[i, 1, 0], H_inv[i, 1, 1], H_inv[i, 1, 2] = i10, i11, -(i10 * tx + i11 * ty)
+        else:
+            for a in range(2):
+                for b in range(3):
+                    H_inv[i, a, b] = 1.0 if a == b else 0.0
+        H_inv[i, 2, 0], H_inv[i, 2, 1], H_inv[i, 2, 2] = 0.0, 0.0, 1.0
+
+
+def _kernel() -> Any:
+    """The jitted kernel (compiled, or loaded from numba's cache, on first use)."""
+    global _KERNEL
+    if _KERNEL is None:
+        with _LOCK:
+            if _KERNEL is None:
+                import numba
+
+                jit = numba.njit(cache=True, nogil=True, error_model="numpy")
+                globals().update({f.__name__: jit(f) for f in (_extreme_eigenvalues, _solve3, _fit)})
+                _KERNEL = jit(_fit_matches)
+    return _KERNEL
+
+
+def fit_rows(x1: np.ndarray, x2: np.ndarray, rows: np.ndarray, nb: np.ndarray, *,
+             max_residual_px: float, iterations: int, min_neighbours: int
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robust local affine maps image 1 -> image 2 at the matches ``rows`` (module docstring).
+
+    Args:
+        x1, x2: (M, 2) float64 matched pixel positions.
+        rows: (n,) int64 matches to fit.
+        nb: (n, k) int64 neighbours of each (the match included), k >= 3.
+        max_residual_px: neighbours off the last re-weighted fit by more than this are dropped.
+        iterations: re-weighted fits before the last one (>= 1).
+        min_neighbours: fewest neighbours kept for a good fit.
+    Returns:
+        (good (n,) bool, H (n, 3, 3) float64 the maps x2 ~ H x1, H_inv (n, 3, 3) float64 their
+        inverses where good, the identity elsewhere).
+    """
+    rows = np.ascontiguousarray(rows, np.int64)
+    nb = np.ascontiguousarray(nb, np.int64)
+    n = rows.size
+    good = np.zeros(n, np.bool_)
+    H, H_inv = np.empty((n, 3, 3)), np.empty((n, 3, 3))
+    if n:
+        _kernel()(np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64), rows,
+                  nb, float(max_residual_px), int(iterations), float(min_neighbours), good, H, H_inv)
+    return good, H, H_inv
