@@ -1,25 +1,30 @@
 """Compiled (numba) local affine fits: one loop per match, for :mod:`.rectify`.
 
-:func:`fit_rows` does what :func:`.rectify._fit_rows` (the numpy reference, and the path
-without numba) does for a batch of matches with their neighbours: the weighted least-squares
-affine map image 1 -> image 2 around each match, re-fitted without the neighbours that miss it
-(by twice the median residual, then by the absolute bound), the well-fitted test and the full
-affine map; and also its inverse. The numpy path spends its time in a few dozen batched calls
-per batch (matmul, eigvalsh, solve, median, inv), each looping over tiny 3 x 3 problems with
-the overhead of a LAPACK call per matrix; here each match's fits run in registers.
+:func:`fit_clusters` does what :func:`.rectify.local_affine_pairs` asks of its numpy path
+(:func:`.rectify._fit_numpy`: a k-d tree per cluster, then :func:`.rectify._fit_rows`) for
+the matches of one image pair: per cluster a grid of its matches in image 1, each wanted
+match's ``k`` nearest matches from it, and the match's fit: the weighted least-squares
+affine map image 1 -> image 2 around it, re-fitted without the neighbours that miss it (by
+twice the median residual, then by the absolute bound), the well-fitted test and the inverse
+of the full affine map. :func:`fit_rows` is the fit alone, for given neighbours. The numpy
+path spends its time in k-d tree builds and in a few dozen batched calls per batch (matmul,
+eigvalsh, solve, median, inv), each looping over tiny 3 x 3 problems with the overhead of a
+LAPACK call per matrix; here each match's search and fits run in registers.
 
-Differences from the numpy path, all at float rounding: the 3 x 3 normal equations are solved
-by Gaussian elimination with partial pivoting written out here (LAPACK's LU there, whose
-rounding depends on the BLAS kernels the machine selects), the conditioning test takes the
-extreme eigenvalues of the normal matrix in closed form (trigonometric solution of the
-characteristic cubic; LAPACK's ``syevd`` there) and the inverse of the affine map is formed
-in closed form (LU there). Sums run in the order of the neighbours, without fused
-multiply-adds, so results do not depend on the machine. The tests bound the differences
-(``test_affine_kernel.py``).
+Differences from the numpy path: neighbours tied for a fit's last place are the lowest rows
+here (any of them in the k-d tree's), and all else at float rounding: the 3 x 3 normal
+equations are solved by Gaussian elimination with partial pivoting written out here
+(LAPACK's LU there, whose rounding depends on the BLAS kernels the machine selects), the
+conditioning test takes the extreme eigenvalues of the normal matrix in closed form
+(trigonometric solution of the characteristic cubic; LAPACK's ``syevd`` there) and the
+inverse of the affine map is formed in closed form (LU there). Sums run in the order of the
+neighbours (nearest first, ties to the lower row), without fused multiply-adds, so results
+do not depend on the machine. The tests bound the differences (``test_affine_kernel.py``).
 
-A match's result depends on its own inputs only (its neighbours' positions).
+A match's result depends on its own inputs only (its cluster's positions), not on which other
+matches are fitted with it.
 
-numba is imported on first use (:func:`available`); the kernel compiles then or loads from
+numba is imported on first use (:func:`available`); the kernels compile then or load from
 numba's on-disk cache (``cache=True``).
 """
 
@@ -179,8 +184,101 @@ def _fit_matches(x1, x2, rows, nb, max_residual_px, iterations, min_neighbours, 
         H_inv[i, 2, 0], H_inv[i, 2, 1], H_inv[i, 2, 2] = 0.0, 0.0, 1.0
 
 
+#: points per cell of the grid that :func:`_fit_clusters` searches a cluster's neighbours in.
+_POINTS_PER_CELL = 2.0
+
+
+def _insert(d: float, j: int, k: int, nb, dist) -> None:
+    """Put candidate ``j`` at squared distance ``d`` among the ``k`` nearest so far (``dist``
+    ascending, ties to the lower ``j``), if it is one of them."""
+    if d < dist[k - 1] or (d == dist[k - 1] and j < nb[k - 1]):
+        i = k - 1
+        while i > 0 and (d < dist[i - 1] or (d == dist[i - 1] and j < nb[i - 1])):
+            dist[i], nb[i] = dist[i - 1], nb[i - 1]
+            i -= 1
+        dist[i], nb[i] = d, j
+
+
+def _nearest(xs, ys, cell_x, cell_y, start, order, gx, gy, side, p, k, nb, dist) -> None:
+    """The ``k`` nearest points (itself included) to point ``p`` of a cluster (``xs``, ``ys``
+    (n,) float64 positions) on its grid: ``nb`` (k,) point indices, nearest first, ties to the
+    lower index; ``dist`` (k,) their squared distances. The grid: ``gx`` x ``gy`` square cells
+    of ``side`` pixels, point ``i`` in cell (``cell_x[i]``, ``cell_y[i]``), the points of cell
+    ``c`` (row-major) are ``order[start[c]:start[c + 1]]``. Rings of cells around ``p``'s are
+    searched outwards until the next ring's points (at least ``r * side`` away) cannot be
+    nearer than the k-th so far."""
+    for j in range(k):
+        dist[j], nb[j] = math.inf, -1
+    qx, qy, cx, cy = xs[p], ys[p], cell_x[p], cell_y[p]
+    r = 0
+    while True:
+        for iy in range(max(cy - r, 0), min(cy + r, gy - 1) + 1):
+            edge = iy == cy - r or iy == cy + r
+            for ix in range(max(cx - r, 0), min(cx + r, gx - 1) + 1):
+                if not edge and ix != cx - r and ix != cx + r:
+                    continue  # inside the ring: searched already
+                c = iy * gx + ix
+                for t in range(start[c], start[c + 1]):
+                    j = order[t]
+                    dx, dy = xs[j] - qx, ys[j] - qy
+                    _insert(dx * dx + dy * dy, j, k, nb, dist)
+        reach = r * side
+        if (reach * reach > dist[k - 1]) or (r >= gx and r >= gy):
+            break
+        r += 1
+
+
+def _fit_clusters(x1, x2, members, bounds, want, k, max_residual_px, iterations, min_neighbours,
+                  good, H_inv) -> None:
+    """Per cluster ``members[bounds[c]:bounds[c + 1]]`` (its rows, ascending): the neighbours
+    and fits of its ``want`` rows, into ``good`` and ``H_inv`` (by row)."""
+    for c in range(bounds.size - 1):
+        cl = members[bounds[c]:bounds[c + 1]]
+        n = cl.size
+        kk = min(k, n)
+        if kk < min_neighbours:
+            continue
+        xs, ys = np.empty(n), np.empty(n)
+        for i in range(n):
+            xs[i], ys[i] = x1[cl[i], 0], x1[cl[i], 1]
+        x0, y0 = xs.min(), ys.min()
+        w, h = max(xs.max() - x0, 1e-9), max(ys.max() - y0, 1e-9)
+        side = max(math.sqrt(w * h * _POINTS_PER_CELL / n), 1e-9)
+        gx = min(int(w / side) + 1, n + 1)
+        gy = min(int(h / side) + 1, n + 1)
+        side = max(w / gx, h / gy) * (1.0 + 1e-12)
+        cell_x, cell_y = np.empty(n, np.int64), np.empty(n, np.int64)
+        start = np.zeros(gx * gy + 1, np.int64)
+        for i in range(n):
+            cell_x[i] = min(int((xs[i] - x0) / side), gx - 1)
+            cell_y[i] = min(int((ys[i] - y0) / side), gy - 1)
+            start[cell_y[i] * gx + cell_x[i] + 1] += 1
+        for i in range(gx * gy):
+            start[i + 1] += start[i]
+        order, fill = np.empty(n, np.int64), start[:-1].copy()
+        for i in range(n):  # ascending within a cell
+            cc = cell_y[i] * gx + cell_x[i]
+            order[fill[cc]] = i
+            fill[cc] += 1
+        at = np.flatnonzero(want[cl])
+        rows = cl[at]
+        nb = np.empty((at.size, kk), np.int64)
+        dist = np.empty(kk)
+        for i in range(at.size):
+            _nearest(xs, ys, cell_x, cell_y, start, order, gx, gy, side, at[i], kk, nb[i], dist)
+            for j in range(kk):
+                nb[i, j] = cl[nb[i, j]]
+        g = np.zeros(at.size, np.bool_)
+        H, Hi = np.empty((at.size, 3, 3)), np.empty((at.size, 3, 3))
+        _fit_matches(x1, x2, rows, nb, max_residual_px, iterations, float(min_neighbours), g, H, Hi)
+        for i in range(at.size):
+            good[rows[i]] = g[i]
+            H_inv[rows[i]] = Hi[i]
+
+
 def _kernel() -> Any:
-    """The jitted kernel (compiled, or loaded from numba's cache, on first use)."""
+    """The jitted kernels (compiled, or loaded from numba's cache, on first use):
+    ``(fit_matches, fit_clusters)``."""
     global _KERNEL
     if _KERNEL is None:
         with _LOCK:
@@ -188,8 +286,9 @@ def _kernel() -> Any:
                 import numba
 
                 jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-                globals().update({f.__name__: jit(f) for f in (_extreme_eigenvalues, _solve3, _fit)})
-                _KERNEL = jit(_fit_matches)
+                globals().update({f.__name__: jit(f) for f in (_extreme_eigenvalues, _solve3, _fit,
+                                                               _fit_matches, _insert, _nearest)})
+                _KERNEL = (globals()["_fit_matches"], jit(_fit_clusters))
     return _KERNEL
 
 
@@ -215,6 +314,44 @@ def fit_rows(x1: np.ndarray, x2: np.ndarray, rows: np.ndarray, nb: np.ndarray, *
     good = np.zeros(n, np.bool_)
     H, H_inv = np.empty((n, 3, 3)), np.empty((n, 3, 3))
     if n:
-        _kernel()(np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64), rows,
-                  nb, float(max_residual_px), int(iterations), float(min_neighbours), good, H, H_inv)
+        _kernel()[0](np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
+                     rows, nb, float(max_residual_px), int(iterations), float(min_neighbours),
+                     good, H, H_inv)
     return good, H, H_inv
+
+
+def fit_clusters(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, want: np.ndarray, *, k: int,
+                 max_residual_px: float, iterations: int, min_neighbours: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Local affine maps of the ``want`` matches, each fitted to its ``min(k, cluster size)``
+    nearest matches in image 1 (itself included; ties to the lower row) of its cluster
+    (module docstring); clusters of fewer than ``min_neighbours`` matches are not fitted.
+
+    Args:
+        x1, x2: (M, 2) float64 matched pixel positions.
+        labels: (M,) int64 cluster of each match (-1: none, never fitted).
+        want: (M,) bool matches to fit (their neighbours are drawn from their whole cluster).
+        k, max_residual_px, iterations, min_neighbours: as :func:`fit_rows`.
+    Returns:
+        (good (M,) bool: fitted and well-fitted, H_inv (M, 3, 3) float64 the inverse maps
+        x1 ~ H_inv x2 where good, undefined elsewhere).
+    """
+    x1 = np.ascontiguousarray(x1, np.float64)
+    labels = np.asarray(labels, np.int64)
+    m = labels.size
+    good = np.zeros(m, np.bool_)
+    H_inv = np.empty((m, 3, 3))
+    used = np.zeros(int(labels.max(initial=-1)) + 2, np.bool_)  # last: label -1
+    want = np.asarray(want, bool) & (labels >= 0)
+    used[labels[want]] = True
+    used[-1] = False
+    cand = np.flatnonzero(used[labels])
+    if not cand.size:
+        return good, H_inv
+    members = cand[np.argsort(labels[cand], kind="stable")]  # by cluster, rows ascending
+    lab = labels[members]
+    bounds = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1], True])
+    _kernel()[1](x1, np.ascontiguousarray(x2, np.float64), members, bounds.astype(np.int64),
+                 want, int(k), float(max_residual_px), int(iterations), int(min_neighbours),
+                 good, H_inv)
+    return good, H_inv

@@ -129,7 +129,7 @@ class TrackPlan:
                 k, max_residual_px = self.local_affine
                 self._local_cache[p] = local_affine_pairs(
                     x1, x2, labels, self.pair_homs[p], k=k, max_residual_px=max_residual_px,
-                    fit=want)[at]
+                    fit=want, rows=at)
             return self._local_cache[p]
         if self.source_pairs is not None:
             raise ValueError("this group has no local affine pairs: attach them with "

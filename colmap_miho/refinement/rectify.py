@@ -42,7 +42,7 @@ def _fit(x1n: np.ndarray, x2n: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, n
 
 def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs: np.ndarray, *,
                        k: int, max_residual_px: float, fit: np.ndarray | None = None,
-                       compiled: bool | None = None) -> np.ndarray:
+                       compiled: bool | None = None, rows: np.ndarray | None = None) -> np.ndarray:
     """Per-match patch homography pairs ``(I, A^-1)`` from local affine fits.
 
     Args:
@@ -55,18 +55,49 @@ def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs:
             drawn from all matches of their cluster all the same); the others keep the
             filter's pair unfitted. A match's pair does not depend on which others are
             fitted with it.
-        compiled: fit with :mod:`.affine_kernel` (True) or numpy (False; the two differ
-            at float rounding); None: compiled where numba is installed.
+        compiled: fit with :mod:`.affine_kernel` (True) or numpy (False); None: compiled
+            where numba is installed. The two differ at float rounding, and where several
+            matches tie for a fit's last neighbour (the compiled fits take the lowest rows,
+            numpy's k-d tree any of them).
+        rows: optional (R,) int64 distinct rows: return only theirs (the ``fit`` matches must
+            be among them).
     Returns:
-        (M, 2, 3, 3) float64 pairs (A, B) with ``A x1 ~ B x2`` near each match.
+        (M, 2, 3, 3) float64 pairs (A, B) with ``A x1 ~ B x2`` near each match (or (R, 2,
+        3, 3), those of ``rows``).
     """
     m = x1.shape[0]
-    out = np.tile(np.eye(3), (m, 2, 1, 1))
+    labels = np.asarray(labels, np.int64)
     ok = labels >= 0
-    out[ok] = homs[labels[ok]]
     want = ok if fit is None else ok & np.asarray(fit, bool)
     if compiled is None:
         compiled = affine_kernel.available()
+    if compiled:
+        good, H_inv = affine_kernel.fit_clusters(
+            x1, x2, labels, want, k=k, max_residual_px=max_residual_px, iterations=_ITERATIONS,
+            min_neighbours=MIN_NEIGHBOURS)
+        sel = np.flatnonzero(good)
+        H_inv = H_inv[sel]
+    else:
+        sel, H_inv = _fit_numpy(x1, x2, labels, want, k, max_residual_px)
+    pos = np.arange(m) if rows is None else np.asarray(rows, np.int64)
+    lab = labels[pos]
+    out = np.tile(np.eye(3), (pos.size, 2, 1, 1))
+    out[lab >= 0] = homs[lab[lab >= 0]]
+    if rows is not None:
+        at = np.full(m, -1, np.int64)
+        at[pos] = np.arange(pos.size)
+        sel = at[sel]
+        if (sel < 0).any():
+            raise ValueError("local_affine_pairs: the fitted matches must be among rows")
+    out[sel, 0] = np.eye(3)
+    out[sel, 1] = H_inv
+    return out
+
+
+def _fit_numpy(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, want: np.ndarray, k: int,
+               max_residual_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The numpy path of :func:`local_affine_pairs`: (well-fitted rows (n,) int64, their
+    inverse maps (n, 3, 3) float64)."""
     by_size: dict[int, tuple[list, list]] = {}  # neighbours per fit -> (rows, neighbours)
     for lab in np.unique(labels[want]):
         rows = np.flatnonzero(labels == lab)
@@ -78,22 +109,15 @@ def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs:
         got = by_size.setdefault(kk, ([], []))
         got[0].append(rows[q])
         got[1].append(rows[nn])
+    sel, inv = [np.zeros(0, np.int64)], [np.zeros((0, 3, 3))]
     for rows_l, nb_l in by_size.values():
         # clusters with the same neighbour count in one batch: every step below is per
         # match (batched matmul, eigvalsh, solve, median act on each row alone)
         rows, nb = np.concatenate(rows_l), np.concatenate(nb_l)  # (n,), (n, kk)
-        if compiled:
-            good, _, H_inv = affine_kernel.fit_rows(
-                x1, x2, rows, nb, max_residual_px=max_residual_px, iterations=_ITERATIONS,
-                min_neighbours=MIN_NEIGHBOURS)
-            H_inv = H_inv[good]
-        else:
-            good, H = _fit_rows(x1, x2, rows, nb, max_residual_px)
-            H_inv = np.linalg.inv(H[good])
-        sel = rows[good]
-        out[sel, 0] = np.eye(3)
-        out[sel, 1] = H_inv
-    return out
+        good, H = _fit_rows(x1, x2, rows, nb, max_residual_px)
+        sel.append(rows[good])
+        inv.append(np.linalg.inv(H[good]))
+    return np.concatenate(sel), np.concatenate(inv)
 
 
 def _fit_rows(x1: np.ndarray, x2: np.ndarray, rows: np.ndarray, nb: np.ndarray,

@@ -102,3 +102,66 @@ def test_local_affine_pairs_compiled_and_numpy_agree():
     assert fitted[:268].mean() > 0.5
     scale = np.abs(ref).max(axis=(2, 3), keepdims=True)
     assert (np.abs(got - ref) / scale).max() < MAP_REL_TOL
+
+
+def _brute_neighbours(x1: np.ndarray, rows: np.ndarray, queries: np.ndarray, k: int) -> np.ndarray:
+    """The k nearest of ``rows`` to each of ``queries`` (rows), nearest first, ties to the
+    lower row: the compiled search's rule."""
+    out = []
+    for q in queries:
+        d = ((x1[rows] - x1[q]) ** 2).sum(axis=1)
+        out.append(rows[np.lexsort((rows, d))[:k]])
+    return np.array(out, np.int64).reshape(len(queries), k)
+
+
+def test_fit_clusters_are_fits_to_the_nearest_neighbours():
+    """The grid search finds exactly the k nearest (ties to the lower row, in that order):
+    its fits are bitwise those of :func:`fit_rows` given brute-force neighbours. Clusters: a
+    large one with duplicate keypoints and keypoints on a lattice (many equal distances), a
+    small one (fewer matches than k), a collinear one, one of identical points, one too
+    small to fit."""
+    x1, x2 = _matches(400, seed=3)
+    x1[300:340] = np.c_[np.repeat(np.arange(5), 8) * 4.0, np.tile(np.arange(8), 5) * 4.0]
+    y = np.c_[x1[300:340], np.ones(40)] @ H_TRUE.T
+    x2[300:340] = y[:, :2] / y[:, 2:] + np.random.default_rng(5).normal(0, 0.1, (40, 2))
+    x1[340:350] = np.c_[np.arange(10.0), 2.0 * np.arange(10.0)]
+    x1[350:358] = 7.0
+    labels = np.repeat([0, 1, 1, 2, 3, 4, -1], [300, 30, 10, 10, 8, 4, 38])
+    want = np.random.default_rng(4).random(400) < 0.7
+    good, H_inv = affine_kernel.fit_clusters(x1, x2, labels, want, k=12, max_residual_px=2.0,
+                                             iterations=_ITERATIONS, min_neighbours=MIN_NEIGHBOURS)
+    fitted = np.zeros(400, bool)
+    for lab in range(5):
+        rows = np.flatnonzero(labels == lab)
+        kk = min(12, rows.size)
+        if kk < MIN_NEIGHBOURS:
+            continue
+        q = rows[want[rows]]
+        nb = _brute_neighbours(x1, rows, q, kk)
+        g, _, Hi = affine_kernel.fit_rows(x1, x2, q, nb, max_residual_px=2.0,
+                                          iterations=_ITERATIONS, min_neighbours=MIN_NEIGHBOURS)
+        np.testing.assert_array_equal(good[q], g)
+        np.testing.assert_array_equal(H_inv[q[g]], Hi[g])
+        fitted[q] = True
+    assert not good[~fitted].any()  # unwanted, unlabelled and too-small clusters
+    assert good[:300].sum() > 100 and good[300:340].any()
+    assert not good[340:358].any()  # collinear and identical points: degenerate
+
+
+def test_local_affine_pairs_of_rows_are_those_of_all():
+    x1, x2 = _matches(300, seed=9)
+    labels = np.repeat([0, 1, -1], [200, 70, 30])
+    homs = np.stack([np.stack([np.eye(3), np.eye(3) * (1 + c)]) for c in range(2)])
+    rng = np.random.default_rng(2)
+    rows = np.sort(rng.choice(300, 120, replace=False))
+    fit = np.zeros(300, bool)
+    fit[rows[::2]] = True
+    for compiled in (False, True):
+        full = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit,
+                                  compiled=compiled)
+        part = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit,
+                                  compiled=compiled, rows=rows)
+        np.testing.assert_array_equal(part, full[rows])
+    with pytest.raises(ValueError, match="among rows"):
+        local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit,
+                           rows=rows[1::2])
