@@ -308,29 +308,45 @@ def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> N
     """Walk the ``todo`` groups on the runner: ``use`` contiguous runs, one group of each run
     in flight at a time (the worker that finished a group is the idle one, so it usually gets
     the next group of its run and finds the shared images in its cache). ``args``: (NCC
-    config, track config, affines, image budget)."""
+    config, track config, affines, image budget).
+
+    A run's next group is handed out as soon as its last one returns, before that one's
+    results are applied and stored, with its task arguments made while the workers walked
+    (so a worker waits for neither)."""
     ncc_config, track_config, affines, budget = args
     runs = [[todo[k] for k in r] for r in _runs([groups[g] for g in todo], use)]
     pending: dict[Future, tuple[int, int]] = {}
+    ready: dict[int, tuple] = {}  # run -> the task arguments of its next group
+
+    def prepare(r: int) -> None:
+        if runs[r] and r not in ready:
+            g = runs[r][0]
+            state, aff = _group_args(loader, groups[g], affines, budget)
+            ready[r] = (state, attach.inputs(g), ncc_config, track_config, aff)
 
     def submit(r: int) -> None:
         if runs[r]:
+            prepare(r)
             g = runs[r].pop(0)
-            state, aff = _group_args(loader, groups[g], affines, budget)
-            pending[runner.submit(_walk_group_task, state, attach.inputs(g), ncc_config,
-                                  track_config, aff)] = (r, g)
+            pending[runner.submit(_walk_group_task, *ready.pop(r))] = (r, g)
 
     for r in range(len(runs)):
         submit(r)
+    for r in range(len(runs)):
+        prepare(r)
     while pending:
         finished, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+        done = []
         for fut in sorted(finished, key=lambda f: pending[f][1]):
             r, g = pending.pop(fut)
-            moved, st = fut.result()  # a failed group stops the run now
+            done.append((g, *fut.result()))  # a failed group stops the run now
+            submit(r)
+        for g, moved, st in done:
             finish(g, moved, st)
             if bar is not None:
                 bar.update(groups[g].to_refine)
-            submit(r)
+        for r in range(len(runs)):
+            prepare(r)
 
 
 @contextlib.contextmanager

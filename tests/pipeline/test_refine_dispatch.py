@@ -1,0 +1,80 @@
+"""The refine stage's hand-out of track groups to the runner's slots (``_dispatch``), with a
+stand-in walk on a thread pool: every group walked once, each run's groups in order, a run's
+next group handed out before the last one's results are applied, its arguments made ahead."""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from types import SimpleNamespace
+
+import pytest
+
+from colmap_miho.pipeline import refine as refine_stage
+from colmap_miho.pipeline.executor import Runner
+
+
+class _Loader:
+    names = {1: "a.png", 2: "b.png"}
+    expected_sizes = {1: (4, 4), 2: (4, 4)}
+    max_cached_bytes = None
+
+    def state(self) -> dict:
+        return {"image_dir": "."}
+
+
+class _Attach:
+    def __init__(self, log: list) -> None:
+        self.log = log
+
+    def inputs(self, g: int):
+        self.log.append(("inputs", g))
+        return SimpleNamespace(index=g)
+
+
+@pytest.mark.parametrize("slots", [1, 2, 3])
+def test_dispatch_hands_out_each_group_once_in_run_order(monkeypatch, slots):
+    log: list = []
+    lock = threading.Lock()
+
+    def fake_walk(state, group, ncc, tracks, aff):
+        with lock:
+            log.append(("walk", group.index))
+        return {}, {"refined": group.index}
+
+    monkeypatch.setattr(refine_stage, "_walk_group_task", fake_walk)
+    groups = [SimpleNamespace(to_refine=n, image_ids=[1, 2]) for n in (5, 9, 2, 7, 4, 8, 3)]
+    todo = [0, 1, 2, 4, 5, 6]  # group 3 resumed
+    runner = Runner(slots, "processes", make_executor=lambda: ThreadPoolExecutor(slots))
+    submitted: list = []
+    real_submit = runner.submit
+
+    def submit(fn, *args):
+        with lock:
+            submitted.append(args[1].index)
+            log.append(("submit", args[1].index))
+        return real_submit(fn, *args)
+
+    runner.submit = submit  # type: ignore[method-assign]
+    finished: list = []
+
+    def finish(g, moved, st):
+        assert st == {"refined": g}
+        with lock:
+            finished.append(g)
+            log.append(("finish", g))
+
+    refine_stage._dispatch(runner, _Loader(), groups, todo, slots, _Attach(log),
+                           (None, None, None, None), finish, None)
+    runner.executor().shutdown()
+    assert sorted(finished) == sorted(submitted) == todo
+    runs = refine_stage._runs([groups[g] for g in todo], slots)
+    for run in runs:
+        mine = [todo[k] for k in run]
+        assert [g for g in submitted if g in mine] == mine  # a run's groups in order
+        for a, b in zip(mine[:-1], mine[1:], strict=True):
+            # the next group is handed out before the last one's results are applied
+            assert log.index(("submit", b)) < log.index(("finish", a))
+            # and its arguments were made before the last one returned
+            assert log.index(("inputs", b)) < log.index(("finish", a))
+    assert sum(1 for e in log if e[0] == "inputs") == len(todo)  # each group's arguments once
