@@ -27,6 +27,41 @@ def distinct(values: np.ndarray, size: int | None = None) -> np.ndarray:
     return out
 
 
+#: Most entries of the padded (units, longest image tuple) table :func:`_by_image_tuple`
+#: sorts with numpy; larger plans sort the tuples in Python.
+MAX_TUPLE_TABLE = 1 << 24
+
+
+def _by_image_tuple(key_unit: np.ndarray, key_image: np.ndarray, bounds: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Units sorted by their sorted image tuples (lexicographically, a tuple before its
+    extensions; ties by unit), and the starts of the runs of equal tuples in that order.
+
+    Args:
+        key_unit, key_image: (N,) int64 the (unit, image rank) pairs, sorted.
+        bounds: (U + 1,) int64 start of each unit's pairs.
+    Returns:
+        (order (U,) int64 units, block (B + 1,) int64 positions in ``order`` where a run of
+        equal tuples starts, and U last).
+    """
+    n_units = bounds.size - 1
+    count = np.diff(bounds)
+    width = int(count.max())
+    if n_units * width <= MAX_TUPLE_TABLE:
+        table = np.full((n_units, width), -1, np.int64)  # -1: shorter tuples first
+        table[key_unit, np.arange(key_unit.size) - bounds[key_unit]] = key_image
+        order = np.lexsort((np.arange(n_units), *table.T[::-1]))
+        rows = table[order]
+        new = np.any(rows[1:] != rows[:-1], axis=1)
+    else:
+        tuples = [tuple(key_image[bounds[u]:bounds[u + 1]].tolist()) for u in range(n_units)]
+        order = np.array(sorted(range(n_units), key=lambda u: (tuples[u], u)), np.int64)
+        new = np.array([tuples[a] != tuples[b] for a, b in zip(order[1:], order[:-1], strict=True)],
+                       bool)
+    block = np.flatnonzero(np.concatenate([[True], new, [True]]))
+    return order.astype(np.int64), block
+
+
 @dataclass(frozen=True)
 class TrackPlan:
     """Tracks over ``T`` keypoint nodes and ``E`` match edges.
@@ -277,25 +312,43 @@ class TrackPlan:
         e_ids = np.flatnonzero(unit >= 0)
         eu = unit[e_ids]
         img_a, img_b = self.node_image[self.edge_a[e_ids]], self.node_image[self.edge_b[e_ids]]
-        # the (unit, image) pairs, sorted, as one int64 code each (np.unique on rows is slow)
+        # the (unit, image) pairs, sorted, as one int64 code each (np.unique on rows is slow);
+        # images as their rank among the plan's (the same order as their ids)
         ids, img = np.unique(np.concatenate([img_a, img_b]), return_inverse=True)
         code = distinct(np.concatenate([eu, eu]) * ids.size + img.reshape(-1))
-        key_unit, key_image = code // ids.size, ids[code % ids.size]
+        key_unit, key_image = code // ids.size, code % ids.size
         bounds = np.searchsorted(key_unit, np.arange(anchors.size + 1))
-        images = [tuple(key_image[bounds[u]:bounds[u + 1]].tolist()) for u in range(anchors.size)]
-        order = sorted(range(anchors.size), key=lambda u: (images[u], u))
-        n_edges = np.bincount(eu, minlength=anchors.size).tolist()
+        order, block = _by_image_tuple(key_unit, key_image, bounds)
+        n_edges = np.bincount(eu, minlength=anchors.size)[order]
+        cum = np.concatenate([[0], np.cumsum(n_edges)])
         limit = max_edges or eu.size
-        group_of = np.empty(anchors.size, np.int64)
+        group_of = np.empty(anchors.size, np.int64)  # by position in ``order``
         g, current, edges, cap = -1, set[int](), 0, max_images
-        for u in order:
-            both = current | set(images[u])
-            edges += n_edges[u]
-            if g < 0 or len(both) > max(cap, len(images[u])) or edges > limit:
-                g, both, edges, cap = g + 1, set(images[u]), n_edges[u], max_images
-            group_of[u] = g
-            current, cap = both, max(cap, len(images[u]))
-        return self._split(e_ids, group_of[eu], anchors, group_of, g + 1)
+        for s, e in zip(block[:-1].tolist(), block[1:].tolist(), strict=True):
+            u = int(order[s])
+            mine = set(key_image[bounds[u]:bounds[u + 1]].tolist())
+            both = current | mine
+            edges += int(n_edges[s])
+            if g < 0 or len(both) > max(cap, len(mine)) or edges > limit:
+                g, both, edges, cap = g + 1, mine, int(n_edges[s]), max_images
+            group_of[s] = g
+            current, cap = both, max(cap, len(mine))
+            # the block's other units use the same images: only the edge bound can cut
+            i = s + 1
+            while i < e:
+                # the first unit that takes the group past the bound starts the next one
+                k = max(i, int(np.searchsorted(cum, limit - edges + cum[i], side="right")) - 1)
+                if k >= e:
+                    group_of[i:e] = g
+                    edges += int(cum[e] - cum[i])
+                    break
+                group_of[i:k] = g
+                g, edges, current, cap = g + 1, int(n_edges[k]), mine, max(max_images, len(mine))
+                group_of[k] = g
+                i = k + 1
+        unit_group = np.empty(anchors.size, np.int64)
+        unit_group[order] = group_of
+        return self._split(e_ids, unit_group[eu], anchors, unit_group, g + 1)
 
     def _split(self, e_ids: np.ndarray, edge_group: np.ndarray, anchors: np.ndarray,
                anchor_group: np.ndarray, n: int) -> list[TrackPlan]:

@@ -376,3 +376,58 @@ def test_distinct_is_numpys_unique():
         np.testing.assert_array_equal(distinct(v, 300), np.unique(v))
         np.testing.assert_array_equal(distinct(v * 1_000_003 - 17), np.unique(v * 1_000_003 - 17))
         assert distinct(v, 300).dtype == np.unique(v).dtype
+
+
+def _reference_group_of(plan, max_images: int, max_edges: int | None) -> np.ndarray:
+    """The group of each walked unit by the rule of ``TrackPlan.groups`` written as the plain
+    sweep over units (one set union per unit)."""
+    unit, anchors = plan.walked_units()
+    e_ids = np.flatnonzero(unit >= 0)
+    eu = unit[e_ids]
+    images = [set() for _ in range(anchors.size)]
+    for u, a, b in zip(eu, plan.node_image[plan.edge_a[e_ids]], plan.node_image[plan.edge_b[e_ids]],
+                       strict=True):
+        images[u] |= {int(a), int(b)}
+    tuples = [tuple(sorted(s)) for s in images]
+    order = sorted(range(anchors.size), key=lambda u: (tuples[u], u))
+    n_edges = np.bincount(eu, minlength=anchors.size)
+    limit = max_edges or eu.size
+    group_of = np.empty(anchors.size, np.int64)
+    g, current, edges, cap = -1, set(), 0, max_images
+    for u in order:
+        both = current | images[u]
+        edges += n_edges[u]
+        if g < 0 or len(both) > max(cap, len(images[u])) or edges > limit:
+            g, both, edges, cap = g + 1, set(images[u]), n_edges[u], max_images
+        group_of[u] = g
+        current, cap = both, max(cap, len(images[u]))
+    return group_of
+
+
+@pytest.mark.parametrize("table", [True, False])
+def test_groups_follow_the_sweep_over_units(monkeypatch, table):
+    """The groups are exactly those of the plain sweep over units (runs of units with the same
+    images swept at once; the units sorted with numpy's padded table or in Python), for
+    bounds in images, in edges (units larger than the bound alone), and both."""
+    from colmap_miho.refinement import plan as plan_module
+
+    if not table:
+        monkeypatch.setattr(plan_module, "MAX_TUPLE_TABLE", 0)
+    for seed in (1, 5):
+        kps, pm, res, unref = random_scene(seed, n_images=12, n_tracks=600)
+        plan = build_track_plan(kps, pm, res, unrefined_matches=unref)
+        unit, anchors = plan.walked_units()
+        n_edges = np.bincount(unit[unit >= 0], minlength=anchors.size)
+        assert n_edges.max() > 12  # the long tracks exceed the smallest edge bound below
+        for max_images, max_edges in ((12, None), (3, None), (5, 40), (12, 12), (2, 7)):
+            groups = plan.groups(max_images, max_edges)
+            expected = _reference_group_of(plan, max_images, max_edges)
+            assert len(groups) == expected.max() + 1
+            for g, grp in enumerate(groups):
+                mine = np.flatnonzero(expected == g)
+                # the group's anchors, as (image, keypoint), are those of its units
+                got = sorted(zip(grp.node_image[grp.anchors].tolist(),
+                                 grp.node_kp[grp.anchors].tolist(), strict=True))
+                ref = sorted(zip(plan.node_image[anchors[mine]].tolist(),
+                                 plan.node_kp[anchors[mine]].tolist(), strict=True))
+                assert got == ref
