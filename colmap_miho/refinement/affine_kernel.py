@@ -335,6 +335,9 @@ def fit_clusters(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, want: np.nd
     Returns:
         (good (M,) bool: fitted and well-fitted, H_inv (M, 3, 3) float64 the inverse maps
         x1 ~ H_inv x2 where good, undefined elsewhere).
+    Raises:
+        ValueError: a position in image 1 of a cluster to fit is not finite (as scipy's k-d
+            tree of the numpy path).
     """
     x1 = np.ascontiguousarray(x1, np.float64)
     labels = np.asarray(labels, np.int64)
@@ -348,6 +351,8 @@ def fit_clusters(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, want: np.nd
     cand = np.flatnonzero(used[labels])
     if not cand.size:
         return good, H_inv
+    if not np.isfinite(x1[cand]).all():  # the grid needs finite positions
+        raise ValueError("fit_clusters: the positions in image 1 of the clusters to fit must be finite")
     members = cand[np.argsort(labels[cand], kind="stable")]  # by cluster, rows ascending
     lab = labels[members]
     bounds = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1], True])

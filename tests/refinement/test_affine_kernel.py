@@ -165,3 +165,15 @@ def test_local_affine_pairs_of_rows_are_those_of_all():
     with pytest.raises(ValueError, match="among rows"):
         local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit,
                            rows=rows[1::2])
+
+
+def test_non_finite_positions_raise_in_both_paths():
+    x1, x2 = _matches(100, seed=2)
+    x1[5] = np.nan
+    labels = np.zeros(100, np.int64)
+    homs = np.tile(np.eye(3), (1, 2, 1, 1))
+    for compiled in (False, True):
+        with pytest.raises(ValueError, match="finite"):
+            local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, compiled=compiled)
+    labels[5] = -1  # not in a cluster: never searched
+    local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, compiled=True)
