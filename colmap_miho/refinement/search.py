@@ -7,6 +7,10 @@ several template shapes and ``coarse_shapes``, the shape is chosen on a stride-2
 and only the chosen shape (and the unperturbed one) is searched at full resolution. With
 ``inner_radius`` the offsets near the keypoint are searched first, the full radius only for the
 matches whose peaks climb out of that smaller window.
+
+On CPU tensors (with numba) the plain search, one unperturbed template shape in every pass,
+runs as :func:`.ncc_kernel.evaluate`, one compiled loop per match; this module is its reference
+and the path on CUDA and for perturbed shapes.
 """
 
 from __future__ import annotations

@@ -3,6 +3,9 @@
 The parabola fit of App. E on an integer NCC map is biased towards integer offsets ("pixel
 locking"). Re-sampling the search window at the sub-pixel estimate and fitting again on the
 3x3 NCC neighbourhood removes most of that bias.
+
+On CPU tensors (with numba) the step runs as :func:`.ncc_kernel.subpixel`, one compiled loop
+per match; the torch code here is its reference and the path on CUDA.
 """
 
 from __future__ import annotations
