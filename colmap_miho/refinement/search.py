@@ -7,12 +7,17 @@ several template shapes and ``coarse_shapes``, the shape is chosen on a stride-2
 and only the chosen shape (and the unperturbed one) is searched at full resolution. With
 ``inner_radius`` the offsets near the keypoint are searched first, the full radius only for the
 matches whose peaks climb out of that smaller window.
+
+On CPU tensors (with numba) the plain search, one unperturbed template shape in every pass,
+runs as :func:`.ncc_kernel.evaluate`, one compiled loop per match; this module is its reference
+and the path on CUDA and for perturbed shapes.
 """
 
 from __future__ import annotations
 
 import torch
 
+from . import ncc_kernel
 from .config import NCCConfig
 from .correlation import ellipse_masks, find_peaks, ncc_maps, structure_tensor
 from .warping import (
@@ -118,6 +123,7 @@ def evaluate_direction(
     m: int,
     win_off: torch.Tensor,
     cfg: NCCConfig,
+    compiled: bool | None = None,
 ) -> dict[str, torch.Tensor]:
     """Best NCC peak over all passes and shapes for J matches in one direction.
 
@@ -136,6 +142,9 @@ def evaluate_direction(
         f, m: index (0 or 1) of the fixed and moving side within each pair.
         win_off: (Pw, 2) offsets of the search window (radius r + s).
         cfg: the refinement parameters.
+        compiled: run :func:`.ncc_kernel.evaluate` (CPU tensors, one unperturbed template
+            shape in every pass) rather than the torch path; None: where it serves and numba
+            is installed.
     Returns:
         dict of tensors with J rows: ``peak``, ``centre`` (NCC at zero offset), ``border``,
         ``zero`` (integer peak at zero offset), ``inside``, ``valid``, ``flat``, ``edge``,
@@ -145,6 +154,16 @@ def evaluate_direction(
         matching, ``H_f_inv`` (J, 3, 3) and ``frame_f`` (J, 2) of the fixed side in the
         winning pass.
     """
+    if compiled is None:
+        compiled = (x_f.device.type == "cpu" and ncc_kernel.available()
+                    and ncc_kernel.serves(passes, cfg.template_radius))
+    if compiled:
+        r = ncc_kernel.evaluate(img_f, img_m, x_f, x_m, passes, f, m, template_radius=cfg.template_radius,
+                                search_radius=cfg.search_radius, inner_radius=cfg.inner_radius,
+                                ellipse_mask=cfg.ellipse_mask, min_template_std=cfg.min_template_std,
+                                min_cornerness=cfg.min_cornerness)
+        r.pop("researched")
+        return r
     s0 = cfg.inner_radius
     if not 0 < s0 < cfg.search_radius:
         return _evaluate(img_f, img_m, x_f, x_m, passes, (f, m), (win_off, None), cfg.search_radius, cfg)

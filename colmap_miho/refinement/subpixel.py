@@ -3,12 +3,16 @@
 The parabola fit of App. E on an integer NCC map is biased towards integer offsets ("pixel
 locking"). Re-sampling the search window at the sub-pixel estimate and fitting again on the
 3x3 NCC neighbourhood removes most of that bias.
+
+On CPU tensors (with numba) the step runs as :func:`.ncc_kernel.subpixel`, one compiled loop
+per match; the torch code here is its reference and the path on CUDA.
 """
 
 from __future__ import annotations
 
 import torch
 
+from . import ncc_kernel
 from .correlation import ncc_maps, normalize_templates, parabola_vertex
 from .warping import ImageStack, job_images, offset_grid, sample_values
 
@@ -24,6 +28,7 @@ def iterate_subpixel(
     templates: torch.Tensor,
     template_radius: int,
     iterations: int,
+    compiled: bool | None = None,
 ) -> torch.Tensor:
     """Refine sub-pixel offsets of the template in the rectified search image.
 
@@ -36,12 +41,18 @@ def iterate_subpixel(
         templates: (n, St, St) float32 the templates that produced the peak.
         template_radius: r, with St = 2r + 1.
         iterations: how many re-centred fits (0 returns ``offset`` unchanged).
+        compiled: run :func:`.ncc_kernel.subpixel` (CPU tensors) rather than the torch path;
+            None: on CPU tensors where numba is installed.
     Returns:
         (n, 2) float64 refined offsets. Each match stops on its own once a step is below
         1e-3 px, so its result does not depend on the other matches of the batch.
     """
     if iterations <= 0 or offset.shape[0] == 0:
         return offset
+    if compiled is None:
+        compiled = offset.device.type == "cpu" and ncc_kernel.available()
+    if compiled:
+        return ncc_kernel.subpixel(image, H_inv, centres, offset, templates, template_radius, iterations)
     ring = offset_grid(template_radius + 1, offset.device)[None]
     side = 2 * template_radius + 3
     rows = torch.arange(offset.shape[0], device=offset.device)  # the matches still moving

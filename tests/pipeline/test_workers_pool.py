@@ -44,6 +44,20 @@ def test_workers_start_with_the_compiled_filter_kernels_loaded():
         assert ex.submit(_kernels_loaded).result(timeout=300)
 
 
+def _ncc_kernels_loaded() -> bool:
+    from colmap_miho.refinement import ncc_kernel
+
+    return ncc_kernel._KERNELS is not None
+
+
+def test_workers_start_with_the_compiled_ncc_kernels_loaded():
+    """The same for the NCC search and sub-pixel kernels of the track walk."""
+    pytest.importorskip("numba")
+    assert "colmap_miho.refinement.preload" in workers.PRELOAD
+    with workers.process_pool(1) as ex:
+        assert ex.submit(_ncc_kernels_loaded).result(timeout=300)
+
+
 def test_pool_falls_back_to_spawn_when_the_forkserver_cannot_start(monkeypatch):
     from multiprocessing import forkserver
 
