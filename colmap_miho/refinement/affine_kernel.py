@@ -360,3 +360,19 @@ def fit_clusters(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, want: np.nd
                  want, int(k), float(max_residual_px), int(iterations), int(min_neighbours),
                  good, H_inv)
     return good, H_inv
+
+
+def warm() -> bool:
+    """Load (or compile) the kernels now, by fitting a small synthetic cluster; returns whether
+    they are available. Never raises: a process that cannot load them loads them when it fits
+    (where the error shows)."""
+    try:
+        if not available():
+            return False
+        t = np.arange(8, dtype=np.float64)
+        x1 = np.c_[np.repeat(t, 8), np.tile(t, 8)] * 5.0
+        fit_clusters(x1, 1.1 * x1 + 2.0, np.zeros(64, np.int64), np.ones(64, bool), k=12,
+                     max_residual_px=2.0, iterations=3, min_neighbours=6)
+        return _KERNEL is not None
+    except Exception:  # noqa: BLE001 - warming is optional; fitting reports the error
+        return False

@@ -119,3 +119,17 @@ def test_a_script_without_a_main_guard_gets_the_fix_in_its_error(tmp_path, dask,
     assert "if __name__ == \"__main__\":" in last
     assert not (tmp_path / "out.db").exists()
     assert database_rows(scene.database) == before  # the input is untouched
+
+
+def _affine_kernels_loaded() -> bool:
+    from colmap_miho.refinement import affine_kernel
+
+    return affine_kernel._KERNEL is not None
+
+
+def test_workers_start_with_the_compiled_local_affine_fits_loaded():
+    """The same for the local affine fits of the track walk."""
+    pytest.importorskip("numba")
+    assert "colmap_miho.refinement.preload" in workers.PRELOAD
+    with workers.process_pool(1) as ex:
+        assert ex.submit(_affine_kernels_loaded).result(timeout=300)

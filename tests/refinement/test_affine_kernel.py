@@ -177,3 +177,8 @@ def test_non_finite_positions_raise_in_both_paths():
             local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, compiled=compiled)
     labels[5] = -1  # not in a cluster: never searched
     local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, compiled=True)
+
+
+def test_warm_loads_the_kernels():
+    assert affine_kernel.warm()
+    assert affine_kernel._KERNEL is not None
