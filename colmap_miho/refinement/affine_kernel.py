@@ -222,7 +222,7 @@ def _nearest(xs, ys, cell_x, cell_y, start, order, gx, gy, side, p, k, nb, dist)
                     j = order[t]
                     dx, dy = xs[j] - qx, ys[j] - qy
                     _insert(dx * dx + dy * dy, j, k, nb, dist)
-        reach = r * side
+        reach = r * side * (1.0 - 1e-9)  # a margin for the rounding of the cells' bounds
         if (reach * reach > dist[k - 1]) or (r >= gx and r >= gy):
             break
         r += 1
