@@ -427,7 +427,7 @@ def _push_nearest(best_d, best_j, filled, d, j) -> int:
     return filled + 1 if filled < q else filled
 
 
-def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
+def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q, pool, lists, listed):
     """See :func:`pool_neighbours`."""
     m = todo.shape[0]
     n = feats.shape[0]
@@ -435,7 +435,22 @@ def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
     nb = np.full((m, k), -1, dtype=np.int64)
     best_d = np.empty(q)
     best_j = np.empty(q, dtype=np.int64)
+    # the exhaustive search's coordinates, one contiguous row per dimension, and the
+    # squared distances of one match to every pool match (made on the first search)
+    cols = np.empty((0, n))
+    dist = np.empty(n)
     for r in range(m):
+        a_all = pool[todo[r]]
+        if listed[a_all]:
+            kept = True
+            for c in range(k):
+                if pos[lists[a_all, c]] < 0:
+                    kept = False
+                    break
+            if kept:
+                for c in range(k):
+                    nb[r, c] = pos[lists[a_all, c]]
+                continue
         cnt = 0
         for c in range(cand.shape[1]):
             g = cand[r, c]
@@ -449,16 +464,28 @@ def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
             if cnt == k:
                 break
         if cnt == k:
+            _keep_list(nb, r, pool, lists, listed, a_all)
             continue
         # Too few left in the pool: the q nearest pool matches (the first is the match
         # itself), nearest first, ties by position.
         a = todo[r]
+        if cols.shape[0] == 0:
+            cols = np.ascontiguousarray(feats.T)
+        # the distances dimension by dimension over contiguous rows (the sum of squares in
+        # the order of the dimensions, as scipy's k-d tree sums it)
+        dist[:] = 0.0
+        for e in range(dims):
+            fa = feats[a, e]
+            col = cols[e]
+            for j in range(n):
+                t = col[j] - fa
+                dist[j] += t * t
         filled = 0
         for j in range(n):
-            d = 0.0
-            for e in range(dims):
-                t = feats[j, e] - feats[a, e]
-                d += t * t
+            d = dist[j]
+            # in the order of j a later candidate loses ties: only a nearer one enters
+            if filled == q and not d < best_d[q - 1]:
+                continue
             filled = _push_nearest(best_d, best_j, filled, d, j)
         cnt = 0
         for c in range(1, filled):
@@ -470,7 +497,19 @@ def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
                     break
         for c in range(cnt, k):
             nb[r, c] = -1
+        if cnt == k:
+            _keep_list(nb, r, pool, lists, listed, a_all)
+        else:
+            listed[a_all] = False
     return nb
+
+
+def _keep_list(nb, r, pool, lists, listed, a):
+    """Keep row ``r`` of ``nb`` (a full list, pool positions) as match ``a``'s list in
+    ``lists`` (global indices) for the pools to come."""
+    for c in range(nb.shape[1]):
+        lists[a, c] = pool[nb[r, c]]
+    listed[a] = True
 
 
 def _normalise4(pts, out):
@@ -771,7 +810,7 @@ def _jit_all() -> dict[str, Any]:
     # exception; those entries fail the sign test.
     jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     helpers = (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
-               _normalise4, _normalising, _push_nearest)
+               _normalise4, _normalising, _push_nearest, _keep_list)
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
@@ -840,7 +879,8 @@ def error_sq(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.nda
 
 def pool_neighbours(todo: np.ndarray, cand: np.ndarray, far: np.ndarray, pos: np.ndarray,
                     feats: np.ndarray, spread_x: np.ndarray, spread_y: np.ndarray, t2: float,
-                    k: int, q: int) -> np.ndarray:
+                    k: int, q: int, pool: np.ndarray, lists: np.ndarray,
+                    listed: np.ndarray) -> np.ndarray:
     """``(m, k)`` pool positions of the nearest pool matches at least ``sqrt(t2)`` from each
     of the pool positions ``todo`` ``(m,)`` in every spread set, -1 padded
     (``Sampler.neighbours``).
@@ -850,10 +890,19 @@ def pool_neighbours(todo: np.ndarray, cand: np.ndarray, far: np.ndarray, pos: np
     ``(N,)``: global index -> pool position, -1 outside); where fewer than ``k``, the first
     ``k`` far enough among the ``q - 1`` nearest pool matches in ``feats`` ``(n, dims)``
     (exhaustive search, ties by pool position). ``spread_x``, ``spread_y``: ``(sets, n)``
-    of the pool.
+    of the pool; ``pool`` ``(n,)`` its global indices, ascending.
+
+    ``lists`` ``(N, k)`` (global indices) and ``listed`` ``(N,)`` bool carry the full lists
+    (k neighbours) found for earlier pools that contain this one, and are updated: a match
+    whose kept list lies wholly in the pool has that list again, without a search. The
+    same list, because the pool only lost matches since: every pool match nearer than a
+    listed one (in the candidates' order, or in distance and position) was nearer in the
+    earlier pool, where it was either listed or not far enough; and the listed ones keep
+    their order and lie no deeper in the ``q`` nearest. The caller drops the lists
+    (``listed[:] = False``) when the pool is not a subset of the earlier ones.
     """
     return _compiled()["_neighbours"](todo, cand, far, pos, feats, spread_x, spread_y,
-                                      float(t2), int(k), int(q))
+                                      float(t2), int(k), int(q), pool, lists, listed)
 
 
 def singular_value_ok(sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray,

@@ -128,6 +128,21 @@ class LocalCandidates:
         self._cand = np.full((n, self._q), -1, dtype=np.int64)
         self._far = np.zeros((n, self._q), dtype=bool)
         self._known = np.zeros(n, dtype=bool)
+        # The compiled search's full neighbour lists (k global indices a match), kept for
+        # the later pools of the rounds (:meth:`lists_for`).
+        self._lists = np.full((n, cfg.local_neighbours), -1, dtype=np.int64)
+        self._listed = np.zeros(n, dtype=bool)
+        self._in_last_pool: np.ndarray | None = None
+
+    def lists_for(self, pool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(lists, listed)`` of :func:`.kernels.pool_neighbours` for a search of the pool
+        ``pool`` (global indices): kept from the earlier pools while each pool is a subset
+        of the one before (the rounds' pools only lose matches), dropped otherwise."""
+        if self._in_last_pool is not None and not self._in_last_pool[pool].all():
+            self._listed[:] = False
+        self._in_last_pool = np.zeros(len(self._known), dtype=bool)
+        self._in_last_pool[pool] = True
+        return self._lists, self._listed
 
     def far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Whether matches ``a`` and ``b`` (broadcast) are >= t_l apart in every spread set."""
@@ -193,6 +208,8 @@ class Sampler:
             self._pos[pool] = np.arange(n)
         self._pool_tree: cKDTree | None = None
         self._feats: np.ndarray | None = None  # (n, 4) the pool's (x1, x2), compiled search
+        # the candidates' kept lists for this pool (compiled search; LocalCandidates.lists_for)
+        self._lists: tuple[np.ndarray, np.ndarray] | None = None
         self._nb = np.full((n, self.k), -1, dtype=np.int64)  # -1 = no such neighbour
         # (sets, n) x and y of the spread sets of the pool, for the local draws
         self._spread_x: np.ndarray | None = None
@@ -227,9 +244,11 @@ class Sampler:
                 far = np.zeros((len(todo), 0), dtype=bool)
             else:
                 cand, far = self._cands.get(self.pool[todo])
+            if self._lists is None:
+                self._lists = self._cands.lists_for(self.pool)
             self._nb[todo] = kernels.pool_neighbours(todo, cand, far, self._pos, self._feats,
                                                      self._spread_x, self._spread_y, self._t2,
-                                                     self.k, q)
+                                                     self.k, q, self.pool, *self._lists)
             self._known[todo] = True
         elif len(todo):
             assert self._cands is not None, "neighbours are searched with local sampling only"

@@ -17,7 +17,7 @@ from colmap_miho.filtering import kernels
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem
 from colmap_miho.filtering.ransac import _refit
-from colmap_miho.filtering.sampling import Sampler, checked_samples, spread_ok
+from colmap_miho.filtering.sampling import LocalCandidates, Sampler, checked_samples, spread_ok
 from colmap_miho.filtering.scoring import NumpyScoring, hypotheses_from_samples
 
 pytest.importorskip("numba")
@@ -265,3 +265,29 @@ def test_neighbours_of_a_small_problem_are_the_same(miho):
         want = ref.neighbours(pos)
         np.testing.assert_array_equal(got.neighbours(pos), want)
         assert (want >= 0).any() and got._cands is not None and got._cands._grid is None
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_neighbours_kept_from_earlier_pools_are_the_same(miho):
+    """The compiled search keeps each match's full list for the rounds' later pools (the
+    problem's shared candidates): over a chain of shrinking pools, then a pool that is not
+    a subset of the one before, every list equals the numpy search's on that pool alone."""
+    sc, problem, rng = _problem(miho)
+    cfg = FilterConfig()
+    shared = LocalCandidates(problem, cfg, compiled=True)
+    pools = [np.arange(len(sc.x1))]
+    for plane in range(3):  # the rounds remove a plane's matches, and some others
+        pool = pools[-1]
+        pools.append(pool[(sc.plane[pool] != plane) & (rng.random(len(pool)) < 0.8)])
+    pools.append(np.sort(rng.choice(len(sc.x1), 150, replace=False)))  # not a subset
+    reused = 0
+    for pool in pools:
+        listed_before = shared._listed.copy()
+        got = Sampler(problem, pool, cfg, shared, compiled=True)
+        want = Sampler(problem, pool, cfg)
+        pos = rng.permutation(len(pool))
+        for part in np.array_split(pos, 2):
+            np.testing.assert_array_equal(got.neighbours(part), want.neighbours(part))
+        reused += int(listed_before[pool].sum())
+    assert reused > 0  # the kept lists were offered (and the answers still agree)
+    assert shared._listed.any()
