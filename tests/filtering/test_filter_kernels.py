@@ -102,6 +102,30 @@ def test_local_draws_are_the_same(miho):
     np.testing.assert_array_equal(got, ref)
 
 
+@pytest.mark.parametrize("small", [False, True])
+def test_batches_of_draws_over_the_rounds_are_the_same(small):
+    """Several batches per pool, over shrinking pools sharing the problem's candidates (as
+    the rounds draw them), the compiled sampler against the numpy one: the same samples
+    and the same generator state after each batch; on a problem of at most
+    Sampler.ALL_AT_ONCE matches too (no candidates: the pool searched whole)."""
+    rng = np.random.default_rng(6)
+    sc = (make_scene(rng, n_planes=2, per_plane=80, outlier_ratio=0.3) if small
+          else make_scene(rng, n_planes=3, per_plane=120, outlier_ratio=0.5))
+    assert (len(sc.x1) <= Sampler.ALL_AT_ONCE) == small
+    problem = build_problem(sc.x1, sc.x2, miho=True, full_match=True)
+    cfg = FilterConfig()
+    shared = LocalCandidates(problem, cfg, compiled=True)
+    gen_ref, gen_got = np.random.default_rng(11), np.random.default_rng(11)
+    pool = np.arange(len(sc.x1))
+    for plane in range(3):
+        ref = Sampler(problem, pool, cfg)
+        got = Sampler(problem, pool, cfg, shared, compiled=True)
+        for size in (128, 37, 512):
+            np.testing.assert_array_equal(got.draw(gen_got, size), ref.draw(gen_ref, size))
+            assert gen_got.random() == gen_ref.random()
+        pool = pool[(sc.plane[pool] != plane) & (rng.random(len(pool)) < 0.8)]
+
+
 @pytest.mark.parametrize("method", ["mop", "mop_miho"])
 def test_whole_filter_agrees(method, monkeypatch):
     """The whole filter, compiled against numpy, on synthetic scenes."""
