@@ -6,7 +6,8 @@ with one call, which is what a batch on a pool of a few hundred matches costs.
   quasi-affine signs, adjugates and the one-way float32 inlier bound on the pool, fused
   (:func:`.scoring.hypotheses_from_samples` then :func:`.scoring.one_way_count`);
 - :func:`draw_local` and :func:`pool_neighbours`: the local draws and the pool's neighbour
-  lists (``Sampler``);
+  lists (``Sampler``); :func:`draw_batch`: a batch's local draws with the searches they need
+  (the problem's candidates, the pool's lists), in one call;
 - :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring
   (:mod:`.scoring`); :func:`refit`: the least-squares refit of a run's best model;
 - :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`);
@@ -270,6 +271,11 @@ def _hypotheses(sample, ok, x1, x2, src_all, dst_all, reflection, X, Y, x2p, y2p
 
 def _draw_local(nb, keys, seeds, spread_x, spread_y, t2):
     """See :func:`draw_local`."""
+    return _draw_local_rows(nb, keys, seeds, spread_x, spread_y, t2)
+
+
+def _draw_local_rows(nb, keys, seeds, spread_x, spread_y, t2):
+    """See :func:`draw_local`."""
     L, k = nb.shape
     sets = spread_x.shape[0]
     out = np.empty((L, 3), dtype=np.int64)
@@ -427,19 +433,43 @@ def _push_nearest(best_d, best_j, filled, d, j) -> int:
     return filled + 1 if filled < q else filled
 
 
-def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
+def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q, pool, lists, listed):
     """See :func:`pool_neighbours`."""
+    return _neighbour_rows(todo, cand, far, False, pos, feats, sx, sy, t2, k, q, pool, lists,
+                           listed)
+
+
+def _neighbour_rows(todo, cand, far, by_match, pos, feats, sx, sy, t2, k, q, pool, lists,
+                    listed):
+    """:func:`pool_neighbours`; with ``by_match`` the candidates ``cand``, ``far`` are the
+    problem's tables ``(N, c)``, read at each row's global index, else ``(m, c)`` rows."""
     m = todo.shape[0]
     n = feats.shape[0]
     dims = feats.shape[1]
     nb = np.full((m, k), -1, dtype=np.int64)
     best_d = np.empty(q)
     best_j = np.empty(q, dtype=np.int64)
+    # the exhaustive search's coordinates, one contiguous row per dimension, and the
+    # squared distances of one match to every pool match (made on the first search)
+    cols = np.empty((0, n))
+    dist = np.empty(n)
     for r in range(m):
+        a_all = pool[todo[r]]
+        if listed[a_all]:
+            kept = True
+            for c in range(k):
+                if pos[lists[a_all, c]] < 0:
+                    kept = False
+                    break
+            if kept:
+                for c in range(k):
+                    nb[r, c] = pos[lists[a_all, c]]
+                continue
         cnt = 0
+        cr = a_all if by_match else r
         for c in range(cand.shape[1]):
-            g = cand[r, c]
-            if g < 0 or not far[r, c]:
+            g = cand[cr, c]
+            if g < 0 or not far[cr, c]:
                 continue
             p = pos[g]
             if p < 0:
@@ -449,16 +479,28 @@ def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
             if cnt == k:
                 break
         if cnt == k:
+            _keep_list(nb, r, pool, lists, listed, a_all)
             continue
         # Too few left in the pool: the q nearest pool matches (the first is the match
         # itself), nearest first, ties by position.
         a = todo[r]
+        if cols.shape[0] == 0:
+            cols = np.ascontiguousarray(feats.T)
+        # the distances dimension by dimension over contiguous rows (the sum of squares in
+        # the order of the dimensions, as scipy's k-d tree sums it)
+        dist[:] = 0.0
+        for e in range(dims):
+            fa = feats[a, e]
+            col = cols[e]
+            for j in range(n):
+                t = col[j] - fa
+                dist[j] += t * t
         filled = 0
         for j in range(n):
-            d = 0.0
-            for e in range(dims):
-                t = feats[j, e] - feats[a, e]
-                d += t * t
+            d = dist[j]
+            # in the order of j a later candidate loses ties: only a nearer one enters
+            if filled == q and not d < best_d[q - 1]:
+                continue
             filled = _push_nearest(best_d, best_j, filled, d, j)
         cnt = 0
         for c in range(1, filled):
@@ -470,7 +512,19 @@ def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q):
                     break
         for c in range(cnt, k):
             nb[r, c] = -1
+        if cnt == k:
+            _keep_list(nb, r, pool, lists, listed, a_all)
+        else:
+            listed[a_all] = False
     return nb
+
+
+def _keep_list(nb, r, pool, lists, listed, a):
+    """Keep row ``r`` of ``nb`` (a full list, pool positions) as match ``a``'s list in
+    ``lists`` (global indices) for the pools to come."""
+    for c in range(nb.shape[1]):
+        lists[a, c] = pool[nb[r, c]]
+    listed[a] = True
 
 
 def _normalise4(pts, out):
@@ -707,7 +761,12 @@ def _greedy_cover(masks, covered, z):
 
 
 def _nearest(feats, todo, q, x0, y0, cell, nx, ny, start, members):
-    """See :func:`nearest`."""
+    """See :meth:`NearestGrid.query`."""
+    return _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members)
+
+
+def _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members):
+    """See :meth:`NearestGrid.query`."""
     m = todo.shape[0]
     dims = feats.shape[1]
     out = np.empty((m, q), dtype=np.int64)
@@ -752,6 +811,84 @@ def _nearest(feats, todo, q, x0, y0, cell, nx, ny, start, members):
     return out
 
 
+def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, cand, far,
+                cknown, by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start,
+                members, pool_feats, sx, sy, t2, k, q, lists, listed):
+    """See :func:`draw_batch`."""
+    n = pool.shape[0]
+    size = seeds.shape[0]
+    L = local.shape[0]
+    if L:
+        # the seeds' neighbour lists not searched yet (all of a small pool at its first draw)
+        fresh = True
+        for p in range(n):
+            if known[p]:
+                fresh = False
+                break
+        need = np.zeros(n, dtype=np.bool_)
+        if all_at_once and fresh:
+            need[:] = True
+        else:
+            for i in range(L):
+                p = seeds[local[i]]
+                if not known[p]:
+                    need[p] = True
+        m = 0
+        for p in range(n):
+            if need[p]:
+                m += 1
+        if m:
+            todo = np.empty(m, dtype=np.int64)
+            m = 0
+            for p in range(n):
+                if need[p]:
+                    todo[m] = p
+                    m += 1
+            if by_match:
+                # the problem's candidates of the matches not searched yet (LocalCandidates.get)
+                new = np.empty(m, dtype=np.int64)
+                c_new = 0
+                for i in range(m):
+                    g = pool[todo[i]]
+                    if not cknown[g]:
+                        new[c_new] = g
+                        c_new += 1
+                qc = cand.shape[1]
+                if c_new and qc:
+                    found = _nearest_rows(feats_all, new[:c_new], qc + 1, x0, y0, cell, nx, ny,
+                                          start, members)
+                    for i in range(c_new):
+                        g = new[i]
+                        for c in range(qc):
+                            j = found[i, c + 1]
+                            cand[g, c] = j
+                            far[g, c] = _far(sx_all, sy_all, j, g, t2)
+                for i in range(c_new):
+                    cknown[new[i]] = True
+            rows = _neighbour_rows(todo, cand, far, by_match, pos, pool_feats, sx, sy, t2, k, q,
+                                   pool, lists, listed)
+            for i in range(m):
+                for c in range(k):
+                    nb[todo[i], c] = rows[i, c]
+                known[todo[i]] = True
+        lnb = np.empty((L, k), dtype=np.int64)
+        lseeds = np.empty(L, dtype=np.int64)
+        for i in range(L):
+            lseeds[i] = seeds[local[i]]
+            for c in range(k):
+                lnb[i, c] = nb[lseeds[i], c]
+        picked = _draw_local_rows(lnb, keys, lseeds, sx, sy, t2)
+        for i in range(L):
+            for j in range(3):
+                others[local[i], j] = picked[i, j]
+    out = np.empty((size, 4), dtype=np.int64)
+    for b in range(size):
+        out[b, 0] = pool[seeds[b]]
+        for j in range(3):
+            out[b, j + 1] = pool[others[b, j]]
+    return out
+
+
 def _compiled() -> dict[str, Any]:
     """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
     global _KERNELS
@@ -771,11 +908,13 @@ def _jit_all() -> dict[str, Any]:
     # exception; those entries fail the sign test.
     jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     helpers = (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
-               _normalise4, _normalising, _push_nearest)
+               _normalise4, _normalising, _push_nearest, _keep_list, _draw_local_rows,
+               _neighbour_rows, _nearest_rows)
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
-                                         _rotation_counts, _greedy_cover, _nearest)}
+                                         _rotation_counts, _greedy_cover, _nearest,
+                                         _draw_batch)}
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
@@ -820,6 +959,43 @@ def draw_local(nb: np.ndarray, keys: np.ndarray, seeds: np.ndarray, spread_x: np
     return _compiled()["_draw_local"](nb, keys, seeds, spread_x, spread_y, float(t2))
 
 
+def draw_batch(seeds: np.ndarray, others: np.ndarray, local: np.ndarray, keys: np.ndarray,
+               pool: np.ndarray, pos: np.ndarray, nb: np.ndarray, known: np.ndarray,
+               all_at_once: bool, cand: np.ndarray, far: np.ndarray, cknown: np.ndarray,
+               grid: NearestGrid | None, sx_all: np.ndarray, sy_all: np.ndarray,
+               pool_feats: np.ndarray, sx: np.ndarray, sy: np.ndarray, t2: float, k: int,
+               q: int, lists: np.ndarray, listed: np.ndarray) -> np.ndarray:
+    """``(B, 4)`` global match indices of one batch of local sampling (``Sampler.draw``
+    with the compiled kernels, the same samples): the seeds ``seeds`` ``(B,)`` with the
+    others ``others`` ``(B, 3)`` (pool positions, uniform draws), where the samples
+    ``local`` ``(L,)`` take theirs among the seed's neighbours by the keys ``keys`` ``(3, L,
+    k)`` (:func:`draw_local`).
+
+    The neighbour lists ``nb`` ``(n, k)`` (pool positions) of the local seeds not ``known``
+    ``(n,)`` yet are searched first (:func:`pool_neighbours`; every pool match at the
+    first search when ``all_at_once``), both updated in place. ``grid``: the problem's
+    :class:`NearestGrid`, whose candidates fill ``cand``, ``far`` ``(N, c)`` where
+    ``cknown`` ``(N,)`` is False (updated in place; ``LocalCandidates``' tables), ``None``
+    for a problem searched without candidates. ``sx_all``, ``sy_all`` ``(sets, N)``: the
+    problem's spread sets; ``pool`` ``(n,)``, ``pos``, ``pool_feats``, ``sx``, ``sy``,
+    ``t2``, ``k``, ``q``, ``lists``, ``listed`` as :func:`pool_neighbours`.
+    """
+    if grid is None:
+        empty = np.empty(0, dtype=np.int64)
+        x0 = y0 = cell = 0.0
+        nx = ny = 0
+        feats_all, start, members = np.empty((0, 4)), empty, empty
+        cand, far = np.empty((0, 0), dtype=np.int64), np.empty((0, 0), dtype=np.bool_)
+    else:
+        x0, y0, cell, nx, ny = grid.x0, grid.y0, grid.cell, grid.nx, grid.ny
+        feats_all, start, members = grid.feats, grid.start, grid.members
+    return _compiled()["_draw_batch"](
+        seeds, others, local, keys, pool, pos, nb, known, bool(all_at_once), cand, far,
+        cknown, grid is not None, sx_all, sy_all, feats_all, float(x0), float(y0), float(cell),
+        int(nx), int(ny), start, members, pool_feats, sx, sy, float(t2), int(k), int(q), lists,
+        listed)
+
+
 def inlier_masks(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
                  pts: np.ndarray, t2: float, s2: float) -> np.ndarray:
     """``(K, n)`` bool: the squared error of each hypothesis (``H``, ``Hinv`` ``(K, halves,
@@ -840,7 +1016,8 @@ def error_sq(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.nda
 
 def pool_neighbours(todo: np.ndarray, cand: np.ndarray, far: np.ndarray, pos: np.ndarray,
                     feats: np.ndarray, spread_x: np.ndarray, spread_y: np.ndarray, t2: float,
-                    k: int, q: int) -> np.ndarray:
+                    k: int, q: int, pool: np.ndarray, lists: np.ndarray,
+                    listed: np.ndarray) -> np.ndarray:
     """``(m, k)`` pool positions of the nearest pool matches at least ``sqrt(t2)`` from each
     of the pool positions ``todo`` ``(m,)`` in every spread set, -1 padded
     (``Sampler.neighbours``).
@@ -850,10 +1027,19 @@ def pool_neighbours(todo: np.ndarray, cand: np.ndarray, far: np.ndarray, pos: np
     ``(N,)``: global index -> pool position, -1 outside); where fewer than ``k``, the first
     ``k`` far enough among the ``q - 1`` nearest pool matches in ``feats`` ``(n, dims)``
     (exhaustive search, ties by pool position). ``spread_x``, ``spread_y``: ``(sets, n)``
-    of the pool.
+    of the pool; ``pool`` ``(n,)`` its global indices, ascending.
+
+    ``lists`` ``(N, k)`` (global indices) and ``listed`` ``(N,)`` bool carry the full lists
+    (k neighbours) found for earlier pools that contain this one, and are updated: a match
+    whose kept list lies wholly in the pool has that list again, without a search. The
+    same list, because the pool only lost matches since: every pool match nearer than a
+    listed one (in the candidates' order, or in distance and position) was nearer in the
+    earlier pool, where it was either listed or not far enough; and the listed ones keep
+    their order and lie no deeper in the ``q`` nearest. The caller drops the lists
+    (``listed[:] = False``) when the pool is not a subset of the earlier ones.
     """
     return _compiled()["_neighbours"](todo, cand, far, pos, feats, spread_x, spread_y,
-                                      float(t2), int(k), int(q))
+                                      float(t2), int(k), int(q), pool, lists, listed)
 
 
 def singular_value_ok(sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray,

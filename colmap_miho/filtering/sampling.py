@@ -128,6 +128,27 @@ class LocalCandidates:
         self._cand = np.full((n, self._q), -1, dtype=np.int64)
         self._far = np.zeros((n, self._q), dtype=bool)
         self._known = np.zeros(n, dtype=bool)
+        # The compiled search's full neighbour lists (k global indices a match), kept for
+        # the later pools of the rounds (:meth:`lists_for`).
+        self._lists = np.full((n, cfg.local_neighbours), -1, dtype=np.int64)
+        self._listed = np.zeros(n, dtype=bool)
+        self._in_last_pool: np.ndarray | None = None
+
+    def lists_for(self, pool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(lists, listed)`` of :func:`.kernels.pool_neighbours` for a search of the pool
+        ``pool`` (global indices): kept from the earlier pools while each pool is a subset
+        of the one before (the rounds' pools only lose matches), dropped otherwise."""
+        if self._in_last_pool is not None and not self._in_last_pool[pool].all():
+            self._listed[:] = False
+        self._in_last_pool = np.zeros(len(self._known), dtype=bool)
+        self._in_last_pool[pool] = True
+        return self._lists, self._listed
+
+    def grid(self) -> kernels.NearestGrid:
+        """The compiled search's grid over the problem's ``(x1, x2)`` (built on first use)."""
+        if self._grid is None:
+            self._grid = kernels.NearestGrid(self.feats)
+        return self._grid
 
     def far(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Whether matches ``a`` and ``b`` (broadcast) are >= t_l apart in every spread set."""
@@ -144,9 +165,7 @@ class LocalCandidates:
         todo = _unknown(idx, self._known)
         if len(todo) and self._q:
             if self.compiled:
-                if self._grid is None:
-                    self._grid = kernels.NearestGrid(self.feats)
-                cand = self._grid.query(todo, self._q + 1)[:, 1:]
+                cand = self.grid().query(todo, self._q + 1)[:, 1:]
             else:
                 if self._tree is None:
                     from scipy.spatial import cKDTree
@@ -193,6 +212,8 @@ class Sampler:
             self._pos[pool] = np.arange(n)
         self._pool_tree: cKDTree | None = None
         self._feats: np.ndarray | None = None  # (n, 4) the pool's (x1, x2), compiled search
+        # the candidates' kept lists for this pool (compiled search; LocalCandidates.lists_for)
+        self._lists: tuple[np.ndarray, np.ndarray] | None = None
         self._nb = np.full((n, self.k), -1, dtype=np.int64)  # -1 = no such neighbour
         # (sets, n) x and y of the spread sets of the pool, for the local draws
         self._spread_x: np.ndarray | None = None
@@ -227,9 +248,11 @@ class Sampler:
                 far = np.zeros((len(todo), 0), dtype=bool)
             else:
                 cand, far = self._cands.get(self.pool[todo])
+            if self._lists is None:
+                self._lists = self._cands.lists_for(self.pool)
             self._nb[todo] = kernels.pool_neighbours(todo, cand, far, self._pos, self._feats,
                                                      self._spread_x, self._spread_y, self._t2,
-                                                     self.k, q)
+                                                     self.k, q, self.pool, *self._lists)
             self._known[todo] = True
         elif len(todo):
             assert self._cands is not None, "neighbours are searched with local sampling only"
@@ -315,6 +338,31 @@ class Sampler:
         others = rng.integers(0, n, (size, 3))
         if self.local:
             is_local = np.flatnonzero(rng.random(size) < self.fraction)
+            if len(is_local) and self.compiled:
+                # the same keys as _draw_local's three rng.random calls, drawn at once
+                keys = rng.random((3, len(is_local), self.k))
+                return self._draw_compiled(seeds, others, is_local, keys)
             if len(is_local):
                 others[is_local] = self._draw_local(rng, seeds[is_local])
         return self.pool[np.concatenate([seeds[:, None], others], axis=1)]
+
+    def _draw_compiled(self, seeds: np.ndarray, others: np.ndarray, local: np.ndarray,
+                       keys: np.ndarray) -> np.ndarray:
+        """:meth:`draw`'s samples from its uniform draws ``seeds`` ``(B,)``, ``others``
+        ``(B, 3)``, the local samples ``local`` ``(L,)`` and their keys ``(3, L, k)``, in one
+        compiled call (:func:`.kernels.draw_batch`: the neighbour searches of
+        :meth:`neighbours` and the draws of :meth:`_draw_local`)."""
+        cands = self._cands
+        assert cands is not None and self._spread_x is not None and self._spread_y is not None
+        if self._feats is None:
+            self._feats = np.ascontiguousarray(cands.feats[self.pool])
+        if self._lists is None:
+            self._lists = cands.lists_for(self.pool)
+        # the problem's candidates; a small problem searches the pool alone (as neighbours)
+        grid = cands.grid() if len(cands.feats) > self.ALL_AT_ONCE else None
+        q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
+        return kernels.draw_batch(
+            seeds, others, local, keys, self.pool, self._pos, self._nb, self._known,
+            len(self.pool) <= self.ALL_AT_ONCE, cands._cand, cands._far, cands._known, grid,
+            cands._sx, cands._sy, self._feats, self._spread_x, self._spread_y, self._t2, self.k,
+            q, *self._lists)

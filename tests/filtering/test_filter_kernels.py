@@ -17,7 +17,7 @@ from colmap_miho.filtering import kernels
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem
 from colmap_miho.filtering.ransac import _refit
-from colmap_miho.filtering.sampling import Sampler, checked_samples, spread_ok
+from colmap_miho.filtering.sampling import LocalCandidates, Sampler, checked_samples, spread_ok
 from colmap_miho.filtering.scoring import NumpyScoring, hypotheses_from_samples
 
 pytest.importorskip("numba")
@@ -100,6 +100,30 @@ def test_local_draws_are_the_same(miho):
     ref = Sampler(problem, pool, cfg).draw(np.random.default_rng(7), 1000)
     got = Sampler(problem, pool, cfg, compiled=True).draw(np.random.default_rng(7), 1000)
     np.testing.assert_array_equal(got, ref)
+
+
+@pytest.mark.parametrize("small", [False, True])
+def test_batches_of_draws_over_the_rounds_are_the_same(small):
+    """Several batches per pool, over shrinking pools sharing the problem's candidates (as
+    the rounds draw them), the compiled sampler against the numpy one: the same samples
+    and the same generator state after each batch; on a problem of at most
+    Sampler.ALL_AT_ONCE matches too (no candidates: the pool searched whole)."""
+    rng = np.random.default_rng(6)
+    sc = (make_scene(rng, n_planes=2, per_plane=80, outlier_ratio=0.3) if small
+          else make_scene(rng, n_planes=3, per_plane=120, outlier_ratio=0.5))
+    assert (len(sc.x1) <= Sampler.ALL_AT_ONCE) == small
+    problem = build_problem(sc.x1, sc.x2, miho=True, full_match=True)
+    cfg = FilterConfig()
+    shared = LocalCandidates(problem, cfg, compiled=True)
+    gen_ref, gen_got = np.random.default_rng(11), np.random.default_rng(11)
+    pool = np.arange(len(sc.x1))
+    for plane in range(3):
+        ref = Sampler(problem, pool, cfg)
+        got = Sampler(problem, pool, cfg, shared, compiled=True)
+        for size in (128, 37, 512):
+            np.testing.assert_array_equal(got.draw(gen_got, size), ref.draw(gen_ref, size))
+            assert gen_got.random() == gen_ref.random()
+        pool = pool[(sc.plane[pool] != plane) & (rng.random(len(pool)) < 0.8)]
 
 
 @pytest.mark.parametrize("method", ["mop", "mop_miho"])
@@ -265,3 +289,29 @@ def test_neighbours_of_a_small_problem_are_the_same(miho):
         want = ref.neighbours(pos)
         np.testing.assert_array_equal(got.neighbours(pos), want)
         assert (want >= 0).any() and got._cands is not None and got._cands._grid is None
+
+
+@pytest.mark.parametrize("miho", [False, True])
+def test_neighbours_kept_from_earlier_pools_are_the_same(miho):
+    """The compiled search keeps each match's full list for the rounds' later pools (the
+    problem's shared candidates): over a chain of shrinking pools, then a pool that is not
+    a subset of the one before, every list equals the numpy search's on that pool alone."""
+    sc, problem, rng = _problem(miho)
+    cfg = FilterConfig()
+    shared = LocalCandidates(problem, cfg, compiled=True)
+    pools = [np.arange(len(sc.x1))]
+    for plane in range(3):  # the rounds remove a plane's matches, and some others
+        pool = pools[-1]
+        pools.append(pool[(sc.plane[pool] != plane) & (rng.random(len(pool)) < 0.8)])
+    pools.append(np.sort(rng.choice(len(sc.x1), 150, replace=False)))  # not a subset
+    reused = 0
+    for pool in pools:
+        listed_before = shared._listed.copy()
+        got = Sampler(problem, pool, cfg, shared, compiled=True)
+        want = Sampler(problem, pool, cfg)
+        pos = rng.permutation(len(pool))
+        for part in np.array_split(pos, 2):
+            np.testing.assert_array_equal(got.neighbours(part), want.neighbours(part))
+        reused += int(listed_before[pool].sum())
+    assert reused > 0  # the kept lists were offered (and the answers still agree)
+    assert shared._listed.any()
