@@ -312,7 +312,10 @@ def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> N
 
     A run's next group is handed out as soon as its last one returns, before that one's
     results are applied and stored, with its task arguments made while the workers walked
-    (so a worker waits for neither)."""
+    (so a worker waits for neither). A slot whose run is done takes the last group not yet
+    handed out of the run with the most keypoints left (the runs are balanced by keypoints,
+    which do not measure a group's time well: without this a slot idles while another walks
+    the rest of its run). Where a group is walked does not change its result."""
     ncc_config, track_config, affines, budget = args
     runs = [[todo[k] for k in r] for r in _runs([groups[g] for g in todo], use)]
     pending: dict[Future, tuple[int, int]] = {}
@@ -324,7 +327,18 @@ def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> N
             state, aff = _group_args(loader, groups[g], affines, budget)
             ready[r] = (state, attach.inputs(g), ncc_config, track_config, aff)
 
+    def steal(r: int) -> None:
+        left = [sum(groups[g].to_refine for g in run) if run else -1 for run in runs]
+        d = int(np.argmax(left))
+        if left[d] < 0:
+            return
+        runs[r].append(runs[d].pop())
+        if not runs[d] and d in ready:  # the group taken was the one prepared
+            ready[r] = ready.pop(d)
+
     def submit(r: int) -> None:
+        if not runs[r]:
+            steal(r)
         if runs[r]:
             prepare(r)
             g = runs[r].pop(0)
