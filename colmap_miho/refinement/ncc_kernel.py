@@ -59,9 +59,6 @@ _MIN_W = 1e-8
 _EPS_NORM = 1e-6
 _MIN_CURVATURE = 1e-4
 _CONVERGED_PX = 1e-3
-#: NCC maps up to this side are correlated offset by offset (:func:`_corr_small`), wider ones
-#: row by row (:func:`_corr_wide`): the faster loop for each.
-_SMALL_MAP = 7
 
 _KERNELS: dict[str, Any] | None = None
 _LOCK = threading.Lock()
@@ -223,9 +220,8 @@ def _ncc(win, tn, So: int, out, wc, box, cols) -> None:
     """``out`` (>= So, >= So) float64, [y, x]: the NCC of the normalised template ``tn``
     (St, St) with the patch of ``win`` (Sw, Sw) float32 whose top-left corner is (x, y),
     Sw = St + So - 1 (:func:`.correlation.ncc_maps`). ``wc`` (>= Sw, >= Sw), ``box``
-    (2, >= Sw + 1, >= Sw + 1) and ``cols`` (>= So Sw St,) float64 (used when So is at most
-    ``_SMALL_MAP``) are work space: the mean-free window, the integral images of it and of its
-    square, and its column bands (:func:`_corr_small`)."""
+    (2, >= Sw + 1, >= Sw + 1) and ``cols`` (>= So Sw St,) float64 are work space: the mean-free
+    window, the integral images of it and of its square, and its column bands (:func:`_corr`)."""
     St = tn.shape[0]
     Sw = St + So - 1
     mean = 0.0
@@ -251,10 +247,7 @@ def _ncc(win, tn, So: int, out, wc, box, cols) -> None:
             a2 += d * d
             s1[y + 1, x + 1] = s1[y, x + 1] + a1
             s2[y + 1, x + 1] = s2[y, x + 1] + a2
-    if So <= _SMALL_MAP:
-        _corr_small(wc, tn, So, out, cols)
-    else:
-        _corr_wide(wc, tn, So, out)
+    _corr(wc, tn, So, out, cols)
     n = float(St * St)
     for y in range(So):
         for x in range(So):
@@ -265,7 +258,7 @@ def _ncc(win, tn, So: int, out, wc, box, cols) -> None:
             out[y, x] = min(max(v, -1.0), 1.0)
 
 
-def _corr_small(wc, tn, So: int, out, cols) -> None:
+def _corr(wc, tn, So: int, out, cols) -> None:
     """``out[y, x]`` = the cross-correlation of ``tn`` (St, St) with the patch of ``wc`` at
     (x, y), for x, y < So: one dot product of St^2 contiguous values per offset. ``cols``
     (>= So Sw St,) is work space: the band of columns x .. x + St - 1 of ``wc`` (Sw, St), for
@@ -291,23 +284,6 @@ def _corr_small(wc, tn, So: int, out, cols) -> None:
             for i in range(n):
                 acc += tf[i] * p[i]
             out[y, x] = acc
-
-
-def _corr_wide(wc, tn, So: int, out) -> None:
-    """:func:`_corr_small` for wide maps: each template pixel's products added to a whole
-    row of the map at once (a loop over x that vectorises)."""
-    St = tn.shape[0]
-    for y in range(So):
-        o = out[y]
-        for x in range(So):
-            o[x] = 0.0
-        for ty in range(St):
-            row = wc[y + ty]
-            trow = tn[ty]
-            for tx in range(St):
-                tv = trow[tx]
-                for x in range(So):
-                    o[x] += tv * row[x + tx]
 
 
 def _parabola(c0: float, cm: float, cp: float, valid: bool) -> float:
@@ -451,7 +427,7 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
     win = np.empty((Sw, Sw), np.float32)
     wc = np.empty((Sw, Sw))
     box = np.empty((2, Sw + 1, Sw + 1))
-    cols = np.empty(_SMALL_MAP * (St + _SMALL_MAP - 1) * St)
+    cols = np.empty(So * Sw * St)
     pos = np.empty((2, Sw))
     maps = np.empty((n_pass, So, So))
     mask = np.ones((So, So), np.bool_)
@@ -550,9 +526,9 @@ def _kernels() -> dict[str, Any]:
                 exact = numba.njit(cache=True, nogil=True, error_model="numpy")
                 fused = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
                 dots = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
-                globals()["_corr_small"] = dots(_corr_small)
+                globals()["_corr"] = dots(_corr)
                 globals().update({fn.__name__: exact(fn) for fn in (_invert, _to_frame, _inside, _centre_good)})
-                globals().update({fn.__name__: fused(fn) for fn in (_sample, _normalize, _ncc, _corr_wide,
+                globals().update({fn.__name__: fused(fn) for fn in (_sample, _normalize, _ncc,
                                                                      _parabola, _ellipse, _peaks)})
                 _KERNELS = {"subpixel": fused(_subpixel_matches), "search": fused(_search_matches)}
     return _KERNELS

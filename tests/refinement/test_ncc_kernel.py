@@ -114,7 +114,7 @@ def test_samples_match_grid_sample() -> None:
     assert (got == 0).any() and (got != 0).any()  # zeros outside were tested too
 
 
-@pytest.mark.parametrize("so", [3, 5, 17])
+@pytest.mark.parametrize("so", [1, 3, 5, 17])
 def test_ncc_maps_match_float64_reference(so: int) -> None:
     rng = np.random.default_rng(so)
     St = 2 * RADIUS + 1
