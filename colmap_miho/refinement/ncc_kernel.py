@@ -59,9 +59,6 @@ _MIN_W = 1e-8
 _EPS_NORM = 1e-6
 _MIN_CURVATURE = 1e-4
 _CONVERGED_PX = 1e-3
-#: NCC maps up to this side are correlated offset by offset (:func:`_corr_small`), wider ones
-#: row by row (:func:`_corr_wide`): the faster loop for each.
-_SMALL_MAP = 7
 
 _KERNELS: dict[str, Any] | None = None
 _LOCK = threading.Lock()
@@ -199,15 +196,19 @@ def _normalize(tpl, out) -> None:
     n = tpl.shape[0]
     mean = 0.0
     for y in range(n):
+        rs = 0.0
         for x in range(n):
-            mean += tpl[y, x]
+            rs += tpl[y, x]
+        mean += rs
     mean /= n * n
     ss = 0.0
     for y in range(n):
+        rs = 0.0
         for x in range(n):
             d = tpl[y, x] - mean
             out[y, x] = d
-            ss += d * d
+            rs += d * d
+        ss += rs
     norm = math.sqrt(ss)
     inv = 1.0 / norm if norm > _EPS_NORM else 0.0
     for y in range(n):
@@ -215,18 +216,20 @@ def _normalize(tpl, out) -> None:
             out[y, x] *= inv
 
 
-def _ncc(win, tn, So: int, out, wc, box) -> None:
+def _ncc(win, tn, So: int, out, wc, box, cols) -> None:
     """``out`` (>= So, >= So) float64, [y, x]: the NCC of the normalised template ``tn``
     (St, St) with the patch of ``win`` (Sw, Sw) float32 whose top-left corner is (x, y),
-    Sw = St + So - 1 (:func:`.correlation.ncc_maps`). ``wc`` (>= Sw, >= Sw) and ``box``
-    (2, >= Sw + 1, >= Sw + 1) are work space: the mean-free window and the integral images of
-    it and of its square."""
+    Sw = St + So - 1 (:func:`.correlation.ncc_maps`). ``wc`` (>= Sw, >= Sw), ``box``
+    (2, >= Sw + 1, >= Sw + 1) and ``cols`` (>= So Sw St,) float64 are work space: the mean-free
+    window, the integral images of it and of its square, and its column bands (:func:`_corr`)."""
     St = tn.shape[0]
     Sw = St + So - 1
     mean = 0.0
     for y in range(Sw):
+        rs = 0.0
         for x in range(Sw):
-            mean += win[y, x]
+            rs += win[y, x]
+        mean += rs
     mean /= Sw * Sw
     s1, s2 = box[0], box[1]
     for x in range(Sw + 1):
@@ -244,10 +247,7 @@ def _ncc(win, tn, So: int, out, wc, box) -> None:
             a2 += d * d
             s1[y + 1, x + 1] = s1[y, x + 1] + a1
             s2[y + 1, x + 1] = s2[y, x + 1] + a2
-    if So <= _SMALL_MAP:
-        _corr_small(wc, tn, So, out)
-    else:
-        _corr_wide(wc, tn, So, out)
+    _corr(wc, tn, So, out, cols)
     n = float(St * St)
     for y in range(So):
         for x in range(So):
@@ -258,37 +258,32 @@ def _ncc(win, tn, So: int, out, wc, box) -> None:
             out[y, x] = min(max(v, -1.0), 1.0)
 
 
-def _corr_small(wc, tn, So: int, out) -> None:
+def _corr(wc, tn, So: int, out, cols) -> None:
     """``out[y, x]`` = the cross-correlation of ``tn`` (St, St) with the patch of ``wc`` at
-    (x, y), for x, y < So: one dot product per offset (compiled with reassociation: summed in
-    the order the vectorised loop gives, the same for every match)."""
+    (x, y), for x, y < So: one dot product of St^2 contiguous values per offset. ``cols``
+    (>= So Sw St,) is work space: the band of columns x .. x + St - 1 of ``wc`` (Sw, St), for
+    each x, row-major, so that the patch at (x, y) is its rows y .. y + St - 1, contiguous and
+    in the template's order. Compiled with reassociation: each dot is summed in the order the
+    vectorised loop gives, the same for every match (a dot over a template row alone is too
+    short for the vector loop)."""
     St = tn.shape[0]
+    Sw = St + So - 1
+    band = Sw * St
+    n = St * St
+    tf = tn.ravel()
+    for x in range(So):
+        b = cols[x * band:(x + 1) * band]
+        for r in range(Sw):
+            row = wc[r]
+            for k in range(St):
+                b[r * St + k] = row[x + k]
     for y in range(So):
         for x in range(So):
+            p = cols[x * band + y * St:x * band + y * St + n]
             acc = 0.0
-            for ty in range(St):
-                row = wc[y + ty]
-                trow = tn[ty]
-                for tx in range(St):
-                    acc += trow[tx] * row[x + tx]
+            for i in range(n):
+                acc += tf[i] * p[i]
             out[y, x] = acc
-
-
-def _corr_wide(wc, tn, So: int, out) -> None:
-    """:func:`_corr_small` for wide maps: each template pixel's products added to a whole
-    row of the map at once (a loop over x that vectorises)."""
-    St = tn.shape[0]
-    for y in range(So):
-        o = out[y]
-        for x in range(So):
-            o[x] = 0.0
-        for ty in range(St):
-            row = wc[y + ty]
-            trow = tn[ty]
-            for tx in range(St):
-                tv = trow[tx]
-                for x in range(So):
-                    o[x] += tv * row[x + tx]
 
 
 def _parabola(c0: float, cm: float, cp: float, valid: bool) -> float:
@@ -315,6 +310,7 @@ def _subpixel_matches(img, rows, H, c, off, tpl, radius: int, iterations: int, o
     m3 = np.empty((3, 3))
     wc = np.empty((side, side))
     box = np.empty((2, side + 1, side + 1))
+    cols = np.empty(3 * side * St)
     pos = np.empty((2, side))
     for q in range(rows.shape[0]):
         j = rows[q]
@@ -322,7 +318,7 @@ def _subpixel_matches(img, rows, H, c, off, tpl, radius: int, iterations: int, o
         ox, oy = off[j, 0], off[j, 1]
         for _ in range(iterations):
             _sample(img, H[j], c[j, 0] + ox, c[j, 1] + oy, radius + 1, win, pos)
-            _ncc(win, tn, 3, m3, wc, box)
+            _ncc(win, tn, 3, m3, wc, box, cols)
             c0 = m3[1, 1]
             sx = _parabola(c0, m3[1, 0], m3[1, 2], True)
             sy = _parabola(c0, m3[0, 1], m3[2, 1], True)
@@ -431,6 +427,7 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
     win = np.empty((Sw, Sw), np.float32)
     wc = np.empty((Sw, Sw))
     box = np.empty((2, Sw + 1, Sw + 1))
+    cols = np.empty(So * Sw * St)
     pos = np.empty((2, Sw))
     maps = np.empty((n_pass, So, So))
     mask = np.ones((So, So), np.bool_)
@@ -457,13 +454,17 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
         t0 = tpl[0]
         mean = 0.0
         for y in range(St):
+            rs = 0.0
             for x in range(St):
-                mean += t0[y, x]
+                rs += t0[y, x]
+            mean += rs
         mean /= St * St
         ss = 0.0
         for y in range(St):
+            rs = 0.0
             for x in range(St):
-                ss += (t0[y, x] - mean) ** 2
+                rs += (t0[y, x] - mean) ** 2
+            ss += rs
         is_flat = math.sqrt(ss / (St * St - 1)) < min_std
         lam_min, lam_max = _ellipse(t0, s, use_mask, mask)
         ratio = lam_min / max(lam_max, 1e-20) if lam_max > 0 else 0.0
@@ -473,7 +474,7 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
             so = 2 * radius + 1
             for p in range(n_pass):
                 _sample(img_m, Hmi[p], cm[p, 0], cm[p, 1], r + radius, win, pos)
-                _ncc(win, tn[p], so, maps[p], wc, box)
+                _ncc(win, tn[p], so, maps[p], wc, box, cols)
             cut = s - radius
             bk, by, bx, best, c0, sx, sy, on_border = _peaks(maps, n_pass, so, use_mask, mask, cut, -1)
             if radius == s:
@@ -525,9 +526,9 @@ def _kernels() -> dict[str, Any]:
                 exact = numba.njit(cache=True, nogil=True, error_model="numpy")
                 fused = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
                 dots = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
-                globals()["_corr_small"] = dots(_corr_small)
+                globals()["_corr"] = dots(_corr)
                 globals().update({fn.__name__: exact(fn) for fn in (_invert, _to_frame, _inside, _centre_good)})
-                globals().update({fn.__name__: fused(fn) for fn in (_sample, _normalize, _ncc, _corr_wide,
+                globals().update({fn.__name__: fused(fn) for fn in (_sample, _normalize, _ncc,
                                                                      _parabola, _ellipse, _peaks)})
                 _KERNELS = {"subpixel": fused(_subpixel_matches), "search": fused(_search_matches)}
     return _KERNELS
