@@ -501,3 +501,22 @@ def lsm_frames(
                      offset=t(offset), residual_std=t(s0_out), converged=t(converged),
                      iterations=t(iterations))
 
+
+
+def warm() -> bool:
+    """Load (or compile) the kernel now, by running it on a small synthetic problem (plain
+    and smoothed reads); returns whether it is available. Never raises: a process that
+    cannot load it loads it when it refines (where the error shows)."""
+    try:
+        if not available():
+            return False
+        g = torch.arange(48, dtype=torch.float32)
+        img = torch.sin(g[:, None] * 0.3) * torch.cos(g[None] * 0.2)
+        eye = torch.eye(3, dtype=torch.float64)[None]
+        c = torch.tensor([[24.0, 23.0]], dtype=torch.float64)
+        blur = (torch.ones(1, dtype=torch.bool), torch.full((1,), 0.5, dtype=torch.float64))
+        lsm_frames(img, img, eye, c, eye, c, torch.zeros(1, 2, dtype=torch.float64), 3, blur_f=blur,
+                   max_iterations=2)
+        return _KERNEL is not None
+    except Exception:  # noqa: BLE001 - warming is optional; refining reports the error
+        return False

@@ -133,3 +133,16 @@ def test_workers_start_with_the_compiled_local_affine_fits_loaded():
     assert "colmap_miho.refinement.preload" in workers.PRELOAD
     with workers.process_pool(1) as ex:
         assert ex.submit(_affine_kernels_loaded).result(timeout=300)
+
+
+def _lsm_kernel_loaded() -> bool:
+    from colmap_miho.refinement import lsm_kernel
+
+    return lsm_kernel._KERNEL is not None
+
+
+def test_workers_start_with_the_compiled_lsm_step_loaded():
+    """The same for the LSM step (recipes with ``ncc.lsm``)."""
+    pytest.importorskip("numba")
+    with workers.process_pool(1) as ex:
+        assert ex.submit(_lsm_kernel_loaded).result(timeout=300)

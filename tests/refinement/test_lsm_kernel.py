@@ -214,3 +214,8 @@ def test_torch_smoothed_reads_of_a_stack_are_per_image():
             torch.arange(rows.numel()), A[rows], start[rows], RADIUS)
         assert torch.equal(both[rows], alone)
     assert not torch.equal(both[on], frame_sampler(stack, Hm, c)(torch.arange(J), A, start, RADIUS)[on])
+
+
+def test_warm_loads_the_kernel():
+    assert lsm_kernel.warm()
+    assert lsm_kernel._KERNEL is not None
