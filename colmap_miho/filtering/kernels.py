@@ -9,7 +9,8 @@ with one call, which is what a batch on a pool of a few hundred matches costs.
   lists (``Sampler``); :func:`draw_batch`: a batch's local draws with the searches they need
   (the problem's candidates, the pool's lists), in one call;
 - :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring
-  (:mod:`.scoring`); :func:`refit`: the least-squares refit of a run's best model;
+  (:mod:`.scoring`); :func:`screen_rows`: the first two for chosen rows of a batch, in one
+  call; :func:`refit`: the least-squares refit of a run's best model;
 - :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`);
 - :func:`greedy_cover`: the choice of a run's top-z buffer (``ransac._greedy_buffer``).
 
@@ -352,6 +353,24 @@ def _rows(H, sign, Hinv, sign_inv, k, scaled, out):
             out[2 * h + 1, e] = b
 
 
+def _mask_row(hk, pts, t2, s2, out):
+    """``out[n]``: whether each match is inside under the sign-scaled matrices ``hk``
+    ``(2 * halves, 9)`` (:func:`_rows`), every half and direction (:func:`inlier_masks`)."""
+    terms = hk.shape[0]
+    for i in range(pts.shape[3]):
+        inside = True
+        for t in range(terms):
+            h, d = t // 2, t % 2
+            e, w = _transfer(hk[t], pts[h, d, 0, i], pts[h, d, 1, i],
+                             pts[h, 1 - d, 0, i], pts[h, 1 - d, 1, i])
+            if s2 != 1.0:
+                e *= s2
+            if not (e <= t2 and w > 0):
+                inside = False
+                break
+        out[i] = inside
+
+
 def _inlier_masks(H, Hinv, sign, sign_inv, pts, t2, s2):
     """See :func:`inlier_masks`."""
     K = H.shape[0]
@@ -361,18 +380,7 @@ def _inlier_masks(H, Hinv, sign, sign_inv, pts, t2, s2):
     hk = np.empty((terms, 9))
     for k in range(K):
         _rows(H, sign, Hinv, sign_inv, k, True, hk)
-        for i in range(n):
-            inside = True
-            for t in range(terms):
-                h, d = t // 2, t % 2
-                e, w = _transfer(hk[t], pts[h, d, 0, i], pts[h, d, 1, i],
-                                 pts[h, 1 - d, 0, i], pts[h, 1 - d, 1, i])
-                if s2 != 1.0:
-                    e *= s2
-                if not (e <= t2 and w > 0):
-                    inside = False
-                    break
-            out[k, i] = inside
+        _mask_row(hk, pts, t2, s2, out[k])
     return out
 
 
@@ -543,10 +551,40 @@ def _normalise4(pts, out):
         out[i, 1] *= scale
 
 
+def _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A) -> bool:
+    """Whether sample ``k``'s normalised minimal DLT system has its smallest singular value
+    above ``min_sv`` in every half (:func:`singular_value_ok`); ``p``, ``q``, ``s``, ``d``
+    ``(4, 2)`` and ``A`` ``(8, 9)`` (zero where no entry is written) scratch."""
+    for h in range(src_all.shape[1]):
+        for i in range(4):
+            for c in range(2):
+                p[i, c] = src_all[sample[k, i], h, c]
+                q[i, c] = dst_all[sample[k, i], h, c]
+        _normalise4(p, s)
+        _normalise4(q, d)
+        for i in range(4):
+            x, y, u, v = s[i, 0], s[i, 1], d[i, 0], d[i, 1]
+            A[2 * i, 0] = x
+            A[2 * i, 1] = y
+            A[2 * i, 2] = 1.0
+            A[2 * i, 6] = -u * x
+            A[2 * i, 7] = -u * y
+            A[2 * i, 8] = -u
+            A[2 * i + 1, 3] = x
+            A[2 * i + 1, 4] = y
+            A[2 * i + 1, 5] = 1.0
+            A[2 * i + 1, 6] = -v * x
+            A[2 * i + 1, 7] = -v * y
+            A[2 * i + 1, 8] = -v
+        ev = np.linalg.eigvalsh(A @ A.T)
+        if not np.sqrt(max(ev[0], 0.0)) > min_sv:
+            return False
+    return True
+
+
 def _singular_value_ok(sample, src_all, dst_all, min_sv):
     """See :func:`singular_value_ok`."""
     K = sample.shape[0]
-    nh = src_all.shape[1]
     ok = np.ones(K, dtype=np.bool_)
     p = np.empty((4, 2))
     q = np.empty((4, 2))
@@ -554,32 +592,29 @@ def _singular_value_ok(sample, src_all, dst_all, min_sv):
     d = np.empty((4, 2))
     A = np.zeros((8, 9))
     for k in range(K):
-        for h in range(nh):
-            for i in range(4):
-                for c in range(2):
-                    p[i, c] = src_all[sample[k, i], h, c]
-                    q[i, c] = dst_all[sample[k, i], h, c]
-            _normalise4(p, s)
-            _normalise4(q, d)
-            for i in range(4):
-                x, y, u, v = s[i, 0], s[i, 1], d[i, 0], d[i, 1]
-                A[2 * i, 0] = x
-                A[2 * i, 1] = y
-                A[2 * i, 2] = 1.0
-                A[2 * i, 6] = -u * x
-                A[2 * i, 7] = -u * y
-                A[2 * i, 8] = -u
-                A[2 * i + 1, 3] = x
-                A[2 * i + 1, 4] = y
-                A[2 * i + 1, 5] = 1.0
-                A[2 * i + 1, 6] = -v * x
-                A[2 * i + 1, 7] = -v * y
-                A[2 * i + 1, 8] = -v
-            ev = np.linalg.eigvalsh(A @ A.T)
-            if not np.sqrt(max(ev[0], 0.0)) > min_sv:
-                ok[k] = False
-                break
+        ok[k] = _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A)
     return ok
+
+
+def _screen_rows(rows, dest, H, Hinv, sign, sign_inv, sample, src_all, dst_all, min_sv, pts,
+                 t2, s2, sv_out, mask_out):
+    """See :func:`screen_rows`."""
+    terms = 2 * H.shape[1]
+    hk = np.empty((terms, 9))
+    p = np.empty((4, 2))
+    q = np.empty((4, 2))
+    s = np.empty((4, 2))
+    d = np.empty((4, 2))
+    A = np.zeros((8, 9))
+    for j in range(rows.shape[0]):
+        k, r = rows[j], dest[j]
+        ok = _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A)
+        sv_out[r] = ok
+        if ok:
+            _rows(H, sign, Hinv, sign_inv, k, True, hk)
+            _mask_row(hk, pts, t2, s2, mask_out[r])
+        else:
+            mask_out[r, :] = False
 
 
 def _normalising(pts, out, T):
@@ -908,13 +943,14 @@ def _jit_all() -> dict[str, Any]:
     # exception; those entries fail the sign test.
     jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     helpers = (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
-               _normalise4, _normalising, _push_nearest, _keep_list, _draw_local_rows,
+               _mask_row, _sv_ok_one, _normalise4, _normalising, _push_nearest, _keep_list,
+               _draw_local_rows,
                _neighbour_rows, _nearest_rows)
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
                                          _rotation_counts, _greedy_cover, _nearest,
-                                         _draw_batch)}
+                                         _draw_batch, _screen_rows)}
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
@@ -1049,6 +1085,21 @@ def singular_value_ok(sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarr
     half (:func:`.scoring.passes_singular_value_test`; the eigenvalues of ``A A^T`` from
     LAPACK as numpy's, the products summed in another order)."""
     return _compiled()["_singular_value_ok"](sample, src_all, dst_all, float(min_sv))
+
+
+def screen_rows(rows: np.ndarray, dest: np.ndarray, H: np.ndarray, Hinv: np.ndarray,
+                sign: np.ndarray, sign_inv: np.ndarray, sample: np.ndarray,
+                src_all: np.ndarray, dst_all: np.ndarray, min_sv: float, pts: np.ndarray,
+                t2: float, s2: float, sv_out: np.ndarray, mask_out: np.ndarray) -> None:
+    """The singular-value test and the inlier masks of the hypotheses ``rows`` ``(R,)`` of a
+    stack (``H``, ``Hinv`` ``(K, halves, 3, 3)``, signs ``(K, halves)``, samples ``(K, 4)``),
+    written to row ``dest[j]`` of ``sv_out`` ``(M,)`` and ``mask_out`` ``(M, n)`` (a row
+    failing the test gets an empty mask), in one call: :func:`singular_value_ok` then
+    :func:`inlier_masks` of the survivors, the same decisions, without taking the rows out.
+    ``src_all``, ``dst_all``, ``min_sv`` as :func:`singular_value_ok`; ``pts``, ``t2``,
+    ``s2`` as :func:`inlier_masks`."""
+    _compiled()["_screen_rows"](rows, dest, H, Hinv, sign, sign_inv, sample, src_all, dst_all,
+                                float(min_sv), pts, float(t2), float(s2), sv_out, mask_out)
 
 
 def refit(idx: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, sample: np.ndarray):

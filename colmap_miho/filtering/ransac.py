@@ -61,7 +61,7 @@ def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: n
         return []
     masks = np.stack([m for _, _, m in cands])
     if compiled:
-        return [cands[k][0].take(cands[k][1])
+        return [cands[k][0].row(cands[k][1])
                 for k in kernels.greedy_cover(masks, best_mask, z).tolist()]
     covered = best_mask.copy()
     chosen = []
@@ -71,7 +71,7 @@ def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: n
         k = int(np.argmax(gain))
         if gain[k] <= 0:
             break
-        chosen.append(cands[k][0].take(cands[k][1]))
+        chosen.append(cands[k][0].row(cands[k][1]))
         covered |= masks[k]
         free[k] = False
     return chosen
@@ -105,7 +105,7 @@ class _Search:
             if counts[k] > self.count:
                 if self.hyp is not None and self.mask is not None:  # set together
                     self.cands.append((self.hyp, 0, self.mask))
-                self.hyp, self.err = hyp.take(row), None if err is None else err[k]
+                self.hyp, self.err = hyp.row(row), None if err is None else err[k]
                 self.count, self.mask = int(counts[k]), masks[k]
                 improved = True
             elif counts[k] > 0:
@@ -163,8 +163,8 @@ class _BatchScores:
             todo = np.arange(self.done, stop)
             todo = todo[self.ub[todo] > 0]
             if len(todo):
-                self.sv[todo], self.mask[todo] = self.scoring.screen(
-                    self.problem, self.at(todo), self.pool, self.t2, self.cfg)
+                self.scoring.screen_into(self.problem, self.hyp, self.order[todo], self.pool,
+                                         self.t2, self.cfg, self.sv, self.mask, todo)
             self.done = stop
             self.chunk *= 2
         keep = pos[self.sv[pos]]
