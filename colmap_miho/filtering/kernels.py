@@ -10,7 +10,8 @@ with one call, which is what a batch on a pool of a few hundred matches costs.
   (the problem's candidates, the pool's lists), in one call;
 - :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring
   (:mod:`.scoring`); :func:`screen_rows`: the first two for chosen rows of a batch, in one
-  call; :func:`refit`: the least-squares refit of a run's best model;
+  call; :func:`score_batch`: a batch's whole full scoring and its search's choices;
+  :func:`refit`: the least-squares refit of a run's best model;
 - :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`);
 - :func:`greedy_cover`: the choice of a run's top-z buffer (``ransac._greedy_buffer``).
 
@@ -617,6 +618,74 @@ def _screen_rows(rows, dest, H, Hinv, sign, sign_inv, sample, src_all, dst_all, 
             mask_out[r, :] = False
 
 
+def _score_batch(ub, count0, have_best, n_req, z, H, Hinv, sign, sign_inv, sample, src_all,
+                 dst_all, min_sv, pts, t2, s2):
+    """See :func:`score_batch`."""
+    L = ub.shape[0]
+    order = np.argsort(-ub, kind="mergesort")  # stable: the same order as numpy's
+    n_buf = 0
+    for p in range(min(2, z, L)):
+        if ub[order[p]] >= n_req:
+            n_buf += 1
+    first = n_buf
+    above = 0
+    for p in range(L):
+        if ub[p] > count0:
+            above += 1
+    first = max(first, above)
+    reach = min(L, -(-first // 4) * 4)
+    n = pts.shape[3]
+    masks = np.empty((reach, n), dtype=np.bool_)
+    events = np.empty(2 * reach + 1, dtype=np.int64)
+    n_events = 0
+    terms = 2 * H.shape[1]
+    hk = np.empty((terms, 9))
+    p4 = np.empty((4, 2))
+    q4 = np.empty((4, 2))
+    s4 = np.empty((4, 2))
+    d4 = np.empty((4, 2))
+    A = np.zeros((8, 9))
+    kp = np.empty(4, dtype=np.int64)
+    cnt = np.empty(4, dtype=np.int64)
+    used = np.empty(4, dtype=np.bool_)
+    count = count0
+    best = -1
+    scored = 0
+    start = 0
+    while start < L and (ub[order[start]] > count or start < n_buf):
+        nk = 0
+        for p in range(start, min(start + 4, L)):
+            k = order[p]
+            if ub[k] > 0 and _sv_ok_one(sample, k, src_all, dst_all, min_sv, p4, q4, s4, d4, A):
+                _rows(H, sign, Hinv, sign_inv, k, True, hk)
+                _mask_row(hk, pts, t2, s2, masks[p])
+                c = 0
+                for i in range(n):
+                    if masks[p, i]:
+                        c += 1
+                kp[nk] = p
+                cnt[nk] = c
+                used[nk] = False
+                nk += 1
+        start += 4
+        scored += nk
+        for _ in range(nk):  # by count, descending; ties in position order (stable)
+            j = -1
+            for i in range(nk):
+                if not used[i] and (j < 0 or cnt[i] > cnt[j]):
+                    j = i
+            used[j] = True
+            if cnt[j] > count:
+                if have_best:
+                    events[n_events] = best  # -1: the best before this batch
+                    n_events += 1
+                best, count, have_best = kp[j], cnt[j], True
+            elif cnt[j] > 0:
+                events[n_events] = kp[j]
+                n_events += 1
+    return order, masks, events[:n_events], best, count, scored
+
+
 def _normalising(pts, out, T):
     """Hartley normalisation of ``pts[M, 2]``: ``out[M, 2]`` the normalised points and
     ``T[3, 3]`` the similarity (:func:`.homography.normalise_points`)."""
@@ -950,7 +1019,7 @@ def _jit_all() -> dict[str, Any]:
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
                                          _rotation_counts, _greedy_cover, _nearest,
-                                         _draw_batch, _screen_rows)}
+                                         _draw_batch, _screen_rows, _score_batch)}
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
@@ -1100,6 +1169,30 @@ def screen_rows(rows: np.ndarray, dest: np.ndarray, H: np.ndarray, Hinv: np.ndar
     ``s2`` as :func:`inlier_masks`."""
     _compiled()["_screen_rows"](rows, dest, H, Hinv, sign, sign_inv, sample, src_all, dst_all,
                                 float(min_sv), pts, float(t2), float(s2), sv_out, mask_out)
+
+
+def score_batch(ub: np.ndarray, count: int, have_best: bool, n_req: int, z: int,
+                H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
+                sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, min_sv: float,
+                pts: np.ndarray, t2: float, s2: float):
+    """The full scoring of one batch of hypotheses in one call (``ransac._score_batch``'s
+    loop and its search's choices, the same decisions): in descending order of their
+    one-way bounds ``ub`` ``(K,)`` (stable), groups of 4 are scored (:func:`screen_rows`:
+    bound > 0, singular-value test, inlier masks) while a bound can beat the best count
+    (``count`` at the start) or a group holds one of the batch's two strongest with at
+    least ``n_req`` possible inliers (at most ``z``); within a group the hypotheses are
+    taken by count, descending: one above the best becomes the best (the best it replaces,
+    if ``have_best``, becomes a candidate), another with inliers a candidate.
+
+    Returns ``(order, masks, events, best, count, scored)``: the order ``(K,)`` (position
+    -> hypothesis row), the masks ``(R, n)`` by position (rows of scored positions only),
+    the candidates ``(E,)`` in the order they arose (positions; -1: the best from before the
+    batch), the new best's position (-1: unchanged), the best count and the number of
+    hypotheses scored. Other arguments as :func:`screen_rows`.
+    """
+    return _compiled()["_score_batch"](ub, int(count), bool(have_best), int(n_req), int(z),
+                                       H, Hinv, sign, sign_inv, sample, src_all, dst_all,
+                                       float(min_sv), pts, float(t2), float(s2))
 
 
 def refit(idx: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, sample: np.ndarray):

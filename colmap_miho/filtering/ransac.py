@@ -181,6 +181,8 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
     possible inliers) are always scored, as buffer candidates. ``ub`` ``(K,)``: the one-way
     bounds of ``hyp`` on ``pool`` (:func:`~.scoring.one_way_count`).
     """
+    if scoring.compiled:
+        return _score_batch_compiled(problem, hyp, ub, pool, cfg, search, stats, scoring)
     order = np.argsort(-ub, kind="stable")
     ub = ub[order]
     n_buf = int(np.count_nonzero(ub[: min(2, cfg.buffer_size)] >= cfg.inlier_count))
@@ -199,6 +201,28 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
         stats["full_scored"] += len(keep)
         improved |= search.consider(scores.hyp, masks, err, rows=scores.order[keep])
     return improved
+
+
+def _score_batch_compiled(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.ndarray,
+                          cfg: FilterConfig, search: _Search, stats: dict,
+                          scoring: NumpyScoring) -> bool:
+    """:func:`_score_batch` in one compiled call (:func:`.kernels.score_batch`: the same
+    hypotheses scored, the same candidates in the same order, the same best)."""
+    order, masks, events, best, count, scored = scoring.score_batch(
+        problem, hyp, ub, pool, cfg, search.t2, search.count, search.hyp is not None)
+    stats["full_scored"] += scored
+    cands = search.cands
+    for p in events.tolist():
+        if p < 0:  # the best from before the batch (only when there was one)
+            assert search.hyp is not None and search.mask is not None
+            cands.append((search.hyp, 0, search.mask))
+        else:
+            cands.append((hyp, int(order[p]), masks[p]))
+    if best < 0:
+        return False
+    search.hyp, search.err = hyp.row(int(order[best])), None
+    search.count, search.mask = int(count), masks[best]
+    return True
 
 
 def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _Search,

@@ -385,3 +385,16 @@ class NumpyScoring:
                                 t2, s2, sv_out, mask_out)
             return
         sv_out[dest], mask_out[dest] = self.screen(problem, hyp.take(rows), idx, t2, cfg)
+
+    def score_batch(self, problem: Problem, hyp: Hypotheses, ub: np.ndarray, idx: np.ndarray,
+                    cfg: FilterConfig, t2: float, count: int, have_best: bool):
+        """:func:`.kernels.score_batch` of the hypotheses ``hyp`` with one-way bounds ``ub``
+        ``(K,)`` on the matches ``idx`` (compiled only)."""
+        assert self.compiled, "the fused batch scoring is compiled"
+        s2 = problem.error_scale**2
+        if math.frexp(s2)[0] == 0.5:  # a power of two: as inlier_masks does
+            t2, s2 = t2 / s2, 1.0
+        return kernels.score_batch(ub, count, have_best, cfg.inlier_count, cfg.buffer_size,
+                                   hyp.H, hyp.Hinv, hyp.sign, hyp.sign_inv, hyp.sample,
+                                   problem.src_all, problem.dst_all, cfg.min_singular_value,
+                                   self._work().stacked(problem, idx), t2, s2)

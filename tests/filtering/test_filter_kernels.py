@@ -198,6 +198,43 @@ def test_screening_chosen_rows_in_place_is_the_same(miho):
     np.testing.assert_array_equal(mask[dest][want_sv], want_mask[want_sv])
 
 
+@pytest.mark.parametrize("miho", [False, True])
+@pytest.mark.parametrize("start", ["empty", "weak best", "strong best"])
+def test_scoring_a_batch_in_one_call_is_the_same(miho, start):
+    """The compiled batch scoring against the loop over groups of the numpy path: the same
+    hypotheses scored, the same best, the same candidates in the same order."""
+    from colmap_miho.filtering.ransac import _score_batch, _Search
+
+    cfg = FilterConfig(method="mop_miho" if miho else "mop")
+    sc, problem, rng = _problem(miho)
+    hyp = hypotheses_from_samples(problem, _samples(sc, rng, 1500), cfg)
+    pool = np.sort(rng.choice(len(sc.x1), 2 * len(sc.x1) // 3, replace=False))
+    ref = NumpyScoring(compiled=False)
+    ub = ref.one_way_count(problem, hyp, pool, cfg.t_l**2)
+    searches = []
+    for scoring in (ref, NumpyScoring(compiled=True)):
+        search = _Search(t2=cfg.t_l**2)
+        if start != "empty":  # a best from an earlier batch, weaker or stronger than most
+            prior = hyp.take([0])
+            search.hyp, search.count = prior, int(np.quantile(ub, 0.9 if start == "weak best"
+                                                              else 0.999))
+            search.mask = np.zeros(len(pool), dtype=bool)
+            search.mask[: search.count] = True
+        stats = {"full_scored": 0}
+        improved = _score_batch(problem, hyp, ub, pool, cfg, search, stats, scoring)
+        searches.append((search, stats, improved))
+    (want, want_stats, want_imp), (got, got_stats, got_imp) = searches
+    assert want_stats["full_scored"] > 0 and len(want.cands) > 2
+    assert (got_imp, got_stats, got.count) == (want_imp, want_stats, want.count)
+    np.testing.assert_array_equal(got.mask, want.mask)
+    np.testing.assert_array_equal(got.hyp.H, want.hyp.H)
+    assert len(got.cands) == len(want.cands)
+    for (gh, gr, gm), (wh, wr, wm) in zip(got.cands, want.cands, strict=True):
+        np.testing.assert_array_equal(gh.row(gr).H, wh.row(wr).H)
+        np.testing.assert_array_equal(gh.row(gr).sample, wh.row(wr).sample)
+        np.testing.assert_array_equal(gm, wm)
+
+
 def test_a_row_is_the_take_of_it():
     cfg = FilterConfig()
     sc, problem, rng = _problem(False)
