@@ -915,6 +915,94 @@ def _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members):
     return out
 
 
+def _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
+                   feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2, k,
+                   q, lists, listed):
+    """Search the neighbour lists ``nb`` of the pool positions where ``need`` ``(n,)``, in
+    ascending order, and mark them ``known`` (:func:`draw_batch`'s search; its arguments)."""
+    n = pool.shape[0]
+    m = 0
+    for p in range(n):
+        if need[p]:
+            m += 1
+    if m:
+        todo = np.empty(m, dtype=np.int64)
+        m = 0
+        for p in range(n):
+            if need[p]:
+                todo[m] = p
+                m += 1
+        if by_match:
+            # the problem's candidates of the matches not searched yet (LocalCandidates.get)
+            new = np.empty(m, dtype=np.int64)
+            c_new = 0
+            for i in range(m):
+                g = pool[todo[i]]
+                if not cknown[g]:
+                    new[c_new] = g
+                    c_new += 1
+            qc = cand.shape[1]
+            if c_new and qc:
+                found = _nearest_rows(feats_all, new[:c_new], qc + 1, x0, y0, cell, nx, ny,
+                                      start, members)
+                for i in range(c_new):
+                    g = new[i]
+                    for c in range(qc):
+                        j = found[i, c + 1]
+                        cand[g, c] = j
+                        far[g, c] = _far(sx_all, sy_all, j, g, t2)
+            for i in range(c_new):
+                cknown[new[i]] = True
+        rows = _neighbour_rows(todo, cand, far, by_match, pos, pool_feats, sx, sy, t2, k, q,
+                               pool, lists, listed)
+        for i in range(m):
+            for c in range(k):
+                nb[todo[i], c] = rows[i, c]
+            known[todo[i]] = True
+
+
+def _local_fraction(mask, rows, pool, pos, nb, known, all_at_once, cand, far, cknown,
+                    by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start, members,
+                    pool_feats, sx, sy, t2, k, q, lists, listed):
+    """See :func:`local_fraction`."""
+    n = pool.shape[0]
+    m = rows.shape[0]
+    probe = np.empty(m, dtype=np.int64)
+    r = 0
+    c = 0
+    for p in range(n):  # the inliers' positions at the chosen ranks (ascending)
+        if mask[p]:
+            while r < m and rows[r] == c:
+                probe[r] = p
+                r += 1
+            c += 1
+    fresh = True
+    for p in range(n):
+        if known[p]:
+            fresh = False
+            break
+    need = np.zeros(n, dtype=np.bool_)
+    if all_at_once and fresh:
+        need[:] = True
+    else:
+        for i in range(m):
+            if not known[probe[i]]:
+                need[probe[i]] = True
+    _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
+                   feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2, k,
+                   q, lists, listed)
+    valid = 0
+    inside = 0
+    for i in range(m):
+        for j in range(k):
+            v = nb[probe[i], j]
+            if v >= 0:
+                valid += 1
+                if mask[v]:
+                    inside += 1
+    return valid, inside
+
+
 def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, cand, far,
                 cknown, by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start,
                 members, pool_feats, sx, sy, t2, k, q, lists, listed):
@@ -937,44 +1025,9 @@ def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, c
                 p = seeds[local[i]]
                 if not known[p]:
                     need[p] = True
-        m = 0
-        for p in range(n):
-            if need[p]:
-                m += 1
-        if m:
-            todo = np.empty(m, dtype=np.int64)
-            m = 0
-            for p in range(n):
-                if need[p]:
-                    todo[m] = p
-                    m += 1
-            if by_match:
-                # the problem's candidates of the matches not searched yet (LocalCandidates.get)
-                new = np.empty(m, dtype=np.int64)
-                c_new = 0
-                for i in range(m):
-                    g = pool[todo[i]]
-                    if not cknown[g]:
-                        new[c_new] = g
-                        c_new += 1
-                qc = cand.shape[1]
-                if c_new and qc:
-                    found = _nearest_rows(feats_all, new[:c_new], qc + 1, x0, y0, cell, nx, ny,
-                                          start, members)
-                    for i in range(c_new):
-                        g = new[i]
-                        for c in range(qc):
-                            j = found[i, c + 1]
-                            cand[g, c] = j
-                            far[g, c] = _far(sx_all, sy_all, j, g, t2)
-                for i in range(c_new):
-                    cknown[new[i]] = True
-            rows = _neighbour_rows(todo, cand, far, by_match, pos, pool_feats, sx, sy, t2, k, q,
-                                   pool, lists, listed)
-            for i in range(m):
-                for c in range(k):
-                    nb[todo[i], c] = rows[i, c]
-                known[todo[i]] = True
+        _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
+                       feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2,
+                       k, q, lists, listed)
         lnb = np.empty((L, k), dtype=np.int64)
         lseeds = np.empty(L, dtype=np.int64)
         for i in range(L):
@@ -1014,12 +1067,13 @@ def _jit_all() -> dict[str, Any]:
     helpers = (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
                _mask_row, _sv_ok_one, _normalise4, _normalising, _push_nearest, _keep_list,
                _draw_local_rows,
-               _neighbour_rows, _nearest_rows)
+               _neighbour_rows, _nearest_rows, _search_needed)
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
                                          _rotation_counts, _greedy_cover, _nearest,
-                                         _draw_batch, _screen_rows, _score_batch)}
+                                         _draw_batch, _screen_rows, _score_batch,
+                                         _local_fraction)}
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
@@ -1099,6 +1153,35 @@ def draw_batch(seeds: np.ndarray, others: np.ndarray, local: np.ndarray, keys: n
         cknown, grid is not None, sx_all, sy_all, feats_all, float(x0), float(y0), float(cell),
         int(nx), int(ny), start, members, pool_feats, sx, sy, float(t2), int(k), int(q), lists,
         listed)
+
+
+def local_fraction(mask: np.ndarray, rows: np.ndarray, pool: np.ndarray, pos: np.ndarray,
+                   nb: np.ndarray, known: np.ndarray, all_at_once: bool, cand: np.ndarray,
+                   far: np.ndarray, cknown: np.ndarray, grid: NearestGrid | None,
+                   sx_all: np.ndarray, sy_all: np.ndarray, pool_feats: np.ndarray,
+                   sx: np.ndarray, sy: np.ndarray, t2: float, k: int, q: int,
+                   lists: np.ndarray, listed: np.ndarray) -> tuple[int, int]:
+    """``(valid, inside)``: of the neighbours (pool positions in ``nb`` ``(n, k)``, -1 =
+    none) of the inliers ``mask`` ``(n,)`` at the ranks ``rows`` (ascending, among the
+    inliers in pool order), how many there are and how many are inliers
+    (``Sampler.local_inlier_fraction``); the lists not ``known`` yet are searched first, as
+    :func:`draw_batch` searches a batch's seeds (its arguments, updated in place)."""
+    grid_args = _grid_args(grid, cand, far)
+    return _compiled()["_local_fraction"](
+        mask, rows, pool, pos, nb, known, bool(all_at_once), *grid_args[:2], cknown,
+        grid is not None, sx_all, sy_all, *grid_args[2:], pool_feats, sx, sy, float(t2),
+        int(k), int(q), lists, listed)
+
+
+def _grid_args(grid: NearestGrid | None, cand: np.ndarray, far: np.ndarray) -> tuple:
+    """``(cand, far, feats, x0, y0, cell, nx, ny, start, members)`` of the compiled search
+    for ``grid`` (empty tables and grid for a problem searched without candidates)."""
+    if grid is None:
+        empty = np.empty(0, dtype=np.int64)
+        return (np.empty((0, 0), dtype=np.int64), np.empty((0, 0), dtype=np.bool_),
+                np.empty((0, 4)), 0.0, 0.0, 0.0, 0, 0, empty, empty)
+    return (cand, far, grid.feats, float(grid.x0), float(grid.y0), float(grid.cell),
+            int(grid.nx), int(grid.ny), grid.start, grid.members)
 
 
 def inlier_masks(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,

@@ -126,6 +126,36 @@ def test_batches_of_draws_over_the_rounds_are_the_same(small):
         pool = pool[(sc.plane[pool] != plane) & (rng.random(len(pool)) < 0.8)]
 
 
+@pytest.mark.parametrize("small", [False, True])
+def test_local_inlier_fraction_in_one_call_is_the_same(small):
+    """The adaptive bound's local inlier fraction (searches of the probes' lists, then the
+    share of inliers among them), compiled in one call against the numpy sampler, between
+    batches of draws over shrinking pools: the same fractions and the same draws after."""
+    rng = np.random.default_rng(8)
+    sc = (make_scene(rng, n_planes=2, per_plane=80, outlier_ratio=0.3) if small
+          else make_scene(rng, n_planes=3, per_plane=150, outlier_ratio=0.5))
+    assert (len(sc.x1) <= Sampler.ALL_AT_ONCE) == small
+    problem = build_problem(sc.x1, sc.x2, miho=True, full_match=True)
+    cfg = FilterConfig()
+    shared = LocalCandidates(problem, cfg, compiled=True)
+    gen_ref, gen_got = np.random.default_rng(12), np.random.default_rng(12)
+    pool = np.arange(len(sc.x1))
+    fractions = []
+    for plane in range(3):
+        ref = Sampler(problem, pool, cfg)
+        got = Sampler(problem, pool, cfg, shared, compiled=True)
+        for share in (0.9, 0.3, 0.05):  # masks of the pool's plane matches and some others
+            mask = (sc.plane[pool] == plane) | (rng.random(len(pool)) < 0.1)
+            mask &= rng.random(len(pool)) < share
+            count = int(mask.sum())
+            want = ref.local_inlier_fraction(mask, count)
+            assert got.local_inlier_fraction(mask, count) == want
+            fractions.append(want)
+            np.testing.assert_array_equal(got.draw(gen_got, 64), ref.draw(gen_ref, 64))
+        pool = pool[(sc.plane[pool] != plane) & (rng.random(len(pool)) < 0.8)]
+    assert len(set(fractions)) > 3 and 0.5 < max(fractions) <= 1
+
+
 @pytest.mark.parametrize("method", ["mop", "mop_miho"])
 def test_whole_filter_agrees(method, monkeypatch):
     """The whole filter, compiled against numpy, on synthetic scenes."""
