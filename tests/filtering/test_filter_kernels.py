@@ -422,3 +422,27 @@ def test_neighbours_kept_from_earlier_pools_are_the_same(miho):
         reused += int(listed_before[pool].sum())
     assert reused > 0  # the kept lists were offered (and the answers still agree)
     assert shared._listed.any()
+
+
+def test_pool_arrays_gathered_at_once_are_the_per_half_ones():
+    """The scoring's pool arrays: the stacked gather and the float32 first half, built
+    before or after the per-half arrays, hold the same values."""
+    from colmap_miho.filtering.scoring import _Scratch
+
+    sc, problem, rng = _problem(True)
+    pools = [np.sort(rng.choice(len(sc.x1), m, replace=False)) for m in (50, 200)]
+    for first_stacked in (True, False):
+        work = _Scratch()
+        for pool in pools:
+            if first_stacked:
+                stacked, p32 = work.stacked(problem, pool), work.points32(problem, pool)
+            pts = work.points(problem, pool)
+            if not first_stacked:
+                p32, stacked = work.points32(problem, pool), work.stacked(problem, pool)
+            want = np.stack([np.stack(p) for p in pts])
+            assert stacked.flags.c_contiguous and stacked.shape == (problem.num_halves, 2, 2,
+                                                                    len(pool))
+            np.testing.assert_array_equal(stacked, want)
+            for got, half in zip(p32, pts[0], strict=True):
+                assert got.dtype == np.float32
+                np.testing.assert_array_equal(got, half.astype(np.float32))
