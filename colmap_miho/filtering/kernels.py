@@ -9,8 +9,8 @@ with one call, which is what a batch on a pool of a few hundred matches costs.
   lists (``Sampler``); :func:`draw_batch`: a batch's local draws with the searches they need
   (the problem's candidates, the pool's lists), in one call;
 - :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring
-  (:mod:`.scoring`); :func:`screen_rows`: the first two for chosen rows of a batch, in one
-  call; :func:`score_batch`: a batch's whole full scoring and its search's choices;
+  (:mod:`.scoring`); :func:`score_batch`: a batch's whole full scoring (the first two) and
+  its search's choices, in one call;
   :func:`refit`: the least-squares refit of a run's best model;
 - :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`);
 - :func:`greedy_cover`: the choice of a run's top-z buffer (``ransac._greedy_buffer``).
@@ -597,27 +597,6 @@ def _singular_value_ok(sample, src_all, dst_all, min_sv):
     return ok
 
 
-def _screen_rows(rows, dest, H, Hinv, sign, sign_inv, sample, src_all, dst_all, min_sv, pts,
-                 t2, s2, sv_out, mask_out):
-    """See :func:`screen_rows`."""
-    terms = 2 * H.shape[1]
-    hk = np.empty((terms, 9))
-    p = np.empty((4, 2))
-    q = np.empty((4, 2))
-    s = np.empty((4, 2))
-    d = np.empty((4, 2))
-    A = np.zeros((8, 9))
-    for j in range(rows.shape[0]):
-        k, r = rows[j], dest[j]
-        ok = _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A)
-        sv_out[r] = ok
-        if ok:
-            _rows(H, sign, Hinv, sign_inv, k, True, hk)
-            _mask_row(hk, pts, t2, s2, mask_out[r])
-        else:
-            mask_out[r, :] = False
-
-
 def _score_batch(ub, count0, have_best, n_req, z, H, Hinv, sign, sign_inv, sample, src_all,
                  dst_all, min_sv, pts, t2, s2):
     """See :func:`score_batch`."""
@@ -1072,7 +1051,7 @@ def _jit_all() -> dict[str, Any]:
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
                                          _rotation_counts, _greedy_cover, _nearest,
-                                         _draw_batch, _screen_rows, _score_batch,
+                                         _draw_batch, _score_batch,
                                          _local_fraction)}
 
 
@@ -1239,29 +1218,14 @@ def singular_value_ok(sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarr
     return _compiled()["_singular_value_ok"](sample, src_all, dst_all, float(min_sv))
 
 
-def screen_rows(rows: np.ndarray, dest: np.ndarray, H: np.ndarray, Hinv: np.ndarray,
-                sign: np.ndarray, sign_inv: np.ndarray, sample: np.ndarray,
-                src_all: np.ndarray, dst_all: np.ndarray, min_sv: float, pts: np.ndarray,
-                t2: float, s2: float, sv_out: np.ndarray, mask_out: np.ndarray) -> None:
-    """The singular-value test and the inlier masks of the hypotheses ``rows`` ``(R,)`` of a
-    stack (``H``, ``Hinv`` ``(K, halves, 3, 3)``, signs ``(K, halves)``, samples ``(K, 4)``),
-    written to row ``dest[j]`` of ``sv_out`` ``(M,)`` and ``mask_out`` ``(M, n)`` (a row
-    failing the test gets an empty mask), in one call: :func:`singular_value_ok` then
-    :func:`inlier_masks` of the survivors, the same decisions, without taking the rows out.
-    ``src_all``, ``dst_all``, ``min_sv`` as :func:`singular_value_ok`; ``pts``, ``t2``,
-    ``s2`` as :func:`inlier_masks`."""
-    _compiled()["_screen_rows"](rows, dest, H, Hinv, sign, sign_inv, sample, src_all, dst_all,
-                                float(min_sv), pts, float(t2), float(s2), sv_out, mask_out)
-
-
 def score_batch(ub: np.ndarray, count: int, have_best: bool, n_req: int, z: int,
                 H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
                 sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, min_sv: float,
                 pts: np.ndarray, t2: float, s2: float):
     """The full scoring of one batch of hypotheses in one call (``ransac._score_batch``'s
     loop and its search's choices, the same decisions): in descending order of their
-    one-way bounds ``ub`` ``(K,)`` (stable), groups of 4 are scored (:func:`screen_rows`:
-    bound > 0, singular-value test, inlier masks) while a bound can beat the best count
+    one-way bounds ``ub`` ``(K,)`` (stable), groups of 4 are scored (bound > 0,
+    :func:`singular_value_ok`, then :func:`inlier_masks`) while a bound can beat the best count
     (``count`` at the start) or a group holds one of the batch's two strongest with at
     least ``n_req`` possible inliers (at most ``z``); within a group the hypotheses are
     taken by count, descending: one above the best becomes the best (the best it replaces,
@@ -1271,7 +1235,9 @@ def score_batch(ub: np.ndarray, count: int, have_best: bool, n_req: int, z: int,
     -> hypothesis row), the masks ``(R, n)`` by position (rows of scored positions only),
     the candidates ``(E,)`` in the order they arose (positions; -1: the best from before the
     batch), the new best's position (-1: unchanged), the best count and the number of
-    hypotheses scored. Other arguments as :func:`screen_rows`.
+    hypotheses scored. ``H``, ``Hinv``, signs and ``sample`` ``(K, ...)``: the hypotheses;
+    ``src_all``, ``dst_all``, ``min_sv`` as :func:`singular_value_ok`; ``pts``, ``t2``,
+    ``s2`` as :func:`inlier_masks`.
     """
     return _compiled()["_score_batch"](ub, int(count), bool(have_best), int(n_req), int(z),
                                        H, Hinv, sign, sign_inv, sample, src_all, dst_all,

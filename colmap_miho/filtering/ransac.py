@@ -163,8 +163,8 @@ class _BatchScores:
             todo = np.arange(self.done, stop)
             todo = todo[self.ub[todo] > 0]
             if len(todo):
-                self.scoring.screen_into(self.problem, self.hyp, self.order[todo], self.pool,
-                                         self.t2, self.cfg, self.sv, self.mask, todo)
+                self.sv[todo], self.mask[todo] = self.scoring.screen(
+                    self.problem, self.at(todo), self.pool, self.t2, self.cfg)
             self.done = stop
             self.chunk *= 2
         keep = pos[self.sv[pos]]

@@ -381,23 +381,6 @@ class NumpyScoring:
             masks[sv] = self.masks(problem, hyp.take(np.flatnonzero(sv)), idx, t2)[0]
         return sv, masks
 
-    def screen_into(self, problem: Problem, hyp: Hypotheses, rows: np.ndarray,
-                    idx: np.ndarray, t2: float, cfg: FilterConfig, sv_out: np.ndarray,
-                    mask_out: np.ndarray, dest: np.ndarray) -> None:
-        """:meth:`screen` of the hypotheses ``rows`` ``(R,)`` of ``hyp``, written to rows
-        ``dest`` ``(R,)`` of ``sv_out`` ``(M,)`` and ``mask_out`` ``(M, n)`` (compiled: one
-        call that takes no rows out of ``hyp``; the same decisions)."""
-        if self.compiled:
-            s2 = problem.error_scale**2
-            if math.frexp(s2)[0] == 0.5:  # a power of two: as inlier_masks does
-                t2, s2 = t2 / s2, 1.0
-            kernels.screen_rows(rows, dest, hyp.H, hyp.Hinv, hyp.sign, hyp.sign_inv,
-                                hyp.sample, problem.src_all, problem.dst_all,
-                                cfg.min_singular_value, self._work().stacked(problem, idx),
-                                t2, s2, sv_out, mask_out)
-            return
-        sv_out[dest], mask_out[dest] = self.screen(problem, hyp.take(rows), idx, t2, cfg)
-
     def score_batch(self, problem: Problem, hyp: Hypotheses, ub: np.ndarray, idx: np.ndarray,
                     cfg: FilterConfig, t2: float, count: int, have_best: bool):
         """:func:`.kernels.score_batch` of the hypotheses ``hyp`` with one-way bounds ``ub``

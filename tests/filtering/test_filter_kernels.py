@@ -200,35 +200,6 @@ def test_singular_value_test_is_the_same(miho):
 
 
 @pytest.mark.parametrize("miho", [False, True])
-def test_screening_chosen_rows_in_place_is_the_same(miho):
-    """Singular-value test and masks of chosen rows, written to chosen rows of the outputs:
-    the compiled call against the numpy screen of the rows taken out."""
-    cfg = FilterConfig(method="mop_miho" if miho else "mop")
-    sc, problem, rng = _problem(miho)
-    sample = _samples(sc, rng, 3000)
-    hyp = hypotheses_from_samples(problem, sample, cfg)
-    pool = np.sort(rng.choice(len(sc.x1), 2 * len(sc.x1) // 3, replace=False))
-    rows = rng.permutation(len(hyp))[: len(hyp) // 2]
-    dest = np.sort(rng.choice(len(hyp), len(rows), replace=False))
-    outs = []
-    for compiled in (False, True):
-        sv = np.zeros(len(hyp), dtype=bool)
-        mask = np.ones((len(hyp), len(pool)), dtype=bool)  # rows not written stay True
-        NumpyScoring(compiled=compiled).screen_into(problem, hyp, rows, pool, cfg.t_l**2, cfg,
-                                                    sv, mask, dest)
-        outs.append((sv, mask))
-    (sv, mask), (sv_c, mask_c) = outs
-    assert 0 < sv[dest].sum() < len(dest) and mask[dest][sv[dest]].any()
-    assert not mask[dest][~sv[dest]].any()  # a row failing the test: no inliers
-    np.testing.assert_array_equal(sv_c, sv)
-    np.testing.assert_array_equal(mask_c, mask)
-    want_sv, want_mask = NumpyScoring(compiled=False).screen(problem, hyp.take(rows), pool,
-                                                            cfg.t_l**2, cfg)
-    np.testing.assert_array_equal(sv[dest], want_sv)
-    np.testing.assert_array_equal(mask[dest][want_sv], want_mask[want_sv])
-
-
-@pytest.mark.parametrize("miho", [False, True])
 @pytest.mark.parametrize("start", ["empty", "weak best", "strong best"])
 def test_scoring_a_batch_in_one_call_is_the_same(miho, start):
     """The compiled batch scoring against the loop over groups of the numpy path: the same
