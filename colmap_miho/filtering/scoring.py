@@ -293,7 +293,8 @@ class NumpyScoring:
     """
 
     #: On the CPU per-call overhead dominates groups of 4 hypotheses, so screening ahead
-    #: (4, 8, 16, ... at a time; at most twice the work the search needs) pays.
+    #: (4, 8, 16, ... at a time; at most twice the work the search needs) pays (numpy; the
+    #: compiled path scores a whole batch in one call, :meth:`score_batch`).
     prefetch = 4
     #: Whether the batch kernels run compiled (set per instance by the constructor; a
     #: subclass that does not call it keeps numpy).
