@@ -9,7 +9,9 @@ with one call, which is what a batch on a pool of a few hundred matches costs.
   lists (``Sampler``); :func:`draw_batch`: a batch's local draws with the searches they need
   (the problem's candidates, the pool's lists), in one call;
 - :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring
-  (:mod:`.scoring`); :func:`refit`: the least-squares refit of a run's best model;
+  (:mod:`.scoring`); :func:`score_batch`: a batch's whole full scoring (the first two) and
+  its search's choices, in one call;
+  :func:`refit`: the least-squares refit of a run's best model;
 - :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`);
 - :func:`greedy_cover`: the choice of a run's top-z buffer (``ransac._greedy_buffer``).
 
@@ -352,6 +354,24 @@ def _rows(H, sign, Hinv, sign_inv, k, scaled, out):
             out[2 * h + 1, e] = b
 
 
+def _mask_row(hk, pts, t2, s2, out):
+    """``out[n]``: whether each match is inside under the sign-scaled matrices ``hk``
+    ``(2 * halves, 9)`` (:func:`_rows`), every half and direction (:func:`inlier_masks`)."""
+    terms = hk.shape[0]
+    for i in range(pts.shape[3]):
+        inside = True
+        for t in range(terms):
+            h, d = t // 2, t % 2
+            e, w = _transfer(hk[t], pts[h, d, 0, i], pts[h, d, 1, i],
+                             pts[h, 1 - d, 0, i], pts[h, 1 - d, 1, i])
+            if s2 != 1.0:
+                e *= s2
+            if not (e <= t2 and w > 0):
+                inside = False
+                break
+        out[i] = inside
+
+
 def _inlier_masks(H, Hinv, sign, sign_inv, pts, t2, s2):
     """See :func:`inlier_masks`."""
     K = H.shape[0]
@@ -361,18 +381,7 @@ def _inlier_masks(H, Hinv, sign, sign_inv, pts, t2, s2):
     hk = np.empty((terms, 9))
     for k in range(K):
         _rows(H, sign, Hinv, sign_inv, k, True, hk)
-        for i in range(n):
-            inside = True
-            for t in range(terms):
-                h, d = t // 2, t % 2
-                e, w = _transfer(hk[t], pts[h, d, 0, i], pts[h, d, 1, i],
-                                 pts[h, 1 - d, 0, i], pts[h, 1 - d, 1, i])
-                if s2 != 1.0:
-                    e *= s2
-                if not (e <= t2 and w > 0):
-                    inside = False
-                    break
-            out[k, i] = inside
+        _mask_row(hk, pts, t2, s2, out[k])
     return out
 
 
@@ -543,10 +552,40 @@ def _normalise4(pts, out):
         out[i, 1] *= scale
 
 
+def _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A) -> bool:
+    """Whether sample ``k``'s normalised minimal DLT system has its smallest singular value
+    above ``min_sv`` in every half (:func:`singular_value_ok`); ``p``, ``q``, ``s``, ``d``
+    ``(4, 2)`` and ``A`` ``(8, 9)`` (zero where no entry is written) scratch."""
+    for h in range(src_all.shape[1]):
+        for i in range(4):
+            for c in range(2):
+                p[i, c] = src_all[sample[k, i], h, c]
+                q[i, c] = dst_all[sample[k, i], h, c]
+        _normalise4(p, s)
+        _normalise4(q, d)
+        for i in range(4):
+            x, y, u, v = s[i, 0], s[i, 1], d[i, 0], d[i, 1]
+            A[2 * i, 0] = x
+            A[2 * i, 1] = y
+            A[2 * i, 2] = 1.0
+            A[2 * i, 6] = -u * x
+            A[2 * i, 7] = -u * y
+            A[2 * i, 8] = -u
+            A[2 * i + 1, 3] = x
+            A[2 * i + 1, 4] = y
+            A[2 * i + 1, 5] = 1.0
+            A[2 * i + 1, 6] = -v * x
+            A[2 * i + 1, 7] = -v * y
+            A[2 * i + 1, 8] = -v
+        ev = np.linalg.eigvalsh(A @ A.T)
+        if not np.sqrt(max(ev[0], 0.0)) > min_sv:
+            return False
+    return True
+
+
 def _singular_value_ok(sample, src_all, dst_all, min_sv):
     """See :func:`singular_value_ok`."""
     K = sample.shape[0]
-    nh = src_all.shape[1]
     ok = np.ones(K, dtype=np.bool_)
     p = np.empty((4, 2))
     q = np.empty((4, 2))
@@ -554,32 +593,76 @@ def _singular_value_ok(sample, src_all, dst_all, min_sv):
     d = np.empty((4, 2))
     A = np.zeros((8, 9))
     for k in range(K):
-        for h in range(nh):
-            for i in range(4):
-                for c in range(2):
-                    p[i, c] = src_all[sample[k, i], h, c]
-                    q[i, c] = dst_all[sample[k, i], h, c]
-            _normalise4(p, s)
-            _normalise4(q, d)
-            for i in range(4):
-                x, y, u, v = s[i, 0], s[i, 1], d[i, 0], d[i, 1]
-                A[2 * i, 0] = x
-                A[2 * i, 1] = y
-                A[2 * i, 2] = 1.0
-                A[2 * i, 6] = -u * x
-                A[2 * i, 7] = -u * y
-                A[2 * i, 8] = -u
-                A[2 * i + 1, 3] = x
-                A[2 * i + 1, 4] = y
-                A[2 * i + 1, 5] = 1.0
-                A[2 * i + 1, 6] = -v * x
-                A[2 * i + 1, 7] = -v * y
-                A[2 * i + 1, 8] = -v
-            ev = np.linalg.eigvalsh(A @ A.T)
-            if not np.sqrt(max(ev[0], 0.0)) > min_sv:
-                ok[k] = False
-                break
+        ok[k] = _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A)
     return ok
+
+
+def _score_batch(ub, count0, have_best, n_req, z, H, Hinv, sign, sign_inv, sample, src_all,
+                 dst_all, min_sv, pts, t2, s2):
+    """See :func:`score_batch`."""
+    L = ub.shape[0]
+    order = np.argsort(-ub, kind="mergesort")  # stable: the same order as numpy's
+    n_buf = 0
+    for p in range(min(2, z, L)):
+        if ub[order[p]] >= n_req:
+            n_buf += 1
+    first = n_buf
+    above = 0
+    for p in range(L):
+        if ub[p] > count0:
+            above += 1
+    first = max(first, above)
+    reach = min(L, -(-first // 4) * 4)
+    n = pts.shape[3]
+    masks = np.empty((reach, n), dtype=np.bool_)
+    events = np.empty(2 * reach + 1, dtype=np.int64)
+    n_events = 0
+    terms = 2 * H.shape[1]
+    hk = np.empty((terms, 9))
+    p4 = np.empty((4, 2))
+    q4 = np.empty((4, 2))
+    s4 = np.empty((4, 2))
+    d4 = np.empty((4, 2))
+    A = np.zeros((8, 9))
+    kp = np.empty(4, dtype=np.int64)
+    cnt = np.empty(4, dtype=np.int64)
+    used = np.empty(4, dtype=np.bool_)
+    count = count0
+    best = -1
+    scored = 0
+    start = 0
+    while start < L and (ub[order[start]] > count or start < n_buf):
+        nk = 0
+        for p in range(start, min(start + 4, L)):
+            k = order[p]
+            if ub[k] > 0 and _sv_ok_one(sample, k, src_all, dst_all, min_sv, p4, q4, s4, d4, A):
+                _rows(H, sign, Hinv, sign_inv, k, True, hk)
+                _mask_row(hk, pts, t2, s2, masks[p])
+                c = 0
+                for i in range(n):
+                    if masks[p, i]:
+                        c += 1
+                kp[nk] = p
+                cnt[nk] = c
+                used[nk] = False
+                nk += 1
+        start += 4
+        scored += nk
+        for _ in range(nk):  # by count, descending; ties in position order (stable)
+            j = -1
+            for i in range(nk):
+                if not used[i] and (j < 0 or cnt[i] > cnt[j]):
+                    j = i
+            used[j] = True
+            if cnt[j] > count:
+                if have_best:
+                    events[n_events] = best  # -1: the best before this batch
+                    n_events += 1
+                best, count, have_best = kp[j], cnt[j], True
+            elif cnt[j] > 0:
+                events[n_events] = kp[j]
+                n_events += 1
+    return order, masks, events[:n_events], best, count, scored
 
 
 def _normalising(pts, out, T):
@@ -811,6 +894,94 @@ def _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members):
     return out
 
 
+def _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
+                   feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2, k,
+                   q, lists, listed):
+    """Search the neighbour lists ``nb`` of the pool positions where ``need`` ``(n,)``, in
+    ascending order, and mark them ``known`` (:func:`draw_batch`'s search; its arguments)."""
+    n = pool.shape[0]
+    m = 0
+    for p in range(n):
+        if need[p]:
+            m += 1
+    if m:
+        todo = np.empty(m, dtype=np.int64)
+        m = 0
+        for p in range(n):
+            if need[p]:
+                todo[m] = p
+                m += 1
+        if by_match:
+            # the problem's candidates of the matches not searched yet (LocalCandidates.get)
+            new = np.empty(m, dtype=np.int64)
+            c_new = 0
+            for i in range(m):
+                g = pool[todo[i]]
+                if not cknown[g]:
+                    new[c_new] = g
+                    c_new += 1
+            qc = cand.shape[1]
+            if c_new and qc:
+                found = _nearest_rows(feats_all, new[:c_new], qc + 1, x0, y0, cell, nx, ny,
+                                      start, members)
+                for i in range(c_new):
+                    g = new[i]
+                    for c in range(qc):
+                        j = found[i, c + 1]
+                        cand[g, c] = j
+                        far[g, c] = _far(sx_all, sy_all, j, g, t2)
+            for i in range(c_new):
+                cknown[new[i]] = True
+        rows = _neighbour_rows(todo, cand, far, by_match, pos, pool_feats, sx, sy, t2, k, q,
+                               pool, lists, listed)
+        for i in range(m):
+            for c in range(k):
+                nb[todo[i], c] = rows[i, c]
+            known[todo[i]] = True
+
+
+def _local_fraction(mask, rows, pool, pos, nb, known, all_at_once, cand, far, cknown,
+                    by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start, members,
+                    pool_feats, sx, sy, t2, k, q, lists, listed):
+    """See :func:`local_fraction`."""
+    n = pool.shape[0]
+    m = rows.shape[0]
+    probe = np.empty(m, dtype=np.int64)
+    r = 0
+    c = 0
+    for p in range(n):  # the inliers' positions at the chosen ranks (ascending)
+        if mask[p]:
+            while r < m and rows[r] == c:
+                probe[r] = p
+                r += 1
+            c += 1
+    fresh = True
+    for p in range(n):
+        if known[p]:
+            fresh = False
+            break
+    need = np.zeros(n, dtype=np.bool_)
+    if all_at_once and fresh:
+        need[:] = True
+    else:
+        for i in range(m):
+            if not known[probe[i]]:
+                need[probe[i]] = True
+    _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
+                   feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2, k,
+                   q, lists, listed)
+    valid = 0
+    inside = 0
+    for i in range(m):
+        for j in range(k):
+            v = nb[probe[i], j]
+            if v >= 0:
+                valid += 1
+                if mask[v]:
+                    inside += 1
+    return valid, inside
+
+
 def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, cand, far,
                 cknown, by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start,
                 members, pool_feats, sx, sy, t2, k, q, lists, listed):
@@ -833,44 +1004,9 @@ def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, c
                 p = seeds[local[i]]
                 if not known[p]:
                     need[p] = True
-        m = 0
-        for p in range(n):
-            if need[p]:
-                m += 1
-        if m:
-            todo = np.empty(m, dtype=np.int64)
-            m = 0
-            for p in range(n):
-                if need[p]:
-                    todo[m] = p
-                    m += 1
-            if by_match:
-                # the problem's candidates of the matches not searched yet (LocalCandidates.get)
-                new = np.empty(m, dtype=np.int64)
-                c_new = 0
-                for i in range(m):
-                    g = pool[todo[i]]
-                    if not cknown[g]:
-                        new[c_new] = g
-                        c_new += 1
-                qc = cand.shape[1]
-                if c_new and qc:
-                    found = _nearest_rows(feats_all, new[:c_new], qc + 1, x0, y0, cell, nx, ny,
-                                          start, members)
-                    for i in range(c_new):
-                        g = new[i]
-                        for c in range(qc):
-                            j = found[i, c + 1]
-                            cand[g, c] = j
-                            far[g, c] = _far(sx_all, sy_all, j, g, t2)
-                for i in range(c_new):
-                    cknown[new[i]] = True
-            rows = _neighbour_rows(todo, cand, far, by_match, pos, pool_feats, sx, sy, t2, k, q,
-                                   pool, lists, listed)
-            for i in range(m):
-                for c in range(k):
-                    nb[todo[i], c] = rows[i, c]
-                known[todo[i]] = True
+        _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
+                       feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2,
+                       k, q, lists, listed)
         lnb = np.empty((L, k), dtype=np.int64)
         lseeds = np.empty(L, dtype=np.int64)
         for i in range(L):
@@ -908,13 +1044,15 @@ def _jit_all() -> dict[str, Any]:
     # exception; those entries fail the sign test.
     jit = numba.njit(cache=True, nogil=True, error_model="numpy")
     helpers = (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
-               _normalise4, _normalising, _push_nearest, _keep_list, _draw_local_rows,
-               _neighbour_rows, _nearest_rows)
+               _mask_row, _sv_ok_one, _normalise4, _normalising, _push_nearest, _keep_list,
+               _draw_local_rows,
+               _neighbour_rows, _nearest_rows, _search_needed)
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
                                          _rotation_counts, _greedy_cover, _nearest,
-                                         _draw_batch)}
+                                         _draw_batch, _score_batch,
+                                         _local_fraction)}
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
@@ -996,6 +1134,35 @@ def draw_batch(seeds: np.ndarray, others: np.ndarray, local: np.ndarray, keys: n
         listed)
 
 
+def local_fraction(mask: np.ndarray, rows: np.ndarray, pool: np.ndarray, pos: np.ndarray,
+                   nb: np.ndarray, known: np.ndarray, all_at_once: bool, cand: np.ndarray,
+                   far: np.ndarray, cknown: np.ndarray, grid: NearestGrid | None,
+                   sx_all: np.ndarray, sy_all: np.ndarray, pool_feats: np.ndarray,
+                   sx: np.ndarray, sy: np.ndarray, t2: float, k: int, q: int,
+                   lists: np.ndarray, listed: np.ndarray) -> tuple[int, int]:
+    """``(valid, inside)``: of the neighbours (pool positions in ``nb`` ``(n, k)``, -1 =
+    none) of the inliers ``mask`` ``(n,)`` at the ranks ``rows`` (ascending, among the
+    inliers in pool order), how many there are and how many are inliers
+    (``Sampler.local_inlier_fraction``); the lists not ``known`` yet are searched first, as
+    :func:`draw_batch` searches a batch's seeds (its arguments, updated in place)."""
+    grid_args = _grid_args(grid, cand, far)
+    return _compiled()["_local_fraction"](
+        mask, rows, pool, pos, nb, known, bool(all_at_once), *grid_args[:2], cknown,
+        grid is not None, sx_all, sy_all, *grid_args[2:], pool_feats, sx, sy, float(t2),
+        int(k), int(q), lists, listed)
+
+
+def _grid_args(grid: NearestGrid | None, cand: np.ndarray, far: np.ndarray) -> tuple:
+    """``(cand, far, feats, x0, y0, cell, nx, ny, start, members)`` of the compiled search
+    for ``grid`` (empty tables and grid for a problem searched without candidates)."""
+    if grid is None:
+        empty = np.empty(0, dtype=np.int64)
+        return (np.empty((0, 0), dtype=np.int64), np.empty((0, 0), dtype=np.bool_),
+                np.empty((0, 4)), 0.0, 0.0, 0.0, 0, 0, empty, empty)
+    return (cand, far, grid.feats, float(grid.x0), float(grid.y0), float(grid.cell),
+            int(grid.nx), int(grid.ny), grid.start, grid.members)
+
+
 def inlier_masks(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
                  pts: np.ndarray, t2: float, s2: float) -> np.ndarray:
     """``(K, n)`` bool: the squared error of each hypothesis (``H``, ``Hinv`` ``(K, halves,
@@ -1049,6 +1216,32 @@ def singular_value_ok(sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarr
     half (:func:`.scoring.passes_singular_value_test`; the eigenvalues of ``A A^T`` from
     LAPACK as numpy's, the products summed in another order)."""
     return _compiled()["_singular_value_ok"](sample, src_all, dst_all, float(min_sv))
+
+
+def score_batch(ub: np.ndarray, count: int, have_best: bool, n_req: int, z: int,
+                H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
+                sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, min_sv: float,
+                pts: np.ndarray, t2: float, s2: float):
+    """The full scoring of one batch of hypotheses in one call (``ransac._score_batch``'s
+    loop and its search's choices, the same decisions): in descending order of their
+    one-way bounds ``ub`` ``(K,)`` (stable), groups of 4 are scored (bound > 0,
+    :func:`singular_value_ok`, then :func:`inlier_masks`) while a bound can beat the best count
+    (``count`` at the start) or a group holds one of the batch's two strongest with at
+    least ``n_req`` possible inliers (at most ``z``); within a group the hypotheses are
+    taken by count, descending: one above the best becomes the best (the best it replaces,
+    if ``have_best``, becomes a candidate), another with inliers a candidate.
+
+    Returns ``(order, masks, events, best, count, scored)``: the order ``(K,)`` (position
+    -> hypothesis row), the masks ``(R, n)`` by position (rows of scored positions only),
+    the candidates ``(E,)`` in the order they arose (positions; -1: the best from before the
+    batch), the new best's position (-1: unchanged), the best count and the number of
+    hypotheses scored. ``H``, ``Hinv``, signs and ``sample`` ``(K, ...)``: the hypotheses;
+    ``src_all``, ``dst_all``, ``min_sv`` as :func:`singular_value_ok`; ``pts``, ``t2``,
+    ``s2`` as :func:`inlier_masks`.
+    """
+    return _compiled()["_score_batch"](ub, int(count), bool(have_best), int(n_req), int(z),
+                                       H, Hinv, sign, sign_inv, sample, src_all, dst_all,
+                                       float(min_sv), pts, float(t2), float(s2))
 
 
 def refit(idx: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, sample: np.ndarray):

@@ -80,6 +80,12 @@ class Hypotheses:
         return Hypotheses(self.H[idx], self.Hinv[idx], self.sign[idx], self.sign_inv[idx],
                           self.sample[idx])
 
+    def row(self, k: int) -> Hypotheses:
+        """Hypothesis ``k`` alone, as views of this stack's rows (:meth:`take` ``([k])``
+        without copies; the stacks are never written in place)."""
+        return Hypotheses(self.H[k:k + 1], self.Hinv[k:k + 1], self.sign[k:k + 1],
+                          self.sign_inv[k:k + 1], self.sample[k:k + 1])
+
     @staticmethod
     def concat(items: list[Hypotheses]) -> Hypotheses:
         items = [h for h in items if len(h)]

@@ -61,7 +61,7 @@ def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: n
         return []
     masks = np.stack([m for _, _, m in cands])
     if compiled:
-        return [cands[k][0].take(cands[k][1])
+        return [cands[k][0].row(cands[k][1])
                 for k in kernels.greedy_cover(masks, best_mask, z).tolist()]
     covered = best_mask.copy()
     chosen = []
@@ -71,7 +71,7 @@ def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: n
         k = int(np.argmax(gain))
         if gain[k] <= 0:
             break
-        chosen.append(cands[k][0].take(cands[k][1]))
+        chosen.append(cands[k][0].row(cands[k][1]))
         covered |= masks[k]
         free[k] = False
     return chosen
@@ -105,7 +105,7 @@ class _Search:
             if counts[k] > self.count:
                 if self.hyp is not None and self.mask is not None:  # set together
                     self.cands.append((self.hyp, 0, self.mask))
-                self.hyp, self.err = hyp.take(row), None if err is None else err[k]
+                self.hyp, self.err = hyp.row(row), None if err is None else err[k]
                 self.count, self.mask = int(counts[k]), masks[k]
                 improved = True
             elif counts[k] > 0:
@@ -181,6 +181,8 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
     possible inliers) are always scored, as buffer candidates. ``ub`` ``(K,)``: the one-way
     bounds of ``hyp`` on ``pool`` (:func:`~.scoring.one_way_count`).
     """
+    if scoring.compiled:
+        return _score_batch_compiled(problem, hyp, ub, pool, cfg, search, stats, scoring)
     order = np.argsort(-ub, kind="stable")
     ub = ub[order]
     n_buf = int(np.count_nonzero(ub[: min(2, cfg.buffer_size)] >= cfg.inlier_count))
@@ -199,6 +201,28 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
         stats["full_scored"] += len(keep)
         improved |= search.consider(scores.hyp, masks, err, rows=scores.order[keep])
     return improved
+
+
+def _score_batch_compiled(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.ndarray,
+                          cfg: FilterConfig, search: _Search, stats: dict,
+                          scoring: NumpyScoring) -> bool:
+    """:func:`_score_batch` in one compiled call (:func:`.kernels.score_batch`: the same
+    hypotheses scored, the same candidates in the same order, the same best)."""
+    order, masks, events, best, count, scored = scoring.score_batch(
+        problem, hyp, ub, pool, cfg, search.t2, search.count, search.hyp is not None)
+    stats["full_scored"] += scored
+    cands = search.cands
+    for p in events.tolist():
+        if p < 0:  # the best from before the batch (only when there was one)
+            assert search.hyp is not None and search.mask is not None
+            cands.append((search.hyp, 0, search.mask))
+        else:
+            cands.append((hyp, int(order[p]), masks[p]))
+    if best < 0:
+        return False
+    search.hyp, search.err = hyp.row(int(order[best])), None
+    search.count, search.mask = int(count), masks[best]
+    return True
 
 
 def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _Search,

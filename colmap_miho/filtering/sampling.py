@@ -294,6 +294,8 @@ class Sampler:
         the neighbours of (up to 256) of them."""
         if self._cands is None or mask is None or count <= 0:
             return 0.0
+        if self.compiled:
+            return self._local_fraction_compiled(mask, count)
         inl = np.flatnonzero(mask)
         probe = inl[_probe_rows(len(inl))]
         nb = self.neighbours(probe)
@@ -301,6 +303,24 @@ class Sampler:
         if not valid.any():
             return 0.0
         return float(mask[nb[valid]].mean())
+
+    def _local_fraction_compiled(self, mask: np.ndarray, count: int) -> float:
+        """:meth:`local_inlier_fraction` in one compiled call (:func:`.kernels.local_fraction`:
+        the same searches, the same lists and the same fraction)."""
+        cands = self._cands
+        assert cands is not None and self._spread_x is not None and self._spread_y is not None
+        if self._feats is None:
+            self._feats = np.ascontiguousarray(cands.feats[self.pool])
+        if self._lists is None:
+            self._lists = cands.lists_for(self.pool)
+        grid = cands.grid() if len(cands.feats) > self.ALL_AT_ONCE else None
+        q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
+        valid, inside = kernels.local_fraction(
+            mask, _probe_rows(count), self.pool, self._pos, self._nb, self._known,
+            len(self.pool) <= self.ALL_AT_ONCE, cands._cand, cands._far, cands._known, grid,
+            cands._sx, cands._sy, self._feats, self._spread_x, self._spread_y, self._t2, self.k,
+            q, *self._lists)
+        return inside / valid if valid else 0.0
 
     def _draw_local(self, rng: np.random.Generator, seeds: np.ndarray) -> np.ndarray:
         """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart

@@ -145,36 +145,48 @@ class _Scratch:
     def __init__(self) -> None:
         self._arrays: dict[str, np.ndarray] = {}
         self._points_of: tuple[Problem, np.ndarray] | None = None
-        self._points: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+        self._points: tuple[tuple[np.ndarray, np.ndarray], ...] | None = None
         self._points32: tuple[np.ndarray, np.ndarray] | None = None
         self._stacked: np.ndarray | None = None
+        self._all_of: tuple[Problem, np.ndarray] | None = None
+
+    def _pool(self, problem: Problem, idx: np.ndarray) -> None:
+        """Forget the pool's arrays unless the same ``problem`` and ``idx`` objects come back
+        (a RANSAC run scores on one pool array, never changed in place)."""
+        key = self._points_of
+        if key is None or key[0] is not problem or key[1] is not idx:
+            self._points = self._points32 = self._stacked = None
+            self._points_of = (problem, idx)
 
     def points(self, problem: Problem, idx: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
         """Per half, ``(src, dst)`` of the matches ``idx`` as ``(2, n)`` arrays (x row, y row,
-        each contiguous), kept while the same ``problem`` and ``idx`` objects come back (a
-        RANSAC run scores on one pool array, never changed in place)."""
-        key = self._points_of
-        if key is None or key[0] is not problem or key[1] is not idx:
+        each contiguous), kept for the same pool."""
+        self._pool(problem, idx)
+        if self._points is None:
             self._points = tuple((problem.src[h][idx].T.copy(), problem.dst[h][idx].T.copy())
                                  for h in range(problem.num_halves))
-            self._points32 = None
-            self._stacked = None
-            self._points_of = (problem, idx)
         return self._points
 
     def stacked(self, problem: Problem, idx: np.ndarray) -> np.ndarray:
         """:meth:`points` as one ``(halves, 2, 2, n)`` array (half, source / destination,
-        x / y, match)."""
-        pts = self.points(problem, idx)
+        x / y, match), gathered in one call from the problem's whole such array (kept per
+        problem)."""
+        self._pool(problem, idx)
         if self._stacked is None:
-            self._stacked = np.ascontiguousarray(np.stack([np.stack(p) for p in pts]))
+            if self._all_of is None or self._all_of[0] is not problem:
+                every = np.stack([np.stack([problem.src[h].T, problem.dst[h].T])
+                                  for h in range(problem.num_halves)])
+                self._all_of = (problem, every)
+            self._stacked = np.take(self._all_of[1], idx, axis=3)
         return self._stacked
 
     def points32(self, problem: Problem, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The first half's ``(src, dst)`` of :meth:`points` in float32."""
-        pts = self.points(problem, idx)
+        """The first half's ``(src, dst)`` of :meth:`points` in float32 (from
+        :meth:`stacked` unless the per-half arrays are already at hand)."""
+        self._pool(problem, idx)
         if self._points32 is None:
-            self._points32 = (pts[0][0].astype(np.float32), pts[0][1].astype(np.float32))
+            first = self._points[0] if self._points is not None else self.stacked(problem, idx)[0]
+            self._points32 = (first[0].astype(np.float32), first[1].astype(np.float32))
         return self._points32
 
     def get(self, name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
@@ -281,7 +293,8 @@ class NumpyScoring:
     """
 
     #: On the CPU per-call overhead dominates groups of 4 hypotheses, so screening ahead
-    #: (4, 8, 16, ... at a time; at most twice the work the search needs) pays.
+    #: (4, 8, 16, ... at a time; at most twice the work the search needs) pays (numpy; the
+    #: compiled path scores a whole batch in one call, :meth:`score_batch`).
     prefetch = 4
     #: Whether the batch kernels run compiled (set per instance by the constructor; a
     #: subclass that does not call it keeps numpy).
@@ -368,3 +381,16 @@ class NumpyScoring:
         if sv.any():
             masks[sv] = self.masks(problem, hyp.take(np.flatnonzero(sv)), idx, t2)[0]
         return sv, masks
+
+    def score_batch(self, problem: Problem, hyp: Hypotheses, ub: np.ndarray, idx: np.ndarray,
+                    cfg: FilterConfig, t2: float, count: int, have_best: bool):
+        """:func:`.kernels.score_batch` of the hypotheses ``hyp`` with one-way bounds ``ub``
+        ``(K,)`` on the matches ``idx`` (compiled only)."""
+        assert self.compiled, "the fused batch scoring is compiled"
+        s2 = problem.error_scale**2
+        if math.frexp(s2)[0] == 0.5:  # a power of two: as inlier_masks does
+            t2, s2 = t2 / s2, 1.0
+        return kernels.score_batch(ub, count, have_best, cfg.inlier_count, cfg.buffer_size,
+                                   hyp.H, hyp.Hinv, hyp.sign, hyp.sign_inv, hyp.sample,
+                                   problem.src_all, problem.dst_all, cfg.min_singular_value,
+                                   self._work().stacked(problem, idx), t2, s2)

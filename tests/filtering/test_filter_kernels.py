@@ -126,6 +126,36 @@ def test_batches_of_draws_over_the_rounds_are_the_same(small):
         pool = pool[(sc.plane[pool] != plane) & (rng.random(len(pool)) < 0.8)]
 
 
+@pytest.mark.parametrize("small", [False, True])
+def test_local_inlier_fraction_in_one_call_is_the_same(small):
+    """The adaptive bound's local inlier fraction (searches of the probes' lists, then the
+    share of inliers among them), compiled in one call against the numpy sampler, between
+    batches of draws over shrinking pools: the same fractions and the same draws after."""
+    rng = np.random.default_rng(8)
+    sc = (make_scene(rng, n_planes=2, per_plane=80, outlier_ratio=0.3) if small
+          else make_scene(rng, n_planes=3, per_plane=150, outlier_ratio=0.5))
+    assert (len(sc.x1) <= Sampler.ALL_AT_ONCE) == small
+    problem = build_problem(sc.x1, sc.x2, miho=True, full_match=True)
+    cfg = FilterConfig()
+    shared = LocalCandidates(problem, cfg, compiled=True)
+    gen_ref, gen_got = np.random.default_rng(12), np.random.default_rng(12)
+    pool = np.arange(len(sc.x1))
+    fractions = []
+    for plane in range(3):
+        ref = Sampler(problem, pool, cfg)
+        got = Sampler(problem, pool, cfg, shared, compiled=True)
+        for share in (0.9, 0.3, 0.05):  # masks of the pool's plane matches and some others
+            mask = (sc.plane[pool] == plane) | (rng.random(len(pool)) < 0.1)
+            mask &= rng.random(len(pool)) < share
+            count = int(mask.sum())
+            want = ref.local_inlier_fraction(mask, count)
+            assert got.local_inlier_fraction(mask, count) == want
+            fractions.append(want)
+            np.testing.assert_array_equal(got.draw(gen_got, 64), ref.draw(gen_ref, 64))
+        pool = pool[(sc.plane[pool] != plane) & (rng.random(len(pool)) < 0.8)]
+    assert len(set(fractions)) > 3 and 0.5 < max(fractions) <= 1
+
+
 @pytest.mark.parametrize("method", ["mop", "mop_miho"])
 def test_whole_filter_agrees(method, monkeypatch):
     """The whole filter, compiled against numpy, on synthetic scenes."""
@@ -167,6 +197,54 @@ def test_singular_value_test_is_the_same(miho):
     assert 0 < want.sum() < len(want)
     got = NumpyScoring(compiled=True).singular_value_ok(problem, hyp, cfg)
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("miho", [False, True])
+@pytest.mark.parametrize("start", ["empty", "weak best", "strong best"])
+def test_scoring_a_batch_in_one_call_is_the_same(miho, start):
+    """The compiled batch scoring against the loop over groups of the numpy path: the same
+    hypotheses scored, the same best, the same candidates in the same order."""
+    from colmap_miho.filtering.ransac import _score_batch, _Search
+
+    cfg = FilterConfig(method="mop_miho" if miho else "mop")
+    sc, problem, rng = _problem(miho)
+    hyp = hypotheses_from_samples(problem, _samples(sc, rng, 1500), cfg)
+    pool = np.sort(rng.choice(len(sc.x1), 2 * len(sc.x1) // 3, replace=False))
+    ref = NumpyScoring(compiled=False)
+    ub = ref.one_way_count(problem, hyp, pool, cfg.t_l**2)
+    searches = []
+    for scoring in (ref, NumpyScoring(compiled=True)):
+        search = _Search(t2=cfg.t_l**2)
+        if start != "empty":  # a best from an earlier batch, weaker or stronger than most
+            prior = hyp.take([0])
+            search.hyp, search.count = prior, int(np.quantile(ub, 0.9 if start == "weak best"
+                                                              else 0.999))
+            search.mask = np.zeros(len(pool), dtype=bool)
+            search.mask[: search.count] = True
+        stats = {"full_scored": 0}
+        improved = _score_batch(problem, hyp, ub, pool, cfg, search, stats, scoring)
+        searches.append((search, stats, improved))
+    (want, want_stats, want_imp), (got, got_stats, got_imp) = searches
+    assert want_stats["full_scored"] > 0 and len(want.cands) > 2
+    assert (got_imp, got_stats, got.count) == (want_imp, want_stats, want.count)
+    np.testing.assert_array_equal(got.mask, want.mask)
+    np.testing.assert_array_equal(got.hyp.H, want.hyp.H)
+    assert len(got.cands) == len(want.cands)
+    for (gh, gr, gm), (wh, wr, wm) in zip(got.cands, want.cands, strict=True):
+        np.testing.assert_array_equal(gh.row(gr).H, wh.row(wr).H)
+        np.testing.assert_array_equal(gh.row(gr).sample, wh.row(wr).sample)
+        np.testing.assert_array_equal(gm, wm)
+
+
+def test_a_row_is_the_take_of_it():
+    cfg = FilterConfig()
+    sc, problem, rng = _problem(False)
+    hyp = hypotheses_from_samples(problem, _samples(sc, rng), cfg)
+    for k in (0, len(hyp) // 2, len(hyp) - 1):
+        one, want = hyp.row(k), hyp.take([k])
+        for f in ("H", "Hinv", "sign", "sign_inv", "sample"):
+            np.testing.assert_array_equal(getattr(one, f), getattr(want, f))
+            assert getattr(one, f).shape == getattr(want, f).shape
 
 
 @pytest.mark.parametrize("miho", [False, True])
@@ -315,3 +393,27 @@ def test_neighbours_kept_from_earlier_pools_are_the_same(miho):
         reused += int(listed_before[pool].sum())
     assert reused > 0  # the kept lists were offered (and the answers still agree)
     assert shared._listed.any()
+
+
+def test_pool_arrays_gathered_at_once_are_the_per_half_ones():
+    """The scoring's pool arrays: the stacked gather and the float32 first half, built
+    before or after the per-half arrays, hold the same values."""
+    from colmap_miho.filtering.scoring import _Scratch
+
+    sc, problem, rng = _problem(True)
+    pools = [np.sort(rng.choice(len(sc.x1), m, replace=False)) for m in (50, 200)]
+    for first_stacked in (True, False):
+        work = _Scratch()
+        for pool in pools:
+            if first_stacked:
+                stacked, p32 = work.stacked(problem, pool), work.points32(problem, pool)
+            pts = work.points(problem, pool)
+            if not first_stacked:
+                p32, stacked = work.points32(problem, pool), work.stacked(problem, pool)
+            want = np.stack([np.stack(p) for p in pts])
+            assert stacked.flags.c_contiguous and stacked.shape == (problem.num_halves, 2, 2,
+                                                                    len(pool))
+            np.testing.assert_array_equal(stacked, want)
+            for got, half in zip(p32, pts[0], strict=True):
+                assert got.dtype == np.float32
+                np.testing.assert_array_equal(got, half.astype(np.float32))
