@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from .lsm import _MAX_GAIN, _MAX_SCALE, DEFAULT_TOL_PX, LSMResult
-from .warping import ImageStack
+from .warping import ImageStack, image_arrays
 
 #: Keys' cubic convolution parameter of ``grid_sample``'s bicubic mode.
 KEYS_A = -0.75
@@ -417,14 +417,6 @@ def _kernel() -> Any:
     return _KERNEL
 
 
-def _image_index(image: torch.Tensor | ImageStack, n: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """The images (float32 numpy views) and each of the n matches' image index."""
-    if isinstance(image, ImageStack):
-        return ([im.contiguous().numpy() for im in image.images],
-                image.index.cpu().numpy().astype(np.int64))
-    return [image.contiguous().numpy()], np.zeros(n, np.int64)
-
-
 def _blur_arrays(blur: tuple[torch.Tensor, torch.Tensor] | None, n: int) -> tuple[np.ndarray, np.ndarray]:
     """(n,) bool and (n,) float64 arrays of a ``blur_px`` argument (zeros for None)."""
     if blur is None:
@@ -470,8 +462,8 @@ def lsm_frames(
         :class:`~.lsm.LSMResult` (CPU tensors).
     """
     n = shift0.shape[0]
-    ims_f, idx_f = _image_index(img_f, n)
-    ims_m, idx_m = _image_index(img_m, n)
+    ims_f, idx_f = image_arrays(img_f, n)
+    ims_m, idx_m = image_arrays(img_m, n)
     f64 = np.float64
     H_f, H_m = (np.ascontiguousarray(h.cpu().numpy().astype(f64)) for h in (H_f_inv, H_m_inv))
     c_f, c_m, s0 = (np.ascontiguousarray(v.cpu().numpy().astype(f64)) for v in (frame_f, frame_m, shift0))

@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .warping import ImageStack
+from .warping import ImageStack, image_arrays
 
 #: the constants of the torch path (:mod:`.warping`, :mod:`.correlation`, :mod:`.subpixel`).
 _SINGULAR_DET = 1e-12
@@ -534,14 +534,6 @@ def _kernels() -> dict[str, Any]:
     return _KERNELS
 
 
-def _image_index(image: torch.Tensor | ImageStack, n: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """The images (float32 numpy views) and each of the n jobs' image index."""
-    if isinstance(image, ImageStack):
-        return ([im.contiguous().numpy() for im in image.images],
-                image.index.cpu().numpy().astype(np.int64))
-    return [image.contiguous().numpy()], np.zeros(n, np.int64)
-
-
 def _groups(key: np.ndarray) -> list[tuple[int, np.ndarray]]:
     """The jobs of each value of ``key`` (n,): (value, their rows (int64, in order))."""
     if key.size and (key == key[0]).all():
@@ -571,7 +563,7 @@ def subpixel(
     n = offset.shape[0]
     if iterations <= 0 or n == 0:
         return offset
-    ims, idx = _image_index(image, n)
+    ims, idx = image_arrays(image, n)
     H, c, off = _f64(H_inv), _f64(centres), _f64(offset)
     tpl = np.ascontiguousarray(templates.detach().cpu().numpy().astype(np.float32, copy=False))
     out = off.copy()
@@ -616,8 +608,8 @@ def evaluate(
     the full radius at once). The result also holds ``researched`` (J,) bool: the matches
     searched again over the full radius."""
     J = x_f.shape[0]
-    ims_f, idx_f = _image_index(img_f, J)
-    ims_m, idx_m = _image_index(img_m, J)
+    ims_f, idx_f = image_arrays(img_f, J)
+    ims_m, idx_m = image_arrays(img_m, J)
     H = np.ascontiguousarray(np.stack([_f64(h) for h, _, _ in passes], axis=1))  # (J, n_pass, 2, 3, 3)
     xf, xm = _f64(x_f), _f64(x_m)
     r, s = int(template_radius), int(search_radius)

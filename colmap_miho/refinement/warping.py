@@ -124,6 +124,16 @@ def job_images(image: torch.Tensor | ImageStack, rows: slice | torch.Tensor
     return image.rows(rows) if isinstance(image, ImageStack) else image
 
 
+def image_arrays(image: torch.Tensor | ImageStack, n: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """For the compiled CPU kernels: the images as float32 numpy views (no copy of a
+    contiguous CPU tensor) and each of the n jobs' index into them (int64; all 0 for a plain
+    image)."""
+    if isinstance(image, ImageStack):
+        return ([im.contiguous().numpy() for im in image.images],
+                image.index.cpu().numpy().astype(np.int64))
+    return [image.contiguous().numpy()], np.zeros(n, np.int64)
+
+
 def offset_grid(radius: int, device: torch.device, dtype: torch.dtype = torch.float64) -> torch.Tensor:
     """Integer offsets of a (2r+1) x (2r+1) square, (P, 2) as (x, y), row-major (y outer),
     so that a tensor (..., P) reshapes to (..., 2r+1, 2r+1) indexed [y, x]."""
