@@ -940,6 +940,25 @@ def _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_a
             known[todo[i]] = True
 
 
+def _need_of(probes, known, n, all_at_once):
+    """``(n,)`` bool: the pool positions whose neighbour lists a draw or a probe of the
+    positions ``probes`` needs searched: those of ``probes`` not ``known`` yet, or every
+    position of a pool with ``all_at_once`` that has none searched yet."""
+    fresh = True
+    for p in range(n):
+        if known[p]:
+            fresh = False
+            break
+    need = np.zeros(n, dtype=np.bool_)
+    if all_at_once and fresh:
+        need[:] = True
+    else:
+        for i in range(probes.shape[0]):
+            if not known[probes[i]]:
+                need[probes[i]] = True
+    return need
+
+
 def _local_fraction(mask, rows, pool, pos, nb, known, all_at_once, cand, far, cknown,
                     by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start, members,
                     pool_feats, sx, sy, t2, k, q, lists, listed):
@@ -955,18 +974,7 @@ def _local_fraction(mask, rows, pool, pos, nb, known, all_at_once, cand, far, ck
                 probe[r] = p
                 r += 1
             c += 1
-    fresh = True
-    for p in range(n):
-        if known[p]:
-            fresh = False
-            break
-    need = np.zeros(n, dtype=np.bool_)
-    if all_at_once and fresh:
-        need[:] = True
-    else:
-        for i in range(m):
-            if not known[probe[i]]:
-                need[probe[i]] = True
+    need = _need_of(probe, known, n, all_at_once)
     _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
                    feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2, k,
                    q, lists, listed)
@@ -991,19 +999,10 @@ def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, c
     L = local.shape[0]
     if L:
         # the seeds' neighbour lists not searched yet (all of a small pool at its first draw)
-        fresh = True
-        for p in range(n):
-            if known[p]:
-                fresh = False
-                break
-        need = np.zeros(n, dtype=np.bool_)
-        if all_at_once and fresh:
-            need[:] = True
-        else:
-            for i in range(L):
-                p = seeds[local[i]]
-                if not known[p]:
-                    need[p] = True
+        probes = np.empty(L, dtype=np.int64)
+        for i in range(L):
+            probes[i] = seeds[local[i]]
+        need = _need_of(probes, known, n, all_at_once)
         _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
                        feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2,
                        k, q, lists, listed)
@@ -1046,7 +1045,7 @@ def _jit_all() -> dict[str, Any]:
     helpers = (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
                _mask_row, _sv_ok_one, _normalise4, _normalising, _push_nearest, _keep_list,
                _draw_local_rows,
-               _neighbour_rows, _nearest_rows, _search_needed)
+               _neighbour_rows, _nearest_rows, _search_needed, _need_of)
     globals().update({f.__name__: jit(f) for f in helpers})
     return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
                                          _error_sq, _neighbours, _singular_value_ok, _refit,
