@@ -307,20 +307,25 @@ class Sampler:
     def _local_fraction_compiled(self, mask: np.ndarray, count: int) -> float:
         """:meth:`local_inlier_fraction` in one compiled call (:func:`.kernels.local_fraction`:
         the same searches, the same lists and the same fraction)."""
+        valid, inside = kernels.local_fraction(mask, _probe_rows(count), *self._search_args())
+        return inside / valid if valid else 0.0
+
+    def _search_args(self) -> tuple:
+        """The neighbour-search arguments that :func:`.kernels.draw_batch` and
+        :func:`.kernels.local_fraction` share (after their own leading ones): the pool, its
+        lists and their state, the problem's candidates and grid, the spread sets."""
         cands = self._cands
         assert cands is not None and self._spread_x is not None and self._spread_y is not None
         if self._feats is None:
             self._feats = np.ascontiguousarray(cands.feats[self.pool])
         if self._lists is None:
             self._lists = cands.lists_for(self.pool)
+        # the problem's candidates; a small problem searches the pool alone (as neighbours)
         grid = cands.grid() if len(cands.feats) > self.ALL_AT_ONCE else None
         q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
-        valid, inside = kernels.local_fraction(
-            mask, _probe_rows(count), self.pool, self._pos, self._nb, self._known,
-            len(self.pool) <= self.ALL_AT_ONCE, cands._cand, cands._far, cands._known, grid,
-            cands._sx, cands._sy, self._feats, self._spread_x, self._spread_y, self._t2, self.k,
-            q, *self._lists)
-        return inside / valid if valid else 0.0
+        return (self.pool, self._pos, self._nb, self._known, len(self.pool) <= self.ALL_AT_ONCE,
+                cands._cand, cands._far, cands._known, grid, cands._sx, cands._sy, self._feats,
+                self._spread_x, self._spread_y, self._t2, self.k, q, *self._lists)
 
     def _draw_local(self, rng: np.random.Generator, seeds: np.ndarray) -> np.ndarray:
         """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart
@@ -372,17 +377,4 @@ class Sampler:
         ``(B, 3)``, the local samples ``local`` ``(L,)`` and their keys ``(3, L, k)``, in one
         compiled call (:func:`.kernels.draw_batch`: the neighbour searches of
         :meth:`neighbours` and the draws of :meth:`_draw_local`)."""
-        cands = self._cands
-        assert cands is not None and self._spread_x is not None and self._spread_y is not None
-        if self._feats is None:
-            self._feats = np.ascontiguousarray(cands.feats[self.pool])
-        if self._lists is None:
-            self._lists = cands.lists_for(self.pool)
-        # the problem's candidates; a small problem searches the pool alone (as neighbours)
-        grid = cands.grid() if len(cands.feats) > self.ALL_AT_ONCE else None
-        q = min(len(self.pool), LocalCandidates.SEARCH * self.k + 1)
-        return kernels.draw_batch(
-            seeds, others, local, keys, self.pool, self._pos, self._nb, self._known,
-            len(self.pool) <= self.ALL_AT_ONCE, cands._cand, cands._far, cands._known, grid,
-            cands._sx, cands._sy, self._feats, self._spread_x, self._spread_y, self._t2, self.k,
-            q, *self._lists)
+        return kernels.draw_batch(seeds, others, local, keys, *self._search_args())
