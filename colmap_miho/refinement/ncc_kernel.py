@@ -190,9 +190,11 @@ def _sample(img, Hi, cx: float, cy: float, radius: int, out, pos) -> None:
             orow[ix] = v
 
 
-def _normalize(tpl, out) -> None:
+def _normalize(tpl, out) -> float:
     """``out`` (St, St) float64: the zero-mean, unit-norm template ``tpl`` (St, St); all zero
-    when its norm is at most the flatness epsilon (:func:`.correlation.normalize_templates`)."""
+    when its norm is at most the flatness epsilon (:func:`.correlation.normalize_templates`).
+    Returns the sum of squared deviations from the mean (the flatness test's variance times
+    St^2 - 1)."""
     n = tpl.shape[0]
     mean = 0.0
     for y in range(n):
@@ -214,6 +216,7 @@ def _normalize(tpl, out) -> None:
     for y in range(n):
         for x in range(n):
             out[y, x] *= inv
+    return ss
 
 
 def _ncc(win, tn, So: int, out, wc, box, cols) -> None:
@@ -439,6 +442,7 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
         j = rows[q]
         ok = True
         ins = True
+        ss = 0.0  # pass 0's template: its squared deviations (the flatness test)
         for p in range(n_pass):
             ok_f = _invert(H[j, p, f], Hfi[p])
             ok_m = _invert(H[j, p, m], Hmi[p])
@@ -446,25 +450,14 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
             cf[p, 0], cf[p, 1] = _to_frame(H[j, p, f], xf[j, 0], xf[j, 1])
             cm[p, 0], cm[p, 1] = _to_frame(H[j, p, m], xm[j, 0], xm[j, 1])
             _sample(img_f, Hfi[p], cf[p, 0], cf[p, 1], r, tpl[p], pos)
-            _normalize(tpl[p], tn[p])
+            ss_p = _normalize(tpl[p], tn[p])
+            if p == 0:
+                ss = ss_p
             ins = (ins and _centre_good(Hfi[p], cf[p, 0], cf[p, 1])
                    and _inside(Hfi[p], cf[p, 0], cf[p, 1], r, hf, wf)
                    and _centre_good(Hmi[p], cm[p, 0], cm[p, 1])
                    and _inside(Hmi[p], cm[p, 0], cm[p, 1], r + s, hm, wm))
         t0 = tpl[0]
-        mean = 0.0
-        for y in range(St):
-            rs = 0.0
-            for x in range(St):
-                rs += t0[y, x]
-            mean += rs
-        mean /= St * St
-        ss = 0.0
-        for y in range(St):
-            rs = 0.0
-            for x in range(St):
-                rs += (t0[y, x] - mean) ** 2
-            ss += rs
         is_flat = math.sqrt(ss / (St * St - 1)) < min_std
         lam_min, lam_max = _ellipse(t0, s, use_mask, mask)
         ratio = lam_min / max(lam_max, 1e-20) if lam_max > 0 else 0.0
