@@ -15,7 +15,7 @@ compiled kernel that CPU runs use). On a shared machine compare runs taken back 
 and prefer the CPU times.
 
     python benchmarks/bench_lsm_time.py --database DB --images DIR [--repeats 3] [--workers 2]
-        [--ncc-recipe recipes/mop_miho_ncc.toml] [--lsm-recipe recipes/mop_miho_lsm.toml]
+        [--ncc-recipe colmap_miho/recipes/mop_miho_ncc.toml] [--lsm-recipe colmap_miho/recipes/mop_miho_lsm.toml]
         [--set ncc.lsm_radius=6] [--lsm-share] [--torch-lsm]
 """
 
@@ -109,8 +109,8 @@ def main(argv=None) -> int:
     ap.add_argument("--output-dir", default="/tmp")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--ncc-recipe", default=str(REPO / "recipes" / "mop_miho_ncc.toml"))
-    ap.add_argument("--lsm-recipe", default=str(REPO / "recipes" / "mop_miho_lsm.toml"))
+    ap.add_argument("--ncc-recipe", default=str(REPO / "colmap_miho" / "recipes" / "mop_miho_ncc.toml"))
+    ap.add_argument("--lsm-recipe", default=str(REPO / "colmap_miho" / "recipes" / "mop_miho_lsm.toml"))
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="LSM run overrides")
     ap.add_argument("--lsm-share", action="store_true",
                     help="with --workers 1: CPU time of the refine stage and of the LSM step in it")
