@@ -21,7 +21,7 @@ import pytest
 from colmap_miho.cli import main
 from colmap_miho.reporting import html_report as hr
 from colmap_miho.reporting import model_view as mv
-from colmap_miho.reporting.tables import Verdict, comparison_groups, comparison_rows
+from colmap_miho.reporting.tables import Verdict, comparison_groups, comparison_rows, verdict_summary
 
 pytest.importorskip("plotly")
 
@@ -121,7 +121,8 @@ def test_comparison_page_is_self_contained_with_the_table_and_the_budget(tmp_pat
     assert ["3D points", "400", "399", "-1 (-0.2%)"] in _page_rows(text)  # a count: no verdict
     assert ["registered images", "5", "5", "same"] in _page_rows(text)
     assert _page_groups(text) == ["reconstruction", "model pose"]
-    assert "colmap-miho against the baseline: better in 1 row, worse in 0, the same in 8." in text
+    summary = html.escape(verdict_summary(comparison_groups(baseline, refined)))
+    assert f'<p class="verdict" id="verdict">{summary}</p>' in text
     assert not re.search(r"<script[^>]+src=", text)  # nothing fetched: the bundle is inline
     assert text.count("Plotly.newPlot") == 4  # pose curves, matches, displacement, 3D
     assert "baseline points (100 of 400)" in text and "colmap-miho points (100 of 400)" in text
