@@ -68,7 +68,8 @@ def dist(tmp_path_factory) -> dict[str, Path]:
     src = root / "src"
     src.mkdir()
     for item in REPO.iterdir():  # the project files beside the package (pyproject.toml, README.md, ...)
-        if item.is_file() and not item.name.startswith("."):
+        if item.is_file() and not item.name.startswith(".") and item.suffix in ("", ".toml", ".md", ".txt", ".in",
+                                                                               ".cfg", ".py"):
             shutil.copy2(item, src / item.name)
     shutil.copytree(PACKAGE, src / PACKAGE.name, ignore=shutil.ignore_patterns("__pycache__"))
     out = root / "out"
