@@ -10,8 +10,9 @@ distance to the GT epipolar lines, and residuals of their tracks triangulated wi
 cameras (tracks seen by >= 3 GT images; tracks above 4 px are "wrong", counted apart).
 
     python benchmarks/bench_accuracy.py [--data ../shared/data] [--work /tmp/bench_accuracy]
-        [--scenes demo middlebury_temple_sparse_ring strecha_fountain_p11 strecha_entry_p10]
-        [--settings default permissive] [--recipe mop_miho_ncc] [--set ncc.template_radius=6]
+        [--scenes demo strecha_castle_p19 middlebury_temple_sparse_ring strecha_fountain_p11
+                  strecha_entry_p10]
+        [--settings default permissive] [--recipe mop_miho_lsm] [--set ncc.template_radius=6]
         [--variant NAME[:key=value,key=value]] ... [--workers 2] [--seed 0] [--json out.json]
 
 A variant is a name and ``--set`` overrides on top of ``--recipe`` and the global ``--set``s;
@@ -36,7 +37,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_SCENES = ("middlebury_temple_sparse_ring", "strecha_fountain_p11", "strecha_entry_p10")
+SHARED_SCENES = ("strecha_castle_p19", "middlebury_temple_sparse_ring", "strecha_fountain_p11", "strecha_entry_p10")
 DEMO = "demo"
 SETTINGS = {
     # pycolmap's FeatureMatchingOptions().sift fields
@@ -174,7 +175,7 @@ def main(argv=None) -> int:
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_accuracy"), help="cache of scenes and databases")
     ap.add_argument("--scenes", nargs="+", default=[DEMO, *SHARED_SCENES])
     ap.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
-    ap.add_argument("--recipe", default=None, help="base recipe (default mop_miho_ncc)")
+    ap.add_argument("--recipe", default=None, help="base recipe (default mop_miho_lsm)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="override for every variant (repeatable)")
     ap.add_argument("--variant", dest="variants", action="append", default=[], metavar="NAME[:K=V,K=V]",
@@ -190,7 +191,7 @@ def main(argv=None) -> int:
     import pycolmap
 
     from colmap_miho.pipeline.run import refine_database
-    from colmap_miho.recipe import load_recipe
+    from colmap_miho.recipe import DEFAULT_RECIPE, load_recipe
     from colmap_miho.reporting.gt_model import load_gt_poses
 
     pycolmap.logging.minloglevel = 1
@@ -233,7 +234,7 @@ def main(argv=None) -> int:
             print(f"{scene}/{setting}: database {t_db:.1f} s (0 = cached), all done at "
                   f"{time.perf_counter() - t_all:.0f} s", file=sys.stderr)
     wall = time.perf_counter() - t_all
-    print(f"base recipe {args.recipe or 'mop_miho_ncc'} {' '.join('--set ' + o for o in args.overrides)}; "
+    print(f"base recipe {args.recipe or DEFAULT_RECIPE} {' '.join('--set ' + o for o in args.overrides)}; "
           f"residuals of stored-inlier tracks triangulated with the GT cameras (px, tracks <= 4 px), "
           f"d_med = change of the median vs input, wrong = tracks > 4 px, epi med = epipolar distance "
           f"median (px); {wall:.0f} s")

@@ -12,7 +12,7 @@ residual median and wrong-track share), which does not depend on the mapping.
 
     python benchmarks/bench_known_cameras.py [--data ../shared/data] [--work /tmp/bench_known_cameras]
         [--cache /tmp/bench_accuracy] [--scenes ...] [--settings default permissive]
-        [--repeats 3] [--recipe mop_miho_ncc] [--set key=value] [--workers 1] [--threads 1]
+        [--repeats 3] [--recipe mop_miho_lsm] [--set key=value] [--workers 1] [--threads 1]
         [--refine-intrinsics none] [--json out.json]
 
 ``--threads 1`` (default) makes each run deterministic for its seed; the spread then comes
@@ -111,7 +111,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", nargs="+", default=list(SHARED_SCENES))
     ap.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
     ap.add_argument("--repeats", type=int, default=3, help="mapping runs per side (seeds 0..N-1)")
-    ap.add_argument("--recipe", default=None, help="recipe (default mop_miho_ncc)")
+    ap.add_argument("--recipe", default=None, help="recipe (default mop_miho_lsm)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--workers", type=int, default=1, help="refine_database workers (default 1)")
     ap.add_argument("--threads", type=int, default=1, help="mapper threads (default 1: deterministic per seed)")

@@ -11,7 +11,7 @@ images, points and reprojection error (``--map``); ``--compare-verify`` adds a r
 Usage::
 
     python benchmarks/bench_refine.py [--scene DIR] [--workers N] [--repeats 3] [--map] [--compare-verify]
-        [--recipe mop_miho_ncc] [--set key=value ...] [--max-features 8192] [--database PATH]
+        [--recipe mop_miho_lsm] [--set key=value ...] [--max-features 8192] [--database PATH]
         [--matching default|permissive]
 
 ``--matching permissive`` matches with the permissive SIFT options of ``bench_accuracy.py``

@@ -1,4 +1,4 @@
-"""colmap-miho: MOP+MiHo match filtering and track-consistent NCC refinement for COLMAP.
+"""colmap-miho: MOP+MiHo match filtering and track-consistent NCC + least-squares refinement for COLMAP.
 
 Public API (imported on first use, so that ``colmap-miho --help`` starts without torch)::
 
@@ -11,7 +11,7 @@ Public API (imported on first use, so that ``colmap-miho --help`` starts without
         -> RefineResult   (move None: config.move, "auto" by default)
     refine_tracks(images, keypoints, pair_matches, pair_filter_results, *, config=None)
         -> TrackRefineResult
-    load_recipe(name_or_path=None, overrides=None) -> Recipe
+    load_recipe(name_or_path=None, overrides=None) -> Recipe   (None: mop_miho_lsm, the default)
 
 Pixel convention everywhere in the API: (x, y), integer = pixel centre (OpenCV). The +0.5
 shift to COLMAP's convention happens only in ``colmap_miho.adapters.database``.

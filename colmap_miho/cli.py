@@ -51,8 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="colmap-miho",
         description=(
-            "Filter (MOP+MiHo) and refine (track-consistent NCC) the matches of a COLMAP "
-            "database before Structure-from-Motion, then map and evaluate."
+            "Filter (MOP+MiHo) and refine (track-consistent NCC, then least-squares matching) the "
+            "matches of a COLMAP database before Structure-from-Motion, then map and evaluate."
         ),
     )
     parser.add_argument("--version", action="version", version=f"colmap-miho {__version__}")

@@ -29,15 +29,21 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-DEFAULT_RECIPE = "mop_miho_ncc"
+# the recipe of every command and API call that is not given one: track-consistent NCC, then
+# least-squares matching from each NCC peak (``mop_miho_ncc`` is the faster NCC-only recipe)
+DEFAULT_RECIPE = "mop_miho_lsm"
 
 
 @dataclass(frozen=True, kw_only=True)
 class Recipe:
     """The configuration of every stage: ``refine`` (filter, ncc, tracks, pipeline) and
-    mapping."""
+    mapping.
 
-    name: str = DEFAULT_RECIPE
+    ``Recipe()`` holds every stage's dataclass defaults (NCC without least-squares matching),
+    which is no shipped recipe: the default recipe is ``load_recipe()`` (:data:`DEFAULT_RECIPE`).
+    """
+
+    name: str = "custom"
     description: str = ""
     filter: FilterConfig = field(default_factory=FilterConfig)
     ncc: NCCConfig = field(default_factory=NCCConfig)

@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         database, images = args.database, args.images
 
-    recipe = load_recipe("mop_miho_ncc", ["pipeline.refine=false"] if args.no_refine else [])
+    # None: the default recipe (mop_miho_lsm); "mop_miho_ncc" is the faster NCC-only one
+    recipe = load_recipe(None, ["pipeline.refine=false"] if args.no_refine else [])
     summary = refine_database(database, images, work / "refined.db", recipe=recipe, workers=1)
     print(summary.format())
 

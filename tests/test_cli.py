@@ -109,3 +109,17 @@ def test_bad_list_values_are_one_line_errors(capsys):
         assert exc.value.code == 2
         err = capsys.readouterr().err
         assert "--auc-thresholds" in err.splitlines()[-1]
+
+
+def test_every_recipe_option_names_the_default_recipe():
+    """``--recipe``'s help on every command that takes one says which recipe runs without it."""
+    from colmap_miho.recipe import DEFAULT_RECIPE
+
+    commands = set()
+    for name, p in _subparsers().items():
+        for action in p._actions:
+            if "--recipe" in action.option_strings:
+                commands.add(name)
+                assert action.default is None, name  # None: load_recipe's default, one place
+                assert f"default {DEFAULT_RECIPE}" in (action.help or ""), (name, action.help)
+    assert commands >= {"refine", "run", "compare", "demo", "map"}

@@ -46,7 +46,7 @@ class ListAction(argparse.Action):
 def add_recipe_arguments(parser) -> None:
     """--recipe / --set / --workers / --device / --seed / --mapper / --refine-intrinsics,
     shared with run and demo (read them with :func:`load_run_recipe`)."""
-    parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_ncc)")
+    parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_lsm)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a recipe value, e.g. --set filter.t_l=12 (repeatable)")
     parser.add_argument("--mapper", default=None, choices=Mapper.values(),

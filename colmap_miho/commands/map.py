@@ -19,7 +19,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--output", required=True, type=Path,
                         help="folder for the model (largest by registered images)")
     parser.add_argument("--recipe", default=None,
-                        help="recipe name or .toml path whose [mapping] table is used (default mop_miho_ncc)")
+                        help="recipe name or .toml path whose [mapping] table is used (default mop_miho_lsm)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a recipe value, e.g. --set mapping.num_threads=1 (repeatable)")
     parser.add_argument("--mapper", default=None, choices=Mapper.values(),

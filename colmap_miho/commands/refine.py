@@ -12,10 +12,12 @@ from ..errors import InvalidInput
 #: here, the parser is built without importing the pipeline).
 DASK_LOCAL = "local"
 
-HELP = "filter (MOP+MiHo) and refine (track-consistent NCC) the matches of a COLMAP database"
+HELP = "filter (MOP+MiHo) and refine (track-consistent NCC + LSM) the matches of a COLMAP database"
 DESCRIPTION = (
     "Filter every image pair of a COLMAP database with MOP / MOP+MiHo, refine the kept "
-    "keypoints by NCC along tracks (each keypoint moves at most once) and write the result "
+    "keypoints along tracks (each keypoint moves at most once; the default recipe mop_miho_lsm: "
+    "NCC, then least-squares matching from each NCC peak; mop_miho_ncc: NCC alone, faster) and "
+    "write the result "
     "to a new database (default <stem>.miho.db beside the input; the input is never "
     "modified), or with --in-place replace the input atomically after a timestamped backup."
 )
@@ -29,13 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     out.add_argument("--in-place", action="store_true",
                      help="replace the input atomically, after copying it to <name>.<time>.bak")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --output")
-    parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_ncc)")
+    parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_lsm)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a recipe value, e.g. --set filter.t_l=12 (repeatable)")
     parser.add_argument("--source", choices=MatchSource.values(), default=None,
                         help="filter the verified inliers (two_view_geometries, default) or the "
                              "raw tentative matches (MOP+MiHo then replaces geometric verification)")
-    parser.add_argument("--no-refine", action="store_true", help="filter only, no NCC refinement")
+    parser.add_argument("--no-refine", action="store_true", help="filter only, no refinement (keypoints do not move)")
     parser.add_argument("--verify", action=argparse.BooleanOptionalAction, default=None,
                         help="re-run COLMAP's epipolar verification on the kept matches "
                              "(default: the recipe's pipeline.verify, off)")

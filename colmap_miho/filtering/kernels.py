@@ -23,8 +23,9 @@ matmul (BLAS) may fuse or reorder them, so homographies can differ in the last b
 with them, rarely, a borderline decision.
 
 numba is imported on first use (:func:`available`), and the kernels compile then or load
-from numba's on-disk cache (``cache=True``); :func:`warm` loads them ahead (the worker
-processes' forkserver does, :mod:`.preload`, so that workers fork with them loaded).
+from numba's on-disk cache (``cache=True``); :func:`.preload.warm` loads them ahead (the worker
+processes' forkserver does, so that workers fork with them loaded; :func:`loaded` says whether
+they are). This module imports nothing else of the filter: the filter's modules import it.
 :class:`NearestGrid` is the compiled path's neighbour search for local sampling (the numpy
 path keeps scipy's k-d tree).
 """
@@ -1024,6 +1025,11 @@ def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, c
     return out
 
 
+def loaded() -> bool:
+    """Whether the kernels are loaded in this process (compiled or read from numba's cache)."""
+    return _KERNELS is not None
+
+
 def _compiled() -> dict[str, Any]:
     """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
     global _KERNELS
@@ -1307,22 +1313,3 @@ class NearestGrid:
         return _compiled()["_nearest"](self.feats, np.asarray(todo, np.int64), int(q), self.x0,
                                        self.y0, self.cell, self.nx, self.ny, self.start,
                                        self.members)
-
-
-def warm() -> bool:
-    """Load every compiled kernel now (numba's import, then each kernel from its cache, or
-    compiled), by filtering a small synthetic pair; returns whether the kernels are
-    available. Never raises: a process that cannot load them loads them when it filters
-    (where the error shows)."""
-    try:
-        if not available():
-            return False
-        from .api import filter_matches
-
-        rng = np.random.default_rng(0)
-        x1 = rng.uniform(0, 500, (300, 2))
-        filter_matches(x1, x1 + rng.normal(0, 0.5, x1.shape), seed=0)
-        filter_matches(x1, rng.uniform(0, 500, (300, 2)), seed=0)
-        return _KERNELS is not None
-    except Exception:  # noqa: BLE001 - warming is optional; filtering reports the error
-        return False

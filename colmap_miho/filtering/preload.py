@@ -1,9 +1,32 @@
 """Imported by the worker processes' forkserver (:data:`colmap_miho.pipeline.workers.PRELOAD`):
-loads the compiled filter kernels (:func:`.kernels.warm`) once in the forkserver, so that
-every worker forked from it starts with them instead of loading them itself."""
+loads the compiled filter kernels (:mod:`.kernels`) once in the forkserver, by filtering a small
+synthetic pair (:func:`warm`), so that every worker forked from it starts with them instead of
+loading them itself. The warm-up lives here, above the filter's API, and not in
+:mod:`.kernels`, which the filter's modules import."""
 
 from __future__ import annotations
 
-from .kernels import warm
+import numpy as np
+
+from . import kernels
+from .api import filter_matches
+
+
+def warm() -> bool:
+    """Load every compiled filter kernel now (numba's import, then each kernel from its cache,
+    or compiled), by filtering a small synthetic pair (one that keeps a plane, one of pure
+    outliers); returns whether the kernels are loaded. Never raises: a process that cannot
+    load them loads them when it filters (where the error shows)."""
+    try:
+        if not kernels.available():
+            return False
+        rng = np.random.default_rng(0)
+        x1 = rng.uniform(0, 500, (300, 2))
+        filter_matches(x1, x1 + rng.normal(0, 0.5, x1.shape), seed=0)
+        filter_matches(x1, rng.uniform(0, 500, (300, 2)), seed=0)
+        return kernels.loaded()
+    except Exception:  # noqa: BLE001 - warming is optional; filtering reports the error
+        return False
+
 
 warm()

@@ -162,8 +162,8 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
         database: COLMAP database (never modified).
         image_dir: its image folder.
         output: comparison folder (created; files in it are replaced).
-        recipe: Recipe, recipe name or TOML path: ``refine_database``'s stages and the
-            ``mapping`` config of both sides (mapper, seed, threads, cameras, refine_intrinsics).
+        recipe: Recipe, recipe name or TOML path (default ``mop_miho_lsm``): ``refine_database``'s
+            stages and the ``mapping`` config of both sides (mapper, seed, threads, cameras, refine_intrinsics).
         gt: GT COLMAP model folder (or dataset folder with ``gt_model/``); without it only
             reconstruction statistics are compared.
         pairs: pairs for the two-view AUCs (list or file); default: the dataset's
@@ -203,7 +203,8 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
 def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe | str | None = None,
                     gt: str | Path | None = None, compare: bool = False,
                     extraction: ExtractionOptions | None = None, options: JobOptions | None = None) -> dict:
-    """The whole job from a folder of images: SIFT + exhaustive matching, refine, map, report.
+    """The whole job from a folder of images: SIFT + exhaustive matching, refine (``recipe``,
+    default ``mop_miho_lsm``), map, report.
 
     Writes ``OUTPUT/database.db`` (COLMAP's features and matches, kept as the baseline input).
     Without ``compare``: ``OUTPUT/refined/{database.db, refine.json, model/}`` and

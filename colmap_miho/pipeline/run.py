@@ -97,7 +97,8 @@ def refine_database(
     restart: bool = False,
     dask: str | None = None,
 ) -> RefineSummary:
-    """Filter (MOP / MOP+MiHo) and refine (track-consistent NCC) a COLMAP database.
+    """Filter (MOP / MOP+MiHo) and refine (track-consistent NCC, then least-squares matching
+    in the default recipe) a COLMAP database.
 
     (The public entry point: its keyword arguments are the ``refine`` command's options, one
     each, so that a script reads like the command line; the stages get them grouped.)
@@ -108,8 +109,9 @@ def refine_database(
         image_dir: folder the database's image names are relative to.
         output: the database to write; default ``<stem>.miho.db`` beside the input.
         recipe: a :class:`~colmap_miho.recipe.Recipe`, a shipped recipe name or a TOML path
-            (default ``mop_miho_ncc``); its ``pipeline`` table chooses the match source,
-            ``min_matches``, refinement, re-verification and the memory budget.
+            (default ``mop_miho_lsm``; ``mop_miho_ncc`` is the faster NCC-only one); its
+            ``pipeline`` table chooses the match source, ``min_matches``, refinement,
+            re-verification and the memory budget.
         in_place: replace ``database`` itself, after copying it to a timestamped backup.
         overwrite: allow replacing an existing ``output``.
         workers: processes that filter pairs and refine tracks (default: all cores; 1 = all

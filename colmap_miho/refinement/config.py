@@ -94,7 +94,8 @@ class NCCConfig:
             gain/offset, bicubic samples, both patches in the match's common frame) and move
             the keypoint to LSM's position where it passes the three tests below; elsewhere
             the iterated parabolas (``subpixel_iterations``) refine the NCC peak as without
-            LSM. Off by default (see ``colmap_miho/recipes/mop_miho_lsm.toml``).
+            LSM. Off in this dataclass, on in the default recipe
+            (``colmap_miho/recipes/mop_miho_lsm.toml``).
         lsm_radius: in [0, ``MAX_WINDOW_RADIUS_PX``], half size of the LSM template in pixels
             (0: ``template_radius``).
         lsm_radius_per_scale: >= 0; 0 (off), or LSM templates sized by the fixed keypoint: radius

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..adapters.staged_write import write_text_atomic
 from .model_view import COLORS, POINT_BUDGET, SIDE_LABEL, model_figure, moved_keypoints
-from .tables import comparison_rows
+from .tables import ComparedRow, Verdict, comparison_groups, verdict_summary
 
 __all__ = ["write_comparison_html", "write_model_html"]
 
@@ -41,6 +41,11 @@ table.metrics{border-collapse:collapse;font-size:.92em}
 table.metrics th,table.metrics td{padding:3px 12px;border-bottom:1px solid #eee}
 table.metrics td.num{text-align:right;font-variant-numeric:tabular-nums}
 table.metrics th{text-align:left;background:#f5f5f5}
+table.metrics tr.group th{background:#e8eef6;padding-top:8px}
+table.metrics td.change{color:#666}
+table.metrics td.change.better{color:#146c2e;font-weight:600}
+table.metrics td.change.worse{color:#b3261e;font-weight:600}
+p.verdict{font-weight:600;margin:6px 0}
 """
 
 _PLOT_CONFIG = {"displaylogo": False, "responsive": True}
@@ -172,13 +177,33 @@ def _displacement_figure(go, displacements: np.ndarray, per_image: list, size: t
 
 
 # --------------------------------------------------------------------------- page
-def _table_html(rows: Sequence[tuple[str, ...]], header: tuple[str, ...]) -> str:
+def _table_html(groups: Sequence[tuple[str, Sequence[tuple[str, ...]]]], header: tuple[str, ...],
+                last_cell_classes: Sequence[str] = ()) -> str:
+    """The metrics table: one ``<tbody>`` per group, headed by the group's name.
+    ``last_cell_classes`` (one per row, in order, when given) are added to each row's last cell
+    (the change column: its verdict)."""
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-    body = []
-    for row in rows:
-        cells = [f"<td>{html.escape(row[0])}</td>"] + [f'<td class="num">{html.escape(c)}</td>' for c in row[1:]]
-        body.append("<tr>" + "".join(cells) + "</tr>")
-    return f'<table class="metrics" id="metrics"><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table>'
+    extra = iter(last_cell_classes)
+    bodies = []
+    for group, rows in groups:
+        body = [f'<tr class="group"><th colspan="{len(header)}" scope="colgroup">{html.escape(group)}</th></tr>']
+        for row in rows:
+            classes = ["num"] * (len(row) - 1)
+            if last_cell_classes:
+                classes[-1] += " " + next(extra)
+            cells = [f"<td>{html.escape(row[0])}</td>"]
+            cells += [f'<td class="{cls}">{html.escape(c)}</td>' for cls, c in zip(classes, row[1:], strict=True)]
+            body.append("<tr>" + "".join(cells) + "</tr>")
+        bodies.append(f'<tbody data-group="{html.escape(group)}">{"".join(body)}</tbody>')
+    return f'<table class="metrics" id="metrics"><thead><tr>{head}</tr></thead>{"".join(bodies)}</table>'
+
+
+def _change_cell(row: ComparedRow) -> tuple[str, str]:
+    """The change column's text and class: the change and its verdict ("same" alone)."""
+    if row.verdict is Verdict.SAME:
+        return "same", "change"
+    text = f"{row.change} {row.verdict}" if row.verdict is not Verdict.NONE else row.change
+    return text, f"change {row.verdict}" if row.verdict in (Verdict.BETTER, Verdict.WORSE) else "change"
 
 
 def _figure_html(fig, div_id: str) -> str:
@@ -248,9 +273,12 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
     if models is None:
         models = {tag: path.parent / tag / "model" for tag in ("baseline", "refined")}
     recs = {tag: rec for tag, m in models.items() if (rec := _load_model(m)) is not None}
-    rows = comparison_rows(baseline, refined)
-    sections = [_section("Side by side", _table_html(rows, ("metric", "baseline", "colmap-miho")),
-                         _summary_note(baseline, refine), "table")]
+    groups = comparison_groups(baseline, refined)
+    cells = [(g, [(r.metric, r.baseline, r.refined, _change_cell(r)[0]) for r in rows]) for g, rows in groups]
+    table = _table_html(cells, ("metric", "baseline", "colmap-miho", "change"),
+                        [_change_cell(r)[1] for _, rows in groups for r in rows])
+    verdict = f'<p class="verdict" id="verdict">{html.escape(verdict_summary(groups))}</p>'
+    sections = [_section("Side by side", verdict + table, _summary_note(baseline, refine), "table")]
     curves = _pose_curves_figure(go, {"baseline": baseline, "refined": refined})
     if curves is not None:
         sections.append(_section("Pose error", _figure_html(curves, "pose-curves"),
@@ -301,8 +329,8 @@ def write_model_html(path: str | Path, report: dict, model, *, budget: int = POI
     if go is None:
         return None
     path = Path(path)
-    rows = [(label, value) for label, value, _ in comparison_rows(report, {})]
-    sections = [_section("Report", _table_html(rows, ("metric", "value")), "", "table")]
+    groups = [(g, [(r.metric, r.baseline) for r in rows]) for g, rows in comparison_groups(report, {})]
+    sections = [_section("Report", _table_html(groups, ("metric", "value")), "", "table")]
     curves = _pose_curves_figure(go, {"model": report})
     if curves is not None:
         sections.append(_section("Pose error", _figure_html(curves, "pose-curves"),

@@ -417,3 +417,25 @@ def test_pool_arrays_gathered_at_once_are_the_per_half_ones():
             for got, half in zip(p32, pts[0], strict=True):
                 assert got.dtype == np.float32
                 np.testing.assert_array_equal(got, half.astype(np.float32))
+
+
+def test_kernels_module_imports_nothing_of_the_package():
+    """kernels.py sits under the filter's modules, which import it: it imports no module of
+    colmap_miho (the warm-up, which filters a pair through the API, lives in preload.py)."""
+    import ast
+    import inspect
+
+    tree = ast.parse(inspect.getsource(kernels))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            assert node.level == 0 and not (node.module or "").startswith("colmap_miho"), ast.unparse(node)
+        elif isinstance(node, ast.Import):
+            assert not any(a.name.startswith("colmap_miho") for a in node.names), ast.unparse(node)
+    assert not hasattr(kernels, "warm")
+
+
+def test_preload_warm_loads_the_kernels():
+    from colmap_miho.filtering import preload
+
+    assert preload.warm()
+    assert kernels.loaded()

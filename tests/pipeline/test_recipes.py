@@ -1,7 +1,9 @@
+import dataclasses
+
 import pytest
 
 from colmap_miho.enums import FilterMethod, Mapper, MatchSource
-from colmap_miho.recipe import available_recipes, load_recipe
+from colmap_miho.recipe import DEFAULT_RECIPE, available_recipes, load_recipe
 
 
 def test_every_shipped_recipe_loads():
@@ -18,8 +20,16 @@ def test_every_shipped_recipe_loads():
 
 def test_default_recipe_is_mop_miho_with_refinement():
     recipe = load_recipe()
+    assert recipe.name == DEFAULT_RECIPE == "mop_miho_lsm"
     assert recipe.filter.method is FilterMethod.MOP_MIHO
     assert recipe.pipeline.refine is True
+    # least-squares matching from each NCC peak; mop_miho_ncc is the same recipe without it
+    assert recipe.ncc.lsm is True and recipe.tracks.multiphoto_lsm is False
+    ncc = load_recipe("mop_miho_ncc")
+    assert ncc.ncc.lsm is False
+    lsm_fields = ("lsm", "lsm_radius", "lsm_antialias", "lsm_max_shift_px", "lsm_tol_px")
+    assert dataclasses.replace(recipe.ncc, **{f: getattr(ncc.ncc, f) for f in lsm_fields}) == ncc.ncc
+    assert (recipe.filter, recipe.tracks, recipe.pipeline) == (ncc.filter, ncc.tracks, ncc.pipeline)
     assert recipe.filter.inlier_count == 8 and recipe.filter.strict_threshold == 7.5
 
 

@@ -6,6 +6,7 @@ The browser test drives the system's Chromium (Debian's ``chromium`` package) wi
 
 from __future__ import annotations
 
+import html
 import io
 import json
 import logging
@@ -20,7 +21,7 @@ import pytest
 from colmap_miho.cli import main
 from colmap_miho.reporting import html_report as hr
 from colmap_miho.reporting import model_view as mv
-from colmap_miho.reporting.tables import comparison_rows
+from colmap_miho.reporting.tables import Verdict, comparison_groups, comparison_rows, verdict_summary
 
 pytest.importorskip("plotly")
 
@@ -38,9 +39,18 @@ def _scene(num_points=300, num_frames=5, seed=0):
     return pycolmap.synthesize_dataset(opts)
 
 
+def _table(text: str) -> str:
+    return re.search(r'<table class="metrics" id="metrics">(.*?)</table>', text, re.S).group(1)
+
+
 def _page_rows(text: str) -> list[list[str]]:
-    body = re.search(r'<table class="metrics" id="metrics">.*?<tbody>(.*?)</tbody>', text, re.S).group(1)
-    return [re.findall(r"<td[^>]*>(.*?)</td>", row) for row in re.findall(r"<tr>(.*?)</tr>", body)]
+    """The metric rows of the page's table (group headings left out), cell texts."""
+    rows = re.findall(r"<tr>(.*?)</tr>", _table(text).split("</thead>", 1)[1])
+    return [[html.unescape(c) for c in re.findall(r"<td[^>]*>(.*?)</td>", row)] for row in rows]
+
+
+def _page_groups(text: str) -> list[str]:
+    return re.findall(r'<tr class="group"><th[^>]*>(.*?)</th></tr>', _table(text))
 
 
 # --------------------------------------------------------------------------- pieces
@@ -107,11 +117,66 @@ def test_comparison_page_is_self_contained_with_the_table_and_the_budget(tmp_pat
     path = hr.write_comparison_html(tmp_path / "report.html", baseline, refined, {"recipe": "r"}, changes,
                                     models={"baseline": base, "refined": ref}, budget=100)
     text = path.read_text()
-    assert _page_rows(text) == [list(r) for r in comparison_rows(baseline, refined)]
-    assert ["3D points", "400", "399"] in _page_rows(text)
+    assert [r[:3] for r in _page_rows(text)] == [list(r) for r in comparison_rows(baseline, refined)]
+    assert ["3D points", "400", "399", "-1 (-0.2%)"] in _page_rows(text)  # a count: no verdict
+    assert ["registered images", "5", "5", "same"] in _page_rows(text)
+    assert _page_groups(text) == ["reconstruction", "model pose"]
+    summary = html.escape(verdict_summary(comparison_groups(baseline, refined)))
+    assert f'<p class="verdict" id="verdict">{summary}</p>' in text
     assert not re.search(r"<script[^>]+src=", text)  # nothing fetched: the bundle is inline
     assert text.count("Plotly.newPlot") == 4  # pose curves, matches, displacement, 3D
     assert "baseline points (100 of 400)" in text and "colmap-miho points (100 of 400)" in text
+
+
+def _side(median_px, auc5, points, reg=(10, 10, 10), wrong=None):
+    rep = {"reconstruction": {"num_reg_images": reg[0], "num_points3D": points},
+           "model_pose_auc": {"auc5": auc5, "auc10": 0.9, "auc20": 0.95},
+           "keypoint_accuracy": {"residual_median_px": median_px, "num_measured_tracks": 500}}
+    if wrong is not None:
+        rep["keypoint_accuracy"]["wrong_track_share"] = wrong
+    if reg[1:] != (reg[0], reg[0]):
+        rep["repeats"] = {"num_runs": 3, "seeds": [0, 1, 2], "median": {"reconstruction": {"num_reg_images": reg[0]}},
+                          "min": {"reconstruction": {"num_reg_images": reg[1]}},
+                          "max": {"reconstruction": {"num_reg_images": reg[2]}}}
+    return rep
+
+
+def test_change_column_knows_which_way_each_metric_improves():
+    """Lower is better for residuals, higher for AUCs; counts get a change but no verdict;
+    equal printed values are the same; overlapping [min-max] ranges of repeated runs are
+    within the spread; a value missing on one side has no change."""
+    baseline = _side(0.200, 0.80, 1000, reg=(10, 9, 10))
+    refined = _side(0.120, 0.75, 990, reg=(11, 10, 11), wrong=0.01)
+    groups = comparison_groups(baseline, refined)
+    assert [g for g, _ in groups] == ["reconstruction", "model pose", "keypoints against GT"]
+    rows = {r.metric: r for _, group in groups for r in group}
+    assert (rows["GT track residual median (px)"].verdict, rows["GT track residual median (px)"].change) == (
+        Verdict.BETTER, "-0.080 (-40%)")
+    assert (rows["model pose AUC@5 (%)"].verdict, rows["model pose AUC@5 (%)"].change) == (Verdict.WORSE, "-5.0 pts")
+    assert rows["model pose AUC@10 (%)"].verdict is Verdict.SAME
+    assert (rows["3D points"].verdict, rows["3D points"].change) == (Verdict.NONE, "-10 (-1.0%)")
+    assert rows["registered images"].verdict is Verdict.SPREAD  # 9-10 against 10-11
+    assert rows["GT tracks measured"].verdict is Verdict.SAME
+    assert (rows["wrong tracks > 4 px (%)"].change, rows["wrong tracks > 4 px (%)"].verdict) == ("-", Verdict.NONE)
+    # ranges apart: a verdict
+    apart = comparison_groups(_side(0.2, 0.8, 1000, reg=(8, 7, 8)), _side(0.2, 0.8, 1000, reg=(10, 10, 11)))
+    assert apart[0][1][0].verdict is Verdict.BETTER
+    # the same metric read the other way round
+    back = {r.metric: r.verdict for _, g in comparison_groups(refined, baseline) for r in g}
+    assert back["GT track residual median (px)"] is Verdict.WORSE and back["model pose AUC@5 (%)"] is Verdict.BETTER
+
+
+def test_comparison_page_groups_rows_and_marks_better_and_worse(tmp_path):
+    baseline, refined = _side(0.200, 0.80, 1000), _side(0.120, 0.75, 990)
+    path = hr.write_comparison_html(tmp_path / "report.html", baseline, refined, {}, {}, models={})
+    text = path.read_text()
+    assert _page_groups(text) == ["reconstruction", "model pose", "keypoints against GT"]
+    rows = {r[0]: r for r in _page_rows(text)}
+    assert rows["GT track residual median (px)"][3] == "-0.080 (-40%) better"
+    assert rows["model pose AUC@5 (%)"][3] == "-5.0 pts worse"
+    assert re.search(r'<td class="num change better">-0.080 \(-40%\) better</td>', text)
+    assert re.search(r'<td class="num change worse">-5.0 pts worse</td>', text)
+    assert "better in 1 row, worse in 1 (model pose AUC@5 (%)), the same in 4." in text
 
 
 def test_model_page_from_the_cli(tmp_path):
@@ -177,8 +242,11 @@ def test_demo_page_in_headless_chromium(demo_run):
             page.goto(page_file.as_uri())
             page.wait_for_selector("#models3d canvas", timeout=30_000)
             page.wait_for_timeout(1500)  # the WebGL scene draws after the layout
-            rows = page.eval_on_selector_all(
-                "#metrics tbody tr", "rows => rows.map(r => Array.from(r.cells, c => c.textContent.trim()))")
+            rows = page.eval_on_selector_all("#metrics tbody tr:not(.group)",
+                                             "rows => rows.map(r => Array.from(r.cells, c => c.textContent.trim()))")
+            groups = page.eval_on_selector_all("#metrics tr.group th", "cells => cells.map(c => c.textContent)")
+            verdicts = page.eval_on_selector_all(
+                "#metrics td.change", "cells => cells.map(c => [c.className, getComputedStyle(c).color])")
             shot = page.locator("#models3d canvas").first.screenshot()  # the WebGL canvas alone
             # the model buttons switch the traces: "baseline" leaves the baseline's points and cameras
             page.locator("#models3d .updatemenu-button").nth(1).click()
@@ -187,7 +255,11 @@ def test_demo_page_in_headless_chromium(demo_run):
         finally:
             browser.close()
     assert problems == []
-    assert rows == expected
+    assert [r[:3] for r in rows] == expected
+    assert groups == ["reconstruction", "model pose", "two-view pose", "keypoints against GT"]
+    # the demo's refined side has better keypoints: green "better" cells, coloured apart from the others
+    colours = {cls: colour for cls, colour in verdicts}
+    assert "num change better" in colours and colours["num change better"] != colours.get("num change")
     assert visible == [True, True, False, False]
     pixels = np.asarray(Image.open(io.BytesIO(shot)).convert("RGB")).reshape(-1, 3)
     colours = np.unique(pixels, axis=0)
