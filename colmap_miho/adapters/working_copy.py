@@ -30,7 +30,15 @@ from .safety import (
     remove_with_side_files,
     side_files,
 )
-from .staged_write import _check_written, _new_staging_name, is_disk_full, write_target
+from .staged_write import (
+    CHARACTER_DEVICE,
+    _check_written,
+    _new_staging_name,
+    _write_through,
+    check_output_path,
+    is_disk_full,
+    write_target,
+)
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +101,7 @@ class WorkingCopy:
                 raise UserError(f"output {self.output} is the input database; use --in-place to replace it")
             if self.output.is_dir():
                 raise UserError(f"output {self.output} is a folder; give a database file name")
+            check_output_path(self.output, "--output", device=False)  # a FIFO, a device: never replaced
             if self.output.exists() and not overwrite:
                 raise UserError(f"output {self.output} exists; pass --overwrite to replace it")
             if not self.output.parent.is_dir():
@@ -149,7 +158,10 @@ class WorkingCopy:
         Raises:
             UserError: the file cannot be written (missing or read-only folder, disk full).
         """
+        check_output_path(path)
         target = write_target(path)
+        if check_output_path(path) == CHARACTER_DEVICE:  # staged elsewhere, written through at commit
+            target = Path(tempfile.gettempdir()) / Path(path).name
         data = text.encode("utf-8")
         try:
             tmp = _new_staging_name(target)
@@ -164,7 +176,7 @@ class WorkingCopy:
             why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
             raise UserError(f"cannot write {target}: {why}; nothing was replaced") from None
         os.chmod(tmp, 0o666 & ~_umask())
-        self._side.append((tmp, target))
+        self._side.append((tmp, Path(path) if check_output_path(path) == CHARACTER_DEVICE else target))
 
     def commit(self) -> Path:
         """Check again, then atomically move the working copy onto the output; returns it.
@@ -180,6 +192,7 @@ class WorkingCopy:
             self._check_input_unchanged()
             check_not_in_use(self.output)
         elif self.output.exists() or self.output.is_symlink():
+            check_output_path(self.output, "--output", device=False)  # it may have become a FIFO meanwhile
             if not self.overwrite:
                 raise UserError(f"output {self.output} was created by another program during the run; "
                                 "nothing was replaced (pass --overwrite to replace it)")
@@ -200,7 +213,11 @@ class WorkingCopy:
         _fsync_dir(self.output.parent)
         self.committed = True
         for tmp, target in self._side:
-            os.replace(tmp, target)
+            if check_output_path(target) == CHARACTER_DEVICE:
+                _write_through(tmp, target)
+                tmp.unlink()
+            else:
+                os.replace(tmp, target)
         self._side.clear()
         return self.output
 
