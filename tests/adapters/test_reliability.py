@@ -476,7 +476,7 @@ def test_truncated_model_file_is_one_line(name, scene, tmp_path, capfd):
     capfd.readouterr()
     assert main(["report", "--model", str(model), "-q"]) == 2
     lines = error_lines(capfd.readouterr().err)
-    assert len(lines) == 1 and f"cannot read the COLMAP model in {model}" in lines[0], lines
+    assert len(lines) == 1 and f"COLMAP model file {model / name} is truncated" in lines[0], lines
 
 
 # ------------------------------------------------------------------ 8. images checked by decoding and size
