@@ -24,6 +24,7 @@ from pathlib import Path
 
 from .enums import Mapper, StrEnum
 from .errors import InvalidInput, RunFailed
+from .validation import check_bounds
 
 log = logging.getLogger(__name__)
 
@@ -194,12 +195,9 @@ class MappingConfig:
             raise InvalidInput("camera_params needs camera_model (the model the parameters belong to)")
         if self.camera_model.strip():
             parse_camera_params(self.camera_model, self.camera_params)
-        if self.seed < 0:
-            raise InvalidInput(f"seed must be >= 0, got {self.seed}")
-        if self.num_threads != -1 and self.num_threads < 1:
+        check_bounds(self, "mapping")  # every key's range (colmap_miho.validation.BOUNDS)
+        if self.num_threads == 0:
             raise InvalidInput(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
-        if self.min_num_matches < 0:
-            raise InvalidInput(f"min_num_matches must be >= 0, got {self.min_num_matches}")
 
     def intrinsics(self):
         """The :class:`~colmap_miho.adapters.cameras.CameraIntrinsics` to write into every

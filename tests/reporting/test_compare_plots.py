@@ -37,7 +37,8 @@ def test_image_names_with_dollars_are_plain_text(tmp_path):
     import matplotlib
 
     before = {name: 10 + k for k, name in enumerate(MATH_NAMES)}
-    assert plots.plot_matches_per_pair(before, before, tmp_path / "m.png", title="$x$ in $\\bad{$").stat().st_size > 1000
+    png = plots.plot_matches_per_pair(before, before, tmp_path / "m.png", title="$x$ in $\\bad{$")
+    assert png.stat().st_size > 1000
     curves = {r"$\bad{$": {"baseline $a$": [0.1, 0.2], "refined $\\x{$": [0.3]}}
     assert plots.plot_pose_error_curves(curves, tmp_path / "c.png", title="$_$").read_bytes()[:4] == b"\x89PNG"
     d = np.random.default_rng(0).exponential(0.4, 50)
