@@ -51,7 +51,7 @@ from .filter import FilterOptions, run_filter
 from .pair_check import run_pair_check
 from .read import ReadConfig, run_read
 from .refine import run_refine
-from .store import RunStore, run_fingerprint, store_folder
+from .store import RunStore, StoreDamaged, run_fingerprint, store_folder
 from .summary import RefineSummary
 from .verify import run_verify
 from .workers import check_not_bootstrapping, start_forkserver
@@ -166,6 +166,9 @@ def refine_database(
             inputs = _RunInputs(database=database, image_dir=image_dir, recipe=rec, device=dev, seed=seed,
                                 strict=strict, progress=progress, json_path=json_path)
             summary = _run_stages(inputs, wc, store, runner, resumed=resumed, laps=laps)
+    except StoreDamaged:  # --resume cannot help: the message says --restart
+        store.close()
+        raise
     except UserError as exc:  # one line: the error, then how to resume
         if not _keep_store(store):
             raise
