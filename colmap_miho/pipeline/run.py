@@ -79,6 +79,23 @@ def _resolve_device(device: Device | str) -> str:
         raise UserError("--device cuda was asked for but torch sees no CUDA device") from None
 
 
+def _check_recipe_device(rec: Recipe) -> None:
+    """Refuse ``ncc.device = "cuda"`` where torch sees no CUDA device, before any work.
+
+    Raises:
+        UserError: naming the key.
+    """
+    if not rec.pipeline.refine or Device.parse(rec.ncc.device, "device") != Device.CUDA:
+        return
+    from ..devices import resolve_device
+
+    try:
+        resolve_device(Device.CUDA)
+    except ValueError:
+        raise UserError("ncc.device=cuda was asked for but torch sees no CUDA device; use ncc.device=auto "
+                        "or cpu") from None
+
+
 def refine_database(
     database: str | os.PathLike,
     image_dir: str | os.PathLike,
@@ -147,6 +164,7 @@ def refine_database(
     if not image_dir.is_dir():
         raise UserError(f"image folder not found: {image_dir}")
     rec = _resolve_recipe(recipe)
+    _check_recipe_device(rec)  # before any file is made: a run store of a run that cannot run
     asked = max(1, int(workers) if workers else (os.cpu_count() or 1))
     if asked > 1 and dask is None and str(device) != "cuda":
         start_forkserver()  # the workers' imports run beside this process's from here on

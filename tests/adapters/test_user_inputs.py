@@ -49,3 +49,125 @@ def test_a_recipe_that_is_not_one_is_one_line(content, tmp_path, capfd):
                  "-q"]) == 2
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and "bad" in lines[0] and "unexpected" not in lines[0], lines
+
+
+# ------------------------------------------------------------------ import
+@pytest.fixture
+def h5pair(scene, tmp_path):
+    """features.h5 and matches.h5 (hloc layout) of the scene, exported by the CLI."""
+    feats, matches = tmp_path / "features.h5", tmp_path / "matches.h5"
+    assert main(["export", "--database", str(scene.database), "--features", str(feats), "--matches", str(matches),
+                 "-q"]) == 0
+    return feats, matches
+
+
+def _import(scene, feats, matches, db) -> list[str]:
+    return ["import", "--features", str(feats), "--matches", str(matches), "--images", str(scene.image_dir),
+            "--database", str(db), "--no-verify", "-q"]
+
+
+@pytest.mark.parametrize("value", [-500.0, 1e7, 1e30])
+def test_import_refuses_keypoints_outside_the_image(value, scene, h5pair, tmp_path, capfd):
+    import h5py
+
+    feats, matches = h5pair
+    with h5py.File(feats, "r+") as h5:
+        name = next(iter(h5.keys()))
+        while "keypoints" not in h5[name]:
+            name = f"{name}/{next(iter(h5[name].keys()))}"
+        kp = h5[name]["keypoints"][()]
+        kp[3, 0] = value
+        h5[name]["keypoints"][...] = kp
+    capfd.readouterr()
+    assert main(_import(scene, feats, matches, tmp_path / "new.db")) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and str(feats) in lines[0] and "outside the" in lines[0] and "keypoint 3" in lines[0], lines
+    assert not (tmp_path / "new.db").exists()
+
+
+def test_import_accepts_keypoints_at_the_border(scene, h5pair, tmp_path):
+    import h5py
+
+    feats, matches = h5pair
+    with h5py.File(feats, "r+") as h5:
+        name = next(iter(h5.keys()))
+        while "keypoints" not in h5[name]:
+            name = f"{name}/{next(iter(h5[name].keys()))}"
+        kp = h5[name]["keypoints"][()]
+        kp[0] = (-0.5, -0.5)
+        h5[name]["keypoints"][...] = kp
+    assert main(_import(scene, feats, matches, tmp_path / "new.db")) == 0
+
+
+def test_import_warns_about_dropped_groups_and_an_empty_matches_file(scene, h5pair, tmp_path, capfd):
+    import h5py
+
+    feats, matches = h5pair
+    with h5py.File(matches, "r+") as h5:
+        first = next(iter(h5.keys()))
+        sub = next(iter(h5[first].keys()))
+        del h5[first][sub]["matches0"]
+        if "matching_scores0" not in h5[first][sub]:
+            h5[first][sub].create_dataset("matching_scores0", data=[0.5])
+    capfd.readouterr()
+    assert main(_import(scene, feats, matches, tmp_path / "a.db")) == 0
+    assert "pair group(s) without 'matches0' skipped" in capfd.readouterr().err
+    empty = tmp_path / "empty.h5"
+    h5py.File(empty, "w").close()
+    assert main(_import(scene, feats, empty, tmp_path / "b.db")) == 0
+    assert "holds no pairs: the new database has no matches" in capfd.readouterr().err
+
+
+def test_import_of_an_h5_damaged_in_the_middle_is_one_line(scene, tmp_path, capfd):
+    import h5py
+    import numpy as np
+
+    feats, matches = tmp_path / "f.h5", tmp_path / "m.h5"
+    assert main(["export", "--database", str(scene.database), "--features", str(tmp_path / "x.h5"), "--matches",
+                 str(matches), "-q"]) == 0
+    with h5py.File(tmp_path / "x.h5", "r") as src, h5py.File(feats, "w") as dst:
+        def copy(name, obj):
+            if isinstance(obj, h5py.Dataset):
+                data = obj[()]
+                if name.endswith("keypoints"):
+                    dst.create_dataset(name, data=data, chunks=(8, 2), compression="gzip")
+                else:
+                    dst.create_dataset(name, data=data)
+        src.visititems(copy)
+        offsets = [dst[n].id.get_chunk_info(0).byte_offset for n in [k for k in _keypoint_sets(dst)]]
+    data = bytearray(feats.read_bytes())
+    for off in offsets:
+        data[off: off + 16] = np.random.default_rng(0).integers(0, 256, 16, dtype=np.uint8).tobytes()
+    feats.write_bytes(bytes(data))
+    capfd.readouterr()
+    assert main(_import(scene, feats, matches, tmp_path / "new.db")) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"{feats}: cannot read the HDF5 file, damaged" in lines[0], lines
+    assert not (tmp_path / "new.db").exists()
+
+
+def _keypoint_sets(h5) -> list[str]:
+    import h5py
+
+    out = []
+    h5.visititems(lambda n, o: out.append(n) if isinstance(o, h5py.Dataset) and n.endswith("keypoints") else None)
+    return out
+
+
+# ------------------------------------------------------------------ device
+def _has_cuda() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+@pytest.mark.skipif(_has_cuda(), reason="the machine has a CUDA device: ncc.device=cuda is valid here")
+@pytest.mark.parametrize("flags", [["--set", "ncc.device=cuda"], ["--device", "cuda"]])
+def test_cuda_without_a_gpu_is_one_line_and_leaves_no_run_store(flags, db_copy, scene, tmp_path, capfd):
+    out = tmp_path / "out.db"
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                 "--workers", "1", "-q", *flags]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "cuda" in lines[0] and "no CUDA device" in lines[0], lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]  # no store, no working copy, no output
