@@ -260,6 +260,7 @@ def run_mapping(
         raise NotADirectoryError(f"image folder not found: {image_dir}")
     output = Path(output)
     refuse_text_model(output, "mapping output")
+    made = [p for p in (output, *output.parents) if not p.exists()]  # removed again if nothing lands there
     output.mkdir(parents=True, exist_ok=True)
 
     try:
@@ -280,10 +281,13 @@ def run_mapping(
                 models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None, label)
             seconds = time.perf_counter() - t0
             log_file = _latest_log(prefix)
-    except (OSError, RuntimeError) as exc:  # pycolmap's SQLite says "database or disk is full"
-        if not is_disk_full(exc):
-            raise
-        raise disk_full_error(output, f"mapping {database}") from None
+    except BaseException as exc:
+        for folder in made:  # a refused input leaves no empty output folder behind
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        if isinstance(exc, (OSError, RuntimeError)) and is_disk_full(exc):  # pycolmap's SQLite: "disk is full"
+            raise disk_full_error(output, f"mapping {database}") from None
+        raise
 
     if not models:
         log.warning("mapping found no model (%d images in the database)", num_images)

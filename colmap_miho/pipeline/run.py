@@ -44,7 +44,7 @@ from ..adapters.paths import check_distinct
 from ..adapters.safety import check_database_path
 from ..adapters.working_copy import WorkingCopy
 from ..enums import Device
-from ..errors import DatabaseError, RunFailed, UserError
+from ..errors import RunFailed, UserError
 from ..recipe import Recipe, load_recipe
 from .executor import Runner, open_runner
 from .filter import FilterOptions, run_filter
@@ -250,10 +250,7 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
             laps.lap("copy")
             work_db = wc.path
             assert work_db is not None  # set on entering the block
-            try:
-                validate_database(work_db)
-            except DatabaseError as exc:  # name the user's file, not the hidden working copy
-                raise DatabaseError(str(exc).replace(str(work_db), str(database))) from None
+            validate_database(work_db, name=database)  # the messages name the user's file
             with ColmapDatabase(work_db) as db:
                 read, read_stats = run_read(db, ReadConfig(
                     pipeline=pcfg, image_dir=image_dir, image_budget_bytes=pcfg.image_budget_bytes(runner.slots),

@@ -171,3 +171,40 @@ def test_cuda_without_a_gpu_is_one_line_and_leaves_no_run_store(flags, db_copy, 
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and "cuda" in lines[0] and "no CUDA device" in lines[0], lines
     assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]  # no store, no working copy, no output
+
+
+# ------------------------------------------------------------------ a file that is not a COLMAP database
+@pytest.fixture
+def other_db(tmp_path):
+    import sqlite3
+
+    path = tmp_path / "other.db"
+    con = sqlite3.connect(path)
+    con.execute("CREATE TABLE foo (x)")
+    con.commit()
+    con.close()
+    return path
+
+
+@pytest.mark.parametrize("command", ["map", "export", "compare", "report", "refine"])
+def test_a_non_colmap_database_names_the_users_file_and_leaves_nothing(command, other_db, scene, tmp_path, capfd):
+    out = tmp_path / "out" / "deeper"
+    argv = {
+        "map": ["map", "--database", str(other_db), "--images", str(scene.image_dir), "--output", str(out)],
+        "export": ["export", "--database", str(other_db), "--features", str(tmp_path / "f.h5"), "--matches",
+                   str(tmp_path / "m.h5")],
+        "compare": ["compare", "--database", str(other_db), "--images", str(scene.image_dir), "--output", str(out)],
+        "report": ["report", "--gt", str(tmp_path / "gt"), "--database", str(other_db)],
+        "refine": ["refine", "--database", str(other_db), "--images", str(scene.image_dir), "--output",
+                   str(tmp_path / "r.db")],
+    }[command]
+    if command == "report":
+        (tmp_path / "gt").mkdir()
+        scene.gt_reconstruction.write(str(tmp_path / "gt"))
+    before = sorted(p.name for p in tmp_path.iterdir())
+    capfd.readouterr()
+    assert main([*argv, "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and lines[0].endswith(f"not a COLMAP database (missing tables: cameras, images, keypoints, "
+                                                 f"matches, two_view_geometries): {other_db}"), lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
