@@ -10,6 +10,7 @@ import functools
 import h5py
 
 from ..errors import InvalidInput
+from .conventions import KEYPOINT_MARGIN_PX
 
 #: The most memory one dataset of an h5 file may ask for when it is read (its shape times the
 #: bytes of the arrays made from it); the default memory budget of a run, ``pipeline.memory_budget_mb``.
@@ -39,11 +40,6 @@ def check_budget(h5: h5py.File, nbytes: float, what: str, budget: int) -> None:
     if nbytes > budget:
         raise InvalidInput(f"{h5.filename}: {what} would take {nbytes / 2**20:.0f} MiB in memory, more than the "
                          f"budget of {budget / 2**20:.0f} MiB (a damaged or foreign file?)")
-
-
-#: Pixels a keypoint may lie outside its image (sub-pixel refinement near the border moves a
-#: keypoint a little past it); farther is not a keypoint of that image.
-KEYPOINT_MARGIN_PX = 2.0
 
 
 def h5_reader(func):

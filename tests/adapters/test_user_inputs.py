@@ -208,3 +208,26 @@ def test_a_non_colmap_database_names_the_users_file_and_leaves_nothing(command, 
     assert len(lines) == 1 and lines[0].endswith(f"not a COLMAP database (missing tables: cameras, images, keypoints, "
                                                  f"matches, two_view_geometries): {other_db}"), lines
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+@pytest.mark.parametrize("value", [-500.0, 1e7])
+def test_refine_refuses_database_keypoints_outside_the_image(value, db_copy, scene, tmp_path, capfd):
+    import hashlib
+    import sqlite3
+
+    import numpy as np
+
+    con = sqlite3.connect(db_copy)
+    image_id, rows, cols, data = con.execute("SELECT image_id, rows, cols, data FROM keypoints LIMIT 1").fetchone()
+    kp = np.frombuffer(data, np.float32).reshape(rows, cols).copy()
+    kp[5, 1] = value
+    con.execute("UPDATE keypoints SET data = ? WHERE image_id = ?", (kp.tobytes(), image_id))
+    con.commit()
+    con.close()
+    digest = hashlib.sha256(db_copy.read_bytes()).hexdigest()
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output",
+                 str(tmp_path / "o.db"), "--workers", "1", "--no-refine", "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"database {db_copy}" in lines[0] and "keypoint 5 " in lines[0], lines
+    assert "outside the" in lines[0] and hashlib.sha256(db_copy.read_bytes()).hexdigest() == digest
