@@ -25,6 +25,8 @@ SCRIPT = textwrap.dedent("""
         print("ready", flush=True)
         if sys.argv[1] == "pool":
             with process_pool(2) as ex:
+                [f.result() for f in [ex.submit(time.sleep, 0.2) for _ in range(4)]]  # both workers up
+                print("pool ready", flush=True)
                 futures = [ex.submit(time.sleep, 30) for _ in range(2)]
                 [f.result() for f in futures]
         else:
@@ -46,7 +48,9 @@ def test_ctrl_c_prints_one_line_not_the_workers_tracebacks(what):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONPATH": str(REPO)})
     assert proc.stdout.readline().strip() == "ready"
-    time.sleep(0.5 if what == "forkserver" else 8)  # mid-import of torch / workers waiting
+    if what == "pool":
+        assert proc.stdout.readline().strip() == "pool ready"
+    time.sleep(0.5)  # the forkserver mid-import of torch / the workers busy
     os.killpg(proc.pid, signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130
