@@ -153,14 +153,16 @@ class WorkingCopy:
         """Write ``text`` now to a new hidden file beside ``path`` (flushed, size checked);
         :meth:`commit` renames it onto ``path`` right after the database (so a bad path fails
         before anything is replaced, and no side file describes a result that was not
-        committed). A symlink ``path`` keeps its link: its target is replaced.
+        committed). A symlink ``path`` keeps its link: its target is replaced. A character device
+        is written through at commit, never replaced.
 
         Raises:
-            UserError: the file cannot be written (missing or read-only folder, disk full).
+            UserError: the file cannot be written (missing or read-only folder, disk full), or
+                ``path`` is a FIFO, socket, block device or folder.
         """
-        check_output_path(path)
+        device = check_output_path(path) == CHARACTER_DEVICE  # a FIFO, a socket ...: refused here
         target = write_target(path)
-        if check_output_path(path) == CHARACTER_DEVICE:  # staged elsewhere, written through at commit
+        if device:  # staged elsewhere, written through at commit
             target = Path(tempfile.gettempdir()) / Path(path).name
         data = text.encode("utf-8")
         try:
@@ -176,7 +178,7 @@ class WorkingCopy:
             why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
             raise UserError(f"cannot write {target}: {why}; nothing was replaced") from None
         os.chmod(tmp, 0o666 & ~_umask())
-        self._side.append((tmp, Path(path) if check_output_path(path) == CHARACTER_DEVICE else target))
+        self._side.append((tmp, Path(path) if device else target))
 
     def commit(self) -> Path:
         """Check again, then atomically move the working copy onto the output; returns it.

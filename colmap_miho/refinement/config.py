@@ -25,6 +25,8 @@ class NCCConfig:
     the moving keypoint, both resampled through the match's patch homography pair. NCC
     values are in [-1, 1]; lengths are image pixels unless said otherwise.
 
+    Every numeric field's range is in :data:`colmap_miho.validation.BOUNDS` (checked first).
+
     Attributes:
         template_radius: r >= 1, template half size (pixels; (2r + 1)^2 patch). The paper's
             10 is the most precise under an exact homography; the shipped NCC recipes use 6,
@@ -107,7 +109,7 @@ class NCCConfig:
             and y, common-frame pixels) of the NCC peak.
         lsm_max_sigma_px: > 0, ... and only if the a-posteriori standard deviation of its
             shift (largest semi-axis of the error ellipse, common-frame pixels) is below this.
-        lsm_antialias: >= 0 pixels; 0 (off), or the blur assumed in each image: where one
+        lsm_antialias: pixels in [0, the LSM template radius]; 0 (off), or the blur assumed in each image: where one
             view sees a match at a finer scale than the other, LSM reads it smoothed to the
             coarser view's blur (:mod:`.lsm_step`).
         lsm_only: a move LSM does not accept is rejected (the keypoint keeps its position)

@@ -43,8 +43,8 @@ class PairCheckConfig:
             real scenes: off by default.
         transferred_votes: a counted transfer votes on the pair transferred too, not only on
             its two carriers (the transfer is a loop through all three pairs).
-        trust_iterations: rounds of trust weighting before each removal (0: every vote
-            counts fully). A triangle's votes on a pair count as much as the triangle's two
+        trust_iterations: rounds of trust weighting before each removal, in [0, 100] (0: every
+            vote counts fully). A triangle's votes on a pair count as much as the triangle's two
             other pairs are trusted, and a pair's trust is ``(1 - its weighted blame share)
             ** trust_power``: two wrong pairs that agree with each other close their shared
             triangles, but each is blamed by its other triangles, so the support they give
