@@ -176,6 +176,9 @@ def main(argv: list[str] | None = None) -> int:
     guard = _forced_exit_after_sigterm() if in_main_thread else contextlib.nullcontext()
     try:
         guard.__enter__()
+        from .validation import check_options
+
+        check_options(args)  # numeric options in range before any path is looked at
         if args._paths is not None:
             from .adapters.paths import check_distinct
 

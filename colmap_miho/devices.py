@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from .enums import Device
+from .errors import InvalidInput
 
 if TYPE_CHECKING:
     import torch
@@ -25,14 +26,14 @@ def resolve_device(device: Device | str, inputs_on: torch.device | None = None) 
 
     Raises:
         ValueError: ``device`` is not a :class:`~.enums.Device` value, or is ``"cuda"`` and
-            torch sees no CUDA device.
+            torch sees no CUDA device (:class:`~.errors.InvalidInput`: bad input, exit 2).
     """
     choice = Device.parse(device, "device")
     import torch
 
     if choice is Device.CUDA:
         if not torch.cuda.is_available():
-            raise ValueError("device='cuda' but torch sees no CUDA device")
+            raise InvalidInput("device='cuda' but torch sees no CUDA device")
         return torch.device("cuda")
     if choice is Device.AUTO:
         if inputs_on is not None:

@@ -5,11 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .enums import MatchSource
-from .errors import InvalidInput
+from .validation import MIN_MEMORY_BUDGET_MB as MIN_MEMORY_BUDGET_MB
+from .validation import check_bounds
 
-#: ``pipeline.memory_budget_mb`` default (MiB) and smallest accepted value.
+#: ``pipeline.memory_budget_mb`` default (MiB); its range is in :data:`~colmap_miho.validation.BOUNDS`.
 DEFAULT_MEMORY_BUDGET_MB = 2048
-MIN_MEMORY_BUDGET_MB = 256
 #: Share of the memory budget for decoded images in the refine stage (the rest: the track
 #: plan, the NCC batches and the filter results the stage reads back).
 IMAGE_BUDGET_SHARE = 0.5
@@ -43,10 +43,7 @@ class PipelineConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "source", MatchSource.parse(self.source, "source"))
-        if self.min_matches < 4:
-            raise InvalidInput(f"min_matches must be >= 4, got {self.min_matches}")
-        if self.memory_budget_mb < MIN_MEMORY_BUDGET_MB:
-            raise InvalidInput(f"memory_budget_mb must be >= {MIN_MEMORY_BUDGET_MB}, got {self.memory_budget_mb}")
+        check_bounds(self, "pipeline")  # every key's range (colmap_miho.validation.BOUNDS)
 
     @property
     def memory_budget_bytes(self) -> int:

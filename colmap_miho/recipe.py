@@ -69,12 +69,14 @@ def available_recipes() -> list[str]:
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
 
 
+#: A recipe is a few kB of TOML; a larger file is not one (``/dev/zero`` never ends).
+MAX_RECIPE_BYTES = 1 << 20
+
+
 def _read_recipe_text(name_or_path: str) -> tuple[str, str]:
     path = Path(name_or_path)
     if path.suffix == ".toml" or path.exists():
-        if not path.is_file():
-            raise InvalidInput(f"recipe file not found: {path}")
-        return path.stem, path.read_text(encoding="utf-8")
+        return path.stem, _read_recipe_file(path)
     root = resources.files("colmap_miho.recipes")
     candidate = root / f"{name_or_path}.toml"
     if not candidate.is_file():
@@ -83,6 +85,34 @@ def _read_recipe_text(name_or_path: str) -> tuple[str, str]:
             " (or give a path to a .toml file)"
         )
     return name_or_path, candidate.read_text(encoding="utf-8")
+
+
+def _read_recipe_file(path: Path) -> str:
+    """The text of the recipe file ``path``: a regular file of UTF-8 text (a byte-order mark,
+    as Windows editors write, is dropped), at most :data:`MAX_RECIPE_BYTES`.
+
+    Raises:
+        InvalidInput: missing, not a regular file (says what it is), unreadable, too large or
+            not UTF-8 text; the message names the file.
+    """
+    from .adapters.staged_write import output_kind
+
+    if not path.exists():
+        raise InvalidInput(f"recipe file not found: {path}")
+    if not path.is_file():
+        raise InvalidInput(f"recipe {path} is a {output_kind(path) or 'special file'}, not a regular file; "
+                           "give a .toml file")
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(MAX_RECIPE_BYTES + 1)
+    except OSError as exc:
+        raise InvalidInput(f"cannot read recipe {path}: {exc.strerror or exc}") from None
+    if len(data) > MAX_RECIPE_BYTES:
+        raise InvalidInput(f"recipe {path} is larger than {MAX_RECIPE_BYTES >> 20} MB: not a recipe")
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InvalidInput(f"recipe {path} is not UTF-8 text (byte {exc.start}): not a TOML recipe") from None
 
 
 def _coerce(value, annotation, where: str):
@@ -186,9 +216,11 @@ def load_recipe(name_or_path: str | None = None, overrides: list[str] | None = N
     """
     name, text = _read_recipe_text(name_or_path or DEFAULT_RECIPE)
     try:
-        data = tomllib.loads(text)
+        data = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:
         raise InvalidInput(f"recipe {name!r} is not valid TOML: {exc}") from None
+    except RecursionError:  # arrays or tables nested thousands deep
+        raise InvalidInput(f"recipe {name!r} is nested too deeply: not a recipe") from None
     description = str(data.pop("description", ""))
     data.pop("name", None)
     for section in data:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from .enums import Mapper, StrEnum
 from .errors import InvalidInput, RunFailed
+from .validation import check_bounds
 
 log = logging.getLogger(__name__)
 
@@ -194,12 +195,9 @@ class MappingConfig:
             raise InvalidInput("camera_params needs camera_model (the model the parameters belong to)")
         if self.camera_model.strip():
             parse_camera_params(self.camera_model, self.camera_params)
-        if self.seed < 0:
-            raise InvalidInput(f"seed must be >= 0, got {self.seed}")
-        if self.num_threads != -1 and self.num_threads < 1:
+        check_bounds(self, "mapping")  # every key's range (colmap_miho.validation.BOUNDS)
+        if self.num_threads == 0:
             raise InvalidInput(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
-        if self.min_num_matches < 0:
-            raise InvalidInput(f"min_num_matches must be >= 0, got {self.min_num_matches}")
 
     def intrinsics(self):
         """The :class:`~colmap_miho.adapters.cameras.CameraIntrinsics` to write into every
@@ -262,6 +260,7 @@ def run_mapping(
         raise NotADirectoryError(f"image folder not found: {image_dir}")
     output = Path(output)
     refuse_text_model(output, "mapping output")
+    made = [p for p in (output, *output.parents) if not p.exists()]  # removed again if nothing lands there
     output.mkdir(parents=True, exist_ok=True)
 
     try:
@@ -282,10 +281,13 @@ def run_mapping(
                 models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None, label)
             seconds = time.perf_counter() - t0
             log_file = _latest_log(prefix)
-    except (OSError, RuntimeError) as exc:  # pycolmap's SQLite says "database or disk is full"
-        if not is_disk_full(exc):
-            raise
-        raise disk_full_error(output, f"mapping {database}") from None
+    except BaseException as exc:
+        for folder in made:  # a refused input leaves no empty output folder behind
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        if isinstance(exc, (OSError, RuntimeError)) and is_disk_full(exc):  # pycolmap's SQLite: "disk is full"
+            raise disk_full_error(output, f"mapping {database}") from None
+        raise
 
     if not models:
         log.warning("mapping found no model (%d images in the database)", num_images)

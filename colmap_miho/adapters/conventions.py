@@ -33,3 +33,8 @@ def image_pair(pid: int) -> tuple[int, int]:
     """Inverse of :func:`pair_id`: (smaller image id, larger image id)."""
     pid = int(pid)
     return pid // MAX_IMAGE_ID, pid % MAX_IMAGE_ID
+
+
+#: Pixels a keypoint may lie outside its image (sub-pixel refinement near the border moves a
+#: keypoint a little past it); farther, it is not a measurement of that image.
+KEYPOINT_MARGIN_PX = 2.0

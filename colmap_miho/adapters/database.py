@@ -49,6 +49,7 @@ def validate_database(path: str | Path, name: str | Path | None = None) -> None:
             the file and the missing tables.
     """
     p = check_database_path(path)
+    shown = Path(name) if name is not None else p  # the user's file, never a hidden copy
     try:
         con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
         try:
@@ -56,12 +57,12 @@ def validate_database(path: str | Path, name: str | Path | None = None) -> None:
         finally:
             con.close()
     except sqlite3.DatabaseError as exc:
-        raise DatabaseError(f"not a COLMAP database ({exc}): {p}") from None
+        raise DatabaseError(f"not a COLMAP database ({exc}): {shown}") from None
     tables = {r[0] for r in rows}
     missing = [t for t in REQUIRED_TABLES if t not in tables]
     if missing:
-        raise DatabaseError(f"not a COLMAP database (missing tables: {', '.join(missing)}): {p}")
-    _check_blob_sizes(p, Path(name) if name is not None else p)
+        raise DatabaseError(f"not a COLMAP database (missing tables: {', '.join(missing)}): {shown}")
+    _check_blob_sizes(p, shown)
 
 
 #: (table, key column, bytes per value) of the array blobs pycolmap allocates by their

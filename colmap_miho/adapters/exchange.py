@@ -164,7 +164,7 @@ def _write_images(db: ColmapDatabase, fh, images: Path, camera_model: str, singl
             shared = (cam_id, rig_id, size, name)
             ncams += 1
         image_id = db.add_image(name, cam_id, rig_id)
-        feats = hloc.read_features(fh, name)
+        feats = hloc.read_features(fh, name, image_size=size, origin=0.0 if colmap_coordinates else -0.5)
         db.add_keypoints(image_id, feats.keypoints, feats.shapes, colmap_coordinates=colmap_coordinates)
         ids[name], nkp[name] = image_id, len(feats.keypoints)
     return ids, nkp, ncams
@@ -190,6 +190,8 @@ def _write_matches(db: ColmapDatabase, mh, ids: dict[str, int], nkp: dict[str, i
         nmatches += len(m)
     if no_scores:
         log.warning("--min-match-score ignored for %d pairs without matching scores", no_scores)
+    if npairs == 0:
+        log.warning("%s holds no pairs: the new database has no matches (is it the matches file?)", mh.filename)
     return npairs, nmatches
 
 

@@ -5,9 +5,12 @@ is one clear error instead of an out-of-memory kill.
 
 from __future__ import annotations
 
+import functools
+
 import h5py
 
 from ..errors import InvalidInput
+from .conventions import KEYPOINT_MARGIN_PX
 
 #: The most memory one dataset of an h5 file may ask for when it is read (its shape times the
 #: bytes of the arrays made from it); the default memory budget of a run, ``pipeline.memory_budget_mb``.
@@ -37,3 +40,42 @@ def check_budget(h5: h5py.File, nbytes: float, what: str, budget: int) -> None:
     if nbytes > budget:
         raise InvalidInput(f"{h5.filename}: {what} would take {nbytes / 2**20:.0f} MiB in memory, more than the "
                          f"budget of {budget / 2**20:.0f} MiB (a damaged or foreign file?)")
+
+
+def h5_reader(func):
+    """Decorator of a function whose first argument is an open ``h5py.File``: h5py's errors
+    on a file damaged in the middle (``OSError: Can't read data``, ``RuntimeError``,
+    ``KeyError`` of an unreadable object) become one :class:`~colmap_miho.errors.InvalidInput`
+    naming the file."""
+
+    @functools.wraps(func)
+    def wrapper(h5, *args, **kwargs):
+        try:
+            return func(h5, *args, **kwargs)
+        except (OSError, RuntimeError, KeyError) as exc:
+            text = " ".join(str(exc).split()) or type(exc).__name__
+            raise InvalidInput(f"{h5.filename}: cannot read the HDF5 file, damaged or truncated ({text})") from None
+
+    return wrapper
+
+
+def check_keypoints_in_image(h5: h5py.File, keypoints, size: tuple[int, int], what: str, origin: float) -> None:
+    """Refuse keypoints (N, 2) (x, y) outside the image ``size`` (width, height) by more than
+    :data:`KEYPOINT_MARGIN_PX`; ``origin`` is the coordinate of the image's left/top edge
+    (-0.5 with pixel centres at integers, 0 in COLMAP's convention).
+
+    Raises:
+        InvalidInput: naming the file, the image, the keypoint and the image size.
+    """
+    import numpy as np
+
+    if len(keypoints) == 0:
+        return
+    lo = origin - KEYPOINT_MARGIN_PX
+    hi = np.array(size, dtype=np.float64) + origin + KEYPOINT_MARGIN_PX
+    bad = ((keypoints < lo) | (keypoints > hi)).any(axis=1)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise InvalidInput(f"{h5.filename}: {what}: keypoint {k} at ({keypoints[k, 0]:g}, {keypoints[k, 1]:g}) lies "
+                           f"outside the {size[0]}x{size[1]} image ({int(bad.sum())} such keypoints; wrong image "
+                           "or a damaged file?)")

@@ -35,7 +35,15 @@ import h5py
 import numpy as np
 
 from ..errors import InvalidInput
-from .h5_checks import KEYPOINT_BYTES, READ_BUDGET_BYTES, check_budget, check_dataset, check_numeric
+from .h5_checks import (
+    KEYPOINT_BYTES,
+    READ_BUDGET_BYTES,
+    check_budget,
+    check_dataset,
+    check_keypoints_in_image,
+    check_numeric,
+    h5_reader,
+)
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +101,7 @@ class PairMatches:
 # features
 
 
+@h5_reader
 def list_feature_images(h5: h5py.File) -> list[str]:
     """Names of the images of a features file: every group holding a ``keypoints`` dataset,
     in file order (names are group paths without the leading ``/``)."""
@@ -108,12 +117,16 @@ def list_feature_images(h5: h5py.File) -> list[str]:
     return names
 
 
-def read_features(h5: h5py.File, name: str, *, budget_bytes: int = READ_BUDGET_BYTES) -> ImageFeatures:
+@h5_reader
+def read_features(h5: h5py.File, name: str, *, budget_bytes: int = READ_BUDGET_BYTES,
+                  image_size: tuple[int, int] | None = None, origin: float = -0.5) -> ImageFeatures:
     """Read the keypoints of image ``name``.
 
     Shapes and dtypes are checked before anything is read: ``keypoints`` (N, 2) real numbers
-    whose arrays fit ``budget_bytes``, then finite values; ``scores``/``scales``/``oris`` (N,)
-    real numbers, finite.
+    whose arrays fit ``budget_bytes``, then finite values, and with ``image_size`` (width,
+    height) inside the image (``origin``: the coordinate of its edge, -0.5 for pixel centres
+    at integers; see :func:`~.h5_checks.check_keypoints_in_image`); ``scores``/``scales``/
+    ``oris`` (N,) real numbers, finite.
 
     Raises:
         ValueError: naming the file and the image.
@@ -130,6 +143,8 @@ def read_features(h5: h5py.File, name: str, *, budget_bytes: int = READ_BUDGET_B
     kp = np.asarray(ds[()], dtype=np.float64)
     if not np.isfinite(kp).all():
         raise InvalidInput(f"{h5.filename}: {what} contain NaN or inf")
+    if image_size is not None:
+        check_keypoints_in_image(h5, kp, image_size, what, origin)
     n = len(kp)
     scores = _optional_vector(h5, grp, "scores", n, name)
     shapes = None
@@ -169,6 +184,7 @@ def write_features(h5: h5py.File, name: str, keypoints: np.ndarray, image_size: 
         grp.create_dataset("image_size", data=np.asarray(image_size, dtype=np.int64))
 
 
+@h5_reader
 def count_rows(h5: h5py.File, leaf: str) -> int:
     """The total first dimension of every dataset named ``leaf`` (e.g. ``keypoints``), from the
     shapes alone (nothing is read)."""
@@ -183,6 +199,7 @@ def count_rows(h5: h5py.File, leaf: str) -> int:
     return total
 
 
+@h5_reader
 def count_matches(h5: h5py.File) -> int:
     """An upper bound of the matches of a matches file from its datasets' shapes alone: the
     length of every ``matches0`` and the rows of every deep-image-matching (M, 2) array."""
@@ -233,15 +250,21 @@ class _NameIndex:
         return found.pop()
 
 
+@h5_reader
 def _pair_datasets(h5: h5py.File) -> list[tuple[str, str]]:
     """(pair key, layout) for every pair of a matches file; layout is 'hloc' or 'dim'."""
     out: list[tuple[str, str]] = []
+    dropped: list[str] = []
 
     def visit(path: str, obj) -> None:
-        if not isinstance(obj, h5py.Dataset):
+        if isinstance(obj, h5py.Group):
+            if not len(obj):
+                dropped.append(path)
             return
         leaf = path.rsplit("/", 1)[-1]
-        if leaf == MATCHES0:
+        if leaf == SCORES0 and MATCHES0 not in obj.parent:
+            dropped.append(obj.parent.name.strip("/"))
+        elif leaf == MATCHES0:
             out.append((obj.parent.name.strip("/"), "hloc"))
         elif leaf != SCORES0 and MATCHES0 not in obj.parent:
             if len(obj.shape) != 2 or obj.shape[1] != 2 or not np.issubdtype(obj.dtype, np.integer):
@@ -252,9 +275,13 @@ def _pair_datasets(h5: h5py.File) -> list[tuple[str, str]]:
             out.append((path, "dim"))
 
     h5.visititems(visit)
+    if dropped:
+        log.warning("%s: %d pair group(s) without '%s' skipped (nothing to import in them), e.g. %r",
+                    h5.filename, len(dropped), MATCHES0, dropped[0])
     return out
 
 
+@h5_reader
 def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0: int, n1: int,
                budget_bytes: int = READ_BUDGET_BYTES) -> PairMatches:
     """One pair's matches; shapes, dtypes and sizes checked before reading, indices after,
@@ -350,6 +377,7 @@ def iter_matches(
             yield _read_pair(h5, key, layout, name0, name1, num_keypoints[name0], num_keypoints[name1])
 
 
+@h5_reader
 def _find_pair(h5: h5py.File, name0: str, name1: str) -> tuple[str, str, str, str, bool]:
     """(key, layout, name0, name1, stored_reversed) of a pair from a pairs list, in any layout."""
     for a, b, reverse in ((name0, name1, False), (name1, name0, True)):

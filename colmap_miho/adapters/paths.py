@@ -198,7 +198,9 @@ def check_distinct(inputs: Mapping[str, PathArg], outputs: Mapping[str, PathArg]
 
     Raises:
         UserError: (exit 2) an output is the same file as an input, one of its SQLite side
-            files, or another output; an output is an existing folder. The message names
+            files, or another output; an output is an existing folder, FIFO, socket or block
+            device (a character device is written through: see
+            :func:`~colmap_miho.adapters.staged_write.check_output_path`). The message names
             both options and paths and says to choose another path.
     """
     ins, outs = _clean(inputs), _clean(outputs)
@@ -210,9 +212,13 @@ def check_distinct(inputs: Mapping[str, PathArg], outputs: Mapping[str, PathArg]
         if ident is not None:
             by_identity.setdefault(ident, label)
         by_path.setdefault(resolve(inp), label)
+    from .staged_write import CHARACTER_DEVICE, check_output_path
+
+    devices = set()
     for out_label, out in outs.items():
-        if out.is_dir():
-            raise UserError(f"{out_label} {out} is a folder; give a file name")
+        if check_output_path(out, out_label) == CHARACTER_DEVICE:  # written through: /dev/null twice is fine
+            devices.add(out_label)
+            continue
         ident, where = identity(out), resolve(out)
         hit = by_identity.get(ident) if ident is not None else by_path.get(where)
         if hit is not None:
@@ -225,7 +231,7 @@ def check_distinct(inputs: Mapping[str, PathArg], outputs: Mapping[str, PathArg]
                     label = by_path[base]
                     raise UserError(f"{out_label} {out} is SQLite's {suffix} file of {label} "
                                     f"{ins[label]}: choose another {out_label} path")
-    labels = list(outs)
+    labels = [label for label in outs if label not in devices]
     seen: dict[Path, str] = {}
     for label in labels:
         key = resolve(outs[label])

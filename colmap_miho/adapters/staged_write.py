@@ -2,7 +2,9 @@
 
 Every file a command writes goes through :func:`staged_write`: a unique hidden name beside the
 target, flushed, its size checked after close (a native writer's silence is not trusted), then
-renamed onto the target; removed on failure. A symlink target keeps its link. Private temporary
+renamed onto the target; removed on failure. A symlink target keeps its link. Only a regular
+file (or nothing) is ever replaced: a character device (``/dev/null``, a terminal) is written
+through, and a FIFO, socket, block device or folder is refused (:func:`output_kind`). Private temporary
 folders (:func:`private_tempdir`) are locked while in use and removed by the next run after a kill.
 """
 
@@ -15,6 +17,7 @@ import logging
 import os
 import shutil
 import sqlite3
+import stat
 import tempfile
 from pathlib import Path
 
@@ -57,6 +60,54 @@ def write_target(path: str | os.PathLike) -> Path:
     return p.resolve() if p.is_symlink() else p
 
 
+#: What a path that is not a regular file is, by its ``st_mode`` test (for the messages).
+_KINDS = ((stat.S_ISDIR, "folder"), (stat.S_ISCHR, "character device"), (stat.S_ISBLK, "block device"),
+          (stat.S_ISFIFO, "FIFO (named pipe)"), (stat.S_ISSOCK, "socket"))
+
+#: The kind of target a file output writes through instead of replacing.
+CHARACTER_DEVICE = "character device"
+
+
+def output_kind(path: str | os.PathLike) -> str | None:
+    """What writing ``path`` would meet (symlinks followed): None for nothing there or a regular
+    file (the only things ever replaced), else ``"folder"``, ``"character device"``,
+    ``"block device"``, ``"FIFO (named pipe)"`` or ``"socket"``."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:  # missing (or unreachable: the write itself then says why)
+        return None
+    if stat.S_ISREG(mode):
+        return None
+    return next((name for test, name in _KINDS if test(mode)), "special file")
+
+
+def check_output_path(path: str | os.PathLike, label: str | None = None, *, device: bool = True) -> str | None:
+    """Refuse an output ``path`` that is not a regular file or a new name, before any work:
+    a FIFO (a write would block for ever or feed another program), a socket, a block device
+    (a disk) or a folder. A character device (``/dev/null``, ``/dev/stdout`` on a terminal)
+    is written through when ``device`` (see :func:`staged_write`), else refused too (a
+    database output must be a file). Returns :func:`output_kind`.
+
+    Raises:
+        UserError: (exit 2) naming ``label`` (the option) and the path.
+    """
+    kind = output_kind(path)
+    if kind is None or (kind == CHARACTER_DEVICE and device):
+        return kind
+    what = f"{label} {path}" if label else str(path)
+    if kind == "folder":
+        raise UserError(f"{what} is a folder; give a file name")
+    raise UserError(f"{what} is a {kind}, not a regular file: only a regular file (or a new name) is "
+                    "written; give a file name")
+
+
+def _write_through(tmp: Path, device: str | os.PathLike) -> None:
+    """Copy the finished staged file ``tmp`` into the character device ``device`` (which is
+    never replaced)."""
+    with open(tmp, "rb") as src, open(device, "wb") as dst:
+        shutil.copyfileobj(src, dst)
+
+
 def _new_staging_name(target: Path) -> Path:
     """A new, empty, uniquely named hidden file ``.<name>.<random>.tmp`` beside ``target``
     (never a fixed name: two runs, or a user's own file, are never touched)."""
@@ -92,12 +143,19 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
     fill. After the block it is flushed to disk, its size checked (``expected_size``: bytes,
     or a callable taking the written path, e.g. :func:`ply_size`; default: not empty), and
     renamed onto the target; on any failure it is removed and the target left as it was.
+    The target is looked at before and again right before the rename (see
+    :func:`check_output_path`): a character device is written through (its bytes copied into
+    it, never renamed onto), anything else that is not a regular file is refused.
 
     Raises:
         RunFailed: disk full (one line naming the folder), or a short write.
-        UserError: a missing or read-only folder.
+        UserError: a missing or read-only folder; a target that is not a regular file.
     """
+    check_output_path(path)
+    device = output_kind(path) == CHARACTER_DEVICE
     target = write_target(path)
+    if device:  # stage beside the caller's path: /dev is not writable by everyone
+        target = Path(tempfile.gettempdir()) / Path(path).name
     tmp = _new_staging_name(target)
     _WORKING_FILES.add(tmp)
     try:
@@ -108,6 +166,12 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
             except ValueError as exc:  # no readable header: cut short
                 raise disk_full_error(target.parent, f"writing {target} ({exc})") from None
             _check_written(tmp, target, expected)
+            if check_output_path(path) == CHARACTER_DEVICE:  # looked at again: it may have changed
+                _write_through(tmp, path)
+                return
+            if device:
+                raise UserError(f"{path} changed from a character device to a file during the run; nothing "
+                                "was written: run again")
             os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private
             os.replace(tmp, target)
         except OSError as exc:

@@ -30,7 +30,15 @@ from .safety import (
     remove_with_side_files,
     side_files,
 )
-from .staged_write import _check_written, _new_staging_name, is_disk_full, write_target
+from .staged_write import (
+    CHARACTER_DEVICE,
+    _check_written,
+    _new_staging_name,
+    _write_through,
+    check_output_path,
+    is_disk_full,
+    write_target,
+)
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +101,7 @@ class WorkingCopy:
                 raise UserError(f"output {self.output} is the input database; use --in-place to replace it")
             if self.output.is_dir():
                 raise UserError(f"output {self.output} is a folder; give a database file name")
+            check_output_path(self.output, "--output", device=False)  # a FIFO, a device: never replaced
             if self.output.exists() and not overwrite:
                 raise UserError(f"output {self.output} exists; pass --overwrite to replace it")
             if not self.output.parent.is_dir():
@@ -144,12 +153,17 @@ class WorkingCopy:
         """Write ``text`` now to a new hidden file beside ``path`` (flushed, size checked);
         :meth:`commit` renames it onto ``path`` right after the database (so a bad path fails
         before anything is replaced, and no side file describes a result that was not
-        committed). A symlink ``path`` keeps its link: its target is replaced.
+        committed). A symlink ``path`` keeps its link: its target is replaced. A character device
+        is written through at commit, never replaced.
 
         Raises:
-            UserError: the file cannot be written (missing or read-only folder, disk full).
+            UserError: the file cannot be written (missing or read-only folder, disk full), or
+                ``path`` is a FIFO, socket, block device or folder.
         """
+        device = check_output_path(path) == CHARACTER_DEVICE  # a FIFO, a socket ...: refused here
         target = write_target(path)
+        if device:  # staged elsewhere, written through at commit
+            target = Path(tempfile.gettempdir()) / Path(path).name
         data = text.encode("utf-8")
         try:
             tmp = _new_staging_name(target)
@@ -164,7 +178,7 @@ class WorkingCopy:
             why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
             raise UserError(f"cannot write {target}: {why}; nothing was replaced") from None
         os.chmod(tmp, 0o666 & ~_umask())
-        self._side.append((tmp, target))
+        self._side.append((tmp, Path(path) if device else target))
 
     def commit(self) -> Path:
         """Check again, then atomically move the working copy onto the output; returns it.
@@ -180,6 +194,7 @@ class WorkingCopy:
             self._check_input_unchanged()
             check_not_in_use(self.output)
         elif self.output.exists() or self.output.is_symlink():
+            check_output_path(self.output, "--output", device=False)  # it may have become a FIFO meanwhile
             if not self.overwrite:
                 raise UserError(f"output {self.output} was created by another program during the run; "
                                 "nothing was replaced (pass --overwrite to replace it)")
@@ -200,7 +215,11 @@ class WorkingCopy:
         _fsync_dir(self.output.parent)
         self.committed = True
         for tmp, target in self._side:
-            os.replace(tmp, target)
+            if check_output_path(target) == CHARACTER_DEVICE:
+                _write_through(tmp, target)
+                tmp.unlink()
+            else:
+                os.replace(tmp, target)
         self._side.clear()
         return self.output
 

@@ -5,24 +5,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..enums import Assignment, FilterMethod, MihoThreshold, Sampling
-from ..validation import require_at_most, require_finite
+from ..validation import MIN_THRESHOLD_PX, check_bounds
 
-#: Upper bound of ``batch_size``: each batch scores that many homographies on every match.
-MAX_HYPOTHESES_BATCH = 8192
 #: c_max of MOP+MiHo when ``max_iters`` is not given.
 MIHO_MAX_ITERS = 500
 #: c_max of the MOP variants when ``max_iters`` is not given (the paper's).
 MOP_MAX_ITERS = 2000
-#: Upper bound of the thresholds ``t_l`` / ``t_h`` in pixels: larger than any image side
-#: (``filter.t_l=1e308`` overflowed the squared thresholds).
-MAX_THRESHOLD_PX = 1e5
-#: Lower bound of ``t_l`` / ``t_h`` in pixels: far below keypoint noise; a smaller threshold
-#: (``1e-300`` squares to 0) keeps no match, which silently turns the filter off.
-MIN_THRESHOLD_PX = 1e-3
-#: Upper bound of ``max_iters`` (c_max): RANSAC hypotheses per round, each scored on every match.
-MAX_ITERS = 1_000_000
-#: Upper bound of ``local_neighbours``: the k-NN table of local sampling holds k per match.
-MAX_LOCAL_NEIGHBOURS = 1024
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -120,44 +108,16 @@ class FilterConfig:
         object.__setattr__(self, "miho_threshold",
                            MihoThreshold.parse(self.miho_threshold, "miho_threshold"))
         object.__setattr__(self, "assignment", Assignment.parse(self.assignment, "assignment"))
-        require_finite(self)
-        require_at_most("batch_size", self.batch_size, MAX_HYPOTHESES_BATCH,
-                        "hypotheses scored at once are held in memory")
-        require_at_most("t_l", self.t_l, MAX_THRESHOLD_PX, "pixels, larger than any image")
-        if not self.t_l >= MIN_THRESHOLD_PX:
-            raise ValueError(f"t_l must be >= {MIN_THRESHOLD_PX} pixels, got {self.t_l}")
-        if self.t_h is not None and not MIN_THRESHOLD_PX <= self.t_h <= self.t_l:
+        check_bounds(self, "filter")  # every key's range (colmap_miho.validation.BOUNDS)
+        if self.t_h is not None and not self.t_h <= self.t_l:
             raise ValueError(f"t_h must be in [{MIN_THRESHOLD_PX}, t_l={self.t_l}] pixels, got {self.t_h}")
-        require_at_most("max_iters", self.max_iters, MAX_ITERS, "RANSAC hypotheses per round")
-        require_at_most("local_neighbours", self.local_neighbours, MAX_LOCAL_NEIGHBOURS,
-                        "neighbours held per match")
-        if self.min_inliers is not None and self.min_inliers < 4:
-            raise ValueError(f"min_inliers must be >= 4, got {self.min_inliers}")
-        if self.max_failures < 1:
-            raise ValueError(f"max_failures must be >= 1, got {self.max_failures}")
-        if not 1 <= self.min_iters <= self.iteration_cap:
+        if not self.min_iters <= self.iteration_cap:
             raise ValueError(
                 f"need 1 <= min_iters <= max_iters, got min_iters={self.min_iters}, "
                 f"max_iters={self.iteration_cap}"
             )
-        if self.batch_growth != 0 and not self.batch_growth >= 1:
+        if 0 < self.batch_growth < 1:
             raise ValueError(f"batch_growth must be 0 or >= 1, got {self.batch_growth}")
-        if not 0 < self.confidence < 1:
-            raise ValueError(f"confidence must be in (0, 1), got {self.confidence}")
-        if self.min_singular_value < 0:
-            raise ValueError(f"min_singular_value must be >= 0, got {self.min_singular_value}")
-        if self.buffer_size < 0:
-            raise ValueError(f"buffer_size must be >= 0, got {self.buffer_size}")
-        if self.local_neighbours < 3:
-            raise ValueError(f"local_neighbours must be >= 3, got {self.local_neighbours}")
-        if not 0 <= self.local_fraction <= 1:
-            raise ValueError(f"local_fraction must be in [0, 1], got {self.local_fraction}")
-        if self.batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
-        if self.refit_iters < 0:
-            raise ValueError(f"refit_iters must be >= 0, got {self.refit_iters}")
-        if self.rotation_pairs < 0:
-            raise ValueError(f"rotation_pairs must be >= 0, got {self.rotation_pairs}")
 
     @property
     def is_miho(self) -> bool:

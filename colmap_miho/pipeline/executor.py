@@ -27,7 +27,7 @@ from concurrent.futures import Executor, Future
 
 from ..enums import RunnerKind
 from ..errors import RunFailed, UserError
-from .workers import SCRIPT_HINT, init_worker, process_pool, single_thread_children
+from .workers import SCRIPT_HINT, init_worker, process_pool, sigint_for_this_process_only, single_thread_children
 
 log = logging.getLogger(__name__)
 
@@ -125,9 +125,12 @@ class Runner:
             except BaseException as exc:  # surfaced by fut.result(), as an executor would
                 fut.set_exception(exc)
             return fut
-        if self._wrap:
-            return self.executor().submit(_one_thread_task, fn, *args)
-        return self.executor().submit(fn, *args)
+        # a Ctrl-C inside submit (which may fork a worker) waits until it returns: a worker forked
+        # but not yet known to the pool would outlive the run and print its own traceback
+        with sigint_for_this_process_only():
+            if self._wrap:
+                return self.executor().submit(_one_thread_task, fn, *args)
+            return self.executor().submit(fn, *args)
 
 
 @contextlib.contextmanager
@@ -192,8 +195,9 @@ def _dask_client(workers: int, dask: str):
     Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if dask == LOCAL:
         try:
-            cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
-                                   dashboard_address=None, silence_logs=logging.ERROR)
+            with sigint_for_this_process_only():  # Ctrl-C: one line from this process, none from the workers
+                cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
+                                       dashboard_address=None, silence_logs=logging.CRITICAL)
         except RuntimeError as exc:  # "Nanny failed to start."
             raise RunFailed(f"the local Dask cluster did not start ({exc}); {SCRIPT_HINT}") from exc
         with cluster, Client(cluster) as client, _quiet_dask():

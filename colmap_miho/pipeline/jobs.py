@@ -153,6 +153,28 @@ def _refine_into(database: Path, image_dir: Path, folder: Path, recipe: Recipe, 
                            progress=opts.progress, json_path=folder / "refine.json")
 
 
+def check_compare_inputs(database: str | Path, gt: str | Path | None) -> None:
+    """What ``compare`` reads, checked before it makes its folders and maps for minutes: the
+    database is a COLMAP database (on a private copy, :func:`~colmap_miho.adapters.safety.read_copy`)
+    and the GT, when given, a readable model with posed images.
+
+    Raises:
+        DatabaseError / InvalidInput: naming the user's file.
+    """
+    from ..adapters.database import validate_database
+    from ..adapters.safety import read_copy
+    from ..adapters.staged_write import private_tempdir
+
+    with private_tempdir("colmap_miho_check_") as tmp:
+        copy = Path(tmp) / "database.db"
+        read_copy(database, copy)
+        validate_database(copy, name=database)
+    if gt is not None:
+        from ..reporting.gt_model import load_gt_poses
+
+        load_gt_poses(gt)
+
+
 def compare_databases(database: str | Path, image_dir: str | Path, output: str | Path, *,
                       recipe: Recipe | str | None = None, gt: str | Path | None = None, pairs: object = None,
                       options: JobOptions | None = None) -> CompareResult:
@@ -179,6 +201,7 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
     output = Path(output)
     check_distinct(*comparison_paths(output, database=database, images=image_dir, gt=gt, repeats=opts.repeats,
                                      pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=mapping.seed))
+    check_compare_inputs(database, gt)  # before any folder is made
     intrinsics = gt_intrinsics(gt) if opts.gt_cameras and gt is not None else None
     for sub in ("baseline", "refined", "plots"):
         (output / sub).mkdir(parents=True, exist_ok=True)

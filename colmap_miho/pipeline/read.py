@@ -84,6 +84,7 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
         if not np.isfinite(keypoints[im.image_id]).all():
             raise DatabaseError(f"database {cfg.database_name}: keypoints of image {im.name!r} (id {im.image_id}) "
                                 "contain NaN or inf; extract or import that image's features again")
+        _check_inside(keypoints[im.image_id], im, cfg.database_name)
     pairs = db.pairs(pcfg.source)
     if not pairs:
         raise DatabaseError(
@@ -111,6 +112,27 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
                       keypoints_total=int(sum(len(k) for k in keypoints.values())),
                       images_missing=missing_names, decoded_by_image=dict(loader.decoded))
     return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats
+
+
+def _check_inside(kp: np.ndarray, im, database) -> None:
+    """Refuse keypoints (N, 2) (pixel centres at integers) more than ``KEYPOINT_MARGIN_PX``
+    outside their image (``im.width`` x ``im.height``; unknown sizes are not checked): they
+    cannot be measurements of it, and the refinement would read far outside the image.
+
+    Raises:
+        DatabaseError: naming the database, the image and the keypoint.
+    """
+    from ..adapters.conventions import KEYPOINT_MARGIN_PX
+
+    if len(kp) == 0 or not (im.width and im.height):
+        return
+    lo, hi = -0.5 - KEYPOINT_MARGIN_PX, np.array([im.width, im.height], np.float64) - 0.5 + KEYPOINT_MARGIN_PX
+    bad = ((kp < lo) | (kp > hi)).any(axis=1)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise DatabaseError(f"database {database}: keypoint {k} of image {im.name!r} (id {im.image_id}) at "
+                            f"({kp[k, 0]:g}, {kp[k, 1]:g}) lies outside the {im.width}x{im.height} image "
+                            f"({int(bad.sum())} such keypoints); extract or import that image's features again")
 
 
 def check_match_indices(matches: np.ndarray, n1: int, n2: int, pair: tuple[int, int],

@@ -44,14 +44,14 @@ from ..adapters.paths import check_distinct
 from ..adapters.safety import check_database_path
 from ..adapters.working_copy import WorkingCopy
 from ..enums import Device
-from ..errors import DatabaseError, RunFailed, UserError
+from ..errors import RunFailed, UserError
 from ..recipe import Recipe, load_recipe
 from .executor import Runner, open_runner
 from .filter import FilterOptions, run_filter
 from .pair_check import run_pair_check
 from .read import ReadConfig, run_read
 from .refine import run_refine
-from .store import RunStore, run_fingerprint, store_folder
+from .store import RunStore, StoreDamaged, run_fingerprint, store_folder
 from .summary import RefineSummary
 from .verify import run_verify
 from .workers import check_not_bootstrapping, start_forkserver
@@ -77,6 +77,23 @@ def _resolve_device(device: Device | str) -> str:
         return resolve_device(device).type
     except ValueError:
         raise UserError("--device cuda was asked for but torch sees no CUDA device") from None
+
+
+def _check_recipe_device(rec: Recipe) -> None:
+    """Refuse ``ncc.device = "cuda"`` where torch sees no CUDA device, before any work.
+
+    Raises:
+        UserError: naming the key.
+    """
+    if not rec.pipeline.refine or Device.parse(rec.ncc.device, "device") != Device.CUDA:
+        return
+    from ..devices import resolve_device
+
+    try:
+        resolve_device(Device.CUDA)
+    except ValueError:
+        raise UserError("ncc.device=cuda was asked for but torch sees no CUDA device; use ncc.device=auto "
+                        "or cpu") from None
 
 
 def refine_database(
@@ -149,6 +166,7 @@ def refine_database(
     if not image_dir.is_dir():
         raise UserError(f"image folder not found: {image_dir}")
     rec = _resolve_recipe(recipe)
+    _check_recipe_device(rec)  # before any file is made: a run store of a run that cannot run
     asked = max(1, int(workers) if workers else (os.cpu_count() or 1))
     if asked > 1 and dask is None and str(device) != "cuda":
         start_forkserver()  # the workers' imports run beside this process's from here on
@@ -168,6 +186,9 @@ def refine_database(
             inputs = _RunInputs(database=database, image_dir=image_dir, recipe=rec, device=dev, seed=seed,
                                 strict=strict, progress=progress, json_path=json_path)
             summary = _run_stages(inputs, wc, store, runner, resumed=resumed, laps=laps)
+    except StoreDamaged:  # --resume cannot help: the message says --restart
+        store.close()
+        raise
     except UserError as exc:  # one line: the error, then how to resume
         if not _keep_store(store):
             raise
@@ -231,10 +252,7 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
             laps.lap("copy")
             work_db = wc.path
             assert work_db is not None  # set on entering the block
-            try:
-                validate_database(work_db)
-            except DatabaseError as exc:  # name the user's file, not the hidden working copy
-                raise DatabaseError(str(exc).replace(str(work_db), str(database))) from None
+            validate_database(work_db, name=database)  # the messages name the user's file
             with ColmapDatabase(work_db) as db:
                 read, read_stats = run_read(db, ReadConfig(
                     pipeline=pcfg, image_dir=image_dir, image_budget_bytes=pcfg.image_budget_bytes(runner.slots),

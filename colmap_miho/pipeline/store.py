@@ -3,8 +3,9 @@
 The store is a folder beside the output (and its hidden working copy),
 ``<output dir>/.<output name>.miho-run/`` (:func:`store_folder`), holding:
 
-- ``manifest.json``: what the work was made from (:func:`run_fingerprint`: the input
-  database's size and modification time, the image folder, the recipe's values that change
+- ``manifest.json``: what the work was made from (:func:`run_fingerprint`: a hash of the
+  input database's bytes (a copy with the same size and time, ``cp -p``, is still seen), the
+  image folder, the recipe's values that change
   the result, the seed, the device and the colmap-miho version), and the refine stage's plan
   key (its groups are numbered for one image budget);
 - ``filter-NNNNNN.npz``: one finished filter chunk (per pair: the matches, the outcome's
@@ -24,12 +25,15 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import fcntl
+import hashlib
 import json
 import logging
 import os
 import re
 import shutil
 import tempfile
+import zipfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,8 +68,50 @@ def store_folder(output: Path) -> Path:
     return output.with_name(f".{output.name}.miho-run")
 
 
+class StoreDamaged(UserError):
+    """A file of the run store cannot be read (truncated, overwritten, unreadable)."""
+
+    def __init__(self, path: Path, why: object) -> None:
+        text = " ".join(str(why).split()) or type(why).__name__
+        super().__init__(f"the interrupted run's file {path} is damaged ({text}); pass --restart to discard "
+                         "that run's work and start again")
+
+
+def content_hash(path: Path, chunk: int = 1 << 22) -> str:
+    """BLAKE2b (128-bit) of the bytes of ``path``: what the stored work read, by content (its
+    size and modification time alone miss a ``cp -p`` of another database). About 1 s per
+    GB, next to a run of minutes."""
+    digest = hashlib.blake2b(digest_size=16)
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the store file ``path``, read now.
+
+    Raises:
+        StoreDamaged: the file is truncated, not an npz file, or lacks an array.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {key: z[key] for key in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise StoreDamaged(path, exc) from None
+
+
+def _field(arrays: dict[str, np.ndarray], key: str, path: Path) -> np.ndarray:
+    try:
+        return arrays[key]
+    except KeyError:
+        raise StoreDamaged(path, f"no array {key!r}") from None
+
+
 def run_fingerprint(database: Path, image_dir: Path, recipe, seed: int, device: str) -> dict:
-    """What a run's stored work depends on, as plain JSON data (compared on resume)."""
+    """What a run's stored work depends on, as plain JSON data (compared on resume): the
+    input database by content (:func:`content_hash`), the image folder, the recipe's values
+    that change the result, the seed, the device and the versions."""
     st = Path(database).stat()
     tables = {}
     for name in RESULT_TABLES:
@@ -74,7 +120,8 @@ def run_fingerprint(database: Path, image_dir: Path, recipe, seed: int, device: 
             values.pop(key, None)
         tables[name] = values
     data = {"store_version": STORE_VERSION, "colmap_miho": __version__,
-            "database": {"path": str(Path(database).resolve()), "size": st.st_size, "mtime_ns": st.st_mtime_ns},
+            "database": {"path": str(Path(database).resolve()), "size": st.st_size,
+                         "blake2b": content_hash(Path(database))},
             "images": str(Path(image_dir).resolve()), "recipe": tables, "seed": int(seed), "device": device}
     return json.loads(json.dumps(data, default=str))  # enums -> str, tuples -> lists
 
@@ -83,7 +130,7 @@ def fingerprint_difference(old: dict, new: dict) -> str | None:
     """What differs between two fingerprints, in words ("the seed", "recipe value
     filter.t_l", ...), or None when they agree."""
     words = {"store_version": "store format", "colmap_miho": "colmap-miho version",
-             "database": "input database (changed since: size or modification time)",
+             "database": "input database (its content changed since)",
              "images": "image folder", "seed": "seed", "device": "device"}
     for key in sorted(set(old) | set(new)):
         if old.get(key) == new.get(key):
@@ -152,12 +199,15 @@ class RunStore:
         self._lock_fd: int | None = lock_fd
         self._chunks: dict[int, _ChunkIndex] = {}
         for index, path in self._files(_FILTER_FILE):
-            with np.load(path) as z:
-                ok = z["success"].astype(bool)
-                offsets, kept = z["offsets"], z["kept"]
+            z = _read_npz(path)
+            try:
+                ok = _field(z, "success", path).astype(bool)
+                offsets, kept = _field(z, "offsets", path), _field(z, "kept", path)
                 self._chunks[index] = _ChunkIndex(
-                    pairs=z["pairs"].astype(np.int64).reshape(-1, 2), success=ok,
+                    pairs=_field(z, "pairs", path).astype(np.int64).reshape(-1, 2), success=ok,
                     matches=int(np.diff(offsets)[ok].sum()), kept=int(kept[ok].sum()))
+            except (ValueError, IndexError) as exc:  # arrays that do not fit each other
+                raise StoreDamaged(path, exc) from None
 
     # -- opening, closing --------------------------------------------------------------------
     @classmethod
@@ -198,12 +248,16 @@ class RunStore:
                      restart: bool) -> RunStore:
         manifest_path = folder / MANIFEST
         old = None
-        if manifest_path.is_file():
+        has_work = any(_FILTER_FILE.match(p.name) or _GROUP_FILE.match(p.name) for p in folder.iterdir())
+        if manifest_path.is_file() and not restart:
             try:
                 old = json.loads(manifest_path.read_text(encoding="utf-8"))
-            except (OSError, ValueError):
-                old = {}  # unreadable: written by no finished run of this format
-        has_work = any(_FILTER_FILE.match(p.name) or _GROUP_FILE.match(p.name) for p in folder.iterdir())
+                if not isinstance(old, dict):
+                    raise ValueError("not a JSON object")
+            except (OSError, ValueError) as exc:  # truncated, overwritten, unreadable
+                if has_work:
+                    raise StoreDamaged(manifest_path, getattr(exc, "strerror", None) or exc) from None
+                old = {}
         if has_work and old is not None and not (resume or restart):
             raise UserError(f"an interrupted run left its finished work in {folder}: pass --resume to "
                             "continue it, or --restart to discard it and start again")
@@ -302,9 +356,10 @@ class RunStore:
         for index, path in self._files(_FILTER_FILE):
             if index not in self._chunks:
                 continue
-            with np.load(path) as z:
-                pairs, ok, off, hoff = z["pairs"], z["success"], z["offsets"], z["hom_offsets"]
-                matches, inliers, labels, homs = z["matches"], z["inliers"], z["labels"], z["patch_homographies"]
+            z = _read_npz(path)
+            pairs, ok, off, hoff = (_field(z, key, path) for key in ("pairs", "success", "offsets", "hom_offsets"))
+            matches, inliers, labels, homs = (_field(z, key, path) for key in
+                                              ("matches", "inliers", "labels", "patch_homographies"))
             out: FilteredPairs = {}
             for k in np.flatnonzero(ok):
                 a, b = int(off[k]), int(off[k + 1])
@@ -337,9 +392,12 @@ class RunStore:
             return {}
         out: dict[int, GroupResult] = {}
         for index, path in files:
-            with np.load(path) as z:
-                ids, off, idx, xy = z["image_ids"], z["offsets"], z["idx"], z["xy"]
-                stats = json.loads(str(z["stats"]))
+            z = _read_npz(path)
+            ids, off, idx, xy = (_field(z, key, path) for key in ("image_ids", "offsets", "idx", "xy"))
+            try:
+                stats = json.loads(str(_field(z, "stats", path)))
+            except ValueError as exc:
+                raise StoreDamaged(path, exc) from None
             moved = {int(i): (idx[off[k]:off[k + 1]], xy[off[k]:off[k + 1]]) for k, i in enumerate(ids)}
             out[index] = (moved, stats)
         return out

@@ -23,6 +23,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import signal
 import sys
 import threading
 import time
@@ -114,6 +115,30 @@ def single_thread_children():
                 os.environ[k] = v
 
 
+@contextlib.contextmanager
+def sigint_for_this_process_only():
+    """Processes started inside the block never receive SIGINT: Ctrl-C in a terminal sends
+    it to every process of the foreground group, and a worker (or the forkserver, while it
+    imports torch) would print its own KeyboardInterrupt traceback. SIGINT is blocked in
+    this thread meanwhile; the mask is inherited by the processes started (across exec
+    too) and by their children, while this process gets a SIGINT that arrived meanwhile
+    when the block ends (the CLI's one line, exit 130). The workers are killed by their
+    pool (:func:`process_pool`) or their cluster when the run ends. A no-op outside the
+    main thread."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    # first: starting it unblocks SIGINT after blocking it around its own start (bpo-33613)
+    resource_tracker.ensure_running()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 _FORKSERVER_FAILED: list[str] = []  # why the forkserver could not start (then: spawn)
 
 
@@ -136,7 +161,7 @@ def start_forkserver() -> None:
     from multiprocessing import forkserver
 
     try:
-        with single_thread_children():
+        with single_thread_children(), sigint_for_this_process_only():
             ctx.set_forkserver_preload(list(PRELOAD))
             forkserver.ensure_running()
     except OSError as exc:

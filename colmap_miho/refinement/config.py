@@ -5,17 +5,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..enums import CheckRule, Device, MoveSide, Perturbations, Rectification, StrEnum
-from ..validation import require_at_most, require_finite
+from ..validation import MAX_NCC_BATCH as MAX_NCC_BATCH
+from ..validation import MAX_WINDOW_RADIUS_PX, check_bounds, require_at_most
 
 #: matches per batched NCC call when ``NCCConfig.batch_size`` is None, per device type (on
 #: the CPU, large enough that the fixed cost of a call's few hundred small tensor operations
 #: is spread over many matches; the chunk's search windows then take tens of MB).
 DEFAULT_BATCH_SIZE = {"cpu": 2048, "cuda": 4096}
-#: Upper bound of ``template_radius + search_radius`` (pixels): each match holds a
-#: (2 (r_t + r_s) + 1)^2 window per perturbation (paper: 10 + 10); 1000 tried to allocate 320 GB.
-MAX_WINDOW_RADIUS_PX = 64
-#: Upper bound of ``NCCConfig.batch_size`` (matches per batched call).
-MAX_NCC_BATCH = 65536
 #: the closed choices of :class:`NCCConfig`, parsed from strings (recipes, ``--set``).
 _CHOICES: dict[str, type[StrEnum]] = {"move": MoveSide, "perturbations": Perturbations, "device": Device,
             "rectification": Rectification, "check_rule": CheckRule}
@@ -28,6 +24,8 @@ class NCCConfig:
     A template of radius r around the fixed keypoint is searched over offsets up to s around
     the moving keypoint, both resampled through the match's patch homography pair. NCC
     values are in [-1, 1]; lengths are image pixels unless said otherwise.
+
+    Every numeric field's range is in :data:`colmap_miho.validation.BOUNDS` (checked first).
 
     Attributes:
         template_radius: r >= 1, template half size (pixels; (2r + 1)^2 patch). The paper's
@@ -112,7 +110,7 @@ class NCCConfig:
             and y, common-frame pixels) of the NCC peak.
         lsm_max_sigma_px: > 0, ... and only if the a-posteriori standard deviation of its
             shift (largest semi-axis of the error ellipse, common-frame pixels) is below this.
-        lsm_antialias: >= 0 pixels; 0 (off), or the blur assumed in each image: where one
+        lsm_antialias: pixels in [0, the LSM template radius]; 0 (off), or the blur assumed in each image: where one
             view sees a match at a finer scale than the other, LSM reads it smoothed to the
             coarser view's blur (:mod:`.lsm_step`).
         lsm_only: a move LSM does not accept is rejected (the keypoint keeps its position)
@@ -175,61 +173,17 @@ class NCCConfig:
     def __post_init__(self) -> None:
         for name, choice in _CHOICES.items():
             object.__setattr__(self, name, choice.parse(getattr(self, name), name))
-        require_finite(self)
+        check_bounds(self, "ncc")  # every key's range (colmap_miho.validation.BOUNDS)
         require_at_most("template_radius + search_radius", self.template_radius + self.search_radius,
                         MAX_WINDOW_RADIUS_PX, "the search window of every match is held in memory")
-        require_at_most("batch_size", self.batch_size, MAX_NCC_BATCH, "matches held in memory at once")
-        if self.template_radius < 1:
-            raise ValueError(f"template_radius must be >= 1 pixel, got {self.template_radius}")
-        if self.search_radius < 1:
-            raise ValueError(f"search_radius must be >= 1 pixel, got {self.search_radius}")
-        if self.min_gain < 0:
-            raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
-        if not -1 <= self.min_ncc <= 1:
-            raise ValueError(f"min_ncc must be in [-1, 1], got {self.min_ncc}")
-        if not 0 <= self.min_cornerness <= 1:
-            raise ValueError(f"min_cornerness must be in [0, 1], got {self.min_cornerness}")
-        if self.min_template_std < 0:
-            raise ValueError(f"min_template_std must be >= 0, got {self.min_template_std}")
-        if not 0 <= self.subpixel_iterations <= 10:
-            raise ValueError(
-                f"subpixel_iterations must be in [0, 10], got {self.subpixel_iterations}"
-            )
-        if self.batch_size is not None and self.batch_size < 1:
-            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
-        if self.check_radius < 0 or self.check_radius == self.template_radius:
+        require_at_most("check_radius + search_radius", self.check_radius + self.search_radius,
+                        MAX_WINDOW_RADIUS_PX, "the check's search window of every match is held in memory")
+        if self.check_radius == self.template_radius:
             raise ValueError(f"check_radius must be 0 (off) or >= 1 and not template_radius, "
                              f"got {self.check_radius}")
-        if not 0 <= self.check_ncc_margin <= 2:
-            raise ValueError(f"check_ncc_margin must be in [0, 2], got {self.check_ncc_margin}")
-        if not self.check_px > 0:
-            raise ValueError(f"check_px must be > 0 pixels, got {self.check_px}")
-        if self.local_affine_neighbours < 6:
-            raise ValueError(f"local_affine_neighbours must be >= 6, got "
-                             f"{self.local_affine_neighbours}")
-        if not self.local_affine_max_residual_px > 0:
-            raise ValueError(f"local_affine_max_residual_px must be > 0, got "
-                             f"{self.local_affine_max_residual_px}")
-        if not 0 <= self.lsm_radius <= MAX_WINDOW_RADIUS_PX:
-            raise ValueError(f"lsm_radius must be in [0, {MAX_WINDOW_RADIUS_PX}] pixels "
-                             f"(0: template_radius), got {self.lsm_radius}")
-        if not self.lsm_radius_per_scale >= 0:
-            raise ValueError(f"lsm_radius_per_scale must be >= 0 (0: off), got "
-                             f"{self.lsm_radius_per_scale}")
-        if not 1 <= self.lsm_max_iterations <= 50:
-            raise ValueError(f"lsm_max_iterations must be in [1, 50], got {self.lsm_max_iterations}")
-        if not 0 < self.lsm_tol_px <= 0.1:
-            raise ValueError(f"lsm_tol_px must be in (0, 0.1] pixels, got {self.lsm_tol_px}")
-        if not self.lsm_max_shift_px > 0:
-            raise ValueError(f"lsm_max_shift_px must be > 0 pixels, got {self.lsm_max_shift_px}")
-        if not self.lsm_max_sigma_px > 0:
-            raise ValueError(f"lsm_max_sigma_px must be > 0 pixels, got {self.lsm_max_sigma_px}")
-        if self.inner_radius < 0:
-            raise ValueError(f"inner_radius must be >= 0 pixels (0: off), got {self.inner_radius}")
-        if not self.lsm_antialias >= 0:
-            raise ValueError(f"lsm_antialias must be >= 0 pixels (0: off), got {self.lsm_antialias}")
-        if not -1.0 <= self.lsm_cubic_a <= 0.0:
-            raise ValueError(f"lsm_cubic_a must be in [-1, 0], got {self.lsm_cubic_a}")
+        lsm_window = self.lsm_radius or self.template_radius
+        require_at_most("lsm_antialias", self.lsm_antialias, lsm_window,
+                        "pixels of blur, at most the LSM template radius (lsm_radius, else template_radius)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -278,13 +232,6 @@ class TrackConfig:
     multiphoto_star_first: bool = False
 
     def __post_init__(self) -> None:
-        if not 0 <= self.multiphoto_iterations <= 10:
-            raise ValueError(f"multiphoto_iterations must be in [0, 10], got {self.multiphoto_iterations}")
+        check_bounds(self, "tracks")  # every key's range (colmap_miho.validation.BOUNDS)
         if self.multiphoto_iterations == 0 and not self.multiphoto_star_first:
             raise ValueError("multiphoto_iterations = 0 needs multiphoto_star_first (no pass left)")
-        if not self.duplicate_px >= 0:
-            raise ValueError(f"duplicate_px must be >= 0 pixels, got {self.duplicate_px}")
-        if self.max_images_in_memory < 2:
-            raise ValueError(
-                f"max_images_in_memory must be >= 2, got {self.max_images_in_memory}"
-            )

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ..validation import MAX_BLUR_PX, MAX_WINDOW_RADIUS_PX
 from .lsm import _MAX_GAIN, _MAX_SCALE, DEFAULT_TOL_PX, LSMResult
 from .warping import ImageStack, image_arrays
 
@@ -425,6 +426,30 @@ def _blur_arrays(blur: tuple[torch.Tensor, torch.Tensor] | None, n: int) -> tupl
             np.ascontiguousarray(blur[1].cpu().numpy().astype(np.float64)))
 
 
+def _check_sizes(radius: int, max_iterations: int, *blurs) -> None:
+    """Refuse sizes the compiled kernel's buffers were not made for (its work space grows with
+    the radius and the widest blur): a template radius outside [1, ``MAX_WINDOW_RADIUS_PX``],
+    an iteration count outside [1, 50], a blur that is not finite or wider than
+    ``MAX_BLUR_PX``. The recipe's bounds keep these in range; this guard keeps any other
+    caller from corrupting memory.
+
+    Raises:
+        ValueError: naming the value.
+    """
+    if not 1 <= int(radius) <= MAX_WINDOW_RADIUS_PX:
+        raise ValueError(f"LSM radius must be in [1, {MAX_WINDOW_RADIUS_PX}] pixels, got {radius}")
+    if not 1 <= int(max_iterations) <= 50:
+        raise ValueError(f"LSM max_iterations must be in [1, 50], got {max_iterations}")
+    for blur in blurs:
+        if blur is None:
+            continue
+        on, sigma = blur
+        used = sigma[on]
+        if used.numel() and not bool(torch.isfinite(used).all() and (used >= 0).all() and (used <= MAX_BLUR_PX).all()):
+            raise ValueError(f"LSM blur must be finite and in [0, {MAX_BLUR_PX:g}] pixels, got up to "
+                             f"{float(used.abs().max())}")
+
+
 def lsm_frames(
     img_f: torch.Tensor | ImageStack,
     img_m: torch.Tensor | ImageStack,
@@ -462,6 +487,7 @@ def lsm_frames(
         :class:`~.lsm.LSMResult` (CPU tensors).
     """
     n = shift0.shape[0]
+    _check_sizes(radius, max_iterations, blur_f, blur_m)
     ims_f, idx_f = image_arrays(img_f, n)
     ims_m, idx_m = image_arrays(img_m, n)
     f64 = np.float64

@@ -41,6 +41,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from ..validation import MAX_BLUR_PX
 from . import lsm_kernel
 from .config import NCCConfig
 from .lsm import frame_sampler, lsm_align
@@ -181,9 +182,11 @@ def local_scale(J: torch.Tensor) -> torch.Tensor:
 def blur_sigma(scale: torch.Tensor, coarse: torch.Tensor, base_px: float) -> torch.Tensor:
     """(n,) the Gaussian (pixels of its own) that smooths a view of local scale ``scale`` (n,)
     to the blur of a coarser view of scale ``coarse`` (n,): ``base_px * sqrt(ratio^2 - 1)``,
-    ratio = scale / coarse (0 where the view is not finer)."""
+    ratio = scale / coarse (0 where the view is not finer), at most ``MAX_BLUR_PX``."""
     ratio = scale / coarse.clamp_min(1e-12)
-    return base_px * (ratio.square() - 1).clamp_min(0).sqrt()
+    # capped: a blur wider than any window it smooths is meaningless (a degenerate frame's
+    # scale ratio is huge), and the compiled kernel sizes its buffers by it
+    return (base_px * (ratio.square() - 1).clamp_min(0).sqrt()).clamp_max(MAX_BLUR_PX)
 
 
 def smoothing_to(J: torch.Tensor, scale: torch.Tensor, coarse: torch.Tensor,

@@ -219,16 +219,24 @@ def evaluate_side(runs: list, database: Path, gt, pairs, seed: int, thresholds=N
 
 
 def _write_plots(output: Path, baseline: dict, refined: dict, changes: dict) -> list[Path]:
+    """The figures of the comparison; one that fails is logged (a warning naming it) and
+    skipped, never fatal: the tables are written already."""
     from . import plots
 
-    plot_files = []
+    plot_files: list[Path] = []
+
+    def draw(name: str, make) -> None:
+        try:
+            plot_files.append(make(output / "plots" / f"{name}.png"))
+        except (RuntimeError, ValueError, OSError, ArithmeticError, LookupError, TypeError) as exc:
+            log.warning("figure %s skipped: %s", name, " ".join(str(exc).split()) or type(exc).__name__)
+
     curves = _curves(baseline, refined)
     if curves:
-        plot_files.append(plots.plot_pose_error_curves(curves, output / "plots" / "pose_error_curves.png"))
-    plot_files.append(plots.plot_displacement_histogram(changes["displacements"],
-                                                        output / "plots" / "keypoint_displacement.png"))
-    plot_files.append(plots.plot_matches_per_pair(changes["matches_before"], changes["matches_after"],
-                                                  output / "plots" / "matches_per_pair.png"))
+        draw("pose_error_curves", lambda path: plots.plot_pose_error_curves(curves, path))
+    draw("keypoint_displacement", lambda path: plots.plot_displacement_histogram(changes["displacements"], path))
+    draw("matches_per_pair", lambda path: plots.plot_matches_per_pair(changes["matches_before"],
+                                                                      changes["matches_after"], path))
     return plot_files
 
 
@@ -284,14 +292,22 @@ def write_comparison(output: Path, base_runs: list, ref_runs: list, *, databases
     baseline = evaluate_side(base_runs, databases[0], ev.gt, pairs, ev.seed, ev.thresholds)
     refined = evaluate_side(ref_runs, databases[1], ev.gt, pairs, ev.seed, ev.thresholds)
     changes = match_changes(*databases)
+
+    def publish(plot_files: list[Path], clouds: dict) -> tuple[Path, Path]:
+        for tag, rep in (("baseline", baseline), ("refined", refined)):
+            if tag in clouds:
+                rep["pointcloud"] = clouds[tag]
+            write_report_json(rep, output / tag / "report.json")
+        tables = _write_tables(output, baseline, refined, refine, changes, clouds, plot_files)
+        write_comparison_html(output / "report.html", baseline, refined, refine, changes)
+        return tables
+
+    # the tables first: a figure that fails costs only itself
+    md, js = publish([], {})
     plot_files = _write_plots(output, baseline, refined, changes)
     clouds = _point_clouds(output, base_runs[0], ref_runs[0], plot_files)
-    for tag, rep in (("baseline", baseline), ("refined", refined)):
-        if tag in clouds:
-            rep["pointcloud"] = clouds[tag]
-        write_report_json(rep, output / tag / "report.json")
-    md, js = _write_tables(output, baseline, refined, refine, changes, clouds, plot_files)
-    write_comparison_html(output / "report.html", baseline, refined, refine, changes)
+    if plot_files or clouds:
+        md, js = publish(plot_files, clouds)
     return CompareResult(output=output, baseline=baseline, refined=refined, refine=refine, markdown=md, json=js,
                          plots=plot_files)
 

@@ -106,10 +106,19 @@ def resolve_model_dir(path: str | Path) -> Path:
 
 
 def load_reconstruction(path: str | Path):
-    """Read a COLMAP model folder (text or binary) as a ``pycolmap.Reconstruction``."""
+    """Read a COLMAP model folder (text or binary) as a ``pycolmap.Reconstruction``; a binary
+    model's files are checked against their sizes first
+    (:func:`~colmap_miho.adapters.model_files.check_binary_model`).
+
+    Raises:
+        InvalidInput: a damaged or truncated model, naming the file or the folder.
+    """
     import pycolmap
 
+    from ..adapters.model_files import check_binary_model
+
     model_dir = resolve_model_dir(path)
+    check_binary_model(model_dir)  # a lying count must not reach pycolmap's allocations
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except (RuntimeError, IndexError, ValueError) as exc:  # pycolmap's errors on a truncated file

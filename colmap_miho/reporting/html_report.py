@@ -111,6 +111,13 @@ def _pose_curves_figure(go, reports: dict[str, dict], max_deg: float = 20.0):
     return fig
 
 
+def plotly_text(text: str) -> str:
+    """``text`` (an image name, any user string) as plotly shows it: plotly renders a subset
+    of HTML in labels, hovers and menus (``<a href>``, ``<b>``, ``<br>``, ``<span style>``),
+    so ``&``, ``<`` and ``>`` are escaped as entities, which it shows as the characters."""
+    return html.escape(str(text), quote=False)
+
+
 def _matches_figure(go, before: dict, after: dict):
     """Verified matches per pair, baseline vs refined, pairs sorted by the baseline's count."""
     labels = sorted(before, key=lambda k: (-before[k], k))
@@ -119,8 +126,9 @@ def _matches_figure(go, before: dict, after: dict):
     kept = np.where(b > 0, 100 * a / np.maximum(b, 1), 0.0)
     from .plots import _short_labels
 
-    names = [k.replace("|", " - ") for k in labels]
-    x = _short_labels(labels) if len(set(_short_labels(labels))) == len(labels) else names
+    names = [plotly_text(k.replace("|", " - ")) for k in labels]
+    short = [plotly_text(label) for label in _short_labels(labels)]
+    x = short if len(set(short)) == len(labels) else names
     fig = go.Figure()
     fig.add_trace(go.Bar(x=x, y=b, name=f"baseline ({int(b.sum())})", marker_color=COLORS["baseline"],
                          customdata=names, hovertemplate="%{customdata}<br>baseline %{y:d}<extra></extra>"))
@@ -151,7 +159,8 @@ def _displacement_figure(go, displacements: np.ndarray, per_image: list, size: t
     fig.update_xaxes(title_text=f"displacement (px, clipped at {hi:.2f})", row=1, col=1)
     fig.update_yaxes(title_text="keypoints", row=1, col=1)
     buttons = []
-    for k, (name, p0, dd) in enumerate(per_image):
+    for k, (raw_name, p0, dd) in enumerate(per_image):
+        name = plotly_text(raw_name)
         mag = np.linalg.norm(dd, axis=1)
         fig.add_trace(go.Scattergl(
             x=p0[:, 0].astype(np.float32), y=p0[:, 1].astype(np.float32), mode="markers", name=name,

@@ -6,6 +6,8 @@ PNG and returns its path. Inputs are plain arrays / dicts; nothing here reads da
 
 from __future__ import annotations
 
+import contextlib
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,30 @@ def _pyplot():
     return plt
 
 
+@contextlib.contextmanager
+def plain_text():
+    """Every text made inside is plain text: no math text (an image name with two ``$`` would
+    be parsed as TeX and raise), no LaTeX. matplotlib reads these settings when a text is made,
+    so the figure is built inside."""
+    from ..extras import require
+
+    matplotlib = require("matplotlib", "plots", "plotting")
+    with matplotlib.rc_context({"text.parse_math": False, "text.usetex": False}):
+        yield
+
+
+def plain_text_figure(func):
+    """Decorator: ``func`` draws its figure under :func:`plain_text` (user strings, such as
+    image names, are never markup)."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        with plain_text():
+            return func(*args, **kwargs)
+
+    return wrapper
+
+
 def _save(fig, path: Path) -> None:
     """``fig`` as a PNG at ``path``, whole or not at all (staged beside it, then renamed)."""
     from ..adapters.staged_write import staged_write
@@ -31,6 +57,7 @@ def _save(fig, path: Path) -> None:
         fig.savefig(tmp, dpi=110, format="png")
 
 
+@plain_text_figure
 def plot_pose_error_curves(
     curves: dict[str, dict[str, list[float]]], path: str | Path, *, max_deg: float = 20.0, title: str = ""
 ) -> Path:
@@ -79,6 +106,7 @@ def plot_pose_error_curves(
     return path
 
 
+@plain_text_figure
 def plot_displacement_histogram(displacements: np.ndarray, path: str | Path, *, max_px: float | None = None,
                                 title: str = "") -> Path:
     """Histogram of keypoint displacements (pixels) of the moved keypoints.
@@ -116,6 +144,7 @@ def _short_labels(labels: list[str]) -> list[str]:
     return ["-".join(os.path.splitext(n[len(prefix):])[0] or n for n in lab.split("|")) for lab in labels]
 
 
+@plain_text_figure
 def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title: str = "") -> Path:
     """Verified matches per image pair before and after (log scale), and the fraction kept.
 

@@ -332,6 +332,13 @@ def _render_open3d(p, c, path: Path, width: int, height: int) -> None:
 
 
 def _render_matplotlib(p, c, path: Path, width: int, height: int, title: str | None) -> None:
+    from .plots import plain_text
+
+    with plain_text():  # the title is plain text
+        _draw_matplotlib(p, c, path, width, height, title)
+
+
+def _draw_matplotlib(p, c, path: Path, width: int, height: int, title: str | None) -> None:
     from ..extras import require
 
     Figure = require("matplotlib.figure", "plots", "drawing a point cloud without open3d").Figure

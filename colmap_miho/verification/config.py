@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..enums import PairCheckMode
-from ..validation import require_finite
+from ..validation import check_bounds
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -43,8 +43,8 @@ class PairCheckConfig:
             real scenes: off by default.
         transferred_votes: a counted transfer votes on the pair transferred too, not only on
             its two carriers (the transfer is a loop through all three pairs).
-        trust_iterations: rounds of trust weighting before each removal (0: every vote
-            counts fully). A triangle's votes on a pair count as much as the triangle's two
+        trust_iterations: rounds of trust weighting before each removal, in [0, 100] (0: every
+            vote counts fully). A triangle's votes on a pair count as much as the triangle's two
             other pairs are trusted, and a pair's trust is ``(1 - its weighted blame share)
             ** trust_power``: two wrong pairs that agree with each other close their shared
             triangles, but each is blamed by its other triangles, so the support they give
@@ -94,34 +94,4 @@ class PairCheckConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", PairCheckMode.parse(self.mode, "mode"))
-        require_finite(self)
-        if self.transfer_tol_px <= 0:
-            raise ValueError(f"transfer_tol_px must be > 0, got {self.transfer_tol_px}")
-        if self.min_transfers < 1:
-            raise ValueError(f"min_transfers must be >= 1, got {self.min_transfers}")
-        if not 0.0 <= self.min_closed_share <= 1.0:
-            raise ValueError(f"min_closed_share must be in [0, 1], got {self.min_closed_share}")
-        if not 0.0 <= self.min_relative_share <= 1.0:
-            raise ValueError(f"min_relative_share must be in [0, 1], got {self.min_relative_share}")
-        if not 0.0 <= self.min_angle_deg < 90.0:
-            raise ValueError(f"min_angle_deg must be in [0, 90), got {self.min_angle_deg}")
-        if self.max_transfers < 1:
-            raise ValueError(f"max_transfers must be >= 1, got {self.max_transfers}")
-        if self.f_threshold_px <= 0:
-            raise ValueError(f"f_threshold_px must be > 0, got {self.f_threshold_px}")
-        if self.min_f_matches < 8:
-            raise ValueError(f"min_f_matches must be >= 8 (the eight-point algorithm), got {self.min_f_matches}")
-        if self.trust_iterations < 0:
-            raise ValueError(f"trust_iterations must be >= 0, got {self.trust_iterations}")
-        if self.trust_power <= 0:
-            raise ValueError(f"trust_power must be > 0, got {self.trust_power}")
-        if self.confirm_triangles < 0:
-            raise ValueError(f"confirm_triangles must be >= 0, got {self.confirm_triangles}")
-        if not 0.0 < self.confirm_share <= 1.0:
-            raise ValueError(f"confirm_share must be in (0, 1], got {self.confirm_share}")
-        if not 0.0 <= self.confirm_trust <= 1.0:
-            raise ValueError(f"confirm_trust must be in [0, 1], got {self.confirm_trust}")
-        if self.min_blame < 1:
-            raise ValueError(f"min_blame must be >= 1, got {self.min_blame}")
-        if not 0.0 < self.min_blame_share <= 1.0:
-            raise ValueError(f"min_blame_share must be in (0, 1], got {self.min_blame_share}")
+        check_bounds(self, "pair_check")  # every key's range (colmap_miho.validation.BOUNDS)

@@ -70,7 +70,7 @@ def test_overrides_are_typed():
         ("t_l=3", "needs a section"),
         ("nope.t_l=3", "unknown section"),
         ("filter.t_l=abc", "filter.t_l: expected a number"),
-        ("filter.t_l=-1", "t_l must be >= 0.001"),
+        ("filter.t_l=-1", "t_l must be in \\[0.001, 100000\\]"),
         ("filter.method=ransac", "method='ransac' is not one of"),
         ("filter.max_iters=2.5", "expected an integer"),
         ("filter.rotation_fix=maybe", "expected true or false"),

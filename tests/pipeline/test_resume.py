@@ -155,3 +155,76 @@ def test_failed_run_keeps_its_work_and_says_how_to_resume(scene, reference, tmp_
 def test_resume_and_restart_are_exclusive(scene, tmp_path):
     with pytest.raises(SystemExit):
         main(_args(scene, tmp_path / "o.db", "--resume", "--restart"))
+
+
+def _failed_run(scene, db, out, monkeypatch) -> None:
+    """A run that fails in the refine stage, leaving its filter chunk in the store."""
+    from colmap_miho.pipeline import refine as refine_module
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("refine stage broke")
+
+    monkeypatch.setattr(refine_module, "run_refine_stage", broken)
+    args = _args(scene, out)
+    args[args.index("--database") + 1] = str(db)
+    assert main(args) == 1
+    monkeypatch.undo()
+
+
+def _own_db(scene, tmp_path):
+    db = tmp_path / "in.db"
+    db.write_bytes(scene.database.read_bytes())
+    return db
+
+
+@pytest.mark.parametrize("damage", ["truncated_chunk", "random_chunk", "random_manifest", "manifest_list"])
+def test_a_damaged_store_names_its_file_and_says_restart(damage, scene, tmp_path, monkeypatch, capsys):
+    import os
+
+    db, out = _own_db(scene, tmp_path), tmp_path / "out.db"
+    _failed_run(scene, db, out, monkeypatch)
+    folder = store_folder(out)
+    chunk = folder / _stored(out, "filter")[0]
+    target = folder / "manifest.json" if "manifest" in damage else chunk
+    if damage == "truncated_chunk":
+        target.write_bytes(target.read_bytes()[: target.stat().st_size // 2])
+    elif damage == "manifest_list":
+        target.write_text("[1, 2]")
+    else:
+        target.write_bytes(os.urandom(300))
+    capsys.readouterr()
+    args = _args(scene, out, "--resume")
+    args[args.index("--database") + 1] = str(db)
+    assert main(args) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and str(target) in lines[0] and "--restart" in lines[0], lines
+    assert "--resume to continue" not in lines[0]
+    args[args.index("--resume")] = "--restart"
+    assert main(args) == 0
+
+
+def test_resume_sees_a_database_changed_with_its_size_and_time_kept(scene, tmp_path, monkeypatch, capsys):
+    """``cp -p`` of another database keeps size and modification time: the content decides."""
+    import os
+    import sqlite3
+
+    db, out = _own_db(scene, tmp_path), tmp_path / "out.db"
+    _failed_run(scene, db, out, monkeypatch)
+    st = db.stat()
+    con = sqlite3.connect(db)
+    con.execute("UPDATE cameras SET params = params WHERE 0")  # nothing
+    con.execute("UPDATE images SET name = name || '' WHERE 1")
+    row = con.execute("SELECT image_id, data FROM keypoints LIMIT 1").fetchone()
+    data = bytearray(row[1])
+    data[0] ^= 0x01
+    con.execute("UPDATE keypoints SET data = ? WHERE image_id = ?", (bytes(data), row[0]))
+    con.commit()
+    con.close()
+    os.utime(db, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert db.stat().st_size == st.st_size and db.stat().st_mtime_ns == st.st_mtime_ns
+    capsys.readouterr()
+    args = _args(scene, out, "--resume")
+    args[args.index("--database") + 1] = str(db)
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "input database (its content changed since)" in err and "--restart" in err

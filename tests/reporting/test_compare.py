@@ -110,3 +110,25 @@ def test_compare_middlebury_temple(shared_data, tmp_path):
         assert rep["reconstruction"]["num_reg_images"] >= 10
         assert rep["two_view_pose_auc_E"]["num_pairs"] == 34  # the dataset's pairs_with_gt.txt
         assert rep["model_pose_auc"]["num_pairs"] == 120
+
+
+def test_a_failing_figure_costs_only_itself(tmp_path, monkeypatch, capfd):
+    """The tables and the page are written before any figure; a figure that raises is a
+    warning naming it, the run still exits 0."""
+    from colmap_miho.reporting import plots
+
+    s = make_synthetic_scene(tmp_path / "scene", num_images=3, num_points=80, seed=4)
+
+    def broken(*args, **kwargs):
+        raise ValueError("no figure today")
+
+    monkeypatch.setattr(plots, "plot_matches_per_pair", broken)
+    out = tmp_path / "cmp"
+    rc = main(["compare", "--database", str(s.database), "--images", str(s.image_dir), "--output", str(out),
+               "--workers", "1", "--set", "pipeline.refine=false", "-q"])
+    assert rc == 0
+    assert (out / "compare.md").is_file() and (out / "report.html").is_file()
+    cmp = json.loads((out / "compare.json").read_text())
+    assert not (out / "plots" / "matches_per_pair.png").exists()
+    assert str(out / "plots" / "keypoint_displacement.png") in cmp["plots"]
+    assert "figure matches_per_pair skipped: no figure today" in capfd.readouterr().err

@@ -267,3 +267,33 @@ def test_demo_page_in_headless_chromium(demo_run):
     # the refined model's points and cameras (red) are drawn
     red = (pixels[:, 0] > 150) & (pixels[:, 1] < 110) & (pixels[:, 2] < 110)
     assert red.sum() > 200
+
+
+EVIL = ['<a href="https://example.com">x.png', "<b>bold</b>.png", "<span style='color:red'>s</span>.png",
+        "line<br>break.png"]
+
+
+def test_names_are_text_in_every_label_hover_and_menu():
+    """plotly renders a subset of HTML in labels, hovers and menus: an image name is shown as
+    text (escaped), never as a link, bold or a line break."""
+    import plotly.graph_objects as go
+
+    before = {f"{a}|{b}": 10 for a, b in zip(EVIL, EVIL[1:], strict=False)}
+    figs = [hr._matches_figure(go, before, before),
+            hr._displacement_figure(go, np.array([0.1, 0.2]), [(name, np.zeros((2, 2)), np.ones((2, 2)))
+                                                               for name in EVIL], (100, 100))]
+    shown = json.dumps([json.loads(f.to_json()) for f in figs])
+    assert "<a href" not in shown and "<b>" not in shown and "<span" not in shown and "line<br>" not in shown
+    assert "&lt;a href=\\\"https://example.com\\\"&gt;x.png" in shown
+    assert "&lt;b&gt;bold&lt;/b&gt;.png" in shown
+
+
+def test_comparison_page_shows_evil_names_as_text(tmp_path):
+    base = _scene(num_points=50)
+    baseline = _reports(base)
+    changes = {"matches_before": {f"{EVIL[0]}|{EVIL[1]}": 100}, "matches_after": {f"{EVIL[0]}|{EVIL[1]}": 90},
+               "displacements": np.array([0.1])}
+    text = hr.write_comparison_html(tmp_path / "report.html", baseline, baseline, {"recipe": "r"}, changes,
+                                    models={"baseline": base}, budget=50).read_text()
+    assert "&lt;a href=" in text
+    assert "\\u003ca href" not in text and '<a href="https://example.com"' not in text

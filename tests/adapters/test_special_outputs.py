@@ -1,0 +1,172 @@
+"""Outputs never replace a special file: only a regular file (or nothing) is replaced.
+
+A character device (``/dev/null``, a terminal) is written through; a FIFO, a socket, a block
+device or a folder is refused with one line naming the option, before any work.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import stat
+from pathlib import Path
+
+import pytest
+
+from colmap_miho.adapters.staged_write import check_output_path, write_text_atomic
+from colmap_miho.cli import main
+from colmap_miho.errors import UserError
+
+needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="creating a device node (mknod) needs root")
+
+
+def error_lines(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.strip()]
+
+
+def _null_device(path: Path) -> Path:
+    """A character device node like /dev/null (major 1, minor 3) at ``path``."""
+    os.mknod(path, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+    return path
+
+
+def _special(kind: str, path: Path) -> Path:
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "socket":
+        sock = socket.socket(socket.AF_UNIX)
+        sock.bind(str(path))
+        sock.close()
+    elif kind == "folder":
+        path.mkdir()
+    return path
+
+
+@pytest.fixture
+def model(scene, tmp_path):
+    folder = tmp_path / "model"
+    folder.mkdir()
+    scene.gt_reconstruction.write(str(folder))
+    return folder
+
+
+@pytest.mark.parametrize("kind", ["fifo", "socket", "folder"])
+def test_staged_write_refuses_what_is_not_a_regular_file(kind, tmp_path):
+    target = _special(kind, tmp_path / "out.json")
+    mode = os.lstat(target).st_mode
+    with pytest.raises(UserError, match="not a regular file|is a folder"):
+        write_text_atomic(target, "{}")
+    assert os.lstat(target).st_mode == mode
+
+
+def test_staged_write_refuses_a_fifo_behind_a_symlink(tmp_path):
+    fifo = _special("fifo", tmp_path / "pipe")
+    link = tmp_path / "out.json"
+    link.symlink_to(fifo)
+    with pytest.raises(UserError, match="FIFO"):
+        write_text_atomic(link, "{}")
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode) and link.is_symlink()
+
+
+@needs_root
+def test_staged_write_writes_through_a_character_device(tmp_path):
+    dev = _null_device(tmp_path / "mynull")
+    write_text_atomic(dev, '{"a": 1}')
+    assert stat.S_ISCHR(os.lstat(dev).st_mode)
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_dev_null_is_written_through_not_replaced():
+    before = os.stat("/dev/null")
+    write_text_atomic("/dev/null", "nothing")
+    after = os.stat("/dev/null")
+    assert stat.S_ISCHR(after.st_mode) and (before.st_ino, before.st_rdev) == (after.st_ino, after.st_rdev)
+
+
+def test_check_output_path_names_the_option(tmp_path):
+    fifo = _special("fifo", tmp_path / "p")
+    with pytest.raises(UserError, match=r"^--json .*/p is a FIFO \(named pipe\), not a regular file"):
+        check_output_path(fifo, "--json")
+    assert check_output_path(tmp_path / "new.json", "--json") is None
+    assert check_output_path("/dev/null", "--output", device=True) == "character device"
+    with pytest.raises(UserError, match="--output /dev/null is a character device"):
+        check_output_path("/dev/null", "--output", device=False)
+
+
+@pytest.mark.parametrize("option", ["--json", "--ply", "--html"])
+@pytest.mark.parametrize("kind", ["fifo", "socket"])
+def test_report_outputs_refuse_special_files(option, kind, model, tmp_path, capfd):
+    target = _special(kind, tmp_path / f"out{option[2:]}")
+    capfd.readouterr()
+    assert main(["report", "--model", str(model), option, str(target), "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and option in lines[0] and str(target) in lines[0], lines
+    assert not stat.S_ISREG(os.lstat(target).st_mode)
+
+
+@needs_root
+@pytest.mark.parametrize("option", ["--json", "--ply"])
+def test_report_writes_through_a_character_device(option, model, tmp_path, capfd):
+    dev = _null_device(tmp_path / "mynull")
+    assert main(["report", "--model", str(model), option, str(dev), "-q"]) == 0
+    assert stat.S_ISCHR(os.lstat(dev).st_mode)
+
+
+def test_refine_output_fifo_is_refused_even_with_overwrite(db_copy, scene, tmp_path, capfd):
+    fifo = _special("fifo", tmp_path / "out.db")
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(fifo),
+                 "--overwrite", "--no-refine", "--workers", "1", "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "--output" in lines[0] and "FIFO" in lines[0], lines
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+
+
+@needs_root
+def test_refine_output_character_device_is_refused(db_copy, scene, tmp_path, capfd):
+    dev = _null_device(tmp_path / "mynull")
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(dev),
+                 "--overwrite", "--no-refine", "--workers", "1", "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "--output" in lines[0] and "character device" in lines[0], lines
+    assert stat.S_ISCHR(os.lstat(dev).st_mode)
+
+
+@needs_root
+def test_refine_json_writes_through_a_character_device(db_copy, scene, tmp_path):
+    dev = _null_device(tmp_path / "mynull")
+    out = tmp_path / "out.db"
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                 "--json", str(dev), "--no-refine", "--workers", "1", "-q"]) == 0
+    assert stat.S_ISCHR(os.lstat(dev).st_mode) and out.is_file()
+
+
+@pytest.mark.parametrize("option", ["--features", "--matches"])
+def test_export_refuses_a_fifo_even_with_overwrite(option, db_copy, tmp_path, capfd):
+    fifo = _special("fifo", tmp_path / "x.h5")
+    other = "--matches" if option == "--features" else "--features"
+    capfd.readouterr()
+    assert main(["export", "--database", str(db_copy), option, str(fifo), other, str(tmp_path / "o.h5"),
+                 "--overwrite", "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and option in lines[0] and "FIFO" in lines[0], lines
+    assert not (tmp_path / "o.h5").exists()
+
+
+@needs_root
+def test_export_writes_through_a_character_device(db_copy, tmp_path):
+    dev = _null_device(tmp_path / "mynull")
+    assert main(["export", "--database", str(db_copy), "--features", str(dev), "--matches",
+                 str(tmp_path / "m.h5"), "--overwrite", "-q"]) == 0
+    assert stat.S_ISCHR(os.lstat(dev).st_mode)
+
+
+def test_map_json_fifo_is_refused_before_mapping(db_copy, scene, tmp_path, capfd):
+    fifo = _special("fifo", tmp_path / "map.json")
+    capfd.readouterr()
+    assert main(["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output",
+                 str(tmp_path / "model"), "--json", str(fifo), "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "--json" in lines[0] and "FIFO" in lines[0], lines
+    assert not (tmp_path / "model").exists()
