@@ -266,6 +266,16 @@ class TrackConfig:
             alone (the star of pairwise alignments, from the walk's result), then runs the
             consensus passes from there. False (default): the first template is built at the
             walk's positions.
+        far_move_check: a keypoint moves farther than ``far_move_px`` only with geometric
+            evidence: its new position must lie within ``far_move_px`` of where the match's
+            homography pair (the local affine fit where there is one, else the filter's plane)
+            puts the fixed partner. A far NCC peak that neither the keypoint nor the geometry
+            supports is most often the wrong peak of a repeated texture; such a keypoint keeps
+            its position (the match is kept), counted as ``rejected_far``. False: every move
+            the NCC search accepts is applied.
+        far_move_px: > 0 pixels, or None (default): ``NCCConfig.local_affine_max_residual_px``,
+            the local fit's inlier bound, i.e. the error its prediction is expected to stay
+            within. Measured in the moving image.
     """
 
     max_images_in_memory: int = 8
@@ -275,8 +285,12 @@ class TrackConfig:
     multiphoto_lsm: bool = False
     multiphoto_iterations: int = 3
     multiphoto_star_first: bool = False
+    far_move_check: bool = True
+    far_move_px: float | None = None
 
     def __post_init__(self) -> None:
+        if self.far_move_px is not None and not 0 < self.far_move_px < float("inf"):
+            raise ValueError(f"far_move_px must be > 0 pixels and finite (or None), got {self.far_move_px}")
         if not 0 <= self.multiphoto_iterations <= 10:
             raise ValueError(f"multiphoto_iterations must be in [0, 10], got {self.multiphoto_iterations}")
         if self.multiphoto_iterations == 0 and not self.multiphoto_star_first:
