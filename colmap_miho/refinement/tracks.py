@@ -275,7 +275,7 @@ def walk_tracks(
         far_px = trk_cfg.far_move_px or ncc_cfg.local_affine_max_residual_px
     ctx = WalkState(plan, out_kp, affines, source, ncc_cfg, refine_fn, score,
                     np.zeros(plan.num_nodes, bool), out_disp, out_against, stats, to_ref=to_ref,
-                    far_move_px=far_px)
+                    far_move_px=far_px, far_move_ratio=trk_cfg.far_move_ratio)
     bar = None
     if progress:
         from tqdm import tqdm
