@@ -207,10 +207,10 @@ def predicted(call: _Call) -> np.ndarray:
 def far_moves(call: _Call, new: np.ndarray, moved: np.ndarray, bound_px: float,
               distinct: np.ndarray | None = None) -> np.ndarray:
     """(n,) bool: the moves to ``new`` (where ``moved``) farther than ``bound_px`` from the
-    keypoint's position without evidence: they land within ``bound_px`` of where the
-    homography pair predicts the keypoint (:func:`predicted`), or they bring it nearer to that
-    prediction and their NCC peak is ``distinct`` ((n,) bool; None: every peak is). Neither
-    the keypoint nor the geometry supports any other far NCC peak."""
+    keypoint's position that have no evidence for them. Evidence is landing within
+    ``bound_px`` of where the homography pair predicts the keypoint (:func:`predicted`), or
+    bringing it nearer to that prediction with a ``distinct`` NCC peak ((n,) bool; None: every
+    peak is): neither the keypoint nor the geometry supports any other far peak."""
     pred = predicted(call)
     far_from_kp = np.linalg.norm(new - call.pts_m, axis=1) > bound_px
     dev_new = np.linalg.norm(new - pred, axis=1)
