@@ -22,7 +22,11 @@ the special key ``recipe=NAME`` swaps the base recipe for that variant, e.g.::
 
 Without ``--variant`` one variant runs: the recipe as given. The ``input`` row of each
 scene/setting is the database before colmap-miho; "d_med %" is the change of the residual
-median against it. Refinement statistics (``refine_stats``) are printed as extra columns,
+median against it. With a variant that does not refine (``pipeline.refine=false``, or the one
+``--baseline`` names), every other variant's row also counts its *turned-wrong* matches (at most
+4 px from the GT epipolar line in the baseline, more in the variant: same pair, same keypoint
+indices; :mod:`colmap_miho.reporting.match_flips`), the turned-right ones and how far their
+keypoints moved. Refinement statistics (``refine_stats``) are printed as extra columns,
 whatever numeric keys they hold.
 """
 
@@ -121,11 +125,24 @@ def build_database(image_dir: Path, folder: Path, setting: str, max_features: in
     return db
 
 
-def measure(database: Path, gt_poses: dict) -> dict:
-    """The ``keypoint_accuracy`` dict of a database's verified inliers under the GT cameras."""
+def measure(database: Path, gt_poses: dict) -> tuple[dict, object]:
+    """The ``keypoint_accuracy`` dict of a database's verified inliers under the GT cameras, and
+    the inliers (:class:`colmap_miho.reporting.report.DatabaseInliers`)."""
     from colmap_miho.reporting.report import database_keypoint_accuracy, read_database_inliers
 
-    return database_keypoint_accuracy(read_database_inliers(database), gt_poses)
+    inliers = read_database_inliers(database)
+    return database_keypoint_accuracy(inliers, gt_poses), inliers
+
+
+def baseline_variant(variants: list[tuple[str, str | None, list[str]]], recipes: dict, name: str | None) -> str | None:
+    """The variant the others' turned-wrong / turned-right matches are counted against: ``name``
+    (``--baseline``), else the first variant that does not refine (``pipeline.refine=false``),
+    else None (not counted)."""
+    if name is not None:
+        if name not in recipes:
+            raise SystemExit(f"--baseline {name}: no such --variant")
+        return name
+    return next((v for v, _, _ in variants if not recipes[v].pipeline.refine), None)
 
 
 def numeric_stats(stats: dict, prefix: str = "") -> dict:
@@ -154,15 +171,20 @@ def table(rows: list[dict]) -> str:
     """Markdown table of the rows (fixed columns, then every refine_stats key seen)."""
     stat_keys = sorted({k for r in rows for k in r.get("refine_stats", {})})
     head = ["scene", "setting", "variant", "median", "mean", "p90", "d_med %", "wrong %", "epi med",
-            "GT tracks", "kp moved", "refine s"] + stat_keys
+            "GT tracks", "kp moved", "turned wrong", "turned right", "wrong disp med", "wrong disp max",
+            "refine s"] + stat_keys
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * 3 + "---:|" * (len(head) - 3)]
     for r in rows:
         k = r["keypoint_accuracy"]
+        flips = r.get("epipolar_flips") or {}
         wrong = k.get("wrong_track_share")
         cells = [r["scene"], r["setting"], r["variant"], _f(k.get("residual_median_px")),
                  _f(k.get("residual_mean_px")), _f(k.get("residual_p90_px")), _f(r.get("median_change_pct"), "+.1f"),
                  _f(None if wrong is None else 100 * wrong, ".2f"), _f(k.get("epipolar_median_px")),
-                 _f(k.get("num_measured_tracks")), _f(r.get("keypoints_moved")), _f(r.get("refine_seconds"), ".1f")]
+                 _f(k.get("num_measured_tracks")), _f(r.get("keypoints_moved")),
+                 _f(flips.get("num_turned_wrong")), _f(flips.get("num_turned_right")),
+                 _f(flips.get("wrong_disp_median_px"), ".1f"), _f(flips.get("wrong_disp_max_px"), ".1f"),
+                 _f(r.get("refine_seconds"), ".1f")]
         cells += [_f(r.get("refine_stats", {}).get(s), ".3g") for s in stat_keys]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -180,6 +202,10 @@ def main(argv=None) -> int:
                     help="override for every variant (repeatable)")
     ap.add_argument("--variant", dest="variants", action="append", default=[], metavar="NAME[:K=V,K=V]",
                     help="a variant to run (repeatable); 'recipe=NAME' swaps the base recipe")
+    ap.add_argument("--baseline", default=None, metavar="NAME",
+                    help="variant that the others' turned-wrong / turned-right matches (GT epipolar distance "
+                         "<= 4 px in one, > 4 px in the other) are counted against; default: the first "
+                         "variant with pipeline.refine=false, if any")
     ap.add_argument("--workers", type=int, default=2, help="refine_database workers (default 2)")
     ap.add_argument("--seed", type=int, default=0,
                     help="refine_database seed (another seed shows the run-to-run spread)")
@@ -193,12 +219,14 @@ def main(argv=None) -> int:
     from colmap_miho.pipeline.run import refine_database
     from colmap_miho.recipe import DEFAULT_RECIPE, load_recipe
     from colmap_miho.reporting.gt_model import load_gt_poses
+    from colmap_miho.reporting.report import database_epipolar_flips
 
     pycolmap.logging.minloglevel = 1
     variants = [parse_variant(v) for v in args.variants] or [(args.recipe or "recipe", None, [])]
     if len({v[0] for v in variants}) != len(variants):
         raise SystemExit("--variant names must differ")
     recipes = {name: load_recipe(recipe or args.recipe, args.overrides + ov) for name, recipe, ov in variants}
+    baseline = baseline_variant(variants, recipes, args.baseline)
     t_all = time.perf_counter()
     rows: list[dict] = []
     for scene in args.scenes:
@@ -212,14 +240,15 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             db = build_database(image_dir, args.work / scene, setting, MAX_FEATURES.get(scene, args.max_features))
             t_db = time.perf_counter() - t0
-            base = measure(db, gt)
+            base, _ = measure(db, gt)
             rows.append({"scene": scene, "setting": setting, "variant": "input", "keypoint_accuracy": base})
+            inliers = {}
             for name, _, _ in variants:
                 out = args.work / scene / setting / "variants" / f"{name}.db"
                 out.parent.mkdir(parents=True, exist_ok=True)
                 summary = refine_database(db, image_dir, out, recipe=recipes[name], overwrite=True, restart=True,
                                           workers=args.workers, seed=args.seed)
-                k = measure(summary.output, gt)
+                k, inliers[name] = measure(summary.output, gt)
                 b, a = base.get("residual_median_px"), k.get("residual_median_px")
                 rows.append({
                     "scene": scene, "setting": setting, "variant": name, "keypoint_accuracy": k,
@@ -231,13 +260,20 @@ def main(argv=None) -> int:
                     "recipe": recipes[name].name, "overrides": args.overrides + [o for v in variants
                                                                                  if v[0] == name for o in v[2]],
                 })
+            if baseline is not None:
+                for r in rows:
+                    if r["scene"] == scene and r["setting"] == setting and r["variant"] in inliers \
+                            and r["variant"] != baseline:
+                        r["epipolar_flips"] = database_epipolar_flips(inliers[baseline], inliers[r["variant"]], gt)
             print(f"{scene}/{setting}: database {t_db:.1f} s (0 = cached), all done at "
                   f"{time.perf_counter() - t_all:.0f} s", file=sys.stderr)
     wall = time.perf_counter() - t_all
     print(f"base recipe {args.recipe or DEFAULT_RECIPE} {' '.join('--set ' + o for o in args.overrides)}; "
           f"residuals of stored-inlier tracks triangulated with the GT cameras (px, tracks <= 4 px), "
           f"d_med = change of the median vs input, wrong = tracks > 4 px, epi med = epipolar distance "
-          f"median (px); {wall:.0f} s")
+          f"median (px); turned wrong / right = matches <= 4 px from the GT epipolar line in "
+          f"{baseline or '(no baseline)'} and > 4 px in the variant / the reverse, wrong disp = the "
+          f"larger move of their two keypoints (px); {wall:.0f} s")
     print(table(rows))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

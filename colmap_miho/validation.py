@@ -122,6 +122,9 @@ BOUNDS: dict[str, dict[str, Bound]] = {
         "max_images_in_memory": Bound(2, 1024, "decoded images held at once"),
         "duplicate_px": Bound(0, MAX_WINDOW_RADIUS_PX, "pixels between keypoints of one image"),
         "multiphoto_iterations": Bound(0, 10, "consensus passes per track"),
+        "far_move_px": Bound(0, MAX_WINDOW_RADIUS_PX, "pixels, within the search window; unset: "
+                                                      "ncc.local_affine_max_residual_px", lo_open=True),
+        "far_move_ratio": Bound(0, 1, "a share of the old distance to the prediction", lo_open=True),
     },
     "pipeline": {
         "min_matches": Bound(4, MAX_MATCHES, "a homography needs 4 matches; no pair holds more"),

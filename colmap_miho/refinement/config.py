@@ -221,6 +221,24 @@ class TrackConfig:
             alone (the star of pairwise alignments, from the walk's result), then runs the
             consensus passes from there. False (default): the first template is built at the
             walk's positions.
+        far_move_check: a keypoint moves farther than ``far_move_px`` only with evidence
+            that the new position is right: it lies within ``far_move_px`` of where the
+            match's homography pair (the local affine fit where there is one, else the filter's
+            plane) puts the fixed partner, or it is nearer to that prediction than the keypoint
+            was (and its NCC peak distinct, ``far_move_ratio``). A far NCC peak that neither
+            the keypoint nor the geometry supports is most often the wrong peak of a repeated
+            texture; such a keypoint keeps its position (the match is kept), counted as
+            ``rejected_far``. False: every move the NCC search accepts is applied.
+        far_move_px: > 0 pixels, or None (default): ``NCCConfig.local_affine_max_residual_px``,
+            the local fit's inlier bound, i.e. the error its prediction is expected to stay
+            within. Measured in the moving image.
+        far_move_ratio: in (0, 1], the distinctness test of a far move that only brings the
+            keypoint nearer to the prediction: Lowe's ratio test on the dissimilarity 1 - NCC,
+            ``1 - peak <= ratio (1 - second)`` with ``second`` the best separated peak of the
+            same map (0.8 would be Lowe's threshold for SIFT descriptor distances). 1 (default):
+            off, every peak counts as distinct: at 0.8 the turned-wrong matches summed over the
+            shared scenes and settings did not change (227 with either) while 18 fewer turned
+            right (the demo and the four shared scenes, both matching settings).
     """
 
     max_images_in_memory: int = 8
@@ -230,6 +248,9 @@ class TrackConfig:
     multiphoto_lsm: bool = False
     multiphoto_iterations: int = 3
     multiphoto_star_first: bool = False
+    far_move_check: bool = True
+    far_move_px: float | None = None
+    far_move_ratio: float = 1.0
 
     def __post_init__(self) -> None:
         check_bounds(self, "tracks")  # every key's range (colmap_miho.validation.BOUNDS)

@@ -16,6 +16,9 @@ import torch.nn.functional as F
 #: a parabola whose curvature (NCC units per px^2) is flatter than this is not fitted: on a
 #: flat ridge (along an edge) its vertex is noise.
 MIN_CURVATURE = 1e-4
+#: a second peak of an NCC map counts as separated from the best one when it lies at least
+#: this many offsets from it in x or y (the best peak's own neighbours are its shoulders).
+SEPARATED_PX = 2
 #: template / window norms below this (intensity units, [0, 1] scale) count as flat.
 _EPS_NORM = 1e-6
 #: the grouped convolution of :func:`ncc_maps` runs on a multiple of this many groups (the
@@ -210,7 +213,10 @@ def find_peaks(maps: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str
         offsets from the centre, ``dx``/``dy`` sub-pixel offsets (float, ``ix + sub``),
         ``border`` (peak on the map border, or - with a mask - not a local maximum
         of the unmasked map, i.e. held back by the mask), ``centre`` the NCC at zero
-        offset of the best shape at zero offset.
+        offset of the best shape at zero offset, ``second`` the highest separated peak of the
+        best shape's (masked) map: its best local maximum (3x3, ties count) at least
+        :data:`SEPARATED_PX` offsets from the peak in x or y, -1 where there is none (at
+        least -1).
     """
     J, K, So, _ = maps.shape
     s = So // 2
@@ -234,6 +240,12 @@ def find_peaks(maps: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str
         local_max = F.max_pool2d(best[:, None], 3, stride=1, padding=1)[:, 0]
         border = border | (local_max[jj, iy, ix] > c0 + 1e-6)
     centre = maps[:, :, s, s].max(dim=1).values
+    m_best = m[jj, k]  # (J, So, So), masked
+    local = m_best >= F.max_pool2d(m_best[:, None], 3, stride=1, padding=1)[:, 0]
+    o = torch.arange(So, device=maps.device)
+    apart = (((o[None, :, None] - iy[:, None, None]).abs() >= SEPARATED_PX)
+             | ((o[None, None, :] - ix[:, None, None]).abs() >= SEPARATED_PX))
+    second = torch.where(local & apart, m_best, torch.full_like(m_best, -1.0)).amax(dim=(1, 2)).clamp_min(-1.0)
     return {
         "k": k,
         "peak": peak,
@@ -243,4 +255,5 @@ def find_peaks(maps: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str
         "dy": (iy - s).to(maps.dtype) + sub_y,
         "border": border,
         "centre": centre,
+        "second": second,
     }

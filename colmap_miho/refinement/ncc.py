@@ -58,6 +58,9 @@ class RefineResult:
         moved_side: (N,) int8, 0 none, 1 or 2.
         displacement: (N,) float64 pixels the moved keypoint travelled (0 where none).
         rejected: (N,) bool, a move was found but not applied (border or too small a gain).
+        ncc_second: (N,) float64 NCC of the best separated peak of the applied move's map
+            (:func:`.correlation.find_peaks`' ``second``), NaN where nothing moved; how
+            distinct the peak taken is. None from refiners that do not report it.
         stats: counters (``n``, ``moved``, ``rejected_border``, ``rejected_gain``,
             ``rejected_weak`` (peak below ``min_ncc``), ``rejected_disagree`` (not
             confirmed by the ``check_radius`` template),
@@ -75,6 +78,7 @@ class RefineResult:
     displacement: np.ndarray
     rejected: np.ndarray
     stats: dict = field(default_factory=dict)
+    ncc_second: np.ndarray | None = None
 
 
 def resolve_device(config: NCCConfig, *inputs: object) -> torch.device:
@@ -100,6 +104,7 @@ class _Outputs:
     moved: np.ndarray
     disp: np.ndarray
     rejected: np.ndarray
+    second: np.ndarray
     counts: dict[str, int | float | str]
     #: keypoint scales (pixels, sqrt |det| of the affine frames) of each side, for LSM
     #: templates sized by the keypoint; None when not used
@@ -113,7 +118,7 @@ class _Outputs:
              "outside", "invalid_homography"], 0)
         return cls(pts=(p1.copy(), p2.copy()), before=np.full(n, np.nan), after=np.full(n, np.nan),
                    moved=np.zeros(n, np.int8), disp=np.zeros(n), rejected=np.zeros(n, bool),
-                   counts=counts)
+                   second=np.full(n, np.nan), counts=counts)
 
     def add(self, key: str, value: int) -> None:
         count = self.counts[key]
@@ -248,6 +253,7 @@ def refine_pair(
     return RefineResult(
         pts1=out.pts[0], pts2=out.pts[1], ncc_before=out.before, ncc_after=out.after,
         moved_side=out.moved, displacement=out.disp, rejected=out.rejected, stats=out.counts,
+        ncc_second=out.second,
     )
 
 
@@ -278,6 +284,8 @@ def _check_agreement(images: tuple[ImageInput, ImageInput], inp: PairInputs, hom
             side_out[sel] = chk_pts[swap]
         out.disp[sel] = chk.displacement[swap]
         out.after[sel] = chk.ncc_after[swap]
+        if chk.ncc_second is not None:
+            out.second[sel] = chk.ncc_second[swap]
         out.counts["smaller_template"] = int(sel.size)
         return
     mine = np.where((m == 1)[:, None], out.pts[0][rows], out.pts[1][rows])
@@ -290,6 +298,7 @@ def _check_agreement(images: tuple[ImageInput, ImageInput], inp: PairInputs, hom
     out.disp[undo] = 0.0
     out.rejected[undo] = True
     out.after[undo] = out.before[undo]
+    out.second[undo] = np.nan
     out.add("moved", -int(undo.size))
     out.counts["rejected_disagree"] = int(undo.size)
 
@@ -383,4 +392,5 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
         out.disp[ok] = np.linalg.norm(new - old, axis=1)
         out.moved[ok] = m + 1
         out.after[ok] = h["peak"][take]
+        out.second[ok] = r["second"][sel].cpu().numpy()
         out.add("moved", int(ok.size))

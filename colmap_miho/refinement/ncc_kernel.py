@@ -59,6 +59,7 @@ _MIN_W = 1e-8
 _EPS_NORM = 1e-6
 _MIN_CURVATURE = 1e-4
 _CONVERGED_PX = 1e-3
+_SEPARATED_PX = 2
 
 _KERNELS: dict[str, Any] | None = None
 _LOCK = threading.Lock()
@@ -411,10 +412,38 @@ def _peaks(maps, n_k: int, So: int, use_mask: bool, mask, cut: int, kk: int
     return bk, by, bx, best, c0, sx, sy, border
 
 
+def _second(maps, k: int, So: int, use_mask: bool, mask, cut: int, py: int, px: int) -> float:
+    """The best separated peak of ``maps[k, :So, :So]`` (masked by ``mask[cut:, cut:]`` when
+    ``use_mask``) around the peak (py, px), as :func:`.correlation.find_peaks`' ``second``:
+    the highest local maximum (3x3, ties count, masked offsets read -2) at least
+    ``_SEPARATED_PX`` offsets from the peak in x or y; at least -1."""
+    out = -1.0
+    for y in range(So):
+        for x in range(So):
+            if abs(y - py) < _SEPARATED_PX and abs(x - px) < _SEPARATED_PX:
+                continue
+            v = maps[k, y, x]
+            if use_mask and not mask[y + cut, x + cut]:
+                v = -2.0
+            if v <= out:
+                continue
+            local = True
+            for yy in range(max(y - 1, 0), min(y + 2, So)):
+                for xx in range(max(x - 1, 0), min(x + 2, So)):
+                    w = maps[k, yy, xx]
+                    if use_mask and not mask[yy + cut, xx + cut]:
+                        w = -2.0
+                    if w > v:
+                        local = False
+            if local:
+                out = v
+    return out
+
+
 def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: int, s: int,
                     use_mask: bool, min_std: float, min_corner: float,
                     peak, centre, border, zero, inside, valid, flat, edge, offset,
-                    H_inv, frame_m, H_f_inv, frame_f, template, researched) -> None:
+                    H_inv, frame_m, H_f_inv, frame_f, template, researched, second) -> None:
     """The search of the matches ``rows`` (module docstring): keypoints ``xf``, ``xm`` (J, 2)
     float64, homography pairs ``H`` (J, n_pass, 2, 3, 3) float64 (side ``f`` fixed, ``m``
     moving), template radius ``r``, offsets up to ``s0`` first (``s0 == s``: the full radius
@@ -483,6 +512,7 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
         for p in range(n_pass):
             cen = max(cen, maps[p, radius, radius])
         peak[j] = best
+        second[j] = _second(maps, bk, so, use_mask, mask, s - radius, by, bx)
         centre[j] = cen
         border[j] = on_border
         zero[j] = by == radius and bx == radius
@@ -522,7 +552,7 @@ def _kernels() -> dict[str, Any]:
                 globals()["_corr"] = dots(_corr)
                 globals().update({fn.__name__: exact(fn) for fn in (_invert, _to_frame, _inside, _centre_good)})
                 globals().update({fn.__name__: fused(fn) for fn in (_sample, _normalize, _ncc,
-                                                                     _parabola, _ellipse, _peaks)})
+                                                                     _parabola, _ellipse, _peaks, _second)})
                 _KERNELS = {"subpixel": fused(_subpixel_matches), "search": fused(_search_matches)}
     return _KERNELS
 
@@ -614,7 +644,7 @@ def evaluate(
         "flat": np.zeros(J, np.bool_), "edge": np.zeros(J, np.bool_), "offset": np.zeros((J, 2)),
         "H_inv": np.zeros((J, 3, 3)), "frame_m": np.zeros((J, 2)), "H_f_inv": np.zeros((J, 3, 3)),
         "frame_f": np.zeros((J, 2)), "template": np.zeros((J, St, St), np.float32),
-        "researched": np.zeros(J, np.bool_),
+        "researched": np.zeros(J, np.bool_), "second": np.zeros(J),
     }
     kernel = _kernels()["search"]
     n_m = len(ims_m)

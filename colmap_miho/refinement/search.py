@@ -146,7 +146,8 @@ def evaluate_direction(
             shape in every pass) rather than the torch path; None: where it serves and numba
             is installed.
     Returns:
-        dict of tensors with J rows: ``peak``, ``centre`` (NCC at zero offset), ``border``,
+        dict of tensors with J rows: ``peak``, ``centre`` (NCC at zero offset), ``second``
+        (the best separated peak of the winning map, :func:`.correlation.find_peaks`), ``border``,
         ``zero`` (integer peak at zero offset), ``inside``, ``valid``, ``flat``, ``edge``,
         and for the sub-pixel step and the mapping back: ``offset`` (J, 2) float64
         common-frame offset of the peak, ``H_inv`` (J, 3, 3) and ``frame_m`` (J, 2) of the
@@ -248,6 +249,7 @@ def _evaluate(
     out = {
         "peak": pk["peak"].to(torch.float64),
         "centre": pk["centre"].to(torch.float64),
+        "second": pk["second"].to(torch.float64),
         "border": pk["border"],
         "zero": (pk["ix"] == 0) & (pk["iy"] == 0),
         "inside": torch.stack(inside).all(dim=0),

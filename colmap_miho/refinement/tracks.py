@@ -48,8 +48,8 @@ from .walk_calls import (
 logger = logging.getLogger(__name__)
 
 #: the counters of a walk (summed over worker processes by the pipeline).
-WALK_COUNTERS = ("levels", "refined", "refined_against_moved", "moved", "rejected", "skipped",
-                 "refine_calls")
+WALK_COUNTERS = ("levels", "refined", "refined_against_moved", "moved", "rejected", "rejected_far",
+                 "skipped", "refine_calls")
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,8 @@ class TrackRefineResult:
             that were never refined.
         stats: the plan's (:class:`~.plan.TrackPlan`), and ``levels`` (walk depth),
             ``refined`` (refine attempts), ``refined_against_moved`` (attempts whose partner
-            had itself moved), ``moved``, ``rejected``, ``skipped`` (keypoints left
+            had itself moved), ``moved``, ``rejected`` (``rejected_far`` of them: far moves
+            without geometric support, ``TrackConfig.far_move_check``), ``skipped`` (keypoints left
             unrefined because an image was missing), ``missing_images``, ``refine_calls``,
             ``images_loaded`` (distinct images read), ``image_decodes`` (image files the
             walk decoded, only when ``images`` counts them in ``decodes``, like
@@ -269,8 +270,12 @@ def walk_tracks(
     if trk_cfg.align_to_anchor or trk_cfg.multiphoto_lsm:  # each node's chain from its anchor
         to_ref = np.full((plan.num_nodes, 3, 3), np.nan)
         to_ref[plan.anchors] = np.eye(3)
+    far_px = None
+    if trk_cfg.far_move_check:
+        far_px = trk_cfg.far_move_px or ncc_cfg.local_affine_max_residual_px
     ctx = WalkState(plan, out_kp, affines, source, ncc_cfg, refine_fn, score,
-                    np.zeros(plan.num_nodes, bool), out_disp, out_against, stats, to_ref=to_ref)
+                    np.zeros(plan.num_nodes, bool), out_disp, out_against, stats, to_ref=to_ref,
+                    far_move_px=far_px, far_move_ratio=trk_cfg.far_move_ratio)
     bar = None
     if progress:
         from tqdm import tqdm

@@ -92,7 +92,9 @@ class WalkState:
     node as a partner (NCC after refinement, +inf for anchors); ``moved`` (T,) bool;
     ``out_disp`` / ``out_against`` the result arrays of :class:`~.tracks.TrackRefineResult`;
     ``gray`` the float32 tensors of the images of the last batched call (image_id ->
-    tensor), reused by the next call instead of converting the same images again.
+    tensor), reused by the next call instead of converting the same images again;
+    ``far_move_px`` the far-move bound (pixels, :class:`~.config.TrackConfig`; None: off) and
+    ``far_move_ratio`` its distinctness ratio.
     """
 
     plan: TrackPlan
@@ -111,6 +113,8 @@ class WalkState:
     #: pixels (identity at the references), or None where neither ``align_to_anchor`` nor the
     #: joint pass (``multiphoto_lsm``) reads it
     to_ref: np.ndarray | None = None
+    far_move_px: float | None = None
+    far_move_ratio: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -189,11 +193,58 @@ def _chain(call: _Call, grp: Group, ctx: WalkState) -> None:
     ctx.to_ref[grp.free] = m
 
 
+def predicted(call: _Call) -> np.ndarray:
+    """(n, 2) where each match's homography pair puts its fixed keypoint in the moving image
+    (``B^-1 A x_f``; the last candidate pair where there are several: the local affine fit
+    with ``rectification = "both"``)."""
+    h = call.homs if call.homs.ndim == 4 else call.homs[:, -1]
+    m = np.linalg.solve(h[:, 1], h[:, 0])  # fixed-side pixels -> moving-side pixels
+    x = np.einsum("nij,nj->ni", m, np.column_stack([call.pts_f, np.ones(len(call.pts_f))]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return x[:, :2] / x[:, 2:3]
+
+
+def far_moves(call: _Call, new: np.ndarray, moved: np.ndarray, bound_px: float,
+              distinct: np.ndarray | None = None) -> np.ndarray:
+    """(n,) bool: the moves to ``new`` (where ``moved``) farther than ``bound_px`` from the
+    keypoint's position that have no evidence for them. Evidence is landing within
+    ``bound_px`` of where the homography pair predicts the keypoint (:func:`predicted`), or
+    bringing it nearer to that prediction with a ``distinct`` NCC peak ((n,) bool; None: every
+    peak is): neither the keypoint nor the geometry supports any other far peak."""
+    pred = predicted(call)
+    far_from_kp = np.linalg.norm(new - call.pts_m, axis=1) > bound_px
+    dev_new = np.linalg.norm(new - pred, axis=1)
+    dev_old = np.linalg.norm(call.pts_m - pred, axis=1)
+    nearer = dev_new <= dev_old
+    if distinct is not None:
+        nearer &= distinct
+    return moved & far_from_kp & ~((dev_new <= bound_px) | nearer)  # NaN: no support
+
+
+def distinct_peaks(ncc_peak: np.ndarray, ncc_second: np.ndarray | None, ratio: float) -> np.ndarray | None:
+    """(n,) bool, Lowe's ratio test on the NCC dissimilarity: ``1 - peak <= ratio (1 - second)``
+    (the best separated peak is clearly worse); None when the refiner reports no second peak."""
+    if ncc_second is None:
+        return None
+    second = np.nan_to_num(np.asarray(ncc_second, np.float64), nan=-1.0)
+    return (1.0 - np.asarray(ncc_peak, np.float64)) <= ratio * (1.0 - second)
+
+
 def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displacement: np.ndarray,
-           rejected: np.ndarray, ncc_after: np.ndarray, ctx: WalkState) -> None:
+           rejected: np.ndarray, ncc: tuple[np.ndarray, np.ndarray, np.ndarray | None], ctx: WalkState) -> None:
     """Write one group's refinement result: ``moved`` says which of its keypoints moved to
-    ``new``; every one of them is fixed from now on, with ``ncc_after`` as partner score."""
+    ``new``; every one of them is fixed from now on, with its NCC after (before, where a far
+    move is undone: :func:`far_moves`) as partner score; ``ncc`` = (before, after, the best
+    separated peak or None)."""
     st = ctx.stats
+    ncc_before, ncc_after = (np.asarray(a, np.float64) for a in ncc[:2])
+    if ctx.far_move_px is not None:
+        far = far_moves(call, new, moved, ctx.far_move_px, distinct_peaks(ncc_after, ncc[2], ctx.far_move_ratio))
+        if far.any():
+            moved = moved & ~far
+            rejected = np.asarray(rejected, bool) | far
+            ncc_after = np.where(far, ncc_before, ncc_after)
+        st["rejected_far"] = st.get("rejected_far", 0) + int(far.sum())
     idx = call.moving_idx
     st["refined"] += grp.size
     st["refined_against_moved"] += int(ctx.moved[grp.partner if grp.reference is None
@@ -283,7 +334,14 @@ def refine_batch(groups: list[Group], ctx: WalkState, device: torch.device) -> N
         seg = slice(start, start + n)
         start += n
         _apply(grp, call, res.pts2[seg], np.asarray(res.moved_side[seg]) == 2,
-               np.asarray(res.displacement[seg]), res.rejected[seg], res.ncc_after[seg], ctx)
+               np.asarray(res.displacement[seg]), res.rejected[seg],
+               (res.ncc_before[seg], res.ncc_after[seg], _seg(res, seg)), ctx)
+
+
+def _seg(res: object, seg: slice) -> np.ndarray | None:
+    """``res.ncc_second[seg]``, or None where the refiner reports no second peak."""
+    second = getattr(res, "ncc_second", None)
+    return None if second is None else second[seg]
 
 
 def refine_group(grp: Group, ctx: WalkState) -> None:
@@ -303,4 +361,4 @@ def refine_group(grp: Group, ctx: WalkState) -> None:
     ctx.stats["refine_calls"] += 1
     _add_counters(res, ctx)
     _apply(grp, call, res.pts2, np.asarray(res.moved_side) == 2, np.asarray(res.displacement),
-           res.rejected, res.ncc_after, ctx)
+           res.rejected, (res.ncc_before, res.ncc_after, getattr(res, "ncc_second", None)), ctx)

@@ -134,6 +134,21 @@ def match_changes(baseline_db: str | Path, refined_db: str | Path) -> dict:
     return out
 
 
+def _epipolar_flips(databases: tuple[Path, Path], gt: str | Path) -> dict:
+    """The refined database's matches turned wrong / right under GT against the baseline's
+    (:mod:`colmap_miho.reporting.match_flips`; the filter moves no keypoint, so against the
+    input this counts what refinement did); empty when the GT cannot be read."""
+    from .gt_model import load_gt_poses
+    from .report import database_epipolar_flips, read_database_inliers
+
+    try:
+        poses = load_gt_poses(gt)
+    except (OSError, ValueError) as exc:
+        log.info("turned-wrong matches skipped: %s", exc)
+        return {}
+    return database_epipolar_flips(read_database_inliers(databases[0]), read_database_inliers(databases[1]), poses)
+
+
 # --------------------------------------------------------------------------- compare steps
 def _curves(baseline: dict, refined: dict) -> dict:
     def errs(rep, key):
@@ -291,6 +306,8 @@ def write_comparison(output: Path, base_runs: list, ref_runs: list, *, databases
         pairs, _ = default_eval_pairs(ev.gt, load_gt_poses(ev.gt))
     baseline = evaluate_side(base_runs, databases[0], ev.gt, pairs, ev.seed, ev.thresholds)
     refined = evaluate_side(ref_runs, databases[1], ev.gt, pairs, ev.seed, ev.thresholds)
+    if ev.gt is not None:
+        refined["epipolar_flips"] = _epipolar_flips(databases, ev.gt)
     changes = match_changes(*databases)
 
     def publish(plot_files: list[Path], clouds: dict) -> tuple[Path, Path]:

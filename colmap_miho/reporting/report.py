@@ -189,6 +189,18 @@ def database_keypoint_accuracy(inliers: DatabaseInliers, gt: dict[str, CameraPos
     return keypoint_accuracy(cameras, inliers.keypoints, inliers.matches, **thresholds).to_dict()
 
 
+def database_epipolar_flips(before: DatabaseInliers, after: DatabaseInliers, gt: dict[str, CameraPose],
+                            **thresholds) -> dict:
+    """:func:`colmap_miho.reporting.match_flips.epipolar_flips` of two databases of one scene
+    (e.g. filter-only and refined; images by name, keypoints by index) under the GT cameras, as
+    a JSON-ready dict; ``thresholds``: ``threshold_px``."""
+    from .match_flips import epipolar_flips
+
+    cameras: dict[Hashable, object] = {name: pose for name, pose in gt.items()}
+    return epipolar_flips(cameras, before.keypoints, after.keypoints, before.matches, after.matches,
+                          **thresholds).to_dict()
+
+
 def two_view_pair_errors(
     matches: dict, gt: dict[str, CameraPose], pairs: list[tuple[str, str]], *, seed: int = 0,
     protocols: tuple[str, ...] = ("E", "F"), magsac_for_f: bool = True,

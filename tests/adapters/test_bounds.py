@@ -74,9 +74,13 @@ def test_the_attack_values_are_refused_fast_naming_the_key(override, tmp_path, c
 
 
 def test_lsm_antialias_is_at_most_the_lsm_window():
-    load_recipe(None, ["ncc.lsm_antialias=6", "ncc.template_radius=6"])
+    # the LSM window is lsm_radius, or template_radius when lsm_radius is 0
+    load_recipe("mop_miho_ncc", ["ncc.lsm_antialias=6", "ncc.template_radius=6"])
     with pytest.raises(InvalidInput, match="lsm_antialias must be <= 6"):
-        load_recipe(None, ["ncc.lsm_antialias=6.5", "ncc.template_radius=6"])
+        load_recipe("mop_miho_ncc", ["ncc.lsm_antialias=6.5", "ncc.template_radius=6"])
+    load_recipe("mop_miho_lsm", ["ncc.lsm_antialias=8", "ncc.lsm_radius=8"])
+    with pytest.raises(InvalidInput, match="lsm_antialias must be <= 8"):
+        load_recipe("mop_miho_lsm", ["ncc.lsm_antialias=8.5", "ncc.lsm_radius=8"])
 
 
 @pytest.mark.parametrize(("option", "value"), [("--seed", "-5"), ("--workers", "0"), ("--workers", "100000"),

@@ -372,9 +372,26 @@ def test_synthetic_scene_refinement(tmp_path):
         loaded.append(i)
         return cv2.imread(str(scene.image_dir / names[i]), cv2.IMREAD_GRAYSCALE)
 
-    res = refine_tracks(loader, kps, pm, results, track_config=TrackConfig(max_images_in_memory=2))
+    # the NCC walk itself first: these local pairs predict the partner 20-200 px off (sparse
+    # points, relief), so the far-move check has little geometric evidence to go on here
+    res = refine_tracks(loader, kps, pm, results,
+                        track_config=TrackConfig(max_images_in_memory=2, far_move_check=False))
     assert res.stats["tracks"] == 50 and res.stats["conflicting_tracks"] == 0
     assert res.stats["moved"] >= 0.8 * res.stats["refined"]
+    rel_before, rel_after = _relative_errors(res, kps, gt)
+    assert np.median(rel_after) <= (1 - MIN_ERROR_REDUCTION) * np.median(rel_before)
+    assert set(loaded) == set(kps)
+    # with the check (default) the moves that go far and away from the prediction stay
+    # (measured: 63 of 250, median 1.66 -> 0.83 px against 0.73 px without it)
+    checked = refine_tracks(loader, kps, pm, results, track_config=TrackConfig(max_images_in_memory=2))
+    assert checked.stats["rejected_far"] > 0
+    assert checked.stats["moved"] + checked.stats["rejected_far"] == res.stats["moved"]
+    rel_before, rel_after = _relative_errors(checked, kps, gt)
+    assert np.median(rel_after) <= (1 - MIN_ERROR_REDUCTION) * np.median(rel_before)
+
+
+def _relative_errors(res, kps, gt):
+    """Per refined keypoint, |(x_i - g_i) - (x_j - g_j)| against its partner j, before and after."""
     rel_before, rel_after = [], []
     for i in kps:
         against = res.refined_against[i]
@@ -387,8 +404,7 @@ def test_synthetic_scene_refinement(tmp_path):
             rel_before.append(np.linalg.norm((kps[i][k] - gt[i][k]) - (kps[j][ref] - gt[j][ref])))
             rel_after.append(np.linalg.norm(
                 (res.keypoints[i][k] - gt[i][k]) - (res.keypoints[j][ref] - gt[j][ref])))
-    assert np.median(rel_after) <= (1 - MIN_ERROR_REDUCTION) * np.median(rel_before)
-    assert set(loaded) == set(kps)
+    return rel_before, rel_after
 
 
 def test_batched_levels_match_per_pair_calls_on_real_images(shared_data):

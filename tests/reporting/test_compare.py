@@ -66,6 +66,10 @@ def test_compare_synthetic(scene, tmp_path, capsys):
     rows = {r["metric"]: r for r in cmp["rows"]}
     assert rows["GT track residual median (px)"]["refined"] == f"{kr['residual_median_px']:.3f}"
     assert "epipolar distance median (px)" in printed and "wrong tracks > 4 px (%)" in printed
+    # no keypoint moved: every kept match is compared, none turned wrong or right
+    flips = cmp["refined"]["epipolar_flips"]
+    assert flips["num_compared"] == sum(after_m.values()) and flips["num_moved"] == 0
+    assert flips["num_turned_wrong"] == flips["num_turned_right"] == 0
 
 
 def test_match_changes_sees_moved_keypoints(scene, tmp_path):
