@@ -310,8 +310,9 @@ def main(argv=None) -> int:
 
     pycolmap.logging.minloglevel = 1
     common = [f"mapping.num_threads={args.threads}", f"mapping.refine_intrinsics={args.refine_intrinsics}"]
-    for _name, recipe, ov, _ in variants:  # a bad recipe or key fails here, before any work
-        load_recipe(recipe, [*args.overrides, *ov, *common])
+    for _name, recipe, ov, code in variants:  # a bad recipe or key fails here, before any work
+        if code is None:  # another checkout's recipe keys are its own: checked when it refines
+            load_recipe(recipe, [*args.overrides, *ov, *common])
     mapping = load_recipe(args.recipe, [*args.overrides, *common]).mapping
     cmd = sys.argv[1:] if argv is None else list(argv)
     t_all = time.perf_counter()
