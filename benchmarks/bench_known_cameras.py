@@ -34,6 +34,8 @@ recipe as given, named after it. ``--rows`` picks rows by name (piecewise runs);
 merges into an existing file (a row of the same scene / setting / row / mapper is replaced), so
 piecewise runs build one file; ``--table-from`` prints its tables.
 
+The scene ``demo`` is the built-in demo scene as ``bench_accuracy.py`` renders it into the cache.
+
 ``--threads 1`` (default) makes each run deterministic for its seed; the spread then comes
 from the seeds alone.
 """
@@ -51,7 +53,16 @@ import sys
 import time
 from pathlib import Path
 
-from bench_accuracy import SETTINGS, SHARED_SCENES, build_database, numeric_stats, parse_variant
+from bench_accuracy import (
+    DEMO,
+    MAX_FEATURES,
+    SETTINGS,
+    SHARED_SCENES,
+    build_database,
+    numeric_stats,
+    parse_variant,
+    scene_inputs,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 AUCS = (0.5, 1.0, 2.0, 5.0)
@@ -318,18 +329,22 @@ def main(argv=None) -> int:
     t_all = time.perf_counter()
     rows: list[dict] = []
     for scene in args.scenes:
-        root = args.data / scene
-        if not (root / "images").is_dir() or not (root / "gt_model").is_dir():
+        root = args.cache / DEMO / "scene" if scene == DEMO else args.data / scene
+        if scene == DEMO and not (root / "gt_model").is_dir() and not args.build_missing:
+            print(f"skip {scene}: not rendered under {root} (--build-missing renders it)", file=sys.stderr)
+            continue
+        found = scene_inputs(scene, args.data, args.cache)  # the demo as bench_accuracy.py renders it
+        if found is None:
             print(f"skip {scene}: no images/ or gt_model/ under {root}", file=sys.stderr)
             continue
-        image_dir, gt = root / "images", root / "gt_model"
+        image_dir, gt = found
         gt_poses, intrinsics = load_gt_poses(gt), gt_intrinsics(gt)
         for setting in args.settings:
             cached = args.cache / scene / setting / "database.db"
             if not cached.is_file() and not args.build_missing:
                 print(f"skip {scene}/{setting}: no {cached} (--build-missing builds it)", file=sys.stderr)
                 continue
-            db = build_database(image_dir, args.cache / scene, setting, args.max_features)
+            db = build_database(image_dir, args.cache / scene, setting, MAX_FEATURES.get(scene, args.max_features))
             work = args.work / scene / setting
             work.mkdir(parents=True, exist_ok=True)
             plan = [(INPUT, None), (ORACLE, None), *[(v[0], v) for v in variants]]
