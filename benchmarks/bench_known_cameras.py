@@ -184,8 +184,9 @@ def _median_range(values: list[float], pct: bool) -> str:
 
 
 def _row_order(rows: list[dict]) -> list[dict]:
-    """Scenes and settings in first-seen order; within them input, oracle, then variants as seen."""
-    first: dict = {}
+    """The demo, then scenes and settings in first-seen order; within them input, oracle, then
+    variants as seen."""
+    first: dict = {("scene", DEMO): -1}
     for i, r in enumerate(rows):
         first.setdefault(("scene", r["scene"]), i)
         first.setdefault(("setting", r["scene"], r["setting"]), i)
