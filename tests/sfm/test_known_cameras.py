@@ -268,16 +268,38 @@ def test_run_repeats_needs_compare(scene, tmp_path, capsys):
 def test_bench_known_cameras_table_shows_medians_and_visible_ranges():
     import bench_known_cameras as bk
 
-    assert bk._median_range([0.1, 0.3, 0.2], pct=True) == "20.0 (10.0-30.0)"
+    assert bk._median_range([0.1, 0.3, 0.2], pct=True) == "20.0 [10.0-30.0]"
     assert bk._median_range([0.12301, 0.12304], pct=True) == "12.3"  # the range would not show
-    assert bk._median_range([9, 10, 16], pct=False) == "10 (9-16)"
+    assert bk._median_range([9, 10, 16], pct=False) == "10 [9-16]"
     runs = [{"num_reg_images": n, "num_images": 16, **{auc_key(t): a for t in bk.AUCS}}
             for n, a in ((16, 0.5), (13, 0.25), (16, 0.75))]
-    rows = [{"scene": "s", "setting": "default", "side": "baseline", "runs": runs,
-             "keypoint_accuracy": {"residual_median_px": 0.2, "wrong_track_share": 0.01}}]
-    line = bk.table(rows).splitlines()[-1]
-    assert line == ("| s | default | baseline | 16 (13-16)/16 | 50.0 (25.0-75.0) | 50.0 (25.0-75.0) | "
-                    "50.0 (25.0-75.0) | 50.0 (25.0-75.0) | 0.200 | 1.00 |")
+    go = {"outlier_share": 0.125, "correct_pair_outlier_share": 0.05, "num_correct": 700}
+    rows = [{"scene": "s", "setting": "default", "row": "ncc", "mapper": "incremental", "runs": runs,
+             "gt_outliers": go, "keypoint_accuracy": {"residual_median_px": 0.2, "wrong_track_share": 0.01}},
+            {"scene": "s", "setting": "default", "row": "input", "mapper": "incremental", "runs": runs[:1],
+             "gt_outliers": go, "keypoint_accuracy": {}},
+            {"scene": "s", "setting": "default", "row": "input", "mapper": "global", "runs": runs[:1]}]
+    lines = bk.table(rows, "incremental").splitlines()
+    assert len(lines) == 4 and lines[2].startswith("| s | default | input | 16/16 | 50.0 |")  # input first
+    assert lines[3] == ("| s | default | ncc | 16 [13-16]/16 | 50.0 [25.0-75.0] | 50.0 [25.0-75.0] | "
+                        "50.0 [25.0-75.0] | 50.0 [25.0-75.0] | 12.5 | 5.0 | 700 | 0.200 | 1.00 |")
+    assert bk.table(rows, "global").splitlines()[-1].endswith("| - | - | - | - | - |")
+    assert "**global mapper**" in bk.tables(rows)
+
+
+def test_bench_known_cameras_json_merges_piecewise_runs(tmp_path):
+    import bench_known_cameras as bk
+
+    def row(scene, name, value):
+        return {"scene": scene, "setting": "default", "row": name, "mapper": "incremental", "v": value}
+
+    path = tmp_path / "out.json"
+    bk.save_json(path, [row("a", "input", 1), row("a", "oracle", 1)], ["--scenes", "a"])
+    bk.save_json(path, [row("a", "oracle", 2), row("b", "input", 3)], ["--scenes", "a", "b"])
+    data = json.loads(path.read_text())
+    assert [(r["scene"], r["row"], r["v"]) for r in data["rows"]] == [("a", "input", 1), ("a", "oracle", 2),
+                                                                      ("b", "input", 3)]
+    assert data["commands"] == [["--scenes", "a"], ["--scenes", "a", "b"]]
 
 
 @pytest.mark.parametrize("refine, flags", [
