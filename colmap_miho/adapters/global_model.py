@@ -42,6 +42,10 @@ class GlobalEstimate:
         focal: image id -> mean focal length (pixels) of its estimated camera.
         pair_rotations: pair -> ``R_2from1`` estimated from the pair's matches alone (pairs of
             two registered images with at least ``min_pair_matches`` matches).
+        observations: image id -> (keypoint indices int64 ``(K,)``, their 3D points float64
+            ``(K, 3)``) of the model's tracks.
+        cameras: image id -> its estimated ``pycolmap.Camera``.
+        keypoints: image id -> ``(N, 2)`` keypoints in COLMAP's convention.
         seconds: wall time of the mapper.
     """
 
@@ -49,6 +53,9 @@ class GlobalEstimate:
     rays: dict[int, np.ndarray] = field(default_factory=dict)
     focal: dict[int, float] = field(default_factory=dict)
     pair_rotations: dict[Pair, np.ndarray] = field(default_factory=dict)
+    observations: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    cameras: dict = field(default_factory=dict)
+    keypoints: dict[int, np.ndarray] = field(default_factory=dict)
     seconds: float = 0.0
 
 
@@ -68,11 +75,20 @@ def _copy_scene(src: ColmapDatabase, dst, image_ids) -> None:
         dst.write_keypoints(int(i), np.ascontiguousarray(h.read_keypoints(int(i)), np.float32))
 
 
-def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: Mapping[int, np.ndarray], seed: int):
+def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: Mapping[int, np.ndarray], seed: int,
+                   refit_px: float = 0.0):
     """The two-view geometry written for pair (i, j) with inliers ``m``: its verified model
     kept (config, F, E, H, pose), else a fundamental matrix fitted to ``m``."""
     h = src.handle
     tvg = None
+    if refit_px > 0:
+        opts = pc.TwoViewGeometryOptions()
+        opts.ransac.max_error = float(refit_px)
+        opts.ransac.random_seed = int(seed)
+        cams = {c.camera_id: c for c in h.read_all_cameras()}
+        c1, c2 = cams[h.read_image(i).camera_id], cams[h.read_image(j).camera_id]
+        t = pc.estimate_two_view_geometry(c1, kp[i], c2, kp[j], np.ascontiguousarray(m, np.uint32), opts)
+        return t if int(t.config) in (2, 3, 4, 5, 6) else None
     if h.exists_two_view_geometry(i, j):
         old = h.read_two_view_geometry(i, j)
         if int(old.config) in (2, 3, 4, 5, 6):  # CALIBRATED .. PLANAR_OR_PANORAMIC
@@ -92,7 +108,7 @@ def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: M
 
 def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, min_pair_matches: int,
                     seed: int = 0, num_threads: int = -1, log_dir: Path | None = None,
-                    verbose: bool = False) -> GlobalEstimate:
+                    verbose: bool = False, refit_px: float = 0.0) -> GlobalEstimate:
     """Run pycolmap's global mapper on ``matches`` with the cameras of ``src``.
 
     Args:
@@ -123,9 +139,9 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         with pycolmap.Database.open(str(db_path)) as dst:
             _copy_scene(src, dst, image_ids)
             for (i, j), m in sorted(used.items()):
-                tvg = _pair_geometry(pycolmap, src, i, j, m, kp, seed)
+                tvg = _pair_geometry(pycolmap, src, i, j, m, kp, seed, refit_px)
                 if tvg is not None:
-                    dst.write_matches(i, j, tvg.inlier_matches)
+                    dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
                     dst.write_two_view_geometry(i, j, tvg)
         opts = pycolmap.GlobalPipelineOptions()
         opts.num_threads = int(num_threads)
@@ -151,8 +167,52 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         rays[i] = np.asarray(cam.cam_from_img(kp[i]), np.float64).reshape(-1, 2)
         focal[i] = float(cam.mean_focal_length())
         cams[i] = cam
-    return GlobalEstimate(poses=poses, rays=rays, focal=focal, seconds=seconds,
-                         pair_rotations=_pair_rotations(pycolmap, used, kp, cams, seed))
+    obs: dict[int, tuple[list, list]] = {i: ([], []) for i in poses}
+    for p3 in rec.points3D.values():
+        for el in p3.track.elements:
+            if int(el.image_id) in obs:
+                obs[int(el.image_id)][0].append(int(el.point2D_idx))
+                obs[int(el.image_id)][1].append(p3.xyz)
+    observations = {i: (np.asarray(a, np.int64), np.asarray(b, np.float64).reshape(-1, 3)) for i, (a, b) in obs.items()}
+    return GlobalEstimate(poses=poses, rays=rays, focal=focal, seconds=seconds, observations=observations,
+                         cameras=cams, keypoints=kp, pair_rotations=_pair_rotations(pycolmap, used, kp, cams, seed))
+
+
+def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray], trusted, *,
+                    max_error_px: float, min_inliers: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+    """A new ``cam_from_world`` of placed image ``image_id`` from the estimate's 3D points that
+    its keypoints match through the ``trusted`` images (absolute pose, LO-RANSAC at
+    ``max_error_px`` and refinement, as incremental mapping registers an image); None with
+    fewer than ``min_inliers`` inliers."""
+    import pycolmap
+
+    k = int(image_id)
+    if k not in est.cameras:
+        return None
+    p2, p3 = [], []
+    for (i, j), m in matches.items():
+        if k not in (i, j):
+            continue
+        other, mine, theirs = (j, m[:, 0], m[:, 1]) if i == k else (i, m[:, 1], m[:, 0])
+        if other not in trusted or other not in est.observations:
+            continue
+        idx, xyz = est.observations[other]
+        order = np.argsort(idx)
+        pos = np.searchsorted(idx[order], theirs)
+        pos = np.minimum(pos, max(len(idx) - 1, 0))
+        hit = (idx[order][pos] == theirs) if len(idx) else np.zeros(len(theirs), bool)
+        p2.append(est.keypoints[k][mine[hit]])
+        p3.append(xyz[order][pos[hit]])
+    if not p2 or sum(len(a) for a in p2) < min_inliers:
+        return None
+    opts = pycolmap.AbsolutePoseEstimationOptions()
+    opts.ransac.max_error = float(max_error_px)
+    opts.ransac.random_seed = int(seed)
+    out = pycolmap.estimate_and_refine_absolute_pose(np.concatenate(p2), np.concatenate(p3), est.cameras[k], opts)
+    if out is None or int(out["num_inliers"]) < min_inliers:
+        return None
+    pose = out["cam_from_world"]
+    return np.asarray(pose.rotation.matrix(), np.float64), np.asarray(pose.translation, np.float64)
 
 
 def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],

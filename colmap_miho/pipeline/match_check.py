@@ -26,7 +26,7 @@ import numpy as np
 from ..adapters.database import ColmapDatabase
 from ..enums import MatchCheckMode, MatchSource
 from ..verification.config import MatchCheckConfig
-from ..verification.match_check import check_matches
+from ..verification.match_check import MatchCheckResult, check_matches
 from .pair_check import pair_graph_matches
 from .records import FilteredPairs, PairOutcome
 from .store import RunStore
@@ -178,6 +178,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
         rounds += 1
         res = check_matches(current, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
                             threshold=threshold if used else None)
+        res = _place_untrusted(est, res, current, cfg, threshold if used else None)
         registered = len(res.registered)
         registered_any |= set(res.registered)
         if not res.used:
@@ -214,6 +215,28 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
         "seconds": seconds,
     }
     return ({p: f for p, f in failed.items() if f.any() or p in judged_pairs}, wrong, meta)
+
+
+def _place_untrusted(est, res: MatchCheckResult, matches: dict[Pair, np.ndarray], cfg: MatchCheckConfig,
+                     threshold: float | None) -> MatchCheckResult:
+    """Place each registered image the check did not trust again, from the estimate's 3D
+    points its keypoints match through the trusted images (as incremental mapping registers an
+    image: the trusted part of the estimate is not bent by that image's wrong pairs), and judge
+    again with those poses (the trust test decides again whether each new pose holds)."""
+    from ..adapters.global_model import place_by_points
+
+    if not res.used or not cfg.place_untrusted or res.trusted >= res.registered:
+        return res
+    poses = dict(est.poses)
+    for k in sorted(res.registered - res.trusted):
+        pose = place_by_points(est, k, matches, res.trusted, max_error_px=cfg.max_threshold_px,
+                               min_inliers=cfg.min_placed_inliers, seed=cfg.seed)
+        if pose is not None:
+            poses[k] = pose
+    if all(poses[k] is est.poses[k] for k in poses):
+        return res
+    return check_matches(matches, est.rays, est.focal, poses, est.pair_rotations, cfg,
+                         threshold=res.threshold_px if threshold is None else threshold)
 
 
 def _pack(failed: dict[Pair, np.ndarray], wrong: set[Pair]) -> dict[str, np.ndarray]:

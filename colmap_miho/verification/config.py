@@ -168,6 +168,12 @@ class MatchCheckConfig:
         max_pair_fail_share: a pair (of two trusted images, at least ``min_pair_matches``
             matches) whose share of failing matches exceeds this is removed as a whole, in
             (0, 1].
+        place_untrusted: place each image the check did not trust again from the estimate's
+            3D points that its keypoints match through the trusted images (absolute pose with
+            RANSAC at ``max_threshold_px``, as incremental mapping registers an image), then
+            test its trust again: a pose bent by the image's wrong pairs is replaced by one
+            that only the trusted part of the estimate gives.
+        min_placed_inliers: 2D-3D inliers such a new pose needs.
         rounds: global estimates at most: each round after the first is made from the
             survivors of the last, and judges (with the first round's threshold) the pairs of
             the images newly trusted (placed wrong before by their pairs' wrong matches);
@@ -185,7 +191,9 @@ class MatchCheckConfig:
     min_pair_matches: int = 15
     min_trusted_images: int = 3
     min_trusted_share: float = 0.5
-    max_pair_fail_share: float = 0.5
+    max_pair_fail_share: float = 0.8
+    place_untrusted: bool = True
+    min_placed_inliers: int = 30
     rounds: int = 1
     seed: int = 0
 
@@ -207,6 +215,8 @@ class MatchCheckConfig:
             raise ValueError(f"min_trusted_images must be >= 2, got {self.min_trusted_images}")
         if not 0.0 < self.min_trusted_share <= 1.0:
             raise ValueError(f"min_trusted_share must be in (0, 1], got {self.min_trusted_share}")
+        if self.min_placed_inliers < 6:
+            raise ValueError(f"min_placed_inliers must be >= 6, got {self.min_placed_inliers}")
         if not 1 <= self.rounds <= 5:
             raise ValueError(f"rounds must be in 1..5, got {self.rounds}")
         if not 0.0 < self.max_pair_fail_share <= 1.0:
