@@ -5,6 +5,7 @@ matches, the report says what was removed, and a resumed run reuses the stored v
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -14,7 +15,9 @@ import pytest
 from colmap_miho.adapters import global_model
 from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.summary import RefineSummary
 from colmap_miho.recipe import load_recipe
+from colmap_miho.reporting.html_report import match_check_note
 
 #: Pixels of keypoint noise.
 NOISE_PX = 0.5
@@ -105,6 +108,11 @@ def test_planted_matches_are_removed_and_correct_ones_kept(planted_db, tmp_path)
     assert mc["images_registered"] == mc["images"] == 8 and len(mc["images_trusted"]) == 8
     assert mc["matches_removed"] > 0 and 1.0 <= mc["threshold_px"] <= 4.0
     assert off["match_check"] == {}
+    note = match_check_note(mc)  # report.html's sentence
+    assert "8 trusted" in note and f"{mc['matches_removed']} of {mc['matches_judged']} judged matches removed" in note
+    fields = {f.name for f in dataclasses.fields(RefineSummary)}
+    text = RefineSummary(**{k: v for k, v in on.items() if k in fields}).format()  # the CLI summary
+    assert "match check: global estimate of 8 of 8 images" in text and "8 trusted" in text
 
 
 @pytest.mark.slow
@@ -123,6 +131,7 @@ def test_no_estimate_removes_nothing(planted_db, tmp_path, monkeypatch):
     off = _run(planted_db, tmp_path / "off.db")
     on = _run(planted_db, tmp_path / "on.db", "match_check.mode=remove")
     assert not on["match_check"]["used"] and "placed 0 images" in on["match_check"]["reason"]
+    assert "not used" in match_check_note(on["match_check"])
     a, b = _output_matches(tmp_path / "off.db"), _output_matches(tmp_path / "on.db")
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
     assert off["matches_kept"] == on["matches_kept"]
