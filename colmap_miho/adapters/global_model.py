@@ -108,7 +108,8 @@ def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: M
 
 def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, min_pair_matches: int,
                     seed: int = 0, num_threads: int = -1, log_dir: Path | None = None,
-                    verbose: bool = False, refit_px: float = 0.0) -> GlobalEstimate:
+                    verbose: bool = False, refit_px: float = 0.0, ba_iterations: int = 3,
+                    retriangulate: bool = True) -> GlobalEstimate:
     """Run pycolmap's global mapper on ``matches`` with the cameras of ``src``.
 
     Args:
@@ -118,6 +119,10 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
             pair rotation (COLMAP's mapper ignores pairs below 15 inliers anyway).
         seed: the mapper's and the pairs' RANSAC seed.
         num_threads: mapper threads (-1: all cores).
+        ba_iterations / retriangulate: the mapper's bundle-adjustment rounds and whether it
+            triangulates again after them.
+        refit_px: > 0: each pair's geometry is estimated again from its matches at this RANSAC
+            threshold instead of keeping the verified one (tried; off by default).
         log_dir: folder for COLMAP's log (default: the temporary folder, removed after).
         verbose: COLMAP's log on the terminal instead.
 
@@ -147,6 +152,8 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         opts.num_threads = int(num_threads)
         opts.random_seed = int(seed)
         opts.min_num_matches = int(min_pair_matches)
+        opts.mapper.ba_num_iterations = int(ba_iterations)
+        opts.mapper.skip_retriangulation = not retriangulate
         out = folder / "model"
         out.mkdir()
         t0 = time.perf_counter()

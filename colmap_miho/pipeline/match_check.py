@@ -173,7 +173,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
         current = {p: matches[p][idx] for p, idx in alive.items()}
         t0 = time.perf_counter()
         est = global_estimate(db, current, min_pair_matches=cfg.min_pair_matches, seed=cfg.seed,
-                              num_threads=threads)
+                              num_threads=threads, ba_iterations=cfg.ba_iterations, retriangulate=cfg.retriangulate)
         seconds += time.perf_counter() - t0
         rounds += 1
         res = check_matches(current, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
