@@ -75,20 +75,11 @@ def _copy_scene(src: ColmapDatabase, dst, image_ids) -> None:
         dst.write_keypoints(int(i), np.ascontiguousarray(h.read_keypoints(int(i)), np.float32))
 
 
-def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: Mapping[int, np.ndarray], seed: int,
-                   refit_px: float = 0.0):
+def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: Mapping[int, np.ndarray], seed: int):
     """The two-view geometry written for pair (i, j) with inliers ``m``: its verified model
     kept (config, F, E, H, pose), else a fundamental matrix fitted to ``m``."""
     h = src.handle
     tvg = None
-    if refit_px > 0:
-        opts = pc.TwoViewGeometryOptions()
-        opts.ransac.max_error = float(refit_px)
-        opts.ransac.random_seed = int(seed)
-        cams = {c.camera_id: c for c in h.read_all_cameras()}
-        c1, c2 = cams[h.read_image(i).camera_id], cams[h.read_image(j).camera_id]
-        t = pc.estimate_two_view_geometry(c1, kp[i], c2, kp[j], np.ascontiguousarray(m, np.uint32), opts)
-        return t if int(t.config) in (2, 3, 4, 5, 6) else None
     if h.exists_two_view_geometry(i, j):
         old = h.read_two_view_geometry(i, j)
         if int(old.config) in (2, 3, 4, 5, 6):  # CALIBRATED .. PLANAR_OR_PANORAMIC
@@ -108,7 +99,7 @@ def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: M
 
 def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, min_pair_matches: int,
                     seed: int = 0, num_threads: int = -1, log_dir: Path | None = None,
-                    verbose: bool = False, refit_px: float = 0.0, ba_iterations: int = 3,
+                    verbose: bool = False, ba_iterations: int = 3,
                     retriangulate: bool = True) -> GlobalEstimate:
     """Run pycolmap's global mapper on ``matches`` with the cameras of ``src``.
 
@@ -121,8 +112,6 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         num_threads: mapper threads (-1: all cores).
         ba_iterations / retriangulate: the mapper's bundle-adjustment rounds and whether it
             triangulates again after them.
-        refit_px: > 0: each pair's geometry is estimated again from its matches at this RANSAC
-            threshold instead of keeping the verified one (tried; off by default).
         log_dir: folder for COLMAP's log (default: the temporary folder, removed after).
         verbose: COLMAP's log on the terminal instead.
 
@@ -144,7 +133,7 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         with pycolmap.Database.open(str(db_path)) as dst:
             _copy_scene(src, dst, image_ids)
             for (i, j), m in sorted(used.items()):
-                tvg = _pair_geometry(pycolmap, src, i, j, m, kp, seed, refit_px)
+                tvg = _pair_geometry(pycolmap, src, i, j, m, kp, seed)
                 if tvg is not None:
                     dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
                     dst.write_two_view_geometry(i, j, tvg)
