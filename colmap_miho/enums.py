@@ -141,3 +141,11 @@ class PairCheckMode(StrEnum):
 
     REMOVE = "remove"  # drop the pair's matches from the output database
     FLAG = "flag"  # keep it; only report it
+
+
+class MatchCheckMode(StrEnum):
+    """What the match check (verification against a global estimate of the cameras) does."""
+
+    OFF = "off"  # no global estimate, nothing judged
+    REMOVE = "remove"  # drop the matches (and pairs) the trusted estimate contradicts
+    FLAG = "flag"  # judge and report, remove nothing

@@ -1,8 +1,8 @@
 """Recipes: named TOML files that set the configuration of every stage.
 
 A recipe has one table per stage (``[filter]``, ``[ncc]``, ``[tracks]``, ``[pipeline]``,
-``[mapping]``, ``[pair_check]``) whose keys are fields of the stage's dataclass; a missing table means the
-dataclass defaults. Unknown tables or keys are errors, never silently ignored.
+``[mapping]``, ``[pair_check]``, ``[match_check]``) whose keys are fields of the stage's
+dataclass; a missing table means the dataclass defaults. Unknown tables or keys are errors, never silently ignored.
 ``--set section.key=value`` overrides are parsed with the field's type.
 """
 
@@ -22,7 +22,7 @@ from .filtering.config import FilterConfig
 from .pipeline_config import PipelineConfig
 from .refinement.config import NCCConfig, TrackConfig
 from .sfm import MappingConfig
-from .verification.config import PairCheckConfig
+from .verification.config import MatchCheckConfig, PairCheckConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -51,6 +51,7 @@ class Recipe:
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     pair_check: PairCheckConfig = field(default_factory=PairCheckConfig)
+    match_check: MatchCheckConfig = field(default_factory=MatchCheckConfig)
 
 
 SECTIONS: dict[str, type] = {
@@ -60,6 +61,7 @@ SECTIONS: dict[str, type] = {
     "pipeline": PipelineConfig,
     "mapping": MappingConfig,
     "pair_check": PairCheckConfig,
+    "match_check": MatchCheckConfig,
 }
 
 

@@ -154,6 +154,21 @@ BOUNDS: dict[str, dict[str, Bound]] = {
         "min_f_matches": Bound(8, MAX_MATCHES, "the eight-point algorithm; no pair holds more"),
         "seed": Bound(0, MAX_SEED, "a 32-bit seed"),
     },
+    "match_check": {
+        "false_reject": Bound(0, 0.5, "a probability in the tail of the residuals", lo_open=True, hi_open=True),
+        "min_threshold_px": Bound(0, MAX_THRESHOLD_PX, _PX, lo_open=True),
+        "max_threshold_px": Bound(0, MAX_THRESHOLD_PX, _PX, lo_open=True),
+        "max_rotation_deg": Bound(0, 180, "degrees between two rotations", lo_open=True, hi_open=True),
+        "min_agreeing_pairs": Bound(1, 10_000, "pairs of one image"),
+        "min_pair_matches": Bound(8, MAX_MATCHES, "the eight-point algorithm; no pair holds more"),
+        "min_trusted_images": Bound(2, 1_000_000, "images"),
+        "min_trusted_share": Bound(0, 1, _SHARE, lo_open=True),
+        "max_pair_fail_share": Bound(0, 1, _SHARE, lo_open=True),
+        "min_placed_inliers": Bound(6, MAX_MATCHES, "an absolute pose needs 6 correspondences"),
+        "ba_iterations": Bound(1, 10, "rounds of bundle adjustment, each a full adjustment"),
+        "rounds": Bound(1, 5, "global-mapper runs"),
+        "seed": Bound(0, MAX_SEED, "a 32-bit seed"),
+    },
 }
 
 

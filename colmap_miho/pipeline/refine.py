@@ -405,11 +405,14 @@ class RefineStats:
 
 
 def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Recipe, device: str,
-               runner: Runner, progress: bool, removed: Collection[tuple[int, int]] = ()
+               runner: Runner, progress: bool, removed: Collection[tuple[int, int]] = (),
+               adjust: Callable[[FilteredPairs], FilteredPairs] | None = None
                ) -> tuple[dict[int, np.ndarray], RefineStats]:
     """The refine stage on the stored pairs whose two images are readable, on ``runner``,
     skipping the track groups ``store`` holds and storing each finished one. The ``removed``
-    pairs (the pair check's) join no track.
+    pairs (the pair check's and the match check's) join no track; ``adjust`` (the match
+    check's :meth:`~.match_check.MatchCheckOutcome.apply`) takes the failed matches out of the
+    stored pairs first.
 
     Returns:
         (image id -> new keypoints (N, 2) float64 pixels, the stage's :class:`RefineStats`);
@@ -418,6 +421,8 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
     if not recipe.pipeline.refine or not store.filter_counts().pairs_ok:
         return read.keypoints, RefineStats()
     ok = {k: v for k, v in store.load_filtered().items() if k not in removed}
+    if adjust is not None:
+        ok = adjust(ok)
     missing = read.loader.missing
     usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
     ncfg = dataclasses.replace(recipe.ncc, device=Device(device)) if recipe.ncc.device == "auto" else recipe.ncc

@@ -5,6 +5,8 @@ stats dataclass that :class:`RefineSummary` is assembled from)::
 
     safe working copy -> read (:mod:`.read`) -> filter the pairs chunk by chunk
       (:mod:`.filter`, MOP / MOP+MiHo) into the run store (:mod:`.store`)
+      -> optional pair check (:mod:`.pair_check`) -> optional match check against a global
+      estimate of the cameras (:mod:`.match_check`)
       -> track-consistent NCC refinement (:mod:`.refine`) -> write back chunk by chunk
       (:mod:`.write`: keypoints, matches, two_view_geometries)
       -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
@@ -48,6 +50,7 @@ from ..errors import RunFailed, UserError
 from ..recipe import Recipe, load_recipe
 from .executor import Runner, open_runner
 from .filter import FilterOptions, run_filter
+from .match_check import run_match_check
 from .pair_check import run_pair_check
 from .read import ReadConfig, run_read
 from .refine import run_refine
@@ -265,10 +268,17 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 removed, pair_check = run_pair_check(db, read, store, rec.pair_check, pcfg.source)
                 if rec.pair_check.enabled:
                     laps.lap("pair_check")
-                new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress, removed)
+                checked, match_check = run_match_check(db, store, rec.match_check, pcfg.source, removed=set(removed),
+                                                       threads=runner.slots)
+                if rec.match_check.enabled:
+                    laps.lap("match_check")
+                removed = set(removed) | checked.wrong
+                new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress, removed,
+                                                         adjust=checked.apply)
                 laps.lap("refine")
-                write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg,
-                                        removed=removed)
+                write_stats = run_write(db, read.keypoints, new_keypoints,
+                                        (checked.apply(c) for c in store.iter_filter_chunks()), pcfg,
+                                        removed=removed, refit=checked.refit)
                 laps.lap("write")
             if pcfg.verify:
                 run_verify(work_db)
@@ -279,6 +289,7 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 resumed=resumed, read=read_stats, filtered=filter_stats, refine=refine_stats,
                 write=write_stats, seconds=laps.total())
             summary.pair_check = {} if pair_check is None else pair_check.to_dict()
+            summary.match_check = {} if match_check is None else match_check.to_dict()
             if json_path:  # written beside its target now, renamed onto it with the commit
                 wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
             wc.commit()

@@ -11,6 +11,8 @@ The store is a folder beside the output (and its hidden working copy),
 - ``filter-NNNNNN.npz``: one finished filter chunk (per pair: the matches, the outcome's
   inliers, labels, patch homographies and success);
 - ``group-NNNNNN.npz``: one finished refine track group (the keypoints it moved, its stats);
+- ``stage-<name>.npz``: the result of a stage that runs once per run (the match check's
+  verdicts: its global estimate is not bit-for-bit repeatable);
 - ``lock``: held (``flock``) by the run using the folder, released by the kernel even on
   SIGKILL.
 
@@ -51,7 +53,7 @@ LOCK = "lock"
 #: Format of the store's files; a store of another format is not resumed.
 STORE_VERSION = 1
 #: Recipe tables whose values change a run's result (``mapping`` is not used by ``refine``).
-RESULT_TABLES = ("filter", "ncc", "tracks", "pipeline", "pair_check")
+RESULT_TABLES = ("filter", "ncc", "tracks", "pipeline", "pair_check", "match_check")
 #: ``pipeline`` keys that do not change the result (they only bound memory).
 NOT_RESULT_KEYS = {"pipeline": ("memory_budget_mb",)}
 
@@ -414,6 +416,25 @@ class RunStore:
             "xy": _cat([np.asarray(moved[i][1], np.float64).reshape(-1, 2) for i in ids], (0, 2), np.float64),
             "stats": np.array(json.dumps(stats, default=float)),
         })
+
+    # -- results of once-per-run stages ----------------------------------------------------
+    def save_stage(self, name: str, arrays: dict[str, np.ndarray], meta: dict) -> None:
+        """Store the result of stage ``name`` (a plain identifier): arrays and JSON-ready
+        ``meta``."""
+        if not re.fullmatch(r"[a-z_]+", name):
+            raise ValueError(f"stage name must be lower-case letters and _, got {name!r}")
+        _atomic_savez(self.folder / f"stage-{name}.npz",
+                      {**arrays, "meta": np.array(json.dumps(meta, default=float))})
+
+    def load_stage(self, name: str) -> tuple[dict[str, np.ndarray], dict] | None:
+        """The stored result of stage ``name`` (arrays, meta), or None."""
+        path = self.folder / f"stage-{name}.npz"
+        if not path.is_file():
+            return None
+        with np.load(path) as z:
+            arrays = {k: z[k] for k in z.files if k != "meta"}
+            meta = json.loads(str(z["meta"]))
+        return arrays, meta
 
 
 def _cat(parts: list[np.ndarray], empty_shape: tuple, dtype) -> np.ndarray:

@@ -41,6 +41,9 @@ class RefineSummary:
         image_decodes_max: the most times one image was decoded in the run (same count).
         pair_check: what the pair check removed or flagged, and why
             (:meth:`~.pair_check.PairCheckStats.to_dict`; empty when it is off).
+        match_check: what the match check against a global estimate of the cameras removed
+            and why, whether the estimate was used and which images it trusted
+            (:meth:`~.match_check.MatchCheckStats.to_dict`; empty when it is off).
         seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
             "total").
     """
@@ -80,6 +83,7 @@ class RefineSummary:
     refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
     pair_check: dict = field(default_factory=dict)
+    match_check: dict = field(default_factory=dict)
 
     @classmethod
     def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
@@ -136,6 +140,8 @@ class RefineSummary:
                          f"{self.refine_groups} refine groups were finished before")
         if self.pair_check:
             lines.append(_pair_check_line(self.pair_check))
+        if self.match_check:
+            lines.append(_match_check_line(self.match_check))
         if self.images_missing:
             lines.append(f"  images not refined (missing/unreadable): {', '.join(self.images_missing)}")
         if self.backup:
@@ -154,3 +160,21 @@ def _pair_check_line(pc: dict) -> str:
         line += f"\n    ... and {len(pc['wrong_pairs']) - 10} more (see the JSON report)"
     return line
 
+
+
+def _match_check_line(mc: dict) -> str:
+    """The summary's match-check lines: whether the global estimate was used, what was
+    removed, then at most 10 wrong pairs."""
+    verb = "removed" if mc["mode"] == "remove" else "flagged"
+    if not mc["used"]:
+        return (f"  match check: global estimate not used ({mc['reason']}); nothing {verb}")
+    line = (f"  match check: global estimate of {mc['images_registered']} of {mc['images']} images "
+            f"({mc['rounds']} round(s), {mc['seconds']:.1f} s), {len(mc['images_trusted'])} trusted"
+            + (f" (not: {', '.join(mc['images_untrusted'])})" if mc["images_untrusted"] else "")
+            + f"; threshold {mc['threshold_px']:.2f} px: {mc['matches_removed']} of {mc['matches_judged']} judged "
+            f"matches {verb}, {mc['pairs_removed']} pairs {verb} whole ({mc['matches_in_removed_pairs']} matches)")
+    line += "".join(f"\n    {' - '.join(w['images'])}: {100 * w['fail_share']:.0f}% of {w['matches']} matches "
+                    "off the global estimate" for w in mc["wrong_pairs"][:10])
+    if mc["pairs_removed"] > 10:
+        line += f"\n    ... and {mc['pairs_removed'] - 10} more (see the JSON report)"
+    return line

@@ -27,7 +27,8 @@ class WriteStats:
 
 def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoints: dict[int, np.ndarray],
               chunks: Iterable[FilteredPairs], cfg: PipelineConfig,
-              removed: Collection[tuple[int, int]] = ()) -> WriteStats:
+              removed: Collection[tuple[int, int]] = (),
+              refit: Collection[tuple[int, int]] = ()) -> WriteStats:
     """Write what changed, in one transaction.
 
     Args:
@@ -37,8 +38,11 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
             once); their inlier matches replace the pair's matches.
         cfg: ``source`` (a verified pair keeps its geometry model) and ``verify`` (the pairs'
             two-view geometries are deleted, for COLMAP to re-verify).
-        removed: pairs (image_id1, image_id2) the pair check removed: written without matches
-            and without a two-view geometry, whether they were filtered or not.
+        removed: pairs (image_id1, image_id2) the pair check or the match check removed:
+            written without matches and without a two-view geometry, whether they were
+            filtered or not.
+        refit: filtered pairs the match check judged: their fundamental matrix is fitted
+            again to the survivors (COLMAP's was fitted to the wrong matches too).
     """
     from ..adapters.safety import check_free_space
 
@@ -60,7 +64,7 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
                     continue
                 kept = m[np.asarray(r.inliers, bool)]
                 write_pair(db, i, j, kept, new_keypoints[i][kept[:, 0]], new_keypoints[j][kept[:, 1]],
-                           keep_model=cfg.source == MatchSource.VERIFIED)
+                           keep_model=cfg.source == MatchSource.VERIFIED and (i, j) not in refit)
                 written.append((i, j))
         none = np.zeros((0, 2), np.uint32)
         for i, j in sorted(removed):

@@ -319,7 +319,25 @@ def _summary_note(baseline: dict, refine: dict) -> str:
     if refine:
         parts.append(f"Recipe {refine.get('recipe', '')}: {refine.get('matches_kept', 0)} of "
                      f"{refine.get('matches_in', 0)} matches kept, {refine.get('keypoints_moved', 0)} keypoints moved.")
+        mc = refine.get("match_check") or {}
+        if mc:
+            parts.append(match_check_note(mc))
     return " ".join(parts)
+
+
+def match_check_note(mc: dict) -> str:
+    """One sentence on the match check (``RefineSummary.match_check``): whether the global
+    estimate was used, which images it trusted, and what was removed (plain text)."""
+    verb = "removed" if mc.get("mode") == "remove" else "flagged"
+    if not mc.get("used"):
+        return f"Match check: the global estimate of the cameras was not used ({mc.get('reason', '')}); nothing {verb}."
+    untrusted = mc.get("images_untrusted") or []
+    return (f"Match check: global estimate of {mc.get('images_registered', 0)} of {mc.get('images', 0)} images, "
+            f"{len(mc.get('images_trusted') or [])} trusted"
+            + (f" (not: {', '.join(untrusted)})" if untrusted else "")
+            + f"; {mc.get('matches_removed', 0)} of {mc.get('matches_judged', 0)} judged matches {verb} "
+            f"(farther than {mc.get('threshold_px', 0):.2f} px from their epipolar line under it), "
+            f"{mc.get('pairs_removed', 0)} pairs {verb} whole (most of their matches off it).")
 
 
 def write_model_html(path: str | Path, report: dict, model, *, budget: int = POINT_BUDGET,

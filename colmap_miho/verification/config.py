@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..enums import PairCheckMode
+from ..enums import MatchCheckMode, PairCheckMode
 from ..validation import check_bounds
 
 
@@ -95,3 +95,96 @@ class PairCheckConfig:
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", PairCheckMode.parse(self.mode, "mode"))
         check_bounds(self, "pair_check")  # every key's range (colmap_miho.validation.BOUNDS)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MatchCheckConfig:
+    """Parameters of the match check: every match judged against a global estimate of the
+    cameras (see :mod:`colmap_miho.verification.match_check`).
+
+    After the filter (and the pair check), one global estimate of all cameras is made from the
+    filtered matches (pycolmap's global mapper: view-graph calibration, rotation averaging,
+    global positioning, bundle adjustment). The estimate is trusted image by image: an image is
+    trusted when its pose agrees with its pairs' own relative rotations (each estimated from
+    the pair's matches alone): at least ``min_agreeing_pairs`` of them within
+    ``max_rotation_deg`` (a count, not a median: on real scenes many pairs are wrong, and a
+    wrong pair agrees with the estimate only by chance). The estimate is used only when at
+    least ``min_trusted_images`` images and at least ``min_trusted_share`` of its registered
+    images are trusted; otherwise nothing is removed.
+
+    Each match of a pair of two trusted images is judged by its symmetric distance (pixels) to
+    its epipolar line under the estimate. The threshold follows the estimate's own residuals:
+    the distances of correct matches are modelled as exponential (heavier-tailed than a
+    normal, as keypoint errors are), with the mean ``median / ln 2`` of all judged matches'
+    distances; a match farther than the distance a correct one exceeds with probability
+    ``false_reject`` (clamped to ``[min_threshold_px, max_threshold_px]``) is removed. A pair whose matches
+    fail for more than ``max_pair_fail_share`` of them is wrong as a whole and removed.
+
+    Attributes:
+        mode: "off" (no estimate), "remove" or "flag" (judge and report only).
+        false_reject: the share of correct matches the threshold would remove if their
+            distances were exactly exponential, in (0, 0.5) (0.0027: a normal's 3-sigma tail).
+        min_threshold_px / max_threshold_px: pixels; bounds of the threshold. The floor keeps
+            correct matches where the estimate fits very tightly (a small median, the tail
+            heavier than exponential: at 1 px, 3.9% of the correct matches went on fountain-P11
+            and the demo scene, permissive matching; at 3 px the demo's gain went too); the cap
+            bounds it when the scale is blown up by many wrong matches (a correct match lies
+            within 4 px of its GT epipolar line).
+        max_rotation_deg: degrees; a pair agrees with the estimate when the angle between its
+            own relative rotation and the estimate's is at most this.
+        min_agreeing_pairs: agreeing pairs an image needs to be trusted.
+        min_pair_matches: a pair needs this many matches for its own relative rotation to
+            count in the trust check, and for the pair-level verdict.
+        min_trusted_images: the estimate is used only with at least this many trusted images.
+        min_trusted_share: ... and at least this share of its registered images trusted, in
+            (0, 1].
+        max_pair_fail_share: a pair (of two trusted images, at least ``min_pair_matches``
+            matches) whose share of failing matches exceeds this is removed as a whole, in
+            (0, 1].
+        place_untrusted: place each image the check did not trust again from the estimate's
+            3D points that its keypoints match through the trusted images (absolute pose with
+            RANSAC at ``max_threshold_px``, as incremental mapping registers an image), then
+            test its trust again: a pose bent by the image's wrong pairs is replaced by one
+            that only the trusted part of the estimate gives.
+        min_placed_inliers: 2D-3D inliers such a new pose needs.
+        ba_iterations: rounds of bundle adjustment in the global mapper (its default 3; 1 with
+            ``retriangulate`` off costs about a third less CPU on castle-P19 permissive, with a
+            slightly less accurate estimate).
+        retriangulate: let the global mapper triangulate again and adjust after its bundle
+            adjustment (its default).
+        rounds: global estimates at most: each round after the first is made from the
+            survivors of the last, and judges (with the first round's threshold) the pairs of
+            the images newly trusted (placed wrong before by their pairs' wrong matches);
+            stops early once every placed image is trusted. Each round is one more run of the
+            global mapper.
+        seed: random seed of the global mapper and of the pairs' relative-pose RANSAC.
+    """
+
+    mode: MatchCheckMode = MatchCheckMode.OFF
+    false_reject: float = 0.0027
+    min_threshold_px: float = 2.0
+    max_threshold_px: float = 4.0
+    max_rotation_deg: float = 5.0
+    min_agreeing_pairs: int = 2
+    min_pair_matches: int = 15
+    min_trusted_images: int = 3
+    min_trusted_share: float = 0.5
+    max_pair_fail_share: float = 0.8
+    place_untrusted: bool = True
+    min_placed_inliers: int = 30
+    ba_iterations: int = 3
+    retriangulate: bool = True
+    rounds: int = 1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mode", MatchCheckMode.parse(self.mode, "mode"))
+        check_bounds(self, "match_check")  # every key's range (colmap_miho.validation.BOUNDS)
+        if self.min_threshold_px > self.max_threshold_px:
+            raise ValueError("need min_threshold_px <= max_threshold_px, got "
+                             f"{self.min_threshold_px} and {self.max_threshold_px}")
+
+    @property
+    def enabled(self) -> bool:
+        """The stage runs (mode is not "off")."""
+        return self.mode != MatchCheckMode.OFF

@@ -1,0 +1,230 @@
+"""The global estimate of the cameras for the match check: pycolmap's global mapper on a
+temporary database holding the filtered matches, and each pair's own relative rotation.
+
+:func:`global_estimate` copies the cameras, rigs, frames, images and keypoints of the open
+working database into a new database in a temporary folder, writes each pair's given matches as
+its two-view geometry's inliers (the pair's verified model kept where it has one, else a
+fundamental matrix fitted here), runs ``pycolmap.global_mapping`` there with COLMAP's log sent
+to that folder, and returns the largest model's poses, the normalised coordinates of the
+registered images' keypoints (undistorted by the model's cameras) and the pairs' own relative
+rotations (``pycolmap.estimate_two_view_geometry`` on each pair's matches with the model's
+cameras). Coordinates are COLMAP's inside (the rays do not depend on the convention).
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .database import ColmapDatabase
+
+log = logging.getLogger(__name__)
+
+#: An image pair (image_id1, image_id2) with image_id1 < image_id2.
+Pair = tuple[int, int]
+
+#: Pixels: RANSAC threshold of each pair's own relative pose (COLMAP's default verification).
+PAIR_POSE_MAX_ERROR_PX = 4.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class GlobalEstimate:
+    """A global estimate of the cameras (empty when the mapper placed no image).
+
+    Attributes:
+        poses: image id -> ``cam_from_world`` (R (3, 3), t (3,)).
+        rays: image id -> ``(N, 2)`` normalised coordinates of all its keypoints.
+        focal: image id -> mean focal length (pixels) of its estimated camera.
+        pair_rotations: pair -> ``R_2from1`` estimated from the pair's matches alone (pairs of
+            two registered images with at least ``min_pair_matches`` matches).
+        observations: image id -> (keypoint indices int64 ``(K,)``, their 3D points float64
+            ``(K, 3)``) of the model's tracks.
+        cameras: image id -> its estimated ``pycolmap.Camera``.
+        keypoints: image id -> ``(N, 2)`` keypoints in COLMAP's convention.
+        seconds: wall time of the mapper.
+    """
+
+    poses: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    rays: dict[int, np.ndarray] = field(default_factory=dict)
+    focal: dict[int, float] = field(default_factory=dict)
+    pair_rotations: dict[Pair, np.ndarray] = field(default_factory=dict)
+    observations: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    cameras: dict = field(default_factory=dict)
+    keypoints: dict[int, np.ndarray] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def _copy_scene(src: ColmapDatabase, dst, image_ids) -> None:
+    """Cameras, rigs, frames, images and keypoints of ``src`` into the new pycolmap database
+    ``dst`` (ids kept)."""
+    h = src.handle
+    for cam in h.read_all_cameras():
+        dst.write_camera(cam, use_camera_id=True)
+    for rig in h.read_all_rigs():
+        dst.write_rig(rig, use_rig_id=True)
+    for frame in h.read_all_frames():
+        dst.write_frame(frame, use_frame_id=True)
+    for im in h.read_all_images():
+        dst.write_image(im, use_image_id=True)
+    for i in image_ids:
+        dst.write_keypoints(int(i), np.ascontiguousarray(h.read_keypoints(int(i)), np.float32))
+
+
+def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: Mapping[int, np.ndarray], seed: int):
+    """The two-view geometry written for pair (i, j) with inliers ``m``: its verified model
+    kept (config, F, E, H, pose), else a fundamental matrix fitted to ``m``."""
+    h = src.handle
+    tvg = None
+    if h.exists_two_view_geometry(i, j):
+        old = h.read_two_view_geometry(i, j)
+        if int(old.config) in (2, 3, 4, 5, 6):  # CALIBRATED .. PLANAR_OR_PANORAMIC
+            tvg = old
+    if tvg is None:
+        from ..verification.epipolar import fit_fundamental
+
+        F = fit_fundamental(kp[i][m[:, 0]], kp[j][m[:, 1]], np.random.default_rng([seed, i, j]))
+        if F is None:
+            return None
+        tvg = pc.TwoViewGeometry()
+        tvg.config = pc.TwoViewGeometryConfiguration.UNCALIBRATED
+        tvg.F = F
+    tvg.inlier_matches = np.ascontiguousarray(m, np.uint32)
+    return tvg
+
+
+def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, min_pair_matches: int,
+                    seed: int = 0, num_threads: int = -1, log_dir: Path | None = None,
+                    verbose: bool = False, ba_iterations: int = 3,
+                    retriangulate: bool = True) -> GlobalEstimate:
+    """Run pycolmap's global mapper on ``matches`` with the cameras of ``src``.
+
+    Args:
+        src: the open working database (read only here).
+        matches: pair -> int ``(M, 2)`` keypoint indices, the matches to estimate from.
+        min_pair_matches: pairs with fewer matches are left out of the estimate and get no
+            pair rotation (COLMAP's mapper ignores pairs below 15 inliers anyway).
+        seed: the mapper's and the pairs' RANSAC seed.
+        num_threads: mapper threads (-1: all cores).
+        ba_iterations / retriangulate: the mapper's bundle-adjustment rounds and whether it
+            triangulates again after them.
+        log_dir: folder for COLMAP's log (default: the temporary folder, removed after).
+        verbose: COLMAP's log on the terminal instead.
+
+    Returns:
+        The :class:`GlobalEstimate` (empty when no model came out).
+    """
+    import time
+
+    import pycolmap
+
+    from ..sfm import colmap_log_to_file
+
+    image_ids = [im.image_id for im in src.images()]
+    kp = {i: np.asarray(src.handle.read_keypoints(int(i))[:, :2], np.float64) for i in image_ids}
+    used = {p: np.asarray(m, np.int64) for p, m in matches.items() if len(m) >= min_pair_matches}
+    with tempfile.TemporaryDirectory(prefix="miho-global-") as tmp:
+        folder = Path(tmp)
+        db_path = folder / "global.db"
+        with pycolmap.Database.open(str(db_path)) as dst:
+            _copy_scene(src, dst, image_ids)
+            for (i, j), m in sorted(used.items()):
+                tvg = _pair_geometry(pycolmap, src, i, j, m, kp, seed)
+                if tvg is not None:
+                    dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
+                    dst.write_two_view_geometry(i, j, tvg)
+        opts = pycolmap.GlobalPipelineOptions()
+        opts.num_threads = int(num_threads)
+        opts.random_seed = int(seed)
+        opts.min_num_matches = int(min_pair_matches)
+        opts.mapper.ba_num_iterations = int(ba_iterations)
+        opts.mapper.skip_retriangulation = not retriangulate
+        out = folder / "model"
+        out.mkdir()
+        t0 = time.perf_counter()
+        with colmap_log_to_file(Path(log_dir) if log_dir else folder, verbose=verbose):
+            recs = pycolmap.global_mapping(str(db_path), str(folder), str(out), opts)
+        seconds = time.perf_counter() - t0
+    if not recs:
+        return GlobalEstimate(seconds=seconds)
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+    poses, rays, focal, cams = {}, {}, {}, {}
+    for image_id, im in rec.images.items():
+        if not im.has_pose:
+            continue
+        p = im.cam_from_world()
+        cam = rec.cameras[im.camera_id]
+        i = int(image_id)
+        poses[i] = (np.asarray(p.rotation.matrix(), np.float64), np.asarray(p.translation, np.float64))
+        rays[i] = np.asarray(cam.cam_from_img(kp[i]), np.float64).reshape(-1, 2)
+        focal[i] = float(cam.mean_focal_length())
+        cams[i] = cam
+    obs: dict[int, tuple[list, list]] = {i: ([], []) for i in poses}
+    for p3 in rec.points3D.values():
+        for el in p3.track.elements:
+            if int(el.image_id) in obs:
+                obs[int(el.image_id)][0].append(int(el.point2D_idx))
+                obs[int(el.image_id)][1].append(p3.xyz)
+    observations = {i: (np.asarray(a, np.int64), np.asarray(b, np.float64).reshape(-1, 3)) for i, (a, b) in obs.items()}
+    return GlobalEstimate(poses=poses, rays=rays, focal=focal, seconds=seconds, observations=observations,
+                         cameras=cams, keypoints=kp, pair_rotations=_pair_rotations(pycolmap, used, kp, cams, seed))
+
+
+def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray], trusted, *,
+                    max_error_px: float, min_inliers: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+    """A new ``cam_from_world`` of placed image ``image_id`` from the estimate's 3D points that
+    its keypoints match through the ``trusted`` images (absolute pose, LO-RANSAC at
+    ``max_error_px`` and refinement, as incremental mapping registers an image); None with
+    fewer than ``min_inliers`` inliers."""
+    import pycolmap
+
+    k = int(image_id)
+    if k not in est.cameras:
+        return None
+    p2, p3 = [], []
+    for (i, j), m in matches.items():
+        if k not in (i, j):
+            continue
+        other, mine, theirs = (j, m[:, 0], m[:, 1]) if i == k else (i, m[:, 1], m[:, 0])
+        if other not in trusted or other not in est.observations:
+            continue
+        idx, xyz = est.observations[other]
+        order = np.argsort(idx)
+        pos = np.searchsorted(idx[order], theirs)
+        pos = np.minimum(pos, max(len(idx) - 1, 0))
+        hit = (idx[order][pos] == theirs) if len(idx) else np.zeros(len(theirs), bool)
+        p2.append(est.keypoints[k][mine[hit]])
+        p3.append(xyz[order][pos[hit]])
+    if not p2 or sum(len(a) for a in p2) < min_inliers:
+        return None
+    opts = pycolmap.AbsolutePoseEstimationOptions()
+    opts.ransac.max_error = float(max_error_px)
+    opts.ransac.random_seed = int(seed)
+    out = pycolmap.estimate_and_refine_absolute_pose(np.concatenate(p2), np.concatenate(p3), est.cameras[k], opts)
+    if out is None or int(out["num_inliers"]) < min_inliers:
+        return None
+    pose = out["cam_from_world"]
+    return np.asarray(pose.rotation.matrix(), np.float64), np.asarray(pose.translation, np.float64)
+
+
+def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],
+                    cams: Mapping, seed: int) -> dict[Pair, np.ndarray]:
+    """Each pair's own ``R_2from1`` from its matches (pairs of two registered images whose
+    relative pose could be estimated)."""
+    opts = pc.TwoViewGeometryOptions()
+    opts.compute_relative_pose = True
+    opts.ransac.max_error = PAIR_POSE_MAX_ERROR_PX
+    opts.ransac.random_seed = int(seed)
+    out = {}
+    for (i, j), m in sorted(matches.items()):
+        if i not in cams or j not in cams:
+            continue
+        tvg = pc.estimate_two_view_geometry(cams[i], kp[i], cams[j], kp[j], np.ascontiguousarray(m, np.uint32), opts)
+        pose = tvg.cam2_from_cam1
+        if int(tvg.config) in (2, 3, 4, 5, 6) and pose is not None:
+            out[(i, j)] = np.asarray(pose.rotation.matrix(), np.float64)
+    return out

@@ -1,0 +1,166 @@
+"""The match-check stage inside ``refine``: a pycolmap synthetic scene with planted wrong matches
+that are consistent per pair (each joins a point with the point nearest to it one "period"
+away, as a repeated facade does): the global estimate exposes them, the output keeps the correct
+matches, the report says what was removed, and a resumed run reuses the stored verdicts."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_miho.adapters import global_model
+from colmap_miho.adapters.database import ColmapDatabase
+from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.summary import RefineSummary
+from colmap_miho.recipe import load_recipe
+from colmap_miho.reporting.html_report import match_check_note
+
+#: Pixels of keypoint noise.
+NOISE_PX = 0.5
+#: Matches per pair turned into planted wrong ones.
+PLANTED_SHARE = 0.3
+#: What the stage must achieve (named tolerances): correct matches removed at most / planted
+#: matches left at most (a planted match whose shift runs along its epipolar line stays).
+MAX_CORRECT_REMOVED = 0.03
+MAX_PLANTED_LEFT = 0.15
+
+
+@pytest.fixture(scope="module")
+def planted_db(tmp_path_factory):
+    """(database, image folder, planted matches per pair as a set of (k1, k2))."""
+    root = tmp_path_factory.mktemp("planted")
+    path = root / "database.db"
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_cameras_per_rig, o.num_frames_per_rig, o.num_points3D = 1, 1, 8, 400
+    o.num_points2D_without_point3D = 0
+    rng = np.random.default_rng(0)
+    planted: dict[tuple[int, int], set] = {}
+    with ColmapDatabase.create(path) as db:
+        gt = db.synthesize(o, pycolmap.SyntheticNoiseOptions(point2D_stddev=NOISE_PX))
+        pts = {pid: p.xyz for pid, p in gt.points3D.items()}
+        ids = np.array(sorted(pts))
+        xyz = np.array([pts[i] for i in ids])
+        period = np.array([0.0, 0.15, 0.0]) * float(np.ptp(xyz, axis=0).max())
+        nearest = {int(ids[k]): int(ids[np.argmin(np.linalg.norm(xyz - (xyz[k] + period), axis=1))])
+                   for k in range(len(ids))}
+        obs = {int(i): {int(p.point3D_id): k for k, p in enumerate(im.points2D) if p.has_point3D()}
+               for i, im in gt.images.items()}
+        h = db.handle
+        pair_ids, tvgs = h.read_two_view_geometries()
+        for pid, tvg in zip(pair_ids, tvgs, strict=True):
+            i, j = pycolmap.pair_id_to_image_pair(pid)
+            m = np.asarray(tvg.inlier_matches, np.int64)
+            inv_i = {k: p for p, k in obs[i].items()}
+            rows = [r for r in rng.permutation(len(m))[: int(PLANTED_SHARE * len(m))]
+                    if m[r, 0] in inv_i and nearest[inv_i[m[r, 0]]] in obs[j]
+                    and nearest[inv_i[m[r, 0]]] != inv_i[m[r, 0]]]
+            for r in rows:  # the match goes to the repeated copy instead of the right point
+                m[r, 1] = obs[j][nearest[inv_i[m[r, 0]]]]
+            planted[(i, j)] = {tuple(m[r].tolist()) for r in rows}
+            allm = m.astype(np.uint32)
+            h.delete_matches(i, j)
+            h.write_matches(i, j, allm)
+            tvg.inlier_matches = allm
+            h.update_two_view_geometry(i, j, tvg)
+    (root / "images").mkdir()
+    return path, root / "images", planted
+
+
+def _output_matches(path):
+    with ColmapDatabase(path) as db:
+        return {(p.image_id1, p.image_id2): db.matches(p.image_id1, p.image_id2, "verified")
+                for p in db.pairs("verified")}
+
+
+def _run(planted_db, out, *sets, resume=False, restart=False):
+    db, images, _ = planted_db
+    rec = load_recipe(None, ["pipeline.refine=false", *sets])
+    json_path = out.with_suffix(".json")
+    refine_database(db, images, out, recipe=rec, workers=1, json_path=json_path, overwrite=True,
+                    resume=resume, restart=restart)
+    return json.loads(json_path.read_text())
+
+
+def _shares(planted, matches):
+    """(correct matches kept / correct in the input, planted left / planted)."""
+    left = sum(len({tuple(r) for r in m.tolist()} & planted.get(p, set())) for p, m in matches.items())
+    n_planted = sum(len(s) for s in planted.values())
+    correct = sum(len(m) for m in matches.values()) - left
+    return correct, left / n_planted
+
+
+@pytest.mark.slow
+def test_planted_matches_are_removed_and_correct_ones_kept(planted_db, tmp_path):
+    _, _, planted = planted_db
+    off = _run(planted_db, tmp_path / "off.db")
+    on = _run(planted_db, tmp_path / "on.db", "match_check.mode=remove")
+    correct_off, left_off = _shares(planted, _output_matches(tmp_path / "off.db"))
+    correct_on, left_on = _shares(planted, _output_matches(tmp_path / "on.db"))
+    assert left_off > 0.5  # the filter alone keeps most planted matches: they lie on a plane too
+    assert left_on <= MAX_PLANTED_LEFT
+    assert correct_on >= (1 - MAX_CORRECT_REMOVED) * correct_off
+    mc = on["match_check"]
+    assert mc["used"] and mc["mode"] == "remove" and not mc["images_untrusted"]
+    assert mc["images_registered"] == mc["images"] == 8 and len(mc["images_trusted"]) == 8
+    assert mc["matches_removed"] > 0 and 1.0 <= mc["threshold_px"] <= 4.0
+    assert off["match_check"] == {}
+    note = match_check_note(mc)  # report.html's sentence
+    assert "8 trusted" in note and f"{mc['matches_removed']} of {mc['matches_judged']} judged matches removed" in note
+    fields = {f.name for f in dataclasses.fields(RefineSummary)}
+    text = RefineSummary(**{k: v for k, v in on.items() if k in fields}).format()  # the CLI summary
+    assert "match check: global estimate of 8 of 8 images" in text and "8 trusted" in text
+
+
+@pytest.mark.slow
+def test_flag_mode_removes_nothing(planted_db, tmp_path):
+    off = _run(planted_db, tmp_path / "off.db")
+    flag = _run(planted_db, tmp_path / "flag.db", "match_check.mode=flag")
+    assert flag["match_check"]["used"] and flag["match_check"]["matches_removed"] > 0
+    assert flag["matches_kept"] == off["matches_kept"]
+    a, b = _output_matches(tmp_path / "off.db"), _output_matches(tmp_path / "flag.db")
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.slow
+def test_no_estimate_removes_nothing(planted_db, tmp_path, monkeypatch):
+    monkeypatch.setattr(pycolmap, "global_mapping", lambda *a, **k: {})
+    off = _run(planted_db, tmp_path / "off.db")
+    on = _run(planted_db, tmp_path / "on.db", "match_check.mode=remove")
+    assert not on["match_check"]["used"] and "placed 0 images" in on["match_check"]["reason"]
+    assert "not used" in match_check_note(on["match_check"])
+    a, b = _output_matches(tmp_path / "off.db"), _output_matches(tmp_path / "on.db")
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    assert off["matches_kept"] == on["matches_kept"]
+
+
+@pytest.mark.slow
+def test_resumed_run_reuses_the_stored_verdicts(planted_db, tmp_path, monkeypatch):
+    from colmap_miho.pipeline import run as run_module
+
+    ref = _run(planted_db, tmp_path / "ref.db", "match_check.mode=remove")
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("write stage broke")
+
+    monkeypatch.setattr(run_module, "run_write", broken)
+    out = tmp_path / "out.db"
+    with pytest.raises(RuntimeError):
+        _run(planted_db, out, "match_check.mode=remove")
+    monkeypatch.undo()
+
+    def no_mapper(*args, **kwargs):
+        raise AssertionError("the resumed run ran the global mapper again")
+
+    monkeypatch.setattr(global_model, "global_estimate", no_mapper)
+    from colmap_miho.pipeline import match_check as stage
+
+    monkeypatch.setattr(stage, "_decide", no_mapper)
+    res = _run(planted_db, out, "match_check.mode=remove", resume=True)
+    same = {k: v for k, v in ref["match_check"].items() if k != "seconds"}  # the mapper's time differs
+    assert res["resumed"] and {k: v for k, v in res["match_check"].items() if k != "seconds"} == same
+    a, b = _output_matches(tmp_path / "ref.db"), _output_matches(out)
+    assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)

@@ -1,0 +1,158 @@
+"""Match check core: matches judged against a global estimate of the cameras (pure numpy, GT
+scene with planted wrong matches that are consistent per pair, as repeated structure makes them)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from colmap_miho.verification import MatchCheckConfig, check_matches
+from colmap_miho.verification.match_check import (
+    essential,
+    relative_pose,
+    robust_scale,
+    symmetric_epipolar_distance,
+    threshold_px,
+    trusted_images,
+)
+
+FOCAL = 800.0
+#: Pixels: noise of the correct matches' keypoints.
+NOISE_PX = 0.5
+#: A repeated structure's period (world units) along the facade: the wrong matches join a point
+#: with the one nearest to it shifted by this.
+PERIOD = np.array([0.0, 0.5, 0.0])
+#: Correct matches the check may remove (the threshold's tail) and planted ones it may keep
+#: (a planted match whose shift runs along its epipolar line is invisible to any epipolar test).
+MAX_CORRECT_REMOVED = 0.03
+MAX_PLANTED_KEPT = 0.1
+
+
+def _rot(axis: np.ndarray, deg: float) -> np.ndarray:
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    t = np.radians(deg)
+    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
+
+
+def _scene(seed: int = 0, n_images: int = 8, n_points: int = 600, planted: float = 0.25):
+    """Cameras on an arc around a box of points; every pair matches the points both see, plus
+    ``planted`` as many wrong matches (point P in image i with the point nearest P + PERIOD in
+    image j, consistent per pair). Returns poses, rays, focal, matches and the planted masks."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform([-2, -1, -0.5], [2, 1, 0.5], (n_points, 3))
+    poses = {}
+    for k in range(n_images):
+        ang = -30 + 60 * k / (n_images - 1)
+        R = _rot([0, 1, 0], ang)
+        center = -R.T @ np.array([0.0, 0.0, 0.0]) + np.array([6 * np.sin(np.radians(ang)), 0.0,
+                                                              -6 * np.cos(np.radians(ang))])
+        poses[k + 1] = (R, -R @ center)
+    rays, proj = {}, {}
+    for i, (R, t) in poses.items():
+        X = pts @ R.T + t
+        rays[i] = X[:, :2] / X[:, 2:3] + rng.normal(0, NOISE_PX / FOCAL, (n_points, 2))
+        proj[i] = rays[i]
+    shifted = np.argmin(np.linalg.norm((pts + PERIOD)[:, None] - pts[None], axis=2), axis=1)
+    matches, planted_mask = {}, {}
+    for i in poses:
+        for j in poses:
+            if j <= i:
+                continue
+            idx = rng.permutation(n_points)[: n_points // 2]
+            good = np.column_stack([idx, idx])
+            bad_idx = rng.permutation(n_points)[: int(planted * len(idx))]
+            bad = np.column_stack([bad_idx, shifted[bad_idx]])
+            bad = bad[bad[:, 0] != bad[:, 1]]
+            matches[(i, j)] = np.vstack([good, bad]).astype(np.int64)
+            planted_mask[(i, j)] = np.r_[np.zeros(len(good), bool), np.ones(len(bad), bool)]
+    focal = {i: FOCAL for i in poses}
+    return poses, rays, focal, matches, planted_mask
+
+
+def _pair_rotations(poses):
+    return {(i, j): relative_pose(poses[i], poses[j])[0] for i in poses for j in poses if i < j}
+
+
+def test_planted_wrong_matches_are_removed_and_correct_ones_kept():
+    poses, rays, focal, matches, planted = _scene()
+    res = check_matches(matches, rays, focal, poses, _pair_rotations(poses), MatchCheckConfig(mode="remove"))
+    assert res.used and res.trusted == frozenset(poses)
+    fail = np.concatenate([res.failed[p] for p in sorted(matches)])
+    bad = np.concatenate([planted[p] for p in sorted(matches)])
+    assert fail[~bad].mean() <= MAX_CORRECT_REMOVED
+    assert 1 - fail[bad].mean() <= MAX_PLANTED_KEPT
+    assert not res.wrong_pairs  # every pair is mostly right
+    # the threshold follows the residuals: noise of 0.5 px gives a threshold of a few px
+    assert 1.0 <= res.threshold_px <= 4.0
+
+
+def test_a_pair_mostly_wrong_is_removed_whole():
+    poses, rays, focal, matches, _ = _scene(seed=1)
+    rng = np.random.default_rng(3)
+    m = matches[(1, 2)]
+    matches[(1, 2)] = np.column_stack([m[:, 0], rng.permutation(m[:, 1])])  # a doppelganger pair
+    res = check_matches(matches, rays, focal, poses, _pair_rotations(poses), MatchCheckConfig(mode="remove"))
+    assert res.wrong_pairs == ((1, 2),)
+    assert res.pair_fail_share[(1, 2)] > 0.9
+
+
+def test_an_image_placed_wrong_is_not_trusted_and_its_matches_not_judged():
+    poses, rays, focal, matches, _ = _scene(seed=2)
+    R, t = poses[4]
+    poses = {**poses, 4: (_rot([0, 1, 0], 30.0) @ R, t)}  # the estimate got image 4 wrong
+    true_rotations = _pair_rotations(_scene(seed=2)[0])
+    res = check_matches(matches, rays, focal, poses, true_rotations, MatchCheckConfig(mode="remove"))
+    assert res.used and 4 not in res.trusted and res.trusted == frozenset(poses) - {4}
+    assert not any(4 in p for p in res.failed)  # kept unjudged: not removed on a wrong pose
+    assert res.agreeing_pairs[4] == 0
+
+
+def test_an_estimate_wrong_as_a_whole_removes_nothing():
+    poses, rays, focal, matches, _ = _scene(seed=3)
+    true_rotations = _pair_rotations(poses)
+    rng = np.random.default_rng(0)
+    bad = {i: (_rot(rng.normal(size=3), 40 + 75 * rng.random()) @ R, t) for i, (R, t) in poses.items()}
+    res = check_matches(matches, rays, focal, bad, true_rotations, MatchCheckConfig(mode="remove"))
+    assert not res.used and res.reason and not res.failed and not res.wrong_pairs
+
+
+def test_too_few_placed_images_remove_nothing():
+    poses, rays, focal, matches, _ = _scene(seed=4)
+    two = {i: poses[i] for i in (1, 2)}
+    res = check_matches(matches, rays, focal, two, _pair_rotations(poses), MatchCheckConfig(mode="remove"))
+    assert not res.used and "2 images" in res.reason
+
+
+def test_trust_counts_agreeing_pairs():
+    poses, *_ = _scene(seed=5, n_images=4)
+    rot = _pair_rotations(poses)
+    rot[(1, 2)] = _rot([1, 0, 0], 20.0) @ rot[(1, 2)]  # a wrong pair's own rotation
+    trusted, agree, total = trusted_images(poses, rot, 5.0, 2)
+    assert trusted == {1, 2, 3, 4}
+    assert agree[1] == 2 and total[1] == 3
+
+
+def test_distances_and_threshold():
+    R, t = np.eye(3), np.array([1.0, 0.0, 0.0])
+    E = essential((R, t))
+    y1 = np.array([[0.1, 0.2], [0.0, 0.0]])
+    y2 = np.array([[0.3, 0.2], [0.5, 0.1]])  # the first on its epipolar line (same row), the second 0.1 off
+    d = symmetric_epipolar_distance(E, y1, y2)
+    assert d[0] == pytest.approx(0.0, abs=1e-12) and d[1] == pytest.approx(0.1)
+    assert symmetric_epipolar_distance(np.zeros((3, 3)), y1, y2).tolist() == [np.inf, np.inf]
+    rng = np.random.default_rng(0)
+    sample = rng.exponential(0.5, 200_000)
+    assert robust_scale(sample) == pytest.approx(0.5, rel=0.02)
+    assert threshold_px(0.5, 0.0027, 0.1, 100.0) == pytest.approx(0.5 * np.log(1 / 0.0027))
+    assert np.mean(sample > threshold_px(robust_scale(sample), 0.0027, 0.1, 100.0)) == pytest.approx(0.0027, abs=0.001)
+    assert threshold_px(0.01, 0.0027, 1.0, 4.0) == 1.0 and threshold_px(10.0, 0.0027, 1.0, 4.0) == 4.0
+
+
+@pytest.mark.parametrize("field, value", [("false_reject", 0.0), ("false_reject", 0.5), ("min_threshold_px", 5.0),
+                                          ("max_rotation_deg", 0.0), ("min_pair_matches", 7), ("rounds", 0),
+                                          ("min_trusted_share", 0.0), ("max_pair_fail_share", 1.5),
+                                          ("min_agreeing_pairs", 0), ("mode", "maybe")])
+def test_config_refuses_bad_values(field, value):
+    with pytest.raises(ValueError):
+        MatchCheckConfig(**{field: value})
