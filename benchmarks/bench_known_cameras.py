@@ -28,11 +28,13 @@ wrong-track share (``keypoint_accuracy``).
         [--workers 1] [--threads 1] [--refine-intrinsics none] [--json out.json]
 
 A variant is ``NAME[:key=value,...]`` as in ``bench_accuracy.py`` (``recipe=NAME`` swaps the base
-recipe); ``code=PATH`` refines in a subprocess with that checkout first on ``PYTHONPATH`` (another
-branch's stage, mapped and measured by this one). Without ``--variant`` one variant runs: the
-recipe as given, named after it. ``--rows`` picks rows by name (piecewise runs); ``--json``
-merges into an existing file (a row of the same scene / setting / row / mapper is replaced), so
-piecewise runs build one file; ``--table-from`` prints its tables.
+recipe, ``seed=N`` the refine seed: the spread over refine seeds shows how much a reconstruction
+moves with a small change of the matches); ``code=PATH`` refines in a subprocess with that
+checkout first on ``PYTHONPATH`` (another branch's stage, mapped and measured by this one).
+Without ``--variant`` one variant runs: the recipe as given, named after it. ``--rows`` picks rows
+by name (piecewise runs); ``--json`` merges into an existing file (a row of the same scene /
+setting / row / mapper is replaced), so piecewise runs build one file; ``--table-from`` prints its
+tables.
 
 The scene ``demo`` is the built-in demo scene as ``bench_accuracy.py`` renders it into the cache.
 
@@ -77,23 +79,24 @@ from colmap_miho.pipeline.run import refine_database
 from colmap_miho.recipe import load_recipe
 a = json.loads(sys.argv[1])
 s = refine_database(a["db"], a["images"], a["out"], recipe=load_recipe(a["recipe"], a["overrides"]),
-                    overwrite=True, restart=True, workers=a["workers"], seed=0)
+                    overwrite=True, restart=True, workers=a["workers"], seed=a["seed"])
 print("REFINE_SUMMARY " + json.dumps({"seconds": s.seconds, "refine_stats": s.refine_stats}, default=str))
 """
 
 
 # --------------------------------------------------------------------------- databases
-def variant_tag(recipe: str | None, overrides: list[str], code: str | None) -> str:
-    """Cache tag of a refined database: recipe, overrides and code checkout."""
-    return hashlib.sha1(" ".join([recipe or "default", *overrides, code or ""]).encode()).hexdigest()[:8]
+def variant_tag(recipe: str | None, overrides: list[str], code: str | None, seed: int = 0) -> str:
+    """Cache tag of a refined database: recipe, overrides, code checkout and refine seed."""
+    parts = [recipe or "default", *overrides, code or ""] + ([f"seed={seed}"] if seed else [])
+    return hashlib.sha1(" ".join(parts).encode()).hexdigest()[:8]
 
 
 def refined_database(db: Path, image_dir: Path, folder: Path, name: str, recipe: str | None,
-                     overrides: list[str], code: str | None, workers: int) -> tuple[Path, dict]:
-    """``refine_database`` output of ``db`` under ``folder`` (cached by recipe, overrides and code)
-    and its summary figures (seconds, numeric refine statistics; read back from a side file when
+                     overrides: list[str], code: str | None, workers: int, seed: int = 0) -> tuple[Path, dict]:
+    """``refine_database`` output of ``db`` under ``folder`` (cached by recipe, overrides, code and
+    refine seed) and its summary figures (seconds, numeric refine statistics; read back from a side file when
     cached)."""
-    tag = variant_tag(recipe, overrides, code)
+    tag = variant_tag(recipe, overrides, code, seed)
     out = folder / f"refined_{name}_{tag}.db"
     side = out.with_suffix(".json")
     if out.is_file() and side.is_file():
@@ -101,7 +104,7 @@ def refined_database(db: Path, image_dir: Path, folder: Path, name: str, recipe:
     tmp = out.with_suffix(".tmp.db")
     if code:
         args = {"db": str(db), "images": str(image_dir), "out": str(tmp), "recipe": recipe,
-                "overrides": overrides, "workers": workers}
+                "overrides": overrides, "workers": workers, "seed": seed}
         env = {**os.environ, "PYTHONPATH": str(Path(code).resolve())}
         proc = subprocess.run([sys.executable, "-c", _REFINE_SCRIPT, json.dumps(args)], env=env, cwd=str(code),
                               capture_output=True, text=True)
@@ -114,11 +117,11 @@ def refined_database(db: Path, image_dir: Path, folder: Path, name: str, recipe:
         from colmap_miho.recipe import load_recipe
 
         s = refine_database(db, image_dir, tmp, recipe=load_recipe(recipe, overrides), overwrite=True, restart=True,
-                            workers=workers, seed=0)
+                            workers=workers, seed=seed)
         raw = {"seconds": s.seconds, "refine_stats": s.refine_stats}
     summary = {"refine_seconds": raw["seconds"].get("total"), "seconds": raw["seconds"],
                "refine_stats": numeric_stats(raw.get("refine_stats") or {}), "recipe": recipe,
-               "overrides": overrides, "code": code}
+               "overrides": overrides, "code": code, "seed": seed}
     tmp.rename(out)
     side.write_text(json.dumps(summary, indent=2), encoding="utf-8")
     return out, summary
@@ -303,13 +306,16 @@ def main(argv=None) -> int:
         parsed = [parse_variant(v) for v in args.variants]
     except ValueError as exc:
         ap.error(str(exc))
-    variants = []  # (name, recipe, overrides, code)
+    variants = []  # (name, recipe, overrides, code, refine seed)
     for name, recipe, ov in parsed or [(args.recipe or "recipe", None, [])]:
         if name == ORACLE:
             ap.error("--variant needs a name other than 'oracle'")
         code = next((o.partition("=")[2].strip() for o in ov if o.partition("=")[0].strip() == "code"), None)
-        ov = [o for o in ov if o.partition("=")[0].strip() != "code"]
-        variants.append((name, recipe or args.recipe, ov, code))
+        seed = next((o.partition("=")[2].strip() for o in ov if o.partition("=")[0].strip() == "seed"), "0")
+        if not seed.isdigit():
+            ap.error(f"--variant {name}: seed must be a non-negative integer, got {seed!r}")
+        ov = [o for o in ov if o.partition("=")[0].strip() not in ("code", "seed")]
+        variants.append((name, recipe or args.recipe, ov, code, int(seed)))
     if len({v[0] for v in variants}) != len(variants):
         ap.error("--variant names must differ")
     wanted = set(args.rows) if args.rows else None
@@ -322,7 +328,7 @@ def main(argv=None) -> int:
 
     pycolmap.logging.minloglevel = 1
     common = [f"mapping.num_threads={args.threads}", f"mapping.refine_intrinsics={args.refine_intrinsics}"]
-    for _name, recipe, ov, code in variants:  # a bad recipe or key fails here, before any work
+    for _name, recipe, ov, code, _seed in variants:  # a bad recipe or key fails here, before any work
         if code is None:  # another checkout's recipe keys are its own: checked when it refines
             load_recipe(recipe, [*args.overrides, *ov, *common])
     mapping = load_recipe(args.recipe, [*args.overrides, *common]).mapping
@@ -359,9 +365,9 @@ def main(argv=None) -> int:
                     database, stats = oracle_database(db, work, gt_poses, args.oracle_threshold)
                     info = {"oracle": stats}
                 else:
-                    name, recipe, ov, code = variant
+                    name, recipe, ov, code, seed = variant
                     database, info = refined_database(db, image_dir, work, name, recipe,
-                                                      [*args.overrides, *ov, *common], code, args.workers)
+                                                      [*args.overrides, *ov, *common], code, args.workers, seed)
                 figures = database_figures(database, gt_poses, args.oracle_threshold)
                 for mapper in args.mappers:
                     from dataclasses import replace
