@@ -55,6 +55,9 @@ class MatchCheckStats:
         images: images in the pair graph; images_registered: placed by the (last) estimate.
         images_trusted / images_untrusted: names of the placed images whose pose the check
             trusted / did not trust (their pairs were not judged), over the rounds.
+        images_cut_off: names of the images that agreed with their pairs but that the
+            removals would have cut off the rest of the pair graph (placed wrong as a group),
+            so were not trusted at first (placed again, they may be trusted after all).
         scale_px / threshold_px: the first round's exponential scale of the distances and
             threshold (pixels), which every round applies.
         matches_checked: matches in the pair graph; matches_judged: of those, in pairs of two
@@ -75,6 +78,7 @@ class MatchCheckStats:
     images_registered: int
     images_trusted: list[str] = field(default_factory=list)
     images_untrusted: list[str] = field(default_factory=list)
+    images_cut_off: list[str] = field(default_factory=list)
     scale_px: float = 0.0
     threshold_px: float = 0.0
     matches_checked: int = 0
@@ -167,6 +171,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
     wrong: set[Pair] = set()
     trusted_any: set[int] = set()
     registered_any: set[int] = set()
+    cut_any: set[int] = set()
     used, reason, scale, threshold, seconds, rounds, registered = False, "", 0.0, 0.0, 0.0, 0, 0
     for _ in range(cfg.rounds):
         alive = {p: np.flatnonzero(~f) for p, f in failed.items() if p not in wrong and (~f).any()}
@@ -178,7 +183,9 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
         rounds += 1
         res = check_matches(current, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
                             threshold=threshold if used else None)
+        cut_any |= set(res.cut_off)
         res = _place_untrusted(est, res, current, cfg, threshold if used else None)
+        cut_any |= set(res.cut_off)
         registered = len(res.registered)
         registered_any |= set(res.registered)
         if not res.used:
@@ -204,6 +211,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
         "images": len({i for p in matches for i in p}), "images_registered": registered,
         "images_trusted": sorted(names.get(i, str(i)) for i in trusted_any),
         "images_untrusted": sorted(names.get(i, str(i)) for i in registered_any - trusted_any),
+        "images_cut_off": sorted(names.get(i, str(i)) for i in cut_any),
         "scale_px": scale, "threshold_px": threshold,
         "matches_checked": int(sum(len(m) for m in matches.values())),
         "matches_judged": int(sum(len(matches[p]) for p in judged_pairs)),

@@ -9,7 +9,10 @@ distance of a match to its epipolar line under that estimate exposes them.
 The estimate is trusted image by image (:func:`trusted_images`): an image whose estimated pose
 disagrees with its pairs' own relative rotations is left out (its matches are kept unjudged),
 and when too few images hold, the estimate is not used at all (:func:`check_matches`: nothing is
-removed). The threshold follows the estimate's own residuals (:func:`robust_scale`).
+removed). A group of images placed wrong together agrees with its own pairs and passes that
+test; its correct pairs to the rest of the scene then fail, and removing them would cut it off.
+So removals never split the pair graph (:func:`cut_off_images`): images they would cut off are
+not trusted either. The threshold follows the estimate's own residuals (:func:`robust_scale`).
 
 Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))`` (``X_cam = R X + t``);
 ``rays`` are a camera's normalised image coordinates ``(N, 2)`` (undistorted, ``K^-1 x``) of an
@@ -127,6 +130,40 @@ def trusted_images(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.n
     return {k for k, n in agree.items() if n >= min_agreeing_pairs}, agree, total
 
 
+def _largest_component(edges: list[Pair], nodes: set[int]) -> set[int]:
+    """The largest connected component of the graph (``nodes``, ``edges``)."""
+    parent = {n: n for n in nodes}
+
+    def find(n: int) -> int:
+        while parent[n] != n:
+            parent[n] = parent[parent[n]]
+            n = parent[n]
+        return n
+
+    for i, j in edges:
+        parent[find(i)] = find(j)
+    groups: dict[int, set[int]] = {}
+    for n in nodes:
+        groups.setdefault(find(n), set()).add(n)
+    return max(groups.values(), key=lambda g: (len(g), -min(g))) if groups else set()
+
+
+def cut_off_images(matches: Mapping[Pair, np.ndarray], failed: Mapping[Pair, np.ndarray],
+                   wrong: set[Pair] | tuple[Pair, ...], min_pair_matches: int) -> set[int]:
+    """The images that removing the failed matches and the wrong pairs would cut off the main
+    part of the pair graph.
+
+    A pair links its images when it holds at least ``min_pair_matches`` matches (before: all
+    of them; after: those that did not fail, none for a wrong pair). Returns the images of the
+    largest component before that are outside the largest component after.
+    """
+    nodes = {i for p in matches for i in p}
+    before = [p for p, m in matches.items() if len(m) >= min_pair_matches]
+    after = [p for p, m in matches.items() if p not in wrong
+             and len(m) - (int(np.count_nonzero(failed[p])) if p in failed else 0) >= min_pair_matches]
+    return _largest_component(before, nodes) - _largest_component(after, nodes)
+
+
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckResult:
     """What the match check found.
@@ -136,6 +173,8 @@ class MatchCheckResult:
         reason: why it was not used ("" when used).
         registered: images the estimate placed.
         trusted: images whose pose the check trusted (their pairs were judged).
+        cut_off: images that agreed with their pairs but that the removals would have cut off
+            the rest of the pair graph (placed wrong as a group): not trusted.
         agreeing_pairs / rotation_pairs: image id -> its pairs whose own relative rotation
             agrees with the estimate's / its pairs with an own rotation.
         scale_px: mean of the judged matches' distances under the exponential model
@@ -151,6 +190,7 @@ class MatchCheckResult:
     reason: str = ""
     registered: frozenset[int] = frozenset()
     trusted: frozenset[int] = frozenset()
+    cut_off: frozenset[int] = frozenset()
     agreeing_pairs: dict[int, int] = field(default_factory=dict)
     rotation_pairs: dict[int, int] = field(default_factory=dict)
     scale_px: float = 0.0
@@ -199,25 +239,40 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
             reason=f"{len(trusted)} of the {len(registered)} placed images agree with their pairs' own "
                    f"relative rotations (at least {cfg.min_agreeing_pairs} pairs within {cfg.max_rotation_deg:g} deg; "
                    f"{needed} images needed)")
-    dist: dict[Pair, np.ndarray] = {}
-    for (i, j), m in matches.items():
-        if i in trusted and j in trusted and len(m):
-            m = np.asarray(m, np.int64)
-            E = essential(relative_pose(poses[i], poses[j]))
-            d = symmetric_epipolar_distance(E, rays[i][m[:, 0]], rays[j][m[:, 1]])
-            dist[(i, j)] = d * float(np.sqrt(focal[i] * focal[j]))
-    all_d = np.concatenate(list(dist.values())) if dist else np.zeros(0)
-    scale = robust_scale(all_d)
-    if threshold is None:
-        threshold = threshold_px(scale, cfg.false_reject, cfg.min_threshold_px, cfg.max_threshold_px)
-    failed = {p: d > threshold for p, d in dist.items()}
-    share = {p: float(f.mean()) for p, f in failed.items()}
-    wrong = tuple(sorted(p for p, f in failed.items()
-                         if len(f) >= cfg.min_pair_matches and share[p] > cfg.max_pair_fail_share))
+    cut: set[int] = set()
+    given = threshold
+    while True:
+        dist: dict[Pair, np.ndarray] = {}
+        for (i, j), m in matches.items():
+            if i in trusted and j in trusted and len(m):
+                m = np.asarray(m, np.int64)
+                E = essential(relative_pose(poses[i], poses[j]))
+                d = symmetric_epipolar_distance(E, rays[i][m[:, 0]], rays[j][m[:, 1]])
+                dist[(i, j)] = d * float(np.sqrt(focal[i] * focal[j]))
+        all_d = np.concatenate(list(dist.values())) if dist else np.zeros(0)
+        scale = robust_scale(all_d)
+        threshold = given if given is not None else threshold_px(scale, cfg.false_reject, cfg.min_threshold_px,
+                                                                 cfg.max_threshold_px)
+        failed = {p: d > threshold for p, d in dist.items()}
+        share = {p: float(f.mean()) for p, f in failed.items()}
+        wrong = tuple(sorted(p for p, f in failed.items()
+                             if len(f) >= cfg.min_pair_matches and share[p] > cfg.max_pair_fail_share))
+        lost = cut_off_images(matches, failed, wrong, cfg.min_pair_matches) & trusted
+        if not lost:
+            break
+        cut |= lost
+        trusted -= lost
+        if len(trusted) < needed:
+            return MatchCheckResult(
+                used=False, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut),
+                agreeing_pairs=agree, rotation_pairs=total,
+                reason=f"removing the matches that fail the global estimate would cut {len(cut)} images off the "
+                       f"rest of the pair graph; {len(trusted)} trusted images left ({needed} needed)")
     return MatchCheckResult(
-        used=True, registered=registered, trusted=frozenset(trusted), agreeing_pairs=agree, rotation_pairs=total,
-        scale_px=scale, threshold_px=threshold, failed=failed, wrong_pairs=wrong, pair_fail_share=share,
-        matches_judged=int(all_d.size), matches_failed=int(sum(int(f.sum()) for f in failed.values())))
+        used=True, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut), agreeing_pairs=agree,
+        rotation_pairs=total, scale_px=scale, threshold_px=threshold, failed=failed, wrong_pairs=wrong,
+        pair_fail_share=share, matches_judged=int(all_d.size),
+        matches_failed=int(sum(int(f.sum()) for f in failed.values())))
 
 
 def removes(result: MatchCheckResult, mode: MatchCheckMode) -> bool:

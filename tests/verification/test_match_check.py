@@ -8,6 +8,7 @@ import pytest
 
 from colmap_miho.verification import MatchCheckConfig, check_matches
 from colmap_miho.verification.match_check import (
+    cut_off_images,
     essential,
     relative_pose,
     robust_scale,
@@ -106,6 +107,35 @@ def test_an_image_placed_wrong_is_not_trusted_and_its_matches_not_judged():
     assert res.used and 4 not in res.trusted and res.trusted == frozenset(poses) - {4}
     assert not any(4 in p for p in res.failed)  # kept unjudged: not removed on a wrong pose
     assert res.agreeing_pairs[4] == 0
+
+
+def test_a_group_placed_wrong_together_is_not_trusted_rather_than_cut_off():
+    """Images 7 and 8 placed wrong by one rigid motion agree with each other, and (as wrong pairs
+    of a repeated structure can) their pairs to image 1 agree with the wrong placement: the
+    trust test passes them, but judging their correct pairs would remove every pair that joins
+    them to the rest. They are not trusted, and nothing of theirs is removed."""
+    poses, rays, focal, matches, _ = _scene(seed=6)
+    rotations = _pair_rotations(poses)
+    move = _rot([1, 0, 0], 40.0)
+    bad = {**poses, **{k: (poses[k][0] @ move, poses[k][1] + np.array([0.0, 2.0, 0.0])) for k in (7, 8)}}
+    for k in (7, 8):
+        rotations[(1, k)] = relative_pose(bad[1], bad[k])[0]  # a wrong pair that agrees with the wrong group
+    plain = check_matches(matches, rays, focal, bad, rotations,
+                          MatchCheckConfig(mode="remove", min_agreeing_pairs=2))
+    assert plain.used and plain.cut_off == frozenset({7, 8})
+    assert plain.trusted == frozenset(poses) - {7, 8}
+    assert not any(7 in p or 8 in p for p in plain.failed) and not plain.wrong_pairs
+
+
+def test_cut_off_images_follow_the_pair_graph():
+    m = {p: np.zeros((20, 2), np.int64) for p in [(1, 2), (2, 3), (3, 4), (4, 5), (1, 5)]}
+    none = {p: np.zeros(20, bool) for p in m}
+    assert cut_off_images(m, none, (), 15) == set()
+    assert cut_off_images(m, none, ((3, 4),), 15) == set()  # still joined the other way round
+    assert cut_off_images(m, none, ((2, 3), (3, 4)), 15) == {3}
+    most_fail = {**none, (2, 3): np.r_[np.ones(10, bool), np.zeros(10, bool)]}
+    assert cut_off_images(m, most_fail, ((3, 4),), 15) == {3}  # 10 left: below 15, no link
+    assert cut_off_images(m, most_fail, ((3, 4),), 10) == set()
 
 
 def test_an_estimate_wrong_as_a_whole_removes_nothing():
