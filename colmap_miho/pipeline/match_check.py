@@ -225,26 +225,44 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
     return ({p: f for p, f in failed.items() if f.any() or p in judged_pairs}, wrong, meta)
 
 
+#: Rounds of placing the untrusted images again: a placement made from a trusted part that
+#: still held a group placed wrong together (which the split test then finds) is made again
+#: from what is left.
+PLACEMENT_ROUNDS = 3
+
+
 def _place_untrusted(est, res: MatchCheckResult, matches: dict[Pair, np.ndarray], cfg: MatchCheckConfig,
                      threshold: float | None) -> MatchCheckResult:
     """Place each registered image the check did not trust again, from the estimate's 3D
     points its keypoints match through the trusted images (as incremental mapping registers an
     image: the trusted part of the estimate is not bent by that image's wrong pairs), and judge
-    again with those poses (the trust test decides again whether each new pose holds)."""
+    again with those poses (the trust test decides again whether each new pose holds). When
+    that judgement finds images that would be cut off (:func:`cut_off_images`), they are placed
+    again from the smaller trusted part, up to :data:`PLACEMENT_ROUNDS` times."""
     from ..adapters.global_model import place_by_points
 
-    if not res.used or not cfg.place_untrusted or res.trusted >= res.registered:
+    if not cfg.place_untrusted:
         return res
     poses = dict(est.poses)
-    for k in sorted(res.registered - res.trusted):
-        pose = place_by_points(est, k, matches, res.trusted, max_error_px=cfg.max_threshold_px,
-                               min_inliers=cfg.min_placed_inliers, seed=cfg.seed)
-        if pose is not None:
-            poses[k] = pose
-    if all(poses[k] is est.poses[k] for k in poses):
-        return res
-    return check_matches(matches, est.rays, est.focal, poses, est.pair_rotations, cfg,
-                         threshold=res.threshold_px if threshold is None else threshold)
+    thr = threshold
+    cut = set(res.cut_off)
+    before: frozenset[int] | None = None
+    for _ in range(PLACEMENT_ROUNDS):
+        if not res.used or res.trusted >= res.registered or res.trusted == before:
+            break  # all trusted, or the last placement changed nothing
+        before = res.trusted
+        thr = res.threshold_px if thr is None else thr
+        moved = False
+        for k in sorted(res.registered - res.trusted):
+            pose = place_by_points(est, k, matches, res.trusted, max_error_px=cfg.max_threshold_px,
+                                   min_inliers=cfg.min_placed_inliers, seed=cfg.seed)
+            if pose is not None:
+                poses[k], moved = pose, True
+        if not moved:
+            break
+        res = check_matches(matches, est.rays, est.focal, poses, est.pair_rotations, cfg, threshold=thr)
+        cut |= res.cut_off
+    return dataclasses.replace(res, cut_off=frozenset(cut))
 
 
 def _pack(failed: dict[Pair, np.ndarray], wrong: set[Pair]) -> dict[str, np.ndarray]:
