@@ -1,4 +1,5 @@
-"""Fixtures of the adapter tests: a small rendered scene and a private copy of its database."""
+"""Fixtures of the adapter tests: a small rendered scene, a private copy of its database and its GT
+model written to a folder."""
 
 from __future__ import annotations
 
@@ -21,3 +22,12 @@ def db_copy(scene, tmp_path):
     target.parent.mkdir()
     target.write_bytes(scene.database.read_bytes())
     return target
+
+
+@pytest.fixture
+def model(scene, tmp_path):
+    """The scene's GT reconstruction written as a COLMAP model folder (binary)."""
+    folder = tmp_path / "model"
+    folder.mkdir()
+    scene.gt_reconstruction.write(str(folder))
+    return folder

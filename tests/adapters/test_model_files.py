@@ -16,14 +16,6 @@ from colmap_miho.cli import main
 from colmap_miho.errors import InvalidInput
 
 
-@pytest.fixture
-def model(scene, tmp_path):
-    folder = tmp_path / "model"
-    folder.mkdir()
-    scene.gt_reconstruction.write(str(folder))
-    return folder
-
-
 def test_a_whole_model_passes(model):
     check_binary_model(model)
 

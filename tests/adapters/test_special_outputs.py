@@ -42,14 +42,6 @@ def _special(kind: str, path: Path) -> Path:
     return path
 
 
-@pytest.fixture
-def model(scene, tmp_path):
-    folder = tmp_path / "model"
-    folder.mkdir()
-    scene.gt_reconstruction.write(str(folder))
-    return folder
-
-
 @pytest.mark.parametrize("kind", ["fifo", "socket", "folder"])
 def test_staged_write_refuses_what_is_not_a_regular_file(kind, tmp_path):
     target = _special(kind, tmp_path / "out.json")

@@ -66,18 +66,25 @@ def _import(scene, feats, matches, db) -> list[str]:
             "--database", str(db), "--no-verify", "-q"]
 
 
-@pytest.mark.parametrize("value", [-500.0, 1e7, 1e30])
-def test_import_refuses_keypoints_outside_the_image(value, scene, h5pair, tmp_path, capfd):
+def _set_first_keypoints(feats, row: int, xy) -> None:
+    """Set keypoint ``row`` of the first image of an h5 features file (None keeps a coordinate)."""
     import h5py
 
-    feats, matches = h5pair
     with h5py.File(feats, "r+") as h5:
         name = next(iter(h5.keys()))
         while "keypoints" not in h5[name]:
             name = f"{name}/{next(iter(h5[name].keys()))}"
         kp = h5[name]["keypoints"][()]
-        kp[3, 0] = value
+        for axis, v in enumerate(xy):
+            if v is not None:
+                kp[row, axis] = v
         h5[name]["keypoints"][...] = kp
+
+
+@pytest.mark.parametrize("value", [-500.0, 1e7, 1e30])
+def test_import_refuses_keypoints_outside_the_image(value, scene, h5pair, tmp_path, capfd):
+    feats, matches = h5pair
+    _set_first_keypoints(feats, 3, (value, None))
     capfd.readouterr()
     assert main(_import(scene, feats, matches, tmp_path / "new.db")) == 2
     lines = error_lines(capfd.readouterr().err)
@@ -86,16 +93,8 @@ def test_import_refuses_keypoints_outside_the_image(value, scene, h5pair, tmp_pa
 
 
 def test_import_accepts_keypoints_at_the_border(scene, h5pair, tmp_path):
-    import h5py
-
     feats, matches = h5pair
-    with h5py.File(feats, "r+") as h5:
-        name = next(iter(h5.keys()))
-        while "keypoints" not in h5[name]:
-            name = f"{name}/{next(iter(h5[name].keys()))}"
-        kp = h5[name]["keypoints"][()]
-        kp[0] = (-0.5, -0.5)
-        h5[name]["keypoints"][...] = kp
+    _set_first_keypoints(feats, 0, (-0.5, -0.5))
     assert main(_import(scene, feats, matches, tmp_path / "new.db")) == 0
 
 
