@@ -183,9 +183,8 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
         rounds += 1
         res = check_matches(current, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
                             threshold=threshold if used else None)
-        cut_any |= set(res.cut_off)
         res = _place_untrusted(est, res, current, cfg, threshold if used else None)
-        cut_any |= set(res.cut_off)
+        cut_any |= set(res.cut_off)  # the first judgement's and the placements' together
         registered = len(res.registered)
         registered_any |= set(res.registered)
         if not res.used:
@@ -244,14 +243,13 @@ def _place_untrusted(est, res: MatchCheckResult, matches: dict[Pair, np.ndarray]
     if not cfg.place_untrusted:
         return res
     poses = dict(est.poses)
-    thr = threshold
+    thr = res.threshold_px if threshold is None else threshold  # the first judgement's, kept
     cut = set(res.cut_off)
     before: frozenset[int] | None = None
     for _ in range(PLACEMENT_ROUNDS):
         if not res.used or res.trusted >= res.registered or res.trusted == before:
             break  # all trusted, or the last placement changed nothing
         before = res.trusted
-        thr = res.threshold_px if thr is None else thr
         moved = False
         for k in sorted(res.registered - res.trusted):
             pose = place_by_points(est, k, matches, res.trusted, max_error_px=cfg.max_threshold_px,

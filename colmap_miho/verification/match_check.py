@@ -130,22 +130,22 @@ def trusted_images(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.n
     return {k for k, n in agree.items() if n >= min_agreeing_pairs}, agree, total
 
 
-def _largest_component(edges: list[Pair], nodes: set[int]) -> set[int]:
-    """The largest connected component of the graph (``nodes``, ``edges``)."""
-    parent = {n: n for n in nodes}
+def _largest_component(edges: list[Pair], nodes: list[int]) -> set[int]:
+    """The largest connected component of the graph (``nodes``, ``edges``); of equal ones, the
+    one holding the smallest node."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
 
-    def find(n: int) -> int:
-        while parent[n] != n:
-            parent[n] = parent[parent[n]]
-            n = parent[n]
-        return n
-
-    for i, j in edges:
-        parent[find(i)] = find(j)
-    groups: dict[int, set[int]] = {}
-    for n in nodes:
-        groups.setdefault(find(n), set()).add(n)
-    return max(groups.values(), key=lambda g: (len(g), -min(g))) if groups else set()
+    if not nodes:
+        return set()
+    index = {n: k for k, n in enumerate(nodes)}
+    rows = np.asarray([index[i] for i, _ in edges], np.int64)
+    cols = np.asarray([index[j] for _, j in edges], np.int64)
+    graph = coo_matrix((np.ones(len(edges)), (rows, cols)), shape=(len(nodes), len(nodes)))
+    _, labels = connected_components(graph, directed=False)
+    sizes = np.bincount(labels)
+    best = int(labels[int(np.flatnonzero(sizes[labels] == sizes.max())[0])])  # nodes sorted: smallest first
+    return {n for n, lab in zip(nodes, labels, strict=True) if lab == best}
 
 
 def cut_off_images(matches: Mapping[Pair, np.ndarray], failed: Mapping[Pair, np.ndarray],
@@ -157,7 +157,7 @@ def cut_off_images(matches: Mapping[Pair, np.ndarray], failed: Mapping[Pair, np.
     of them; after: those that did not fail, none for a wrong pair). Returns the images of the
     largest component before that are outside the largest component after.
     """
-    nodes = {i for p in matches for i in p}
+    nodes = sorted({i for p in matches for i in p})
     before = [p for p, m in matches.items() if len(m) >= min_pair_matches]
     after = [p for p, m in matches.items() if p not in wrong
              and len(m) - (int(np.count_nonzero(failed[p])) if p in failed else 0) >= min_pair_matches]
@@ -239,16 +239,17 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
             reason=f"{len(trusted)} of the {len(registered)} placed images agree with their pairs' own "
                    f"relative rotations (at least {cfg.min_agreeing_pairs} pairs within {cfg.max_rotation_deg:g} deg; "
                    f"{needed} images needed)")
+    dist_all: dict[Pair, np.ndarray] = {}  # every pair of two trusted images, once
+    for (i, j), m in matches.items():
+        if i in trusted and j in trusted and len(m):
+            m = np.asarray(m, np.int64)
+            E = essential(relative_pose(poses[i], poses[j]))
+            d = symmetric_epipolar_distance(E, rays[i][m[:, 0]], rays[j][m[:, 1]])
+            dist_all[(i, j)] = d * float(np.sqrt(focal[i] * focal[j]))
     cut: set[int] = set()
     given = threshold
-    while True:
-        dist: dict[Pair, np.ndarray] = {}
-        for (i, j), m in matches.items():
-            if i in trusted and j in trusted and len(m):
-                m = np.asarray(m, np.int64)
-                E = essential(relative_pose(poses[i], poses[j]))
-                d = symmetric_epipolar_distance(E, rays[i][m[:, 0]], rays[j][m[:, 1]])
-                dist[(i, j)] = d * float(np.sqrt(focal[i] * focal[j]))
+    while True:  # judge; drop from the trusted images any the removals would cut off; again
+        dist = {p: d for p, d in dist_all.items() if p[0] in trusted and p[1] in trusted}
         all_d = np.concatenate(list(dist.values())) if dist else np.zeros(0)
         scale = robust_scale(all_d)
         threshold = given if given is not None else threshold_px(scale, cfg.false_reject, cfg.min_threshold_px,
