@@ -26,21 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
+from .keypoint_accuracy import _camera
 from .track_geometry import fundamental_from_poses, symmetric_epipolar_distance
 
 ORACLE_THRESHOLD_PX = 4.0
 """A match farther than this (px, symmetric) from its GT epipolar line is a GT outlier."""
 
 
-def _kRt(cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return (np.asarray(cam.K, np.float64), np.asarray(cam.R, np.float64),
-            np.asarray(cam.t, np.float64).reshape(3))
-
-
 def pair_distances(cam1, cam2, xy1: np.ndarray, xy2: np.ndarray) -> np.ndarray:
     """Symmetric GT epipolar distances (M,) px of matched points ``xy1, xy2`` (M, 2) between two
     GT cameras (objects with ``K, R, t``: world-to-camera, pixel-centre K)."""
-    F = fundamental_from_poses(*_kRt(cam1), *_kRt(cam2))
+    F = fundamental_from_poses(*_camera(cam1), *_camera(cam2))
     return symmetric_epipolar_distance(F, xy1, xy2)
 
 
