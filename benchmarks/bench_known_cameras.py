@@ -49,10 +49,12 @@ import hashlib
 import json
 import logging
 import os
+import re
 import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 from bench_accuracy import (
@@ -121,7 +123,7 @@ def refined_database(db: Path, image_dir: Path, folder: Path, name: str, recipe:
         raw = {"seconds": s.seconds, "refine_stats": s.refine_stats}
     summary = {"refine_seconds": raw["seconds"].get("total"), "seconds": raw["seconds"],
                "refine_stats": numeric_stats(raw.get("refine_stats") or {}), "recipe": recipe,
-               "overrides": overrides, "code": code, "seed": seed}
+               "overrides": overrides, "code": None if code is None else Path(code).name, "seed": seed}
     tmp.rename(out)
     side.write_text(json.dumps(summary, indent=2), encoding="utf-8")
     return out, summary
@@ -245,6 +247,30 @@ def merge_rows(old: list[dict], new: list[dict]) -> list[dict]:
     return out + [r for r in new if _key(r) in fresh]
 
 
+def portable_path(path: Path, roots: Mapping[str, Path]) -> str:
+    """``path`` as ``NAME/relative`` under the first of ``roots`` (name -> folder) that holds
+    it, else its file name: results files carry no machine's folders."""
+    for name, root in roots.items():
+        try:
+            return f"{name}/{Path(path).resolve().relative_to(Path(root).resolve()).as_posix()}"
+        except ValueError:
+            continue
+    return Path(path).name
+
+
+def portable_argv(argv: list[str]) -> list[str]:
+    """The command line with each absolute path replaced by its option's name in capitals
+    (``--work /x`` -> ``--work WORK``; ``code=/x`` -> ``code=CHECKOUT``)."""
+    out: list[str] = []
+    for k, tok in enumerate(argv):
+        if tok.startswith("/"):
+            prev = argv[k - 1] if k else ""
+            out.append(prev.lstrip("-").replace("-", "_").upper() if prev.startswith("--") else "PATH")
+        else:
+            out.append(re.sub(r"code=/[^,]*", "code=CHECKOUT", tok))
+    return out
+
+
 def save_json(path: Path, rows: list[dict], argv: list[str]) -> None:
     """Merge ``rows`` into ``path`` (see :func:`merge_rows`); the command lines are kept in a list."""
     old = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {"rows": [], "commands": []}
@@ -332,7 +358,7 @@ def main(argv=None) -> int:
         if code is None:  # another checkout's recipe keys are its own: checked when it refines
             load_recipe(recipe, [*args.overrides, *ov, *common])
     mapping = load_recipe(args.recipe, [*args.overrides, *common]).mapping
-    cmd = sys.argv[1:] if argv is None else list(argv)
+    cmd = portable_argv(sys.argv[1:] if argv is None else list(argv))
     t_all = time.perf_counter()
     rows: list[dict] = []
     for scene in args.scenes:
@@ -376,7 +402,8 @@ def main(argv=None) -> int:
                     runs = map_runs(database, image_dir, gt, work / row_name / mapper, seeds,
                                     replace(mapping, mapper=mapper), intrinsics)
                     rows.append({"scene": scene, "setting": setting, "row": row_name, "mapper": mapper,
-                                 "database": str(database), **info, **figures, "runs": runs})
+                                 "database": portable_path(database, {"WORK": args.work, "CACHE": args.cache}),
+                                 **info, **figures, "runs": runs})
                     if args.json:  # partial results survive an interrupted run
                         save_json(args.json, rows, cmd)
                 print(f"{scene}/{setting}/{row_name} done in {time.perf_counter() - t0:.0f} s "
