@@ -103,7 +103,7 @@ def build_database(image_dir: Path, folder: Path, setting: str, max_features: in
     folder.mkdir(parents=True, exist_ok=True)
     with colmap_log_to_file(folder):
         if not features.is_file():
-            # the options of colmap_miho.extraction.extract_and_match (single camera, SIMPLE_RADIAL)
+            # the options of colmap_miho.sfm.extraction.extract_and_match (single camera, SIMPLE_RADIAL)
             tmp = features.with_suffix(".tmp.db")
             tmp.unlink(missing_ok=True)
             reader = pycolmap.ImageReaderOptions()

@@ -228,7 +228,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pg
 def sift_times(scene: Scene, *, threads: int, max_features: int, sample_images: int | None = None,
                seed: int = 0) -> dict:
     """pycolmap SIFT extraction + exhaustive matching times of the scene's images (CPU,
-    ``threads`` threads, one SIMPLE_RADIAL camera, as ``colmap_miho.extraction.extract_and_match``)
+    ``threads`` threads, one SIMPLE_RADIAL camera, as ``colmap_miho.sfm.extraction.extract_and_match``)
     into ``work/sift.db``; cached in ``work/sift.json``.
 
     With more than ``sample_images`` images only a random subset of that many is extracted and

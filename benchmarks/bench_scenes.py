@@ -55,9 +55,9 @@ def main(argv=None) -> int:
 
     import pycolmap
 
-    from colmap_miho.extraction import extract_and_match
     from colmap_miho.pipeline.jobs import JobOptions, compare_databases
     from colmap_miho.recipe import load_recipe
+    from colmap_miho.sfm.extraction import extract_and_match
 
     pycolmap.logging.minloglevel = 1
     mapping = [f"mapping.refine_intrinsics={args.refine_intrinsics}"] if args.refine_intrinsics else []

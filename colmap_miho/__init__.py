@@ -29,7 +29,6 @@ logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 if TYPE_CHECKING:  # what static tools see; at run time the table below imports on first use
     from .enums import FilterMethod, MoveSide
-    from .extraction import extract_and_match
     from .filtering.api import FilterResult, filter_matches
     from .filtering.config import FilterConfig
     from .pipeline import PipelineConfig, RefineSummary, refine_database
@@ -40,6 +39,7 @@ if TYPE_CHECKING:  # what static tools see; at run time the table below imports 
     from .refinement.tracks import TrackRefineResult, refine_tracks
     from .reporting.report import build_report
     from .sfm import MappingResult, run_mapping
+    from .sfm.extraction import extract_and_match
 
 _LAZY = {
     "filter_matches": "colmap_miho.filtering.api",
@@ -58,7 +58,7 @@ _LAZY = {
     "refine_database": "colmap_miho.pipeline",
     "RefineSummary": "colmap_miho.pipeline",
     "PipelineConfig": "colmap_miho.pipeline",
-    "extract_and_match": "colmap_miho.extraction",
+    "extract_and_match": "colmap_miho.sfm.extraction",
     "run_mapping": "colmap_miho.sfm",
     "MappingResult": "colmap_miho.sfm",
     "build_report": "colmap_miho.reporting.report",

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..enums import MatchSource
 from ..errors import DatabaseError, InvalidInput
+from ..geometry import fit_model_lsq
 from .cameras import CameraIntrinsics, camera_from
 from .conventions import colmap_to_pixel_centre, image_pair, pixel_centre_to_colmap
 from .database_build import DatabaseBuilder
@@ -114,7 +115,15 @@ class PairRecord:
     num_matches: int
 
 
-_KEEP_MODEL_CONFIGS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
+#: The two-view configurations of a verified pair (a model the mapper can use).
+VERIFIED_CONFIGS = ("CALIBRATED", "UNCALIBRATED", "PLANAR", "PANORAMIC", "PLANAR_OR_PANORAMIC")
+
+
+def is_verified(tvg) -> bool:
+    """A ``pycolmap.TwoViewGeometry`` holds a verified model (:data:`VERIFIED_CONFIGS`)."""
+    import pycolmap
+
+    return pycolmap.TwoViewGeometryConfiguration(int(tvg.config)).name in VERIFIED_CONFIGS
 
 
 class ColmapDatabase(DatabaseBuilder):
@@ -319,7 +328,7 @@ class ColmapDatabase(DatabaseBuilder):
             if old is not None:
                 db.delete_two_view_geometry(i, j)
             return "NONE"
-        if keep_model and old is not None and self._config_name(old) in _KEEP_MODEL_CONFIGS:
+        if keep_model and old is not None and is_verified(old):
             tvg = old
         else:
             tvg = self._fit_geometry(pixel_centre_to_colmap(xy1), pixel_centre_to_colmap(xy2))
@@ -334,22 +343,16 @@ class ColmapDatabase(DatabaseBuilder):
         return self._pycolmap.TwoViewGeometryConfiguration(int(tvg.config)).name
 
     def _fit_geometry(self, p1: np.ndarray, p2: np.ndarray):
-        import cv2
-
+        """A two-view geometry fitted to ``p1, p2`` (:func:`colmap_miho.geometry.fit_model_lsq`)."""
         pc = self._pycolmap
         tvg = pc.TwoViewGeometry()
-        F = None
-        if len(p1) >= 8:
-            F, _ = cv2.findFundamentalMat(p1, p2, cv2.FM_8POINT)
-        if F is not None and F.shape == (3, 3) and np.all(np.isfinite(F)):
+        F, H = fit_model_lsq(p1, p2)
+        if F is not None:
             tvg.config = pc.TwoViewGeometryConfiguration.UNCALIBRATED
             tvg.F = F
-            return tvg
-        H = None
-        if len(p1) >= 4:
-            H, _ = cv2.findHomography(p1, p2, 0)
-        tvg.config = pc.TwoViewGeometryConfiguration.PLANAR
-        tvg.H = H if H is not None and np.all(np.isfinite(H)) else np.eye(3)
+        else:
+            tvg.config = pc.TwoViewGeometryConfiguration.PLANAR
+            tvg.H = H
         return tvg
 
     def delete_two_view_geometries(self, pairs: list[tuple[int, int]]) -> None:

@@ -13,12 +13,12 @@ inliers' neighbours).
 from __future__ import annotations
 
 import functools
-import math
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..enums import Sampling
+from ..geometry import draws_for_confidence
 from . import kernels
 from .config import FilterConfig
 from .homography import triangle_orientations
@@ -72,17 +72,6 @@ def required_iters(w: float, w_loc: float, local_fraction: float, p: float) -> f
     all inliers, with inlier ratio ``w``, ``w_loc`` among the inliers' local neighbours and
     a ``local_fraction`` of the samples drawn locally (``inf`` when none can be)."""
     return draws_for_confidence(local_fraction * w * w_loc**3 + (1.0 - local_fraction) * w**4, p)
-
-
-def draws_for_confidence(p_clean: float, confidence: float) -> float:
-    """The classical RANSAC bound: random samples to draw so that at least one is all
-    inliers with probability ``confidence``, when one sample is with probability
-    ``p_clean`` (``inf`` when none can be, 0 when every one is)."""
-    if p_clean <= 0:
-        return math.inf
-    if p_clean >= 1:
-        return 0.0
-    return math.log(1.0 - confidence) / math.log1p(-p_clean)
 
 
 def _unknown(idx: np.ndarray, known: np.ndarray) -> np.ndarray:

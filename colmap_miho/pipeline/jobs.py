@@ -241,9 +241,9 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
     Raises:
         RunFailed: extraction found < 2 images, or mapping registered nothing.
     """
-    from ..extraction import extract_and_match
     from ..reporting.report import build_report, write_report_json
     from ..sfm import require_success, run_mapping
+    from ..sfm.extraction import extract_and_match
 
     opts = options or JobOptions()
     ext = extraction or ExtractionOptions()

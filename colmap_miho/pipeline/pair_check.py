@@ -14,19 +14,15 @@ import dataclasses
 import logging
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from ..adapters.database import ColmapDatabase
 from ..enums import MatchSource, PairCheckMode
+from ..types import Pair
 from ..verification import PairCheckConfig, check_pairs
+from .output_matches import pair_graph
 from .read import ReadOutput
 from .store import RunStore
 
 log = logging.getLogger(__name__)
-
-#: A pair of image ids (image_id1 < image_id2).
-Pair = tuple[int, int]
-
 
 @dataclass(frozen=True, kw_only=True)
 class PairCheckStats:
@@ -56,28 +52,13 @@ class PairCheckStats:
         return dataclasses.asdict(self)
 
 
-def pair_graph_matches(db: ColmapDatabase, store: RunStore, source: MatchSource) -> dict[Pair, np.ndarray]:
-    """Every pair's matches as they reach the output: the kept matches of the stored filtered
-    pairs, and the database's matches of the others (int64 ``(M, 2)``)."""
-    ok = store.load_filtered()
-    out: dict[Pair, np.ndarray] = {}
-    for p in db.pairs(source):
-        key = (p.image_id1, p.image_id2)
-        if key in ok:
-            m, r = ok[key]
-            out[key] = np.asarray(m, np.int64)[np.asarray(r.inliers, bool)]
-        else:
-            out[key] = db.matches(p.image_id1, p.image_id2, source).astype(np.int64)
-    return {k: v for k, v in out.items() if len(v)}
-
-
 def run_pair_check(db: ColmapDatabase, read: ReadOutput, store: RunStore, cfg: PairCheckConfig,
                    source: MatchSource) -> tuple[set[Pair], PairCheckStats | None]:
     """Check the pair graph; returns the pairs to remove (empty when off or in "flag" mode)
     and the stage's :class:`PairCheckStats` (None when off)."""
     if not cfg.enabled:
         return set(), None
-    matches = pair_graph_matches(db, store, source)
+    matches = pair_graph(db, store.load_filtered(), source)
     result = check_pairs(matches, read.keypoints, cfg)
     names = {im.image_id: im.name for im in db.images()}
     wrong = [{"images": [names.get(i, str(i)), names.get(j, str(j))], "image_ids": [i, j],

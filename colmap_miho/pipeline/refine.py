@@ -13,9 +13,6 @@ keeps the images the next group of its run needs.
 
 Results do not depend on the runner, its slots or the budget: groups are whole tracks, which
 never share a keypoint, and each group's walk is exactly the whole plan's walk of its tracks.
-
-(Over 400 lines on purpose: the stage and its scheduling of track groups over the runner's
-slots are one unit; the walk itself is in :mod:`colmap_miho.refinement`.)
 """
 
 from __future__ import annotations
@@ -32,10 +29,11 @@ import numpy as np
 
 from ..adapters.database import ColmapDatabase
 from ..adapters.images import ImageLoader
-from ..enums import Device, MatchSource, RunnerKind
+from ..enums import Device, RunnerKind
 from ..errors import InvalidInput
 from ..recipe import Recipe
 from .executor import Runner
+from .output_matches import output_matches
 from .read import ReadOutput, read_affines
 from .records import FilteredPairs
 from .store import RunStore
@@ -431,29 +429,12 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
     done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": group_max_matches()})
     new_keypoints, stats, used = run_refine_stage(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, recipe.tracks,
-        unrefined=_unrefined_matches(db, ok, usable, recipe.pipeline.source, removed), runner=runner,
+        unrefined={k: m for k, m in output_matches(db, ok, recipe.pipeline.source, removed=removed).items()
+                   if k not in usable},
+        runner=runner,
         progress=progress, image_budget_bytes=budget, done=done, on_group=store.save_group)
     stats = dict(stats)
     decoded = {int(k): int(v) for k, v in stats.pop(DECODED_BY_IMAGE, {}).items()}
     # the images skipped before the walk count as missing too: the same number as images_missing
     counters = dict(stats, workers=used, missing_images=max(int(stats.get("missing_images", 0)), len(missing)))
     return new_keypoints, RefineStats(counters=counters, decoded_by_image=decoded)
-
-
-def _unrefined_matches(db: ColmapDatabase, ok: FilteredPairs, usable: FilteredPairs, source: MatchSource,
-                       removed: Collection[tuple[int, int]]) -> dict[tuple[int, int], np.ndarray]:
-    """Every match that reaches the output database but is not refined: the pairs too small to
-    filter and the failed ones (written back unchanged), and the kept matches of pairs with a
-    missing image. The walk joins them into tracks (they never refine), so a keypoint that moves
-    stays consistent with every partner COLMAP will see. The ``removed`` pairs are left out."""
-    out = {}
-    for p in db.pairs(source):
-        key = (p.image_id1, p.image_id2)
-        if key in usable or key in removed:
-            continue
-        if key in ok:
-            m, r = ok[key]
-            out[key] = m[np.asarray(r.inliers, bool)]
-        else:
-            out[key] = db.matches(p.image_id1, p.image_id2, source)
-    return out

@@ -287,9 +287,7 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 output=database if wc.in_place else wc.output,  # in place: the user's path (a symlink stays one)
                 database=database, backup=wc.backup, recipe=rec, device=dev, runner=str(runner.kind),
                 resumed=resumed, read=read_stats, filtered=filter_stats, refine=refine_stats,
-                write=write_stats, seconds=laps.total())
-            summary.pair_check = {} if pair_check is None else pair_check.to_dict()
-            summary.match_check = {} if match_check is None else match_check.to_dict()
+                write=write_stats, seconds=laps.total(), pair_check=pair_check, match_check=match_check)
             if json_path:  # written beside its target now, renamed onto it with the commit
                 wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
             wc.commit()

@@ -9,6 +9,8 @@ from pathlib import Path
 
 from ..recipe import Recipe
 from .filter import FilterStats
+from .match_check import MatchCheckStats
+from .pair_check import PairCheckStats
 from .read import ReadStats
 from .refine import RefineStats
 from .write import WriteStats
@@ -24,7 +26,8 @@ class RefineSummary:
         pairs_filtered: pairs with at least ``pipeline.min_matches`` matches, filtered.
         pairs_passed: pairs with fewer matches, left unchanged.
         pairs_failed: filtered pairs for which the filter found no plane; left unchanged.
-        matches_in / matches_kept / matches_removed: over the filtered (successful) pairs.
+        matches_in / matches_kept / matches_removed: over the filtered (successful) pairs;
+            kept: as written, after the pair check's and the match check's removals.
         keypoints_moved: keypoints whose position changed (each moves at most once).
         median_displacement_px / max_displacement_px: over the moved keypoints, pixels.
         images_missing: names of images that could not be read (not refined).
@@ -88,8 +91,10 @@ class RefineSummary:
     @classmethod
     def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
                     device: str, runner: str, resumed: bool, read: ReadStats, filtered: FilterStats,
-                    refine: RefineStats, write: WriteStats, seconds: dict[str, float]) -> RefineSummary:
-        """Assemble the summary from the stages' stats."""
+                    refine: RefineStats, write: WriteStats, seconds: dict[str, float],
+                    pair_check: PairCheckStats | None = None,
+                    match_check: MatchCheckStats | None = None) -> RefineSummary:
+        """Assemble the summary from the stages' stats (a check's None: it was off)."""
         pcfg = recipe.pipeline
         per_image = Counter(read.decoded_by_image)
         per_image.update(refine.decoded_by_image)
@@ -99,8 +104,8 @@ class RefineSummary:
             workers=filtered.workers, device=device, num_images=read.num_images,
             num_pairs=read.num_pairs, pairs_filtered=filtered.pairs_filtered,
             pairs_passed=read.pairs_passed, pairs_failed=filtered.pairs_failed,
-            matches_in=filtered.matches_in, matches_kept=filtered.matches_kept,
-            matches_removed=filtered.matches_removed, keypoints_total=read.keypoints_total,
+            matches_in=filtered.matches_in, matches_kept=write.matches_kept,
+            matches_removed=filtered.matches_in - write.matches_kept, keypoints_total=read.keypoints_total,
             keypoints_moved=write.keypoints_moved,
             median_displacement_px=write.median_displacement_px,
             max_displacement_px=write.max_displacement_px,
@@ -110,7 +115,9 @@ class RefineSummary:
             refine_groups_resumed=refine.count("groups_resumed"), resumed=resumed,
             image_decodes=read.image_decodes + refine.count("image_decodes"),
             image_decodes_max=max(per_image.values(), default=0),
-            refine_stats=dict(refine.counters), seconds=seconds)
+            refine_stats=dict(refine.counters), seconds=seconds,
+            pair_check={} if pair_check is None else pair_check.to_dict(),
+            match_check={} if match_check is None else match_check.to_dict())
 
     def to_dict(self) -> dict:
         """Plain JSON-ready data (paths as strings, seconds rounded to ms)."""

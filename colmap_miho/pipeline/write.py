@@ -18,11 +18,13 @@ from .records import FilteredPairs
 @dataclass(frozen=True, kw_only=True)
 class WriteStats:
     """Keypoints moved by refinement and their displacements in pixels (``RefineSummary``
-    fields of the same names; 0 when nothing moved)."""
+    fields of the same names; 0 when nothing moved), and the matches written for the filtered
+    pairs (after both checks' removals)."""
 
     keypoints_moved: int
     median_displacement_px: float
     max_displacement_px: float
+    matches_kept: int = 0
 
 
 def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoints: dict[int, np.ndarray],
@@ -58,6 +60,7 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
                 displacements.append(np.linalg.norm(new[moved] - old[moved], axis=1))
                 db.write_keypoints(image_id, new, moved)
         written: list[tuple[int, int]] = []
+        kept_total = 0
         for ok in chunks:
             for (i, j), (m, r) in sorted(ok.items()):
                 if (i, j) in removed:
@@ -66,6 +69,7 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
                 write_pair(db, i, j, kept, new_keypoints[i][kept[:, 0]], new_keypoints[j][kept[:, 1]],
                            keep_model=cfg.source == MatchSource.VERIFIED and (i, j) not in refit)
                 written.append((i, j))
+                kept_total += len(kept)
         none = np.zeros((0, 2), np.uint32)
         for i, j in sorted(removed):
             write_pair(db, i, j, none, np.zeros((0, 2)), np.zeros((0, 2)), keep_model=False)
@@ -74,7 +78,7 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
     d = np.concatenate(displacements) if displacements else np.zeros(0)
     return WriteStats(keypoints_moved=int(d.size),
                       median_displacement_px=float(np.median(d)) if d.size else 0.0,
-                      max_displacement_px=float(d.max()) if d.size else 0.0)
+                      max_displacement_px=float(d.max()) if d.size else 0.0, matches_kept=kept_total)
 
 
 def write_pair(db: ColmapDatabase, i: int, j: int, kept: np.ndarray, pts1: np.ndarray,

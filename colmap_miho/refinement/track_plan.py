@@ -34,11 +34,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from ..enums import Rectification
+from ..types import Pair
 from .config import NCCConfig
 from .plan import TrackPlan, distinct
-
-#: an image pair (image_id1, image_id2).
-Pair = tuple[int, int]
 
 
 def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:

@@ -32,7 +32,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .track_geometry import GAUSS_NEWTON_STEPS, fundamental_from_poses, symmetric_epipolar_distance, triangulate_tracks
+from ..geometry import fundamental_from_poses, symmetric_epipolar_distance
+from .track_geometry import GAUSS_NEWTON_STEPS, triangulate_tracks
 
 EPIPOLAR_THRESHOLD_PX = 2.0
 """A stored inlier match farther than this (px, symmetric) from its GT epipolar line is counted

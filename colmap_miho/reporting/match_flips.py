@@ -25,8 +25,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..geometry import fundamental_from_poses, symmetric_epipolar_distance
 from .keypoint_accuracy import TRACK_THRESHOLD_PX, _camera
-from .track_geometry import fundamental_from_poses, symmetric_epipolar_distance
 
 FLIP_THRESHOLD_PX = TRACK_THRESHOLD_PX
 """A match within this distance (px, symmetric) of its GT epipolar line counts as correct: the

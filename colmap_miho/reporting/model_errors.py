@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from ..geometry import relative_pose
 from . import pose_metrics as pm
 from .gt_model import CameraPose
 
@@ -39,8 +40,8 @@ def model_pair_errors(
         if a not in est or b not in est:
             out[(a, b)] = math.inf
             continue
-        R_gt, t_gt = pm.relative_pose(gt[a].R, gt[a].t, gt[b].R, gt[b].t)
-        R_es, t_es = pm.relative_pose(est[a].R, est[a].t, est[b].R, est[b].t)
+        R_gt, t_gt = relative_pose((gt[a].R, gt[a].t), (gt[b].R, gt[b].t))
+        R_es, t_es = relative_pose((est[a].R, est[a].t), (est[b].R, est[b].t))
         out[(a, b)] = pm.pose_error_deg(R_es, t_es, R_gt, t_gt, fold=False)
     return out
 

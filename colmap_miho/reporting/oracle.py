@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry import fundamental_from_poses, symmetric_epipolar_distance
 from .keypoint_accuracy import _camera
-from .track_geometry import fundamental_from_poses, symmetric_epipolar_distance
 
 ORACLE_THRESHOLD_PX = 4.0
 """A match farther than this (px, symmetric) from its GT epipolar line is a GT outlier."""

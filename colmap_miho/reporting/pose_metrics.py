@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import rotation_angle_deg
+
 log = logging.getLogger(__name__)
 
 AUC_THRESHOLDS_DEG: tuple[float, ...] = (5.0, 10.0, 20.0)
@@ -49,11 +51,7 @@ def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
     R_gt = np.asarray(R_gt, dtype=np.float64)
     if R_est.shape != (3, 3) or R_gt.shape != (3, 3):
         raise ValueError(f"rotations must be (3, 3), got {R_est.shape} and {R_gt.shape}")
-    M = R_est.T @ R_gt
-    # atan2 of sin and cos of the angle: accurate near 0 too (arccos of the trace is not)
-    sin = 0.5 * np.linalg.norm([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
-    cos = (np.trace(M) - 1.0) / 2.0
-    return float(np.degrees(np.arctan2(sin, cos)))
+    return rotation_angle_deg(R_est, R_gt)
 
 
 def translation_angle_deg(t_est: np.ndarray, t_gt: np.ndarray, *, fold: bool = True) -> float:
@@ -85,20 +83,6 @@ def pose_error_deg(
 ) -> float:
     """Pose error = max(rotation error, translation-direction angle), degrees."""
     return max(rotation_error_deg(R_est, R_gt), translation_angle_deg(t_est, t_gt, fold=fold))
-
-
-def relative_pose(
-    R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Relative pose ``cam2_from_cam1`` of two world-to-camera poses.
-
-    Returns ``(R, t)`` with ``R = R2 R1^T`` and ``t = t2 - R t1``, (3, 3) and (3,).
-    """
-    R1 = np.asarray(R1, dtype=np.float64)
-    R2 = np.asarray(R2, dtype=np.float64)
-    R = R2 @ R1.T
-    t = np.asarray(t2, dtype=np.float64).reshape(3) - R @ np.asarray(t1, dtype=np.float64).reshape(3)
-    return R, t
 
 
 # --------------------------------------------------------------------------- AUC / mAA

@@ -39,6 +39,7 @@ import numpy as np
 
 from ..adapters.hloc import read_pairs_file
 from ..errors import InvalidInput
+from ..geometry import relative_pose
 from . import pose_metrics as pm
 from .gt_model import CameraPose
 from .model_errors import absolute_errors, gt_pairs, model_pair_errors
@@ -229,7 +230,7 @@ def two_view_pair_errors(
         if key in matches and a in gt and b in gt:
             p1, p2 = matches[key]
             row["num_matches"] = int(len(p1))
-            R_gt, t_gt = pm.relative_pose(gt[a].R, gt[a].t, gt[b].R, gt[b].t)
+            R_gt, t_gt = relative_pose((gt[a].R, gt[a].t), (gt[b].R, gt[b].t))
             if "E" in protocols:
                 row["E"] = pm.pose_from_essential(p1, p2, gt[a].K, gt[b].K, R_gt, t_gt, seed=seed).error_deg
             if "F" in protocols:

@@ -1,5 +1,4 @@
-"""Two-view and multi-view geometry under known cameras: the fundamental matrix of two GT poses,
-symmetric epipolar distances, and batched triangulation of tracks with their reprojection
+"""Multi-view geometry under known cameras: batched triangulation of tracks with their reprojection
 residuals. Cameras are world-to-camera (K, R, t) with pixel-centre intrinsics; pixels in
 colmap-miho's convention (integer = pixel centre).
 """
@@ -14,38 +13,6 @@ sub-pixel noise)."""
 
 
 _MIN_DEPTH = 1e-9  # a point at or behind a camera (depth below this) does not triangulate
-
-
-def fundamental_from_poses(K1, R1, t1, K2, R2, t2) -> np.ndarray:
-    """GT fundamental matrix ``F`` (3, 3) with ``x2^T F x1 = 0`` for pixel points (pixel-centre
-    convention), from two world-to-camera poses."""
-    R = R2 @ R1.T
-    t = t2 - R @ t1
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    return np.linalg.inv(K2).T @ tx @ R @ np.linalg.inv(K1)
-
-
-def symmetric_epipolar_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Symmetric epipolar distance (px) of point pairs: ``(d(x2, F x1) + d(x1, F^T x2)) / 2``.
-
-    Args:
-        F: (3, 3) fundamental matrix, ``x2^T F x1 = 0``.
-        x1, x2: (M, 2) pixel points.
-
-    Returns:
-        (M,) float64 distances.
-    """
-    x1 = np.asarray(x1, dtype=np.float64).reshape(-1, 2)
-    x2 = np.asarray(x2, dtype=np.float64).reshape(-1, 2)
-    h1 = np.column_stack([x1, np.ones(len(x1))])
-    h2 = np.column_stack([x2, np.ones(len(x2))])
-    l2 = h1 @ F.T  # lines in image 2
-    l1 = h2 @ F  # lines in image 1
-    alg = np.abs(np.sum(h2 * l2, axis=1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = alg / np.hypot(l2[:, 0], l2[:, 1])
-        d1 = alg / np.hypot(l1[:, 0], l1[:, 1])
-    return 0.5 * (d1 + d2)
 
 
 # --------------------------------------------------------------------------- triangulation

@@ -1,4 +1,4 @@
-"""Configuration of the pair check (pure dataclass, no I/O)."""
+"""Configuration of the pair check and the match check (pure dataclasses, no I/O)."""
 
 from __future__ import annotations
 

@@ -14,69 +14,33 @@ test; its correct pairs to the rest of the scene then fail, and removing them wo
 So removals never split the pair graph (:func:`cut_off_images`): images they would cut off are
 not trusted either. The threshold follows the estimate's own residuals (:func:`robust_scale`).
 
+:func:`judge_in_rounds` is the whole check: it asks an :class:`Estimator` (pycolmap's global
+mapper, :class:`colmap_miho.sfm.global_estimate.GlobalEstimator`) for the estimate, judges,
+places the images it did not trust again from the trusted part (:func:`place_untrusted`), and,
+with ``rounds`` > 1, estimates again from the survivors: an image placed wrong by the wrong
+matches of its pairs in one round can be trusted and judged in the next.
+
 Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))`` (``X_cam = R X + t``);
 ``rays`` are a camera's normalised image coordinates ``(N, 2)`` (undistorted, ``K^-1 x``) of an
 image's keypoints; ``focal`` is the camera's mean focal length in pixels, which turns a
 distance in normalised coordinates into pixels.
 
-Pure: arrays in, a small result out; no I/O.
+Pure: arrays in, a small result out; the estimator passed in does the I/O.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Protocol, TypeVar
 
 import numpy as np
 
-from ..enums import MatchCheckMode
+from ..geometry import essential, relative_pose, rotation_angle_deg, symmetric_epipolar_distance
+from ..types import Pair, Pose
 from .config import MatchCheckConfig
-
-#: An image pair (image_id1, image_id2) with image_id1 < image_id2.
-Pair = tuple[int, int]
-#: A ``cam_from_world`` pose: rotation (3, 3), translation (3,).
-Pose = tuple[np.ndarray, np.ndarray]
-
-def skew(t: np.ndarray) -> np.ndarray:
-    """``(3, 3)`` cross-product matrix of ``t`` ``(3,)``."""
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
-def relative_pose(pose1: Pose, pose2: Pose) -> Pose:
-    """``cam2_from_cam1`` of two ``cam_from_world`` poses."""
-    R = pose2[0] @ pose1[0].T
-    return R, pose2[1] - R @ pose1[1]
-
-
-def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """Angle (degrees) of the rotation ``Ra^T Rb`` between two ``(3, 3)`` rotations."""
-    c = (float(np.trace(Ra.T @ Rb)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
-def essential(rel: Pose) -> np.ndarray:
-    """``E_2from1`` ``(3, 3)`` of a relative pose (translation normalised; zero baseline gives
-    a zero matrix, whose distances are then undefined and come out as ``inf``)."""
-    R, t = rel
-    n = float(np.linalg.norm(t))
-    return skew(t / n) @ R if n > 0 else np.zeros((3, 3))
-
-
-def symmetric_epipolar_distance(E: np.ndarray, y1: np.ndarray, y2: np.ndarray) -> np.ndarray:
-    """Symmetric point-to-epipolar-line distances ``(d(y2, E y1) + d(y1, E^T y2)) / 2`` of
-    normalised correspondences ``y1, y2`` ``(M, 2)``, in normalised units: ``(M,)``; ``inf``
-    where a line is undefined."""
-    h1 = np.column_stack([y1, np.ones(len(y1))])
-    h2 = np.column_stack([y2, np.ones(len(y2))])
-    l2 = h1 @ E.T  # lines in image 2
-    l1 = h2 @ E  # lines in image 1
-    num = np.abs(np.sum(h2 * l2, axis=1))
-    n2 = np.hypot(l2[:, 0], l2[:, 1])
-    n1 = np.hypot(l1[:, 0], l1[:, 1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = 0.5 * (num / n2 + num / n1)
-    d[~np.isfinite(d)] = np.inf
-    return d
 
 
 def robust_scale(distances: np.ndarray) -> float:
@@ -276,6 +240,169 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
         matches_failed=int(sum(int(f.sum()) for f in failed.values())))
 
 
-def removes(result: MatchCheckResult, mode: MatchCheckMode) -> bool:
-    """The result removes something: used, in "remove" mode."""
-    return result.used and mode == MatchCheckMode.REMOVE
+class CameraEstimate(Protocol):
+    """What the judging reads of a global estimate of the cameras."""
+
+    @property
+    def poses(self) -> Mapping[int, Pose]:
+        """image id -> estimated ``cam_from_world`` (the registered images)."""
+
+    @property
+    def rays(self) -> Mapping[int, np.ndarray]:
+        """image id -> ``(N, 2)`` normalised coordinates of all its keypoints."""
+
+    @property
+    def focal(self) -> Mapping[int, float]:
+        """image id -> focal length (pixels) of its estimated camera."""
+
+    @property
+    def pair_rotations(self) -> Mapping[Pair, np.ndarray]:
+        """pair -> its own relative rotation ``R_2from1`` (from its matches alone)."""
+
+    @property
+    def seconds(self) -> Mapping[str, float]:
+        """Wall time of the estimate's parts."""
+
+
+Est = TypeVar("Est", bound=CameraEstimate)
+
+
+class Estimator(Protocol[Est]):
+    """Makes the global estimate from matches, and places one image again from the trusted
+    part of an estimate."""
+
+    def estimate(self, matches: Mapping[Pair, np.ndarray]) -> Est:
+        """The estimate from ``matches`` (pair -> int ``(M, 2)`` keypoint indices)."""
+
+    def place(self, estimate: Est, image_id: int, matches: Mapping[Pair, np.ndarray],
+              trusted: frozenset[int]) -> Pose | None:
+        """A new pose of ``image_id`` from ``estimate``'s points seen through the ``trusted``
+        images (None when it cannot be placed)."""
+
+
+#: Rounds of placing the untrusted images again: a placement made from a trusted part that
+#: still held a group placed wrong together (which the split test then finds) is made again
+#: from what is left.
+PLACEMENT_ROUNDS = 3
+
+
+def place_untrusted(estimator: Estimator[Est], est: Est, res: MatchCheckResult,
+                    matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
+                    threshold: float | None) -> MatchCheckResult:
+    """Place each registered image the check did not trust again, from the estimate's 3D
+    points its keypoints match through the trusted images (as incremental mapping registers an
+    image: the trusted part of the estimate is not bent by that image's wrong pairs), and judge
+    again with those poses (the trust test decides again whether each new pose holds). When
+    that judgement finds images that would be cut off (:func:`cut_off_images`), they are placed
+    again from the smaller trusted part, up to :data:`PLACEMENT_ROUNDS` times."""
+    if not cfg.place_untrusted:
+        return res
+    poses = dict(est.poses)
+    thr = res.threshold_px if threshold is None else threshold  # the first judgement's, kept
+    cut = set(res.cut_off)
+    before: frozenset[int] | None = None
+    for _ in range(PLACEMENT_ROUNDS):
+        if not res.used or res.trusted >= res.registered or res.trusted == before:
+            break  # all trusted, or the last placement changed nothing
+        before = res.trusted
+        moved = False
+        for k in sorted(res.registered - res.trusted):
+            pose = estimator.place(est, k, matches, res.trusted)
+            if pose is not None:
+                poses[k], moved = pose, True
+        if not moved:
+            break
+        res = check_matches(matches, est.rays, est.focal, poses, est.pair_rotations, cfg, threshold=thr)
+        cut |= res.cut_off
+    return dataclasses.replace(res, cut_off=frozenset(cut))
+
+
+@dataclass(frozen=True, kw_only=True)
+class MatchCheckDecision:
+    """What :func:`judge_in_rounds` decided, over all its rounds.
+
+    Attributes:
+        used: some round's estimate was trusted and its matches judged.
+        reason: why no round's was ("" when used), or why the rounds stopped early.
+        rounds: estimates made.
+        failed: pair -> bool ``(M,)`` over its matches: those that failed (every pair of two
+            trusted images, and any pair with a failing match; all True for a wrong pair).
+        wrong: pairs most of whose matches failed (removed whole).
+        fail_share: wrong pair -> its share of failing matches before it was removed whole.
+        registered / trusted / untrusted / cut_off: image ids placed by some round's estimate /
+            whose pose was trusted in some round / placed but never trusted / that the removals
+            would have cut off the rest of the pair graph.
+        judged_pairs: pairs of two trusted images.
+        scale_px / threshold_px: the first used round's scale and threshold (every round
+            applies that threshold).
+        seconds: per round, the estimate's parts and "judging" and "placements".
+    """
+
+    used: bool
+    reason: str = ""
+    rounds: int = 0
+    failed: dict[Pair, np.ndarray] = field(default_factory=dict)
+    wrong: frozenset[Pair] = frozenset()
+    fail_share: dict[Pair, float] = field(default_factory=dict)
+    registered: frozenset[int] = frozenset()
+    trusted: frozenset[int] = frozenset()
+    untrusted: frozenset[int] = frozenset()
+    cut_off: frozenset[int] = frozenset()
+    judged_pairs: frozenset[Pair] = frozenset()
+    scale_px: float = 0.0
+    threshold_px: float = 0.0
+    seconds: list[dict[str, float]] = field(default_factory=list)
+
+
+def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
+                    cfg: MatchCheckConfig) -> MatchCheckDecision:
+    """The match check: up to ``cfg.rounds`` global estimates, each from the survivors of the
+    last, each judged (:func:`check_matches`, then :func:`place_untrusted`).
+
+    A later round judges only the pairs of the images newly trusted, with the first round's
+    threshold (the survivors' distances are truncated: a scale taken from them would shrink
+    round after round); it stops once every placed image is trusted.
+    """
+    failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
+    wrong: set[Pair] = set()
+    trusted_any: set[int] = set()
+    registered_any: set[int] = set()
+    cut_any: set[int] = set()
+    used, reason, scale, threshold, rounds = False, "", 0.0, 0.0, 0
+    seconds: list[dict[str, float]] = []
+    for _ in range(cfg.rounds):
+        alive = {p: np.flatnonzero(~f) for p, f in failed.items() if p not in wrong and (~f).any()}
+        current = {p: matches[p][idx] for p, idx in alive.items()}
+        est = estimator.estimate(current)
+        rounds += 1
+        t0 = time.perf_counter()
+        res = check_matches(current, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
+                            threshold=threshold if used else None)
+        t1 = time.perf_counter()
+        res = place_untrusted(estimator, est, res, current, cfg, threshold if used else None)
+        seconds.append({**est.seconds, "judging": t1 - t0, "placements": time.perf_counter() - t1})
+        cut_any |= set(res.cut_off)  # the first judgement's and the placements' together
+        registered_any |= set(res.registered)
+        if not res.used:
+            reason = res.reason if not used else f"round {rounds}: {res.reason}"
+            break
+        if not used:
+            scale, threshold = res.scale_px, res.threshold_px
+        used, reason = True, ""
+        for p, f in res.failed.items():  # a later round judges only the pairs of images newly trusted
+            if not (p[0] in trusted_any and p[1] in trusted_any):
+                failed[p][alive[p][f]] = True
+        trusted_any |= set(res.trusted)
+        wrong |= set(res.wrong_pairs)
+        if set(res.trusted) >= set(res.registered):
+            break  # every placed image judged already: another round changes little
+    judged = frozenset(p for p in matches if p[0] in trusted_any and p[1] in trusted_any)
+    share = {p: float(failed[p].mean()) for p in wrong}  # before the pair is removed whole
+    for p in wrong:
+        failed[p][:] = True
+    return MatchCheckDecision(
+        used=used, reason=reason, rounds=rounds,
+        failed={p: f for p, f in failed.items() if f.any() or p in judged}, wrong=frozenset(wrong),
+        fail_share=share, registered=frozenset(registered_any), trusted=frozenset(trusted_any),
+        untrusted=frozenset(registered_any - trusted_any), cut_off=frozenset(cut_any), judged_pairs=judged,
+        scale_px=scale, threshold_px=threshold, seconds=seconds)

@@ -34,11 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..geometry import fit_fundamental, transfer
+from ..types import Pair
 from .config import PairCheckConfig
-from .epipolar import fit_fundamental, transfer
-
-#: An image pair (image_id1, image_id2) with image_id1 < image_id2.
-Pair = tuple[int, int]
 
 #: Grid cells per image side for :attr:`PairVerdict.coverage`.
 COVERAGE_GRID = 8

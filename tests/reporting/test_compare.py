@@ -99,7 +99,7 @@ def test_markdown_marks_missing_values():
 @pytest.mark.slow
 def test_compare_middlebury_temple(shared_data, tmp_path):
     """Real data: SIFT + exhaustive matching, then compare (filter only, to stay fast)."""
-    from colmap_miho.extraction import extract_and_match
+    from colmap_miho.sfm.extraction import extract_and_match
 
     root = shared_data / "middlebury_temple_sparse_ring"
     db = tmp_path / "db.db"

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from colmap_miho.cli import main
+from colmap_miho.geometry import relative_pose
 from colmap_miho.reporting.demo_scene import demo_cameras, make_demo_scene
 from colmap_miho.reporting.gt_model import load_gt_poses
-from colmap_miho.reporting.pose_metrics import relative_pose
 
 # Measured: SIFT RANSAC inliers between rendered views lie ~0.1-0.2 px (median) from the GT
 # epipolar lines; 0.5 px catches any convention slip (a 0.5 px principal-point shift or a
@@ -45,7 +45,7 @@ def test_demo_scene_gt_is_exact(tmp_path):
         _, mask = cv2.findFundamentalMat(m.pts1, m.pts2, cv2.USAC_MAGSAC, 1.0, 0.999, 10000)
         inl = mask.ravel().astype(bool)
         assert inl.sum() > 100
-        R, t = relative_pose(pa.R, pa.t, pb.R, pb.t)
+        R, t = relative_pose((pa.R, pa.t), (pb.R, pb.t))
         F = np.linalg.inv(pb.K).T @ _skew(t) @ R @ np.linalg.inv(pa.K)
         err = epipolar_error(F, m.pts1[inl], m.pts2[inl])
         assert np.median(err) < GT_EPIPOLAR_MEDIAN_MAX_PX

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from colmap_miho import geometry
 from colmap_miho.reporting import keypoint_accuracy as ka
 from colmap_miho.reporting.demo_scene import look_at
 from colmap_miho.reporting.gt_model import CameraPose
@@ -134,7 +135,7 @@ def test_epipolar_distance_exact_for_a_hand_made_case():
     cams = {"a": (K, np.eye(3), np.zeros(3)), "b": (K, np.eye(3), np.array([-1.0, 0, 0]))}
     kps = {"a": np.array([[100.0, 50.0], [300.0, 200.0]]), "b": np.array([[80.0, 53.0], [250.0, 200.5]])}
     r = ka.keypoint_accuracy(cams, kps, {("a", "b"): np.array([[0, 0], [1, 1]])})
-    d = ka.symmetric_epipolar_distance(ka.fundamental_from_poses(K, np.eye(3), np.zeros(3), K, np.eye(3),
+    d = geometry.symmetric_epipolar_distance(geometry.fundamental_from_poses(K, np.eye(3), np.zeros(3), K, np.eye(3),
                                                                  np.array([-1.0, 0, 0])),
                                        kps["a"], kps["b"])
     assert d == pytest.approx([3.0, 0.5], abs=1e-9)

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from colmap_miho.geometry import fundamental_from_poses
 from colmap_miho.reporting import match_flips as mf
 from colmap_miho.reporting.demo_scene import look_at
 from colmap_miho.reporting.gt_model import CameraPose
-from colmap_miho.reporting.track_geometry import fundamental_from_poses
 
 N = 200
 MOVE_PX = 9.0  # far beyond the 4 px threshold across the line

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from colmap_miho.geometry import relative_pose
 from colmap_miho.reporting import pose_metrics as pm
 
 
@@ -38,7 +39,7 @@ def test_translation_angle_fold_and_degenerate():
 def test_relative_pose_and_pose_error():
     R1, t1 = rot([0, 1, 0], 10), np.array([0.1, 0.2, 0.3])
     R2, t2 = rot([1, 0, 0], -20), np.array([1.0, -0.5, 2.0])
-    R, t = pm.relative_pose(R1, t1, R2, t2)
+    R, t = relative_pose((R1, t1), (R2, t2))
     X = np.array([0.3, -1.2, 4.0])
     np.testing.assert_allclose(R @ (R1 @ X + t1) + t, R2 @ X + t2, atol=1e-12)
     # rotation error 4 deg, translation exact -> 4

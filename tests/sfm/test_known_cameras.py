@@ -309,7 +309,7 @@ def test_refine_flags_reach_both_mappers(monkeypatch, tmp_path, refine, flags):
     registration; global: its bundle adjustment); ``default`` leaves pycolmap's defaults."""
     import pycolmap
 
-    from colmap_miho.sfm import _run_mapper
+    from colmap_miho.sfm.mapping import _run_mapper
 
     seen = {}
     monkeypatch.setattr(pycolmap, "incremental_mapping", lambda db, im, out, opts, **kw: seen.update(inc=opts) or {})

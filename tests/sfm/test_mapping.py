@@ -74,8 +74,8 @@ def test_map_cli_and_errors(scene, tmp_path):
 def test_global_mapping_on_real_images(shared_data, tmp_path):
     """GLOMAP through pycolmap.global_mapping (needs real two-view geometries: on pycolmap's
     synthetic databases it finds no tracks)."""
-    from colmap_miho.extraction import extract_and_match
     from colmap_miho.reporting.report import build_report
+    from colmap_miho.sfm.extraction import extract_and_match
 
     root = shared_data / "middlebury_temple_sparse_ring"
     db = tmp_path / "db.db"

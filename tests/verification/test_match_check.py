@@ -6,16 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from colmap_miho.geometry import essential, relative_pose, symmetric_epipolar_distance
 from colmap_miho.verification import MatchCheckConfig, check_matches
-from colmap_miho.verification.match_check import (
-    cut_off_images,
-    essential,
-    relative_pose,
-    robust_scale,
-    symmetric_epipolar_distance,
-    threshold_px,
-    trusted_images,
-)
+from colmap_miho.verification.match_check import cut_off_images, robust_scale, threshold_px, trusted_images
 
 FOCAL = 800.0
 #: Pixels: noise of the correct matches' keypoints.

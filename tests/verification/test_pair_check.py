@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from doppelganger import FOCAL, HEIGHT, WIDTH, make_doppelganger_scene
 
+from colmap_miho import geometry
 from colmap_miho.enums import PairCheckMode
-from colmap_miho.verification import PairCheckConfig, check_pairs, epipolar
-from colmap_miho.verification.epipolar import fit_fundamental, hypotheses_needed, sampson_sq, transfer
+from colmap_miho.geometry import fit_fundamental, hypotheses_needed, sampson_sq, transfer
+from colmap_miho.verification import PairCheckConfig, check_pairs
 from colmap_miho.verification.pair_graph import _Graph, confirming_triangles, settle_trust
 
 #: Sampson distance (px) of noise-free correspondences under the fitted F.
@@ -97,13 +98,13 @@ def test_hypotheses_needed_is_the_ransac_bound():
 
 def _count_solves(monkeypatch):
     calls = []
-    solve = epipolar._solve
+    solve = geometry._solve
 
     def counting(h1, h2):
         calls.append(h1.shape[0])
         return solve(h1, h2)
 
-    monkeypatch.setattr(epipolar, "_solve", counting)
+    monkeypatch.setattr(geometry, "_solve", counting)
     return calls
 
 

@@ -22,13 +22,13 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from .enums import Mapper, StrEnum
-from .errors import InvalidInput, RunFailed
-from .validation import check_bounds
+from ..enums import Mapper, StrEnum
+from ..errors import InvalidInput, RunFailed
+from ..validation import check_bounds
+from .colmap_log import colmap_log_to_file, latest_log
 
 log = logging.getLogger(__name__)
 
-MODEL_FILES = ("cameras", "images", "points3D", "rigs", "frames")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -73,42 +73,6 @@ class MappingResult:
         return d
 
 
-@contextlib.contextmanager
-def colmap_log_to_file(folder: Path | None, *, verbose: bool = False):
-    """Send COLMAP's glog output to ``folder/colmap_log.<timestamp>`` (errors still on stderr).
-
-    Yields the log file's path prefix (glog appends a timestamp), or None when verbose.
-    glog settings are process-wide; they are restored on exit.
-    """
-    import pycolmap
-
-    lg = pycolmap.logging
-    if verbose or folder is None:
-        yield None
-        return
-    saved = (lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel)
-    prefix = Path(folder) / "colmap_log."
-    try:
-        lg.minloglevel = 0  # the file gets everything, even when the caller silenced COLMAP
-        lg.logtostderr = False
-        lg.alsologtostderr = False
-        lg.stderrthreshold = 2  # ERROR and FATAL still reach the terminal
-        lg.set_log_destination(lg.INFO, str(prefix))
-        lg.set_log_destination(lg.WARNING, "")  # warnings are in the INFO file already
-        lg.set_log_destination(lg.ERROR, "")
-        yield prefix
-    finally:
-        lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel = saved
-        lg.set_log_destination(lg.INFO, "")
-
-
-def _latest_log(prefix: Path | None) -> Path | None:
-    if prefix is None:
-        return None
-    found = sorted(prefix.parent.glob(prefix.name + "*"), key=lambda p: p.stat().st_mtime)
-    return found[-1] if found else None
-
-
 class RefineIntrinsics(StrEnum):
     """What bundle adjustment may change in the cameras (``--refine-intrinsics``).
 
@@ -138,7 +102,7 @@ def parse_camera_params(model: str, params: str) -> tuple[float, ...]:
         ValueError: unknown model, a value that is not a finite number, or a count that does not
             fit the model (one line naming the model and the count it takes).
     """
-    from .adapters.cameras import model_num_params
+    from ..adapters.cameras import model_num_params
 
     n = model_num_params(model)
     if not params.strip():
@@ -202,7 +166,7 @@ class MappingConfig:
     def intrinsics(self):
         """The :class:`~colmap_miho.adapters.cameras.CameraIntrinsics` to write into every
         camera, or None when ``camera_model`` is empty."""
-        from .adapters.cameras import CameraIntrinsics
+        from ..adapters.cameras import CameraIntrinsics
 
         if not self.camera_model.strip():
             return None
@@ -245,10 +209,10 @@ def run_mapping(
     Raises:
         DatabaseError: the database is missing or not a COLMAP database.
     """
-    from .adapters.database import count_images, validate_database, write_camera_intrinsics
-    from .adapters.paths import refuse_text_model
-    from .adapters.safety import check_database_path, read_copy
-    from .adapters.staged_write import disk_full_error, is_disk_full, private_tempdir
+    from ..adapters.database import count_images, validate_database, write_camera_intrinsics
+    from ..adapters.paths import refuse_text_model
+    from ..adapters.safety import check_database_path, read_copy
+    from ..adapters.staged_write import disk_full_error, is_disk_full, private_tempdir
 
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
@@ -280,7 +244,7 @@ def run_mapping(
             with colmap_log_to_file(output, verbose=verbose) as prefix:
                 models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None, label)
             seconds = time.perf_counter() - t0
-            log_file = _latest_log(prefix)
+            log_file = latest_log(prefix)
     except BaseException as exc:
         for folder in made:  # a refused input leaves no empty output folder behind
             with contextlib.suppress(OSError):
@@ -313,7 +277,7 @@ def _warn_names_outside(copy: Path, database: Path, image_dir: Path) -> None:
     mapper reads those files (for the points' colours) from outside ``image_dir``."""
     import sqlite3
 
-    from .adapters.paths import leaves_folder
+    from ..adapters.paths import leaves_folder
 
     con = sqlite3.connect(f"file:{copy.resolve()}?mode=ro", uri=True)
     try:
@@ -330,6 +294,28 @@ def _camera_rows(rec) -> list[dict]:
              "params": [float(v) for v in c.params]} for _, c in sorted(rec.cameras.items())]
 
 
+def global_options(*, seed: int, num_threads: int, min_num_matches: int,
+                   refine: tuple[bool, bool, bool] | None = None):
+    """``pycolmap.GlobalPipelineOptions`` with the seed, threads (-1: all cores), the fewest
+    inliers of a pair it uses and, when given, what bundle adjustment may change in the cameras
+    (focal length, principal point, extra parameters; None: COLMAP's default)."""
+    import pycolmap
+
+    gopts = pycolmap.GlobalPipelineOptions()
+    gopts.random_seed = int(seed)
+    gopts.num_threads = int(num_threads)
+    gopts.min_num_matches = int(min_num_matches)
+    if refine is not None:
+        ba = gopts.mapper.bundle_adjustment
+        ba.refine_focal_length, ba.refine_principal_point, ba.refine_extra_params = refine
+    return gopts
+
+
+def largest_model(models: dict):
+    """The model with the most registered images (then points), or None without models."""
+    return max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), default=None)
+
+
 def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir: Path,
                 bar_total: int | None, label: str = "mapping") -> dict:
     """pycolmap's incremental or global pipeline on ``database``; returns its models. A tqdm
@@ -338,13 +324,8 @@ def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir:
 
     refine = _REFINE_FLAGS.get(cfg.refine_intrinsics)
     if cfg.mapper == Mapper.GLOBAL:
-        gopts = pycolmap.GlobalPipelineOptions()
-        gopts.random_seed = int(cfg.seed)
-        gopts.num_threads = int(cfg.num_threads)
-        gopts.min_num_matches = int(cfg.min_num_matches)
-        if refine is not None:
-            ba = gopts.mapper.bundle_adjustment
-            ba.refine_focal_length, ba.refine_principal_point, ba.refine_extra_params = refine
+        gopts = global_options(seed=cfg.seed, num_threads=cfg.num_threads, min_num_matches=cfg.min_num_matches,
+                               refine=refine)
         return pycolmap.global_mapping(str(database), str(image_dir), str(models_dir), gopts)
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = int(cfg.seed)
@@ -372,9 +353,9 @@ def _write_largest(models: dict, output: Path):
     """Write the model with the most registered images (then points) to ``output``, replacing
     model files there (staged, read back, then renamed: see
     :func:`~colmap_miho.adapters.staged_write.write_model_atomic`); returns it."""
-    from .adapters.staged_write import write_model_atomic
+    from ..adapters.staged_write import write_model_atomic
 
-    best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+    best = largest_model(models)
     write_model_atomic(best, output)
     return best
 

@@ -8,9 +8,9 @@ import logging
 import time
 from pathlib import Path
 
-from .enums import CameraMode
-from .errors import RunFailed
-from .sfm import colmap_log_to_file
+from ..enums import CameraMode
+from ..errors import RunFailed
+from .colmap_log import colmap_log_to_file
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ def extract_and_match(
         t2 = time.perf_counter()
     if not database.is_file():
         raise RunFailed(f"feature extraction wrote no database (no readable image in {image_dir}?)")
-    from .adapters.database import count_images
+    from ..adapters.database import count_images
 
     n = count_images(database)
     if n < 2:
@@ -101,7 +101,7 @@ def check_extraction_space(image_dir: Path, folder: Path, max_features: int) -> 
     Raises:
         UserError: one line naming the folder, the estimate and the free space.
     """
-    from .adapters.safety import check_free_space
+    from ..adapters.safety import check_free_space
 
     n = sum(1 for p in Path(image_dir).rglob("*") if p.is_file())
     pairs = n * (n - 1) // 2

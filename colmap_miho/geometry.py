@@ -1,15 +1,20 @@
-"""Fundamental matrices of image pairs and epipolar transfer into a third image (numpy only).
+"""Two-view geometry in numpy: poses, rotation angles, essential and fundamental matrices,
+symmetric epipolar distances, fundamental-matrix fitting and epipolar transfer.
 
-Conventions: points are float ``(M, 2)`` pixels; ``F_2from1`` satisfies
-``x2^T F_2from1 x1 = 0`` (homogeneous pixels), so ``F_2from1 @ x1`` is x1's epipolar line in
-image 2 and ``F_2from1.T`` is ``F_1from2``.
+Conventions: a pose is ``cam_from_world`` ``(R (3, 3), t (3,))`` (``X_cam = R X + t``); a
+relative pose ``cam2_from_cam1``; points are float ``(M, 2)`` (pixels, or normalised
+coordinates ``K^-1 x`` with an essential matrix); ``F_2from1`` satisfies ``x2^T F_2from1 x1 = 0``
+(homogeneous points), so ``F_2from1 @ x1`` is x1's epipolar line in image 2 and ``F_2from1.T``
+is ``F_1from2``. Angles are in degrees.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from ..filtering.sampling import draws_for_confidence
+from .types import Pose
 
 #: Matches a fundamental matrix needs (the eight-point algorithm).
 MIN_F_MATCHES = 8
@@ -19,6 +24,71 @@ SCORE_POINTS = 300
 HYPOTHESIS_BATCH = 32
 #: Probability that :func:`fit_fundamental` has scored an all-inlier sample when it stops early.
 CONFIDENCE = 0.999
+
+
+def skew(t: np.ndarray) -> np.ndarray:
+    """``(3, 3)`` cross-product matrix ``[t]_x`` of ``t`` ``(3,)``."""
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
+def relative_pose(pose1: Pose, pose2: Pose) -> Pose:
+    """``cam2_from_cam1`` of two ``cam_from_world`` poses: ``R = R2 R1^T``, ``t = t2 - R t1``."""
+    R = np.asarray(pose2[0], np.float64) @ np.asarray(pose1[0], np.float64).T
+    return R, np.asarray(pose2[1], np.float64).reshape(3) - R @ np.asarray(pose1[1], np.float64).reshape(3)
+
+
+def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """Geodesic angle (degrees, in [0, 180]) between two ``(3, 3)`` rotations: the angle of
+    ``Ra^T Rb``, as atan2 of its sine and cosine (accurate near 0 too, where the arccos of the
+    trace is not)."""
+    M = np.asarray(Ra, np.float64).T @ np.asarray(Rb, np.float64)
+    sin = 0.5 * np.linalg.norm([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    cos = (np.trace(M) - 1.0) / 2.0
+    return float(np.degrees(np.arctan2(sin, cos)))
+
+
+def essential(rel: Pose) -> np.ndarray:
+    """``E_2from1`` ``(3, 3)`` of a relative pose (translation normalised; zero baseline gives
+    a zero matrix, whose distances are then undefined and come out as ``inf``)."""
+    R, t = rel
+    n = float(np.linalg.norm(t))
+    return skew(t / n) @ R if n > 0 else np.zeros((3, 3))
+
+
+def fundamental_from_poses(K1, R1, t1, K2, R2, t2) -> np.ndarray:
+    """``F_2from1`` ``(3, 3)`` of two cameras (intrinsics ``K``, ``cam_from_world`` ``R, t``)."""
+    R, t = relative_pose((R1, t1), (R2, t2))
+    return np.linalg.inv(K2).T @ skew(t) @ R @ np.linalg.inv(K1)
+
+
+def symmetric_epipolar_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Symmetric point-to-epipolar-line distances ``(d(x2, F x1) + d(x1, F^T x2)) / 2`` of
+    correspondences ``x1, x2`` ``(M, 2)`` under ``F_2from1`` (pixels; an essential matrix and
+    normalised coordinates give normalised units): ``(M,)``, ``inf`` where a line is undefined."""
+    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
+    x2 = np.asarray(x2, np.float64).reshape(-1, 2)
+    h1 = np.column_stack([x1, np.ones(len(x1))])
+    h2 = np.column_stack([x2, np.ones(len(x2))])
+    l2 = h1 @ F.T  # lines in image 2
+    l1 = h2 @ F  # lines in image 1
+    num = np.abs(np.sum(h2 * l2, axis=1))
+    n2 = np.hypot(l2[:, 0], l2[:, 1])
+    n1 = np.hypot(l1[:, 0], l1[:, 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = 0.5 * (num / n2 + num / n1)
+    d[~np.isfinite(d)] = np.inf
+    return d
+
+
+def draws_for_confidence(p_clean: float, confidence: float) -> float:
+    """The classical RANSAC bound: random samples to draw so that at least one is all
+    inliers with probability ``confidence``, when one sample is with probability
+    ``p_clean`` (``inf`` when none can be, 0 when every one is)."""
+    if p_clean <= 0:
+        return math.inf
+    if p_clean >= 1:
+        return 0.0
+    return math.log(1.0 - confidence) / math.log1p(-p_clean)
 
 
 def _normalise(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -67,7 +137,7 @@ def sampson_sq(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
 def hypotheses_needed(inlier_share: float, confidence: float) -> float:
     """Eight-point samples to draw so that at least one is all inliers with probability
     ``confidence``, given an inlier share in [0, 1] (the classical RANSAC bound of
-    :func:`~colmap_miho.filtering.sampling.draws_for_confidence`); 1 when every match is an
+    :func:`draws_for_confidence`); 1 when every match is an
     inlier, ``inf`` without inliers."""
     if inlier_share >= 1.0:
         return 1.0
@@ -118,6 +188,24 @@ def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
         F = T2.T @ _solve(h1[best][None], h2[best][None])[0] @ T1
         best = sampson_sq(F, x1, x2) < threshold_px**2
     return F / max(float(np.linalg.norm(F)), 1e-30)
+
+
+def fit_model_lsq(x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Least-squares two-view model of correspondences that are all inliers (the kept matches
+    written to a database): ``(F_2from1, None)`` from the eight-point algorithm, or, when F
+    cannot be fitted (fewer than 8 matches, degenerate), ``(None, H_2from1)`` a homography (the
+    identity when that fails too)."""
+    import cv2
+
+    F = None
+    if len(x1) >= MIN_F_MATCHES:
+        F, _ = cv2.findFundamentalMat(x1, x2, cv2.FM_8POINT)
+    if F is not None and F.shape == (3, 3) and np.all(np.isfinite(F)):
+        return F, None
+    H = None
+    if len(x1) >= 4:
+        H, _ = cv2.findHomography(x1, x2, 0)
+    return None, (H if H is not None and np.all(np.isfinite(H)) else np.eye(3))
 
 
 def transfer(F_3from1: np.ndarray, F_3from2: np.ndarray, x1: np.ndarray,

@@ -14,19 +14,20 @@ cameras). Coordinates are COLMAP's inside (the rays do not depend on the convent
 from __future__ import annotations
 
 import logging
-import tempfile
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .database import ColmapDatabase
+from ..adapters.database import ColmapDatabase, is_verified
+from ..geometry import fit_fundamental
+from ..types import Pair, Pose
+from .colmap_log import colmap_log_to_file
+from .mapping import global_options, largest_model
 
 log = logging.getLogger(__name__)
-
-#: An image pair (image_id1, image_id2) with image_id1 < image_id2.
-Pair = tuple[int, int]
 
 #: Pixels: RANSAC threshold of each pair's own relative pose (COLMAP's default verification).
 PAIR_POSE_MAX_ERROR_PX = 4.0
@@ -46,7 +47,8 @@ class GlobalEstimate:
             ``(K, 3)``) of the model's tracks.
         cameras: image id -> its estimated ``pycolmap.Camera``.
         keypoints: image id -> ``(N, 2)`` keypoints in COLMAP's convention.
-        seconds: wall time of the mapper.
+        seconds: wall time of its parts: "database" (the temporary database), "mapper",
+            "pair_rotations".
     """
 
     poses: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
@@ -56,7 +58,7 @@ class GlobalEstimate:
     observations: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     cameras: dict = field(default_factory=dict)
     keypoints: dict[int, np.ndarray] = field(default_factory=dict)
-    seconds: float = 0.0
+    seconds: dict[str, float] = field(default_factory=dict)
 
 
 def _copy_scene(src: ColmapDatabase, dst, image_ids) -> None:
@@ -82,11 +84,9 @@ def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: M
     tvg = None
     if h.exists_two_view_geometry(i, j):
         old = h.read_two_view_geometry(i, j)
-        if int(old.config) in (2, 3, 4, 5, 6):  # CALIBRATED .. PLANAR_OR_PANORAMIC
+        if is_verified(old):
             tvg = old
     if tvg is None:
-        from ..verification.epipolar import fit_fundamental
-
         F = fit_fundamental(kp[i][m[:, 0]], kp[j][m[:, 1]], np.random.default_rng([seed, i, j]))
         if F is None:
             return None
@@ -98,9 +98,8 @@ def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: M
 
 
 def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, min_pair_matches: int,
-                    seed: int = 0, num_threads: int = -1, log_dir: Path | None = None,
-                    verbose: bool = False, ba_iterations: int = 3,
-                    retriangulate: bool = True) -> GlobalEstimate:
+                    seed: int = 0, num_threads: int = -1, verbose: bool = False, ba_iterations: int = 3,
+                    retriangulate: bool = True, workdir: Path | None = None) -> GlobalEstimate:
     """Run pycolmap's global mapper on ``matches`` with the cameras of ``src``.
 
     Args:
@@ -112,46 +111,54 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         num_threads: mapper threads (-1: all cores).
         ba_iterations / retriangulate: the mapper's bundle-adjustment rounds and whether it
             triangulates again after them.
-        log_dir: folder for COLMAP's log (default: the temporary folder, removed after).
-        verbose: COLMAP's log on the terminal instead.
+        verbose: COLMAP's log on the terminal instead of the temporary folder's file (its
+            errors never reach the terminal otherwise: a failed estimate is the caller's to
+            report).
+        workdir: where the temporary folder goes (default ``$TMPDIR``); it is removed on exit,
+            at a forced exit after SIGTERM, and by the next run after a ``kill -9``.
 
     Returns:
         The :class:`GlobalEstimate` (empty when no model came out).
-    """
-    import time
 
+    Raises:
+        RunFailed: the disk of the temporary folder is full.
+    """
     import pycolmap
 
-    from ..sfm import colmap_log_to_file
+    from ..adapters.staged_write import disk_full_error, is_disk_full, private_tempdir
 
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
     image_ids = [im.image_id for im in src.images()]
     kp = {i: np.asarray(src.handle.read_keypoints(int(i))[:, :2], np.float64) for i in image_ids}
     used = {p: np.asarray(m, np.int64) for p, m in matches.items() if len(m) >= min_pair_matches}
-    with tempfile.TemporaryDirectory(prefix="miho-global-") as tmp:
-        folder = Path(tmp)
-        db_path = folder / "global.db"
-        with pycolmap.Database.open(str(db_path)) as dst:
-            _copy_scene(src, dst, image_ids)
-            for (i, j), m in sorted(used.items()):
-                tvg = _pair_geometry(pycolmap, src, i, j, m, kp, seed)
-                if tvg is not None:
-                    dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
-                    dst.write_two_view_geometry(i, j, tvg)
-        opts = pycolmap.GlobalPipelineOptions()
-        opts.num_threads = int(num_threads)
-        opts.random_seed = int(seed)
-        opts.min_num_matches = int(min_pair_matches)
-        opts.mapper.ba_num_iterations = int(ba_iterations)
-        opts.mapper.skip_retriangulation = not retriangulate
-        out = folder / "model"
-        out.mkdir()
-        t0 = time.perf_counter()
-        with colmap_log_to_file(Path(log_dir) if log_dir else folder, verbose=verbose):
-            recs = pycolmap.global_mapping(str(db_path), str(folder), str(out), opts)
-        seconds = time.perf_counter() - t0
-    if not recs:
+    with private_tempdir("miho-global-", workdir) as folder:
+        try:
+            db_path = folder / "global.db"
+            with pycolmap.Database.open(str(db_path)) as dst:
+                _copy_scene(src, dst, image_ids)
+                for (i, j), m in sorted(used.items()):
+                    tvg = _pair_geometry(pycolmap, src, i, j, m, kp, seed)
+                    if tvg is not None:
+                        dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
+                        dst.write_two_view_geometry(i, j, tvg)
+            opts = global_options(seed=seed, num_threads=num_threads, min_num_matches=min_pair_matches)
+            opts.mapper.ba_num_iterations = int(ba_iterations)
+            opts.mapper.skip_retriangulation = not retriangulate
+            out = folder / "model"
+            out.mkdir()
+            seconds["database"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False):
+                recs = pycolmap.global_mapping(str(db_path), str(folder), str(out), opts)
+            seconds["mapper"] = time.perf_counter() - t0
+        except (OSError, RuntimeError) as exc:
+            if is_disk_full(exc):
+                raise disk_full_error(folder.parent, "writing the global estimate's temporary database") from None
+            raise
+    rec = largest_model(recs)
+    if rec is None:
         return GlobalEstimate(seconds=seconds)
-    rec = max(recs.values(), key=lambda r: r.num_reg_images())
     poses, rays, focal, cams = {}, {}, {}, {}
     for image_id, im in rec.images.items():
         if not im.has_pose:
@@ -170,12 +177,43 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
                 obs[int(el.image_id)][0].append(int(el.point2D_idx))
                 obs[int(el.image_id)][1].append(p3.xyz)
     observations = {i: (np.asarray(a, np.int64), np.asarray(b, np.float64).reshape(-1, 3)) for i, (a, b) in obs.items()}
+    t0 = time.perf_counter()
+    rotations = _pair_rotations(pycolmap, used, kp, cams, seed)
+    seconds["pair_rotations"] = time.perf_counter() - t0
     return GlobalEstimate(poses=poses, rays=rays, focal=focal, seconds=seconds, observations=observations,
-                         cameras=cams, keypoints=kp, pair_rotations=_pair_rotations(pycolmap, used, kp, cams, seed))
+                          cameras=cams, keypoints=kp, pair_rotations=rotations)
+
+
+@dataclass(frozen=True, kw_only=True)
+class GlobalEstimator:
+    """The match check's estimator (:class:`colmap_miho.verification.match_check.Estimator`):
+    :func:`global_estimate` on the open working database ``src``, and
+    :func:`place_by_points` for the images the check did not trust."""
+
+    src: ColmapDatabase
+    min_pair_matches: int
+    seed: int = 0
+    num_threads: int = -1
+    ba_iterations: int = 3
+    retriangulate: bool = True
+    max_error_px: float = 4.0
+    min_inliers: int = 30
+    verbose: bool = False
+    workdir: Path | None = None
+
+    def estimate(self, matches: Mapping[Pair, np.ndarray]) -> GlobalEstimate:
+        return global_estimate(self.src, matches, min_pair_matches=self.min_pair_matches, seed=self.seed,
+                               num_threads=self.num_threads, verbose=self.verbose, ba_iterations=self.ba_iterations,
+                               retriangulate=self.retriangulate, workdir=self.workdir)
+
+    def place(self, estimate: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray],
+              trusted: frozenset[int]) -> Pose | None:
+        return place_by_points(estimate, image_id, matches, trusted, max_error_px=self.max_error_px,
+                               min_inliers=self.min_inliers, seed=self.seed)
 
 
 def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray], trusted, *,
-                    max_error_px: float, min_inliers: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray] | None:
+                    max_error_px: float, min_inliers: int, seed: int = 0) -> Pose | None:
     """A new ``cam_from_world`` of placed image ``image_id`` from the estimate's 3D points that
     its keypoints match through the ``trusted`` images (absolute pose, LO-RANSAC at
     ``max_error_px`` and refinement, as incremental mapping registers an image); None with
@@ -225,6 +263,6 @@ def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.
             continue
         tvg = pc.estimate_two_view_geometry(cams[i], kp[i], cams[j], kp[j], np.ascontiguousarray(m, np.uint32), opts)
         pose = tvg.cam2_from_cam1
-        if int(tvg.config) in (2, 3, 4, 5, 6) and pose is not None:
+        if is_verified(tvg) and pose is not None:
             out[(i, j)] = np.asarray(pose.rotation.matrix(), np.float64)
     return out

@@ -1,0 +1,46 @@
+"""COLMAP's own log (glog) sent to a file instead of the terminal, for every pycolmap call that
+maps or extracts."""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_terminal: bool = True):
+    """Send COLMAP's glog output to ``folder/colmap_log.<timestamp>``; its errors also reach
+    stderr unless ``errors_to_terminal`` is False (a call whose failure the caller reports in
+    its own words).
+
+    Yields the log file's path prefix (glog appends a timestamp), or None when verbose.
+    glog settings are process-wide; they are restored on exit.
+    """
+    import pycolmap
+
+    lg = pycolmap.logging
+    if verbose or folder is None:
+        yield None
+        return
+    saved = (lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel)
+    prefix = Path(folder) / "colmap_log."
+    try:
+        lg.minloglevel = 0  # the file gets everything, even when the caller silenced COLMAP
+        lg.logtostderr = False
+        lg.alsologtostderr = False
+        lg.stderrthreshold = 2 if errors_to_terminal else 3  # ERROR (unless the caller reports it) and FATAL
+        lg.set_log_destination(lg.INFO, str(prefix))
+        lg.set_log_destination(lg.WARNING, "")  # warnings are in the INFO file already
+        lg.set_log_destination(lg.ERROR, "")
+        yield prefix
+    finally:
+        lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel = saved
+        lg.set_log_destination(lg.INFO, "")
+
+
+def latest_log(prefix: Path | None) -> Path | None:
+    """The newest log file glog wrote under ``prefix`` (None when verbose or none)."""
+    if prefix is None:
+        return None
+    found = sorted(prefix.parent.glob(prefix.name + "*"), key=lambda p: p.stat().st_mtime)
+    return found[-1] if found else None
