@@ -100,67 +100,36 @@ class PairCheckConfig:
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckConfig:
     """Parameters of the match check: every match judged against a global estimate of the
-    cameras (see :mod:`colmap_miho.verification.match_check`).
-
-    After the filter (and the pair check), one global estimate of all cameras is made from the
-    filtered matches (pycolmap's global mapper: view-graph calibration, rotation averaging,
-    global positioning, bundle adjustment). The estimate is trusted image by image: an image is
-    trusted when its pose agrees with its pairs' own relative rotations (each estimated from
-    the pair's matches alone): at least ``min_agreeing_pairs`` of them within
-    ``max_rotation_deg`` (a count, not a median: on real scenes many pairs are wrong, and a
-    wrong pair agrees with the estimate only by chance). The estimate is used only when at
-    least ``min_trusted_images`` images and at least ``min_trusted_share`` of its registered
-    images are trusted; otherwise nothing is removed.
-
-    Each match of a pair of two trusted images is judged by its symmetric distance (pixels) to
-    its epipolar line under the estimate. The threshold follows the estimate's own residuals:
-    the distances of correct matches are modelled as exponential (heavier-tailed than a
-    normal, as keypoint errors are), with the mean ``median / ln 2`` of all judged matches'
-    distances; a match farther than the distance a correct one exceeds with probability
-    ``false_reject`` (clamped to ``[min_threshold_px, max_threshold_px]``) is removed. A pair whose matches
-    fail for more than ``max_pair_fail_share`` of them is wrong as a whole and removed.
+    cameras (the algorithm and why it is built so: :mod:`colmap_miho.verification.match_check`;
+    measured figures: ``docs/results.md``, the match check).
 
     Attributes:
         mode: "off" (no estimate), "remove" or "flag" (judge and report only).
         false_reject: the share of correct matches the threshold would remove if their
             distances were exactly exponential, in (0, 0.5) (0.0027: a normal's 3-sigma tail).
         min_threshold_px / max_threshold_px: pixels; bounds of the threshold. The floor keeps
-            correct matches where the estimate fits very tightly (a small median, the tail
-            heavier than exponential: at 1 px, 3.9% of the correct matches went on fountain-P11
-            and the demo scene, permissive matching; at 3 px the demo's gain went too); the cap
-            bounds it when the scale is blown up by many wrong matches (a correct match lies
-            within 4 px of its GT epipolar line).
-        max_rotation_deg: degrees; a pair agrees with the estimate when the angle between its
-            own relative rotation and the estimate's is at most this.
-        min_agreeing_pairs: agreeing pairs an image needs to be trusted.
-        min_pair_matches: a pair needs this many matches for its own relative rotation to
-            count in the trust check, and for the pair-level verdict.
-        min_trusted_images: the estimate is used only with at least this many trusted images.
-        min_trusted_share: ... and at least this share of its registered images trusted, in
-            (0, 1].
-        max_pair_fail_share: a pair (of two trusted images, at least ``min_pair_matches``
-            matches) whose share of failing matches exceeds this is removed as a whole, in
-            (0, 1].
-        place_untrusted: place each image the check did not trust again from the estimate's
-            3D points that its keypoints match through the trusted images (absolute pose with
-            RANSAC at ``max_threshold_px``, as incremental mapping registers an image), then
-            test its trust again: a pose bent by the image's wrong pairs is replaced by one
-            that only the trusted part of the estimate gives.
+            correct matches where the estimate fits very tightly (the tail is heavier than
+            exponential); the cap bounds it when many wrong matches blow up the scale (a
+            correct match lies within 4 px of its GT epipolar line).
+        max_rotation_deg: a pair agrees with the estimate when the angle between its own
+            relative rotation and the estimate's is at most this.
+        min_agreeing_pairs: agreeing pairs an image needs to be trusted (a count, not a
+            median: on repetitive scenes many pairs are wrong).
+        min_pair_matches: a pair needs this many matches to enter the estimate, for its own
+            relative rotation to count in the trust test, and for the pair-level verdict.
+        min_trusted_images / min_trusted_share: the estimate is used only with at least this
+            many trusted images and this share of its registered ones (otherwise nothing is
+            removed).
+        max_pair_fail_share: a pair whose share of failing matches exceeds this is removed whole.
+        place_untrusted: place each image the check did not trust again from the trusted part
+            of the estimate (absolute pose at ``max_threshold_px``, as incremental mapping
+            registers an image), then test its trust again.
         min_placed_inliers: 2D-3D inliers such a new pose needs.
-        ba_iterations: rounds of bundle adjustment in the global mapper (its default 3; 1 with
-            ``retriangulate`` off costs about a third less CPU on castle-P19 permissive, with a
-            slightly less accurate estimate).
-        retriangulate: let the global mapper triangulate again and adjust after its bundle
-            adjustment (its default).
-        rounds: global estimates at most: each round after the first is made from the
-            survivors of the last, and judges (with the first round's threshold) the pairs of
-            the images newly trusted (placed wrong before by their pairs' wrong matches);
-            stops early once every placed image is trusted. Each round is one more run of the
-            global mapper. 2: on castle-P19 permissive (refine seed 1) the first estimate placed
-            7 images 54-88 deg wrong and placing them again from the rest fixed 2 of them; the
-            second estimate, from the first one's survivors, placed them right (incremental
-            AUC@0.5 44.9 -> 70.0); on every other shared scene and setting, and seeds 0 and 2,
-            the second round changed nothing measured.
+        ba_iterations / retriangulate: the global mapper's bundle-adjustment rounds and its
+            retriangulation after them.
+        rounds: global estimates at most; each later one is made from the last one's survivors
+            and judges, with the first round's threshold, the pairs of the images newly trusted
+            (stops once every placed image is trusted).
         seed: random seed of the global mapper and of the pairs' relative-pose RANSAC.
     """
 
