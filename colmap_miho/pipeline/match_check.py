@@ -30,7 +30,7 @@ from ..verification.config import MatchCheckConfig
 from ..verification.match_check import MatchCheckDecision, judge_in_rounds
 from .output_matches import pair_graph
 from .records import FilteredPairs, PairOutcome
-from .store import RunStore
+from .store import RunStore, StoreDamaged
 
 log = logging.getLogger(__name__)
 
@@ -144,18 +144,20 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
     if stored is None:
         failed, wrong, meta = _decide(db, store, cfg, source, removed, threads)
         store.save_stage(STORE_NAME, _pack(failed, wrong), meta)
+        stats = MatchCheckStats(**meta)
     else:
-        failed, wrong = _unpack(*stored[:1])
-        meta = stored[1]
+        failed, wrong, stats = _read_back(store, *stored)
         log.info("match check: the verdicts of the interrupted run are used")
-    stats = MatchCheckStats(**meta)
     for w in stats.wrong_pairs:
         log.info("match check: %s %s - %s: %.0f%% of %d matches off the global estimate",
                  "removed" if cfg.mode == MatchCheckMode.REMOVE else "flagged", *w["images"],
                  100 * w["fail_share"], w["matches"])
     if cfg.mode != MatchCheckMode.REMOVE or not stats.used:
         return MatchCheckOutcome(), stats
-    filtered = set(store.load_filtered())
+    kept = {p: int(np.count_nonzero(r.inliers)) for p, (_, r) in store.load_filtered().items()}
+    filtered = set(kept)
+    if any(p in kept and len(f) != kept[p] for p, f in failed.items()):
+        raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its verdicts do not fit the stored pairs")
     return (MatchCheckOutcome(failed={p: f for p, f in failed.items() if p in filtered and p not in wrong},
                               wrong=frozenset(wrong), refit=frozenset(p for p in failed if p in filtered)),
             stats)
@@ -205,6 +207,23 @@ def _pack(failed: dict[Pair, np.ndarray], wrong: frozenset[Pair]) -> dict[str, n
             "offsets": np.concatenate([[0], np.cumsum([len(failed[k]) for k in keys])]).astype(np.int64),
             "failed": np.concatenate([failed[k] for k in keys]) if keys else np.zeros(0, bool),
             "wrong": np.asarray(sorted(wrong), np.int64).reshape(-1, 2)}
+
+
+def _read_back(store: RunStore, arrays: dict[str, np.ndarray], meta: dict
+               ) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], MatchCheckStats]:
+    """The stored verdicts and stats of an interrupted run.
+
+    Raises:
+        StoreDamaged: the arrays or the stats do not have the stage's layout.
+    """
+    try:
+        failed, wrong = _unpack(arrays)
+        stats = MatchCheckStats(**meta)
+        if not all(np.asarray(f).ndim == 1 for f in failed.values()):
+            raise ValueError("a verdict is not one row of flags")
+    except (KeyError, ValueError, TypeError, IndexError) as exc:
+        raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", f"{type(exc).__name__}: {exc}") from None
+    return failed, wrong, stats
 
 
 def _unpack(arrays: dict[str, np.ndarray]) -> tuple[dict[Pair, np.ndarray], frozenset[Pair]]:

@@ -427,14 +427,22 @@ class RunStore:
                       {**arrays, "meta": np.array(json.dumps(meta, default=float))})
 
     def load_stage(self, name: str) -> tuple[dict[str, np.ndarray], dict] | None:
-        """The stored result of stage ``name`` (arrays, meta), or None."""
+        """The stored result of stage ``name`` (arrays, meta), or None.
+
+        Raises:
+            StoreDamaged: the file is truncated, not an npz file, or its meta is not JSON.
+        """
         path = self.folder / f"stage-{name}.npz"
         if not path.is_file():
             return None
-        with np.load(path) as z:
-            arrays = {k: z[k] for k in z.files if k != "meta"}
-            meta = json.loads(str(z["meta"]))
-        return arrays, meta
+        arrays = _read_npz(path)
+        try:
+            meta = json.loads(str(_field(arrays, "meta", path)))
+        except ValueError as exc:  # not JSON
+            raise StoreDamaged(path, exc) from None
+        if not isinstance(meta, dict):
+            raise StoreDamaged(path, "its meta is not a JSON object")
+        return {k: v for k, v in arrays.items() if k != "meta"}, meta
 
 
 def _cat(parts: list[np.ndarray], empty_shape: tuple, dtype) -> np.ndarray:
