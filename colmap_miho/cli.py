@@ -26,7 +26,6 @@ import socket
 import sqlite3
 import sys
 import threading
-import time
 
 from .errors import Terminated, UserError
 from .version import __version__
@@ -80,20 +79,35 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     root.propagate = False
 
 
-#: Seconds a SIGTERM may wait for the interpreter (held by a long COLMAP call, e.g. mapping)
-#: before the working files are removed and the process exits anyway.
+#: Seconds a SIGTERM or Ctrl-C may wait for the interpreter (held by a long COLMAP call, e.g.
+#: mapping) before the working files are removed and the process exits anyway.
 TERM_GRACE_S = 5.0
+
+#: Exit status and what the forced exit says, per signal.
+_FORCED_EXITS = {signal.SIGTERM: (143, "terminated (SIGTERM)"), signal.SIGINT: (130, "interrupted")}
+
+
+#: Set when the interpreter ran a SIGTERM / SIGINT handler: it is cleaning up on its own, and
+#: the forced exit (for a signal held up by a long C++ call) is not needed.
+_SIGNAL_HANDLED = threading.Event()
 
 
 def _raise_terminated(signum, frame) -> None:
+    _SIGNAL_HANDLED.set()
     raise Terminated(f"terminated by signal {signum}")
+
+
+def _raise_interrupted(signum, frame) -> None:
+    _SIGNAL_HANDLED.set()
+    raise KeyboardInterrupt
 
 
 @contextlib.contextmanager
 def _forced_exit_after_sigterm():
-    """Python runs signal handlers between bytecodes only, so a SIGTERM during a long C++ call
-    would wait for it to end. A thread reading the signal wakeup fd gives the handler
-    :data:`TERM_GRACE_S`, then removes the working files and exits with 143 itself."""
+    """Python runs signal handlers between bytecodes only, so a SIGTERM or Ctrl-C during a long
+    C++ call (the global mapper: 10-30 s) would wait for it to end. A thread reading the signal
+    wakeup fd gives the handler :data:`TERM_GRACE_S`, then removes the working files and exits
+    with 143 (130 for Ctrl-C) itself."""
     rsock, wsock = socket.socketpair()
     wsock.setblocking(False)
     try:
@@ -112,15 +126,9 @@ def _forced_exit_after_sigterm():
                 return
             if not data:
                 return
-            if signal.SIGTERM in data:
-                time.sleep(TERM_GRACE_S)
-                from .adapters.safety import remove_working_files
-
-                remove_working_files()
-                sys.stderr.write("ERROR: terminated (SIGTERM) during a COLMAP call; working files "
-                                 "removed, nothing was written to the input\n")
-                sys.stderr.flush()
-                os._exit(143)
+            signum = next((int(b) for b in data if int(b) in _FORCED_EXITS), None)
+            if signum is not None and not _SIGNAL_HANDLED.wait(TERM_GRACE_S):
+                _forced_exit(signum)  # the handler never ran: a C++ call holds the interpreter
 
     thread = threading.Thread(target=watch, name="sigterm-watch", daemon=True)
     thread.start()
@@ -135,16 +143,35 @@ def _forced_exit_after_sigterm():
         rsock.close()
 
 
+def _forced_exit(signum: int) -> None:
+    """Remove the working files (and the worker pool's temporary folder) and exit at once."""
+    import multiprocessing.process
+    import shutil
+
+    from .adapters.safety import remove_working_files
+
+    remove_working_files()
+    pool_tmp = multiprocessing.process.current_process()._config.get("tempdir")  # type: ignore[attr-defined]
+    if pool_tmp:
+        shutil.rmtree(pool_tmp, ignore_errors=True)
+    code, what = _FORCED_EXITS[signal.Signals(signum)]
+    sys.stderr.write(f"ERROR: {what} during a COLMAP call; working files removed, nothing was written to the "
+                     "input\n")
+    sys.stderr.flush()
+    os._exit(code)
+
+
 def install_signal_handlers() -> None:
     """SIGTERM raises :class:`~colmap_miho.errors.Terminated` (a KeyboardInterrupt), so it
-    cleans up like Ctrl-C. pycolmap's import installs glog's handler (a stack dump), so
-    pycolmap is imported first, then replaced."""
+    cleans up like Ctrl-C; both note that the interpreter handles them. pycolmap's import
+    installs glog's handler (a stack dump), so pycolmap is imported first, then replaced."""
     try:
         import pycolmap  # noqa: F401
     except ImportError:  # pragma: no cover - a broken install reports itself later
         pass
     if hasattr(signal, "SIGTERM"):
         signal.signal(signal.SIGTERM, _raise_terminated)
+    signal.signal(signal.SIGINT, _raise_interrupted)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -170,8 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     verbose = getattr(args, "verbose", False)
     configure_logging(verbose, getattr(args, "quiet", False))
     in_main_thread = threading.current_thread() is threading.main_thread()
-    saved = signal.getsignal(signal.SIGTERM)
+    saved = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
     if in_main_thread:
+        _SIGNAL_HANDLED.clear()
         install_signal_handlers()
     guard = _forced_exit_after_sigterm() if in_main_thread else contextlib.nullcontext()
     try:
@@ -210,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         guard.__exit__(None, None, None)
         if in_main_thread:
-            signal.signal(signal.SIGTERM, saved)
+            signal.signal(signal.SIGTERM, saved[0])
+            signal.signal(signal.SIGINT, saved[1])
 
 
 def console_main() -> None:

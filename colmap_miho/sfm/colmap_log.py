@@ -44,3 +44,17 @@ def latest_log(prefix: Path | None) -> Path | None:
         return None
     found = sorted(prefix.parent.glob(prefix.name + "*"), key=lambda p: p.stat().st_mtime)
     return found[-1] if found else None
+
+
+def last_error_line(log_file: Path | None) -> str:
+    """The message of the last error (``E...``) line of a glog file, "" when none (or no file)."""
+    if log_file is None:
+        return ""
+    try:
+        lines = log_file.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return ""
+    for line in reversed(lines):
+        if line.startswith(("E", "F")) and "] " in line:
+            return line.split("] ", 1)[1].strip()
+    return ""

@@ -24,7 +24,7 @@ import numpy as np
 from ..adapters.database import ColmapDatabase, is_verified
 from ..geometry import fit_fundamental
 from ..types import Pair, Pose
-from .colmap_log import colmap_log_to_file
+from .colmap_log import colmap_log_to_file, last_error_line, latest_log
 from .mapping import global_options, largest_model
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,7 @@ class GlobalEstimate:
         keypoints: image id -> ``(N, 2)`` keypoints in COLMAP's convention.
         seconds: wall time of its parts: "database" (the temporary database), "mapper",
             "pair_rotations".
+        failure: why the mapper gave no model, in COLMAP's words ("" when it gave one).
     """
 
     poses: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
@@ -59,6 +60,7 @@ class GlobalEstimate:
     cameras: dict = field(default_factory=dict)
     keypoints: dict[int, np.ndarray] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
+    failure: str = ""
 
 
 def _copy_scene(src: ColmapDatabase, dst, image_ids) -> None:
@@ -149,16 +151,24 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
             out.mkdir()
             seconds["database"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False):
-                recs = pycolmap.global_mapping(str(db_path), str(folder), str(out), opts)
+            failure = ""
+            with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False) as prefix:
+                try:
+                    recs = pycolmap.global_mapping(str(db_path), str(folder), str(out), opts)
+                except RuntimeError as exc:  # COLMAP's own check failed: no estimate, the run goes on
+                    if is_disk_full(exc):
+                        raise
+                    recs, failure = {}, " ".join(str(exc).split())
             seconds["mapper"] = time.perf_counter() - t0
+            if not recs and not failure:
+                failure = last_error_line(latest_log(prefix))
         except (OSError, RuntimeError) as exc:
             if is_disk_full(exc):
                 raise disk_full_error(folder.parent, "writing the global estimate's temporary database") from None
             raise
     rec = largest_model(recs)
     if rec is None:
-        return GlobalEstimate(seconds=seconds)
+        return GlobalEstimate(seconds=seconds, failure=failure)
     poses, rays, focal, cams = {}, {}, {}, {}
     for image_id, im in rec.images.items():
         if not im.has_pose:

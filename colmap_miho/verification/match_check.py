@@ -263,6 +263,10 @@ class CameraEstimate(Protocol):
     def seconds(self) -> Mapping[str, float]:
         """Wall time of the estimate's parts."""
 
+    @property
+    def failure(self) -> str:
+        """Why no image was placed, in the estimator's words ("" otherwise)."""
+
 
 Est = TypeVar("Est", bound=CameraEstimate)
 
@@ -384,7 +388,8 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         cut_any |= set(res.cut_off)  # the first judgement's and the placements' together
         registered_any |= set(res.registered)
         if not res.used:
-            reason = res.reason if not used else f"round {rounds}: {res.reason}"
+            why = res.reason + (f": {est.failure}" if est.failure else "")
+            reason = why if not used else f"round {rounds}: {why}"
             break
         if not used:
             scale, threshold = res.scale_px, res.threshold_px

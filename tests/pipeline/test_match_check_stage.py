@@ -166,3 +166,84 @@ def test_resumed_run_reuses_the_stored_verdicts(planted_db, tmp_path, monkeypatc
     assert res["resumed"] and {k: v for k, v in res["match_check"].items() if k not in timing} == same
     a, b = _output_matches(tmp_path / "ref.db"), _output_matches(out)
     assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.slow
+def test_matches_kept_counts_what_the_check_removed(planted_db, tmp_path):
+    on = _run(planted_db, tmp_path / "on.db", "match_check.mode=remove")
+    out = _output_matches(tmp_path / "on.db")
+    with ColmapDatabase(planted_db[0]) as db:  # every pair is filtered here: all its matches count
+        assert len(db.pairs("verified")) == len(out)
+    assert on["match_check"]["matches_removed"] > 0
+    assert on["matches_kept"] == sum(len(m) for m in out.values())
+    assert on["matches_removed"] == on["matches_in"] - on["matches_kept"]
+
+
+@pytest.mark.slow
+def test_colmap_errors_of_a_failed_estimate_stay_off_the_terminal(planted_db, tmp_path, capfd):
+    on = _run(planted_db, tmp_path / "on.db", "match_check.mode=remove", "match_check.min_pair_matches=100000")
+    mc = on["match_check"]
+    assert not mc["used"] and "Failed to create sparse model" in mc["reason"]  # COLMAP's words, in ours
+    err = capfd.readouterr().err
+    assert "sparse model" not in err and "sfm.cc" not in err, err
+
+
+@pytest.mark.slow
+def test_the_estimate_leaves_no_temporary_folder(planted_db, tmp_path, monkeypatch):
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    monkeypatch.setattr("tempfile.tempdir", None)  # gettempdir() reads TMPDIR again
+    _run(planted_db, tmp_path / "on.db", "match_check.mode=remove")
+    assert not list(tmp.glob("miho-global-*"))
+
+
+@pytest.mark.slow
+def test_disk_full_in_the_temporary_folder_names_that_folder(planted_db, tmp_path, monkeypatch):
+    from colmap_miho.errors import RunFailed
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setenv("TMPDIR", str(tmp))
+    monkeypatch.setattr("tempfile.tempdir", None)
+
+    def full_disk(*args, **kwargs):
+        raise RuntimeError("[database_sqlite.cc:1389] SQLite error: database or disk is full")
+
+    monkeypatch.setattr("colmap_miho.sfm.global_estimate._copy_scene", full_disk)
+    (tmp_path / "out").mkdir()
+    with pytest.raises(RunFailed) as err:
+        _run(planted_db, tmp_path / "out" / "on.db", "match_check.mode=remove")
+    assert str(err.value).startswith(f"disk full in {tmp} ")  # not the output folder
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("damage", ["cut", "random", "no_meta", "bad_layout"])
+def test_a_damaged_verdict_file_is_named_and_resume_refused(planted_db, tmp_path, monkeypatch, damage):
+    from colmap_miho.pipeline import run as run_module
+    from colmap_miho.pipeline.store import StoreDamaged, store_folder
+
+    out = tmp_path / "out.db"
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("write stage broke")
+
+    monkeypatch.setattr(run_module, "run_write", broken)
+    with pytest.raises(RuntimeError):
+        _run(planted_db, out, "match_check.mode=remove")
+    monkeypatch.undo()
+    path = store_folder(out) / "stage-match_check.npz"
+    data = path.read_bytes()
+    if damage == "cut":
+        path.write_bytes(data[: len(data) // 2])
+    elif damage == "random":
+        path.write_bytes(np.random.default_rng(0).bytes(len(data)))
+    elif damage == "no_meta":
+        np.savez(path, pairs=np.zeros((0, 2), np.int64))
+    else:
+        np.savez(path, pairs=np.array([[1, 2]]), offsets=np.array([0, 10**6]), failed=np.zeros(3, bool),
+                 wrong=np.zeros((0, 2), np.int64), meta=np.array(json.dumps({"mode": "remove"})))
+    with pytest.raises(StoreDamaged) as err:
+        _run(planted_db, out, "match_check.mode=remove", resume=True)
+    assert str(path) in str(err.value) and "--restart" in str(err.value)
+    assert not out.exists()

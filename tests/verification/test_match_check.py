@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from colmap_miho.geometry import essential, relative_pose, symmetric_epipolar_distance
-from colmap_miho.verification import MatchCheckConfig, check_matches
+from colmap_miho.verification import MatchCheckConfig, check_matches, judge_in_rounds
 from colmap_miho.verification.match_check import cut_off_images, robust_scale, threshold_px, trusted_images
 
 FOCAL = 800.0
@@ -179,3 +179,49 @@ def test_distances_and_threshold():
 def test_config_refuses_bad_values(field, value):
     with pytest.raises(ValueError):
         MatchCheckConfig(**{field: value})
+
+
+class _Scripted:
+    """An estimator that hands out prepared estimates, one per round (empty once they run out),
+    and places no image."""
+
+    def __init__(self, *estimates):
+        self.estimates = list(estimates)
+        self.calls = 0
+
+    def estimate(self, matches):
+        self.calls += 1
+        return self.estimates.pop(0) if self.estimates else _Estimate(failure="no model (scripted)")
+
+    def place(self, estimate, image_id, matches, trusted):
+        return None
+
+
+class _Estimate:
+    def __init__(self, poses=None, rays=None, focal=None, pair_rotations=None, failure=""):
+        self.poses, self.rays, self.focal = poses or {}, rays or {}, focal or {}
+        self.pair_rotations, self.failure, self.seconds = pair_rotations or {}, failure, {"mapper": 0.0}
+
+
+def test_rounds_judge_and_a_later_round_that_fails_keeps_the_first_verdicts():
+    poses, rays, focal, matches, planted = _scene(seed=2)
+    R, t = poses[4]
+    wrong4 = {**poses, 4: (_rot([0, 1, 0], 30.0) @ R, t)}  # image 4 untrusted: a second round is asked for
+    first = _Estimate(wrong4, rays, focal, _pair_rotations(poses))
+    est = _Scripted(first)
+    d = judge_in_rounds(matches, est, MatchCheckConfig(mode="remove", rounds=2))
+    assert est.calls == 2 and d.rounds == 2
+    assert d.used and d.registered == frozenset(poses) and d.untrusted == frozenset({4})
+    assert d.trusted == frozenset(poses) - {4}
+    assert d.reason.startswith("round 2: ") and "no model (scripted)" in d.reason
+    bad = np.concatenate([planted[p] for p in sorted(d.judged_pairs)])
+    fail = np.concatenate([d.failed[p] for p in sorted(d.judged_pairs)])
+    assert 1 - fail[bad].mean() <= MAX_PLANTED_KEPT
+    assert not any(4 in p for p in d.failed)  # never judged: its pose was not trusted
+    assert len(d.seconds) == 2 and {"mapper", "judging", "placements"} <= set(d.seconds[0])
+
+
+def test_an_estimator_that_places_nothing_says_why():
+    _, _, _, matches, _ = _scene(seed=2)
+    d = judge_in_rounds(matches, _Scripted(), MatchCheckConfig(mode="remove"))
+    assert not d.used and not d.failed and "placed 0 images" in d.reason and "no model (scripted)" in d.reason
