@@ -10,7 +10,7 @@ tensor calls per iteration, and forms sample coordinates in memory before readin
 
 Sampling is the bicubic read of ``grid_sample`` (``align_corners=True``, border padding:
 each of the 4 x 4 taps clamped to the image), with the cubic convolution's parameter ``a``
-(Keys: -0.75 as ``grid_sample``; -0.5 is Catmull-Rom). Blurred reads are the mean of the 4
+of Keys (-0.75, as ``grid_sample``). Blurred reads are the mean of the 4
 shifted bicubic reads of :func:`.lsm.frame_sampler` (its ``blur_px``), read as one with the
 4 reads' taps merged (the mean is separable).
 
@@ -466,7 +466,6 @@ def lsm_frames(
     max_iterations: int = 10,
     tol_px: float = DEFAULT_TOL_PX,
     max_shift_px: float | None = None,
-    cubic_a: float = KEYS_A,
 ) -> LSMResult:
     """LSM of n matches on the CPU: the fixed side's template read (radius ``radius``) and
     aligned to the moving side; what ``lsm_align(frame_sampler(img_m, H_m_inv, frame_m,
@@ -482,7 +481,6 @@ def lsm_frames(
         radius: template half size (pixels); the moving side is read one pixel wider.
         blur_f, blur_m: the ``blur_px`` arguments of :func:`.lsm.frame_sampler`, or None.
         affine, max_iterations, tol_px, max_shift_px: as :func:`.lsm.lsm_align`.
-        cubic_a: the cubic convolution's parameter (``KEYS_A``: ``grid_sample``'s).
     Returns:
         :class:`~.lsm.LSMResult` (CPU tensors).
     """
@@ -511,7 +509,7 @@ def lsm_frames(
         rows = order[lo:hi].astype(np.int64)  # one call per (fixed image, moving image)
         kernel(ims_f[k // len(ims_m)], ims_m[k % len(ims_m)], rows, H_f, c_f, H_m, c_m, on_f, sigma_f,
                on_m, sigma_m, s0, int(radius), bool(affine), int(max_iterations), float(tol_px),
-               math.inf if max_shift_px is None else float(max_shift_px), float(cubic_a),
+               math.inf if max_shift_px is None else float(max_shift_px), KEYS_A,
                float(_MAX_SCALE), float(_MAX_GAIN), shift, sigma, sigma_max, A, gain, offset,
                s0_out, converged, iterations)
     t = torch.from_numpy

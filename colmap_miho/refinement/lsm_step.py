@@ -123,13 +123,10 @@ def lsm_step(
             res = lsm_kernel.lsm_frames(sub_f, sub_m, H_f_inv[rows], frame_f[rows], H_m_inv[rows],
                                         frame_m[rows], offset[rows], r, blur_f=blur_f, blur_m=blur_m,
                                         affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
-                                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px,
-                                        cubic_a=cfg.lsm_cubic_a)
+                                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
         else:
-            samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur_px=blur_f,
-                                   cubic_a=cfg.lsm_cubic_a)
-            samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur_px=blur_m,
-                                   cubic_a=cfg.lsm_cubic_a)
+            samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur_px=blur_f)
+            samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur_px=blur_m)
             res = lsm_align(samp_m, samp_f(every, eye, zero, r), offset[rows],
                             affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
                             tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)

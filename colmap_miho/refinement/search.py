@@ -148,7 +148,7 @@ def evaluate_direction(
     Returns:
         dict of tensors with J rows: ``peak``, ``centre`` (NCC at zero offset), ``second``
         (the best separated peak of the winning map, :func:`.correlation.find_peaks`), ``border``,
-        ``zero`` (integer peak at zero offset), ``inside``, ``valid``, ``flat``, ``edge``,
+        ``zero`` (integer peak at zero offset), ``inside``, ``valid``, ``flat``,
         and for the sub-pixel step and the mapping back: ``offset`` (J, 2) float64
         common-frame offset of the peak, ``H_inv`` (J, 3, 3) and ``frame_m`` (J, 2) of the
         winning pass, ``template`` (J, St, St) the winning template; for least-squares
@@ -161,8 +161,7 @@ def evaluate_direction(
     if compiled:
         r = ncc_kernel.evaluate(img_f, img_m, x_f, x_m, passes, f, m, template_radius=cfg.template_radius,
                                 search_radius=cfg.search_radius, inner_radius=cfg.inner_radius,
-                                ellipse_mask=cfg.ellipse_mask, min_template_std=cfg.min_template_std,
-                                min_cornerness=cfg.min_cornerness)
+                                ellipse_mask=cfg.ellipse_mask, min_template_std=cfg.min_template_std)
         r.pop("researched")
         return r
     s0 = cfg.inner_radius
@@ -245,7 +244,6 @@ def _evaluate(
     H_f_win = torch.stack(list(H_f_inv.split(J)), dim=1)[rows, pass_idx]
     frame_f = torch.stack(list(c_f.split(J)), dim=1)[rows, pass_idx]
     tstd = first_template.reshape(J, -1).to(torch.float64).std(dim=1)
-    ratio = torch.where(lam_max > 0, lam_min / lam_max.clamp_min(1e-20), torch.zeros_like(lam_max))
     out = {
         "peak": pk["peak"].to(torch.float64),
         "centre": pk["centre"].to(torch.float64),
@@ -255,7 +253,6 @@ def _evaluate(
         "inside": torch.stack(inside).all(dim=0),
         "valid": torch.stack(valid).all(dim=0),
         "flat": tstd < cfg.min_template_std,
-        "edge": ratio < cfg.min_cornerness,
         "offset": torch.stack([pk["dx"], pk["dy"]], -1).to(torch.float64),
         "H_inv": H_inv,
         "frame_m": frame_m,
