@@ -35,22 +35,19 @@ differences (``test_ncc_kernel.py``).
 A match's result depends on its own inputs only: the loop over matches is serial and every
 quantity of a match is computed by the same code whatever the other matches are.
 
-numba is imported on first use (:func:`available`); the kernels compile then or load from
-numba's on-disk cache (``cache=True``); :func:`warm` loads them ahead (the worker processes'
-forkserver does, :mod:`.preload`).
+The kernels compile on first use (:mod:`colmap_miho.compiled`); :func:`warm` loads them ahead
+(the worker processes' forkserver does, :mod:`.preload`).
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import math
-import threading
 from typing import Any
 
 import numpy as np
 import torch
 
+from ..compiled import CONTRACT, REASSOC, Kernels, jit, jit_helpers
 from .warping import ImageStack, image_arrays
 
 #: the constants of the torch path (:mod:`.warping`, :mod:`.correlation`, :mod:`.subpixel`).
@@ -60,15 +57,6 @@ _EPS_NORM = 1e-6
 _MIN_CURVATURE = 1e-4
 _CONVERGED_PX = 1e-3
 _SEPARATED_PX = 2
-
-_KERNELS: dict[str, Any] | None = None
-_LOCK = threading.Lock()
-
-
-@functools.cache
-def available() -> bool:
-    """Whether numba can be imported (the compiled kernels are used then)."""
-    return importlib.util.find_spec("numba") is not None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -536,23 +524,18 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
 # compiling and calling
 
 
-def _kernels() -> dict[str, Any]:
-    """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
-    global _KERNELS
-    if _KERNELS is None:
-        with _LOCK:
-            if _KERNELS is None:
-                import numba
+def _jit_all() -> dict[str, Any]:
+    """Jit the kernels and their helpers: the geometry exact, the reads and maps with fused
+    multiply-adds, the correlation's dot products also reassociated."""
+    jit_helpers(globals(), (_corr,), REASSOC)
+    jit_helpers(globals(), (_invert, _to_frame, _inside, _centre_good))
+    jit_helpers(globals(), (_sample, _normalize, _ncc, _parabola, _ellipse, _peaks, _second), CONTRACT)
+    fused = jit(CONTRACT)
+    return {"subpixel": fused(_subpixel_matches), "search": fused(_search_matches)}
 
-                exact = numba.njit(cache=True, nogil=True, error_model="numpy")
-                fused = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
-                dots = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
-                globals()["_corr"] = dots(_corr)
-                globals().update({fn.__name__: exact(fn) for fn in (_invert, _to_frame, _inside, _centre_good)})
-                globals().update({fn.__name__: fused(fn) for fn in (_sample, _normalize, _ncc,
-                                                                     _parabola, _ellipse, _peaks, _second)})
-                _KERNELS = {"subpixel": fused(_subpixel_matches), "search": fused(_search_matches)}
-    return _KERNELS
+
+#: the jitted kernels (compiled, or loaded from numba's cache, on first use).
+_kernels = Kernels(_jit_all)
 
 
 def _groups(key: np.ndarray) -> list[tuple[int, np.ndarray]]:
@@ -653,11 +636,9 @@ def evaluate(
 
 def warm() -> bool:
     """Load (or compile) the kernels now, by running each on a small synthetic problem;
-    returns whether they are available. Never raises: a process that cannot load them loads
-    them when it refines (where the error shows)."""
-    try:
-        if not available():
-            return False
+    returns whether they are loaded. Never raises."""
+
+    def example() -> None:
         g = torch.arange(64, dtype=torch.float32)
         img = torch.sin(g[:, None] * 0.3) * torch.cos(g[None] * 0.2)
         eye = torch.eye(3, dtype=torch.float64)
@@ -668,6 +649,5 @@ def warm() -> bool:
         r = evaluate(img, img, x, x, passes, 0, 1, template_radius=2, search_radius=3, inner_radius=1,
                      ellipse_mask=False, min_template_std=0.0)
         subpixel(img, r["H_inv"], r["frame_m"], r["offset"], r["template"], 2, 2)
-        return _KERNELS is not None
-    except Exception:  # noqa: BLE001 - warming is optional; refining reports the error
-        return False
+
+    return _kernels.warm(example)

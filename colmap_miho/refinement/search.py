@@ -8,7 +8,7 @@ and only the chosen shape (and the unperturbed one) is searched at full resoluti
 ``inner_radius`` the offsets near the keypoint are searched first, the full radius only for the
 matches whose peaks climb out of that smaller window.
 
-On CPU tensors (with numba) the plain search, one unperturbed template shape in every pass,
+On CPU tensors the plain search, one unperturbed template shape in every pass,
 runs as :func:`.ncc_kernel.evaluate`, one compiled loop per match; this module is its reference
 and the path on CUDA and for perturbed shapes.
 """
@@ -143,8 +143,7 @@ def evaluate_direction(
         win_off: (Pw, 2) offsets of the search window (radius r + s).
         cfg: the refinement parameters.
         compiled: run :func:`.ncc_kernel.evaluate` (CPU tensors, one unperturbed template
-            shape in every pass) rather than the torch path; None: where it serves and numba
-            is installed.
+            shape in every pass) rather than the torch path; None: where it serves.
     Returns:
         dict of tensors with J rows: ``peak``, ``centre`` (NCC at zero offset), ``second``
         (the best separated peak of the winning map, :func:`.correlation.find_peaks`), ``border``,
@@ -156,8 +155,7 @@ def evaluate_direction(
         winning pass.
     """
     if compiled is None:
-        compiled = (x_f.device.type == "cpu" and ncc_kernel.available()
-                    and ncc_kernel.serves(passes, cfg.template_radius))
+        compiled = x_f.device.type == "cpu" and ncc_kernel.serves(passes, cfg.template_radius)
     if compiled:
         r = ncc_kernel.evaluate(img_f, img_m, x_f, x_m, passes, f, m, template_radius=cfg.template_radius,
                                 search_radius=cfg.search_radius, inner_radius=cfg.inner_radius,

@@ -5,10 +5,13 @@ offset of scikit-image photographs. No ../shared/data."""
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 import torch
 
+from colmap_miho.refinement import ncc as ncc_module
 from colmap_miho.refinement import ncc_kernel, search, subpixel
 from colmap_miho.refinement.config import NCCConfig
 from colmap_miho.refinement.correlation import ncc_maps
@@ -17,8 +20,6 @@ from colmap_miho.refinement.warping import ImageStack, offset_grid, sample_value
 
 cv2 = pytest.importorskip("cv2")
 skdata = pytest.importorskip("skimage.data")
-pytest.importorskip("numba")
-
 #: samples of the kernel against grid_sample's (intensity units of [0, 1] images): the torch
 #: path rounds each position to float32 grid units (about 1e-4 px on these images).
 SAMPLE_TOL = 2e-4
@@ -277,7 +278,10 @@ def test_refine_pair_uses_the_kernel_and_agrees(monkeypatch: pytest.MonkeyPatch)
     monkeypatch.setattr(ncc_kernel, "evaluate", spy)
     got = refine_pair(img1, img2, p1, p2, homs[0], move="2", config=cfg)
     assert calls
-    monkeypatch.setattr(ncc_kernel, "available", lambda: False)
+    monkeypatch.setattr(ncc_module, "evaluate_direction", functools.partial(search.evaluate_direction,
+                                                                            compiled=False))
+    monkeypatch.setattr(ncc_module, "iterate_subpixel", functools.partial(subpixel.iterate_subpixel,
+                                                                          compiled=False))
     ref = refine_pair(img1, img2, p1, p2, homs[0], move="2", config=cfg)
     assert len(calls) == 1
     same = got.moved_side == ref.moved_side
