@@ -17,7 +17,7 @@ on 1351 SIFT matches; MOP+MiHo 2.5 s on 2558.
     python benchmarks/bench_filter.py --only fountain --methods mop_miho \
         --variant half:miho_threshold=half                # config overrides beside the default
     python benchmarks/bench_filter.py --device torch-cpu --torch-threads 1 --runs 1
-        # the torch path (any torch device: cuda, cuda:1, torch-cpu = torch on the CPU); every
+        # the torch path (cuda, cuda:1, or torch-cpu: torch.device("cpu")); every
         # pair also runs on numpy: ``np sec`` is its time, ``same`` the share of matches with
         # the same inlier flag, ``lab`` with the same label
 
@@ -75,11 +75,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="extra config per method, 'name:key=value,...' (repeatable)")
     ap.add_argument("--only", default=None, help="only pairs whose label contains this")
     ap.add_argument("--device", default="cpu",
-                    help="filter_matches device: cpu (numpy), cuda[:N], torch-cpu (default cpu)")
+                    help="filter_matches device: cpu (numpy), cuda[:N], torch-cpu (torch.device('cpu'), "
+                         "the torch path on the CPU) (default cpu)")
     ap.add_argument("--torch-threads", type=int, default=0,
                     help="torch.set_num_threads for the torch path (0: torch's default)")
     args = ap.parse_args(argv)
     compare = args.device != "cpu"
+    device = args.device
+    if device == "torch-cpu":
+        import torch
+
+        device = torch.device("cpu")
     if compare and args.torch_threads:
         import torch
 
@@ -95,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     # Warm-up (imports, first-call overheads) outside the timings.
     rng = np.random.default_rng(0)
     filter_matches(rng.uniform(0, 500, (100, 2)), rng.uniform(0, 500, (100, 2)),
-                   device=args.device)
+                   device=device)
     print(f"{'pair':<28} {'N':>5} {'inP':>5} | {'method':<16} {'K':>3} {'kept':>5} "
           f"{'ok':>5} {'P':>6} {'R':>6} {'sec':>6} {'cpu':>6}"
           + (f" {'np sec':>6} {'same':>6} {'lab':>6}" if compare else ""))
@@ -114,8 +120,8 @@ def main(argv: list[str] | None = None) -> int:
             times, cpu = [], []
             for _ in range(args.runs):
                 t0, c0 = time.perf_counter(), time.process_time()
-                res = filter_matches(fm.pts1, fm.pts2, config=cfg, seed=0, device=args.device)
-                sync(args.device)
+                res = filter_matches(fm.pts1, fm.pts2, config=cfg, seed=0, device=device)
+                sync(device)
                 times.append(time.perf_counter() - t0)
                 cpu.append(time.process_time() - c0)
             extra = ""

@@ -30,6 +30,7 @@ scipy's k-d tree) is timed apart, before the passes, and printed as ``cold start
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import sys
 import time
@@ -42,8 +43,9 @@ from bench_hard_pairs import parse_variant
 from colmap_miho import filter_matches
 from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.enums import MatchSource
-from colmap_miho.filtering import kernels
 from colmap_miho.filtering.config import FilterConfig
+from colmap_miho.filtering.miho import choose_rotation
+from colmap_miho.filtering.scoring import NumpyScoring
 from colmap_miho.pipeline.workers import pair_seed
 
 REPO = Path(__file__).resolve().parents[1]
@@ -81,20 +83,33 @@ def run_pass(pairs: list[Pair], configs: dict[str, FilterConfig],
     """One pass of every variant over ``pairs`` (variants back to back on each pair); the
     variants named in ``numpy_kernels`` run on the numpy reference kernels."""
     out = {name: {"cpu": 0.0, "kept": 0, "masks": [], **dict.fromkeys(COUNTERS, 0)} for name in configs}
-    compiled = kernels.available
     for p in pairs:
         for name, cfg in configs.items():
-            kernels.available = (lambda: False) if name in numpy_kernels else compiled
             c0 = time.process_time()
-            r = filter_matches(p.pts1, p.pts2, config=cfg, seed=p.seed)
+            with numpy_reference(name in numpy_kernels):
+                r = filter_matches(p.pts1, p.pts2, config=cfg, seed=p.seed)
             row = out[name]
             row["cpu"] += time.process_time() - c0
             row["kept"] += r.num_inliers
             row["masks"].append(r.inliers)
             for key in COUNTERS:
                 row[key] += r.stats.get(key, 0)
-    kernels.available = compiled
     return out
+
+
+@contextlib.contextmanager
+def numpy_reference(on: bool):
+    """While ``on``, the filter runs its numpy reference kernels: the defaults of the scoring's
+    and the rotation fix's ``compiled`` switched to False (restored after)."""
+    saved = NumpyScoring.__init__.__defaults__, dict(choose_rotation.__kwdefaults__)
+    if on:
+        NumpyScoring.__init__.__defaults__ = (False,)
+        choose_rotation.__kwdefaults__["compiled"] = False
+    try:
+        yield
+    finally:
+        NumpyScoring.__init__.__defaults__ = saved[0]
+        choose_rotation.__kwdefaults__.update(saved[1])
 
 
 def cold_start() -> float:

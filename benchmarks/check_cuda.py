@@ -22,7 +22,7 @@
     python benchmarks/check_cuda.py
     python benchmarks/check_cuda.py --sections filter,fountain     # the filter only
     python benchmarks/check_cuda.py --device cpu --sections filter --quick
-        # dry run without a GPU: the filter sections with torch on the CPU ("torch-cpu")
+        # dry run without a GPU: the filter sections with torch on the CPU (torch.device("cpu"))
         # in place of CUDA (the NCC sections need CUDA and are skipped)
 
 Carry ``benchmarks/results/cache`` (ignored by git) to skip the SIFT and pycolmap front ends.
@@ -69,12 +69,12 @@ def agreement(a1, a2, side_a, b1, b2, side_b) -> str:
     return f"same side {same:6.1%}, |cpu-cuda| max {d.max():.2e} median {np.median(d):.2e} px"
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
+def _sync(device: str | torch.device) -> None:
+    if str(device).startswith("cuda"):
         torch.cuda.synchronize()
 
 
-def _timed_filter(pts1, pts2, device: str, runs: int, method: str = "mop_miho"):
+def _timed_filter(pts1, pts2, device: str | torch.device, runs: int, method: str = "mop_miho"):
     """(result, median seconds) of ``runs`` calls of ``filter_matches`` on ``device``."""
     walls = []
     for _ in range(runs):
@@ -90,7 +90,7 @@ def _same(a, b) -> tuple[int, int]:
     return int(np.count_nonzero(a.inliers == b.inliers)), int(np.count_nonzero(a.labels == b.labels))
 
 
-def check_filter(root: Path, device: str, runs: int, quick: bool) -> None:
+def check_filter(root: Path, device: str | torch.device, runs: int, quick: bool) -> None:
     from bench_filter import CACHE, select_pairs
 
     from miho_bench.frontend_cache import load_inputs
@@ -140,23 +140,23 @@ def fountain_matches(root: Path) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def time_fountain(root: Path, device: str) -> None:
+def time_fountain(root: Path, device: str | torch.device) -> None:
     print(f"\n== filter_matches on fountain-P11 (pycolmap verified matches): numpy vs {device} ==")
     pairs = fountain_matches(root)
     print(f"{len(pairs)} pairs, {sum(len(p1) for p1, _ in pairs)} matches, MOP+MiHo, one call "
           "per pair in turn (after one warm-up call)")
     res: dict[str, list] = {}
-    for dev in ("cpu", device):
+    for name, dev in (("numpy", "cpu"), ("torch", device)):
         filter_matches(*pairs[0], seed=0, device=dev)
         _sync(dev)
         t0 = time.perf_counter()
-        res[dev] = [filter_matches(p1, p2, seed=0, device=dev) for p1, p2 in pairs]
+        res[name] = [filter_matches(p1, p2, seed=0, device=dev) for p1, p2 in pairs]
         _sync(dev)
         wall = time.perf_counter() - t0
-        print(f"{dev:>10s}: {wall:6.2f} s, {wall / len(pairs):.4f} s per pair, kept "
-              f"{sum(r.num_inliers for r in res[dev])}")
+        print(f"{name + ' ' + str(dev):>10s}: {wall:6.2f} s, {wall / len(pairs):.4f} s per pair, kept "
+              f"{sum(r.num_inliers for r in res[name])}")
     n = sum(len(p1) for p1, _ in pairs)
-    same = [_same(a, b) for a, b in zip(res["cpu"], res[device], strict=True)]
+    same = [_same(a, b) for a, b in zip(res["numpy"], res["torch"], strict=True)]
     print(f"same inlier flag {sum(s for s, _ in same) / n:.4%}, same label "
           f"{sum(lab for _, lab in same) / n:.4%}; pairs identical "
           f"{sum(s == len(p1) and lab == len(p1) for (s, lab), (p1, _) in zip(same, pairs, strict=True))}"
@@ -266,7 +266,7 @@ def main(argv=None) -> int:
     if not (root / "oxford_affine").is_dir():
         print(f"data folder not found: {root}", file=sys.stderr)
         return 2
-    device = "cuda" if args.device == "cuda" else "torch-cpu"
+    device = "cuda" if args.device == "cuda" else torch.device("cpu")
     if args.device == "cpu":
         skipped = [s for s in sections if s in NCC_SECTIONS]
         sections = [s for s in sections if s not in NCC_SECTIONS]

@@ -121,13 +121,6 @@ class Rectification(StrEnum):
     BOTH = "both"  # both pairs; the higher NCC peak wins
 
 
-class CheckRule(StrEnum):
-    """How the second (``check_radius``) template search acts on a move."""
-
-    AGREE = "agree"  # the move stays only if both template sizes agree
-    NCC = "ncc"  # the second template's move replaces the first where its NCC is clearly higher
-
-
 class RunnerKind(StrEnum):
     """Where a run's parallel work runs (the summary's ``runner``)."""
 

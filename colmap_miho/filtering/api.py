@@ -147,8 +147,8 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
         progress: show a tqdm bar over MOP rounds.
         device: where the heavy RANSAC kernels run: ``"cpu"`` (default, numpy),
             ``"cuda"`` / ``"cuda:N"`` / any torch device string or ``torch.device`` object
-            (torch float64 on that device; ``torch.device("cpu")`` too), or ``"torch-cpu"``
-            (torch on the CPU). Sampling stays in numpy with the same generator, so every
+            (torch float64 on that device; ``torch.device("cpu")`` runs the torch path on
+            the CPU). Sampling stays in numpy with the same generator, so every
             device draws the same samples; results agree up to floating-point ties.
             Outputs are numpy arrays on every device.
 

@@ -15,38 +15,27 @@ with one call, which is what a batch on a pool of a few hundred matches costs.
 - :func:`rotation_counts`: the rotation fix's pair counts (:func:`.miho.choose_rotation`);
 - :func:`greedy_cover`: the choice of a run's top-z buffer (``ransac._greedy_buffer``).
 
-The numpy functions stay the reference (and the path when numba is not installed); the tests
+The numpy functions stay the reference (and the path of the torch scoring on CUDA); the tests
 check each kernel against them. The spread test, the draws, the neighbour lists, the masks,
 the errors and the rotation counts are the same decisions / bits for the same inputs; the
 solver, the singular values and the refit add their products in a fixed order where numpy's
 matmul (BLAS) may fuse or reorder them, so homographies can differ in the last bits, and
 with them, rarely, a borderline decision.
 
-numba is imported on first use (:func:`available`), and the kernels compile then or load
-from numba's on-disk cache (``cache=True``); :func:`.preload.warm` loads them ahead (the worker
-processes' forkserver does, so that workers fork with them loaded; :func:`loaded` says whether
-they are). This module imports nothing else of the filter: the filter's modules import it.
+The kernels compile on first use (:mod:`colmap_miho.compiled`); :func:`.preload.warm` loads
+them ahead (:func:`loaded` says whether they are). This module imports nothing else of the
+filter: the filter's modules import it.
 :class:`NearestGrid` is the compiled path's neighbour search for local sampling (the numpy
 path keeps scipy's k-d tree).
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.util
-import threading
 from typing import Any
 
 import numpy as np
 
-_KERNELS: dict[str, Any] | None = None
-_LOCK = threading.Lock()
-
-
-@functools.cache
-def available() -> bool:
-    """Whether numba can be imported (the compiled kernels are used then)."""
-    return importlib.util.find_spec("numba") is not None
+from ..compiled import Kernels, jit, jit_helpers
 
 
 def _sign(v: float) -> float:
@@ -1025,39 +1014,28 @@ def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, c
     return out
 
 
+def _jit_all() -> dict[str, Any]:
+    """Jit every kernel and the helpers they call (numpy's error model: a division by zero
+    gives inf / nan, and those entries fail the sign test)."""
+    jit_helpers(globals(), (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer,
+                            _rows, _far, _mask_row, _sv_ok_one, _normalise4, _normalising, _push_nearest,
+                            _keep_list, _draw_local_rows, _neighbour_rows, _nearest_rows, _search_needed,
+                            _need_of))
+    j = jit()
+    return {f.__name__: j(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
+                                       _error_sq, _neighbours, _singular_value_ok, _refit,
+                                       _rotation_counts, _greedy_cover, _nearest,
+                                       _draw_batch, _score_batch,
+                                       _local_fraction)}
+
+
+#: the jitted kernels by name (compiled, or loaded from numba's cache, on first use).
+_compiled = Kernels(_jit_all)
+
+
 def loaded() -> bool:
     """Whether the kernels are loaded in this process (compiled or read from numba's cache)."""
-    return _KERNELS is not None
-
-
-def _compiled() -> dict[str, Any]:
-    """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
-    global _KERNELS
-    if _KERNELS is None:
-        with _LOCK:
-            if _KERNELS is None:
-                _KERNELS = _jit_all()
-    return _KERNELS
-
-
-def _jit_all() -> dict[str, Any]:
-    """Jit every kernel; the helpers they call replace their Python versions in this
-    module's namespace (numba resolves a kernel's callees there when it compiles it)."""
-    import numba
-
-    # numpy's error model: a float division by zero gives inf / nan (as in numpy), not an
-    # exception; those entries fail the sign test.
-    jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-    helpers = (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows, _far,
-               _mask_row, _sv_ok_one, _normalise4, _normalising, _push_nearest, _keep_list,
-               _draw_local_rows,
-               _neighbour_rows, _nearest_rows, _search_needed, _need_of)
-    globals().update({f.__name__: jit(f) for f in helpers})
-    return {f.__name__: jit(f) for f in (_spread_ok, _hypotheses, _draw_local, _inlier_masks,
-                                         _error_sq, _neighbours, _singular_value_ok, _refit,
-                                         _rotation_counts, _greedy_cover, _nearest,
-                                         _draw_batch, _score_batch,
-                                         _local_fraction)}
+    return _compiled.loaded
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:

@@ -83,7 +83,7 @@ def _norms(d: np.ndarray) -> np.ndarray:
 
 def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
                     pairs: int = 20000, reflections: bool = False,
-                    compiled: bool | None = None) -> tuple[np.ndarray, int, int]:
+                    compiled: bool = True) -> tuple[np.ndarray, int, int]:
     """Pick the image-2 pre-alignment of the rotation fix (App. C).
 
     Args:
@@ -91,7 +91,7 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
         pairs: random match pairs scored (0 = all ``N (N - 1) / 2`` pairs).
         reflections: also try the four mirrored variants.
         compiled: count with the compiled kernel (:func:`.kernels.rotation_counts`, the
-            same counts); ``None``: when numba is installed.
+            same counts); False: with numpy (the tests' reference).
 
     The identity is kept unless another candidate's count exceeds it by more than three
     standard deviations of the paired difference (same pairs), so that outlier noise
@@ -118,7 +118,7 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
     d2 = _norms(dx2)  # invariant to the candidates (isometries)
     lo, hi = np.minimum(d1, d2) - 1e-9, np.maximum(d1, d2) + 1e-9
     cands = _candidate_transforms(x2, reflections)
-    if kernels.available() if compiled is None else compiled:
+    if compiled:
         rows = np.ascontiguousarray(np.stack([G[:2, :2] for G in cands]))
         scores, differ = kernels.rotation_counts(np.ascontiguousarray(dx1),
                                                  np.ascontiguousarray(dx2), lo, hi, rows)

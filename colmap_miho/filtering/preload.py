@@ -13,20 +13,17 @@ from .api import filter_matches
 
 
 def warm() -> bool:
-    """Load every compiled filter kernel now (numba's import, then each kernel from its cache,
-    or compiled), by filtering a small synthetic pair (one that keeps a plane, one of pure
-    outliers); returns whether the kernels are loaded. Never raises: a process that cannot
-    load them loads them when it filters (where the error shows)."""
-    try:
-        if not kernels.available():
-            return False
+    """Load every compiled filter kernel now (each from numba's cache, or compiled), by
+    filtering a small synthetic pair (one that keeps a plane, one of pure outliers); returns
+    whether the kernels are loaded. Never raises."""
+
+    def example() -> None:
         rng = np.random.default_rng(0)
         x1 = rng.uniform(0, 500, (300, 2))
         filter_matches(x1, x1 + rng.normal(0, 0.5, x1.shape), seed=0)
         filter_matches(x1, rng.uniform(0, 500, (300, 2)), seed=0)
-        return kernels.loaded()
-    except Exception:  # noqa: BLE001 - warming is optional; filtering reports the error
-        return False
+
+    return kernels._compiled.warm(example)
 
 
 warm()

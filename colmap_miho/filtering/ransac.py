@@ -19,7 +19,7 @@ the reflection or quasi-affinity checks reject do count). At most ``10 x c_max``
 drawn, for pools where almost nothing is spread out.
 
 Sampling is :mod:`.sampling`; the heavy kernels run in :class:`~.scoring.NumpyScoring`
-(the default: compiled by numba where it is installed, :mod:`.kernels`, else numpy) or its
+(the default: compiled by numba, :mod:`.kernels`; numpy with ``compiled=False``) or its
 torch twin
 :class:`~colmap_miho.filtering.torch_scoring.TorchScoring` (any torch device), passed as
 ``scoring``; sampling and the search's bookkeeping run on the host for both.

@@ -300,11 +300,11 @@ class NumpyScoring:
     #: subclass that does not call it keeps numpy).
     compiled = False
 
-    def __init__(self, compiled: bool | None = None) -> None:
+    def __init__(self, compiled: bool = True) -> None:
         """``compiled``: run the batch kernels (spread test, minimal solver and one-way
-        bound, local draws) compiled by numba (:mod:`.kernels`); ``None``: when numba is
-        installed. ``False`` runs the numpy reference."""
-        self.compiled = kernels.available() if compiled is None else compiled
+        bound, local draws) compiled by numba (:mod:`.kernels`); ``False`` runs the numpy
+        reference (what :class:`~.torch_scoring.TorchScoring` keeps on the host)."""
+        self.compiled = compiled
 
     def spread_ok(self, problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
         """:func:`~.sampling.spread_ok` (compiled or numpy)."""

@@ -4,8 +4,8 @@
 
 - ``"cpu"`` or ``None`` (default): numpy on the CPU (:class:`~.scoring.NumpyScoring`).
 - ``"cuda"``, ``"cuda:1"``, any other torch device string, or a ``torch.device`` object
-  (``torch.device("cpu")`` included): torch float64 on that device (:class:`TorchScoring`).
-- ``"torch-cpu"``: torch on the CPU, the torch path where no GPU is lent (tests, timing).
+  (``torch.device("cpu")`` included: the torch path where no GPU is lent, for tests and
+  timing): torch float64 on that device (:class:`TorchScoring`).
 - ``"auto"``: ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``.
 
 What runs on the device: the closed-form 4-point homographies of every batch of minimal
@@ -22,7 +22,7 @@ least-squares refit and the assignment rule stay in numpy: they are cheap, seque
 keeping them on the host keeps both paths alike. Up to floating-point ties (a bound or an
 error landing on the other side of a threshold, which can then change the random stream),
 both paths give the same matches, labels and homographies
-(``tests/filtering/test_filter_torch.py``; ``benchmarks/bench_filter.py --device torch-cpu``
+(``tests/filtering/test_filter_torch.py``; ``benchmarks/bench_filter.py --device cuda``
 and ``benchmarks/check_cuda.py --device cpu`` compare them on real pairs).
 
 Round trips: one per batch for the hypotheses and their bounds, and one per chunk of
@@ -51,10 +51,6 @@ from .scoring import NumpyScoring
 if TYPE_CHECKING:
     import torch
 
-#: ``device`` value that runs the torch path on the CPU.
-TORCH_CPU = "torch-cpu"
-
-
 def scoring_for_device(device: str | torch.device | None = "cpu") -> NumpyScoring:
     """The kernels for ``device`` (see the module docstring); ``ValueError`` (one line) for
     an unknown device or one torch cannot use (e.g. ``"cuda"`` without a CUDA device)."""
@@ -68,14 +64,11 @@ def scoring_for_device(device: str | torch.device | None = "cpu") -> NumpyScorin
         if device == "auto":
             auto = resolve_device("auto")
             return TorchScoring(auto) if auto.type == "cuda" else NumpyScoring()
-        if device == TORCH_CPU:
-            device = torch.device("cpu")
-        else:
-            try:
-                device = torch.device(device)
-            except (RuntimeError, ValueError):
-                raise ValueError(f"device must be 'cpu', '{TORCH_CPU}', 'cuda[:N]' or another "
-                                 f"torch device, got {device!r}") from None
+        try:
+            device = torch.device(device)
+        except (RuntimeError, ValueError):
+            raise ValueError(f"device must be 'cpu', 'auto', 'cuda[:N]' or another torch device, "
+                             f"got {device!r}") from None
     if not isinstance(device, torch.device):
         raise ValueError(f"device must be a string or a torch.device, got {type(device).__name__}")
     if device.type == "cuda":

@@ -1,7 +1,7 @@
 """Compiled (numba) local affine fits: one loop per match, for :mod:`.rectify`.
 
-:func:`fit_clusters` does what :func:`.rectify.local_affine_pairs` asks of its numpy path
-(:func:`.rectify._fit_numpy`: a k-d tree per cluster, then :func:`.rectify._fit_rows`) for
+:func:`fit_clusters` does what :func:`.rectify.local_affine_pairs` needs (the numpy reference,
+``tests/affine_reference.py``: a k-d tree per cluster, then batched least squares) for
 the matches of one image pair: per cluster a grid of its matches in image 1, each wanted
 match's ``k`` nearest matches from it, and the match's fit: the weighted least-squares
 affine map image 1 -> image 2 around it, re-fitted without the neighbours that miss it (by
@@ -24,34 +24,23 @@ do not depend on the machine. The tests bound the differences (``test_affine_ker
 A match's result depends on its own inputs only (its cluster's positions), not on which other
 matches are fitted with it.
 
-numba is imported on first use (:func:`available`); the kernels compile then or load from
-numba's on-disk cache (``cache=True``).
+The kernels compile on first use (:mod:`colmap_miho.compiled`).
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import math
-import threading
 from typing import Any
 
 import numpy as np
+
+from ..compiled import Kernels, jit, jit_helpers
 
 #: conditioning bound of the normal matrix: smallest eigenvalue over largest (as the
 #: numpy path's).
 MIN_EIGEN_RATIO = 1e-8
 #: smallest determinant of the linear part of a well-fitted map (as the numpy path's).
 MIN_DET = 1e-3
-
-_KERNEL: Any = None
-_LOCK = threading.Lock()
-
-
-@functools.cache
-def available() -> bool:
-    """Whether numba can be imported (the compiled kernel is used then)."""
-    return importlib.util.find_spec("numba") is not None
 
 
 def _extreme_eigenvalues(S) -> tuple[float, float]:
@@ -276,20 +265,14 @@ def _fit_clusters(x1, x2, members, bounds, want, k, max_residual_px, iterations,
             H_inv[rows[i]] = Hi[i]
 
 
-def _kernel() -> Any:
-    """The jitted kernels (compiled, or loaded from numba's cache, on first use):
-    ``(fit_matches, fit_clusters)``."""
-    global _KERNEL
-    if _KERNEL is None:
-        with _LOCK:
-            if _KERNEL is None:
-                import numba
+def _jit_all() -> tuple[Any, Any]:
+    """Jit the kernels and their helpers: ``(fit_matches, fit_clusters)``."""
+    jit_helpers(globals(), (_extreme_eigenvalues, _solve3, _fit, _fit_matches, _insert, _nearest))
+    return globals()["_fit_matches"], jit()(_fit_clusters)
 
-                jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-                globals().update({f.__name__: jit(f) for f in (_extreme_eigenvalues, _solve3, _fit,
-                                                               _fit_matches, _insert, _nearest)})
-                _KERNEL = (globals()["_fit_matches"], jit(_fit_clusters))
-    return _KERNEL
+
+#: the jitted kernels (compiled, or loaded from numba's cache, on first use).
+_kernel = Kernels(_jit_all)
 
 
 def fit_rows(x1: np.ndarray, x2: np.ndarray, rows: np.ndarray, nb: np.ndarray, *,
@@ -363,16 +346,13 @@ def fit_clusters(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, want: np.nd
 
 
 def warm() -> bool:
-    """Load (or compile) the kernels now, by fitting a small synthetic cluster; returns whether
-    they are available. Never raises: a process that cannot load them loads them when it fits
-    (where the error shows)."""
-    try:
-        if not available():
-            return False
+    """Load (or compile) the kernels now, by fitting a small synthetic cluster; returns
+    whether they are loaded. Never raises."""
+
+    def example() -> None:
         t = np.arange(8, dtype=np.float64)
         x1 = np.c_[np.repeat(t, 8), np.tile(t, 8)] * 5.0
         fit_clusters(x1, 1.1 * x1 + 2.0, np.zeros(64, np.int64), np.ones(64, bool), k=12,
                      max_residual_px=2.0, iterations=3, min_neighbours=6)
-        return _KERNEL is not None
-    except Exception:  # noqa: BLE001 - warming is optional; fitting reports the error
-        return False
+
+    return _kernel.warm(example)

@@ -17,8 +17,7 @@ shift update is below ``tol_px``; the a-posteriori covariance of the shift is
 normal matrix of the last iteration.
 
 Sampling is bicubic (``grid_sample(mode="bicubic")``, Keys a = -0.75): bilinear sampling
-biases the values towards pixel centres (``tests/refinement/test_lsm.py`` measures the
-bilinear bias against bicubic on a known warp). The gradients are central differences of the
+biases the values towards pixel centres. The gradients are central differences of the
 bicubic samples, taken with :meth:`torch.Tensor.__getitem__` slices rather than kornia's
 ``spatial_gradient``: kornia's pads and runs a 3x3 ``conv2d`` over the batch, which is several
 times slower than two subtractions on these small patches (``benchmarks/results/lsm.md``) and
@@ -278,10 +277,8 @@ def frame_sampler(
     image: torch.Tensor | ImageStack,
     H_inv: torch.Tensor,
     centres: torch.Tensor,
-    mode: str = "bicubic",
     blur: tuple[torch.Tensor, torch.Tensor] | None = None,
     blur_px: tuple[torch.Tensor, torch.Tensor] | None = None,
-    cubic_a: float = -0.75,
 ) -> Sampler:
     """A :data:`Sampler` of the rectified search images: match j reads its image at
     ``H_inv[j] (centres[j] + t + A u)``.
@@ -295,7 +292,6 @@ def frame_sampler(
         image: (H, W) float32, or an :class:`~.warping.ImageStack` with one image per match.
         H_inv: (J, 3, 3) float64, common frame -> image pixels (integer = pixel centre).
         centres: (J, 2) float64 common-frame centre of each match.
-        mode: ``grid_sample`` interpolation, "bicubic" or "bilinear" (for comparison).
         blur: None, or ((J,) bool ``on``, (J, 2, 2) float64 ``step``): match j with ``on``
             reads the mean of the 4 samples at ``t + step[j] o``, o in {-1, 1}^2 (the
             columns of ``step``: frame offsets of one blur step along the image's x and y;
@@ -305,9 +301,6 @@ def frame_sampler(
             in {-1, 1}^2, (x, y) each sample's image position (pixels): the same smoothing
             along the image's own axes, exactly (``blur`` gives it at the match's centre, to
             first order). Not with ``blur``.
-        cubic_a: the cubic convolution parameter of ``mode="bicubic"``: -0.75 reads with
-            ``grid_sample``; any other value (e.g. -0.5, Catmull-Rom) gathers the 16 taps of
-            each sample itself, with the same border rule.
     """
     if blur is not None and blur_px is not None:
         raise ValueError("frame_sampler takes blur or blur_px, not both")
@@ -326,11 +319,6 @@ def frame_sampler(
     Sm = torch.zeros((J, 3, 3), dtype=f64, device=dev)
     Sm[:, 0, 0], Sm[:, 1, 1], Sm[:, 0, 2], Sm[:, 1, 2], Sm[:, 2, 2] = sc[:, 0], sc[:, 1], -1.0, -1.0, 1.0
     B = _mul3(Sm, H_inv.to(f64))
-
-    def _grid_sample(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
-        if mode == "bicubic" and cubic_a != -0.75:
-            return _cubic_sample(image, grid, cubic_a)
-        return _grid_sample_torch(image, grid, mode)
 
     def sample(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int) -> torch.Tensor:
         spec = blur if blur is not None else blur_px
@@ -377,18 +365,17 @@ def frame_sampler(
         # the image offsets in grid units (float32, added to the float32 grid)
         offg = None if off is None else (off * sc[rows]).to(torch.float32)[:, None, :]
         if index is None:
-            return _grid_sample(ims[0], _shifted(_frame_grid(M, radius), offg), mode).view(n, side, side)
+            return _grid_sample(ims[0], _shifted(_frame_grid(M, radius), offg)).view(n, side, side)
         idx = index[rows]
         counts = torch.bincount(idx, minlength=len(ims)).tolist()
         if n and max(counts) == n:  # one image
-            return _grid_sample(ims[counts.index(n)], _shifted(_frame_grid(M, radius), offg),
-                                mode).view(n, side, side)
+            return _grid_sample(ims[counts.index(n)], _shifted(_frame_grid(M, radius), offg)).view(n, side, side)
         order = torch.argsort(idx, stable=True)  # the matches grouped by image
         grid = _shifted(_frame_grid(M[order], radius), None if offg is None else offg[order])
         parts, lo = [], 0
         for k, cnt in enumerate(counts):
             if cnt:
-                parts.append(_grid_sample(ims[k], grid[lo:lo + cnt], mode))
+                parts.append(_grid_sample(ims[k], grid[lo:lo + cnt]))
                 lo += cnt
         out = torch.empty((n, side * side), dtype=torch.float32, device=t.device)
         out[order] = torch.cat(parts)
@@ -419,40 +406,10 @@ def _shifted(grid: torch.Tensor, off: torch.Tensor | None) -> torch.Tensor:
     return grid if off is None else grid.add_(off)
 
 
-def _cubic_sample(image: torch.Tensor, grid: torch.Tensor, a: float) -> torch.Tensor:
-    """Samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) in grid units
-    (``align_corners=True``): bicubic with the cubic convolution parameter ``a``, each tap
-    clamped to the image (``grid_sample``'s bicubic and border rule, any ``a``)."""
-    h, w = image.shape
-    x = (grid[..., 0] + 1) * 0.5 * (w - 1)
-    y = (grid[..., 1] + 1) * 0.5 * (h - 1)
-    fx, fy = x.floor(), y.floor()
-
-    def weights(t: torch.Tensor) -> list[torch.Tensor]:
-        def far(d: torch.Tensor) -> torch.Tensor:  # 1 < |d| < 2
-            return ((a * d - 5 * a) * d + 8 * a) * d - 4 * a
-
-        def near(d: torch.Tensor) -> torch.Tensor:  # |d| <= 1
-            return ((a + 2) * d - (a + 3)) * d * d + 1
-        return [far(t + 1), near(t), near(1 - t), far(2 - t)]
-
-    wx, wy = weights(x - fx), weights(y - fy)
-    flat = image.reshape(-1)
-    cols = [(fx + (k - 1)).clamp(0, w - 1).long() for k in range(4)]
-    out = torch.zeros_like(x)
-    for r in range(4):
-        row = (fy + (r - 1)).clamp(0, h - 1).long() * w
-        v = flat[row + cols[0]] * wx[0]
-        for k in range(1, 4):
-            v = v + flat[row + cols[k]] * wx[k]
-        out = out + v * wy[r]
-    return out
-
-
-def _grid_sample_torch(image: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
-    """Samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) in grid units
+def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
+    """Bicubic samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) in grid units
     (``align_corners=True``, border values outside)."""
-    return F.grid_sample(image[None, None], grid[None], mode=mode, padding_mode="border",
+    return F.grid_sample(image[None, None], grid[None], mode="bicubic", padding_mode="border",
                          align_corners=True)[0, 0]
 
 

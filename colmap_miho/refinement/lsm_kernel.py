@@ -10,7 +10,7 @@ tensor calls per iteration, and forms sample coordinates in memory before readin
 
 Sampling is the bicubic read of ``grid_sample`` (``align_corners=True``, border padding:
 each of the 4 x 4 taps clamped to the image), with the cubic convolution's parameter ``a``
-(Keys: -0.75 as ``grid_sample``; -0.5 is Catmull-Rom). Blurred reads are the mean of the 4
+of Keys (-0.75, as ``grid_sample``). Blurred reads are the mean of the 4
 shifted bicubic reads of :func:`.lsm.frame_sampler` (its ``blur_px``), read as one with the
 4 reads' taps merged (the mean is separable).
 
@@ -25,21 +25,18 @@ later on one path than on the other. The tests bound the differences (``test_lsm
 A match's result depends on its own inputs only: the loop over matches is serial and
 every quantity of a match is computed by the same code whatever the other matches are.
 
-numba is imported on first use (:func:`available`); the kernel compiles then or loads from
-numba's on-disk cache (``cache=True``).
+The kernel compiles on first use (:mod:`colmap_miho.compiled`).
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import math
-import threading
 from typing import Any
 
 import numpy as np
 import torch
 
+from ..compiled import CONTRACT, REASSOC, Kernels, jit, jit_helpers
 from ..validation import MAX_BLUR_PX, MAX_WINDOW_RADIUS_PX
 from .lsm import _MAX_GAIN, _MAX_SCALE, DEFAULT_TOL_PX, LSMResult
 from .warping import ImageStack, image_arrays
@@ -49,15 +46,6 @@ KEYS_A = -0.75
 #: taps per axis of a smoothed read in fixed loops (blurs up to 1 px); wider ones loop on
 #: their own span.
 _FIXED_SPAN = 6
-
-_KERNEL: Any = None
-_LOCK = threading.Lock()
-
-
-@functools.cache
-def available() -> bool:
-    """Whether numba can be imported (the compiled kernel is used then)."""
-    return importlib.util.find_spec("numba") is not None
 
 
 def _cubic(t: float, a: float) -> tuple[float, float, float, float]:
@@ -398,24 +386,17 @@ def _lsm_matches(img_f, img_m, rows, H_f, c_f, H_m, c_m, on_f, sigma_f, on_m, si
                 break
 
 
-def _kernel() -> Any:
-    """The jitted kernel (compiled, or loaded from numba's cache, on first use)."""
-    global _KERNEL
-    if _KERNEL is None:
-        with _LOCK:
-            if _KERNEL is None:
-                import numba
+def _jit_all() -> Any:
+    """Jit the kernel and its helpers: fused multiply-adds in the reads, the dot products
+    also reassociated (vectorised); both fixed at compile time, the same for every match."""
+    jit_helpers(globals(), (_cubic, _compose, _merged, _read, _smoothed), CONTRACT)
+    jit_helpers(globals(), (_read_blurred,))
+    jit_helpers(globals(), (_dot,), REASSOC)
+    return jit()(_lsm_matches)
 
-                jit = numba.njit(cache=True, nogil=True, error_model="numpy")
-                # fused multiply-adds in the reads; the dot products also reassociated
-                # (vectorised): both fixed at compile time, the same for every match
-                fused = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
-                dots = numba.njit(cache=True, nogil=True, error_model="numpy",
-                                  fastmath={"reassoc", "contract"})
-                globals().update({f.__name__: fused(f) for f in (_cubic, _compose, _merged, _read, _smoothed)})
-                globals().update({"_read_blurred": jit(_read_blurred), "_dot": dots(_dot)})
-                _KERNEL = jit(_lsm_matches)
-    return _KERNEL
+
+#: the jitted kernel (compiled, or loaded from numba's cache, on first use).
+_kernel = Kernels(_jit_all)
 
 
 def _blur_arrays(blur: tuple[torch.Tensor, torch.Tensor] | None, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -466,7 +447,6 @@ def lsm_frames(
     max_iterations: int = 10,
     tol_px: float = DEFAULT_TOL_PX,
     max_shift_px: float | None = None,
-    cubic_a: float = KEYS_A,
 ) -> LSMResult:
     """LSM of n matches on the CPU: the fixed side's template read (radius ``radius``) and
     aligned to the moving side; what ``lsm_align(frame_sampler(img_m, H_m_inv, frame_m,
@@ -482,7 +462,6 @@ def lsm_frames(
         radius: template half size (pixels); the moving side is read one pixel wider.
         blur_f, blur_m: the ``blur_px`` arguments of :func:`.lsm.frame_sampler`, or None.
         affine, max_iterations, tol_px, max_shift_px: as :func:`.lsm.lsm_align`.
-        cubic_a: the cubic convolution's parameter (``KEYS_A``: ``grid_sample``'s).
     Returns:
         :class:`~.lsm.LSMResult` (CPU tensors).
     """
@@ -511,7 +490,7 @@ def lsm_frames(
         rows = order[lo:hi].astype(np.int64)  # one call per (fixed image, moving image)
         kernel(ims_f[k // len(ims_m)], ims_m[k % len(ims_m)], rows, H_f, c_f, H_m, c_m, on_f, sigma_f,
                on_m, sigma_m, s0, int(radius), bool(affine), int(max_iterations), float(tol_px),
-               math.inf if max_shift_px is None else float(max_shift_px), float(cubic_a),
+               math.inf if max_shift_px is None else float(max_shift_px), KEYS_A,
                float(_MAX_SCALE), float(_MAX_GAIN), shift, sigma, sigma_max, A, gain, offset,
                s0_out, converged, iterations)
     t = torch.from_numpy
@@ -523,11 +502,9 @@ def lsm_frames(
 
 def warm() -> bool:
     """Load (or compile) the kernel now, by running it on a small synthetic problem (plain
-    and smoothed reads); returns whether it is available. Never raises: a process that
-    cannot load it loads it when it refines (where the error shows)."""
-    try:
-        if not available():
-            return False
+    and smoothed reads); returns whether it is loaded. Never raises."""
+
+    def example() -> None:
         g = torch.arange(48, dtype=torch.float32)
         img = torch.sin(g[:, None] * 0.3) * torch.cos(g[None] * 0.2)
         eye = torch.eye(3, dtype=torch.float64)[None]
@@ -535,6 +512,5 @@ def warm() -> bool:
         blur = (torch.ones(1, dtype=torch.bool), torch.full((1,), 0.5, dtype=torch.float64))
         lsm_frames(img, img, eye, c, eye, c, torch.zeros(1, 2, dtype=torch.float64), 3, blur_f=blur,
                    max_iterations=2)
-        return _KERNEL is not None
-    except Exception:  # noqa: BLE001 - warming is optional; refining reports the error
-        return False
+
+    return _kernel.warm(example)

@@ -14,7 +14,7 @@ from the NCC offset. LSM's position replaces the NCC one only where
 elsewhere the NCC refinement goes on as without LSM (iterated parabolas). Each reason is
 counted.
 
-On CPU tensors (with numba) the step runs :func:`.lsm_kernel.lsm_frames`, one compiled loop
+On CPU tensors the step runs :func:`.lsm_kernel.lsm_frames`, one compiled loop
 per match; the torch path (:func:`.lsm.frame_sampler` and :func:`.lsm.lsm_align`) runs on
 CUDA and is the kernel's reference (they agree to float rounding).
 
@@ -88,7 +88,7 @@ def lsm_step(
             ``template_radius``).
         compiled: run :func:`.lsm_kernel.lsm_frames` (CPU tensors only) rather than the
             torch path (:func:`.lsm.frame_sampler` and :func:`.lsm.lsm_align`); None: where
-            the tensors are on the CPU and numba is installed.
+            the tensors are on the CPU.
     Returns:
         ((n, 2) float64 offsets: LSM's where accepted, else ``offset``; counters; (n,)
         bool accepted).
@@ -100,7 +100,7 @@ def lsm_step(
     radius = cfg.lsm_radius or cfg.template_radius
     dev = offset.device
     if compiled is None:
-        compiled = dev.type == "cpu" and lsm_kernel.available()
+        compiled = dev.type == "cpu"
     radii = np.full(n, radius)
     if scales is not None and cfg.lsm_radius_per_scale > 0:
         radii = np.clip(np.rint(cfg.lsm_radius_per_scale * np.asarray(scales)), MIN_RADIUS,
@@ -123,13 +123,10 @@ def lsm_step(
             res = lsm_kernel.lsm_frames(sub_f, sub_m, H_f_inv[rows], frame_f[rows], H_m_inv[rows],
                                         frame_m[rows], offset[rows], r, blur_f=blur_f, blur_m=blur_m,
                                         affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
-                                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px,
-                                        cubic_a=cfg.lsm_cubic_a)
+                                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
         else:
-            samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur_px=blur_f,
-                                   cubic_a=cfg.lsm_cubic_a)
-            samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur_px=blur_m,
-                                   cubic_a=cfg.lsm_cubic_a)
+            samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur_px=blur_f)
+            samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur_px=blur_m)
             res = lsm_align(samp_m, samp_f(every, eye, zero, r), offset[rows],
                             affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
                             tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)

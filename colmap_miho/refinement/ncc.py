@@ -16,8 +16,7 @@ Differences from the reference implementation (all configurable, see ``NCCConfig
 - a move is rejected when its peak lies on the border of the search window (or is held back
   by the NCC* mask) or when it raises NCC by less than ``min_gain``; the reference never
   rejects; so is a move whose peak NCC is below ``min_ncc``;
-- flat templates (``min_template_std``) are never moved; an optional cornerness gate also
-  skips edge-like ones;
+- flat templates (``min_template_std``) are never moved;
 - matches whose template or search window leaves the image are not refined.
 """
 
@@ -26,17 +25,17 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
 from .. import devices
-from ..enums import CheckRule, MoveSide
+from ..enums import MoveSide
 from .blur import match_blur
 from .config import DEFAULT_BATCH_SIZE, NCCConfig
 from .lsm_step import LSM_COUNTERS, lsm_step
-from .pair_inputs import ArrayInput, ImageInput, PairInputs, base_pairs, pair_inputs
+from .pair_inputs import ArrayInput, ImageInput, base_pairs, pair_inputs
 from .perturbations import perturbation_matrices
 from .search import Pass, evaluate_direction, to_frame
 from .subpixel import iterate_subpixel
@@ -62,9 +61,8 @@ class RefineResult:
             (:func:`.correlation.find_peaks`' ``second``), NaN where nothing moved; how
             distinct the peak taken is. None from refiners that do not report it.
         stats: counters (``n``, ``moved``, ``rejected_border``, ``rejected_gain``,
-            ``rejected_weak`` (peak below ``min_ncc``), ``rejected_disagree`` (not
-            confirmed by the ``check_radius`` template),
-            ``gated_flat``, ``gated_edge``, ``outside``, ``invalid_homography``,
+            ``rejected_weak`` (peak below ``min_ncc``), ``gated_flat``, ``outside``,
+            ``invalid_homography``,
             ``seconds``, ``device``, ``shapes``; with ``config.lsm``, the counters of
             :data:`~.lsm_step.LSM_COUNTERS`: ``lsm_applied``, ``lsm_not_converged``,
             ``lsm_far``, ``lsm_imprecise``).
@@ -114,7 +112,7 @@ class _Outputs:
     def unchanged(cls, p1: np.ndarray, p2: np.ndarray) -> _Outputs:
         n = p1.shape[0]
         counts: dict[str, int | float | str] = dict.fromkeys(
-            ["moved", "rejected_border", "rejected_gain", "rejected_weak", "gated_flat", "gated_edge",
+            ["moved", "rejected_border", "rejected_gain", "rejected_weak", "gated_flat",
              "outside", "invalid_homography"], 0)
         return cls(pts=(p1.copy(), p2.copy()), before=np.full(n, np.nan), after=np.full(n, np.nan),
                    moved=np.zeros(n, np.int8), disp=np.zeros(n), rejected=np.zeros(n, bool),
@@ -240,8 +238,6 @@ def refine_pair(
             ]
             _decide(res, cimg, sl, cfg, out)
 
-    if cfg.check_radius and out.moved.any():
-        _check_agreement((image1, image2), inp, patch_homographies, side, cfg, out)
     out.counts.update(
         n=n,
         seconds=time.perf_counter() - t0,
@@ -255,52 +251,6 @@ def refine_pair(
         moved_side=out.moved, displacement=out.disp, rejected=out.rejected, stats=out.counts,
         ncc_second=out.second,
     )
-
-
-def _check_agreement(images: tuple[ImageInput, ImageInput], inp: PairInputs, homs: ArrayInput,
-                     side: MoveSide, cfg: NCCConfig, out: _Outputs) -> None:
-    """Undo the moves that a second search with a ``check_radius`` template does not confirm
-    (other side moved, or the two positions more than ``check_px`` apart); with the "ncc"
-    rule, take its moves where they correlate clearly better instead."""
-    rows = np.flatnonzero(out.moved > 0)
-    sub = torch.as_tensor(rows) if isinstance(images[0], ImageStack) else None
-
-    def pick(im: ImageInput) -> ImageInput:
-        return im.rows(sub.to(im.device)) if isinstance(im, ImageStack) and sub is not None else im
-
-    h = homs.detach().cpu().numpy() if isinstance(homs, torch.Tensor) else np.asarray(homs)
-    chk = refine_pair(
-        pick(images[0]), pick(images[1]), inp.p1[rows], inp.p2[rows], h[rows], move=side,
-        config=replace(cfg, template_radius=cfg.check_radius, check_radius=0),
-        affine1=None if inp.affine1 is None else inp.affine1[rows],
-        affine2=None if inp.affine2 is None else inp.affine2[rows])
-    m = out.moved[rows]
-    if cfg.check_rule is CheckRule.NCC:
-        # the smaller template wins where the larger one correlates clearly worse: the
-        # larger one then spans what the rectification does not model (relief, occlusion)
-        swap = (chk.moved_side == m) & (chk.ncc_after > out.after[rows] + cfg.check_ncc_margin)
-        sel = rows[swap]
-        for side_out, chk_pts in ((out.pts[0], chk.pts1), (out.pts[1], chk.pts2)):
-            side_out[sel] = chk_pts[swap]
-        out.disp[sel] = chk.displacement[swap]
-        out.after[sel] = chk.ncc_after[swap]
-        if chk.ncc_second is not None:
-            out.second[sel] = chk.ncc_second[swap]
-        out.counts["smaller_template"] = int(sel.size)
-        return
-    mine = np.where((m == 1)[:, None], out.pts[0][rows], out.pts[1][rows])
-    theirs = np.where((m == 1)[:, None], chk.pts1, chk.pts2)
-    agree = (chk.moved_side == m) & (np.linalg.norm(mine - theirs, axis=1) <= cfg.check_px)
-    undo = rows[~agree]
-    out.pts[0][undo] = inp.p1[undo]
-    out.pts[1][undo] = inp.p2[undo]
-    out.moved[undo] = 0
-    out.disp[undo] = 0.0
-    out.rejected[undo] = True
-    out.after[undo] = out.before[undo]
-    out.second[undo] = np.nan
-    out.add("moved", -int(undo.size))
-    out.counts["rejected_disagree"] = int(undo.size)
 
 
 #: one direction's search: (fixed side, moving side, :func:`.search.evaluate_direction`'s dict).
@@ -344,10 +294,8 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
     cand = []
     for f, m, r in res:
         host = {k: r[k].cpu().numpy() for k in
-                ("peak", "centre", "border", "zero", "inside", "valid", "flat", "edge")}
+                ("peak", "centre", "border", "zero", "inside", "valid", "flat")}
         usable = host["valid"] & host["inside"] & ~host["flat"]
-        if cfg.cornerness_gate:
-            usable &= ~host["edge"]
         cand.append((f, m, r, host, usable))
     score = np.stack([np.where(u, h["peak"], -np.inf) for *_, h, u in cand])
     best = score.argmax(axis=0)
@@ -357,7 +305,6 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
     out.add("invalid_homography", int((none & ~h0["valid"]).sum()))
     out.add("outside", int((none & h0["valid"] & ~h0["inside"]).sum()))
     out.add("gated_flat", int((none & h0["valid"] & h0["inside"] & h0["flat"]).sum()))
-    out.add("gated_edge", int((none & h0["valid"] & h0["inside"] & ~h0["flat"] & h0["edge"]).sum()))
     for d, (f, m, r, h, usable) in enumerate(cand):
         rows = (best == d) & usable
         gi = idx[rows]

@@ -22,7 +22,7 @@ What each part computes, as the torch path:
   the window's mean removed first, its norms from box sums; flat windows 0; clamped to
   [-1, 1]); peaks, borders, centre NCC and parabolas as :func:`.correlation.find_peaks`
   (the NCC* ellipse of :func:`.correlation.ellipse_masks` with ``ellipse_mask``); the structure
-  tensor, flat and edge flags of the first pass's template as :func:`.search._evaluate`;
+  tensor and flat flag of the first pass's template as :func:`.search._evaluate`;
 - with ``inner_radius``, the matches whose peak of some pass lies on the smaller window's
   border (usable ones: valid, inside, not flat) are searched again over the full radius.
 
@@ -35,22 +35,19 @@ differences (``test_ncc_kernel.py``).
 A match's result depends on its own inputs only: the loop over matches is serial and every
 quantity of a match is computed by the same code whatever the other matches are.
 
-numba is imported on first use (:func:`available`); the kernels compile then or load from
-numba's on-disk cache (``cache=True``); :func:`warm` loads them ahead (the worker processes'
-forkserver does, :mod:`.preload`).
+The kernels compile on first use (:mod:`colmap_miho.compiled`); :func:`warm` loads them ahead
+(the worker processes' forkserver does, :mod:`.preload`).
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import math
-import threading
 from typing import Any
 
 import numpy as np
 import torch
 
+from ..compiled import CONTRACT, REASSOC, Kernels, jit, jit_helpers
 from .warping import ImageStack, image_arrays
 
 #: the constants of the torch path (:mod:`.warping`, :mod:`.correlation`, :mod:`.subpixel`).
@@ -60,15 +57,6 @@ _EPS_NORM = 1e-6
 _MIN_CURVATURE = 1e-4
 _CONVERGED_PX = 1e-3
 _SEPARATED_PX = 2
-
-_KERNELS: dict[str, Any] | None = None
-_LOCK = threading.Lock()
-
-
-@functools.cache
-def available() -> bool:
-    """Whether numba can be imported (the compiled kernels are used then)."""
-    return importlib.util.find_spec("numba") is not None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -441,8 +429,8 @@ def _second(maps, k: int, So: int, use_mask: bool, mask, cut: int, py: int, px: 
 
 
 def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: int, s: int,
-                    use_mask: bool, min_std: float, min_corner: float,
-                    peak, centre, border, zero, inside, valid, flat, edge, offset,
+                    use_mask: bool, min_std: float,
+                    peak, centre, border, zero, inside, valid, flat, offset,
                     H_inv, frame_m, H_f_inv, frame_f, template, researched, second) -> None:
     """The search of the matches ``rows`` (module docstring): keypoints ``xf``, ``xm`` (J, 2)
     float64, homography pairs ``H`` (J, n_pass, 2, 3, 3) float64 (side ``f`` fixed, ``m``
@@ -488,8 +476,7 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
                    and _inside(Hmi[p], cm[p, 0], cm[p, 1], r + s, hm, wm))
         t0 = tpl[0]
         is_flat = math.sqrt(ss / (St * St - 1)) < min_std
-        lam_min, lam_max = _ellipse(t0, s, use_mask, mask)
-        ratio = lam_min / max(lam_max, 1e-20) if lam_max > 0 else 0.0
+        _ellipse(t0, s, use_mask, mask)
         radius = s0
         again = False
         while True:
@@ -519,7 +506,6 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
         inside[j] = ins
         valid[j] = ok
         flat[j] = is_flat
-        edge[j] = ratio < min_corner
         offset[j, 0] = (bx - radius) + sx
         offset[j, 1] = (by - radius) + sy
         frame_m[j, 0], frame_m[j, 1] = cm[bk, 0], cm[bk, 1]
@@ -538,23 +524,18 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
 # compiling and calling
 
 
-def _kernels() -> dict[str, Any]:
-    """The jitted kernels (compiled, or loaded from numba's cache, on first use)."""
-    global _KERNELS
-    if _KERNELS is None:
-        with _LOCK:
-            if _KERNELS is None:
-                import numba
+def _jit_all() -> dict[str, Any]:
+    """Jit the kernels and their helpers: the geometry exact, the reads and maps with fused
+    multiply-adds, the correlation's dot products also reassociated."""
+    jit_helpers(globals(), (_corr,), REASSOC)
+    jit_helpers(globals(), (_invert, _to_frame, _inside, _centre_good))
+    jit_helpers(globals(), (_sample, _normalize, _ncc, _parabola, _ellipse, _peaks, _second), CONTRACT)
+    fused = jit(CONTRACT)
+    return {"subpixel": fused(_subpixel_matches), "search": fused(_search_matches)}
 
-                exact = numba.njit(cache=True, nogil=True, error_model="numpy")
-                fused = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
-                dots = numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "contract"})
-                globals()["_corr"] = dots(_corr)
-                globals().update({fn.__name__: exact(fn) for fn in (_invert, _to_frame, _inside, _centre_good)})
-                globals().update({fn.__name__: fused(fn) for fn in (_sample, _normalize, _ncc,
-                                                                     _parabola, _ellipse, _peaks, _second)})
-                _KERNELS = {"subpixel": fused(_subpixel_matches), "search": fused(_search_matches)}
-    return _KERNELS
+
+#: the jitted kernels (compiled, or loaded from numba's cache, on first use).
+_kernels = Kernels(_jit_all)
 
 
 def _groups(key: np.ndarray) -> list[tuple[int, np.ndarray]]:
@@ -624,7 +605,6 @@ def evaluate(
     inner_radius: int,
     ellipse_mask: bool,
     min_template_std: float,
-    min_cornerness: float,
 ) -> dict[str, torch.Tensor]:
     """:func:`.search.evaluate_direction` on CPU tensors for passes :func:`serves` serves
     (arguments and result as there; ``inner_radius`` outside (0, ``search_radius``) searches
@@ -641,7 +621,7 @@ def evaluate(
     out = {
         "peak": np.zeros(J), "centre": np.zeros(J), "border": np.zeros(J, np.bool_),
         "zero": np.zeros(J, np.bool_), "inside": np.zeros(J, np.bool_), "valid": np.zeros(J, np.bool_),
-        "flat": np.zeros(J, np.bool_), "edge": np.zeros(J, np.bool_), "offset": np.zeros((J, 2)),
+        "flat": np.zeros(J, np.bool_), "offset": np.zeros((J, 2)),
         "H_inv": np.zeros((J, 3, 3)), "frame_m": np.zeros((J, 2)), "H_f_inv": np.zeros((J, 3, 3)),
         "frame_f": np.zeros((J, 2)), "template": np.zeros((J, St, St), np.float32),
         "researched": np.zeros(J, np.bool_), "second": np.zeros(J),
@@ -650,17 +630,15 @@ def evaluate(
     n_m = len(ims_m)
     for key, rows in _groups(idx_f * n_m + idx_m):
         kernel(ims_f[key // n_m], ims_m[key % n_m], rows, xf, xm, H, int(f), int(m), r, s0, s,
-               bool(ellipse_mask), float(min_template_std), float(min_cornerness), *out.values())
+               bool(ellipse_mask), float(min_template_std), *out.values())
     return {k: torch.from_numpy(v) for k, v in out.items()}
 
 
 def warm() -> bool:
     """Load (or compile) the kernels now, by running each on a small synthetic problem;
-    returns whether they are available. Never raises: a process that cannot load them loads
-    them when it refines (where the error shows)."""
-    try:
-        if not available():
-            return False
+    returns whether they are loaded. Never raises."""
+
+    def example() -> None:
         g = torch.arange(64, dtype=torch.float32)
         img = torch.sin(g[:, None] * 0.3) * torch.cos(g[None] * 0.2)
         eye = torch.eye(3, dtype=torch.float64)
@@ -669,8 +647,7 @@ def warm() -> bool:
                                           torch.arange(-2.0, 3.0, dtype=torch.float64), indexing="xy"), -1)
         passes = [(eye.expand(1, 2, 3, 3), grid.reshape(1, -1, 2), None)]
         r = evaluate(img, img, x, x, passes, 0, 1, template_radius=2, search_radius=3, inner_radius=1,
-                     ellipse_mask=False, min_template_std=0.0, min_cornerness=0.0)
+                     ellipse_mask=False, min_template_std=0.0)
         subpixel(img, r["H_inv"], r["frame_m"], r["offset"], r["template"], 2, 2)
-        return _KERNELS is not None
-    except Exception:  # noqa: BLE001 - warming is optional; refining reports the error
-        return False
+
+    return _kernels.warm(example)

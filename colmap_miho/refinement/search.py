@@ -8,7 +8,7 @@ and only the chosen shape (and the unperturbed one) is searched at full resoluti
 ``inner_radius`` the offsets near the keypoint are searched first, the full radius only for the
 matches whose peaks climb out of that smaller window.
 
-On CPU tensors (with numba) the plain search, one unperturbed template shape in every pass,
+On CPU tensors the plain search, one unperturbed template shape in every pass,
 runs as :func:`.ncc_kernel.evaluate`, one compiled loop per match; this module is its reference
 and the path on CUDA and for perturbed shapes.
 """
@@ -143,12 +143,11 @@ def evaluate_direction(
         win_off: (Pw, 2) offsets of the search window (radius r + s).
         cfg: the refinement parameters.
         compiled: run :func:`.ncc_kernel.evaluate` (CPU tensors, one unperturbed template
-            shape in every pass) rather than the torch path; None: where it serves and numba
-            is installed.
+            shape in every pass) rather than the torch path; None: where it serves.
     Returns:
         dict of tensors with J rows: ``peak``, ``centre`` (NCC at zero offset), ``second``
         (the best separated peak of the winning map, :func:`.correlation.find_peaks`), ``border``,
-        ``zero`` (integer peak at zero offset), ``inside``, ``valid``, ``flat``, ``edge``,
+        ``zero`` (integer peak at zero offset), ``inside``, ``valid``, ``flat``,
         and for the sub-pixel step and the mapping back: ``offset`` (J, 2) float64
         common-frame offset of the peak, ``H_inv`` (J, 3, 3) and ``frame_m`` (J, 2) of the
         winning pass, ``template`` (J, St, St) the winning template; for least-squares
@@ -156,13 +155,11 @@ def evaluate_direction(
         winning pass.
     """
     if compiled is None:
-        compiled = (x_f.device.type == "cpu" and ncc_kernel.available()
-                    and ncc_kernel.serves(passes, cfg.template_radius))
+        compiled = x_f.device.type == "cpu" and ncc_kernel.serves(passes, cfg.template_radius)
     if compiled:
         r = ncc_kernel.evaluate(img_f, img_m, x_f, x_m, passes, f, m, template_radius=cfg.template_radius,
                                 search_radius=cfg.search_radius, inner_radius=cfg.inner_radius,
-                                ellipse_mask=cfg.ellipse_mask, min_template_std=cfg.min_template_std,
-                                min_cornerness=cfg.min_cornerness)
+                                ellipse_mask=cfg.ellipse_mask, min_template_std=cfg.min_template_std)
         r.pop("researched")
         return r
     s0 = cfg.inner_radius
@@ -245,7 +242,6 @@ def _evaluate(
     H_f_win = torch.stack(list(H_f_inv.split(J)), dim=1)[rows, pass_idx]
     frame_f = torch.stack(list(c_f.split(J)), dim=1)[rows, pass_idx]
     tstd = first_template.reshape(J, -1).to(torch.float64).std(dim=1)
-    ratio = torch.where(lam_max > 0, lam_min / lam_max.clamp_min(1e-20), torch.zeros_like(lam_max))
     out = {
         "peak": pk["peak"].to(torch.float64),
         "centre": pk["centre"].to(torch.float64),
@@ -255,7 +251,6 @@ def _evaluate(
         "inside": torch.stack(inside).all(dim=0),
         "valid": torch.stack(valid).all(dim=0),
         "flat": tstd < cfg.min_template_std,
-        "edge": ratio < cfg.min_cornerness,
         "offset": torch.stack([pk["dx"], pk["dy"]], -1).to(torch.float64),
         "H_inv": H_inv,
         "frame_m": frame_m,

@@ -4,7 +4,7 @@ The parabola fit of App. E on an integer NCC map is biased towards integer offse
 locking"). Re-sampling the search window at the sub-pixel estimate and fitting again on the
 3x3 NCC neighbourhood removes most of that bias.
 
-On CPU tensors (with numba) the step runs as :func:`.ncc_kernel.subpixel`, one compiled loop
+On CPU tensors the step runs as :func:`.ncc_kernel.subpixel`, one compiled loop
 per match; the torch code here is its reference and the path on CUDA.
 """
 
@@ -42,7 +42,7 @@ def iterate_subpixel(
         template_radius: r, with St = 2r + 1.
         iterations: how many re-centred fits (0 returns ``offset`` unchanged).
         compiled: run :func:`.ncc_kernel.subpixel` (CPU tensors) rather than the torch path;
-            None: on CPU tensors where numba is installed.
+            None: on CPU tensors.
     Returns:
         (n, 2) float64 refined offsets. Each match stops on its own once a step is below
         1e-3 px, so its result does not depend on the other matches of the batch.
@@ -50,7 +50,7 @@ def iterate_subpixel(
     if iterations <= 0 or offset.shape[0] == 0:
         return offset
     if compiled is None:
-        compiled = offset.device.type == "cpu" and ncc_kernel.available()
+        compiled = offset.device.type == "cpu"
     if compiled:
         return ncc_kernel.subpixel(image, H_inv, centres, offset, templates, template_radius, iterations)
     ring = offset_grid(template_radius + 1, offset.device)[None]

@@ -169,13 +169,9 @@ def _refiner(refine_fn: Callable | None, ncc_cfg: NCCConfig,
 
 
 def _level_groups(plan: TrackPlan, ea: np.ndarray, eb: np.ndarray, e_ids: np.ndarray,
-                  fixed: np.ndarray, score: np.ndarray,
-                  anchor_of: np.ndarray | None = None) -> list[Group] | None:
+                  fixed: np.ndarray, score: np.ndarray) -> list[Group] | None:
     """The groups of the next level: every free node with a fixed neighbour, paired with
     its best-scoring fixed neighbour (ties: lowest node id), grouped by (pair, side).
-    With ``anchor_of`` ((T,) anchor node of each node's track), a free node whose partner
-    is not its anchor gets the anchor as its reference (unless it lies in the anchor's
-    image), and groups are split by reference image too.
     None when no free node has a fixed neighbour."""
     fa, fb = fixed[ea], fixed[eb]
     fwd = fa & ~fb  # a fixed, b free: b moves (side 2)
@@ -192,22 +188,10 @@ def _level_groups(plan: TrackPlan, ea: np.ndarray, eb: np.ndarray, e_ids: np.nda
     sel = order[keep]
     e_idx, free, partner, side = e_idx[sel], free[sel], partner[sel], side[sel]
     pair = plan.edge_pair[e_idx]
-    if anchor_of is None:
-        order = np.lexsort((side, pair))
-        e_idx, free, partner, side, pair = (a[order] for a in (e_idx, free, partner, side, pair))
-        bounds = np.flatnonzero((pair[1:] != pair[:-1]) | (side[1:] != side[:-1])) + 1
-        return [Group(plan.pairs[int(pair[g[0]])], int(side[g[0]]), e_idx[g], free[g], partner[g])
-                for g in np.split(np.arange(e_idx.size), bounds)]
-    ref = anchor_of[partner]
-    own = (ref == partner) | (plan.node_image[ref] == plan.node_image[free])
-    ref_image = np.where(own, -1, plan.node_image[ref])
-    order = np.lexsort((ref_image, side, pair))
-    e_idx, free, partner, side, pair, ref, ref_image = (
-        a[order] for a in (e_idx, free, partner, side, pair, ref, ref_image))
-    bounds = np.flatnonzero((pair[1:] != pair[:-1]) | (side[1:] != side[:-1])
-                            | (ref_image[1:] != ref_image[:-1])) + 1
-    return [Group(plan.pairs[int(pair[g[0]])], int(side[g[0]]), e_idx[g], free[g], partner[g],
-                  None if ref_image[g[0]] < 0 else ref[g])
+    order = np.lexsort((side, pair))
+    e_idx, free, partner, side, pair = (a[order] for a in (e_idx, free, partner, side, pair))
+    bounds = np.flatnonzero((pair[1:] != pair[:-1]) | (side[1:] != side[:-1])) + 1
+    return [Group(plan.pairs[int(pair[g[0]])], int(side[g[0]]), e_idx[g], free[g], partner[g])
             for g in np.split(np.arange(e_idx.size), bounds)]
 
 
@@ -259,15 +243,8 @@ def walk_tracks(
     fixed[plan.anchors] = True
     score = np.full(plan.num_nodes, -np.inf)
     score[plan.anchors] = np.inf
-    anchor_of = to_ref = None
-    if trk_cfg.align_to_anchor:
-        anchor_of = np.full(plan.num_nodes, -1, np.int64)
-        anchor_of[plan.anchors] = plan.anchors
-        of_track = np.full(int(plan.track.max(initial=-1)) + 1, -1, np.int64)
-        of_track[plan.track[plan.anchors]] = plan.anchors
-        has = plan.track >= 0
-        anchor_of[has] = of_track[plan.track[has]]
-    if trk_cfg.align_to_anchor or trk_cfg.multiphoto_lsm:  # each node's chain from its anchor
+    to_ref = None
+    if trk_cfg.multiphoto_lsm:  # each node's chain from its anchor
         to_ref = np.full((plan.num_nodes, 3, 3), np.nan)
         to_ref[plan.anchors] = np.eye(3)
     far_px = None
@@ -289,13 +266,12 @@ def walk_tracks(
             on_progress(n)
 
     try:
-        while (groups := _level_groups(plan, ea, eb, e_ids, fixed, score, anchor_of)) is not None:
+        while (groups := _level_groups(plan, ea, eb, e_ids, fixed, score)) is not None:
             stats["levels"] += 1
             if batched is not None:
                 # groups of one level are independent: each free keypoint is in one group
                 # and is refined against keypoints fixed at an earlier level
-                for chunk in chunks_by_images(groups, trk_cfg.max_images_in_memory,
-                                              plan if anchor_of is not None else None):
+                for chunk in chunks_by_images(groups, trk_cfg.max_images_in_memory):
                     refine_batch(chunk, ctx, batched)
                     advance(sum(grp.size for grp in chunk))
             else:

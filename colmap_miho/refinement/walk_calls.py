@@ -31,28 +31,17 @@ Images = Mapping[int, np.ndarray | None] | Callable[[int], np.ndarray | None]
 class Group:
     """Edges ``edges`` (indices into the plan's edge arrays) of ``pair`` whose side-``side``
     keypoints (nodes ``free``) move at this level, each against the fixed node
-    ``partner``; with ``reference`` (nodes, all in one image, None: the partners), each
-    is aligned to its reference node instead, through the partner edge's homography pair
-    composed with the partner's map from the reference image (:attr:`WalkState.to_ref`)."""
+    ``partner``."""
 
     pair: tuple
     side: int
     edges: np.ndarray
     free: np.ndarray
     partner: np.ndarray
-    reference: np.ndarray | None = None
 
     @property
     def size(self) -> int:
         return int(self.edges.size)
-
-    def images(self, plan: TrackPlan) -> tuple:
-        """The image ids this group's refine call reads: the pair's, or (reference image,
-        moving image)."""
-        if self.reference is None:
-            return tuple(self.pair)
-        moving = self.pair[1] if self.side == 2 else self.pair[0]
-        return int(plan.node_image[self.reference[0]]), moving
 
 
 class ImageSource:
@@ -109,9 +98,9 @@ class WalkState:
     out_against: dict
     stats: dict
     gray: dict = field(default_factory=dict)
-    #: (T, 3, 3) float64 map from the reference image's pixels to each fixed node's image
-    #: pixels (identity at the references), or None where neither ``align_to_anchor`` nor the
-    #: joint pass (``multiphoto_lsm``) reads it
+    #: (T, 3, 3) float64 map from the anchor image's pixels to each fixed node's image
+    #: pixels (identity at the anchors), or None where the joint pass (``multiphoto_lsm``)
+    #: does not read it
     to_ref: np.ndarray | None = None
     far_move_px: float | None = None
     far_move_ratio: float = 1.0
@@ -157,27 +146,8 @@ def _orient(grp: Group, ctx: WalkState) -> _Call:
         aff1 = np.asarray(ctx.affines[id1])[k1]
         aff2 = np.asarray(ctx.affines[id2])[k2]
     if grp.side == 2:
-        call = _Call(id1, id2, k1, k2, ctx.pos[id1][k1], ctx.pos[id2][k2], homs, aff1, aff2)
-    else:
-        call = _Call(id2, id1, k2, k1, ctx.pos[id2][k2], ctx.pos[id1][k1],
-                     np.flip(homs, axis=-3), aff2, aff1)
-    if grp.reference is None or ctx.to_ref is None:
-        return call
-    # the fixed side becomes the reference node: its image, position, frame, and the
-    # partner's pair composed with the partner's map from the reference image
-    ref_id = int(plan.node_image[grp.reference[0]])
-    ref_kp = plan.node_kp[grp.reference]
-    to_ref = ctx.to_ref[grp.partner]  # (n, 3, 3) reference pixels -> partner pixels
-    h = np.array(call.homs, dtype=np.float64, copy=True)
-    if h.ndim == 4:
-        h[:, 0] = h[:, 0] @ to_ref
-    else:
-        h[:, :, 0] = h[:, :, 0] @ to_ref[:, None]
-    aff_f = None
-    if call.aff_f is not None and ctx.affines is not None and ref_id in ctx.affines:
-        aff_f = np.asarray(ctx.affines[ref_id])[ref_kp]
-    return _Call(ref_id, call.moving_id, ref_kp, call.moving_idx, ctx.pos[ref_id][ref_kp],
-                 call.pts_m, h, aff_f, call.aff_m if aff_f is not None else None)
+        return _Call(id1, id2, k1, k2, ctx.pos[id1][k1], ctx.pos[id2][k2], homs, aff1, aff2)
+    return _Call(id2, id1, k2, k1, ctx.pos[id2][k2], ctx.pos[id1][k1], np.flip(homs, axis=-3), aff2, aff1)
 
 
 def _chain(call: _Call, grp: Group, ctx: WalkState) -> None:
@@ -188,9 +158,7 @@ def _chain(call: _Call, grp: Group, ctx: WalkState) -> None:
         return
     h = call.homs if call.homs.ndim == 4 else call.homs[:, -1]
     m = np.linalg.solve(h[:, 1], h[:, 0])  # fixed-side pixels -> moving-side pixels
-    if grp.reference is None:
-        m = m @ ctx.to_ref[grp.partner]
-    ctx.to_ref[grp.free] = m
+    ctx.to_ref[grp.free] = m @ ctx.to_ref[grp.partner]
 
 
 def predicted(call: _Call) -> np.ndarray:
@@ -247,13 +215,11 @@ def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displace
         st["rejected_far"] = st.get("rejected_far", 0) + int(far.sum())
     idx = call.moving_idx
     st["refined"] += grp.size
-    st["refined_against_moved"] += int(ctx.moved[grp.partner if grp.reference is None
-                                                 else grp.reference].sum())
+    st["refined_against_moved"] += int(ctx.moved[grp.partner].sum())
     ctx.pos[call.moving_id][idx[moved]] = new[moved]
     ctx.out_disp[call.moving_id][idx[moved]] = displacement[moved]
-    against = grp.partner if grp.reference is None else grp.reference
-    ctx.out_against[call.moving_id][idx, 0] = ctx.plan.node_image[against]
-    ctx.out_against[call.moving_id][idx, 1] = ctx.plan.node_kp[against]
+    ctx.out_against[call.moving_id][idx, 0] = ctx.plan.node_image[grp.partner]
+    ctx.out_against[call.moving_id][idx, 1] = ctx.plan.node_kp[grp.partner]
     _chain(call, grp, ctx)
     ctx.moved[grp.free[moved]] = True
     ctx.score[grp.free] = np.nan_to_num(np.asarray(ncc_after, np.float64), nan=-np.inf)
@@ -269,14 +235,12 @@ def _add_counters(res: object, ctx: WalkState) -> None:
             ctx.stats[key] = ctx.stats.get(key, 0) + int(stats[key])
 
 
-def chunks_by_images(groups: list[Group], max_images: int,
-                     plan: TrackPlan | None = None) -> Iterator[list[Group]]:
-    """Consecutive runs of groups that together use at most ``max_images`` images (groups
-    with a ``reference`` need the ``plan`` to tell their images)."""
+def chunks_by_images(groups: list[Group], max_images: int) -> Iterator[list[Group]]:
+    """Consecutive runs of groups that together use at most ``max_images`` images."""
     chunk: list[Group] = []
     ids: set = set()
     for grp in groups:
-        mine = set(grp.pair) if plan is None else set(grp.images(plan))
+        mine = set(grp.pair)
         both = ids | mine
         if chunk and len(both) > max_images:
             yield chunk
@@ -293,7 +257,7 @@ def refine_batch(groups: list[Group], ctx: WalkState, device: torch.device) -> N
 
     calls, kept = [], []
     for grp in groups:
-        if any(ctx.images.get(i) is None for i in grp.images(ctx.plan)):
+        if any(ctx.images.get(i) is None for i in grp.pair):
             ctx.stats["skipped"] += grp.size
             continue
         calls.append(_orient(grp, ctx))
@@ -346,7 +310,7 @@ def _seg(res: object, seg: slice) -> np.ndarray | None:
 
 def refine_group(grp: Group, ctx: WalkState) -> None:
     """One refine call: the edges of one group, on its two images."""
-    ids = grp.images(ctx.plan)
+    ids = grp.pair
     img_a, img_b = ctx.images.get(ids[0]), ctx.images.get(ids[1])
     if img_a is None or img_b is None:
         ctx.stats["skipped"] += grp.size

@@ -32,11 +32,25 @@ def test_numpy_kernel_variant_keeps_the_same_matches():
     """A ``kernels=numpy`` variant runs the reference kernels on the same pairs: the same
     kept matches here, and the compiled kernels are back in place after the pass."""
     from colmap_miho.filtering import kernels
+    from colmap_miho.filtering.scoring import NumpyScoring
 
     sc = make_scene(np.random.default_rng(3), outlier_ratio=0.5)
     pairs = [Pair(sc.x1, sc.x2, seed=11)]
-    before = kernels.available
-    out = run_pass(pairs, {"default": FilterConfig(), "numpy": FilterConfig()}, frozenset({"numpy"}))
-    assert kernels.available is before
+    calls = {"compiled": 0}
+    real = kernels.hypotheses
+
+    def counted(*args, **kwargs):
+        calls["compiled"] += 1
+        return real(*args, **kwargs)
+
+    kernels.hypotheses = counted
+    try:
+        run_pass(pairs, {"numpy": FilterConfig()}, frozenset({"numpy"}))
+        assert calls["compiled"] == 0  # the numpy variant never reaches a compiled kernel
+        out = run_pass(pairs, {"default": FilterConfig(), "numpy": FilterConfig()}, frozenset({"numpy"}))
+        assert calls["compiled"] > 0
+    finally:
+        kernels.hypotheses = real
+    assert NumpyScoring().compiled  # the defaults are back
     np.testing.assert_array_equal(out["numpy"]["masks"][0], out["default"]["masks"][0])
     assert out["numpy"]["kept"] == out["default"]["kept"] > 0

@@ -15,12 +15,10 @@ from planes import make_scene
 from colmap_miho import filter_matches
 from colmap_miho.filtering import kernels
 from colmap_miho.filtering.config import FilterConfig
-from colmap_miho.filtering.miho import build_problem
+from colmap_miho.filtering.miho import build_problem, choose_rotation
 from colmap_miho.filtering.ransac import _refit
 from colmap_miho.filtering.sampling import LocalCandidates, Sampler, checked_samples, spread_ok
 from colmap_miho.filtering.scoring import NumpyScoring, hypotheses_from_samples
-
-pytest.importorskip("numba")
 
 H_ATOL = 1e-12  # entries of unit-Frobenius-norm homographies
 REFIT_ATOL = 1e-9  # the same, least-squares refits (an eigenvector of A^T A: less well set)
@@ -164,7 +162,8 @@ def test_whole_filter_agrees(method, monkeypatch):
         sc, _, _ = _problem(False, seed)
         got = filter_matches(sc.x1, sc.x2, config=cfg, seed=seed)
         with monkeypatch.context() as m:
-            m.setattr(kernels, "available", lambda: False)
+            m.setattr(NumpyScoring.__init__, "__defaults__", (False,))  # the numpy reference
+            m.setitem(choose_rotation.__kwdefaults__, "compiled", False)
             want = filter_matches(sc.x1, sc.x2, config=cfg, seed=seed)
         assert np.mean(got.inliers == want.inliers) >= SAME_FLAGS
         assert got.num_homographies == want.num_homographies
@@ -421,16 +420,21 @@ def test_pool_arrays_gathered_at_once_are_the_per_half_ones():
 
 def test_kernels_module_imports_nothing_of_the_package():
     """kernels.py sits under the filter's modules, which import it: it imports no module of
-    colmap_miho (the warm-up, which filters a pair through the API, lives in preload.py)."""
+    colmap_miho but the kernel loader, itself a leaf (the warm-up, which filters a pair
+    through the API, lives in preload.py)."""
     import ast
     import inspect
 
-    tree = ast.parse(inspect.getsource(kernels))
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom):
-            assert node.level == 0 and not (node.module or "").startswith("colmap_miho"), ast.unparse(node)
-        elif isinstance(node, ast.Import):
-            assert not any(a.name.startswith("colmap_miho") for a in node.names), ast.unparse(node)
+    from colmap_miho import compiled
+
+    for module in (kernels, compiled):
+        for node in ast.walk(ast.parse(inspect.getsource(module))):
+            if module is kernels and isinstance(node, ast.ImportFrom) and (node.level, node.module) == (2, "compiled"):
+                continue
+            if isinstance(node, ast.ImportFrom):
+                assert node.level == 0 and not (node.module or "").startswith("colmap_miho"), ast.unparse(node)
+            elif isinstance(node, ast.Import):
+                assert not any(a.name.startswith("colmap_miho") for a in node.names), ast.unparse(node)
     assert not hasattr(kernels, "warm")
 
 

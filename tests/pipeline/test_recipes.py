@@ -76,6 +76,8 @@ def test_overrides_are_typed():
         ("filter.rotation_fix=maybe", "expected true or false"),
         ("noequals", "section.key=value"),
         ("filter.device=cpu", "unknown key filter.device"),  # the filter always runs in numpy
+        ("ncc.cornerness_gate=true", "unknown key ncc.cornerness_gate"),  # removed switches
+        ("tracks.align_to_anchor=true", "unknown key tracks.align_to_anchor"),
     ],
 )
 def test_bad_overrides_name_the_key(override, message):

@@ -32,13 +32,12 @@ def test_workers_come_from_the_forkserver():
 def _kernels_loaded() -> bool:
     from colmap_miho.filtering import kernels
 
-    return kernels._KERNELS is not None
+    return kernels.loaded()
 
 
 def test_workers_start_with_the_compiled_filter_kernels_loaded():
     """The forkserver loads the filter kernels once; a worker forked from it has them before
-    it filters anything (where numba is installed)."""
-    pytest.importorskip("numba")
+    it filters anything."""
     assert "colmap_miho.filtering.preload" in workers.PRELOAD
     with workers.process_pool(1) as ex:
         assert ex.submit(_kernels_loaded).result(timeout=300)
@@ -47,12 +46,11 @@ def test_workers_start_with_the_compiled_filter_kernels_loaded():
 def _ncc_kernels_loaded() -> bool:
     from colmap_miho.refinement import ncc_kernel
 
-    return ncc_kernel._KERNELS is not None
+    return ncc_kernel._kernels.loaded
 
 
 def test_workers_start_with_the_compiled_ncc_kernels_loaded():
     """The same for the NCC search and sub-pixel kernels of the track walk."""
-    pytest.importorskip("numba")
     assert "colmap_miho.refinement.preload" in workers.PRELOAD
     with workers.process_pool(1) as ex:
         assert ex.submit(_ncc_kernels_loaded).result(timeout=300)
@@ -124,12 +122,11 @@ def test_a_script_without_a_main_guard_gets_the_fix_in_its_error(tmp_path, dask,
 def _affine_kernels_loaded() -> bool:
     from colmap_miho.refinement import affine_kernel
 
-    return affine_kernel._KERNEL is not None
+    return affine_kernel._kernel.loaded
 
 
 def test_workers_start_with_the_compiled_local_affine_fits_loaded():
     """The same for the local affine fits of the track walk."""
-    pytest.importorskip("numba")
     assert "colmap_miho.refinement.preload" in workers.PRELOAD
     with workers.process_pool(1) as ex:
         assert ex.submit(_affine_kernels_loaded).result(timeout=300)
@@ -138,11 +135,10 @@ def test_workers_start_with_the_compiled_local_affine_fits_loaded():
 def _lsm_kernel_loaded() -> bool:
     from colmap_miho.refinement import lsm_kernel
 
-    return lsm_kernel._KERNEL is not None
+    return lsm_kernel._kernel.loaded
 
 
 def test_workers_start_with_the_compiled_lsm_step_loaded():
     """The same for the LSM step (recipes with ``ncc.lsm``)."""
-    pytest.importorskip("numba")
     with workers.process_pool(1) as ex:
         assert ex.submit(_lsm_kernel_loaded).result(timeout=300)

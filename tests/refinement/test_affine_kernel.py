@@ -1,16 +1,15 @@
 """The compiled local affine fits (:mod:`colmap_miho.refinement.affine_kernel`) against the
-numpy reference of :mod:`colmap_miho.refinement.rectify`, on synthetic matches of a
+numpy reference (``tests/affine_reference.py``), on synthetic matches of a
 homography with noise, gross outliers, duplicate keypoints and degenerate neighbourhoods."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from affine_reference import fit_rows, local_affine_pairs_numpy
 
 from colmap_miho.refinement import affine_kernel
-from colmap_miho.refinement.rectify import _ITERATIONS, MIN_NEIGHBOURS, _fit_rows, local_affine_pairs
-
-pytest.importorskip("numba")
+from colmap_miho.refinement.rectify import _ITERATIONS, MIN_NEIGHBOURS, local_affine_pairs
 
 #: maps of kernel and numpy path, relative to the largest entry of their row: the two solve
 #: the same normal equations with different rounding (the equations' condition number is
@@ -45,7 +44,7 @@ def test_kernel_fits_match_the_numpy_reference(k):
     x1, x2 = _matches(300, seed=k)
     rows = np.arange(300)
     nb = _neighbours(x1, k)
-    good_ref, H_ref = _fit_rows(x1, x2, rows, nb, 2.0)
+    good_ref, H_ref = fit_rows(x1, x2, rows, nb, 2.0)
     good, H, H_inv = affine_kernel.fit_rows(x1, x2, rows, nb, max_residual_px=2.0,
                                             iterations=_ITERATIONS, min_neighbours=MIN_NEIGHBOURS)
     np.testing.assert_array_equal(good, good_ref)
@@ -66,7 +65,7 @@ def test_kernel_rejects_degenerate_neighbourhoods():
     x2f = x1f[:, ::-1].copy()  # a reflection: det = -1
     for a, b in ((x1, x2), (x1f, x2f)):
         rows, nb = np.arange(12), np.tile(np.arange(12), (12, 1))
-        good_ref, _ = _fit_rows(a, b, rows, nb, 2.0)
+        good_ref, _ = fit_rows(a, b, rows, nb, 2.0)
         good, _, H_inv = affine_kernel.fit_rows(a, b, rows, nb, max_residual_px=2.0,
                                                 iterations=_ITERATIONS, min_neighbours=MIN_NEIGHBOURS)
         assert not good.any() and not good_ref.any()
@@ -94,8 +93,8 @@ def test_local_affine_pairs_compiled_and_numpy_agree():
     x1, x2 = _matches(300, seed=7)
     labels = np.repeat([0, 1, 2, 3, -1], [200, 60, 8, 4, 28])
     homs = np.stack([np.stack([np.eye(3), np.eye(3) * (1 + c)]) for c in range(4)])
-    ref = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, compiled=False)
-    got = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, compiled=True)
+    ref = local_affine_pairs_numpy(x1, x2, labels, homs, k=12, max_residual_px=2.0)
+    got = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0)
     fitted_ref = ~np.all(ref == np.r_[homs, np.eye(3)[None].repeat(2, 0)[None]][labels], axis=(1, 2, 3))
     fitted = ~np.all(got == np.r_[homs, np.eye(3)[None].repeat(2, 0)[None]][labels], axis=(1, 2, 3))
     np.testing.assert_array_equal(fitted, fitted_ref)
@@ -156,29 +155,25 @@ def test_local_affine_pairs_of_rows_are_those_of_all():
     rows = np.sort(rng.choice(300, 120, replace=False))
     fit = np.zeros(300, bool)
     fit[rows[::2]] = True
-    for compiled in (False, True):
-        full = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit,
-                                  compiled=compiled)
-        part = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit,
-                                  compiled=compiled, rows=rows)
-        np.testing.assert_array_equal(part, full[rows])
+    full = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit)
+    part = local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit, rows=rows)
+    np.testing.assert_array_equal(part, full[rows])
     with pytest.raises(ValueError, match="among rows"):
         local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, fit=fit,
                            rows=rows[1::2])
 
 
-def test_non_finite_positions_raise_in_both_paths():
+def test_non_finite_positions_raise():
     x1, x2 = _matches(100, seed=2)
     x1[5] = np.nan
     labels = np.zeros(100, np.int64)
     homs = np.tile(np.eye(3), (1, 2, 1, 1))
-    for compiled in (False, True):
-        with pytest.raises(ValueError, match="finite"):
-            local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, compiled=compiled)
+    with pytest.raises(ValueError, match="finite"):
+        local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0)
     labels[5] = -1  # not in a cluster: never searched
-    local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0, compiled=True)
+    local_affine_pairs(x1, x2, labels, homs, k=12, max_residual_px=2.0)
 
 
 def test_warm_loads_the_kernels():
     assert affine_kernel.warm()
-    assert affine_kernel._KERNEL is not None
+    assert affine_kernel._kernel.loaded

@@ -14,8 +14,6 @@ from colmap_miho.refinement.warping import ImageStack
 
 cv2 = pytest.importorskip("cv2")
 skdata = pytest.importorskip("skimage.data")
-pytest.importorskip("numba")
-
 #: samples of the kernel against grid_sample's (intensity units of [0, 1] images): the
 #: torch path rounds each position to float32 grid units (about 1e-4 px on these images).
 SAMPLE_TOL = 2e-4
@@ -62,19 +60,17 @@ def _blur(J: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return on, torch.as_tensor(rng.uniform(0.2, SIGMA_PX, J))
 
 
-def _torch_path(img_f, img_m, Hf, Hm, c, start, blur_f, blur_m, cubic_a=lsm_kernel.KEYS_A, **kw):
+def _torch_path(img_f, img_m, Hf, Hm, c, start, blur_f, blur_m, **kw):
     J = c.shape[0]
     eye = torch.eye(2, dtype=torch.float64).expand(J, 2, 2)
-    tpl = frame_sampler(img_f, Hf, c, blur_px=blur_f, cubic_a=cubic_a)(
+    tpl = frame_sampler(img_f, Hf, c, blur_px=blur_f)(
         torch.arange(J), eye, torch.zeros((J, 2), dtype=torch.float64), RADIUS)
-    return lsm_align(frame_sampler(img_m, Hm, c, blur_px=blur_m, cubic_a=cubic_a), tpl, start, **kw)
+    return lsm_align(frame_sampler(img_m, Hm, c, blur_px=blur_m), tpl, start, **kw)
 
 
-@pytest.mark.parametrize("cubic_a", [lsm_kernel.KEYS_A, -0.5])
 @pytest.mark.parametrize("sigma", [0.0, 0.35, 1.3])
-def test_kernel_reads_what_grid_sample_reads(sigma, cubic_a):
-    """The kernel's bicubic read (plain and smoothed) gives the torch path's values
-    (grid_sample's for Keys' -0.75, its own gather for Catmull-Rom's -0.5), including
+def test_kernel_reads_what_grid_sample_reads(sigma):
+    """The kernel's bicubic read (plain and smoothed) gives grid_sample's values, including
     positions past the image border (taps clamped)."""
     img1, img2, _, Hm, c, start = _problem("camera", 0)
     lsm_kernel._kernel()  # the jitted helpers
@@ -87,7 +83,7 @@ def test_kernel_reads_what_grid_sample_reads(sigma, cubic_a):
     A = torch.tensor([[1.02, 0.03], [-0.05, 0.97]], dtype=torch.float64).expand(J, 2, 2)
     on = torch.ones(J, dtype=torch.bool) if sigma > 0 else torch.zeros(J, dtype=torch.bool)
     sg = torch.full((J,), sigma, dtype=torch.float64)
-    ref = frame_sampler(img2, Hm, c, blur_px=(on, sg), cubic_a=cubic_a)(torch.arange(J), A, start, RADIUS).numpy()
+    ref = frame_sampler(img2, Hm, c, blur_px=(on, sg))(torch.arange(J), A, start, RADIUS).numpy()
     side = 2 * RADIUS + 1
     out = np.empty((side, side))
     wts, taps = np.empty((2, 4, side)), np.empty((2, side), np.int64)
@@ -96,15 +92,13 @@ def test_kernel_reads_what_grid_sample_reads(sigma, cubic_a):
     for j in range(J):
         a = An[j]
         lsm_kernel._read_blurred(img2.numpy(), Hn[j], cn[j, 0] + sn[j, 0], cn[j, 1] + sn[j, 1], a[0, 0], a[0, 1],
-                                 a[1, 0], a[1, 1], RADIUS, cubic_a, bool(on[j]), sigma, out, wts,
+                                 a[1, 0], a[1, 1], RADIUS, lsm_kernel.KEYS_A, bool(on[j]), sigma, out, wts,
                                  taps, cw, base)
         assert np.abs(out - ref[j]).max() < SAMPLE_TOL, (j, np.abs(out - ref[j]).max())
 
 
-@pytest.mark.parametrize(("blur", "affine", "cubic_a"), [
-    (False, True, lsm_kernel.KEYS_A), (True, True, lsm_kernel.KEYS_A), (True, False, lsm_kernel.KEYS_A),
-    (True, True, -0.5)])
-def test_kernel_matches_the_torch_path(blur, affine, cubic_a):
+@pytest.mark.parametrize(("blur", "affine"), [(False, True), (True, True), (True, False)])
+def test_kernel_matches_the_torch_path(blur, affine):
     """Same model, stop rule and precision as the torch path: the shifts agree to float
     rounding where both stop at the same step, and nearly every match does."""
     img1, img2, Hf, Hm, c, start = _problem("astronaut", 1)
@@ -112,9 +106,8 @@ def test_kernel_matches_the_torch_path(blur, affine, cubic_a):
     bf = _blur(J, 2) if blur else None
     bm = _blur(J, 3) if blur else None
     kw = dict(affine=affine, max_iterations=10, tol_px=0.01, max_shift_px=2.0)
-    ref = _torch_path(img1, img2, Hf, Hm, c, start, bf, bm, cubic_a=cubic_a, **kw)
-    got = lsm_kernel.lsm_frames(img1, img2, Hf, c, Hm, c, start, RADIUS, blur_f=bf, blur_m=bm, cubic_a=cubic_a,
-                                **kw)
+    ref = _torch_path(img1, img2, Hf, Hm, c, start, bf, bm, **kw)
+    got = lsm_kernel.lsm_frames(img1, img2, Hf, c, Hm, c, start, RADIUS, blur_f=bf, blur_m=bm, **kw)
     same = (ref.iterations == got.iterations) & (ref.converged == got.converged)
     assert same.float().mean() >= SAME_STOP_SHARE
     assert ref.converged.float().mean() > 0.8
@@ -218,4 +211,4 @@ def test_torch_smoothed_reads_of_a_stack_are_per_image():
 
 def test_warm_loads_the_kernel():
     assert lsm_kernel.warm()
-    assert lsm_kernel._KERNEL is not None
+    assert lsm_kernel._kernel.loaded

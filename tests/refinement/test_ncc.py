@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from colmap_miho.enums import CheckRule, Device, Perturbations, Rectification
+from colmap_miho.enums import Device, Perturbations, Rectification
 from colmap_miho.refinement.config import NCCConfig
 from colmap_miho.refinement.ncc import refine_pair
 from colmap_miho.refinement.perturbations import perturbation_matrices
@@ -58,7 +58,6 @@ def test_config_validation_names_the_field():
         ({"min_template_std": -1.0}, "min_template_std"),
         ({"move": "3"}, "move"),
         ({"rectification": "global"}, "rectification"),
-        ({"check_rule": "both"}, "check_rule"),
         ({"device": "tpu"}, "device"),
     ]:
         with pytest.raises(ValueError, match=field):
@@ -67,10 +66,9 @@ def test_config_validation_names_the_field():
 
 def test_closed_choices_parse_strings_into_enums():
     """Recipes and ``--set`` give strings; the config holds the enum members (equal to them)."""
-    cfg = NCCConfig(perturbations="Paper", rectification="local", check_rule="ncc", device="cpu")
+    cfg = NCCConfig(perturbations="Paper", rectification="local", device="cpu")
     assert cfg.perturbations is Perturbations.PAPER and cfg.perturbations == "paper"
     assert cfg.rectification is Rectification.LOCAL
-    assert cfg.check_rule is CheckRule.NCC
     assert cfg.device is Device.CPU
 
 
@@ -175,9 +173,6 @@ def test_edge_patches_move_only_across_the_edge():
     assert moved.sum() >= 10
     np.testing.assert_allclose(star.pts2[moved, 0], 60.3, atol=0.05)  # back onto the edge
     np.testing.assert_allclose(star.pts2[:, 1], pts2[:, 1], atol=1e-9)  # not along it
-    gated = refine_pair(img, img, pts1, pts2, _identity_pairs(15), move="2",
-                        config=NCCConfig(cornerness_gate=True))
-    assert gated.stats["gated_edge"] == 15 and not gated.moved_side.any()
 
 
 @pytest.mark.parametrize("detector", ["sift", "gftt"])

@@ -63,8 +63,8 @@ def _assert_same(full: RefineResult, rows: np.ndarray, part: RefineResult) -> No
 CONFIGS = {
     # the pairwise default: both directions, extended + base pass, 3 sub-pixel iterations
     "default": NCCConfig(device="cpu"),
-    # the track walk's recipe: one side moves, r = 6, a check template undoing moves
-    "walk": NCCConfig(device="cpu", move="2", template_radius=6, check_radius=4),
+    # the track walk's recipe: one side moves, r = 6
+    "walk": NCCConfig(device="cpu", move="2", template_radius=6),
     # 25 template shapes chosen coarse-to-fine (per-match offsets), NCC* mask
     "paper": NCCConfig(device="cpu", perturbations="paper", ellipse_mask=True,
                        template_radius=5, search_radius=4),
