@@ -247,3 +247,44 @@ def test_a_damaged_verdict_file_is_named_and_resume_refused(planted_db, tmp_path
         _run(planted_db, out, "match_check.mode=remove", resume=True)
     assert str(path) in str(err.value) and "--restart" in str(err.value)
     assert not out.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_a_signal_during_the_global_mapper_stops_the_run_promptly(planted_db, tmp_path, sig):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    from colmap_miho.cli import TERM_GRACE_S
+
+    db, images, _ = planted_db
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    marker, out = tmp_path / "marker", tmp_path / "out.db"
+    helper = Path(__file__).resolve().parents[1] / "helpers" / "busy_in_mapper.py"
+    proc = subprocess.Popen(
+        [sys.executable, str(helper), str(marker), "refine", "--database", str(db), "--images", str(images),
+         "--output", str(out), "--workers", "1", "-q", "--no-refine", "--set", "match_check.mode=remove"],
+        stderr=subprocess.PIPE, text=True, env={**os.environ, "TMPDIR": str(tmp)})
+    try:
+        deadline = time.monotonic() + 120
+        while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert marker.exists() and list(tmp.glob("miho-global-*")), "the mapper never started"
+        t0 = time.monotonic()
+        proc.send_signal(getattr(signal, sig))
+        _, err = proc.communicate(timeout=60)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == (130 if sig == "SIGINT" else 143)
+    assert took < TERM_GRACE_S + 10
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("ERROR: "), err
+    assert not list(tmp.glob("miho-global-*")) and not out.exists()
