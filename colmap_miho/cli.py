@@ -29,6 +29,7 @@ import threading
 import time
 
 from .errors import Terminated, UserError
+from .terminal import PrintableFormatter
 from .version import __version__
 
 log = logging.getLogger("colmap_miho")
@@ -72,8 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
 def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
-                                           else "%(levelname)s: %(message)s"))
+    # names read from files reach the messages: their control characters are escaped (see .terminal)
+    handler.setFormatter(PrintableFormatter("%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
+                                            else "%(levelname)s: %(message)s"))
     root = logging.getLogger("colmap_miho")
     root.handlers[:] = [handler]
     root.setLevel(level)
