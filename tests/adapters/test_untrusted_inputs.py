@@ -6,6 +6,8 @@ from __future__ import annotations
 import sqlite3
 from pathlib import Path
 
+import pytest
+
 from colmap_miho.cli import main
 
 FORGED = "\nERROR: forged line\x1b[31m"
@@ -51,3 +53,25 @@ def test_printable_keeps_names_readable_and_escapes_controls():
     assert printable("façade_漢字.jpg") == "façade_漢字.jpg"
     assert printable("a\r\n\t\x00\x7f\x85\x9b\u202eb") == "a\\r\\n\\t\\x00\\x7f\\x85\\x9b\\u202eb"
     assert printable("x\ny", keep_newlines=True) == "x\ny"
+
+
+# ------------------------------------------------------------------ B. camera parameters
+@pytest.mark.parametrize("params, shown", [("0,0,320,240", "focal length 0 "), ("1e308,1e308,320,240", "1e+308"),
+                                           ("700,-5,320,240", "focal length -5 "),
+                                           ("2e9,700,320,240", "focal length 2e+09")])
+def test_a_meaningless_focal_length_is_refused_up_front(params, shown, db_copy, scene, tmp_path, capfd):
+    out = tmp_path / "m"
+    capfd.readouterr()
+    code = main(["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                 "--camera-model", "PINHOLE", "--camera-params", params, "-q"])
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, lines
+    assert "camera_params: " in lines[0] and shown in lines[0] and "must be > 0" in lines[0], lines
+    assert not out.exists()
+
+
+def test_ordinary_camera_parameters_are_kept():
+    from colmap_miho.sfm import parse_camera_params
+
+    assert parse_camera_params("PINHOLE", "1379.7,1382.1,760.8,503.9") == (1379.7, 1382.1, 760.8, 503.9)
+    assert parse_camera_params("SIMPLE_RADIAL", "1e6,0,0,-0.3") == (1e6, 0.0, 0.0, -0.3)
