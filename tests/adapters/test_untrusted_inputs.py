@@ -75,3 +75,22 @@ def test_ordinary_camera_parameters_are_kept():
 
     assert parse_camera_params("PINHOLE", "1379.7,1382.1,760.8,503.9") == (1379.7, 1382.1, 760.8, 503.9)
     assert parse_camera_params("SIMPLE_RADIAL", "1e6,0,0,-0.3") == (1e6, 0.0, 0.0, -0.3)
+
+
+# ------------------------------------------------------------------ C. missing camera rows
+@pytest.mark.parametrize("command", ["refine", "map"])
+def test_a_missing_camera_row_is_named_not_blamed_on_the_images(command, db_copy, scene, tmp_path, capfd):
+    """Images 2 and 3 refer to camera 7, which has no row: refine saw a 0x0 camera and blamed
+    every image file; map failed on an unknown camera (exit 1)."""
+    _sql(db_copy, "UPDATE images SET camera_id = 7 WHERE image_id IN (2, 3)")
+    names = [r[0] for r in _sql(db_copy, "SELECT name FROM images WHERE image_id IN (2, 3) ORDER BY image_id")]
+    argv = {"refine": ["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--workers", "1",
+                       "--output", str(tmp_path / "out.db"), "-q"],
+            "map": ["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output",
+                    str(tmp_path / "m"), "-q"]}[command]
+    capfd.readouterr()
+    assert main(argv) == 2
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1, lines
+    assert f"database {db_copy} is damaged: the cameras table has no row for camera 7 (used by 2 image(s): " \
+           f"{names[0]!r}, {names[1]!r})" in lines[0], lines
