@@ -94,3 +94,14 @@ def test_a_missing_camera_row_is_named_not_blamed_on_the_images(command, db_copy
     assert len(lines) == 1, lines
     assert f"database {db_copy} is damaged: the cameras table has no row for camera 7 (used by 2 image(s): " \
            f"{names[0]!r}, {names[1]!r})" in lines[0], lines
+
+
+# ------------------------------------------------------------------ D. compare creates nothing on bad input
+def test_compare_with_a_missing_image_folder_creates_no_folder(db_copy, tmp_path, capfd):
+    out = tmp_path / "cmp" / "out"
+    capfd.readouterr()
+    code = main(["compare", "--database", str(db_copy), "--images", str(tmp_path / "no_images"), "--output",
+                 str(out), "-q"])
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+    assert code == 2 and lines == [f"ERROR: image folder not found: {tmp_path / 'no_images'}"], lines
+    assert not (tmp_path / "cmp").exists()
