@@ -6,6 +6,9 @@ from __future__ import annotations
 import sqlite3
 from pathlib import Path
 
+import cv2
+import h5py
+import numpy as np
 import pytest
 
 from colmap_miho.cli import main
@@ -105,3 +108,56 @@ def test_compare_with_a_missing_image_folder_creates_no_folder(db_copy, tmp_path
     lines = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
     assert code == 2 and lines == [f"ERROR: image folder not found: {tmp_path / 'no_images'}"], lines
     assert not (tmp_path / "cmp").exists()
+
+
+# ------------------------------------------------------------------ hloc h5 files (E, F, G)
+@pytest.fixture()
+def tiny(tmp_path):
+    """Two 64x48 images in a sub-folder, three keypoints each, hloc's nested matches layout."""
+    img = tmp_path / "imgs"
+    (img / "sub").mkdir(parents=True)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(img / "sub" / name), np.zeros((48, 64), np.uint8))
+    f, m = tmp_path / "f.h5", tmp_path / "m.h5"
+    with h5py.File(f, "w") as h:
+        h.create_dataset("sub/a.png/keypoints", data=np.array([[10.0, 20.0], [0.0, 0.0], [63.0, 47.0]]))
+        h.create_dataset("sub/b.png/keypoints", data=np.array([[11.0, 21.0], [1.0, 1.0], [62.0, 46.0]]))
+    with h5py.File(m, "w") as h:
+        h.create_dataset("sub-a.png/sub-b.png/matches0", data=np.array([0, -1, 2]))
+    return f, m, img, tmp_path
+
+
+def _import(f, m, img, db, *extra) -> list[str]:
+    return ["import", "-q", "--features", str(f), "--matches", str(m), "--images", str(img), "--database", str(db),
+            "--no-verify", *extra]
+
+
+def _one_error(capfd, argv, code: int = 2) -> str:
+    capfd.readouterr()
+    assert main(argv) == code
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1, lines
+    return lines[0]
+
+
+def test_import_never_advises_an_option_it_does_not_have(tiny, monkeypatch, capfd):
+    """The new database appears (another run) while import works: the refusal must name what
+    ``import`` offers, not ``--overwrite`` (which it has not)."""
+    from colmap_miho.adapters import exchange
+    from colmap_miho.cli import build_parser
+
+    f, m, img, tmp = tiny
+    db = tmp / "new.db"
+    real = exchange.check_integrity
+
+    def other_run_writes(*args, **kwargs):
+        real(*args, **kwargs)
+        db.write_bytes(b"another run's database")
+
+    monkeypatch.setattr(exchange, "check_integrity", other_run_writes)
+    line = _one_error(capfd, _import(f, m, img, db))
+    assert f"output {db} was created by another program during the run" in line, line
+    assert "--overwrite" not in line and "choose another --database" in line, line
+    assert db.read_bytes() == b"another run's database"
+    import_options = build_parser()._subparsers._group_actions[0].choices["import"]._option_string_actions
+    assert "--database" in import_options and "--overwrite" not in import_options
