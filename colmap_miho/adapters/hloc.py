@@ -101,17 +101,40 @@ class PairMatches:
 # features
 
 
+#: Datasets an hloc / deep-image-matching features file holds per image besides ``keypoints``:
+#: a group holding one of them but no ``keypoints`` is an image whose keypoints are missing.
+IMAGE_DATASETS = frozenset({"descriptors", "scores", "image_size", "scales", "oris"})
+
+
 @h5_reader
 def list_feature_images(h5: h5py.File) -> list[str]:
     """Names of the images of a features file: every group holding a ``keypoints`` dataset,
     in file order (names are group paths without the leading ``/``)."""
     names: list[str] = []
+    keypoint_groups: list[str] = []  # a 'keypoints' that is a group, not a dataset
+    without: dict[str, list[str]] = {}  # image group -> its per-image datasets, no 'keypoints'
 
     def visit(path: str, obj) -> None:
-        if isinstance(obj, h5py.Dataset) and path.rsplit("/", 1)[-1] == "keypoints":
-            names.append(obj.parent.name.strip("/"))
+        leaf = path.rsplit("/", 1)[-1]
+        if leaf == "keypoints":
+            if isinstance(obj, h5py.Dataset):
+                names.append(obj.parent.name.strip("/"))
+            else:
+                keypoint_groups.append(obj.parent.name.strip("/"))
+        elif (isinstance(obj, h5py.Dataset) and leaf in IMAGE_DATASETS and obj.parent.name != "/"
+              and "keypoints" not in obj.parent):
+            without.setdefault(obj.parent.name.strip("/"), []).append(leaf)
 
     h5.visititems(visit)
+    # an image group the pairs may name: say what is wrong with it, not "not in the features file"
+    if keypoint_groups:
+        raise InvalidInput(f"{h5.filename}: 'keypoints' of image {keypoint_groups[0]!r} is a group, expected an "
+                           "(N, 2) dataset" + (f" (and {len(keypoint_groups) - 1} more images)"
+                                               if len(keypoint_groups) > 1 else ""))
+    if without:
+        name, held = next(iter(without.items()))
+        raise InvalidInput(f"{h5.filename}: image {name!r} has no 'keypoints' dataset (it holds {', '.join(held)})"
+                           + (f"; and {len(without) - 1} more such images" if len(without) > 1 else ""))
     if not names:
         raise InvalidInput(f"{h5.filename}: no group with a 'keypoints' dataset (not a features file?)")
     return names

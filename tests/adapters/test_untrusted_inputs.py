@@ -161,3 +161,23 @@ def test_import_never_advises_an_option_it_does_not_have(tiny, monkeypatch, capf
     assert db.read_bytes() == b"another run's database"
     import_options = build_parser()._subparsers._group_actions[0].choices["import"]._option_string_actions
     assert "--database" in import_options and "--overwrite" not in import_options
+
+
+def _replace_b(f: Path, make) -> None:
+    with h5py.File(f, "a") as h:
+        del h["sub/b.png"]
+        make(h)
+
+
+@pytest.mark.parametrize("make, expected", [
+    (lambda h: h.create_dataset("sub/b.png/keypoints/xy", data=np.zeros((3, 2))),
+     "'keypoints' of image 'sub/b.png' is a group, expected an (N, 2) dataset"),
+    (lambda h: h.create_dataset("sub/b.png/descriptors", data=np.zeros((256, 3), np.float32)),
+     "image 'sub/b.png' has no 'keypoints' dataset (it holds descriptors)"),
+], ids=["keypoints-group", "keypoints-missing"])
+def test_broken_keypoints_are_named_not_reported_as_a_missing_image(make, expected, tiny, capfd):
+    f, m, img, tmp = tiny
+    _replace_b(f, make)
+    line = _one_error(capfd, _import(f, m, img, tmp / "bad.db"))
+    assert f"ERROR: {f}: {expected}" == line, line
+    assert not list(tmp.glob("bad.db*"))
