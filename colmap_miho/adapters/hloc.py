@@ -304,6 +304,24 @@ def _pair_datasets(h5: h5py.File) -> list[tuple[str, str]]:
     return out
 
 
+def _as_int64(values: np.ndarray, what: str, n0: int, n1: int) -> np.ndarray:
+    """Integer match indices (any shape, any integer dtype) as int64. An unsigned 64-bit value
+    above int64's range (e.g. a -1 written as uint64) cannot be a keypoint index: refused here,
+    naming the entry, rather than wrapped (or cast through float64 with a numpy warning).
+
+    Raises:
+        InvalidInput: naming ``what``, the entry and the value.
+    """
+    if values.dtype.kind == "u" and values.dtype.itemsize >= 8:
+        too_big = values > np.uint64(np.iinfo(np.int64).max)
+        if too_big.any():
+            flat = int(np.flatnonzero(too_big.reshape(-1))[0])
+            raise InvalidInput(f"{what}: keypoint index {int(values.reshape(-1)[flat])} out of range in entry "
+                               f"{flat // (values.shape[1] if values.ndim == 2 else 1)} (images have {n0} and {n1} "
+                               "keypoints; an unsigned array cannot hold -1 for 'unmatched')")
+    return values.astype(np.int64)
+
+
 @h5_reader
 def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0: int, n1: int,
                budget_bytes: int = READ_BUDGET_BYTES) -> PairMatches:
@@ -318,7 +336,7 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
         if ds.shape[0] != n0:
             raise InvalidInput(f"{label}: '{MATCHES0}' has {ds.shape[0]} entries but image {name0!r} "
                                f"has {n0} keypoints")
-        m0 = np.asarray(ds[()])
+        m0 = _as_int64(np.asarray(ds[()]), f"{label}: '{MATCHES0}'", n0, n1)
         idx0 = np.flatnonzero(m0 > -1)
         matches = np.stack([idx0, m0[idx0]], axis=1).astype(np.int64)
         scores = None
@@ -337,7 +355,7 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
         if ds.shape[0] > n0 * n1:
             raise InvalidInput(f"{label}: {ds.shape[0]} matches, more than the {n0} x {n1} keypoint pairs")
         check_budget(h5, ds.shape[0] * 32, f"{label}: {ds.shape[0]} matches", budget_bytes)
-        matches = np.asarray(ds[()]).astype(np.int64)
+        matches = _as_int64(np.asarray(ds[()]), f"{label}: matches", n0, n1)
         scores = None
     bad = (matches < 0) | (matches >= np.array([n0, n1]))
     if bad.any():

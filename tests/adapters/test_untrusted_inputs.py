@@ -181,3 +181,27 @@ def test_broken_keypoints_are_named_not_reported_as_a_missing_image(make, expect
     line = _one_error(capfd, _import(f, m, img, tmp / "bad.db"))
     assert f"ERROR: {f}: {expected}" == line, line
     assert not list(tmp.glob("bad.db*"))
+
+
+def _matches0(m: Path, values, dtype) -> None:
+    with h5py.File(m, "a") as h:
+        del h["sub-a.png/sub-b.png/matches0"]
+        h.create_dataset("sub-a.png/sub-b.png/matches0", data=np.array(values, dtype))
+
+
+def test_uint64_matches0_is_converted_with_a_range_check_and_no_warning(tiny, capfd):
+    import warnings
+
+    f, m, img, tmp = tiny
+    _matches0(m, [0, 2**64 - 1, 2], np.uint64)  # a -1 written as uint64
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a numpy cast warning would fail the import (exit 1)
+        line = _one_error(capfd, _import(f, m, img, tmp / "bad.db"))
+    assert line == (f"ERROR: pair ('sub/a.png', 'sub/b.png'): 'matches0': keypoint index {2**64 - 1} out of range in "
+                    "entry 1 (images have 3 and 3 keypoints; an unsigned array cannot hold -1 for 'unmatched')"), line
+    _matches0(m, [2, 0, 1], np.uint64)  # in range: imported as is
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert main(_import(f, m, img, tmp / "ok.db")) == 0
+    pairs = _sql(tmp / "ok.db", "SELECT rows FROM matches")
+    assert pairs == [(3,)]
