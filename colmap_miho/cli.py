@@ -85,9 +85,17 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
 #: Seconds a SIGTERM may wait for the interpreter (held by a long COLMAP call, e.g. mapping)
 #: before the working files are removed and the process exits anyway.
 TERM_GRACE_S = 5.0
+#: Seconds the clean-up after a SIGTERM that Python did serve (the working files, a Dask
+#: cluster's shutdown) may take before the watcher removes the working files and exits anyway.
+TERM_CLEANUP_S = 60.0
+
+#: Set by the SIGTERM handler: the interpreter got the signal and is cleaning up like Ctrl-C,
+#: so the watcher must not claim that a COLMAP call held it.
+_term_served = threading.Event()
 
 
 def _raise_terminated(signum, frame) -> None:
+    _term_served.set()
     raise Terminated(f"terminated by signal {signum}")
 
 
@@ -95,9 +103,13 @@ def _raise_terminated(signum, frame) -> None:
 def _forced_exit_after_sigterm():
     """Python runs signal handlers between bytecodes only, so a SIGTERM during a long C++ call
     would wait for it to end. A thread reading the signal wakeup fd gives the handler
-    :data:`TERM_GRACE_S`, then removes the working files and exits with 143 itself."""
+    :data:`TERM_GRACE_S`, then removes the working files and exits with 143 itself. When the
+    handler did run within that time, the interpreter is cleaning up (which may take a while, e.g.
+    a Dask cluster's shutdown) and prints its own line: the watcher only steps in, with a line that
+    says so, if that clean-up has not ended after :data:`TERM_CLEANUP_S`."""
     rsock, wsock = socket.socketpair()
     wsock.setblocking(False)
+    _term_served.clear()
     try:
         old_fd = signal.set_wakeup_fd(wsock.fileno(), warn_on_full_buffer=False)
     except ValueError:  # not the main thread
@@ -115,12 +127,17 @@ def _forced_exit_after_sigterm():
             if not data:
                 return
             if signal.SIGTERM in data:
-                time.sleep(TERM_GRACE_S)
+                if _term_served.wait(TERM_GRACE_S):
+                    time.sleep(TERM_CLEANUP_S)
+                    message = (f"ERROR: terminated (SIGTERM); the clean-up did not end within {TERM_CLEANUP_S:.0f} s: "
+                               "working files removed, nothing was written to the input\n")
+                else:
+                    message = ("ERROR: terminated (SIGTERM) during a COLMAP call; working files "
+                               "removed, nothing was written to the input\n")
                 from .adapters.safety import remove_working_files
 
                 remove_working_files()
-                sys.stderr.write("ERROR: terminated (SIGTERM) during a COLMAP call; working files "
-                                 "removed, nothing was written to the input\n")
+                sys.stderr.write(message)
                 sys.stderr.flush()
                 os._exit(143)
 

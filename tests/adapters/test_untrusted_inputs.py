@@ -205,3 +205,57 @@ def test_uint64_matches0_is_converted_with_a_range_check_and_no_warning(tiny, ca
         assert main(_import(f, m, img, tmp / "ok.db")) == 0
     pairs = _sql(tmp / "ok.db", "SELECT rows FROM matches")
     assert pairs == [(3,)]
+
+
+# ------------------------------------------------------------------ H. SIGTERM during a slow clean-up
+SLOW_CLEANUP = """
+import sys, time
+from pathlib import Path
+import colmap_miho.cli as cli
+import colmap_miho.commands.map as cmd
+from colmap_miho.errors import Terminated
+
+cli.TERM_GRACE_S = 0.5  # the clean-up below takes longer than the grace, like a Dask cluster's shutdown
+
+def run(args):
+    Path(sys.argv[1]).write_text("running")
+    try:
+        while True:
+            time.sleep(0.01)  # Python code: the SIGTERM handler is served at once
+    except Terminated:
+        time.sleep(2.0)
+        raise
+
+cmd.run = run
+sys.exit(cli.main(["map", "--database", sys.argv[2], "--images", sys.argv[3], "--output", sys.argv[4], "-q"]))
+"""
+
+
+def test_sigterm_served_during_a_slow_clean_up_is_one_line_not_blamed_on_colmap(db_copy, scene, tmp_path):
+    """With ``--dask`` the cluster's shutdown after a SIGTERM took longer than the watcher's
+    grace: it then printed a second line blaming "a COLMAP call" and cut the clean-up short."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    marker = tmp_path / "marker"
+    script = tmp_path / "slow_cleanup.py"
+    script.write_text(SLOW_CLEANUP)
+    proc = subprocess.Popen([sys.executable, str(script), str(marker), str(db_copy), str(scene.image_dir),
+                             str(tmp_path / "m")], stderr=subprocess.PIPE, text=True, env=os.environ.copy())
+    try:
+        deadline = time.monotonic() + 120
+        while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert marker.exists(), proc.stderr.read() if proc.poll() is not None else "not started in time"
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert proc.returncode == 143 and len(lines) == 1, lines
+    assert lines[0].startswith("ERROR: terminated (SIGTERM); working files removed") and "COLMAP" not in lines[0]
