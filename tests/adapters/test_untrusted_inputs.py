@@ -259,3 +259,24 @@ def test_sigterm_served_during_a_slow_clean_up_is_one_line_not_blamed_on_colmap(
     lines = [line for line in err.splitlines() if line.strip()]
     assert proc.returncode == 143 and len(lines) == 1, lines
     assert lines[0].startswith("ERROR: terminated (SIGTERM); working files removed") and "COLMAP" not in lines[0]
+
+
+# ------------------------------------------------------------------ I. long names in figures
+@pytest.mark.parametrize("num_pairs, name", [
+    (60, lambda i: f"{i}_" + "very_long_folder_name/" * 12 + f"image_{i}.png"),
+    (3, lambda i: f"{i}" + "x" * 300 + "\nERROR\x1b[31m.png"),
+])
+def test_long_image_names_make_no_layout_warning(num_pairs, name, tmp_path):
+    import warnings
+
+    pytest.importorskip("matplotlib")
+    from colmap_miho.reporting import plots
+
+    before = {f"{name(i)}|{name(i + 1)}": 100 + i for i in range(num_pairs)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # matplotlib's "Tight layout not applied" was shown to the user
+        path = plots.plot_matches_per_pair(before, {k: v // 2 for k, v in before.items()}, tmp_path / "m.png")
+    assert path.stat().st_size > 0
+    labels = plots._short_labels(list(before))
+    assert all(len(lab) <= 2 * plots.MAX_NAME_CHARS + 1 and "\n" not in lab and "\x1b" not in lab for lab in labels)
+    assert len(set(labels)) == len(labels)  # still tells the pairs apart
