@@ -186,6 +186,12 @@ def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title:
     ax.bar(x - 0.2, np.maximum(b, 0.8), color=COLORS["baseline"], label=f"baseline ({int(b.sum())})", width=0.4)
     ax.bar(x + 0.2, np.maximum(a, 0.8), color=COLORS["refined"], label=f"colmap-miho ({int(a.sum())})", width=0.4)
     ax.set_yscale("log")
+    # the log axis' default labels are math text ("$\\mathdefault{10^{2}}$"), shown raw under
+    # plain_text: plain numbers instead
+    from matplotlib.ticker import LogFormatter
+
+    ax.yaxis.set_major_formatter(LogFormatter())
+    ax.yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False))
     ax.set_ylabel("verified matches")
     ax.set_title(title or "matches kept per pair")
     ax.legend(fontsize=8)

@@ -280,3 +280,19 @@ def test_long_image_names_make_no_layout_warning(num_pairs, name, tmp_path):
     labels = plots._short_labels(list(before))
     assert all(len(lab) <= 2 * plots.MAX_NAME_CHARS + 1 and "\n" not in lab and "\x1b" not in lab for lab in labels)
     assert len(set(labels)) == len(labels)  # still tells the pairs apart
+
+
+def test_matches_per_pair_axis_labels_are_plain_numbers(tmp_path, monkeypatch):
+    """Under plain_text (no math text) the log axis' default labels showed raw TeX."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from colmap_miho.reporting import plots
+
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # keep the figure to read its labels
+    before = {f"a{i}.png|b{i}.png": 60 + 20 * i for i in range(3)}
+    plots.plot_matches_per_pair(before, before, tmp_path / "m.png")
+    ax = figures[0].axes[0]
+    texts = [t.get_text() for t in ax.get_yticklabels() + ax.get_yticklabels(minor=True) if t.get_text()]
+    assert texts and not any("$" in t or "mathdefault" in t for t in texts), texts
