@@ -26,8 +26,10 @@ import socket
 import sqlite3
 import sys
 import threading
+import time
 
 from .errors import Terminated, UserError
+from .terminal import PrintableFormatter
 from .version import __version__
 
 log = logging.getLogger("colmap_miho")
@@ -71,8 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
 def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
     level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
-                                           else "%(levelname)s: %(message)s"))
+    # names read from files reach the messages: their control characters are escaped (see .terminal)
+    handler.setFormatter(PrintableFormatter("%(asctime)s %(name)s %(levelname)s: %(message)s" if verbose
+                                            else "%(levelname)s: %(message)s"))
     root = logging.getLogger("colmap_miho")
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -82,6 +85,10 @@ def configure_logging(verbose: bool = False, quiet: bool = False) -> None:
 #: Seconds a SIGTERM or Ctrl-C may wait for the interpreter (held by a long COLMAP call, e.g.
 #: mapping) before the working files are removed and the process exits anyway.
 TERM_GRACE_S = 5.0
+#: Seconds the clean-up after a SIGTERM that Python did serve (the working files, a Dask
+#: cluster's shutdown) may take before the watcher removes the working files and exits anyway.
+TERM_CLEANUP_S = 60.0
+
 
 #: Exit status and what the forced exit says, per signal.
 _FORCED_EXITS = {signal.SIGTERM: (143, "terminated (SIGTERM)"), signal.SIGINT: (130, "interrupted")}
@@ -107,7 +114,10 @@ def _forced_exit_after_sigterm():
     """Python runs signal handlers between bytecodes only, so a SIGTERM or Ctrl-C during a long
     C++ call (the global mapper: 10-30 s) would wait for it to end. A thread reading the signal
     wakeup fd gives the handler :data:`TERM_GRACE_S`, then removes the working files and exits
-    with 143 (130 for Ctrl-C) itself."""
+    with 143 (130 for Ctrl-C) itself. When the handler did run within that time, the
+    interpreter is cleaning up (which may take a while, e.g. a Dask cluster's shutdown) and
+    prints its own line: the watcher only steps in, with a line that says so, if that clean-up
+    has not ended after :data:`TERM_CLEANUP_S`."""
     rsock, wsock = socket.socketpair()
     wsock.setblocking(False)
     try:
@@ -127,8 +137,12 @@ def _forced_exit_after_sigterm():
             if not data:
                 return
             signum = next((int(b) for b in data if int(b) in _FORCED_EXITS), None)
-            if signum is not None and not _SIGNAL_HANDLED.wait(TERM_GRACE_S):
-                _forced_exit(signum)  # the handler never ran: a C++ call holds the interpreter
+            if signum is None:
+                continue
+            if not _SIGNAL_HANDLED.wait(TERM_GRACE_S):
+                _forced_exit(signum, "during a COLMAP call")  # the handler never ran: a C++ call holds it
+            time.sleep(TERM_CLEANUP_S)
+            _forced_exit(signum, f"and the clean-up did not end within {TERM_CLEANUP_S:.0f} s")
 
     thread = threading.Thread(target=watch, name="sigterm-watch", daemon=True)
     thread.start()
@@ -143,7 +157,7 @@ def _forced_exit_after_sigterm():
         rsock.close()
 
 
-def _forced_exit(signum: int) -> None:
+def _forced_exit(signum: int, when: str) -> None:
     """Remove the working files (and the worker pool's temporary folder) and exit at once."""
     import multiprocessing.process
     import shutil
@@ -155,8 +169,7 @@ def _forced_exit(signum: int) -> None:
     if pool_tmp:
         shutil.rmtree(pool_tmp, ignore_errors=True)
     code, what = _FORCED_EXITS[signal.Signals(signum)]
-    sys.stderr.write(f"ERROR: {what} during a COLMAP call; working files removed, nothing was written to the "
-                     "input\n")
+    sys.stderr.write(f"ERROR: {what} {when}; working files removed, nothing was written to the input\n")
     sys.stderr.flush()
     os._exit(code)
 

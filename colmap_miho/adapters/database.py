@@ -64,6 +64,37 @@ def validate_database(path: str | Path, name: str | Path | None = None) -> None:
     if missing:
         raise DatabaseError(f"not a COLMAP database (missing tables: {', '.join(missing)}): {shown}")
     _check_blob_sizes(p, shown)
+    _check_camera_rows(p, shown)
+
+
+def _check_camera_rows(p: Path, name: Path) -> None:
+    """Refuse a database whose images refer to a ``camera_id`` with no row in ``cameras``: the
+    image files are fine, the camera row is what is missing (the refinement would see a 0x0
+    camera and blame every image; the mapper would fail on an unknown camera).
+
+    Raises:
+        DatabaseError: naming the file, the missing camera ids and (some of) their images.
+    """
+    con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
+    try:
+        rows = con.execute("SELECT camera_id, name FROM images WHERE camera_id NOT IN "
+                           "(SELECT camera_id FROM cameras) ORDER BY camera_id, image_id").fetchall()
+    except sqlite3.DatabaseError as exc:
+        raise DatabaseError(f"not a COLMAP database ({exc}): {name}") from None
+    finally:
+        con.close()
+    if not rows:
+        return
+    by_camera: dict[int, list[str]] = {}
+    for camera_id, image in rows:
+        by_camera.setdefault(int(camera_id), []).append(str(image))
+    parts = []
+    for camera_id, images in list(by_camera.items())[:3]:
+        shown = ", ".join(repr(n) for n in images[:3]) + (f" and {len(images) - 3} more" if len(images) > 3 else "")
+        parts.append(f"camera {camera_id} (used by {len(images)} image(s): {shown})")
+    more = f" and {len(by_camera) - 3} more camera(s)" if len(by_camera) > 3 else ""
+    raise DatabaseError(f"database {name} is damaged: the cameras table has no row for {'; '.join(parts)}{more}; "
+                        "add the camera rows (or import the images again)")
 
 
 #: (table, key column, bytes per value) of the array blobs pycolmap allocates by their

@@ -126,7 +126,8 @@ def import_hloc(
             with ColmapDatabase(partial) as db:
                 nver, ninl = db.num_verified_pairs(), db.num_inlier_matches()
             check_integrity(partial, database)
-            publish_new_file(partial, database)
+            # import has no --overwrite: it only ever writes a new database
+            publish_new_file(partial, database, advice="remove that file or choose another --database")
     except (OSError, RuntimeError, sqlite3.Error) as exc:
         if not is_disk_full(exc):
             raise

@@ -101,17 +101,40 @@ class PairMatches:
 # features
 
 
+#: Datasets an hloc / deep-image-matching features file holds per image besides ``keypoints``:
+#: a group holding one of them but no ``keypoints`` is an image whose keypoints are missing.
+IMAGE_DATASETS = frozenset({"descriptors", "scores", "image_size", "scales", "oris"})
+
+
 @h5_reader
 def list_feature_images(h5: h5py.File) -> list[str]:
     """Names of the images of a features file: every group holding a ``keypoints`` dataset,
     in file order (names are group paths without the leading ``/``)."""
     names: list[str] = []
+    keypoint_groups: list[str] = []  # a 'keypoints' that is a group, not a dataset
+    without: dict[str, list[str]] = {}  # image group -> its per-image datasets, no 'keypoints'
 
     def visit(path: str, obj) -> None:
-        if isinstance(obj, h5py.Dataset) and path.rsplit("/", 1)[-1] == "keypoints":
-            names.append(obj.parent.name.strip("/"))
+        leaf = path.rsplit("/", 1)[-1]
+        if leaf == "keypoints":
+            if isinstance(obj, h5py.Dataset):
+                names.append(obj.parent.name.strip("/"))
+            else:
+                keypoint_groups.append(obj.parent.name.strip("/"))
+        elif (isinstance(obj, h5py.Dataset) and leaf in IMAGE_DATASETS and obj.parent.name != "/"
+              and "keypoints" not in obj.parent):
+            without.setdefault(obj.parent.name.strip("/"), []).append(leaf)
 
     h5.visititems(visit)
+    # an image group the pairs may name: say what is wrong with it, not "not in the features file"
+    if keypoint_groups:
+        raise InvalidInput(f"{h5.filename}: 'keypoints' of image {keypoint_groups[0]!r} is a group, expected an "
+                           "(N, 2) dataset" + (f" (and {len(keypoint_groups) - 1} more images)"
+                                               if len(keypoint_groups) > 1 else ""))
+    if without:
+        name, held = next(iter(without.items()))
+        raise InvalidInput(f"{h5.filename}: image {name!r} has no 'keypoints' dataset (it holds {', '.join(held)})"
+                           + (f"; and {len(without) - 1} more such images" if len(without) > 1 else ""))
     if not names:
         raise InvalidInput(f"{h5.filename}: no group with a 'keypoints' dataset (not a features file?)")
     return names
@@ -281,6 +304,24 @@ def _pair_datasets(h5: h5py.File) -> list[tuple[str, str]]:
     return out
 
 
+def _as_int64(values: np.ndarray, what: str, n0: int, n1: int) -> np.ndarray:
+    """Integer match indices (any shape, any integer dtype) as int64. An unsigned 64-bit value
+    above int64's range (e.g. a -1 written as uint64) cannot be a keypoint index: refused here,
+    naming the entry, rather than wrapped (or cast through float64 with a numpy warning).
+
+    Raises:
+        InvalidInput: naming ``what``, the entry and the value.
+    """
+    if values.dtype.kind == "u" and values.dtype.itemsize >= 8:
+        too_big = values > np.uint64(np.iinfo(np.int64).max)
+        if too_big.any():
+            flat = int(np.flatnonzero(too_big.reshape(-1))[0])
+            raise InvalidInput(f"{what}: keypoint index {int(values.reshape(-1)[flat])} out of range in entry "
+                               f"{flat // (values.shape[1] if values.ndim == 2 else 1)} (images have {n0} and {n1} "
+                               "keypoints; an unsigned array cannot hold -1 for 'unmatched')")
+    return values.astype(np.int64)
+
+
 @h5_reader
 def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0: int, n1: int,
                budget_bytes: int = READ_BUDGET_BYTES) -> PairMatches:
@@ -295,7 +336,7 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
         if ds.shape[0] != n0:
             raise InvalidInput(f"{label}: '{MATCHES0}' has {ds.shape[0]} entries but image {name0!r} "
                                f"has {n0} keypoints")
-        m0 = np.asarray(ds[()])
+        m0 = _as_int64(np.asarray(ds[()]), f"{label}: '{MATCHES0}'", n0, n1)
         idx0 = np.flatnonzero(m0 > -1)
         matches = np.stack([idx0, m0[idx0]], axis=1).astype(np.int64)
         scores = None
@@ -314,7 +355,7 @@ def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0:
         if ds.shape[0] > n0 * n1:
             raise InvalidInput(f"{label}: {ds.shape[0]} matches, more than the {n0} x {n1} keypoint pairs")
         check_budget(h5, ds.shape[0] * 32, f"{label}: {ds.shape[0]} matches", budget_bytes)
-        matches = np.asarray(ds[()]).astype(np.int64)
+        matches = _as_int64(np.asarray(ds[()]), f"{label}: matches", n0, n1)
         scores = None
     bad = (matches < 0) | (matches >= np.array([n0, n1]))
     if bad.any():

@@ -279,20 +279,22 @@ def _visible_name(database: Path) -> Path:
     return _unused_stamped_name(database, lambda stamp: f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
 
 
-def publish_new_file(src: Path, dst: Path) -> None:
+def publish_new_file(src: Path, dst: Path, *, advice: str = "pass --overwrite to replace it") -> None:
     """Move the finished, closed file ``src`` onto the NEW name ``dst`` (flushed first): only
     if nothing appeared at ``dst`` meanwhile (another run), atomically where hard links work.
+    ``advice`` ends the message when ``dst`` exists: what the calling command offers (a command
+    without ``--overwrite`` must not advise it).
 
     Raises:
         UserError: ``dst`` exists.
     """
     with open(src, "rb+") as fh:
         os.fsync(fh.fileno())
-    _rename_no_replace(src, dst)
+    _rename_no_replace(src, dst, advice=advice)
     _fsync_dir(dst.parent)
 
 
-def _rename_no_replace(src: Path, dst: Path) -> None:
+def _rename_no_replace(src: Path, dst: Path, *, advice: str = "pass --overwrite to replace it") -> None:
     """Move ``src`` to ``dst`` only if ``dst`` does not exist, atomically where the file
     system supports hard links (a race with another run cannot replace its result).
 
@@ -303,11 +305,11 @@ def _rename_no_replace(src: Path, dst: Path) -> None:
         os.link(src, dst)
     except FileExistsError:
         raise UserError(f"output {dst} was created by another program during the run; nothing "
-                        "was replaced (pass --overwrite to replace it)") from None
+                        f"was replaced ({advice})") from None
     except OSError:  # no hard links here (some network/FAT file systems): check, then rename
         if dst.exists():
             raise UserError(f"output {dst} was created by another program during the run; nothing "
-                            "was replaced (pass --overwrite to replace it)") from None
+                            f"was replaced ({advice})") from None
         os.replace(src, dst)
         return
     src.unlink()

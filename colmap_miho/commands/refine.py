@@ -102,5 +102,7 @@ def run(args: argparse.Namespace) -> int:
         restart=args.restart, dask=args.dask,
     )
     if not args.quiet:
-        print(summary.format())
+        from ..terminal import printable_fields
+
+        print(printable_fields(summary).format())  # image names are data: no raw control characters
     return 0

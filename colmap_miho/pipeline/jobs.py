@@ -153,18 +153,22 @@ def _refine_into(database: Path, image_dir: Path, folder: Path, recipe: Recipe, 
                            progress=opts.progress, json_path=folder / "refine.json")
 
 
-def check_compare_inputs(database: str | Path, gt: str | Path | None) -> None:
+def check_compare_inputs(database: str | Path, image_dir: str | Path, gt: str | Path | None) -> None:
     """What ``compare`` reads, checked before it makes its folders and maps for minutes: the
-    database is a COLMAP database (on a private copy, :func:`~colmap_miho.adapters.safety.read_copy`)
-    and the GT, when given, a readable model with posed images.
+    image folder exists, the database is a COLMAP database (on a private copy,
+    :func:`~colmap_miho.adapters.safety.read_copy`) and the GT, when given, a readable model
+    with posed images.
 
     Raises:
+        NotADirectoryError: ``image_dir`` is not a folder.
         DatabaseError / InvalidInput: naming the user's file.
     """
     from ..adapters.database import validate_database
     from ..adapters.safety import read_copy
     from ..adapters.staged_write import private_tempdir
 
+    if not Path(image_dir).is_dir():
+        raise NotADirectoryError(f"image folder not found: {image_dir}")
     with private_tempdir("colmap_miho_check_") as tmp:
         copy = Path(tmp) / "database.db"
         read_copy(database, copy)
@@ -201,7 +205,7 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
     output = Path(output)
     check_distinct(*comparison_paths(output, database=database, images=image_dir, gt=gt, repeats=opts.repeats,
                                      pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=mapping.seed))
-    check_compare_inputs(database, gt)  # before any folder is made
+    check_compare_inputs(database, image_dir, gt)  # before any folder is made
     intrinsics = gt_intrinsics(gt) if opts.gt_cameras and gt is not None else None
     for sub in ("baseline", "refined", "plots"):
         (output / sub).mkdir(parents=True, exist_ok=True)

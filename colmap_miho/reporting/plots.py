@@ -135,13 +135,33 @@ def plot_displacement_histogram(displacements: np.ndarray, path: str | Path, *, 
     return path
 
 
+#: The most characters of one image name in a tick label: longer names keep their start and
+#: end around an ellipsis, so that a pair label fits under the plot (a long name made
+#: matplotlib's tight layout give up, with a warning to the user).
+MAX_NAME_CHARS = 24
+
+
+def _shorten(name: str, limit: int = MAX_NAME_CHARS) -> str:
+    """``name`` with its control characters escaped, at most ``limit`` characters: the start
+    and the (more telling) end around an ellipsis."""
+    from ..terminal import printable
+
+    name = printable(name)
+    if len(name) <= limit:
+        return name
+    head = (limit - 1) // 3
+    return name[:head] + "\u2026" + name[len(name) - (limit - 1 - head):]
+
+
 def _short_labels(labels: list[str]) -> list[str]:
-    """'a.png|b.png' pair labels without the names' common prefix and extension."""
+    """'a.png|b.png' pair labels without the names' common prefix and extension, each name at
+    most :data:`MAX_NAME_CHARS` characters."""
     import os
 
     names = [n for lab in labels for n in lab.split("|")]
     prefix = os.path.commonprefix(names) if len(names) > 1 else ""
-    return ["-".join(os.path.splitext(n[len(prefix):])[0] or n for n in lab.split("|")) for lab in labels]
+    return ["-".join(_shorten(os.path.splitext(n[len(prefix):])[0] or n) for n in lab.split("|"))
+            for lab in labels]
 
 
 @plain_text_figure
@@ -156,12 +176,22 @@ def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title:
     labels = sorted(before, key=lambda k: -before[k])
     b = np.array([before[k] for k in labels], dtype=np.float64)
     a = np.array([after.get(k, 0) for k in labels], dtype=np.float64)
-    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(max(6.0, 0.2 * len(labels) + 2), 5.2), sharex=True,
-                                  gridspec_kw={"height_ratios": [2, 1]})
+    ticks = _short_labels(labels) if len(labels) <= 60 else []
+    # the rotated tick labels get their own height (6 pt characters, about 0.6 em wide), so that
+    # the plots keep theirs and tight_layout always fits
+    label_height_in = max((len(t) for t in ticks), default=0) * 6 * 0.62 / 72
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(max(6.0, 0.2 * len(labels) + 2), 4.8 + label_height_in),
+                                  sharex=True, gridspec_kw={"height_ratios": [2, 1]})
     x = np.arange(len(labels))
     ax.bar(x - 0.2, np.maximum(b, 0.8), color=COLORS["baseline"], label=f"baseline ({int(b.sum())})", width=0.4)
     ax.bar(x + 0.2, np.maximum(a, 0.8), color=COLORS["refined"], label=f"colmap-miho ({int(a.sum())})", width=0.4)
     ax.set_yscale("log")
+    # the log axis' default labels are math text ("$\\mathdefault{10^{2}}$"), shown raw under
+    # plain_text: plain numbers instead
+    from matplotlib.ticker import LogFormatter
+
+    ax.yaxis.set_major_formatter(LogFormatter())
+    ax.yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False))
     ax.set_ylabel("verified matches")
     ax.set_title(title or "matches kept per pair")
     ax.legend(fontsize=8)
@@ -171,8 +201,8 @@ def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title:
     ax2.set_ylabel("kept (%)")
     ax2.set_ylim(0, max(105.0, 100 * float(frac.max(initial=0)) + 5))
     ax2.set_xlabel("image pair (sorted by baseline matches)")
-    if len(labels) <= 60:
-        ax2.set_xticks(x, _short_labels(labels), rotation=90, fontsize=6)
+    if ticks:
+        ax2.set_xticks(x, ticks, rotation=90, fontsize=6)
     fig.tight_layout()
     path = Path(path)
     _save(fig, path)

@@ -119,6 +119,17 @@ def parse_camera_params(model: str, params: str) -> tuple[float, ...]:
     if len(values) != n:
         raise InvalidInput(f"camera_params: camera model {model.upper()} takes {n} parameters, got {len(values)} "
                          f"({params!r})")
+    # A focal length is in pixels: width / (2 tan(fov / 2)). 1e9 px is a field of view of 1e-4 deg
+    # for a 100 000 px wide image, beyond any lens (a 100 m telescope on 1 um pixels is 1e8 px);
+    # larger values (or 0) are typos that would fail late, deep in the mapper.
+    import pycolmap
+
+    max_focal_px = 1e9
+    cam = pycolmap.Camera.create_from_model_name(1, model.upper(), 1.0, 2, 2)
+    for i in cam.focal_length_idxs():
+        if not 0.0 < values[i] <= max_focal_px:
+            raise InvalidInput(f"camera_params: focal length {values[i]:g} (parameter {i + 1} of {model.upper()}) "
+                               f"must be > 0 and at most {max_focal_px:g} pixels")
     return tuple(values)
 
 
