@@ -65,6 +65,8 @@ class MatchCheckStats:
             ``matches_in_removed_pairs`` matches.
         wrong_pairs: the first :data:`MAX_LISTED_PAIRS` of those: image names and ids, matches,
             share failing.
+        removed_per_pair: "name1|name2" (names sorted) -> matches removed (flagged) there, wrong
+            pairs' whole count included; pairs with none are left out.
         seconds: wall time of the rounds (estimates, judging and re-placements).
         round_seconds: per round, its parts: "database" (the estimate's temporary database),
             "mapper", "pair_rotations" (each pair's own rotation), "judging", "placements".
@@ -87,6 +89,7 @@ class MatchCheckStats:
     pairs_removed: int = 0
     matches_in_removed_pairs: int = 0
     wrong_pairs: list[dict] = field(default_factory=list)
+    removed_per_pair: dict[str, int] = field(default_factory=dict)
     seconds: float = 0.0
     round_seconds: list[dict] = field(default_factory=list)
 
@@ -149,7 +152,7 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
         failed, wrong, stats = _read_back(store, *stored)
         log.info("match check: the verdicts of the interrupted run are used")
     for w in stats.wrong_pairs:
-        log.info("match check: %s %s - %s: %.0f%% of %d matches off the global estimate",
+        log.debug("match check: %s %s - %s: %.0f%% of %d matches off the global estimate",
                  "removed" if cfg.mode == MatchCheckMode.REMOVE else "flagged", *w["images"],
                  100 * w["fail_share"], w["matches"])
     if cfg.mode != MatchCheckMode.REMOVE or not stats.used:
@@ -198,6 +201,8 @@ def _meta(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.n
         "pairs_removed": len(d.wrong), "matches_in_removed_pairs": int(sum(len(matches[p]) for p in d.wrong)),
         "wrong_pairs": [{"images": [name(i), name(j)], "image_ids": [i, j], "matches": len(matches[(i, j)]),
                          "fail_share": round(d.fail_share[(i, j)], 3)} for i, j in wrong_list[:MAX_LISTED_PAIRS]],
+        "removed_per_pair": {"|".join(sorted((name(i), name(j)))): int(f.sum())
+                             for (i, j), f in sorted(d.failed.items()) if f.any()},
         "seconds": float(sum(sum(r.values()) for r in d.seconds)), "round_seconds": d.seconds,
     }
 

@@ -118,12 +118,16 @@ def plotly_text(text: str) -> str:
     return html.escape(str(text), quote=False)
 
 
-def _matches_figure(go, before: dict, after: dict):
-    """Verified matches per pair, baseline vs refined, pairs sorted by the baseline's count."""
+def _matches_figure(go, before: dict, after: dict, checked: dict | None = None):
+    """Verified matches per pair, baseline vs refined, pairs sorted by the baseline's count;
+    with ``checked`` (pair -> matches the match check removed) a third bar per pair, and the
+    hover splits the removals between the filter and the match check."""
     labels = sorted(before, key=lambda k: (-before[k], k))
     b = np.array([before[k] for k in labels], dtype=np.float64)
     a = np.array([after.get(k, 0) for k in labels], dtype=np.float64)
+    c = np.array([(checked or {}).get(k, 0) for k in labels], dtype=np.float64)
     kept = np.where(b > 0, 100 * a / np.maximum(b, 1), 0.0)
+    by_filter = np.maximum(b - a - c, 0)
     from .plots import _short_labels
 
     names = [plotly_text(k.replace("|", " - ")) for k in labels]
@@ -133,9 +137,14 @@ def _matches_figure(go, before: dict, after: dict):
     fig.add_trace(go.Bar(x=x, y=b, name=f"baseline ({int(b.sum())})", marker_color=COLORS["baseline"],
                          customdata=names, hovertemplate="%{customdata}<br>baseline %{y:d}<extra></extra>"))
     fig.add_trace(go.Bar(x=x, y=a, name=f"colmap-miho ({int(a.sum())})", marker_color=COLORS["refined"],
-                         customdata=np.c_[np.array(names, dtype=object), np.round(kept, 1)],
-                         hovertemplate="%{customdata[0]}<br>colmap-miho %{y:d} (%{customdata[1]}% kept)"
-                                       "<extra></extra>"))
+                         customdata=np.c_[np.array(names, dtype=object), np.round(kept, 1), by_filter, c],
+                         hovertemplate="%{customdata[0]}<br>colmap-miho %{y:d} (%{customdata[1]}% kept)<br>"
+                                       "removed by the filter %{customdata[2]:d}, by the match check "
+                                       "%{customdata[3]:d}<extra></extra>"))
+    if checked:
+        fig.add_trace(go.Bar(x=x, y=c, name=f"removed by the match check ({int(c.sum())})",
+                             marker_color=COLORS["checked"], customdata=names,
+                             hovertemplate="%{customdata}<br>match check removed %{y:d}<extra></extra>"))
     fig.update_layout(barmode="group", height=380, margin={"l": 60, "r": 20, "t": 20, "b": 50},
                       yaxis={"type": "log", "title": "verified matches"},
                       xaxis={"title": "image pair (sorted by baseline matches; hover for names)", "type": "category"},
@@ -296,8 +305,11 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
                                  "pose"))
     before, after = changes.get("matches_before", {}), changes.get("matches_after", {})
     if before:
-        sections.append(_section("Matches per pair", _figure_html(_matches_figure(go, before, after), "matches"),
-                                 "Verified matches of each image pair in the two databases (log scale).", "pairs"))
+        checked = (refine.get("match_check") or {}).get("removed_per_pair") or {}
+        sections.append(_section("Matches per pair", _figure_html(_matches_figure(go, before, after, checked),
+                                                                  "matches"),
+                                 "Verified matches of each image pair in the two databases (log scale); hover a "
+                                 "pair for what the filter and the match check removed.", "pairs"))
     disp = np.asarray(changes.get("displacements", np.zeros(0)))
     sections.append(_section("Keypoint displacement",
                              _figure_html(_displacement_figure(go, disp, moved_keypoints(recs), _image_size(recs)),

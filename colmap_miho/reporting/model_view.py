@@ -21,7 +21,7 @@ POINT_BUDGET = 50_000
 MAX_IMAGES_SHOWN = 24
 """Images offered in the keypoint-displacement view (the ones with most moved keypoints)."""
 
-COLORS = {"baseline": "#7f7f7f", "refined": "#d62728", "model": "#1f77b4"}
+COLORS = {"baseline": "#7f7f7f", "refined": "#d62728", "model": "#1f77b4", "checked": "#ff7f0e"}
 SIDE_LABEL = {"baseline": "baseline", "refined": "colmap-miho"}
 
 

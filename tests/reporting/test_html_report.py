@@ -297,3 +297,15 @@ def test_comparison_page_shows_evil_names_as_text(tmp_path):
                                     models={"baseline": base}, budget=50).read_text()
     assert "&lt;a href=" in text
     assert "\\u003ca href" not in text and '<a href="https://example.com"' not in text
+
+
+def test_matches_per_pair_split_the_removals_between_the_filter_and_the_match_check():
+    go = pytest.importorskip("plotly.graph_objects")
+    before, after, checked = {"a|b": 100, "a|c": 50}, {"a|b": 70, "a|c": 50}, {"a|b": 20}
+    fig = hr._matches_figure(go, before, after, checked)
+    names = [t.name for t in fig.data]
+    assert names == ["baseline (150)", "colmap-miho (120)", "removed by the match check (20)"]
+    refined = fig.data[1]
+    split = {row[0]: (int(row[2]), int(row[3])) for row in refined.customdata}
+    assert split == {"a - b": (10, 20), "a - c": (0, 0)}  # 100 - 70 - 20 by the filter
+    assert len(hr._matches_figure(go, before, after).data) == 2  # the check off: no third bar
