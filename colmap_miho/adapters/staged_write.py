@@ -22,6 +22,7 @@ import tempfile
 from pathlib import Path
 
 from ..errors import RunFailed, UserError
+from .model_files import MODEL_EXTENSIONS, MODEL_STEMS
 from .safety import _WORKING_FILES, _fsync_dir, _umask
 
 log = logging.getLogger(__name__)
@@ -267,10 +268,8 @@ def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool 
         written = {f.name for f in stage.iterdir()}
         for f in sorted(stage.iterdir()):
             os.replace(f, folder / f.name)
-        from .paths import MODEL_STEMS
-
         for stem in MODEL_STEMS:
-            for ext in (".bin", ".txt"):
+            for ext in MODEL_EXTENSIONS:
                 if f"{stem}{ext}" not in written:
                     (folder / f"{stem}{ext}").unlink(missing_ok=True)
         _fsync_dir(folder)
