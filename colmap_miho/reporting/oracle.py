@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .keypoint_accuracy import _camera
+from .keypoint_accuracy import camera_krt
 from .track_geometry import fundamental_from_poses, symmetric_epipolar_distance
 
 ORACLE_THRESHOLD_PX = 4.0
@@ -36,7 +36,7 @@ ORACLE_THRESHOLD_PX = 4.0
 def pair_distances(cam1, cam2, xy1: np.ndarray, xy2: np.ndarray) -> np.ndarray:
     """Symmetric GT epipolar distances (M,) px of matched points ``xy1, xy2`` (M, 2) between two
     GT cameras (objects with ``K, R, t``: world-to-camera, pixel-centre K)."""
-    F = fundamental_from_poses(*_camera(cam1), *_camera(cam2))
+    F = fundamental_from_poses(*camera_krt(cam1), *camera_krt(cam2))
     return symmetric_epipolar_distance(F, xy1, xy2)
 
 

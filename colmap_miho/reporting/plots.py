@@ -135,7 +135,7 @@ def plot_displacement_histogram(displacements: np.ndarray, path: str | Path, *, 
     return path
 
 
-def _short_labels(labels: list[str]) -> list[str]:
+def short_labels(labels: list[str]) -> list[str]:
     """'a.png|b.png' pair labels without the names' common prefix and extension."""
     import os
 
@@ -172,7 +172,7 @@ def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title:
     ax2.set_ylim(0, max(105.0, 100 * float(frac.max(initial=0)) + 5))
     ax2.set_xlabel("image pair (sorted by baseline matches)")
     if len(labels) <= 60:
-        ax2.set_xticks(x, _short_labels(labels), rotation=90, fontsize=6)
+        ax2.set_xticks(x, short_labels(labels), rotation=90, fontsize=6)
     fig.tight_layout()
     path = Path(path)
     _save(fig, path)
