@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .keypoint_accuracy import camera_krt
-from .track_geometry import fundamental_from_poses, symmetric_epipolar_distance
+from colmap_miho.reporting.keypoint_accuracy import camera_krt
+from colmap_miho.reporting.track_geometry import fundamental_from_poses, symmetric_epipolar_distance
 
 ORACLE_THRESHOLD_PX = 4.0
 """A match farther than this (px, symmetric) from its GT epipolar line is a GT outlier."""
@@ -160,8 +160,8 @@ def write_oracle_database(database: str | Path, output: str | Path, gt: Mapping[
         FileExistsError: ``output`` exists.
         DatabaseError: ``database`` is missing or not a COLMAP database.
     """
-    from ..adapters.database import ColmapDatabase, validate_database
-    from ..adapters.safety import read_copy
+    from colmap_miho.adapters.database import ColmapDatabase, validate_database
+    from colmap_miho.adapters.safety import read_copy
 
     if not threshold_px > 0:
         raise ValueError(f"threshold_px must be > 0, got {threshold_px}")
