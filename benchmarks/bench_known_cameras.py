@@ -6,7 +6,7 @@ unless ``--build-missing``) gives these rows:
 
 - ``input``: the database as COLMAP left it;
 - ``oracle``: the same database with every stored match farther than ``--oracle-threshold`` px
-  (4) from its GT epipolar line removed (:mod:`colmap_miho.reporting.oracle`): what a perfect
+  (4) from its GT epipolar line removed (:mod:`miho_bench.oracle`): what a perfect
   match filter gives;
 - one row per ``--variant``: ``refine_database`` with that recipe / overrides (cached under
   ``--work`` by recipe, overrides and code).
@@ -131,7 +131,7 @@ def refined_database(db: Path, image_dir: Path, folder: Path, name: str, recipe:
 
 def oracle_database(db: Path, folder: Path, gt_poses: dict, threshold: float) -> tuple[Path, dict]:
     """The GT-oracle copy of ``db`` under ``folder`` (cached) and what it removed."""
-    from colmap_miho.reporting.oracle import write_oracle_database
+    from miho_bench.oracle import write_oracle_database
 
     out = folder / f"oracle_{threshold:g}px.db"
     side = out.with_suffix(".json")
@@ -147,8 +147,8 @@ def oracle_database(db: Path, folder: Path, gt_poses: dict, threshold: float) ->
 
 def database_figures(database: Path, gt_poses: dict, threshold: float) -> dict:
     """GT-outlier counts and keypoint accuracy of a database's stored inliers."""
-    from colmap_miho.reporting.oracle import gt_epipolar_distances, outlier_counts
     from colmap_miho.reporting.report import database_keypoint_accuracy, read_database_inliers
+    from miho_bench.oracle import gt_epipolar_distances, outlier_counts
 
     inl = read_database_inliers(database)
     counts = outlier_counts(gt_epipolar_distances(inl.keypoints, inl.matches, gt_poses), threshold)

@@ -1,4 +1,5 @@
-"""Checking a binary COLMAP model's files against their sizes before pycolmap reads them.
+"""The COLMAP model files: their names (:data:`MODEL_STEMS`), and a check of a binary model's
+files against their sizes before pycolmap reads them.
 
 pycolmap's binary reader trusts every count in the file (cameras, images, 2D points per image,
 3D points, track lengths, rig sensors, frame data): a truncated or damaged file makes it read
@@ -16,6 +17,11 @@ import struct
 from pathlib import Path
 
 from ..errors import InvalidInput
+
+#: The files of a COLMAP model (``<stem>.bin`` or ``<stem>.txt``), in COLMAP's order.
+MODEL_STEMS = ("cameras", "images", "points3D", "rigs", "frames")
+#: The extensions of the two model formats, binary and text.
+MODEL_EXTENSIONS = (".bin", ".txt")
 
 _U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")

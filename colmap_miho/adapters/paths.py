@@ -15,6 +15,8 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from ..errors import UserError
+from .model_files import MODEL_EXTENSIONS, MODEL_STEMS
+from .staged_write import CHARACTER_DEVICE, check_output_path
 
 #: SQLite's side files of a database: writing one of these corrupts the database.
 SQLITE_SIDE_SUFFIXES = ("-wal", "-shm", "-journal")
@@ -53,7 +55,6 @@ def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
     return resolve(a) == resolve(b)
 
 
-MODEL_STEMS = ("cameras", "images", "points3D", "rigs", "frames")
 #: Where a model folder argument may keep its model (see ``reporting.gt_model.resolve_model_dir``).
 MODEL_SUBFOLDERS = ("", "gt_model", "sparse/0", "0")
 
@@ -64,7 +65,7 @@ def model_files(folder: PathArg, label: str) -> dict[str, Path]:
     :func:`check_distinct`; empty when ``folder`` is None."""
     if folder is None:
         return {}
-    names = [f"{stem}{ext}" for stem in MODEL_STEMS for ext in (".bin", ".txt")]
+    names = [f"{stem}{ext}" for stem in MODEL_STEMS for ext in MODEL_EXTENSIONS]
     return {f"{label} ({name})": Path(folder) / name for name in names}
 
 
@@ -212,8 +213,6 @@ def check_distinct(inputs: Mapping[str, PathArg], outputs: Mapping[str, PathArg]
         if ident is not None:
             by_identity.setdefault(ident, label)
         by_path.setdefault(resolve(inp), label)
-    from .staged_write import CHARACTER_DEVICE, check_output_path
-
     devices = set()
     for out_label, out in outs.items():
         if check_output_path(out, out_label) == CHARACTER_DEVICE:  # written through: /dev/null twice is fine

@@ -1,9 +1,10 @@
-"""Safe handling of the user's database file: checks, working copies, atomic replace, backups.
+"""Safe handling of the user's database file: checks, read copies, backups.
 
 The input database is never opened for writing (and never by pycolmap, which migrates the
-schema on open). All work happens on a temporary copy beside the output; on success the copy
-replaces the output with :func:`os.replace` (atomic on one file system). A crash, SIGKILL or
-Ctrl-C at any point leaves the input byte-identical.
+schema on open). All work happens on a temporary copy beside the output
+(:mod:`~colmap_miho.adapters.working_copy`); on success the copy replaces the output with
+:func:`os.replace` (atomic on one file system). A crash, SIGKILL or Ctrl-C at any point leaves
+the input byte-identical.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import time
 from pathlib import Path
 
 from ..errors import DatabaseError, UserError
+from .filesystem import WORKING_FILES, fsync_file
 
 log = logging.getLogger(__name__)
 
@@ -28,18 +30,18 @@ SIDE_SUFFIXES = ("-wal", "-shm", "-journal")
 _LOCK_START = 0x40000000
 _LOCK_LEN = 512
 
-#: Working files of this process that a forced exit must remove (see :func:`remove_working_files`).
-_WORKING_FILES: set[Path] = set()
-#: In-place backups not yet needed: backup -> (the input, its identity when backed up).
-_PENDING_BACKUPS: dict[Path, tuple[Path, tuple]] = {}
+#: In-place backups not yet needed: backup -> (the input, its identity when backed up); a forced
+#: exit removes those whose input was not replaced (see :func:`remove_working_files`).
+PENDING_BACKUPS: dict[Path, tuple[Path, tuple]] = {}
 
 
 def remove_working_files() -> list[Path]:
-    """Delete this process's registered working files (working copies, read copies) and their
+    """Delete this process's registered working files
+    (:data:`~colmap_miho.adapters.filesystem.WORKING_FILES`: working copies, read copies) and their
     SQLite side files; returns those that existed. For a forced exit (a SIGTERM that arrives
     while a long COLMAP call holds the interpreter), where no ``finally`` block runs."""
     removed = []
-    for path in list(_WORKING_FILES):
+    for path in list(WORKING_FILES):
         if path.exists():
             removed.append(path)
         with contextlib.suppress(OSError):
@@ -47,13 +49,13 @@ def remove_working_files() -> list[Path]:
                 shutil.rmtree(path, ignore_errors=True)
             else:
                 remove_with_side_files(path)
-        _WORKING_FILES.discard(path)
-    for backup, (target, identity) in list(_PENDING_BACKUPS.items()):
+        WORKING_FILES.discard(path)
+    for backup, (target, identity) in list(PENDING_BACKUPS.items()):
         with contextlib.suppress(OSError):
             if file_identity(target) == identity:  # the input was not replaced: no need for it
                 backup.unlink()
                 removed.append(backup)
-        _PENDING_BACKUPS.pop(backup, None)
+        PENDING_BACKUPS.pop(backup, None)
     return removed
 
 
@@ -85,7 +87,7 @@ def side_files(path: Path) -> list[Path]:
     return [Path(str(path) + s) for s in SIDE_SUFFIXES if Path(str(path) + s).exists()]
 
 
-def _locked_by_other_process(path: Path) -> bool:
+def locked_by_other_process(path: Path) -> bool:
     """True if another process holds an SQLite lock on ``path`` (POSIX F_GETLK probe).
 
     The probe opens the file read-only and only asks the kernel; it takes no lock.
@@ -122,7 +124,7 @@ def check_not_in_use(path: Path) -> None:
             names the file and the way out.
     """
     found = side_files(path)
-    if _locked_by_other_process(path):
+    if locked_by_other_process(path):
         names = "".join(f", {f.name} exists" for f in found)
         raise DatabaseError(f"database {path} is in use by another program (locked by another process{names}); "
                             "close it (COLMAP, a viewer) and retry")
@@ -168,7 +170,7 @@ def read_copy(database: str | os.PathLike, dst: Path) -> Path:
     src = check_database_path(database)
     check_not_in_use(src)
     check_free_space(Path(dst).parent, 2 * _size(src), f"a working copy of {src}")
-    _WORKING_FILES.add(Path(dst))
+    WORKING_FILES.add(Path(dst))
     copy_file(src, Path(dst))
     check_integrity(Path(dst), src)
     return src
@@ -208,8 +210,7 @@ def copy_file(src: Path, dst: Path) -> None:
     before = src.stat()
     try:
         shutil.copyfile(src, dst)
-        with open(dst, "rb+") as fh:
-            os.fsync(fh.fileno())
+        fsync_file(dst)
     except OSError as exc:
         with contextlib.suppress(OSError):
             Path(dst).unlink()
@@ -238,10 +239,10 @@ def default_output_path(database: Path) -> Path:
 
 def backup_path(database: Path, now: float | None = None) -> Path:
     """A timestamped backup name beside ``database`` that does not exist yet."""
-    return _unused_stamped_name(database, lambda stamp: f"{database.name}.{stamp}.bak", now)
+    return unused_stamped_name(database, lambda stamp: f"{database.name}.{stamp}.bak", now)
 
 
-def _unused_stamped_name(database: Path, name_for, now: float | None = None) -> Path:
+def unused_stamped_name(database: Path, name_for, now: float | None = None) -> Path:
     """``database.with_name(name_for(stamp))`` with the local time as stamp, ``-1``, ``-2``, ...
     appended to the stamp until the name does not exist."""
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
@@ -258,32 +259,3 @@ def remove_with_side_files(path: Path) -> None:
     for p in [path, *(Path(str(path) + s) for s in SIDE_SUFFIXES)]:
         with contextlib.suppress(FileNotFoundError):
             p.unlink()
-
-
-def _fsync_dir(folder: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
-def atomic_replace(tmp: Path, dst: Path) -> None:
-    """Move the finished working copy ``tmp`` onto ``dst`` atomically (same folder).
-
-    The working copy must be closed (no side files); they are removed first.
-    """
-    for s in SIDE_SUFFIXES:
-        side = Path(str(tmp) + s)
-        if side.exists():
-            raise DatabaseError(f"working copy {tmp} is still open ({side.name} exists)")
-    with open(tmp, "rb+") as fh:
-        os.fsync(fh.fileno())
-    os.replace(tmp, dst)
-    _fsync_dir(dst.parent)
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

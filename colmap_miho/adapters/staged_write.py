@@ -2,7 +2,8 @@
 
 Every file a command writes goes through :func:`staged_write`: a unique hidden name beside the
 target, flushed, its size checked after close (a native writer's silence is not trusted), then
-renamed onto the target; removed on failure. A symlink target keeps its link. Only a regular
+renamed onto the target; removed on failure (the primitives are
+:mod:`~colmap_miho.adapters.filesystem`'s). A symlink target keeps its link. Only a regular
 file (or nothing) is ever replaced: a character device (``/dev/null``, a terminal) is written
 through, and a FIFO, socket, block device or folder is refused (:func:`output_kind`). Private temporary
 folders (:func:`private_tempdir`) are locked while in use and removed by the next run after a kill.
@@ -22,7 +23,8 @@ import tempfile
 from pathlib import Path
 
 from ..errors import RunFailed, UserError
-from .safety import _WORKING_FILES, _fsync_dir, _umask
+from .filesystem import WORKING_FILES, current_umask, fsync_dir, fsync_file, replace_durably, temp_beside
+from .model_files import MODEL_EXTENSIONS, MODEL_STEMS
 
 log = logging.getLogger(__name__)
 
@@ -101,34 +103,39 @@ def check_output_path(path: str | os.PathLike, label: str | None = None, *, devi
                     "written; give a file name")
 
 
-def _write_through(tmp: Path, device: str | os.PathLike) -> None:
+def write_through(tmp: Path, device: str | os.PathLike) -> None:
     """Copy the finished staged file ``tmp`` into the character device ``device`` (which is
     never replaced)."""
     with open(tmp, "rb") as src, open(device, "wb") as dst:
         shutil.copyfileobj(src, dst)
 
 
-def _new_staging_name(target: Path) -> Path:
-    """A new, empty, uniquely named hidden file ``.<name>.<random>.tmp`` beside ``target``
-    (never a fixed name: two runs, or a user's own file, are never touched)."""
+def new_staging_name(target: Path) -> Path:
+    """:func:`~colmap_miho.adapters.filesystem.temp_beside` ``target``, its failures told in
+    one line.
+
+    Raises:
+        RunFailed: disk full.
+        UserError: the folder is missing or cannot be written.
+    """
     try:
-        fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        return temp_beside(target)
     except FileNotFoundError:
         raise UserError(f"cannot write {target}: its folder {target.parent} does not exist") from None
     except OSError as exc:
         if is_disk_full(exc):
             raise disk_full_error(target.parent, f"writing {target}") from None
         raise UserError(f"cannot write {target}: {exc.strerror or exc}") from None
-    os.close(fd)
-    return Path(name)
 
 
-def _check_written(tmp: Path, target: Path, expected_size: int | None) -> None:
+def check_written(tmp: Path, target: Path, expected_size: int | None) -> None:
     """Flush ``tmp`` to disk and check its size (``expected_size``, else > 0): a native writer
-    that hits a full disk often says nothing and leaves a short or empty file."""
-    with open(tmp, "rb+") as fh:
-        os.fsync(fh.fileno())
-        size = os.fstat(fh.fileno()).st_size
+    that hits a full disk often says nothing and leaves a short or empty file.
+
+    Raises:
+        RunFailed: the size differs (a full disk, named by ``target``'s folder).
+    """
+    size = fsync_file(tmp)
     if (size != expected_size) if expected_size is not None else size == 0:
         want = f"{expected_size} bytes expected" if expected_size is not None else "an empty file"
         raise disk_full_error(target.parent, f"writing {target} ({size} bytes written, {want})")
@@ -156,8 +163,8 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
     target = write_target(path)
     if device:  # stage beside the caller's path: /dev is not writable by everyone
         target = Path(tempfile.gettempdir()) / Path(path).name
-    tmp = _new_staging_name(target)
-    _WORKING_FILES.add(tmp)
+    tmp = new_staging_name(target)
+    WORKING_FILES.add(tmp)
     try:
         try:
             yield tmp
@@ -165,15 +172,15 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
                 expected = expected_size(tmp) if callable(expected_size) else expected_size
             except ValueError as exc:  # no readable header: cut short
                 raise disk_full_error(target.parent, f"writing {target} ({exc})") from None
-            _check_written(tmp, target, expected)
+            check_written(tmp, target, expected)
             if check_output_path(path) == CHARACTER_DEVICE:  # looked at again: it may have changed
-                _write_through(tmp, path)
+                write_through(tmp, path)
                 return
             if device:
                 raise UserError(f"{path} changed from a character device to a file during the run; nothing "
                                 "was written: run again")
-            os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private
-            os.replace(tmp, target)
+            os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp makes it private
+            replace_durably(tmp, target)
         except OSError as exc:
             if is_disk_full(exc):
                 raise disk_full_error(target.parent, f"writing {target}") from None
@@ -182,11 +189,10 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
             if is_disk_full(exc):
                 raise disk_full_error(target.parent, f"writing {target}") from None
             raise
-        _fsync_dir(target.parent)
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink()
-        _WORKING_FILES.discard(tmp)
+        WORKING_FILES.discard(tmp)
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
@@ -246,7 +252,7 @@ def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool 
         if is_disk_full(exc):
             raise disk_full_error(folder.parent, f"writing the model {folder}") from None
         raise
-    _WORKING_FILES.add(stage)
+    WORKING_FILES.add(stage)
     try:
         try:
             if text:
@@ -254,8 +260,7 @@ def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool 
             else:
                 reconstruction.write(str(stage))
             for f in stage.iterdir():
-                with open(f, "rb+") as fh:
-                    os.fsync(fh.fileno())
+                fsync_file(f)
             back = pycolmap.Reconstruction(str(stage))
             counts = (back.num_cameras(), back.num_images(), back.num_points3D())
             if counts != (reconstruction.num_cameras(), reconstruction.num_images(), reconstruction.num_points3D()):
@@ -267,16 +272,14 @@ def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool 
         written = {f.name for f in stage.iterdir()}
         for f in sorted(stage.iterdir()):
             os.replace(f, folder / f.name)
-        from .paths import MODEL_STEMS
-
         for stem in MODEL_STEMS:
-            for ext in (".bin", ".txt"):
+            for ext in MODEL_EXTENSIONS:
                 if f"{stem}{ext}" not in written:
                     (folder / f"{stem}{ext}").unlink(missing_ok=True)
-        _fsync_dir(folder)
+        fsync_dir(folder)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
-        _WORKING_FILES.discard(stage)
+        WORKING_FILES.discard(stage)
     return folder
 
 
@@ -304,13 +307,13 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
             raise disk_full_error(where, "creating a working folder") from None
         raise
     fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
-    _WORKING_FILES.add(path)
+    WORKING_FILES.add(path)
     try:
         yield path
     finally:
         lock.close()
         shutil.rmtree(path, ignore_errors=True)
-        _WORKING_FILES.discard(path)
+        WORKING_FILES.discard(path)
 
 
 def _remove_stale_tempdirs(parent: Path, prefix: str) -> None:

@@ -12,14 +12,10 @@ import tempfile
 from pathlib import Path
 
 from ..errors import DatabaseError, RunFailed, UserError
+from .filesystem import WORKING_FILES, current_umask, fsync_dir, fsync_file, temp_beside
 from .safety import (
-    _PENDING_BACKUPS,
-    _WORKING_FILES,
+    PENDING_BACKUPS,
     SIDE_SUFFIXES,
-    _fsync_dir,
-    _locked_by_other_process,
-    _umask,
-    _unused_stamped_name,
     backup_path,
     check_free_space,
     check_integrity,
@@ -27,17 +23,19 @@ from .safety import (
     copy_file,
     default_output_path,
     file_identity,
+    locked_by_other_process,
     remove_with_side_files,
     side_files,
+    unused_stamped_name,
 )
 from .staged_write import (
     CHARACTER_DEVICE,
-    _check_written,
-    _new_staging_name,
-    _write_through,
     check_output_path,
+    check_written,
     is_disk_full,
+    new_staging_name,
     write_target,
+    write_through,
 )
 
 log = logging.getLogger(__name__)
@@ -128,16 +126,14 @@ class WorkingCopy:
             backup = backup_path(self.output)
             copy_file(self.database, backup)
             self.backup = backup
-            _PENDING_BACKUPS[backup] = (self.output, self._identity)
+            PENDING_BACKUPS[backup] = (self.output, self._identity)
             log.info("backup of the input written to %s", self.backup)
         try:
-            fd, name = tempfile.mkstemp(prefix=f".{self.output.name}.", suffix=".tmp", dir=self.output.parent)
+            self.path = temp_beside(self.output)
         except OSError as exc:
             self._drop_backup()
             raise UserError(f"cannot create a working copy in {self.output.parent}: {exc.strerror}") from None
-        os.close(fd)
-        self.path = Path(name)
-        _WORKING_FILES.add(self.path)
+        WORKING_FILES.add(self.path)
         try:
             copy_file(self.database, self.path)
             check_integrity(self.path, self.database)
@@ -166,18 +162,18 @@ class WorkingCopy:
             target = Path(tempfile.gettempdir()) / Path(path).name
         data = text.encode("utf-8")
         try:
-            tmp = _new_staging_name(target)
+            tmp = new_staging_name(target)
         except UserError as exc:
             raise UserError(f"{exc}; nothing was replaced") from None
         try:
             with open(tmp, "wb") as fh:
                 fh.write(data)
-            _check_written(tmp, target, len(data))
+            check_written(tmp, target, len(data))
         except (OSError, UserError) as exc:
             tmp.unlink(missing_ok=True)
             why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
             raise UserError(f"cannot write {target}: {why}; nothing was replaced") from None
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, 0o666 & ~current_umask())
         self._side.append((tmp, Path(path) if device else target))
 
     def commit(self) -> Path:
@@ -203,20 +199,19 @@ class WorkingCopy:
             side = Path(str(self.path) + s)
             if side.exists():
                 raise DatabaseError(f"working copy {self.path} is still open ({side.name} exists)")
-        with open(self.path, "rb+") as fh:
-            os.fsync(fh.fileno())
+        fsync_file(self.path)
         if self.in_place or self.overwrite:
             os.replace(self.path, self.output)
         else:
             _rename_no_replace(self.path, self.output)
-        _WORKING_FILES.discard(self.path)
+        WORKING_FILES.discard(self.path)
         if self.backup is not None:
-            _PENDING_BACKUPS.pop(self.backup, None)  # the replaced input lives on in it
-        _fsync_dir(self.output.parent)
+            PENDING_BACKUPS.pop(self.backup, None)  # the replaced input lives on in it
+        fsync_dir(self.output.parent)
         self.committed = True
         for tmp, target in self._side:
             if check_output_path(target) == CHARACTER_DEVICE:
-                _write_through(tmp, target)
+                write_through(tmp, target)
                 tmp.unlink()
             else:
                 os.replace(tmp, target)
@@ -250,7 +245,7 @@ class WorkingCopy:
             unchanged = False
         if unchanged:
             self.backup.unlink(missing_ok=True)
-            _PENDING_BACKUPS.pop(self.backup, None)
+            PENDING_BACKUPS.pop(self.backup, None)
             self.backup = None
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -258,7 +253,7 @@ class WorkingCopy:
             tmp.unlink(missing_ok=True)
         if not self.committed and self.path is not None:  # None: kept beside a changed input
             remove_with_side_files(self.path)
-            _WORKING_FILES.discard(self.path)
+            WORKING_FILES.discard(self.path)
             self._drop_backup()
         if exc is not None and is_disk_full(exc):
             # ENOSPC / EDQUOT, SQLite's or pycolmap's "database or disk is full": one line
@@ -276,7 +271,7 @@ def _same_inode(a: Path, b: Path) -> bool:
 
 def _visible_name(database: Path) -> Path:
     """``<stem>.miho-<time>.db`` beside ``database``, not existing yet."""
-    return _unused_stamped_name(database, lambda stamp: f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
+    return unused_stamped_name(database, lambda stamp: f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
 
 
 def publish_new_file(src: Path, dst: Path, *, advice: str = "pass --overwrite to replace it") -> None:
@@ -288,10 +283,9 @@ def publish_new_file(src: Path, dst: Path, *, advice: str = "pass --overwrite to
     Raises:
         UserError: ``dst`` exists.
     """
-    with open(src, "rb+") as fh:
-        os.fsync(fh.fileno())
+    fsync_file(src)
     _rename_no_replace(src, dst, advice=advice)
-    _fsync_dir(dst.parent)
+    fsync_dir(dst.parent)
 
 
 def _rename_no_replace(src: Path, dst: Path, *, advice: str = "pass --overwrite to replace it") -> None:
@@ -320,7 +314,7 @@ def leftover_copies(output: Path) -> list[Path]:
     SIGKILL or a power cut cannot delete its own), oldest first. Copies that another process
     holds open (a run still going) are not listed."""
     found = [f for f in Path(output).parent.glob(f".{Path(output).name}.*.tmp")
-             if f.is_file() and not _locked_by_other_process(f)]
+             if f.is_file() and not locked_by_other_process(f)]
     return sorted(found, key=lambda f: f.stat().st_mtime)
 
 

@@ -17,14 +17,13 @@ The store is a folder beside the output (and its hidden working copy),
   SIGKILL.
 
 Every file is written under a temporary name, flushed to disk, then renamed onto its name
-(:func:`os.replace`): a file that exists is complete. ``refine`` removes the store after its
-commit; after a failure, Ctrl-C, SIGTERM or SIGKILL it stays, and ``refine --resume``
-continues from it (``--restart`` discards it). The user's database is never written here.
+(:func:`~colmap_miho.adapters.filesystem.write_atomic`): a file that exists is complete.
+``refine`` removes the store after its commit; after a failure, Ctrl-C, SIGTERM or SIGKILL it
+stays, and ``refine --resume`` continues from it (``--restart`` discards it). The user's database is never written here.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import fcntl
 import hashlib
@@ -33,7 +32,6 @@ import logging
 import os
 import re
 import shutil
-import tempfile
 import zipfile
 import zlib
 from collections.abc import Iterator
@@ -42,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..adapters.filesystem import write_atomic
 from ..errors import UserError
 from ..version import __version__
 from .records import FilteredPairs, PairOutcome
@@ -168,28 +167,12 @@ class _ChunkIndex:
     kept: int
 
 
-def _atomic_write(path: Path, write) -> None:
-    """Write ``path`` whole or not at all: ``write(file)`` fills a temporary file beside it,
-    (binary), which is flushed to disk and renamed onto ``path``; it is removed on any failure."""
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(name, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(name)
-        raise
-
-
 def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    _atomic_write(path, lambda fh: np.savez(fh, **arrays))  # type: ignore[arg-type]  # numpy stubs: allow_pickle kw
+    write_atomic(path, lambda fh: np.savez(fh, **arrays))  # type: ignore[arg-type]  # numpy stubs: allow_pickle kw
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    _atomic_write(path, lambda fh: fh.write(text.encode("utf-8")))
+    write_atomic(path, lambda fh: fh.write(text.encode("utf-8")))
 
 
 class RunStore:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .tables import _fmt, comparison_markdown, comparison_rows, table_rows
+from .tables import comparison_markdown, comparison_rows, format_value, table_rows
 
 __all__ = ["CompareResult", "comparison_markdown", "comparison_rows", "evaluate_side", "format_comparison",
            "gt_intrinsics", "match_changes", "table_rows", "write_comparison"]
@@ -158,7 +158,7 @@ def _curves(baseline: dict, refined: dict) -> dict:
         a = rep.get(sec)
         if not a:
             return tag
-        return f"{tag}  AUC@5/10/20 " + "/".join(_fmt(a.get(k), "%") for k in ("auc5", "auc10", "auc20"))
+        return f"{tag}  AUC@5/10/20 " + "/".join(format_value(a.get(k), "%") for k in ("auc5", "auc10", "auc20"))
 
     curves = {}
     for metric, key, sec in (("model poses (all GT pairs)", "model", "model_pose_auc"),

@@ -128,10 +128,10 @@ def _matches_figure(go, before: dict, after: dict, checked: dict | None = None):
     c = np.array([(checked or {}).get(k, 0) for k in labels], dtype=np.float64)
     kept = np.where(b > 0, 100 * a / np.maximum(b, 1), 0.0)
     by_filter = np.maximum(b - a - c, 0)
-    from .plots import _short_labels
+    from .plots import short_labels
 
     names = [plotly_text(k.replace("|", " - ")) for k in labels]
-    short = [plotly_text(label) for label in _short_labels(labels)]
+    short = [plotly_text(label) for label in short_labels(labels)]
     x = short if len(set(short)) == len(labels) else names
     fig = go.Figure()
     fig.add_trace(go.Bar(x=x, y=b, name=f"baseline ({int(b.sum())})", marker_color=COLORS["baseline"],

@@ -92,7 +92,7 @@ class KeypointAccuracy:
 
 
 # --------------------------------------------------------------------------- cameras
-def _camera(cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def camera_krt(cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(K, R, t) float64 from an object with ``K, R, t`` attributes or a 3-tuple."""
     if hasattr(cam, "K") and hasattr(cam, "R") and hasattr(cam, "t"):
         K, R, t = cam.K, cam.R, cam.t
@@ -179,7 +179,7 @@ def keypoint_accuracy(
     min_track_views = int(min_track_views)
     keys = list(keypoints)
     kps = [np.asarray(keypoints[k], dtype=np.float64).reshape(-1, 2) for k in keys]
-    cams = {k: _camera(c) for k, c in cameras.items()}
+    cams = {k: camera_krt(c) for k, c in cameras.items()}
     e, track_matches = _epipolar_distances(keys, kps, cams, matches)
     nan = float("nan")
     tracks = _classify_tracks(keys, kps, cams, track_matches, min_track_views)

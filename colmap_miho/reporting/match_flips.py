@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..geometry import fundamental_from_poses, symmetric_epipolar_distance
-from .keypoint_accuracy import TRACK_THRESHOLD_PX, _camera
+from .keypoint_accuracy import TRACK_THRESHOLD_PX, camera_krt
 
 FLIP_THRESHOLD_PX = TRACK_THRESHOLD_PX
 """A match within this distance (px, symmetric) of its GT epipolar line counts as correct: the
@@ -119,7 +119,7 @@ def epipolar_flip_cases(
         ValueError: an image whose keypoint arrays differ in shape, or a match index out of
             range (the message names the image or pair).
     """
-    cams = {k: _camera(c) for k, c in cameras.items()}
+    cams = {k: camera_krt(c) for k, c in cameras.items()}
     pairs: list[tuple[Hashable, Hashable]] = []
     rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     for (a, b), m0 in matches_before.items():

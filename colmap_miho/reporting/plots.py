@@ -153,7 +153,7 @@ def _shorten(name: str, limit: int = MAX_NAME_CHARS) -> str:
     return name[:head] + "\u2026" + name[len(name) - (limit - 1 - head):]
 
 
-def _short_labels(labels: list[str]) -> list[str]:
+def short_labels(labels: list[str]) -> list[str]:
     """'a.png|b.png' pair labels without the names' common prefix and extension, each name at
     most :data:`MAX_NAME_CHARS` characters."""
     import os
@@ -176,7 +176,7 @@ def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title:
     labels = sorted(before, key=lambda k: -before[k])
     b = np.array([before[k] for k in labels], dtype=np.float64)
     a = np.array([after.get(k, 0) for k in labels], dtype=np.float64)
-    ticks = _short_labels(labels) if len(labels) <= 60 else []
+    ticks = short_labels(labels) if len(labels) <= 60 else []
     # the rotated tick labels get their own height (6 pt characters, about 0.6 em wide), so that
     # the plots keep theirs and tight_layout always fits
     label_height_in = max((len(t) for t in ticks), default=0) * 6 * 0.62 / 72

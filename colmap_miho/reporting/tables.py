@@ -100,7 +100,10 @@ def _get(d: dict, path: tuple):
     return d
 
 
-def _fmt(v, spec: str) -> str:
+def format_value(v, spec: str) -> str:
+    """``v`` as a table cell: ``"-"`` for None or a non-finite number; ``spec`` ``"%"`` / ``"%2"``
+    a fraction in percent with 1 / 2 decimals, ``"d"`` an integer (a non-integer median with 1
+    decimal), else a :func:`format` spec."""
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
     if spec == "%":
@@ -117,10 +120,10 @@ def _cell(rep: dict, path: tuple, spec: str) -> str | None:
     rpt = rep.get("repeats")
     if rpt and _get(rpt.get("median", {}), path) is not None:
         med, lo, hi = (_get(rpt[k], path) for k in ("median", "min", "max"))
-        text = _fmt(med, spec)
-        return text if _fmt(lo, spec) == _fmt(hi, spec) else f"{text} [{_fmt(lo, spec)}-{_fmt(hi, spec)}]"
+        text, low, high = (format_value(x, spec) for x in (med, lo, hi))
+        return text if low == high else f"{text} [{low}-{high}]"
     v = _get(rep, path)
-    return None if v is None else _fmt(v, spec)
+    return None if v is None else format_value(v, spec)
 
 
 def _values(rep: dict, path: tuple) -> tuple[float, float, float] | None:
@@ -154,7 +157,7 @@ def _change_text(before: float, after: float, spec: str) -> str:
 def _verdict(b, r, spec: str, better: Better) -> Verdict:
     if b is None or r is None:
         return Verdict.NONE
-    if _fmt(b[0], spec) == _fmt(r[0], spec):
+    if format_value(b[0], spec) == format_value(r[0], spec):
         return Verdict.SAME
     if better is Better.NEITHER:
         return Verdict.NONE

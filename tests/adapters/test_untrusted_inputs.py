@@ -277,7 +277,7 @@ def test_long_image_names_make_no_layout_warning(num_pairs, name, tmp_path):
         warnings.simplefilter("error")  # matplotlib's "Tight layout not applied" was shown to the user
         path = plots.plot_matches_per_pair(before, {k: v // 2 for k, v in before.items()}, tmp_path / "m.png")
     assert path.stat().st_size > 0
-    labels = plots._short_labels(list(before))
+    labels = plots.short_labels(list(before))
     assert all(len(lab) <= 2 * plots.MAX_NAME_CHARS + 1 and "\n" not in lab and "\x1b" not in lab for lab in labels)
     assert len(set(labels)) == len(labels)  # still tells the pairs apart
 

@@ -26,7 +26,7 @@ def test_matches_per_pair_missing_after(tmp_path):
     before = {"img_01.png|img_02.png": 120, "img_01.png|img_03.png": 30}
     after = {"img_01.png|img_02.png": 100}
     assert plots.plot_matches_per_pair(before, after, tmp_path / "m.png").stat().st_size > 1000
-    assert plots._short_labels(list(before)) == ["1-2", "1-3"]
+    assert plots.short_labels(list(before)) == ["1-2", "1-3"]
 
 
 # names are plain text: an image name with two "$" was parsed as math text and raised

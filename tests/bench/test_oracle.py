@@ -16,8 +16,8 @@ import pytest
 pycolmap = pytest.importorskip("pycolmap")
 
 from colmap_miho.adapters.database import ColmapDatabase  # noqa: E402
-from colmap_miho.reporting import oracle  # noqa: E402
 from colmap_miho.reporting.gt_model import poses_from_reconstruction  # noqa: E402
+from miho_bench import oracle  # noqa: E402
 
 THRESHOLD = oracle.ORACLE_THRESHOLD_PX
 

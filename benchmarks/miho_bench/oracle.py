@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import fundamental_from_poses, symmetric_epipolar_distance
-from .keypoint_accuracy import _camera
+from colmap_miho.geometry import fundamental_from_poses, symmetric_epipolar_distance
+from colmap_miho.reporting.keypoint_accuracy import camera_krt
 
 ORACLE_THRESHOLD_PX = 4.0
 """A match farther than this (px, symmetric) from its GT epipolar line is a GT outlier."""
@@ -36,7 +36,7 @@ ORACLE_THRESHOLD_PX = 4.0
 def pair_distances(cam1, cam2, xy1: np.ndarray, xy2: np.ndarray) -> np.ndarray:
     """Symmetric GT epipolar distances (M,) px of matched points ``xy1, xy2`` (M, 2) between two
     GT cameras (objects with ``K, R, t``: world-to-camera, pixel-centre K)."""
-    F = fundamental_from_poses(*_camera(cam1), *_camera(cam2))
+    F = fundamental_from_poses(*camera_krt(cam1), *camera_krt(cam2))
     return symmetric_epipolar_distance(F, xy1, xy2)
 
 
@@ -160,8 +160,8 @@ def write_oracle_database(database: str | Path, output: str | Path, gt: Mapping[
         FileExistsError: ``output`` exists.
         DatabaseError: ``database`` is missing or not a COLMAP database.
     """
-    from ..adapters.database import ColmapDatabase, validate_database
-    from ..adapters.safety import read_copy
+    from colmap_miho.adapters.database import ColmapDatabase, validate_database
+    from colmap_miho.adapters.safety import read_copy
 
     if not threshold_px > 0:
         raise ValueError(f"threshold_px must be > 0, got {threshold_px}")
