@@ -53,10 +53,10 @@ from .warping import ImageStack, offset_grid
 
 #: Gauss-Newton stops for a match once its shift update is below this (common-frame pixels).
 DEFAULT_TOL_PX = 1e-3
-#: singular values of A outside [1 / _MAX_SCALE, _MAX_SCALE] mark a degenerate alignment.
-_MAX_SCALE = 2.0
-#: gains r1 outside [1 / _MAX_GAIN, _MAX_GAIN] mark a degenerate alignment.
-_MAX_GAIN = 5.0
+#: singular values of A outside [1 / MAX_SCALE, MAX_SCALE] mark a degenerate alignment.
+MAX_SCALE = 2.0
+#: gains r1 outside [1 / MAX_GAIN, MAX_GAIN] mark a degenerate alignment.
+MAX_GAIN = 5.0
 #: the 4 blur taps (i, j) of a blurred read: the sample at t + i step_x + j step_y.
 _BLUR_TAPS = ((-1, -1), (1, -1), (-1, 1), (1, 1))
 
@@ -262,15 +262,15 @@ def _shift_sigma(A: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.
 
 
 def _regular(A: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
-    """(n,) bool: A's singular values within [1/_MAX_SCALE, _MAX_SCALE] and its determinant
-    positive (no reflection), the gain within [1/_MAX_GAIN, _MAX_GAIN]."""
+    """(n,) bool: A's singular values within [1/MAX_SCALE, MAX_SCALE] and its determinant
+    positive (no reflection), the gain within [1/MAX_GAIN, MAX_GAIN]."""
     a, b, c, d = A.reshape(-1, 4).unbind(dim=1)
     det = a * d - b * c
     fro2 = a * a + b * b + c * c + d * d
     disc = (fro2.square() - 4 * det.square()).clamp_min(0).sqrt()
     smax2, smin2 = 0.5 * (fro2 + disc), 0.5 * (fro2 - disc)
-    return ((det > 0) & (smax2 <= _MAX_SCALE**2) & (smin2 >= _MAX_SCALE**-2)
-            & (gain >= 1 / _MAX_GAIN) & (gain <= _MAX_GAIN))
+    return ((det > 0) & (smax2 <= MAX_SCALE**2) & (smin2 >= MAX_SCALE**-2)
+            & (gain >= 1 / MAX_GAIN) & (gain <= MAX_GAIN))
 
 
 def frame_sampler(

@@ -38,7 +38,7 @@ import torch
 
 from ..compiled import CONTRACT, REASSOC, Kernels, jit, jit_helpers
 from ..validation import MAX_BLUR_PX, MAX_WINDOW_RADIUS_PX
-from .lsm import _MAX_GAIN, _MAX_SCALE, DEFAULT_TOL_PX, LSMResult
+from .lsm import DEFAULT_TOL_PX, MAX_GAIN, MAX_SCALE, LSMResult
 from .warping import ImageStack, image_arrays
 
 #: Keys' cubic convolution parameter of ``grid_sample``'s bicubic mode.
@@ -491,7 +491,7 @@ def lsm_frames(
         kernel(ims_f[k // len(ims_m)], ims_m[k % len(ims_m)], rows, H_f, c_f, H_m, c_m, on_f, sigma_f,
                on_m, sigma_m, s0, int(radius), bool(affine), int(max_iterations), float(tol_px),
                math.inf if max_shift_px is None else float(max_shift_px), KEYS_A,
-               float(_MAX_SCALE), float(_MAX_GAIN), shift, sigma, sigma_max, A, gain, offset,
+               float(MAX_SCALE), float(MAX_GAIN), shift, sigma, sigma_max, A, gain, offset,
                s0_out, converged, iterations)
     t = torch.from_numpy
     return LSMResult(shift=t(shift), sigma=t(sigma), sigma_max=t(sigma_max), affine=t(A), gain=t(gain),
