@@ -77,7 +77,7 @@ def _output_matches(path):
 
 def _run(planted_db, out, *sets, resume=False, restart=False):
     db, images, _ = planted_db
-    rec = load_recipe(None, ["pipeline.refine=false", *sets])
+    rec = load_recipe(None, ["pipeline.refine=false", "match_check.mode=off", *sets])
     json_path = out.with_suffix(".json")
     refine_database(db, images, out, recipe=rec, workers=1, json_path=json_path, overwrite=True,
                     resume=resume, restart=restart)
@@ -288,3 +288,15 @@ def test_a_signal_during_the_global_mapper_stops_the_run_promptly(planted_db, tm
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("ERROR: "), err
     assert not list(tmp.glob("miho-global-*")) and not out.exists()
+
+
+@pytest.mark.slow
+def test_the_default_recipe_checks_matches(planted_db, tmp_path):
+    db, images, _ = planted_db
+    out = tmp_path / "default.db"
+    summary = refine_database(db, images, out, recipe=load_recipe(None, ["pipeline.refine=false"]), workers=1)
+    assert summary.match_check["mode"] == "remove" and summary.match_check["used"]
+    assert summary.match_check["matches_removed"] > 0
+    off = refine_database(db, images, tmp_path / "off.db", workers=1,
+                          recipe=load_recipe(None, ["pipeline.refine=false", "match_check.mode=off"]))
+    assert off.match_check == {} and off.matches_kept > summary.matches_kept

@@ -42,7 +42,7 @@ def _pairs(path, tmp_path):
 
 def _run(dopp_db, tmp_path, *sets):
     path, images, _ = dopp_db
-    rec = load_recipe(None, ["pipeline.refine=false", *sets])
+    rec = load_recipe(None, ["pipeline.refine=false", "match_check.mode=off", *sets])
     out = tmp_path / "out.db"
     summary = refine_database(path, images, out, recipe=rec, workers=1, json_path=tmp_path / "s.json")
     return summary, json.loads((tmp_path / "s.json").read_text())
