@@ -326,6 +326,7 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
         "levels": _get(summary, "levels"), "refine_s": secs.get("total"), "child_wall_s": round(run.wall_s, 2),
         "seconds": secs, "rss_tree_mb": round(run.rss_tree_mb, 1), "hwm_max_mb": round(run.hwm_max_mb, 1),
         "hwm_sum_mb": round(run.hwm_sum_mb, 1),
+        "mc_peak_mb": (summary.get("match_check") or {}).get("peak_rss_mb"),
         "rss_samples": run.samples, "scene_info": scene.info,
     }
     sift = scene.sift
@@ -340,8 +341,8 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
 
 
 # -------------------------------------------------------------------------------- reports
-COLUMNS = ("scene", "images", "pairs", "matches", "refine_s", "read", "filter", "refine", "write",
-           "rss_tree_mb", "hwm_max_mb", "hwm_sum_mb", "images_loaded", "image_decodes", "decodes_max",
+COLUMNS = ("scene", "images", "pairs", "matches", "refine_s", "read", "filter", "match_check", "refine", "write",
+           "mc_peak_mb", "rss_tree_mb", "hwm_max_mb", "hwm_sum_mb", "images_loaded", "image_decodes", "decodes_max",
            "levels", "sift_total_s", "ratio", "sift_graph_s", "ratio_graph")
 
 
@@ -354,7 +355,7 @@ def fmt(v) -> str:
     return str(v)
 
 
-FIT_KEYS = ("refine_s", "filter", "refine", "rss_tree_mb", "hwm_max_mb")
+FIT_KEYS = ("refine_s", "filter", "match_check", "refine", "rss_tree_mb", "hwm_max_mb", "mc_peak_mb")
 
 
 def _value(row: dict, key: str):

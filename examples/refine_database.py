@@ -25,10 +25,10 @@ def main(argv: list[str] | None = None) -> int:
 
     import pycolmap
 
-    from colmap_miho.sfm.extraction import extract_and_match
     from colmap_miho.pipeline.run import refine_database
     from colmap_miho.recipe import load_recipe
     from colmap_miho.reporting.demo_scene import make_demo_scene
+    from colmap_miho.sfm.extraction import extract_and_match
 
     work = args.out or Path(tempfile.mkdtemp(prefix="colmap_miho_example_"))
     if args.database is None:

@@ -68,6 +68,8 @@ class MatchCheckStats:
         removed_per_pair: "name1|name2" (names sorted) -> matches removed (flagged) there, wrong
             pairs' whole count included; pairs with none are left out.
         seconds: wall time of the rounds (estimates, judging and re-placements).
+        peak_rss_mb: this process's peak resident memory (MiB) when the stage ended: an upper
+            bound of the stage's own peak (it runs here, in the client, also with ``--dask``).
         round_seconds: per round, its parts: "database" (the estimate's temporary database),
             "mapper", "pair_rotations" (each pair's own rotation), "judging", "placements".
     """
@@ -91,12 +93,13 @@ class MatchCheckStats:
     wrong_pairs: list[dict] = field(default_factory=list)
     removed_per_pair: dict[str, int] = field(default_factory=dict)
     seconds: float = 0.0
+    peak_rss_mb: float = 0.0
     round_seconds: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """Plain JSON-ready data."""
         out = dataclasses.asdict(self)
-        for k in ("scale_px", "threshold_px", "seconds"):
+        for k in ("scale_px", "threshold_px", "seconds", "peak_rss_mb"):
             out[k] = round(float(out[k]), 3)
         out["round_seconds"] = [{k: round(float(v), 3) for k, v in r.items()} for r in self.round_seconds]
         return out
@@ -204,7 +207,17 @@ def _meta(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.n
         "removed_per_pair": {"|".join(sorted((name(i), name(j)))): int(f.sum())
                              for (i, j), f in sorted(d.failed.items()) if f.any()},
         "seconds": float(sum(sum(r.values()) for r in d.seconds)), "round_seconds": d.seconds,
+        "peak_rss_mb": _peak_rss_mb(),
     }
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident memory so far, MiB (0 where ``resource`` is missing)."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not POSIX
+        return 0.0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
 def _pack(failed: dict[Pair, np.ndarray], wrong: frozenset[Pair]) -> dict[str, np.ndarray]:

@@ -69,7 +69,7 @@ def test_table_and_fits_report_absent_keys_as_na(tmp_path):
     # absent: images, pairs, read, refine, write, hwm_sum, images_loaded, image_decodes,
     # decodes_max, and the
     # four SIFT figures
-    assert fmt(None) == "n/a" and text.count("n/a") == 3 * 13
+    assert fmt(None) == "n/a" and text.count("n/a") == 3 * 15
     f = fits(rows)
     assert f["refine_s"]["exponent"] == pytest.approx(1.0, abs=1e-9)
     assert f["hwm_max_mb"]["exponent"] == pytest.approx(0.0, abs=1e-9)
