@@ -300,3 +300,12 @@ def test_the_default_recipe_checks_matches(planted_db, tmp_path):
     off = refine_database(db, images, tmp_path / "off.db", workers=1,
                           recipe=load_recipe(None, ["pipeline.refine=false", "match_check.mode=off"]))
     assert off.match_check == {} and off.matches_kept > summary.matches_kept
+
+
+@pytest.mark.slow
+def test_with_debug_logging_colmaps_log_reaches_the_terminal(planted_db, tmp_path, capfd, caplog):
+    import logging
+
+    caplog.set_level(logging.DEBUG, logger="colmap_miho")  # what -v sets
+    _run(planted_db, tmp_path / "on.db", "match_check.mode=remove", "match_check.min_pair_matches=100000")
+    assert "Failed to create sparse model" in capfd.readouterr().err
