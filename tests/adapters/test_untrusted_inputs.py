@@ -3,27 +3,17 @@ values are refused up front with one line naming the option, the file or the rec
 
 from __future__ import annotations
 
-import sqlite3
 from pathlib import Path
 
 import cv2
 import h5py
 import numpy as np
 import pytest
+from helpers.db_contents import sql
 
 from colmap_miho.cli import main
 
 FORGED = "\nERROR: forged line\x1b[31m"
-
-
-def _sql(db: Path, query: str, *args) -> list:
-    con = sqlite3.connect(db)
-    try:
-        rows = con.execute(query, args).fetchall()
-        con.commit()
-    finally:
-        con.close()
-    return rows
 
 
 def _assert_not_forged(text: str) -> None:
@@ -35,9 +25,9 @@ def _assert_not_forged(text: str) -> None:
 def test_a_name_with_control_characters_cannot_forge_a_line(db_copy, scene, tmp_path, capfd):
     """An image whose database name holds a newline, a forged ``ERROR:`` and an ANSI escape
     is missing from the folder: the warning and the summary name it escaped."""
-    image_id, name = _sql(db_copy, "SELECT image_id, name FROM images ORDER BY image_id LIMIT 1")[0]
+    image_id, name = sql(db_copy, "SELECT image_id, name FROM images ORDER BY image_id LIMIT 1")[0]
     hostile = "é漢字" + FORGED + ".png"
-    _sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", hostile, image_id)
+    sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", hostile, image_id)
     capfd.readouterr()
     code = main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--workers", "1",
                  "--output", str(tmp_path / "out.db")])
@@ -85,8 +75,8 @@ def test_ordinary_camera_parameters_are_kept():
 def test_a_missing_camera_row_is_named_not_blamed_on_the_images(command, db_copy, scene, tmp_path, capfd):
     """Images 2 and 3 refer to camera 7, which has no row: refine saw a 0x0 camera and blamed
     every image file; map failed on an unknown camera (exit 1)."""
-    _sql(db_copy, "UPDATE images SET camera_id = 7 WHERE image_id IN (2, 3)")
-    names = [r[0] for r in _sql(db_copy, "SELECT name FROM images WHERE image_id IN (2, 3) ORDER BY image_id")]
+    sql(db_copy, "UPDATE images SET camera_id = 7 WHERE image_id IN (2, 3)")
+    names = [r[0] for r in sql(db_copy, "SELECT name FROM images WHERE image_id IN (2, 3) ORDER BY image_id")]
     argv = {"refine": ["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--workers", "1",
                        "--output", str(tmp_path / "out.db"), "-q"],
             "map": ["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output",
@@ -203,7 +193,7 @@ def test_uint64_matches0_is_converted_with_a_range_check_and_no_warning(tiny, ca
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert main(_import(f, m, img, tmp / "ok.db")) == 0
-    pairs = _sql(tmp / "ok.db", "SELECT rows FROM matches")
+    pairs = sql(tmp / "ok.db", "SELECT rows FROM matches")
     assert pairs == [(3,)]
 
 

@@ -4,11 +4,11 @@ never a crash or a silent change of the result."""
 from __future__ import annotations
 
 import hashlib
-import sqlite3
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers.db_contents import sql
 
 from colmap_miho.adapters.paths import leaves_folder
 from colmap_miho.cli import main
@@ -26,22 +26,12 @@ def _refine(db: Path, images: Path, *extra: str) -> list[str]:
     return ["refine", "--database", str(db), "--images", str(images), "--workers", "1", "--no-refine", *extra, "-q"]
 
 
-def _sql(db: Path, query: str, *args) -> list:
-    con = sqlite3.connect(db)
-    try:
-        rows = con.execute(query, args).fetchall()
-        con.commit()
-    finally:
-        con.close()
-    return rows
-
-
 def test_nan_keypoints_name_the_image(db_copy, scene, capfd):
-    image_id, rows, cols, data = _sql(db_copy, "SELECT image_id, rows, cols, data FROM keypoints LIMIT 1")[0]
+    image_id, rows, cols, data = sql(db_copy, "SELECT image_id, rows, cols, data FROM keypoints LIMIT 1")[0]
     kp = np.frombuffer(data, np.float32).reshape(rows, cols).copy()
     kp[3, 1] = np.nan
-    _sql(db_copy, "UPDATE keypoints SET data = ? WHERE image_id = ?", kp.tobytes(), image_id)
-    name = _sql(db_copy, "SELECT name FROM images WHERE image_id = ?", image_id)[0][0]
+    sql(db_copy, "UPDATE keypoints SET data = ? WHERE image_id = ?", kp.tobytes(), image_id)
+    name = sql(db_copy, "SELECT name FROM images WHERE image_id = ?", image_id)[0][0]
     digest = sha256(db_copy)
     capfd.readouterr()
     assert main(_refine(db_copy, scene.image_dir)) == 2
@@ -53,8 +43,8 @@ def test_nan_keypoints_name_the_image(db_copy, scene, capfd):
 @pytest.mark.parametrize("command", ["refine", "map", "export"])
 def test_a_lying_blob_size_is_one_line(command, db_copy, scene, tmp_path, capfd):
     """``keypoints.rows`` far beyond the blob: pycolmap would ask for terabytes (bad_alloc)."""
-    image_id = _sql(db_copy, "SELECT image_id FROM keypoints LIMIT 1")[0][0]
-    _sql(db_copy, "UPDATE keypoints SET rows = 4000000000000 WHERE image_id = ?", image_id)
+    image_id = sql(db_copy, "SELECT image_id FROM keypoints LIMIT 1")[0][0]
+    sql(db_copy, "UPDATE keypoints SET rows = 4000000000000 WHERE image_id = ?", image_id)
     argv = {"refine": _refine(db_copy, scene.image_dir),
             "map": ["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output",
                     str(tmp_path / "m"), "-q"],
@@ -68,17 +58,17 @@ def test_a_lying_blob_size_is_one_line(command, db_copy, scene, tmp_path, capfd)
 
 
 def test_repeated_match_rows_are_counted_once(db_copy, scene, tmp_path, capfd):
-    pair_id, rows, data = _sql(db_copy, "SELECT pair_id, rows, data FROM two_view_geometries WHERE rows > 20 "
+    pair_id, rows, data = sql(db_copy, "SELECT pair_id, rows, data FROM two_view_geometries WHERE rows > 20 "
                                         "LIMIT 1")[0]
     m = np.frombuffer(data, np.uint32).reshape(rows, 2)
     doubled = np.concatenate([m, m[:7]])
-    _sql(db_copy, "UPDATE two_view_geometries SET rows = ?, data = ? WHERE pair_id = ?", len(doubled),
+    sql(db_copy, "UPDATE two_view_geometries SET rows = ?, data = ? WHERE pair_id = ?", len(doubled),
          doubled.tobytes(), pair_id)
     out = tmp_path / "out.db"
     capfd.readouterr()
     assert main(_refine(db_copy, scene.image_dir, "--output", str(out))[:-1]) == 0  # without -q: INFO shown
     assert "7 repeated rows in its verified matches, counted once" in capfd.readouterr().err
-    rows_out, data_out = _sql(out, "SELECT rows, data FROM two_view_geometries WHERE pair_id = ?", pair_id)[0]
+    rows_out, data_out = sql(out, "SELECT rows, data FROM two_view_geometries WHERE pair_id = ?", pair_id)[0]
     kept = np.frombuffer(data_out, np.uint32).reshape(rows_out, 2)
     assert len(np.unique(kept, axis=0)) == len(kept) <= len(m)
 
@@ -92,9 +82,9 @@ def test_leaves_folder():
 def test_image_named_outside_the_folder_is_skipped_or_refused(db_copy, scene, tmp_path, capfd):
     """A database name ``../<folder>/<image>`` would read the image from beside --images: a
     warning and the image skipped; an error with --strict."""
-    image_id, name = _sql(db_copy, "SELECT image_id, name FROM images LIMIT 1")[0]
+    image_id, name = sql(db_copy, "SELECT image_id, name FROM images LIMIT 1")[0]
     outside = f"../{scene.image_dir.name}/{name}"
-    _sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", outside, image_id)
+    sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", outside, image_id)
     refine = ["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--workers", "1", "-q"]
     capfd.readouterr()
     assert main([*refine, "--output", str(tmp_path / "a.db")]) == 0
@@ -123,8 +113,8 @@ def test_import_refuses_an_image_named_outside_the_folder(scene, tmp_path, capfd
 
 
 def test_map_warns_about_image_names_outside_the_folder(db_copy, scene, tmp_path, capfd):
-    image_id, name = _sql(db_copy, "SELECT image_id, name FROM images LIMIT 1")[0]
-    _sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", f"../{scene.image_dir.name}/{name}", image_id)
+    image_id, name = sql(db_copy, "SELECT image_id, name FROM images LIMIT 1")[0]
+    sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", f"../{scene.image_dir.name}/{name}", image_id)
     capfd.readouterr()
     main(["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(tmp_path / "m")])
     assert "1 image name(s) of" in capfd.readouterr().err

@@ -26,3 +26,14 @@ def assert_same_database(a: Path, b: Path) -> None:
         assert len(ra[table]) == len(rb[table]), f"{table}: {len(ra[table])} vs {len(rb[table])} rows"
         for x, y in zip(ra[table], rb[table], strict=True):
             assert x == y, f"{table}: rows differ at key {x[0]}"
+
+
+def sql(db: Path, query: str, *args) -> list:
+    """Run one SQL statement on the database file ``db`` (committed); its rows."""
+    con = sqlite3.connect(db)
+    try:
+        rows = con.execute(query, args).fetchall()
+        con.commit()
+    finally:
+        con.close()
+    return rows
