@@ -161,6 +161,7 @@ BOUNDS: dict[str, dict[str, Bound]] = {
         "max_pair_fail_share": Bound(0, 1, _SHARE, lo_open=True),
         "min_placed_inliers": Bound(6, MAX_MATCHES, "an absolute pose needs 6 correspondences"),
         "ba_iterations": Bound(1, 10, "rounds of bundle adjustment, each a full adjustment"),
+        "ba_function_tolerance": Bound(0, 0.1, "a relative cost decrease (0: Ceres' 1e-5)"),
         "rounds": Bound(1, 5, "global-mapper runs"),
         "seed": Bound(0, MAX_SEED, "a 32-bit seed"),
     },

@@ -178,6 +178,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
     matches = pair_graph(db, store.load_filtered(), source, removed=removed)
     estimator = GlobalEstimator(src=db, min_pair_matches=cfg.min_pair_matches, seed=cfg.seed, num_threads=threads,
                                 ba_iterations=cfg.ba_iterations, retriangulate=cfg.retriangulate,
+                                ba_function_tolerance=cfg.ba_function_tolerance,
                                 max_error_px=cfg.max_threshold_px, min_inliers=cfg.min_placed_inliers,
                                 verbose=log.isEnabledFor(logging.DEBUG))  # -v: COLMAP's log on the terminal
     d = judge_in_rounds(matches, estimator, cfg)

@@ -101,7 +101,8 @@ def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: M
 
 def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, min_pair_matches: int,
                     seed: int = 0, num_threads: int = -1, verbose: bool = False, ba_iterations: int = 3,
-                    retriangulate: bool = True, workdir: Path | None = None) -> GlobalEstimate:
+                    retriangulate: bool = True, ba_function_tolerance: float = 0.0,
+                    workdir: Path | None = None) -> GlobalEstimate:
     """Run pycolmap's global mapper on ``matches`` with the cameras of ``src``.
 
     Args:
@@ -113,6 +114,8 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         num_threads: mapper threads (-1: all cores).
         ba_iterations / retriangulate: the mapper's bundle-adjustment rounds and whether it
             triangulates again after them.
+        ba_function_tolerance: the mapper's bundle adjustments stop when an iteration lowers
+            the cost by less than this share (Ceres' ``function_tolerance``; 0: its 1e-5).
         verbose: COLMAP's log on the terminal instead of the temporary folder's file (its
             errors never reach the terminal otherwise: a failed estimate is the caller's to
             report).
@@ -147,6 +150,8 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
             opts = global_options(seed=seed, num_threads=num_threads, min_num_matches=min_pair_matches)
             opts.mapper.ba_num_iterations = int(ba_iterations)
             opts.mapper.skip_retriangulation = not retriangulate
+            if ba_function_tolerance > 0:
+                opts.mapper.bundle_adjustment.ceres.solver_options.function_tolerance = float(ba_function_tolerance)
             out = folder / "model"
             out.mkdir()
             seconds["database"] = time.perf_counter() - t0
@@ -206,6 +211,7 @@ class GlobalEstimator:
     num_threads: int = -1
     ba_iterations: int = 3
     retriangulate: bool = True
+    ba_function_tolerance: float = 0.0
     max_error_px: float = 4.0
     min_inliers: int = 30
     verbose: bool = False
@@ -214,7 +220,8 @@ class GlobalEstimator:
     def estimate(self, matches: Mapping[Pair, np.ndarray]) -> GlobalEstimate:
         return global_estimate(self.src, matches, min_pair_matches=self.min_pair_matches, seed=self.seed,
                                num_threads=self.num_threads, verbose=self.verbose, ba_iterations=self.ba_iterations,
-                               retriangulate=self.retriangulate, workdir=self.workdir)
+                               retriangulate=self.retriangulate, ba_function_tolerance=self.ba_function_tolerance,
+                               workdir=self.workdir)
 
     def place(self, estimate: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray],
               trusted: frozenset[int]) -> Pose | None:

@@ -127,6 +127,10 @@ class MatchCheckConfig:
         min_placed_inliers: 2D-3D inliers such a new pose needs.
         ba_iterations / retriangulate: the global mapper's bundle-adjustment rounds and its
             retriangulation after them.
+        ba_function_tolerance: the global mapper's bundle adjustments stop when an iteration
+            lowers the cost by less than this share (Ceres' ``function_tolerance``; 0: its own
+            1e-5): the judging needs poses, not the last digits of a dense model (the same pose
+            outcome on every shared scene, less mapper time: docs/results.md, the match check).
         rounds: global estimates at most; each later one is made from the last one's survivors
             and judges, with the first round's threshold, the pairs of the images newly trusted
             (stops once every placed image is trusted).
@@ -147,6 +151,7 @@ class MatchCheckConfig:
     min_placed_inliers: int = 30
     ba_iterations: int = 3
     retriangulate: bool = True
+    ba_function_tolerance: float = 1e-4
     rounds: int = 2
     seed: int = 0
 
