@@ -9,9 +9,6 @@ Open only a working copy (see :mod:`colmap_miho.adapters.safety`): pycolmap migr
 open and creates an empty database for a missing path. Never hold a Python ``sqlite3``
 connection and a pycolmap handle on the same file at the same time. New databases (hloc import,
 synthetic scenes) are made with :meth:`ColmapDatabase.create`.
-
-(Over 400 lines on purpose: this is the one module that opens COLMAP databases, so every
-database read and write lives here.)
 """
 
 from __future__ import annotations

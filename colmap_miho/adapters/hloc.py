@@ -19,9 +19,6 @@ Matches file, three pair layouts, told apart per pair:
 This module knows nothing of COLMAP: coordinates stay in the pixel-centre convention here.
 The COLMAP database side is :mod:`colmap_miho.adapters.exchange` (``import`` and ``export``
 commands).
-
-(Over 400 lines on purpose: both hloc h5 layouts, read and write, stay side by side so that
-they remain each other's inverse.)
 """
 
 from __future__ import annotations
