@@ -339,6 +339,12 @@ def format_comparison(result: CompareResult) -> str:
     runs = result.baseline.get("repeats", {}).get("num_runs")
     if runs:
         lines += ["", f"mapping figures: median [min-max] of {runs} runs per side"]
+    mc = (result.refine or {}).get("match_check")
+    if mc:
+        from ..terminal import printable
+        from .html_report import match_check_note
+
+        lines += ["", printable(match_check_note(mc))]
     lines += ["", f"table:  {result.markdown}", f"json:   {result.json}"]
     if (result.output / "report.html").is_file():
         lines.append(f"report: {result.output / 'report.html'}  (open in a browser)")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -136,3 +137,19 @@ def test_a_failing_figure_costs_only_itself(tmp_path, monkeypatch, capfd):
     assert not (out / "plots" / "matches_per_pair.png").exists()
     assert str(out / "plots" / "keypoint_displacement.png") in cmp["plots"]
     assert "figure matches_per_pair skipped: no figure today" in capfd.readouterr().err
+
+
+def test_the_terminal_table_says_what_the_match_check_did():
+    from colmap_miho.reporting.compare import CompareResult, format_comparison
+
+    def text(refine):
+        return format_comparison(CompareResult(output=Path("/nonexistent"), baseline={}, refined={}, refine=refine,
+                                               markdown=Path("a.md"), json=Path("a.json")))
+
+    used = {"mode": "remove", "used": True, "images": 8, "images_registered": 8, "images_trusted": ["a"] * 8,
+            "matches_removed": 123, "matches_judged": 29619, "threshold_px": 2.0, "pairs_removed": 0}
+    assert "Match check: global estimate of 8 of 8 images, 8 trusted; 123 of 29619 judged matches removed" \
+        in text({"match_check": used})
+    refused = text({"match_check": {"mode": "remove", "used": False, "reason": "bad\n\x1b[31m"}})
+    assert "not used (bad\\n\\x1b[31m)" in refused  # a reason quoting names is escaped
+    assert "Match check" not in text({"match_check": {}})
