@@ -68,8 +68,9 @@ class MatchCheckStats:
         removed_per_pair: "name1|name2" (names sorted) -> matches removed (flagged) there, wrong
             pairs' whole count included; pairs with none are left out.
         seconds: wall time of the rounds (estimates, judging and re-placements).
-        peak_rss_mb: this process's peak resident memory (MiB) when the stage ended: an upper
-            bound of the stage's own peak (it runs here, in the client, also with ``--dask``).
+        peak_rss_mb: this process's peak resident memory (MiB, Linux's ``VmHWM``) when the
+            stage ended: an upper bound of the stage's own peak (it runs here, in the client,
+            also with ``--dask``).
         round_seconds: per round, its parts: "database" (the estimate's temporary database),
             "mapper", "pair_rotations" (each pair's own rotation), "judging", "placements".
     """
@@ -160,9 +161,8 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
                  100 * w["fail_share"], w["matches"])
     if cfg.mode != MatchCheckMode.REMOVE or not stats.used:
         return MatchCheckOutcome(), stats
-    kept = {p: int(np.count_nonzero(r.inliers)) for p, (_, r) in store.load_filtered().items()}
-    filtered = set(kept)
-    if any(p in kept and len(f) != kept[p] for p, f in failed.items()):
+    filtered = store.load_filtered()
+    if any(p in filtered and len(f) != np.count_nonzero(filtered[p][1].inliers) for p, f in failed.items()):
         raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its verdicts do not fit the stored pairs")
     return (MatchCheckOutcome(failed={p: f for p, f in failed.items() if p in filtered and p not in wrong},
                               wrong=frozenset(wrong), refit=frozenset(p for p in failed if p in filtered)),
@@ -175,6 +175,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
     wrong pairs, the stats' fields)."""
     from ..sfm.global_estimate import GlobalEstimator
 
+    # read here, not held during the mapper: only the kept matches are
     matches = pair_graph(db, store.load_filtered(), source, removed=removed)
     estimator = GlobalEstimator(src=db, min_pair_matches=cfg.min_pair_matches, seed=cfg.seed, num_threads=threads,
                                 ba_iterations=cfg.ba_iterations, retriangulate=cfg.retriangulate,
@@ -213,7 +214,16 @@ def _meta(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.n
 
 
 def _peak_rss_mb() -> float:
-    """This process's peak resident memory so far, MiB (0 where ``resource`` is missing)."""
+    """This process's peak resident memory so far, MiB: Linux's ``VmHWM`` (since this program
+    started; ``ru_maxrss`` would carry the launching process's size across ``exec``), else
+    ``ru_maxrss``; 0 where neither can be read."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0  # kB
+    except (OSError, ValueError):
+        pass
     try:
         import resource
     except ImportError:  # pragma: no cover - not POSIX
