@@ -162,6 +162,8 @@ BOUNDS: dict[str, dict[str, Bound]] = {
         "min_placed_inliers": Bound(6, MAX_MATCHES, "an absolute pose needs 6 correspondences"),
         "ba_iterations": Bound(1, 10, "rounds of bundle adjustment, each a full adjustment"),
         "ba_function_tolerance": Bound(0, 0.1, "a relative cost decrease (0: Ceres' 1e-5)"),
+        "hinge_min_pairs": Bound(2, 1_000_000, "pairs across a hinge"),
+        "hinge_min_side_images": Bound(1, 1_000_000, "images on one side of a hinge"),
         "rounds": Bound(1, 5, "global-mapper runs"),
         "seed": Bound(0, MAX_SEED, "a 32-bit seed"),
     },

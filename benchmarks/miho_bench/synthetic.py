@@ -294,6 +294,28 @@ def survey_pairs(centres: np.ndarray, *, sequential: int = 2, nearest: int = 6) 
     return sorted(pairs)
 
 
+def write_survey_database(database: Path, layout: SurveyLayout, keypoints: dict[int, np.ndarray],
+                          matches: dict[tuple[int, int], np.ndarray],
+                          fundamental: dict[tuple[int, int], np.ndarray] | None = None) -> None:
+    """A new COLMAP database of a survey: one SIMPLE_RADIAL camera (no distortion, the
+    layout's focal), images ``survey_00000.png``... with ids 1..N, ``keypoints`` (image id ->
+    (N, 2) COLMAP coordinates) and ``matches`` ((i, j) -> (M, 2)) stored as the inliers of an
+    UNCALIBRATED geometry too, with the pair's ``fundamental`` matrix where given (else none:
+    a mapper then decomposes an empty model)."""
+    with ColmapDatabase.create(database) as db, db.transaction():
+        camera_id, rig_id = db.add_camera("SIMPLE_RADIAL", layout.width, layout.height, layout.focal)
+        for k in range(len(layout.centres)):
+            if db.add_image(f"survey_{k:05d}.png", camera_id, rig_id) != k + 1:
+                raise RuntimeError("image ids of a new database are not 1..N")  # pycolmap's own numbering
+            db.add_keypoints(k + 1, keypoints[k + 1], colmap_coordinates=True)
+        for (a, b), m in matches.items():
+            db.add_matches(a, b, m, as_inliers=True)
+            if fundamental and (a, b) in fundamental:
+                tvg = db.handle.read_two_view_geometry(a, b)
+                tvg.F = fundamental[(a, b)]
+                db.handle.update_two_view_geometry(a, b, tvg)
+
+
 def make_survey_scene(
     out_dir: str | Path,
     *,
@@ -371,30 +393,28 @@ def make_survey_scene(
                 track.add_element(image_id, kp_index)
             gt.add_point3D(layout.points[p], track)
 
-    pairs = []
-    with ColmapDatabase.create(database) as db, db.transaction():
-        camera_id, rig_id = db.add_camera("SIMPLE_RADIAL", width, height, f)
-        for k in range(num_images):
-            if db.add_image(names[k], camera_id, rig_id) != k + 1:
-                raise RuntimeError("image ids of a new database are not 1..N")  # pycolmap's own numbering
-            noisy = true_xy[k] + (rng.normal(0.0, noise_px, true_xy[k].shape) if noise_px > 0 else 0.0)
-            db.add_keypoints(k + 1, np.clip(noisy, 0, (width - 1e-3, height - 1e-3)), colmap_coordinates=True)
-        for a, b in survey_pairs(layout.centres, sequential=sequential, nearest=nearest):
-            va, vb = np.flatnonzero(seen[a] >= 0), np.flatnonzero(seen[b] >= 0)
-            _, ia, ib = np.intersect1d(seen[a][va], seen[b][vb], assume_unique=True, return_indices=True)
-            if len(ia) < max(1, min_pair_matches):
-                continue
-            m = np.stack([va[ia], vb[ib]], axis=1)
-            n_out = int(round(len(m) * outlier_ratio / (1 - outlier_ratio)))
-            free_a = np.setdiff1d(np.arange(len(seen[a])), m[:, 0])
-            free_b = np.setdiff1d(np.arange(len(seen[b])), m[:, 1])
-            n_out = min(n_out, len(free_a), len(free_b))
-            if n_out:
-                wrong = np.stack([rng.choice(free_a, n_out, replace=False),
-                                  rng.choice(free_b, n_out, replace=False)], axis=1)
-                m = np.concatenate([m, wrong])
-            db.add_matches(a + 1, b + 1, m[rng.permutation(len(m))], as_inliers=True)
-            pairs.append((a + 1, b + 1))
+    noisy = {}
+    for k in range(num_images):
+        xy = true_xy[k] + (rng.normal(0.0, noise_px, true_xy[k].shape) if noise_px > 0 else 0.0)
+        noisy[k + 1] = np.clip(xy, 0, (width - 1e-3, height - 1e-3))
+    stored: dict[tuple[int, int], np.ndarray] = {}
+    for a, b in survey_pairs(layout.centres, sequential=sequential, nearest=nearest):
+        va, vb = np.flatnonzero(seen[a] >= 0), np.flatnonzero(seen[b] >= 0)
+        _, ia, ib = np.intersect1d(seen[a][va], seen[b][vb], assume_unique=True, return_indices=True)
+        if len(ia) < max(1, min_pair_matches):
+            continue
+        m = np.stack([va[ia], vb[ib]], axis=1)
+        n_out = int(round(len(m) * outlier_ratio / (1 - outlier_ratio)))
+        free_a = np.setdiff1d(np.arange(len(seen[a])), m[:, 0])
+        free_b = np.setdiff1d(np.arange(len(seen[b])), m[:, 1])
+        n_out = min(n_out, len(free_a), len(free_b))
+        if n_out:
+            wrong = np.stack([rng.choice(free_a, n_out, replace=False),
+                              rng.choice(free_b, n_out, replace=False)], axis=1)
+            m = np.concatenate([m, wrong])
+        stored[(a + 1, b + 1)] = m[rng.permutation(len(m))]
+    write_survey_database(database, layout, noisy, stored)
+    pairs = list(stored)
     gt_kp, ids = _gt_keypoints(gt, {k + 1: len(seen[k]) for k in range(num_images)})
     if render_images:
         pycolmap.synthesize_images(pycolmap.SyntheticImageOptions(), gt, str(image_dir))

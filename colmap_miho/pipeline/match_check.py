@@ -27,7 +27,7 @@ from ..adapters.database import ColmapDatabase
 from ..enums import MatchCheckMode, MatchSource
 from ..types import Pair
 from ..verification.config import MatchCheckConfig
-from ..verification.match_check import MatchCheckDecision, judge_in_rounds
+from ..verification.match_check import HingeVerdict, MatchCheckDecision, judge_in_rounds
 from .output_matches import pair_graph
 from .records import FilteredPairs, PairOutcome
 from .store import RunStore, StoreDamaged
@@ -72,7 +72,14 @@ class MatchCheckStats:
             stage ended: an upper bound of the stage's own peak (it runs here, in the client,
             also with ``--dask``).
         round_seconds: per round, its parts: "database" (the estimate's temporary database),
-            "mapper", "pair_rotations" (each pair's own rotation), "judging", "placements".
+            "mapper", "pair_rotations" (each pair's own rotation), "hinge" (examining a hinge
+            found, a second estimate included), "judging", "placements".
+        hinges: each hinge found in a round's estimate (:mod:`colmap_miho.verification.hinge`):
+            "round", "angle_deg", the two groups' image names "images_a" / "images_b", the
+            competing pairs "estimate_pairs" / "mode_pairs" (name pairs) with their
+            coverage medians "estimate_coverage" / "mode_coverage", the arbiter's "verdict"
+            ("estimate", "mode", "undecided"), the "action" taken ("kept", "estimated again",
+            "judged less") and "pairs_unjudged" / "matches_unjudged".
     """
 
     mode: str
@@ -96,6 +103,7 @@ class MatchCheckStats:
     seconds: float = 0.0
     peak_rss_mb: float = 0.0
     round_seconds: list[dict] = field(default_factory=list)
+    hinges: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """Plain JSON-ready data."""
@@ -210,7 +218,26 @@ def _meta(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.n
                              for (i, j), f in sorted(d.failed.items()) if f.any()},
         "seconds": float(sum(sum(r.values()) for r in d.seconds)), "round_seconds": d.seconds,
         "peak_rss_mb": _peak_rss_mb(),
+        "hinges": [_hinge_meta(h, matches, name) for h in d.hinges],
     }
+
+
+def _hinge_meta(v: HingeVerdict, matches: dict[Pair, np.ndarray], name) -> dict:
+    """The stats' record of one hinge, images named."""
+    def named(pairs) -> list[list[str]]:
+        return [[name(i), name(j)] for i, j in sorted(pairs)]
+
+    def median(scores: dict) -> float:
+        values = [x for x in scores.values() if np.isfinite(x)]
+        return round(float(np.median(values)), 3) if values else 0.0
+
+    h, g = v.hinge, v.groups
+    return {"round": v.round, "angle_deg": round(h.angle_deg, 1),
+            "images_a": sorted(name(i) for i in g.side_a), "images_b": sorted(name(i) for i in g.side_b),
+            "estimate_pairs": named(g.across), "mode_pairs": named(h.mode_pairs),
+            "estimate_coverage": median(v.estimate_coverage), "mode_coverage": median(v.mode_coverage),
+            "verdict": v.verdict, "action": v.action, "pairs_unjudged": len(v.unjudged),
+            "matches_unjudged": int(sum(len(matches[p]) for p in v.unjudged if p in matches))}
 
 
 def _peak_rss_mb() -> float:

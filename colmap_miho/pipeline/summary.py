@@ -172,10 +172,14 @@ def _pair_check_line(pc: dict) -> str:
 def _match_check_line(mc: dict) -> str:
     """The summary's match-check line: whether the global estimate was used (and why not), what
     was removed, its seconds (the pairs removed whole are listed in the JSON summary)."""
+    from ..reporting.html_report import hinge_note
+
     verb = "removed" if mc["mode"] == "remove" else "flagged"
+    hinges = "".join(f"\n    {hinge_note(h)}" for h in mc.get("hinges") or [])
     if not mc["used"]:
-        return f"  match check: global estimate not used ({mc['reason']}); nothing {verb} ({mc['seconds']:.1f} s)"
+        return (f"  match check: global estimate not used ({mc['reason']}); nothing {verb} ({mc['seconds']:.1f} s)"
+                + hinges)
     return (f"  match check: global estimate of {mc['images_registered']} of {mc['images']} images, "
             f"{len(mc['images_trusted'])} trusted; {mc['matches_removed']} of {mc['matches_judged']} judged matches "
             f"and {mc['pairs_removed']} pairs ({mc['matches_in_removed_pairs']} matches) {verb} "
-            f"(threshold {mc['threshold_px']:.2f} px, {mc['rounds']} round(s), {mc['seconds']:.1f} s)")
+            f"(threshold {mc['threshold_px']:.2f} px, {mc['rounds']} round(s), {mc['seconds']:.1f} s)" + hinges)

@@ -349,7 +349,28 @@ def match_check_note(mc: dict) -> str:
             + (f" (not: {', '.join(untrusted)})" if untrusted else "")
             + f"; {mc.get('matches_removed', 0)} of {mc.get('matches_judged', 0)} judged matches {verb} "
             f"(farther than {mc.get('threshold_px', 0):.2f} px from their epipolar line under it), "
-            f"{mc.get('pairs_removed', 0)} pairs {verb} whole (most of their matches off it).")
+            f"{mc.get('pairs_removed', 0)} pairs {verb} whole (most of their matches off it)."
+            + "".join(" " + hinge_note(h) for h in mc.get("hinges") or []))
+
+
+def hinge_note(h: dict) -> str:
+    """One sentence on a hinge the match check found (a ``match_check.hinges`` record): the
+    two groups, which side the pairs' own coverage took and what was done (plain text)."""
+    a, b = h.get("images_a") or [], h.get("images_b") or []
+    small, large = (a, b) if len(a) <= len(b) else (b, a)
+    shown = ", ".join(small[:6]) + (f" and {len(small) - 6} more" if len(small) > 6 else "")
+    ne, nm = len(h.get("estimate_pairs") or []), len(h.get("mode_pairs") or [])
+    evidence = (f"coverage of the pairs across it: {h.get('estimate_coverage', 0):.2f} for the estimate's "
+                f"{ne}, {h.get('mode_coverage', 0):.2f} for the other hypothesis' {nm}")
+    side = {"estimate": "sided with the estimate", "mode": "sided with the other hypothesis",
+            "undecided": "did not decide"}.get(h.get("verdict", ""), "did not decide")
+    done = {"kept": "the estimate was kept",
+            "estimated again": f"the estimate was made again without the estimate's {ne} cross pairs",
+            "judged less": f"the {h.get('pairs_unjudged', 0)} pairs ({h.get('matches_unjudged', 0)} matches) "
+                           f"between the groups were left unjudged"}.get(h.get("action", ""), "")
+    return (f"Hinge in round {h.get('round', 1)}'s estimate: {len(small)} images ({shown}) turned "
+            f"{h.get('angle_deg', 0):.1f} deg against the other {len(large)}; the evidence ({evidence}) {side}, "
+            f"so {done}.")
 
 
 def write_model_html(path: str | Path, report: dict, model, *, budget: int = POINT_BUDGET,

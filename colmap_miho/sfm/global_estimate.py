@@ -43,8 +43,10 @@ class GlobalEstimate:
         focal: image id -> mean focal length (pixels) of its estimated camera.
         pair_rotations: pair -> ``R_2from1`` estimated from the pair's matches alone (pairs of
             two registered images with at least ``min_pair_matches`` matches).
+        pair_translations: pair -> the unit ``t_2from1`` of the same relative pose.
         observations: image id -> (keypoint indices int64 ``(K,)``, their 3D points float64
-            ``(K, 3)``) of the model's tracks.
+            ``(K, 3)``, their point ids int64 ``(K,)``) of the model's tracks.
+        point_images: point id -> int64 ids of the images its track holds.
         cameras: image id -> its estimated ``pycolmap.Camera``.
         keypoints: image id -> ``(N, 2)`` keypoints in COLMAP's convention.
         seconds: wall time of its parts: "database" (the temporary database), "mapper",
@@ -56,7 +58,9 @@ class GlobalEstimate:
     rays: dict[int, np.ndarray] = field(default_factory=dict)
     focal: dict[int, float] = field(default_factory=dict)
     pair_rotations: dict[Pair, np.ndarray] = field(default_factory=dict)
-    observations: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    pair_translations: dict[Pair, np.ndarray] = field(default_factory=dict)
+    observations: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+    point_images: dict[int, np.ndarray] = field(default_factory=dict)
     cameras: dict = field(default_factory=dict)
     keypoints: dict[int, np.ndarray] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
@@ -185,18 +189,25 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         rays[i] = np.asarray(cam.cam_from_img(kp[i]), np.float64).reshape(-1, 2)
         focal[i] = float(cam.mean_focal_length())
         cams[i] = cam
-    obs: dict[int, tuple[list, list]] = {i: ([], []) for i in poses}
-    for p3 in rec.points3D.values():
-        for el in p3.track.elements:
+    obs: dict[int, tuple[list, list, list]] = {i: ([], [], []) for i in poses}
+    point_images: dict[int, np.ndarray] = {}
+    for point_id, p3 in rec.points3D.items():
+        elements = p3.track.elements
+        point_images[int(point_id)] = np.asarray([int(el.image_id) for el in elements], np.int64)
+        for el in elements:
             if int(el.image_id) in obs:
                 obs[int(el.image_id)][0].append(int(el.point2D_idx))
                 obs[int(el.image_id)][1].append(p3.xyz)
-    observations = {i: (np.asarray(a, np.int64), np.asarray(b, np.float64).reshape(-1, 3)) for i, (a, b) in obs.items()}
+                obs[int(el.image_id)][2].append(int(point_id))
+    observations = {i: (np.asarray(a, np.int64), np.asarray(b, np.float64).reshape(-1, 3), np.asarray(c, np.int64))
+                    for i, (a, b, c) in obs.items()}
     t0 = time.perf_counter()
-    rotations = _pair_rotations(pycolmap, used, kp, cams, seed)
+    relative = _pair_poses(pycolmap, used, kp, cams, seed)
     seconds["pair_rotations"] = time.perf_counter() - t0
     return GlobalEstimate(poses=poses, rays=rays, focal=focal, seconds=seconds, observations=observations,
-                          cameras=cams, keypoints=kp, pair_rotations=rotations)
+                          point_images=point_images, cameras=cams, keypoints=kp,
+                          pair_rotations={p: R for p, (R, _) in relative.items()},
+                          pair_translations={p: t for p, (_, t) in relative.items()})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -224,9 +235,9 @@ class GlobalEstimator:
                                workdir=self.workdir)
 
     def place(self, estimate: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray],
-              trusted: frozenset[int]) -> Pose | None:
+              trusted: frozenset[int], min_inliers: int | None = None) -> Pose | None:
         return place_by_points(estimate, image_id, matches, trusted, max_error_px=self.max_error_px,
-                               min_inliers=self.min_inliers, seed=self.seed)
+                               min_inliers=self.min_inliers if min_inliers is None else min_inliers, seed=self.seed)
 
 
 def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray], trusted, *,
@@ -247,7 +258,7 @@ def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, n
         other, mine, theirs = (j, m[:, 0], m[:, 1]) if i == k else (i, m[:, 1], m[:, 0])
         if other not in trusted or other not in est.observations:
             continue
-        idx, xyz = est.observations[other]
+        idx, xyz, _ = est.observations[other]
         order = np.argsort(idx)
         pos = np.searchsorted(idx[order], theirs)
         pos = np.minimum(pos, max(len(idx) - 1, 0))
@@ -266,10 +277,10 @@ def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, n
     return np.asarray(pose.rotation.matrix(), np.float64), np.asarray(pose.translation, np.float64)
 
 
-def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],
-                    cams: Mapping, seed: int) -> dict[Pair, np.ndarray]:
-    """Each pair's own ``R_2from1`` from its matches (pairs of two registered images whose
-    relative pose could be estimated)."""
+def _pair_poses(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],
+                cams: Mapping, seed: int) -> dict[Pair, Pose]:
+    """Each pair's own ``(R_2from1, unit t_2from1)`` from its matches (pairs of two registered
+    images whose relative pose could be estimated)."""
     opts = pc.TwoViewGeometryOptions()
     opts.compute_relative_pose = True
     opts.ransac.max_error = PAIR_POSE_MAX_ERROR_PX
@@ -281,5 +292,6 @@ def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.
         tvg = pc.estimate_two_view_geometry(cams[i], kp[i], cams[j], kp[j], np.ascontiguousarray(m, np.uint32), opts)
         pose = tvg.cam2_from_cam1
         if is_verified(tvg) and pose is not None:
-            out[(i, j)] = np.asarray(pose.rotation.matrix(), np.float64)
+            t = np.asarray(pose.translation, np.float64)
+            out[(i, j)] = (np.asarray(pose.rotation.matrix(), np.float64), t / max(float(np.linalg.norm(t)), 1e-12))
     return out

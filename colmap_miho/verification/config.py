@@ -131,6 +131,14 @@ class MatchCheckConfig:
             lowers the cost by less than this share (Ceres' ``function_tolerance``; 0: its own
             1e-5): the judging needs poses, not the last digits of a dense model (the same pose
             outcome on every shared scene, less mapper time: docs/results.md, the match check).
+        hinges: after each estimate, look for a hinge (two groups of images the estimate turned
+            against each other: a tight mode of the pairs' disagreements, see
+            :mod:`colmap_miho.verification.hinge`) and let the pairs' own coverage decide
+            between the estimate and the other hypothesis; when it does not decide, the pairs
+            between the two groups are left unjudged.
+        hinge_min_pairs / hinge_min_side_images: a mode is a hinge when at least this many
+            pairs disagree with the estimate by the same rotation, touching at least this many
+            images on each side (one image turned alone is the trust test's case).
         rounds: global estimates at most; each later one is made from the last one's survivors
             and judges, with the first round's threshold, the pairs of the images newly trusted
             (stops once every placed image is trusted).
@@ -152,6 +160,9 @@ class MatchCheckConfig:
     ba_iterations: int = 3
     retriangulate: bool = True
     ba_function_tolerance: float = 1e-4
+    hinges: bool = True
+    hinge_min_pairs: int = 3
+    hinge_min_side_images: int = 2
     rounds: int = 2
     seed: int = 0
 

@@ -41,6 +41,7 @@ import numpy as np
 from ..geometry import essential, relative_pose, rotation_angle_deg, symmetric_epipolar_distance
 from ..types import Pair, Pose
 from .config import MatchCheckConfig
+from .hinge import Groups, Hinge, arbitrate, find_hinge, pair_coverage, split_groups
 
 
 def robust_scale(distances: np.ndarray) -> float:
@@ -260,6 +261,15 @@ class CameraEstimate(Protocol):
         """pair -> its own relative rotation ``R_2from1`` (from its matches alone)."""
 
     @property
+    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """image id -> (keypoint indices ``(K,)``, world points ``(K, 3)``, point ids ``(K,)``)
+        of the estimate's tracks."""
+
+    @property
+    def point_images(self) -> Mapping[int, np.ndarray]:
+        """point id -> the image ids of its track."""
+
+    @property
     def seconds(self) -> Mapping[str, float]:
         """Wall time of the estimate's parts."""
 
@@ -279,9 +289,10 @@ class Estimator(Protocol[Est]):
         """The estimate from ``matches`` (pair -> int ``(M, 2)`` keypoint indices)."""
 
     def place(self, estimate: Est, image_id: int, matches: Mapping[Pair, np.ndarray],
-              trusted: frozenset[int]) -> Pose | None:
+              trusted: frozenset[int], min_inliers: int | None = None) -> Pose | None:
         """A new pose of ``image_id`` from ``estimate``'s points seen through the ``trusted``
-        images (None when it cannot be placed)."""
+        images (None when it cannot be placed with ``min_inliers`` inliers, default the
+        estimator's own)."""
 
 
 #: Rounds of placing the untrusted images again: a placement made from a trusted part that
@@ -322,6 +333,117 @@ def place_untrusted(estimator: Estimator[Est], est: Est, res: MatchCheckResult,
 
 
 @dataclass(frozen=True, kw_only=True)
+class HingeVerdict:
+    """A hinge found in one round's estimate, and what the coverage evidence made of it.
+
+    Attributes:
+        round: the round (1-based) whose estimate it was found in.
+        hinge: the mode and its two ends.
+        groups: the two groups, and the estimate's pairs between them.
+        mode_coverage / estimate_coverage: pair -> coverage (:func:`~.hinge.pair_coverage`) of
+            the mode's pairs / of the estimate's pairs across (``groups.across``).
+        verdict: the side the evidence took (:func:`~.hinge.arbitrate`): "estimate", "mode"
+            or "undecided".
+        action: "kept" (the estimate), "estimated again" (without the estimate's cross pairs)
+            or "judged less" (the pairs between the groups left unjudged).
+        unjudged: pairs left unjudged because of it.
+    """
+
+    round: int
+    hinge: Hinge
+    groups: Groups
+    mode_coverage: dict[Pair, float]
+    estimate_coverage: dict[Pair, float]
+    verdict: str
+    action: str = ""
+    unjudged: frozenset[Pair] = frozenset()
+
+
+class _Coverage:
+    """Each pair's own coverage (:func:`~.hinge.pair_coverage`) under one estimate, measured
+    once: the other image placed by the pair's matches alone from the first image's points
+    (with as many inliers as a pair needs to count, ``min_hits``)."""
+
+    def __init__(self, estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np.ndarray],
+                 radius_px: float, min_hits: int) -> None:
+        self.estimator, self.est, self.matches, self.radius = estimator, est, matches, radius_px
+        self.min_hits = min_hits
+        self.known: dict[Pair, float] = {}
+
+    def _place(self, i: int, j: int, m: np.ndarray) -> Pose | None:
+        return self.estimator.place(self.est, j, {(i, j): m}, frozenset({i}), min_inliers=self.min_hits)
+
+    def __call__(self, pair: Pair) -> float:
+        if pair not in self.known:
+            m = self.matches.get(pair)
+            self.known[pair] = (float("nan") if m is None else
+                                pair_coverage(self.est, self._place, pair, m, self.radius, self.min_hits))
+        return self.known[pair]
+
+
+def weigh_hinge(coverage: _Coverage, hinge: Hinge, round_: int) -> HingeVerdict:
+    """The estimate's cross pairs against the mode's, each measured by its own coverage: the
+    groups follow each image's strongest agreeing pairs (:func:`~.hinge.split_groups`), and
+    :func:`~.hinge.arbitrate` compares the estimate's pairs between them with the mode's."""
+    theirs = {p: coverage(p) for p in hinge.mode_pairs}
+    groups = split_groups(hinge, lambda p: np.nan_to_num(coverage(p), nan=0.0))
+    ours = {p: coverage(p) for p in groups.across}
+    verdict = arbitrate(list(ours.values()), list(theirs.values()))
+    return HingeVerdict(round=round_, hinge=hinge, groups=groups, mode_coverage=theirs, estimate_coverage=ours,
+                        verdict=verdict)
+
+
+def theirs_finite(v: HingeVerdict) -> list[float]:
+    """The mode's coverages that say something."""
+    return [x for x in v.mode_coverage.values() if np.isfinite(x)] or [0.0]
+
+
+def cross_pairs(pairs, groups: Groups) -> frozenset[Pair]:
+    """The pairs with one image in each group."""
+    a, b = groups.side_a, groups.side_b
+    return frozenset(p for p in pairs if (p[0] in a and p[1] in b) or (p[0] in b and p[1] in a))
+
+
+def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
+                  round_: int) -> tuple[Est, list[HingeVerdict], frozenset[Pair]]:
+    """Look for a hinge in ``est`` and resolve it (:func:`weigh_hinge`).
+
+    The evidence siding with the estimate keeps it. Siding with the mode, the estimate is made
+    again without the estimate's own cross pairs (the correct ones across the hinge then hold
+    the two groups together; the ones left out are still judged). Undecided, or a hinge found
+    again in the estimate made again, or no such estimate: the pairs between the two groups are
+    left unjudged (no correct match is removed on a guess).
+
+    Returns:
+        (the estimate to judge against, what was found, the pairs to leave unjudged).
+    """
+    found: list[HingeVerdict] = []
+    if not cfg.hinges:
+        return est, found, frozenset()
+    for attempt in range(2):  # the estimate, and at most one made again
+        hinge = find_hinge(est.poses, est.pair_rotations, tolerance_deg=cfg.max_rotation_deg,
+                           min_pairs=cfg.hinge_min_pairs, min_side_images=cfg.hinge_min_side_images)
+        if hinge is None:
+            break
+        v = weigh_hinge(_Coverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches),
+                        hinge, round_)
+        if v.verdict == "estimate":
+            found.append(dataclasses.replace(v, action="kept"))
+            break
+        drop = {p for p, c in v.estimate_coverage.items() if not c >= np.percentile(theirs_finite(v), 25)}
+        if v.verdict == "mode" and attempt == 0 and drop:
+            again = estimator.estimate({p: m for p, m in matches.items() if p not in drop})
+            if len(again.poses) >= cfg.min_trusted_images:
+                found.append(dataclasses.replace(v, action="estimated again"))
+                est = again
+                continue
+        unjudged = cross_pairs(matches, v.groups)
+        found.append(dataclasses.replace(v, action="judged less", unjudged=unjudged))
+        return est, found, unjudged
+    return est, found, frozenset()
+
+
+@dataclass(frozen=True, kw_only=True)
 class MatchCheckDecision:
     """What :func:`judge_in_rounds` decided, over all its rounds.
 
@@ -339,7 +461,9 @@ class MatchCheckDecision:
         judged_pairs: pairs of two trusted images.
         scale_px / threshold_px: the first used round's scale and threshold (every round
             applies that threshold).
-        seconds: per round, the estimate's parts and "judging" and "placements".
+        seconds: per round, the estimate's parts and "judging", "placements" and "hinge".
+        hinges: the hinges found in the rounds' estimates and their verdicts.
+        unjudged: pairs left unjudged across a hinge the evidence could not decide.
     """
 
     used: bool
@@ -356,6 +480,8 @@ class MatchCheckDecision:
     scale_px: float = 0.0
     threshold_px: float = 0.0
     seconds: list[dict[str, float]] = field(default_factory=list)
+    hinges: tuple[HingeVerdict, ...] = ()
+    unjudged: frozenset[Pair] = frozenset()
 
 
 def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
@@ -365,7 +491,8 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
 
     A later round judges only the pairs of the images newly trusted, with the first round's
     threshold (the survivors' distances are truncated: a scale taken from them would shrink
-    round after round); it stops once every placed image is trusted.
+    round after round); it stops once every placed image is trusted. Each estimate is first
+    examined for a hinge (:func:`resolve_hinge`).
     """
     failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
     wrong: set[Pair] = set()
@@ -374,17 +501,27 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
     cut_any: set[int] = set()
     used, reason, scale, threshold, rounds = False, "", 0.0, 0.0, 0
     seconds: list[dict[str, float]] = []
+    hinges: list[HingeVerdict] = []
+    unjudged: set[Pair] = set()
     for _ in range(cfg.rounds):
         alive = {p: np.flatnonzero(~f) for p, f in failed.items() if p not in wrong and (~f).any()}
         current = {p: matches[p][idx] for p, idx in alive.items()}
         est = estimator.estimate(current)
         rounds += 1
+        part = dict(est.seconds)
+        th = time.perf_counter()
+        est, found, skip = resolve_hinge(estimator, est, current, cfg, rounds)
+        if found:
+            part["hinge"] = time.perf_counter() - th  # a second estimate included
+        hinges += found
+        unjudged |= skip
+        judged_now = {p: m for p, m in current.items() if p not in skip}
         t0 = time.perf_counter()
-        res = check_matches(current, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
+        res = check_matches(judged_now, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
                             threshold=threshold if used else None)
         t1 = time.perf_counter()
-        res = place_untrusted(estimator, est, res, current, cfg, threshold if used else None)
-        seconds.append({**est.seconds, "judging": t1 - t0, "placements": time.perf_counter() - t1})
+        res = place_untrusted(estimator, est, res, judged_now, cfg, threshold if used else None)
+        seconds.append({**part, "judging": t1 - t0, "placements": time.perf_counter() - t1})
         cut_any |= set(res.cut_off)  # the first judgement's and the placements' together
         registered_any |= set(res.registered)
         if not res.used:
@@ -401,7 +538,7 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         wrong |= set(res.wrong_pairs)
         if set(res.trusted) >= set(res.registered):
             break  # every placed image judged already: another round changes little
-    judged = frozenset(p for p in matches if p[0] in trusted_any and p[1] in trusted_any)
+    judged = frozenset(p for p in matches if p[0] in trusted_any and p[1] in trusted_any and p not in unjudged)
     share = {p: float(failed[p].mean()) for p in wrong}  # before the pair is removed whole
     for p in wrong:
         failed[p][:] = True
@@ -410,4 +547,5 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         failed={p: f for p, f in failed.items() if f.any() or p in judged}, wrong=frozenset(wrong),
         fail_share=share, registered=frozenset(registered_any), trusted=frozenset(trusted_any),
         untrusted=frozenset(registered_any - trusted_any), cut_off=frozenset(cut_any), judged_pairs=judged,
-        scale_px=scale, threshold_px=threshold, seconds=seconds)
+        scale_px=scale, threshold_px=threshold, seconds=seconds, hinges=tuple(hinges),
+        unjudged=frozenset(unjudged))

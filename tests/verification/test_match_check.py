@@ -193,7 +193,7 @@ class _Scripted:
         self.calls += 1
         return self.estimates.pop(0) if self.estimates else _Estimate(failure="no model (scripted)")
 
-    def place(self, estimate, image_id, matches, trusted):
+    def place(self, estimate, image_id, matches, trusted, min_inliers=None):
         return None
 
 

@@ -1,0 +1,290 @@
+"""A hinged global estimate: find it, and let each pair's own coverage decide which side is right
+(pure numpy).
+
+A repeated facade gives wrong pairs that agree with each other. When they outnumber (or outweigh)
+the correct pairs between two groups of images, robust rotation averaging sides with them: the
+estimate is right inside each group and turned between the groups (a *hinge*). Every image then
+keeps agreeing pairs inside its own group, so the trust test passes them all, and the check would
+remove the correct cross pairs and keep the wrong ones. No vote over pairs can pick the side (the
+wrong side has the lower robust cost); it can only detect.
+
+- **Detect** (:func:`find_hinge`). The correct pairs across a hinge disagree with the estimate by
+  the same world-frame rotation: ``D_ij = R_j^T R_ij R_i`` is ``G_B^T G_A`` for every pair from
+  group A to group B, where random wrong pairs scatter. A tight mode of such residuals, over
+  several pairs touching several images on each side, names its two ends; the groups are the
+  minimum cut of the pairs that agree with the estimate between those ends (the cut pairs are
+  the estimate's own evidence across the hinge).
+- **Arbitrate** (:func:`coverage`, :func:`arbitrate`). Missing correspondences (Zach et al. 2008):
+  place image j by the pair's own relative pose from image i's 3D points (the scale from the
+  pair's matches), project every point of i that lies in front of j and inside the area where j
+  has keypoints, and count the share that the pair matches there. A correct pair matches much of
+  what it should see; a repeated-element pair only the repeated element, while its own pose says
+  that the rest should be visible too. Each pair measures itself, with its own geometry, so the
+  score does not depend on which hypothesis holds; the two competing sets of cross pairs (the
+  estimate's and the mode's) are then compared with each other, not against a threshold.
+
+Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; a pair's own relative pose is
+``(R_2from1, t_2from1)`` with a unit translation; ``rays`` are normalised image coordinates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from ..geometry import rotation_angle_deg
+from ..types import Pair, Pose
+
+
+def world_residuals(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray]) -> dict[Pair, np.ndarray]:
+    """``D_ij = R_j^T R_ij R_i`` of every pair of two posed images: the identity where the pair's
+    own rotation agrees with the estimate; ``G_B^T G_A`` for a correct pair from a group turned
+    by ``G_A`` to one turned by ``G_B``."""
+    return {(i, j): poses[j][0].T @ R @ poses[i][0] for (i, j), R in pair_rotations.items()
+            if i in poses and j in poses}
+
+
+def project_to_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) to a 3x3 matrix."""
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        U[:, -1] *= -1
+        R = U @ Vt
+    return R
+
+
+@dataclass(frozen=True, kw_only=True)
+class Hinge:
+    """A coherent disagreement of the pairs' own rotations with the estimate.
+
+    Attributes:
+        turn: ``(3, 3)`` world rotation ``M`` (the mode of the residuals, oriented from end A to
+            end B): turning the B side's cameras by it (``R_j M``) makes the mode's pairs agree.
+        angle_deg: the angle of ``turn``.
+        ends_a / ends_b: the images of the mode's pairs on each side.
+        mode_pairs: the pairs whose residuals form the mode (the other hypothesis' evidence).
+        agreeing: the pairs that agree with the estimate (its evidence, within and across).
+    """
+
+    turn: np.ndarray
+    angle_deg: float
+    ends_a: frozenset[int]
+    ends_b: frozenset[int]
+    mode_pairs: tuple[Pair, ...]
+    agreeing: tuple[Pair, ...]
+
+
+def find_hinge(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray], *, tolerance_deg: float,
+               min_pairs: int, min_side_images: int) -> Hinge | None:
+    """The strongest coherent disagreement of the pairs' own rotations with the estimate, or
+    None.
+
+    A pair disagrees when its residual :func:`world_residuals` is more than ``tolerance_deg``
+    from the identity (the trust test's bound). Each disagreeing pair's residual, in both
+    orientations, is a candidate mode; its support is the disagreeing pairs within
+    ``tolerance_deg`` of it in either orientation (a pair ``(i, j)`` near ``M`` puts i on end
+    A and j on end B, near ``M^T`` the other way). The candidate with the most support whose
+    two ends share no image is the mode; it is a hinge when at least ``min_pairs`` pairs
+    support it and each end holds at least ``min_side_images`` images.
+    """
+    residuals = world_residuals(poses, pair_rotations)
+    eye = np.eye(3)
+    off = {p: D for p, D in residuals.items() if rotation_angle_deg(D, eye) > tolerance_deg}
+    if len(off) < min_pairs:
+        return None
+    keys = sorted(off)
+    stack = np.stack([off[p] for p in keys])  # (P, 3, 3)
+    lim = np.cos(np.deg2rad(tolerance_deg))
+    candidates: list[list[tuple[Pair, bool]]] = []
+    for p in keys:
+        for C in (off[p], off[p].T):
+            # the cosine of the angle between C and each D as it is / flipped (D^T): (trace - 1) / 2
+            same = (np.einsum("kab,ab->k", stack, C) - 1.0) / 2.0 >= lim
+            flip = ((np.einsum("kba,ab->k", stack, C) - 1.0) / 2.0 >= lim) & ~same
+            candidates.append([(keys[k], False) for k in np.flatnonzero(same)]
+                              + [(keys[k], True) for k in np.flatnonzero(flip)])
+    for k in sorted(range(len(candidates)), key=lambda k: (-len(candidates[k]), k)):
+        support = candidates[k]
+        if len(support) < min_pairs:
+            return None
+        ends_a = {q[1] if f else q[0] for q, f in support}
+        ends_b = {q[0] if f else q[1] for q, f in support}
+        if ends_a & ends_b or len(ends_a) < min_side_images or len(ends_b) < min_side_images:
+            continue
+        M = project_to_rotation(np.sum([off[q].T if f else off[q] for q, f in support], axis=0))
+        return Hinge(turn=M, angle_deg=rotation_angle_deg(M, eye), ends_a=frozenset(ends_a),
+                     ends_b=frozenset(ends_b), mode_pairs=tuple(sorted(q for q, _ in support)),
+                     agreeing=tuple(sorted(p for p in residuals if p not in off)))
+    return None
+
+
+@dataclass(frozen=True, kw_only=True)
+class Groups:
+    """The two groups a hinge implies (:func:`split_groups`).
+
+    Attributes:
+        side_a / side_b: the images joined to each end of the mode.
+        across: the pairs that agree with the estimate between the two groups (its evidence
+            across the hinge).
+    """
+
+    side_a: frozenset[int]
+    side_b: frozenset[int]
+    across: tuple[Pair, ...]
+
+
+def split_groups(hinge: Hinge, strength: Callable[[Pair], float]) -> Groups:
+    """The two groups of a hinge: the images joined to each of its ends by their strongest
+    pairs that agree with the estimate.
+
+    The pairs are taken strongest first (each pair's own evidence, :func:`pair_coverage`); a
+    pair joins its images unless that would join the two ends (a maximum spanning forest with
+    the two ends as its roots). So every image goes with the end it reaches through its
+    strongest links, whatever their number: the wrong pairs that built a hinge agree with the
+    estimate and can outnumber the pairs inside a group (a cut by counts would run through a
+    group), but by their own evidence they are the weak ones. Images that reach neither end
+    stay out of both groups."""
+    parent: dict[int, int] = {}
+
+    def root(k: int) -> int:
+        parent.setdefault(k, k)
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    a0, b0 = min(hinge.ends_a), min(hinge.ends_b)
+    for k in hinge.ends_a:
+        parent[root(k)] = root(a0)
+    for k in hinge.ends_b:
+        parent[root(k)] = root(b0)
+    weight = {p: strength(p) for p in hinge.agreeing}
+    for p in sorted(hinge.agreeing, key=lambda p: (-weight[p], p)):
+        ri, rj = root(p[0]), root(p[1])
+        if ri == rj or {ri, rj} == {root(a0), root(b0)}:
+            continue
+        if rj in (root(a0), root(b0)):  # keep the ends' roots as roots
+            ri, rj = rj, ri
+        parent[rj] = ri
+    side_a = frozenset(k for k in parent if root(k) == root(a0))
+    side_b = frozenset(k for k in parent if root(k) == root(b0))
+    across = tuple(p for p in hinge.agreeing if (p[0] in side_a and p[1] in side_b)
+                   or (p[0] in side_b and p[1] in side_a))
+    return Groups(side_a=side_a, side_b=side_b, across=across)
+
+
+def coverage(points: np.ndarray, matched: np.ndarray, pose_j: Pose, rays_j: np.ndarray, focal_j: float,
+             radius_px: float) -> tuple[int, int]:
+    """Missing correspondences of one pair, one direction: of image i's 3D points that image j,
+    placed by the pair's own matches, sees, how many the pair matches where they project.
+
+    Args:
+        points: ``(K, 3)`` world points image i observes (each determined without image j:
+            its track holds two images other than j).
+        pose_j: ``cam_from_world`` of image j placed from i's points through the pair's matches
+            alone (so right for a correct pair whether or not the estimate is hinged, and the
+            repeated element's pose for a wrong pair).
+        rays_j: ``(N, 2)`` normalised coordinates of j's keypoints.
+        focal_j: j's focal length (pixels).
+        matched: ``(K,)`` int, for each point, the keypoint of j the pair matches to the
+            keypoint of i observing it (-1: none).
+        radius_px: a match counts when j's keypoint is at most this far from the projection.
+
+    Returns:
+        (expected, found): i's points in front of j and inside the box of j's keypoints, and of
+        those the ones the pair matches within ``radius_px`` of where they project.
+    """
+    if len(points) == 0 or len(rays_j) == 0:
+        return 0, 0
+    R, t = pose_j
+    Z = points @ R.T + t
+    front = Z[:, 2] > 1e-9
+    proj = np.full((len(Z), 2), np.inf)
+    proj[front] = Z[front, :2] / Z[front, 2:3]
+    lo, hi = rays_j.min(axis=0), rays_j.max(axis=0)
+    inside = front & np.all((proj >= lo) & (proj <= hi), axis=1)
+    has = inside & (matched >= 0)
+    near = np.linalg.norm(rays_j[matched[has]] - proj[has], axis=1) * focal_j <= radius_px
+    return int(inside.sum()), int(near.sum())
+
+
+class PointsEstimate(Protocol):
+    """What the coverage reads of a global estimate."""
+
+    @property
+    def rays(self) -> Mapping[int, np.ndarray]:
+        """image id -> ``(N, 2)`` normalised coordinates of all its keypoints."""
+
+    @property
+    def focal(self) -> Mapping[int, float]:
+        """image id -> focal length (pixels)."""
+
+    @property
+    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """image id -> (keypoint indices ``(K,)``, world points ``(K, 3)``, point ids ``(K,)``)."""
+
+    @property
+    def point_images(self) -> Mapping[int, np.ndarray]:
+        """point id -> the image ids of its track."""
+
+
+#: ``place(i, j, matches)``: image j's ``cam_from_world`` from image i's points through the
+#: pair's ``matches`` (``(M, 2)``, column 0 into i) alone, or None.
+PlacePair = Callable[[int, int, np.ndarray], "Pose | None"]
+
+
+def pair_coverage(est: PointsEstimate, place: PlacePair, pair: Pair, matches: np.ndarray,
+                  radius_px: float, min_hits: int) -> float:
+    """The share of the points each image of ``pair`` sees that the pair's own pose puts in
+    the other image and that the pair matches there (:func:`coverage`, both directions pooled).
+
+    A direction whose matches hit fewer than ``min_hits`` of the first image's points says
+    nothing (too few to place the other image); one with enough whose matches still do not
+    place the other image found none of what it should see. NaN when no direction says
+    anything."""
+    i, j = pair
+    m = np.asarray(matches, np.int64)
+    expected = found = 0
+    for a, b, mm in ((i, j, m), (j, i, m[:, ::-1])):
+        if a not in est.observations or b not in est.rays:
+            continue
+        kp, xyz, pid = est.observations[a]
+        if np.isin(mm[:, 0], kp).sum() < min_hits:
+            continue
+        own = np.fromiter((len(est.point_images[int(q)]) - int(b in est.point_images[int(q)]) >= 2 for q in pid),
+                          bool, len(pid))
+        pose = place(a, b, mm)
+        if pose is None:  # the pair's matches do not place the other image: nothing found
+            expected += int(own.sum())
+            continue
+        look = np.full(len(est.rays[a]), -1, np.int64)
+        look[mm[:, 0]] = mm[:, 1]
+        e, f = coverage(xyz[own], look[kp[own]], pose, est.rays[b], est.focal[b], radius_px)
+        expected, found = expected + e, found + f
+    return found / expected if expected else float("nan")
+
+
+def arbitrate(estimate_scores: list[float], mode_scores: list[float]) -> str:
+    """Which set of cross pairs the coverage evidence supports: "estimate", "mode", or
+    "undecided". A side wins when its pairs' scores and the other side's do not overlap in
+    their middle halves (the winner's lower quartile above the loser's upper quartile); an
+    empty side loses to a non-empty one. Scores that say nothing (NaN) are left out."""
+    estimate_scores = [x for x in estimate_scores if np.isfinite(x)]
+    mode_scores = [x for x in mode_scores if np.isfinite(x)]
+    if not estimate_scores and not mode_scores:
+        return "undecided"
+    if not mode_scores:
+        return "estimate"
+    if not estimate_scores:
+        return "mode"
+    e_lo, e_hi = np.percentile(estimate_scores, [25, 75])
+    m_lo, m_hi = np.percentile(mode_scores, [25, 75])
+    if m_lo > e_hi:
+        return "mode"
+    if e_lo > m_hi:
+        return "estimate"
+    return "undecided"
