@@ -122,6 +122,41 @@ def find_hinge(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarr
     return None
 
 
+def confirm_hinge(hinge: Hinge, poses: Mapping[int, Pose], placed: Callable[[int, int], Pose | None], *,
+                  tolerance_deg: float, min_pairs: int, min_side_images: int) -> Hinge | None:
+    """The hinge with only the mode's pairs whose disagreement holds when the pair's relative
+    pose is measured from 3D points, or None when too few of them hold.
+
+    A pair's own relative rotation comes from its essential matrix, which planar scenes make
+    ambiguous: pairs of a courtyard whose matches are right can share one wrong rotation and
+    form a mode. Placing the second image from the first image's 3D points through the pair's
+    matches (``placed(i, j)``: j's ``cam_from_world``, or None) has no such ambiguity; a pair
+    of a real hinge disagrees with the estimate by the mode there too (``R_j^T R_j'`` within
+    ``tolerance_deg`` of it, oriented as the pair is)."""
+    eye = np.eye(3)
+    kept: list[tuple[Pair, np.ndarray]] = []
+    for p in hinge.mode_pairs:
+        i, j = p
+        M = hinge.turn.T if i in hinge.ends_b else hinge.turn  # the mode as pair (i, j) sees it
+        pose = placed(i, j)
+        if pose is not None:
+            D = poses[j][0].T @ pose[0]
+        else:
+            back = placed(j, i)
+            if back is None:
+                continue
+            D = back[0].T @ poses[i][0]
+        if rotation_angle_deg(D, M) <= tolerance_deg and rotation_angle_deg(D, eye) > tolerance_deg:
+            kept.append((p, D if i not in hinge.ends_b else D.T))
+    ends_a = {q[1] if q[0] in hinge.ends_b else q[0] for q, _ in kept}
+    ends_b = {q[0] if q[0] in hinge.ends_b else q[1] for q, _ in kept}
+    if len(kept) < min_pairs or len(ends_a) < min_side_images or len(ends_b) < min_side_images:
+        return None
+    M = project_to_rotation(np.sum([D for _, D in kept], axis=0))
+    return Hinge(turn=M, angle_deg=rotation_angle_deg(M, eye), ends_a=frozenset(ends_a), ends_b=frozenset(ends_b),
+                 mode_pairs=tuple(sorted(q for q, _ in kept)), agreeing=hinge.agreeing)
+
+
 @dataclass(frozen=True, kw_only=True)
 class Groups:
     """The two groups a hinge implies (:func:`split_groups`).

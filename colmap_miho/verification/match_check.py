@@ -41,7 +41,7 @@ import numpy as np
 from ..geometry import essential, relative_pose, rotation_angle_deg, symmetric_epipolar_distance
 from ..types import Pair, Pose
 from .config import MatchCheckConfig
-from .hinge import Groups, Hinge, arbitrate, find_hinge, pair_coverage, split_groups
+from .hinge import Groups, Hinge, arbitrate, confirm_hinge, find_hinge, pair_coverage, split_groups
 
 
 def robust_scale(distances: np.ndarray) -> float:
@@ -360,18 +360,36 @@ class HingeVerdict:
 
 
 class _Coverage:
-    """Each pair's own coverage (:func:`~.hinge.pair_coverage`) under one estimate, measured
-    once: the other image placed by the pair's matches alone from the first image's points
-    (with as many inliers as a pair needs to count, ``min_hits``)."""
+    """Each pair's own evidence under one estimate, measured once: the second image placed by
+    the pair's matches alone from the first image's points (:meth:`placed`, with as many
+    inliers as a pair needs to count, ``min_hits``), and the pair's coverage
+    (:func:`~.hinge.pair_coverage`)."""
 
     def __init__(self, estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np.ndarray],
                  radius_px: float, min_hits: int) -> None:
         self.estimator, self.est, self.matches, self.radius = estimator, est, matches, radius_px
         self.min_hits = min_hits
         self.known: dict[Pair, float] = {}
+        self.poses: dict[tuple[int, int], Pose | None] = {}
+
+    def _pair_matches(self, i: int, j: int) -> np.ndarray | None:
+        """The matches of images i and j with column 0 into i (None: not a pair)."""
+        if (i, j) in self.matches:
+            return np.asarray(self.matches[(i, j)], np.int64)
+        if (j, i) in self.matches:
+            return np.asarray(self.matches[(j, i)], np.int64)[:, ::-1]
+        return None
 
     def _place(self, i: int, j: int, m: np.ndarray) -> Pose | None:
-        return self.estimator.place(self.est, j, {(i, j): m}, frozenset({i}), min_inliers=self.min_hits)
+        if (i, j) not in self.poses:
+            self.poses[(i, j)] = self.estimator.place(self.est, j, {(i, j): m}, frozenset({i}),
+                                                      min_inliers=self.min_hits)
+        return self.poses[(i, j)]
+
+    def placed(self, i: int, j: int) -> Pose | None:
+        """Image j's ``cam_from_world`` placed from image i's points by their pair's matches."""
+        m = self._pair_matches(i, j)
+        return None if m is None else self._place(i, j, m)
 
     def __call__(self, pair: Pair) -> float:
         if pair not in self.known:
@@ -423,10 +441,13 @@ def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np
     for attempt in range(2):  # the estimate, and at most one made again
         hinge = find_hinge(est.poses, est.pair_rotations, tolerance_deg=cfg.max_rotation_deg,
                            min_pairs=cfg.hinge_min_pairs, min_side_images=cfg.hinge_min_side_images)
+        coverage = _Coverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
+        if hinge is not None:
+            hinge = confirm_hinge(hinge, est.poses, coverage.placed, tolerance_deg=cfg.max_rotation_deg,
+                                  min_pairs=cfg.hinge_min_pairs, min_side_images=cfg.hinge_min_side_images)
         if hinge is None:
             break
-        v = weigh_hinge(_Coverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches),
-                        hinge, round_)
+        v = weigh_hinge(coverage, hinge, round_)
         if v.verdict == "estimate":
             found.append(dataclasses.replace(v, action="kept"))
             break
