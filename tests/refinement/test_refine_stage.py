@@ -16,7 +16,7 @@ from colmap_miho.pipeline.executor import open_runner
 from colmap_miho.refinement.config import NCCConfig, TrackConfig
 from miho_bench.synthetic import make_synthetic_scene
 
-NCC = NCCConfig(device="cpu", template_radius=6)
+NCC = NCCConfig.pairwise(device="cpu", template_radius=6)
 TRACKS = TrackConfig()
 
 
