@@ -170,7 +170,7 @@ def refine_pair(
         move: "1" or "2" (only that side may move, the other gives the template) or "auto"
             (both directions are tried, the one with the higher NCC peak moves: the paper's
             behaviour); ``None`` uses ``config.move``.
-        config: :class:`NCCConfig` (defaults when None).
+        config: :class:`NCCConfig`; None: the paper's pairwise values (:meth:`NCCConfig.pairwise`).
         affine1, affine2: optional (N, 2, 2) keypoint affine frames (columns = local axes in
             pixels) for the base pass; identity when omitted.
         progress: show a tqdm bar over chunks.
