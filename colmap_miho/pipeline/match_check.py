@@ -30,7 +30,7 @@ from ..types import Pair
 from ..verification.config import MatchCheckConfig
 from ..verification.match_check import MatchCheckDecision, judge_in_rounds
 from .store import RunStore, StoreDamaged
-from .verdicts import NONE, Verdicts, pair_graph
+from .verdicts import NO_VERDICTS, Verdicts, pair_graph
 
 log = logging.getLogger(__name__)
 
@@ -107,12 +107,12 @@ class MatchCheckStats:
 
 
 def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, *,
-                    checked: Verdicts = NONE, threads: int = -1) -> tuple[Verdicts, MatchCheckStats | None]:
+                    checked: Verdicts = NO_VERDICTS, threads: int = -1) -> tuple[Verdicts, MatchCheckStats | None]:
     """The stage: judge the pair graph's matches (the pairs ``checked``, the pair check's
     verdicts, removed); returns its :class:`~.verdicts.Verdicts` (none in "flag" mode) and the
     stats (None when off)."""
     if not cfg.enabled:
-        return NONE, None
+        return NO_VERDICTS, None
     stored = store.load_stage(STORE_NAME)
     if stored is None:
         failed, wrong, meta = _decide(db, store, cfg, source, checked, threads)
@@ -126,7 +126,7 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
                  "removed" if cfg.mode == MatchCheckMode.REMOVE else "flagged", *w["images"],
                  100 * w["fail_share"], w["matches"])
     if cfg.mode != MatchCheckMode.REMOVE or not stats.used:
-        return NONE, stats
+        return NO_VERDICTS, stats
     filtered = store.load_filtered()
     if any(p in filtered and len(f) != np.count_nonzero(filtered[p][1].inliers) for p, f in failed.items()):
         raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its verdicts do not fit the stored pairs")

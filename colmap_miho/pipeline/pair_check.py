@@ -19,7 +19,7 @@ from ..enums import MatchSource, PairCheckMode
 from ..verification import PairCheckConfig, check_pairs
 from .read import ReadOutput
 from .store import RunStore
-from .verdicts import NONE, Verdicts, pair_graph
+from .verdicts import NO_VERDICTS, Verdicts, pair_graph
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ def run_pair_check(db: ColmapDatabase, read: ReadOutput, store: RunStore, cfg: P
     """Check the pair graph; returns the :class:`~.verdicts.Verdicts` (the pairs to remove;
     none when off or in "flag" mode) and the stage's :class:`PairCheckStats` (None when off)."""
     if not cfg.enabled:
-        return NONE, None
+        return NO_VERDICTS, None
     matches = pair_graph(db, store.load_filtered(), source)
     result = check_pairs(matches, read.keypoints, cfg)
     names = {im.image_id: im.name for im in db.images()}
@@ -69,4 +69,4 @@ def run_pair_check(db: ColmapDatabase, read: ReadOutput, store: RunStore, cfg: P
                            wrong_pairs=wrong)
     for w in wrong:
         log.info("pair check: %s %s - %s: %s", "removed" if remove else "flagged", *w["images"], w["reason"])
-    return (Verdicts(removed=frozenset(result.wrong)) if remove else NONE), stats
+    return (Verdicts(removed=frozenset(result.wrong)) if remove else NO_VERDICTS), stats

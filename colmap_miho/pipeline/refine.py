@@ -21,7 +21,7 @@ from .executor import Runner
 from .read import ReadOutput, read_affines
 from .store import RunStore
 from .track_groups import DECODED_BY_IMAGE, group_max_matches, walk_groups
-from .verdicts import NONE, Verdicts, output_matches
+from .verdicts import NO_VERDICTS, Verdicts, output_matches
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class RefineStats:
 
 
 def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Recipe, device: str,
-               runner: Runner, progress: bool, verdicts: Verdicts = NONE
+               runner: Runner, progress: bool, verdicts: Verdicts = NO_VERDICTS
                ) -> tuple[dict[int, np.ndarray], RefineStats]:
     """The refine stage on the stored pairs whose two images are readable, on ``runner``,
     skipping the track groups ``store`` holds and storing each finished one. The checks'

@@ -67,11 +67,11 @@ class Verdicts:
 
 
 #: No verdicts: every pair as the filter left it.
-NONE = Verdicts()
+NO_VERDICTS = Verdicts()
 
 
 def output_matches(db: ColmapDatabase, kept: FilteredPairs, source: MatchSource,
-                   verdicts: Verdicts = NONE) -> dict[Pair, np.ndarray]:
+                   verdicts: Verdicts = NO_VERDICTS) -> dict[Pair, np.ndarray]:
     """Every pair's output matches ``(M, 2)`` in the database's pair order: the kept matches of
     the stored pairs ``kept`` (``verdicts`` already applied), the database's for the pairs not
     in it; the pairs ``verdicts`` removed left out, empty pairs kept."""
@@ -89,7 +89,7 @@ def output_matches(db: ColmapDatabase, kept: FilteredPairs, source: MatchSource,
 
 
 def pair_graph(db: ColmapDatabase, filtered: FilteredPairs, source: MatchSource,
-               verdicts: Verdicts = NONE) -> dict[Pair, np.ndarray]:
+               verdicts: Verdicts = NO_VERDICTS) -> dict[Pair, np.ndarray]:
     """The checks' pair graph: the output matches of the stored pairs ``filtered`` once
     ``verdicts`` are applied, as int64, pairs without matches left out."""
     return {k: np.asarray(v, np.int64) for k, v in output_matches(db, verdicts.apply(filtered), source,

@@ -13,7 +13,7 @@ from ..adapters.database import ColmapDatabase
 from ..enums import MatchSource
 from ..pipeline_config import PipelineConfig
 from .records import FilteredPairs
-from .verdicts import NONE, Verdicts
+from .verdicts import NO_VERDICTS, Verdicts
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -29,7 +29,7 @@ class WriteStats:
 
 
 def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoints: dict[int, np.ndarray],
-              chunks: Iterable[FilteredPairs], cfg: PipelineConfig, verdicts: Verdicts = NONE) -> WriteStats:
+              chunks: Iterable[FilteredPairs], cfg: PipelineConfig, verdicts: Verdicts = NO_VERDICTS) -> WriteStats:
     """Write what changed, in one transaction.
 
     Args:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from colmap_miho.pipeline.records import PairOutcome
-from colmap_miho.pipeline.verdicts import NONE, Verdicts
+from colmap_miho.pipeline.verdicts import NO_VERDICTS, Verdicts
 
 
 def _pair(inliers: list[bool]):
@@ -25,7 +25,7 @@ def test_apply_drops_the_removed_pairs_and_the_failed_matches_in_order():
     assert out[(1, 2)][1].labels.tolist() == [0, -1, -1, 0]
     assert out[(2, 3)] is pairs[(2, 3)]
     assert pairs[(1, 2)][1].inliers.tolist() == [True, False, True, True]  # the stored pairs stay
-    assert NONE.apply(pairs) == pairs
+    assert NO_VERDICTS.apply(pairs) == pairs
 
 
 def test_merge_joins_both_checks():
@@ -34,4 +34,4 @@ def test_merge_joins_both_checks():
                            refit=frozenset({(1, 3)}))
     both = pair_check.merge(match_check)
     assert both.removed == {(1, 2), (3, 4)} and both.refit == {(1, 3)} and list(both.failed) == [(1, 3)]
-    assert NONE.merge(NONE) == NONE
+    assert NO_VERDICTS.merge(NO_VERDICTS) == NO_VERDICTS
