@@ -6,7 +6,7 @@ then MOP+MiHo (``filter_matches``); the matches it keeps that are within 3 px of
 two-way transfer error) are refined by ``refine_pair`` with the filter's patch homography
 pairs (``--homographies filter``, what a user of the Python API does) or the GT pair
 (I, H^-1) (``gt``: the refiner alone). Per pair: the median GT transfer error before, after
-NCC (``NCCConfig()`` with ``--set`` overrides) and after NCC + LSM (the same with
+NCC (``NCCConfig.pairwise()`` with ``--set`` overrides) and after NCC + LSM (the same with
 ``lsm=True``), and the ratio after / before; pairs with fewer than ``--min-matches`` are
 listed but not counted in the summary.
 
@@ -78,7 +78,7 @@ def main(argv=None) -> int:
     if not root.is_dir():
         print(f"data folder not found: {root}", file=sys.stderr)
         return 2
-    base = NCCConfig(device="cpu", **parse_sets(args.sets))
+    base = NCCConfig.pairwise(device="cpu", **parse_sets(args.sets))
     lsm = NCCConfig(**{**{f.name: getattr(base, f.name) for f in fields(base)}, "lsm": True})
     cfgs = {"ncc": base, "lsm": lsm}
     for item in args.variants:

@@ -107,7 +107,7 @@ def main(argv=None) -> int:
                 for move in ("auto", "2"):
                     shapes, coarse = variants[s]
                     r = refine_pair(img1, img2, p1, p2, homs, move=move,
-                                    config=NCCConfig(perturbations=shapes, coarse_shapes=coarse,
+                                    config=NCCConfig.pairwise(perturbations=shapes, coarse_shapes=coarse,
                                                      device=args.device))
                     cells.append(f"{np.median(transfer_error(pair.H_2from1, r.pts1, r.pts2)):11.3f}")
             if cells:
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
         for s in sets:
             for move in ("auto", "2"):
                 shapes, coarse = variants[s]
-                cfg = NCCConfig(perturbations=shapes, coarse_shapes=coarse, device=args.device)
+                cfg = NCCConfig.pairwise(perturbations=shapes, coarse_shapes=coarse, device=args.device)
                 wall, cpu = timed(lambda idx=idx, move=move, cfg=cfg: refine_pair(
                     img1, img2, p1[idx], p2[idx], homs[idx], move=move, config=cfg), runs)
                 ref = REFERENCE_S[n]

@@ -175,7 +175,7 @@ def check_pairs(root: Path) -> None:
             homs = np.tile(np.stack([np.eye(3), np.linalg.inv(pair.H_2from1)]), (len(p1), 1, 1, 1))
             for shapes, move in itertools.product(("none", "paper"), ("auto", "2")):
                 res = {dev: refine_pair(img1, img2, p1, p2, homs, move=move,
-                                        config=NCCConfig(perturbations=shapes, device=dev))
+                                        config=NCCConfig.pairwise(perturbations=shapes, device=dev))
                        for dev in ("cpu", "cuda")}
                 c, g = res["cpu"], res["cuda"]
                 err = {k: np.median(transfer_error(pair.H_2from1, r.pts1, r.pts2))
@@ -197,11 +197,11 @@ def check_tracks(root: Path, n_images: int) -> None:
     out = {}
     runs = {"cpu": ("cpu", None), "cuda per pair": ("cuda", False), "cuda": ("cuda", None)}
     for name, (dev, batch) in runs.items():
-        refine_tracks(images, keypoints, matches, results, ncc_config=NCCConfig(device=dev),
+        refine_tracks(images, keypoints, matches, results, ncc_config=NCCConfig.pairwise(device=dev),
                       track_config=TrackConfig(batch_pairs=batch))  # warm-up
         t0 = time.perf_counter()
         out[name] = refine_tracks(images, keypoints, matches, results,
-                                  ncc_config=NCCConfig(device=dev),
+                                  ncc_config=NCCConfig.pairwise(device=dev),
                                   track_config=TrackConfig(batch_pairs=batch))
         st = out[name].stats
         print(f"{name:13s}: {time.perf_counter() - t0:6.2f} s, {st['refine_calls']} calls, "
@@ -228,7 +228,7 @@ def time_cuda(root: Path, runs: int) -> None:
         idx = np.resize(np.arange(len(fm.pts1)), n)
         for shapes, move, batch in itertools.product(("none", "paper"), ("auto", "2"),
                                                       (512, 4096)):
-            cfg = NCCConfig(perturbations=shapes, device="cuda", batch_size=batch)
+            cfg = NCCConfig.pairwise(perturbations=shapes, device="cuda", batch_size=batch)
             cells = []
             for a, b in ((img1, img2), (g1, g2)):
                 def call(a=a, b=b, idx=idx, move=move, cfg=cfg):

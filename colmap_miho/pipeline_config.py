@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .enums import MatchSource
+from .validation import MAX_MATCHES, MAX_MEMORY_BUDGET_MB, check_bounds, within
 from .validation import MIN_MEMORY_BUDGET_MB as MIN_MEMORY_BUDGET_MB
-from .validation import check_bounds
 
-#: ``pipeline.memory_budget_mb`` default (MiB); its range is in :data:`~colmap_miho.validation.BOUNDS`.
+#: ``pipeline.memory_budget_mb`` default (MiB).
 DEFAULT_MEMORY_BUDGET_MB = 2048
 #: Share of the memory budget for decoded images in the refine stage (the rest: the track
 #: plan, the NCC batches and the filter results the stage reads back).
@@ -25,25 +25,27 @@ class PipelineConfig:
         min_matches: pairs with fewer matches pass through unchanged.
         refine: run the track-consistent NCC refinement after filtering.
         verify: re-run COLMAP's epipolar verification on the kept matches.
-        memory_budget_mb: memory the run may use for its working data, in MiB (default
-            2048, at least 256). It bounds the filter's chunks of pairs (the matches read,
-            filtered and held for the run store at once; see :func:`~colmap_miho.pipeline.filter.chunk_matches`)
-            and the decoded images the refine stage keeps (:meth:`image_budget_bytes`: half
-            of it, shared among the parallel tasks; it sets the images of a track group);
-            results do not depend on it. Not bounded by it: the keypoints
-            of all images and the matches of the filtered pairs, which the track plan needs
-            at once (about 40 bytes per keypoint and per match).
+        memory_budget_mb: memory the run may use for its working data, in MiB. It bounds the
+            filter's chunks of pairs (the matches read, filtered and held for the run store at
+            once; see :func:`~colmap_miho.pipeline.filter.chunk_matches`) and the decoded
+            images the refine stage keeps (:meth:`image_budget_bytes`: half of it, shared
+            among the parallel tasks; it sets the images of a track group); results do not
+            depend on it. Not bounded by it: the keypoints of all images and the matches of
+            the filtered pairs, which the track plan needs at once (about 40 bytes per
+            keypoint and per match).
     """
 
     source: MatchSource = MatchSource.VERIFIED
-    min_matches: int = 15
+    min_matches: int = field(default=15, metadata=within(
+        4, MAX_MATCHES, "a homography needs 4 matches; no pair holds more"))
     refine: bool = True
     verify: bool = False
-    memory_budget_mb: int = DEFAULT_MEMORY_BUDGET_MB
+    memory_budget_mb: int = field(default=DEFAULT_MEMORY_BUDGET_MB, metadata=within(
+        MIN_MEMORY_BUDGET_MB, MAX_MEMORY_BUDGET_MB, "MiB; at least one chunk, at most 1 TiB"))
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "source", MatchSource.parse(self.source, "source"))
-        check_bounds(self, "pipeline")  # every key's range (colmap_miho.validation.BOUNDS)
+        check_bounds(self)
 
     @property
     def memory_budget_bytes(self) -> int:

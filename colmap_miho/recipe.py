@@ -2,7 +2,8 @@
 
 A recipe has one table per stage (``[filter]``, ``[ncc]``, ``[tracks]``, ``[pipeline]``,
 ``[mapping]``, ``[pair_check]``, ``[match_check]``) whose keys are fields of the stage's
-dataclass; a missing table means the dataclass defaults. Unknown tables or keys are errors, never silently ignored.
+dataclass; a missing table or key means the dataclass default, which is the default recipe's.
+Unknown tables or keys are errors, never silently ignored.
 ``--set section.key=value`` overrides are parsed with the field's type.
 """
 
@@ -36,11 +37,11 @@ DEFAULT_RECIPE = "mop_miho_lsm"
 
 @dataclass(frozen=True, kw_only=True)
 class Recipe:
-    """The configuration of every stage: ``refine`` (filter, ncc, tracks, pipeline) and
-    mapping.
+    """The configuration of every stage: ``refine`` (filter, ncc, tracks, pipeline, the two
+    checks) and mapping.
 
-    ``Recipe()`` holds every stage's dataclass defaults (NCC without least-squares matching),
-    which is no shipped recipe: the default recipe is ``load_recipe()`` (:data:`DEFAULT_RECIPE`).
+    Every stage's dataclass defaults are the default recipe's (:data:`DEFAULT_RECIPE`), so
+    ``Recipe()`` is that recipe; each recipe file states only how it differs from them.
     """
 
     name: str = "custom"

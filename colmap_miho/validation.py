@@ -1,5 +1,6 @@
-"""Checks shared by the frozen config dataclasses' ``__post_init__`` (pure: no I/O), and the
-one table of the allowed range of every numeric recipe key (:data:`BOUNDS`).
+"""Checks shared by the frozen config dataclasses' ``__post_init__`` (pure: no I/O): every
+numeric recipe key carries its allowed range beside it, in its field's metadata (:func:`within`),
+and :func:`check_bounds` checks them all.
 
 Every value that sizes work (radii, blur, iterations, counts, batch sizes) has a lower and an
 upper bound that follow from what it means, checked before any work: the compiled kernels
@@ -69,105 +70,27 @@ def _num(x: float) -> str:
     return str(int(x)) if float(x).is_integer() and abs(x) < 1e15 else f"{x:g}"
 
 
-_PX = "pixels, larger than any image"
-_SHARE = "a share"
-_NCC = "an NCC value or difference"
+#: Reasons shared by many fields' ranges.
+PX = "pixels, larger than any image"
+SHARE = "a share"
+NCC = "an NCC value or difference"
+#: The key of a field's :class:`Bound` in its ``dataclasses.field`` metadata.
+BOUND_KEY = "bound"
 
-#: The allowed range of every numeric key of every recipe section (None values mean "off" or
-#: "the default" and are not checked). The parametrised test in
-#: ``tests/adapters/test_bounds.py`` tries a value past each end of each.
-BOUNDS: dict[str, dict[str, Bound]] = {
-    "filter": {
-        "t_l": Bound(MIN_THRESHOLD_PX, MAX_THRESHOLD_PX, _PX),
-        "t_h": Bound(MIN_THRESHOLD_PX, MAX_THRESHOLD_PX, _PX),
-        "min_inliers": Bound(4, MAX_MATCHES, "a homography needs 4 matches; no pair holds more"),
-        "max_failures": Bound(1, 100, "each failure is a whole RANSAC round"),
-        "min_iters": Bound(1, MAX_ITERS, "RANSAC hypotheses per round"),
-        "max_iters": Bound(1, MAX_ITERS, "RANSAC hypotheses per round, each scored on every match"),
-        "confidence": Bound(0, 1, "a probability", lo_open=True, hi_open=True),
-        "min_singular_value": Bound(0, 1, "a singular value of a normalised system"),
-        "buffer_size": Bound(0, 100, "models kept and scored again every round"),
-        "local_neighbours": Bound(3, MAX_LOCAL_NEIGHBOURS, "neighbours held per match"),
-        "local_fraction": Bound(0, 1, _SHARE),
-        "batch_size": Bound(1, MAX_HYPOTHESES_BATCH, "hypotheses scored at once are held in memory"),
-        "refit_iters": Bound(0, 100, "least-squares refits of each kept model"),
-        "rotation_pairs": Bound(0, 10_000_000, "match pairs scored at once are held in memory"),
-        "batch_growth": Bound(0, 8, "batches never exceed 8 x batch_size"),
-    },
-    "ncc": {
-        "template_radius": Bound(1, MAX_WINDOW_RADIUS_PX, "pixels; the window of every match is held in memory"),
-        "search_radius": Bound(1, MAX_WINDOW_RADIUS_PX, "pixels; the window of every match is held in memory"),
-        "min_gain": Bound(0, 2, _NCC),
-        "min_ncc": Bound(-1, 1, _NCC),
-        "min_template_std": Bound(0, 1, "intensities are in [0, 1]"),
-        "subpixel_iterations": Bound(0, 10, "re-centred fits per match"),
-        "batch_size": Bound(1, MAX_NCC_BATCH, "matches held in memory at once"),
-        "local_affine_neighbours": Bound(6, MAX_LOCAL_NEIGHBOURS, "neighbours of every local fit"),
-        "local_affine_max_residual_px": Bound(0, MAX_THRESHOLD_PX, _PX, lo_open=True),
-        "lsm_radius": Bound(0, MAX_WINDOW_RADIUS_PX, "pixels; 0: template_radius"),
-        "lsm_radius_per_scale": Bound(0, MAX_WINDOW_RADIUS_PX, "pixels per keypoint scale; 0: off"),
-        "lsm_max_iterations": Bound(1, 50, "Gauss-Newton steps per match"),
-        "lsm_tol_px": Bound(0, 0.1, "pixels", lo_open=True),
-        "lsm_max_shift_px": Bound(0, MAX_WINDOW_RADIUS_PX, "pixels, within the LSM window", lo_open=True),
-        "lsm_max_sigma_px": Bound(0, MAX_WINDOW_RADIUS_PX, "pixels, within the LSM window", lo_open=True),
-        "lsm_antialias": Bound(0, MAX_BLUR_PX, "pixels of blur; wider than the LSM window is meaningless"),
-        "inner_radius": Bound(0, MAX_WINDOW_RADIUS_PX, "pixels; 0: off"),
-    },
-    "tracks": {
-        "max_images_in_memory": Bound(2, 1024, "decoded images held at once"),
-        "duplicate_px": Bound(0, MAX_WINDOW_RADIUS_PX, "pixels between keypoints of one image"),
-        "multiphoto_iterations": Bound(0, 10, "consensus passes per track"),
-        "far_move_px": Bound(0, MAX_WINDOW_RADIUS_PX, "pixels, within the search window; unset: "
-                                                      "ncc.local_affine_max_residual_px", lo_open=True),
-        "far_move_ratio": Bound(0, 1, "a share of the old distance to the prediction", lo_open=True),
-    },
-    "pipeline": {
-        "min_matches": Bound(4, MAX_MATCHES, "a homography needs 4 matches; no pair holds more"),
-        "memory_budget_mb": Bound(MIN_MEMORY_BUDGET_MB, MAX_MEMORY_BUDGET_MB, "MiB; at least one chunk, at most 1 TiB"),
-    },
-    "mapping": {
-        "seed": Bound(0, MAX_SEED, "a 32-bit seed"),
-        "num_threads": Bound(-1, 4096, "threads; -1: all cores"),
-        "min_num_matches": Bound(0, MAX_MATCHES, "no pair holds more matches"),
-    },
-    "pair_check": {
-        "transfer_tol_px": Bound(0, MAX_THRESHOLD_PX, _PX, lo_open=True),
-        "min_transfers": Bound(1, MAX_MATCHES, "no pair holds more matches"),
-        "min_closed_share": Bound(0, 1, _SHARE),
-        "min_relative_share": Bound(0, 1, _SHARE),
-        "trust_iterations": Bound(0, 100, "rounds over every triangle before each removal; the trust "
-                                          "settles within a few"),
-        "trust_power": Bound(0, 100, "an exponent of a share", lo_open=True),
-        "confirm_triangles": Bound(0, MAX_MATCHES, "triangles of a pair"),
-        "confirm_share": Bound(0, 1, _SHARE, lo_open=True),
-        "confirm_trust": Bound(0, 1, _SHARE),
-        "min_blame": Bound(1, MAX_MATCHES, "votes on a pair"),
-        "min_blame_share": Bound(0, 1, _SHARE, lo_open=True),
-        "min_angle_deg": Bound(0, 90, "degrees, below a right angle", hi_open=True),
-        "max_transfers": Bound(1, 100_000, "matches carried into every third image"),
-        "f_threshold_px": Bound(0, MAX_THRESHOLD_PX, _PX, lo_open=True),
-        "min_f_matches": Bound(8, MAX_MATCHES, "the eight-point algorithm; no pair holds more"),
-        "seed": Bound(0, MAX_SEED, "a 32-bit seed"),
-    },
-    "match_check": {
-        "false_reject": Bound(0, 0.5, "a probability in the tail of the residuals", lo_open=True, hi_open=True),
-        "min_threshold_px": Bound(0, MAX_THRESHOLD_PX, _PX, lo_open=True),
-        "max_threshold_px": Bound(0, MAX_THRESHOLD_PX, _PX, lo_open=True),
-        "max_rotation_deg": Bound(0, 180, "degrees between two rotations", lo_open=True, hi_open=True),
-        "min_agreeing_pairs": Bound(1, 10_000, "pairs of one image"),
-        "min_pair_matches": Bound(8, MAX_MATCHES, "the eight-point algorithm; no pair holds more"),
-        "min_trusted_images": Bound(2, 1_000_000, "images"),
-        "min_trusted_share": Bound(0, 1, _SHARE, lo_open=True),
-        "max_pair_fail_share": Bound(0, 1, _SHARE, lo_open=True),
-        "min_placed_inliers": Bound(6, MAX_MATCHES, "an absolute pose needs 6 correspondences"),
-        "ba_iterations": Bound(1, 10, "rounds of bundle adjustment, each a full adjustment"),
-        "ba_function_tolerance": Bound(0, 0.1, "a relative cost decrease (0: Ceres' 1e-5)"),
-        "hinge_min_pairs": Bound(2, 1_000_000, "pairs across a hinge"),
-        "hinge_min_side_images": Bound(1, 1_000_000, "images on one side of a hinge"),
-        "rounds": Bound(1, 5, "global-mapper runs"),
-        "seed": Bound(0, MAX_SEED, "a 32-bit seed"),
-    },
-}
+
+def within(lo: float, hi: float, why: str, *, lo_open: bool = False, hi_open: bool = False) -> dict:
+    """The ``metadata`` of a config dataclass field whose value must lie in ``[lo, hi]``
+    (``(lo`` / ``hi)`` when open) for the reason ``why``, which the error message shows::
+
+        template_radius: int = field(default=6, metadata=within(1, MAX_WINDOW_RADIUS_PX, "pixels"))
+
+    :func:`check_bounds` checks it (None values mean "off" or "the default" and pass)."""
+    return {BOUND_KEY: Bound(lo, hi, why, lo_open=lo_open, hi_open=hi_open)}
+
+
+def bounds_of(cls) -> dict[str, Bound]:
+    """Field name -> :class:`Bound` of every bounded field of the dataclass ``cls`` (or instance)."""
+    return {f.name: f.metadata[BOUND_KEY] for f in dataclasses.fields(cls) if BOUND_KEY in f.metadata}
 
 
 #: The allowed range of the numeric command-line options that are not recipe keys (checked by
@@ -193,15 +116,16 @@ def check_options(args) -> None:
         check_value(f"--{dest.replace('_', '-')}", getattr(args, dest, None), bound)
 
 
-def check_bounds(cfg, section: str) -> None:
-    """Refuse, before any work, a value of the dataclass instance ``cfg`` outside its
-    :data:`BOUNDS` range (non-finite floats first, see :func:`require_finite`).
+def check_bounds(cfg) -> None:
+    """Refuse, before any work, a value of the dataclass instance ``cfg`` outside the range its
+    field carries (:func:`within`; non-finite floats first, see :func:`require_finite`): the
+    one check of every config dataclass's ``__post_init__``.
 
     Raises:
         InvalidInput: naming the key, the allowed range and why.
     """
     require_finite(cfg)
-    for name, bound in BOUNDS[section].items():
+    for name, bound in bounds_of(cfg).items():
         check_value(name, getattr(cfg, name), bound)
 
 

@@ -38,14 +38,14 @@ def main(argv: list[str]) -> int:
     pts1, pts2 = m.pts1[kept], m.pts2[kept]
     homs = res.patch_homographies[res.labels[kept]]  # (N, 2, 3, 3): A x1 ~ B x2
 
-    ref = refine_pair(img1, img2, pts1, pts2, homs, move="auto", config=NCCConfig())
+    ref = refine_pair(img1, img2, pts1, pts2, homs, move="auto", config=NCCConfig.pairwise())
     before = transfer_error(pair.H_2from1, pts1, pts2)
     after = transfer_error(pair.H_2from1, ref.pts1, ref.pts2)
     good = before <= 3.0  # GT-consistent matches
     s = ref.stats
     print(f"{seq} img1 -> img{target}, {detector}: {len(m.pts1)} matches, {kept.sum()} kept by MOP+MiHo")
     print(f"NCC ({s['shapes']} shapes x {s['directions']} directions) in {s['seconds']:.2f} s: "
-          f"{s['moved']} moved, {s['rejected_border'] + s['rejected_gain']} rejected, "
+          f"{s['moved']} moved, {s['rejected_border'] + s['rejected_weak']} rejected, "
           f"{s['outside']} too close to the border")
     print(f"median GT transfer error of the {good.sum()} GT-consistent matches: "
           f"{np.median(before[good]):.3f} px -> {np.median(after[good]):.3f} px")

@@ -120,7 +120,7 @@ def _filter_and_refine(name: str, inp: PairInput, seed: int):
         if refinement and kept.any():
             labels = np.asarray(result.labels)[kept]
             hom = np.asarray(result.patch_homographies)[labels]
-            cfg = NCCConfig(ellipse_mask=(refinement == "ncc_star"))
+            cfg = NCCConfig.pairwise(ellipse_mask=(refinement == "ncc_star"))
             move = "2" if refinement == "track" else "auto"
             ref = refine_pair(inp.image1, inp.image2, pts1[kept], pts2[kept], hom, move=move, config=cfg)
             pts1, pts2 = pts1.copy(), pts2.copy()

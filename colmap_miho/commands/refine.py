@@ -51,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--memory-budget", type=int, default=None, metavar="MB",
                         help="memory for the run's working data in MiB: sizes the filter's chunks of pairs "
                              "and the refinement's image cache (default: the recipe's "
-                             "pipeline.memory_budget_mb, 2048); results do not depend on it")
+                             "pipeline.memory_budget_mb); results do not depend on it")
     resume = parser.add_mutually_exclusive_group()
     resume.add_argument("--resume", action="store_true",
                         help="continue an interrupted run from its finished work (kept in "

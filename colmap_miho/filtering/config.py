@@ -2,10 +2,21 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ..enums import Assignment, FilterMethod, MihoThreshold, Sampling
-from ..validation import MIN_THRESHOLD_PX, check_bounds
+from ..validation import (
+    MAX_HYPOTHESES_BATCH,
+    MAX_ITERS,
+    MAX_LOCAL_NEIGHBOURS,
+    MAX_MATCHES,
+    MAX_THRESHOLD_PX,
+    MIN_THRESHOLD_PX,
+    PX,
+    SHARE,
+    check_bounds,
+    within,
+)
 
 #: c_max of MOP+MiHo when ``max_iters`` is not given.
 MIHO_MAX_ITERS = 500
@@ -80,27 +91,31 @@ class FilterConfig:
     """
 
     method: FilterMethod = FilterMethod.MOP_MIHO
-    t_l: float = 15.0
-    t_h: float | None = None
-    min_inliers: int | None = None
-    max_failures: int = 3
-    min_iters: int = 50
-    max_iters: int | None = 2000
-    confidence: float = 0.9
-    min_singular_value: float = 0.05
-    buffer_size: int = 5
+    t_l: float = field(default=15.0, metadata=within(MIN_THRESHOLD_PX, MAX_THRESHOLD_PX, PX))
+    t_h: float | None = field(default=None, metadata=within(MIN_THRESHOLD_PX, MAX_THRESHOLD_PX, PX))
+    min_inliers: int | None = field(default=None, metadata=within(
+        4, MAX_MATCHES, "a homography needs 4 matches; no pair holds more"))
+    max_failures: int = field(default=3, metadata=within(1, 100, "each failure is a whole RANSAC round"))
+    min_iters: int = field(default=50, metadata=within(1, MAX_ITERS, "RANSAC hypotheses per round"))
+    max_iters: int | None = field(default=2000, metadata=within(
+        1, MAX_ITERS, "RANSAC hypotheses per round, each scored on every match"))
+    confidence: float = field(default=0.9, metadata=within(0, 1, "a probability", lo_open=True, hi_open=True))
+    min_singular_value: float = field(default=0.05, metadata=within(0, 1, "a singular value of a normalised system"))
+    buffer_size: int = field(default=5, metadata=within(0, 100, "models kept and scored again every round"))
     rotation_fix: bool = True
     sampling: Sampling = Sampling.LOCAL
-    local_neighbours: int = 8
-    local_fraction: float = 0.75
-    batch_size: int = 128
-    refit_iters: int = 1
+    local_neighbours: int = field(default=8, metadata=within(3, MAX_LOCAL_NEIGHBOURS, "neighbours held per match"))
+    local_fraction: float = field(default=0.75, metadata=within(0, 1, SHARE))
+    batch_size: int = field(default=128, metadata=within(
+        1, MAX_HYPOTHESES_BATCH, "hypotheses scored at once are held in memory"))
+    refit_iters: int = field(default=1, metadata=within(0, 100, "least-squares refits of each kept model"))
     rotation_fix_reflections: bool = True
-    rotation_pairs: int = 20000
+    rotation_pairs: int = field(default=20000, metadata=within(
+        0, 10_000_000, "match pairs scored at once are held in memory"))
     miho_threshold: MihoThreshold = MihoThreshold.FULL_SEARCH
     assignment: Assignment = Assignment.PAPER
     coherence: bool = False
-    batch_growth: float = 0.0
+    batch_growth: float = field(default=0.0, metadata=within(0, 8, "batches never exceed 8 x batch_size"))
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "method", FilterMethod.parse(self.method, "method"))
@@ -108,7 +123,7 @@ class FilterConfig:
         object.__setattr__(self, "miho_threshold",
                            MihoThreshold.parse(self.miho_threshold, "miho_threshold"))
         object.__setattr__(self, "assignment", Assignment.parse(self.assignment, "assignment"))
-        check_bounds(self, "filter")  # every key's range (colmap_miho.validation.BOUNDS)
+        check_bounds(self)
         if self.t_h is not None and not self.t_h <= self.t_l:
             raise ValueError(f"t_h must be in [{MIN_THRESHOLD_PX}, t_l={self.t_l}] pixels, got {self.t_h}")
         if not self.min_iters <= self.iteration_cap:

@@ -78,8 +78,8 @@ class FilterOptions:
     """
 
     source: MatchSource
+    memory_budget_bytes: int
     seed: int = 0
-    memory_budget_bytes: int = 2048 * 2**20
     device: str = "cpu"
     progress: bool = False
     database_name: str = ""

@@ -10,9 +10,10 @@ the verdicts, names the images in the stats and says what the later stages apply
 
 What the stage decides is kept in the run store (``stage-match_check.npz``): a resumed run reads
 it back instead of running the mapper again (its result is not bit-for-bit repeatable across
-thread counts). Matches of filtered pairs that failed are taken out of the pair's kept matches
-(:meth:`MatchCheckOutcome.apply`); wrong pairs are removed whole (filtered or not), like the
-pair check's; every judged pair's geometry is fitted again from its survivors when written.
+thread counts). What it returns (:class:`~.verdicts.Verdicts`): the matches of filtered pairs
+that failed, taken out of the pair's kept matches; the wrong pairs, removed whole (filtered or
+not) like the pair check's; the judged pairs, whose geometry is fitted again from their
+survivors when written.
 """
 
 from __future__ import annotations
@@ -28,9 +29,8 @@ from ..enums import MatchCheckMode, MatchSource
 from ..types import Pair
 from ..verification.config import MatchCheckConfig
 from ..verification.match_check import HingeVerdict, MatchCheckDecision, judge_in_rounds
-from .output_matches import pair_graph
-from .records import FilteredPairs, PairOutcome
 from .store import RunStore, StoreDamaged
+from .verdicts import NO_VERDICTS, Verdicts, pair_graph
 
 log = logging.getLogger(__name__)
 
@@ -114,50 +114,16 @@ class MatchCheckStats:
         return out
 
 
-@dataclass(frozen=True, kw_only=True)
-class MatchCheckOutcome:
-    """What the later stages apply.
-
-    Attributes:
-        failed: pair -> bool ``(K,)`` over the pair's kept matches (in the order of
-            ``inliers``' set rows): the ones removed.
-        wrong: pairs removed whole.
-        refit: pairs whose geometry is fitted again from the survivors when written.
-    """
-
-    failed: dict[Pair, np.ndarray] = field(default_factory=dict)
-    wrong: frozenset[Pair] = frozenset()
-    refit: frozenset[Pair] = frozenset()
-
-    def apply(self, pairs: FilteredPairs) -> FilteredPairs:
-        """``pairs`` with the failed matches taken out of each pair's kept matches (their
-        ``inliers`` cleared, labels -1); other pairs unchanged."""
-        if not self.failed:
-            return pairs
-        out = dict(pairs)
-        for key, (m, r) in pairs.items():
-            f = self.failed.get(key)
-            if f is None or not f.any():
-                continue
-            rows = np.flatnonzero(r.inliers)[f]
-            inl = np.array(r.inliers, bool)
-            lab = np.array(r.labels, np.int64)
-            inl[rows], lab[rows] = False, -1
-            out[key] = (m, PairOutcome(inliers=inl, labels=lab, patch_homographies=r.patch_homographies,
-                                       success=r.success))
-        return out
-
-
 def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, *,
-                    removed: set[Pair], threads: int = -1
-                    ) -> tuple[MatchCheckOutcome, MatchCheckStats | None]:
-    """The stage: judge the pair graph's matches (the ``removed`` pairs left out); returns what
-    to apply (nothing in "flag" mode) and the stats (None when off)."""
+                    checked: Verdicts = NO_VERDICTS, threads: int = -1) -> tuple[Verdicts, MatchCheckStats | None]:
+    """The stage: judge the pair graph's matches (the pairs ``checked``, the pair check's
+    verdicts, removed); returns its :class:`~.verdicts.Verdicts` (none in "flag" mode) and the
+    stats (None when off)."""
     if not cfg.enabled:
-        return MatchCheckOutcome(), None
+        return NO_VERDICTS, None
     stored = store.load_stage(STORE_NAME)
     if stored is None:
-        failed, wrong, meta = _decide(db, store, cfg, source, removed, threads)
+        failed, wrong, meta = _decide(db, store, cfg, source, checked, threads)
         store.save_stage(STORE_NAME, _pack(failed, wrong), meta)
         stats = MatchCheckStats(**meta)
     else:
@@ -168,23 +134,24 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
                  "removed" if cfg.mode == MatchCheckMode.REMOVE else "flagged", *w["images"],
                  100 * w["fail_share"], w["matches"])
     if cfg.mode != MatchCheckMode.REMOVE or not stats.used:
-        return MatchCheckOutcome(), stats
+        return NO_VERDICTS, stats
     filtered = store.load_filtered()
     if any(p in filtered and len(f) != np.count_nonzero(filtered[p][1].inliers) for p, f in failed.items()):
         raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its verdicts do not fit the stored pairs")
-    return (MatchCheckOutcome(failed={p: f for p, f in failed.items() if p in filtered and p not in wrong},
-                              wrong=frozenset(wrong), refit=frozenset(p for p in failed if p in filtered)),
+    return (Verdicts(removed=frozenset(wrong),
+                     failed={p: f for p, f in failed.items() if p in filtered and p not in wrong},
+                     refit=frozenset(p for p in failed if p in filtered)),
             stats)
 
 
 def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource,
-            removed: set[Pair], threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict]:
+            checked: Verdicts, threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict]:
     """The check on the pair graph's matches; returns (pair -> failed mask over its matches,
     wrong pairs, the stats' fields)."""
     from ..sfm.global_estimate import GlobalEstimator
 
     # read here, not held during the mapper: only the kept matches are
-    matches = pair_graph(db, store.load_filtered(), source, removed=removed)
+    matches = pair_graph(db, store.load_filtered(), source, checked)
     estimator = GlobalEstimator(src=db, min_pair_matches=cfg.min_pair_matches, seed=cfg.seed, num_threads=threads,
                                 ba_iterations=cfg.ba_iterations, retriangulate=cfg.retriangulate,
                                 ba_function_tolerance=cfg.ba_function_tolerance,

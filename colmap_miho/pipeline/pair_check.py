@@ -16,11 +16,10 @@ from dataclasses import dataclass, field
 
 from ..adapters.database import ColmapDatabase
 from ..enums import MatchSource, PairCheckMode
-from ..types import Pair
 from ..verification import PairCheckConfig, check_pairs
-from .output_matches import pair_graph
 from .read import ReadOutput
 from .store import RunStore
+from .verdicts import NO_VERDICTS, Verdicts, pair_graph
 
 log = logging.getLogger(__name__)
 
@@ -53,11 +52,11 @@ class PairCheckStats:
 
 
 def run_pair_check(db: ColmapDatabase, read: ReadOutput, store: RunStore, cfg: PairCheckConfig,
-                   source: MatchSource) -> tuple[set[Pair], PairCheckStats | None]:
-    """Check the pair graph; returns the pairs to remove (empty when off or in "flag" mode)
-    and the stage's :class:`PairCheckStats` (None when off)."""
+                   source: MatchSource) -> tuple[Verdicts, PairCheckStats | None]:
+    """Check the pair graph; returns the :class:`~.verdicts.Verdicts` (the pairs to remove;
+    none when off or in "flag" mode) and the stage's :class:`PairCheckStats` (None when off)."""
     if not cfg.enabled:
-        return set(), None
+        return NO_VERDICTS, None
     matches = pair_graph(db, store.load_filtered(), source)
     result = check_pairs(matches, read.keypoints, cfg)
     names = {im.image_id: im.name for im in db.images()}
@@ -70,4 +69,4 @@ def run_pair_check(db: ColmapDatabase, read: ReadOutput, store: RunStore, cfg: P
                            wrong_pairs=wrong)
     for w in wrong:
         log.info("pair check: %s %s - %s: %s", "removed" if remove else "flagged", *w["images"], w["reason"])
-    return (set(result.wrong) if remove else set()), stats
+    return (Verdicts(removed=frozenset(result.wrong)) if remove else NO_VERDICTS), stats

@@ -6,7 +6,7 @@ stats dataclass that :class:`RefineSummary` is assembled from)::
     safe working copy -> read (:mod:`.read`) -> filter the pairs chunk by chunk
       (:mod:`.filter`, MOP / MOP+MiHo) into the run store (:mod:`.store`)
       -> optional pair check (:mod:`.pair_check`) -> optional match check against a global
-      estimate of the cameras (:mod:`.match_check`)
+      estimate of the cameras (:mod:`.match_check`); their :class:`~.verdicts.Verdicts` merged
       -> track-consistent NCC refinement (:mod:`.refine`) -> write back chunk by chunk
       (:mod:`.write`: keypoints, matches, two_view_geometries)
       -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
@@ -265,20 +265,17 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                     source=pcfg.source, seed=seed, memory_budget_bytes=pcfg.memory_budget_bytes, device=dev,
                     progress=progress, database_name=str(database)), runner=runner, store=store)
                 laps.lap("filter")
-                removed, pair_check = run_pair_check(db, read, store, rec.pair_check, pcfg.source)
+                pair_verdicts, pair_check = run_pair_check(db, read, store, rec.pair_check, pcfg.source)
                 if rec.pair_check.enabled:
                     laps.lap("pair_check")
-                checked, match_check = run_match_check(db, store, rec.match_check, pcfg.source, removed=set(removed),
-                                                       threads=runner.slots)
+                match_verdicts, match_check = run_match_check(db, store, rec.match_check, pcfg.source,
+                                                              checked=pair_verdicts, threads=runner.slots)
                 if rec.match_check.enabled:
                     laps.lap("match_check")
-                removed = set(removed) | checked.wrong
-                new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress, removed,
-                                                         adjust=checked.apply)
+                verdicts = pair_verdicts.merge(match_verdicts)
+                new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress, verdicts)
                 laps.lap("refine")
-                write_stats = run_write(db, read.keypoints, new_keypoints,
-                                        (checked.apply(c) for c in store.iter_filter_chunks()), pcfg,
-                                        removed=removed, refit=checked.refit)
+                write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg, verdicts)
                 laps.lap("write")
             if pcfg.verify:
                 run_verify(work_db)

@@ -4,7 +4,7 @@ transaction on the working copy, the pairs chunk by chunk as the run store gives
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,6 +13,7 @@ from ..adapters.database import ColmapDatabase
 from ..enums import MatchSource
 from ..pipeline_config import PipelineConfig
 from .records import FilteredPairs
+from .verdicts import NO_VERDICTS, Verdicts
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -28,23 +29,19 @@ class WriteStats:
 
 
 def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoints: dict[int, np.ndarray],
-              chunks: Iterable[FilteredPairs], cfg: PipelineConfig,
-              removed: Collection[tuple[int, int]] = (),
-              refit: Collection[tuple[int, int]] = ()) -> WriteStats:
+              chunks: Iterable[FilteredPairs], cfg: PipelineConfig, verdicts: Verdicts = NO_VERDICTS) -> WriteStats:
     """Write what changed, in one transaction.
 
     Args:
         keypoints / new_keypoints: image id -> ``(N_i, 2)`` float64 pixels before / after
             refinement; only rows that differ are written.
         chunks: the successfully filtered pairs, one chunk at a time (only one is held at
-            once); their inlier matches replace the pair's matches.
+            once), as stored: with ``verdicts`` applied, their inlier matches replace the
+            pair's matches.
         cfg: ``source`` (a verified pair keeps its geometry model) and ``verify`` (the pairs'
             two-view geometries are deleted, for COLMAP to re-verify).
-        removed: pairs (image_id1, image_id2) the pair check or the match check removed:
-            written without matches and without a two-view geometry, whether they were
-            filtered or not.
-        refit: filtered pairs the match check judged: their fundamental matrix is fitted
-            again to the survivors (COLMAP's was fitted to the wrong matches too).
+        verdicts: the checks' :class:`~.verdicts.Verdicts`: removed pairs are written without
+            matches and two-view geometry, refitted ones get a new fundamental matrix.
     """
     from ..adapters.safety import check_free_space
 
@@ -61,17 +58,15 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
                 db.write_keypoints(image_id, new, moved)
         written: list[tuple[int, int]] = []
         kept_total = 0
-        for ok in chunks:
-            for (i, j), (m, r) in sorted(ok.items()):
-                if (i, j) in removed:
-                    continue
+        for chunk in chunks:
+            for (i, j), (m, r) in sorted(verdicts.apply(chunk).items()):
                 kept = m[np.asarray(r.inliers, bool)]
                 write_pair(db, i, j, kept, new_keypoints[i][kept[:, 0]], new_keypoints[j][kept[:, 1]],
-                           keep_model=cfg.source == MatchSource.VERIFIED and (i, j) not in refit)
+                           keep_model=cfg.source == MatchSource.VERIFIED and (i, j) not in verdicts.refit)
                 written.append((i, j))
                 kept_total += len(kept)
         none = np.zeros((0, 2), np.uint32)
-        for i, j in sorted(removed):
+        for i, j in sorted(verdicts.removed):
             write_pair(db, i, j, none, np.zeros((0, 2)), np.zeros((0, 2)), keep_model=False)
         if cfg.verify:
             db.delete_two_view_geometries(sorted(written))

@@ -38,7 +38,6 @@ covariance (a triangle) skews the blur and loses accuracy (docs/results.md).
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from ..validation import MAX_BLUR_PX
@@ -47,8 +46,6 @@ from .config import NCCConfig
 from .lsm import frame_sampler, lsm_align
 from .warping import ImageStack, job_images
 
-#: smallest template radius (pixels) of keypoint-sized LSM templates.
-MIN_RADIUS = 4
 #: smallest anti-aliasing blur (pixels of the finer view) applied; a side that needs less is
 #: read unsmoothed (4 samples per pixel are not spent on a blur below the pixel scale).
 MIN_BLUR_PX = 0.2
@@ -65,7 +62,6 @@ def lsm_step(
     frame_m: torch.Tensor,
     offset: torch.Tensor,
     cfg: NCCConfig,
-    scales: np.ndarray | None = None,
     *,
     compiled: bool | None = None,
 ) -> tuple[torch.Tensor, dict[str, int], torch.Tensor]:
@@ -81,11 +77,6 @@ def lsm_step(
         offset: (n, 2) float64 NCC offset of the moving side (common frame): the start of
             LSM and the reference of ``lsm_max_shift_px``.
         cfg: ``lsm_*`` fields of :class:`~.config.NCCConfig`.
-        scales: (n,) float64 scale (pixels) of the fixed keypoints, or None; with
-            ``cfg.lsm_radius_per_scale`` > 0 each match's template radius is
-            ``round(lsm_radius_per_scale * scale)`` clamped to [``MIN_RADIUS``, the fixed
-            radius], else every match gets the fixed radius (``lsm_radius`` or
-            ``template_radius``).
         compiled: run :func:`.lsm_kernel.lsm_frames` (CPU tensors only) rather than the
             torch path (:func:`.lsm.frame_sampler` and :func:`.lsm.lsm_align`); None: where
             the tensors are on the CPU.
@@ -101,36 +92,28 @@ def lsm_step(
     dev = offset.device
     if compiled is None:
         compiled = dev.type == "cpu"
-    radii = np.full(n, radius)
-    if scales is not None and cfg.lsm_radius_per_scale > 0:
-        radii = np.clip(np.rint(cfg.lsm_radius_per_scale * np.asarray(scales)), MIN_RADIUS,
-                        max(radius, MIN_RADIUS)).astype(int)
-    shift = torch.empty_like(offset)
-    sigma_max = torch.empty(n, dtype=torch.float64, device=dev)
-    converged = torch.empty(n, dtype=torch.bool, device=dev)
-    for r in np.unique(radii).tolist():  # one batch per radius (a match's own radius)
-        rows = torch.as_tensor(np.flatnonzero(radii == r), device=dev)
-        k = rows.numel()
-        eye = torch.eye(2, dtype=torch.float64, device=dev).expand(k, 2, 2)
-        zero = torch.zeros((k, 2), dtype=torch.float64, device=dev)
-        sub_f, sub_m = job_images(img_f, rows), job_images(img_m, rows)
-        every = torch.arange(k, device=dev)
-        blur_f = blur_m = None
-        if cfg.lsm_antialias > 0:
-            blur_f, blur_m = _antialias_blur(H_f_inv[rows], frame_f[rows], H_m_inv[rows],
-                                             frame_m[rows] + offset[rows], cfg.lsm_antialias)
-        if compiled:
-            res = lsm_kernel.lsm_frames(sub_f, sub_m, H_f_inv[rows], frame_f[rows], H_m_inv[rows],
-                                        frame_m[rows], offset[rows], r, blur_f=blur_f, blur_m=blur_m,
-                                        affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
-                                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
-        else:
-            samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur_px=blur_f)
-            samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur_px=blur_m)
-            res = lsm_align(samp_m, samp_f(every, eye, zero, r), offset[rows],
-                            affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
-                            tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
-        shift[rows], sigma_max[rows], converged[rows] = res.shift, res.sigma_max, res.converged
+    r, rows = radius, torch.arange(n, device=dev)
+    k = rows.numel()
+    eye = torch.eye(2, dtype=torch.float64, device=dev).expand(k, 2, 2)
+    zero = torch.zeros((k, 2), dtype=torch.float64, device=dev)
+    sub_f, sub_m = job_images(img_f, rows), job_images(img_m, rows)
+    every = torch.arange(k, device=dev)
+    blur_f = blur_m = None
+    if cfg.lsm_antialias > 0:
+        blur_f, blur_m = _antialias_blur(H_f_inv[rows], frame_f[rows], H_m_inv[rows],
+                                         frame_m[rows] + offset[rows], cfg.lsm_antialias)
+    if compiled:
+        res = lsm_kernel.lsm_frames(sub_f, sub_m, H_f_inv[rows], frame_f[rows], H_m_inv[rows],
+                                    frame_m[rows], offset[rows], r, blur_f=blur_f, blur_m=blur_m,
+                                    affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
+                                    tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
+    else:
+        samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur_px=blur_f)
+        samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur_px=blur_m)
+        res = lsm_align(samp_m, samp_f(every, eye, zero, r), offset[rows],
+                        affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
+                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
+    shift, sigma_max, converged = res.shift, res.sigma_max, res.converged
     outcome = lsm_outcomes(shift - offset, sigma_max, converged, cfg)
     ok = outcome["applied"]
     counts = {f"lsm_{key}": int(mask.sum()) for key, mask in outcome.items()}

@@ -42,8 +42,7 @@ track's coarsest view (the smallest local scale ``sqrt |det J|`` of its frame ->
 with :mod:`.lsm_step`'s 4-sample Gaussian, so all patches of the consensus carry one blur.
 
 Batched in torch on the device of the walk; observations are processed in chunks of whole
-tracks. Per-keypoint template radius (``lsm_radius_per_scale``) is not used here: one
-radius (``lsm_radius`` or ``template_radius``) for all.
+tracks, one LSM radius for all.
 """
 
 from __future__ import annotations

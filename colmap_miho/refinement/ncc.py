@@ -14,8 +14,8 @@ Differences from the reference implementation (all configurable, see ``NCCConfig
   reference, too, perturbs only the template, but re-samples the (unperturbed) window for
   every shape;
 - a move is rejected when its peak lies on the border of the search window (or is held back
-  by the NCC* mask) or when it raises NCC by less than ``min_gain``; the reference never
-  rejects; so is a move whose peak NCC is below ``min_ncc``;
+  by the NCC* mask); the reference never rejects; so is a move whose peak NCC is below
+  ``min_ncc``;
 - flat templates (``min_template_std``) are never moved;
 - matches whose template or search window leaves the image are not refined.
 """
@@ -56,11 +56,11 @@ class RefineResult:
         ncc_after: (N,) float64 NCC of the applied move (= ncc_before where nothing moved).
         moved_side: (N,) int8, 0 none, 1 or 2.
         displacement: (N,) float64 pixels the moved keypoint travelled (0 where none).
-        rejected: (N,) bool, a move was found but not applied (border or too small a gain).
+        rejected: (N,) bool, a move was found but not applied (border or too weak a peak).
         ncc_second: (N,) float64 NCC of the best separated peak of the applied move's map
             (:func:`.correlation.find_peaks`' ``second``), NaN where nothing moved; how
             distinct the peak taken is. None from refiners that do not report it.
-        stats: counters (``n``, ``moved``, ``rejected_border``, ``rejected_gain``,
+        stats: counters (``n``, ``moved``, ``rejected_border``,
             ``rejected_weak`` (peak below ``min_ncc``), ``gated_flat``, ``outside``,
             ``invalid_homography``,
             ``seconds``, ``device``, ``shapes``; with ``config.lsm``, the counters of
@@ -104,15 +104,12 @@ class _Outputs:
     rejected: np.ndarray
     second: np.ndarray
     counts: dict[str, int | float | str]
-    #: keypoint scales (pixels, sqrt |det| of the affine frames) of each side, for LSM
-    #: templates sized by the keypoint; None when not used
-    kp_scales: tuple[np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def unchanged(cls, p1: np.ndarray, p2: np.ndarray) -> _Outputs:
         n = p1.shape[0]
         counts: dict[str, int | float | str] = dict.fromkeys(
-            ["moved", "rejected_border", "rejected_gain", "rejected_weak", "gated_flat",
+            ["moved", "rejected_border", "rejected_weak", "gated_flat",
              "outside", "invalid_homography"], 0)
         return cls(pts=(p1.copy(), p2.copy()), before=np.full(n, np.nan), after=np.full(n, np.nan),
                    moved=np.zeros(n, np.int8), disp=np.zeros(n), rejected=np.zeros(n, bool),
@@ -173,7 +170,7 @@ def refine_pair(
         move: "1" or "2" (only that side may move, the other gives the template) or "auto"
             (both directions are tried, the one with the higher NCC peak moves: the paper's
             behaviour); ``None`` uses ``config.move``.
-        config: :class:`NCCConfig` (defaults when None).
+        config: :class:`NCCConfig`; None: the paper's pairwise values (:meth:`NCCConfig.pairwise`).
         affine1, affine2: optional (N, 2, 2) keypoint affine frames (columns = local axes in
             pixels) for the base pass; identity when omitted.
         progress: show a tqdm bar over chunks.
@@ -190,7 +187,7 @@ def refine_pair(
         ValueError: on malformed inputs (shapes, dtypes, device).
     """
     t0 = time.perf_counter()
-    cfg = config if config is not None else NCCConfig()
+    cfg = config if config is not None else NCCConfig.pairwise()
     side = MoveSide.parse(cfg.move if move is None else move, "move")
     inp = pair_inputs(pts1, pts2, patch_homographies, affine1, affine2)
     n = inp.p1.shape[0]
@@ -204,9 +201,6 @@ def refine_pair(
         out.counts.update(dict.fromkeys(LSM_COUNTERS, 0))
         if cfg.lsm_only:
             out.counts["rejected_lsm"] = 0
-        if cfg.lsm_radius_per_scale > 0 and inp.affine1 is not None and inp.affine2 is not None:
-            out.kp_scales = (np.sqrt(np.abs(np.linalg.det(inp.affine1))),
-                             np.sqrt(np.abs(np.linalg.det(inp.affine2))))
     offs = _Offsets.of(cfg, device)
     base = base_pairs(n, inp.affine1, inp.affine2)
     use_base = cfg.use_base_pair and not (
@@ -265,16 +259,15 @@ def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], 
     from the NCC peak's parabola where ``cfg.lsm`` is on and it passes its tests, the iterated
     parabolas elsewhere (all of them without LSM); and (J,) bool, the moves to apply (all but
     those LSM did not accept, with ``cfg.lsm_only``)."""
-    (f, m), (sel, matches) = direction, rows
+    (f, m), (sel, _) = direction, rows
     H_inv, frame, off = r["H_inv"][sel], r["frame_m"][sel], r["offset"][sel]
     img_m = job_images(img[m], sel)
     every = np.ones(sel.numel(), bool)
     if not cfg.lsm:
         return iterate_subpixel(img_m, H_inv, frame, off, r["template"][sel], cfg.template_radius,
                                 cfg.subpixel_iterations), every
-    scale_f = None if out.kp_scales is None else out.kp_scales[f][matches]
     off, lsm_counts, accepted = lsm_step(job_images(img[f], sel), img_m, r["H_f_inv"][sel], r["frame_f"][sel],
-                                         H_inv, frame, off, cfg, scale_f)
+                                         H_inv, frame, off, cfg)
     for key, value in lsm_counts.items():
         out.add(key, int(value))
     if cfg.lsm_only:
@@ -311,12 +304,10 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
         out.before[gi] = h["centre"][rows]
         out.after[gi] = h["centre"][rows]
         on_border = h["border"][rows] & cfg.reject_border
-        small_gain = ~h["zero"][rows] & (h["peak"][rows] - h["centre"][rows] < cfg.min_gain)
         weak = ~h["zero"][rows] & (h["peak"][rows] < cfg.min_ncc)
-        reject = on_border | small_gain | weak
+        reject = on_border | weak
         out.add("rejected_border", int(on_border.sum()))
-        out.add("rejected_gain", int((small_gain & ~on_border).sum()))
-        out.add("rejected_weak", int((weak & ~small_gain & ~on_border).sum()))
+        out.add("rejected_weak", int((weak & ~on_border).sum()))
         out.rejected[gi[reject]] = True
         take = np.flatnonzero(rows)[~reject]
         if take.size == 0:

@@ -128,7 +128,8 @@ def refine_tracks(
             homography (pairs never filtered, failed, or touching a missing image): they
             join tracks and are never used to refine (see :mod:`.track_plan`).
         config: a Recipe-like object (``.ncc``, ``.tracks``), a tuple (NCCConfig,
-            TrackConfig), or one of the two; ``ncc_config`` / ``track_config`` override it.
+            TrackConfig), or one of the two (the default recipe's where absent);
+            ``ncc_config`` / ``track_config`` override it.
             ``NCCConfig.move`` is ignored: the walk decides which side moves.
         affines: optional image_id -> (Ni, 2, 2) keypoint affine frames for the base pass.
         progress: tqdm bar over the keypoints to refine.

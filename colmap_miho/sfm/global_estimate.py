@@ -105,7 +105,7 @@ def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: M
 
 def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, min_pair_matches: int,
                     seed: int = 0, num_threads: int = -1, verbose: bool = False, ba_iterations: int = 3,
-                    retriangulate: bool = True, ba_function_tolerance: float = 0.0,
+                    retriangulate: bool = True, ba_function_tolerance: float,
                     workdir: Path | None = None) -> GlobalEstimate:
     """Run pycolmap's global mapper on ``matches`` with the cameras of ``src``.
 
@@ -118,8 +118,8 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         num_threads: mapper threads (-1: all cores).
         ba_iterations / retriangulate: the mapper's bundle-adjustment rounds and whether it
             triangulates again after them.
-        ba_function_tolerance: the mapper's bundle adjustments stop when an iteration lowers
-            the cost by less than this share (Ceres' ``function_tolerance``; 0: its 1e-5).
+        ba_function_tolerance: :attr:`MatchCheckConfig.ba_function_tolerance
+            <colmap_miho.verification.config.MatchCheckConfig>`.
         verbose: COLMAP's log on the terminal instead of the temporary folder's file (its
             errors never reach the terminal otherwise: a failed estimate is the caller's to
             report).
@@ -222,7 +222,7 @@ class GlobalEstimator:
     num_threads: int = -1
     ba_iterations: int = 3
     retriangulate: bool = True
-    ba_function_tolerance: float = 0.0
+    ba_function_tolerance: float
     max_error_px: float = 4.0
     min_inliers: int = 30
     verbose: bool = False

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..enums import Mapper, StrEnum
 from ..errors import InvalidInput, RunFailed
-from ..validation import check_bounds
+from ..validation import MAX_MATCHES, MAX_SEED, check_bounds, within
 from .colmap_log import colmap_log_to_file, latest_log
 
 log = logging.getLogger(__name__)
@@ -155,9 +155,9 @@ class MappingConfig:
     """
 
     mapper: Mapper = Mapper.INCREMENTAL
-    seed: int = 0
-    num_threads: int = -1
-    min_num_matches: int = 15
+    seed: int = field(default=0, metadata=within(0, MAX_SEED, "a 32-bit seed"))
+    num_threads: int = field(default=-1, metadata=within(-1, 4096, "threads; -1: all cores"))
+    min_num_matches: int = field(default=15, metadata=within(0, MAX_MATCHES, "no pair holds more matches"))
     camera_model: str = ""
     camera_params: str = ""
     refine_intrinsics: RefineIntrinsics = RefineIntrinsics.DEFAULT
@@ -170,7 +170,7 @@ class MappingConfig:
             raise InvalidInput("camera_params needs camera_model (the model the parameters belong to)")
         if self.camera_model.strip():
             parse_camera_params(self.camera_model, self.camera_params)
-        check_bounds(self, "mapping")  # every key's range (colmap_miho.validation.BOUNDS)
+        check_bounds(self)
         if self.num_threads == 0:
             raise InvalidInput(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
 

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ..enums import MatchCheckMode, PairCheckMode
-from ..validation import check_bounds
+from ..validation import MAX_MATCHES, MAX_SEED, MAX_THRESHOLD_PX, PX, SHARE, check_bounds, within
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -35,32 +35,26 @@ class PairCheckConfig:
         min_transfers: counted transfers of one pair into one triangle's third image needed
             for a vote; fewer: that transfer does not vote.
         min_closed_share: a pair's transfer into a triangle's third image fails when the
-            closed share of its counted transfers is below this, in [0, 1].
-        min_relative_share: a transfer also fails when its closed share is below this times
-            the best of the triangle's three, in [0, 1] (0: off). It exposes two wrong pairs
-            that agree with each other (they carry the correct pair's unrepeated points
-            astray, its repeated ones right), at the cost of blaming weak correct pairs on
-            real scenes: off by default.
+            closed share of its counted transfers is below this.
         transferred_votes: a counted transfer votes on the pair transferred too, not only on
             its two carriers (the transfer is a loop through all three pairs).
-        trust_iterations: rounds of trust weighting before each removal, in [0, 100] (0: every
-            vote counts fully). A triangle's votes on a pair count as much as the triangle's two
+        trust_iterations: rounds of trust weighting before each removal (0: every vote counts
+            fully). A triangle's votes on a pair count as much as the triangle's two
             other pairs are trusted, and a pair's trust is ``(1 - its weighted blame share)
             ** trust_power``: two wrong pairs that agree with each other close their shared
             triangles, but each is blamed by its other triangles, so the support they give
             each other fades (see :func:`~colmap_miho.verification.pair_graph.settle_trust`).
-        trust_power: exponent of the trust of a pair from its weighted blame share, > 0
-            (larger: a blamed pair's votes fade faster).
+        trust_power: exponent of the trust of a pair from its weighted blame share (larger: a
+            blamed pair's votes fade faster).
         confirm_triangles: a pair the vote removed is kept when its own matches, carried
             through the matches of two kept pairs trusted at least ``confirm_trust``, close
             (at least ``min_transfers``, a share of at least ``confirm_share``) in this many
             triangles (0: off). Wrong pairs join different scene points, so only other wrong
             pairs can confirm them; a correct pair whose fundamental matrix is inaccurate
             (few matches, wide baseline) is confirmed by its neighbours' tracks.
-        confirm_share: see ``confirm_triangles``, in (0, 1].
-        confirm_trust: see ``confirm_triangles``, in [0, 1].
+        confirm_share / confirm_trust: see ``confirm_triangles``.
         min_blame: blames a pair needs before it can be removed.
-        min_blame_share: share of blames among a pair's votes needed to remove it, in (0, 1].
+        min_blame_share: share of blames among a pair's votes needed to remove it.
         min_angle_deg: degrees; epipolar transfers whose two lines meet at a smaller angle
             (nearly collinear camera centres) are not counted.
         max_transfers: matches per pair carried into each third image (spread over its rows);
@@ -74,27 +68,28 @@ class PairCheckConfig:
 
     enabled: bool = False
     mode: PairCheckMode = PairCheckMode.REMOVE
-    transfer_tol_px: float = 4.0
-    min_transfers: int = 8
-    min_closed_share: float = 0.4
-    min_relative_share: float = 0.0
+    transfer_tol_px: float = field(default=4.0, metadata=within(0, MAX_THRESHOLD_PX, PX, lo_open=True))
+    min_transfers: int = field(default=8, metadata=within(1, MAX_MATCHES, "no pair holds more matches"))
+    min_closed_share: float = field(default=0.4, metadata=within(0, 1, SHARE))
     transferred_votes: bool = True
-    trust_iterations: int = 10
-    trust_power: float = 2.0
-    confirm_triangles: int = 3
-    confirm_share: float = 0.8
-    confirm_trust: float = 0.5
-    min_blame: int = 2
-    min_blame_share: float = 0.55
-    min_angle_deg: float = 5.0
-    max_transfers: int = 200
-    f_threshold_px: float = 1.5
-    min_f_matches: int = 50
-    seed: int = 0
+    trust_iterations: int = field(default=10, metadata=within(
+        0, 100, "rounds over every triangle before each removal; the trust settles within a few"))
+    trust_power: float = field(default=2.0, metadata=within(0, 100, "an exponent of a share", lo_open=True))
+    confirm_triangles: int = field(default=3, metadata=within(0, MAX_MATCHES, "triangles of a pair"))
+    confirm_share: float = field(default=0.8, metadata=within(0, 1, SHARE, lo_open=True))
+    confirm_trust: float = field(default=0.5, metadata=within(0, 1, SHARE))
+    min_blame: int = field(default=2, metadata=within(1, MAX_MATCHES, "votes on a pair"))
+    min_blame_share: float = field(default=0.55, metadata=within(0, 1, SHARE, lo_open=True))
+    min_angle_deg: float = field(default=5.0, metadata=within(0, 90, "degrees, below a right angle", hi_open=True))
+    max_transfers: int = field(default=200, metadata=within(1, 100_000, "matches carried into every third image"))
+    f_threshold_px: float = field(default=1.5, metadata=within(0, MAX_THRESHOLD_PX, PX, lo_open=True))
+    min_f_matches: int = field(default=50, metadata=within(
+        8, MAX_MATCHES, "the eight-point algorithm; no pair holds more"))
+    seed: int = field(default=0, metadata=within(0, MAX_SEED, "a 32-bit seed"))
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", PairCheckMode.parse(self.mode, "mode"))
-        check_bounds(self, "pair_check")  # every key's range (colmap_miho.validation.BOUNDS)
+        check_bounds(self)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -104,9 +99,12 @@ class MatchCheckConfig:
     measured figures: ``docs/results.md``, the match check).
 
     Attributes:
-        mode: "off" (no estimate), "remove" or "flag" (judge and report only).
+        mode: "remove": the matches the estimate contradicts are removed before the
+            refinement (repeated structure that no check of a pair alone can see; where the
+            estimate is not trusted, nothing is removed); "flag": judged and reported only;
+            "off": no estimate.
         false_reject: the share of correct matches the threshold would remove if their
-            distances were exactly exponential, in (0, 0.5) (0.0027: a normal's 3-sigma tail).
+            distances were exactly exponential (0.0027: a normal's 3-sigma tail).
         min_threshold_px / max_threshold_px: pixels; bounds of the threshold. The floor keeps
             correct matches where the estimate fits very tightly (the tail is heavier than
             exponential); the cap bounds it when many wrong matches blow up the scale (a
@@ -145,30 +143,34 @@ class MatchCheckConfig:
         seed: random seed of the global mapper and of the pairs' relative-pose RANSAC.
     """
 
-    mode: MatchCheckMode = MatchCheckMode.OFF
-    false_reject: float = 0.0027
-    min_threshold_px: float = 2.0
-    max_threshold_px: float = 4.0
-    max_rotation_deg: float = 5.0
-    min_agreeing_pairs: int = 2
-    min_pair_matches: int = 15
-    min_trusted_images: int = 3
-    min_trusted_share: float = 0.5
-    max_pair_fail_share: float = 0.8
+    mode: MatchCheckMode = MatchCheckMode.REMOVE
+    false_reject: float = field(default=0.0027, metadata=within(
+        0, 0.5, "a probability in the tail of the residuals", lo_open=True, hi_open=True))
+    min_threshold_px: float = field(default=2.0, metadata=within(0, MAX_THRESHOLD_PX, PX, lo_open=True))
+    max_threshold_px: float = field(default=4.0, metadata=within(0, MAX_THRESHOLD_PX, PX, lo_open=True))
+    max_rotation_deg: float = field(default=5.0, metadata=within(
+        0, 180, "degrees between two rotations", lo_open=True, hi_open=True))
+    min_agreeing_pairs: int = field(default=2, metadata=within(1, 10_000, "pairs of one image"))
+    min_pair_matches: int = field(default=15, metadata=within(
+        8, MAX_MATCHES, "the eight-point algorithm; no pair holds more"))
+    min_trusted_images: int = field(default=3, metadata=within(2, 1_000_000, "images"))
+    min_trusted_share: float = field(default=0.5, metadata=within(0, 1, SHARE, lo_open=True))
+    max_pair_fail_share: float = field(default=0.8, metadata=within(0, 1, SHARE, lo_open=True))
     place_untrusted: bool = True
-    min_placed_inliers: int = 30
-    ba_iterations: int = 3
+    min_placed_inliers: int = field(default=30, metadata=within(
+        6, MAX_MATCHES, "an absolute pose needs 6 correspondences"))
+    ba_iterations: int = field(default=3, metadata=within(1, 10, "rounds of bundle adjustment, each a full adjustment"))
     retriangulate: bool = True
-    ba_function_tolerance: float = 1e-4
+    ba_function_tolerance: float = field(default=1e-4, metadata=within(0, 0.1, "a relative cost decrease"))
     hinges: bool = True
-    hinge_min_pairs: int = 3
-    hinge_min_side_images: int = 2
-    rounds: int = 2
-    seed: int = 0
+    hinge_min_pairs: int = field(default=3, metadata=within(2, 1_000_000, "pairs across a hinge"))
+    hinge_min_side_images: int = field(default=2, metadata=within(1, 1_000_000, "images on one side of a hinge"))
+    rounds: int = field(default=2, metadata=within(1, 5, "global-mapper runs"))
+    seed: int = field(default=0, metadata=within(0, MAX_SEED, "a 32-bit seed"))
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "mode", MatchCheckMode.parse(self.mode, "mode"))
-        check_bounds(self, "match_check")  # every key's range (colmap_miho.validation.BOUNDS)
+        check_bounds(self)
         if self.min_threshold_px > self.max_threshold_px:
             raise ValueError("need min_threshold_px <= max_threshold_px, got "
                              f"{self.min_threshold_px} and {self.max_threshold_px}")

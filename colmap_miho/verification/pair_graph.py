@@ -293,10 +293,9 @@ def carrier_votes(cb: np.ndarray, cfg: PairCheckConfig) -> np.ndarray:
     n = cb.sum(1)
     counted = n >= cfg.min_transfers
     share = np.where(counted, cb[:, 0] / np.maximum(n, 1), 0.0)
-    best = share.max()
     for r in range(3):
         if counted[r]:
-            fail = share[r] < cfg.min_closed_share or share[r] < cfg.min_relative_share * best
+            fail = share[r] < cfg.min_closed_share
             for c in carriers[r] + ((r,) if cfg.transferred_votes else ()):
                 out[c, 0 if fail else 1] += 1
     return out

@@ -391,7 +391,7 @@ def test_disk_full_while_copying_leaves_nothing_behind(db, scene, monkeypatch, c
     ("ncc.search_radius=100000", "search_radius must be in \\[1, 64\\]"),
     ("filter.t_l=inf", "t_l must be a finite number"),
     ("filter.confidence=nan", "confidence must be a finite number"),
-    ("ncc.min_gain=nan", "min_gain must be a finite number"),
+    ("ncc.min_ncc=nan", "min_ncc must be a finite number"),
     ("filter.batch_size=100000000", "batch_size must be in \\[1, 8192\\]"),
     ("filter.t_l=1e308", "t_l must be in \\[0.001, 100000\\]"),
     ("filter.t_l=1e-300", "t_l must be in \\[0.001, 100000\\]"),

@@ -14,7 +14,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # this checkout's 
 from small_budget import SMALL_WORKER_MATCHES, two_images  # noqa: E402
 
 import colmap_miho.pipeline.filter as filter_stage  # noqa: E402
-import colmap_miho.pipeline.refine as refine_stage  # noqa: E402
+import colmap_miho.pipeline.track_groups as track_groups  # noqa: E402
 from colmap_miho.cli import main  # noqa: E402
 from colmap_miho.pipeline.store import RunStore  # noqa: E402
 from colmap_miho.pipeline_config import PipelineConfig  # noqa: E402
@@ -41,7 +41,7 @@ def kill_after(kind: str, n: int) -> None:
 if __name__ == "__main__":
     filter_stage.MAX_CHUNK_MATCHES = 1  # one pair per chunk: several chunks on a small scene
     PipelineConfig.image_budget_bytes = two_images  # type: ignore[method-assign]
-    refine_stage.MIN_MATCHES_PER_REFINE_WORKER = SMALL_WORKER_MATCHES  # several groups on a small scene
-    refine_stage.MIN_MATCHES_TO_START_WORKERS = 0
+    track_groups.MIN_MATCHES_PER_REFINE_WORKER = SMALL_WORKER_MATCHES  # several groups on a small scene
+    track_groups.MIN_MATCHES_TO_START_WORKERS = 0
     kill_after(sys.argv[1], int(sys.argv[2]))
     sys.exit(main(sys.argv[3:]))

@@ -10,6 +10,6 @@ def two_images(self, slots: int) -> int:
     return TWO_IMAGES_BYTES
 
 
-#: ``refine_stage.MIN_MATCHES_PER_REFINE_WORKER`` on the small test scenes (it sets the groups' match
+#: ``track_groups.MIN_MATCHES_PER_REFINE_WORKER`` on the small test scenes (it sets the groups' match
 #: bound), so that their tracks make several groups.
 SMALL_WORKER_MATCHES = 20

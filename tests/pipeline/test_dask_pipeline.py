@@ -8,7 +8,7 @@ from helpers.db_contents import assert_same_database
 from helpers.small_budget import two_images
 
 from colmap_miho.pipeline import filter as filter_stage
-from colmap_miho.pipeline import refine as refine_stage
+from colmap_miho.pipeline import track_groups
 from colmap_miho.pipeline.executor import LOCAL
 from colmap_miho.pipeline.run import refine_database
 from colmap_miho.pipeline_config import PipelineConfig
@@ -25,8 +25,8 @@ def test_local_cluster_equals_process_pool_and_one_process(scene, tmp_path, monk
     # small scene: let the process pool take it too (it keeps small jobs in this process)
     monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
     monkeypatch.setattr(filter_stage, "MIN_MATCHES_PER_FILTER_WORKER", 0)
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", 10)
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_TO_START_WORKERS", 0)
     monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # several track groups
     one = refine_database(scene.database, scene.image_dir, tmp_path / "one.db", workers=1, device="cpu")
     pool = refine_database(scene.database, scene.image_dir, tmp_path / "pool.db", workers=2, device="cpu")

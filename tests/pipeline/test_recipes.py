@@ -92,3 +92,34 @@ def test_recipe_file_with_unknown_table(tmp_path):
         load_recipe(str(path))
     with pytest.raises(ValueError, match="unknown recipe"):
         load_recipe("does_not_exist")
+
+
+def test_the_dataclass_defaults_are_the_default_recipe():
+    from colmap_miho.recipe import Recipe
+
+    assert dataclasses.replace(load_recipe(), name="custom", description="") == Recipe()
+
+
+def test_each_recipe_file_states_only_how_it_differs_from_the_defaults():
+    import sys
+    from importlib import resources
+
+    from colmap_miho.recipe import SECTIONS
+
+    tomllib = pytest.importorskip("tomllib" if sys.version_info >= (3, 11) else "tomli")
+    for name in available_recipes():
+        data = tomllib.loads((resources.files("colmap_miho.recipes") / f"{name}.toml").read_text("utf-8"))
+        recipe = load_recipe(name)
+        for section in set(data) & set(SECTIONS):
+            default = SECTIONS[section]()
+            same = [k for k in data[section] if getattr(getattr(recipe, section), k) == getattr(default, k)]
+            assert not same, f"{name}: [{section}] restates the defaults of {same}"
+
+
+def test_the_pairwise_preset_is_the_papers_ncc():
+    from colmap_miho.refinement.config import PAIRWISE, NCCConfig
+
+    cfg = NCCConfig.pairwise(move="2")
+    assert (cfg.template_radius, cfg.search_radius, cfg.inner_radius, cfg.lsm) == (10, 10, 0, False)
+    assert cfg.move == "2" and all(getattr(cfg, k) == v for k, v in PAIRWISE.items())
+    assert NCCConfig().template_radius == 6 and NCCConfig().lsm

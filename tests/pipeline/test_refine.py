@@ -302,14 +302,14 @@ def test_images_decoded_at_most_three_times_when_the_budget_holds_them(small_sce
                                                                        monkeypatch):
     """The read stage's check keeps the decoded images in the cache: an in-process walk
     decodes none again, and each of two workers decodes an image at most once."""
-    from colmap_miho.pipeline import refine as refine_stage
+    from colmap_miho.pipeline import track_groups
 
     s = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "o.db", workers=1,
                         device="cpu")
     assert s.keypoints_moved > 0 and s.refine_stats["image_decodes"] == 0
     assert s.image_decodes == s.num_images and s.image_decodes_max == 1
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", 10)  # several groups, 2 workers
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_PER_REFINE_WORKER", 10)  # several groups, 2 workers
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_TO_START_WORKERS", 0)
     two = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "two.db",
                           workers=2, device="cpu")
     assert two.refine_stats["workers"] == 2 and two.refine_groups >= 2
@@ -320,12 +320,12 @@ def test_images_decoded_at_most_three_times_when_the_budget_holds_them(small_sce
 def test_parallel_workers_give_identical_results(small_scene, tmp_path, monkeypatch):
     """Filtering pairs and refining whole tracks in 2 processes changes nothing."""
     from colmap_miho.pipeline import filter as filter_stage
-    from colmap_miho.pipeline import refine as refine_stage
+    from colmap_miho.pipeline import track_groups
 
     monkeypatch.setattr(filter_stage, "MIN_PAIRS_PER_WORKER", 1)
     monkeypatch.setattr(filter_stage, "MIN_MATCHES_PER_FILTER_WORKER", 0)
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", 10)
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_PER_REFINE_WORKER", 10)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_TO_START_WORKERS", 0)
     monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # several track groups
     # the CPU worker pool is what is tested (on a CUDA machine "auto" would use one GPU worker)
     one = refine_database(small_scene.database, small_scene.image_dir, tmp_path / "w1.db",

@@ -11,7 +11,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from colmap_miho.pipeline import refine as refine_stage
+from colmap_miho.pipeline import track_groups
 from colmap_miho.pipeline.executor import Runner
 
 
@@ -43,7 +43,7 @@ def test_dispatch_hands_out_each_group_once_in_run_order(monkeypatch, slots):
             log.append(("walk", group.index))
         return {}, {"refined": group.index}
 
-    monkeypatch.setattr(refine_stage, "_walk_group_task", fake_walk)
+    monkeypatch.setattr(track_groups, "_walk_group_task", fake_walk)
     groups = [SimpleNamespace(to_refine=n, image_ids=[1, 2]) for n in (5, 9, 2, 7, 4, 8, 3)]
     todo = [0, 1, 2, 4, 5, 6]  # group 3 resumed
     runner = Runner(slots, "processes", make_executor=lambda: ThreadPoolExecutor(slots))
@@ -65,11 +65,11 @@ def test_dispatch_hands_out_each_group_once_in_run_order(monkeypatch, slots):
             finished.append(g)
             log.append(("finish", g))
 
-    refine_stage._dispatch(runner, _Loader(), groups, todo, slots, _Attach(log),
+    track_groups._dispatch(runner, _Loader(), groups, todo, slots, _Attach(log),
                            (None, None, None, None), finish, None)
     runner.executor().shutdown()
     assert sorted(finished) == sorted(submitted) == todo
-    runs = refine_stage._runs([groups[g] for g in todo], slots)
+    runs = track_groups._runs([groups[g] for g in todo], slots)
     for run in runs:
         mine = [todo[k] for k in run]
         order = [g for g in submitted if g in mine]
@@ -102,13 +102,13 @@ def test_an_idle_slot_takes_the_last_groups_of_a_busy_run(monkeypatch):
             walked_2.set()
         return {}, {"refined": group.index}
 
-    monkeypatch.setattr(refine_stage, "_walk_group_task", fake_walk)
+    monkeypatch.setattr(track_groups, "_walk_group_task", fake_walk)
     groups = [SimpleNamespace(to_refine=n, image_ids=[1, 2]) for n in (3, 3, 3, 10)]
     todo = [0, 1, 2, 3]
-    assert refine_stage._runs(groups, 2) == [[0, 1, 2], [3]]
+    assert track_groups._runs(groups, 2) == [[0, 1, 2], [3]]
     runner = Runner(2, "processes", make_executor=lambda: ThreadPoolExecutor(2))
     finished: list = []
-    refine_stage._dispatch(runner, _Loader(), groups, todo, 2, _Attach([]), (None, None, None, None),
+    track_groups._dispatch(runner, _Loader(), groups, todo, 2, _Attach([]), (None, None, None, None),
                            lambda g, moved, st: finished.append(g), None)
     runner.executor().shutdown()
     assert sorted(finished) == todo

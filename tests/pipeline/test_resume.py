@@ -15,7 +15,7 @@ from helpers.db_contents import assert_same_database
 from helpers.small_budget import SMALL_WORKER_MATCHES, two_images
 
 from colmap_miho.cli import main
-from colmap_miho.pipeline import refine as refine_stage
+from colmap_miho.pipeline import track_groups
 from colmap_miho.pipeline.store import store_folder
 from colmap_miho.pipeline_config import PipelineConfig
 from miho_bench.synthetic import make_synthetic_scene
@@ -97,8 +97,8 @@ def test_run_killed_while_refining_resumes_its_groups(scene, reference, tmp_path
     _killed_run(scene, out, "group", 1)
     assert len(_stored(out, "filter")) == 6 and _stored(out, "group") == ["group-000000.npz"]
     monkeypatch.setattr(PipelineConfig, "image_budget_bytes", two_images)  # the killed run's groups
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", SMALL_WORKER_MATCHES)
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_PER_REFINE_WORKER", SMALL_WORKER_MATCHES)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_TO_START_WORKERS", 0)
     js = tmp_path / "s.json"
     assert main(_args(scene, out, "--resume", "--json", str(js))) == 0
     summary = json.loads(js.read_text())
@@ -141,7 +141,7 @@ def test_failed_run_keeps_its_work_and_says_how_to_resume(scene, reference, tmp_
     def broken(*args, **kwargs):
         raise RuntimeError("refine stage broke")
 
-    monkeypatch.setattr(refine_module, "run_refine_stage", broken)
+    monkeypatch.setattr(refine_module, "walk_groups", broken)
     out = tmp_path / "out.db"
     assert main(_args(scene, out)) == 1
     err = capsys.readouterr().err
@@ -164,7 +164,7 @@ def _failed_run(scene, db, out, monkeypatch) -> None:
     def broken(*args, **kwargs):
         raise RuntimeError("refine stage broke")
 
-    monkeypatch.setattr(refine_module, "run_refine_stage", broken)
+    monkeypatch.setattr(refine_module, "walk_groups", broken)
     args = _args(scene, out)
     args[args.index("--database") + 1] = str(db)
     assert main(args) == 1

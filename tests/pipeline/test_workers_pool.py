@@ -85,13 +85,13 @@ def test_a_run_started_while_a_worker_imports_the_main_script_is_refused(monkeyp
 
 UNGUARDED = """
 from colmap_miho.pipeline import filter as filter_stage
-from colmap_miho.pipeline import refine as refine_stage
+from colmap_miho.pipeline import track_groups
 from colmap_miho.pipeline.run import refine_database
 
 filter_stage.MIN_PAIRS_PER_WORKER = 1  # both stages use the workers even for this scene
 filter_stage.MIN_MATCHES_PER_FILTER_WORKER = 0
-refine_stage.MIN_MATCHES_PER_REFINE_WORKER = 10
-refine_stage.MIN_MATCHES_TO_START_WORKERS = 0
+track_groups.MIN_MATCHES_PER_REFINE_WORKER = 10
+track_groups.MIN_MATCHES_TO_START_WORKERS = 0
 refine_database({db!r}, {images!r}, {out!r}, workers=2, device="cpu", dask={dask!r})
 """
 

@@ -84,7 +84,7 @@ def test_blur_matching_lowers_the_error_on_a_defocused_pair(lsm):
     img1, img2, pts1, truth, pts2, homs = _pair(DEFOCUS_PX)
     err = {}
     for on in (False, True):
-        cfg = NCCConfig(device="cpu", move="2", lsm=lsm, match_blur=on)
+        cfg = NCCConfig.pairwise(device="cpu", move="2", lsm=lsm, match_blur=on)
         res = refine_pair(img1, img2, pts1, pts2, homs, config=cfg)
         err[on] = np.median(np.linalg.norm(res.pts2 - truth, axis=1))
         assert res.stats.get("blur_matched", 0) == (len(pts1) if on else 0)
@@ -107,7 +107,7 @@ def test_each_image_pair_of_a_stack_is_estimated_on_its_own():
     assert counts == {"blur_pairs": 1, "blur_matched": na}
     assert len(o1.images) == 3 and o2 is s2
     assert (o1.index[:na] == 2).all() and (o1.index[na:] == 1).all()
-    cfg = NCCConfig(device="cpu", move="2", match_blur=True)
+    cfg = NCCConfig.pairwise(device="cpu", move="2", match_blur=True)
     both = refine_pair(s1, s2, p1, p2, homs, config=cfg)
     alone_a = refine_pair(a1, a2, ap1, ap2, ahoms, config=cfg)
     alone_b = refine_pair(b1, b2, bp1, bp2, bhoms, config=cfg)

@@ -61,7 +61,7 @@ def _scene():
 @pytest.mark.parametrize("check", [False, True])
 def test_walk_does_not_take_the_wrong_periodic_peak(check):
     images, kps, pm, res = _scene()
-    out = refine_tracks(images, kps, pm, res, ncc_config=NCCConfig(),
+    out = refine_tracks(images, kps, pm, res, ncc_config=NCCConfig.pairwise(),
                         track_config=TrackConfig(far_move_check=check))
     # one side of each match is the anchor, the other was searched
     disp = np.concatenate([out.displacement[1], out.displacement[2]])

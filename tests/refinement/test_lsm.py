@@ -194,7 +194,7 @@ def test_refine_pair_with_lsm_lowers_the_error_on_a_known_homography():
     img1, img2, pts1, truth, pts2, homs = _homography_pair()
     err = {}
     for lsm in (False, True):
-        cfg = NCCConfig(device="cpu", move="2", template_radius=6, lsm=lsm)
+        cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm=lsm)
         res = refine_pair(img1, img2, pts1, pts2, homs, config=cfg)
         moved = res.moved_side == 2
         err[lsm] = np.median(np.linalg.norm(res.pts2[moved] - truth[moved], axis=1))
@@ -204,32 +204,6 @@ def test_refine_pair_with_lsm_lowers_the_error_on_a_known_homography():
             assert counted == res.stats["moved"]
             assert res.stats["lsm_applied"] > 0.5 * res.stats["moved"]
     assert err[True] < 0.7 * err[False], err
-
-
-def test_keypoint_sized_templates_are_per_match():
-    """With ``lsm_radius_per_scale`` each match's LSM template follows its keypoint's scale
-    (affine frames of scales 1-5 px: radii 4-8); a match's result is the same in any
-    subset, and LSM still beats NCC alone."""
-    from colmap_miho.refinement.config import NCCConfig
-    from colmap_miho.refinement.ncc import refine_pair
-
-    img1, img2, pts1, truth, pts2, homs = _homography_pair()
-    n = len(pts1)
-    scales = np.random.default_rng(1).uniform(1.0, 5.0, n)
-    aff = scales[:, None, None] * np.eye(2)
-    kw = {"config": NCCConfig(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
-                              lsm_radius_per_scale=2.0)}
-    full = refine_pair(img1, img2, pts1, pts2, homs, affine1=aff, affine2=aff, **kw)
-    rows = np.random.default_rng(2).permutation(n)[: n // 3]
-    part = refine_pair(img1, img2, pts1[rows], pts2[rows], homs[rows], affine1=aff[rows],
-                       affine2=aff[rows], **kw)
-    assert np.array_equal(full.pts2[rows], part.pts2)
-    ncc = refine_pair(img1, img2, pts1, pts2, homs, affine1=aff, affine2=aff,
-                      config=NCCConfig(device="cpu", move="2", template_radius=6))
-    moved = full.moved_side == 2
-    e_lsm = np.median(np.linalg.norm(full.pts2[moved] - truth[moved], axis=1))
-    e_ncc = np.median(np.linalg.norm(ncc.pts2[moved] - truth[moved], axis=1))
-    assert e_lsm < 0.8 * e_ncc, (e_lsm, e_ncc)
 
 
 def _scaled_pair(scale: float):
@@ -269,7 +243,7 @@ def test_antialiasing_the_finer_view_lowers_the_error(scale):
     img1, img2, pts1, truth, pts2, homs = _scaled_pair(scale)
     err = {}
     for aa in (0.0, 0.5):
-        cfg = NCCConfig(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
+        cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
                         lsm_antialias=aa)
         res = refine_pair(img1, img2, pts1, pts2, homs, config=cfg)
         err[aa] = np.median(np.linalg.norm(res.pts2 - truth, axis=1))
@@ -282,7 +256,7 @@ def test_antialiased_lsm_is_per_match():
     from colmap_miho.refinement.ncc import refine_pair
 
     img1, img2, pts1, _, pts2, homs = _scaled_pair(0.6)
-    cfg = NCCConfig(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
+    cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
                     lsm_antialias=0.5)
     full = refine_pair(img1, img2, pts1, pts2, homs, config=cfg)
     rows = np.random.default_rng(3).permutation(len(pts1))[: len(pts1) // 3]
@@ -315,8 +289,8 @@ def test_lsm_only_moves_where_lsm_accepted():
 
     img1, img2, pts1, _, pts2, homs = _homography_pair()
     base = dict(device="cpu", move="2", template_radius=6, lsm=True, lsm_max_sigma_px=0.02)
-    plain = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig(**base))
-    only = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig(**base, lsm_only=True))
+    plain = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig.pairwise(**base))
+    only = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig.pairwise(**base, lsm_only=True))
     assert plain.stats["lsm_applied"] < plain.stats["moved"]  # the bound rejects some
     assert only.stats["moved"] == only.stats["lsm_applied"] == plain.stats["lsm_applied"]
     assert only.stats["rejected_lsm"] == plain.stats["moved"] - plain.stats["lsm_applied"]

@@ -121,7 +121,7 @@ def _errors(problem, cfg: NCCConfig, *, star: bool = False) -> tuple[np.ndarray,
 
 
 def _cfg(tol_px: float = 0.001) -> NCCConfig:
-    return NCCConfig(lsm=True, lsm_radius=RADIUS, lsm_max_shift_px=2.0, lsm_tol_px=tol_px,
+    return NCCConfig.pairwise(lsm=True, lsm_radius=RADIUS, lsm_max_shift_px=2.0, lsm_tol_px=tol_px,
                      lsm_antialias=0.0)
 
 
@@ -162,7 +162,7 @@ def test_anti_aliased_joint_still_recovers() -> None:
     """With the coarsest-view blur on (all views here within 10% of the reference's scale,
     the blur hits the finer ones), positions stay within the tolerance."""
     problem = _track_problem("camera", noise=0.0, seed=4)
-    err, acc, _ = _errors(problem, NCCConfig(lsm=True, lsm_radius=RADIUS, lsm_max_shift_px=2.0,
+    err, acc, _ = _errors(problem, NCCConfig.pairwise(lsm=True, lsm_radius=RADIUS, lsm_max_shift_px=2.0,
                                              lsm_tol_px=0.001, lsm_antialias=0.5))
     assert np.median(err[acc]) < 2 * MEDIAN_TOL_PX
 
@@ -233,7 +233,7 @@ def test_pass_after_the_walk_moves_every_observation_to_the_anchor() -> None:
         pm[(a, b)] = np.stack([np.arange(len(pts))] * 2, axis=1)
         results[(a, b)] = SimpleNamespace(inliers=np.ones(len(pts), bool), labels=np.zeros(len(pts), np.int64),
                                           patch_homographies=np.stack([np.eye(3), np.linalg.inv(h_ab)])[None])
-    ncc = NCCConfig(lsm=True, lsm_radius=RADIUS, lsm_max_shift_px=2.0, lsm_tol_px=0.001)
+    ncc = NCCConfig.pairwise(lsm=True, lsm_radius=RADIUS, lsm_max_shift_px=2.0, lsm_tol_px=0.001)
     walk = refine_tracks(images, kps, pm, results, refine_fn=_TransferRefiner(), ncc_config=ncc)
     out = refine_tracks(images, kps, pm, results, refine_fn=_TransferRefiner(), ncc_config=ncc,
                         track_config=TrackConfig(multiphoto_lsm=True, multiphoto_star_first=True))

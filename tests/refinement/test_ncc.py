@@ -66,7 +66,7 @@ def test_config_validation_names_the_field():
 
 def test_closed_choices_parse_strings_into_enums():
     """Recipes and ``--set`` give strings; the config holds the enum members (equal to them)."""
-    cfg = NCCConfig(perturbations="Paper", rectification="local", device="cpu")
+    cfg = NCCConfig.pairwise(perturbations="Paper", rectification="local", device="cpu")
     assert cfg.perturbations is Perturbations.PAPER and cfg.perturbations == "paper"
     assert cfg.rectification is Rectification.LOCAL
     assert cfg.device is Device.CPU
@@ -111,7 +111,7 @@ def test_known_motion_recovered_to_subpixel(known_motion):
     assert np.median(err) <= KNOWN_MOTION_MEDIAN_PX
     assert np.all(r.moved_side[~r.rejected & (r.moved_side > 0)] == 2)
     single = refine_pair(img1, img2, pts1, noisy2, homs, move="2",
-                         config=NCCConfig(subpixel_iterations=0))
+                         config=NCCConfig.pairwise(subpixel_iterations=0))
     assert np.median(np.linalg.norm(single.pts2 - gt2, axis=1)) <= SINGLE_PARABOLA_MEDIAN_PX
 
 
@@ -140,7 +140,7 @@ def test_input_types_agree(known_motion):
     a = refine_pair(img1, img2, pts1[sl], noisy2[sl], homs[sl], move="2")
     b = refine_pair(torch.from_numpy(img1.astype(np.float32) / 255), img2.astype(np.float64) / 255,
                     torch.from_numpy(pts1[sl]), noisy2[sl], torch.from_numpy(homs[sl]), move="2",
-                    config=NCCConfig(batch_size=7))
+                    config=NCCConfig.pairwise(batch_size=7))
     np.testing.assert_allclose(a.pts2, b.pts2, atol=1e-4)
     # a homography pair scaled by -1 is the same pair
     c = refine_pair(img1, img2, pts1[sl], noisy2[sl], -homs[sl], move="2")
@@ -168,7 +168,7 @@ def test_edge_patches_move_only_across_the_edge():
     pts1 = np.stack([np.full_like(ys, 60.3), ys], 1)
     pts2 = pts1 + [1.6, 1.3]  # off the edge by 1.6 px, along it by 1.3 px
     star = refine_pair(img, img, pts1, pts2, _identity_pairs(15), move="2",
-                       config=NCCConfig(ellipse_mask=True))
+                       config=NCCConfig.pairwise(ellipse_mask=True))
     moved = star.moved_side == 2
     assert moved.sum() >= 10
     np.testing.assert_allclose(star.pts2[moved, 0], 60.3, atol=0.05)  # back onto the edge
@@ -218,7 +218,7 @@ def test_base_pass_uses_keypoint_affine_frames(known_motion):
     x = np.c_[p1, np.ones(len(p1))] @ H_KNOWN.T
     w = x[:, 2]
     jac = (H_KNOWN[None, :2, :2] - (x[:, :2] / w[:, None])[:, :, None] * H_KNOWN[None, 2:, :2]) / w[:, None, None]
-    without = refine_pair(img1, img2, p1, n2, wrong, move="2", config=NCCConfig(use_base_pair=False))
+    without = refine_pair(img1, img2, p1, n2, wrong, move="2", config=NCCConfig.pairwise(use_base_pair=False))
     with_aff = refine_pair(img1, img2, p1, n2, wrong, move="2",
                            affine1=np.tile(np.eye(2), (len(p1), 1, 1)), affine2=jac)
     e_without = np.median(np.linalg.norm(without.pts2 - g2, axis=1))
@@ -231,9 +231,9 @@ def test_result_of_a_match_does_not_depend_on_its_batch(known_motion):
     batches. (CUDA kernels round differently per batch shape: see the test below.)"""
     img1, img2, pts1, gt2, noisy2, homs = known_motion
     full = refine_pair(img1, img2, pts1, noisy2, homs,
-                       config=NCCConfig(batch_size=64, device="cpu"))
+                       config=NCCConfig.pairwise(batch_size=64, device="cpu"))
     part = refine_pair(img1, img2, pts1[5:45], noisy2[5:45], homs[5:45],
-                       config=NCCConfig(batch_size=13, device="cpu"))
+                       config=NCCConfig.pairwise(batch_size=13, device="cpu"))
     np.testing.assert_array_equal(full.pts1[5:45], part.pts1)
     np.testing.assert_array_equal(full.pts2[5:45], part.pts2)
 
@@ -246,7 +246,7 @@ def test_cuda_agrees_with_cpu(known_motion, perturbations):
     between the two directions cannot flip the side."""
     img1, img2, pts1, gt2, noisy2, homs = known_motion
     res = {dev: refine_pair(img1, img2, pts1, noisy2, homs, move="2",
-                            config=NCCConfig(perturbations=perturbations, device=dev))
+                            config=NCCConfig.pairwise(perturbations=perturbations, device=dev))
            for dev in ("cpu", "cuda")}
     assert res["cuda"].stats["device"].startswith("cuda")
     agree = res["cpu"].moved_side == res["cuda"].moved_side

@@ -55,7 +55,7 @@ def test_ncc_recovers_known_subpixel_shifts_with_the_exact_homography():
     img1, img2, H, pts1, truth2, rng = _scene()
     start = truth2 + rng.uniform(-INPUT_OFFSET_PX, INPUT_OFFSET_PX, truth2.shape)
     pairs = np.tile(np.stack([np.eye(3), np.linalg.inv(H)]), (len(pts1), 1, 1, 1))
-    res = refine_pair(img1, img2, pts1, start, pairs, move="2", config=NCCConfig(device="cpu"))
+    res = refine_pair(img1, img2, pts1, start, pairs, move="2", config=NCCConfig.pairwise(device="cpu"))
     before, after = _check(res, start, truth2)
     assert after < 0.25 * before
 
@@ -69,7 +69,7 @@ def test_ncc_with_local_affine_rectification_from_noisy_matches():
     pairs = local_affine_pairs(pts1, noisy, np.zeros(len(pts1), np.int64), identity, k=12,
                                max_residual_px=2.0)
     res = refine_pair(img1, img2, pts1, start, pairs, move="2",
-                      config=NCCConfig(device="cpu", use_base_pair=False))
+                      config=NCCConfig.pairwise(device="cpu", use_base_pair=False))
     _check(res, start, truth2)
 
 

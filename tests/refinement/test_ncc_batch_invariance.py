@@ -62,18 +62,18 @@ def _assert_same(full: RefineResult, rows: np.ndarray, part: RefineResult) -> No
 
 CONFIGS = {
     # the pairwise default: both directions, extended + base pass, 3 sub-pixel iterations
-    "default": NCCConfig(device="cpu"),
+    "default": NCCConfig.pairwise(device="cpu"),
     # the track walk's recipe: one side moves, r = 6
-    "walk": NCCConfig(device="cpu", move="2", template_radius=6),
+    "walk": NCCConfig.pairwise(device="cpu", move="2", template_radius=6),
     # 25 template shapes chosen coarse-to-fine (per-match offsets), NCC* mask
-    "paper": NCCConfig(device="cpu", perturbations="paper", ellipse_mask=True,
+    "paper": NCCConfig.pairwise(device="cpu", perturbations="paper", ellipse_mask=True,
                        template_radius=5, search_radius=4),
     # least-squares matching after the NCC peak (bicubic samples, per-match Gauss-Newton)
-    "lsm": NCCConfig(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8),
+    "lsm": NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8),
     # 3x3 templates: a convolution of one group would sum in another order than a batch
-    "tiny": NCCConfig(device="cpu", template_radius=1, search_radius=3, min_template_std=0.0),
+    "tiny": NCCConfig.pairwise(device="cpu", template_radius=1, search_radius=3, min_template_std=0.0),
     # the near offsets first, the full radius only where the near peak is on its border
-    "inner": NCCConfig(device="cpu", move="2", template_radius=6, inner_radius=2),
+    "inner": NCCConfig.pairwise(device="cpu", move="2", template_radius=6, inner_radius=2),
 }
 
 
@@ -120,7 +120,7 @@ def test_match_result_is_the_same_in_any_batch(name):
 def test_stacked_pairs_match_each_pair_alone():
     """Matches of three image pairs of different sizes in one stacked call (as the batched
     track walk makes them), and in a stack of two of them, give each pair's own results."""
-    cfg = NCCConfig(device="cpu", move="2", template_radius=6)
+    cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6)
     pairs = [_pair(s, h, w, n=60) for s, (h, w) in enumerate([(240, 320), (200, 260), (260, 300)])]
     alone = [refine_pair(a, b, p1, p2, hm, config=cfg) for a, b, p1, p2, hm in pairs]
     dev = torch.device("cpu")

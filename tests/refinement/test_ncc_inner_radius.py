@@ -30,10 +30,10 @@ def _texture(rng: np.random.Generator, h: int = 240, w: int = 320) -> np.ndarray
 
 def test_config_validation():
     with pytest.raises(ValueError, match="inner_radius"):
-        NCCConfig(inner_radius=-1)
+        NCCConfig.pairwise(inner_radius=-1)
     # a radius at or above the search radius leaves the full search (a recipe's inner radius
     # must not forbid a smaller search radius)
-    assert NCCConfig(search_radius=2, inner_radius=2).inner_radius == 2
+    assert NCCConfig.pairwise(search_radius=2, inner_radius=2).inner_radius == 2
 
 
 @pytest.mark.parametrize("offset_px", [1.0, 2.5, 4.0])
@@ -53,7 +53,7 @@ def test_far_peaks_are_still_followed(offset_px):
     pts2 = gt2 + offset_px * np.c_[np.cos(angle), np.sin(angle)]
     homs = np.tile(np.stack([np.eye(3), np.linalg.inv(H_SCENE)]), (n, 1, 1, 1))
     res = {s0: refine_pair(img1, img2, pts1, pts2, homs, move="2",
-                           config=NCCConfig(device="cpu", template_radius=6, inner_radius=s0))
+                           config=NCCConfig.pairwise(device="cpu", template_radius=6, inner_radius=s0))
            for s0 in (0, 2, 10)}
     for name in ("pts2", "ncc_after", "moved_side", "rejected"):  # 10 = s: the full search
         np.testing.assert_array_equal(getattr(res[10], name), getattr(res[0], name))
@@ -76,8 +76,8 @@ def test_a_near_local_maximum_is_kept():
         img2[y - r:y + r + 1, x + jump - r:x + jump + r + 1] = img1[y - r:y + r + 1, x - r:x + r + 1]
     homs = np.tile(np.eye(3), (len(pts), 2, 1, 1))
     cfg = {"device": "cpu", "template_radius": r, "search_radius": 10, "subpixel_iterations": 0}
-    full = refine_pair(img1, img2, pts, pts, homs, move="2", config=NCCConfig(**cfg))
-    near = refine_pair(img1, img2, pts, pts, homs, move="2", config=NCCConfig(**cfg, inner_radius=2))
+    full = refine_pair(img1, img2, pts, pts, homs, move="2", config=NCCConfig.pairwise(**cfg))
+    near = refine_pair(img1, img2, pts, pts, homs, move="2", config=NCCConfig.pairwise(**cfg, inner_radius=2))
     np.testing.assert_allclose(full.pts2, pts + [jump, 0.0], atol=0.5)  # its integer peak
     assert np.all(np.abs(near.pts2 - pts) <= 1.0)
     assert np.all(near.ncc_after < full.ncc_after)

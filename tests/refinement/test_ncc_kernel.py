@@ -85,7 +85,7 @@ def _passes(homs: list[np.ndarray], rows=slice(None)) -> list:
 
 
 def _cfg(**kw) -> NCCConfig:
-    return NCCConfig(template_radius=RADIUS, search_radius=SEARCH, **kw)
+    return NCCConfig.pairwise(template_radius=RADIUS, search_radius=SEARCH, **kw)
 
 
 def _both(img_f, img_m, p_f, p_m, homs, cfg):

@@ -1,4 +1,4 @@
-"""The pipeline's refine stage over groups of tracks (``pipeline.refine_stage.run_refine_stage``):
+"""The pipeline's refine stage over groups of tracks (``pipeline.track_groups.walk_groups``):
 bit-identical keypoints whatever the runner and its slots, the same moves whatever the image
 budget; resume from finished groups; each group reported once; images decoded once per group
 at most."""
@@ -11,12 +11,12 @@ import pytest
 from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.adapters.images import ImageLoader
 from colmap_miho.filtering.api import filter_matches
-from colmap_miho.pipeline import refine as refine_stage
+from colmap_miho.pipeline import track_groups
 from colmap_miho.pipeline.executor import open_runner
 from colmap_miho.refinement.config import NCCConfig, TrackConfig
 from miho_bench.synthetic import make_synthetic_scene
 
-NCC = NCCConfig(device="cpu", template_radius=6)
+NCC = NCCConfig.pairwise(device="cpu", template_radius=6)
 TRACKS = TrackConfig()
 
 
@@ -46,7 +46,7 @@ def _loader(scene, **kw):
 
 def _run(scene, runner, budget, **kw):
     _, kps, pairs, _, sizes = scene
-    return refine_stage.run_refine_stage(_loader(scene, max_cached=None), kps, pairs, None, NCC, TRACKS,
+    return track_groups.walk_groups(_loader(scene, max_cached=None), kps, pairs, None, NCC, TRACKS,
                                    runner=runner, image_budget_bytes=budget, **kw)
 
 
@@ -58,8 +58,8 @@ def _image_bytes(scene):
 def test_same_keypoints_whatever_the_runner_and_budget(scene, monkeypatch):
     """Bit-identical keypoints in this process and in 2 worker processes, and with another
     budget (other groups, hence other refine calls: a match's NCC does not depend on them)."""
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", 20)  # several groups, 2 workers
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_PER_REFINE_WORKER", 20)  # several groups, 2 workers
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_TO_START_WORKERS", 0)
     one = _image_bytes(scene)
     with open_runner(1) as inline:
         ref, ref_stats, used = _run(scene, inline, 3 * one)
@@ -80,8 +80,8 @@ def test_same_keypoints_whatever_the_runner_and_budget(scene, monkeypatch):
 
 
 def test_resume_skips_done_groups_and_reports_each_group_once(scene, monkeypatch):
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", 20)
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_PER_REFINE_WORKER", 20)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_TO_START_WORKERS", 0)
     budget = 3 * _image_bytes(scene)
     seen: dict = {}
     with open_runner(1) as inline:
@@ -110,15 +110,15 @@ def test_each_image_decoded_once_when_the_budget_holds_the_tracks(scene, monkeyp
     several groups (bounded in matches) that share all images, and the images the read
     stage's check decoded are the walk's: every image is decoded once in the whole run. With a
     budget under a track's image count, its group's walk reloads images (counted)."""
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_PER_REFINE_WORKER", 20)
-    monkeypatch.setattr(refine_stage, "MIN_MATCHES_TO_START_WORKERS", 0)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_PER_REFINE_WORKER", 20)
+    monkeypatch.setattr(track_groups, "MIN_MATCHES_TO_START_WORKERS", 0)
     _, kps, pairs, _, _ = scene
     for n_images in (6, 2):
         budget = n_images * _image_bytes(scene)
         loader = _loader(scene, max_cached=None, max_cached_bytes=budget)
         assert loader.check_all() == []
         with open_runner(1) as inline:
-            _, stats, _ = refine_stage.run_refine_stage(loader, kps, pairs, None, NCC, TRACKS,
+            _, stats, _ = track_groups.walk_groups(loader, kps, pairs, None, NCC, TRACKS,
                                                   runner=inline, image_budget_bytes=budget)
         assert stats["groups"] > 1 and stats["image_decodes"] == loader.decodes - len(kps)
         if n_images == 6:
@@ -130,9 +130,9 @@ def test_each_image_decoded_once_when_the_budget_holds_the_tracks(scene, monkeyp
 def test_max_images_for_the_budget_and_the_loader(scene):
     one = _image_bytes(scene)
     ids = list(scene[4])
-    assert refine_stage.max_images_for(_loader(scene, max_cached=None), ids, 5 * one + 7, 8) == 5
-    assert refine_stage.max_images_for(_loader(scene, max_cached=3), ids, 5 * one, 8) == 3
-    assert refine_stage.max_images_for(_loader(scene, max_cached=None), ids, one, 8) == 2
-    assert refine_stage.max_images_for(_loader(scene, max_cached=None), ids, None, 8) == 8
-    assert refine_stage.max_images_for(_loader(scene, max_cached=None, max_cached_bytes=4 * one), ids,
+    assert track_groups.max_images_for(_loader(scene, max_cached=None), ids, 5 * one + 7, 8) == 5
+    assert track_groups.max_images_for(_loader(scene, max_cached=3), ids, 5 * one, 8) == 3
+    assert track_groups.max_images_for(_loader(scene, max_cached=None), ids, one, 8) == 2
+    assert track_groups.max_images_for(_loader(scene, max_cached=None), ids, None, 8) == 8
+    assert track_groups.max_images_for(_loader(scene, max_cached=None, max_cached_bytes=4 * one), ids,
                                  None, 8) == 4

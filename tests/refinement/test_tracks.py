@@ -418,7 +418,7 @@ def test_batched_levels_match_per_pair_calls_on_real_images(shared_data):
     images = {i: cv2.imread(str(seq / f"img{i}.png"), cv2.IMREAD_GRAYSCALE) for i in (1, 2, 3)}
     kps, matches, results = filtered_multiview_matches(images, max_features=2000)
     assert len(matches) >= 2
-    out = {b: refine_tracks(images, kps, matches, results, ncc_config=NCCConfig(device="cpu"),
+    out = {b: refine_tracks(images, kps, matches, results, ncc_config=NCCConfig.pairwise(device="cpu"),
                             track_config=TrackConfig(batch_pairs=b))
            for b in (False, True)}
     assert out[True].stats["refine_calls"] < out[False].stats["refine_calls"]

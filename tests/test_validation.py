@@ -1,5 +1,5 @@
-"""Every numeric recipe key has a range (``colmap_miho.validation.BOUNDS``), checked before any
-work, with a message naming the key and the range."""
+"""Every numeric recipe key carries its range beside it (``colmap_miho.validation.within`` in the
+field's metadata), checked before any work, with a message naming the key and the range."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import torch
 from colmap_miho.cli import main
 from colmap_miho.errors import InvalidInput
 from colmap_miho.recipe import SECTIONS, load_recipe
-from colmap_miho.validation import BOUNDS, MAX_BLUR_PX, OPTION_BOUNDS
+from colmap_miho.validation import MAX_BLUR_PX, OPTION_BOUNDS, bounds_of
 
 
 def _outside(bound, side: str, is_int: bool):
@@ -30,12 +30,13 @@ def _is_int(section: str, key: str) -> bool:
     return hint is int or int in typing.get_args(hint)
 
 
-CASES = [(section, key, side) for section, keys in BOUNDS.items() for key in keys for side in ("low", "high")]
+CASES = [(section, key, side) for section, cls in SECTIONS.items() for key in bounds_of(cls)
+         for side in ("low", "high")]
 
 
 @pytest.mark.parametrize(("section", "key", "side"), CASES, ids=[f"{s}.{k}-{e}" for s, k, e in CASES])
 def test_every_bounded_key_refuses_a_value_past_each_end(section, key, side):
-    bound = BOUNDS[section][key]
+    bound = bounds_of(SECTIONS[section])[key]
     value = _outside(bound, side, _is_int(section, key))
     with pytest.raises(InvalidInput, match=rf"\[{section}\] {key} must be in [\[(]"):
         load_recipe(None, [f"{section}.{key}={value}"])
@@ -48,9 +49,13 @@ def test_every_numeric_key_is_bounded():
         hints = typing.get_type_hints(cls)
         for f in dataclasses.fields(cls):
             kinds = {hints[f.name], *typing.get_args(hints[f.name])}
-            if (int in kinds or float in kinds) and f.name not in BOUNDS[section]:
+            if (int in kinds or float in kinds) and f.name not in bounds_of(cls):
                 missing.append(f"{section}.{f.name}")
     assert not missing
+
+
+def test_cases_cover_every_bounded_key():
+    assert len(CASES) == 2 * sum(len(bounds_of(cls)) for cls in SECTIONS.values()) >= 138
 
 
 def test_bounds_hold_the_defaults_and_every_shipped_recipe():
@@ -62,7 +67,7 @@ def test_bounds_hold_the_defaults_and_every_shipped_recipe():
 
 @pytest.mark.parametrize("override", ["ncc.lsm_antialias=1e20", "ncc.lsm_antialias=1e3",
                                       "pair_check.trust_iterations=1000000000", "pair_check.seed=-1",
-                                      "mapping.seed=-5", "ncc.lsm_radius_per_scale=1e300"])
+                                      "mapping.seed=-5", "ncc.lsm_radius=1e300"])
 def test_the_attack_values_are_refused_fast_naming_the_key(override, tmp_path, capfd):
     key = override.split("=")[0].split(".")[1]
     start = time.perf_counter()
@@ -75,9 +80,9 @@ def test_the_attack_values_are_refused_fast_naming_the_key(override, tmp_path, c
 
 def test_lsm_antialias_is_at_most_the_lsm_window():
     # the LSM window is lsm_radius, or template_radius when lsm_radius is 0
-    load_recipe("mop_miho_ncc", ["ncc.lsm_antialias=6", "ncc.template_radius=6"])
+    load_recipe("mop_miho_ncc", ["ncc.lsm_antialias=6", "ncc.template_radius=6", "ncc.lsm_radius=0"])
     with pytest.raises(InvalidInput, match="lsm_antialias must be <= 6"):
-        load_recipe("mop_miho_ncc", ["ncc.lsm_antialias=6.5", "ncc.template_radius=6"])
+        load_recipe("mop_miho_ncc", ["ncc.lsm_antialias=6.5", "ncc.template_radius=6", "ncc.lsm_radius=0"])
     load_recipe("mop_miho_lsm", ["ncc.lsm_antialias=8", "ncc.lsm_radius=8"])
     with pytest.raises(InvalidInput, match="lsm_antialias must be <= 8"):
         load_recipe("mop_miho_lsm", ["ncc.lsm_antialias=8.5", "ncc.lsm_radius=8"])
