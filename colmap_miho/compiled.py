@@ -1,7 +1,7 @@
 """Loading the compiled (numba) kernels: the jit options, one lock, compilation on first use.
 
-The kernel modules (:mod:`.filtering.kernels`, :mod:`.refinement.ncc_kernel`,
-:mod:`.refinement.lsm_kernel`, :mod:`.refinement.affine_kernel`) hold plain Python functions;
+The kernel modules (:mod:`.filtering.kernels`, :mod:`.refinement.ncc.kernel`,
+:mod:`.refinement.lsm.kernel`, :mod:`.refinement.rectify.kernel`) hold plain Python functions;
 each wraps its build function in :class:`Kernels`, which imports numba and jits them the first
 time a kernel is called (compiled then, or loaded from numba's on-disk cache, ``cache=True``),
 once per process, under one lock. numba is a required dependency: the CPU paths always run

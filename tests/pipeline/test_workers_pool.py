@@ -44,7 +44,7 @@ def test_workers_start_with_the_compiled_filter_kernels_loaded():
 
 
 def _ncc_kernels_loaded() -> bool:
-    from colmap_miho.refinement import ncc_kernel
+    from colmap_miho.refinement.ncc import kernel as ncc_kernel
 
     return ncc_kernel._kernels.loaded
 
@@ -120,7 +120,7 @@ def test_a_script_without_a_main_guard_gets_the_fix_in_its_error(tmp_path, dask,
 
 
 def _affine_kernels_loaded() -> bool:
-    from colmap_miho.refinement import affine_kernel
+    from colmap_miho.refinement.rectify import kernel as affine_kernel
 
     return affine_kernel._kernel.loaded
 
@@ -133,7 +133,7 @@ def test_workers_start_with_the_compiled_local_affine_fits_loaded():
 
 
 def _lsm_kernel_loaded() -> bool:
-    from colmap_miho.refinement import lsm_kernel
+    from colmap_miho.refinement.lsm import kernel as lsm_kernel
 
     return lsm_kernel._kernel.loaded
 
