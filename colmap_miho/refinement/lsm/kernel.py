@@ -396,7 +396,7 @@ def _jit_all() -> Any:
 
 
 #: the jitted kernel (compiled, or loaded from numba's cache, on first use).
-_kernel = Kernels(_jit_all)
+KERNELS = Kernels(_jit_all)
 
 
 def _blur_arrays(blur: tuple[torch.Tensor, torch.Tensor] | None, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -482,7 +482,7 @@ def lsm_frames(
     s0_out = np.full(n, np.nan)
     converged = np.zeros(n, np.bool_)
     iterations = np.zeros(n, np.int64)
-    kernel = _kernel()
+    kernel = KERNELS()
     key = idx_f * len(ims_m) + idx_m
     order = np.argsort(key, kind="stable")
     keys, first = np.unique(key[order], return_index=True)
@@ -513,4 +513,4 @@ def warm() -> bool:
         lsm_frames(img, img, eye, c, eye, c, torch.zeros(1, 2, dtype=torch.float64), 3, blur_f=blur,
                    max_iterations=2)
 
-    return _kernel.warm(example)
+    return KERNELS.warm(example)

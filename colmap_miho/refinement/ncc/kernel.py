@@ -535,7 +535,7 @@ def _jit_all() -> dict[str, Any]:
 
 
 #: the jitted kernels (compiled, or loaded from numba's cache, on first use).
-_kernels = Kernels(_jit_all)
+KERNELS = Kernels(_jit_all)
 
 
 def _groups(key: np.ndarray) -> list[tuple[int, np.ndarray]]:
@@ -571,7 +571,7 @@ def subpixel(
     H, c, off = _f64(H_inv), _f64(centres), _f64(offset)
     tpl = np.ascontiguousarray(templates.detach().cpu().numpy().astype(np.float32, copy=False))
     out = off.copy()
-    kernel = _kernels()["subpixel"]
+    kernel = KERNELS()["subpixel"]
     for k, rows in _groups(idx):
         kernel(ims[k], rows, H, c, off, tpl, int(template_radius), int(iterations), out)
     return torch.from_numpy(out)
@@ -626,7 +626,7 @@ def evaluate(
         "frame_f": np.zeros((J, 2)), "template": np.zeros((J, St, St), np.float32),
         "researched": np.zeros(J, np.bool_), "second": np.zeros(J),
     }
-    kernel = _kernels()["search"]
+    kernel = KERNELS()["search"]
     n_m = len(ims_m)
     for key, rows in _groups(idx_f * n_m + idx_m):
         kernel(ims_f[key // n_m], ims_m[key % n_m], rows, xf, xm, H, int(f), int(m), r, s0, s,
@@ -650,4 +650,4 @@ def warm() -> bool:
                      ellipse_mask=False, min_template_std=0.0)
         subpixel(img, r["H_inv"], r["frame_m"], r["offset"], r["template"], 2, 2)
 
-    return _kernels.warm(example)
+    return KERNELS.warm(example)

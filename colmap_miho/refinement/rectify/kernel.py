@@ -272,7 +272,7 @@ def _jit_all() -> tuple[Any, Any]:
 
 
 #: the jitted kernels (compiled, or loaded from numba's cache, on first use).
-_kernel = Kernels(_jit_all)
+KERNELS = Kernels(_jit_all)
 
 
 def fit_rows(x1: np.ndarray, x2: np.ndarray, rows: np.ndarray, nb: np.ndarray, *,
@@ -297,7 +297,7 @@ def fit_rows(x1: np.ndarray, x2: np.ndarray, rows: np.ndarray, nb: np.ndarray, *
     good = np.zeros(n, np.bool_)
     H, H_inv = np.empty((n, 3, 3)), np.empty((n, 3, 3))
     if n:
-        _kernel()[0](np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
+        KERNELS()[0](np.ascontiguousarray(x1, np.float64), np.ascontiguousarray(x2, np.float64),
                      rows, nb, float(max_residual_px), int(iterations), float(min_neighbours),
                      good, H, H_inv)
     return good, H, H_inv
@@ -339,7 +339,7 @@ def fit_clusters(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, want: np.nd
     members = cand[np.argsort(labels[cand], kind="stable")]  # by cluster, rows ascending
     lab = labels[members]
     bounds = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1], True])
-    _kernel()[1](x1, np.ascontiguousarray(x2, np.float64), members, bounds.astype(np.int64),
+    KERNELS()[1](x1, np.ascontiguousarray(x2, np.float64), members, bounds.astype(np.int64),
                  want, int(k), float(max_residual_px), int(iterations), int(min_neighbours),
                  good, H_inv)
     return good, H_inv
@@ -355,4 +355,4 @@ def warm() -> bool:
         fit_clusters(x1, 1.1 * x1 + 2.0, np.zeros(64, np.int64), np.ones(64, bool), k=12,
                      max_residual_px=2.0, iterations=3, min_neighbours=6)
 
-    return _kernel.warm(example)
+    return KERNELS.warm(example)

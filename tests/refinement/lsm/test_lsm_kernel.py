@@ -73,7 +73,7 @@ def test_kernel_reads_what_grid_sample_reads(sigma):
     """The kernel's bicubic read (plain and smoothed) gives grid_sample's values, including
     positions past the image border (taps clamped)."""
     img1, img2, _, Hm, c, start = _problem("camera", 0)
-    lsm_kernel._kernel()  # the jitted helpers
+    lsm_kernel.KERNELS()  # the jitted helpers
     h, w = img2.shape
     # some matches pushed across the border
     c = c.clone()
@@ -211,4 +211,4 @@ def test_torch_smoothed_reads_of_a_stack_are_per_image():
 
 def test_warm_loads_the_kernel():
     assert lsm_kernel.warm()
-    assert lsm_kernel._kernel.loaded
+    assert lsm_kernel.KERNELS.loaded

@@ -99,7 +99,7 @@ def _both(img_f, img_m, p_f, p_m, homs, cfg):
 def test_samples_match_grid_sample() -> None:
     img1, img2 = _pair("camera")
     h, w = img2.shape
-    ncc_kernel._kernels()  # the jitted helpers
+    ncc_kernel.KERNELS()  # the jitted helpers
     rng = np.random.default_rng(1)
     n = 60
     # centres in image 1's frame, some patches partly or wholly outside image 2
@@ -128,7 +128,7 @@ def test_ncc_maps_match_float64_reference(so: int) -> None:
     tpl[1] = 0.5
     win[2, :St, :St] = 0.7  # a flat part: the offset (0, 0) is flat
     ref = ncc_maps(torch.tensor(win, dtype=torch.float64), torch.tensor(tpl, dtype=torch.float64)[:, None])
-    ncc_kernel._kernels()
+    ncc_kernel.KERNELS()
     got = np.empty((n, so, so))
     tn = np.empty((St, St))
     wc, box, cols = np.empty((sw, sw)), np.empty((2, sw + 1, sw + 1)), np.empty(so * sw * St)

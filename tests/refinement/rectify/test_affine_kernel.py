@@ -176,4 +176,4 @@ def test_non_finite_positions_raise():
 
 def test_warm_loads_the_kernels():
     assert affine_kernel.warm()
-    assert affine_kernel._kernel.loaded
+    assert affine_kernel.KERNELS.loaded

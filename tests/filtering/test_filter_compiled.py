@@ -13,7 +13,8 @@ import pytest
 from planes import make_scene
 
 from colmap_miho import filter_matches
-from colmap_miho.filtering import kernels
+from colmap_miho.filtering import compiled as filter_compiled
+from colmap_miho.filtering.compiled import ransac, sampling
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem, choose_rotation
 from colmap_miho.filtering.ransac import _refit
@@ -312,7 +313,7 @@ def test_buffer_choice_is_the_same(z):
     assert len(got) == len(ref) <= z
     for a, b in zip(got, ref, strict=True):
         np.testing.assert_array_equal(a.sample, b.sample)
-    rows = kernels.greedy_cover(masks, best, z).tolist()
+    rows = ransac.greedy_cover(masks, best, z).tolist()
     assert 7 not in rows and 11 not in rows and 12 not in rows
     if z >= 5:
         assert len(rows) >= 5
@@ -338,7 +339,7 @@ def test_nearest_grid_is_the_k_d_tree(layout):
         feats = feats[:5]
     q = min(len(feats), 33)
     d_ref, i_ref = cKDTree(feats).query(feats, k=q)
-    got = kernels.NearestGrid(feats).query(np.arange(len(feats)), q)
+    got = sampling.NearestGrid(feats).query(np.arange(len(feats)), q)
     diff = feats[got] - feats[:, None]
     d2 = diff[..., 0] ** 2 + diff[..., 1] ** 2 + diff[..., 2] ** 2 + diff[..., 3] ** 2
     np.testing.assert_array_equal(np.sqrt(d2), d_ref.reshape(len(feats), q))
@@ -346,7 +347,7 @@ def test_nearest_grid_is_the_k_d_tree(layout):
     if layout == "duplicates":
         assert (got != i_ref).any()  # ties in another order than the tree's
     part = rng.permutation(len(feats))[: max(1, len(feats) // 3)]
-    np.testing.assert_array_equal(kernels.NearestGrid(feats).query(part, q), got[part])
+    np.testing.assert_array_equal(sampling.NearestGrid(feats).query(part, q), got[part])
 
 
 @pytest.mark.parametrize("miho", [False, True])
@@ -418,28 +419,42 @@ def test_pool_arrays_gathered_at_once_are_the_per_half_ones():
                 np.testing.assert_array_equal(got, half.astype(np.float32))
 
 
-def test_kernels_module_imports_nothing_of_the_package():
-    """kernels.py sits under the filter's modules, which import it: it imports no module of
-    colmap_miho but the kernel loader, itself a leaf (the warm-up, which filters a pair
-    through the API, lives in preload.py)."""
+def _kernel_modules() -> tuple:
+    """The modules of filtering/compiled/."""
+    import importlib
+    import pkgutil
+
+    return tuple(importlib.import_module(f"{filter_compiled.__name__}.{m.name}")
+                 for m in pkgutil.iter_modules(filter_compiled.__path__))
+
+
+def test_compiled_modules_import_nothing_of_the_package():
+    """filtering/compiled/ sits under the filter's modules, which import it: its modules
+    import no module of colmap_miho but the kernel loader, itself a leaf, and the shared
+    helpers of compiled/homography.py (the warm-up, which filters a pair through the API,
+    lives in preload.py)."""
     import ast
     import inspect
 
     from colmap_miho import compiled
 
-    for module in (kernels, compiled):
+    kernel_modules = _kernel_modules()
+    for module in (*kernel_modules, compiled):
         for node in ast.walk(ast.parse(inspect.getsource(module))):
-            if module is kernels and isinstance(node, ast.ImportFrom) and (node.level, node.module) == (2, "compiled"):
+            if module is not compiled and isinstance(node, ast.ImportFrom) and (
+                    (node.level, node.module) == (3, "compiled")
+                    or (node.level == 1 and (node.module == "homography" or node.module is None))):
                 continue
             if isinstance(node, ast.ImportFrom):
                 assert node.level == 0 and not (node.module or "").startswith("colmap_miho"), ast.unparse(node)
             elif isinstance(node, ast.Import):
                 assert not any(a.name.startswith("colmap_miho") for a in node.names), ast.unparse(node)
-    assert not hasattr(kernels, "warm")
+    for module in kernel_modules:
+        assert not hasattr(module, "warm")
 
 
 def test_preload_warm_loads_the_kernels():
     from colmap_miho.filtering import preload
 
     assert preload.warm()
-    assert kernels.loaded()
+    assert all(m.KERNELS.loaded for m in _kernel_modules())
