@@ -75,7 +75,7 @@ _NCC = "an NCC value or difference"
 
 #: The allowed range of every numeric key of every recipe section (None values mean "off" or
 #: "the default" and are not checked). The parametrised test in
-#: ``tests/adapters/test_bounds.py`` tries a value past each end of each.
+#: ``tests/test_validation.py`` tries a value past each end of each.
 BOUNDS: dict[str, dict[str, Bound]] = {
     "filter": {
         "t_l": Bound(MIN_THRESHOLD_PX, MAX_THRESHOLD_PX, _PX),

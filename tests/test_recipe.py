@@ -1,3 +1,8 @@
+"""Recipes (:mod:`colmap_miho.recipe`): every shipped recipe loads, the default recipe, typed
+`--set` overrides, errors that name the key."""
+
+from __future__ import annotations
+
 import dataclasses
 
 import pytest
