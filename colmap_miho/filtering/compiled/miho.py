@@ -1,9 +1,5 @@
 """Compiled (numba) kernel of :mod:`..miho`: the rotation fix's pair counts
-(:func:`rotation_counts`, the same decisions as :func:`..miho.choose_rotation`).
-
-The numpy functions stay the reference (and the path of the torch scoring on CUDA); the tests
-check each kernel against them. The kernels compile on first use (:data:`KERNELS`,
-:mod:`colmap_miho.compiled`); :func:`..preload.warm` loads them ahead."""
+(:func:`rotation_counts`, the same decisions as :func:`..miho.choose_rotation`)."""
 
 from __future__ import annotations
 

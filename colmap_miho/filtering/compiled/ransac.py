@@ -3,10 +3,7 @@ search's choices (:func:`score_batch`), the least-squares refit of a run's best 
 (:func:`refit`), the choice of a run's top-z buffer (:func:`greedy_cover`), each in one call.
 
 The refit adds its products in a fixed order where numpy's matmul (BLAS) may fuse or reorder
-them, so its homography can differ in the last bits.
-The numpy functions stay the reference (and the path of the torch scoring on CUDA); the tests
-check each kernel against them. The kernels compile on first use (:data:`KERNELS`,
-:mod:`colmap_miho.compiled`); :func:`..preload.warm` loads them ahead."""
+them, so its homography can differ in the last bits."""
 
 from __future__ import annotations
 

@@ -3,10 +3,7 @@
 :func:`pool_neighbours`), a batch's local draws with the searches they need, in one call
 (:func:`draw_batch`), the local inlier fraction (:func:`local_fraction`), and
 :class:`NearestGrid`, the compiled path's neighbour search for local sampling (the numpy path
-keeps scipy's k-d tree). The same decisions / bits as numpy's for the same inputs.
-The numpy functions stay the reference (and the path of the torch scoring on CUDA); the tests
-check each kernel against them. The kernels compile on first use (:data:`KERNELS`,
-:mod:`colmap_miho.compiled`); :func:`..preload.warm` loads them ahead."""
+keeps scipy's k-d tree). The same decisions / bits as numpy's for the same inputs."""
 
 from __future__ import annotations
 

@@ -9,10 +9,7 @@ of a RANSAC batch with one call.
 The masks and the errors are the same decisions / bits as numpy's for the same inputs; the
 solver and the singular values add their products in a fixed order where numpy's matmul
 (BLAS) may fuse or reorder them, so homographies can differ in the last bits, and with them,
-rarely, a borderline decision.
-The numpy functions stay the reference (and the path of the torch scoring on CUDA); the tests
-check each kernel against them. The kernels compile on first use (:data:`KERNELS`,
-:mod:`colmap_miho.compiled`); :func:`..preload.warm` loads them ahead."""
+rarely, a borderline decision."""
 
 from __future__ import annotations
 
