@@ -26,6 +26,7 @@ def warm() -> bool:
         filter_matches(x1, x1 + rng.normal(0, 0.5, x1.shape), seed=0)
         filter_matches(x1, rng.uniform(0, 500, (300, 2)), seed=0)
 
+    # the example reaches every module's kernels: run it once (through one handle), check them all
     return sampling.KERNELS.warm(example) and all(h.loaded for h in HANDLES)
 
 
