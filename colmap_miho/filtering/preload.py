@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 
 from .api import filter_matches
-from .compiled import homography, miho, ransac, sampling, scoring
+from .compiled import miho, ransac, sampling, scoring
 
 #: the handles of the filter's compiled kernels, one per kernel module.
-HANDLES = (homography.KERNELS, sampling.KERNELS, scoring.KERNELS, ransac.KERNELS, miho.KERNELS)
+HANDLES = (sampling.KERNELS, scoring.KERNELS, ransac.KERNELS, miho.KERNELS)
 
 
 def warm() -> bool:

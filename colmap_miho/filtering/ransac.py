@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .compiled import ransac as kernels
+from .compiled import scoring as scoring_kernels
 from .config import FilterConfig
 from .homography import adjugate, dlt
 from .problem import Hypotheses, Problem
@@ -206,7 +207,7 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
 def _score_batch_compiled(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.ndarray,
                           cfg: FilterConfig, search: _Search, stats: dict,
                           scoring: NumpyScoring) -> bool:
-    """:func:`_score_batch` in one compiled call (:func:`.compiled.ransac.score_batch`: the same
+    """:func:`_score_batch` in one compiled call (:func:`.compiled.scoring.score_batch`: the same
     hypotheses scored, the same candidates in the same order, the same best)."""
     order, masks, events, best, count, scored = scoring.score_batch(
         problem, hyp, ub, pool, cfg, search.t2, search.count, search.hyp is not None)
@@ -314,11 +315,11 @@ def _refit(problem: Problem, hyp: Hypotheses, idx: np.ndarray,
            compiled: bool = False) -> Hypotheses | None:
     """Least-squares normalised DLT of every half on the matches ``idx`` (global indices);
     ``None`` when degenerate or when the sample loses its quasi-affine consistency
-    (``compiled``: :func:`.compiled.ransac.refit`)."""
+    (``compiled``: :func:`.compiled.scoring.refit`)."""
     if len(idx) < 5:
         return None
     if compiled:
-        ok, H, Hinv, sign, sign_inv = kernels.refit(idx, problem.src_all, problem.dst_all,
+        ok, H, Hinv, sign, sign_inv = scoring_kernels.refit(idx, problem.src_all, problem.dst_all,
                                                     hyp.sample[0])
         if not ok:
             return None

@@ -13,7 +13,6 @@ import math
 
 import numpy as np
 
-from .compiled import ransac as ransac_kernels
 from .compiled import sampling as sampling_kernels
 from .compiled import scoring as kernels
 from .config import FilterConfig
@@ -386,13 +385,13 @@ class NumpyScoring:
 
     def score_batch(self, problem: Problem, hyp: Hypotheses, ub: np.ndarray, idx: np.ndarray,
                     cfg: FilterConfig, t2: float, count: int, have_best: bool):
-        """:func:`.compiled.ransac.score_batch` of the hypotheses ``hyp`` with one-way bounds ``ub``
+        """:func:`.compiled.scoring.score_batch` of the hypotheses ``hyp`` with one-way bounds ``ub``
         ``(K,)`` on the matches ``idx`` (compiled only)."""
         assert self.compiled, "the fused batch scoring is compiled"
         s2 = problem.error_scale**2
         if math.frexp(s2)[0] == 0.5:  # a power of two: as inlier_masks does
             t2, s2 = t2 / s2, 1.0
-        return ransac_kernels.score_batch(ub, count, have_best, cfg.inlier_count, cfg.buffer_size,
+        return kernels.score_batch(ub, count, have_best, cfg.inlier_count, cfg.buffer_size,
                                    hyp.H, hyp.Hinv, hyp.sign, hyp.sign_inv, hyp.sample,
                                    problem.src_all, problem.dst_all, cfg.min_singular_value,
                                    self._work().stacked(problem, idx), t2, s2)

@@ -30,9 +30,9 @@ def test_workers_come_from_the_forkserver():
 
 
 def _kernels_loaded() -> bool:
-    from colmap_miho.filtering.compiled import homography, miho, ransac, sampling, scoring
+    from colmap_miho.filtering.compiled import miho, ransac, sampling, scoring
 
-    return all(m.KERNELS.loaded for m in (homography, sampling, scoring, ransac, miho))
+    return all(m.KERNELS.loaded for m in (sampling, scoring, ransac, miho))
 
 
 def test_workers_start_with_the_compiled_filter_kernels_loaded():
