@@ -12,7 +12,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from colmap_miho.refinement.lsm import align as lsm_module
+from colmap_miho.refinement.lsm import align
 from colmap_miho.refinement.lsm.align import frame_sampler, lsm_align
 from colmap_miho.refinement.warping import ImageStack, offset_grid
 
@@ -336,7 +336,7 @@ def test_frame_sampler_reads_the_mapped_positions(stack, monkeypatch):
     composed once per match, grouped by image in a stack): on a smooth ramp image the value
     is the x coordinate of the sample, so the values give the positions read (read here with
     bilinear sampling: it reproduces a ramp exactly; grid_sample's bicubic, a = -0.75, does not)."""
-    monkeypatch.setattr(lsm_module, "_grid_sample", lambda image, grid: F.grid_sample(
+    monkeypatch.setattr(align, "_grid_sample", lambda image, grid: F.grid_sample(
         image[None, None], grid[None], mode="bilinear", padding_mode="border", align_corners=True)[0, 0])
     h, w = 200, 300
     ramp = torch.arange(w, dtype=torch.float32)[None].expand(h, w).contiguous()

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from colmap_miho.refinement import pairwise as ncc_module
+from colmap_miho.refinement import pairwise
 from colmap_miho.refinement.config import NCCConfig
 from colmap_miho.refinement.ncc import kernel as ncc_kernel
 from colmap_miho.refinement.ncc import search, subpixel
@@ -279,9 +279,9 @@ def test_refine_pair_uses_the_kernel_and_agrees(monkeypatch: pytest.MonkeyPatch)
     monkeypatch.setattr(ncc_kernel, "evaluate", spy)
     got = refine_pair(img1, img2, p1, p2, homs[0], move="2", config=cfg)
     assert calls
-    monkeypatch.setattr(ncc_module, "evaluate_direction", functools.partial(search.evaluate_direction,
+    monkeypatch.setattr(pairwise, "evaluate_direction", functools.partial(search.evaluate_direction,
                                                                             compiled=False))
-    monkeypatch.setattr(ncc_module, "iterate_subpixel", functools.partial(subpixel.iterate_subpixel,
+    monkeypatch.setattr(pairwise, "iterate_subpixel", functools.partial(subpixel.iterate_subpixel,
                                                                           compiled=False))
     ref = refine_pair(img1, img2, p1, p2, homs[0], move="2", config=cfg)
     assert len(calls) == 1
