@@ -20,7 +20,7 @@ every pair with the pair's own seed (as ``refine`` does). Per scene, setting and
 A variant is a name and :class:`~colmap_miho.filtering.config.FilterConfig` overrides
 (``name:key=value,key=value``); the first variant is always ``default`` (the recipe's
 filter, ``mop_miho`` with paper defaults). The key ``kernels=numpy`` runs a variant on the
-numpy reference kernels instead of the compiled ones (:mod:`colmap_miho.filtering.kernels`),
+numpy reference kernels instead of the compiled ones (:mod:`colmap_miho.filtering.compiled`),
 so that both are timed pair by pair in one process. ``--extra NAME=DB`` adds a database of
 another layout (e.g. ``bench_scale.py``'s synthetic survey ``.../synthetic/survey_n50_.../
 database.db``). The first filter call of the process (numba's import and cache load,

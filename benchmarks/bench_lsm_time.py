@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     if args.torch_lsm:
         recipes["lsm_torch"] = recipes["lsm"]
     import colmap_miho.pipeline.run as run_mod
-    import colmap_miho.refinement.ncc as ncc_mod
+    import colmap_miho.refinement.pairwise as ncc_mod
 
     step = ncc_mod.lsm_step
     times: dict[str, list[tuple[float, float]]] = {k: [] for k in recipes}

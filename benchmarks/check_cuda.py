@@ -45,7 +45,7 @@ import torch
 
 from colmap_miho import filter_matches, refine_pair
 from colmap_miho.refinement.config import NCCConfig, TrackConfig
-from colmap_miho.refinement.tracks import refine_tracks
+from colmap_miho.refinement.tracks.walk import refine_tracks
 from miho_bench.datasets import oxford_pairs
 from miho_bench.frontend import filtered_multiview_matches, sift_matches
 from miho_bench.match_errors import transfer_error

@@ -35,8 +35,8 @@ if TYPE_CHECKING:  # what static tools see; at run time the table below imports 
     from .pipeline.jobs import ExtractionOptions, JobOptions, compare_databases
     from .recipe import Recipe, load_recipe
     from .refinement.config import NCCConfig, TrackConfig
-    from .refinement.ncc import RefineResult, refine_pair
-    from .refinement.tracks import TrackRefineResult, refine_tracks
+    from .refinement.pairwise import RefineResult, refine_pair
+    from .refinement.tracks.walk import TrackRefineResult, refine_tracks
     from .reporting.report import build_report
     from .sfm import MappingResult, run_mapping
     from .sfm.extraction import extract_and_match
@@ -45,10 +45,10 @@ _LAZY = {
     "filter_matches": "colmap_miho.filtering.api",
     "FilterResult": "colmap_miho.filtering.api",
     "FilterConfig": "colmap_miho.filtering.config",
-    "refine_pair": "colmap_miho.refinement.ncc",
-    "RefineResult": "colmap_miho.refinement.ncc",
-    "refine_tracks": "colmap_miho.refinement.tracks",
-    "TrackRefineResult": "colmap_miho.refinement.tracks",
+    "refine_pair": "colmap_miho.refinement.pairwise",
+    "RefineResult": "colmap_miho.refinement.pairwise",
+    "refine_tracks": "colmap_miho.refinement.tracks.walk",
+    "TrackRefineResult": "colmap_miho.refinement.tracks.walk",
     "NCCConfig": "colmap_miho.refinement.config",
     "TrackConfig": "colmap_miho.refinement.config",
     "load_recipe": "colmap_miho.recipe",

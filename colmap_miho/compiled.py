@@ -1,10 +1,11 @@
 """Loading the compiled (numba) kernels: the jit options, one lock, compilation on first use.
 
-The kernel modules (:mod:`.filtering.kernels`, :mod:`.refinement.ncc_kernel`,
-:mod:`.refinement.lsm_kernel`, :mod:`.refinement.affine_kernel`) hold plain Python functions;
-each wraps its build function in :class:`Kernels`, which imports numba and jits them the first
-time a kernel is called (compiled then, or loaded from numba's on-disk cache, ``cache=True``),
-once per process, under one lock. numba is a required dependency: the CPU paths always run
+The kernel modules (:mod:`.filtering.compiled`, :mod:`.refinement.ncc.kernel`,
+:mod:`.refinement.lsm.kernel`, :mod:`.refinement.rectify.kernel`) hold plain Python functions;
+each wraps its build function in :class:`Kernels`, the module's ``KERNELS`` handle, which
+imports numba and jits them the first time a kernel is called (compiled then, or loaded from
+numba's on-disk cache, ``cache=True``), once per process, under one lock; a ``warm()`` loads
+them ahead through :meth:`Kernels.warm`. numba is a required dependency: the CPU paths always run
 compiled; the torch paths they mirror are the CUDA paths and the tests' references.
 
 Every kernel uses numpy's error model (a float division by zero gives inf / nan, as in numpy,

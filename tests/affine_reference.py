@@ -1,5 +1,5 @@
-"""The numpy reference of the local affine fits (:mod:`colmap_miho.refinement.rectify`, run
-compiled by :mod:`colmap_miho.refinement.affine_kernel`): a k-d tree per cluster, then batched
+"""The numpy reference of the local affine fits (:mod:`colmap_miho.refinement.rectify.local_affine`, run
+compiled by :mod:`colmap_miho.refinement.rectify.kernel`): a k-d tree per cluster, then batched
 weighted least squares. The two differ at float rounding, and where several matches tie for a
 fit's last neighbour (the compiled fits take the lowest rows, the k-d tree any of them)."""
 
@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from colmap_miho.refinement.rectify import _ITERATIONS, MIN_NEIGHBOURS
+from colmap_miho.refinement.rectify.local_affine import _ITERATIONS, MIN_NEIGHBOURS
 
 
 def local_affine_pairs_numpy(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs: np.ndarray, *,
                              k: int, max_residual_px: float) -> np.ndarray:
-    """:func:`colmap_miho.refinement.rectify.local_affine_pairs` (every match, all rows) by
+    """:func:`colmap_miho.refinement.rectify.local_affine.local_affine_pairs` (every match, all rows) by
     numpy: (M, 2, 3, 3) float64 pairs."""
     labels = np.asarray(labels, np.int64)
     ok = labels >= 0

@@ -24,3 +24,17 @@ def test_bad_values_raise():
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="no CUDA device"):
             resolve_device("cuda")
+
+
+def test_torch_devices_pass_through_once_usable():
+    """The filter's ``device`` also takes a torch device (string or object): the same grammar."""
+    assert resolve_device(torch.device("cpu")) == torch.device("cpu")
+    assert resolve_device("cpu:0") == torch.device("cpu", 0)
+    for bad in ("cuda:x", "torch-cpu", 3):
+        with pytest.raises(ValueError, match="device") as info:
+            resolve_device(bad)
+        assert "\n" not in str(info.value)
+    if not torch.cuda.is_available():
+        for cuda in ("cuda:1", torch.device("cuda", 0)):
+            with pytest.raises(ValueError, match="no CUDA device"):
+                resolve_device(cuda)

@@ -99,14 +99,14 @@ def test_numeric_options_are_checked_before_any_work(option, value, tmp_path, ca
 
 
 def test_the_lsm_blur_is_capped_for_the_kernel():
-    from colmap_miho.refinement.lsm_step import blur_sigma
+    from colmap_miho.refinement.lsm.step import blur_sigma
 
     s = blur_sigma(torch.tensor([1e9, 2.0, 1.0], dtype=torch.float64), torch.ones(3, dtype=torch.float64), 0.5)
     assert float(s.max()) == MAX_BLUR_PX and math.isclose(float(s[1]), 0.5 * math.sqrt(3))
 
 
 def test_the_lsm_kernel_refuses_sizes_its_buffers_were_not_made_for():
-    from colmap_miho.refinement import lsm_kernel
+    from colmap_miho.refinement.lsm import kernel as lsm_kernel
 
     img = torch.zeros((32, 32))
     eye = torch.eye(3, dtype=torch.float64)[None]

@@ -96,7 +96,7 @@ def _filter_and_refine(name: str, inp: PairInput, seed: int):
     """Run one pipeline; return (kept mask (N,), refined pts1, pts2, seconds, extra)."""
     from colmap_miho.filtering.api import filter_matches
     from colmap_miho.refinement.config import NCCConfig
-    from colmap_miho.refinement.ncc import refine_pair
+    from colmap_miho.refinement.pairwise import refine_pair
 
     n = len(inp.pts1)
     t0 = time.perf_counter()

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from colmap_miho.adapters.images import read_gray_uint8
+from colmap_miho.geometry import skew
 
 
 def load_gray(path: str | Path) -> np.ndarray:
@@ -30,11 +31,6 @@ def load_gray(path: str | Path) -> np.ndarray:
         FileNotFoundError: the file does not exist or cannot be decoded.
     """
     return read_gray_uint8(path)
-
-
-def skew(t: np.ndarray) -> np.ndarray:
-    """(3,) vector -> (3, 3) cross-product matrix [t]_x."""
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
 
 
 def fundamental_from_pose(K1: np.ndarray, K2: np.ndarray, T_2from1: np.ndarray) -> np.ndarray:

@@ -18,7 +18,7 @@ import functools
 
 import numpy as np
 
-from . import kernels
+from .compiled import miho as kernels
 from .problem import Problem
 
 _ROTATION_Z = 3.0  # paired z-score a non-identity pre-alignment needs over the identity
@@ -90,7 +90,7 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
         x1, x2: ``(N, 2)`` matched pixels.
         pairs: random match pairs scored (0 = all ``N (N - 1) / 2`` pairs).
         reflections: also try the four mirrored variants.
-        compiled: count with the compiled kernel (:func:`.kernels.rotation_counts`, the
+        compiled: count with the compiled kernel (:func:`.compiled.miho.rotation_counts`, the
             same counts); False: with numpy (the tests' reference).
 
     The identity is kept unless another candidate's count exceeds it by more than three

@@ -1,15 +1,18 @@
 """Imported by the worker processes' forkserver (:data:`colmap_miho.pipeline.workers.PRELOAD`):
-loads the compiled filter kernels (:mod:`.kernels`) once in the forkserver, by filtering a small
-synthetic pair (:func:`warm`), so that every worker forked from it starts with them instead of
-loading them itself. The warm-up lives here, above the filter's API, and not in
-:mod:`.kernels`, which the filter's modules import."""
+loads the compiled filter kernels (:mod:`.compiled`) once in the forkserver, by filtering a
+small synthetic pair (:func:`warm`), so that every worker forked from it starts with them
+instead of loading them itself. The warm-up lives here, above the filter's API, and not in
+:mod:`.compiled`, which the filter's modules import."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from . import kernels
 from .api import filter_matches
+from .compiled import miho, ransac, sampling, scoring
+
+#: the handles of the filter's compiled kernels, one per kernel module.
+HANDLES = (sampling.KERNELS, scoring.KERNELS, ransac.KERNELS, miho.KERNELS)
 
 
 def warm() -> bool:
@@ -23,7 +26,8 @@ def warm() -> bool:
         filter_matches(x1, x1 + rng.normal(0, 0.5, x1.shape), seed=0)
         filter_matches(x1, rng.uniform(0, 500, (300, 2)), seed=0)
 
-    return kernels._compiled.warm(example)
+    # the example reaches every module's kernels: run it once (through one handle), check them all
+    return sampling.KERNELS.warm(example) and all(h.loaded for h in HANDLES)
 
 
 warm()

@@ -19,7 +19,7 @@ the reflection or quasi-affinity checks reject do count). At most ``10 x c_max``
 drawn, for pools where almost nothing is spread out.
 
 Sampling is :mod:`.sampling`; the heavy kernels run in :class:`~.scoring.NumpyScoring`
-(the default: compiled by numba, :mod:`.kernels`; numpy with ``compiled=False``) or its
+(the default: compiled by numba, :mod:`.compiled`; numpy with ``compiled=False``) or its
 torch twin
 :class:`~colmap_miho.filtering.torch_scoring.TorchScoring` (any torch device), passed as
 ``scoring``; sampling and the search's bookkeeping run on the host for both.
@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import kernels
+from .compiled import ransac as kernels
+from .compiled import scoring as scoring_kernels
 from .config import FilterConfig
 from .homography import adjugate, dlt
 from .problem import Hypotheses, Problem
@@ -56,7 +57,7 @@ def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: n
                    z: int, compiled: bool = False):
     """Top-z sub-optimal models ordered by inliers not covered by the best and the better
     buffered ones (paper App. A.3, ``v_i >= v_{i+1}``); ``cands`` as in :class:`_Search`
-    (``compiled``: the choice by :func:`.kernels.greedy_cover`, the same)."""
+    (``compiled``: the choice by :func:`.compiled.ransac.greedy_cover`, the same)."""
     if z == 0 or not cands:
         return []
     masks = np.stack([m for _, _, m in cands])
@@ -206,7 +207,7 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
 def _score_batch_compiled(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.ndarray,
                           cfg: FilterConfig, search: _Search, stats: dict,
                           scoring: NumpyScoring) -> bool:
-    """:func:`_score_batch` in one compiled call (:func:`.kernels.score_batch`: the same
+    """:func:`_score_batch` in one compiled call (:func:`.compiled.scoring.score_batch`: the same
     hypotheses scored, the same candidates in the same order, the same best)."""
     order, masks, events, best, count, scored = scoring.score_batch(
         problem, hyp, ub, pool, cfg, search.t2, search.count, search.hyp is not None)
@@ -314,11 +315,11 @@ def _refit(problem: Problem, hyp: Hypotheses, idx: np.ndarray,
            compiled: bool = False) -> Hypotheses | None:
     """Least-squares normalised DLT of every half on the matches ``idx`` (global indices);
     ``None`` when degenerate or when the sample loses its quasi-affine consistency
-    (``compiled``: :func:`.kernels.refit`)."""
+    (``compiled``: :func:`.compiled.scoring.refit`)."""
     if len(idx) < 5:
         return None
     if compiled:
-        ok, H, Hinv, sign, sign_inv = kernels.refit(idx, problem.src_all, problem.dst_all,
+        ok, H, Hinv, sign, sign_inv = scoring_kernels.refit(idx, problem.src_all, problem.dst_all,
                                                     hyp.sample[0])
         if not ok:
             return None

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..enums import Sampling
 from ..geometry import draws_for_confidence
-from . import kernels
+from .compiled import sampling as kernels
 from .config import FilterConfig
 from .homography import triangle_orientations
 from .problem import Problem
@@ -101,7 +101,7 @@ class LocalCandidates:
     SEARCH = 4
 
     def __init__(self, problem: Problem, cfg: FilterConfig, compiled: bool = False) -> None:
-        """``compiled``: search by :class:`.kernels.NearestGrid` (ties by index) instead of
+        """``compiled``: search by :class:`.compiled.sampling.NearestGrid` (ties by index) instead of
         scipy's k-d tree (ties in its own order); the same neighbours but for the order of
         equidistant ones."""
         n = len(problem.x1)
@@ -124,7 +124,7 @@ class LocalCandidates:
         self._in_last_pool: np.ndarray | None = None
 
     def lists_for(self, pool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(lists, listed)`` of :func:`.kernels.pool_neighbours` for a search of the pool
+        """``(lists, listed)`` of :func:`.compiled.sampling.pool_neighbours` for a search of the pool
         ``pool`` (global indices): kept from the earlier pools while each pool is a subset
         of the one before (the rounds' pools only lose matches), dropped otherwise."""
         if self._in_last_pool is not None and not self._in_last_pool[pool].all():
@@ -188,7 +188,7 @@ class Sampler:
     def __init__(self, problem: Problem, pool: np.ndarray, cfg: FilterConfig,
                  candidates: LocalCandidates | None = None, compiled: bool = False) -> None:
         n = len(pool)
-        self.compiled = compiled  # local draws by the compiled kernel (.kernels.draw_local)
+        self.compiled = compiled  # local draws by the compiled kernel (.compiled.sampling.draw_local)
         self.pool = pool
         self.k = cfg.local_neighbours
         self.local = cfg.sampling == Sampling.LOCAL and n > cfg.local_neighbours + 1
@@ -294,14 +294,14 @@ class Sampler:
         return float(mask[nb[valid]].mean())
 
     def _local_fraction_compiled(self, mask: np.ndarray, count: int) -> float:
-        """:meth:`local_inlier_fraction` in one compiled call (:func:`.kernels.local_fraction`:
+        """:meth:`local_inlier_fraction` in one compiled call (:func:`.compiled.sampling.local_fraction`:
         the same searches, the same lists and the same fraction)."""
         valid, inside = kernels.local_fraction(mask, _probe_rows(count), *self._search_args())
         return inside / valid if valid else 0.0
 
     def _search_args(self) -> tuple:
-        """The neighbour-search arguments that :func:`.kernels.draw_batch` and
-        :func:`.kernels.local_fraction` share (after their own leading ones): the pool, its
+        """The neighbour-search arguments that :func:`.compiled.sampling.draw_batch` and
+        :func:`.compiled.sampling.local_fraction` share (after their own leading ones): the pool, its
         lists and their state, the problem's candidates and grid, the spread sets."""
         cands = self._cands
         assert cands is not None and self._spread_x is not None and self._spread_y is not None
@@ -364,6 +364,6 @@ class Sampler:
                        keys: np.ndarray) -> np.ndarray:
         """:meth:`draw`'s samples from its uniform draws ``seeds`` ``(B,)``, ``others``
         ``(B, 3)``, the local samples ``local`` ``(L,)`` and their keys ``(3, L, k)``, in one
-        compiled call (:func:`.kernels.draw_batch`: the neighbour searches of
+        compiled call (:func:`.compiled.sampling.draw_batch`: the neighbour searches of
         :meth:`neighbours` and the draws of :meth:`_draw_local`)."""
         return kernels.draw_batch(seeds, others, local, keys, *self._search_args())

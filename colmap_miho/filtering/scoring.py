@@ -13,7 +13,8 @@ import math
 
 import numpy as np
 
-from . import kernels
+from .compiled import sampling as sampling_kernels
+from .compiled import scoring as kernels
 from .config import FilterConfig
 from .homography import (
     adjugate,
@@ -302,7 +303,7 @@ class NumpyScoring:
 
     def __init__(self, compiled: bool = True) -> None:
         """``compiled``: run the batch kernels (spread test, minimal solver and one-way
-        bound, local draws) compiled by numba (:mod:`.kernels`); ``False`` runs the numpy
+        bound, local draws) compiled by numba (:mod:`.compiled.scoring`); ``False`` runs the numpy
         reference (what :class:`~.torch_scoring.TorchScoring` keeps on the host)."""
         self.compiled = compiled
 
@@ -310,7 +311,7 @@ class NumpyScoring:
         """:func:`~.sampling.spread_ok` (compiled or numpy)."""
         if self.compiled:
             assert problem.spread_xy is not None, "sampling runs on the numpy problem"
-            return kernels.spread_ok(problem.spread_xy, sample, t_l**2)
+            return sampling_kernels.spread_ok(problem.spread_xy, sample, t_l**2)
         return spread_ok(problem, sample, t_l)
 
     def _work(self) -> _Scratch:
@@ -384,7 +385,7 @@ class NumpyScoring:
 
     def score_batch(self, problem: Problem, hyp: Hypotheses, ub: np.ndarray, idx: np.ndarray,
                     cfg: FilterConfig, t2: float, count: int, have_best: bool):
-        """:func:`.kernels.score_batch` of the hypotheses ``hyp`` with one-way bounds ``ub``
+        """:func:`.compiled.scoring.score_batch` of the hypotheses ``hyp`` with one-way bounds ``ub``
         ``(K,)`` on the matches ``idx`` (compiled only)."""
         assert self.compiled, "the fused batch scoring is compiled"
         s2 = problem.error_scale**2

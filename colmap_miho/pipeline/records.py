@@ -13,7 +13,7 @@ from ..filtering.api import FilterResult
 @dataclass(frozen=True)
 class PairOutcome:
     """What the later stages need of one pair's :class:`~colmap_miho.filtering.api.FilterResult`
-    (``FilterResult``-like for :func:`~colmap_miho.refinement.track_plan.pair_rows`).
+    (``FilterResult``-like for :func:`~colmap_miho.refinement.tracks.build.pair_rows`).
 
     Attributes:
         inliers: bool ``(M,)``, the matches kept (rows 1:1 with the pair's matches).

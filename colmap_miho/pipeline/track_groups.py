@@ -1,7 +1,7 @@
 """The track walk of the refine stage, over groups of whole tracks (:func:`walk_groups`).
 
-The :class:`~colmap_miho.refinement.plan.TrackPlan` of all output matches is cut into
-groups of whole walked tracks (:meth:`~colmap_miho.refinement.plan.TrackPlan.groups`),
+The :class:`~colmap_miho.refinement.tracks.plan.TrackPlan` of all output matches is cut into
+groups of whole walked tracks (:meth:`~colmap_miho.refinement.tracks.plan.TrackPlan.groups`),
 each using at most as many images as fit in the image budget; groups are numbered 0..G-1 in
 their schedule order (consecutive groups share images) and walked one after the other in
 this process, or spread over the runner's slots (:mod:`.executor`: a process pool or Dask)
@@ -61,16 +61,16 @@ _WORKER_LOADER: ImageLoader | None = None
 def _import_plan():
     """The track plan, imported only when a run refines (numpy and scipy: a process whose
     workers walk never imports the walk, nor so torch)."""
-    from ..refinement import track_plan
+    from ..refinement.tracks.build import build_track_plan, local_affine_of
 
-    return track_plan.build_track_plan, track_plan.local_affine_of
+    return build_track_plan, local_affine_of
 
 
 def _walk_counters() -> tuple[str, ...]:
     """The walk's counters that the groups' stats sum (imports the walk)."""
-    from ..refinement.lsm_step import LSM_COUNTERS
-    from ..refinement.multiphoto import MULTIPHOTO_COUNTERS
-    from ..refinement.tracks import WALK_COUNTERS
+    from ..refinement.lsm.step import LSM_COUNTERS
+    from ..refinement.tracks.multiphoto import MULTIPHOTO_COUNTERS
+    from ..refinement.tracks.walk import WALK_COUNTERS
 
     return (WALK_COUNTERS + LSM_COUNTERS + MULTIPHOTO_COUNTERS
             + ("missing_images", "images_loaded", "image_decodes", "seconds"))
@@ -105,7 +105,7 @@ def _walk_group(loader, group, ncc_config, track_config, affines, on_progress=No
     """Walk one group with ``loader``; returns (moved, stats): the walk's counters
     (:func:`_walk_counters`, those it has) and ``decoded_by_image`` (image id as text -> the
     images the walk decoded, JSON-ready)."""
-    from ..refinement.tracks import walk_tracks
+    from ..refinement.tracks.walk import walk_tracks
 
     before = Counter(loader.decoded)
     tr = walk_tracks(loader, group, ncc_config=ncc_config, track_config=track_config,

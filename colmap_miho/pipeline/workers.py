@@ -41,7 +41,7 @@ PARENT_POLL_S = 0.5
 
 #: Modules the forkserver imports once for all the workers it forks.
 PRELOAD = ("numpy", "torch", "colmap_miho.pipeline.filter", "colmap_miho.pipeline.refine",
-           "colmap_miho.refinement.ncc", "colmap_miho.refinement.tracks",
+           "colmap_miho.refinement.pairwise", "colmap_miho.refinement.tracks.walk",
            "colmap_miho.filtering.preload", "colmap_miho.refinement.preload")
 
 #: What a script that starts workers needs (said by the errors of failed worker starts).

@@ -35,7 +35,7 @@ class NCCConfig:
     the moving keypoint, both resampled through the match's patch homography pair. NCC
     values are in [-1, 1]; lengths are image pixels unless said otherwise. The defaults are
     the track walk's of the default recipe; :meth:`pairwise` gives the paper's pairwise values
-    (:data:`PAIRWISE`), which :func:`~colmap_miho.refinement.ncc.refine_pair` uses. The
+    (:data:`PAIRWISE`), which :func:`~colmap_miho.refinement.pairwise.refine_pair` uses. The
     measurements behind them are in ``docs/results.md`` ("NCC and the track walk",
     "Least-squares matching").
 
@@ -71,11 +71,11 @@ class NCCConfig:
             when available, else the CPU (:func:`colmap_miho.devices.resolve_device`).
         rectification: :class:`~colmap_miho.enums.Rectification`, the walk's patch
             homography pairs: "filter" (the filter's plane, ignores relief), "local" (a local
-            affine fit that follows relief, :mod:`.rectify`) or "both" (higher NCC wins).
+            affine fit that follows relief, :mod:`.rectify.local_affine`) or "both" (higher NCC wins).
         local_affine_neighbours: matches (itself included) of each local affine fit.
         local_affine_max_residual_px: neighbours off the first local fit by more than this are
             dropped from the second.
-        lsm: refine the NCC peak by least-squares matching (:mod:`.lsm`: affine + gain/offset,
+        lsm: refine the NCC peak by least-squares matching (:mod:`.lsm.align`: affine + gain/offset,
             bicubic reads) and take LSM's position where it converged, stayed near the NCC
             peak and is precise (the tests below); elsewhere the iterated parabolas.
         lsm_radius: LSM template half size (0: ``template_radius``); 8 (17x17): more precise
@@ -94,11 +94,11 @@ class NCCConfig:
             (largest semi-axis of the error ellipse) is below this.
         lsm_antialias: 0 (off), or the blur (pixels, at most the LSM radius) assumed in each
             image (0.5: a camera image's own): a view that sees the match finer is read
-            smoothed to the coarser one's blur (:mod:`.lsm_step`).
+            smoothed to the coarser one's blur (:mod:`.lsm.step`).
         lsm_only: a move LSM does not accept is rejected (counted as ``rejected_lsm``)
             instead of placed by the iterated parabolas.
         match_blur: smooth the sharper image of each pair to the other's blur, estimated from
-            the pair's matches (:mod:`.blur`); a match's result then depends on the other
+            the pair's matches (:mod:`.ncc.blur`); a match's result then depends on the other
             matches of its pair in the call.
         inner_radius: 0 (off), or s0 in [1, s): search offsets up to s0 first and the full
             ``search_radius`` only where some pass peaks on that window's border (or the
@@ -146,9 +146,13 @@ class NCCConfig:
         check_bounds(self)
         require_at_most("template_radius + search_radius", self.template_radius + self.search_radius,
                         MAX_WINDOW_RADIUS_PX, "the search window of every match is held in memory")
-        lsm_window = self.lsm_radius or self.template_radius
-        require_at_most("lsm_antialias", self.lsm_antialias, lsm_window,
+        require_at_most("lsm_antialias", self.lsm_antialias, self.lsm_window,
                         "pixels of blur, at most the LSM template radius (lsm_radius, else template_radius)")
+
+    @property
+    def lsm_window(self) -> int:
+        """The LSM template radius (pixels): ``lsm_radius``, else ``template_radius``."""
+        return self.lsm_radius or self.template_radius
 
     @classmethod
     def pairwise(cls, **changes) -> NCCConfig:
@@ -158,7 +162,7 @@ class NCCConfig:
 
 
 #: What the paper's pairwise refinement changes from the walk's defaults (:meth:`NCCConfig.pairwise`,
-#: :func:`~colmap_miho.refinement.ncc.refine_pair`): 21x21 templates, every offset searched at
+#: :func:`~colmap_miho.refinement.pairwise.refine_pair`): 21x21 templates, every offset searched at
 #: once, NCC without least-squares matching (the ``lsm_*`` values those the LSM recipes were
 #: measured against).
 PAIRWISE: dict = {"template_radius": 10, "inner_radius": 0, "lsm": False, "lsm_radius": 0, "lsm_antialias": 0.0,
@@ -168,7 +172,7 @@ PAIRWISE: dict = {"template_radius": 10, "inner_radius": 0, "lsm": False, "lsm_r
 @dataclass(frozen=True, kw_only=True)
 class TrackConfig:
     """Parameters of the track-consistent refinement walk; its rules (anchor, reach,
-    conflicts) are in :mod:`colmap_miho.refinement.track_plan`.
+    conflicts) are in :mod:`colmap_miho.refinement.tracks.build`.
 
     Attributes:
         max_images_in_memory: images the pipeline's lazy loader keeps, and the most images
@@ -181,7 +185,7 @@ class TrackConfig:
             per pair with a custom ``refine_fn``.
         multiphoto_lsm: after the walk, align every observation of each track of three or
             more jointly to a consensus template, the anchor fixed
-            (:mod:`colmap_miho.refinement.multiphoto`; uses the ``lsm_*`` fields of
+            (:mod:`colmap_miho.refinement.tracks.multiphoto`; uses the ``lsm_*`` fields of
             :class:`NCCConfig`).
         multiphoto_iterations: consensus passes of the joint step (0: the star pass alone).
         multiphoto_star_first: first align every observation to the anchor alone (the star of

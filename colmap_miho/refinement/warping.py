@@ -438,3 +438,25 @@ def _sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
     out = F.grid_sample(image[None, None], grid[None], mode="bilinear", padding_mode="zeros",
                         align_corners=True)  # (1, 1, n, Q)
     return out[0, 0]
+
+
+def to_frame(H: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """(J, 2) points mapped by (J, 3, 3) homographies (w clamped positive; elementwise, so a
+    point's result does not depend on the others)."""
+    X, Y, W = project(H, x[:, 0], x[:, 1])
+    W = W.clamp_min(1e-12)
+    return torch.stack([X / W, Y / W], dim=1)
+
+
+def frame_jacobian(H_inv: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """(n, 2, 2) float64 Jacobians of the maps ``H_inv`` (n, 3, 3) (frame -> image pixels) at
+    the frame points ``p`` (n, 2): image pixels per frame pixel."""
+    xh = H_inv[:, :, :2] @ p[:, :, None] + H_inv[:, :, 2:]  # (n, 3, 1)
+    w = xh[:, 2:, :]
+    x = xh[:, :2, :] / w
+    return (H_inv[:, :2, :2] - x * H_inv[:, 2:, :2]) / w
+
+
+def local_scale(J: torch.Tensor) -> torch.Tensor:
+    """(n,) image pixels per frame pixel, sqrt |det J|, of the (n, 2, 2) Jacobians ``J``."""
+    return torch.linalg.det(J).abs().sqrt()

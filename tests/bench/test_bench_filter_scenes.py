@@ -31,7 +31,7 @@ def test_run_pass_sums_the_counters_of_every_pair(capsys):
 def test_numpy_kernel_variant_keeps_the_same_matches():
     """A ``kernels=numpy`` variant runs the reference kernels on the same pairs: the same
     kept matches here, and the compiled kernels are back in place after the pass."""
-    from colmap_miho.filtering import kernels
+    from colmap_miho.filtering.compiled import scoring as kernels
     from colmap_miho.filtering.scoring import NumpyScoring
 
     sc = make_scene(np.random.default_rng(3), outlier_ratio=0.5)

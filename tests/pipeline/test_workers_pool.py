@@ -30,9 +30,9 @@ def test_workers_come_from_the_forkserver():
 
 
 def _kernels_loaded() -> bool:
-    from colmap_miho.filtering import kernels
+    from colmap_miho.filtering.compiled import miho, ransac, sampling, scoring
 
-    return kernels.loaded()
+    return all(m.KERNELS.loaded for m in (sampling, scoring, ransac, miho))
 
 
 def test_workers_start_with_the_compiled_filter_kernels_loaded():
@@ -44,9 +44,9 @@ def test_workers_start_with_the_compiled_filter_kernels_loaded():
 
 
 def _ncc_kernels_loaded() -> bool:
-    from colmap_miho.refinement import ncc_kernel
+    from colmap_miho.refinement.ncc import kernel as ncc_kernel
 
-    return ncc_kernel._kernels.loaded
+    return ncc_kernel.KERNELS.loaded
 
 
 def test_workers_start_with_the_compiled_ncc_kernels_loaded():
@@ -120,9 +120,9 @@ def test_a_script_without_a_main_guard_gets_the_fix_in_its_error(tmp_path, dask,
 
 
 def _affine_kernels_loaded() -> bool:
-    from colmap_miho.refinement import affine_kernel
+    from colmap_miho.refinement.rectify import kernel as affine_kernel
 
-    return affine_kernel._kernel.loaded
+    return affine_kernel.KERNELS.loaded
 
 
 def test_workers_start_with_the_compiled_local_affine_fits_loaded():
@@ -133,9 +133,9 @@ def test_workers_start_with_the_compiled_local_affine_fits_loaded():
 
 
 def _lsm_kernel_loaded() -> bool:
-    from colmap_miho.refinement import lsm_kernel
+    from colmap_miho.refinement.lsm import kernel as lsm_kernel
 
-    return lsm_kernel._kernel.loaded
+    return lsm_kernel.KERNELS.loaded
 
 
 def test_workers_start_with_the_compiled_lsm_step_loaded():

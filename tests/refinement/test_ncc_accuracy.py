@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from colmap_miho.refinement.config import NCCConfig
-from colmap_miho.refinement.ncc import refine_pair
-from colmap_miho.refinement.rectify import local_affine_pairs
+from colmap_miho.refinement.pairwise import refine_pair
+from colmap_miho.refinement.rectify.local_affine import local_affine_pairs
 
 cv2 = pytest.importorskip("cv2")
 skdata = pytest.importorskip("skimage.data")

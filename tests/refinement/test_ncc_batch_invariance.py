@@ -17,8 +17,8 @@ import pytest
 import torch
 
 from colmap_miho.refinement.config import NCCConfig
-from colmap_miho.refinement.correlation import ncc_maps
-from colmap_miho.refinement.ncc import RefineResult, refine_pair
+from colmap_miho.refinement.ncc.correlation import ncc_maps
+from colmap_miho.refinement.pairwise import RefineResult, refine_pair
 from colmap_miho.refinement.warping import ImageStack, offset_grid, sample_patches
 
 cv2 = pytest.importorskip("cv2")

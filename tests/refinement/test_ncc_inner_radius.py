@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from colmap_miho.refinement.config import NCCConfig
-from colmap_miho.refinement.ncc import refine_pair
+from colmap_miho.refinement.pairwise import refine_pair
 
 cv2 = pytest.importorskip("cv2")
 

@@ -1,0 +1,2 @@
+"""Local affine rectification: a patch homography pair per match from its nearest matches,
+and the compiled fits."""

@@ -1,0 +1,130 @@
+"""Recipes (:mod:`colmap_miho.recipe`): every shipped recipe loads, the default recipe, typed
+`--set` overrides, errors that name the key."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from colmap_miho.enums import FilterMethod, Mapper, MatchSource
+from colmap_miho.recipe import DEFAULT_RECIPE, available_recipes, load_recipe
+
+
+def test_every_shipped_recipe_loads():
+    names = available_recipes()
+    assert "mop_miho_ncc" in names and len(names) >= 5
+    methods = set()
+    for name in names:
+        recipe = load_recipe(name)
+        assert recipe.name == name
+        assert recipe.description
+        methods.add(recipe.filter.method)
+    assert methods == set(FilterMethod)
+
+
+def test_default_recipe_is_mop_miho_with_refinement():
+    recipe = load_recipe()
+    assert recipe.name == DEFAULT_RECIPE == "mop_miho_lsm"
+    assert recipe.filter.method is FilterMethod.MOP_MIHO
+    assert recipe.pipeline.refine is True
+    # least-squares matching from each NCC peak; mop_miho_ncc is the same recipe without it
+    assert recipe.ncc.lsm is True and recipe.tracks.multiphoto_lsm is False
+    ncc = load_recipe("mop_miho_ncc")
+    assert ncc.ncc.lsm is False
+    lsm_fields = ("lsm", "lsm_radius", "lsm_antialias", "lsm_max_shift_px", "lsm_tol_px")
+    assert dataclasses.replace(recipe.ncc, **{f: getattr(ncc.ncc, f) for f in lsm_fields}) == ncc.ncc
+    assert (recipe.filter, recipe.tracks, recipe.pipeline) == (ncc.filter, ncc.tracks, ncc.pipeline)
+    assert recipe.filter.inlier_count == 8 and recipe.filter.strict_threshold == 7.5
+
+
+def test_mapping_table_defaults_and_overrides():
+    assert load_recipe().mapping.mapper is Mapper.INCREMENTAL  # shipped recipes omit [mapping]
+    recipe = load_recipe(None, ["mapping.mapper=global", "mapping.seed=4", "mapping.min_num_matches=30"])
+    assert recipe.mapping.mapper is Mapper.GLOBAL and recipe.mapping.seed == 4
+    assert recipe.mapping.min_num_matches == 30 and recipe.mapping.num_threads == -1
+
+
+def test_run_commands_apply_mapper_and_seed_flags_over_the_recipe():
+    from colmap_miho.cli import build_parser
+    from colmap_miho.commands._options import load_run_recipe
+
+    base = ["compare", "--database", "d.db", "--images", "i", "--output", "o"]
+    args = build_parser().parse_args([*base, "--set", "mapping.mapper=global", "--seed", "5"])
+    recipe = load_run_recipe(args)
+    assert recipe.mapping.mapper is Mapper.GLOBAL and recipe.mapping.seed == 5
+    args = build_parser().parse_args([*base, "--set", "mapping.mapper=global", "--mapper", "incremental"])
+    assert load_run_recipe(args).mapping.mapper is Mapper.INCREMENTAL
+    # compare / run / demo now pass the whole mapping table (threads, min matches, cameras) on
+    args = build_parser().parse_args([*base, "--set", "mapping.num_threads=1", "--set", "mapping.min_num_matches=30",
+                                      "--refine-intrinsics", "none", "--camera-model", "pinhole"])
+    m = load_run_recipe(args).mapping
+    assert (m.num_threads, m.min_num_matches, m.refine_intrinsics, m.camera_model) == (1, 30, "none", "pinhole")
+
+
+def test_overrides_are_typed():
+    recipe = load_recipe("mop", ["filter.t_l=12", "pipeline.source=raw", "pipeline.refine=yes", "filter.t_h=none"])
+    assert recipe.filter.t_l == 12.0 and recipe.filter.t_h is None
+    assert recipe.pipeline.source is MatchSource.RAW and recipe.pipeline.refine is True
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("filter.t_lx=3", "unknown key filter.t_lx"),
+        ("t_l=3", "needs a section"),
+        ("nope.t_l=3", "unknown section"),
+        ("filter.t_l=abc", "filter.t_l: expected a number"),
+        ("filter.t_l=-1", "t_l must be in \\[0.001, 100000\\]"),
+        ("filter.method=ransac", "method='ransac' is not one of"),
+        ("filter.max_iters=2.5", "expected an integer"),
+        ("filter.rotation_fix=maybe", "expected true or false"),
+        ("noequals", "section.key=value"),
+        ("filter.device=cpu", "unknown key filter.device"),  # the filter always runs in numpy
+        ("ncc.cornerness_gate=true", "unknown key ncc.cornerness_gate"),  # removed switches
+        ("tracks.align_to_anchor=true", "unknown key tracks.align_to_anchor"),
+    ],
+)
+def test_bad_overrides_name_the_key(override, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+        load_recipe(None, [override])
+
+
+def test_recipe_file_with_unknown_table(tmp_path):
+    path = tmp_path / "mine.toml"
+    path.write_text('[filtre]\nmethod = "mop"\n')
+    with pytest.raises(ValueError, match=r"unknown table \[filtre\]"):
+        load_recipe(str(path))
+    with pytest.raises(ValueError, match="unknown recipe"):
+        load_recipe("does_not_exist")
+
+
+def test_the_dataclass_defaults_are_the_default_recipe():
+    from colmap_miho.recipe import Recipe
+
+    assert dataclasses.replace(load_recipe(), name="custom", description="") == Recipe()
+
+
+def test_each_recipe_file_states_only_how_it_differs_from_the_defaults():
+    import sys
+    from importlib import resources
+
+    from colmap_miho.recipe import SECTIONS
+
+    tomllib = pytest.importorskip("tomllib" if sys.version_info >= (3, 11) else "tomli")
+    for name in available_recipes():
+        data = tomllib.loads((resources.files("colmap_miho.recipes") / f"{name}.toml").read_text("utf-8"))
+        recipe = load_recipe(name)
+        for section in set(data) & set(SECTIONS):
+            default = SECTIONS[section]()
+            same = [k for k in data[section] if getattr(getattr(recipe, section), k) == getattr(default, k)]
+            assert not same, f"{name}: [{section}] restates the defaults of {same}"
+
+
+def test_the_pairwise_preset_is_the_papers_ncc():
+    from colmap_miho.refinement.config import PAIRWISE, NCCConfig
+
+    cfg = NCCConfig.pairwise(move="2")
+    assert (cfg.template_radius, cfg.search_radius, cfg.inner_radius, cfg.lsm) == (10, 10, 0, False)
+    assert cfg.move == "2" and all(getattr(cfg, k) == v for k, v in PAIRWISE.items())
+    assert NCCConfig().template_radius == 6 and NCCConfig().lsm
