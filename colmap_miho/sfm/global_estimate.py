@@ -43,10 +43,9 @@ class GlobalEstimate:
         focal: image id -> mean focal length (pixels) of its estimated camera.
         pair_rotations: pair -> ``R_2from1`` estimated from the pair's matches alone (pairs of
             two registered images with at least ``min_pair_matches`` matches).
-        pair_translations: pair -> the unit ``t_2from1`` of the same relative pose.
         observations: image id -> (keypoint indices int64 ``(K,)``, their 3D points float64
-            ``(K, 3)``, their point ids int64 ``(K,)``) of the model's tracks.
-        point_images: point id -> int64 ids of the images its track holds.
+            ``(K, 3)``, their point ids int64 ``(K,)``, their tracks' lengths int64 ``(K,)``)
+            of the model's tracks.
         cameras: image id -> its estimated ``pycolmap.Camera``.
         keypoints: image id -> ``(N, 2)`` keypoints in COLMAP's convention.
         seconds: wall time of its parts: "database" (the temporary database), "mapper",
@@ -58,9 +57,7 @@ class GlobalEstimate:
     rays: dict[int, np.ndarray] = field(default_factory=dict)
     focal: dict[int, float] = field(default_factory=dict)
     pair_rotations: dict[Pair, np.ndarray] = field(default_factory=dict)
-    pair_translations: dict[Pair, np.ndarray] = field(default_factory=dict)
-    observations: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
-    point_images: dict[int, np.ndarray] = field(default_factory=dict)
+    observations: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
     cameras: dict = field(default_factory=dict)
     keypoints: dict[int, np.ndarray] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
@@ -189,25 +186,23 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
         rays[i] = np.asarray(cam.cam_from_img(kp[i]), np.float64).reshape(-1, 2)
         focal[i] = float(cam.mean_focal_length())
         cams[i] = cam
-    obs: dict[int, tuple[list, list, list]] = {i: ([], [], []) for i in poses}
-    point_images: dict[int, np.ndarray] = {}
+    obs: dict[int, tuple[list, list, list, list]] = {i: ([], [], [], []) for i in poses}
     for point_id, p3 in rec.points3D.items():
         elements = p3.track.elements
-        point_images[int(point_id)] = np.asarray([int(el.image_id) for el in elements], np.int64)
         for el in elements:
             if int(el.image_id) in obs:
-                obs[int(el.image_id)][0].append(int(el.point2D_idx))
-                obs[int(el.image_id)][1].append(p3.xyz)
-                obs[int(el.image_id)][2].append(int(point_id))
-    observations = {i: (np.asarray(a, np.int64), np.asarray(b, np.float64).reshape(-1, 3), np.asarray(c, np.int64))
-                    for i, (a, b, c) in obs.items()}
+                row = obs[int(el.image_id)]
+                row[0].append(int(el.point2D_idx))
+                row[1].append(p3.xyz)
+                row[2].append(int(point_id))
+                row[3].append(len(elements))
+    observations = {i: (np.asarray(a, np.int64), np.asarray(b, np.float64).reshape(-1, 3), np.asarray(c, np.int64),
+                        np.asarray(d, np.int64)) for i, (a, b, c, d) in obs.items()}
     t0 = time.perf_counter()
-    relative = _pair_poses(pycolmap, used, kp, cams, seed)
+    rotations = _pair_rotations(pycolmap, used, kp, cams, seed)
     seconds["pair_rotations"] = time.perf_counter() - t0
     return GlobalEstimate(poses=poses, rays=rays, focal=focal, seconds=seconds, observations=observations,
-                          point_images=point_images, cameras=cams, keypoints=kp,
-                          pair_rotations={p: R for p, (R, _) in relative.items()},
-                          pair_translations={p: t for p, (_, t) in relative.items()})
+                          cameras=cams, keypoints=kp, pair_rotations=rotations)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -258,7 +253,7 @@ def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, n
         other, mine, theirs = (j, m[:, 0], m[:, 1]) if i == k else (i, m[:, 1], m[:, 0])
         if other not in trusted or other not in est.observations:
             continue
-        idx, xyz, _ = est.observations[other]
+        idx, xyz = est.observations[other][:2]
         order = np.argsort(idx)
         pos = np.searchsorted(idx[order], theirs)
         pos = np.minimum(pos, max(len(idx) - 1, 0))
@@ -277,10 +272,10 @@ def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, n
     return np.asarray(pose.rotation.matrix(), np.float64), np.asarray(pose.translation, np.float64)
 
 
-def _pair_poses(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],
-                cams: Mapping, seed: int) -> dict[Pair, Pose]:
-    """Each pair's own ``(R_2from1, unit t_2from1)`` from its matches (pairs of two registered
-    images whose relative pose could be estimated)."""
+def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],
+                    cams: Mapping, seed: int) -> dict[Pair, np.ndarray]:
+    """Each pair's own ``R_2from1`` from its matches (pairs of two registered images whose
+    relative pose could be estimated)."""
     opts = pc.TwoViewGeometryOptions()
     opts.compute_relative_pose = True
     opts.ransac.max_error = PAIR_POSE_MAX_ERROR_PX
@@ -292,6 +287,5 @@ def _pair_poses(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndar
         tvg = pc.estimate_two_view_geometry(cams[i], kp[i], cams[j], kp[j], np.ascontiguousarray(m, np.uint32), opts)
         pose = tvg.cam2_from_cam1
         if is_verified(tvg) and pose is not None:
-            t = np.asarray(pose.translation, np.float64)
-            out[(i, j)] = (np.asarray(pose.rotation.matrix(), np.float64), t / max(float(np.linalg.norm(t)), 1e-12))
+            out[(i, j)] = np.asarray(pose.rotation.matrix(), np.float64)
     return out

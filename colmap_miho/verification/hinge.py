@@ -8,23 +8,26 @@ keeps agreeing pairs inside its own group, so the trust test passes them all, an
 remove the correct cross pairs and keep the wrong ones. No vote over pairs can pick the side (the
 wrong side has the lower robust cost); it can only detect.
 
-- **Detect** (:func:`find_hinge`). The correct pairs across a hinge disagree with the estimate by
-  the same world-frame rotation: ``D_ij = R_j^T R_ij R_i`` is ``G_B^T G_A`` for every pair from
-  group A to group B, where random wrong pairs scatter. A tight mode of such residuals, over
-  several pairs touching several images on each side, names its two ends; the groups are the
-  minimum cut of the pairs that agree with the estimate between those ends (the cut pairs are
-  the estimate's own evidence across the hinge).
-- **Arbitrate** (:func:`coverage`, :func:`arbitrate`). Missing correspondences (Zach et al. 2008):
-  place image j by the pair's own relative pose from image i's 3D points (the scale from the
-  pair's matches), project every point of i that lies in front of j and inside the area where j
-  has keypoints, and count the share that the pair matches there. A correct pair matches much of
-  what it should see; a repeated-element pair only the repeated element, while its own pose says
-  that the rest should be visible too. Each pair measures itself, with its own geometry, so the
-  score does not depend on which hypothesis holds; the two competing sets of cross pairs (the
-  estimate's and the mode's) are then compared with each other, not against a threshold.
+- **Detect** (:func:`find_hinge`, :func:`confirm_hinge`). The correct pairs across a hinge
+  disagree with the estimate by the same world-frame rotation: ``D_ij = R_j^T R_ij R_i`` is
+  ``G_B^T G_A`` for every pair from group A to group B, where random wrong pairs scatter. A tight
+  mode of such residuals, over several pairs touching several images at each end, is a
+  candidate; it stays when each pair's disagreement holds with its pose measured from 3D points
+  (essential matrices of a planar scene can share one wrong rotation).
+- **Measure** (:func:`coverage`, :func:`pair_coverage`). Missing correspondences (Zach et al.
+  2008): place image j by absolute pose from image i's 3D points through the pair's matches
+  alone, project every point of i in front of j inside the area where j has keypoints, and count
+  the share that the pair matches there. A correct pair matches much of what it should see; a
+  repeated-element pair only the repeated element, while its own placement says that the rest
+  should be visible too. Each pair measures itself with its own geometry: the score does not
+  depend on which hypothesis holds.
+- **Group and arbitrate** (:func:`split_groups`, :func:`arbitrate`). Each image joins the end it
+  reaches through its best-covered pairs that agree with the estimate; the estimate's pairs
+  between the two groups and the mode's are then compared with each other, not against a
+  threshold.
 
-Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; a pair's own relative pose is
-``(R_2from1, t_2from1)`` with a unit translation; ``rays`` are normalised image coordinates.
+Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; ``rays`` are normalised image
+coordinates.
 """
 
 from __future__ import annotations
@@ -259,12 +262,9 @@ class PointsEstimate(Protocol):
         """image id -> focal length (pixels)."""
 
     @property
-    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """image id -> (keypoint indices ``(K,)``, world points ``(K, 3)``, point ids ``(K,)``)."""
-
-    @property
-    def point_images(self) -> Mapping[int, np.ndarray]:
-        """point id -> the image ids of its track."""
+    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """image id -> (keypoint indices ``(K,)``, world points ``(K, 3)``, point ids ``(K,)``,
+        track lengths ``(K,)``)."""
 
 
 #: ``place(i, j, matches)``: image j's ``cam_from_world`` from image i's points through the
@@ -287,11 +287,11 @@ def pair_coverage(est: PointsEstimate, place: PlacePair, pair: Pair, matches: np
     for a, b, mm in ((i, j, m), (j, i, m[:, ::-1])):
         if a not in est.observations or b not in est.rays:
             continue
-        kp, xyz, pid = est.observations[a]
+        kp, xyz, pid, length = est.observations[a]
         if np.isin(mm[:, 0], kp).sum() < min_hits:
             continue
-        own = np.fromiter((len(est.point_images[int(q)]) - int(b in est.point_images[int(q)]) >= 2 for q in pid),
-                          bool, len(pid))
+        seen_by_b = np.isin(pid, est.observations[b][2]) if b in est.observations else np.zeros(len(pid), bool)
+        own = length - seen_by_b >= 2  # the point's track holds two images other than b
         pose = place(a, b, mm)
         if pose is None:  # the pair's matches do not place the other image: nothing found
             expected += int(own.sum())

@@ -261,13 +261,9 @@ class CameraEstimate(Protocol):
         """pair -> its own relative rotation ``R_2from1`` (from its matches alone)."""
 
     @property
-    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """image id -> (keypoint indices ``(K,)``, world points ``(K, 3)``, point ids ``(K,)``)
-        of the estimate's tracks."""
-
-    @property
-    def point_images(self) -> Mapping[int, np.ndarray]:
-        """point id -> the image ids of its track."""
+    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+        """image id -> (keypoint indices ``(K,)``, world points ``(K, 3)``, point ids ``(K,)``,
+        track lengths ``(K,)``) of the estimate's tracks."""
 
     @property
     def seconds(self) -> Mapping[str, float]:
