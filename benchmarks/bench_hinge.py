@@ -101,10 +101,7 @@ def check(db, matches, labels, threads: int, hinges: bool):
     from colmap_miho.verification.hinge import find_hinge
 
     cfg = MatchCheckConfig(mode="remove", hinges=hinges)
-    inner = GlobalEstimator(src=db, min_pair_matches=cfg.min_pair_matches, seed=cfg.seed, num_threads=threads,
-                            ba_iterations=cfg.ba_iterations, retriangulate=cfg.retriangulate,
-                            ba_function_tolerance=cfg.ba_function_tolerance, max_error_px=cfg.max_threshold_px,
-                            min_inliers=cfg.min_placed_inliers)
+    inner = GlobalEstimator(src=db, config=cfg, num_threads=threads)
     first: list = []
 
     class Recording:

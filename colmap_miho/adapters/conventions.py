@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..types import Pair
+
 HALF_PIXEL = 0.5
 
 
@@ -29,7 +31,7 @@ def pair_id(image_id1: int, image_id2: int) -> int:
     return MAX_IMAGE_ID * a + b
 
 
-def image_pair(pid: int) -> tuple[int, int]:
+def image_pair(pid: int) -> Pair:
     """Inverse of :func:`pair_id`: (smaller image id, larger image id)."""
     pid = int(pid)
     return pid // MAX_IMAGE_ID, pid % MAX_IMAGE_ID

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import sqlite3
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,7 @@ import numpy as np
 from ..enums import MatchSource
 from ..errors import DatabaseError, InvalidInput
 from ..geometry import fit_model_lsq
+from ..types import Pair
 from .cameras import CameraIntrinsics, camera_from
 from .conventions import colmap_to_pixel_centre, image_pair, pixel_centre_to_colmap
 from .database_build import DatabaseBuilder
@@ -152,6 +154,31 @@ def is_verified(tvg) -> bool:
     import pycolmap
 
     return pycolmap.TwoViewGeometryConfiguration(int(tvg.config)).name in VERIFIED_CONFIGS
+
+
+def fitted_geometry(F: np.ndarray | None, H: np.ndarray | None):
+    """A new ``pycolmap.TwoViewGeometry`` holding the fundamental matrix ``F`` (config
+    UNCALIBRATED), or else the homography ``H`` (PLANAR)."""
+    import pycolmap
+
+    tvg = pycolmap.TwoViewGeometry()
+    if F is not None:
+        tvg.config, tvg.F = pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED, F
+    else:
+        tvg.config, tvg.H = pycolmap.TwoViewGeometryConfiguration.PLANAR, H
+    return tvg
+
+
+def keep_or_fit(handle, i: int, j: int, inliers: np.ndarray, fit: Callable[[], Any], *, keep: bool = True):
+    """The two-view geometry to write for pair (i, j) of the ``pycolmap.Database`` ``handle``
+    with ``inliers`` (``(M, 2)`` keypoint indices): the pair's stored verified model (config,
+    F, E, H, relative pose) kept when ``keep`` and it has one, else ``fit()`` (a new geometry,
+    or None when no model fits: None is returned)."""
+    old = handle.read_two_view_geometry(i, j) if handle.exists_two_view_geometry(i, j) else None
+    tvg = old if keep and old is not None and is_verified(old) else fit()
+    if tvg is not None:
+        tvg.inlier_matches = np.ascontiguousarray(inliers, np.uint32)
+    return tvg
 
 
 class ColmapDatabase(DatabaseBuilder):
@@ -333,10 +360,10 @@ class ColmapDatabase(DatabaseBuilder):
                    xy1: np.ndarray, xy2: np.ndarray, *, keep_model: bool = True) -> str:
         """Write the kept matches of a pair into ``matches`` and ``two_view_geometries``.
 
-        The verified two-view geometry's model (config, F, E, H, relative pose) is kept when
-        ``keep_model`` and it has one; otherwise a fundamental matrix is fitted to the kept
-        matches by least squares (config UNCALIBRATED), or a homography (PLANAR) when F fails.
-        No kept match: the matches row becomes empty and the geometry row is deleted.
+        The pair's verified model is kept when ``keep_model`` (:func:`keep_or_fit`); otherwise
+        a fundamental matrix is fitted to the kept matches by least squares, or a homography
+        when F fails (:func:`colmap_miho.geometry.fit_model_lsq`). No kept match: the matches
+        row becomes empty and the geometry row is deleted.
 
         Args:
             kept: uint32 (K, 2) keypoint indices ordered (image_id1, image_id2).
@@ -351,39 +378,21 @@ class ColmapDatabase(DatabaseBuilder):
         if db.exists_matches(i, j):
             db.delete_matches(i, j)
         db.write_matches(i, j, kept)
-        old = db.read_two_view_geometry(i, j) if db.exists_two_view_geometry(i, j) else None
+        existed = db.exists_two_view_geometry(i, j)
         if len(kept) == 0:
-            if old is not None:
+            if existed:
                 db.delete_two_view_geometry(i, j)
             return "NONE"
-        if keep_model and old is not None and is_verified(old):
-            tvg = old
-        else:
-            tvg = self._fit_geometry(pixel_centre_to_colmap(xy1), pixel_centre_to_colmap(xy2))
-        tvg.inlier_matches = kept
-        if old is not None:
+        tvg = keep_or_fit(db, i, j, kept, lambda: fitted_geometry(*fit_model_lsq(pixel_centre_to_colmap(xy1),
+                                                                                 pixel_centre_to_colmap(xy2))),
+                          keep=keep_model)
+        if existed:
             db.update_two_view_geometry(i, j, tvg)
         else:
             db.write_two_view_geometry(i, j, tvg)
-        return self._config_name(tvg)
-
-    def _config_name(self, tvg) -> str:
         return self._pycolmap.TwoViewGeometryConfiguration(int(tvg.config)).name
 
-    def _fit_geometry(self, p1: np.ndarray, p2: np.ndarray):
-        """A two-view geometry fitted to ``p1, p2`` (:func:`colmap_miho.geometry.fit_model_lsq`)."""
-        pc = self._pycolmap
-        tvg = pc.TwoViewGeometry()
-        F, H = fit_model_lsq(p1, p2)
-        if F is not None:
-            tvg.config = pc.TwoViewGeometryConfiguration.UNCALIBRATED
-            tvg.F = F
-        else:
-            tvg.config = pc.TwoViewGeometryConfiguration.PLANAR
-            tvg.H = H
-        return tvg
-
-    def delete_two_view_geometries(self, pairs: list[tuple[int, int]]) -> None:
+    def delete_two_view_geometries(self, pairs: list[Pair]) -> None:
         """Delete the two-view geometry rows of ``pairs`` (before COLMAP re-verification)."""
         for i, j in pairs:
             if self.handle.exists_two_view_geometry(int(i), int(j)):

@@ -152,10 +152,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
 
     # read here, not held during the mapper: only the kept matches are
     matches = pair_graph(db, store.load_filtered(), source, checked)
-    estimator = GlobalEstimator(src=db, min_pair_matches=cfg.min_pair_matches, seed=cfg.seed, num_threads=threads,
-                                ba_iterations=cfg.ba_iterations, retriangulate=cfg.retriangulate,
-                                ba_function_tolerance=cfg.ba_function_tolerance,
-                                max_error_px=cfg.max_threshold_px, min_inliers=cfg.min_placed_inliers,
+    estimator = GlobalEstimator(src=db, config=cfg, num_threads=threads,
                                 verbose=log.isEnabledFor(logging.DEBUG))  # -v: COLMAP's log on the terminal
     d = judge_in_rounds(matches, estimator, cfg)
     return d.failed, d.wrong, _meta(d, cfg, matches, {im.image_id: im.name for im in db.images()})

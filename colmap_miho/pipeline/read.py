@@ -13,6 +13,7 @@ from ..adapters.images import ImageLoader
 from ..enums import MatchSource
 from ..errors import DatabaseError, UserError
 from ..pipeline_config import PipelineConfig
+from ..types import Pair
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -135,7 +136,7 @@ def _check_inside(kp: np.ndarray, im, database) -> None:
                             f"({int(bad.sum())} such keypoints); extract or import that image's features again")
 
 
-def check_match_indices(matches: np.ndarray, n1: int, n2: int, pair: tuple[int, int],
+def check_match_indices(matches: np.ndarray, n1: int, n2: int, pair: Pair,
                         database_name: Path | str = "") -> None:
     """Refuse matches ``(M, 2)`` whose keypoint indices are past the two images' keypoint
     counts ``n1``, ``n2`` (an inconsistent database: matches written for other keypoints).

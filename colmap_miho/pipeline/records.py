@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..filtering.api import FilterResult
+from ..types import Pair
 
 
 @dataclass(frozen=True)
@@ -35,4 +36,4 @@ class PairOutcome:
 
 
 #: (image_id1, image_id2) -> (matches uint32 ``(M, 2)`` keypoint indices, the pair's outcome)
-FilteredPairs = dict[tuple[int, int], tuple[np.ndarray, PairOutcome]]
+FilteredPairs = dict[Pair, tuple[np.ndarray, PairOutcome]]

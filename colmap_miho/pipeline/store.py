@@ -42,6 +42,7 @@ import numpy as np
 
 from ..adapters.filesystem import write_atomic
 from ..errors import UserError
+from ..types import Pair
 from ..version import __version__
 from .records import FilteredPairs, PairOutcome
 
@@ -294,7 +295,7 @@ class RunStore:
         return sorted(out)
 
     # -- filter chunks -----------------------------------------------------------------------
-    def filtered_pairs(self) -> set[tuple[int, int]]:
+    def filtered_pairs(self) -> set[Pair]:
         """Pairs (image_id1, image_id2) of the stored filter chunks."""
         return {(int(a), int(b)) for c in self._chunks.values() for a, b in c.pairs}
 
@@ -309,7 +310,7 @@ class RunStore:
         """The first chunk index not used yet."""
         return max(self._chunks, default=-1) + 1
 
-    def save_filter_chunk(self, index: int, pairs: list[tuple[int, int]], matches: list[np.ndarray],
+    def save_filter_chunk(self, index: int, pairs: list[Pair], matches: list[np.ndarray],
                           outcomes: list[PairOutcome]) -> None:
         """Store one finished chunk: ``pairs`` with their matches ``(M, 2)`` and outcomes
         (rows 1:1). A failed pair's matches and rows are not kept (the pipeline writes it back

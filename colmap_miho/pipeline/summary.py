@@ -148,7 +148,9 @@ class RefineSummary:
         if self.pair_check:
             lines.append(_pair_check_line(self.pair_check))
         if self.match_check:
-            lines.append(_match_check_line(self.match_check))
+            from ..reporting.html_report import match_check_note
+
+            lines.append(match_check_note(self.match_check, label="  match check", timing=True, sep="\n    "))
         if self.images_missing:
             lines.append(f"  images not refined (missing/unreadable): {', '.join(self.images_missing)}")
         if self.backup:
@@ -166,20 +168,3 @@ def _pair_check_line(pc: dict) -> str:
     if len(pc["wrong_pairs"]) > 10:
         line += f"\n    ... and {len(pc['wrong_pairs']) - 10} more (see the JSON report)"
     return line
-
-
-
-def _match_check_line(mc: dict) -> str:
-    """The summary's match-check line: whether the global estimate was used (and why not), what
-    was removed, its seconds (the pairs removed whole are listed in the JSON summary)."""
-    from ..reporting.html_report import hinge_note
-
-    verb = "removed" if mc["mode"] == "remove" else "flagged"
-    hinges = "".join(f"\n    {hinge_note(h)}" for h in mc.get("hinges") or [])
-    if not mc["used"]:
-        return (f"  match check: global estimate not used ({mc['reason']}); nothing {verb} ({mc['seconds']:.1f} s)"
-                + hinges)
-    return (f"  match check: global estimate of {mc['images_registered']} of {mc['images']} images, "
-            f"{len(mc['images_trusted'])} trusted; {mc['matches_removed']} of {mc['matches_judged']} judged matches "
-            f"and {mc['pairs_removed']} pairs ({mc['matches_in_removed_pairs']} matches) {verb} "
-            f"(threshold {mc['threshold_px']:.2f} px, {mc['rounds']} round(s), {mc['seconds']:.1f} s)" + hinges)

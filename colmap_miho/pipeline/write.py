@@ -12,6 +12,7 @@ import numpy as np
 from ..adapters.database import ColmapDatabase
 from ..enums import MatchSource
 from ..pipeline_config import PipelineConfig
+from ..types import Pair
 from .records import FilteredPairs
 from .verdicts import NO_VERDICTS, Verdicts
 
@@ -56,7 +57,7 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
             if moved.any():
                 displacements.append(np.linalg.norm(new[moved] - old[moved], axis=1))
                 db.write_keypoints(image_id, new, moved)
-        written: list[tuple[int, int]] = []
+        written: list[Pair] = []
         kept_total = 0
         for chunk in chunks:
             for (i, j), (m, r) in sorted(verdicts.apply(chunk).items()):

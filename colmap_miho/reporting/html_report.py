@@ -337,20 +337,24 @@ def _summary_note(baseline: dict, refine: dict) -> str:
     return " ".join(parts)
 
 
-def match_check_note(mc: dict) -> str:
-    """One sentence on the match check (``RefineSummary.match_check``): whether the global
-    estimate was used, which images it trusted, and what was removed (plain text)."""
+def match_check_note(mc: dict, *, label: str = "Match check", timing: bool = False, sep: str = " ") -> str:
+    """The match check's sentence (``RefineSummary.match_check``, plain text) after ``label``:
+    whether the global estimate was used (and why not), which images it trusted, what was
+    removed (flagged), with ``timing`` its rounds and seconds; then, each after ``sep``, one
+    sentence per hinge it found (:func:`hinge_note`)."""
     verb = "removed" if mc.get("mode") == "remove" else "flagged"
+    timed = f" ({mc.get('rounds', 0)} round(s), {mc.get('seconds', 0):.1f} s)" if timing else ""
     if not mc.get("used"):
-        return f"Match check: the global estimate of the cameras was not used ({mc.get('reason', '')}); nothing {verb}."
-    untrusted = mc.get("images_untrusted") or []
-    return (f"Match check: global estimate of {mc.get('images_registered', 0)} of {mc.get('images', 0)} images, "
-            f"{len(mc.get('images_trusted') or [])} trusted"
-            + (f" (not: {', '.join(untrusted)})" if untrusted else "")
-            + f"; {mc.get('matches_removed', 0)} of {mc.get('matches_judged', 0)} judged matches {verb} "
-            f"(farther than {mc.get('threshold_px', 0):.2f} px from their epipolar line under it), "
-            f"{mc.get('pairs_removed', 0)} pairs {verb} whole (most of their matches off it)."
-            + "".join(" " + hinge_note(h) for h in mc.get("hinges") or []))
+        text = f"the global estimate of the cameras was not used ({mc.get('reason', '')}); nothing {verb}{timed}."
+    else:
+        untrusted = ", ".join(mc.get("images_untrusted") or [])
+        text = (f"global estimate of {mc.get('images_registered', 0)} of {mc.get('images', 0)} images, "
+                f"{len(mc.get('images_trusted') or [])} trusted" + (f" (not: {untrusted})" if untrusted else "")
+                + f"; {mc.get('matches_removed', 0)} of {mc.get('matches_judged', 0)} judged matches {verb} "
+                f"(farther than {mc.get('threshold_px', 0):.2f} px from their epipolar line under it), "
+                f"{mc.get('pairs_removed', 0)} pairs ({mc.get('matches_in_removed_pairs', 0)} matches) {verb} whole "
+                f"(most of their matches off it){timed}.")
+    return f"{label}: {text}" + "".join(sep + hinge_note(h) for h in mc.get("hinges") or [])
 
 
 def hinge_note(h: dict) -> str:

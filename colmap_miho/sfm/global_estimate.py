@@ -1,14 +1,14 @@
 """The global estimate of the cameras for the match check: pycolmap's global mapper on a
 temporary database holding the filtered matches, and each pair's own relative rotation.
 
-:func:`global_estimate` copies the cameras, rigs, frames, images and keypoints of the open
-working database into a new database in a temporary folder, writes each pair's given matches as
-its two-view geometry's inliers (the pair's verified model kept where it has one, else a
-fundamental matrix fitted here), runs ``pycolmap.global_mapping`` there with COLMAP's log sent
-to that folder, and returns the largest model's poses, the normalised coordinates of the
-registered images' keypoints (undistorted by the model's cameras) and the pairs' own relative
-rotations (``pycolmap.estimate_two_view_geometry`` on each pair's matches with the model's
-cameras). Coordinates are COLMAP's inside (the rays do not depend on the convention).
+:func:`global_estimate` does it in three steps: :func:`_write_database` (the cameras, rigs,
+frames, images and keypoints of the open working database, each pair's given matches as its
+two-view geometry's inliers, :func:`~colmap_miho.adapters.database.keep_or_fit`),
+:func:`_run_mapper` (``pycolmap.global_mapping`` with COLMAP's log sent to the temporary folder)
+and :func:`_read_model` (the largest model's poses, the normalised coordinates of the registered
+images' keypoints, undistorted by the model's cameras, and its tracks); then the pairs' own
+relative rotations (``pycolmap.estimate_two_view_geometry`` on each pair's matches with the
+model's cameras). Coordinates are COLMAP's inside (the rays do not depend on the convention).
 """
 
 from __future__ import annotations
@@ -18,14 +18,18 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..adapters.database import ColmapDatabase, is_verified
+from ..adapters.database import ColmapDatabase, fitted_geometry, is_verified, keep_or_fit
 from ..geometry import fit_fundamental
 from ..types import Pair, Pose
 from .colmap_log import colmap_log_to_file, last_error_line, latest_log
 from .mapping import global_options, largest_model
+
+if TYPE_CHECKING:
+    from ..verification.config import MatchCheckConfig
 
 log = logging.getLogger(__name__)
 
@@ -64,59 +68,17 @@ class GlobalEstimate:
     failure: str = ""
 
 
-def _copy_scene(src: ColmapDatabase, dst, image_ids) -> None:
-    """Cameras, rigs, frames, images and keypoints of ``src`` into the new pycolmap database
-    ``dst`` (ids kept)."""
-    h = src.handle
-    for cam in h.read_all_cameras():
-        dst.write_camera(cam, use_camera_id=True)
-    for rig in h.read_all_rigs():
-        dst.write_rig(rig, use_rig_id=True)
-    for frame in h.read_all_frames():
-        dst.write_frame(frame, use_frame_id=True)
-    for im in h.read_all_images():
-        dst.write_image(im, use_image_id=True)
-    for i in image_ids:
-        dst.write_keypoints(int(i), np.ascontiguousarray(h.read_keypoints(int(i)), np.float32))
-
-
-def _pair_geometry(pc, src: ColmapDatabase, i: int, j: int, m: np.ndarray, kp: Mapping[int, np.ndarray], seed: int):
-    """The two-view geometry written for pair (i, j) with inliers ``m``: its verified model
-    kept (config, F, E, H, pose), else a fundamental matrix fitted to ``m``."""
-    h = src.handle
-    tvg = None
-    if h.exists_two_view_geometry(i, j):
-        old = h.read_two_view_geometry(i, j)
-        if is_verified(old):
-            tvg = old
-    if tvg is None:
-        F = fit_fundamental(kp[i][m[:, 0]], kp[j][m[:, 1]], np.random.default_rng([seed, i, j]))
-        if F is None:
-            return None
-        tvg = pc.TwoViewGeometry()
-        tvg.config = pc.TwoViewGeometryConfiguration.UNCALIBRATED
-        tvg.F = F
-    tvg.inlier_matches = np.ascontiguousarray(m, np.uint32)
-    return tvg
-
-
-def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, min_pair_matches: int,
-                    seed: int = 0, num_threads: int = -1, verbose: bool = False, ba_iterations: int = 3,
-                    retriangulate: bool = True, ba_function_tolerance: float,
-                    workdir: Path | None = None) -> GlobalEstimate:
+def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig, *,
+                    num_threads: int = -1, verbose: bool = False, workdir: Path | None = None) -> GlobalEstimate:
     """Run pycolmap's global mapper on ``matches`` with the cameras of ``src``.
 
     Args:
         src: the open working database (read only here).
         matches: pair -> int ``(M, 2)`` keypoint indices, the matches to estimate from.
-        min_pair_matches: pairs with fewer matches are left out of the estimate and get no
-            pair rotation (COLMAP's mapper ignores pairs below 15 inliers anyway).
-        seed: the mapper's and the pairs' RANSAC seed.
+        cfg: the match check's settings the estimate uses (``min_pair_matches``: pairs with
+            fewer matches are left out and get no pair rotation; ``seed``, ``ba_iterations``,
+            ``retriangulate``, ``ba_function_tolerance``).
         num_threads: mapper threads (-1: all cores).
-        ba_iterations / retriangulate: the mapper's bundle-adjustment rounds and whether it
-            triangulates again after them.
-        ba_function_tolerance: :attr:`MatchCheckConfig.ba_function_tolerance
-            <colmap_miho.verification.config.MatchCheckConfig>`.
         verbose: COLMAP's log on the terminal instead of the temporary folder's file (its
             errors never reach the terminal otherwise: a failed estimate is the caller's to
             report).
@@ -137,37 +99,14 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
     t0 = time.perf_counter()
     image_ids = [im.image_id for im in src.images()]
     kp = {i: np.asarray(src.handle.read_keypoints(int(i))[:, :2], np.float64) for i in image_ids}
-    used = {p: np.asarray(m, np.int64) for p, m in matches.items() if len(m) >= min_pair_matches}
+    used = {p: np.asarray(m, np.int64) for p, m in matches.items() if len(m) >= cfg.min_pair_matches}
     with private_tempdir("miho-global-", workdir) as folder:
         try:
-            db_path = folder / "global.db"
-            with pycolmap.Database.open(str(db_path)) as dst:
-                _copy_scene(src, dst, image_ids)
-                for (i, j), m in sorted(used.items()):
-                    tvg = _pair_geometry(pycolmap, src, i, j, m, kp, seed)
-                    if tvg is not None:
-                        dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
-                        dst.write_two_view_geometry(i, j, tvg)
-            opts = global_options(seed=seed, num_threads=num_threads, min_num_matches=min_pair_matches)
-            opts.mapper.ba_num_iterations = int(ba_iterations)
-            opts.mapper.skip_retriangulation = not retriangulate
-            if ba_function_tolerance > 0:
-                opts.mapper.bundle_adjustment.ceres.solver_options.function_tolerance = float(ba_function_tolerance)
-            out = folder / "model"
-            out.mkdir()
+            _write_database(pycolmap, src, folder / "global.db", image_ids, used, kp, cfg.seed)
             seconds["database"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            failure = ""
-            with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False) as prefix:
-                try:
-                    recs = pycolmap.global_mapping(str(db_path), str(folder), str(out), opts)
-                except RuntimeError as exc:  # COLMAP's own check failed: no estimate, the run goes on
-                    if is_disk_full(exc):
-                        raise
-                    recs, failure = {}, " ".join(str(exc).split())
+            recs, failure = _run_mapper(pycolmap, folder, cfg, num_threads, verbose)
             seconds["mapper"] = time.perf_counter() - t0
-            if not recs and not failure:
-                failure = last_error_line(latest_log(prefix))
         except (OSError, RuntimeError) as exc:
             if is_disk_full(exc):
                 raise disk_full_error(folder.parent, "writing the global estimate's temporary database") from None
@@ -175,6 +114,70 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
     rec = largest_model(recs)
     if rec is None:
         return GlobalEstimate(seconds=seconds, failure=failure)
+    model = _read_model(rec, kp)
+    t0 = time.perf_counter()
+    rotations = _pair_rotations(pycolmap, used, kp, model["cameras"], cfg.seed)
+    seconds["pair_rotations"] = time.perf_counter() - t0
+    return GlobalEstimate(**model, seconds=seconds, keypoints=kp, pair_rotations=rotations)
+
+
+def _write_database(pc, src: ColmapDatabase, path: Path, image_ids: list[int], used: Mapping[Pair, np.ndarray],
+                    kp: Mapping[int, np.ndarray], seed: int) -> None:
+    """The new database at ``path``: the cameras, rigs, frames, images and keypoints of ``src``
+    (ids kept), and each pair of ``used`` with its matches as its two-view geometry's inliers
+    (its verified model kept, else a fundamental matrix fitted to them; a pair with neither is
+    left out)."""
+    h = src.handle
+    with pc.Database.open(str(path)) as dst:
+        for cam in h.read_all_cameras():
+            dst.write_camera(cam, use_camera_id=True)
+        for rig in h.read_all_rigs():
+            dst.write_rig(rig, use_rig_id=True)
+        for frame in h.read_all_frames():
+            dst.write_frame(frame, use_frame_id=True)
+        for im in h.read_all_images():
+            dst.write_image(im, use_image_id=True)
+        for i in image_ids:
+            dst.write_keypoints(int(i), np.ascontiguousarray(h.read_keypoints(int(i)), np.float32))
+        for (i, j), m in sorted(used.items()):
+            def fit(i=i, j=j, m=m):
+                F = fit_fundamental(kp[i][m[:, 0]], kp[j][m[:, 1]], np.random.default_rng([seed, i, j]))
+                return None if F is None else fitted_geometry(F, None)
+
+            tvg = keep_or_fit(h, i, j, m, fit)
+            if tvg is not None:
+                dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
+                dst.write_two_view_geometry(i, j, tvg)
+
+
+def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, num_threads: int, verbose: bool) -> tuple[dict, str]:
+    """``pycolmap.global_mapping`` on ``folder``'s ``global.db`` into ``folder/model``; returns
+    (its models, why it gave none in COLMAP's words, "" when it gave some)."""
+    from ..adapters.staged_write import is_disk_full
+
+    opts = global_options(seed=cfg.seed, num_threads=num_threads, min_num_matches=cfg.min_pair_matches)
+    opts.mapper.ba_num_iterations = int(cfg.ba_iterations)
+    opts.mapper.skip_retriangulation = not cfg.retriangulate
+    if cfg.ba_function_tolerance > 0:
+        opts.mapper.bundle_adjustment.ceres.solver_options.function_tolerance = float(cfg.ba_function_tolerance)
+    out = folder / "model"
+    out.mkdir()
+    failure = ""
+    with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False) as prefix:
+        try:
+            recs = pc.global_mapping(str(folder / "global.db"), str(folder), str(out), opts)
+        except RuntimeError as exc:  # COLMAP's own check failed: no estimate, the run goes on
+            if is_disk_full(exc):
+                raise
+            recs, failure = {}, " ".join(str(exc).split())
+    if not recs and not failure:
+        failure = last_error_line(latest_log(prefix))
+    return recs, failure
+
+
+def _read_model(rec, kp: Mapping[int, np.ndarray]) -> dict:
+    """The :class:`GlobalEstimate` fields ``poses``, ``rays``, ``focal``, ``cameras`` and
+    ``observations`` of the model ``rec`` (its registered images)."""
     poses, rays, focal, cams = {}, {}, {}, {}
     for image_id, im in rec.images.items():
         if not im.has_pose:
@@ -198,41 +201,32 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
                 row[3].append(len(elements))
     observations = {i: (np.asarray(a, np.int64), np.asarray(b, np.float64).reshape(-1, 3), np.asarray(c, np.int64),
                         np.asarray(d, np.int64)) for i, (a, b, c, d) in obs.items()}
-    t0 = time.perf_counter()
-    rotations = _pair_rotations(pycolmap, used, kp, cams, seed)
-    seconds["pair_rotations"] = time.perf_counter() - t0
-    return GlobalEstimate(poses=poses, rays=rays, focal=focal, seconds=seconds, observations=observations,
-                          cameras=cams, keypoints=kp, pair_rotations=rotations)
+    return {"poses": poses, "rays": rays, "focal": focal, "cameras": cams, "observations": observations}
 
 
 @dataclass(frozen=True, kw_only=True)
 class GlobalEstimator:
     """The match check's estimator (:class:`colmap_miho.verification.match_check.Estimator`):
-    :func:`global_estimate` on the open working database ``src``, and
-    :func:`place_by_points` for the images the check did not trust."""
+    :func:`global_estimate` on the open working database ``src`` with the check's ``config``,
+    and :func:`place_by_points` for the images the check did not trust (at
+    ``config.max_threshold_px``, with ``config.min_placed_inliers`` inliers)."""
 
     src: ColmapDatabase
-    min_pair_matches: int
-    seed: int = 0
+    config: MatchCheckConfig
     num_threads: int = -1
-    ba_iterations: int = 3
-    retriangulate: bool = True
-    ba_function_tolerance: float
-    max_error_px: float = 4.0
-    min_inliers: int = 30
     verbose: bool = False
     workdir: Path | None = None
 
     def estimate(self, matches: Mapping[Pair, np.ndarray]) -> GlobalEstimate:
-        return global_estimate(self.src, matches, min_pair_matches=self.min_pair_matches, seed=self.seed,
-                               num_threads=self.num_threads, verbose=self.verbose, ba_iterations=self.ba_iterations,
-                               retriangulate=self.retriangulate, ba_function_tolerance=self.ba_function_tolerance,
+        return global_estimate(self.src, matches, self.config, num_threads=self.num_threads, verbose=self.verbose,
                                workdir=self.workdir)
 
     def place(self, estimate: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray],
               trusted: frozenset[int], min_inliers: int | None = None) -> Pose | None:
-        return place_by_points(estimate, image_id, matches, trusted, max_error_px=self.max_error_px,
-                               min_inliers=self.min_inliers if min_inliers is None else min_inliers, seed=self.seed)
+        cfg = self.config
+        return place_by_points(estimate, image_id, matches, trusted, max_error_px=cfg.max_threshold_px,
+                               min_inliers=cfg.min_placed_inliers if min_inliers is None else min_inliers,
+                               seed=cfg.seed)
 
 
 def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray], trusted, *,

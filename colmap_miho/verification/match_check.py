@@ -44,201 +44,112 @@ from .config import MatchCheckConfig
 from .hinge import Groups, Hinge, arbitrate, confirm_hinge, find_hinge, pair_coverage, split_groups
 
 
-def robust_scale(distances: np.ndarray) -> float:
-    """Mean ``b`` of the distances of correct matches modelled as exponential (a folded
-    Laplace residual: keypoint errors have heavier tails than a normal's), from their median:
-    ``b = median / ln 2``. The wrong matches' distances lie far out and only push the median
-    up a little (with a share ``w`` of them, it is the ``0.5 / (1 - w)`` quantile of the
-    correct ones), so the threshold errs towards keeping. 0 for no distances."""
-    d = np.asarray(distances, np.float64)
-    d = d[np.isfinite(d)]
-    return float(np.median(d)) / np.log(2.0) if d.size else 0.0
-
-
-def threshold_px(scale: float, false_reject: float, lo: float, hi: float) -> float:
-    """The distance an exponential of mean ``scale`` exceeds with probability
-    ``false_reject`` (``scale * ln(1 / false_reject)``), clamped to ``[lo, hi]``."""
-    return float(np.clip(scale * np.log(1.0 / false_reject), lo, hi))
-
-
-def trusted_images(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray],
-                   max_rotation_deg: float, min_agreeing_pairs: int
-                   ) -> tuple[set[int], dict[int, int], dict[int, int]]:
-    """The images whose estimated pose agrees with their pairs' own relative rotations.
-
-    A pair's own rotation (from its matches alone) is right for a correct pair and arbitrary
-    for a wrong one (repeated or symmetric structure: on real scenes many pairs are wrong, so
-    a median over an image's pairs is not robust). A wrong pose agrees with no correct pair,
-    and a wrong pair agrees with the estimate only by chance, so the test counts agreements:
-    an image is trusted when at least ``min_agreeing_pairs`` of its pairs agree within
-    ``max_rotation_deg``.
-
-    Args:
-        poses: image id -> estimated ``cam_from_world``.
-        pair_rotations: pair -> the pair's own ``R_2from1`` (from its matches alone).
-        max_rotation_deg: a pair agrees when the angle between its rotation and the
-            estimate's is at most this.
-        min_agreeing_pairs: agreeing pairs an image needs.
-
-    Returns:
-        (trusted image ids, image id -> its agreeing pairs, image id -> its pairs with a
-        rotation), the counts for every registered image with at least one pair rotation.
-    """
-    agree: dict[int, int] = {}
-    total: dict[int, int] = {}
-    for (i, j), R in pair_rotations.items():
-        if i in poses and j in poses:
-            ok = rotation_angle_deg(relative_pose(poses[i], poses[j])[0], R) <= max_rotation_deg
-            for k in (i, j):
-                total[k] = total.get(k, 0) + 1
-                agree[k] = agree.get(k, 0) + int(ok)
-    return {k for k, n in agree.items() if n >= min_agreeing_pairs}, agree, total
-
-
-def _largest_component(edges: list[Pair], nodes: list[int]) -> set[int]:
-    """The largest connected component of the graph (``nodes``, ``edges``); of equal ones, the
-    one holding the smallest node."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    if not nodes:
-        return set()
-    index = {n: k for k, n in enumerate(nodes)}
-    rows = np.asarray([index[i] for i, _ in edges], np.int64)
-    cols = np.asarray([index[j] for _, j in edges], np.int64)
-    graph = coo_matrix((np.ones(len(edges)), (rows, cols)), shape=(len(nodes), len(nodes)))
-    _, labels = connected_components(graph, directed=False)
-    sizes = np.bincount(labels)
-    best = int(labels[int(np.flatnonzero(sizes[labels] == sizes.max())[0])])  # nodes sorted: smallest first
-    return {n for n, lab in zip(nodes, labels, strict=True) if lab == best}
-
-
-def cut_off_images(matches: Mapping[Pair, np.ndarray], failed: Mapping[Pair, np.ndarray],
-                   wrong: set[Pair] | tuple[Pair, ...], min_pair_matches: int) -> set[int]:
-    """The images that removing the failed matches and the wrong pairs would cut off the main
-    part of the pair graph.
-
-    A pair links its images when it holds at least ``min_pair_matches`` matches (before: all
-    of them; after: those that did not fail, none for a wrong pair). Returns the images of the
-    largest component before that are outside the largest component after.
-    """
-    nodes = sorted({i for p in matches for i in p})
-    before = [p for p, m in matches.items() if len(m) >= min_pair_matches]
-    after = [p for p, m in matches.items() if p not in wrong
-             and len(m) - (int(np.count_nonzero(failed[p])) if p in failed else 0) >= min_pair_matches]
-    return _largest_component(before, nodes) - _largest_component(after, nodes)
-
-
 @dataclass(frozen=True, kw_only=True)
-class MatchCheckResult:
-    """What the match check found.
+class MatchCheckDecision:
+    """What :func:`judge_in_rounds` decided, over all its rounds.
 
     Attributes:
-        used: the estimate was trusted (enough images) and the matches were judged.
-        reason: why it was not used ("" when used).
-        registered: images the estimate placed.
-        trusted: images whose pose the check trusted (their pairs were judged).
-        cut_off: images that agreed with their pairs but that the removals would have cut off
-            the rest of the pair graph (placed wrong as a group): not trusted.
-        agreeing_pairs / rotation_pairs: image id -> its pairs whose own relative rotation
-            agrees with the estimate's / its pairs with an own rotation.
-        scale_px: mean of the judged matches' distances under the exponential model
-            (:func:`robust_scale`, pixels).
-        threshold_px: the distance above which a match failed.
-        failed: pair -> bool ``(M,)``: the pair's matches that failed (only judged pairs).
-        wrong_pairs: judged pairs most of whose matches failed (removed as a whole).
-        pair_fail_share: judged pair -> its share of failing matches.
-        matches_judged / matches_failed: over the judged pairs (wrong pairs included).
+        used: some round's estimate was trusted and its matches judged.
+        reason: why no round's was ("" when used), or why the rounds stopped early.
+        rounds: estimates made.
+        failed: pair -> bool ``(M,)`` over its matches: those that failed (every pair of two
+            trusted images, and any pair with a failing match; all True for a wrong pair).
+        wrong: pairs most of whose matches failed (removed whole).
+        fail_share: wrong pair -> its share of failing matches before it was removed whole.
+        registered / trusted / untrusted / cut_off: image ids placed by some round's estimate /
+            whose pose was trusted in some round / placed but never trusted / that the removals
+            would have cut off the rest of the pair graph.
+        judged_pairs: pairs of two trusted images.
+        scale_px / threshold_px: the first used round's scale and threshold (every round
+            applies that threshold).
+        seconds: per round, the estimate's parts and "judging", "placements" and "hinge".
+        hinges: the hinges found in the rounds' estimates and their verdicts.
+        unjudged: pairs left unjudged across a hinge the evidence could not decide.
     """
 
     used: bool
     reason: str = ""
+    rounds: int = 0
+    failed: dict[Pair, np.ndarray] = field(default_factory=dict)
+    wrong: frozenset[Pair] = frozenset()
+    fail_share: dict[Pair, float] = field(default_factory=dict)
     registered: frozenset[int] = frozenset()
     trusted: frozenset[int] = frozenset()
+    untrusted: frozenset[int] = frozenset()
     cut_off: frozenset[int] = frozenset()
-    agreeing_pairs: dict[int, int] = field(default_factory=dict)
-    rotation_pairs: dict[int, int] = field(default_factory=dict)
+    judged_pairs: frozenset[Pair] = frozenset()
     scale_px: float = 0.0
     threshold_px: float = 0.0
-    failed: dict[Pair, np.ndarray] = field(default_factory=dict)
-    wrong_pairs: tuple[Pair, ...] = ()
-    pair_fail_share: dict[Pair, float] = field(default_factory=dict)
-    matches_judged: int = 0
-    matches_failed: int = 0
+    seconds: list[dict[str, float]] = field(default_factory=list)
+    hinges: tuple[HingeVerdict, ...] = ()
+    unjudged: frozenset[Pair] = frozenset()
 
 
-def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndarray],
-                  focal: Mapping[int, float], poses: Mapping[int, Pose],
-                  pair_rotations: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
-                  threshold: float | None = None) -> MatchCheckResult:
-    """Judge the matches of every pair of two trusted images against the estimate.
+def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
+                    cfg: MatchCheckConfig) -> MatchCheckDecision:
+    """The match check: up to ``cfg.rounds`` global estimates, each from the survivors of the
+    last, each judged (:func:`check_matches`, then :func:`place_untrusted`).
 
-    Args:
-        matches: pair -> int ``(M, 2)`` keypoint indices (image_id1, image_id2).
-        rays: image id -> ``(N, 2)`` normalised coordinates of its keypoints (registered
-            images only).
-        focal: image id -> focal length in pixels (registered images).
-        poses: image id -> estimated ``cam_from_world`` (the registered images).
-        pair_rotations: pair -> its own relative rotation ``R_2from1`` (pairs with at least
-            ``cfg.min_pair_matches`` matches whose own pose could be estimated).
-        cfg: the thresholds.
-        threshold: pixels; use this threshold instead of the one from these matches'
-            distances (a later round, judging the survivors of the first: their distances are
-            truncated, and a scale taken from them would shrink round after round).
-
-    Returns:
-        A :class:`MatchCheckResult`; ``used`` False (nothing failed) when fewer than
-        ``cfg.min_trusted_images`` images, or less than ``cfg.min_trusted_share`` of the
-        registered ones, are trusted.
+    A later round judges only the pairs of the images newly trusted, with the first round's
+    threshold (the survivors' distances are truncated: a scale taken from them would shrink
+    round after round); it stops once every placed image is trusted. Each estimate is first
+    examined for a hinge (:func:`resolve_hinge`).
     """
-    registered = frozenset(int(k) for k in poses)
-    if len(registered) < cfg.min_trusted_images:
-        return MatchCheckResult(used=False, registered=registered,
-                                reason=f"the global estimate placed {len(registered)} images "
-                                       f"(at least {cfg.min_trusted_images} needed)")
-    trusted, agree, total = trusted_images(poses, pair_rotations, cfg.max_rotation_deg, cfg.min_agreeing_pairs)
-    needed = max(cfg.min_trusted_images, int(np.ceil(cfg.min_trusted_share * len(registered))))
-    if len(trusted) < needed:
-        return MatchCheckResult(
-            used=False, registered=registered, trusted=frozenset(trusted), agreeing_pairs=agree, rotation_pairs=total,
-            reason=f"{len(trusted)} of the {len(registered)} placed images agree with their pairs' own "
-                   f"relative rotations (at least {cfg.min_agreeing_pairs} pairs within {cfg.max_rotation_deg:g} deg; "
-                   f"{needed} images needed)")
-    dist_all: dict[Pair, np.ndarray] = {}  # every pair of two trusted images, once
-    for (i, j), m in matches.items():
-        if i in trusted and j in trusted and len(m):
-            m = np.asarray(m, np.int64)
-            E = essential(relative_pose(poses[i], poses[j]))
-            d = symmetric_epipolar_distance(E, rays[i][m[:, 0]], rays[j][m[:, 1]])
-            dist_all[(i, j)] = d * float(np.sqrt(focal[i] * focal[j]))
-    cut: set[int] = set()
-    given = threshold
-    while True:  # judge; drop from the trusted images any the removals would cut off; again
-        dist = {p: d for p, d in dist_all.items() if p[0] in trusted and p[1] in trusted}
-        all_d = np.concatenate(list(dist.values())) if dist else np.zeros(0)
-        scale = robust_scale(all_d)
-        threshold = given if given is not None else threshold_px(scale, cfg.false_reject, cfg.min_threshold_px,
-                                                                 cfg.max_threshold_px)
-        failed = {p: d > threshold for p, d in dist.items()}
-        share = {p: float(f.mean()) for p, f in failed.items()}
-        wrong = tuple(sorted(p for p, f in failed.items()
-                             if len(f) >= cfg.min_pair_matches and share[p] > cfg.max_pair_fail_share))
-        lost = cut_off_images(matches, failed, wrong, cfg.min_pair_matches) & trusted
-        if not lost:
+    failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
+    wrong: set[Pair] = set()
+    trusted_any: set[int] = set()
+    registered_any: set[int] = set()
+    cut_any: set[int] = set()
+    used, reason, scale, threshold, rounds = False, "", 0.0, 0.0, 0
+    seconds: list[dict[str, float]] = []
+    hinges: list[HingeVerdict] = []
+    unjudged: set[Pair] = set()
+    for _ in range(cfg.rounds):
+        alive = {p: np.flatnonzero(~f) for p, f in failed.items() if p not in wrong and (~f).any()}
+        current = {p: matches[p][idx] for p, idx in alive.items()}
+        est = estimator.estimate(current)
+        rounds += 1
+        part = dict(est.seconds)
+        th = time.perf_counter()
+        est, found, skip = resolve_hinge(estimator, est, current, cfg, rounds)
+        if found:
+            part["hinge"] = time.perf_counter() - th  # a second estimate included
+        hinges += found
+        unjudged |= skip
+        judged_now = {p: m for p, m in current.items() if p not in skip}
+        t0 = time.perf_counter()
+        res = check_matches(judged_now, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
+                            threshold=threshold if used else None)
+        t1 = time.perf_counter()
+        res = place_untrusted(estimator, est, res, judged_now, cfg, threshold if used else None)
+        seconds.append({**part, "judging": t1 - t0, "placements": time.perf_counter() - t1})
+        cut_any |= set(res.cut_off)  # the first judgement's and the placements' together
+        registered_any |= set(res.registered)
+        if not res.used:
+            why = res.reason + (f": {est.failure}" if est.failure else "")
+            reason = why if not used else f"round {rounds}: {why}"
             break
-        cut |= lost
-        trusted -= lost
-        if len(trusted) < needed:
-            return MatchCheckResult(
-                used=False, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut),
-                agreeing_pairs=agree, rotation_pairs=total,
-                reason=f"removing the matches that fail the global estimate would cut {len(cut)} images off the "
-                       f"rest of the pair graph; {len(trusted)} trusted images left ({needed} needed)")
-    return MatchCheckResult(
-        used=True, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut), agreeing_pairs=agree,
-        rotation_pairs=total, scale_px=scale, threshold_px=threshold, failed=failed, wrong_pairs=wrong,
-        pair_fail_share=share, matches_judged=int(all_d.size),
-        matches_failed=int(sum(int(f.sum()) for f in failed.values())))
+        if not used:
+            scale, threshold = res.scale_px, res.threshold_px
+        used, reason = True, ""
+        for p, f in res.failed.items():  # a later round judges only the pairs of images newly trusted
+            if not (p[0] in trusted_any and p[1] in trusted_any):
+                failed[p][alive[p][f]] = True
+        trusted_any |= set(res.trusted)
+        wrong |= set(res.wrong_pairs)
+        if set(res.trusted) >= set(res.registered):
+            break  # every placed image judged already: another round changes little
+    judged = frozenset(p for p in matches if p[0] in trusted_any and p[1] in trusted_any and p not in unjudged)
+    share = {p: float(failed[p].mean()) for p in wrong}  # before the pair is removed whole
+    for p in wrong:
+        failed[p][:] = True
+    return MatchCheckDecision(
+        used=used, reason=reason, rounds=rounds,
+        failed={p: f for p, f in failed.items() if f.any() or p in judged}, wrong=frozenset(wrong),
+        fail_share=share, registered=frozenset(registered_any), trusted=frozenset(trusted_any),
+        untrusted=frozenset(registered_any - trusted_any), cut_off=frozenset(cut_any), judged_pairs=judged,
+        scale_px=scale, threshold_px=threshold, seconds=seconds, hinges=tuple(hinges),
+        unjudged=frozenset(unjudged))
 
 
 class CameraEstimate(Protocol):
@@ -289,43 +200,6 @@ class Estimator(Protocol[Est]):
         """A new pose of ``image_id`` from ``estimate``'s points seen through the ``trusted``
         images (None when it cannot be placed with ``min_inliers`` inliers, default the
         estimator's own)."""
-
-
-#: Rounds of placing the untrusted images again: a placement made from a trusted part that
-#: still held a group placed wrong together (which the split test then finds) is made again
-#: from what is left.
-PLACEMENT_ROUNDS = 3
-
-
-def place_untrusted(estimator: Estimator[Est], est: Est, res: MatchCheckResult,
-                    matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
-                    threshold: float | None) -> MatchCheckResult:
-    """Place each registered image the check did not trust again, from the estimate's 3D
-    points its keypoints match through the trusted images (as incremental mapping registers an
-    image: the trusted part of the estimate is not bent by that image's wrong pairs), and judge
-    again with those poses (the trust test decides again whether each new pose holds). When
-    that judgement finds images that would be cut off (:func:`cut_off_images`), they are placed
-    again from the smaller trusted part, up to :data:`PLACEMENT_ROUNDS` times."""
-    if not cfg.place_untrusted:
-        return res
-    poses = dict(est.poses)
-    thr = res.threshold_px if threshold is None else threshold  # the first judgement's, kept
-    cut = set(res.cut_off)
-    before: frozenset[int] | None = None
-    for _ in range(PLACEMENT_ROUNDS):
-        if not res.used or res.trusted >= res.registered or res.trusted == before:
-            break  # all trusted, or the last placement changed nothing
-        before = res.trusted
-        moved = False
-        for k in sorted(res.registered - res.trusted):
-            pose = estimator.place(est, k, matches, res.trusted)
-            if pose is not None:
-                poses[k], moved = pose, True
-        if not moved:
-            break
-        res = check_matches(matches, est.rays, est.focal, poses, est.pair_rotations, cfg, threshold=thr)
-        cut |= res.cut_off
-    return dataclasses.replace(res, cut_off=frozenset(cut))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -461,108 +335,234 @@ def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np
 
 
 @dataclass(frozen=True, kw_only=True)
-class MatchCheckDecision:
-    """What :func:`judge_in_rounds` decided, over all its rounds.
+class MatchCheckResult:
+    """What the match check found.
 
     Attributes:
-        used: some round's estimate was trusted and its matches judged.
-        reason: why no round's was ("" when used), or why the rounds stopped early.
-        rounds: estimates made.
-        failed: pair -> bool ``(M,)`` over its matches: those that failed (every pair of two
-            trusted images, and any pair with a failing match; all True for a wrong pair).
-        wrong: pairs most of whose matches failed (removed whole).
-        fail_share: wrong pair -> its share of failing matches before it was removed whole.
-        registered / trusted / untrusted / cut_off: image ids placed by some round's estimate /
-            whose pose was trusted in some round / placed but never trusted / that the removals
-            would have cut off the rest of the pair graph.
-        judged_pairs: pairs of two trusted images.
-        scale_px / threshold_px: the first used round's scale and threshold (every round
-            applies that threshold).
-        seconds: per round, the estimate's parts and "judging", "placements" and "hinge".
-        hinges: the hinges found in the rounds' estimates and their verdicts.
-        unjudged: pairs left unjudged across a hinge the evidence could not decide.
+        used: the estimate was trusted (enough images) and the matches were judged.
+        reason: why it was not used ("" when used).
+        registered: images the estimate placed.
+        trusted: images whose pose the check trusted (their pairs were judged).
+        cut_off: images that agreed with their pairs but that the removals would have cut off
+            the rest of the pair graph (placed wrong as a group): not trusted.
+        agreeing_pairs / rotation_pairs: image id -> its pairs whose own relative rotation
+            agrees with the estimate's / its pairs with an own rotation.
+        scale_px: mean of the judged matches' distances under the exponential model
+            (:func:`robust_scale`, pixels).
+        threshold_px: the distance above which a match failed.
+        failed: pair -> bool ``(M,)``: the pair's matches that failed (only judged pairs).
+        wrong_pairs: judged pairs most of whose matches failed (removed as a whole).
+        pair_fail_share: judged pair -> its share of failing matches.
+        matches_judged / matches_failed: over the judged pairs (wrong pairs included).
     """
 
     used: bool
     reason: str = ""
-    rounds: int = 0
-    failed: dict[Pair, np.ndarray] = field(default_factory=dict)
-    wrong: frozenset[Pair] = frozenset()
-    fail_share: dict[Pair, float] = field(default_factory=dict)
     registered: frozenset[int] = frozenset()
     trusted: frozenset[int] = frozenset()
-    untrusted: frozenset[int] = frozenset()
     cut_off: frozenset[int] = frozenset()
-    judged_pairs: frozenset[Pair] = frozenset()
+    agreeing_pairs: dict[int, int] = field(default_factory=dict)
+    rotation_pairs: dict[int, int] = field(default_factory=dict)
     scale_px: float = 0.0
     threshold_px: float = 0.0
-    seconds: list[dict[str, float]] = field(default_factory=list)
-    hinges: tuple[HingeVerdict, ...] = ()
-    unjudged: frozenset[Pair] = frozenset()
+    failed: dict[Pair, np.ndarray] = field(default_factory=dict)
+    wrong_pairs: tuple[Pair, ...] = ()
+    pair_fail_share: dict[Pair, float] = field(default_factory=dict)
+    matches_judged: int = 0
+    matches_failed: int = 0
 
 
-def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
-                    cfg: MatchCheckConfig) -> MatchCheckDecision:
-    """The match check: up to ``cfg.rounds`` global estimates, each from the survivors of the
-    last, each judged (:func:`check_matches`, then :func:`place_untrusted`).
+def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndarray],
+                  focal: Mapping[int, float], poses: Mapping[int, Pose],
+                  pair_rotations: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
+                  threshold: float | None = None) -> MatchCheckResult:
+    """Judge the matches of every pair of two trusted images against the estimate.
 
-    A later round judges only the pairs of the images newly trusted, with the first round's
-    threshold (the survivors' distances are truncated: a scale taken from them would shrink
-    round after round); it stops once every placed image is trusted. Each estimate is first
-    examined for a hinge (:func:`resolve_hinge`).
+    Args:
+        matches: pair -> int ``(M, 2)`` keypoint indices (image_id1, image_id2).
+        rays: image id -> ``(N, 2)`` normalised coordinates of its keypoints (registered
+            images only).
+        focal: image id -> focal length in pixels (registered images).
+        poses: image id -> estimated ``cam_from_world`` (the registered images).
+        pair_rotations: pair -> its own relative rotation ``R_2from1`` (pairs with at least
+            ``cfg.min_pair_matches`` matches whose own pose could be estimated).
+        cfg: the thresholds.
+        threshold: pixels; use this threshold instead of the one from these matches'
+            distances (a later round, judging the survivors of the first: their distances are
+            truncated, and a scale taken from them would shrink round after round).
+
+    Returns:
+        A :class:`MatchCheckResult`; ``used`` False (nothing failed) when fewer than
+        ``cfg.min_trusted_images`` images, or less than ``cfg.min_trusted_share`` of the
+        registered ones, are trusted.
     """
-    failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
-    wrong: set[Pair] = set()
-    trusted_any: set[int] = set()
-    registered_any: set[int] = set()
-    cut_any: set[int] = set()
-    used, reason, scale, threshold, rounds = False, "", 0.0, 0.0, 0
-    seconds: list[dict[str, float]] = []
-    hinges: list[HingeVerdict] = []
-    unjudged: set[Pair] = set()
-    for _ in range(cfg.rounds):
-        alive = {p: np.flatnonzero(~f) for p, f in failed.items() if p not in wrong and (~f).any()}
-        current = {p: matches[p][idx] for p, idx in alive.items()}
-        est = estimator.estimate(current)
-        rounds += 1
-        part = dict(est.seconds)
-        th = time.perf_counter()
-        est, found, skip = resolve_hinge(estimator, est, current, cfg, rounds)
-        if found:
-            part["hinge"] = time.perf_counter() - th  # a second estimate included
-        hinges += found
-        unjudged |= skip
-        judged_now = {p: m for p, m in current.items() if p not in skip}
-        t0 = time.perf_counter()
-        res = check_matches(judged_now, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
-                            threshold=threshold if used else None)
-        t1 = time.perf_counter()
-        res = place_untrusted(estimator, est, res, judged_now, cfg, threshold if used else None)
-        seconds.append({**part, "judging": t1 - t0, "placements": time.perf_counter() - t1})
-        cut_any |= set(res.cut_off)  # the first judgement's and the placements' together
-        registered_any |= set(res.registered)
-        if not res.used:
-            why = res.reason + (f": {est.failure}" if est.failure else "")
-            reason = why if not used else f"round {rounds}: {why}"
+    registered = frozenset(int(k) for k in poses)
+    if len(registered) < cfg.min_trusted_images:
+        return MatchCheckResult(used=False, registered=registered,
+                                reason=f"the global estimate placed {len(registered)} images "
+                                       f"(at least {cfg.min_trusted_images} needed)")
+    trusted, agree, total = trusted_images(poses, pair_rotations, cfg.max_rotation_deg, cfg.min_agreeing_pairs)
+    needed = max(cfg.min_trusted_images, int(np.ceil(cfg.min_trusted_share * len(registered))))
+    if len(trusted) < needed:
+        return MatchCheckResult(
+            used=False, registered=registered, trusted=frozenset(trusted), agreeing_pairs=agree, rotation_pairs=total,
+            reason=f"{len(trusted)} of the {len(registered)} placed images agree with their pairs' own "
+                   f"relative rotations (at least {cfg.min_agreeing_pairs} pairs within {cfg.max_rotation_deg:g} deg; "
+                   f"{needed} images needed)")
+    dist_all: dict[Pair, np.ndarray] = {}  # every pair of two trusted images, once
+    for (i, j), m in matches.items():
+        if i in trusted and j in trusted and len(m):
+            m = np.asarray(m, np.int64)
+            E = essential(relative_pose(poses[i], poses[j]))
+            d = symmetric_epipolar_distance(E, rays[i][m[:, 0]], rays[j][m[:, 1]])
+            dist_all[(i, j)] = d * float(np.sqrt(focal[i] * focal[j]))
+    cut: set[int] = set()
+    given = threshold
+    while True:  # judge; drop from the trusted images any the removals would cut off; again
+        dist = {p: d for p, d in dist_all.items() if p[0] in trusted and p[1] in trusted}
+        all_d = np.concatenate(list(dist.values())) if dist else np.zeros(0)
+        scale = robust_scale(all_d)
+        threshold = given if given is not None else threshold_px(scale, cfg.false_reject, cfg.min_threshold_px,
+                                                                 cfg.max_threshold_px)
+        failed = {p: d > threshold for p, d in dist.items()}
+        share = {p: float(f.mean()) for p, f in failed.items()}
+        wrong = tuple(sorted(p for p, f in failed.items()
+                             if len(f) >= cfg.min_pair_matches and share[p] > cfg.max_pair_fail_share))
+        lost = cut_off_images(matches, failed, wrong, cfg.min_pair_matches) & trusted
+        if not lost:
             break
-        if not used:
-            scale, threshold = res.scale_px, res.threshold_px
-        used, reason = True, ""
-        for p, f in res.failed.items():  # a later round judges only the pairs of images newly trusted
-            if not (p[0] in trusted_any and p[1] in trusted_any):
-                failed[p][alive[p][f]] = True
-        trusted_any |= set(res.trusted)
-        wrong |= set(res.wrong_pairs)
-        if set(res.trusted) >= set(res.registered):
-            break  # every placed image judged already: another round changes little
-    judged = frozenset(p for p in matches if p[0] in trusted_any and p[1] in trusted_any and p not in unjudged)
-    share = {p: float(failed[p].mean()) for p in wrong}  # before the pair is removed whole
-    for p in wrong:
-        failed[p][:] = True
-    return MatchCheckDecision(
-        used=used, reason=reason, rounds=rounds,
-        failed={p: f for p, f in failed.items() if f.any() or p in judged}, wrong=frozenset(wrong),
-        fail_share=share, registered=frozenset(registered_any), trusted=frozenset(trusted_any),
-        untrusted=frozenset(registered_any - trusted_any), cut_off=frozenset(cut_any), judged_pairs=judged,
-        scale_px=scale, threshold_px=threshold, seconds=seconds, hinges=tuple(hinges),
-        unjudged=frozenset(unjudged))
+        cut |= lost
+        trusted -= lost
+        if len(trusted) < needed:
+            return MatchCheckResult(
+                used=False, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut),
+                agreeing_pairs=agree, rotation_pairs=total,
+                reason=f"removing the matches that fail the global estimate would cut {len(cut)} images off the "
+                       f"rest of the pair graph; {len(trusted)} trusted images left ({needed} needed)")
+    return MatchCheckResult(
+        used=True, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut), agreeing_pairs=agree,
+        rotation_pairs=total, scale_px=scale, threshold_px=threshold, failed=failed, wrong_pairs=wrong,
+        pair_fail_share=share, matches_judged=int(all_d.size),
+        matches_failed=int(sum(int(f.sum()) for f in failed.values())))
+
+
+def robust_scale(distances: np.ndarray) -> float:
+    """Mean ``b`` of the distances of correct matches modelled as exponential (a folded
+    Laplace residual: keypoint errors have heavier tails than a normal's), from their median:
+    ``b = median / ln 2``. The wrong matches' distances lie far out and only push the median
+    up a little (with a share ``w`` of them, it is the ``0.5 / (1 - w)`` quantile of the
+    correct ones), so the threshold errs towards keeping. 0 for no distances."""
+    d = np.asarray(distances, np.float64)
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) / np.log(2.0) if d.size else 0.0
+
+
+def threshold_px(scale: float, false_reject: float, lo: float, hi: float) -> float:
+    """The distance an exponential of mean ``scale`` exceeds with probability
+    ``false_reject`` (``scale * ln(1 / false_reject)``), clamped to ``[lo, hi]``."""
+    return float(np.clip(scale * np.log(1.0 / false_reject), lo, hi))
+
+
+def trusted_images(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray],
+                   max_rotation_deg: float, min_agreeing_pairs: int
+                   ) -> tuple[set[int], dict[int, int], dict[int, int]]:
+    """The images whose estimated pose agrees with their pairs' own relative rotations.
+
+    A pair's own rotation (from its matches alone) is right for a correct pair and arbitrary
+    for a wrong one (repeated or symmetric structure: on real scenes many pairs are wrong, so
+    a median over an image's pairs is not robust). A wrong pose agrees with no correct pair,
+    and a wrong pair agrees with the estimate only by chance, so the test counts agreements:
+    an image is trusted when at least ``min_agreeing_pairs`` of its pairs agree within
+    ``max_rotation_deg``.
+
+    Args:
+        poses: image id -> estimated ``cam_from_world``.
+        pair_rotations: pair -> the pair's own ``R_2from1`` (from its matches alone).
+        max_rotation_deg: a pair agrees when the angle between its rotation and the
+            estimate's is at most this.
+        min_agreeing_pairs: agreeing pairs an image needs.
+
+    Returns:
+        (trusted image ids, image id -> its agreeing pairs, image id -> its pairs with a
+        rotation), the counts for every registered image with at least one pair rotation.
+    """
+    agree: dict[int, int] = {}
+    total: dict[int, int] = {}
+    for (i, j), R in pair_rotations.items():
+        if i in poses and j in poses:
+            ok = rotation_angle_deg(relative_pose(poses[i], poses[j])[0], R) <= max_rotation_deg
+            for k in (i, j):
+                total[k] = total.get(k, 0) + 1
+                agree[k] = agree.get(k, 0) + int(ok)
+    return {k for k, n in agree.items() if n >= min_agreeing_pairs}, agree, total
+
+
+def _largest_component(edges: list[Pair], nodes: list[int]) -> set[int]:
+    """The largest connected component of the graph (``nodes``, ``edges``); of equal ones, the
+    one holding the smallest node."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if not nodes:
+        return set()
+    index = {n: k for k, n in enumerate(nodes)}
+    rows = np.asarray([index[i] for i, _ in edges], np.int64)
+    cols = np.asarray([index[j] for _, j in edges], np.int64)
+    graph = coo_matrix((np.ones(len(edges)), (rows, cols)), shape=(len(nodes), len(nodes)))
+    _, labels = connected_components(graph, directed=False)
+    sizes = np.bincount(labels)
+    best = int(labels[int(np.flatnonzero(sizes[labels] == sizes.max())[0])])  # nodes sorted: smallest first
+    return {n for n, lab in zip(nodes, labels, strict=True) if lab == best}
+
+
+def cut_off_images(matches: Mapping[Pair, np.ndarray], failed: Mapping[Pair, np.ndarray],
+                   wrong: set[Pair] | tuple[Pair, ...], min_pair_matches: int) -> set[int]:
+    """The images that removing the failed matches and the wrong pairs would cut off the main
+    part of the pair graph.
+
+    A pair links its images when it holds at least ``min_pair_matches`` matches (before: all
+    of them; after: those that did not fail, none for a wrong pair). Returns the images of the
+    largest component before that are outside the largest component after.
+    """
+    nodes = sorted({i for p in matches for i in p})
+    before = [p for p, m in matches.items() if len(m) >= min_pair_matches]
+    after = [p for p, m in matches.items() if p not in wrong
+             and len(m) - (int(np.count_nonzero(failed[p])) if p in failed else 0) >= min_pair_matches]
+    return _largest_component(before, nodes) - _largest_component(after, nodes)
+
+
+#: Rounds of placing the untrusted images again: a placement made from a trusted part that
+#: still held a group placed wrong together (which the split test then finds) is made again
+#: from what is left.
+PLACEMENT_ROUNDS = 3
+
+
+def place_untrusted(estimator: Estimator[Est], est: Est, res: MatchCheckResult,
+                    matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
+                    threshold: float | None) -> MatchCheckResult:
+    """Place each registered image the check did not trust again, from the estimate's 3D
+    points its keypoints match through the trusted images (as incremental mapping registers an
+    image: the trusted part of the estimate is not bent by that image's wrong pairs), and judge
+    again with those poses (the trust test decides again whether each new pose holds). When
+    that judgement finds images that would be cut off (:func:`cut_off_images`), they are placed
+    again from the smaller trusted part, up to :data:`PLACEMENT_ROUNDS` times."""
+    if not cfg.place_untrusted:
+        return res
+    poses = dict(est.poses)
+    thr = res.threshold_px if threshold is None else threshold  # the first judgement's, kept
+    cut = set(res.cut_off)
+    before: frozenset[int] | None = None
+    for _ in range(PLACEMENT_ROUNDS):
+        if not res.used or res.trusted >= res.registered or res.trusted == before:
+            break  # all trusted, or the last placement changed nothing
+        before = res.trusted
+        moved = False
+        for k in sorted(res.registered - res.trusted):
+            pose = estimator.place(est, k, matches, res.trusted)
+            if pose is not None:
+                poses[k], moved = pose, True
+        if not moved:
+            break
+        res = check_matches(matches, est.rays, est.focal, poses, est.pair_rotations, cfg, threshold=thr)
+        cut |= res.cut_off
+    return dataclasses.replace(res, cut_off=frozenset(cut))

@@ -24,9 +24,8 @@ MIN_WRONG_REMOVED = 0.9
 
 def _judge(scene, **cfg):
     with ColmapDatabase(scene.database) as db:
-        estimator = GlobalEstimator(src=db, min_pair_matches=15, seed=0, num_threads=1, ba_function_tolerance=1e-4,
-                                    max_error_px=4.0, min_inliers=30)
-        d = judge_in_rounds(scene.matches, estimator, MatchCheckConfig(mode="remove", **cfg))
+        config = MatchCheckConfig(mode="remove", **cfg)
+        d = judge_in_rounds(scene.matches, GlobalEstimator(src=db, config=config, num_threads=1), config)
         names = {im.image_id: im.name for im in db.images()}
     pairs = sorted(scene.matches)
     ok = np.concatenate([scene.correct[p] for p in pairs])
