@@ -48,9 +48,6 @@ def group_max_matches() -> int:
 #: Key of the refine stage's stats holding image id -> decodes by the walk (all processes).
 DECODED_BY_IMAGE = "decoded_by_image"
 
-#: Bytes of one pixel of a decoded image (:class:`ImageLoader` keeps float32 gray).
-BYTES_PER_PIXEL = 4
-
 #: (image id, keypoint indices (K,) int64, new positions (K, 2) float64) per image of a group.
 Moved = dict[int, tuple[np.ndarray, np.ndarray]]
 

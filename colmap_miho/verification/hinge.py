@@ -1,30 +1,12 @@
 """A hinged global estimate: find it, and let each pair's own coverage decide which side is right
 (pure numpy).
 
-A repeated facade gives wrong pairs that agree with each other. When they outnumber (or outweigh)
-the correct pairs between two groups of images, robust rotation averaging sides with them: the
-estimate is right inside each group and turned between the groups (a *hinge*). Every image then
-keeps agreeing pairs inside its own group, so the trust test passes them all, and the check would
-remove the correct cross pairs and keep the wrong ones. No vote over pairs can pick the side (the
-wrong side has the lower robust cost); it can only detect.
-
-- **Detect** (:func:`find_hinge`, :func:`confirm_hinge`). The correct pairs across a hinge
-  disagree with the estimate by the same world-frame rotation: ``D_ij = R_j^T R_ij R_i`` is
-  ``G_B^T G_A`` for every pair from group A to group B, where random wrong pairs scatter. A tight
-  mode of such residuals, over several pairs touching several images at each end, is a
-  candidate; it stays when each pair's disagreement holds with its pose measured from 3D points
-  (essential matrices of a planar scene can share one wrong rotation).
-- **Measure** (:func:`coverage`, :func:`pair_coverage`). Missing correspondences (Zach et al.
-  2008): place image j by absolute pose from image i's 3D points through the pair's matches
-  alone, project every point of i in front of j inside the area where j has keypoints, and count
-  the share that the pair matches there. A correct pair matches much of what it should see; a
-  repeated-element pair only the repeated element, while its own placement says that the rest
-  should be visible too. Each pair measures itself with its own geometry: the score does not
-  depend on which hypothesis holds.
-- **Group and arbitrate** (:func:`split_groups`, :func:`arbitrate`). Each image joins the end it
-  reaches through its best-covered pairs that agree with the estimate; the estimate's pairs
-  between the two groups and the mode's are then compared with each other, not against a
-  threshold.
+Why a hinge arises and how it is resolved: ``docs/how-it-works.md`` (the match check, "A hinged
+estimate"). Here the pure parts: detect (:func:`find_hinge`, :func:`confirm_hinge`: a mode of the
+world-frame residuals ``D_ij = R_j^T R_ij R_i``, which is ``G_B^T G_A`` for every correct pair
+across the hinge), measure (:func:`coverage`, :func:`pair_coverage`: missing correspondences,
+Zach et al. 2008, each pair with its own geometry), group and arbitrate (:func:`split_groups`,
+:func:`arbitrate`).
 
 Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; ``rays`` are normalised image
 coordinates.
@@ -251,20 +233,15 @@ def coverage(points: np.ndarray, matched: np.ndarray, pose_j: Pose, rays_j: np.n
 
 
 class PointsEstimate(Protocol):
-    """What the coverage reads of a global estimate."""
+    """What the coverage reads of a global estimate (attributes of
+    :class:`colmap_miho.sfm.global_estimate.GlobalEstimate`, described there)."""
 
     @property
-    def rays(self) -> Mapping[int, np.ndarray]:
-        """image id -> ``(N, 2)`` normalised coordinates of all its keypoints."""
-
+    def rays(self) -> Mapping[int, np.ndarray]: ...
     @property
-    def focal(self) -> Mapping[int, float]:
-        """image id -> focal length (pixels)."""
-
+    def focal(self) -> Mapping[int, float]: ...
     @property
-    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """image id -> (keypoint indices ``(K,)``, world points ``(K, 3)``, point ids ``(K,)``,
-        track lengths ``(K,)``)."""
+    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]: ...
 
 
 #: ``place(i, j, matches)``: image j's ``cam_from_world`` from image i's points through the

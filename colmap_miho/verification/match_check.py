@@ -1,24 +1,11 @@
 """Match check core: judge every match against a global estimate of the cameras (pure numpy).
 
-A facade with repeated windows gives matches shifted by one period that agree with a local
-homography and with the pair's own fundamental matrix (fitted to both populations): no check of
-the pair alone can see them. A global estimate of all cameras (rotations averaged over the
-whole pair graph, positions from all tracks) is not bent by one pair's wrong matches, so the
-distance of a match to its epipolar line under that estimate exposes them.
-
-The estimate is trusted image by image (:func:`trusted_images`): an image whose estimated pose
-disagrees with its pairs' own relative rotations is left out (its matches are kept unjudged),
-and when too few images hold, the estimate is not used at all (:func:`check_matches`: nothing is
-removed). A group of images placed wrong together agrees with its own pairs and passes that
-test; its correct pairs to the rest of the scene then fail, and removing them would cut it off.
-So removals never split the pair graph (:func:`cut_off_images`): images they would cut off are
-not trusted either. The threshold follows the estimate's own residuals (:func:`robust_scale`).
-
-:func:`judge_in_rounds` is the whole check: it asks an :class:`Estimator` (pycolmap's global
-mapper, :class:`colmap_miho.sfm.global_estimate.GlobalEstimator`) for the estimate, judges,
-places the images it did not trust again from the trusted part (:func:`place_untrusted`), and,
-with ``rounds`` > 1, estimates again from the survivors: an image placed wrong by the wrong
-matches of its pairs in one round can be trusted and judged in the next.
+:func:`judge_in_rounds` is the whole check (its steps, estimate, trust, hinge, judge, in
+``docs/how-it-works.md``): it asks an :class:`Estimator` (pycolmap's global mapper,
+:class:`colmap_miho.sfm.global_estimate.GlobalEstimator`) for the estimate, examines it for a
+hinge (:func:`resolve_hinge`), judges (:func:`check_matches`: :func:`trusted_images`,
+:func:`robust_scale`, :func:`cut_off_images`), places the images it did not trust again from
+the trusted part (:func:`place_untrusted`), and estimates again from the survivors.
 
 Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))`` (``X_cam = R X + t``);
 ``rays`` are a camera's normalised image coordinates ``(N, 2)`` (undistorted, ``K^-1 x``) of an
@@ -153,36 +140,23 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
 
 
 class CameraEstimate(Protocol):
-    """What the judging reads of a global estimate of the cameras."""
+    """What the judging reads of a global estimate of the cameras (the attributes of
+    :class:`colmap_miho.sfm.global_estimate.GlobalEstimate`, described there)."""
 
     @property
-    def poses(self) -> Mapping[int, Pose]:
-        """image id -> estimated ``cam_from_world`` (the registered images)."""
-
+    def poses(self) -> Mapping[int, Pose]: ...
     @property
-    def rays(self) -> Mapping[int, np.ndarray]:
-        """image id -> ``(N, 2)`` normalised coordinates of all its keypoints."""
-
+    def rays(self) -> Mapping[int, np.ndarray]: ...
     @property
-    def focal(self) -> Mapping[int, float]:
-        """image id -> focal length (pixels) of its estimated camera."""
-
+    def focal(self) -> Mapping[int, float]: ...
     @property
-    def pair_rotations(self) -> Mapping[Pair, np.ndarray]:
-        """pair -> its own relative rotation ``R_2from1`` (from its matches alone)."""
-
+    def pair_rotations(self) -> Mapping[Pair, np.ndarray]: ...
     @property
-    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """image id -> (keypoint indices ``(K,)``, world points ``(K, 3)``, point ids ``(K,)``,
-        track lengths ``(K,)``) of the estimate's tracks."""
-
+    def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]: ...
     @property
-    def seconds(self) -> Mapping[str, float]:
-        """Wall time of the estimate's parts."""
-
+    def seconds(self) -> Mapping[str, float]: ...
     @property
-    def failure(self) -> str:
-        """Why no image was placed, in the estimator's words ("" otherwise)."""
+    def failure(self) -> str: ...
 
 
 Est = TypeVar("Est", bound=CameraEstimate)
