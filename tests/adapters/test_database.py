@@ -7,10 +7,11 @@ import sqlite3
 
 import cv2
 import numpy as np
+import pycolmap
 import pytest
 
 from colmap_miho.adapters.conventions import HALF_PIXEL, colmap_to_pixel_centre, pixel_centre_to_colmap
-from colmap_miho.adapters.database import ColmapDatabase, validate_database
+from colmap_miho.adapters.database import ColmapDatabase, fitted_geometry, keep_or_fit, validate_database
 from colmap_miho.adapters.images import ImageLoader, read_gray_float
 from colmap_miho.errors import DatabaseError
 from miho_bench.synthetic import make_synthetic_scene
@@ -85,6 +86,28 @@ def test_write_keypoints_checks_shapes(scene_db, tmp_path):
         n = len(db.keypoints(1))
         with pytest.raises(ValueError, match="xy must be"):
             db.write_keypoints(1, np.zeros((n + 1, 2)), np.ones(n + 1, bool))
+
+
+def test_keep_or_fit_keeps_a_verified_model_else_fits(scene_db, tmp_path):
+    db_path = _copy(scene_db.database, tmp_path / "k.db")
+    fitted = []
+
+    def fit():
+        fitted.append(1)
+        return fitted_geometry(None, np.eye(3))
+
+    with ColmapDatabase(db_path) as db:
+        h, m = db.handle, db.matches(1, 2, "verified")[:10]
+        stored = h.read_two_view_geometry(1, 2)
+        kept = keep_or_fit(h, 1, 2, m, fit)
+        assert not fitted and int(kept.config) == int(stored.config)  # the verified model, not fitted
+        np.testing.assert_array_equal(kept.F, stored.F)
+        np.testing.assert_array_equal(kept.inlier_matches, m)
+        refit = keep_or_fit(h, 1, 2, m, fit, keep=False)
+        assert fitted and int(refit.config) == int(pycolmap.TwoViewGeometryConfiguration.PLANAR)
+        np.testing.assert_array_equal(refit.inlier_matches, m)
+        h.delete_two_view_geometry(1, 2)
+        assert keep_or_fit(h, 1, 2, m, lambda: None) is None  # nothing stored, nothing fits
 
 
 def test_write_pair_updates_matches_and_geometry(scene_db, tmp_path):
