@@ -95,7 +95,7 @@ class PairCheckConfig:
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckConfig:
     """Parameters of the match check: every match judged against a global estimate of the
-    cameras (the algorithm and why it is built so: :mod:`colmap_miho.verification.match_check`;
+    cameras (the algorithm and why it is built so: ``docs/how-it-works.md``, the match check;
     measured figures: ``docs/results.md``, the match check).
 
     Attributes:
