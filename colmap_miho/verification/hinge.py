@@ -2,11 +2,11 @@
 (pure numpy).
 
 Why a hinge arises and how it is resolved: ``docs/how-it-works.md`` (the match check, "A hinged
-estimate"). Here the pure parts: detect (:func:`find_hinge`, :func:`confirm_hinge`: a mode of the
+estimate"). Here the pure parts: detect (:func:`find_hinges`, :func:`confirm_hinge`: modes of the
 world-frame residuals ``D_ij = R_j^T R_ij R_i``, which is ``G_B^T G_A`` for every correct pair
-across the hinge), measure (:func:`coverage`, :func:`pair_coverage`: missing correspondences,
-Zach et al. 2008, each pair with its own geometry), group and arbitrate (:func:`split_groups`,
-:func:`arbitrate`).
+across the hinge, the strongest that holds with each pair's pose measured from 3D points),
+measure (:func:`coverage`, :func:`pair_coverage`: missing correspondences, Zach et al. 2008,
+each pair with its own geometry), group and arbitrate (:func:`split_groups`, :func:`arbitrate`).
 
 Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; ``rays`` are normalised image
 coordinates.
@@ -14,7 +14,7 @@ coordinates.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -63,24 +63,24 @@ class Hinge:
     agreeing: tuple[Pair, ...]
 
 
-def find_hinge(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray], *, tolerance_deg: float,
-               min_pairs: int, min_side_images: int) -> Hinge | None:
-    """The strongest coherent disagreement of the pairs' own rotations with the estimate, or
-    None.
+def find_hinges(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray], *, tolerance_deg: float,
+                min_pairs: int, min_side_images: int) -> Iterator[Hinge]:
+    """The coherent disagreements of the pairs' own rotations with the estimate, strongest
+    first (each is a candidate: :func:`confirm_hinge` tests it).
 
     A pair disagrees when its residual :func:`world_residuals` is more than ``tolerance_deg``
     from the identity (the trust test's bound). Each disagreeing pair's residual, in both
     orientations, is a candidate mode; its support is the disagreeing pairs within
     ``tolerance_deg`` of it in either orientation (a pair ``(i, j)`` near ``M`` puts i on end
-    A and j on end B, near ``M^T`` the other way). The candidate with the most support whose
-    two ends share no image is the mode; it is a hinge when at least ``min_pairs`` pairs
-    support it and each end holds at least ``min_side_images`` images.
+    A and j on end B, near ``M^T`` the other way). Candidates are taken by their support, most
+    first, each set of pairs once; one is a hinge when at least ``min_pairs`` pairs support it,
+    its two ends share no image and each holds at least ``min_side_images`` images.
     """
     residuals = world_residuals(poses, pair_rotations)
     eye = np.eye(3)
     off = {p: D for p, D in residuals.items() if rotation_angle_deg(D, eye) > tolerance_deg}
     if len(off) < min_pairs:
-        return None
+        return
     keys = sorted(off)
     stack = np.stack([off[p] for p in keys])  # (P, 3, 3)
     lim = np.cos(np.deg2rad(tolerance_deg))
@@ -92,19 +92,30 @@ def find_hinge(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarr
             flip = ((np.einsum("kba,ab->k", stack, C) - 1.0) / 2.0 >= lim) & ~same
             candidates.append([(keys[k], False) for k in np.flatnonzero(same)]
                               + [(keys[k], True) for k in np.flatnonzero(flip)])
+    agreeing = tuple(sorted(p for p in residuals if p not in off))
+    tried: set[frozenset[Pair]] = set()
     for k in sorted(range(len(candidates)), key=lambda k: (-len(candidates[k]), k)):
         support = candidates[k]
         if len(support) < min_pairs:
-            return None
+            return
+        pairs = frozenset(q for q, _ in support)
+        if pairs in tried:
+            continue
+        tried.add(pairs)
         ends_a = {q[1] if f else q[0] for q, f in support}
         ends_b = {q[0] if f else q[1] for q, f in support}
         if ends_a & ends_b or len(ends_a) < min_side_images or len(ends_b) < min_side_images:
             continue
         M = project_to_rotation(np.sum([off[q].T if f else off[q] for q, f in support], axis=0))
-        return Hinge(turn=M, angle_deg=rotation_angle_deg(M, eye), ends_a=frozenset(ends_a),
-                     ends_b=frozenset(ends_b), mode_pairs=tuple(sorted(q for q, _ in support)),
-                     agreeing=tuple(sorted(p for p in residuals if p not in off)))
-    return None
+        yield Hinge(turn=M, angle_deg=rotation_angle_deg(M, eye), ends_a=frozenset(ends_a), ends_b=frozenset(ends_b),
+                    mode_pairs=tuple(sorted(pairs)), agreeing=agreeing)
+
+
+def find_hinge(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray], *, tolerance_deg: float,
+               min_pairs: int, min_side_images: int) -> Hinge | None:
+    """The strongest candidate of :func:`find_hinges`, or None."""
+    return next(find_hinges(poses, pair_rotations, tolerance_deg=tolerance_deg, min_pairs=min_pairs,
+                            min_side_images=min_side_images), None)
 
 
 def confirm_hinge(hinge: Hinge, poses: Mapping[int, Pose], placed: Callable[[int, int], Pose | None], *,

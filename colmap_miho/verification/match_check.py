@@ -28,7 +28,7 @@ import numpy as np
 from ..geometry import essential, relative_pose, rotation_angle_deg, symmetric_epipolar_distance
 from ..types import Pair, Pose
 from .config import MatchCheckConfig
-from .hinge import Groups, Hinge, arbitrate, confirm_hinge, find_hinge, pair_coverage, split_groups
+from .hinge import Groups, Hinge, arbitrate, confirm_hinge, find_hinges, pair_coverage, split_groups
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -283,12 +283,12 @@ def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np
     if not cfg.hinges:
         return est, found, frozenset()
     for attempt in range(2):  # the estimate, and at most one made again
-        hinge = find_hinge(est.poses, est.pair_rotations, tolerance_deg=cfg.max_rotation_deg,
-                           min_pairs=cfg.hinge_min_pairs, min_side_images=cfg.hinge_min_side_images)
         coverage = _Coverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
-        if hinge is not None:
-            hinge = confirm_hinge(hinge, est.poses, coverage.placed, tolerance_deg=cfg.max_rotation_deg,
-                                  min_pairs=cfg.hinge_min_pairs, min_side_images=cfg.hinge_min_side_images)
+        bounds = {"tolerance_deg": cfg.max_rotation_deg, "min_pairs": cfg.hinge_min_pairs,
+                  "min_side_images": cfg.hinge_min_side_images}
+        confirmed = (confirm_hinge(h, est.poses, coverage.placed, **bounds)
+                     for h in find_hinges(est.poses, est.pair_rotations, **bounds))
+        hinge = next((h for h in confirmed if h is not None), None)
         if hinge is None:
             break
         v = weigh_hinge(coverage, hinge, round_)
