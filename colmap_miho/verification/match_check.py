@@ -284,10 +284,10 @@ def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np
         return est, found, frozenset()
     for attempt in range(2):  # the estimate, and at most one made again
         coverage = _Coverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
-        bounds = {"tolerance_deg": cfg.max_rotation_deg, "min_pairs": cfg.hinge_min_pairs,
-                  "min_side_images": cfg.hinge_min_side_images}
-        confirmed = (confirm_hinge(h, est.poses, coverage.placed, **bounds)
-                     for h in find_hinges(est.poses, est.pair_rotations, **bounds))
+        tol, n, sides = cfg.max_rotation_deg, cfg.hinge_min_pairs, cfg.hinge_min_side_images
+        confirmed = (confirm_hinge(h, est.poses, coverage.placed, tolerance_deg=tol, min_pairs=n, min_side_images=sides)
+                     for h in find_hinges(est.poses, est.pair_rotations, tolerance_deg=tol, min_pairs=n,
+                                          min_side_images=sides))
         hinge = next((h for h in confirmed if h is not None), None)
         if hinge is None:
             break
