@@ -103,7 +103,7 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
             part["hinge"] = time.perf_counter() - th  # a second estimate included
         hinges += found
         unjudged |= skip
-        judged_now = {p: m for p, m in current.items() if p not in skip}
+        judged_now = {p: m for p, m in current.items() if p not in unjudged}  # left unjudged in any round
         t0 = time.perf_counter()
         res = check_matches(judged_now, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
                             threshold=threshold if used else None)
