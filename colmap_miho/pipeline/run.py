@@ -45,8 +45,9 @@ from ..adapters.database import ColmapDatabase, validate_database
 from ..adapters.paths import check_distinct
 from ..adapters.safety import check_database_path
 from ..adapters.working_copy import WorkingCopy
+from ..arguments import check_paths, check_seed, check_workers
 from ..enums import Device
-from ..errors import RunFailed, UserError
+from ..errors import InvalidInput, RunFailed, UserError
 from ..recipe import Recipe, load_recipe
 from .executor import Runner, open_runner
 from .filter import FilterOptions, run_filter
@@ -158,11 +159,18 @@ def refine_database(
         UserError: bad image folder, existing output without ``overwrite``, strict and an
             image missing, no pairs to process; an interrupted run's store found without
             ``resume`` or ``restart``, or ``resume`` with other inputs or options.
-        ValueError: a bad recipe or option value (the message names it).
+        ValueError: a bad recipe or option value, or an argument of the wrong type or out of the
+            CLI's range (``workers`` in [1, 1024], a 32-bit ``seed``): the message names it.
         RunFailed: a worker process died (see :data:`~.workers.WORKER_DIED`), or this is
             a worker importing a script that calls this without a ``__main__`` guard.
     """
     check_not_bootstrapping()
+    check_paths(database=database, image_dir=image_dir, output=output, json_path=json_path,
+                optional=("output", "json_path"))
+    check_workers(workers)
+    check_seed(seed)
+    if dask is not None and not isinstance(dask, str):
+        raise InvalidInput(f"dask must be None, 'local' or a scheduler address, got {dask!r}")
     laps = _Laps()
     database = check_database_path(database)
     image_dir = Path(image_dir)

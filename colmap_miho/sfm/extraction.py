@@ -46,6 +46,12 @@ def extract_and_match(
     """
     import pycolmap
 
+    from ..arguments import check_integer, check_paths
+    from ..validation import BOUNDS, OPTION_BOUNDS
+
+    check_paths(image_dir=image_dir, database=database, log_dir=log_dir, optional=("log_dir",))
+    check_integer("max_features", max_features, OPTION_BOUNDS["max_features"])
+    check_integer("num_threads", num_threads, BOUNDS["mapping"]["num_threads"])
     database = Path(database)
     if database.exists():
         raise FileExistsError(f"database already exists: {database}")

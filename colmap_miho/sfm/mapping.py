@@ -224,7 +224,10 @@ def run_mapping(
     from ..adapters.paths import refuse_text_model
     from ..adapters.safety import check_database_path, read_copy
     from ..adapters.staged_write import disk_full_error, is_disk_full, private_tempdir
+    from ..arguments import check_paths, check_seed
 
+    check_paths(database=database, image_dir=image_dir, output=output)
+    check_seed(seed, optional=True)
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
         cfg = replace(cfg, mapper=cfg.mapper if mapper is None else Mapper.parse(mapper, "mapper"),
