@@ -20,6 +20,7 @@ import shutil
 import sqlite3
 import stat
 import tempfile
+import time
 from pathlib import Path
 
 from ..errors import RunFailed, UserError
@@ -285,6 +286,11 @@ def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool 
 
 #: The lock file inside a :func:`private_tempdir`: held while its run lives.
 _TEMPDIR_LOCK = ".colmap-miho.lock"
+#: The lock file's name before it is locked and renamed to :data:`_TEMPDIR_LOCK`.
+_PENDING_LOCK = ".colmap-miho.pending-"
+#: Seconds after which a folder whose lock file never appeared (its run was killed in the
+#: moment between making the folder and locking it) is removed by a sweep.
+PENDING_TEMPDIR_S = 60.0
 
 
 @contextlib.contextmanager
@@ -294,6 +300,11 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
     run lives, and earlier folders of the same ``prefix`` whose lock nobody holds are removed
     first (only folders with that lock file: never a user's folder).
 
+    No window between runs: the lock file is made under another name, locked, and only then
+    renamed to its sweepable name, so a sweep never sees it unlocked while its run lives (a
+    folder without it is never taken, except one left empty but for an unlocked pending lock
+    for :data:`PENDING_TEMPDIR_S`: a run killed in that moment).
+
     Raises:
         RunFailed: disk full while creating it.
     """
@@ -301,36 +312,59 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
     _remove_stale_tempdirs(where, prefix)
     try:
         path = Path(tempfile.mkdtemp(prefix=prefix, dir=where))
-        lock = open(path / _TEMPDIR_LOCK, "w")  # noqa: SIM115 - held open for the folder's life
+        fd, pending = tempfile.mkstemp(prefix=_PENDING_LOCK, dir=path)
     except OSError as exc:
         if is_disk_full(exc):
             raise disk_full_error(where, "creating a working folder") from None
         raise
-    fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
     WORKING_FILES.add(path)
     try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        os.rename(pending, path / _TEMPDIR_LOCK)  # visible only once locked
         yield path
     finally:
-        lock.close()
-        shutil.rmtree(path, ignore_errors=True)
+        shutil.rmtree(path, ignore_errors=True)  # still locked: no sweep takes it meanwhile
+        os.close(fd)
         WORKING_FILES.discard(path)
+
+
+def _lock_is_free(lock_file: Path) -> bool:
+    """Whether nobody holds ``lock_file``'s ``flock`` (False when it cannot be opened)."""
+    try:
+        fd = os.open(lock_file, os.O_RDWR)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # a live run holds it
+        return False
+    finally:
+        os.close(fd)
+    return True
+
+
+def _is_stale(folder: Path) -> bool:
+    """A folder of :func:`private_tempdir` whose run is gone: its lock file is free, or it never
+    got one (killed while making it) and holds nothing but a free pending lock, for a while."""
+    if not folder.is_dir() or folder.is_symlink():
+        return False
+    lock_file = folder / _TEMPDIR_LOCK
+    if lock_file.is_file():
+        return _lock_is_free(lock_file)
+    entries = list(folder.iterdir())
+    if not entries or not all(e.name.startswith(_PENDING_LOCK) and e.is_file() for e in entries):
+        return False
+    return (time.time() - folder.stat().st_mtime > PENDING_TEMPDIR_S
+            and all(_lock_is_free(e) for e in entries))
 
 
 def _remove_stale_tempdirs(parent: Path, prefix: str) -> None:
     with contextlib.suppress(OSError):
         for folder in parent.glob(f"{prefix}*"):
-            lock_file = folder / _TEMPDIR_LOCK
-            if not folder.is_dir() or not lock_file.is_file():
-                continue
             try:
-                fd = os.open(lock_file, os.O_RDWR)
+                stale = _is_stale(folder)
             except OSError:
                 continue
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:  # a live run holds it
-                continue
-            finally:
-                os.close(fd)
-            shutil.rmtree(folder, ignore_errors=True)
-            log.info("removed %s, left by an interrupted earlier run", folder)
+            if stale:
+                shutil.rmtree(folder, ignore_errors=True)
+                log.info("removed %s, left by an interrupted earlier run", folder)
