@@ -47,11 +47,29 @@ def is_disk_full(exc: BaseException) -> bool:
     return False
 
 
+#: Below this many free bytes a file system counts as full when a native writer fails
+#: without saying why (:func:`out_of_room`).
+MIN_ROOM_BYTES = 1 << 20
+
+
+def out_of_room(folder: str | os.PathLike) -> bool:
+    """Whether ``folder``'s file system is full: less than :data:`MIN_ROOM_BYTES` free, or no
+    free inode (a file system that counts them). False when it cannot be read."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < MIN_ROOM_BYTES or (st.f_files > 0 and st.f_favail == 0)
+
+
 def disk_full_error(folder: Path, what: str) -> RunFailed:
     """The one-line error of a full disk: it names the file system's folder and what was kept."""
     free = ""
     with contextlib.suppress(OSError):
         free = f" ({shutil.disk_usage(folder).free / 1e6:.1f} MB free)"
+        st = os.statvfs(folder)
+        if st.f_files > 0 and st.f_favail == 0:
+            free = " (no free inode: too many files)"
     return RunFailed(f"disk full in {folder}{free} while {what}; nothing was written under the output name "
                      "and the working files were removed: free some space and retry")
 
@@ -322,6 +340,14 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
         fcntl.flock(fd, fcntl.LOCK_EX)
         os.rename(pending, path / _TEMPDIR_LOCK)  # visible only once locked
         yield path
+    except (OSError, RuntimeError, ValueError, sqlite3.Error) as exc:
+        # a native writer (SQLite, COLMAP) that fails on a full file system rarely says so
+        # ("No registered database factory succeeded"): its state, read before the folder is
+        # removed, tells
+        if isinstance(exc, UserError) or not (is_disk_full(exc) or out_of_room(path)):
+            raise
+        room = "" if parent is not None else " (or set TMPDIR to a folder with room)"
+        raise disk_full_error(where, f"working in a temporary folder there ({path.name}){room}") from exc
     finally:
         shutil.rmtree(path, ignore_errors=True)  # still locked: no sweep takes it meanwhile
         os.close(fd)
