@@ -187,6 +187,18 @@ def install_signal_handlers() -> None:
     signal.signal(signal.SIGINT, _raise_interrupted)
 
 
+def _glog_to_stderr():
+    """COLMAP's log on stderr, never in glog's own files in ``$TMPDIR``, for the command (see
+    :func:`colmap_miho.sfm.colmap_log.glog_to_stderr`; a mapper's log file is asked for
+    apart); a no-op without pycolmap."""
+    try:
+        from .sfm.colmap_log import glog_to_stderr
+
+        return glog_to_stderr()
+    except ImportError:  # pragma: no cover - a broken install reports itself later
+        return contextlib.nullcontext()
+
+
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
@@ -215,8 +227,10 @@ def main(argv: list[str] | None = None) -> int:
         _SIGNAL_HANDLED.clear()
         install_signal_handlers()
     guard = _forced_exit_after_sigterm() if in_main_thread else contextlib.nullcontext()
+    glog = _glog_to_stderr()
     try:
         guard.__enter__()
+        glog.__enter__()
         from .validation import check_options
 
         check_options(args)  # numeric options in range before any path is looked at
@@ -249,6 +263,7 @@ def main(argv: list[str] | None = None) -> int:
                   type(exc).__name__, _one_line(exc), _notes(exc), exc_info=verbose)
         return 1
     finally:
+        glog.__exit__(None, None, None)
         guard.__exit__(None, None, None)
         if in_main_thread:
             signal.signal(signal.SIGTERM, saved[0])

@@ -13,14 +13,17 @@ def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_
     stderr unless ``errors_to_terminal`` is False (a call whose failure the caller reports in
     its own words).
 
-    Yields the log file's path prefix (glog appends a timestamp), or None when verbose.
-    glog settings are process-wide; they are restored on exit.
+    Yields the log file's path prefix (glog appends a timestamp), or None when verbose (or
+    ``folder`` is None): then COLMAP's log goes to stderr only (see :func:`glog_to_stderr`),
+    never to glog's own files in ``$TMPDIR``. glog settings are process-wide; they are
+    restored on exit.
     """
     import pycolmap
 
     lg = pycolmap.logging
     if verbose or folder is None:
-        yield None
+        with glog_to_stderr():
+            yield None
         return
     saved = (lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel)
     prefix = Path(folder) / "colmap_log."
@@ -36,6 +39,23 @@ def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_
     finally:
         lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel = saved
         lg.set_log_destination(lg.INFO, "")
+
+
+@contextlib.contextmanager
+def glog_to_stderr():
+    """COLMAP's log (glog) on stderr only for the block, restored after: by default glog also
+    writes every line into files of its own in ``$TMPDIR`` (``.<host>.<user>.log.INFO.<time>.<pid>``,
+    ``.WARNING``, ``.ERROR``) that nobody asked for and nobody removes. Which lines reach
+    stderr is still ``minloglevel``'s to say."""
+    import pycolmap
+
+    lg = pycolmap.logging
+    saved = lg.logtostderr
+    lg.logtostderr = True
+    try:
+        yield
+    finally:
+        lg.logtostderr = saved
 
 
 def latest_log(prefix: Path | None) -> Path | None:
