@@ -10,7 +10,8 @@ outputs)`` (label -> path): :func:`main` refuses any overlap before the command 
 Failures reach the user as one line (``ERROR: ...``, the traceback only with ``-v``) and an
 exit code: 2 a user error (bad input: :class:`~colmap_miho.errors.UserError`, a missing or
 unwritable path), 1 a failed run or an internal error (with the ``-v`` hint), 130 Ctrl-C, 143
-SIGTERM (handled like Ctrl-C: working files removed, the input untouched).
+SIGTERM, 129 SIGHUP (the terminal closed; handled like SIGTERM, which is handled like Ctrl-C:
+working files removed, the input untouched, a refine run's finished work kept for ``--resume``).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import threading
 import time
 
 from .errors import Terminated, UserError
-from .terminal import PrintableFormatter
+from .terminal import PrintableFormatter, printable
 from .version import __version__
 
 log = logging.getLogger("colmap_miho")
@@ -90,8 +91,12 @@ TERM_GRACE_S = 5.0
 TERM_CLEANUP_S = 60.0
 
 
-#: Exit status and what the forced exit says, per signal.
+#: Exit status and what the exit says, per signal (SIGHUP: the terminal closed, ssh dropped).
 _FORCED_EXITS = {signal.SIGTERM: (143, "terminated (SIGTERM)"), signal.SIGINT: (130, "interrupted")}
+if hasattr(signal, "SIGHUP"):
+    _FORCED_EXITS[signal.SIGHUP] = (129, "hung up (SIGHUP)")
+#: The signals whose handler raises :class:`~colmap_miho.errors.Terminated`.
+_TERMINATING = tuple(s for s in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)) if s is not None)
 
 
 #: Set when the interpreter ran a SIGTERM / SIGINT handler: it is cleaning up on its own, and
@@ -101,7 +106,9 @@ _SIGNAL_HANDLED = threading.Event()
 
 def _raise_terminated(signum, frame) -> None:
     _SIGNAL_HANDLED.set()
-    raise Terminated(f"terminated by signal {signum}")
+    exc = Terminated(f"terminated by signal {signum}")
+    exc.signum = signum
+    raise exc
 
 
 def _raise_interrupted(signum, frame) -> None:
@@ -158,19 +165,23 @@ def _forced_exit_after_sigterm():
 
 
 def _forced_exit(signum: int, when: str) -> None:
-    """Remove the working files (and the worker pool's temporary folder) and exit at once."""
+    """Remove the working files (and the worker pool's temporary folder) and exit at once, with
+    the line the interpreter would have printed (the kept work and ``--resume`` included)."""
     import multiprocessing.process
     import shutil
 
-    from .adapters.safety import remove_working_files
+    from .adapters.safety import exit_notes, remove_working_files
 
+    notes = exit_notes()  # before the files go: a note may look at them
     remove_working_files()
     pool_tmp = multiprocessing.process.current_process()._config.get("tempdir")  # type: ignore[attr-defined]
     if pool_tmp:
         shutil.rmtree(pool_tmp, ignore_errors=True)
     code, what = _FORCED_EXITS[signal.Signals(signum)]
-    sys.stderr.write(f"ERROR: {what} {when}; working files removed, nothing was written to the input\n")
-    sys.stderr.flush()
+    line = f"ERROR: {what} {when}; working files removed, nothing was written to the input"
+    with contextlib.suppress(OSError, ValueError):  # SIGHUP: the terminal may be gone
+        sys.stderr.write(printable(line + "".join(f"; {n}" for n in notes)) + "\n")
+        sys.stderr.flush()
     os._exit(code)
 
 
@@ -182,8 +193,8 @@ def install_signal_handlers() -> None:
         import pycolmap  # noqa: F401
     except ImportError:  # pragma: no cover - a broken install reports itself later
         pass
-    if hasattr(signal, "SIGTERM"):
-        signal.signal(signal.SIGTERM, _raise_terminated)
+    for sig in _TERMINATING:
+        signal.signal(sig, _raise_terminated)
     signal.signal(signal.SIGINT, _raise_interrupted)
 
 
@@ -222,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     verbose = getattr(args, "verbose", False)
     configure_logging(verbose, getattr(args, "quiet", False))
     in_main_thread = threading.current_thread() is threading.main_thread()
-    saved = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    saved = {sig: signal.getsignal(sig) for sig in (*_TERMINATING, signal.SIGINT)}
     if in_main_thread:
         _SIGNAL_HANDLED.clear()
         install_signal_handlers()
@@ -247,9 +258,10 @@ def main(argv: list[str] | None = None) -> int:
         log.error("%s", _one_line(exc))
         return 2
     except Terminated as exc:
-        log.error("terminated (SIGTERM); working files removed, nothing was written to the input%s",
-                  _notes(exc))
-        return 143
+        code, what = _FORCED_EXITS.get(getattr(exc, "signum", signal.SIGTERM), _FORCED_EXITS[signal.SIGTERM])
+        with contextlib.suppress(OSError, ValueError):  # SIGHUP: the terminal may be gone
+            log.error("%s; working files removed, nothing was written to the input%s", what, _notes(exc))
+        return code
     except KeyboardInterrupt as exc:
         log.error("interrupted; working files removed, nothing was written to the input%s", _notes(exc))
         return 130
@@ -266,8 +278,8 @@ def main(argv: list[str] | None = None) -> int:
         glog.__exit__(None, None, None)
         guard.__exit__(None, None, None)
         if in_main_thread:
-            signal.signal(signal.SIGTERM, saved[0])
-            signal.signal(signal.SIGINT, saved[1])
+            for sig, handler in saved.items():
+                signal.signal(sig, handler)
 
 
 def console_main() -> None:

@@ -43,7 +43,7 @@ from pathlib import Path
 
 from ..adapters.database import ColmapDatabase, validate_database
 from ..adapters.paths import check_distinct
-from ..adapters.safety import check_database_path
+from ..adapters.safety import check_database_path, exit_note
 from ..adapters.working_copy import WorkingCopy
 from ..arguments import check_paths, check_seed, check_workers
 from ..enums import Device
@@ -193,7 +193,7 @@ def refine_database(
     resumed = store.has_work()
     laps.lap("setup")
     try:
-        with open_runner(n_workers, dask) as runner:
+        with exit_note(lambda: _resume_hint(store) if store.has_work() else ""), open_runner(n_workers, dask) as runner:
             inputs = _RunInputs(database=database, image_dir=image_dir, recipe=rec, device=dev, seed=seed,
                                 strict=strict, progress=progress, json_path=json_path)
             summary = _run_stages(inputs, wc, store, runner, resumed=resumed, laps=laps)
