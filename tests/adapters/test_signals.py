@@ -65,9 +65,9 @@ def test_sighup_served_by_python_is_a_sigterm(db_copy, scene, tmp_path):
     from helpers import start_at_write
 
     out = tmp_path / "out.db"
-    proc = start_at_write("hold_at_write.py", tmp_path / "marker", str(tmp_path / "never"), "refine", "--database", str(db_copy),
-                          "--images", str(scene.image_dir), "--output", str(out), "--workers", "1", "--no-refine",
-                          "-q")
+    proc = start_at_write("hold_at_write.py", tmp_path / "marker", str(tmp_path / "never"), "refine",
+                          "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                          "--workers", "1", "--no-refine", "-q")
     try:
         proc.send_signal(signal.SIGHUP)
         _, err = proc.communicate(timeout=60)
