@@ -305,7 +305,7 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
                                  "pose"))
     before, after = changes.get("matches_before", {}), changes.get("matches_after", {})
     if before:
-        checked = (refine.get("match_check") or {}).get("removed_per_pair") or {}
+        checked = removed_by_the_check((refine.get("match_check") or {}).get("removed_per_pair"))
         sections.append(_section("Matches per pair", _figure_html(_matches_figure(go, before, after, checked),
                                                                   "matches"),
                                  "Verified matches of each image pair in the two databases (log scale); hover a "
@@ -321,6 +321,19 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
         sections.append(_section("Sparse models", _figure_html(fig, "models3d"), note, "models"))
     write_text_atomic(path, _page(title, sections))
     return path
+
+
+def removed_by_the_check(removed_per_pair) -> dict[str, int]:
+    """``match_check.removed_per_pair`` (a list of ``{"images": [a, b], "removed": n}``; the
+    ``{"a|b": n}`` dict of older reports is taken as it is) keyed like the comparison's
+    matches per pair (the two names sorted, joined by ``|``)."""
+    if isinstance(removed_per_pair, dict):
+        return {str(k): int(v) for k, v in removed_per_pair.items()}
+    out: dict[str, int] = {}
+    for entry in removed_per_pair or ():
+        key = "|".join(sorted(str(n) for n in entry["images"]))
+        out[key] = out.get(key, 0) + int(entry["removed"])
+    return out
 
 
 def _summary_note(baseline: dict, refine: dict) -> str:
