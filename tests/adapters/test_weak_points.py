@@ -118,3 +118,30 @@ def test_map_warns_about_image_names_outside_the_folder(db_copy, scene, tmp_path
     capfd.readouterr()
     main(["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(tmp_path / "m")])
     assert "1 image name(s) of" in capfd.readouterr().err
+
+
+@pytest.mark.parametrize(("damage", "message"), [
+    ("DELETE FROM frame_data WHERE data_id = (SELECT min(image_id) FROM images)",
+     "1 image(s) with no row in frame_data"),
+    ("DELETE FROM frames", "image(s) with a frame with no row in frames"),
+    ("DELETE FROM rigs", "image(s) with a frame whose rig has no row in rigs"),
+    ("UPDATE frame_data SET sensor_id = 77 WHERE data_id = (SELECT max(image_id) FROM images)",
+     "1 image(s) with a frame_data row naming another camera"),
+    ("UPDATE cameras SET model = 99", "has model id 99, which is no COLMAP camera model"),
+    ("UPDATE cameras SET params = x'00'", "holds 1 bytes of parameters"),
+])
+@pytest.mark.parametrize("command", ["refine", "map"])
+def test_damaged_rig_frame_or_camera_rows_name_the_database(command, damage, message, db_copy, scene, tmp_path,
+                                                            capfd):
+    """pycolmap says ``Check failed: frame.HasDataId(image.DataId())`` or ``Camera model does
+    not exist`` (an "unexpected" error): one line naming the database and what is damaged."""
+    sql(db_copy, damage)
+    digest = sha256(db_copy)
+    argv = {"refine": _refine(db_copy, scene.image_dir, "--output", str(tmp_path / "o.db")),
+            "map": ["map", "--database", str(db_copy), "--images", str(scene.image_dir), "--output",
+                    str(tmp_path / "m"), "-q"]}[command]
+    capfd.readouterr()
+    assert main(argv) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"database {db_copy} is damaged: " in lines[0] and message in lines[0], lines
+    assert sha256(db_copy) == digest and not (tmp_path / "o.db").exists() and not (tmp_path / "m").exists()
