@@ -145,3 +145,27 @@ def test_damaged_rig_frame_or_camera_rows_name_the_database(command, damage, mes
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and f"database {db_copy} is damaged: " in lines[0] and message in lines[0], lines
     assert sha256(db_copy) == digest and not (tmp_path / "o.db").exists() and not (tmp_path / "m").exists()
+
+
+@pytest.mark.parametrize("alias", ["./{}", ".//{}", "link.png"])
+def test_two_rows_naming_one_file_are_named(alias, db_copy, scene, tmp_path, capfd):
+    """``./a.png`` beside ``a.png`` (or a link to it): the second row's keypoints would be
+    refined against the first one's pixels without a word. A warning naming both rows; an error
+    with --strict."""
+    import shutil
+
+    images = tmp_path / "images"
+    shutil.copytree(scene.image_dir, images)
+    (first, name), (second, _) = sql(db_copy, "SELECT image_id, name FROM images ORDER BY image_id LIMIT 2")
+    if alias == "link.png":
+        (images / alias).symlink_to(images / name)
+    sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", alias.format(name), second)
+    refine = ["refine", "--database", str(db_copy), "--images", str(images), "--workers", "1", "-q"]
+    capfd.readouterr()
+    assert main([*refine, "--output", str(tmp_path / "a.db")]) == 0
+    err = capfd.readouterr().err
+    assert f"{name!r} (id {first}) and {alias.format(name)!r} (id {second})" in err and "same pixels" in err, err
+    assert main([*refine, "--output", str(tmp_path / "b.db"), "--strict"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "name a file that another row names already" in lines[0], lines
+    assert str(db_copy) in lines[0] and "--strict" in lines[0] and not (tmp_path / "b.db").exists()
