@@ -174,6 +174,8 @@ def _forced_exit(signum: int, when: str) -> None:
 
     notes = exit_notes()  # before the files go: a note may look at them
     remove_working_files()
+    _stop_children()
+    _release_semaphores()
     pool_tmp = multiprocessing.process.current_process()._config.get("tempdir")  # type: ignore[attr-defined]
     if pool_tmp:
         shutil.rmtree(pool_tmp, ignore_errors=True)
@@ -183,6 +185,31 @@ def _forced_exit(signum: int, when: str) -> None:
         sys.stderr.write(printable(line + "".join(f"; {n}" for n in notes)) + "\n")
         sys.stderr.flush()
     os._exit(code)
+
+
+def _stop_children() -> None:
+    """Kill this process's worker processes (a pool's, a local Dask cluster's): their own
+    watchdog would end them once this process is reaped, but until then they hold its stderr
+    (a pipe's reader waits) and their semaphores."""
+    import multiprocessing
+
+    for child in multiprocessing.active_children():
+        with contextlib.suppress(Exception):
+            child.kill()
+
+
+def _release_semaphores() -> None:
+    """Unlink the worker pool's semaphores (and tell multiprocessing's resource tracker) as
+    their finalizers would at a normal exit: after ``os._exit`` the tracker removes them itself
+    with a "leaked semaphore objects" warning of its own on the terminal."""
+    import multiprocessing.synchronize
+    import multiprocessing.util as mp_util
+
+    cleanup = getattr(multiprocessing.synchronize.SemLock, "_cleanup", None)
+    for finalizer in list(getattr(mp_util, "_finalizer_registry", {}).values()):
+        if cleanup is not None and getattr(finalizer, "_callback", None) is cleanup:
+            with contextlib.suppress(Exception):
+                finalizer()
 
 
 def install_signal_handlers() -> None:

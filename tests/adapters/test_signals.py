@@ -20,12 +20,14 @@ from colmap_miho.pipeline.store import store_folder
 CODES = {"SIGINT": 130, "SIGTERM": 143, "SIGHUP": 129}
 
 
-def _start_in_mapper(db: Path, images: Path, out: Path, tmp: Path, marker: Path) -> subprocess.Popen:
+def _start_in_mapper(db: Path, images: Path, out: Path, tmp: Path, marker: Path, workers: int = 1
+                     ) -> subprocess.Popen:
+    env = {**os.environ, "TMPDIR": str(tmp), **({"MIHO_TEST_POOL": "1"} if workers > 1 else {})}
     proc = subprocess.Popen(
         [sys.executable, str(HELPERS / "busy_in_mapper.py"), str(marker), "refine", "--database", str(db),
-         "--images", str(images), "--output", str(out), "--workers", "1", "-q", "--no-refine", "--set",
+         "--images", str(images), "--output", str(out), "--workers", str(workers), "-q", "--no-refine", "--set",
          "match_check.mode=remove"],
-        cwd=REPO, stderr=subprocess.PIPE, text=True, env={**os.environ, "TMPDIR": str(tmp)})
+        cwd=REPO, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + 120
     while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -35,14 +37,15 @@ def _start_in_mapper(db: Path, images: Path, out: Path, tmp: Path, marker: Path)
     return proc
 
 
-@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM", "SIGHUP"])
-def test_a_signal_during_a_colmap_call_says_the_work_is_kept(db_copy, scene, tmp_path, sig):
+@pytest.mark.parametrize(("sig", "workers"), [("SIGINT", 1), ("SIGTERM", 1), ("SIGHUP", 1), ("SIGTERM", 2)])
+def test_a_signal_during_a_colmap_call_says_the_work_is_kept(db_copy, scene, tmp_path, sig, workers):
     """The watcher's forced exit (the interpreter is held by the mapper) says the same as the
-    line Python prints: the working files removed, the finished work kept, ``--resume``."""
+    line Python prints: the working files removed, the finished work kept, ``--resume``; with
+    worker processes no more (multiprocessing's "leaked semaphore objects" warning)."""
     tmp = tmp_path / "tmp"
     tmp.mkdir()
     out = tmp_path / "out.db"
-    proc = _start_in_mapper(db_copy, scene.image_dir, out, tmp, tmp_path / "marker")
+    proc = _start_in_mapper(db_copy, scene.image_dir, out, tmp, tmp_path / "marker", workers)
     try:
         t0 = time.monotonic()
         proc.send_signal(getattr(signal, sig))
