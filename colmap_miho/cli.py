@@ -272,6 +272,9 @@ def main(argv: list[str] | None = None) -> int:
         from .validation import check_options
 
         check_options(args)  # numeric options in range before any path is looked at
+        from .adapters.staged_write import sweep_stale_tempdirs
+
+        sweep_stale_tempdirs()  # what killed runs left in TMPDIR
         if args._paths is not None:
             from .adapters.paths import check_distinct
 

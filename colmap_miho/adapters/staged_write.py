@@ -354,6 +354,22 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
         WORKING_FILES.discard(path)
 
 
+#: The prefixes of the folders this package makes in ``$TMPDIR`` with :func:`private_tempdir`
+#: (the map and import folders go beside their output instead).
+TMPDIR_PREFIXES = ("miho-global-", "colmap_miho_check_", "colmap_miho_report_", "colmap_miho_cmp_",
+                   "colmap-miho-export-", "colmap_miho_mp_", "colmap_miho_dask_")
+
+
+def sweep_stale_tempdirs(parent: str | os.PathLike | None = None) -> None:
+    """Remove the folders that killed runs (``kill -9``) left in ``parent`` (default
+    ``$TMPDIR``) under any of :data:`TMPDIR_PREFIXES`: every command does this first, so that
+    a run that makes none of them cleans up too. Never fails."""
+    where = Path(parent) if parent is not None else Path(tempfile.gettempdir())
+    for prefix in TMPDIR_PREFIXES:
+        with contextlib.suppress(OSError):
+            _remove_stale_tempdirs(where, prefix)
+
+
 def _lock_is_free(lock_file: Path) -> bool:
     """Whether nobody holds ``lock_file``'s ``flock`` (False when it cannot be opened)."""
     try:

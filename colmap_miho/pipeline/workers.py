@@ -32,7 +32,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-from ..errors import RunFailed
+from ..errors import RunFailed, UserError
 
 log = logging.getLogger(__name__)
 
@@ -150,6 +150,45 @@ def _context():
     return multiprocessing.get_context("spawn")
 
 
+#: Prefix of multiprocessing's temporary folder (see :func:`private_multiprocessing_tempdir`).
+MP_TEMPDIR_PREFIX = "colmap_miho_mp_"
+_MP_TEMPDIR: list = []  # the private_tempdir context of this process's folder, open until exit
+
+
+def private_multiprocessing_tempdir() -> None:
+    """Give multiprocessing (the forkserver's socket) a :func:`~colmap_miho.adapters.staged_write.private_tempdir`
+    for the life of this process instead of its own ``pymp-*`` folder: removed at exit as
+    ``pymp-*`` is, and also by the next run after a ``kill -9`` (a ``pymp-*`` folder is then
+    left for ever: nothing tells whose it is). A no-op when multiprocessing has its folder
+    already."""
+    import multiprocessing.process
+    import multiprocessing.util
+
+    from ..adapters.staged_write import private_tempdir
+
+    config = multiprocessing.process.current_process()._config  # type: ignore[attr-defined]
+    if config.get("tempdir") is not None:
+        return
+    folder = private_tempdir(MP_TEMPDIR_PREFIX)
+    try:
+        path = folder.__enter__()
+    except (OSError, UserError):  # a full TMPDIR: multiprocessing tries (and says) itself
+        return
+    _MP_TEMPDIR.append(folder)
+    config["tempdir"] = str(path)
+    # removed last at exit, as multiprocessing removes its own pymp-* folder
+    multiprocessing.util.Finalize(None, _close_mp_tempdir, exitpriority=-100)
+
+
+def _close_mp_tempdir() -> None:
+    import multiprocessing.process
+
+    multiprocessing.process.current_process()._config.pop("tempdir", None)  # type: ignore[attr-defined]
+    while _MP_TEMPDIR:
+        with contextlib.suppress(Exception):
+            _MP_TEMPDIR.pop().__exit__(None, None, None)
+
+
 def start_forkserver() -> None:
     """Start the forkserver now (no-op where there is none, or when it runs already), with
     :data:`PRELOAD` imported and single-threaded BLAS / OpenMP in its environment: its
@@ -161,6 +200,7 @@ def start_forkserver() -> None:
     from multiprocessing import forkserver
 
     try:
+        private_multiprocessing_tempdir()
         with single_thread_children(), sigint_for_this_process_only():
             ctx.set_forkserver_preload(list(PRELOAD))
             forkserver.ensure_running()

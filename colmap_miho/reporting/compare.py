@@ -18,7 +18,6 @@ copies).
 from __future__ import annotations
 
 import logging
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -112,7 +111,9 @@ def match_changes(baseline_db: str | Path, refined_db: str | Path) -> dict:
 
     out: dict = {}
     kps: dict[str, dict[str, np.ndarray]] = {}
-    with tempfile.TemporaryDirectory(prefix="colmap_miho_cmp_") as tmp:
+    from ..adapters.staged_write import private_tempdir
+
+    with private_tempdir("colmap_miho_cmp_") as tmp:  # removed by the next run after a kill -9
         for tag, src in (("before", Path(baseline_db)), ("after", Path(refined_db))):
             copy = Path(tmp) / f"{tag}.db"
             read_copy(src, copy)  # refuses a database in use or with a hot journal

@@ -29,3 +29,53 @@ def test_verbose_leaves_no_glog_files_in_tmpdir(db_copy, scene, tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     assert "global_pipeline" in done.stderr or "I20" in done.stderr  # COLMAP's log did reach the terminal
     assert sorted(p.name for p in tmp.iterdir()) == []
+
+
+def _refine_args(db: Path, images: Path, out: Path, *extra: str) -> list[str]:
+    return ["refine", "--database", str(db), "--images", str(images), "--output", str(out), "--no-refine", "-q",
+            *extra]
+
+
+def test_after_kill_9_the_next_run_removes_what_was_left(db_copy, scene, tmp_path):
+    """A run with worker processes killed (-9) in the global mapper leaves its folders in
+    TMPDIR (multiprocessing's, the estimate's): none is a ``pymp-*`` folder that nothing can
+    tell the owner of, and the next run, even one with no workers, removes them."""
+    import signal
+    import time
+
+    from helpers import HELPERS
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    marker = tmp_path / "marker"
+    env = {**os.environ, "TMPDIR": str(tmp), "MIHO_TEST_POOL": "1"}
+    proc = subprocess.Popen([sys.executable, str(HELPERS / "busy_in_mapper.py"), str(marker),
+                             *_refine_args(db_copy, scene.image_dir, tmp_path / "a.db", "--workers", "2", "--set",
+                                           "match_check.mode=remove")],
+                            cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    left = sorted(p.name for p in tmp.iterdir())
+    assert marker.exists() and any(n.startswith("colmap_miho_mp_") for n in left), left
+    assert any(n.startswith("miho-global-") for n in left) and not any(n.startswith("pymp-") for n in left), left
+    time.sleep(2)  # the orphaned workers and forkserver notice and end
+    done = _cli(["export", "--database", str(db_copy), "--features", str(tmp_path / "f.h5"), "--matches",
+                 str(tmp_path / "m.h5"), "-q"], tmp)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert sorted(p.name for p in tmp.iterdir()) == []
+
+
+def test_dask_leaves_no_scratch_space_in_tmpdir(db_copy, scene, tmp_path):
+    """A local Dask cluster's workers write ``dask-scratch-space/`` into TMPDIR and Dask leaves
+    it there after every run: it goes into a folder of ours, removed with the run."""
+    import pytest
+
+    pytest.importorskip("distributed")
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    done = _cli([*_refine_args(db_copy, scene.image_dir, tmp_path / "o.db", "--workers", "2", "--dask")], tmp)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert sorted(p.name for p in tmp.iterdir()) == []
