@@ -169,3 +169,25 @@ def test_two_rows_naming_one_file_are_named(alias, db_copy, scene, tmp_path, cap
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and "name a file that another row names already" in lines[0], lines
     assert str(db_copy) in lines[0] and "--strict" in lines[0] and not (tmp_path / "b.db").exists()
+
+
+@pytest.mark.parametrize("command", ["import", "refine"])
+def test_a_dangling_symlink_output_is_named_as_such(command, db_copy, scene, tmp_path, capfd):
+    """An output name that is a link to nothing existed before the run: not "created by
+    another program during the run" after the work, but one line before it."""
+    link = tmp_path / "link.db"
+    link.symlink_to(tmp_path / "gone.db")
+    if command == "import":
+        feats, matches = tmp_path / "f.h5", tmp_path / "m.h5"
+        assert main(["export", "--database", str(db_copy), "--features", str(feats), "--matches", str(matches),
+                     "-q"]) == 0
+        argv = ["import", "--features", str(feats), "--matches", str(matches), "--images", str(scene.image_dir),
+                "--database", str(link), "-q"]
+    else:
+        argv = _refine(db_copy, scene.image_dir, "--output", str(link))
+    capfd.readouterr()
+    assert main(argv) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"{link} is a symlink to {tmp_path / 'gone.db'}, which does not exist" in lines[0], lines
+    assert "during the run" not in lines[0] and link.is_symlink() and not (tmp_path / "gone.db").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".link.db")]
