@@ -157,7 +157,7 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], *, 
             seconds["database"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             failure = ""
-            with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False) as prefix:
+            with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False, replay=True) as prefix:
                 try:
                     recs = pycolmap.global_mapping(str(db_path), str(folder), str(out), opts)
                 except RuntimeError as exc:  # COLMAP's own check failed: no estimate, the run goes on
