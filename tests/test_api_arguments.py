@@ -119,3 +119,23 @@ def test_filter_matches_takes_numpy_and_32_bit_seeds():
     a = cm.filter_matches(pts, pts + 1, seed=np.uint32(2**32 - 1))
     b = cm.filter_matches(pts, pts + 1, seed=2**32 - 1)
     assert np.array_equal(a.inliers, b.inliers)
+
+
+@pytest.mark.parametrize(("model", "params", "message"), [("BOGUS", "", "unknown camera model 'BOGUS'"),
+                                                          ("PINHOLE", "1,2", "PINHOLE takes 4 parameters, got 2"),
+                                                          ("PINHOLE", "a,b,c,d", "'a' is not a number")])
+def test_extraction_camera_is_checked_before_colmap(model, params, message, tmp_path, capfd):
+    """COLMAP's own check says only ``Check failed: ExistsCameraModelWithName(...)`` (an
+    "unexpected" error after ``run`` made its output folder)."""
+    from colmap_miho.cli import main
+
+    with pytest.raises(InvalidInput, match=message):
+        cm.extract_and_match(tmp_path, tmp_path / "new.db", camera_model=model, camera_params=params)
+    with pytest.raises(InvalidInput, match=message):
+        cm.ExtractionOptions(camera_model=model, camera_params=params)
+    capfd.readouterr()
+    argv = ["run", "--images", str(tmp_path), "--output", str(tmp_path / "out"), "--camera-model", model, "-q"]
+    assert main([*argv, "--camera-params", params] if params else argv) == 2
+    lines = [ln for ln in capfd.readouterr().err.splitlines() if ln.startswith("ERROR")]
+    assert len(lines) == 1 and message in lines[0] and "unexpected" not in lines[0], lines
+    assert not (tmp_path / "out").exists() and not (tmp_path / "new.db").exists()

@@ -29,7 +29,7 @@ from ..enums import CameraMode, Device, Mapper
 from ..errors import InvalidInput, RunFailed
 from ..recipe import Recipe, load_recipe
 from ..reporting.compare import CompareResult, Evaluation, gt_intrinsics, write_comparison
-from ..sfm import MappingConfig
+from ..sfm import MappingConfig, parse_camera_params
 from ..validation import OPTION_BOUNDS
 from .run import refine_database
 from .summary import RefineSummary
@@ -94,6 +94,7 @@ class ExtractionOptions:
     def __post_init__(self) -> None:
         object.__setattr__(self, "camera_mode", CameraMode.parse(self.camera_mode, "camera_mode"))
         check_integer("max_features", self.max_features, OPTION_BOUNDS["max_features"])
+        parse_camera_params(str(self.camera_model), str(self.camera_params))  # before any folder is made
 
 
 def _as_recipe(recipe: Recipe | str | None) -> Recipe:

@@ -52,6 +52,10 @@ def extract_and_match(
     check_paths(image_dir=image_dir, database=database, log_dir=log_dir, optional=("log_dir",))
     check_integer("max_features", max_features, OPTION_BOUNDS["max_features"])
     check_integer("num_threads", num_threads, BOUNDS["mapping"]["num_threads"])
+    from .mapping import parse_camera_params
+
+    parse_camera_params(str(camera_model), str(camera_params))  # COLMAP's own check says only "Check failed"
+    camera_model = str(camera_model).upper()
     database = Path(database)
     if database.exists():
         raise FileExistsError(f"database already exists: {database}")
