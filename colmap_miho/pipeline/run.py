@@ -276,8 +276,10 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 removed, pair_check = run_pair_check(db, read, store, rec.pair_check, pcfg.source)
                 if rec.pair_check.enabled:
                     laps.lap("pair_check")
+                # the global mapper runs here: threads beyond this machine's cores (a remote Dask
+                # cluster's slots, --workers 1024) would only be created, never run in parallel
                 checked, match_check = run_match_check(db, store, rec.match_check, pcfg.source, removed=set(removed),
-                                                       threads=runner.slots)
+                                                       threads=min(runner.slots, os.cpu_count() or 1))
                 if rec.match_check.enabled:
                     laps.lap("match_check")
                 removed = set(removed) | checked.wrong

@@ -191,3 +191,22 @@ def test_a_dangling_symlink_output_is_named_as_such(command, db_copy, scene, tmp
     assert len(lines) == 1 and f"{link} is a symlink to {tmp_path / 'gone.db'}, which does not exist" in lines[0], lines
     assert "during the run" not in lines[0] and link.is_symlink() and not (tmp_path / "gone.db").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".link.db")]
+
+
+def test_the_match_check_never_asks_for_more_threads_than_cores(db_copy, scene, tmp_path, monkeypatch):
+    """``workers`` (up to 1024, or a remote Dask cluster's slots) sizes the pool; the global
+    mapper runs here and gets at most this machine's cores."""
+    from colmap_miho import refine_database
+    from colmap_miho.pipeline import run as run_module
+
+    asked: list[int] = []
+
+    def spy(*args, threads, **kwargs):
+        asked.append(threads)
+        raise KeyboardInterrupt  # enough: stop the run here
+
+    monkeypatch.setattr(run_module, "run_match_check", spy)
+    monkeypatch.setattr(run_module.os, "cpu_count", lambda: 2)
+    with pytest.raises(KeyboardInterrupt):
+        refine_database(db_copy, scene.image_dir, tmp_path / "o.db", workers=64, restart=True)
+    assert asked == [2]
