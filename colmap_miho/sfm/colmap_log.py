@@ -7,11 +7,12 @@ import contextlib
 import re
 from pathlib import Path
 
-#: Lines of a replayed log that are not shown: glog's file header, and the global mapper's
-#: warning for every image, which it is not given on purpose (only the colours of its points
-#: would come from them).
+#: Lines of a replayed log that are never shown: glog's file header.
 _NOT_REPLAYED = ("Log file created at:", "Running on machine:", "Running duration (h:mm:ss):",
-                 "Log line format:", "Could not read image")
+                 "Log line format:")
+#: The global mapper's warning for every image, which it is not given on purpose (only the
+#: colours of its points would come from them): hidden from its replayed log by default.
+MAPPER_IMAGE_WARNING = "Could not read image"
 
 
 #: The start of a glog record: severity, date, time, thread id, source file and line.
@@ -20,15 +21,15 @@ _GLOG_RECORD = re.compile(r"[IWEF]\d{8} \d{2}:\d{2}:\d{2}\.\d{6} +\d+ [^\s\]]+:\
 
 @contextlib.contextmanager
 def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_terminal: bool = True,
-                       replay: bool = False):
+                       replay: bool = False, hide: tuple[str, ...] = (MAPPER_IMAGE_WARNING,)):
     """Send COLMAP's glog output to ``folder/colmap_log.<timestamp>``; its errors also reach
     stderr unless ``errors_to_terminal`` is False (a call whose failure the caller reports in
     its own words).
 
     With ``verbose`` and ``replay`` the log still goes to the file, and its lines are written
     to stderr when the call ends, their control characters escaped (glog prints image names
-    raw: a name holding a newline or ESC would forge a line) and the lines of
-    :data:`_NOT_REPLAYED` left out: for a short call that works in a folder of its own.
+    raw: a name holding a newline or ESC would forge a line), glog's header and the records
+    holding a text of ``hide`` left out: for a short call, or one whose names need escaping.
 
     Yields the log file's path prefix (glog appends a timestamp), or None when verbose (or
     ``folder`` is None): then COLMAP's log goes to stderr only (see :func:`glog_to_stderr`),
@@ -59,12 +60,13 @@ def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_
         lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel = saved
         lg.set_log_destination(lg.INFO, "")
         if verbose:
-            replay_log(latest_log(prefix))
+            replay_log(latest_log(prefix), hide)
 
 
-def replay_log(log_file: Path | None) -> None:
+def replay_log(log_file: Path | None, hide: tuple[str, ...] = (MAPPER_IMAGE_WARNING,)) -> None:
     """Write the lines of the glog file ``log_file`` to stderr, escaped (see
-    :func:`colmap_log_to_file`), without those of :data:`_NOT_REPLAYED`."""
+    :func:`colmap_log_to_file`), without glog's header and the records that hold a text of
+    ``hide``."""
     import sys
 
     from ..terminal import printable
@@ -81,7 +83,8 @@ def replay_log(log_file: Path | None) -> None:
             records[-1] += "\n" + line  # a name with a newline: the rest of the same record
         else:
             records.append(line)
-    lines = [printable(r.rstrip("\n")) for r in records if r and not any(t in r for t in _NOT_REPLAYED)]
+    skip = (*_NOT_REPLAYED, *hide)
+    lines = [printable(r.rstrip("\n")) for r in records if r and not any(t in r for t in skip)]
     if lines:
         with contextlib.suppress(OSError, ValueError):
             sys.stderr.write("\n".join(lines) + "\n")

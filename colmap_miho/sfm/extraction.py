@@ -15,6 +15,19 @@ from .colmap_log import colmap_log_to_file
 log = logging.getLogger(__name__)
 
 
+def _names_need_escaping(image_dir: Path) -> bool:
+    """Whether a file name under ``image_dir`` holds a character that
+    :func:`~colmap_miho.terminal.printable` escapes (a newline, ESC ...)."""
+    import os
+
+    from ..terminal import printable
+
+    for _root, dirs, files in os.walk(image_dir):
+        if any(printable(n) != n for n in (*dirs, *files)):
+            return True
+    return False
+
+
 def extract_and_match(
     image_dir: str | Path,
     database: str | Path,
@@ -72,7 +85,10 @@ def extract_and_match(
     extraction.sift.max_num_features = int(max_features)
     extraction.num_threads = int(num_threads)
     mode = getattr(pycolmap.CameraMode, camera_mode.name)
-    with colmap_log_to_file(Path(log_dir) if log_dir else database.parent, verbose=verbose):
+    # COLMAP prints each file's name raw: with a name that needs escaping, -v shows the log
+    # escaped once the call ends instead of live
+    with colmap_log_to_file(Path(log_dir) if log_dir else database.parent, verbose=verbose,
+                            replay=verbose and _names_need_escaping(image_dir), hide=()):
         t0 = time.perf_counter()
         pycolmap.extract_features(str(database), str(image_dir), camera_mode=mode, reader_options=reader,
                                   extraction_options=extraction, device=pycolmap.Device.cpu)

@@ -33,3 +33,24 @@ def test_replay_escapes_names_and_leaves_out_the_per_image_warning(tmp_path, cap
     replay_log(None)
     replay_log(tmp_path / "missing")
     assert capfd.readouterr().err == ""
+
+
+def test_verbose_extraction_escapes_a_name_that_needs_it(tmp_path, capfd):
+    """COLMAP's extraction log names each file raw: with a name holding a newline and ESC, -v
+    shows it escaped (replayed from its file), one record on one line."""
+    import shutil
+
+    from miho_bench.synthetic import make_synthetic_scene
+
+    from colmap_miho.sfm.extraction import extract_and_match
+
+    scene = make_synthetic_scene(tmp_path / "scene", num_images=2, num_points=40, render_images=True, seed=5)
+    images = tmp_path / "images"
+    shutil.copytree(scene.image_dir, images)
+    first = sorted(images.iterdir())[0]
+    first.rename(images / "a\nI1206 FORGED\x1b[31mred.png")
+    capfd.readouterr()
+    extract_and_match(images, tmp_path / "db" / "new.db", verbose=True, max_features=200)
+    err = capfd.readouterr().err
+    assert "\x1b" not in err and "a\\nI1206 FORGED\\x1b[31mred.png" in err, err[-3000:]
+    assert not [ln for ln in err.splitlines() if ln.startswith("I1206 FORGED")]
