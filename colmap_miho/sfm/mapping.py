@@ -255,7 +255,9 @@ def run_mapping(
             models_dir = Path(tmp) / "models"
             models_dir.mkdir()
             t0 = time.perf_counter()
-            with colmap_log_to_file(output, verbose=verbose) as prefix:
+            # COLMAP prints image names raw: with one that needs escaping, -v replays the log
+            with colmap_log_to_file(output, verbose=verbose, replay=verbose and _names_need_escaping(db_copy),
+                                    hide=()) as prefix:
                 models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None, label)
             seconds = time.perf_counter() - t0
             log_file = latest_log(prefix)
@@ -284,6 +286,20 @@ def run_mapping(
         num_points3D=int(best.num_points3D()), seconds=seconds, cameras=_camera_rows(best),
         refine_intrinsics=cfg.refine_intrinsics.value, log_file=log_file, reconstruction=best,
     )
+
+
+def _names_need_escaping(copy: Path) -> bool:
+    """Whether an image name of the database ``copy`` holds a character that
+    :func:`~colmap_miho.terminal.printable` escapes (a newline, ESC ...)."""
+    import sqlite3
+
+    from ..terminal import printable
+
+    con = sqlite3.connect(f"file:{copy.resolve()}?mode=ro", uri=True)
+    try:
+        return any(printable(str(name)) != str(name) for (name,) in con.execute("SELECT name FROM images"))
+    finally:
+        con.close()
 
 
 def _warn_names_outside(copy: Path, database: Path, image_dir: Path) -> None:

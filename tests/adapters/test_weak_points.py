@@ -210,3 +210,18 @@ def test_the_match_check_never_asks_for_more_threads_than_cores(db_copy, scene, 
     with pytest.raises(KeyboardInterrupt):
         refine_database(db_copy, scene.image_dir, tmp_path / "o.db", workers=64, restart=True)
     assert asked == [2]
+
+
+def test_verbose_map_shows_no_raw_name(db_copy, scene, tmp_path, capfd):
+    """``map -v`` with an image name holding a newline and ESC, its file missing: COLMAP's log
+    names it raw ("Could not read image ..."); replayed escaped, nothing forges a line or
+    recolours the terminal."""
+    images = scene.image_dir
+    image_id = sql(db_copy, "SELECT image_id FROM images ORDER BY image_id LIMIT 1")[0][0]
+    evil = "a\nERROR: forged\x1b[31m.png"
+    sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", evil, image_id)
+    capfd.readouterr()
+    assert main(["map", "--database", str(db_copy), "--images", str(images), "--output", str(tmp_path / "m"),
+                 "-v"]) == 0
+    err = capfd.readouterr().err
+    assert "\x1b" not in err and not [ln for ln in err.splitlines() if ln.startswith("ERROR: forged")], err[-2000:]

@@ -40,9 +40,8 @@ def test_verbose_extraction_escapes_a_name_that_needs_it(tmp_path, capfd):
     shows it escaped (replayed from its file), one record on one line."""
     import shutil
 
-    from miho_bench.synthetic import make_synthetic_scene
-
     from colmap_miho.sfm.extraction import extract_and_match
+    from miho_bench.synthetic import make_synthetic_scene
 
     scene = make_synthetic_scene(tmp_path / "scene", num_images=2, num_points=40, render_images=True, seed=5)
     images = tmp_path / "images"
