@@ -117,9 +117,10 @@ def single_thread_children():
 
 @contextlib.contextmanager
 def sigint_for_this_process_only():
-    """Processes started inside the block never receive SIGINT: Ctrl-C in a terminal sends
-    it to every process of the foreground group, and a worker (or the forkserver, while it
-    imports torch) would print its own KeyboardInterrupt traceback. SIGINT is blocked in
+    """Processes started inside the block never receive SIGINT or SIGHUP: Ctrl-C in a terminal
+    (and closing it) sends it to every process of the foreground group, and a worker (or the
+    forkserver, while it imports torch) would print its own KeyboardInterrupt traceback (or
+    die, SIGHUP, leaving the pool broken). SIGINT is blocked in
     this thread meanwhile; the mask is inherited by the processes started (across exec
     too) and by their children, while this process gets a SIGINT that arrived meanwhile
     when the block ends (the CLI's one line, exit 130). The workers are killed by their
@@ -130,9 +131,17 @@ def sigint_for_this_process_only():
         return
     from multiprocessing import resource_tracker
 
-    # first: starting it unblocks SIGINT after blocking it around its own start (bpo-33613)
-    resource_tracker.ensure_running()
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    hangup = {signal.SIGHUP} if hasattr(signal, "SIGHUP") else set()
+    # first: starting it unblocks SIGINT after blocking it around its own start (bpo-33613);
+    # it ignores SIGINT and SIGTERM itself, and inherits SIGHUP blocked (the terminal closing
+    # sends SIGHUP to the whole group: a tracker killed by it is started again, and its
+    # successor prints a KeyError traceback for every semaphore it never saw)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, hangup)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, *hangup})
     try:
         yield
     finally:

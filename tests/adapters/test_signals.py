@@ -20,14 +20,14 @@ from colmap_miho.pipeline.store import store_folder
 CODES = {"SIGINT": 130, "SIGTERM": 143, "SIGHUP": 129}
 
 
-def _start_in_mapper(db: Path, images: Path, out: Path, tmp: Path, marker: Path, workers: int = 1
-                     ) -> subprocess.Popen:
+def _start_in_mapper(db: Path, images: Path, out: Path, tmp: Path, marker: Path, workers: int = 1,
+                     group: bool = False) -> subprocess.Popen:
     env = {**os.environ, "TMPDIR": str(tmp), **({"MIHO_TEST_POOL": "1"} if workers > 1 else {})}
     proc = subprocess.Popen(
         [sys.executable, str(HELPERS / "busy_in_mapper.py"), str(marker), "refine", "--database", str(db),
          "--images", str(images), "--output", str(out), "--workers", str(workers), "-q", "--no-refine", "--set",
          "match_check.mode=remove"],
-        cwd=REPO, stderr=subprocess.PIPE, text=True, env=env)
+        cwd=REPO, stderr=subprocess.PIPE, text=True, env=env, start_new_session=group)
     deadline = time.monotonic() + 120
     while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -83,3 +83,24 @@ def test_sighup_served_by_python_is_a_sigterm(db_copy, scene, tmp_path):
     assert lines[0].startswith("ERROR: hung up (SIGHUP); working files removed"), lines
     assert not out.exists() and [p.name for p in out.parent.iterdir() if p.name.startswith(".out.db")] in (
         [], [store_folder(out).name]), list(out.parent.iterdir())
+
+
+def test_closing_the_terminal_hangs_up_the_whole_group_cleanly(db_copy, scene, tmp_path):
+    """A closed terminal sends SIGHUP to every process of its group: the workers, the
+    forkserver and multiprocessing's resource tracker too. A tracker killed by it was started
+    again, and printed a KeyError traceback for every semaphore it never saw."""
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    out = tmp_path / "out.db"
+    proc = _start_in_mapper(db_copy, scene.image_dir, out, tmp, tmp_path / "marker", workers=2, group=True)
+    try:
+        os.killpg(proc.pid, signal.SIGHUP)
+        _, err = proc.communicate(timeout=TERM_GRACE_S + 30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert proc.returncode == 129 and len(lines) == 1, err
+    assert lines[0].startswith("ERROR: hung up (SIGHUP)") and "--resume" in lines[0], lines
+    assert list(tmp.iterdir()) == [] and not out.exists()
