@@ -312,7 +312,7 @@ PENDING_TEMPDIR_S = 60.0
 
 
 @contextlib.contextmanager
-def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
+def private_tempdir(prefix: str, parent: str | os.PathLike | None = None, *, own_failures: bool = True):
     """A new temporary folder (``parent``, default ``$TMPDIR``) removed on exit, and also by
     the next run after a ``kill -9``: the folder holds a lock file locked (``flock``) while its
     run lives, and earlier folders of the same ``prefix`` whose lock nobody holds are removed
@@ -322,6 +322,12 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
     renamed to its sweepable name, so a sweep never sees it unlocked while its run lives (a
     folder without it is never taken, except one left empty but for an unlocked pending lock
     for :data:`PENDING_TEMPDIR_S`: a run killed in that moment).
+
+    With ``own_failures`` (for a block whose work is in the folder) an ``OSError``,
+    ``RuntimeError``, ``ValueError`` or ``sqlite3.Error`` raised in the block while the
+    folder's file system is full (:func:`out_of_room`) is the full-disk error naming it: a
+    native writer that fails there rarely says why. False for a folder that only lends room
+    to a longer run (its failures are not the folder's).
 
     Raises:
         RunFailed: disk full while creating it.
@@ -344,7 +350,7 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
         # a native writer (SQLite, COLMAP) that fails on a full file system rarely says so
         # ("No registered database factory succeeded"): its state, read before the folder is
         # removed, tells
-        if isinstance(exc, UserError) or not (is_disk_full(exc) or out_of_room(path)):
+        if not own_failures or isinstance(exc, UserError) or not (is_disk_full(exc) or out_of_room(path)):
             raise
         room = "" if parent is not None else " (or set TMPDIR to a folder with room)"
         raise disk_full_error(where, f"working in a temporary folder there ({path.name}){room}") from exc

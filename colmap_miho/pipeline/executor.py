@@ -202,7 +202,8 @@ def _dask_client(workers: int, dask: str):
         # leaves it in TMPDIR), and by the next run after a kill -9
         import dask.config as dask_config  # (``dask`` is the argument)
 
-        with private_tempdir("colmap_miho_dask_") as scratch, dask_config.set({"temporary-directory": str(scratch)}):
+        with private_tempdir("colmap_miho_dask_", own_failures=False) as scratch, \
+                dask_config.set({"temporary-directory": str(scratch)}):
             try:
                 with sigint_for_this_process_only():  # Ctrl-C: one line from this process, none from the workers
                     cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
