@@ -139,3 +139,21 @@ def test_extraction_camera_is_checked_before_colmap(model, params, message, tmp_
     lines = [ln for ln in capfd.readouterr().err.splitlines() if ln.startswith("ERROR")]
     assert len(lines) == 1 and message in lines[0] and "unexpected" not in lines[0], lines
     assert not (tmp_path / "out").exists() and not (tmp_path / "new.db").exists()
+
+
+def test_wrong_types_for_the_whole_jobs_are_named(tmp_path):
+    from colmap_miho.sfm import MappingConfig
+
+    with pytest.raises(InvalidInput, match="^config must be of type MappingConfig, got str$"):
+        cm.run_mapping(tmp_path / "x.db", tmp_path, tmp_path / "m", config="x")
+    with pytest.raises(InvalidInput, match=r"^pairs must be a pairs file or a list of \(name1, name2\), got int$"):
+        cm.compare_databases(tmp_path / "x.db", tmp_path, tmp_path / "c", pairs=123)
+    with pytest.raises(InvalidInput, match="^options must be of type JobOptions, got dict$"):
+        cm.compare_databases(tmp_path / "x.db", tmp_path, tmp_path / "c", options={"workers": 2})
+    with pytest.raises(InvalidInput, match="^extraction must be of type ExtractionOptions, got dict$"):
+        run_from_images(tmp_path, tmp_path / "out", extraction={})
+    assert not (tmp_path / "m").exists() and not (tmp_path / "c").exists() and not (tmp_path / "out").exists()
+    with pytest.raises(InvalidInput, match="^num_threads must be a number, got '4'$"):
+        MappingConfig(num_threads="4")
+    with pytest.raises(InvalidInput, match="^t_l must be a number, got '3'$"):
+        cm.FilterConfig(t_l="3")

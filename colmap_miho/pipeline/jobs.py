@@ -19,6 +19,7 @@ database is never modified (everything reads copies).
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -204,6 +205,10 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
         :class:`~colmap_miho.reporting.compare.CompareResult`.
     """
     check_paths(database=database, image_dir=image_dir, output=output, gt=gt, optional=("gt",))
+    if pairs is not None and not isinstance(pairs, (str, os.PathLike, list, tuple)):
+        raise InvalidInput(f"pairs must be a pairs file or a list of (name1, name2), got {type(pairs).__name__}")
+    if options is not None and not isinstance(options, JobOptions):
+        raise InvalidInput(f"options must be of type JobOptions, got {type(options).__name__}")
     opts = options or JobOptions()
     rec, mapping = _job_recipe(recipe, opts, gt)
     output = Path(output)
@@ -254,6 +259,9 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
     from ..sfm.extraction import extract_and_match
 
     check_paths(image_dir=image_dir, output=output, gt=gt, optional=("gt",))
+    for name, value, kind in (("options", options, JobOptions), ("extraction", extraction, ExtractionOptions)):
+        if value is not None and not isinstance(value, kind):
+            raise InvalidInput(f"{name} must be of type {kind.__name__}, got {type(value).__name__}")
     opts = options or JobOptions()
     ext = extraction or ExtractionOptions()
     rec, mapping = _job_recipe(recipe, opts, gt)

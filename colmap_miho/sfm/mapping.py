@@ -228,6 +228,8 @@ def run_mapping(
 
     check_paths(database=database, image_dir=image_dir, output=output)
     check_seed(seed, optional=True)
+    if config is not None and not isinstance(config, MappingConfig):
+        raise InvalidInput(f"config must be of type MappingConfig, got {type(config).__name__}")
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
         cfg = replace(cfg, mapper=cfg.mapper if mapper is None else Mapper.parse(mapper, "mapper"),
