@@ -30,3 +30,33 @@ def test_the_html_report_reads_both_layouts():
     assert removed_by_the_check(rows) == {"a|b": 5, "a|c": 1}
     assert removed_by_the_check({"a|b": 5}) == {"a|b": 5}  # a report written before
     assert removed_by_the_check(None) == {} and removed_by_the_check([]) == {}
+
+
+def test_pair_keys_of_the_comparison_cannot_collide():
+    from colmap_miho.reporting.pair_labels import pair_label, pair_names
+
+    assert pair_label("b.png", "a.png") == "a.png|b.png"  # plain names read as before
+    assert pair_label("a|b", "c") != pair_label("a", "b|c")
+    for pair in [("a|b", "c"), ("a", "b|c"), ("x\\", "|y"), ("", "\\|")]:
+        assert pair_names(pair_label(*pair)) == tuple(sorted(pair))
+    rows = [{"images": ["a|b", "c"], "removed": 2}, {"images": ["a", "b|c"], "removed": 1}]
+    assert removed_by_the_check(rows) == {pair_label("a|b", "c"): 2, pair_label("a", "b|c"): 1}
+
+
+def test_match_changes_keep_pairs_whose_names_hold_the_separator_apart(tmp_path):
+    """Two pairs ``a|b`` + ``c`` and ``a`` + ``b|c`` in one database: two keys, two counts."""
+    import sqlite3
+
+    from colmap_miho.reporting.compare import match_changes
+    from colmap_miho.reporting.pair_labels import pair_names
+    from miho_bench.synthetic import make_synthetic_scene
+
+    scene = make_synthetic_scene(tmp_path / "s", num_images=4, num_points=40, seed=5)
+    con = sqlite3.connect(scene.database)
+    ids = [i for (i,) in con.execute("SELECT image_id FROM images ORDER BY image_id")]
+    for i, name in zip(ids, ["a|b", "c", "a", "b|c"], strict=True):
+        con.execute("UPDATE images SET name = ? WHERE image_id = ?", (name, i))
+    con.commit()
+    con.close()
+    before = match_changes(scene.database, scene.database)["matches_before"]
+    assert len(before) == 6 and {pair_names(k) for k in before} >= {("a|b", "c"), ("a", "b|c")}
