@@ -363,7 +363,7 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None, *, own
 #: The prefixes of the folders this package makes in ``$TMPDIR`` with :func:`private_tempdir`
 #: (the map and import folders go beside their output instead).
 TMPDIR_PREFIXES = ("miho-global-", "colmap_miho_check_", "colmap_miho_report_", "colmap_miho_cmp_",
-                   "colmap-miho-export-", "colmap_miho_mp_", "colmap_miho_dask_")
+                   "colmap-miho-export-", "miho-mp-", "colmap_miho_dask_")
 
 
 def sweep_stale_tempdirs(parent: str | os.PathLike | None = None) -> None:

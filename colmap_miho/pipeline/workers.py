@@ -160,8 +160,11 @@ def _context():
 
 
 #: Prefix of multiprocessing's temporary folder (see :func:`private_multiprocessing_tempdir`).
-MP_TEMPDIR_PREFIX = "colmap_miho_mp_"
+MP_TEMPDIR_PREFIX = "miho-mp-"
 _MP_TEMPDIR: list = []  # the private_tempdir context of this process's folder, open until exit
+#: Longest AF_UNIX socket path (bytes, without the final NUL) on Linux; the forkserver's socket
+#: is ``<folder>/listener-XXXXXXXX``.
+MAX_SOCKET_PATH = 107
 
 
 def private_multiprocessing_tempdir() -> None:
@@ -182,6 +185,10 @@ def private_multiprocessing_tempdir() -> None:
     try:
         path = folder.__enter__()
     except (OSError, UserError):  # a full TMPDIR: multiprocessing tries (and says) itself
+        return
+    if len(os.fsencode(path)) + len("/listener-12345678") > MAX_SOCKET_PATH:
+        # the forkserver's socket would not fit where pymp-* (3 characters shorter) might
+        folder.__exit__(None, None, None)
         return
     _MP_TEMPDIR.append(folder)
     config["tempdir"] = str(path)

@@ -41,16 +41,26 @@ def test_after_kill_9_the_next_run_removes_what_was_left(db_copy, scene, tmp_pat
     """A run with worker processes killed (-9) in the global mapper leaves its folders in
     TMPDIR (multiprocessing's, the estimate's): none is a ``pymp-*`` folder that nothing can
     tell the owner of, and the next run, even one with no workers, removes them."""
-    import signal
-    import time
+    import shutil
+    import tempfile
 
     from helpers import HELPERS
 
-    tmp = tmp_path / "tmp"
-    tmp.mkdir()
+    # a short TMPDIR: the forkserver's socket path must fit AF_UNIX's 107 bytes in our folder
+    tmp = Path(tempfile.mkdtemp(prefix="k9", dir="/tmp"))
+    try:
+        _kill_9_then_run(db_copy, scene, tmp_path, tmp, HELPERS)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _kill_9_then_run(db_copy, scene, tmp_path: Path, tmp: Path, helpers: Path) -> None:
+    import signal
+    import time
+
     marker = tmp_path / "marker"
     env = {**os.environ, "TMPDIR": str(tmp), "MIHO_TEST_POOL": "1"}
-    proc = subprocess.Popen([sys.executable, str(HELPERS / "busy_in_mapper.py"), str(marker),
+    proc = subprocess.Popen([sys.executable, str(helpers / "busy_in_mapper.py"), str(marker),
                              *_refine_args(db_copy, scene.image_dir, tmp_path / "a.db", "--workers", "2", "--set",
                                            "match_check.mode=remove")],
                             cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -60,7 +70,7 @@ def test_after_kill_9_the_next_run_removes_what_was_left(db_copy, scene, tmp_pat
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     left = sorted(p.name for p in tmp.iterdir())
-    assert marker.exists() and any(n.startswith("colmap_miho_mp_") for n in left), left
+    assert marker.exists() and any(n.startswith("miho-mp-") for n in left), left
     assert any(n.startswith("miho-global-") for n in left) and not any(n.startswith("pymp-") for n in left), left
     time.sleep(2)  # the orphaned workers and forkserver notice and end
     done = _cli(["export", "--database", str(db_copy), "--features", str(tmp_path / "f.h5"), "--matches",
@@ -80,3 +90,17 @@ def test_dask_leaves_no_scratch_space_in_tmpdir(db_copy, scene, tmp_path):
     done = _cli([*_refine_args(db_copy, scene.image_dir, tmp_path / "o.db", "--workers", "2", "--dask")], tmp)
     assert done.returncode == 0, done.stderr[-2000:]
     assert sorted(p.name for p in tmp.iterdir()) == []
+
+
+def test_a_tmpdir_too_deep_for_our_folder_leaves_multiprocessing_its_own(tmp_path):
+    """The forkserver's socket must fit AF_UNIX's 107 bytes: where ``miho-mp-*`` would not,
+    multiprocessing keeps its own (shorter) ``pymp-*`` folder, removed at exit as always."""
+    code = ("import multiprocessing.process as p\n"
+            "from colmap_miho.pipeline import workers\n"
+            "workers.MAX_SOCKET_PATH = 10\n"
+            "workers.private_multiprocessing_tempdir()\n"
+            "print(p.current_process()._config.get('tempdir'))\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "TMPDIR": str(tmp_path)})
+    assert done.returncode == 0 and done.stdout.strip() == "None", done.stderr
+    assert list(tmp_path.iterdir()) == []
