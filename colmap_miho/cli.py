@@ -10,7 +10,8 @@ outputs)`` (label -> path): :func:`main` refuses any overlap before the command 
 Failures reach the user as one line (``ERROR: ...``, the traceback only with ``-v``) and an
 exit code: 2 a user error (bad input: :class:`~colmap_miho.errors.UserError`, a missing or
 unwritable path), 1 a failed run or an internal error (with the ``-v`` hint), 130 Ctrl-C, 143
-SIGTERM (handled like Ctrl-C: working files removed, the input untouched).
+SIGTERM, 129 SIGHUP (the terminal closed; handled like SIGTERM, which is handled like Ctrl-C:
+working files removed, the input untouched, a refine run's finished work kept for ``--resume``).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import threading
 import time
 
 from .errors import Terminated, UserError
-from .terminal import PrintableFormatter
+from .terminal import PrintableFormatter, printable
 from .version import __version__
 
 log = logging.getLogger("colmap_miho")
@@ -90,8 +91,12 @@ TERM_GRACE_S = 5.0
 TERM_CLEANUP_S = 60.0
 
 
-#: Exit status and what the forced exit says, per signal.
+#: Exit status and what the exit says, per signal (SIGHUP: the terminal closed, ssh dropped).
 _FORCED_EXITS = {signal.SIGTERM: (143, "terminated (SIGTERM)"), signal.SIGINT: (130, "interrupted")}
+if hasattr(signal, "SIGHUP"):
+    _FORCED_EXITS[signal.SIGHUP] = (129, "hung up (SIGHUP)")
+#: The signals whose handler raises :class:`~colmap_miho.errors.Terminated`.
+_TERMINATING = tuple(s for s in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)) if s is not None)
 
 
 #: Set when the interpreter ran a SIGTERM / SIGINT handler: it is cleaning up on its own, and
@@ -101,7 +106,9 @@ _SIGNAL_HANDLED = threading.Event()
 
 def _raise_terminated(signum, frame) -> None:
     _SIGNAL_HANDLED.set()
-    raise Terminated(f"terminated by signal {signum}")
+    exc = Terminated(f"terminated by signal {signum}")
+    exc.signum = signum
+    raise exc
 
 
 def _raise_interrupted(signum, frame) -> None:
@@ -158,20 +165,51 @@ def _forced_exit_after_sigterm():
 
 
 def _forced_exit(signum: int, when: str) -> None:
-    """Remove the working files (and the worker pool's temporary folder) and exit at once."""
+    """Remove the working files (and the worker pool's temporary folder) and exit at once, with
+    the line the interpreter would have printed (the kept work and ``--resume`` included)."""
     import multiprocessing.process
     import shutil
 
-    from .adapters.safety import remove_working_files
+    from .adapters.safety import exit_notes, remove_working_files
 
+    notes = exit_notes()  # before the files go: a note may look at them
     remove_working_files()
+    _stop_children()
+    _release_semaphores()
     pool_tmp = multiprocessing.process.current_process()._config.get("tempdir")  # type: ignore[attr-defined]
     if pool_tmp:
         shutil.rmtree(pool_tmp, ignore_errors=True)
     code, what = _FORCED_EXITS[signal.Signals(signum)]
-    sys.stderr.write(f"ERROR: {what} {when}; working files removed, nothing was written to the input\n")
-    sys.stderr.flush()
+    line = f"ERROR: {what} {when}; working files removed, nothing was written to the input"
+    with contextlib.suppress(OSError, ValueError):  # SIGHUP: the terminal may be gone
+        sys.stderr.write(printable(line + "".join(f"; {n}" for n in notes)) + "\n")
+        sys.stderr.flush()
     os._exit(code)
+
+
+def _stop_children() -> None:
+    """Kill this process's worker processes (a pool's, a local Dask cluster's): their own
+    watchdog would end them once this process is reaped, but until then they hold its stderr
+    (a pipe's reader waits) and their semaphores."""
+    import multiprocessing
+
+    for child in multiprocessing.active_children():
+        with contextlib.suppress(Exception):
+            child.kill()
+
+
+def _release_semaphores() -> None:
+    """Unlink the worker pool's semaphores (and tell multiprocessing's resource tracker) as
+    their finalizers would at a normal exit: after ``os._exit`` the tracker removes them itself
+    with a "leaked semaphore objects" warning of its own on the terminal."""
+    import multiprocessing.synchronize
+    import multiprocessing.util as mp_util
+
+    cleanup = getattr(multiprocessing.synchronize.SemLock, "_cleanup", None)
+    for finalizer in list(getattr(mp_util, "_finalizer_registry", {}).values()):
+        if cleanup is not None and getattr(finalizer, "_callback", None) is cleanup:
+            with contextlib.suppress(Exception):
+                finalizer()
 
 
 def install_signal_handlers() -> None:
@@ -182,9 +220,21 @@ def install_signal_handlers() -> None:
         import pycolmap  # noqa: F401
     except ImportError:  # pragma: no cover - a broken install reports itself later
         pass
-    if hasattr(signal, "SIGTERM"):
-        signal.signal(signal.SIGTERM, _raise_terminated)
+    for sig in _TERMINATING:
+        signal.signal(sig, _raise_terminated)
     signal.signal(signal.SIGINT, _raise_interrupted)
+
+
+def _glog_to_stderr():
+    """COLMAP's log on stderr, never in glog's own files in ``$TMPDIR``, for the command (see
+    :func:`colmap_miho.sfm.colmap_log.glog_to_stderr`; a mapper's log file is asked for
+    apart); a no-op without pycolmap."""
+    try:
+        from .sfm.colmap_log import glog_to_stderr
+
+        return glog_to_stderr()
+    except ImportError:  # pragma: no cover - a broken install reports itself later
+        return contextlib.nullcontext()
 
 
 def _one_line(exc: BaseException) -> str:
@@ -210,16 +260,21 @@ def main(argv: list[str] | None = None) -> int:
     verbose = getattr(args, "verbose", False)
     configure_logging(verbose, getattr(args, "quiet", False))
     in_main_thread = threading.current_thread() is threading.main_thread()
-    saved = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    saved = {sig: signal.getsignal(sig) for sig in (*_TERMINATING, signal.SIGINT)}
     if in_main_thread:
         _SIGNAL_HANDLED.clear()
         install_signal_handlers()
     guard = _forced_exit_after_sigterm() if in_main_thread else contextlib.nullcontext()
+    glog = _glog_to_stderr()
     try:
         guard.__enter__()
+        glog.__enter__()
         from .validation import check_options
 
         check_options(args)  # numeric options in range before any path is looked at
+        from .adapters.staged_write import sweep_stale_tempdirs
+
+        sweep_stale_tempdirs()  # what killed runs left in TMPDIR
         if args._paths is not None:
             from .adapters.paths import check_distinct
 
@@ -233,9 +288,10 @@ def main(argv: list[str] | None = None) -> int:
         log.error("%s", _one_line(exc))
         return 2
     except Terminated as exc:
-        log.error("terminated (SIGTERM); working files removed, nothing was written to the input%s",
-                  _notes(exc))
-        return 143
+        code, what = _FORCED_EXITS.get(getattr(exc, "signum", signal.SIGTERM), _FORCED_EXITS[signal.SIGTERM])
+        with contextlib.suppress(OSError, ValueError):  # SIGHUP: the terminal may be gone
+            log.error("%s; working files removed, nothing was written to the input%s", what, _notes(exc))
+        return code
     except KeyboardInterrupt as exc:
         log.error("interrupted; working files removed, nothing was written to the input%s", _notes(exc))
         return 130
@@ -249,10 +305,11 @@ def main(argv: list[str] | None = None) -> int:
                   type(exc).__name__, _one_line(exc), _notes(exc), exc_info=verbose)
         return 1
     finally:
+        glog.__exit__(None, None, None)
         guard.__exit__(None, None, None)
         if in_main_thread:
-            signal.signal(signal.SIGTERM, saved[0])
-            signal.signal(signal.SIGINT, saved[1])
+            for sig, handler in saved.items():
+                signal.signal(sig, handler)
 
 
 def console_main() -> None:

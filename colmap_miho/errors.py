@@ -27,4 +27,7 @@ class RunFailed(UserError):
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised by the CLI's handler so that a terminated run cleans up like Ctrl-C."""
+    """SIGTERM (or SIGHUP), raised by the CLI's handler so that a terminated run cleans up like
+    Ctrl-C; ``signum`` is the signal's number (None when raised otherwise)."""
+
+    signum: int | None = None

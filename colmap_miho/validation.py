@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass
 
 from .errors import InvalidInput
@@ -137,6 +138,8 @@ def check_value(name: str, value, bound: Bound) -> None:
     """
     if value is None or isinstance(value, bool):
         return
+    if not isinstance(value, numbers.Real):  # a string from a script: '>=' would raise TypeError
+        raise InvalidInput(f"{name} must be a number, got {value!r}")
     if not bound.holds(value):
         raise InvalidInput(f"{name} must be in {bound.text()} ({bound.why}), got {value}")
 

@@ -64,6 +64,9 @@ def validate_database(path: str | Path, name: str | Path | None = None) -> None:
         raise DatabaseError(f"not a COLMAP database (missing tables: {', '.join(missing)}): {shown}")
     _check_blob_sizes(p, shown)
     _check_camera_rows(p, shown)
+    _check_camera_models(p, shown)
+    if {"frames", "frame_data", "rigs"} <= tables:  # older schemas have none: pycolmap adds them
+        _check_frames(p, shown)
 
 
 def _check_camera_rows(p: Path, name: Path) -> None:
@@ -94,6 +97,80 @@ def _check_camera_rows(p: Path, name: Path) -> None:
     more = f" and {len(by_camera) - 3} more camera(s)" if len(by_camera) > 3 else ""
     raise DatabaseError(f"database {name} is damaged: the cameras table has no row for {'; '.join(parts)}{more}; "
                         "add the camera rows (or import the images again)")
+
+
+def _camera_model_params() -> dict[int, tuple[str, int]]:
+    """COLMAP's camera model ids -> (name, number of parameters), from pycolmap."""
+    import pycolmap
+
+    out = {}
+    for name, model_id in pycolmap.CameraModelId.__members__.items():
+        if int(model_id) >= 0:
+            out[int(model_id)] = (name, len(pycolmap.Camera.create_from_model_id(1, model_id, 1.0, 1, 1).params))
+    return out
+
+
+def _check_camera_models(p: Path, name: Path) -> None:
+    """Refuse a camera row whose model id is no COLMAP camera model, or whose parameter blob
+    does not hold that model's parameters (pycolmap: "Camera model does not exist", a failed
+    check).
+
+    Raises:
+        DatabaseError: naming the file, the camera and its model.
+    """
+    models = _camera_model_params()
+    con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
+    try:
+        rows = con.execute("SELECT camera_id, model, length(params) FROM cameras ORDER BY camera_id").fetchall()
+    except sqlite3.DatabaseError as exc:
+        raise DatabaseError(f"not a COLMAP database ({exc}): {name}") from None
+    finally:
+        con.close()
+    for camera_id, model, nbytes in rows:
+        if not isinstance(model, int) or model not in models:
+            raise DatabaseError(f"database {name} is damaged: camera {camera_id} has model id {model!r}, which is "
+                                f"no COLMAP camera model (ids 0 to {max(models)}); fix the camera row (or import "
+                                "the images again)")
+        model_name, nparams = models[model]
+        if (nbytes or 0) != 8 * nparams:
+            raise DatabaseError(f"database {name} is damaged: camera {camera_id} ({model_name}) holds "
+                                f"{nbytes or 0} bytes of parameters, {8 * nparams} expected ({nparams} doubles); "
+                                "fix the camera row (or import the images again)")
+
+
+def _check_frames(p: Path, name: Path) -> None:
+    """Refuse a database whose images have no frame (COLMAP's rig / frame tables): each image
+    is the data of one camera sensor of one frame, and each frame belongs to an existing rig
+    (pycolmap: ``Check failed: frame.HasDataId(image.DataId())``, ``image.HasFrameId()``).
+
+    Raises:
+        DatabaseError: naming the file, the table and (some of) the images.
+    """
+    checks = (
+        ("SELECT image_id, name FROM images WHERE image_id NOT IN "
+         "(SELECT data_id FROM frame_data WHERE sensor_type = 0) ORDER BY image_id",
+         "no row in frame_data"),
+        ("SELECT i.image_id, i.name FROM images i JOIN frame_data d ON d.data_id = i.image_id AND d.sensor_type = 0 "
+         "WHERE d.sensor_id != i.camera_id ORDER BY i.image_id", "a frame_data row naming another camera"),
+        ("SELECT i.image_id, i.name FROM images i JOIN frame_data d ON d.data_id = i.image_id AND d.sensor_type = 0 "
+         "WHERE d.frame_id NOT IN (SELECT frame_id FROM frames) ORDER BY i.image_id", "a frame with no row in frames"),
+        ("SELECT i.image_id, i.name FROM images i JOIN frame_data d ON d.data_id = i.image_id AND d.sensor_type = 0 "
+         "JOIN frames f ON f.frame_id = d.frame_id WHERE f.rig_id NOT IN (SELECT rig_id FROM rigs) "
+         "ORDER BY i.image_id", "a frame whose rig has no row in rigs"),
+    )
+    con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
+    try:
+        for query, what in checks:
+            rows = con.execute(query).fetchall()
+            if rows:
+                shown = ", ".join(f"{n!r} (id {i})" for i, n in rows[:3]) + (
+                    f" and {len(rows) - 3} more" if len(rows) > 3 else "")
+                raise DatabaseError(f"database {name} is damaged: {len(rows)} image(s) with {what} (the rig and "
+                                    f"frame tables): {shown}; import the images again (or repair those rows)")
+    except sqlite3.DatabaseError as exc:
+        raise DatabaseError(f"not a COLMAP database ({exc}): {name}") from None
+    finally:
+        con.close()
 
 
 #: (table, key column, bytes per value) of the array blobs pycolmap allocates by their

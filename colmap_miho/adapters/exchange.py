@@ -12,6 +12,7 @@ exactly.
 from __future__ import annotations
 
 import logging
+import os
 import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
@@ -104,6 +105,10 @@ def import_hloc(
     features, matches, images, database = Path(features), Path(matches), Path(images), Path(database)
     if database.exists():
         raise FileExistsError(f"{database} exists: import writes a new database only")
+    if database.is_symlink():  # a dangling link: exists() said no, the final link would say "created meanwhile"
+        raise FileExistsError(f"{database} is a symlink to {os.readlink(database)}, which does not exist: import "
+                              "writes a new database only, never through a link; remove the link or choose another "
+                              "--database")
     if not images.is_dir():
         raise NotADirectoryError(f"{images}: image folder not found")
     if keypoint_origin not in KEYPOINT_ORIGINS:

@@ -10,6 +10,7 @@ by device and inode, so a symlink or a hard link to the database counts as the d
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -180,6 +181,25 @@ def leaves_folder(name: str) -> bool:
         return True
     parts = os.path.normpath(name.replace("\\", "/")).split("/")
     return parts[0] == ".."
+
+
+def names_of_one_file(image_dir: str | os.PathLike, names: Mapping[int, str]) -> list[list[tuple[int, str]]]:
+    """Groups of database images (``(image_id, name)``, ids ascending) whose names lead to one
+    file of ``image_dir``: the same file (``./a.png`` and ``a.png``, or a link), else (no such
+    file) the same path once normalised. Names that leave the folder are left out
+    (:func:`leaves_folder` has its own warning)."""
+    groups: dict[object, list[tuple[int, str]]] = {}
+    folder = Path(image_dir)
+    for image_id in sorted(names):
+        name = names[image_id]
+        if leaves_folder(name):
+            continue
+        key: object = os.path.normpath(name.replace("\\", "/"))
+        with contextlib.suppress(OSError, ValueError):
+            st = os.stat(folder / name)
+            key = (st.st_dev, st.st_ino)
+        groups.setdefault(key, []).append((int(image_id), name))
+    return [g for g in groups.values() if len(g) > 1]
 
 
 def _clean(paths: Mapping[str, PathArg]) -> dict[str, Path]:

@@ -17,6 +17,7 @@ import shutil
 import sqlite3
 import struct
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import DatabaseError, UserError
@@ -33,6 +34,34 @@ _LOCK_LEN = 512
 #: In-place backups not yet needed: backup -> (the input, its identity when backed up); a forced
 #: exit removes those whose input was not replaced (see :func:`remove_working_files`).
 PENDING_BACKUPS: dict[Path, tuple[Path, tuple]] = {}
+
+
+#: What a forced exit must tell besides "working files removed" (e.g. where a refine run's
+#: finished work is kept and that ``--resume`` continues it): callables returning one note
+#: each ("" for none), registered for the time they apply (see :func:`exit_note`).
+EXIT_NOTES: list[Callable[[], str]] = []
+
+
+@contextlib.contextmanager
+def exit_note(note: Callable[[], str]):
+    """Register ``note`` in :data:`EXIT_NOTES` for the block."""
+    EXIT_NOTES.append(note)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(ValueError):
+            EXIT_NOTES.remove(note)
+
+
+def exit_notes() -> list[str]:
+    """The non-empty notes of :data:`EXIT_NOTES` (a note that fails is left out: the exit goes on)."""
+    out = []
+    for note in list(EXIT_NOTES):
+        with contextlib.suppress(Exception):
+            text = note()
+            if text:
+                out.append(text)
+    return out
 
 
 def remove_working_files() -> list[Path]:

@@ -20,6 +20,7 @@ import shutil
 import sqlite3
 import stat
 import tempfile
+import time
 from pathlib import Path
 
 from ..errors import RunFailed, UserError
@@ -46,11 +47,29 @@ def is_disk_full(exc: BaseException) -> bool:
     return False
 
 
+#: Below this many free bytes a file system counts as full when a native writer fails
+#: without saying why (:func:`out_of_room`).
+MIN_ROOM_BYTES = 1 << 20
+
+
+def out_of_room(folder: str | os.PathLike) -> bool:
+    """Whether ``folder``'s file system is full: less than :data:`MIN_ROOM_BYTES` free, or no
+    free inode (a file system that counts them). False when it cannot be read."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < MIN_ROOM_BYTES or (st.f_files > 0 and st.f_favail == 0)
+
+
 def disk_full_error(folder: Path, what: str) -> RunFailed:
     """The one-line error of a full disk: it names the file system's folder and what was kept."""
     free = ""
     with contextlib.suppress(OSError):
         free = f" ({shutil.disk_usage(folder).free / 1e6:.1f} MB free)"
+        st = os.statvfs(folder)
+        if st.f_files > 0 and st.f_favail == 0:
+            free = " (no free inode: too many files)"
     return RunFailed(f"disk full in {folder}{free} while {what}; nothing was written under the output name "
                      "and the working files were removed: free some space and retry")
 
@@ -285,14 +304,30 @@ def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool 
 
 #: The lock file inside a :func:`private_tempdir`: held while its run lives.
 _TEMPDIR_LOCK = ".colmap-miho.lock"
+#: The lock file's name before it is locked and renamed to :data:`_TEMPDIR_LOCK`.
+_PENDING_LOCK = ".colmap-miho.pending-"
+#: Seconds after which a folder whose lock file never appeared (its run was killed in the
+#: moment between making the folder and locking it) is removed by a sweep.
+PENDING_TEMPDIR_S = 60.0
 
 
 @contextlib.contextmanager
-def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
+def private_tempdir(prefix: str, parent: str | os.PathLike | None = None, *, own_failures: bool = True):
     """A new temporary folder (``parent``, default ``$TMPDIR``) removed on exit, and also by
     the next run after a ``kill -9``: the folder holds a lock file locked (``flock``) while its
     run lives, and earlier folders of the same ``prefix`` whose lock nobody holds are removed
     first (only folders with that lock file: never a user's folder).
+
+    No window between runs: the lock file is made under another name, locked, and only then
+    renamed to its sweepable name, so a sweep never sees it unlocked while its run lives (a
+    folder without it is never taken, except one left empty but for an unlocked pending lock
+    for :data:`PENDING_TEMPDIR_S`: a run killed in that moment).
+
+    With ``own_failures`` (for a block whose work is in the folder) an ``OSError``,
+    ``RuntimeError``, ``ValueError`` or ``sqlite3.Error`` raised in the block while the
+    folder's file system is full (:func:`out_of_room`) is the full-disk error naming it: a
+    native writer that fails there rarely says why. False for a folder that only lends room
+    to a longer run (its failures are not the folder's).
 
     Raises:
         RunFailed: disk full while creating it.
@@ -301,36 +336,83 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None):
     _remove_stale_tempdirs(where, prefix)
     try:
         path = Path(tempfile.mkdtemp(prefix=prefix, dir=where))
-        lock = open(path / _TEMPDIR_LOCK, "w")  # noqa: SIM115 - held open for the folder's life
+        fd, pending = tempfile.mkstemp(prefix=_PENDING_LOCK, dir=path)
     except OSError as exc:
         if is_disk_full(exc):
             raise disk_full_error(where, "creating a working folder") from None
         raise
-    fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
     WORKING_FILES.add(path)
     try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        os.rename(pending, path / _TEMPDIR_LOCK)  # visible only once locked
         yield path
+    except (OSError, RuntimeError, ValueError, sqlite3.Error) as exc:
+        # a native writer (SQLite, COLMAP) that fails on a full file system rarely says so
+        # ("No registered database factory succeeded"): its state, read before the folder is
+        # removed, tells
+        if not own_failures or isinstance(exc, UserError) or not (is_disk_full(exc) or out_of_room(path)):
+            raise
+        room = "" if parent is not None else " (or set TMPDIR to a folder with room)"
+        raise disk_full_error(where, f"working in a temporary folder there ({path.name}){room}") from exc
     finally:
-        lock.close()
-        shutil.rmtree(path, ignore_errors=True)
+        shutil.rmtree(path, ignore_errors=True)  # still locked: no sweep takes it meanwhile
+        os.close(fd)
         WORKING_FILES.discard(path)
+
+
+#: The prefixes of the folders this package makes in ``$TMPDIR`` with :func:`private_tempdir`
+#: (the map and import folders go beside their output instead).
+TMPDIR_PREFIXES = ("miho-global-", "colmap_miho_check_", "colmap_miho_report_", "colmap_miho_cmp_",
+                   "colmap-miho-export-", "miho-mp-", "colmap_miho_dask_")
+
+
+def sweep_stale_tempdirs(parent: str | os.PathLike | None = None) -> None:
+    """Remove the folders that killed runs (``kill -9``) left in ``parent`` (default
+    ``$TMPDIR``) under any of :data:`TMPDIR_PREFIXES`: every command does this first, so that
+    a run that makes none of them cleans up too. Never fails."""
+    where = Path(parent) if parent is not None else Path(tempfile.gettempdir())
+    for prefix in TMPDIR_PREFIXES:
+        with contextlib.suppress(OSError):
+            _remove_stale_tempdirs(where, prefix)
+
+
+def _lock_is_free(lock_file: Path) -> bool:
+    """Whether nobody holds ``lock_file``'s ``flock`` (False when it cannot be opened)."""
+    try:
+        fd = os.open(lock_file, os.O_RDWR)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:  # a live run holds it
+        return False
+    finally:
+        os.close(fd)
+    return True
+
+
+def _is_stale(folder: Path) -> bool:
+    """A folder of :func:`private_tempdir` whose run is gone: its lock file is free, or it never
+    got one (killed while making it) and holds nothing but a free pending lock, for a while."""
+    if not folder.is_dir() or folder.is_symlink():
+        return False
+    lock_file = folder / _TEMPDIR_LOCK
+    if lock_file.is_file():
+        return _lock_is_free(lock_file)
+    entries = list(folder.iterdir())
+    if not entries or not all(e.name.startswith(_PENDING_LOCK) and e.is_file() for e in entries):
+        return False
+    return (time.time() - folder.stat().st_mtime > PENDING_TEMPDIR_S
+            and all(_lock_is_free(e) for e in entries))
 
 
 def _remove_stale_tempdirs(parent: Path, prefix: str) -> None:
     with contextlib.suppress(OSError):
         for folder in parent.glob(f"{prefix}*"):
-            lock_file = folder / _TEMPDIR_LOCK
-            if not folder.is_dir() or not lock_file.is_file():
-                continue
             try:
-                fd = os.open(lock_file, os.O_RDWR)
+                stale = _is_stale(folder)
             except OSError:
                 continue
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError:  # a live run holds it
-                continue
-            finally:
-                os.close(fd)
-            shutil.rmtree(folder, ignore_errors=True)
-            log.info("removed %s, left by an interrupted earlier run", folder)
+            if stale:
+                shutil.rmtree(folder, ignore_errors=True)
+                log.info("removed %s, left by an interrupted earlier run", folder)

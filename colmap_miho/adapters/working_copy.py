@@ -102,6 +102,9 @@ class WorkingCopy:
             check_output_path(self.output, "--output", device=False)  # a FIFO, a device: never replaced
             if self.output.exists() and not overwrite:
                 raise UserError(f"output {self.output} exists; pass --overwrite to replace it")
+            if self.output.is_symlink() and not self.output.exists():  # would read "created meanwhile" at the end
+                raise UserError(f"output {self.output} is a symlink to {os.readlink(self.output)}, which does not "
+                                "exist; remove the link or choose another --output")
             if not self.output.parent.is_dir():
                 raise UserError(f"output folder does not exist: {self.output.parent}")
             if self.output.exists():

@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..arguments import FILTER_SEED_BOUND, check_integer
 from ..enums import FilterMethod, MihoThreshold
 from .assign import assign_matches
 from .coherence import incoherent_planes
@@ -142,8 +143,8 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
             when given, it wins (it replaces ``config.method``); when ``None`` the method is
             ``config.method``, or ``"mop_miho"`` when ``config`` is ``None`` too.
         config: parameters; ``None`` = paper defaults.
-        seed: seed of the ``numpy.random.Generator`` that drives all sampling; the same
-            inputs, config and seed give identical results.
+        seed: seed of the ``numpy.random.Generator`` that drives all sampling, an integer in
+            [0, 2^32 - 1]; the same inputs, config and seed give identical results.
         progress: show a tqdm bar over MOP rounds.
         device: where the heavy RANSAC kernels run: ``"cpu"`` (default, numpy),
             ``"cuda"`` / ``"cuda:N"`` / any torch device string or ``torch.device`` object
@@ -158,9 +159,11 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
         kept.
 
     Raises:
-        ValueError: wrong shapes, length mismatch, NaN/inf (naming the argument), an
-            unknown method, or a device that is unknown or not available.
+        ValueError: wrong shapes, length mismatch, NaN/inf (naming the argument), a seed
+            that is not an integer in range, an unknown method, or a device that is unknown
+            or not available.
     """
+    check_integer("seed", seed, FILTER_SEED_BOUND)
     t0 = time.perf_counter()
     scoring = scoring_for_device(device)
     x1 = _as_points(pts1, "pts1")

@@ -194,15 +194,26 @@ def _dask_client(workers: int, dask: str):
     distributed = require("distributed", "dask", "--dask")
     Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if dask == LOCAL:
-        try:
-            with sigint_for_this_process_only():  # Ctrl-C: one line from this process, none from the workers
-                cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
-                                       dashboard_address=None, silence_logs=logging.CRITICAL)
-        except RuntimeError as exc:  # "Nanny failed to start."
-            raise RunFailed(f"the local Dask cluster did not start ({exc}); {SCRIPT_HINT}") from exc
-        with cluster, Client(cluster) as client, _quiet_dask():
-            log.info("started a local Dask cluster of %d workers at %s", workers, cluster.scheduler_address)
-            yield client
+        from ..adapters.staged_write import private_tempdir
+        from .workers import private_multiprocessing_tempdir
+
+        private_multiprocessing_tempdir()
+        # the workers' dask-scratch-space in a folder of ours: removed after the run (Dask
+        # leaves it in TMPDIR), and by the next run after a kill -9
+        import dask.config as dask_config  # (``dask`` is the argument)
+
+        with private_tempdir("colmap_miho_dask_", own_failures=False) as scratch, \
+                dask_config.set({"temporary-directory": str(scratch)}):
+            try:
+                with sigint_for_this_process_only():  # Ctrl-C: one line from this process, none from the workers
+                    cluster = LocalCluster(n_workers=max(1, int(workers)), threads_per_worker=1, processes=True,
+                                           dashboard_address=None, silence_logs=logging.CRITICAL,
+                                           local_directory=str(scratch))
+            except RuntimeError as exc:  # "Nanny failed to start."
+                raise RunFailed(f"the local Dask cluster did not start ({exc}); {SCRIPT_HINT}") from exc
+            with cluster, Client(cluster) as client, _quiet_dask():
+                log.info("started a local Dask cluster of %d workers at %s", workers, cluster.scheduler_address)
+                yield client
         return
     if not dask.startswith(("tcp://", "tls://", "ucx://", "inproc://")):
         raise UserError(f"--dask {dask}: give a scheduler address like tcp://host:8786, or no value "

@@ -19,16 +19,19 @@ database is never modified (everything reads copies).
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 from ..adapters.paths import check_distinct, comparison_paths
+from ..arguments import check_integer, check_paths, check_seed, check_workers
 from ..enums import CameraMode, Device, Mapper
 from ..errors import InvalidInput, RunFailed
 from ..recipe import Recipe, load_recipe
 from ..reporting.compare import CompareResult, Evaluation, gt_intrinsics, write_comparison
-from ..sfm import MappingConfig
+from ..sfm import MappingConfig, parse_camera_params
+from ..validation import OPTION_BOUNDS
 from .run import refine_database
 from .summary import RefineSummary
 
@@ -64,11 +67,12 @@ class JobOptions:
     verbose: bool = False
 
     def __post_init__(self) -> None:
+        check_seed(self.seed, optional=True)
+        check_workers(self.workers)
+        check_integer("repeats", self.repeats, OPTION_BOUNDS["repeats"])
         if self.mapper is not None:
             object.__setattr__(self, "mapper", Mapper.parse(self.mapper, "mapper"))
         object.__setattr__(self, "device", Device.parse(self.device, "device"))
-        if self.repeats < 1:
-            raise InvalidInput(f"repeats must be >= 1, got {self.repeats}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -90,8 +94,8 @@ class ExtractionOptions:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "camera_mode", CameraMode.parse(self.camera_mode, "camera_mode"))
-        if self.max_features < 1:
-            raise InvalidInput(f"max_features must be >= 1, got {self.max_features}")
+        check_integer("max_features", self.max_features, OPTION_BOUNDS["max_features"])
+        parse_camera_params(str(self.camera_model), str(self.camera_params))  # before any folder is made
 
 
 def _as_recipe(recipe: Recipe | str | None) -> Recipe:
@@ -200,6 +204,11 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
     Returns:
         :class:`~colmap_miho.reporting.compare.CompareResult`.
     """
+    check_paths(database=database, image_dir=image_dir, output=output, gt=gt, optional=("gt",))
+    if pairs is not None and not isinstance(pairs, (str, os.PathLike, list, tuple)):
+        raise InvalidInput(f"pairs must be a pairs file or a list of (name1, name2), got {type(pairs).__name__}")
+    if options is not None and not isinstance(options, JobOptions):
+        raise InvalidInput(f"options must be of type JobOptions, got {type(options).__name__}")
     opts = options or JobOptions()
     rec, mapping = _job_recipe(recipe, opts, gt)
     output = Path(output)
@@ -249,6 +258,10 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
     from ..sfm import require_success, run_mapping
     from ..sfm.extraction import extract_and_match
 
+    check_paths(image_dir=image_dir, output=output, gt=gt, optional=("gt",))
+    for name, value, kind in (("options", options, JobOptions), ("extraction", extraction, ExtractionOptions)):
+        if value is not None and not isinstance(value, kind):
+            raise InvalidInput(f"{name} must be of type {kind.__name__}, got {type(value).__name__}")
     opts = options or JobOptions()
     ext = extraction or ExtractionOptions()
     rec, mapping = _job_recipe(recipe, opts, gt)

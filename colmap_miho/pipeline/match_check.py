@@ -65,8 +65,10 @@ class MatchCheckStats:
             ``matches_in_removed_pairs`` matches.
         wrong_pairs: the first :data:`MAX_LISTED_PAIRS` of those: image names and ids, matches,
             share failing.
-        removed_per_pair: "name1|name2" (names sorted) -> matches removed (flagged) there, wrong
-            pairs' whole count included; pairs with none are left out.
+        removed_per_pair: one entry per pair with matches removed (flagged) there, wrong pairs'
+            whole count included: ``{"images": [name1, name2], "image_ids": [id1, id2],
+            "removed": n}`` (ids ascending; a list, not a dict keyed by joined names, which a name
+            holding the separator made ambiguous); pairs with none are left out.
         seconds: wall time of the rounds (estimates, judging and re-placements).
         peak_rss_mb: this process's peak resident memory (MiB, Linux's ``VmHWM``) when the
             stage ended: an upper bound of the stage's own peak (it runs here, in the client,
@@ -99,7 +101,7 @@ class MatchCheckStats:
     pairs_removed: int = 0
     matches_in_removed_pairs: int = 0
     wrong_pairs: list[dict] = field(default_factory=list)
-    removed_per_pair: dict[str, int] = field(default_factory=dict)
+    removed_per_pair: list[dict] = field(default_factory=list)
     seconds: float = 0.0
     peak_rss_mb: float = 0.0
     round_seconds: list[dict] = field(default_factory=list)
@@ -178,8 +180,8 @@ def _meta(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.n
         "pairs_removed": len(d.wrong), "matches_in_removed_pairs": int(sum(len(matches[p]) for p in d.wrong)),
         "wrong_pairs": [{"images": [name(i), name(j)], "image_ids": [i, j], "matches": len(matches[(i, j)]),
                          "fail_share": round(d.fail_share[(i, j)], 3)} for i, j in wrong_list[:MAX_LISTED_PAIRS]],
-        "removed_per_pair": {"|".join(sorted((name(i), name(j)))): int(f.sum())
-                             for (i, j), f in sorted(d.failed.items()) if f.any()},
+        "removed_per_pair": [{"images": [name(i), name(j)], "image_ids": [i, j], "removed": int(f.sum())}
+                             for (i, j), f in sorted(d.failed.items()) if f.any()],
         "seconds": float(sum(sum(r.values()) for r in d.seconds)), "round_seconds": d.seconds,
         "peak_rss_mb": _peak_rss_mb(),
         "hinges": [_hinge_meta(h, matches, name) for h in d.hinges],

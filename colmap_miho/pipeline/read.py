@@ -3,6 +3,7 @@ images can be read for refinement."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,6 +15,8 @@ from ..enums import MatchSource
 from ..errors import DatabaseError, UserError
 from ..pipeline_config import PipelineConfig
 from ..types import Pair
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -98,6 +101,7 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
                          expected_sizes={im.image_id: (im.width, im.height) for im in images})
     missing_names: list[str] = []
     if pcfg.refine:
+        _check_one_file_per_image(cfg, names)
         missing = loader.check_all()
         missing_names = [names[i] for i in missing]
         if missing and cfg.strict:
@@ -113,6 +117,29 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
                       keypoints_total=int(sum(len(k) for k in keypoints.values())),
                       images_missing=missing_names, decoded_by_image=dict(loader.decoded))
     return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats
+
+
+def _check_one_file_per_image(cfg: ReadConfig, names: dict[int, str]) -> None:
+    """Warn (``strict``: refuse) when two image rows name one file (``./a.png`` beside
+    ``a.png``, or a link): both rows' keypoints would be refined against the same pixels, as
+    if the photo had been taken twice.
+
+    Raises:
+        UserError: ``strict`` and such rows, naming them and the database.
+    """
+    from ..adapters.paths import names_of_one_file
+
+    groups = names_of_one_file(cfg.image_dir, names)
+    if not groups:
+        return
+    shown = "; ".join(" and ".join(f"{n!r} (id {i})" for i, n in g) for g in groups[:3]) + (
+        f"; and {len(groups) - 3} more group(s)" if len(groups) > 3 else "")
+    text = (f"{sum(len(g) for g in groups) - len(groups)} image row(s) of {cfg.database_name} name a file that "
+            f"another row names already: {shown}")
+    if cfg.strict:
+        raise UserError(f"{text} (--strict); remove the extra rows, or drop --strict to refine them as they are")
+    log.warning("%s: their keypoints are refined against the same pixels (one photo counted twice); remove the "
+                "extra rows if that is not meant", text)
 
 
 def _check_inside(kp: np.ndarray, im, database) -> None:

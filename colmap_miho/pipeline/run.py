@@ -43,10 +43,11 @@ from pathlib import Path
 
 from ..adapters.database import ColmapDatabase, validate_database
 from ..adapters.paths import check_distinct
-from ..adapters.safety import check_database_path
+from ..adapters.safety import check_database_path, exit_note
 from ..adapters.working_copy import WorkingCopy
+from ..arguments import check_paths, check_seed, check_workers
 from ..enums import Device
-from ..errors import RunFailed, UserError
+from ..errors import InvalidInput, RunFailed, UserError
 from ..recipe import Recipe, load_recipe
 from .executor import Runner, open_runner
 from .filter import FilterOptions, run_filter
@@ -158,11 +159,18 @@ def refine_database(
         UserError: bad image folder, existing output without ``overwrite``, strict and an
             image missing, no pairs to process; an interrupted run's store found without
             ``resume`` or ``restart``, or ``resume`` with other inputs or options.
-        ValueError: a bad recipe or option value (the message names it).
+        ValueError: a bad recipe or option value, or an argument of the wrong type or out of the
+            CLI's range (``workers`` in [1, 1024], a 32-bit ``seed``): the message names it.
         RunFailed: a worker process died (see :data:`~.workers.WORKER_DIED`), or this is
             a worker importing a script that calls this without a ``__main__`` guard.
     """
     check_not_bootstrapping()
+    check_paths(database=database, image_dir=image_dir, output=output, json_path=json_path,
+                optional=("output", "json_path"))
+    check_workers(workers)
+    check_seed(seed)
+    if dask is not None and not isinstance(dask, str):
+        raise InvalidInput(f"dask must be None, 'local' or a scheduler address, got {dask!r}")
     laps = _Laps()
     database = check_database_path(database)
     image_dir = Path(image_dir)
@@ -185,7 +193,7 @@ def refine_database(
     resumed = store.has_work()
     laps.lap("setup")
     try:
-        with open_runner(n_workers, dask) as runner:
+        with exit_note(lambda: _resume_hint(store) if store.has_work() else ""), open_runner(n_workers, dask) as runner:
             inputs = _RunInputs(database=database, image_dir=image_dir, recipe=rec, device=dev, seed=seed,
                                 strict=strict, progress=progress, json_path=json_path)
             summary = _run_stages(inputs, wc, store, runner, resumed=resumed, laps=laps)
@@ -268,8 +276,11 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 pair_verdicts, pair_check = run_pair_check(db, read, store, rec.pair_check, pcfg.source)
                 if rec.pair_check.enabled:
                     laps.lap("pair_check")
+                # the global mapper runs here: threads beyond this machine's cores (a remote Dask
+                # cluster's slots, --workers 1024) would only be created, never run in parallel
                 match_verdicts, match_check = run_match_check(db, store, rec.match_check, pcfg.source,
-                                                              checked=pair_verdicts, threads=runner.slots)
+                                                              checked=pair_verdicts,
+                                                              threads=min(runner.slots, os.cpu_count() or 1))
                 if rec.match_check.enabled:
                     laps.lap("match_check")
                 verdicts = pair_verdicts.merge(match_verdicts)

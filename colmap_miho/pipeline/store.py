@@ -16,6 +16,10 @@ The store is a folder beside the output (and its hidden working copy),
 - ``lock``: held (``flock``) by the run using the folder, released by the kernel even on
   SIGKILL.
 
+Each ``.npz`` file is tied to the run that wrote it: it holds the manifest's random ``run_id``
+and its own file name (``file_name``), and one that holds another (a file copied in from another run's store,
+or renamed) is refused on ``--resume`` as damaged, not trusted.
+
 Every file is written under a temporary name, flushed to disk, then renamed onto its name
 (:func:`~colmap_miho.adapters.filesystem.write_atomic`): a file that exists is complete.
 ``refine`` removes the store after its commit; after a failure, Ctrl-C, SIGTERM or SIGKILL it
@@ -31,6 +35,7 @@ import json
 import logging
 import os
 import re
+import secrets
 import shutil
 import zipfile
 import zlib
@@ -185,7 +190,7 @@ class RunStore:
         self._lock_fd: int | None = lock_fd
         self._chunks: dict[int, _ChunkIndex] = {}
         for index, path in self._files(_FILTER_FILE):
-            z = _read_npz(path)
+            z = self._read(path)
             try:
                 ok = _field(z, "success", path).astype(bool)
                 offsets, kept = _field(z, "offsets", path), _field(z, "kept", path)
@@ -257,7 +262,7 @@ class RunStore:
         if resume:
             log.info("--resume: no finished work in %s; starting from the beginning", folder)
         cls._clear(folder)
-        manifest = {"fingerprint": fingerprint}
+        manifest = {"fingerprint": fingerprint, "run_id": secrets.token_hex(16)}
         _atomic_write_text(manifest_path, json.dumps(manifest, indent=1) + "\n")
         return cls(folder, manifest, lock_fd)
 
@@ -285,6 +290,31 @@ class RunStore:
         """Delete the store (after the run's commit), then release the lock."""
         shutil.rmtree(self.folder, ignore_errors=True)
         self.close()
+
+    def _read(self, path: Path) -> dict[str, np.ndarray]:
+        """:func:`_read_npz` of one of this store's files, checked to be this run's own: its
+        ``run_id`` is the manifest's and its ``file_name`` its name (a store made before files
+        carried them has no ``run_id`` in its manifest: not checked).
+
+        Raises:
+            StoreDamaged: unreadable, or written by another run or under another name.
+        """
+        arrays = _read_npz(path)
+        run_id, name = arrays.pop("run_id", None), arrays.pop("file_name", None)
+        want = self.manifest.get("run_id")
+        if want is None:
+            return arrays
+        if run_id is None or str(run_id) != want:
+            raise StoreDamaged(path, "it was written by another run than the one this folder's manifest records")
+        if name is None or str(name) != path.name:
+            raise StoreDamaged(path, f"it was written as {name if name is None else str(name)}, not under this name")
+        return arrays
+
+    def _save(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
+        """:func:`_atomic_savez` with this run's ``run_id`` and the file's name (see :meth:`_read`)."""
+        tie = {"run_id": np.array(self.manifest["run_id"]), "file_name": np.array(path.name)} \
+            if "run_id" in self.manifest else {}
+        _atomic_savez(path, {**arrays, **tie})
 
     def _files(self, pattern: re.Pattern) -> list[tuple[int, Path]]:
         out = []
@@ -333,7 +363,7 @@ class RunStore:
             "hom_offsets": np.concatenate([[0], np.cumsum(homs)]).astype(np.int64),
             "patch_homographies": _cat([outcomes[k].patch_homographies for k in sel], (0, 2, 3, 3), np.float64),
         }
-        _atomic_savez(self.folder / f"filter-{index:06d}.npz", arrays)
+        self._save(self.folder / f"filter-{index:06d}.npz", arrays)
         self._chunks[index] = _ChunkIndex(pairs=arrays["pairs"], success=ok,
                                           matches=int(arrays["offsets"][-1]), kept=int(arrays["kept"].sum()))
 
@@ -342,7 +372,7 @@ class RunStore:
         for index, path in self._files(_FILTER_FILE):
             if index not in self._chunks:
                 continue
-            z = _read_npz(path)
+            z = self._read(path)
             pairs, ok, off, hoff = (_field(z, key, path) for key in ("pairs", "success", "offsets", "hom_offsets"))
             matches, inliers, labels, homs = (_field(z, key, path) for key in
                                               ("matches", "inliers", "labels", "patch_homographies"))
@@ -378,7 +408,7 @@ class RunStore:
             return {}
         out: dict[int, GroupResult] = {}
         for index, path in files:
-            z = _read_npz(path)
+            z = self._read(path)
             ids, off, idx, xy = (_field(z, key, path) for key in ("image_ids", "offsets", "idx", "xy"))
             try:
                 stats = json.loads(str(_field(z, "stats", path)))
@@ -393,7 +423,7 @@ class RunStore:
         (K, 2) pixels) and its stats (JSON-ready numbers)."""
         ids = sorted(moved)
         sizes = [len(moved[i][0]) for i in ids]
-        _atomic_savez(self.folder / f"group-{index:06d}.npz", {
+        self._save(self.folder / f"group-{index:06d}.npz", {
             "image_ids": np.asarray(ids, np.int64),
             "offsets": np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
             "idx": _cat([np.asarray(moved[i][0], np.int64) for i in ids], (0,), np.int64),
@@ -407,8 +437,7 @@ class RunStore:
         ``meta``."""
         if not re.fullmatch(r"[a-z_]+", name):
             raise ValueError(f"stage name must be lower-case letters and _, got {name!r}")
-        _atomic_savez(self.folder / f"stage-{name}.npz",
-                      {**arrays, "meta": np.array(json.dumps(meta, default=float))})
+        self._save(self.folder / f"stage-{name}.npz", {**arrays, "meta": np.array(json.dumps(meta, default=float))})
 
     def load_stage(self, name: str) -> tuple[dict[str, np.ndarray], dict] | None:
         """The stored result of stage ``name`` (arrays, meta), or None.
@@ -419,7 +448,7 @@ class RunStore:
         path = self.folder / f"stage-{name}.npz"
         if not path.is_file():
             return None
-        arrays = _read_npz(path)
+        arrays = self._read(path)
         try:
             meta = json.loads(str(_field(arrays, "meta", path)))
         except ValueError as exc:  # not JSON

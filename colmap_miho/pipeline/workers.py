@@ -32,7 +32,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-from ..errors import RunFailed
+from ..errors import RunFailed, UserError
 
 log = logging.getLogger(__name__)
 
@@ -117,9 +117,10 @@ def single_thread_children():
 
 @contextlib.contextmanager
 def sigint_for_this_process_only():
-    """Processes started inside the block never receive SIGINT: Ctrl-C in a terminal sends
-    it to every process of the foreground group, and a worker (or the forkserver, while it
-    imports torch) would print its own KeyboardInterrupt traceback. SIGINT is blocked in
+    """Processes started inside the block never receive SIGINT or SIGHUP: Ctrl-C in a terminal
+    (and closing it) sends it to every process of the foreground group, and a worker (or the
+    forkserver, while it imports torch) would print its own KeyboardInterrupt traceback (or
+    die, SIGHUP, leaving the pool broken). SIGINT is blocked in
     this thread meanwhile; the mask is inherited by the processes started (across exec
     too) and by their children, while this process gets a SIGINT that arrived meanwhile
     when the block ends (the CLI's one line, exit 130). The workers are killed by their
@@ -130,9 +131,17 @@ def sigint_for_this_process_only():
         return
     from multiprocessing import resource_tracker
 
-    # first: starting it unblocks SIGINT after blocking it around its own start (bpo-33613)
-    resource_tracker.ensure_running()
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    hangup = {signal.SIGHUP} if hasattr(signal, "SIGHUP") else set()
+    # first: starting it unblocks SIGINT after blocking it around its own start (bpo-33613);
+    # it ignores SIGINT and SIGTERM itself, and inherits SIGHUP blocked (the terminal closing
+    # sends SIGHUP to the whole group: a tracker killed by it is started again, and its
+    # successor prints a KeyError traceback for every semaphore it never saw)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, hangup)
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, *hangup})
     try:
         yield
     finally:
@@ -150,6 +159,52 @@ def _context():
     return multiprocessing.get_context("spawn")
 
 
+#: Prefix of multiprocessing's temporary folder (see :func:`private_multiprocessing_tempdir`).
+MP_TEMPDIR_PREFIX = "miho-mp-"
+_MP_TEMPDIR: list = []  # the private_tempdir context of this process's folder, open until exit
+#: Longest AF_UNIX socket path (bytes, without the final NUL) on Linux; the forkserver's socket
+#: is ``<folder>/listener-XXXXXXXX``.
+MAX_SOCKET_PATH = 107
+
+
+def private_multiprocessing_tempdir() -> None:
+    """Give multiprocessing (the forkserver's socket) a :func:`~colmap_miho.adapters.staged_write.private_tempdir`
+    for the life of this process instead of its own ``pymp-*`` folder: removed at exit as
+    ``pymp-*`` is, and also by the next run after a ``kill -9`` (a ``pymp-*`` folder is then
+    left for ever: nothing tells whose it is). A no-op when multiprocessing has its folder
+    already."""
+    import multiprocessing.process
+    import multiprocessing.util
+
+    from ..adapters.staged_write import private_tempdir
+
+    config = multiprocessing.process.current_process()._config  # type: ignore[attr-defined]
+    if config.get("tempdir") is not None:
+        return
+    folder = private_tempdir(MP_TEMPDIR_PREFIX)
+    try:
+        path = folder.__enter__()
+    except (OSError, UserError):  # a full TMPDIR: multiprocessing tries (and says) itself
+        return
+    if len(os.fsencode(path)) + len("/listener-12345678") > MAX_SOCKET_PATH:
+        # the forkserver's socket would not fit where pymp-* (3 characters shorter) might
+        folder.__exit__(None, None, None)
+        return
+    _MP_TEMPDIR.append(folder)
+    config["tempdir"] = str(path)
+    # removed last at exit, as multiprocessing removes its own pymp-* folder
+    multiprocessing.util.Finalize(None, _close_mp_tempdir, exitpriority=-100)
+
+
+def _close_mp_tempdir() -> None:
+    import multiprocessing.process
+
+    multiprocessing.process.current_process()._config.pop("tempdir", None)  # type: ignore[attr-defined]
+    while _MP_TEMPDIR:
+        with contextlib.suppress(Exception):
+            _MP_TEMPDIR.pop().__exit__(None, None, None)
+
+
 def start_forkserver() -> None:
     """Start the forkserver now (no-op where there is none, or when it runs already), with
     :data:`PRELOAD` imported and single-threaded BLAS / OpenMP in its environment: its
@@ -161,6 +216,7 @@ def start_forkserver() -> None:
     from multiprocessing import forkserver
 
     try:
+        private_multiprocessing_tempdir()
         with single_thread_children(), sigint_for_this_process_only():
             ctx.set_forkserver_preload(list(PRELOAD))
             forkserver.ensure_running()

@@ -18,7 +18,6 @@ copies).
 from __future__ import annotations
 
 import logging
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -104,22 +103,26 @@ def match_changes(baseline_db: str | Path, refined_db: str | Path) -> dict:
     rows by index (refinement moves keypoints in place).
 
     Returns:
-        ``{"matches_before": {"a|b": n}, "matches_after": {"a|b": n},
+        ``{"matches_before": {"a|b": n}, "matches_after": {"a|b": n},`` (keys:
+        :func:`~colmap_miho.reporting.pair_labels.pair_label`)
         "displacements": float64 (K,) pixel distances of the keypoints that moved}``.
     """
     from ..adapters.database import ColmapDatabase
     from ..adapters.safety import read_copy
+    from .pair_labels import pair_label
 
     out: dict = {}
     kps: dict[str, dict[str, np.ndarray]] = {}
-    with tempfile.TemporaryDirectory(prefix="colmap_miho_cmp_") as tmp:
+    from ..adapters.staged_write import private_tempdir
+
+    with private_tempdir("colmap_miho_cmp_") as tmp:  # removed by the next run after a kill -9
         for tag, src in (("before", Path(baseline_db)), ("after", Path(refined_db))):
             copy = Path(tmp) / f"{tag}.db"
             read_copy(src, copy)  # refuses a database in use or with a hot journal
             with ColmapDatabase(copy) as db:
                 names = {r.image_id: r.name for r in db.images()}
                 out[f"matches_{tag}"] = {
-                    "|".join(sorted((names[p.image_id1], names[p.image_id2]))): int(p.num_matches)
+                    pair_label(names[p.image_id1], names[p.image_id2]): int(p.num_matches)
                     for p in db.pairs("verified")
                 }
                 kps[tag] = {names[i]: db.keypoints(i) for i in names}

@@ -128,9 +128,10 @@ def _matches_figure(go, before: dict, after: dict, checked: dict | None = None):
     c = np.array([(checked or {}).get(k, 0) for k in labels], dtype=np.float64)
     kept = np.where(b > 0, 100 * a / np.maximum(b, 1), 0.0)
     by_filter = np.maximum(b - a - c, 0)
+    from .pair_labels import pair_names
     from .plots import short_labels
 
-    names = [plotly_text(k.replace("|", " - ")) for k in labels]
+    names = [plotly_text(" - ".join(pair_names(k))) for k in labels]
     short = [plotly_text(label) for label in short_labels(labels)]
     x = short if len(set(short)) == len(labels) else names
     fig = go.Figure()
@@ -305,7 +306,7 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
                                  "pose"))
     before, after = changes.get("matches_before", {}), changes.get("matches_after", {})
     if before:
-        checked = (refine.get("match_check") or {}).get("removed_per_pair") or {}
+        checked = removed_by_the_check((refine.get("match_check") or {}).get("removed_per_pair"))
         sections.append(_section("Matches per pair", _figure_html(_matches_figure(go, before, after, checked),
                                                                   "matches"),
                                  "Verified matches of each image pair in the two databases (log scale); hover a "
@@ -321,6 +322,21 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
         sections.append(_section("Sparse models", _figure_html(fig, "models3d"), note, "models"))
     write_text_atomic(path, _page(title, sections))
     return path
+
+
+def removed_by_the_check(removed_per_pair) -> dict[str, int]:
+    """``match_check.removed_per_pair`` (a list of ``{"images": [a, b], "removed": n}``; the
+    ``{"a|b": n}`` dict of older reports is taken as it is) keyed like the comparison's
+    matches per pair (:func:`~colmap_miho.reporting.pair_labels.pair_label`)."""
+    from .pair_labels import pair_label
+
+    if isinstance(removed_per_pair, dict):
+        return {str(k): int(v) for k, v in removed_per_pair.items()}
+    out: dict[str, int] = {}
+    for entry in removed_per_pair or ():
+        key = pair_label(*entry["images"])
+        out[key] = out.get(key, 0) + int(entry["removed"])
+    return out
 
 
 def _summary_note(baseline: dict, refine: dict) -> str:

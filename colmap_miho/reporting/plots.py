@@ -158,9 +158,11 @@ def short_labels(labels: list[str]) -> list[str]:
     most :data:`MAX_NAME_CHARS` characters."""
     import os
 
-    names = [n for lab in labels for n in lab.split("|")]
+    from .pair_labels import pair_names
+
+    names = [n for lab in labels for n in pair_names(lab)]
     prefix = os.path.commonprefix(names) if len(names) > 1 else ""
-    return ["-".join(_shorten(os.path.splitext(n[len(prefix):])[0] or n) for n in lab.split("|"))
+    return ["-".join(_shorten(os.path.splitext(n[len(prefix):])[0] or n) for n in pair_names(lab))
             for lab in labels]
 
 

@@ -292,8 +292,11 @@ def build_report(
             :data:`DEFAULT_AUC_THRESHOLDS_DEG`; 5/10/20 are always added, see
             :func:`auc_thresholds`).
     """
+    from ..arguments import check_paths, check_seed
     from .gt_model import load_gt_poses, load_reconstruction, poses_from_reconstruction
 
+    check_paths(model=model, database=database, gt=gt, optional=("model", "database", "gt"))
+    check_seed(seed)
     if reconstruction is None and model is None and (database is None or gt is None):
         raise InvalidInput("give model or reconstruction, or database and gt")
     thresholds = auc_thresholds(thresholds)

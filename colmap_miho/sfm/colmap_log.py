@@ -4,24 +4,47 @@ maps or extracts."""
 from __future__ import annotations
 
 import contextlib
+import re
 from pathlib import Path
+
+#: Lines of a replayed log that are never shown: glog's file header.
+_NOT_REPLAYED = ("Log file created at:", "Running on machine:", "Running duration (h:mm:ss):",
+                 "Log line format:")
+#: The global mapper's warning for every image, which it is not given on purpose (only the
+#: colours of its points would come from them): hidden from its replayed log by default.
+MAPPER_IMAGE_WARNING = "Could not read image"
+
+
+#: The start of a glog record: severity, date, time, thread id, source file and line.
+_GLOG_RECORD = re.compile(r"[IWEF]\d{8} \d{2}:\d{2}:\d{2}\.\d{6} +\d+ [^\s\]]+:\d+\] ")
 
 
 @contextlib.contextmanager
-def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_terminal: bool = True):
+def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_terminal: bool = True,
+                       replay: bool = False, hide: tuple[str, ...] = (MAPPER_IMAGE_WARNING,)):
     """Send COLMAP's glog output to ``folder/colmap_log.<timestamp>``; its errors also reach
     stderr unless ``errors_to_terminal`` is False (a call whose failure the caller reports in
     its own words).
 
-    Yields the log file's path prefix (glog appends a timestamp), or None when verbose.
-    glog settings are process-wide; they are restored on exit.
+    With ``verbose`` and ``replay`` the log still goes to the file, and its lines are written
+    to stderr when the call ends, their control characters escaped (glog prints image names
+    raw: a name holding a newline or ESC would forge a line), glog's header and the records
+    holding a text of ``hide`` left out: for a short call, or one whose names need escaping.
+
+    Yields the log file's path prefix (glog appends a timestamp), or None when verbose (or
+    ``folder`` is None): then COLMAP's log goes to stderr only (see :func:`glog_to_stderr`),
+    never to glog's own files in ``$TMPDIR``. glog settings are process-wide; they are
+    restored on exit.
     """
     import pycolmap
 
     lg = pycolmap.logging
-    if verbose or folder is None:
-        yield None
+    if (verbose and not replay) or folder is None:
+        with glog_to_stderr():
+            yield None
         return
+    if verbose:  # replayed: the file gets everything, the terminal nothing until the end
+        errors_to_terminal = False
     saved = (lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel)
     prefix = Path(folder) / "colmap_log."
     try:
@@ -36,6 +59,53 @@ def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_
     finally:
         lg.logtostderr, lg.alsologtostderr, lg.stderrthreshold, lg.minloglevel = saved
         lg.set_log_destination(lg.INFO, "")
+        if verbose:
+            replay_log(latest_log(prefix), hide)
+
+
+def replay_log(log_file: Path | None, hide: tuple[str, ...] = (MAPPER_IMAGE_WARNING,)) -> None:
+    """Write the lines of the glog file ``log_file`` to stderr, escaped (see
+    :func:`colmap_log_to_file`), without glog's header and the records that hold a text of
+    ``hide``."""
+    import sys
+
+    from ..terminal import printable
+
+    if log_file is None:
+        return
+    try:
+        text = log_file.read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return
+    records: list[str] = []
+    for line in text.split("\n"):
+        if records and not _GLOG_RECORD.match(line) and records[-1] and _GLOG_RECORD.match(records[-1]):
+            records[-1] += "\n" + line  # a name with a newline: the rest of the same record
+        else:
+            records.append(line)
+    skip = (*_NOT_REPLAYED, *hide)
+    lines = [printable(r.rstrip("\n")) for r in records if r and not any(t in r for t in skip)]
+    if lines:
+        with contextlib.suppress(OSError, ValueError):
+            sys.stderr.write("\n".join(lines) + "\n")
+            sys.stderr.flush()
+
+
+@contextlib.contextmanager
+def glog_to_stderr():
+    """COLMAP's log (glog) on stderr only for the block, restored after: by default glog also
+    writes every line into files of its own in ``$TMPDIR`` (``.<host>.<user>.log.INFO.<time>.<pid>``,
+    ``.WARNING``, ``.ERROR``) that nobody asked for and nobody removes. Which lines reach
+    stderr is still ``minloglevel``'s to say."""
+    import pycolmap
+
+    lg = pycolmap.logging
+    saved = lg.logtostderr
+    lg.logtostderr = True
+    try:
+        yield
+    finally:
+        lg.logtostderr = saved
 
 
 def latest_log(prefix: Path | None) -> Path | None:

@@ -15,6 +15,19 @@ from .colmap_log import colmap_log_to_file
 log = logging.getLogger(__name__)
 
 
+def _names_need_escaping(image_dir: Path) -> bool:
+    """Whether a file name under ``image_dir`` holds a character that
+    :func:`~colmap_miho.terminal.printable` escapes (a newline, ESC ...)."""
+    import os
+
+    from ..terminal import printable
+
+    for _root, dirs, files in os.walk(image_dir):
+        if any(printable(n) != n for n in (*dirs, *files)):
+            return True
+    return False
+
+
 def extract_and_match(
     image_dir: str | Path,
     database: str | Path,
@@ -46,6 +59,16 @@ def extract_and_match(
     """
     import pycolmap
 
+    from ..arguments import check_integer, check_paths
+    from ..validation import OPTION_BOUNDS, bounds_of
+    from .mapping import MappingConfig, parse_camera_params
+
+    check_paths(image_dir=image_dir, database=database, log_dir=log_dir, optional=("log_dir",))
+    check_integer("max_features", max_features, OPTION_BOUNDS["max_features"])
+    check_integer("num_threads", num_threads, bounds_of(MappingConfig)["num_threads"])
+
+    parse_camera_params(str(camera_model), str(camera_params))  # COLMAP's own check says only "Check failed"
+    camera_model = str(camera_model).upper()
     database = Path(database)
     if database.exists():
         raise FileExistsError(f"database already exists: {database}")
@@ -62,7 +85,10 @@ def extract_and_match(
     extraction.sift.max_num_features = int(max_features)
     extraction.num_threads = int(num_threads)
     mode = getattr(pycolmap.CameraMode, camera_mode.name)
-    with colmap_log_to_file(Path(log_dir) if log_dir else database.parent, verbose=verbose):
+    # COLMAP prints each file's name raw: with a name that needs escaping, -v shows the log
+    # escaped once the call ends instead of live
+    with colmap_log_to_file(Path(log_dir) if log_dir else database.parent, verbose=verbose,
+                            replay=verbose and _names_need_escaping(image_dir), hide=()):
         t0 = time.perf_counter()
         pycolmap.extract_features(str(database), str(image_dir), camera_mode=mode, reader_options=reader,
                                   extraction_options=extraction, device=pycolmap.Device.cpu)

@@ -163,7 +163,7 @@ def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, num_threads: int, verbo
     out = folder / "model"
     out.mkdir()
     failure = ""
-    with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False) as prefix:
+    with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False, replay=True) as prefix:
         try:
             recs = pc.global_mapping(str(folder / "global.db"), str(folder), str(out), opts)
         except RuntimeError as exc:  # COLMAP's own check failed: no estimate, the run goes on

@@ -224,7 +224,12 @@ def run_mapping(
     from ..adapters.paths import refuse_text_model
     from ..adapters.safety import check_database_path, read_copy
     from ..adapters.staged_write import disk_full_error, is_disk_full, private_tempdir
+    from ..arguments import check_paths, check_seed
 
+    check_paths(database=database, image_dir=image_dir, output=output)
+    check_seed(seed, optional=True)
+    if config is not None and not isinstance(config, MappingConfig):
+        raise InvalidInput(f"config must be of type MappingConfig, got {type(config).__name__}")
     cfg = config or MappingConfig()
     if mapper is not None or seed is not None:
         cfg = replace(cfg, mapper=cfg.mapper if mapper is None else Mapper.parse(mapper, "mapper"),
@@ -252,7 +257,9 @@ def run_mapping(
             models_dir = Path(tmp) / "models"
             models_dir.mkdir()
             t0 = time.perf_counter()
-            with colmap_log_to_file(output, verbose=verbose) as prefix:
+            # COLMAP prints image names raw: with one that needs escaping, -v replays the log
+            with colmap_log_to_file(output, verbose=verbose, replay=verbose and _names_need_escaping(db_copy),
+                                    hide=()) as prefix:
                 models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None, label)
             seconds = time.perf_counter() - t0
             log_file = latest_log(prefix)
@@ -281,6 +288,20 @@ def run_mapping(
         num_points3D=int(best.num_points3D()), seconds=seconds, cameras=_camera_rows(best),
         refine_intrinsics=cfg.refine_intrinsics.value, log_file=log_file, reconstruction=best,
     )
+
+
+def _names_need_escaping(copy: Path) -> bool:
+    """Whether an image name of the database ``copy`` holds a character that
+    :func:`~colmap_miho.terminal.printable` escapes (a newline, ESC ...)."""
+    import sqlite3
+
+    from ..terminal import printable
+
+    con = sqlite3.connect(f"file:{copy.resolve()}?mode=ro", uri=True)
+    try:
+        return any(printable(str(name)) != str(name) for (name,) in con.execute("SELECT name FROM images"))
+    finally:
+        con.close()
 
 
 def _warn_names_outside(copy: Path, database: Path, image_dir: Path) -> None:

@@ -13,13 +13,14 @@ import pytest
 
 
 @contextlib.contextmanager
-def small_disk(folder: Path, size: str = "8m"):
-    """Mount a tmpfs of ``size`` on ``folder`` (created) for the block; skip the test when
-    mounting is not allowed."""
+def small_disk(folder: Path, size: str = "8m", inodes: int | None = None):
+    """Mount a tmpfs of ``size`` (and ``inodes`` inodes, when given) on ``folder`` (created) for
+    the block; skip the test when mounting is not allowed."""
     folder.mkdir(parents=True, exist_ok=True)
     if os.geteuid() != 0:
         pytest.skip("mounting a small tmpfs needs root")
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}" + (f",nr_inodes={inodes}" if inodes else ""),
+                           "tmpfs", str(folder)],
                           capture_output=True, text=True)
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")

@@ -10,6 +10,7 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
+import pytest
 from disk import fill, small_disk
 
 from colmap_miho.adapters.staged_write import is_disk_full
@@ -188,3 +189,25 @@ def test_disk_filling_during_the_write_is_one_line_not_an_abort(db_copy, scene, 
         assert done.returncode == 1, done.stderr[-2000:]
         assert len(lines) == 1 and f"disk full while writing in {disk}" in lines[0], lines
         assert sha256(db) == digest and names(disk) == [".scene.miho.db.miho-run", "scene.db"]
+
+
+@pytest.mark.parametrize(("size", "inodes", "said"), [("64k", None, "MB free"), ("16m", 8, "no free inode")])
+def test_a_tmpdir_where_sqlite_cannot_make_its_file_is_a_full_disk(size, inodes, said, db_copy, scene, tmp_path,
+                                                                    monkeypatch, capfd):
+    """A TMPDIR too small (or without a free inode) for the estimate's temporary database:
+    SQLite says only "No registered database factory succeeded", COLMAP "Could not open": the
+    full-disk line (the folder, what to free, the kept work and --resume), not "unexpected"."""
+    out = tmp_path / "out.db"
+    digest = sha256(db_copy)
+    with small_disk(tmp_path / "tmp", size, inodes) as tmp:
+        monkeypatch.setenv("TMPDIR", str(tmp))
+        monkeypatch.setattr("tempfile.tempdir", None)  # gettempdir() reads TMPDIR again
+        capfd.readouterr()
+        code = main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                     "--workers", "1", "--no-refine", "--set", "match_check.mode=remove", "-q"])
+        lines = error_lines(capfd.readouterr().err)
+        assert code == 1 and len(lines) == 1, lines
+        assert lines[0].startswith(f"ERROR: disk full in {tmp} (") and said in lines[0], lines
+        assert "TMPDIR" in lines[0] and "--resume" in lines[0] and "unexpected" not in lines[0], lines
+        assert list(tmp.iterdir()) == []
+    assert sha256(db_copy) == digest and not out.exists()

@@ -173,3 +173,58 @@ def test_a_new_file_never_replaces_one_that_appeared_meanwhile(tmp_path):
     with pytest.raises(UserError, match="created by another program during the run"):
         publish_new_file(again, theirs)
     assert theirs.read_bytes() == b"ours"
+
+
+_STRESS = """
+import os, sys
+from colmap_miho.adapters.staged_write import private_tempdir
+failures = 0
+for i in range(int(sys.argv[2])):
+    try:
+        with private_tempdir("colmap_miho_map_", sys.argv[1]) as d:
+            (d / "database.db").write_bytes(b"x" * 100)
+            os.sched_yield()
+            if (d / "database.db").read_bytes() != b"x" * 100:
+                failures += 1
+    except OSError as exc:
+        failures += 1
+        print(type(exc).__name__, exc, file=sys.stderr)
+print(failures)
+"""
+
+
+def test_private_tempdir_runs_at_once_never_remove_each_others_folder(tmp_path):
+    """Four runs making and sweeping private folders in one parent, 300 times each: a sweep
+    must never take a live run's folder (its lock file existed, unlocked, for a moment)."""
+    import subprocess
+    import sys
+
+    procs = [subprocess.Popen([sys.executable, "-c", _STRESS, str(tmp_path), "300"], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(4)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert [int(out.split()[-1]) for out, _ in outs] == [0, 0, 0, 0], [err[-500:] for _, err in outs]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_private_tempdir_killed_before_its_lock_is_removed_later(tmp_path, monkeypatch):
+    """A run killed between making its folder and locking it leaves the folder with only its
+    pending lock file: removed once older than PENDING_TEMPDIR_S; an empty one (a run that has
+    not made its lock yet) or one with other files is never taken."""
+    from colmap_miho.adapters import staged_write as sw
+
+    killed = tmp_path / "colmap_miho_map_killed"
+    killed.mkdir()
+    (killed / f"{sw._PENDING_LOCK}abc").touch()
+    empty = tmp_path / "colmap_miho_map_empty"
+    empty.mkdir()
+    user = tmp_path / "colmap_miho_map_user"
+    user.mkdir()
+    (user / f"{sw._PENDING_LOCK}abc").touch()
+    (user / "notes.txt").touch()
+    with private_tempdir("colmap_miho_map_", tmp_path):
+        pass
+    assert killed.exists()  # young: its run may be about to lock it
+    monkeypatch.setattr(sw, "PENDING_TEMPDIR_S", -1.0)
+    with private_tempdir("colmap_miho_map_", tmp_path):
+        pass
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["colmap_miho_map_empty", "colmap_miho_map_user"]

@@ -1,0 +1,106 @@
+"""What each signal does to a refine run: Ctrl-C (SIGINT), SIGTERM and SIGHUP (the terminal
+closed, ssh dropped) stop it with one line, remove the working files and keep the finished work
+for ``--resume``, whether Python serves the signal or a long COLMAP call holds the interpreter."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from helpers import HELPERS, REPO
+
+from colmap_miho.cli import TERM_GRACE_S
+from colmap_miho.pipeline.store import store_folder
+
+CODES = {"SIGINT": 130, "SIGTERM": 143, "SIGHUP": 129}
+
+
+def _start_in_mapper(db: Path, images: Path, out: Path, tmp: Path, marker: Path, workers: int = 1,
+                     group: bool = False) -> subprocess.Popen:
+    env = {**os.environ, "TMPDIR": str(tmp), **({"MIHO_TEST_POOL": "1"} if workers > 1 else {})}
+    proc = subprocess.Popen(
+        [sys.executable, str(HELPERS / "busy_in_mapper.py"), str(marker), "refine", "--database", str(db),
+         "--images", str(images), "--output", str(out), "--workers", str(workers), "-q", "--no-refine", "--set",
+         "match_check.mode=remove"],
+        cwd=REPO, stderr=subprocess.PIPE, text=True, env=env, start_new_session=group)
+    deadline = time.monotonic() + 120
+    while not marker.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if not marker.exists():
+        proc.kill()
+        pytest.fail(f"the mapper never started: {proc.communicate()[1][-2000:]}")
+    return proc
+
+
+@pytest.mark.parametrize(("sig", "workers"), [("SIGINT", 1), ("SIGTERM", 1), ("SIGHUP", 1), ("SIGTERM", 2)])
+def test_a_signal_during_a_colmap_call_says_the_work_is_kept(db_copy, scene, tmp_path, sig, workers):
+    """The watcher's forced exit (the interpreter is held by the mapper) says the same as the
+    line Python prints: the working files removed, the finished work kept, ``--resume``; with
+    worker processes no more (multiprocessing's "leaked semaphore objects" warning)."""
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    out = tmp_path / "out.db"
+    proc = _start_in_mapper(db_copy, scene.image_dir, out, tmp, tmp_path / "marker", workers)
+    try:
+        t0 = time.monotonic()
+        proc.send_signal(getattr(signal, sig))
+        _, err = proc.communicate(timeout=TERM_GRACE_S + 30)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert proc.returncode == CODES[sig] and took < TERM_GRACE_S + 20, err
+    assert len(lines) == 1 and "during a COLMAP call" in lines[0], lines
+    assert f"the finished work of this run is kept in {store_folder(out)}" in lines[0], lines
+    assert "--resume" in lines[0] and store_folder(out).is_dir(), lines
+    assert list(tmp.iterdir()) == [] and not out.exists()
+
+
+def test_sighup_served_by_python_is_a_sigterm(db_copy, scene, tmp_path):
+    """SIGHUP while Python runs: the same clean-up and line as SIGTERM, exit 129."""
+    from helpers import start_at_write
+
+    out = tmp_path / "out.db"
+    proc = start_at_write("hold_at_write.py", tmp_path / "marker", str(tmp_path / "never"), "refine",
+                          "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                          "--workers", "1", "--no-refine", "-q")
+    try:
+        proc.send_signal(signal.SIGHUP)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert proc.returncode == 129 and len(lines) == 1, err
+    assert lines[0].startswith("ERROR: hung up (SIGHUP); working files removed"), lines
+    assert not out.exists() and [p.name for p in out.parent.iterdir() if p.name.startswith(".out.db")] in (
+        [], [store_folder(out).name]), list(out.parent.iterdir())
+
+
+def test_closing_the_terminal_hangs_up_the_whole_group_cleanly(db_copy, scene, tmp_path):
+    """A closed terminal sends SIGHUP to every process of its group: the workers, the
+    forkserver and multiprocessing's resource tracker too. A tracker killed by it was started
+    again, and printed a KeyError traceback for every semaphore it never saw."""
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    out = tmp_path / "out.db"
+    proc = _start_in_mapper(db_copy, scene.image_dir, out, tmp, tmp_path / "marker", workers=2, group=True)
+    try:
+        os.killpg(proc.pid, signal.SIGHUP)
+        _, err = proc.communicate(timeout=TERM_GRACE_S + 30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert proc.returncode == 129 and len(lines) == 1, err
+    assert lines[0].startswith("ERROR: hung up (SIGHUP)") and "--resume" in lines[0], lines
+    assert list(tmp.iterdir()) == [] and not out.exists()
