@@ -74,8 +74,8 @@ class MatchCheckStats:
             stage ended: an upper bound of the stage's own peak (it runs here, in the client,
             also with ``--dask``).
         round_seconds: per round, its parts: "database" (the estimate's temporary database),
-            "mapper", "pair_rotations" (each pair's own rotation), "hinge" (examining a hinge
-            found, a second estimate included), "judging", "placements".
+            "mapper", "pair_rotations" (each pair's own rotation), "hinge" (the hinge search; a
+            second estimate included when one was made), "judging", "placements".
         hinges: each hinge found in a round's estimate (:mod:`colmap_miho.verification.hinge`):
             "round", "angle_deg", the two groups' image names "images_a" / "images_b", the
             competing pairs "estimate_pairs" / "mode_pairs" (name pairs) with their

@@ -99,8 +99,8 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         part = dict(est.seconds)
         th = time.perf_counter()
         est, found, skip = resolve_hinge(estimator, est, current, cfg, rounds)
-        if found:
-            part["hinge"] = time.perf_counter() - th  # a second estimate included
+        if cfg.hinges:
+            part["hinge"] = time.perf_counter() - th  # the search; a second estimate included
         hinges += found
         unjudged |= skip
         judged_now = {p: m for p, m in current.items() if p not in unjudged}  # left unjudged in any round
