@@ -9,11 +9,18 @@ runs it. Each match is judged against its GT epipolar line (a GT outlier lies mo
 from it). Printed per database: the pairs and matches judged; the hinge search's findings (a
 mode not confirmed by 3D points, a hinge and the arbiter's verdict and action); the GT-correct
 matches the check removes with and without the hinge search, and the wrong ones; the estimate's
-largest GT rotation error after one global alignment; the stage's seconds with and without the
-search, and the search's own.
+largest GT rotation error after one global alignment; the ROC AUC of the arbiter's score (each
+pair's own coverage under the first estimate) for telling GT-correct pairs from GT-wrong ones;
+the stage's seconds with and without the search, and the search's own.
 
     python benchmarks/bench_hinge.py [--scenes ...] [--settings default permissive]
         [--features 4096 8192] [--seeds 0] [--cache /tmp/bench_hinge] [--threads 2] [--json out.json]
+        [--hinge-by-construction CUT KEEP]
+
+``--hinge-by-construction CUT KEEP`` makes a hinge on a real database: of the GT-correct pairs
+between the images named before ``CUT`` (in name order) and the others, only the ``KEEP`` with
+the most matches stay in the check's input (the wrong ones all stay), so that the wrong pairs
+outnumber the correct ones across.
 
 The scene ``demo`` is the built-in demo scene (2048 SIFT, as ``bench_accuracy.py``).
 """
@@ -121,7 +128,36 @@ def check(db, matches, labels, threads: int, hinges: bool):
     failed = np.concatenate([d.failed.get(p, np.zeros(len(matches[p]), bool)) for p in pairs])
     mode = find_hinge(first[0].poses, first[0].pair_rotations, tolerance_deg=cfg.max_rotation_deg,
                       min_pairs=cfg.hinge_min_pairs, min_side_images=cfg.hinge_min_side_images) if first else None
-    return d, float(failed[ok].mean()), float(failed[~ok].mean()) if (~ok).any() else 0.0, seconds, first, mode
+    auc = coverage_auc(inner, first[0], matches, labels, cfg) if first and first[0].poses else float("nan")
+    return d, float(failed[ok].mean()), float(failed[~ok].mean()) if (~ok).any() else 0.0, seconds, first, mode, auc
+
+
+def coverage_auc(estimator, est, matches, labels, cfg) -> float:
+    """ROC AUC of the arbiter's score (each pair's own coverage under the first estimate) for
+    telling the GT-correct pairs (at least half their matches within the GT bound) from the
+    GT-wrong ones, over every pair of two placed images that says something; 0.5: no better
+    than chance."""
+    from colmap_miho.verification.match_check import _Coverage
+
+    cov = _Coverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
+    scores = {p: cov(p) for p in matches if p[0] in est.poses and p[1] in est.poses}
+    right = np.array([c for p, c in scores.items() if np.isfinite(c) and labels[p].mean() >= 0.5])
+    wrong = np.array([c for p, c in scores.items() if np.isfinite(c) and labels[p].mean() < 0.5])
+    if not len(right) or not len(wrong):
+        return float("nan")
+    above = (right[:, None] > wrong[None]).sum() + 0.5 * (right[:, None] == wrong[None]).sum()
+    return float(above / (len(right) * len(wrong)))
+
+
+def hinge_by_construction(db, matches, labels, cut: int, keep: int) -> dict:
+    """``matches`` without all but the ``keep`` largest GT-correct pairs between the first
+    ``cut`` images (in name order) and the others."""
+    order = sorted(db.images(), key=lambda im: im.name)
+    first = {im.image_id for im in order[:cut]}
+    across = sorted((p for p in matches if (p[0] in first) != (p[1] in first) and labels[p].mean() >= 0.5),
+                    key=lambda p: (-len(matches[p]), p))
+    drop = set(across[keep:])
+    return {p: m for p, m in matches.items() if p not in drop}
 
 
 def run_one(scene: str, setting: str, features: int, seed: int, args) -> dict | None:
@@ -141,8 +177,11 @@ def run_one(scene: str, setting: str, features: int, seed: int, args) -> dict | 
         shutil.copyfile(database, Path(tmp) / "db.db")  # the check only reads; opening migrates a copy
         with ColmapDatabase(Path(tmp) / "db.db") as db:
             labels = gt_labels(db, matches, gt)
-            d_on, correct_on, wrong_on, s_on, est_on, mode = check(db, matches, labels, args.threads, True)
-            d_off, correct_off, wrong_off, s_off, _, _ = check(db, matches, labels, args.threads, False)
+            if args.hinge_by_construction:
+                matches = hinge_by_construction(db, matches, labels, *args.hinge_by_construction)
+                labels = {p: labels[p] for p in matches}
+            d_on, correct_on, wrong_on, s_on, est_on, mode, auc = check(db, matches, labels, args.threads, True)
+            d_off, correct_off, wrong_off, s_off, *_ = check(db, matches, labels, args.threads, False)
             names = {im.image_id: im.name for im in db.images()}
             err = rotation_error(est_on[0], db, gt) if est_on and est_on[0].poses else float("nan")
     found = [{"round": h.round, "angle_deg": round(h.hinge.angle_deg, 1), "verdict": h.verdict, "action": h.action,
@@ -155,6 +194,7 @@ def run_one(scene: str, setting: str, features: int, seed: int, args) -> dict | 
             "matches": int(sum(len(m) for m in matches.values())),
             "gt_correct": int(sum(int(v.sum()) for v in labels.values())),
             "mode": None if mode is None else round(mode.angle_deg, 1), "hinges": found,
+            "coverage_roc_auc": round(auc, 3),
             "correct_removed": round(100 * correct_on, 2), "correct_removed_off": round(100 * correct_off, 2),
             "wrong_removed": round(100 * wrong_on, 1), "wrong_removed_off": round(100 * wrong_off, 1),
             "identical": d_on.failed.keys() == d_off.failed.keys()
@@ -169,10 +209,11 @@ def _median(scores: dict) -> float:
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| scene | matching | SIFT | seed | pairs | estimate's worst image (deg) | hinge search | "
+    out = ["| scene | matching | SIFT | seed | pairs | estimate's worst image (deg) | coverage ROC AUC | "
+           "hinge search | "
            "correct removed (without search) | wrong removed (without) | same verdicts | stage s (without) | "
            "search s |",
-           "|---|---|---:|---:|---:|---:|---|---|---|---|---|---:|"]
+           "|---|---|---:|---:|---:|---:|---:|---|---|---|---|---|---:|"]
     for r in rows:
         if r["hinges"]:
             what = "; ".join(f"{h['angle_deg']} deg, {h['verdict']} ({h['mode_coverage']:.2f} against "
@@ -182,7 +223,7 @@ def table(rows: list[dict]) -> str:
         else:
             what = "silent"
         out.append(f"| {r['scene']} | {r['setting']} | {r['features']} | {r['seed']} | {r['pairs']} | "
-                   f"{r['max_rotation_error_deg']} | {what} | "
+                   f"{r['max_rotation_error_deg']} | {r['coverage_roc_auc']} | {what} | "
                    f"{r['correct_removed']:.2f}% ({r['correct_removed_off']:.2f}%) | "
                    f"{r['wrong_removed']:.1f}% ({r['wrong_removed_off']:.1f}%) | {'yes' if r['identical'] else 'no'} | "
                    f"{r['seconds']} ({r['seconds_off']}) | {r['hinge_seconds']} |")
@@ -199,6 +240,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0], help="refine seeds")
     ap.add_argument("--threads", type=int, default=2, help="global mapper threads (refine uses its worker count)")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--hinge-by-construction", nargs=2, type=int, default=None, metavar=("CUT", "KEEP"))
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     rows = []
