@@ -73,8 +73,9 @@ def find_hinges(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndar
     orientations, is a candidate mode; its support is the disagreeing pairs within
     ``tolerance_deg`` of it in either orientation (a pair ``(i, j)`` near ``M`` puts i on end
     A and j on end B, near ``M^T`` the other way). Candidates are taken by their support, most
-    first, each set of pairs once; one is a hinge when at least ``min_pairs`` pairs support it,
-    its two ends share no image and each holds at least ``min_side_images`` images.
+    first, each set of pairs once (a pair that would put an image at both ends is left out:
+    :func:`_one_side_each`); one is a hinge when at least ``min_pairs`` pairs support it and
+    each end holds at least ``min_side_images`` images.
     """
     residuals = world_residuals(poses, pair_rotations)
     eye = np.eye(3)
@@ -102,13 +103,30 @@ def find_hinges(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndar
         if pairs in tried:
             continue
         tried.add(pairs)
+        support = _one_side_each(support)
+        pairs = frozenset(q for q, _ in support)
+        if len(support) < min_pairs:
+            continue
         ends_a = {q[1] if f else q[0] for q, f in support}
         ends_b = {q[0] if f else q[1] for q, f in support}
-        if ends_a & ends_b or len(ends_a) < min_side_images or len(ends_b) < min_side_images:
+        if len(ends_a) < min_side_images or len(ends_b) < min_side_images:
             continue
         M = project_to_rotation(np.sum([off[q].T if f else off[q] for q, f in support], axis=0))
         yield Hinge(turn=M, angle_deg=rotation_angle_deg(M, eye), ends_a=frozenset(ends_a), ends_b=frozenset(ends_b),
                     mode_pairs=tuple(sorted(pairs)), agreeing=agreeing)
+
+
+def _one_side_each(support: list[tuple[Pair, bool]]) -> list[tuple[Pair, bool]]:
+    """The supporting pairs that keep each image on one end: an image named at both ends
+    (a wrong pair that happens to fall in the mode, flipped) goes to the end most of its pairs
+    put it at (ties: end A), and the pairs that disagree are left out."""
+    votes: dict[int, int] = {}
+    for (i, j), f in support:
+        a, b = (j, i) if f else (i, j)
+        votes[a] = votes.get(a, 0) + 1
+        votes[b] = votes.get(b, 0) - 1
+    return [((i, j), f) for (i, j), f in support
+            if votes[j if f else i] >= 0 and votes[i if f else j] < 0]
 
 
 def find_hinge(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray], *, tolerance_deg: float,

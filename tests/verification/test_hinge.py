@@ -159,3 +159,14 @@ def test_coverage_counts_what_the_pair_should_see_and_matches_there():
     assert e == 200  # the point behind j is not expected
     assert 120 <= f <= 121  # a reversed keypoint may land on itself
     assert coverage(pts[:0], matched[:0], pose_j, rays, focal, 4.0) == (0, 0)
+
+
+def test_a_wrong_pair_in_the_mode_that_names_an_image_at_both_ends_is_left_out():
+    """A wrong pair inside group B whose own rotation happens to fall in the mode, flipped, would
+    put image 6 at both ends; it is left out and the hinge stays the same."""
+    _, est, rot, G = _hinged()
+    rot[(6, 9)] = est[9][0] @ G.T @ est[6][0].T  # D_69 = G^T: the cross pairs' residual, 6 at end A
+    h = find_hinge(est, rot, tolerance_deg=TOL, min_pairs=3, min_side_images=2)
+    assert h is not None and not h.ends_a & h.ends_b
+    assert {frozenset(h.ends_a), frozenset(h.ends_b)} == {frozenset({3, 4, 5}), frozenset({6, 7, 8})}
+    assert (6, 9) not in h.mode_pairs
