@@ -76,6 +76,10 @@ class MatchCheckStats:
         round_seconds: per round, its parts: "database" (the estimate's temporary database),
             "mapper", "pair_rotations" (each pair's own rotation), "hinge" (the hinge search; a
             second estimate included when one was made), "judging", "placements".
+        mapper_steps: per round, the global mapper's own seconds per step from its log
+            ("rotation averaging", "track establishment", "global positioning", "iterative
+            bundle adjustment", "iterative retriangulation and refinement", as COLMAP names
+            them; empty with ``-v``).
         hinges: each hinge found in a round's estimate (:mod:`colmap_miho.verification.hinge`):
             "round", "angle_deg", the two groups' image names "images_a" / "images_b", the
             competing pairs "estimate_pairs" / "mode_pairs" (name pairs) with their
@@ -105,6 +109,7 @@ class MatchCheckStats:
     seconds: float = 0.0
     peak_rss_mb: float = 0.0
     round_seconds: list[dict] = field(default_factory=list)
+    mapper_steps: list[dict] = field(default_factory=list)
     hinges: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -112,7 +117,8 @@ class MatchCheckStats:
         out = dataclasses.asdict(self)
         for k in ("scale_px", "threshold_px", "seconds", "peak_rss_mb"):
             out[k] = round(float(out[k]), 3)
-        out["round_seconds"] = [{k: round(float(v), 3) for k, v in r.items()} for r in self.round_seconds]
+        for key in ("round_seconds", "mapper_steps"):
+            out[key] = [{k: round(float(v), 3) for k, v in r.items()} for r in getattr(self, key)]
         return out
 
 
@@ -183,6 +189,7 @@ def _meta(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.n
         "removed_per_pair": [{"images": [name(i), name(j)], "image_ids": [i, j], "removed": int(f.sum())}
                              for (i, j), f in sorted(d.failed.items()) if f.any()],
         "seconds": float(sum(sum(r.values()) for r in d.seconds)), "round_seconds": d.seconds,
+        "mapper_steps": d.mapper_steps,
         "peak_rss_mb": _peak_rss_mb(),
         "hinges": [_hinge_meta(h, matches, name) for h in d.hinges],
     }

@@ -116,6 +116,25 @@ def latest_log(prefix: Path | None) -> Path | None:
     return found[-1] if found else None
 
 
+#: A step the global mapper times in its log ("Global positioning done in 1.03 seconds").
+_STEP_DONE = re.compile(r"\] (.+?) done in ([0-9.eE+-]+) seconds")
+
+
+def step_seconds(log_file: Path | None) -> dict[str, float]:
+    """The seconds of each step a COLMAP log says it finished ("rotation averaging", "global
+    positioning", "iterative bundle adjustment" ...; lower case, the last of a repeated step, the
+    whole "reconstruction" left out); empty without a file."""
+    if log_file is None:
+        return {}
+    try:
+        text = log_file.read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return {}
+    steps = {name.strip().lower(): float(sec) for name, sec in _STEP_DONE.findall(text)}
+    steps.pop("reconstruction", None)
+    return steps
+
+
 def last_error_line(log_file: Path | None) -> str:
     """The message of the last error (``E...``) line of a glog file, "" when none (or no file)."""
     if log_file is None:

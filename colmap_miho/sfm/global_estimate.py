@@ -25,7 +25,7 @@ import numpy as np
 from ..adapters.database import ColmapDatabase, fitted_geometry, is_verified, keep_or_fit
 from ..geometry import fit_fundamental
 from ..types import Pair, Pose
-from .colmap_log import colmap_log_to_file, last_error_line, latest_log
+from .colmap_log import colmap_log_to_file, last_error_line, latest_log, step_seconds
 from .mapping import global_options, largest_model
 
 if TYPE_CHECKING:
@@ -54,6 +54,9 @@ class GlobalEstimate:
         keypoints: image id -> ``(N, 2)`` keypoints in COLMAP's convention.
         seconds: wall time of its parts: "database" (the temporary database), "mapper",
             "pair_rotations".
+        mapper_steps: the mapper's own seconds per step, from its log ("rotation averaging",
+            "global positioning", "iterative bundle adjustment" ...; empty with ``-v``, whose log
+            goes to the terminal).
         failure: why the mapper gave no model, in COLMAP's words ("" when it gave one).
     """
 
@@ -65,6 +68,7 @@ class GlobalEstimate:
     cameras: dict = field(default_factory=dict)
     keypoints: dict[int, np.ndarray] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
+    mapper_steps: dict[str, float] = field(default_factory=dict)
     failure: str = ""
 
 
@@ -105,7 +109,7 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
             _write_database(pycolmap, src, folder / "global.db", image_ids, used, kp, cfg.seed)
             seconds["database"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            recs, failure = _run_mapper(pycolmap, folder, cfg, num_threads, verbose)
+            recs, failure, steps = _run_mapper(pycolmap, folder, cfg, num_threads, verbose)
             seconds["mapper"] = time.perf_counter() - t0
         except (OSError, RuntimeError) as exc:
             if is_disk_full(exc):
@@ -113,12 +117,12 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
             raise
     rec = largest_model(recs)
     if rec is None:
-        return GlobalEstimate(seconds=seconds, failure=failure)
+        return GlobalEstimate(seconds=seconds, mapper_steps=steps, failure=failure)
     model = _read_model(rec, kp)
     t0 = time.perf_counter()
     rotations = _pair_rotations(pycolmap, used, kp, model["cameras"], cfg.seed)
     seconds["pair_rotations"] = time.perf_counter() - t0
-    return GlobalEstimate(**model, seconds=seconds, keypoints=kp, pair_rotations=rotations)
+    return GlobalEstimate(**model, seconds=seconds, mapper_steps=steps, keypoints=kp, pair_rotations=rotations)
 
 
 def _write_database(pc, src: ColmapDatabase, path: Path, image_ids: list[int], used: Mapping[Pair, np.ndarray],
@@ -150,9 +154,11 @@ def _write_database(pc, src: ColmapDatabase, path: Path, image_ids: list[int], u
                 dst.write_two_view_geometry(i, j, tvg)
 
 
-def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, num_threads: int, verbose: bool) -> tuple[dict, str]:
+def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, num_threads: int, verbose: bool
+                ) -> tuple[dict, str, dict[str, float]]:
     """``pycolmap.global_mapping`` on ``folder``'s ``global.db`` into ``folder/model``; returns
-    (its models, why it gave none in COLMAP's words, "" when it gave some)."""
+    (its models, why it gave none in COLMAP's words ("" when it gave some), the seconds of its
+    steps from its log)."""
     from ..adapters.staged_write import is_disk_full
 
     opts = global_options(seed=cfg.seed, num_threads=num_threads, min_num_matches=cfg.min_pair_matches)
@@ -170,9 +176,10 @@ def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, num_threads: int, verbo
             if is_disk_full(exc):
                 raise
             recs, failure = {}, " ".join(str(exc).split())
+    log_file = latest_log(prefix)
     if not recs and not failure:
-        failure = last_error_line(latest_log(prefix))
-    return recs, failure
+        failure = last_error_line(log_file)
+    return recs, failure, step_seconds(log_file)
 
 
 def _read_model(rec, kp: Mapping[int, np.ndarray]) -> dict:

@@ -50,6 +50,7 @@ class MatchCheckDecision:
         scale_px / threshold_px: the first used round's scale and threshold (every round
             applies that threshold).
         seconds: per round, the estimate's parts and "judging", "placements" and "hinge".
+        mapper_steps: per round, the global mapper's own seconds per step (its log's).
         hinges: the hinges found in the rounds' estimates and their verdicts.
         unjudged: pairs left unjudged across a hinge the evidence could not decide.
     """
@@ -68,6 +69,7 @@ class MatchCheckDecision:
     scale_px: float = 0.0
     threshold_px: float = 0.0
     seconds: list[dict[str, float]] = field(default_factory=list)
+    mapper_steps: list[dict[str, float]] = field(default_factory=list)
     hinges: tuple[HingeVerdict, ...] = ()
     unjudged: frozenset[Pair] = frozenset()
 
@@ -89,6 +91,7 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
     cut_any: set[int] = set()
     used, reason, scale, threshold, rounds = False, "", 0.0, 0.0, 0
     seconds: list[dict[str, float]] = []
+    steps: list[dict[str, float]] = []
     hinges: list[HingeVerdict] = []
     unjudged: set[Pair] = set()
     for _ in range(cfg.rounds):
@@ -97,6 +100,7 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         est = estimator.estimate(current)
         rounds += 1
         part = dict(est.seconds)
+        steps.append(dict(est.mapper_steps))
         th = time.perf_counter()
         est, found, skip = resolve_hinge(estimator, est, current, cfg, rounds)
         if cfg.hinges:
@@ -135,7 +139,7 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         failed={p: f for p, f in failed.items() if f.any() or p in judged}, wrong=frozenset(wrong),
         fail_share=share, registered=frozenset(registered_any), trusted=frozenset(trusted_any),
         untrusted=frozenset(registered_any - trusted_any), cut_off=frozenset(cut_any), judged_pairs=judged,
-        scale_px=scale, threshold_px=threshold, seconds=seconds, hinges=tuple(hinges),
+        scale_px=scale, threshold_px=threshold, seconds=seconds, mapper_steps=steps, hinges=tuple(hinges),
         unjudged=frozenset(unjudged))
 
 
@@ -155,6 +159,8 @@ class CameraEstimate(Protocol):
     def observations(self) -> Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]: ...
     @property
     def seconds(self) -> Mapping[str, float]: ...
+    @property
+    def mapper_steps(self) -> Mapping[str, float]: ...
     @property
     def failure(self) -> str: ...
 

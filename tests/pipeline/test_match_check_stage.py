@@ -106,6 +106,7 @@ def test_planted_matches_are_removed_and_correct_ones_kept(planted_db, tmp_path)
     assert mc["used"] and mc["mode"] == "remove" and not mc["images_untrusted"]
     assert mc["images_registered"] == mc["images"] == 8 and len(mc["images_trusted"]) == 8
     assert mc["matches_removed"] > 0 and 1.0 <= mc["threshold_px"] <= 4.0
+    assert mc["mapper_steps"] and "global positioning" in mc["mapper_steps"][0]  # its log's seconds per step
     assert off["match_check"] == {}
     note = match_check_note(mc)  # report.html's sentence
     assert "8 trusted" in note and f"{mc['matches_removed']} of {mc['matches_judged']} judged matches removed" in note
@@ -161,7 +162,7 @@ def test_resumed_run_reuses_the_stored_verdicts(planted_db, tmp_path, monkeypatc
 
     monkeypatch.setattr(stage, "_decide", no_mapper)
     res = _run(planted_db, out, "match_check.mode=remove", resume=True)
-    timing = ("seconds", "round_seconds", "peak_rss_mb")  # the mapper's time and memory differ
+    timing = ("seconds", "round_seconds", "mapper_steps", "peak_rss_mb")  # the mapper's time and memory differ
     same = {k: v for k, v in ref["match_check"].items() if k not in timing}
     assert res["resumed"] and {k: v for k, v in res["match_check"].items() if k not in timing} == same
     a, b = _output_matches(tmp_path / "ref.db"), _output_matches(out)

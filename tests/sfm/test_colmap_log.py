@@ -53,3 +53,15 @@ def test_verbose_extraction_escapes_a_name_that_needs_it(tmp_path, capfd):
     err = capfd.readouterr().err
     assert "\x1b" not in err and "a\\nI1206 FORGED\\x1b[31mred.png" in err, err[-3000:]
     assert not [ln for ln in err.splitlines() if ln.startswith("I1206 FORGED")]
+
+
+def test_the_mapper_steps_seconds_are_read_from_its_log(tmp_path):
+    from colmap_miho.sfm.colmap_log import step_seconds
+
+    log = tmp_path / "colmap_log.20261206-000000.1"
+    log.write_text("I20261206 01:37:01.358450 140424379595648 global_mapper.cc:559] Rotation averaging done in "
+                   "0.004132 seconds\nI20261206 01:37:02.391391 1404 global_mapper.cc:584] Global positioning done "
+                   "in 1.02843 seconds\nI20261206 01:37:02.727974 1404 global_pipeline.cc:183] Reconstruction done in "
+                   "1.37366 seconds\nI20261206 01:37:02.8 1404 x.cc:1] Some other line\n")
+    assert step_seconds(log) == {"rotation averaging": 0.004132, "global positioning": 1.02843}
+    assert step_seconds(None) == {} and step_seconds(tmp_path / "missing") == {}

@@ -201,6 +201,7 @@ class _Estimate:
     def __init__(self, poses=None, rays=None, focal=None, pair_rotations=None, failure=""):
         self.poses, self.rays, self.focal = poses or {}, rays or {}, focal or {}
         self.pair_rotations, self.failure, self.seconds = pair_rotations or {}, failure, {"mapper": 0.0}
+        self.mapper_steps = {}
 
 
 def test_rounds_judge_and_a_later_round_that_fails_keeps_the_first_verdicts():
