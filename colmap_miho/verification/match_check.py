@@ -261,9 +261,12 @@ def weigh_hinge(coverage: _Coverage, hinge: Hinge, round_: int) -> HingeVerdict:
                         verdict=verdict)
 
 
-def theirs_finite(v: HingeVerdict) -> list[float]:
-    """The mode's coverages that say something."""
-    return [x for x in v.mode_coverage.values() if np.isfinite(x)] or [0.0]
+def _weaker_than_the_mode(v: HingeVerdict) -> set[Pair]:
+    """The estimate's cross pairs covered worse than the lower quartile of the mode's pairs
+    (those that say something)."""
+    theirs = [x for x in v.mode_coverage.values() if np.isfinite(x)] or [0.0]
+    bar = float(np.percentile(theirs, 25))
+    return {p for p, c in v.estimate_coverage.items() if not c >= bar}
 
 
 def cross_pairs(pairs, groups: Groups) -> frozenset[Pair]:
@@ -301,7 +304,7 @@ def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np
         if v.verdict == "estimate":
             found.append(dataclasses.replace(v, action="kept"))
             break
-        drop = {p for p, c in v.estimate_coverage.items() if not c >= np.percentile(theirs_finite(v), 25)}
+        drop = _weaker_than_the_mode(v)
         if v.verdict == "mode" and attempt == 0 and drop:
             again = estimator.estimate({p: m for p, m in matches.items() if p not in drop})
             if len(again.poses) >= cfg.min_trusted_images:
