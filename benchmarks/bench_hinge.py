@@ -88,15 +88,14 @@ def gt_labels(db, matches, gt) -> dict[tuple[int, int], np.ndarray]:
 def rotation_error(est, db, gt) -> float:
     """The largest angle (deg) between an estimated and a GT rotation after one global
     alignment of all of them."""
-    from colmap_miho.geometry import rotation_angle_deg
+    from colmap_miho.geometry import project_to_so3, rotation_angle_deg
     from colmap_miho.reporting.keypoint_accuracy import camera_krt
-    from colmap_miho.verification.hinge import project_to_rotation
 
     names = {im.image_id: im.name for im in db.images()}
     Rgt = {i: camera_krt(gt[names[i]])[1] for i in est.poses if names[i] in gt}
     if not Rgt:
         return float("nan")
-    G = project_to_rotation(sum(est.poses[i][0].T @ R for i, R in Rgt.items()))
+    G = project_to_so3(sum(est.poses[i][0].T @ R for i, R in Rgt.items()))
     return max(rotation_angle_deg(est.poses[i][0] @ G, R) for i, R in Rgt.items())
 
 

@@ -231,3 +231,10 @@ def transfer(F_3from1: np.ndarray, F_3from2: np.ndarray, x1: np.ndarray,
         pts = p[:, :2] / p[:, 2:3]
     pts[~np.isfinite(pts).all(1)] = np.nan
     return pts, sin
+
+
+def project_to_so3(R: np.ndarray) -> np.ndarray:
+    """Closest rotation (Frobenius) to a (3, 3) matrix, via SVD with det = +1."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt

@@ -31,6 +31,7 @@ import numpy as np
 from ..adapters.conventions import colmap_to_pixel_centre, pixel_centre_to_colmap
 from ..adapters.images import image_size
 from ..errors import InvalidInput
+from ..geometry import project_to_so3
 
 log = logging.getLogger(__name__)
 
@@ -60,13 +61,6 @@ class CameraPose:
     def center(self) -> np.ndarray:
         """(3,) camera centre in world coordinates, ``-R^T t``."""
         return -self.R.T @ self.t
-
-
-def project_to_so3(R: np.ndarray) -> np.ndarray:
-    """Closest rotation (Frobenius) to a (3, 3) matrix, via SVD with det = +1."""
-    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return U @ D @ Vt
 
 
 # --------------------------------------------------------------------------- COLMAP models

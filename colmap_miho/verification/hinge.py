@@ -20,7 +20,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..geometry import rotation_angle_deg
+from ..geometry import project_to_so3, rotation_angle_deg
 from ..types import Pair, Pose
 
 
@@ -30,16 +30,6 @@ def world_residuals(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.
     by ``G_A`` to one turned by ``G_B``."""
     return {(i, j): poses[j][0].T @ R @ poses[i][0] for (i, j), R in pair_rotations.items()
             if i in poses and j in poses}
-
-
-def project_to_rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation nearest (Frobenius) to a 3x3 matrix."""
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        U[:, -1] *= -1
-        R = U @ Vt
-    return R
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -111,7 +101,7 @@ def find_hinges(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndar
         ends_b = {q[0] if f else q[1] for q, f in support}
         if len(ends_a) < min_side_images or len(ends_b) < min_side_images:
             continue
-        M = project_to_rotation(np.sum([off[q].T if f else off[q] for q, f in support], axis=0))
+        M = project_to_so3(np.sum([off[q].T if f else off[q] for q, f in support], axis=0))
         yield Hinge(turn=M, angle_deg=rotation_angle_deg(M, eye), ends_a=frozenset(ends_a), ends_b=frozenset(ends_b),
                     mode_pairs=tuple(sorted(pairs)), agreeing=agreeing)
 
@@ -166,7 +156,7 @@ def confirm_hinge(hinge: Hinge, poses: Mapping[int, Pose], placed: Callable[[int
     ends_b = {q[0] if q[0] in hinge.ends_b else q[1] for q, _ in kept}
     if len(kept) < min_pairs or len(ends_a) < min_side_images or len(ends_b) < min_side_images:
         return None
-    M = project_to_rotation(np.sum([D for _, D in kept], axis=0))
+    M = project_to_so3(np.sum([D for _, D in kept], axis=0))
     return Hinge(turn=M, angle_deg=rotation_angle_deg(M, eye), ends_a=frozenset(ends_a), ends_b=frozenset(ends_b),
                  mode_pairs=tuple(sorted(q for q, _ in kept)), agreeing=hinge.agreeing)
 

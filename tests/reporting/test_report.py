@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from colmap_miho.cli import main
+from colmap_miho.geometry import project_to_so3
 from colmap_miho.reporting import gt_model as gm
 from colmap_miho.reporting import model_errors
 from colmap_miho.reporting import report as rp
@@ -89,7 +90,7 @@ def test_unregistered_image_counts_as_failure():
 def test_umeyama_recovers_similarity():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(10, 3))
-    R = gm.project_to_so3(rng.normal(size=(3, 3)))
+    R = project_to_so3(rng.normal(size=(3, 3)))
     dst = 2.5 * src @ R.T + np.array([1.0, -2.0, 3.0])
     s, R_est, t = model_errors.umeyama(src, dst)
     assert s == pytest.approx(2.5) and np.allclose(R_est, R) and np.allclose(t, [1, -2, 3])
