@@ -136,9 +136,9 @@ def coverage_auc(estimator, est, matches, labels, cfg) -> float:
     telling the GT-correct pairs (at least half their matches within the GT bound) from the
     GT-wrong ones, over every pair of two placed images that says something; 0.5: no better
     than chance."""
-    from colmap_miho.verification.match_check import _Coverage
+    from colmap_miho.verification.match_check import PairCoverage
 
-    cov = _Coverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
+    cov = PairCoverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
     scores = {p: cov(p) for p in matches if p[0] in est.poses and p[1] in est.poses}
     right = np.array([c for p, c in scores.items() if np.isfinite(c) and labels[p].mean() >= 0.5])
     wrong = np.array([c for p, c in scores.items() if np.isfinite(c) and labels[p].mean() < 0.5])

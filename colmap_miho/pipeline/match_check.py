@@ -163,10 +163,10 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
     estimator = GlobalEstimator(src=db, config=cfg, num_threads=threads,
                                 verbose=log.isEnabledFor(logging.DEBUG))  # -v: COLMAP's log on the terminal
     d = judge_in_rounds(matches, estimator, cfg)
-    return d.failed, d.wrong, _meta(d, cfg, matches, {im.image_id: im.name for im in db.images()})
+    return d.failed, d.wrong, stats_fields(d, cfg, matches, {im.image_id: im.name for im in db.images()})
 
 
-def _meta(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.ndarray],
+def stats_fields(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.ndarray],
           names: dict[int, str]) -> dict:
     """The :class:`MatchCheckStats` fields of a decision, images named."""
     def name(i: int) -> str:

@@ -209,7 +209,7 @@ class HingeVerdict:
     unjudged: frozenset[Pair] = frozenset()
 
 
-class _Coverage:
+class PairCoverage:
     """Each pair's own evidence under one estimate, measured once: the second image placed by
     the pair's matches alone from the first image's points (:meth:`placed`, with as many
     inliers as a pair needs to count, ``min_hits``), and the pair's coverage
@@ -249,7 +249,7 @@ class _Coverage:
         return self.known[pair]
 
 
-def weigh_hinge(coverage: _Coverage, hinge: Hinge, round_: int) -> HingeVerdict:
+def weigh_hinge(coverage: PairCoverage, hinge: Hinge, round_: int) -> HingeVerdict:
     """The estimate's cross pairs against the mode's, each measured by its own coverage: the
     groups follow each image's strongest agreeing pairs (:func:`~.hinge.split_groups`), and
     :func:`~.hinge.arbitrate` compares the estimate's pairs between them with the mode's."""
@@ -292,7 +292,7 @@ def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np
     if not cfg.hinges:
         return est, found, frozenset()
     for attempt in range(2):  # the estimate, and at most one made again
-        coverage = _Coverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
+        coverage = PairCoverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
         tol, n, sides = cfg.max_rotation_deg, cfg.hinge_min_pairs, cfg.hinge_min_side_images
         confirmed = (confirm_hinge(h, est.poses, coverage.placed, tolerance_deg=tol, min_pairs=n, min_side_images=sides)
                      for h in find_hinges(est.poses, est.pair_rotations, tolerance_deg=tol, min_pairs=n,
