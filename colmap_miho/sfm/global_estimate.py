@@ -80,7 +80,8 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
         src: the open working database (read only here).
         matches: pair -> int ``(M, 2)`` keypoint indices, the matches to estimate from.
         cfg: the match check's settings the estimate uses (``min_pair_matches``: pairs with
-            fewer matches are left out and get no pair rotation; ``seed``, ``ba_iterations``,
+            fewer matches are left out and get no pair rotation; ``estimate_matches_per_image``: the
+            tracks the mapper is given, :func:`sampled_tracks`; ``seed``, ``ba_iterations``,
             ``retriangulate``, ``ba_function_tolerance``).
         num_threads: mapper threads (-1: all cores).
         verbose: COLMAP's log on the terminal instead of the temporary folder's file (its
@@ -106,7 +107,9 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
     used = {p: np.asarray(m, np.int64) for p, m in matches.items() if len(m) >= cfg.min_pair_matches}
     with private_tempdir("miho-global-", workdir) as folder:
         try:
-            _write_database(pycolmap, src, folder / "global.db", image_ids, used, kp, cfg.seed)
+            tracks = sampled_tracks(used, {i: len(k) for i, k in kp.items()}, cfg.estimate_matches_per_image,
+                                    cfg.min_pair_matches, cfg.seed)
+            _write_database(pycolmap, src, folder / "global.db", image_ids, tracks, kp, cfg.seed)
             seconds["database"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             recs, failure, steps = _run_mapper(pycolmap, folder, cfg, num_threads, verbose)
@@ -123,6 +126,52 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
     rotations = _pair_rotations(pycolmap, used, kp, model["cameras"], cfg.seed)
     seconds["pair_rotations"] = time.perf_counter() - t0
     return GlobalEstimate(**model, seconds=seconds, mapper_steps=steps, keypoints=kp, pair_rotations=rotations)
+
+
+def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[int, int], per_image: int,
+                   min_pair_matches: int, seed: int) -> dict[Pair, np.ndarray]:
+    """The matches the global mapper is given: a sample of whole tracks when ``matches`` hold
+    more than ``per_image`` match ends per image on average; all of them otherwise, with
+    ``per_image`` 0, or where the consistent tracks (below) hold fewer than that.
+
+    Tracks are the keypoints connected across pairs. A track that holds two keypoints of one
+    image is not one scene point: wrong matches on repeated structure chain copies together
+    (on castle-P19 such components grow to 2,000 keypoints), and they are left out of the
+    sample. Each track is kept at random (seeded) with probability ``per_image`` over the
+    match ends per image, whole; pairs left with fewer than ``min_pair_matches`` matches are
+    dropped. Thinning each pair alone instead breaks the tracks, and the mapper then turned
+    groups of images on repeated structure (docs/results.md, the match check's cost).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    total = sum(len(m) for m in matches.values())
+    images = sorted({i for p in matches for i in p})
+    share = per_image * len(images) / (2 * total) if total else 1.0
+    if per_image <= 0 or share >= 1.0:
+        return dict(matches)
+    offset, n = {}, 0
+    for i in sorted(num_keypoints):
+        offset[i], n = n, n + int(num_keypoints[i])
+    pairs = sorted(matches)
+    a = np.concatenate([offset[i] + matches[(i, j)][:, 0] for i, j in pairs])
+    b = np.concatenate([offset[j] + matches[(i, j)][:, 1] for i, j in pairs])
+    count, track = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
+    nodes = np.unique(np.concatenate([a, b]))
+    starts = np.asarray([offset[i] for i in sorted(offset)], np.int64)
+    image_of = np.searchsorted(starts, nodes, side="right") - 1
+    size = np.bincount(track[nodes], minlength=count)
+    views = np.bincount(np.unique(track[nodes] * len(starts) + image_of) // len(starts), minlength=count)
+    consistent = size == views
+    if 2 * int(consistent[track[a]].sum()) < per_image * len(images):
+        return dict(matches)  # too few consistent tracks to sample from: every match, as without a sample
+    keep = (np.random.default_rng(seed).random(count) < share) & consistent
+    out = {}
+    for i, j in pairs:
+        m = matches[(i, j)][keep[track[offset[i] + matches[(i, j)][:, 0]]]]
+        if len(m) >= min_pair_matches:
+            out[(i, j)] = m
+    return out
 
 
 def _write_database(pc, src: ColmapDatabase, path: Path, image_ids: list[int], used: Mapping[Pair, np.ndarray],

@@ -123,6 +123,11 @@ class MatchCheckConfig:
             of the estimate (absolute pose at ``max_threshold_px``, as incremental mapping
             registers an image), then test its trust again.
         min_placed_inliers: 2D-3D inliers such a new pose needs.
+        estimate_matches_per_image: the global estimate is built from a sample of whole
+            tracks, about this many match ends per image on average (0: every match;
+            :func:`~colmap_miho.sfm.global_estimate.sampled_tracks`). The mapper's cost grows
+            with the tracks it is given; the sample bounds it per image. The judging, the
+            pairs' own rotations and the placements still use every match.
         ba_iterations / retriangulate: the global mapper's bundle-adjustment rounds and its
             retriangulation after them.
         ba_function_tolerance: the global mapper's bundle adjustments stop when an iteration
@@ -159,6 +164,8 @@ class MatchCheckConfig:
     place_untrusted: bool = True
     min_placed_inliers: int = field(default=30, metadata=within(
         6, MAX_MATCHES, "an absolute pose needs 6 correspondences"))
+    estimate_matches_per_image: int = field(default=2000, metadata=within(
+        0, 1_000_000_000, "match ends of an image (0: all)"))
     ba_iterations: int = field(default=3, metadata=within(1, 10, "rounds of bundle adjustment, each a full adjustment"))
     retriangulate: bool = True
     ba_function_tolerance: float = field(default=1e-4, metadata=within(0, 0.1, "a relative cost decrease"))
