@@ -15,7 +15,12 @@ the stage's seconds with and without the search, and the search's own.
 
     python benchmarks/bench_hinge.py [--scenes ...] [--settings default permissive]
         [--features 4096 8192] [--seeds 0] [--cache /tmp/bench_hinge] [--threads 2] [--json out.json]
-        [--hinge-by-construction CUT KEEP]
+        [--hinge-by-construction CUT KEEP] [--check-seed N] [--sample-every-component]
+
+``--sample-every-component`` makes the global estimate's track sample take the components that
+hold two keypoints of one image too (``sampled_tracks(consistent_only=False)``): on castle-P19
+8192 SIFT permissive with ``--check-seed 1`` the mapper then turns four images on the repeated
+facade against the rest, a hinge on real data.
 
 ``--hinge-by-construction CUT KEEP`` makes a hinge on a real database: of the GT-correct pairs
 between the images named before ``CUT`` (in name order) and the others, only the ``KEEP`` with
@@ -99,14 +104,14 @@ def rotation_error(est, db, gt) -> float:
     return max(rotation_angle_deg(est.poses[i][0] @ G, R) for i, R in Rgt.items())
 
 
-def check(db, matches, labels, threads: int, hinges: bool):
+def check(db, matches, labels, threads: int, hinges: bool, seed: int = 0):
     """The check's decision on ``matches``, the shares of correct / wrong matches it fails,
     its seconds, and the first estimate (recorded)."""
     from colmap_miho.sfm.global_estimate import GlobalEstimator
     from colmap_miho.verification import MatchCheckConfig, judge_in_rounds
     from colmap_miho.verification.hinge import find_hinge
 
-    cfg = MatchCheckConfig(mode="remove", hinges=hinges)
+    cfg = MatchCheckConfig(mode="remove", hinges=hinges, seed=seed)
     inner = GlobalEstimator(src=db, config=cfg, num_threads=threads)
     first: list = []
 
@@ -179,8 +184,9 @@ def run_one(scene: str, setting: str, features: int, seed: int, args) -> dict | 
             if args.hinge_by_construction:
                 matches = hinge_by_construction(db, matches, labels, *args.hinge_by_construction)
                 labels = {p: labels[p] for p in matches}
-            d_on, correct_on, wrong_on, s_on, est_on, mode, auc = check(db, matches, labels, args.threads, True)
-            d_off, correct_off, wrong_off, s_off, *_ = check(db, matches, labels, args.threads, False)
+            d_on, correct_on, wrong_on, s_on, est_on, mode, auc = check(db, matches, labels, args.threads, True,
+                                                                        args.check_seed)
+            d_off, correct_off, wrong_off, s_off, *_ = check(db, matches, labels, args.threads, False, args.check_seed)
             names = {im.image_id: im.name for im in db.images()}
             err = rotation_error(est_on[0], db, gt) if est_on and est_on[0].poses else float("nan")
     found = [{"round": h.round, "angle_deg": round(h.hinge.angle_deg, 1), "verdict": h.verdict, "action": h.action,
@@ -240,8 +246,17 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="global mapper threads (refine uses its worker count)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--hinge-by-construction", nargs=2, type=int, default=None, metavar=("CUT", "KEEP"))
+    ap.add_argument("--check-seed", type=int, default=0, help="match_check.seed (the mapper's and the track sample's)")
+    ap.add_argument("--sample-every-component", action="store_true",
+                    help="the estimate's track sample takes inconsistent components too (rebuilds a hinge)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
+    if args.sample_every_component:
+        import functools
+
+        from colmap_miho.sfm import global_estimate
+
+        global_estimate.sampled_tracks = functools.partial(global_estimate.sampled_tracks, consistent_only=False)
     rows = []
     for scene in args.scenes:
         for setting in args.settings:

@@ -129,7 +129,7 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
 
 
 def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[int, int], per_image: int,
-                   min_pair_matches: int, seed: int) -> dict[Pair, np.ndarray]:
+                   min_pair_matches: int, seed: int, *, consistent_only: bool = True) -> dict[Pair, np.ndarray]:
     """The matches the global mapper is given: a sample of whole tracks when ``matches`` hold
     more than ``per_image`` match ends per image on average; all of them otherwise, with
     ``per_image`` 0, or where the consistent tracks (below) hold fewer than that.
@@ -141,6 +141,8 @@ def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[in
     match ends per image, whole; pairs left with fewer than ``min_pair_matches`` matches are
     dropped. Thinning each pair alone instead breaks the tracks, and the mapper then turned
     groups of images on repeated structure (docs/results.md, the match check's cost).
+    ``consistent_only`` False samples every component alike (how ``benchmarks/bench_hinge.py``
+    rebuilds a hinged estimate of castle-P19).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -162,7 +164,7 @@ def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[in
     image_of = np.searchsorted(starts, nodes, side="right") - 1
     size = np.bincount(track[nodes], minlength=count)
     views = np.bincount(np.unique(track[nodes] * len(starts) + image_of) // len(starts), minlength=count)
-    consistent = size == views
+    consistent = size == views if consistent_only else np.ones(count, bool)
     if 2 * int(consistent[track[a]].sum()) < per_image * len(images):
         return dict(matches)  # too few consistent tracks to sample from: every match, as without a sample
     keep = (np.random.default_rng(seed).random(count) < share) & consistent
