@@ -81,7 +81,8 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
         matches: pair -> int ``(M, 2)`` keypoint indices, the matches to estimate from.
         cfg: the match check's settings the estimate uses (``min_pair_matches``: pairs with
             fewer matches are left out and get no pair rotation; ``estimate_matches_per_image``: the
-            tracks the mapper is given, :func:`sampled_tracks`; ``seed``, ``ba_iterations``,
+            tracks the mapper is given, :func:`sampled_tracks`; ``pair_rotation_matches``: the most
+            of a pair's matches its own rotation is estimated from; ``seed``, ``ba_iterations``,
             ``retriangulate``, ``ba_function_tolerance``).
         num_threads: mapper threads (-1: all cores).
         verbose: COLMAP's log on the terminal instead of the temporary folder's file (its
@@ -123,7 +124,8 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
         return GlobalEstimate(seconds=seconds, mapper_steps=steps, failure=failure)
     model = _read_model(rec, kp)
     t0 = time.perf_counter()
-    rotations = _pair_rotations(pycolmap, used, kp, model["cameras"], cfg.seed)
+    sample = evenly_spaced(used, cfg.pair_rotation_matches)
+    rotations = _pair_rotations(pycolmap, sample, kp, model["cameras"], cfg.seed)
     seconds["pair_rotations"] = time.perf_counter() - t0
     return GlobalEstimate(**model, seconds=seconds, mapper_steps=steps, keypoints=kp, pair_rotations=rotations)
 
@@ -322,6 +324,15 @@ def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, n
         return None
     pose = out["cam_from_world"]
     return np.asarray(pose.rotation.matrix(), np.float64), np.asarray(pose.translation, np.float64)
+
+
+def evenly_spaced(matches: Mapping[Pair, np.ndarray], most: int) -> dict[Pair, np.ndarray]:
+    """At most ``most`` of each pair's matches, evenly spaced over them in their order (all of
+    them with ``most`` 0)."""
+    if most <= 0:
+        return dict(matches)
+    return {p: m if len(m) <= most else m[np.linspace(0, len(m) - 1, most).round().astype(np.int64)]
+            for p, m in matches.items()}
 
 
 def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],

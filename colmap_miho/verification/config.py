@@ -126,8 +126,10 @@ class MatchCheckConfig:
         estimate_matches_per_image: the global estimate is built from a sample of whole
             tracks, about this many match ends per image on average (0: every match;
             :func:`~colmap_miho.sfm.global_estimate.sampled_tracks`). The mapper's cost grows
-            with the tracks it is given; the sample bounds it per image. The judging, the
-            pairs' own rotations and the placements still use every match.
+            with the tracks it is given; the sample bounds it per image. The judging and the
+            placements still use every match.
+        pair_rotation_matches: each pair's own relative rotation (the trust test's) is estimated
+            from at most this many of its matches, evenly spaced over them (0: all of them).
         ba_iterations / retriangulate: the global mapper's bundle-adjustment rounds and its
             retriangulation after them.
         ba_function_tolerance: the global mapper's bundle adjustments stop when an iteration
@@ -166,6 +168,7 @@ class MatchCheckConfig:
         6, MAX_MATCHES, "an absolute pose needs 6 correspondences"))
     estimate_matches_per_image: int = field(default=2000, metadata=within(
         0, 1_000_000_000, "match ends of an image (0: all)"))
+    pair_rotation_matches: int = field(default=512, metadata=within(0, MAX_MATCHES, "matches of a pair (0: all)"))
     ba_iterations: int = field(default=3, metadata=within(1, 10, "rounds of bundle adjustment, each a full adjustment"))
     retriangulate: bool = True
     ba_function_tolerance: float = field(default=1e-4, metadata=within(0, 0.1, "a relative cost decrease"))

@@ -38,6 +38,7 @@ def planted_db(tmp_path_factory):
     o.num_points2D_without_point3D = 0
     rng = np.random.default_rng(0)
     planted: dict[tuple[int, int], set] = {}
+    pycolmap.set_random_seed(0)  # pycolmap's one global generator: the scene must not depend on the tests before
     with ColmapDatabase.create(path) as db:
         gt = db.synthesize(o, pycolmap.SyntheticNoiseOptions(point2D_stddev=NOISE_PX))
         pts = {pid: p.xyz for pid, p in gt.points3D.items()}

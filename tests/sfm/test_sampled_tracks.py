@@ -1,4 +1,5 @@
-"""The global estimate's track sample: whole tracks kept or dropped, about the share asked."""
+"""The global estimate's inputs: the track sample (whole tracks kept or dropped, about the share
+asked) and the matches a pair's own rotation is estimated from."""
 
 from __future__ import annotations
 
@@ -77,3 +78,13 @@ def test_every_match_when_the_consistent_tracks_are_too_few():
         matches[(i, j)] = np.concatenate([m, shifted]).astype(np.int64)
     out = sampled_tracks(matches, sizes, per_image=500, min_pair_matches=15, seed=0)
     assert out.keys() == matches.keys() and all(np.array_equal(out[p], matches[p]) for p in matches)
+
+
+def test_evenly_spaced_keeps_the_ends_and_small_pairs():
+    from colmap_miho.sfm.global_estimate import evenly_spaced
+
+    m = np.arange(2000, dtype=np.int64).reshape(-1, 2)  # 1000 matches
+    out = evenly_spaced({(1, 2): m, (1, 3): m[:10]}, 100)
+    assert len(out[(1, 2)]) == 100 and np.array_equal(out[(1, 2)][[0, -1]], m[[0, -1]])
+    assert np.array_equal(out[(1, 3)], m[:10])
+    assert np.array_equal(evenly_spaced({(1, 2): m}, 0)[(1, 2)], m)
