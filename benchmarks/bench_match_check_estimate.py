@@ -17,7 +17,8 @@ database, each variant's median over the seeds.
 
 A variant is a name and ``MatchCheckConfig`` fields (``all:estimate_matches_per_image=0`` is the
 estimate from every match); without ``--variant``: ``default`` (the project's settings) and
-``all``. The scene ``demo`` is the built-in demo scene (2048 SIFT).
+``all`` (``estimate_matches_per_image=0,pair_rotation_matches=0``: the estimate before the
+sample). The scene ``demo`` is the built-in demo scene (2048 SIFT).
 """
 
 from __future__ import annotations
@@ -85,7 +86,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    variants = [parse_variant(v) for v in (args.variants or ["default", "all:estimate_matches_per_image=0"])]
+    before = "all:estimate_matches_per_image=0,pair_rotation_matches=0"
+    variants = [parse_variant(v) for v in (args.variants or ["default", before])]
     from colmap_miho.adapters.database import ColmapDatabase
     from colmap_miho.reporting.gt_model import load_gt_poses
 
