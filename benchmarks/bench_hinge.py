@@ -235,13 +235,19 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def database_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options that pick the databases (``--data``, ``--cache``, ``--scenes``, ``--settings``,
+    ``--features``), shared with ``bench_match_check_estimate.py``."""
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "bench_hinge")
     ap.add_argument("--scenes", nargs="+", default=[*SHARED_SCENES, DEMO])
     ap.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
     ap.add_argument("--features", nargs="+", type=int, default=[4096, 8192])
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    database_arguments(ap)
     ap.add_argument("--seeds", nargs="+", type=int, default=[0], help="refine seeds")
     ap.add_argument("--threads", type=int, default=2, help="global mapper threads (refine uses its worker count)")
     ap.add_argument("--json", type=Path, default=None)

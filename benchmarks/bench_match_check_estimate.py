@@ -36,10 +36,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_accuracy import DEMO, MAX_FEATURES, SETTINGS, SHARED_SCENES, build_database, scene_inputs  # noqa: E402
-from bench_hinge import gt_labels, stage_input  # noqa: E402
-
-REPO = Path(__file__).resolve().parents[1]
+from bench_accuracy import MAX_FEATURES, build_database, scene_inputs  # noqa: E402
+from bench_hinge import database_arguments, gt_labels, stage_input  # noqa: E402
 
 
 def parse_variant(text: str) -> tuple[str, dict]:
@@ -75,11 +73,7 @@ def run_check(db, matches, labels, fields: dict, seed: int, threads: int) -> dic
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
-    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "bench_hinge")
-    ap.add_argument("--scenes", nargs="+", default=[*SHARED_SCENES, DEMO])
-    ap.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
-    ap.add_argument("--features", nargs="+", type=int, default=[4096, 8192])
+    database_arguments(ap)
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="match_check.seed values")
     ap.add_argument("--threads", type=int, default=1, help="global mapper threads")
     ap.add_argument("--variant", dest="variants", action="append", default=[])
