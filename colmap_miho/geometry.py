@@ -26,6 +26,12 @@ HYPOTHESIS_BATCH = 32
 CONFIDENCE = 0.999
 
 
+def spread_rows(n: int, cap: int) -> np.ndarray:
+    """At most ``cap`` row indices int64, spread evenly over ``n`` rows (all of them when
+    ``n <= cap``)."""
+    return np.arange(n, dtype=np.int64) if n <= cap else np.linspace(0, n - 1, cap).round().astype(np.int64)
+
+
 def skew(t: np.ndarray) -> np.ndarray:
     """``(3, 3)`` cross-product matrix ``[t]_x`` of ``t`` ``(3,)``."""
     return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
@@ -159,7 +165,7 @@ def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
     x1 = np.asarray(x1, np.float64)
     x2 = np.asarray(x2, np.float64)
     if len(x1) > max_points:
-        keep = np.linspace(0, len(x1) - 1, max_points).round().astype(np.int64)
+        keep = spread_rows(len(x1), max_points)
         x1, x2 = x1[keep], x2[keep]
     m = len(x1)
     if m < MIN_F_MATCHES:

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..adapters.database import ColmapDatabase, fitted_geometry, is_verified, keep_or_fit
-from ..geometry import fit_fundamental
+from ..geometry import fit_fundamental, spread_rows
 from ..types import Pair, Pose
 from .colmap_log import colmap_log_to_file, last_error_line, latest_log, step_seconds
 from .mapping import global_options, largest_model
@@ -150,8 +150,8 @@ def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[in
     from scipy.sparse.csgraph import connected_components
 
     total = sum(len(m) for m in matches.values())
-    images = sorted({i for p in matches for i in p})
-    share = per_image * len(images) / (2 * total) if total else 1.0
+    num_images = len({i for p in matches for i in p})
+    share = per_image * num_images / (2 * total) if total else 1.0
     if per_image <= 0 or share >= 1.0:
         return dict(matches)
     offset, n = {}, 0
@@ -167,7 +167,7 @@ def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[in
     size = np.bincount(track[nodes], minlength=count)
     views = np.bincount(np.unique(track[nodes] * len(starts) + image_of) // len(starts), minlength=count)
     consistent = size == views if consistent_only else np.ones(count, bool)
-    if 2 * int(consistent[track[a]].sum()) < per_image * len(images):
+    if 2 * int(consistent[track[a]].sum()) < per_image * num_images:
         return dict(matches)  # too few consistent tracks to sample from: every match, as without a sample
     keep = (np.random.default_rng(seed).random(count) < share) & consistent
     out = {}
@@ -331,8 +331,7 @@ def evenly_spaced(matches: Mapping[Pair, np.ndarray], most: int) -> dict[Pair, n
     them with ``most`` 0)."""
     if most <= 0:
         return dict(matches)
-    return {p: m if len(m) <= most else m[np.linspace(0, len(m) - 1, most).round().astype(np.int64)]
-            for p, m in matches.items()}
+    return {p: m[spread_rows(len(m), most)] for p, m in matches.items()}
 
 
 def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],

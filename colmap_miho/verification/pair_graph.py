@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry import fit_fundamental, transfer
+from ..geometry import fit_fundamental, spread_rows, transfer
 from ..types import Pair
 from .config import PairCheckConfig
 
@@ -168,7 +168,7 @@ class _Graph:
         ``(<= cap, 2)``, taken once per oriented pair."""
         if (pair, cap) not in self._carried:
             m = self.oriented[pair]
-            self._carried[(pair, cap)] = m[_spread(len(m), cap)]
+            self._carried[(pair, cap)] = m[spread_rows(len(m), cap)]
         return self._carried[(pair, cap)]
 
     def box(self, image: int) -> tuple[np.ndarray, np.ndarray]:
@@ -192,11 +192,6 @@ class _Graph:
             common = a & b if len(a) <= len(b) else b & a
             out.extend((i, j, k) for k in sorted(common) if k > j)
         return out
-
-
-def _spread(n: int, cap: int) -> np.ndarray:
-    """At most ``cap`` row indices spread evenly over ``n`` rows."""
-    return np.arange(n) if n <= cap else np.linspace(0, n - 1, cap).round().astype(np.int64)
 
 
 def _within(xy_a: np.ndarray, xy_b: np.ndarray, tol: float) -> np.ndarray:
