@@ -176,7 +176,7 @@ def fit_fundamental(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
         samples = np.arange(m)[None]
     else:  # a sample that repeats a row is degenerate and simply scores low
         samples = rng.integers(0, m, (hypotheses, MIN_F_MATCHES))
-    score = np.linspace(0, m - 1, min(m, SCORE_POINTS)).round().astype(np.int64)  # hypotheses scored on these
+    score = spread_rows(m, SCORE_POINTS)  # hypotheses scored on these
     best_F, best_count = np.zeros((3, 3)), -1  # replaced by the first batch's best
     for start in range(0, len(samples), max(batch, 1)):
         chunk = samples[start:start + max(batch, 1)]

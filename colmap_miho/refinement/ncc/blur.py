@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ...geometry import spread_rows
 from ..lsm.align import frame_sampler
 from ..warping import ImageStack, frame_jacobian, job_images, local_scale, to_frame
 
@@ -163,7 +164,7 @@ def _frames(p: np.ndarray, H: np.ndarray, device: torch.device) -> tuple[torch.T
 
 def _sample_rows(n: int) -> np.ndarray:
     """At most :data:`MAX_MATCHES` row indices evenly spread over ``n`` rows."""
-    return np.unique(np.linspace(0, n - 1, min(n, MAX_MATCHES)).round().astype(np.int64))
+    return spread_rows(n, MAX_MATCHES)
 
 
 def match_blur(
