@@ -145,8 +145,9 @@ class MatchCheckConfig:
             pairs disagree with the estimate by the same rotation, touching at least this many
             images on each side (one image turned alone is the trust test's case).
         rounds: global estimates at most; each later one is made from the last one's survivors
-            and judges, with the first round's threshold, the pairs of the images newly trusted
-            (stops once every placed image is trusted).
+            among the images not trusted yet and those two pairs around them, and judges, with
+            the first round's threshold, the pairs of the images newly trusted (stops once
+            every placed image is trusted).
         seed: random seed of the global mapper and of the pairs' relative-pose RANSAC.
     """
 

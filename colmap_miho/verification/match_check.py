@@ -79,9 +79,12 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
     """The match check: up to ``cfg.rounds`` global estimates, each from the survivors of the
     last, each judged (:func:`check_matches`, then :func:`place_untrusted`).
 
-    A later round judges only the pairs of the images newly trusted, with the first round's
-    threshold (the survivors' distances are truncated: a scale taken from them would shrink
-    round after round); it stops once every placed image is trusted. Each estimate is first
+    A later round estimates from the survivors among the images not trusted yet and those
+    :data:`LATER_ROUND_RINGS` pairs around them (its cost follows what is left to judge, not
+    the scene; where those images are many, that is the whole pair graph), and judges only the
+    pairs of the images newly trusted, with the first round's threshold (the survivors'
+    distances are truncated: a scale taken from them would shrink round after round); it stops
+    once every placed image is trusted. Each estimate is first
     examined for a hinge (:func:`resolve_hinge`).
     """
     failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
@@ -94,8 +97,12 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
     steps: list[dict[str, float]] = []
     hinges: list[HingeVerdict] = []
     unjudged: set[Pair] = set()
+    focus: set[int] | None = None  # a later round's images: those not trusted yet
     for _ in range(cfg.rounds):
         alive = {p: np.flatnonzero(~f) for p, f in failed.items() if p not in wrong and (~f).any()}
+        if focus is not None:  # a later round estimates only around the images not trusted yet
+            near = images_around(focus, alive, LATER_ROUND_RINGS)
+            alive = {p: idx for p, idx in alive.items() if p[0] in near and p[1] in near}
         current = {p: matches[p][idx] for p, idx in alive.items()}
         est = estimator.estimate(current)
         rounds += 1
@@ -130,6 +137,7 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         wrong |= set(res.wrong_pairs)
         if set(res.trusted) >= set(res.registered):
             break  # every placed image judged already: another round changes little
+        focus = {i for p in matches for i in p} - trusted_any
     judged = frozenset(p for p in matches if p[0] in trusted_any and p[1] in trusted_any and p not in unjudged)
     share = {p: float(failed[p].mean()) for p in wrong}  # before the pair is removed whole
     for p in wrong:
@@ -141,6 +149,25 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         untrusted=frozenset(registered_any - trusted_any), cut_off=frozenset(cut_any), judged_pairs=judged,
         scale_px=scale, threshold_px=threshold, seconds=seconds, mapper_steps=steps, hinges=tuple(hinges),
         unjudged=frozenset(unjudged))
+
+
+#: Steps through the pair graph around the images a later round is for: the later estimate is
+#: made from the surviving matches of the pairs among those images and the images this many
+#: pairs away from them, so its cost follows the images left to judge, not the scene.
+LATER_ROUND_RINGS = 2
+
+
+def images_around(images: set[int], pairs, rings: int) -> set[int]:
+    """``images`` and the images at most ``rings`` pairs away from them in ``pairs``."""
+    neighbours: dict[int, set[int]] = {}
+    for i, j in pairs:
+        neighbours.setdefault(i, set()).add(j)
+        neighbours.setdefault(j, set()).add(i)
+    near, edge = set(images), set(images)
+    for _ in range(rings):
+        edge = {k for i in edge for k in neighbours.get(i, ())} - near
+        near |= edge
+    return near
 
 
 class CameraEstimate(Protocol):

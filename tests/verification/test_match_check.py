@@ -8,7 +8,14 @@ import pytest
 
 from colmap_miho.geometry import essential, relative_pose, symmetric_epipolar_distance
 from colmap_miho.verification import MatchCheckConfig, check_matches, judge_in_rounds
-from colmap_miho.verification.match_check import cut_off_images, robust_scale, threshold_px, trusted_images
+from colmap_miho.verification.match_check import (
+    LATER_ROUND_RINGS,
+    cut_off_images,
+    images_around,
+    robust_scale,
+    threshold_px,
+    trusted_images,
+)
 
 FOCAL = 800.0
 #: Pixels: noise of the correct matches' keypoints.
@@ -188,9 +195,11 @@ class _Scripted:
     def __init__(self, *estimates):
         self.estimates = list(estimates)
         self.calls = 0
+        self.given: list[set] = []  # the pairs each estimate was asked from
 
     def estimate(self, matches):
         self.calls += 1
+        self.given.append(set(matches))
         return self.estimates.pop(0) if self.estimates else _Estimate(failure="no model (scripted)")
 
     def place(self, estimate, image_id, matches, trusted, min_inliers=None):
@@ -220,6 +229,40 @@ def test_rounds_judge_and_a_later_round_that_fails_keeps_the_first_verdicts():
     assert 1 - fail[bad].mean() <= MAX_PLANTED_KEPT
     assert not any(4 in p for p in d.failed)  # never judged: its pose was not trusted
     assert len(d.seconds) == 2 and {"mapper", "judging", "placements"} <= set(d.seconds[0])
+
+
+def test_images_around_walks_the_pair_graph():
+    chain = [(1, 2), (2, 3), (3, 4), (4, 5), (5, 6)]
+    assert images_around({1}, chain, 0) == {1}
+    assert images_around({1}, chain, 2) == {1, 2, 3}
+    assert images_around({3, 6}, chain, 1) == {2, 3, 4, 5, 6}
+    assert images_around({9}, chain, 2) == {9}  # an image without pairs is itself
+
+
+def test_a_later_round_estimates_only_around_the_images_not_trusted():
+    """A sparse pair graph (each image with the next two): one image placed wrong asks for a
+    second round, which is estimated only from the pairs among the images two pairs around it,
+    and judges only its pairs; the first round's verdicts stay."""
+    poses, rays, focal, matches, planted = _scene(seed=2, n_images=12)
+    matches = {p: m for p, m in matches.items() if p[1] - p[0] <= 2}
+    planted = {p: planted[p] for p in matches}
+    R, t = poses[2]
+    first = _Estimate({**poses, 2: (_rot([0, 1, 0], 30.0) @ R, t)}, rays, focal, _pair_rotations(poses))
+    second = _Estimate(poses, rays, focal, _pair_rotations(poses))
+    est = _Scripted(first, second)
+    d = judge_in_rounds(matches, est, MatchCheckConfig(mode="remove", rounds=2))
+    assert est.calls == 2 and d.rounds == 2 and d.used
+    assert est.given[0] == set(matches)
+    near = images_around({2}, matches, LATER_ROUND_RINGS)
+    assert near == {1, 2, 3, 4, 5, 6}
+    assert est.given[1] == {p for p in matches if p[0] in near and p[1] in near}
+    assert len({i for p in est.given[1] for i in p}) == 6 < len(poses)  # not the whole pair graph
+    assert d.trusted == frozenset(poses) and not d.untrusted
+    assert {p for p in d.failed if 2 in p} == {p for p in matches if 2 in p}  # judged in round 2
+    bad = np.concatenate([planted[p] for p in sorted(d.judged_pairs)])
+    fail = np.concatenate([d.failed[p] for p in sorted(d.judged_pairs)])
+    assert 1 - fail[bad].mean() <= MAX_PLANTED_KEPT
+    assert fail[~bad].mean() <= MAX_CORRECT_REMOVED
 
 
 def test_an_estimator_that_places_nothing_says_why():
