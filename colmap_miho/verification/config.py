@@ -142,10 +142,8 @@ class MatchCheckConfig:
             between the estimate and the other hypothesis; when it does not decide, the pairs
             between the two groups are left unjudged.
         hinge_min_pairs / hinge_min_side_images: a mode is a hinge when at least this many
-            pairs disagree with the estimate by the same rotation, with at least this many
-            images on each side: the images the pairs touch there and the images that agree
-            with those (one image turned alone agrees with none of its pairs: the trust test's
-            case; a group that meets the rest through one image, as on a ring, is a side).
+            pairs disagree with the estimate by the same rotation, touching at least this many
+            images on each side (one image turned alone is the trust test's case).
         rounds: global estimates at most; each later one is made from the last one's survivors
             among the images not trusted yet and those two pairs around them, and judges, with
             the first round's threshold, the pairs of the images newly trusted (stops once
@@ -176,7 +174,7 @@ class MatchCheckConfig:
     retriangulate: bool = True
     ba_function_tolerance: float = field(default=1e-4, metadata=within(0, 0.1, "a relative cost decrease"))
     hinges: bool = True
-    hinge_min_pairs: int = field(default=2, metadata=within(2, 1_000_000, "pairs across a hinge"))
+    hinge_min_pairs: int = field(default=3, metadata=within(2, 1_000_000, "pairs across a hinge"))
     hinge_min_side_images: int = field(default=2, metadata=within(1, 1_000_000, "images on one side of a hinge"))
     rounds: int = field(default=2, metadata=within(1, 5, "global-mapper runs"))
     seed: int = field(default=0, metadata=within(0, MAX_SEED, "a 32-bit seed"))

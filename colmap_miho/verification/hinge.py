@@ -65,8 +65,7 @@ def find_hinges(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndar
     A and j on end B, near ``M^T`` the other way). Candidates are taken by their support, most
     first, each set of pairs once (a pair that would put an image at both ends is left out:
     :func:`_one_side_each`); one is a hinge when at least ``min_pairs`` pairs support it and
-    each side holds at least ``min_side_images`` images, counting each end's images and the
-    images that agree with them (:func:`_sides_hold`).
+    each end holds at least ``min_side_images`` images.
     """
     residuals = world_residuals(poses, pair_rotations)
     eye = np.eye(3)
@@ -100,28 +99,11 @@ def find_hinges(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndar
             continue
         ends_a = {q[1] if f else q[0] for q, f in support}
         ends_b = {q[0] if f else q[1] for q, f in support}
-        if not _sides_hold(ends_a, ends_b, agreeing, min_side_images):
+        if len(ends_a) < min_side_images or len(ends_b) < min_side_images:
             continue
         M = project_to_so3(np.sum([off[q].T if f else off[q] for q, f in support], axis=0))
         yield Hinge(turn=M, angle_deg=rotation_angle_deg(M, eye), ends_a=frozenset(ends_a), ends_b=frozenset(ends_b),
                     mode_pairs=tuple(sorted(pairs)), agreeing=agreeing)
-
-
-def _sides_hold(ends_a: set[int] | frozenset[int], ends_b: set[int] | frozenset[int], agreeing, least: int) -> bool:
-    """Whether each side of a mode holds at least ``least`` images: its end images and the
-    images that agree with them (``agreeing`` pairs; an image at the other end not counted).
-    One image turned alone agrees with none of its pairs: the trust test's case, not a hinge;
-    a group that meets the rest through one image (a ring of images) is one."""
-    def side(ends, other) -> int:
-        near = set(ends)
-        for i, j in agreeing:
-            if i in ends and j not in other:
-                near.add(j)
-            elif j in ends and i not in other:
-                near.add(i)
-        return len(near)
-
-    return side(ends_a, ends_b) >= least and side(ends_b, ends_a) >= least
 
 
 def _one_side_each(support: list[tuple[Pair, bool]]) -> list[tuple[Pair, bool]]:
@@ -172,7 +154,7 @@ def confirm_hinge(hinge: Hinge, poses: Mapping[int, Pose], placed: Callable[[int
             kept.append((p, D if i not in hinge.ends_b else D.T))
     ends_a = {q[1] if q[0] in hinge.ends_b else q[0] for q, _ in kept}
     ends_b = {q[0] if q[0] in hinge.ends_b else q[1] for q, _ in kept}
-    if len(kept) < min_pairs or not _sides_hold(ends_a, ends_b, hinge.agreeing, min_side_images):
+    if len(kept) < min_pairs or len(ends_a) < min_side_images or len(ends_b) < min_side_images:
         return None
     M = project_to_so3(np.sum([D for _, D in kept], axis=0))
     return Hinge(turn=M, angle_deg=rotation_angle_deg(M, eye), ends_a=frozenset(ends_a), ends_b=frozenset(ends_b),
