@@ -125,7 +125,7 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
     model = _read_model(rec, kp)
     t0 = time.perf_counter()
     sample = evenly_spaced(used, cfg.pair_rotation_matches)
-    rotations = _pair_rotations(pycolmap, sample, kp, model["cameras"], cfg.seed)
+    rotations = _pair_rotations(pycolmap, sample, kp, model["cameras"], cfg.seed, num_threads)
     seconds["pair_rotations"] = time.perf_counter() - t0
     return GlobalEstimate(**model, seconds=seconds, mapper_steps=steps, keypoints=kp, pair_rotations=rotations)
 
@@ -335,19 +335,30 @@ def evenly_spaced(matches: Mapping[Pair, np.ndarray], most: int) -> dict[Pair, n
 
 
 def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],
-                    cams: Mapping, seed: int) -> dict[Pair, np.ndarray]:
+                    cams: Mapping, seed: int, num_threads: int = 1) -> dict[Pair, np.ndarray]:
     """Each pair's own ``R_2from1`` from its matches (pairs of two registered images whose
-    relative pose could be estimated)."""
+    relative pose could be estimated), on ``num_threads`` threads (-1: all cores; pycolmap
+    releases the GIL, and each pair's RANSAC is seeded alone, so the result does not depend on
+    the threads)."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
     opts = pc.TwoViewGeometryOptions()
     opts.compute_relative_pose = True
     opts.ransac.max_error = PAIR_POSE_MAX_ERROR_PX
     opts.ransac.random_seed = int(seed)
-    out = {}
-    for (i, j), m in sorted(matches.items()):
-        if i not in cams or j not in cams:
-            continue
+    todo = [(p, m) for p, m in sorted(matches.items()) if p[0] in cams and p[1] in cams]
+
+    def rotation(item: tuple[Pair, np.ndarray]) -> np.ndarray | None:
+        (i, j), m = item
         tvg = pc.estimate_two_view_geometry(cams[i], kp[i], cams[j], kp[j], np.ascontiguousarray(m, np.uint32), opts)
         pose = tvg.cam2_from_cam1
-        if is_verified(tvg) and pose is not None:
-            out[(i, j)] = np.asarray(pose.rotation.matrix(), np.float64)
-    return out
+        return np.asarray(pose.rotation.matrix(), np.float64) if is_verified(tvg) and pose is not None else None
+
+    threads = max(1, min(len(todo), (os.cpu_count() or 1) if num_threads < 0 else int(num_threads)))
+    if threads == 1:
+        found = [rotation(item) for item in todo]
+    else:
+        with ThreadPoolExecutor(threads) as pool:
+            found = list(pool.map(rotation, todo))
+    return {p: R for (p, _), R in zip(todo, found, strict=True) if R is not None}
