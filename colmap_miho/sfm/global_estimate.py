@@ -14,8 +14,10 @@ model's cameras). Coordinates are COLMAP's inside (the rays do not depend on the
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -340,9 +342,6 @@ def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.
     relative pose could be estimated), on ``num_threads`` threads (-1: all cores; pycolmap
     releases the GIL, and each pair's RANSAC is seeded alone, so the result does not depend on
     the threads)."""
-    import os
-    from concurrent.futures import ThreadPoolExecutor
-
     opts = pc.TwoViewGeometryOptions()
     opts.compute_relative_pose = True
     opts.ransac.max_error = PAIR_POSE_MAX_ERROR_PX
@@ -356,9 +355,6 @@ def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.
         return np.asarray(pose.rotation.matrix(), np.float64) if is_verified(tvg) and pose is not None else None
 
     threads = max(1, min(len(todo), (os.cpu_count() or 1) if num_threads < 0 else int(num_threads)))
-    if threads == 1:
-        found = [rotation(item) for item in todo]
-    else:
-        with ThreadPoolExecutor(threads) as pool:
-            found = list(pool.map(rotation, todo))
+    with ThreadPoolExecutor(threads) as pool:
+        found = list(pool.map(rotation, todo))
     return {p: R for (p, _), R in zip(todo, found, strict=True) if R is not None}
