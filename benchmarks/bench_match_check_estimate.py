@@ -37,16 +37,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_accuracy import MAX_FEATURES, build_database, scene_inputs  # noqa: E402
+from bench_hard_pairs import parse_variant  # noqa: E402
 from bench_hinge import database_arguments, gt_labels, stage_input  # noqa: E402
-
-
-def parse_variant(text: str) -> tuple[str, dict]:
-    name, _, rest = text.partition(":")
-    fields = {}
-    for item in filter(None, rest.split(",")):
-        key, _, value = item.partition("=")
-        fields[key] = json.loads(value) if value not in ("true", "false") else value == "true"
-    return name, fields
 
 
 def run_check(db, matches, labels, fields: dict, seed: int, threads: int) -> dict:

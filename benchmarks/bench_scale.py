@@ -571,7 +571,9 @@ def write_report(rows: list[dict], args, extra: list[str], *, write_json: bool =
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "scale.md").write_text(text + "\n")
     if write_json:
-        meta = {"argv": sys.argv[1:], "refine_args": extra, "workers": args.workers, "poll": args.poll,
+        from bench_known_cameras import portable_argv
+
+        meta = {"argv": portable_argv(sys.argv[1:]), "refine_args": extra, "workers": args.workers, "poll": args.poll,
                 "sift_sample": args.sift_sample, "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
                 "cpu_count": os.cpu_count(), "fits": f, "rows": rows}
         (args.out / "scale.json").write_text(json.dumps(meta, indent=2) + "\n")
