@@ -215,14 +215,17 @@ def _release_semaphores() -> None:
 def install_signal_handlers() -> None:
     """SIGTERM raises :class:`~colmap_miho.errors.Terminated` (a KeyboardInterrupt), so it
     cleans up like Ctrl-C; both note that the interpreter handles them. pycolmap's import
-    installs glog's handler (a stack dump), so pycolmap is imported first, then replaced."""
+    installs glog's handler (a stack dump), so pycolmap is imported first, then replaced. A
+    signal ignored when the command starts (``nohup``, a script's background job) stays
+    ignored, as for any Unix tool."""
+    handlers = {**{sig: _raise_terminated for sig in _TERMINATING}, signal.SIGINT: _raise_interrupted}
+    ignored = {sig for sig in handlers if signal.getsignal(sig) == signal.SIG_IGN}
     try:
         import pycolmap  # noqa: F401
     except ImportError:  # pragma: no cover - a broken install reports itself later
         pass
-    for sig in _TERMINATING:
-        signal.signal(sig, _raise_terminated)
-    signal.signal(signal.SIGINT, _raise_interrupted)
+    for sig, handler in handlers.items():
+        signal.signal(sig, signal.SIG_IGN if sig in ignored else handler)
 
 
 def _glog_to_stderr():

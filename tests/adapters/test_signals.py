@@ -104,3 +104,28 @@ def test_closing_the_terminal_hangs_up_the_whole_group_cleanly(db_copy, scene, t
     assert proc.returncode == 129 and len(lines) == 1, err
     assert lines[0].startswith("ERROR: hung up (SIGHUP)") and "--resume" in lines[0], lines
     assert list(tmp.iterdir()) == [] and not out.exists()
+
+
+@pytest.mark.parametrize("sig", ["SIGHUP", "SIGINT"])
+def test_a_signal_ignored_at_start_stays_ignored(db_copy, scene, tmp_path, sig):
+    """``nohup colmap-miho refine ... &`` (SIGHUP ignored) and a script that ignores SIGINT for
+    its background jobs: the signal, sent mid-run, does nothing; the run finishes and writes
+    its output, as any Unix tool would."""
+    from helpers import start_at_write
+
+    out = tmp_path / "out.db"
+    resume = tmp_path / "resume"
+    proc = start_at_write("hold_at_write.py", tmp_path / "marker", str(resume), "refine",
+                          "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                          "--workers", "1", "--no-refine", "-q", ignored=(getattr(signal, sig),))
+    try:
+        proc.send_signal(getattr(signal, sig))
+        time.sleep(0.5)
+        resume.write_text("go")
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert out.is_file() and not store_folder(out).exists()

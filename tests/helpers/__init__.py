@@ -16,13 +16,21 @@ REPO = HELPERS.parents[1]
 REACH_WRITE_TIMEOUT_S = 120
 
 
-def start_at_write(script: str, marker: Path, *args: str) -> subprocess.Popen:
+def start_at_write(script: str, marker: Path, *args: str, ignored: tuple[int, ...] = ()) -> subprocess.Popen:
     """Start ``tests/helpers/<script>`` with ``marker`` and ``args`` and wait until it has
     written ``marker`` (it is then inside the write stage). Fails the test when the process
     ends first or does not get there within ``REACH_WRITE_TIMEOUT_S``; the caller owns the
-    returned process (text-mode stderr pipe)."""
+    returned process (text-mode stderr pipe). ``ignored``: signals the process starts with
+    ignored (as under ``nohup``, or a shell's background job)."""
+    import signal
+
+    def ignore() -> None:
+        for sig in ignored:
+            signal.signal(sig, signal.SIG_IGN)
+
     cmd = [sys.executable, str(HELPERS / script), str(marker), *args]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=ignore if ignored else None)
     deadline = time.monotonic() + REACH_WRITE_TIMEOUT_S
     while not marker.exists():
         if proc.poll() is not None:
