@@ -144,11 +144,14 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
     if cfg.mode != MatchCheckMode.REMOVE or not stats.used:
         return NO_VERDICTS, stats
     filtered = store.load_filtered()
-    if any(p in filtered and len(f) != np.count_nonzero(filtered[p][1].inliers) for p, f in failed.items()):
+    sizes = {(p.image_id1, p.image_id2): p.num_matches for p in db.pairs(source)}
+    if any(len(f) != (np.count_nonzero(filtered[p][1].inliers) if p in filtered else sizes.get(p, -1))
+           for p, f in failed.items() if p not in wrong):
         raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its verdicts do not fit the stored pairs")
-    return (Verdicts(removed=frozenset(wrong),
-                     failed={p: f for p, f in failed.items() if p in filtered and p not in wrong},
-                     refit=frozenset(p for p in failed if p in filtered)),
+    judged = {p: f for p, f in failed.items() if p not in wrong}
+    # a pair written back unchanged keeps COLMAP's model where the check removed nothing from it
+    return (Verdicts(removed=frozenset(wrong), failed=judged,
+                     refit=frozenset(p for p, f in judged.items() if p in filtered or f.any())),
             stats)
 
 

@@ -63,6 +63,7 @@ class ReadStats:
     num_pairs: int
     pairs_passed: int
     keypoints_total: int
+    matches_in: int = 0  # over every pair of the source: what the output is compared with
     images_missing: list[str] = field(default_factory=list)
     decoded_by_image: dict[int, int] = field(default_factory=dict)  # image id -> decodes
 
@@ -113,7 +114,7 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
                             f"{cfg.image_dir} (e.g. {loader.path(missing[0])} is {loader.problems[missing[0]]}); "
                             "check --images, or pass --no-refine to filter only")
     stats = ReadStats(num_images=len(images), num_pairs=len(pairs),
-                      pairs_passed=len(pairs) - len(to_filter),
+                      pairs_passed=len(pairs) - len(to_filter), matches_in=sum(p.num_matches for p in pairs),
                       keypoints_total=int(sum(len(k) for k in keypoints.values())),
                       images_missing=missing_names, decoded_by_image=dict(loader.decoded))
     return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats

@@ -26,8 +26,9 @@ class RefineSummary:
         pairs_filtered: pairs with at least ``pipeline.min_matches`` matches, filtered.
         pairs_passed: pairs with fewer matches, left unchanged.
         pairs_failed: filtered pairs for which the filter found no plane; left unchanged.
-        matches_in / matches_kept / matches_removed: over the filtered (successful) pairs;
-            kept: as written, after the pair check's and the match check's removals.
+        matches_in / matches_kept / matches_removed: over every pair of the source, in the
+            input / in the output (after the filter's, the pair check's and the match check's
+            removals) / their difference.
         keypoints_moved: keypoints whose position changed (each moves at most once).
         median_displacement_px / max_displacement_px: over the moved keypoints, pixels.
         images_missing: names of images that could not be read (not refined).
@@ -104,8 +105,8 @@ class RefineSummary:
             workers=filtered.workers, device=device, num_images=read.num_images,
             num_pairs=read.num_pairs, pairs_filtered=filtered.pairs_filtered,
             pairs_passed=read.pairs_passed, pairs_failed=filtered.pairs_failed,
-            matches_in=filtered.matches_in, matches_kept=write.matches_kept,
-            matches_removed=filtered.matches_in - write.matches_kept, keypoints_total=read.keypoints_total,
+            matches_in=read.matches_in, matches_kept=write.matches_kept,
+            matches_removed=read.matches_in - write.matches_kept, keypoints_total=read.keypoints_total,
             keypoints_moved=write.keypoints_moved,
             median_displacement_px=write.median_displacement_px,
             max_displacement_px=write.max_displacement_px,

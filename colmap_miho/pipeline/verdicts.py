@@ -7,8 +7,8 @@ stored chunk it writes.
 
 A pair's output matches (:func:`output_matches`) are the kept matches of its stored filter
 outcome when it was filtered (the failed matches taken out), else the database's matches (a pair
-too small to filter, or in which no plane was found: written back unchanged). Pairs removed
-whole reach the output without matches.
+too small to filter, or in which no plane was found), less the matches the match check
+failed in it. Pairs removed whole reach the output without matches.
 """
 
 from __future__ import annotations
@@ -32,10 +32,12 @@ class Verdicts:
         removed: pairs removed whole (the pair check's and the match check's wrong pairs):
             they join no track and are written without matches or two-view geometry, whether
             they were filtered or not.
-        failed: pair -> bool ``(K,)`` over the pair's kept matches (in the order of its
-            ``inliers``' set rows): the matches the match check removed from a kept pair.
-        refit: filtered pairs the match check judged: their fundamental matrix is fitted again
-            to the survivors when written (COLMAP's was fitted to the wrong matches too).
+        failed: pair -> bool ``(K,)``: the matches the match check removed from a kept pair,
+            over its kept matches (in the order of its ``inliers``' set rows) for a filtered
+            pair, over the database's matches for a pair written back otherwise unchanged (too
+            small to filter, or no plane found).
+        refit: pairs the match check judged: their fundamental matrix is fitted again to the
+            survivors when written (COLMAP's was fitted to the wrong matches too).
     """
 
     removed: frozenset[Pair] = frozenset()
@@ -74,7 +76,8 @@ def output_matches(db: ColmapDatabase, kept: FilteredPairs, source: MatchSource,
                    verdicts: Verdicts = NO_VERDICTS) -> dict[Pair, np.ndarray]:
     """Every pair's output matches ``(M, 2)`` in the database's pair order: the kept matches of
     the stored pairs ``kept`` (``verdicts`` already applied), the database's for the pairs not
-    in it; the pairs ``verdicts`` removed left out, empty pairs kept."""
+    in it (less the matches ``verdicts`` failed); the pairs ``verdicts`` removed left out, empty
+    pairs kept."""
     out = {}
     for p in db.pairs(source):
         key = (p.image_id1, p.image_id2)
@@ -84,8 +87,16 @@ def output_matches(db: ColmapDatabase, kept: FilteredPairs, source: MatchSource,
             m, r = kept[key]
             out[key] = m[np.asarray(r.inliers, bool)]
         else:
-            out[key] = db.matches(p.image_id1, p.image_id2, source)
+            out[key] = unfiltered_matches(db, key, source, verdicts)
     return out
+
+
+def unfiltered_matches(db: ColmapDatabase, pair: Pair, source: MatchSource, verdicts: Verdicts) -> np.ndarray:
+    """The output matches ``(M, 2)`` of a pair the filter did not keep (too small, or no plane
+    found): the database's, less those ``verdicts`` failed."""
+    m = db.matches(pair[0], pair[1], source)
+    f = verdicts.failed.get(pair)
+    return m if f is None else m[~f]
 
 
 def pair_graph(db: ColmapDatabase, filtered: FilteredPairs, source: MatchSource,

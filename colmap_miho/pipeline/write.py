@@ -14,14 +14,14 @@ from ..enums import MatchSource
 from ..pipeline_config import PipelineConfig
 from ..types import Pair
 from .records import FilteredPairs
-from .verdicts import NO_VERDICTS, Verdicts
+from .verdicts import NO_VERDICTS, Verdicts, unfiltered_matches
 
 
 @dataclass(frozen=True, kw_only=True)
 class WriteStats:
     """Keypoints moved by refinement and their displacements in pixels (``RefineSummary``
-    fields of the same names; 0 when nothing moved), and the matches written for the filtered
-    pairs (after both checks' removals)."""
+    fields of the same names; 0 when nothing moved), and the matches the output holds over
+    every pair of the source, after both checks' removals (``matches_kept``)."""
 
     keypoints_moved: int
     median_displacement_px: float
@@ -42,7 +42,8 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
         cfg: ``source`` (a verified pair keeps its geometry model) and ``verify`` (the pairs'
             two-view geometries are deleted, for COLMAP to re-verify).
         verdicts: the checks' :class:`~.verdicts.Verdicts`: removed pairs are written without
-            matches and two-view geometry, refitted ones get a new fundamental matrix.
+            matches and two-view geometry, refitted ones get a new fundamental matrix; a pair
+            not filtered that the match check removed matches from is written without them.
     """
     from ..adapters.safety import check_free_space
 
@@ -66,9 +67,19 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
                            keep_model=cfg.source == MatchSource.VERIFIED and (i, j) not in verdicts.refit)
                 written.append((i, j))
                 kept_total += len(kept)
+        done = set(written)
+        for i, j in sorted(p for p, f in verdicts.failed.items() if p not in done and f.any()):
+            kept = unfiltered_matches(db, (i, j), cfg.source, verdicts)
+            write_pair(db, i, j, kept, new_keypoints[i][kept[:, 0]], new_keypoints[j][kept[:, 1]],
+                       keep_model=False)
+            written.append((i, j))
+            kept_total += len(kept)
         none = np.zeros((0, 2), np.uint32)
         for i, j in sorted(verdicts.removed):
             write_pair(db, i, j, none, np.zeros((0, 2)), np.zeros((0, 2)), keep_model=False)
+        done = set(written) | verdicts.removed
+        # the pairs written back as they were
+        kept_total += sum(p.num_matches for p in db.pairs(cfg.source) if (p.image_id1, p.image_id2) not in done)
         if cfg.verify:
             db.delete_two_view_geometries(sorted(written))
     d = np.concatenate(displacements) if displacements else np.zeros(0)

@@ -311,3 +311,24 @@ def test_with_debug_logging_colmaps_log_reaches_the_terminal(planted_db, tmp_pat
     caplog.set_level(logging.DEBUG, logger="colmap_miho")  # what -v sets
     _run(planted_db, tmp_path / "on.db", "match_check.mode=remove", "match_check.min_pair_matches=100000")
     assert "Failed to create sparse model" in capfd.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("unfiltered", ["pipeline.min_matches=100000", "filter.min_inliers=100000"])
+def test_the_verdicts_on_pairs_written_back_unchanged_reach_the_output(planted_db, tmp_path, unfiltered):
+    """Pairs too small to filter and pairs in which the filter found no plane are written back
+    unchanged, but the match check judges them: the matches it removes are gone from the output,
+    and the summary's matches in -> kept add up to the input and the output."""
+    db, _, planted = planted_db
+    on = _run(planted_db, tmp_path / "on.db", "match_check.mode=remove", unfiltered)
+    out = _output_matches(tmp_path / "on.db")
+    with ColmapDatabase(db) as src:
+        n_in = sum(p.num_matches for p in src.pairs("verified"))
+    assert on["pairs_filtered"] - on["pairs_failed"] == 0
+    removed = on["match_check"]["matches_removed"] + on["match_check"]["matches_in_removed_pairs"]
+    assert on["match_check"]["matches_removed"] > 0
+    assert on["matches_in"] == n_in
+    assert on["matches_kept"] == sum(len(m) for m in out.values()) == n_in - removed
+    assert on["matches_removed"] == removed
+    _, left = _shares(planted, out)
+    assert left <= MAX_PLANTED_LEFT
