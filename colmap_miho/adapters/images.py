@@ -154,6 +154,41 @@ def image_size(path: str | Path) -> tuple[int, int]:
     return int(img.shape[1]), int(img.shape[0])
 
 
+def header_size(path: str | Path) -> tuple[int, int] | None:
+    """``(width, height)`` in pixels of an image file as stored (no EXIF rotation, as COLMAP
+    reads it), from its header (Pillow) where the format allows, else by decoding it; None when
+    the file is not a readable image."""
+    import warnings
+
+    try:
+        from PIL import Image
+
+        with warnings.catch_warnings():  # a header is no decompression bomb
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                return int(im.width), int(im.height)
+    except Exception:  # noqa: BLE001 - not a format Pillow reads: the decoder decides
+        img = read_image(path)
+        return None if img is None else (int(img.shape[1]), int(img.shape[0]))
+
+
+def folder_image_sizes(folder: str | Path) -> dict[str, tuple[int, int]]:
+    """Every image file under ``folder`` (all depths, as COLMAP's extraction lists them):
+    its name relative to ``folder`` (``/``-separated, COLMAP's image name) -> ``(width,
+    height)`` pixels; files that are not readable images are left out."""
+    import os
+
+    folder = Path(folder)
+    out = {}
+    for root, dirs, files in os.walk(folder):
+        dirs.sort()
+        for f in sorted(files):
+            size = header_size(Path(root) / f)
+            if size is not None:
+                out[(Path(root) / f).relative_to(folder).as_posix()] = size
+    return out
+
+
 class ImageLoader(Mapping):
     """Mapping image_id -> float32 (H, W) gray image in [0, 1], or None, loaded lazily.
 

@@ -8,8 +8,9 @@ import logging
 import time
 from pathlib import Path
 
+from ..adapters.images import folder_image_sizes
 from ..enums import CameraMode
-from ..errors import RunFailed
+from ..errors import InvalidInput, RunFailed
 from .colmap_log import colmap_log_to_file
 
 log = logging.getLogger(__name__)
@@ -76,6 +77,8 @@ def extract_and_match(
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
         raise NotADirectoryError(f"image folder not found: {image_dir}")
+    found = folder_image_sizes(image_dir)
+    check_camera_sizes(found, camera_mode, image_dir)
     database.parent.mkdir(parents=True, exist_ok=True)
     check_extraction_space(image_dir, database.parent, max_features)
     reader = pycolmap.ImageReaderOptions()
@@ -99,13 +102,60 @@ def extract_and_match(
         t2 = time.perf_counter()
     if not database.is_file():
         raise RunFailed(f"feature extraction wrote no database (no readable image in {image_dir}?)")
-    from ..adapters.database import count_images
+    from ..adapters.database import ColmapDatabase
 
-    n = count_images(database)
+    with ColmapDatabase(database) as db:
+        extracted = {im.name for im in db.images()}
+    n = len(extracted)
+    skipped = sorted(set(found) - extracted)
+    if skipped:
+        log.warning("%d of the %d images in %s were not extracted (COLMAP could not use them; its log: %s): %s",
+                    len(skipped), len(found), image_dir, "the terminal" if verbose else
+                    Path(log_dir) if log_dir else database.parent, _some(skipped))
     if n < 2:
         raise RunFailed(f"feature extraction found {n} image(s) in {image_dir}; need at least 2")
     log.info("extracted %d images in %.1f s, matched exhaustively in %.1f s", n, t1 - t0, t2 - t1)
-    return {"num_images": n, "seconds_extract": t1 - t0, "seconds_match": t2 - t1}
+    return {"num_images": n, "images_found": len(found), "images_not_extracted": skipped,
+            "seconds_extract": t1 - t0, "seconds_match": t2 - t1}
+
+
+def _some(names: list[str], most: int = 5) -> str:
+    """Up to ``most`` of ``names``, escaped for the terminal, and how many more."""
+    from ..terminal import printable
+
+    shown = ", ".join(printable(n) for n in names[:most])
+    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
+def check_camera_sizes(sizes: dict[str, tuple[int, int]], camera_mode: CameraMode, image_dir: Path) -> None:
+    """Refuse a camera mode that shares one camera between images of different sizes (one
+    camera: every image; per folder: the images of a folder): COLMAP's extraction would drop,
+    with a line in its log only, every image whose size is not the first one's.
+
+    Args:
+        sizes: image name (relative to ``image_dir``) -> ``(width, height)`` pixels.
+
+    Raises:
+        InvalidInput: one line naming the sizes, how many images have each, some of them, and
+            the camera modes that fit.
+    """
+    if camera_mode not in (CameraMode.SINGLE, CameraMode.PER_FOLDER):
+        return
+    groups: dict[str, dict[tuple[int, int], list[str]]] = {}
+    for name, size in sizes.items():
+        folder = name.rpartition("/")[0] if camera_mode == CameraMode.PER_FOLDER else ""
+        groups.setdefault(folder, {}).setdefault(size, []).append(name)
+    for folder, by_size in groups.items():
+        if len(by_size) < 2:
+            continue
+        ranked = sorted(by_size.items(), key=lambda kv: (-len(kv[1]), kv[0]))
+        where = f"{image_dir / folder}" if folder else f"{image_dir}"
+        listed = "; ".join(f"{w}x{h}: {len(names)} image(s), e.g. {_some(names, 3)}" for (w, h), names in ranked)
+        fits = "per_image or auto" if camera_mode == CameraMode.PER_FOLDER else "per_folder, per_image or auto"
+        raise InvalidInput(
+            f"the images in {where} have {len(by_size)} sizes ({listed}); camera mode {camera_mode.value} "
+            f"gives them one camera, and COLMAP would drop every image of another size: resize them, or "
+            f"choose --camera-mode {fits}")
 
 
 #: Bytes a new database takes per extracted feature (6 float32 keypoint columns and a 128-byte
