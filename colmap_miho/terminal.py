@@ -16,9 +16,9 @@ import unicodedata
 from pathlib import PurePath
 
 _NAMED = {"\n": "\\n", "\r": "\\r", "\t": "\\t"}
-#: Unicode controls that move or reorder text without being "Cc": line / paragraph separators
-#: and the bidirectional overrides and isolates (they can make a name read backwards).
-_MOVING = frozenset("\u2028\u2029\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
+#: Unicode controls that move or reorder text without being "Cc": line / paragraph separators,
+#: the bidirectional marks, overrides and isolates (they can make a name read backwards).
+_MOVING = frozenset("\u2028\u2029\u200e\u200f\u061c\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
 
 
 def _escape(ch: str) -> str:

@@ -127,6 +127,22 @@ def refuse_text_model(folder: PathArg, label: str) -> None:
                         "would replace: choose another folder or move that model away")
 
 
+def refuse_folder_inside(output: PathArg, out_label: str, folder: PathArg, in_label: str) -> None:
+    """Refuse an output folder that is the input folder ``folder`` (e.g. ``--images``) or lies
+    inside it: what the command writes would sit among the inputs (a later extraction would
+    read the model's files or the plots as images).
+
+    Raises:
+        UserError: naming both options and paths.
+    """
+    if output is None or folder is None or not Path(folder).is_dir():
+        return
+    where, inside = resolve(output), resolve(folder)
+    if where == inside or inside in where.parents:
+        raise UserError(f"{out_label} {output} is {'' if where == inside else 'inside '}{in_label} {folder}: "
+                        f"what it writes would land among the input files; choose a folder outside {in_label}")
+
+
 def comparison_paths(output: str | os.PathLike, *, images: PathArg, database: PathArg = None,
                      gt: PathArg = None, pairs: PathArg = None, repeats: int = 1, seed: int = 0,
                      compare: bool = True) -> tuple[dict[str, Path], dict[str, Path]]:
@@ -141,6 +157,7 @@ def comparison_paths(output: str | os.PathLike, *, images: PathArg, database: Pa
             model folder holds a COLMAP text model (:func:`refuse_text_model`).
     """
     out = Path(output)
+    refuse_folder_inside(out, "--output", images, "--images")
     files = ["refined/database.db", "refined/refine.json"]
     if compare:
         files += ["compare.md", "compare.json", "report.html", "baseline/report.json", "refined/report.json",

@@ -37,10 +37,11 @@ def add_arguments(parser) -> None:
 def paths(args) -> tuple[dict, dict]:
     """Inputs (the image files included) and outputs (the model files written in --output) for
     the CLI's overlap check; a text model in --output is refused (mapping writes a binary one)."""
-    from ..adapters.paths import folder_files, model_files, refuse_text_model
+    from ..adapters.paths import folder_files, model_files, refuse_folder_inside, refuse_text_model
 
     if args.output.exists() and not args.output.is_dir():
         raise NotADirectoryError(f"--output {args.output} is a file; give a folder for the model")
+    refuse_folder_inside(args.output, "--output", args.images, "--images")
     refuse_text_model(args.output, "--output")
     return ({"--database": args.database, "--images": args.images, **folder_files(args.images, "--images")},
             {"--json": args.json, **model_files(args.output, "--output")})

@@ -137,6 +137,9 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
     else:
         failed, wrong, stats = _read_back(store, *stored)
         log.info("match check: the verdicts of the interrupted run are used")
+    if not stats.used:  # every way the check switches itself off is said, also under -q
+        log.warning("match check: not used, nothing %s: %s", "removed" if cfg.mode == MatchCheckMode.REMOVE
+                    else "flagged", stats.reason)
     for w in stats.wrong_pairs:
         log.debug("match check: %s %s - %s: %.0f%% of %d matches off the global estimate",
                  "removed" if cfg.mode == MatchCheckMode.REMOVE else "flagged", *w["images"],

@@ -183,9 +183,9 @@ def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[in
 def _write_database(pc, src: ColmapDatabase, path: Path, image_ids: list[int], used: Mapping[Pair, np.ndarray],
                     kp: Mapping[int, np.ndarray], seed: int) -> None:
     """The new database at ``path``: the cameras, rigs, frames, images and keypoints of ``src``
-    (ids kept), and each pair of ``used`` with its matches as its two-view geometry's inliers
-    (its verified model kept, else a fundamental matrix fitted to them; a pair with neither is
-    left out)."""
+    (ids kept, each image named by its id), and each pair of ``used`` with its matches as its
+    two-view geometry's inliers (its verified model kept, else a fundamental matrix fitted to
+    them; a pair with neither is left out)."""
     h = src.handle
     with pc.Database.open(str(path)) as dst:
         for cam in h.read_all_cameras():
@@ -195,6 +195,7 @@ def _write_database(pc, src: ColmapDatabase, path: Path, image_ids: list[int], u
         for frame in h.read_all_frames():
             dst.write_frame(frame, use_frame_id=True)
         for im in h.read_all_images():
+            im.name = f"{int(im.image_id)}"  # the mapper joins names to its folder: no user length there
             dst.write_image(im, use_image_id=True)
         for i in image_ids:
             dst.write_keypoints(int(i), np.ascontiguousarray(h.read_keypoints(int(i)), np.float32))

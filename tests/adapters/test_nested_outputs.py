@@ -7,6 +7,7 @@ must be refused before any work, with one line, and stay byte-identical.
 from __future__ import annotations
 
 import hashlib
+import shutil
 from pathlib import Path
 
 import pytest
@@ -109,8 +110,25 @@ def test_an_output_on_an_image_is_refused(db_copy, scene, tmp_path, capfd):
     assert image.read_bytes() == before
 
 
+@pytest.mark.parametrize("where", ["images", "images/model"])
+def test_an_output_folder_among_the_images_is_refused(db_copy, scene, tmp_path, capfd, where):
+    """``map --output`` (and ``run`` / ``compare``'s) equal to --images, or inside it, would
+    write the model among the images: refused, nothing written."""
+    images = tmp_path / "images"
+    shutil.copytree(scene.image_dir, images)
+    before = sorted(p.name for p in images.rglob("*"))
+    capfd.readouterr()
+    assert main(["map", "--database", str(db_copy), "--images", str(images), "--output", str(tmp_path / where),
+                 "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "--images" in lines[0] and "among the input files" in lines[0], lines
+    assert sorted(p.name for p in images.rglob("*")) == before
+    with pytest.raises(UserError, match="among the input files"):
+        comparison_paths(tmp_path / where, images=images)
+
+
 def test_comparison_paths_lists_every_file_written(tmp_path):
-    ins, outs = comparison_paths(tmp_path / "w", images=tmp_path, gt=tmp_path / "gt", repeats=3, seed=5)
+    ins, outs = comparison_paths(tmp_path / "w", images=tmp_path / "images", gt=tmp_path / "gt", repeats=3, seed=5)
     written = {str(p.relative_to(tmp_path / "w")) for p in outs.values()}
     for name in ("baseline/model/cameras.bin", "refined/model/points3D.txt", "refined/runs/seed7/model/images.bin",
                  "baseline/runs/seed6/model/frames.bin", "compare.json", "refined/refine.json",
@@ -118,7 +136,7 @@ def test_comparison_paths_lists_every_file_written(tmp_path):
         assert name in written, name
     assert "refined/runs/seed8/model/images.bin" not in written
     assert ins["--gt/gt_model (images.txt)"] == tmp_path / "gt" / "gt_model" / "images.txt"
-    _, outs = comparison_paths(tmp_path / "r", images=tmp_path, compare=False)
+    _, outs = comparison_paths(tmp_path / "r", images=tmp_path / "images", compare=False)
     assert {str(p.relative_to(tmp_path / "r")) for p in outs.values()} >= {"database.db", "report.json",
                                                                           "refined/model/cameras.bin"}
 

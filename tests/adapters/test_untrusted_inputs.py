@@ -46,6 +46,8 @@ def test_printable_keeps_names_readable_and_escapes_controls():
     assert printable("façade_漢字.jpg") == "façade_漢字.jpg"
     assert printable("a\r\n\t\x00\x7f\x85\x9b\u202eb") == "a\\r\\n\\t\\x00\\x7f\\x85\\x9b\\u202eb"
     assert printable("x\ny", keep_newlines=True) == "x\ny"
+    # the bidirectional marks reorder text as the overrides do
+    assert printable("a\u200fb\u200ec\u061cd") == "a\\u200fb\\u200ec\\u061cd"
 
 
 # ------------------------------------------------------------------ B. camera parameters

@@ -332,3 +332,21 @@ def test_the_verdicts_on_pairs_written_back_unchanged_reach_the_output(planted_d
     assert on["matches_removed"] == removed
     _, left = _shares(planted, out)
     assert left <= MAX_PLANTED_LEFT
+
+
+@pytest.mark.slow
+def test_image_names_longer_than_a_file_name_do_not_switch_the_check_off(planted_db, tmp_path):
+    """The global mapper joins image names to its temporary folder: a name of 300 characters
+    made it fail ("File name too long"), and the check was off for the whole scene."""
+    import shutil
+
+    db, images, planted = planted_db
+    long_db = tmp_path / "long.db"
+    shutil.copy(db, long_db)
+    with ColmapDatabase(long_db) as d:
+        for im in d.handle.read_all_images():
+            im.name = f"{'n' * 300}{im.image_id}.jpg"
+            d.handle.update_image(im)
+    on = _run((long_db, images, planted), tmp_path / "on.db", "match_check.mode=remove")
+    assert on["match_check"]["used"], on["match_check"]["reason"]
+    assert on["match_check"]["matches_removed"] > 0
