@@ -144,15 +144,13 @@ def _coerce(value, annotation, where: str):
             return False
         raise InvalidInput(f"{where}: expected true or false, got {value!r}")
     if annotation is int:
-        if isinstance(value, bool):
-            raise InvalidInput(f"{where}: expected an integer, got {value!r}")
+        # an integer literal only ("1e3" is a float, as 2.5 is), parsed exactly (no trip through float)
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
         try:
-            as_float = float(value)
-        except (TypeError, ValueError):
+            return int(str(value).strip()) if isinstance(value, str) else _not_an_integer(value, where)
+        except ValueError:
             raise InvalidInput(f"{where}: expected an integer, got {value!r}") from None
-        if not as_float.is_integer():
-            raise InvalidInput(f"{where}: expected an integer, got {value!r}")
-        return int(as_float)
     if annotation is float:
         if isinstance(value, bool):
             raise InvalidInput(f"{where}: expected a number, got {value!r}")
@@ -169,6 +167,10 @@ def _coerce(value, annotation, where: str):
         (inner, *_rest) = typing.get_args(annotation) or (str,)
         return tuple(_coerce(v, inner, where) for v in items)
     return value
+
+
+def _not_an_integer(value, where: str):
+    raise InvalidInput(f"{where}: expected an integer, got {value!r}")
 
 
 def _build_section(section: str, values: dict, base=None):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import sys
 from dataclasses import dataclass
 
 from .errors import InvalidInput
@@ -145,8 +146,9 @@ def check_value(name: str, value, bound: Bound) -> None:
 
 
 def require_finite(cfg) -> None:
-    """Refuse ``inf`` and ``nan`` in every float field of the dataclass instance ``cfg``
-    (a ``nan`` threshold compares False with everything and silently disables a check).
+    """Refuse ``inf``, ``nan`` and subnormal numbers in every float field of the dataclass
+    instance ``cfg`` (a ``nan`` threshold compares False with everything and silently disables
+    a check; ``1e-320`` printed back as ``9.99989e-321``).
 
     Raises:
         ValueError: names the field and the value.
@@ -155,6 +157,9 @@ def require_finite(cfg) -> None:
         value = getattr(cfg, f.name)
         if isinstance(value, float) and not math.isfinite(value):
             raise InvalidInput(f"{f.name} must be a finite number, got {value}")
+        if isinstance(value, float) and value != 0 and abs(value) < sys.float_info.min:
+            raise InvalidInput(f"{f.name} must be 0 or at least {sys.float_info.min:g} in size (a subnormal "
+                               f"number loses its digits), got {value!r}")
 
 
 def require_at_most(name: str, value, limit, why: str) -> None:

@@ -134,7 +134,9 @@ def test_extraction_camera_is_checked_before_colmap(model, params, message, tmp_
     with pytest.raises(InvalidInput, match=message):
         cm.ExtractionOptions(camera_model=model, camera_params=params)
     capfd.readouterr()
-    argv = ["run", "--images", str(tmp_path), "--output", str(tmp_path / "out"), "--camera-model", model, "-q"]
+    (tmp_path / "images").mkdir()
+    argv = ["run", "--images", str(tmp_path / "images"), "--output", str(tmp_path / "out"), "--camera-model", model,
+            "-q"]
     assert main([*argv, "--camera-params", params] if params else argv) == 2
     lines = [ln for ln in capfd.readouterr().err.splitlines() if ln.startswith("ERROR")]
     assert len(lines) == 1 and message in lines[0] and "unexpected" not in lines[0], lines

@@ -128,3 +128,15 @@ def test_the_pairwise_preset_is_the_papers_ncc():
     assert (cfg.template_radius, cfg.search_radius, cfg.inner_radius, cfg.lsm) == (10, 10, 0, False)
     assert cfg.move == "2" and all(getattr(cfg, k) == v for k, v in PAIRWISE.items())
     assert NCCConfig().template_radius == 6 and NCCConfig().lsm
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ("filter.max_iters=1e3", "expected an integer, got '1e3'"),  # a float literal, as 2.5 is
+    ("filter.max_iters=2.5", "expected an integer, got '2.5'"),
+    ("filter.max_iters=10000000000000000000000001", "got 10000000000000000000000001"),  # exact, not through float
+    ("match_check.max_rotation_deg=1e-320", "subnormal"),
+])
+def test_integers_are_integer_literals_and_numbers_keep_their_digits(override, message):
+    with pytest.raises(ValueError, match=message):
+        load_recipe(None, [override])
+    assert load_recipe(None, ["filter.max_iters= 1000 "]).filter.max_iters == 1000
