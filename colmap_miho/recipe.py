@@ -10,6 +10,7 @@ Unknown tables or keys are errors, never silently ignored.
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 import types
 import typing
@@ -219,7 +220,12 @@ def load_recipe(name_or_path: str | None = None, overrides: list[str] | None = N
         ValueError: unknown recipe, table or key, or a value of the wrong type or range;
             the message names the offending key.
     """
-    name, text = _read_recipe_text(name_or_path or DEFAULT_RECIPE)
+    if name_or_path is not None and not isinstance(name_or_path, (str, os.PathLike)):
+        raise InvalidInput(f"recipe must be a recipe name or a .toml path, got {type(name_or_path).__name__}")
+    if overrides is not None and (isinstance(overrides, str) or not isinstance(overrides, (list, tuple))
+                                  or not all(isinstance(o, str) for o in overrides)):
+        raise InvalidInput(f"overrides must be a list of 'section.key=value' strings, got {overrides!r}")
+    name, text = _read_recipe_text(os.fspath(name_or_path or DEFAULT_RECIPE))
     try:
         data = tomllib.loads(text.removeprefix("\ufeff"))
     except tomllib.TOMLDecodeError as exc:

@@ -159,3 +159,41 @@ def test_wrong_types_for_the_whole_jobs_are_named(tmp_path):
         MappingConfig(num_threads="4")
     with pytest.raises(InvalidInput, match="^t_l must be a number, got '3'$"):
         cm.FilterConfig(t_l="3")
+
+
+IMG = np.zeros((40, 40), np.uint8)
+ONE = np.tile(np.eye(3), (1, 2, 1, 1))
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (("x.png", IMG, [[5.0, 5.0]], [[5.0, 5.0]]), "got str .read a file first"),
+    ((None, IMG, [[5.0, 5.0]], [[5.0, 5.0]]), "got NoneType"),
+    ((np.zeros((0, 0), np.uint8), IMG, [[5.0, 5.0]], [[5.0, 5.0]]), "must hold pixels"),
+    ((IMG, IMG, [[np.nan, 5.0]], [[5.0, 5.0]]), "pts1 holds NaN or inf"),
+    ((IMG, IMG, [[5.0, 5.0]], [[5.0, np.inf]]), "pts2 holds NaN or inf"),
+    ((IMG, IMG, [["a", 5.0]], [[5.0, 5.0]]), "pts1 must be a numeric array"),
+])
+def test_refine_pair_names_a_bad_input(args, message):
+    with pytest.raises(InvalidInput, match=message):
+        cm.refine_pair(*args, ONE)
+
+
+@pytest.mark.parametrize(("args", "message"), [((None, 5), "overrides must be a list"),
+                                               ((5,), "recipe must be a recipe name"),
+                                               ((None, "filter.t_l=3"), "overrides must be a list")])
+def test_load_recipe_names_a_wrong_type(args, message):
+    with pytest.raises(InvalidInput, match=message):
+        cm.load_recipe(*args)
+
+
+def test_an_existing_output_tells_python_callers_what_to_pass(tmp_path):
+    from colmap_miho.adapters.working_copy import WorkingCopy
+
+    db = tmp_path / "in.db"
+    db.write_bytes(b"x")
+    (tmp_path / "out.db").write_bytes(b"y")
+    from colmap_miho.errors import UserError
+
+    with pytest.raises(UserError, match="overwrite=True in Python"):
+        with WorkingCopy(db, tmp_path / "out.db"):
+            pass

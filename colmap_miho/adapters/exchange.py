@@ -233,7 +233,7 @@ def export_hloc(
         raise InvalidInput(f"layout={layout!r} is not one of: {', '.join(EXPORT_LAYOUTS)}")
     for out in (features, matches):
         if out.exists() and not overwrite:
-            raise FileExistsError(f"{out} exists; pass --overwrite to replace it")
+            raise FileExistsError(f"{out} exists; pass --overwrite (overwrite=True in Python) to replace it")
         if not out.parent.is_dir():
             raise NotADirectoryError(f"output folder does not exist: {out.parent}")
     if features.resolve() == matches.resolve():

@@ -40,6 +40,9 @@ from .staged_write import (
 
 log = logging.getLogger(__name__)
 
+#: What to do about an existing output, for the CLI and for Python callers alike.
+OVERWRITE_ADVICE = "pass --overwrite (overwrite=True in Python) to replace it"
+
 #: Free space a refine run needs beside its output, in database sizes: the working copy, its
 #: write-ahead log (up to the rewritten pages: about the copy again) and the run store of
 #: filtered pairs and refined groups, with a margin over the peak measured on a small tmpfs
@@ -101,7 +104,7 @@ class WorkingCopy:
                 raise UserError(f"output {self.output} is a folder; give a database file name")
             check_output_path(self.output, "--output", device=False)  # a FIFO, a device: never replaced
             if self.output.exists() and not overwrite:
-                raise UserError(f"output {self.output} exists; pass --overwrite to replace it")
+                raise UserError(f"output {self.output} exists; {OVERWRITE_ADVICE}")
             if self.output.is_symlink() and not self.output.exists():  # would read "created meanwhile" at the end
                 raise UserError(f"output {self.output} is a symlink to {os.readlink(self.output)}, which does not "
                                 "exist; remove the link or choose another --output")
@@ -196,7 +199,7 @@ class WorkingCopy:
             check_output_path(self.output, "--output", device=False)  # it may have become a FIFO meanwhile
             if not self.overwrite:
                 raise UserError(f"output {self.output} was created by another program during the run; "
-                                "nothing was replaced (pass --overwrite to replace it)")
+                                "nothing was replaced (pass --overwrite (overwrite=True in Python) to replace it)")
             check_not_in_use(self.output)
         for s in SIDE_SUFFIXES:
             side = Path(str(self.path) + s)
@@ -277,7 +280,7 @@ def _visible_name(database: Path) -> Path:
     return unused_stamped_name(database, lambda stamp: f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
 
 
-def publish_new_file(src: Path, dst: Path, *, advice: str = "pass --overwrite to replace it") -> None:
+def publish_new_file(src: Path, dst: Path, *, advice: str = OVERWRITE_ADVICE) -> None:
     """Move the finished, closed file ``src`` onto the NEW name ``dst`` (flushed first): only
     if nothing appeared at ``dst`` meanwhile (another run), atomically where hard links work.
     ``advice`` ends the message when ``dst`` exists: what the calling command offers (a command
@@ -291,7 +294,7 @@ def publish_new_file(src: Path, dst: Path, *, advice: str = "pass --overwrite to
     fsync_dir(dst.parent)
 
 
-def _rename_no_replace(src: Path, dst: Path, *, advice: str = "pass --overwrite to replace it") -> None:
+def _rename_no_replace(src: Path, dst: Path, *, advice: str = OVERWRITE_ADVICE) -> None:
     """Move ``src`` to ``dst`` only if ``dst`` does not exist, atomically where the file
     system supports hard links (a race with another run cannot replace its result).
 

@@ -32,6 +32,7 @@ import torch
 
 from .. import devices
 from ..enums import MoveSide
+from ..errors import InvalidInput
 from .config import DEFAULT_BATCH_SIZE, NCCConfig
 from .lsm.step import LSM_COUNTERS, lsm_step
 from .ncc.blur import match_blur
@@ -345,12 +346,18 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
 def _as_array(name: str, value: object, shape_tail: tuple[int, ...], n: int | None) -> np.ndarray:
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().numpy()
-    arr = np.asarray(value, dtype=np.float64)
+    tail = ", ".join(map(str, shape_tail))
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidInput(f"{name} must be a numeric array of shape (N, {tail}), got {type(value).__name__}") from None
     if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
-        tail = ", ".join(map(str, shape_tail))
-        raise ValueError(f"{name} must have shape (N, {tail}), got {arr.shape}")
+        raise InvalidInput(f"{name} must have shape (N, {tail}), got {arr.shape}")
     if n is not None and arr.shape[0] != n:
-        raise ValueError(f"{name} has {arr.shape[0]} rows, expected {n}")
+        raise InvalidInput(f"{name} has {arr.shape[0]} rows, expected {n}")
+    if not np.isfinite(arr).all():
+        bad = int(np.flatnonzero(~np.isfinite(arr).reshape(len(arr), -1).all(axis=1))[0])
+        raise InvalidInput(f"{name} holds NaN or inf (row {bad} first)")
     return arr
 
 

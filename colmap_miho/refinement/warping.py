@@ -23,6 +23,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..errors import InvalidInput
+
 #: |det H| below this (relative to the scale of H) marks a homography as singular.
 _SINGULAR_DET = 1e-12
 #: homogeneous w below this marks a point mapped to (or behind) the line at infinity.
@@ -55,16 +57,21 @@ def to_gray_tensor(
         return image
     if isinstance(image, torch.Tensor):
         t = image.detach()
-    else:
+    elif isinstance(image, np.ndarray):
         t = torch.from_numpy(np.ascontiguousarray(image))
+    else:
+        raise InvalidInput(f"image must be a grayscale (H, W) numpy array or torch tensor, got {type(image).__name__} "
+                           "(read a file first, e.g. cv2.imread(path, cv2.IMREAD_GRAYSCALE))")
     if t.ndim != 2:
-        raise ValueError(f"image must be a grayscale (H, W) array, got shape {tuple(t.shape)}")
+        raise InvalidInput(f"image must be a grayscale (H, W) array, got shape {tuple(t.shape)}")
+    if min(t.shape) == 0:
+        raise InvalidInput(f"image must hold pixels, got shape {tuple(t.shape)}")
     if t.dtype == torch.uint8:
         t = t.to(torch.float32) / 255.0
     elif t.is_floating_point():
         t = t.to(torch.float32)
     else:
-        raise ValueError(f"image must be uint8 or float, got dtype {t.dtype}")
+        raise InvalidInput(f"image must be uint8 or float, got dtype {t.dtype}")
     return t.to(device)
 
 
