@@ -282,7 +282,11 @@ def main(argv: list[str] | None = None) -> int:
             from .adapters.paths import check_distinct
 
             check_distinct(*args._paths(args))
-        return int(args._run(args) or 0)
+        code = int(args._run(args) or 0)
+        if in_main_thread and _SIGNAL_HANDLED.is_set():  # raised inside a compiled callback, which swallowed it
+            log.warning("a signal (Ctrl-C, SIGTERM or SIGHUP) arrived inside a compiled kernel, which lost it; "
+                        "the run went on and finished: its output is complete")
+        return code
     except UserError as exc:
         log.error("%s", _one_line(exc))
         return exc.exit_code
