@@ -42,3 +42,25 @@ def test_every_results_table_names_its_command():
             tables += 1
             assert command.search(section[:table.start()]), (section.splitlines()[0], table.group(0)[:80])
     assert tables >= 14
+
+
+def test_the_readme_recipe_table_is_the_shipped_recipes_and_says_which_run_the_match_check():
+    """Every shipped recipe has a row (rows may name two), no row names another, and the line
+    above the table (only the default recipe runs the match check) holds for the recipe files."""
+    from colmap_miho.recipe import DEFAULT_RECIPE, available_recipes, load_recipe
+
+    text = README.read_text()
+    table = text[text.index("| recipe | what | pick it when |"):]
+    table = table[: table.index("\n\n")]
+    named = {n for row in table.splitlines()[2:] for n in re.findall(r"`([a-z_]+)`", row.split("|")[1])}
+    assert named == set(available_recipes())
+    assert "Only the default\nrecipe runs it" in text or "Only the default recipe runs it" in text
+    checked = {r for r in available_recipes() if load_recipe(r).match_check.enabled}
+    assert checked == {DEFAULT_RECIPE}
+
+
+def test_refine_help_says_what_the_default_does():
+    from colmap_miho.commands import refine
+
+    for stage in ("MOP+MiHo", "match check", "least-squares matching", "--set match_check.mode=off"):
+        assert stage in refine.DESCRIPTION, stage

@@ -12,13 +12,15 @@ from ..errors import InvalidInput
 #: here, the parser is built without importing the pipeline).
 DASK_LOCAL = "local"
 
-HELP = "filter (MOP+MiHo) and refine (track-consistent NCC + LSM) the matches of a COLMAP database"
+HELP = ("filter (MOP+MiHo), check against a global camera estimate, and refine (track-consistent NCC + LSM) "
+        "the matches of a COLMAP database")
 DESCRIPTION = (
-    "Filter every image pair of a COLMAP database with MOP / MOP+MiHo, refine the kept "
-    "keypoints along tracks (each keypoint moves at most once; the default recipe mop_miho_lsm: "
-    "NCC, then least-squares matching from each NCC peak; mop_miho_ncc: NCC alone, faster) and "
-    "write the result "
-    "to a new database (default <stem>.miho.db beside the input; the input is never "
+    "Filter every image pair of a COLMAP database with MOP+MiHo; judge every kept match against "
+    "one global estimate of the cameras (the match check, on in the default recipe mop_miho_lsm: "
+    "it removes the wrong matches of repeated structure that pass every per-pair filter; "
+    "--set match_check.mode=off skips it); refine the kept keypoints along tracks (each keypoint "
+    "moves at most once: NCC, then least-squares matching from each NCC peak); and write the "
+    "result to a new database (default <stem>.miho.db beside the input; the input is never "
     "modified), or with --in-place replace the input atomically after a timestamped backup."
 )
 ORDER = 10
