@@ -16,6 +16,10 @@ The store is a folder beside the output (and its hidden working copy),
 - ``lock``: held (``flock``) by the run using the folder, released by the kernel even on
   SIGKILL.
 
+The store is never reached through a symbolic link: a link in place of the folder or of one of
+its files is refused (:func:`check_no_links`), and clearing or removing the store takes only the
+files it makes (the names above and their temporary files), never anything else put there.
+
 Each ``.npz`` file is tied to the run that wrote it: it holds the manifest's random ``run_id``
 and its own file name (``file_name``), and one that holds another (a file copied in from another run's store,
 or renamed) is refused on ``--resume`` as damaged, not trusted.
@@ -28,6 +32,7 @@ stays, and ``refine --resume`` continues from it (``--restart`` discards it). Th
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fcntl
 import hashlib
@@ -36,7 +41,6 @@ import logging
 import os
 import re
 import secrets
-import shutil
 import zipfile
 import zlib
 from collections.abc import Iterator
@@ -64,6 +68,10 @@ NOT_RESULT_KEYS = {"pipeline": ("memory_budget_mb",)}
 
 _FILTER_FILE = re.compile(r"^filter-(\d{6})\.npz$")
 _GROUP_FILE = re.compile(r"^group-(\d{6})\.npz$")
+#: Every name the store makes: its files, and their temporary names while being written
+#: (:func:`~colmap_miho.adapters.filesystem.temp_beside`).
+_OWN_FILE = re.compile(r"^(lock|manifest\.json|(filter|group)-\d{6}\.npz|stage-[a-z_]+\.npz)$")
+_OWN_TEMP = re.compile(r"^\.(manifest\.json|(filter|group)-\d{6}\.npz|stage-[a-z_]+\.npz)\.[A-Za-z0-9_]+\.tmp$")
 
 #: (image id -> (keypoint indices int64 (K,), new positions float64 (K, 2) pixels), stats)
 GroupResult = tuple[dict[int, tuple[np.ndarray, np.ndarray]], dict]
@@ -82,6 +90,33 @@ class StoreDamaged(UserError):
         text = " ".join(str(why).split()) or type(why).__name__
         super().__init__(f"the interrupted run's file {path} is damaged ({text}); pass --restart to discard "
                          "that run's work and start again")
+
+
+def check_no_links(folder: Path) -> None:
+    """Refuse a run store reached through a symbolic link: ``folder`` itself, or an entry of
+    it with one of the store's names that is a link or not a regular file (the store would read,
+    write or delete through it: another folder emptied, another file read as this run's work).
+
+    Raises:
+        UserError: naming the link (and its target) and what to do.
+    """
+    folder = Path(folder)
+    if folder.is_symlink():
+        raise UserError(f"the run folder {folder} is a symbolic link (to {os.readlink(folder)}); a run keeps its "
+                        "work only in a folder of its own and never follows a link there: remove the link "
+                        "or choose another --output")
+    if not folder.is_dir():
+        return
+    for p in folder.iterdir():
+        if not (_OWN_FILE.match(p.name) or _OWN_TEMP.match(p.name)):
+            continue
+        if p.is_symlink():
+            raise UserError(f"{p} is a symbolic link (to {os.readlink(p)}) in the run folder, where only "
+                            "colmap-miho's own files belong; nothing was read or deleted through it: remove it and "
+                            "run again")
+        if not p.is_file():
+            raise UserError(f"{p} is not a regular file, in the run folder, where only colmap-miho's own files "
+                            "belong; nothing was deleted: remove it and run again")
 
 
 def content_hash(path: Path, chunk: int = 1 << 22) -> str:
@@ -217,10 +252,13 @@ class RunStore:
         folder = Path(folder)
         if resume and restart:
             raise UserError("use either --resume or --restart, not both")
+        check_no_links(folder)
         try:
             folder.mkdir(exist_ok=True)
-            lock_fd = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+            # O_NOFOLLOW: a link put there after the check is not opened either
+            lock_fd = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         except OSError as exc:
+            check_no_links(folder)  # a link made meanwhile: that line
             raise UserError(f"cannot create the run folder {folder}: {exc.strerror or exc}") from None
         try:
             fcntl.flock(lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -237,6 +275,7 @@ class RunStore:
     @classmethod
     def _open_locked(cls, folder: Path, fingerprint: dict, lock_fd: int, *, resume: bool,
                      restart: bool) -> RunStore:
+        check_no_links(folder)  # again, under the lock: no other run of ours changes it now
         manifest_path = folder / MANIFEST
         old = None
         has_work = any(_FILTER_FILE.match(p.name) or _GROUP_FILE.match(p.name) for p in folder.iterdir())
@@ -268,13 +307,11 @@ class RunStore:
 
     @staticmethod
     def _clear(folder: Path) -> None:
-        """Delete the work files (and stale temporary files) of ``folder``, keep the lock."""
-        for p in folder.iterdir():
+        """Delete the store's own files in ``folder`` (its work files and the temporary files
+        of writes cut short), keep the lock; anything else there is left as it is."""
+        for p in _own_entries(folder):
             if p.name != LOCK:
-                if p.is_dir():
-                    shutil.rmtree(p, ignore_errors=True)
-                else:
-                    p.unlink(missing_ok=True)
+                p.unlink(missing_ok=True)
 
     def has_work(self) -> bool:
         """Whether any chunk or group is stored."""
@@ -287,8 +324,20 @@ class RunStore:
             self._lock_fd = None
 
     def remove(self) -> None:
-        """Delete the store (after the run's commit), then release the lock."""
-        shutil.rmtree(self.folder, ignore_errors=True)
+        """Delete the store (after the run's commit), then release the lock: its own files,
+        then the folder when nothing else is in it (what others put there is kept, with a
+        warning)."""
+        with contextlib.suppress(OSError):
+            for p in _own_entries(self.folder):  # the lock last, still held: no other run takes the folder
+                if p.name != LOCK:
+                    p.unlink(missing_ok=True)
+            (self.folder / LOCK).unlink(missing_ok=True)
+            others = sorted(p.name for p in self.folder.iterdir())
+            if others:
+                log.warning("the run folder %s holds files that are not colmap-miho's (%s): left as they are",
+                            self.folder, ", ".join(others[:5]) + (", ..." if len(others) > 5 else ""))
+            else:
+                self.folder.rmdir()
         self.close()
 
     def _read(self, path: Path) -> dict[str, np.ndarray]:
@@ -456,6 +505,12 @@ class RunStore:
         if not isinstance(meta, dict):
             raise StoreDamaged(path, "its meta is not a JSON object")
         return {k: v for k, v in arrays.items() if k != "meta"}, meta
+
+
+def _own_entries(folder: Path) -> list[Path]:
+    """The store's own regular files in ``folder`` (by name, links and folders left out)."""
+    return [p for p in Path(folder).iterdir()
+            if (_OWN_FILE.match(p.name) or _OWN_TEMP.match(p.name)) and not p.is_symlink() and p.is_file()]
 
 
 def _cat(parts: list[np.ndarray], empty_shape: tuple, dtype) -> np.ndarray:
