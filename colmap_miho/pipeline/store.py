@@ -22,7 +22,11 @@ files it makes (the names above and their temporary files), never anything else 
 
 Each ``.npz`` file is tied to the run that wrote it: it holds the manifest's random ``run_id``
 and its own file name (``file_name``), and one that holds another (a file copied in from another run's store,
-or renamed) is refused on ``--resume`` as damaged, not trusted.
+or renamed) is refused on ``--resume`` as damaged, not trusted. Nor is a file of the run's own
+trusted unchecked: every file read back is checked before use (each manifest value's type; each
+array's dtype and shape, offsets that start at 0, never go back and end at their rows, each pair
+stored once, and, once :meth:`RunStore.expect` gives the run's plan, each pair one of the run's and
+each keypoint index within its image's keypoints); a file that fails is :class:`StoreDamaged`.
 
 Every file is written under a temporary name, flushed to disk, then renamed onto its name
 (:func:`~colmap_miho.adapters.filesystem.write_atomic`): a file that exists is complete.
@@ -119,6 +123,163 @@ def check_no_links(folder: Path) -> None:
                             "belong; nothing was deleted: remove it and run again")
 
 
+def _json_type(value: object) -> str:
+    names = {type(None): "null", bool: "a boolean", int: "a number", float: "a number", str: "a string",
+             list: "a list", dict: "an object"}
+    return names.get(type(value), type(value).__name__)
+
+
+def read_manifest(path: Path) -> dict:
+    """The manifest at ``path``, its values checked: a JSON object whose ``fingerprint`` is an
+    object (its ``recipe``, when there, an object of objects), whose ``run_id`` is a non-empty
+    string and whose ``refine_plan``, when there, is an object.
+
+    Raises:
+        StoreDamaged: missing, unreadable, not JSON, or a value of another type.
+    """
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StoreDamaged(path, "it is missing") from None
+    except (OSError, ValueError) as exc:  # truncated, overwritten, unreadable
+        raise StoreDamaged(path, getattr(exc, "strerror", None) or exc) from None
+    if not isinstance(manifest, dict):
+        raise StoreDamaged(path, f"it is {_json_type(manifest)}, not a JSON object")
+    fingerprint = manifest.get("fingerprint")
+    if not isinstance(fingerprint, dict):
+        raise StoreDamaged(path, f"its fingerprint is {_json_type(fingerprint)}, not an object")
+    recipe = fingerprint.get("recipe", {})
+    if not isinstance(recipe, dict):
+        raise StoreDamaged(path, f"its recipe is {_json_type(recipe)}, not an object")
+    for name, table in recipe.items():
+        if not isinstance(table, dict):
+            raise StoreDamaged(path, f"its recipe table {name!r} is {_json_type(table)}, not an object")
+    run_id = manifest.get("run_id")
+    if not isinstance(run_id, str) or not run_id:
+        raise StoreDamaged(path, f"its run_id is {_json_type(run_id) if run_id != '' else 'empty'}, "
+                                 "not the run's id (a non-empty string)")
+    if not isinstance(manifest.get("refine_plan", {}), dict):
+        raise StoreDamaged(path, f"its refine_plan is {_json_type(manifest['refine_plan'])}, not an object")
+    return manifest
+
+
+#: numpy dtype kinds an array of the store may have, by what it holds.
+_KINDS = {"b": "booleans", "iu": "integers", "f": "floats"}
+
+
+def check_array(arrays: dict[str, np.ndarray], key: str, path: Path, kinds: str,
+                shape: tuple[int | None, ...]) -> np.ndarray:
+    """``arrays[key]`` checked to be of one of the dtype ``kinds`` (``"b"``, ``"iu"``, ``"f"``)
+    and of ``shape`` (None: any length), integers as int64.
+
+    Raises:
+        StoreDamaged: the array is missing, of another dtype or shape, or of integers beyond int64.
+    """
+    a = _field(arrays, key, path)
+    want = " x ".join("N" if n is None else str(n) for n in shape) or "a scalar"
+    if a.dtype.kind not in kinds or a.ndim != len(shape) or any(
+            n is not None and m != n for m, n in zip(a.shape, shape, strict=True)):
+        raise StoreDamaged(path, f"its array {key!r} is {a.dtype} {tuple(a.shape)}, not {_KINDS[kinds]} of "
+                                 f"shape ({want})")
+    if a.dtype.kind == "u" and a.size and int(a.max()) > np.iinfo(np.int64).max:
+        raise StoreDamaged(path, f"its array {key!r} holds integers beyond int64")
+    return a.astype(np.int64) if kinds == "iu" else a
+
+
+def check_offsets(offsets: np.ndarray, rows: int, key: str, path: Path) -> np.ndarray:
+    """The row counts of ``offsets`` (int64 ``(P + 1,)``), checked to start at 0, never go back
+    and end at ``rows``.
+
+    Raises:
+        StoreDamaged: they do not.
+    """
+    counts = np.diff(offsets)
+    if len(offsets) == 0 or offsets[0] != 0 or (counts < 0).any() or offsets[-1] != rows:
+        raise StoreDamaged(path, f"its {key} do not run from 0 up to its {rows} rows")
+    return counts
+
+
+def check_unique_pairs(pairs: np.ndarray, path: Path, key: str = "pairs") -> None:
+    """Refuse a ``(P, 2)`` array of pairs that holds one pair twice.
+
+    Raises:
+        StoreDamaged: naming the pair.
+    """
+    if len(pairs) > 1:
+        order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+        same = np.flatnonzero((np.diff(pairs[order], axis=0) == 0).all(axis=1))
+        if len(same):
+            a, b = pairs[order[same[0]]]
+            raise StoreDamaged(path, f"its {key} hold pair ({a}, {b}) twice")
+
+
+def _check_filter_chunk(z: dict[str, np.ndarray], path: Path) -> _ChunkIndex:
+    """A filter chunk's arrays checked against each other (see :meth:`RunStore.save_filter_chunk`);
+    returns its index entry."""
+    pairs = check_array(z, "pairs", path, "iu", (None, 2))
+    n = len(pairs)
+    ok = check_array(z, "success", path, "b", (n,))
+    matches = check_array(z, "matches", path, "iu", (None, 2))
+    rows = check_offsets(check_array(z, "offsets", path, "iu", (n + 1,)), len(matches), "offsets", path)
+    homs = check_array(z, "patch_homographies", path, "f", (None, 2, 3, 3))
+    hoff = check_array(z, "hom_offsets", path, "iu", (n + 1,))
+    per_pair = check_offsets(hoff, len(homs), "hom_offsets", path)
+    inliers = check_array(z, "inliers", path, "b", (len(matches),))
+    labels = check_array(z, "labels", path, "iu", (len(matches),))
+    kept = check_array(z, "kept", path, "iu", (n,))
+    if (rows[~ok] != 0).any() or (per_pair[~ok] != 0).any() or (kept[~ok] != 0).any():
+        raise StoreDamaged(path, "its offsets or kept counts give rows to a pair that failed")
+    check_unique_pairs(pairs, path)
+    if (matches < 0).any():
+        raise StoreDamaged(path, "its matches hold negative keypoint indices")
+    if not np.isfinite(homs).all():
+        raise StoreDamaged(path, "its patch_homographies are not all finite")
+    row_pair = np.repeat(np.arange(n), rows)
+    if (kept != np.bincount(row_pair[inliers], minlength=n)).any():
+        raise StoreDamaged(path, "its kept counts differ from its inliers")
+    if ((labels < -1) | (labels >= np.repeat(per_pair, rows))).any():
+        raise StoreDamaged(path, "its labels name patch homographies their pair does not have")
+    top = np.full((n, 2), -1, np.int64)
+    full = np.flatnonzero(rows > 0)
+    if len(full):
+        top[full] = np.maximum.reduceat(matches, np.asarray(rows.cumsum() - rows)[full], axis=0)
+    return _ChunkIndex(pairs=pairs, success=ok, matches=int(rows[ok].sum()), kept=int(kept[ok].sum()), top=top)
+
+
+def _check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, int] | None) -> GroupResult:
+    """A refine group's arrays checked against each other and, when given, the images'
+    ``num_keypoints``; returns (moved, stats)."""
+    ids = check_array(z, "image_ids", path, "iu", (None,))
+    idx = check_array(z, "idx", path, "iu", (None,))
+    xy = check_array(z, "xy", path, "f", (len(idx), 2))
+    sizes = check_offsets(check_array(z, "offsets", path, "iu", (len(ids) + 1,)), len(idx), "offsets", path)
+    if len(np.unique(ids)) != len(ids):
+        raise StoreDamaged(path, "its image_ids hold an image twice")
+    if not np.isfinite(xy).all():
+        raise StoreDamaged(path, "its positions xy are not all finite")
+    try:
+        stats = json.loads(str(_field(z, "stats", path)))
+    except ValueError as exc:
+        raise StoreDamaged(path, f"its stats are not JSON ({exc})") from None
+    if not isinstance(stats, dict):
+        raise StoreDamaged(path, f"its stats are {_json_type(stats)}, not an object")
+    moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    start = 0
+    for image_id, size in zip(ids.tolist(), sizes.tolist(), strict=True):
+        rows = slice(start, start + size)
+        start += size
+        n = None if num_keypoints is None else num_keypoints.get(image_id)
+        if num_keypoints is not None and n is None:
+            raise StoreDamaged(path, f"it moves keypoints of image {image_id}, which is not in the database")
+        if size and idx[rows].min() < 0:
+            raise StoreDamaged(path, f"it moves negative keypoint indices of image {image_id}")
+        if size and n is not None and idx[rows].max() >= n:
+            raise StoreDamaged(path, f"it moves keypoint {idx[rows].max()} of image {image_id}, which has {n} "
+                                     "keypoints")
+        moved[image_id] = (idx[rows], xy[rows])
+    return moved, stats
+
+
 def content_hash(path: Path, chunk: int = 1 << 22) -> str:
     """BLAKE2b (128-bit) of the bytes of ``path``: what the stored work read, by content (its
     size and modification time alone miss a ``cp -p`` of another database). About 1 s per
@@ -206,6 +367,7 @@ class _ChunkIndex:
     success: np.ndarray  # bool (P,)
     matches: int  # over the successful pairs
     kept: int
+    top: np.ndarray  # int64 (P, 2): each pair's largest keypoint index in each image, -1 for none
 
 
 def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
@@ -224,16 +386,16 @@ class RunStore:
         self.manifest = manifest
         self._lock_fd: int | None = lock_fd
         self._chunks: dict[int, _ChunkIndex] = {}
+        self._pairs: set[Pair] | None = None  # the run's plan, once expect() gives it
+        self._num_keypoints: dict[int, int] | None = None
+        seen: dict[Pair, Path] = {}
         for index, path in self._files(_FILTER_FILE):
-            z = self._read(path)
-            try:
-                ok = _field(z, "success", path).astype(bool)
-                offsets, kept = _field(z, "offsets", path), _field(z, "kept", path)
-                self._chunks[index] = _ChunkIndex(
-                    pairs=_field(z, "pairs", path).astype(np.int64).reshape(-1, 2), success=ok,
-                    matches=int(np.diff(offsets)[ok].sum()), kept=int(kept[ok].sum()))
-            except (ValueError, IndexError) as exc:  # arrays that do not fit each other
-                raise StoreDamaged(path, exc) from None
+            chunk = _check_filter_chunk(self._read(path), path)
+            for a, b in chunk.pairs.tolist():
+                if (a, b) in seen:
+                    raise StoreDamaged(path, f"it holds pair ({a}, {b}), which {seen[(a, b)].name} holds too")
+                seen[(a, b)] = path
+            self._chunks[index] = chunk
 
     # -- opening, closing --------------------------------------------------------------------
     @classmethod
@@ -277,27 +439,18 @@ class RunStore:
                      restart: bool) -> RunStore:
         check_no_links(folder)  # again, under the lock: no other run of ours changes it now
         manifest_path = folder / MANIFEST
-        old = None
         has_work = any(_FILTER_FILE.match(p.name) or _GROUP_FILE.match(p.name) for p in folder.iterdir())
-        if manifest_path.is_file() and not restart:
-            try:
-                old = json.loads(manifest_path.read_text(encoding="utf-8"))
-                if not isinstance(old, dict):
-                    raise ValueError("not a JSON object")
-            except (OSError, ValueError) as exc:  # truncated, overwritten, unreadable
-                if has_work:
-                    raise StoreDamaged(manifest_path, getattr(exc, "strerror", None) or exc) from None
-                old = {}
-        if has_work and old is not None and not (resume or restart):
-            raise UserError(f"an interrupted run left its finished work in {folder}: pass --resume to "
-                            "continue it, or --restart to discard it and start again")
-        if resume and has_work:
-            what = fingerprint_difference(old.get("fingerprint", {}) if old else {}, fingerprint)
+        if has_work and not restart:
+            old = read_manifest(manifest_path)  # damaged: --restart is the only way on
+            if not resume:
+                raise UserError(f"an interrupted run left its finished work in {folder}: pass --resume to "
+                                "continue it, or --restart to discard it and start again")
+            what = fingerprint_difference(old["fingerprint"], fingerprint)
             if what is not None:
                 raise UserError(f"--resume: the interrupted run in {folder} was made with another {what}; "
                                 "resume with the same inputs and options, or pass --restart to discard it")
             log.info("resuming the interrupted run from %s", folder)
-            return cls(folder, old or {}, lock_fd)
+            return cls(folder, old, lock_fd)
         if resume:
             log.info("--resume: no finished work in %s; starting from the beginning", folder)
         cls._clear(folder)
@@ -342,28 +495,23 @@ class RunStore:
 
     def _read(self, path: Path) -> dict[str, np.ndarray]:
         """:func:`_read_npz` of one of this store's files, checked to be this run's own: its
-        ``run_id`` is the manifest's and its ``file_name`` its name (a store made before files
-        carried them has no ``run_id`` in its manifest: not checked).
+        ``run_id`` is the manifest's and its ``file_name`` its name.
 
         Raises:
             StoreDamaged: unreadable, or written by another run or under another name.
         """
         arrays = _read_npz(path)
         run_id, name = arrays.pop("run_id", None), arrays.pop("file_name", None)
-        want = self.manifest.get("run_id")
-        if want is None:
-            return arrays
-        if run_id is None or str(run_id) != want:
+        want = self.manifest["run_id"]  # a non-empty string (read_manifest)
+        if run_id is None or run_id.dtype.kind != "U" or str(run_id) != want:
             raise StoreDamaged(path, "it was written by another run than the one this folder's manifest records")
-        if name is None or str(name) != path.name:
+        if name is None or name.dtype.kind != "U" or str(name) != path.name:
             raise StoreDamaged(path, f"it was written as {name if name is None else str(name)}, not under this name")
         return arrays
 
     def _save(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
         """:func:`_atomic_savez` with this run's ``run_id`` and the file's name (see :meth:`_read`)."""
-        tie = {"run_id": np.array(self.manifest["run_id"]), "file_name": np.array(path.name)} \
-            if "run_id" in self.manifest else {}
-        _atomic_savez(path, {**arrays, **tie})
+        _atomic_savez(path, {**arrays, "run_id": np.array(self.manifest["run_id"]), "file_name": np.array(path.name)})
 
     def _files(self, pattern: re.Pattern) -> list[tuple[int, Path]]:
         out = []
@@ -372,6 +520,32 @@ class RunStore:
             if m:
                 out.append((int(m.group(1)), p))
         return sorted(out)
+
+    # -- what the work must fit --------------------------------------------------------------
+    def expect(self, pairs, num_keypoints) -> None:
+        """Give the run's plan the stored work must fit: ``pairs`` (image_id1, image_id2), the
+        pairs to filter, and ``num_keypoints``, image id -> its keypoint count. The chunks stored
+        are checked now, and every file read from here on too.
+
+        Raises:
+            StoreDamaged: a stored chunk holds a pair that is not one of ``pairs``, or a keypoint
+                index beyond its image's count.
+        """
+        self._pairs = {(int(a), int(b)) for a, b in pairs}
+        self._num_keypoints = {int(i): int(n) for i, n in num_keypoints.items()}
+        for index, chunk in self._chunks.items():
+            self._check_fits(chunk, self.folder / f"filter-{index:06d}.npz")
+
+    def _check_fits(self, chunk: _ChunkIndex, path: Path) -> None:
+        if self._pairs is None or self._num_keypoints is None:
+            return
+        for (a, b), (top_a, top_b) in zip(chunk.pairs.tolist(), chunk.top.tolist(), strict=True):
+            if (a, b) not in self._pairs:
+                raise StoreDamaged(path, f"it holds pair ({a}, {b}), which is not a pair this run filters")
+            for image_id, top in ((a, top_a), (b, top_b)):
+                if top >= self._num_keypoints[image_id]:
+                    raise StoreDamaged(path, f"its matches of pair ({a}, {b}) use keypoint {top} of image "
+                                             f"{image_id}, which has {self._num_keypoints[image_id]} keypoints")
 
     # -- filter chunks -----------------------------------------------------------------------
     def filtered_pairs(self) -> set[Pair]:
@@ -396,6 +570,9 @@ class RunStore:
         from the database unchanged)."""
         if index in self._chunks:
             raise RuntimeError(f"filter chunk {index} is stored already")
+        stored = self.filtered_pairs()
+        if any(p in stored for p in pairs) or len(set(pairs)) != len(pairs):
+            raise RuntimeError(f"filter chunk {index} holds a pair that is stored already")
         ok = np.array([o.success for o in outcomes], bool)
         rows = [len(m) if s else 0 for m, s in zip(matches, ok, strict=True)]
         homs = [len(o.patch_homographies) if s else 0 for o, s in zip(outcomes, ok, strict=True)]
@@ -412,9 +589,9 @@ class RunStore:
             "hom_offsets": np.concatenate([[0], np.cumsum(homs)]).astype(np.int64),
             "patch_homographies": _cat([outcomes[k].patch_homographies for k in sel], (0, 2, 3, 3), np.float64),
         }
-        self._save(self.folder / f"filter-{index:06d}.npz", arrays)
-        self._chunks[index] = _ChunkIndex(pairs=arrays["pairs"], success=ok,
-                                          matches=int(arrays["offsets"][-1]), kept=int(arrays["kept"].sum()))
+        path = self.folder / f"filter-{index:06d}.npz"
+        self._save(path, arrays)
+        self._chunks[index] = _check_filter_chunk(arrays, path)
 
     def iter_filter_chunks(self) -> Iterator[FilteredPairs]:
         """The successful pairs of each stored chunk, one chunk at a time (chunk order)."""
@@ -422,9 +599,15 @@ class RunStore:
             if index not in self._chunks:
                 continue
             z = self._read(path)
-            pairs, ok, off, hoff = (_field(z, key, path) for key in ("pairs", "success", "offsets", "hom_offsets"))
-            matches, inliers, labels, homs = (_field(z, key, path) for key in
-                                              ("matches", "inliers", "labels", "patch_homographies"))
+            chunk = _check_filter_chunk(z, path)
+            known = self._chunks[index]
+            if not (np.array_equal(chunk.pairs, known.pairs) and np.array_equal(chunk.success, known.success)
+                    and np.array_equal(chunk.top, known.top)):
+                raise StoreDamaged(path, "it changed since the run opened it")
+            self._check_fits(chunk, path)
+            pairs, ok, off, hoff = chunk.pairs, chunk.success, z["offsets"], z["hom_offsets"]
+            matches, inliers, labels, homs = (z["matches"], z["inliers"], z["labels"].astype(np.int64),
+                                              z["patch_homographies"].astype(np.float64))
             out: FilteredPairs = {}
             for k in np.flatnonzero(ok):
                 a, b = int(off[k]), int(off[k + 1])
@@ -455,24 +638,18 @@ class RunStore:
             self.manifest = dict(self.manifest, refine_plan=plan_key)
             _atomic_write_text(self.folder / MANIFEST, json.dumps(self.manifest, indent=1) + "\n")
             return {}
-        out: dict[int, GroupResult] = {}
-        for index, path in files:
-            z = self._read(path)
-            ids, off, idx, xy = (_field(z, key, path) for key in ("image_ids", "offsets", "idx", "xy"))
-            try:
-                stats = json.loads(str(_field(z, "stats", path)))
-            except ValueError as exc:
-                raise StoreDamaged(path, exc) from None
-            moved = {int(i): (idx[off[k]:off[k + 1]], xy[off[k]:off[k + 1]]) for k, i in enumerate(ids)}
-            out[index] = (moved, stats)
-        return out
+        return {index: _check_group(self._read(path), path, self._num_keypoints) for index, path in files}
+
+    def group_path(self, index: int) -> Path:
+        """The file of refine group ``index``."""
+        return self.folder / f"group-{index:06d}.npz"
 
     def save_group(self, index: int, moved: dict[int, tuple[np.ndarray, np.ndarray]], stats: dict) -> None:
         """Store one finished refine group: image id -> (keypoint indices (K,), positions
         (K, 2) pixels) and its stats (JSON-ready numbers)."""
         ids = sorted(moved)
         sizes = [len(moved[i][0]) for i in ids]
-        self._save(self.folder / f"group-{index:06d}.npz", {
+        self._save(self.group_path(index), {
             "image_ids": np.asarray(ids, np.int64),
             "offsets": np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
             "idx": _cat([np.asarray(moved[i][0], np.int64) for i in ids], (0,), np.int64),
