@@ -229,16 +229,23 @@ def check_integrity(copy: Path, name: Path) -> None:
 
 
 def copy_file(src: Path, dst: Path) -> None:
-    """Copy ``src`` to ``dst`` (bytes only) and flush it to disk.
+    """Copy ``src`` to ``dst`` (bytes only) and flush it to disk. ``dst`` is a file of ours (a
+    working copy, a backup): a symbolic link there is never written through.
 
     Raises:
         DatabaseError: the source changed while it was copied.
-        UserError: the copy failed (disk full, read-only folder); ``dst`` is removed and the
-            message names the folder.
+        UserError: ``dst`` is a symbolic link; the copy failed (disk full, read-only folder):
+            ``dst`` is removed and the message names the folder.
     """
     before = src.stat()
+    if os.path.islink(dst):
+        raise UserError(f"{dst} is a symbolic link (to {os.readlink(dst)}), where colmap-miho writes a file of "
+                        "its own; nothing was written through it: remove it and run again")
     try:
-        shutil.copyfile(src, dst)
+        # O_NOFOLLOW: a link put there after the look is not followed either
+        fd = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o666)
+        with open(src, "rb") as fsrc, open(fd, "wb") as fdst:
+            shutil.copyfileobj(fsrc, fdst, COPY_BUFFER_BYTES)
         fsync_file(dst)
     except OSError as exc:
         with contextlib.suppress(OSError):
@@ -250,6 +257,10 @@ def copy_file(src: Path, dst: Path) -> None:
         with contextlib.suppress(OSError):
             Path(dst).unlink()
         raise DatabaseError(f"database {src} changed while it was copied; is another program writing it?")
+
+
+#: Bytes per read and write of :func:`copy_file`.
+COPY_BUFFER_BYTES = 1 << 22
 
 
 def file_identity(path: Path) -> tuple:
@@ -273,11 +284,12 @@ def backup_path(database: Path, now: float | None = None) -> Path:
 
 def unused_stamped_name(database: Path, name_for, now: float | None = None) -> Path:
     """``database.with_name(name_for(stamp))`` with the local time as stamp, ``-1``, ``-2``, ...
-    appended to the stamp until the name does not exist."""
+    appended to the stamp until nothing is there (a dangling symbolic link holds its name too:
+    a file written there would land in its target)."""
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
     candidate = database.with_name(name_for(stamp))
     k = 1
-    while candidate.exists():
+    while os.path.lexists(candidate):
         candidate = database.with_name(name_for(f"{stamp}-{k}"))
         k += 1
     return candidate
