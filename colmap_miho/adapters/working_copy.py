@@ -153,7 +153,8 @@ class WorkingCopy:
         :meth:`commit` renames it onto ``path`` right after the database (so a bad path fails
         before anything is replaced, and no side file describes a result that was not
         committed). A symlink ``path`` keeps its link: its target is replaced. A character device
-        is written through at commit, never replaced.
+        is written through at commit, never replaced, right before the database is moved (a
+        stream cannot be taken back, and a device that fails, ``/dev/full``, then commits nothing).
 
         Raises:
             UserError: the file cannot be written (missing or read-only folder, disk full), or
@@ -202,6 +203,7 @@ class WorkingCopy:
             side = Path(str(self.path) + s)
             if side.exists():
                 raise DatabaseError(f"working copy {self.path} is still open ({side.name} exists)")
+        self._write_devices()
         fsync_file(self.path)
         if self.in_place or self.overwrite:
             os.replace(self.path, self.output)
@@ -213,13 +215,30 @@ class WorkingCopy:
         fsync_dir(self.output.parent)
         self.committed = True
         for tmp, target in self._side:
-            if check_output_path(target) == CHARACTER_DEVICE:
-                write_through(tmp, target)
-                tmp.unlink()
-            else:
-                os.replace(tmp, target)
+            os.replace(tmp, target)
         self._side.clear()
         return self.output
+
+    def _write_devices(self) -> None:
+        """Write the side files staged for a character device through into it (and drop them).
+
+        Raises:
+            RunFailed: the device is full (``/dev/full``), named.
+            UserError: it cannot be written otherwise.
+        """
+        for tmp, target in list(self._side):
+            if check_output_path(target) != CHARACTER_DEVICE:
+                continue
+            try:
+                write_through(tmp, target)
+            except OSError as exc:
+                if is_disk_full(exc):  # a device has no folder with free space to tell
+                    raise RunFailed(f"disk full while writing {target} ({exc.strerror or exc}); nothing was written "
+                                    "under the output name and the working files were removed: write it "
+                                    "elsewhere or retry") from None
+                raise UserError(f"cannot write {target}: {exc.strerror or exc}; nothing was replaced") from None
+            tmp.unlink()
+            self._side.remove((tmp, target))
 
     def _check_input_unchanged(self) -> None:
         if self.path is None:

@@ -162,3 +162,20 @@ def test_map_json_fifo_is_refused_before_mapping(db_copy, scene, tmp_path, capfd
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and "--json" in lines[0] and "FIFO" in lines[0], lines
     assert not (tmp_path / "model").exists()
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full here")
+def test_refine_json_to_a_full_device_commits_nothing_and_its_advice_works(db_copy, scene, tmp_path, capfd):
+    """``--json /dev/full``: the summary cannot be written, so nothing is committed (a result
+    without its summary, with advice to --resume that then fails on the existing output, lost
+    the summary); the line says so and where, and its advice (--resume) finishes the run."""
+    out = tmp_path / "out.db"
+    args = ["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+            "--no-refine", "--workers", "1", "-q"]
+    capfd.readouterr()
+    assert main([*args, "--json", "/dev/full"]) == 1
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "/dev/full" in lines[0] and "--resume" in lines[0], lines
+    assert not out.exists()
+    assert main([*args, "--json", str(tmp_path / "s.json"), "--resume"]) == 0
+    assert out.is_file() and (tmp_path / "s.json").is_file()
