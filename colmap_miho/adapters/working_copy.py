@@ -187,6 +187,7 @@ class WorkingCopy:
             UserError: the output appeared meanwhile (no ``overwrite``), or is held open.
             DatabaseError: in place, the input changed during the run; the result is kept
                 beside it (named in the message) and the input is left as it is.
+            SideFileLost: the output was committed, a side file could not be renamed onto its name.
         """
         if self.path is None:
             raise RuntimeError("commit() outside the with block")
@@ -215,7 +216,12 @@ class WorkingCopy:
         fsync_dir(self.output.parent)
         self.committed = True
         for tmp, target in self._side:
-            os.replace(tmp, target)
+            try:
+                os.replace(tmp, target)
+            except OSError as exc:  # the one step after the commit: the output is there
+                raise SideFileLost(f"{self.output} was written, but {target} could not be "
+                                   f"({exc.strerror or exc}); the output is complete: rerun with --overwrite "
+                                   "to write both again") from None
         self._side.clear()
         return self.output
 
@@ -281,6 +287,10 @@ class WorkingCopy:
             # ENOSPC / EDQUOT, SQLite's or pycolmap's "database or disk is full": one line
             raise RunFailed(f"disk full while writing in {self.output.parent}; {self.database} is unchanged and "
                             "the working files were removed: free some space and retry") from None
+
+
+class SideFileLost(RunFailed):
+    """The output was committed, but a side file (``--json``) could not be put in place after it."""
 
 
 def _same_inode(a: Path, b: Path) -> bool:
