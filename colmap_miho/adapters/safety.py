@@ -22,6 +22,7 @@ from pathlib import Path
 
 from ..errors import DatabaseError, UserError
 from .filesystem import WORKING_FILES, fsync_file
+from .staged_write import disk_full_error, is_disk_full
 
 log = logging.getLogger(__name__)
 
@@ -234,7 +235,8 @@ def copy_file(src: Path, dst: Path) -> None:
 
     Raises:
         DatabaseError: the source changed while it was copied.
-        UserError: ``dst`` is a symbolic link; the copy failed (disk full, read-only folder):
+        RunFailed: the disk is full, or a file-size limit was met (:func:`disk_full_error`).
+        UserError: ``dst`` is a symbolic link; the copy failed otherwise (a read-only folder):
             ``dst`` is removed and the message names the folder.
     """
     before = src.stat()
@@ -250,6 +252,8 @@ def copy_file(src: Path, dst: Path) -> None:
     except OSError as exc:
         with contextlib.suppress(OSError):
             Path(dst).unlink()
+        if is_disk_full(exc):  # the message a full disk (or a file-size limit) has everywhere
+            raise disk_full_error(Path(dst).parent, f"copying {src}", exc) from None
         raise UserError(f"cannot copy database {src} to {Path(dst).parent}: "
                         f"{exc.strerror or exc}; free some space or choose a writable folder") from None
     after = src.stat()

@@ -32,6 +32,8 @@ from .staged_write import (
     CHARACTER_DEVICE,
     check_output_path,
     check_written,
+    disk_full_error,
+    file_too_large,
     is_disk_full,
     new_staging_name,
     write_target,
@@ -284,6 +286,8 @@ class WorkingCopy:
             WORKING_FILES.discard(self.path)
             self._drop_backup()
         if exc is not None and is_disk_full(exc):
+            if file_too_large(self.output.parent, exc):  # ulimit -f: the one message it has everywhere
+                raise disk_full_error(self.output.parent, f"refining {self.database} (unchanged)", exc) from None
             # ENOSPC / EDQUOT, SQLite's or pycolmap's "database or disk is full": one line
             raise RunFailed(f"disk full while writing in {self.output.parent}; {self.database} is unchanged and "
                             "the working files were removed: free some space and retry") from None
