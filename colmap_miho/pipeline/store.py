@@ -246,6 +246,19 @@ def _check_filter_chunk(z: dict[str, np.ndarray], path: Path) -> _ChunkIndex:
     return _ChunkIndex(pairs=pairs, success=ok, matches=int(rows[ok].sum()), kept=int(kept[ok].sum()), top=top)
 
 
+#: The one group stat that is not a counter: image id (a string, in JSON) -> decodes
+#: (``track_groups.DECODED_BY_IMAGE``).
+DECODED_BY_IMAGE = "decoded_by_image"
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _is_count(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
 def _check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, int] | None) -> GroupResult:
     """A refine group's arrays checked against each other and, when given, the images'
     ``num_keypoints``; returns (moved, stats)."""
@@ -263,6 +276,12 @@ def _check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, 
         raise StoreDamaged(path, f"its stats are not JSON ({exc})") from None
     if not isinstance(stats, dict):
         raise StoreDamaged(path, f"its stats are {_json_type(stats)}, not an object")
+    for key, value in stats.items():  # counters, summed over the groups; decodes per image id
+        if key == DECODED_BY_IMAGE:
+            if not (isinstance(value, dict) and all(k.isdigit() and _is_count(v) for k, v in value.items())):
+                raise StoreDamaged(path, f"its stats' {key} is not image id -> count")
+        elif not _is_number(value):
+            raise StoreDamaged(path, f"its stats' {key} is {_json_type(value)}, not a number")
     moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     start = 0
     for image_id, size in zip(ids.tolist(), sizes.tolist(), strict=True):

@@ -200,6 +200,8 @@ def _group_forgeries():
         "positions not finite": ({"xy": np.full((3, 2), np.inf)}, "xy"),
         "stats not an object": ({"stats": np.array("[1, 2]")}, "stats"),
         "stats not JSON": ({"stats": np.array("{")}, "stats"),
+        "a stat not a number": ({"stats": np.array('{"moved": "3"}')}, "stats"),
+        "decodes not per image": ({"stats": np.array('{"decoded_by_image": {"x": 1}}')}, "stats"),
     }
 
 
