@@ -249,6 +249,7 @@ def _read_back(store: RunStore, arrays: dict[str, np.ndarray], meta: dict
     """
     path = store.folder / f"stage-{STORE_NAME}.npz"
     failed, wrong = _unpack(arrays, path)
+    _check_meta(meta, path)
     try:
         stats = MatchCheckStats(**meta)
         if not all(np.asarray(f).ndim == 1 for f in failed.values()):
@@ -256,6 +257,39 @@ def _read_back(store: RunStore, arrays: dict[str, np.ndarray], meta: dict
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise StoreDamaged(path, f"{type(exc).__name__}: {exc}") from None
     return failed, wrong, stats
+
+
+def _is_number(v: object) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+#: What each annotation of :class:`MatchCheckStats` takes in JSON.
+_META_TYPES = {
+    "str": lambda v: isinstance(v, str), "bool": lambda v: isinstance(v, bool),
+    "int": lambda v: isinstance(v, int) and not isinstance(v, bool), "float": _is_number,
+    "list[str]": lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
+    "list[dict]": lambda v: isinstance(v, list) and all(isinstance(x, dict) for x in v),
+}
+
+
+def _check_meta(meta: dict, path: Path) -> None:
+    """The stored stats checked against :class:`MatchCheckStats`'s field types (and the parts
+    the stage reads: each wrong pair's images, share and matches; the seconds as numbers).
+
+    Raises:
+        StoreDamaged: a value of another type.
+    """
+    for f in dataclasses.fields(MatchCheckStats):
+        if f.name in meta and not _META_TYPES[str(f.type)](meta[f.name]):
+            raise StoreDamaged(path, f"its stats' {f.name} is not of type {f.type}")
+    for w in meta.get("wrong_pairs", []):
+        images = w.get("images")
+        if not (isinstance(images, list) and len(images) == 2 and _is_number(w.get("fail_share"))
+                and _is_number(w.get("matches"))):
+            raise StoreDamaged(path, "its stats' wrong_pairs do not name two images, a share and matches")
+    for key in ("round_seconds", "mapper_steps"):
+        if not all(_is_number(v) for r in meta.get(key, []) for v in r.values()):
+            raise StoreDamaged(path, f"its stats' {key} are not all numbers")
 
 
 def _unpack(arrays: dict[str, np.ndarray], path: Path) -> tuple[dict[Pair, np.ndarray], frozenset[Pair]]:

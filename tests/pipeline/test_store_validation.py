@@ -245,3 +245,17 @@ def test_a_forged_match_check_result_is_a_damaged_store(changes, why, tmp_path):
     with _damaged(tmp_path, "stage-match_check.npz", f".*{why}"):
         _read_back(store, arrays, meta)
     store.close()
+
+
+@pytest.mark.parametrize("change", [{"used": "yes"}, {"rounds": 1.5}, {"wrong_pairs": 5}, {"images_trusted": [1]},
+                                    {"wrong_pairs": [{"images": 1}]}, {"round_seconds": [{"mapper": "x"}]},
+                                    {"unknown": 1}])
+def test_forged_match_check_stats_are_a_damaged_store(change, tmp_path):
+    from colmap_miho.pipeline.match_check import _read_back
+
+    _store(tmp_path)
+    store = _resume(tmp_path)
+    arrays, meta = store.load_stage("match_check")
+    with _damaged(tmp_path, "stage-match_check.npz", ".*"):
+        _read_back(store, arrays, {**meta, **change})
+    store.close()
