@@ -237,7 +237,7 @@ def _check_filter_chunk(z: dict[str, np.ndarray], path: Path) -> _ChunkIndex:
     row_pair = np.repeat(np.arange(n), rows)
     if (kept != np.bincount(row_pair[inliers], minlength=n)).any():
         raise StoreDamaged(path, "its kept counts differ from its inliers")
-    if ((labels < -1) | (labels >= np.repeat(per_pair, rows))).any():
+    if ((labels < -1) | (labels >= np.repeat(per_pair, rows)) | (inliers & (labels < 0))).any():
         raise StoreDamaged(path, "its labels name patch homographies their pair does not have")
     top = np.full((n, 2), -1, np.int64)
     full = np.flatnonzero(rows > 0)

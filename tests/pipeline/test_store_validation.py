@@ -154,6 +154,7 @@ def _chunk_forgeries():
         "matches of three columns": ({"matches": np.zeros((6, 3), np.uint32)}, "open", "matches"),
         "inliers too short": ({"inliers": np.ones(5, bool)}, "open", "inliers"),
         "label past the homographies": ({"labels": [5, 0, 0, 0, 0, 0]}, "open", "labels"),
+        "an inlier without a homography": ({"labels": [0, -1, 0, 0, 0, 0]}, "open", "labels"),
         "kept more than the inliers": ({"kept": [6, 0]}, "open", "kept"),
         "homography offsets reversed": ({"hom_offsets": [0, 2, 1]}, "open", "hom_offsets"),
         "homographies of another shape": ({"patch_homographies": np.zeros((2, 3, 3))}, "open", "patch_homographies"),
