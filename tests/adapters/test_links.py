@@ -6,6 +6,7 @@ own tests: ``tests/pipeline/test_store_links.py``.)"""
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 
@@ -148,3 +149,50 @@ def test_demo_never_writes_its_scene_through_a_link(linked, tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"{out / linked} is a symbolic link" in err and "remove the link" in err, err
     assert _contents(victim) == before
+
+
+# -- working copies, staged writes, staged models: our own new names, removed by unlink ---------
+def test_a_working_copy_replaced_by_a_link_leaves_the_target(db_copy, tmp_path):
+    target = tmp_path / "precious.db"
+    target.write_text("keep me")
+    with WorkingCopy(db_copy, tmp_path / "out.db") as wc:
+        assert wc.path is not None
+        wc.path.unlink()
+        wc.path.symlink_to(target)
+        Path(str(wc.path) + "-wal").symlink_to(target)
+    assert target.read_text() == "keep me"
+
+
+def test_a_staged_file_replaced_by_a_link_leaves_the_target(tmp_path):
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    with pytest.raises(RuntimeError, match="stop"):
+        with staged_write.staged_write(tmp_path / "out.txt") as tmp:
+            tmp.unlink()
+            tmp.symlink_to(target)
+            raise RuntimeError("stop")
+    assert target.read_text() == "keep me" and not (tmp_path / "out.txt").exists()
+
+
+def test_a_model_stage_replaced_by_a_link_is_not_emptied(tmp_path, monkeypatch):
+    import tempfile
+
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "data.txt").write_text("keep me")
+    real = tempfile.mkdtemp
+
+    def mkdtemp(*args, **kwargs):
+        made = Path(real(*args, **kwargs))
+        made.rmdir()
+        made.symlink_to(victim, target_is_directory=True)
+        return str(made)
+
+    class Model:
+        def write(self, folder):
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(tempfile, "mkdtemp", mkdtemp)
+    with pytest.raises(Exception, match="disk full"):
+        staged_write.write_model_atomic(Model(), tmp_path / "model")
+    assert (victim / "data.txt").read_text() == "keep me"

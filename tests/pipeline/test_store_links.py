@@ -62,7 +62,7 @@ def test_a_dangling_link_in_place_of_the_store_folder_is_refused(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["lock", "manifest.json", "group-000000.npz", "group-000007.npz",
-                                  "stage-match_check.npz", "filter-000000.npz"])
+                                  "stage-match_check.npz", "filter-000000.npz", ".group-000001.npz.k2j3_x.tmp"])
 @pytest.mark.parametrize("restart", [False, True])
 def test_a_link_in_place_of_a_store_file_is_refused(name, restart, tmp_path):
     folder = tmp_path / "store"
