@@ -141,9 +141,15 @@ class WorkingCopy:
         WORKING_FILES.add(self.path)
         try:
             copy_file(self.database, self.path)
+            _refuse_side_files(self.path)  # before SQLite first opens it (and makes its own)
             check_integrity(self.path, self.database)
             # mkstemp makes the file private (0600): give the result the input's permissions
             os.chmod(self.path, stat.S_IMODE(self.database.stat().st_mode))
+        except _ForeignSideFile:
+            self.path.unlink(missing_ok=True)  # not the side file: it is not ours
+            WORKING_FILES.discard(self.path)
+            self._drop_backup()
+            raise
         except BaseException:
             remove_with_side_files(self.path)
             self._drop_backup()
@@ -291,6 +297,26 @@ class WorkingCopy:
             # ENOSPC / EDQUOT, SQLite's or pycolmap's "database or disk is full": one line
             raise RunFailed(f"disk full while writing in {self.output.parent}; {self.database} is unchanged and "
                             "the working files were removed: free some space and retry") from None
+
+
+class _ForeignSideFile(UserError):
+    """A -wal, -shm or -journal file appeared beside a new working copy before SQLite opened it."""
+
+
+def _refuse_side_files(path: Path) -> None:
+    """Refuse a new working copy that already has an SQLite side file beside it (a symbolic link
+    put there while it was copied: SQLite would write its journal through it).
+
+    Raises:
+        _ForeignSideFile: naming it; it is left as it is.
+    """
+    for suffix in SIDE_SUFFIXES:
+        side = Path(str(path) + suffix)
+        if os.path.lexists(side):
+            what = f"a symbolic link (to {os.readlink(side)})" if side.is_symlink() else "a file"
+            raise _ForeignSideFile(f"{side} appeared beside the working copy while it was made, {what} that "
+                                   "colmap-miho did not make; SQLite would write through it, so nothing was: "
+                                   f"remove it (and see who writes in {path.parent}), then run again")
 
 
 class SideFileLost(RunFailed):

@@ -196,3 +196,28 @@ def test_a_model_stage_replaced_by_a_link_is_not_emptied(tmp_path, monkeypatch):
     with pytest.raises(Exception, match="disk full"):
         staged_write.write_model_atomic(Model(), tmp_path / "model")
     assert (victim / "data.txt").read_text() == "keep me"
+
+
+@pytest.mark.parametrize("suffix", ["-wal", "-journal"])
+def test_a_link_beside_a_new_working_copy_is_refused_before_sqlite_opens_it(suffix, db_copy, tmp_path, monkeypatch):
+    """A link made at the working copy's -wal while the database is copied: SQLite would write
+    its journal into the link's target."""
+    from colmap_miho.adapters import working_copy
+
+    target = tmp_path / "precious.db"
+    target.write_text("keep me")
+    real = working_copy.copy_file
+
+    def copy_and_plant(src, dst):
+        real(src, dst)
+        if str(dst).endswith(".tmp"):
+            Path(str(dst) + suffix).symlink_to(target)
+
+    monkeypatch.setattr(working_copy, "copy_file", copy_and_plant)
+    out = tmp_path / "out.db"
+    with pytest.raises(UserError, match=rf"{suffix} appeared beside the working copy .* symbolic link .*remove it"):
+        with WorkingCopy(db_copy, out):
+            pass
+    assert target.read_text() == "keep me"
+    left = [p.name for p in tmp_path.iterdir() if p.name.startswith(".out.db.")]
+    assert len(left) == 1 and left[0].endswith(suffix)  # only the link, left as it is
