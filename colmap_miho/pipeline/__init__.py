@@ -5,9 +5,10 @@ whole jobs built on it.
 ``run_<stage>`` call each, every one returning its outputs and frozen stats: :mod:`.read`,
 :mod:`.filter`, :mod:`.refine` (the NCC walk), :mod:`.write`, :mod:`.verify`.
 :mod:`.records` holds what passes between stages, :mod:`.summary` the run's
-:class:`RefineSummary`, :mod:`.store` the resumable run store, :mod:`.executor` and
-:mod:`.workers` the process pool and Dask runners, :mod:`.jobs` the whole jobs of ``run``,
-``compare`` and ``demo`` (extraction, refinement, mapping, comparison).
+:class:`RefineSummary`, :mod:`.store` the resumable run store (:mod:`.store_checks` what its
+files read back must be), :mod:`.executor` and :mod:`.workers` the process pool and Dask
+runners, :mod:`.jobs` the whole jobs of ``run``, ``compare`` and ``demo`` (extraction,
+refinement, mapping, comparison).
 """
 
 from ..pipeline_config import PipelineConfig
