@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import DatabaseError, UserError
-from .filesystem import WORKING_FILES, fsync_file
+from .filesystem import WORKING_FILES, fsync_file, remove_own_file
 from .staged_write import disk_full_error, is_disk_full
 
 log = logging.getLogger(__name__)
@@ -300,7 +300,7 @@ def unused_stamped_name(database: Path, name_for, now: float | None = None) -> P
 
 
 def remove_with_side_files(path: Path) -> None:
-    """Delete ``path`` and its SQLite side files, ignoring ones that do not exist."""
+    """Delete ``path`` and its SQLite side files, ignoring ones that do not exist (and symbolic
+    links standing there: not ours, see :func:`~colmap_miho.adapters.filesystem.remove_own_file`)."""
     for p in [path, *(Path(str(path) + s) for s in SIDE_SUFFIXES)]:
-        with contextlib.suppress(FileNotFoundError):
-            p.unlink()
+        remove_own_file(p)

@@ -24,7 +24,15 @@ import time
 from pathlib import Path
 
 from ..errors import RunFailed, UserError
-from .filesystem import WORKING_FILES, current_umask, fsync_dir, fsync_file, replace_durably, temp_beside
+from .filesystem import (
+    WORKING_FILES,
+    current_umask,
+    fsync_dir,
+    fsync_file,
+    remove_own_file,
+    replace_durably,
+    temp_beside,
+)
 from .model_files import MODEL_EXTENSIONS, MODEL_STEMS
 
 log = logging.getLogger(__name__)
@@ -237,7 +245,7 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
             raise
     finally:
         with contextlib.suppress(OSError):
-            tmp.unlink()
+            remove_own_file(tmp)
         WORKING_FILES.discard(tmp)
 
 

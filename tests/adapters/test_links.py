@@ -160,7 +160,9 @@ def test_a_working_copy_replaced_by_a_link_leaves_the_target(db_copy, tmp_path):
         wc.path.unlink()
         wc.path.symlink_to(target)
         Path(str(wc.path) + "-wal").symlink_to(target)
+        links = [wc.path, Path(str(wc.path) + "-wal")]
     assert target.read_text() == "keep me"
+    assert all(link.is_symlink() for link in links)  # not ours: left as they are
 
 
 def test_a_staged_file_replaced_by_a_link_leaves_the_target(tmp_path):
@@ -171,7 +173,7 @@ def test_a_staged_file_replaced_by_a_link_leaves_the_target(tmp_path):
             tmp.unlink()
             tmp.symlink_to(target)
             raise RuntimeError("stop")
-    assert target.read_text() == "keep me" and not (tmp_path / "out.txt").exists()
+    assert target.read_text() == "keep me" and not (tmp_path / "out.txt").exists() and tmp.is_symlink()
 
 
 def test_a_model_stage_replaced_by_a_link_is_not_emptied(tmp_path, monkeypatch):
