@@ -103,5 +103,5 @@ def write_atomic(path: Path, write: Callable[[BinaryIO], object]) -> None:
         replace_durably(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
-            tmp.unlink()
+            remove_own_file(tmp)
         raise
