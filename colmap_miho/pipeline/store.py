@@ -304,7 +304,7 @@ class RunStore:
         self.close()
 
     def _read(self, path: Path) -> dict[str, np.ndarray]:
-        """:func:`_read_npz` of one of this store's files, checked to be this run's own: its
+        """:func:`~.store_checks.read_npz` of one of this store's files, checked to be this run's own: its
         ``run_id`` is the manifest's and its ``file_name`` its name.
 
         Raises:
@@ -353,9 +353,10 @@ class RunStore:
             if (a, b) not in self._pairs:
                 raise StoreDamaged(path, f"it holds pair ({a}, {b}), which is not a pair this run filters")
             for image_id, top in ((a, top_a), (b, top_b)):
-                if top >= self._num_keypoints[image_id]:
+                n = self._num_keypoints.get(image_id, 0)
+                if top >= n:
                     raise StoreDamaged(path, f"its matches of pair ({a}, {b}) use keypoint {top} of image "
-                                             f"{image_id}, which has {self._num_keypoints[image_id]} keypoints")
+                                             f"{image_id}, which has {n} keypoints")
 
     # -- filter chunks -----------------------------------------------------------------------
     def filtered_pairs(self) -> set[Pair]:
