@@ -329,7 +329,7 @@ def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool 
         for stem in MODEL_STEMS:
             for ext in MODEL_EXTENSIONS:
                 if f"{stem}{ext}" not in written:
-                    (folder / f"{stem}{ext}").unlink(missing_ok=True)
+                    remove_own_file(folder / f"{stem}{ext}")  # a link there is left as it is
         fsync_dir(folder)
     finally:
         shutil.rmtree(stage, ignore_errors=True)

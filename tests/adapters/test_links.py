@@ -223,3 +223,18 @@ def test_a_link_beside_a_new_working_copy_is_refused_before_sqlite_opens_it(suff
     assert target.read_text() == "keep me"
     left = [p.name for p in tmp_path.iterdir() if p.name.startswith(".out.db.")]
     assert len(left) == 1 and left[0].endswith(suffix)  # only the link, left as it is
+
+
+@pytest.mark.parametrize("name", ["cameras.bin", "cameras.txt"])
+def test_a_model_written_over_a_link_leaves_its_target(name, scene, tmp_path):
+    """A model file of either format that is a link: the new model's file replaces the link
+    (.bin) or the link is left (.txt, the other format, which a write removes when it is a file);
+    the link's target is never written or removed."""
+    victim = tmp_path / "victim.bin"
+    victim.write_text("keep me")
+    folder = tmp_path / "model"
+    folder.mkdir()
+    (folder / name).symlink_to(victim)
+    staged_write.write_model_atomic(scene.gt_reconstruction, folder)
+    assert victim.read_text() == "keep me" and (folder / "cameras.bin").is_file()
+    assert (folder / name).is_symlink() == (name == "cameras.txt")
