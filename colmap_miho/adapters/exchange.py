@@ -136,7 +136,7 @@ def import_hloc(
     except (OSError, RuntimeError, sqlite3.Error) as exc:
         if not is_disk_full(exc):
             raise
-        raise disk_full_error(database.parent, f"importing into {database}") from None
+        raise disk_full_error(database.parent, f"importing into {database}", exc) from None
     return ImportStats(
         num_images=len(ids), num_cameras=ncams, num_keypoints=int(sum(nkp.values())), num_pairs=npairs,
         num_matches=nmatches, num_verified_pairs=nver, num_inlier_matches=ninl,
@@ -269,7 +269,7 @@ def export_hloc(
     except (OSError, RuntimeError) as exc:
         if not is_disk_full(exc):
             raise
-        raise disk_full_error(features.parent, f"exporting {database}") from None
+        raise disk_full_error(features.parent, f"exporting {database}", exc) from None
     return ExportStats(num_images=len(nkp), num_keypoints=nkp_total, num_pairs=npairs,
                        num_matches=nmatches - ndropped, num_dropped=ndropped)
 

@@ -14,15 +14,30 @@ never a part. :func:`write_atomic` does all of it for the run store's files;
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
 
+log = logging.getLogger(__name__)
+
 #: Working files of this process (working copies, staged outputs, private folders) that a forced
 #: exit must remove (see :func:`~colmap_miho.adapters.safety.remove_working_files`).
 WORKING_FILES: set[Path] = set()
+
+
+def remove_own_file(path: str | os.PathLike) -> None:
+    """Delete the file ``path`` that this process made (a working or staged file), unless a
+    symbolic link stands there now: that is not ours, and is left as it is (with a warning).
+    A missing file is fine."""
+    p = Path(path)
+    if p.is_symlink():
+        log.warning("%s is a symbolic link that colmap-miho did not make: left as it is", p)
+        return
+    with contextlib.suppress(FileNotFoundError):
+        p.unlink()
 
 
 def current_umask() -> int:
@@ -88,5 +103,5 @@ def write_atomic(path: Path, write: Callable[[BinaryIO], object]) -> None:
         replace_durably(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
-            tmp.unlink()
+            remove_own_file(tmp)
         raise

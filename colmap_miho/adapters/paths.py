@@ -153,8 +153,9 @@ def comparison_paths(output: str | os.PathLike, *, images: PathArg, database: Pa
     ``OUTPUT/database.db`` is an input when it exists (reused), else an output.
 
     Raises:
-        UserError: the outputs overlap the inputs (:func:`check_distinct`), or a mapping run's
-            model folder holds a COLMAP text model (:func:`refuse_text_model`).
+        UserError: the outputs overlap the inputs (:func:`check_distinct`), a file or folder the
+            job makes in ``output`` is a symbolic link (:func:`refuse_links_below`), or a mapping
+            run's model folder holds a COLMAP text model (:func:`refuse_text_model`).
     """
     out = Path(output)
     refuse_folder_inside(out, "--output", images, "--images")
@@ -185,9 +186,36 @@ def comparison_paths(output: str | os.PathLike, *, images: PathArg, database: Pa
         else:
             outputs["--output (database.db)"] = reused
     check_distinct(inputs, outputs)  # first: an overlap names the input (a GT inside OUTPUT, say)
+    refuse_links_below(out, outputs)
     for model in sorted({p.parent for p in outputs.values() if p.name == "cameras.bin"}):
         refuse_text_model(model, f"--output ({model.relative_to(out)})")
     return inputs, outputs
+
+
+def refuse_links_below(root: str | os.PathLike, outputs: Mapping[str, PathArg]) -> None:
+    """Refuse outputs that a command makes itself below the folder ``root`` (the folders between
+    ``root`` and each file, and the file) when one of them is a symbolic link: writing there
+    would replace files, or clear a run's folder, in the link's target. ``root`` itself is the
+    user's choice and may be a link.
+
+    Raises:
+        UserError: (exit 2) naming the option, the link and its target.
+    """
+    base = Path(root)
+    for label, path in _clean(outputs).items():
+        try:
+            parts = path.relative_to(base).parts
+        except ValueError:
+            continue
+        where = base
+        for part in parts:
+            where = where / part
+            if os.path.islink(where):
+                short = label.split(" (", 1)[0]
+                rel = where.relative_to(base)
+                raise UserError(f"{short} ({rel}) {where} is a symbolic link (to {os.readlink(where)}); "
+                                "colmap-miho writes there only into what it makes itself, never through a link: "
+                                f"remove the link or choose another {short}")
 
 
 def leaves_folder(name: str) -> bool:

@@ -21,7 +21,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import DatabaseError, UserError
-from .filesystem import WORKING_FILES, fsync_file
+from .filesystem import WORKING_FILES, fsync_file, remove_own_file
+from .staged_write import disk_full_error, is_disk_full
 
 log = logging.getLogger(__name__)
 
@@ -229,20 +230,30 @@ def check_integrity(copy: Path, name: Path) -> None:
 
 
 def copy_file(src: Path, dst: Path) -> None:
-    """Copy ``src`` to ``dst`` (bytes only) and flush it to disk.
+    """Copy ``src`` to ``dst`` (bytes only) and flush it to disk. ``dst`` is a file of ours (a
+    working copy, a backup): a symbolic link there is never written through.
 
     Raises:
         DatabaseError: the source changed while it was copied.
-        UserError: the copy failed (disk full, read-only folder); ``dst`` is removed and the
-            message names the folder.
+        RunFailed: the disk is full, or a file-size limit was met (:func:`disk_full_error`).
+        UserError: ``dst`` is a symbolic link; the copy failed otherwise (a read-only folder):
+            ``dst`` is removed and the message names the folder.
     """
     before = src.stat()
+    if os.path.islink(dst):
+        raise UserError(f"{dst} is a symbolic link (to {os.readlink(dst)}), where colmap-miho writes a file of "
+                        "its own; nothing was written through it: remove it and run again")
     try:
-        shutil.copyfile(src, dst)
+        # O_NOFOLLOW: a link put there after the look is not followed either
+        fd = os.open(dst, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o666)
+        with open(src, "rb") as fsrc, open(fd, "wb") as fdst:
+            shutil.copyfileobj(fsrc, fdst, COPY_BUFFER_BYTES)
         fsync_file(dst)
     except OSError as exc:
         with contextlib.suppress(OSError):
             Path(dst).unlink()
+        if is_disk_full(exc):  # the message a full disk (or a file-size limit) has everywhere
+            raise disk_full_error(Path(dst).parent, f"copying {src}", exc) from None
         raise UserError(f"cannot copy database {src} to {Path(dst).parent}: "
                         f"{exc.strerror or exc}; free some space or choose a writable folder") from None
     after = src.stat()
@@ -250,6 +261,10 @@ def copy_file(src: Path, dst: Path) -> None:
         with contextlib.suppress(OSError):
             Path(dst).unlink()
         raise DatabaseError(f"database {src} changed while it was copied; is another program writing it?")
+
+
+#: Bytes per read and write of :func:`copy_file`.
+COPY_BUFFER_BYTES = 1 << 22
 
 
 def file_identity(path: Path) -> tuple:
@@ -273,18 +288,19 @@ def backup_path(database: Path, now: float | None = None) -> Path:
 
 def unused_stamped_name(database: Path, name_for, now: float | None = None) -> Path:
     """``database.with_name(name_for(stamp))`` with the local time as stamp, ``-1``, ``-2``, ...
-    appended to the stamp until the name does not exist."""
+    appended to the stamp until nothing is there (a dangling symbolic link holds its name too:
+    a file written there would land in its target)."""
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
     candidate = database.with_name(name_for(stamp))
     k = 1
-    while candidate.exists():
+    while os.path.lexists(candidate):
         candidate = database.with_name(name_for(f"{stamp}-{k}"))
         k += 1
     return candidate
 
 
 def remove_with_side_files(path: Path) -> None:
-    """Delete ``path`` and its SQLite side files, ignoring ones that do not exist."""
+    """Delete ``path`` and its SQLite side files, ignoring ones that do not exist (and symbolic
+    links standing there: not ours, see :func:`~colmap_miho.adapters.filesystem.remove_own_file`)."""
     for p in [path, *(Path(str(path) + s) for s in SIDE_SUFFIXES)]:
-        with contextlib.suppress(FileNotFoundError):
-            p.unlink()
+        remove_own_file(p)

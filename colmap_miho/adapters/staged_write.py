@@ -24,7 +24,15 @@ import time
 from pathlib import Path
 
 from ..errors import RunFailed, UserError
-from .filesystem import WORKING_FILES, current_umask, fsync_dir, fsync_file, replace_durably, temp_beside
+from .filesystem import (
+    WORKING_FILES,
+    current_umask,
+    fsync_dir,
+    fsync_file,
+    remove_own_file,
+    replace_durably,
+    temp_beside,
+)
 from .model_files import MODEL_EXTENSIONS, MODEL_STEMS
 
 log = logging.getLogger(__name__)
@@ -62,8 +70,39 @@ def out_of_room(folder: str | os.PathLike) -> bool:
     return st.f_bavail * st.f_frsize < MIN_ROOM_BYTES or (st.f_files > 0 and st.f_favail == 0)
 
 
-def disk_full_error(folder: Path, what: str) -> RunFailed:
-    """The one-line error of a full disk: it names the file system's folder and what was kept."""
+def file_size_limit() -> int | None:
+    """The largest file this process may write, bytes (``RLIMIT_FSIZE``, ``ulimit -f``), or None
+    when unlimited."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not POSIX
+        return None
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return None if soft == resource.RLIM_INFINITY else int(soft)
+
+
+def file_too_large(folder: str | os.PathLike, exc: BaseException | None = None) -> bool:
+    """Whether a write in ``folder`` that failed (with ``exc``, when known) met a file-size limit
+    rather than a full disk: EFBIG, or (a native writer that does not say why) a limit set
+    (:func:`file_size_limit`) while the file system has room. ENOSPC and EDQUOT are a full disk."""
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return False
+    if isinstance(exc, OSError) and exc.errno == errno.EFBIG:
+        return True
+    return file_size_limit() is not None and not out_of_room(folder)
+
+
+def disk_full_error(folder: Path, what: str, exc: BaseException | None = None) -> RunFailed:
+    """The one-line error of a full disk (or of a file-size limit met, :func:`file_too_large`:
+    the same cause is one message wherever it is met): it names the file system's folder and
+    what was kept."""
+    if file_too_large(folder, exc):
+        limit = file_size_limit()
+        why, fix = ((f"this process writes files of at most {limit / 1e6:.1f} MB (ulimit -f)",
+                     "raise that limit (ulimit -f unlimited) and retry") if limit is not None else
+                    (f"the file system of {folder} takes no file this large", "write elsewhere"))
+        return RunFailed(f"file too large in {folder} while {what}: {why}; nothing was written under the output "
+                         f"name and the working files were removed: {fix}")
     free = ""
     with contextlib.suppress(OSError):
         free = f" ({shutil.disk_usage(folder).free / 1e6:.1f} MB free)"
@@ -143,7 +182,7 @@ def new_staging_name(target: Path) -> Path:
         raise UserError(f"cannot write {target}: its folder {target.parent} does not exist") from None
     except OSError as exc:
         if is_disk_full(exc):
-            raise disk_full_error(target.parent, f"writing {target}") from None
+            raise disk_full_error(target.parent, f"writing {target}", exc) from None
         raise UserError(f"cannot write {target}: {exc.strerror or exc}") from None
 
 
@@ -200,17 +239,13 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
                                 "was written: run again")
             os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp makes it private
             replace_durably(tmp, target)
-        except OSError as exc:
+        except (OSError, RuntimeError) as exc:
             if is_disk_full(exc):
-                raise disk_full_error(target.parent, f"writing {target}") from None
-            raise
-        except RuntimeError as exc:
-            if is_disk_full(exc):
-                raise disk_full_error(target.parent, f"writing {target}") from None
+                raise disk_full_error(target.parent, f"writing {target}", exc) from None
             raise
     finally:
         with contextlib.suppress(OSError):
-            tmp.unlink()
+            remove_own_file(tmp)
         WORKING_FILES.discard(tmp)
 
 
@@ -294,7 +329,7 @@ def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool 
         for stem in MODEL_STEMS:
             for ext in MODEL_EXTENSIONS:
                 if f"{stem}{ext}" not in written:
-                    (folder / f"{stem}{ext}").unlink(missing_ok=True)
+                    remove_own_file(folder / f"{stem}{ext}")  # a link there is left as it is
         fsync_dir(folder)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
@@ -339,7 +374,7 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None, *, own
         fd, pending = tempfile.mkstemp(prefix=_PENDING_LOCK, dir=path)
     except OSError as exc:
         if is_disk_full(exc):
-            raise disk_full_error(where, "creating a working folder") from None
+            raise disk_full_error(where, "creating a working folder", exc) from None
         raise
     WORKING_FILES.add(path)
     try:
@@ -353,7 +388,7 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None, *, own
         if not own_failures or isinstance(exc, UserError) or not (is_disk_full(exc) or out_of_room(path)):
             raise
         room = "" if parent is not None else " (or set TMPDIR to a folder with room)"
-        raise disk_full_error(where, f"working in a temporary folder there ({path.name}){room}") from exc
+        raise disk_full_error(where, f"working in a temporary folder there ({path.name}){room}", exc) from exc
     finally:
         shutil.rmtree(path, ignore_errors=True)  # still locked: no sweep takes it meanwhile
         os.close(fd)

@@ -32,6 +32,8 @@ from .staged_write import (
     CHARACTER_DEVICE,
     check_output_path,
     check_written,
+    disk_full_error,
+    file_too_large,
     is_disk_full,
     new_staging_name,
     write_target,
@@ -142,9 +144,15 @@ class WorkingCopy:
         WORKING_FILES.add(self.path)
         try:
             copy_file(self.database, self.path)
+            _refuse_side_files(self.path)  # before SQLite first opens it (and makes its own)
             check_integrity(self.path, self.database)
             # mkstemp makes the file private (0600): give the result the input's permissions
             os.chmod(self.path, stat.S_IMODE(self.database.stat().st_mode))
+        except _ForeignSideFile:
+            self.path.unlink(missing_ok=True)  # not the side file: it is not ours
+            WORKING_FILES.discard(self.path)
+            self._drop_backup()
+            raise
         except BaseException:
             remove_with_side_files(self.path)
             self._drop_backup()
@@ -156,7 +164,8 @@ class WorkingCopy:
         :meth:`commit` renames it onto ``path`` right after the database (so a bad path fails
         before anything is replaced, and no side file describes a result that was not
         committed). A symlink ``path`` keeps its link: its target is replaced. A character device
-        is written through at commit, never replaced.
+        is written through at commit, never replaced, right before the database is moved (a
+        stream cannot be taken back, and a device that fails, ``/dev/full``, then commits nothing).
 
         Raises:
             UserError: the file cannot be written (missing or read-only folder, disk full), or
@@ -189,6 +198,7 @@ class WorkingCopy:
             UserError: the output appeared meanwhile (no ``overwrite``), or is held open.
             DatabaseError: in place, the input changed during the run; the result is kept
                 beside it (named in the message) and the input is left as it is.
+            SideFileLost: the output was committed, a side file could not be renamed onto its name.
         """
         if self.path is None:
             raise RuntimeError("commit() outside the with block")
@@ -205,6 +215,7 @@ class WorkingCopy:
             side = Path(str(self.path) + s)
             if side.exists():
                 raise DatabaseError(f"working copy {self.path} is still open ({side.name} exists)")
+        self._write_devices()
         fsync_file(self.path)
         if self.in_place or self.overwrite:
             os.replace(self.path, self.output)
@@ -216,13 +227,35 @@ class WorkingCopy:
         fsync_dir(self.output.parent)
         self.committed = True
         for tmp, target in self._side:
-            if check_output_path(target) == CHARACTER_DEVICE:
-                write_through(tmp, target)
-                tmp.unlink()
-            else:
+            try:
                 os.replace(tmp, target)
+            except OSError as exc:  # the one step after the commit: the output is there
+                raise SideFileLost(f"{self.output} was written, but {target} could not be "
+                                   f"({exc.strerror or exc}); the output is complete: rerun with --overwrite "
+                                   "to write both again") from None
         self._side.clear()
         return self.output
+
+    def _write_devices(self) -> None:
+        """Write the side files staged for a character device through into it (and drop them).
+
+        Raises:
+            RunFailed: the device is full (``/dev/full``), named.
+            UserError: it cannot be written otherwise.
+        """
+        for tmp, target in list(self._side):
+            if check_output_path(target) != CHARACTER_DEVICE:
+                continue
+            try:
+                write_through(tmp, target)
+            except OSError as exc:
+                if is_disk_full(exc):  # a device has no folder with free space to tell
+                    raise RunFailed(f"disk full while writing {target} ({exc.strerror or exc}); nothing was written "
+                                    "under the output name and the working files were removed: write it "
+                                    "elsewhere or retry") from None
+                raise UserError(f"cannot write {target}: {exc.strerror or exc}; nothing was replaced") from None
+            tmp.unlink()
+            self._side.remove((tmp, target))
 
     def _check_input_unchanged(self) -> None:
         if self.path is None:
@@ -262,9 +295,35 @@ class WorkingCopy:
             WORKING_FILES.discard(self.path)
             self._drop_backup()
         if exc is not None and is_disk_full(exc):
+            if file_too_large(self.output.parent, exc):  # ulimit -f: the one message it has everywhere
+                raise disk_full_error(self.output.parent, f"refining {self.database} (unchanged)", exc) from None
             # ENOSPC / EDQUOT, SQLite's or pycolmap's "database or disk is full": one line
             raise RunFailed(f"disk full while writing in {self.output.parent}; {self.database} is unchanged and "
                             "the working files were removed: free some space and retry") from None
+
+
+class _ForeignSideFile(UserError):
+    """A -wal, -shm or -journal file appeared beside a new working copy before SQLite opened it."""
+
+
+def _refuse_side_files(path: Path) -> None:
+    """Refuse a new working copy that already has an SQLite side file beside it (a symbolic link
+    put there while it was copied: SQLite would write its journal through it).
+
+    Raises:
+        _ForeignSideFile: naming it; it is left as it is.
+    """
+    for suffix in SIDE_SUFFIXES:
+        side = Path(str(path) + suffix)
+        if os.path.lexists(side):
+            what = f"a symbolic link (to {os.readlink(side)})" if side.is_symlink() else "a file"
+            raise _ForeignSideFile(f"{side} appeared beside the working copy while it was made, {what} that "
+                                   "colmap-miho did not make; SQLite would write through it, so nothing was: "
+                                   f"remove it (and see who writes in {path.parent}), then run again")
+
+
+class SideFileLost(RunFailed):
+    """The output was committed, but a side file (``--json``) could not be put in place after it."""
 
 
 def _same_inode(a: Path, b: Path) -> bool:

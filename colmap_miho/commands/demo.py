@@ -39,6 +39,7 @@ def _size(text: str) -> tuple[int, int]:
 def run(args) -> int:
     import time
 
+    from ..adapters.paths import refuse_links_below
     from ..extras import require
     from ..pipeline.jobs import ExtractionOptions, JobOptions, run_from_images
     from ..reporting.compare import format_comparison
@@ -53,6 +54,9 @@ def run(args) -> int:
     if args.quick:
         n, w, h = 6, 480, 360
     t0 = time.perf_counter()
+    scene_dir = args.output / "scene"
+    refuse_links_below(args.output, {"--output (scene/images)": scene_dir / "images" / "x",
+                                     "--output (scene/gt_model)": scene_dir / "gt_model" / "x"})
     scene = make_demo_scene(args.output / "scene", num_images=n, width=w, height=h, seed=args.seed)
     quiet_colmap(args.verbose)
     out = run_from_images(

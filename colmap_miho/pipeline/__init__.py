@@ -7,9 +7,10 @@ verify, on a working copy, and the whole jobs built on it.
 verdicts, on by default), :mod:`.refine` (the NCC walk), :mod:`.write`, :mod:`.verify` (off by
 default).
 :mod:`.records` holds what passes between stages, :mod:`.summary` the run's
-:class:`RefineSummary`, :mod:`.store` the resumable run store, :mod:`.executor` and
-:mod:`.workers` the process pool and Dask runners, :mod:`.jobs` the whole jobs of ``run``,
-``compare`` and ``demo`` (extraction, refinement, mapping, comparison).
+:class:`RefineSummary`, :mod:`.store` the resumable run store (:mod:`.store_checks` what its
+files read back must be), :mod:`.executor` and :mod:`.workers` the process pool and Dask
+runners, :mod:`.jobs` the whole jobs of ``run``, ``compare`` and ``demo`` (extraction,
+refinement, mapping, comparison).
 """
 
 from ..pipeline_config import PipelineConfig

@@ -150,7 +150,9 @@ def run_filter(db: ColmapDatabase, pairs: list[PairRecord], keypoints: dict[int,
         The stage's counts over all of ``pairs`` (the stored ones included).
     Raises:
         DatabaseError: a pair's matches use keypoints the image does not have.
+        StoreDamaged: a stored chunk does not fit ``pairs`` and ``keypoints`` (:meth:`RunStore.expect`).
     """
+    store.expect(((p.image_id1, p.image_id2) for p in pairs), {i: len(k) for i, k in keypoints.items()})
     done = store.filtered_pairs()
     todo = [p for p in pairs if (p.image_id1, p.image_id2) not in done]
     resumed = store.filter_counts()

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -29,7 +30,8 @@ from ..enums import MatchCheckMode, MatchSource
 from ..types import Pair
 from ..verification.config import MatchCheckConfig
 from ..verification.match_check import HingeVerdict, MatchCheckDecision, judge_in_rounds
-from .store import RunStore, StoreDamaged
+from .store import RunStore
+from .store_checks import StoreDamaged, check_array, check_offsets, check_unique_pairs
 from .verdicts import NO_VERDICTS, Verdicts, pair_graph
 
 log = logging.getLogger(__name__)
@@ -252,17 +254,63 @@ def _read_back(store: RunStore, arrays: dict[str, np.ndarray], meta: dict
     Raises:
         StoreDamaged: the arrays or the stats do not have the stage's layout.
     """
+    path = store.folder / f"stage-{STORE_NAME}.npz"
+    failed, wrong = _unpack(arrays, path)
+    _check_meta(meta, path)
     try:
-        failed, wrong = _unpack(arrays)
         stats = MatchCheckStats(**meta)
         if not all(np.asarray(f).ndim == 1 for f in failed.values()):
             raise ValueError("a verdict is not one row of flags")
     except (KeyError, ValueError, TypeError, IndexError) as exc:
-        raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", f"{type(exc).__name__}: {exc}") from None
+        raise StoreDamaged(path, f"{type(exc).__name__}: {exc}") from None
     return failed, wrong, stats
 
 
-def _unpack(arrays: dict[str, np.ndarray]) -> tuple[dict[Pair, np.ndarray], frozenset[Pair]]:
-    pairs, off, f = arrays["pairs"], arrays["offsets"], arrays["failed"]
-    failed = {(int(a), int(b)): f[off[k]:off[k + 1]].astype(bool) for k, (a, b) in enumerate(pairs)}
-    return failed, frozenset((int(a), int(b)) for a, b in arrays["wrong"])
+def _is_number(v: object) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+#: What each annotation of :class:`MatchCheckStats` takes in JSON.
+_META_TYPES = {
+    "str": lambda v: isinstance(v, str), "bool": lambda v: isinstance(v, bool),
+    "int": lambda v: isinstance(v, int) and not isinstance(v, bool), "float": _is_number,
+    "list[str]": lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
+    "list[dict]": lambda v: isinstance(v, list) and all(isinstance(x, dict) for x in v),
+}
+
+
+def _check_meta(meta: dict, path: Path) -> None:
+    """The stored stats checked against :class:`MatchCheckStats`'s field types (and the parts
+    the stage reads: each wrong pair's images, share and matches; the seconds as numbers).
+
+    Raises:
+        StoreDamaged: a value of another type.
+    """
+    for f in dataclasses.fields(MatchCheckStats):
+        if f.name in meta and not _META_TYPES[str(f.type)](meta[f.name]):
+            raise StoreDamaged(path, f"its stats' {f.name} is not of type {f.type}")
+    for w in meta.get("wrong_pairs", []):
+        images = w.get("images")
+        if not (isinstance(images, list) and len(images) == 2 and _is_number(w.get("fail_share"))
+                and _is_number(w.get("matches"))):
+            raise StoreDamaged(path, "its stats' wrong_pairs do not name two images, a share and matches")
+    for key in ("round_seconds", "mapper_steps"):
+        if not all(_is_number(v) for r in meta.get(key, []) for v in r.values()):
+            raise StoreDamaged(path, f"its stats' {key} are not all numbers")
+
+
+def _unpack(arrays: dict[str, np.ndarray], path: Path) -> tuple[dict[Pair, np.ndarray], frozenset[Pair]]:
+    """The verdicts of :func:`_pack`'s arrays, checked (dtypes, shapes, offsets, each pair once).
+
+    Raises:
+        StoreDamaged: they do not have the layout of :func:`_pack`.
+    """
+    pairs = check_array(arrays, "pairs", path, "iu", (None, 2))
+    f = check_array(arrays, "failed", path, "b", (None,))
+    off = check_array(arrays, "offsets", path, "iu", (len(pairs) + 1,))
+    check_offsets(off, len(f), "offsets", path)
+    wrong = check_array(arrays, "wrong", path, "iu", (None, 2))
+    check_unique_pairs(pairs, path)
+    check_unique_pairs(wrong, path, "wrong pairs")
+    failed = {(int(a), int(b)): f[off[k]:off[k + 1]] for k, (a, b) in enumerate(pairs.tolist())}
+    return failed, frozenset((int(a), int(b)) for a, b in wrong.tolist())

@@ -19,7 +19,7 @@ from ..enums import Device
 from ..recipe import Recipe
 from .executor import Runner
 from .read import ReadOutput, read_affines
-from .store import RunStore
+from .store import GroupResult, RunStore, StoreDamaged
 from .track_groups import DECODED_BY_IMAGE, group_max_matches, walk_groups
 from .verdicts import NO_VERDICTS, Verdicts, output_matches
 
@@ -69,9 +69,21 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
         unrefined={k: m for k, m in output_matches(db, ok, recipe.pipeline.source, verdicts).items()
                    if k not in usable},
         runner=runner,
-        progress=progress, image_budget_bytes=budget, done=done, on_group=store.save_group)
+        progress=progress, image_budget_bytes=budget, done=done, on_group=store.save_group,
+        check_done=lambda n: check_resumed_groups(store, done, n))
     stats = dict(stats)
     decoded = {int(k): int(v) for k, v in stats.pop(DECODED_BY_IMAGE, {}).items()}
     # the images skipped before the walk count as missing too: the same number as images_missing
     counters = dict(stats, workers=used, missing_images=max(int(stats.get("missing_images", 0)), len(missing)))
     return new_keypoints, RefineStats(counters=counters, decoded_by_image=decoded)
+
+
+def check_resumed_groups(store: RunStore, done: Mapping[int, GroupResult], num_groups: int) -> None:
+    """Refuse stored refine groups that are not groups of this run's plan of ``num_groups``.
+
+    Raises:
+        StoreDamaged: naming the first such group's file.
+    """
+    for g in sorted(done):
+        if not 0 <= g < num_groups:
+            raise StoreDamaged(store.group_path(g), f"group {g} is not one of this run's {num_groups} groups")

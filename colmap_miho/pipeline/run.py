@@ -44,7 +44,7 @@ from pathlib import Path
 from ..adapters.database import ColmapDatabase, validate_database
 from ..adapters.paths import check_distinct
 from ..adapters.safety import check_database_path, exit_note
-from ..adapters.working_copy import WorkingCopy
+from ..adapters.working_copy import SideFileLost, WorkingCopy
 from ..arguments import check_paths, check_seed, check_workers
 from ..enums import Device
 from ..errors import InvalidInput, RunFailed, UserError
@@ -199,6 +199,9 @@ def refine_database(
             summary = _run_stages(inputs, wc, store, runner, resumed=resumed, laps=laps)
     except StoreDamaged:  # --resume cannot help: the message says --restart
         store.close()
+        raise
+    except SideFileLost:  # the output is committed: its work is done, --resume would fail on it
+        store.remove()
         raise
     except UserError as exc:  # one line: the error, then how to resume
         if not _keep_store(store):

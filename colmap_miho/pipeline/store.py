@@ -16,9 +16,17 @@ The store is a folder beside the output (and its hidden working copy),
 - ``lock``: held (``flock``) by the run using the folder, released by the kernel even on
   SIGKILL.
 
+The store is never reached through a symbolic link: a link in place of the folder or of one of
+its files is refused (:func:`check_no_links`), and clearing or removing the store takes only the
+files it makes (the names above and their temporary files), never anything else put there.
+
 Each ``.npz`` file is tied to the run that wrote it: it holds the manifest's random ``run_id``
 and its own file name (``file_name``), and one that holds another (a file copied in from another run's store,
-or renamed) is refused on ``--resume`` as damaged, not trusted.
+or renamed) is refused on ``--resume`` as damaged, not trusted. Nor is a file of the run's own
+trusted unchecked: every file read back goes through :mod:`.store_checks` (each manifest value's
+type; each array's dtype and shape, offsets, each pair stored once) and, once
+:meth:`RunStore.expect` gives the run's plan, each pair must be one of the run's and each
+keypoint index within its image's keypoints; a file that fails is :class:`StoreDamaged`.
 
 Every file is written under a temporary name, flushed to disk, then renamed onto its name
 (:func:`~colmap_miho.adapters.filesystem.write_atomic`): a file that exists is complete.
@@ -28,6 +36,7 @@ stays, and ``refine --resume`` continues from it (``--restart`` discards it). Th
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import fcntl
 import hashlib
@@ -36,9 +45,6 @@ import logging
 import os
 import re
 import secrets
-import shutil
-import zipfile
-import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +56,16 @@ from ..errors import UserError
 from ..types import Pair
 from ..version import __version__
 from .records import FilteredPairs, PairOutcome
+from .store_checks import (
+    ChunkIndex,
+    GroupResult,
+    StoreDamaged,
+    check_filter_chunk,
+    check_group,
+    read_manifest,
+    read_npz,
+    stored_array,
+)
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +80,10 @@ NOT_RESULT_KEYS = {"pipeline": ("memory_budget_mb",)}
 
 _FILTER_FILE = re.compile(r"^filter-(\d{6})\.npz$")
 _GROUP_FILE = re.compile(r"^group-(\d{6})\.npz$")
-
-#: (image id -> (keypoint indices int64 (K,), new positions float64 (K, 2) pixels), stats)
-GroupResult = tuple[dict[int, tuple[np.ndarray, np.ndarray]], dict]
+#: Every name the store makes: its files, and their temporary names while being written
+#: (:func:`~colmap_miho.adapters.filesystem.temp_beside`).
+_OWN_FILE = re.compile(r"^(lock|manifest\.json|(filter|group)-\d{6}\.npz|stage-[a-z_]+\.npz)$")
+_OWN_TEMP = re.compile(r"^\.(manifest\.json|(filter|group)-\d{6}\.npz|stage-[a-z_]+\.npz)\.[A-Za-z0-9_]+\.tmp$")
 
 
 def store_folder(output: Path) -> Path:
@@ -75,13 +92,31 @@ def store_folder(output: Path) -> Path:
     return output.with_name(f".{output.name}.miho-run")
 
 
-class StoreDamaged(UserError):
-    """A file of the run store cannot be read (truncated, overwritten, unreadable)."""
+def check_no_links(folder: Path) -> None:
+    """Refuse a run store reached through a symbolic link: ``folder`` itself, or an entry of
+    it with one of the store's names that is a link or not a regular file (the store would read,
+    write or delete through it: another folder emptied, another file read as this run's work).
 
-    def __init__(self, path: Path, why: object) -> None:
-        text = " ".join(str(why).split()) or type(why).__name__
-        super().__init__(f"the interrupted run's file {path} is damaged ({text}); pass --restart to discard "
-                         "that run's work and start again")
+    Raises:
+        UserError: naming the link (and its target) and what to do.
+    """
+    folder = Path(folder)
+    if folder.is_symlink():
+        raise UserError(f"the run folder {folder} is a symbolic link (to {os.readlink(folder)}); a run keeps its "
+                        "work only in a folder of its own and never follows a link there: remove the link "
+                        "or choose another --output")
+    if not folder.is_dir():
+        return
+    for p in folder.iterdir():
+        if not (_OWN_FILE.match(p.name) or _OWN_TEMP.match(p.name)):
+            continue
+        if p.is_symlink():
+            raise UserError(f"{p} is a symbolic link (to {os.readlink(p)}) in the run folder, where only "
+                            "colmap-miho's own files belong; nothing was read or deleted through it: remove it and "
+                            "run again")
+        if not p.is_file():
+            raise UserError(f"{p} is not a regular file, in the run folder, where only colmap-miho's own files "
+                            "belong; nothing was deleted: remove it and run again")
 
 
 def content_hash(path: Path, chunk: int = 1 << 22) -> str:
@@ -93,26 +128,6 @@ def content_hash(path: Path, chunk: int = 1 << 22) -> str:
         while block := fh.read(chunk):
             digest.update(block)
     return digest.hexdigest()
-
-
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    """Every array of the store file ``path``, read now.
-
-    Raises:
-        StoreDamaged: the file is truncated, not an npz file, or lacks an array.
-    """
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {key: z[key] for key in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise StoreDamaged(path, exc) from None
-
-
-def _field(arrays: dict[str, np.ndarray], key: str, path: Path) -> np.ndarray:
-    try:
-        return arrays[key]
-    except KeyError:
-        raise StoreDamaged(path, f"no array {key!r}") from None
 
 
 def run_fingerprint(database: Path, image_dir: Path, recipe, seed: int, device: str) -> dict:
@@ -165,14 +180,6 @@ class FilterCounts:
     matches_kept: int = 0
 
 
-@dataclass(frozen=True)
-class _ChunkIndex:
-    pairs: np.ndarray  # int64 (P, 2)
-    success: np.ndarray  # bool (P,)
-    matches: int  # over the successful pairs
-    kept: int
-
-
 def _atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> None:
     write_atomic(path, lambda fh: np.savez(fh, **arrays))  # type: ignore[arg-type]  # numpy stubs: allow_pickle kw
 
@@ -188,17 +195,17 @@ class RunStore:
         self.folder = Path(folder)
         self.manifest = manifest
         self._lock_fd: int | None = lock_fd
-        self._chunks: dict[int, _ChunkIndex] = {}
+        self._chunks: dict[int, ChunkIndex] = {}
+        self._pairs: set[Pair] | None = None  # the run's plan, once expect() gives it
+        self._num_keypoints: dict[int, int] | None = None
+        seen: dict[Pair, Path] = {}
         for index, path in self._files(_FILTER_FILE):
-            z = self._read(path)
-            try:
-                ok = _field(z, "success", path).astype(bool)
-                offsets, kept = _field(z, "offsets", path), _field(z, "kept", path)
-                self._chunks[index] = _ChunkIndex(
-                    pairs=_field(z, "pairs", path).astype(np.int64).reshape(-1, 2), success=ok,
-                    matches=int(np.diff(offsets)[ok].sum()), kept=int(kept[ok].sum()))
-            except (ValueError, IndexError) as exc:  # arrays that do not fit each other
-                raise StoreDamaged(path, exc) from None
+            chunk = check_filter_chunk(self._read(path), path)
+            for a, b in chunk.pairs.tolist():
+                if (a, b) in seen:
+                    raise StoreDamaged(path, f"it holds pair ({a}, {b}), which {seen[(a, b)].name} holds too")
+                seen[(a, b)] = path
+            self._chunks[index] = chunk
 
     # -- opening, closing --------------------------------------------------------------------
     @classmethod
@@ -217,10 +224,13 @@ class RunStore:
         folder = Path(folder)
         if resume and restart:
             raise UserError("use either --resume or --restart, not both")
+        check_no_links(folder)
         try:
             folder.mkdir(exist_ok=True)
-            lock_fd = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+            # O_NOFOLLOW: a link put there after the check is not opened either
+            lock_fd = os.open(folder / LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         except OSError as exc:
+            check_no_links(folder)  # a link made meanwhile: that line
             raise UserError(f"cannot create the run folder {folder}: {exc.strerror or exc}") from None
         try:
             fcntl.flock(lock_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -237,28 +247,20 @@ class RunStore:
     @classmethod
     def _open_locked(cls, folder: Path, fingerprint: dict, lock_fd: int, *, resume: bool,
                      restart: bool) -> RunStore:
+        check_no_links(folder)  # again, under the lock: no other run of ours changes it now
         manifest_path = folder / MANIFEST
-        old = None
         has_work = any(_FILTER_FILE.match(p.name) or _GROUP_FILE.match(p.name) for p in folder.iterdir())
-        if manifest_path.is_file() and not restart:
-            try:
-                old = json.loads(manifest_path.read_text(encoding="utf-8"))
-                if not isinstance(old, dict):
-                    raise ValueError("not a JSON object")
-            except (OSError, ValueError) as exc:  # truncated, overwritten, unreadable
-                if has_work:
-                    raise StoreDamaged(manifest_path, getattr(exc, "strerror", None) or exc) from None
-                old = {}
-        if has_work and old is not None and not (resume or restart):
-            raise UserError(f"an interrupted run left its finished work in {folder}: pass --resume to "
-                            "continue it, or --restart to discard it and start again")
-        if resume and has_work:
-            what = fingerprint_difference(old.get("fingerprint", {}) if old else {}, fingerprint)
+        if has_work and not restart:
+            old = read_manifest(manifest_path)  # damaged: --restart is the only way on
+            if not resume:
+                raise UserError(f"an interrupted run left its finished work in {folder}: pass --resume to "
+                                "continue it, or --restart to discard it and start again")
+            what = fingerprint_difference(old["fingerprint"], fingerprint)
             if what is not None:
                 raise UserError(f"--resume: the interrupted run in {folder} was made with another {what}; "
                                 "resume with the same inputs and options, or pass --restart to discard it")
             log.info("resuming the interrupted run from %s", folder)
-            return cls(folder, old or {}, lock_fd)
+            return cls(folder, old, lock_fd)
         if resume:
             log.info("--resume: no finished work in %s; starting from the beginning", folder)
         cls._clear(folder)
@@ -268,13 +270,11 @@ class RunStore:
 
     @staticmethod
     def _clear(folder: Path) -> None:
-        """Delete the work files (and stale temporary files) of ``folder``, keep the lock."""
-        for p in folder.iterdir():
+        """Delete the store's own files in ``folder`` (its work files and the temporary files
+        of writes cut short), keep the lock; anything else there is left as it is."""
+        for p in _own_entries(folder):
             if p.name != LOCK:
-                if p.is_dir():
-                    shutil.rmtree(p, ignore_errors=True)
-                else:
-                    p.unlink(missing_ok=True)
+                p.unlink(missing_ok=True)
 
     def has_work(self) -> bool:
         """Whether any chunk or group is stored."""
@@ -287,34 +287,41 @@ class RunStore:
             self._lock_fd = None
 
     def remove(self) -> None:
-        """Delete the store (after the run's commit), then release the lock."""
-        shutil.rmtree(self.folder, ignore_errors=True)
+        """Delete the store (after the run's commit), then release the lock: its own files,
+        then the folder when nothing else is in it (what others put there is kept, with a
+        warning)."""
+        with contextlib.suppress(OSError):
+            for p in _own_entries(self.folder):  # the lock last, still held: no other run takes the folder
+                if p.name != LOCK:
+                    p.unlink(missing_ok=True)
+            (self.folder / LOCK).unlink(missing_ok=True)
+            others = sorted(p.name for p in self.folder.iterdir())
+            if others:
+                log.warning("the run folder %s holds files that are not colmap-miho's (%s): left as they are",
+                            self.folder, ", ".join(others[:5]) + (", ..." if len(others) > 5 else ""))
+            else:
+                self.folder.rmdir()
         self.close()
 
     def _read(self, path: Path) -> dict[str, np.ndarray]:
-        """:func:`_read_npz` of one of this store's files, checked to be this run's own: its
-        ``run_id`` is the manifest's and its ``file_name`` its name (a store made before files
-        carried them has no ``run_id`` in its manifest: not checked).
+        """:func:`~.store_checks.read_npz` of one of this store's files, checked to be this run's own: its
+        ``run_id`` is the manifest's and its ``file_name`` its name.
 
         Raises:
             StoreDamaged: unreadable, or written by another run or under another name.
         """
-        arrays = _read_npz(path)
+        arrays = read_npz(path)
         run_id, name = arrays.pop("run_id", None), arrays.pop("file_name", None)
-        want = self.manifest.get("run_id")
-        if want is None:
-            return arrays
-        if run_id is None or str(run_id) != want:
+        want = self.manifest["run_id"]  # a non-empty string (read_manifest)
+        if run_id is None or run_id.dtype.kind != "U" or str(run_id) != want:
             raise StoreDamaged(path, "it was written by another run than the one this folder's manifest records")
-        if name is None or str(name) != path.name:
+        if name is None or name.dtype.kind != "U" or str(name) != path.name:
             raise StoreDamaged(path, f"it was written as {name if name is None else str(name)}, not under this name")
         return arrays
 
     def _save(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
         """:func:`_atomic_savez` with this run's ``run_id`` and the file's name (see :meth:`_read`)."""
-        tie = {"run_id": np.array(self.manifest["run_id"]), "file_name": np.array(path.name)} \
-            if "run_id" in self.manifest else {}
-        _atomic_savez(path, {**arrays, **tie})
+        _atomic_savez(path, {**arrays, "run_id": np.array(self.manifest["run_id"]), "file_name": np.array(path.name)})
 
     def _files(self, pattern: re.Pattern) -> list[tuple[int, Path]]:
         out = []
@@ -323,6 +330,33 @@ class RunStore:
             if m:
                 out.append((int(m.group(1)), p))
         return sorted(out)
+
+    # -- what the work must fit --------------------------------------------------------------
+    def expect(self, pairs, num_keypoints) -> None:
+        """Give the run's plan the stored work must fit: ``pairs`` (image_id1, image_id2), the
+        pairs to filter, and ``num_keypoints``, image id -> its keypoint count. The chunks stored
+        are checked now, and every file read from here on too.
+
+        Raises:
+            StoreDamaged: a stored chunk holds a pair that is not one of ``pairs``, or a keypoint
+                index beyond its image's count.
+        """
+        self._pairs = {(int(a), int(b)) for a, b in pairs}
+        self._num_keypoints = {int(i): int(n) for i, n in num_keypoints.items()}
+        for index, chunk in self._chunks.items():
+            self._check_fits(chunk, self.folder / f"filter-{index:06d}.npz")
+
+    def _check_fits(self, chunk: ChunkIndex, path: Path) -> None:
+        if self._pairs is None or self._num_keypoints is None:
+            return
+        for (a, b), (top_a, top_b) in zip(chunk.pairs.tolist(), chunk.top.tolist(), strict=True):
+            if (a, b) not in self._pairs:
+                raise StoreDamaged(path, f"it holds pair ({a}, {b}), which is not a pair this run filters")
+            for image_id, top in ((a, top_a), (b, top_b)):
+                n = self._num_keypoints.get(image_id, 0)
+                if top >= n:
+                    raise StoreDamaged(path, f"its matches of pair ({a}, {b}) use keypoint {top} of image "
+                                             f"{image_id}, which has {n} keypoints")
 
     # -- filter chunks -----------------------------------------------------------------------
     def filtered_pairs(self) -> set[Pair]:
@@ -347,6 +381,9 @@ class RunStore:
         from the database unchanged)."""
         if index in self._chunks:
             raise RuntimeError(f"filter chunk {index} is stored already")
+        stored = self.filtered_pairs()
+        if any(p in stored for p in pairs) or len(set(pairs)) != len(pairs):
+            raise RuntimeError(f"filter chunk {index} holds a pair that is stored already")
         ok = np.array([o.success for o in outcomes], bool)
         rows = [len(m) if s else 0 for m, s in zip(matches, ok, strict=True)]
         homs = [len(o.patch_homographies) if s else 0 for o, s in zip(outcomes, ok, strict=True)]
@@ -363,9 +400,9 @@ class RunStore:
             "hom_offsets": np.concatenate([[0], np.cumsum(homs)]).astype(np.int64),
             "patch_homographies": _cat([outcomes[k].patch_homographies for k in sel], (0, 2, 3, 3), np.float64),
         }
-        self._save(self.folder / f"filter-{index:06d}.npz", arrays)
-        self._chunks[index] = _ChunkIndex(pairs=arrays["pairs"], success=ok,
-                                          matches=int(arrays["offsets"][-1]), kept=int(arrays["kept"].sum()))
+        path = self.folder / f"filter-{index:06d}.npz"
+        self._save(path, arrays)
+        self._chunks[index] = check_filter_chunk(arrays, path)
 
     def iter_filter_chunks(self) -> Iterator[FilteredPairs]:
         """The successful pairs of each stored chunk, one chunk at a time (chunk order)."""
@@ -373,9 +410,15 @@ class RunStore:
             if index not in self._chunks:
                 continue
             z = self._read(path)
-            pairs, ok, off, hoff = (_field(z, key, path) for key in ("pairs", "success", "offsets", "hom_offsets"))
-            matches, inliers, labels, homs = (_field(z, key, path) for key in
-                                              ("matches", "inliers", "labels", "patch_homographies"))
+            chunk = check_filter_chunk(z, path)
+            known = self._chunks[index]
+            if not (np.array_equal(chunk.pairs, known.pairs) and np.array_equal(chunk.success, known.success)
+                    and np.array_equal(chunk.top, known.top)):
+                raise StoreDamaged(path, "it changed since the run opened it")
+            self._check_fits(chunk, path)
+            pairs, ok, off, hoff = chunk.pairs, chunk.success, z["offsets"], z["hom_offsets"]
+            matches, inliers, labels, homs = (z["matches"], z["inliers"], z["labels"].astype(np.int64),
+                                              z["patch_homographies"].astype(np.float64))
             out: FilteredPairs = {}
             for k in np.flatnonzero(ok):
                 a, b = int(off[k]), int(off[k + 1])
@@ -406,24 +449,18 @@ class RunStore:
             self.manifest = dict(self.manifest, refine_plan=plan_key)
             _atomic_write_text(self.folder / MANIFEST, json.dumps(self.manifest, indent=1) + "\n")
             return {}
-        out: dict[int, GroupResult] = {}
-        for index, path in files:
-            z = self._read(path)
-            ids, off, idx, xy = (_field(z, key, path) for key in ("image_ids", "offsets", "idx", "xy"))
-            try:
-                stats = json.loads(str(_field(z, "stats", path)))
-            except ValueError as exc:
-                raise StoreDamaged(path, exc) from None
-            moved = {int(i): (idx[off[k]:off[k + 1]], xy[off[k]:off[k + 1]]) for k, i in enumerate(ids)}
-            out[index] = (moved, stats)
-        return out
+        return {index: check_group(self._read(path), path, self._num_keypoints) for index, path in files}
+
+    def group_path(self, index: int) -> Path:
+        """The file of refine group ``index``."""
+        return self.folder / f"group-{index:06d}.npz"
 
     def save_group(self, index: int, moved: dict[int, tuple[np.ndarray, np.ndarray]], stats: dict) -> None:
         """Store one finished refine group: image id -> (keypoint indices (K,), positions
         (K, 2) pixels) and its stats (JSON-ready numbers)."""
         ids = sorted(moved)
         sizes = [len(moved[i][0]) for i in ids]
-        self._save(self.folder / f"group-{index:06d}.npz", {
+        self._save(self.group_path(index), {
             "image_ids": np.asarray(ids, np.int64),
             "offsets": np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
             "idx": _cat([np.asarray(moved[i][0], np.int64) for i in ids], (0,), np.int64),
@@ -450,12 +487,18 @@ class RunStore:
             return None
         arrays = self._read(path)
         try:
-            meta = json.loads(str(_field(arrays, "meta", path)))
+            meta = json.loads(str(stored_array(arrays, "meta", path)))
         except ValueError as exc:  # not JSON
             raise StoreDamaged(path, exc) from None
         if not isinstance(meta, dict):
             raise StoreDamaged(path, "its meta is not a JSON object")
         return {k: v for k, v in arrays.items() if k != "meta"}, meta
+
+
+def _own_entries(folder: Path) -> list[Path]:
+    """The store's own regular files in ``folder`` (by name, links and folders left out)."""
+    return [p for p in Path(folder).iterdir()
+            if (_OWN_FILE.match(p.name) or _OWN_TEMP.match(p.name)) and not p.is_symlink() and p.is_file()]
 
 
 def _cat(parts: list[np.ndarray], empty_shape: tuple, dtype) -> np.ndarray:

@@ -170,7 +170,8 @@ def walk_groups(loader: ImageLoader, keypoints, pairs, affines, ncc_config, trac
                      unrefined=None, runner: Runner, progress: bool = False,
                      image_budget_bytes: int | None = None,
                      done: Mapping[int, tuple[Moved, dict]] | None = None,
-                     on_group: Callable[[int, Moved, dict], None] | None = None):
+                     on_group: Callable[[int, Moved, dict], None] | None = None,
+                     check_done: Callable[[int], None] | None = None):
     """The track-consistent NCC walk over groups of whole tracks, on ``runner``.
 
     Args:
@@ -195,6 +196,8 @@ def walk_groups(loader: ImageLoader, keypoints, pairs, affines, ncc_config, trac
         on_group: called in this process as each group finishes, with (group index, moved,
             stats); moved = image id -> (keypoint indices (K,) int64, positions (K, 2)
             float64) of the keypoints the group changed.
+        check_done: called with the plan's group count before ``done`` is used (the caller's
+            own check that its resumed groups are groups of the plan, e.g. naming their files).
 
     Returns:
         (new keypoints dict, stats, processes used). Stats hold the plan's, the walk
@@ -214,6 +217,8 @@ def walk_groups(loader: ImageLoader, keypoints, pairs, affines, ncc_config, trac
                                 track_config.max_images_in_memory)
     groups = plan.groups(max_images, group_max_matches())
     done = dict(done or {})
+    if check_done is not None:
+        check_done(len(groups))
     if any(not 0 <= g < len(groups) for g in done):
         raise InvalidInput(f"resumed group indices must be in 0..{len(groups) - 1} (were the "
                          "inputs or the image budget changed since?)")

@@ -119,7 +119,7 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
             seconds["mapper"] = time.perf_counter() - t0
         except (OSError, RuntimeError) as exc:
             if is_disk_full(exc):
-                raise disk_full_error(folder.parent, "writing the global estimate's temporary database") from None
+                raise disk_full_error(folder.parent, "writing the global estimate's temporary database", exc) from None
             raise
     rec = largest_model(recs)
     if rec is None:

@@ -268,7 +268,7 @@ def run_mapping(
             with contextlib.suppress(OSError):
                 folder.rmdir()
         if isinstance(exc, (OSError, RuntimeError)) and is_disk_full(exc):  # pycolmap's SQLite: "disk is full"
-            raise disk_full_error(output, f"mapping {database}") from None
+            raise disk_full_error(output, f"mapping {database}", exc) from None
         raise
 
     if not models:

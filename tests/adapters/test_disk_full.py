@@ -211,3 +211,34 @@ def test_a_tmpdir_where_sqlite_cannot_make_its_file_is_a_full_disk(size, inodes,
         assert "TMPDIR" in lines[0] and "--resume" in lines[0] and "unexpected" not in lines[0], lines
         assert list(tmp.iterdir()) == []
     assert sha256(db_copy) == digest and not out.exists()
+
+
+@pytest.mark.parametrize("limit", ["half the database", "the database", "twice the database"])
+def test_a_file_size_limit_is_one_message_wherever_it_is_met(limit, db_copy, scene, tmp_path):
+    """``ulimit -f`` below what a run writes: met copying the database, or later by SQLite, the
+    run store or a temporary database, it is one line saying so (exit 1), never "disk full" with
+    gigabytes free, nor "cannot copy" with exit 2."""
+    import os
+    import resource
+    import subprocess
+    import sys
+
+    from helpers import REPO
+
+    size = db_copy.stat().st_size
+    cap = {"half the database": size // 2, "the database": size + 4096, "twice the database": 2 * size}[limit]
+
+    def limited() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (cap, resource.RLIM_INFINITY))
+
+    out = tmp_path / "out.db"
+    path = os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])  # this checkout's package
+    proc = subprocess.run([sys.executable, "-m", "colmap_miho.cli", "refine", "--database", str(db_copy),
+                           "--images", str(scene.image_dir), "--output", str(out), "--workers", "1", "--no-refine",
+                           "-q"], preexec_fn=limited, capture_output=True, text=True, cwd=REPO, timeout=300,
+                          env={**os.environ, "PYTHONPATH": path})
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 1 and len(lines) == 1, proc.stderr
+    assert lines[0].startswith("ERROR: file too large in "), lines
+    assert f"at most {cap / 1e6:.1f} MB (ulimit -f)" in lines[0] and "disk full" not in lines[0], lines
+    assert not out.exists()

@@ -162,3 +162,45 @@ def test_map_json_fifo_is_refused_before_mapping(db_copy, scene, tmp_path, capfd
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and "--json" in lines[0] and "FIFO" in lines[0], lines
     assert not (tmp_path / "model").exists()
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full here")
+def test_refine_json_to_a_full_device_commits_nothing_and_its_advice_works(db_copy, scene, tmp_path, capfd):
+    """``--json /dev/full``: the summary cannot be written, so nothing is committed (a result
+    without its summary, with advice to --resume that then fails on the existing output, lost
+    the summary); the line says so and where, and its advice (--resume) finishes the run."""
+    out = tmp_path / "out.db"
+    args = ["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+            "--no-refine", "--workers", "1", "-q"]
+    capfd.readouterr()
+    assert main([*args, "--json", "/dev/full"]) == 1
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "/dev/full" in lines[0] and "--resume" in lines[0], lines
+    assert not out.exists()
+    assert main([*args, "--json", str(tmp_path / "s.json"), "--resume"]) == 0
+    assert out.is_file() and (tmp_path / "s.json").is_file()
+
+
+def test_refine_json_that_fails_after_the_commit_says_the_output_was_written(db_copy, scene, tmp_path, capfd,
+                                                                             monkeypatch):
+    """The one step after the commit, renaming ``--json`` onto its name, failing: the line says
+    the output was written (no --resume, which would fail on it) and the run store goes."""
+    from colmap_miho.adapters import working_copy
+    from colmap_miho.pipeline.store import store_folder
+
+    real = os.replace
+
+    def replace(src, dst, *args, **kwargs):
+        if str(dst).endswith("s.json"):
+            raise IsADirectoryError(21, "Is a directory")
+        return real(src, dst, *args, **kwargs)
+
+    monkeypatch.setattr(working_copy.os, "replace", replace)
+    out, summary = tmp_path / "out.db", tmp_path / "s.json"
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                 "--json", str(summary), "--no-refine", "--workers", "1", "-q"]) == 1
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and f"{out} was written" in lines[0] and str(summary) in lines[0], lines
+    assert "--resume" not in lines[0] and "--overwrite" in lines[0]
+    assert out.is_file() and not summary.exists() and not os.path.lexists(store_folder(out))

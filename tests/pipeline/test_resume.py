@@ -177,7 +177,8 @@ def _own_db(scene, tmp_path):
     return db
 
 
-@pytest.mark.parametrize("damage", ["truncated_chunk", "random_chunk", "random_manifest", "manifest_list"])
+@pytest.mark.parametrize("damage", ["truncated_chunk", "random_chunk", "random_manifest", "manifest_list",
+                                    "manifest_fingerprint_int", "forged_chunk_ids", "forged_chunk_offsets"])
 def test_a_damaged_store_names_its_file_and_says_restart(damage, scene, tmp_path, monkeypatch, capsys):
     import os
 
@@ -190,6 +191,18 @@ def test_a_damaged_store_names_its_file_and_says_restart(damage, scene, tmp_path
         target.write_bytes(target.read_bytes()[: target.stat().st_size // 2])
     elif damage == "manifest_list":
         target.write_text("[1, 2]")
+    elif damage == "manifest_fingerprint_int":
+        target.write_text(json.dumps({**json.loads(target.read_text()), "fingerprint": 1}))
+    elif damage.startswith("forged_chunk"):  # still tied to the run (its run_id and file name)
+        import numpy as np
+
+        with np.load(target) as z:
+            arrays = {k: z[k] for k in z.files}
+        if damage == "forged_chunk_ids":
+            arrays["pairs"] = arrays["pairs"] + 10**12
+        else:
+            arrays["offsets"] = arrays["offsets"][::-1].copy()
+        np.savez(target, **arrays)
     else:
         target.write_bytes(os.urandom(300))
     capsys.readouterr()

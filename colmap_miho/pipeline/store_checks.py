@@ -1,0 +1,252 @@
+"""What a file of the run store (:mod:`.store`) read back must be before it is trusted.
+
+A file can be damaged (truncated, overwritten) or forged with the run's own id; either way it
+is read back only through these checks, and one that fails is :class:`StoreDamaged` (a
+``UserError``: one line naming the file and saying ``--restart``), never a ``TypeError``, an
+``IndexError`` or matches silently lost:
+
+- the manifest (:func:`read_manifest`): a JSON object, its ``fingerprint`` an object (its
+  ``recipe`` an object of objects), its ``run_id`` a non-empty string, its ``refine_plan`` an
+  object;
+- each array (:func:`check_array`): its dtype kind and shape; offsets (:func:`check_offsets`)
+  start at 0, never go back and end at their rows; pairs (:func:`check_unique_pairs`) are
+  stored once;
+- a filter chunk (:func:`check_filter_chunk`): its arrays fit each other (rows, kept counts,
+  labels within the pair's homographies, finite homographies); the run's plan (its pairs and
+  each image's keypoint count) is checked by :meth:`.store.RunStore.expect` from the chunk's
+  :class:`ChunkIndex`;
+- a refine group (:func:`check_group`): its arrays fit each other and each image's keypoints,
+  its stats are counters.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+
+#: (image id -> (keypoint indices int64 (K,), new positions float64 (K, 2) pixels), stats)
+GroupResult = tuple[dict[int, tuple[np.ndarray, np.ndarray]], dict]
+
+
+class StoreDamaged(UserError):
+    """A file of the run store cannot be read (truncated, overwritten, unreadable)."""
+
+    def __init__(self, path: Path, why: object) -> None:
+        text = " ".join(str(why).split()) or type(why).__name__
+        super().__init__(f"the interrupted run's file {path} is damaged ({text}); pass --restart to discard "
+                         "that run's work and start again")
+
+
+def read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the store file ``path``, read now.
+
+    Raises:
+        StoreDamaged: the file is truncated, not an npz file, or lacks an array.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {key: z[key] for key in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise StoreDamaged(path, exc) from None
+
+
+def stored_array(arrays: dict[str, np.ndarray], key: str, path: Path) -> np.ndarray:
+    """``arrays[key]``, or :class:`StoreDamaged` naming ``path`` when the file lacks it."""
+    try:
+        return arrays[key]
+    except KeyError:
+        raise StoreDamaged(path, f"no array {key!r}") from None
+
+
+@dataclass(frozen=True)
+class ChunkIndex:
+    """What the store keeps in memory of one filter chunk."""
+
+    pairs: np.ndarray  # int64 (P, 2)
+    success: np.ndarray  # bool (P,)
+    matches: int  # over the successful pairs
+    kept: int
+    top: np.ndarray  # int64 (P, 2): each pair's largest keypoint index in each image, -1 for none
+
+
+def _json_type(value: object) -> str:
+    names = {type(None): "null", bool: "a boolean", int: "a number", float: "a number", str: "a string",
+             list: "a list", dict: "an object"}
+    return names.get(type(value), type(value).__name__)
+
+
+def read_manifest(path: Path) -> dict:
+    """The manifest at ``path``, its values checked: a JSON object whose ``fingerprint`` is an
+    object (its ``recipe``, when there, an object of objects), whose ``run_id`` is a non-empty
+    string and whose ``refine_plan``, when there, is an object.
+
+    Raises:
+        StoreDamaged: missing, unreadable, not JSON, or a value of another type.
+    """
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StoreDamaged(path, "it is missing") from None
+    except (OSError, ValueError) as exc:  # truncated, overwritten, unreadable
+        raise StoreDamaged(path, getattr(exc, "strerror", None) or exc) from None
+    if not isinstance(manifest, dict):
+        raise StoreDamaged(path, f"it is {_json_type(manifest)}, not a JSON object")
+    fingerprint = manifest.get("fingerprint")
+    if not isinstance(fingerprint, dict):
+        raise StoreDamaged(path, f"its fingerprint is {_json_type(fingerprint)}, not an object")
+    recipe = fingerprint.get("recipe", {})
+    if not isinstance(recipe, dict):
+        raise StoreDamaged(path, f"its recipe is {_json_type(recipe)}, not an object")
+    for name, table in recipe.items():
+        if not isinstance(table, dict):
+            raise StoreDamaged(path, f"its recipe table {name!r} is {_json_type(table)}, not an object")
+    run_id = manifest.get("run_id")
+    if not isinstance(run_id, str) or not run_id:
+        raise StoreDamaged(path, f"its run_id is {_json_type(run_id) if run_id != '' else 'empty'}, "
+                                 "not the run's id (a non-empty string)")
+    if not isinstance(manifest.get("refine_plan", {}), dict):
+        raise StoreDamaged(path, f"its refine_plan is {_json_type(manifest['refine_plan'])}, not an object")
+    return manifest
+
+
+#: numpy dtype kinds an array of the store may have, by what it holds.
+_KINDS = {"b": "booleans", "iu": "integers", "f": "floats"}
+
+
+def check_array(arrays: dict[str, np.ndarray], key: str, path: Path, kinds: str,
+                shape: tuple[int | None, ...]) -> np.ndarray:
+    """``arrays[key]`` checked to be of one of the dtype ``kinds`` (``"b"``, ``"iu"``, ``"f"``)
+    and of ``shape`` (None: any length), integers as int64.
+
+    Raises:
+        StoreDamaged: the array is missing, of another dtype or shape, or of integers beyond int64.
+    """
+    a = stored_array(arrays, key, path)
+    want = " x ".join("N" if n is None else str(n) for n in shape) or "a scalar"
+    if a.dtype.kind not in kinds or a.ndim != len(shape) or any(
+            n is not None and m != n for m, n in zip(a.shape, shape, strict=True)):
+        raise StoreDamaged(path, f"its array {key!r} is {a.dtype} {tuple(a.shape)}, not {_KINDS[kinds]} of "
+                                 f"shape ({want})")
+    if a.dtype.kind == "u" and a.size and int(a.max()) > np.iinfo(np.int64).max:
+        raise StoreDamaged(path, f"its array {key!r} holds integers beyond int64")
+    return a.astype(np.int64) if kinds == "iu" else a
+
+
+def check_offsets(offsets: np.ndarray, rows: int, key: str, path: Path) -> np.ndarray:
+    """The row counts of ``offsets`` (int64 ``(P + 1,)``), checked to start at 0, never go back
+    and end at ``rows``.
+
+    Raises:
+        StoreDamaged: they do not.
+    """
+    counts = np.diff(offsets)
+    if len(offsets) == 0 or offsets[0] != 0 or (counts < 0).any() or offsets[-1] != rows:
+        raise StoreDamaged(path, f"its {key} do not run from 0 up to its {rows} rows")
+    return counts
+
+
+def check_unique_pairs(pairs: np.ndarray, path: Path, key: str = "pairs") -> None:
+    """Refuse a ``(P, 2)`` array of pairs that holds one pair twice.
+
+    Raises:
+        StoreDamaged: naming the pair.
+    """
+    if len(pairs) > 1:
+        order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+        same = np.flatnonzero((np.diff(pairs[order], axis=0) == 0).all(axis=1))
+        if len(same):
+            a, b = pairs[order[same[0]]]
+            raise StoreDamaged(path, f"its {key} hold pair ({a}, {b}) twice")
+
+
+def check_filter_chunk(z: dict[str, np.ndarray], path: Path) -> ChunkIndex:
+    """A filter chunk's arrays checked against each other (see :meth:`RunStore.save_filter_chunk`);
+    returns its index entry."""
+    pairs = check_array(z, "pairs", path, "iu", (None, 2))
+    n = len(pairs)
+    ok = check_array(z, "success", path, "b", (n,))
+    matches = check_array(z, "matches", path, "iu", (None, 2))
+    rows = check_offsets(check_array(z, "offsets", path, "iu", (n + 1,)), len(matches), "offsets", path)
+    homs = check_array(z, "patch_homographies", path, "f", (None, 2, 3, 3))
+    hoff = check_array(z, "hom_offsets", path, "iu", (n + 1,))
+    per_pair = check_offsets(hoff, len(homs), "hom_offsets", path)
+    inliers = check_array(z, "inliers", path, "b", (len(matches),))
+    labels = check_array(z, "labels", path, "iu", (len(matches),))
+    kept = check_array(z, "kept", path, "iu", (n,))
+    if (rows[~ok] != 0).any() or (per_pair[~ok] != 0).any() or (kept[~ok] != 0).any():
+        raise StoreDamaged(path, "its offsets or kept counts give rows to a pair that failed")
+    check_unique_pairs(pairs, path)
+    if (matches < 0).any():
+        raise StoreDamaged(path, "its matches hold negative keypoint indices")
+    if not np.isfinite(homs).all():
+        raise StoreDamaged(path, "its patch_homographies are not all finite")
+    row_pair = np.repeat(np.arange(n), rows)
+    if (kept != np.bincount(row_pair[inliers], minlength=n)).any():
+        raise StoreDamaged(path, "its kept counts differ from its inliers")
+    if ((labels < -1) | (labels >= np.repeat(per_pair, rows)) | (inliers & (labels < 0))).any():
+        raise StoreDamaged(path, "its labels name patch homographies their pair does not have")
+    top = np.full((n, 2), -1, np.int64)
+    full = np.flatnonzero(rows > 0)
+    if len(full):
+        top[full] = np.maximum.reduceat(matches, np.asarray(rows.cumsum() - rows)[full], axis=0)
+    return ChunkIndex(pairs=pairs, success=ok, matches=int(rows[ok].sum()), kept=int(kept[ok].sum()), top=top)
+
+
+#: The one group stat that is not a counter: image id (a string, in JSON) -> decodes
+#: (``track_groups.DECODED_BY_IMAGE``).
+DECODED_BY_IMAGE = "decoded_by_image"
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _is_count(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, int] | None) -> GroupResult:
+    """A refine group's arrays checked against each other and, when given, the images'
+    ``num_keypoints``; returns (moved, stats)."""
+    ids = check_array(z, "image_ids", path, "iu", (None,))
+    idx = check_array(z, "idx", path, "iu", (None,))
+    xy = check_array(z, "xy", path, "f", (len(idx), 2))
+    sizes = check_offsets(check_array(z, "offsets", path, "iu", (len(ids) + 1,)), len(idx), "offsets", path)
+    if len(np.unique(ids)) != len(ids):
+        raise StoreDamaged(path, "its image_ids hold an image twice")
+    if not np.isfinite(xy).all():
+        raise StoreDamaged(path, "its positions xy are not all finite")
+    try:
+        stats = json.loads(str(stored_array(z, "stats", path)))
+    except ValueError as exc:
+        raise StoreDamaged(path, f"its stats are not JSON ({exc})") from None
+    if not isinstance(stats, dict):
+        raise StoreDamaged(path, f"its stats are {_json_type(stats)}, not an object")
+    for key, value in stats.items():  # counters, summed over the groups; decodes per image id
+        if key == DECODED_BY_IMAGE:
+            if not (isinstance(value, dict) and all(k.isdigit() and _is_count(v) for k, v in value.items())):
+                raise StoreDamaged(path, f"its stats' {key} is not image id -> count")
+        elif not _is_number(value):
+            raise StoreDamaged(path, f"its stats' {key} is {_json_type(value)}, not a number")
+    moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    start = 0
+    for image_id, size in zip(ids.tolist(), sizes.tolist(), strict=True):
+        rows = slice(start, start + size)
+        start += size
+        n = None if num_keypoints is None else num_keypoints.get(image_id)
+        if num_keypoints is not None and n is None:
+            raise StoreDamaged(path, f"it moves keypoints of image {image_id}, which is not in the database")
+        if size and idx[rows].min() < 0:
+            raise StoreDamaged(path, f"it moves negative keypoint indices of image {image_id}")
+        if size and n is not None and idx[rows].max() >= n:
+            raise StoreDamaged(path, f"it moves keypoint {idx[rows].max()} of image {image_id}, which has {n} "
+                                     "keypoints")
+        moved[image_id] = (idx[rows], xy[rows])
+    return moved, stats
