@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter, OrderedDict
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -325,13 +325,14 @@ class ImageLoader(Mapping):
             log.warning("image %s is %s; it is skipped (its keypoints are not refined)",
                         self.path(image_id), why)
 
-    def check_all(self) -> list[int]:
+    def check_all(self, inspect: Callable[[int, np.ndarray], None] | None = None) -> list[int]:
         """Find the images that cannot be used (see :func:`image_problem`: missing, empty,
         truncated, undecodable or of another size than their camera), decoding each once
         (images already cached are not decoded again); returns their ids (each warned once;
         the reason is in ``problems``). A good image is kept in the cache when it fits beside
         the ones kept before it (in id order: nothing is evicted), so that a walk starting with
-        the lowest image ids does not decode them again."""
+        the lowest image ids does not decode them again. ``inspect(image_id, image)`` sees each
+        good image decoded here."""
         bad = []
         for image_id in self.names:
             why = self.problems.get(image_id)
@@ -343,6 +344,8 @@ class ImageLoader(Mapping):
                     self.decoded[image_id] += 1
                 if img is not None:
                     self._keep(image_id, img, evict=False)
+                    if inspect is not None:
+                        inspect(image_id, img)
             if why is not None:
                 bad.append(image_id)
                 self._skip(image_id, why)

@@ -149,9 +149,14 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
     if cfg.mode != MatchCheckMode.REMOVE or not stats.used:
         return NO_VERDICTS, stats
     filtered = store.load_filtered()
-    sizes = {(p.image_id1, p.image_id2): p.num_matches for p in db.pairs(source)}
-    if any(len(f) != (np.count_nonzero(filtered[p][1].inliers) if p in filtered else sizes.get(p, -1))
-           for p, f in failed.items() if p not in wrong):
+    pairs = {(p.image_id1, p.image_id2) for p in db.pairs(source)}
+
+    def size(p: Pair) -> int:  # the matches the check judged: the kept ones, or the database's (a repeat once)
+        if p in filtered:
+            return int(np.count_nonzero(filtered[p][1].inliers))
+        return len(db.matches(p[0], p[1], source)) if p in pairs else -1
+
+    if any(len(f) != size(p) for p, f in failed.items() if p not in wrong):
         raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its verdicts do not fit the stored pairs")
     judged = {p: f for p, f in failed.items() if p not in wrong}
     # a pair written back unchanged keeps COLMAP's model where the check removed nothing from it

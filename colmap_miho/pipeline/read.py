@@ -65,6 +65,7 @@ class ReadStats:
     keypoints_total: int
     matches_in: int = 0  # over every pair of the source: what the output is compared with
     images_missing: list[str] = field(default_factory=list)
+    images_implausible: list[str] = field(default_factory=list)  # keypoints unrelated to the pixels
     decoded_by_image: dict[int, int] = field(default_factory=dict)  # image id -> decodes
 
     @property
@@ -101,9 +102,10 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
     loader = ImageLoader(cfg.image_dir, names, max_cached=None, max_cached_bytes=cfg.image_budget_bytes,
                          expected_sizes={im.image_id: (im.width, im.height) for im in images})
     missing_names: list[str] = []
+    implausible: list[str] = []
     if pcfg.refine:
         _check_one_file_per_image(cfg, names)
-        missing = loader.check_all()
+        missing = loader.check_all(inspect=_plausibility_check(db, keypoints, names, loader, implausible))
         missing_names = [names[i] for i in missing]
         if missing and cfg.strict:
             raise UserError(f"image {loader.path(missing[0])} is {loader.problems[missing[0]]} (--strict)"
@@ -116,7 +118,8 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
     stats = ReadStats(num_images=len(images), num_pairs=len(pairs),
                       pairs_passed=len(pairs) - len(to_filter), matches_in=sum(p.num_matches for p in pairs),
                       keypoints_total=int(sum(len(k) for k in keypoints.values())),
-                      images_missing=missing_names, decoded_by_image=dict(loader.decoded))
+                      images_missing=missing_names, images_implausible=implausible,
+                      decoded_by_image=dict(loader.decoded))
     return ReadOutput(keypoints=keypoints, to_filter=to_filter, loader=loader), stats
 
 
@@ -181,6 +184,27 @@ def check_match_indices(matches: np.ndarray, n1: int, n2: int, pair: Pair,
                 f"database {database_name}: a match of image pair {pair[0]}-{pair[1]} uses keypoint "
                 f"{top} of image {image_id}, which has {n} keypoints; the matches do not belong to these "
                 "keypoints (re-run matching, or re-import the features and matches together)")
+
+
+def _plausibility_check(db: ColmapDatabase, keypoints: dict[int, np.ndarray], names: dict[int, str],
+                        loader: ImageLoader, found: list[str]):
+    """The read check's inspection of each decoded image: warn about, and add to ``found``,
+    the images whose keypoints cannot be told from chance on their pixels
+    (:mod:`.plausibility`: a file renamed or shuffled after extraction)."""
+    from .plausibility import implausible, keypoint_support
+
+    def inspect(image_id: int, image: np.ndarray) -> None:
+        affine = db.keypoint_affines(image_id)
+        scale = None if affine is None else np.sqrt(np.abs(np.linalg.det(affine)))
+        share, sampled = keypoint_support(image, keypoints[image_id], scale, seed=image_id)
+        if implausible(share, sampled):
+            found.append(names[image_id])
+            log.warning("image %s does not look like the image its keypoints were found in (%.0f%% of %d "
+                        "sampled keypoints stand out from their surroundings; 50%% by chance): was the file "
+                        "renamed or replaced after feature extraction?", loader.path(image_id), 100 * share,
+                        sampled)
+
+    return inspect
 
 
 def read_affines(db: ColmapDatabase, image_ids) -> dict[int, np.ndarray] | None:

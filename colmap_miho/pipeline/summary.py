@@ -32,6 +32,8 @@ class RefineSummary:
         keypoints_moved: keypoints whose position changed (each moves at most once).
         median_displacement_px / max_displacement_px: over the moved keypoints, pixels.
         images_missing: names of images that could not be read (not refined).
+        images_implausible: names of images whose keypoints do not match their pixels (a file
+            renamed or replaced after extraction; refined all the same, with a warning).
         runner: where the parallel work ran: "inline", "processes" or "dask".
         memory_budget_mb: ``pipeline.memory_budget_mb`` of the run.
         filter_chunks / filter_chunks_resumed: chunks of pairs filtered in all / taken from
@@ -74,6 +76,7 @@ class RefineSummary:
     median_displacement_px: float = 0.0
     max_displacement_px: float = 0.0
     images_missing: list[str] = field(default_factory=list)
+    images_implausible: list[str] = field(default_factory=list)
     runner: str = "inline"
     memory_budget_mb: int = 0
     filter_chunks: int = 0
@@ -110,7 +113,8 @@ class RefineSummary:
             keypoints_moved=write.keypoints_moved,
             median_displacement_px=write.median_displacement_px,
             max_displacement_px=write.max_displacement_px,
-            images_missing=list(read.images_missing), runner=runner, memory_budget_mb=pcfg.memory_budget_mb,
+            images_missing=list(read.images_missing), images_implausible=list(read.images_implausible),
+            runner=runner, memory_budget_mb=pcfg.memory_budget_mb,
             filter_chunks=filtered.chunks, filter_chunks_resumed=filtered.chunks_resumed,
             pairs_resumed=filtered.pairs_resumed, refine_groups=refine.count("groups"),
             refine_groups_resumed=refine.count("groups_resumed"), resumed=resumed,
@@ -154,6 +158,8 @@ class RefineSummary:
             lines.append(match_check_note(self.match_check, label="  match check", timing=True, sep="\n    "))
         if self.images_missing:
             lines.append(f"  images not refined (missing/unreadable): {', '.join(self.images_missing)}")
+        if self.images_implausible:
+            lines.append(f"  images whose keypoints do not match their pixels: {', '.join(self.images_implausible)}")
         if self.backup:
             lines.append(f"  backup of the input: {self.backup}")
         lines.append("  seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in self.seconds.items()))
