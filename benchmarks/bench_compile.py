@@ -114,7 +114,7 @@ def spread(values: list[float]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--families", nargs="+", default=["filter", "ncc", "lsm", "rectify", "all"],
+    parser.add_argument("--families", nargs="*", default=["filter", "ncc", "lsm", "rectify", "all"],
                         choices=list(FAMILY_CODE))
     parser.add_argument("--parallel", type=int, default=0, help="also compile the four families in N processes")
     parser.add_argument("--demo", action="store_true", help="also time the demo cold, warm and after the compile step")
