@@ -1,0 +1,48 @@
+"""The compiled kernels on Dask workers: a worker plugin that fills the worker's machine's
+kernel cache once (:func:`~colmap_miho.kernel_cache.ensure_compiled`: the first worker of a
+machine compiles, the others wait for its lock, then find the families ready) and loads them
+into the worker before its first task. The cache folder follows the same rule on every
+machine (:func:`~colmap_miho.compiled.cache_dir`, from the worker's own environment).
+
+Imported only with ``--dask`` (it imports ``distributed``).
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+
+from distributed import Client
+from distributed.diagnostics.plugin import WorkerPlugin
+
+from ..kernel_cache import FAMILIES, ensure_compiled
+
+log = logging.getLogger(__name__)
+
+#: the plugin's name on the cluster (registering it again replaces it).
+PLUGIN_NAME = "colmap-miho-kernels"
+
+
+class KernelCachePlugin(WorkerPlugin):
+    """On each worker's start (and on registration, for the running ones): compile the
+    ``families`` its machine's cache lacks, then load them. Never fails the worker: a family
+    that cannot be loaded compiles in the task that uses it."""
+
+    idempotent = False
+
+    def __init__(self, families: tuple[str, ...]) -> None:
+        self.families = tuple(families)
+
+    def setup(self, worker) -> None:
+        ensure_compiled(self.families)
+        for family in self.families:
+            module, function = FAMILIES[family].warm.split(":")
+            getattr(importlib.import_module(module), function)()
+
+
+def load_kernels_on_workers(client: Client, families: tuple[str, ...]) -> None:
+    """Register :class:`KernelCachePlugin` for ``families`` on ``client``'s cluster; returns
+    once every present worker has run it (the first run on a machine compiles: tens of
+    seconds)."""
+    log.info("loading the compiled kernels on the Dask workers (%s)", ", ".join(families))
+    client.register_plugin(KernelCachePlugin(families), name=PLUGIN_NAME)
