@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shlex
 import subprocess
 import sys
@@ -52,10 +53,10 @@ import json, time
 t0 = time.perf_counter()
 import numpy, torch, numba
 import colmap_miho.filtering.api, colmap_miho.refinement.warping
-t1 = time.perf_counter()
+t1, c1 = time.perf_counter(), time.process_time()
 {code}
-t2 = time.perf_counter()
-print(json.dumps({{"import": t1 - t0, "load": t2 - t1}}))
+t2, c2 = time.perf_counter(), time.process_time()
+print(json.dumps({{"import": t1 - t0, "load": t2 - t1, "load_cpu": c2 - c1}}))
 """
 
 
@@ -93,12 +94,19 @@ def time_parallel(n: int, cache: Path) -> float:
     return time.perf_counter() - t0
 
 
-def run_cli(args: list[str], cache: Path, cwd: Path) -> float:
-    """Wall seconds of ``colmap-miho ARGS`` (``python -m colmap_miho``) with cache ``cache``."""
-    t0 = time.perf_counter()
+def children_cpu() -> float:
+    """CPU seconds (user + system) of this process's ended children and their descendants."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def run_cli(args: list[str], cache: Path, cwd: Path) -> tuple[float, float]:
+    """Wall and CPU seconds (its processes together) of ``colmap-miho ARGS`` (``python -m
+    colmap_miho``) with cache ``cache``."""
+    t0, c0 = time.perf_counter(), children_cpu()
     subprocess.run([sys.executable, "-m", "colmap_miho", *args], env=child_env(cache), cwd=cwd, check=True,
                    stdout=subprocess.DEVNULL)
-    return time.perf_counter() - t0
+    return time.perf_counter() - t0, children_cpu() - c0
 
 
 def has_compile_command() -> bool:
@@ -123,24 +131,26 @@ def main(argv: list[str] | None = None) -> int:
 
     print(f"# {' '.join(['python', 'benchmarks/bench_compile.py', *(argv if argv is not None else sys.argv[1:])])}")
     print(f"# {os.cpu_count()} cores; seconds, min and max of {args.repeats} runs")
-    print(f"{'family':10s} {'import min max':>14s} {'cold min max':>14s} {'warm min max':>14s}")
+    print(f"{'family':10s} {'import min max':>14s} {'cold min max':>14s} {'cold CPU':>14s} {'warm min max':>14s}")
     with tempfile.TemporaryDirectory(prefix="bench_compile_") as tmp:
         for fam in args.families:
-            imp, cold, warm = [], [], []
+            imp, cold, cold_cpu, warm = [], [], [], []
             for r in range(args.repeats):
                 cache = Path(tmp) / f"{fam}-{r}"
                 c = time_family(fam, cache)
                 w = time_family(fam, cache)
                 imp.append(c["import"])
                 cold.append(c["load"])
+                cold_cpu.append(c["load_cpu"])
                 warm.append(w["load"])
-            print(f"{fam:10s} {spread(imp):>14s} {spread(cold):>14s} {spread(warm):>14s}", flush=True)
+            print(f"{fam:10s} {spread(imp):>14s} {spread(cold):>14s} {spread(cold_cpu):>14s} {spread(warm):>14s}",
+                  flush=True)
         if args.parallel:
             walls = [time_parallel(args.parallel, Path(tmp) / f"par-{r}") for r in range(args.repeats)]
             print(f"{f'all in {args.parallel} processes (wall)':30s} {spread(walls)}", flush=True)
         if args.demo:
             demo = ["demo", *shlex.split(args.demo_args), "-q"]
-            rows: dict[str, list[float]] = {"cold": [], "warm": []}
+            rows: dict[str, list[tuple[float, float]]] = {"cold": [], "warm": []}
             compile_step = has_compile_command()
             if compile_step:
                 rows.update({"compile step": [], "after compile": []})
@@ -153,9 +163,9 @@ def main(argv: list[str] | None = None) -> int:
                     cache2 = Path(tmp) / f"demo2-{r}"
                     rows["compile step"].append(run_cli(["compile", "-q"], cache2, work))
                     rows["after compile"].append(run_cli([*demo, "--output", "c"], cache2, work))
-            print(f"demo {args.demo_args!r}:")
+            print(f"demo {args.demo_args!r}: {'wall min max':>14s} {'CPU min max':>14s}")
             for name, values in rows.items():
-                print(f"  {name:14s} {spread(values)}")
+                print(f"  {name:14s} {spread([v[0] for v in values]):>14s} {spread([v[1] for v in values]):>14s}")
     return 0
 
 
