@@ -140,7 +140,7 @@ def _as_user_command() -> tuple[list[str], str]:
     if setpriv is None:
         return [], "running as root and setpriv is not installed (run the tests as a non-root user)"
     prefix = [setpriv, "--reuid=nobody", "--regid=nogroup", "--clear-groups", "--"]
-    probe = subprocess.run([*prefix, sys.executable, "-c", "import numba, torch, colmap_miho"], capture_output=True)
+    probe = subprocess.run([*prefix, sys.executable, "-c", "import numba, torch, pycolmap"], capture_output=True)
     if probe.returncode:
         return [], (f"running as root and 'nobody' cannot run {sys.executable} with its packages (e.g. the "
                     "interpreter is under /root); run the tests as a non-root user")

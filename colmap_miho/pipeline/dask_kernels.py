@@ -9,6 +9,7 @@ Imported only with ``--dask`` (it imports ``distributed``).
 
 from __future__ import annotations
 
+import asyncio
 import importlib
 import logging
 
@@ -33,7 +34,11 @@ class KernelCachePlugin(WorkerPlugin):
     def __init__(self, families: tuple[str, ...]) -> None:
         self.families = tuple(families)
 
-    def setup(self, worker) -> None:
+    async def setup(self, worker) -> None:
+        # in a thread: the worker's event loop keeps answering the scheduler meanwhile
+        await asyncio.get_running_loop().run_in_executor(None, self._fill_and_load)
+
+    def _fill_and_load(self) -> None:
         ensure_compiled(self.families)
         for family in self.families:
             module, function = FAMILIES[family].warm.split(":")
