@@ -32,6 +32,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -146,7 +147,7 @@ def _folder_lock(folder: Path) -> Iterator[None]:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            log.info("waiting for another process that compiles kernels into %s", folder)
+            log.info("waiting for the kernels being compiled into %s", folder)
             fcntl.flock(fd, fcntl.LOCK_EX)
         yield
     finally:
@@ -158,8 +159,18 @@ _CHILD = ("import sys; sys.path.insert(0, {root!r}); "
 
 
 def _compile_family(family: str) -> int:
-    """In a child process: load (compile) one family; 0 when its kernels are loaded."""
+    """In a child process: load (compile) one family; 0 when its kernels are loaded. Ends
+    itself as soon as its parent is gone (a killed run leaves no compiler running)."""
     import importlib
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
     module, function = FAMILIES[family].warm.split(":")
     if getattr(importlib.import_module(module), function)():
@@ -272,3 +283,27 @@ def load_cached() -> tuple[str, ...]:
         except Exception:  # noqa: BLE001 - loading ahead is optional; the real call reports the error
             continue
     return tuple(loaded)
+
+
+_BACKGROUND: list[threading.Thread] = []  # the running compile_in_background thread, if any
+
+
+def compile_in_background(families: Iterable[str]) -> threading.Thread:
+    """Start :func:`ensure_compiled` of ``families`` in a daemon thread and return the thread:
+    a job with other work before its refine step (feature extraction, the baseline's mapping)
+    compiles meanwhile, and the refine step's own :func:`ensure_compiled` waits for it (the
+    folder's lock), then finds the families ready. Errors are logged, never raised."""
+    names = tuple(families)
+
+    def work() -> None:
+        try:
+            ensure_compiled(names)
+        except Exception as exc:  # noqa: BLE001 - the refine step compiles (and reports) itself
+            log.debug("compiling the kernels in the background failed: %s", exc)
+
+    if _BACKGROUND and _BACKGROUND[0].is_alive():
+        return _BACKGROUND[0]
+    thread = threading.Thread(target=work, name="kernel-compile", daemon=True)
+    thread.start()
+    _BACKGROUND[:] = [thread]
+    return thread

@@ -104,6 +104,20 @@ def test_compile_command_refuses_a_cache_it_cannot_write(clean_env, tmp_path, ca
     assert main(["compile", "--processes", "0"]) == 2
 
 
+def test_compiling_in_the_background_finds_the_cached_families(clean_env, tmp_path, caplog):
+    """The whole jobs start compiling before their extraction and mapping; with every family
+    cached that is a check and nothing more."""
+    clean_env.setenv(compiled.CACHE_ENV, str(tmp_path))
+    for family in FAMILIES:
+        ready_file(family).parent.mkdir(parents=True, exist_ok=True)
+        ready_file(family).write_text("")
+    with caplog.at_level(logging.INFO, logger="colmap_miho"):
+        thread = kernel_cache.compile_in_background(FAMILIES)
+        thread.join(timeout=60)
+    assert not thread.is_alive()
+    assert "compiling" not in caplog.text
+
+
 @pytest.mark.slow
 def test_ensure_compiled_fills_the_cache_once_and_says_so(clean_env, tmp_path, caplog):
     clean_env.setenv(compiled.CACHE_ENV, str(tmp_path))
