@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import hashlib
 import logging
 import os
@@ -51,7 +52,8 @@ _PACKAGE = Path(__file__).resolve().parent
 @dataclass(frozen=True)
 class Family:
     """One kernel family: the function that loads it (``module:function``, returns whether
-    its kernels are loaded, never raises) and its sources (paths relative to the package)."""
+    its kernels are loaded, never raises) and its sources (paths relative to the package, or
+    glob patterns)."""
 
     warm: str
     sources: tuple[str, ...]
@@ -59,9 +61,7 @@ class Family:
 
 #: the kernel families, in the order they are compiled (longest first).
 FAMILIES: dict[str, Family] = {
-    "filter": Family("colmap_miho.filtering.preload:warm",
-                     ("filtering/compiled/sampling.py", "filtering/compiled/scoring.py",
-                      "filtering/compiled/ransac.py", "filtering/compiled/miho.py", "filtering/preload.py")),
+    "filter": Family("colmap_miho.filtering.preload:warm", ("filtering/compiled/*.py", "filtering/preload.py")),
     "rectify": Family("colmap_miho.refinement.rectify.kernel:warm", ("refinement/rectify/kernel.py",)),
     "ncc": Family("colmap_miho.refinement.ncc.kernel:warm", ("refinement/ncc/kernel.py",)),
     "lsm": Family("colmap_miho.refinement.lsm.kernel:warm", ("refinement/lsm/kernel.py",)),
@@ -86,6 +86,7 @@ def families_for(recipe) -> tuple[str, ...]:
     return tuple(f for f in FAMILIES if f in used)
 
 
+@functools.lru_cache(maxsize=1)
 def _machine() -> str:
     """What numba's cache entries are keyed by beyond the source: numba's version and target
     CPU (its name and features, or numba's ``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``); read
@@ -99,12 +100,16 @@ def _machine() -> str:
                      os.environ.get("NUMBA_CPU_FEATURES") or llvm.get_host_cpu_features().flatten()))
 
 
+def source_files(family: str) -> list[Path]:
+    """The files ``family``'s compiled code comes from: its sources and :mod:`.compiled`."""
+    return [path for name in (*FAMILIES[family].sources, "compiled.py") for path in sorted(_PACKAGE.glob(name))]
+
+
 def ready_file(family: str, folder: Path | None = None) -> Path:
     """The file whose presence says that ``family``'s kernels, as they are now, are in the cache
     folder ``folder`` (default :func:`.compiled.cache_dir`)."""
     digest = hashlib.sha256()
-    for name in (*FAMILIES[family].sources, "compiled.py"):
-        path = _PACKAGE / name
+    for path in source_files(family):
         digest.update(f"{path}\0".encode())
         digest.update(path.read_bytes())
     digest.update(f"{sys.version}\0{_machine()}".encode())

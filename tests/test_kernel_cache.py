@@ -80,8 +80,15 @@ def test_the_ready_files_depend_on_the_sources_and_the_folder(tmp_path):
     for family in FAMILIES:
         assert ready_file(family, tmp_path).parent == tmp_path / kernel_cache.READY_FOLDER
     assert len({ready_file(f, tmp_path).name for f in FAMILIES}) == len(FAMILIES)
-    for family, spec in FAMILIES.items():
-        assert all((PACKAGE / s).is_file() for s in spec.sources), family
+
+
+def test_every_kernel_module_belongs_to_a_family():
+    """A module with jitted kernels (a ``Kernels`` handle) outside every family would compile
+    unannounced in the run, and its changes would not make the family compile again."""
+    sources = {path for family in FAMILIES for path in kernel_cache.source_files(family)}
+    kernel_modules = {path for path in PACKAGE.rglob("*.py") if "= Kernels(" in path.read_text()}
+    assert len(kernel_modules) == 7
+    assert kernel_modules <= sources
 
 
 def test_compile_command_with_the_families_cached_compiles_nothing(clean_env, tmp_path, capsys):
