@@ -125,6 +125,10 @@ def refine_database(
     (The public entry point: its keyword arguments are the ``refine`` command's options, one
     each, so that a script reads like the command line; the stages get them grouped.)
 
+    The compiled kernels the recipe uses that the kernel cache lacks are compiled first, and
+    logged at INFO level (:func:`~colmap_miho.kernel_cache.ensure_compiled`; once per cache
+    folder, tens of seconds; ``colmap-miho compile`` does it ahead).
+
     Args:
         database: the input COLMAP database; never opened for writing (unless ``in_place``,
             and even then only replaced atomically at the end, after a backup).
