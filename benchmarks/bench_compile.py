@@ -40,7 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 #: the code that loads each family, valid on every version of the package.
 FAMILY_CODE = {
-    "filter": "from colmap_miho.filtering import preload",
+    "filter": "from colmap_miho.filtering import preload; preload.warm()",
     "ncc": "from colmap_miho.refinement.ncc import kernel; kernel.warm()",
     "lsm": "from colmap_miho.refinement.lsm import kernel; kernel.warm()",
     "rectify": "from colmap_miho.refinement.rectify import kernel; kernel.warm()",
