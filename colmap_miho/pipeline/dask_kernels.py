@@ -4,7 +4,7 @@ machine compiles, the others wait for its lock, then find the families ready) an
 into the worker before its first task. The cache folder follows the same rule on every
 machine (:func:`~colmap_miho.compiled.cache_dir`, from the worker's own environment).
 
-Imported only with ``--dask`` (it imports ``distributed``).
+Used only with ``--dask`` (the ``dask`` extra's ``distributed``).
 """
 
 from __future__ import annotations
@@ -12,11 +12,17 @@ from __future__ import annotations
 import asyncio
 import importlib
 import logging
-
-from distributed import Client
-from distributed.diagnostics.plugin import WorkerPlugin
+from typing import TYPE_CHECKING
 
 from ..kernel_cache import FAMILIES, ensure_compiled
+
+try:
+    from distributed.diagnostics.plugin import WorkerPlugin
+except ImportError:  # without the dask extra: importable (the wheel's test imports every module), never used
+    WorkerPlugin = object  # type: ignore[assignment,misc]
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 log = logging.getLogger(__name__)
 
