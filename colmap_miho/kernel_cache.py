@@ -195,8 +195,9 @@ def ensure_compiled(families: Iterable[str] = tuple(FAMILIES), *, processes: int
         ValueError: an unknown family name.
     """
     t0 = time.perf_counter()
-    names = [f for f in FAMILIES if f in set(families)]
-    unknown = sorted(set(families) - set(FAMILIES))
+    wanted = set(families)
+    names = [f for f in FAMILIES if f in wanted]
+    unknown = sorted(wanted - set(FAMILIES))
     if unknown:
         raise ValueError(f"unknown kernel families {unknown}; known: {list(FAMILIES)}")
     folder = cache_dir()
