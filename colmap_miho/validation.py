@@ -104,6 +104,7 @@ OPTION_BOUNDS: dict[str, Bound] = {
     "repeats": Bound(1, 100, "mapping runs per side"),
     "num_images": Bound(2, 10_000, "images rendered"),
     "max_features": Bound(1, 1_000_000, "SIFT features per image"),
+    "processes": Bound(1, 1024, "kernel families compiled at once"),
 }
 
 

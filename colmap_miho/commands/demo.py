@@ -41,6 +41,7 @@ def run(args) -> int:
 
     from ..adapters.paths import refuse_links_below
     from ..extras import require
+    from ..kernel_cache import compile_in_background, families_for
     from ..pipeline.jobs import ExtractionOptions, JobOptions, run_from_images
     from ..reporting.compare import format_comparison
     from ..reporting.demo_scene import make_demo_scene
@@ -49,6 +50,7 @@ def run(args) -> int:
         require(module, "demo", purpose)
     recipe = load_run_recipe(args)
     w, h = _size(args.size)
+    compile_in_background(families_for(recipe))  # while the scene renders and its features are matched
     n = args.num_images
     max_features = args.max_features or (1024 if args.quick else 2048)
     if args.quick:

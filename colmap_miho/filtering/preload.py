@@ -1,8 +1,8 @@
-"""Imported by the worker processes' forkserver (:data:`colmap_miho.pipeline.workers.PRELOAD`):
-loads the compiled filter kernels (:mod:`.compiled`) once in the forkserver, by filtering a
-small synthetic pair (:func:`warm`), so that every worker forked from it starts with them
-instead of loading them itself. The warm-up lives here, above the filter's API, and not in
-:mod:`.compiled`, which the filter's modules import."""
+"""The warm-up of the compiled filter kernels (:mod:`.compiled`): :func:`warm` loads them (from
+the cache, or compiled) by filtering a small synthetic pair; it is the ``filter`` family of
+:mod:`colmap_miho.kernel_cache` (compiled ahead by ``colmap-miho compile`` and before a run's
+workers start, loaded by the workers' forkserver). The warm-up lives here, above the filter's
+API, and not in :mod:`.compiled`, which the filter's modules import."""
 
 from __future__ import annotations
 
@@ -28,6 +28,3 @@ def warm() -> bool:
 
     # the example reaches every module's kernels: run it once (through one handle), check them all
     return sampling.KERNELS.warm(example) and all(h.loaded for h in HANDLES)
-
-
-warm()

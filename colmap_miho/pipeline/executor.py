@@ -134,7 +134,7 @@ class Runner:
 
 
 @contextlib.contextmanager
-def open_runner(workers: int, dask: str | None = None) -> Iterator[Runner]:
+def open_runner(workers: int, dask: str | None = None, *, families: tuple[str, ...] = ()) -> Iterator[Runner]:
     """The engine for ``workers`` processes, or a Dask cluster.
 
     Args:
@@ -142,6 +142,10 @@ def open_runner(workers: int, dask: str | None = None) -> Iterator[Runner]:
         dask: None (no Dask), :data:`LOCAL` (start a ``LocalCluster`` of ``workers``
             single-threaded worker processes) or a scheduler address ``tcp://host:port``
             (use its workers; ``workers`` is ignored).
+        families: the compiled kernel families the tasks use
+            (:func:`~colmap_miho.kernel_cache.families_for`): on Dask every worker, present
+            and future, fills its machine's cache with them once and loads them before its
+            first task (:mod:`.dask_kernels`).
 
     Raises:
         UserError: distributed is not installed, or the scheduler cannot be reached.
@@ -158,6 +162,10 @@ def open_runner(workers: int, dask: str | None = None) -> Iterator[Runner]:
             yield Runner(workers, RunnerKind.PROCESSES, make_executor=start)
         return
     with _dask_client(workers, dask) as client:
+        if families:
+            from .dask_kernels import load_kernels_on_workers
+
+            load_kernels_on_workers(client, families)
         slots = sum(int(w.get("nthreads", 1)) for w in client.scheduler_info()["workers"].values())
         ex = client.get_executor(pure=False)
         runner = Runner(max(1, slots), RunnerKind.DASK, address=str(client.scheduler.address),

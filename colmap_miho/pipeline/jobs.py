@@ -28,6 +28,7 @@ from ..adapters.paths import check_distinct, comparison_paths
 from ..arguments import check_integer, check_paths, check_seed, check_workers
 from ..enums import CameraMode, Device, Mapper
 from ..errors import InvalidInput, RunFailed
+from ..kernel_cache import compile_in_background, families_for
 from ..recipe import Recipe, load_recipe
 from ..reporting.compare import CompareResult, Evaluation, gt_intrinsics, write_comparison
 from ..sfm import MappingConfig, parse_camera_params
@@ -215,6 +216,7 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
     check_distinct(*comparison_paths(output, database=database, images=image_dir, gt=gt, repeats=opts.repeats,
                                      pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=mapping.seed))
     check_compare_inputs(database, image_dir, gt)  # before any folder is made
+    compile_in_background(families_for(rec))  # while the baseline maps
     intrinsics = gt_intrinsics(gt) if opts.gt_cameras and gt is not None else None
     for sub in ("baseline", "refined", "plots"):
         (output / sub).mkdir(parents=True, exist_ok=True)
@@ -269,6 +271,7 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
     check_distinct(*comparison_paths(output, images=image_dir, gt=gt, repeats=opts.repeats, seed=mapping.seed,
                                      compare=compare))
     output.mkdir(parents=True, exist_ok=True)
+    compile_in_background(families_for(rec))  # while the features are extracted and matched
     database = output / "database.db"
     if database.exists():
         log.info("reusing the features and matches in %s", database)

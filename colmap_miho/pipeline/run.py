@@ -48,8 +48,9 @@ from ..adapters.working_copy import SideFileLost, WorkingCopy
 from ..arguments import check_paths, check_seed, check_workers
 from ..enums import Device
 from ..errors import InvalidInput, RunFailed, UserError
+from ..kernel_cache import ensure_compiled, families_for
 from ..recipe import Recipe, load_recipe
-from .executor import Runner, open_runner
+from .executor import LOCAL, Runner, open_runner
 from .filter import FilterOptions, run_filter
 from .match_check import run_match_check
 from .pair_check import run_pair_check
@@ -124,6 +125,10 @@ def refine_database(
     (The public entry point: its keyword arguments are the ``refine`` command's options, one
     each, so that a script reads like the command line; the stages get them grouped.)
 
+    The compiled kernels the recipe uses that the kernel cache lacks are compiled first, and
+    logged at INFO level (:func:`~colmap_miho.kernel_cache.ensure_compiled`; once per cache
+    folder, tens of seconds; ``colmap-miho compile`` does it ahead).
+
     Args:
         database: the input COLMAP database; never opened for writing (unless ``in_place``,
             and even then only replaced atomically at the end, after a backup).
@@ -179,6 +184,9 @@ def refine_database(
     rec = _resolve_recipe(recipe)
     _check_recipe_device(rec)  # before any file is made: a run store of a run that cannot run
     asked = max(1, int(workers) if workers else (os.cpu_count() or 1))
+    families = families_for(rec)
+    if dask is None or dask == LOCAL:  # a remote cluster's workers fill their own machines' caches
+        ensure_compiled(families)  # before the forkserver, which loads them from the cache
     if asked > 1 and dask is None and str(device) != "cuda":
         start_forkserver()  # the workers' imports run beside this process's from here on
     dev = _resolve_device(device)
@@ -193,7 +201,8 @@ def refine_database(
     resumed = store.has_work()
     laps.lap("setup")
     try:
-        with exit_note(lambda: _resume_hint(store) if store.has_work() else ""), open_runner(n_workers, dask) as runner:
+        with exit_note(lambda: _resume_hint(store) if store.has_work() else ""), \
+                open_runner(n_workers, dask, families=families) as runner:
             inputs = _RunInputs(database=database, image_dir=image_dir, recipe=rec, device=dev, seed=seed,
                                 strict=strict, progress=progress, json_path=json_path)
             summary = _run_stages(inputs, wc, store, runner, resumed=resumed, laps=laps)

@@ -2,8 +2,9 @@
 and per-pair seeds that do not depend on the worker count or order.
 
 Workers are forked from a ``forkserver`` (where the platform has one; ``spawn`` elsewhere) that
-has imported numpy, torch and the pipeline once (:data:`PRELOAD`): a spawned worker would
-import torch itself, seconds of CPU paid again by every worker of every run.
+has imported numpy, torch and the pipeline once, and loaded the compiled kernels the cache
+holds (:data:`PRELOAD`): a spawned worker would import torch itself, seconds of CPU paid again
+by every worker of every run.
 :func:`start_forkserver` starts the server early, so that its imports overlap the parent's own
 work. Forking from the server is safe: it is single-threaded and has never run torch work.
 
@@ -42,7 +43,7 @@ PARENT_POLL_S = 0.5
 #: Modules the forkserver imports once for all the workers it forks.
 PRELOAD = ("numpy", "torch", "colmap_miho.pipeline.filter", "colmap_miho.pipeline.refine",
            "colmap_miho.refinement.pairwise", "colmap_miho.refinement.tracks.walk",
-           "colmap_miho.filtering.preload", "colmap_miho.refinement.preload")
+           "colmap_miho.kernel_preload")
 
 #: What a script that starts workers needs (said by the errors of failed worker starts).
 SCRIPT_HINT = ("if you call colmap_miho from your own script, put the call under 'if __name__ == "

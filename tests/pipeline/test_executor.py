@@ -107,3 +107,18 @@ def test_dask_without_the_extra_names_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
     with pytest.raises(MissingExtraError, match=r"pip install 'colmap-miho\[dask\]'"), open_runner(2, LOCAL):
         pass
+
+
+def lsm_step_loaded() -> bool:
+    from colmap_miho.refinement.lsm import kernel as lsm_kernel
+
+    return lsm_kernel.KERNELS.loaded
+
+
+def test_dask_workers_load_the_runs_kernels_before_their_first_task():
+    """Each Dask worker fills its machine's kernel cache once (a worker plugin) and loads the
+    run's families before any task: no task pays their compilation or loading."""
+    with open_runner(2, LOCAL, families=("lsm",)) as runner:
+        assert all(runner.submit(lsm_step_loaded).result() for _ in range(4))
+    with open_runner(2, LOCAL) as runner:  # no families: nothing loaded ahead
+        assert not runner.submit(lsm_step_loaded).result()

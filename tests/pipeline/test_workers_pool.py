@@ -22,6 +22,18 @@ pytestmark = pytest.mark.skipif("forkserver" not in multiprocessing.get_all_star
                                 reason="no forkserver on this platform")
 
 
+@pytest.fixture(scope="module")
+def every_family_cached():
+    """Every kernel family in the cache (compiled now if missing) and a forkserver started
+    after that (a server started earlier loaded only what the cache held then)."""
+    from multiprocessing import forkserver
+
+    from colmap_miho.kernel_cache import ensure_compiled
+
+    assert not ensure_compiled().failed
+    forkserver._forkserver._stop()  # type: ignore[attr-defined]
+
+
 def test_workers_come_from_the_forkserver():
     with workers.process_pool(2) as ex:
         assert ex._mp_context.get_start_method() == "forkserver"
@@ -35,10 +47,10 @@ def _kernels_loaded() -> bool:
     return all(m.KERNELS.loaded for m in (sampling, scoring, ransac, miho))
 
 
-def test_workers_start_with_the_compiled_filter_kernels_loaded():
-    """The forkserver loads the filter kernels once; a worker forked from it has them before
-    it filters anything."""
-    assert "colmap_miho.filtering.preload" in workers.PRELOAD
+def test_workers_start_with_the_compiled_filter_kernels_loaded(every_family_cached):
+    """The forkserver loads the filter kernels once (from the cache); a worker forked from it
+    has them before it filters anything."""
+    assert "colmap_miho.kernel_preload" in workers.PRELOAD
     with workers.process_pool(1) as ex:
         assert ex.submit(_kernels_loaded).result(timeout=300)
 
@@ -49,9 +61,8 @@ def _ncc_kernels_loaded() -> bool:
     return ncc_kernel.KERNELS.loaded
 
 
-def test_workers_start_with_the_compiled_ncc_kernels_loaded():
+def test_workers_start_with_the_compiled_ncc_kernels_loaded(every_family_cached):
     """The same for the NCC search and sub-pixel kernels of the track walk."""
-    assert "colmap_miho.refinement.preload" in workers.PRELOAD
     with workers.process_pool(1) as ex:
         assert ex.submit(_ncc_kernels_loaded).result(timeout=300)
 
@@ -125,9 +136,8 @@ def _affine_kernels_loaded() -> bool:
     return affine_kernel.KERNELS.loaded
 
 
-def test_workers_start_with_the_compiled_local_affine_fits_loaded():
+def test_workers_start_with_the_compiled_local_affine_fits_loaded(every_family_cached):
     """The same for the local affine fits of the track walk."""
-    assert "colmap_miho.refinement.preload" in workers.PRELOAD
     with workers.process_pool(1) as ex:
         assert ex.submit(_affine_kernels_loaded).result(timeout=300)
 
@@ -138,7 +148,7 @@ def _lsm_kernel_loaded() -> bool:
     return lsm_kernel.KERNELS.loaded
 
 
-def test_workers_start_with_the_compiled_lsm_step_loaded():
+def test_workers_start_with_the_compiled_lsm_step_loaded(every_family_cached):
     """The same for the LSM step (recipes with ``ncc.lsm``)."""
     with workers.process_pool(1) as ex:
         assert ex.submit(_lsm_kernel_loaded).result(timeout=300)

@@ -36,7 +36,7 @@ A match's result depends on its own inputs only: the loop over matches is serial
 quantity of a match is computed by the same code whatever the other matches are.
 
 The kernels compile on first use (:mod:`colmap_miho.compiled`); :func:`warm` loads them ahead
-(the worker processes' forkserver does, :mod:`..preload`).
+(the ``ncc`` family of :mod:`colmap_miho.kernel_cache`).
 """
 
 from __future__ import annotations
