@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import zipfile
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -212,9 +213,19 @@ def _is_count(value: object) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
-def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, int] | None) -> GroupResult:
+#: Pixels a moved keypoint may lie outside its image: a refinement moves a keypoint by less than
+#: its NCC window (template + search radius, at most 64 px), from at most
+#: :data:`~colmap_miho.adapters.conventions.KEYPOINT_MARGIN_PX` outside; farther, a stored
+#: position is forged (written as it is, ``1e300`` would be an infinite keypoint in the output).
+MOVED_MARGIN_PX = 64.0
+
+
+def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, int] | None,
+                image_sizes: Mapping[int, tuple[int, int]] | None = None) -> GroupResult:
     """A refine group's arrays checked against each other and, when given, the images'
-    ``num_keypoints``; returns (moved, stats)."""
+    ``num_keypoints`` and sizes ``image_sizes`` (image id -> (width, height) pixels; 0: unknown,
+    not checked): each position within :data:`MOVED_MARGIN_PX` of its image; returns (moved,
+    stats)."""
     ids = check_array(z, "image_ids", path, "iu", (None,))
     idx = check_array(z, "idx", path, "iu", (None,))
     xy = check_array(z, "xy", path, "f", (len(idx), 2))
@@ -248,5 +259,19 @@ def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, i
         if size and n is not None and idx[rows].max() >= n:
             raise StoreDamaged(path, f"it moves keypoint {idx[rows].max()} of image {image_id}, which has {n} "
                                      "keypoints")
+        _check_inside(xy[rows], (image_sizes or {}).get(image_id), image_id, path)
         moved[image_id] = (idx[rows], xy[rows])
     return moved, stats
+
+
+def _check_inside(xy: np.ndarray, size: tuple[int, int] | None, image_id: int, path: Path) -> None:
+    """Refuse positions ``(K, 2)`` (pixel centres at integers) farther than
+    :data:`MOVED_MARGIN_PX` outside an image of ``size`` (width, height; None or 0: unknown)."""
+    if not len(xy) or not size or not (size[0] and size[1]):
+        return
+    lo, hi = -0.5 - MOVED_MARGIN_PX, np.array(size, np.float64) - 0.5 + MOVED_MARGIN_PX
+    bad = ((xy < lo) | (xy > hi)).any(axis=1)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise StoreDamaged(path, f"it moves a keypoint of image {image_id} to ({xy[k, 0]:g}, {xy[k, 1]:g}), outside "
+                                 f"the {size[0]}x{size[1]} image")

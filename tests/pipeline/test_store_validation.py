@@ -217,6 +217,30 @@ def test_a_forged_refine_group_is_a_damaged_store(case, tmp_path):
     store.close()
 
 
+#: Each image's (width, height) pixels.
+SIZES = {1: (640, 480), 2: (640, 480), 3: (0, 0)}  # image 3's size unknown: not checked
+
+
+@pytest.mark.parametrize("x", [1e300, -1e6, 640 + 100.0])
+def test_a_group_moving_a_keypoint_far_outside_its_image_is_a_damaged_store(x, tmp_path):
+    """A forged position (1e300 was written into the output as an infinite keypoint)."""
+    _store(tmp_path)
+    _forge(tmp_path, "group-000000.npz", xy=[[1.5, 1.5], [x, 2.0], [1.0, 1.0]])
+    store = _resume(tmp_path)
+    with _damaged(tmp_path, "group-000000.npz", ".*image 1 .*outside the 640x480 image"):
+        store.refine_groups(PLAN, SIZES)
+    store.close()
+
+
+def test_a_group_moving_a_keypoint_a_little_past_the_border_is_read_back(tmp_path):
+    _store(tmp_path)
+    _forge(tmp_path, "group-000000.npz", xy=[[-3.0, 1.5], [639.5 + 10, 479.5], [1e6, 1e6]])
+    store = _resume(tmp_path)
+    groups = store.refine_groups(PLAN, SIZES)
+    assert groups[0][0][1][1].tolist() == [[-3.0, 1.5], [649.5, 479.5]]
+    store.close()
+
+
 def test_a_group_of_no_group_of_the_plan_is_a_damaged_store(tmp_path):
     from colmap_miho.pipeline.refine import check_resumed_groups
 
