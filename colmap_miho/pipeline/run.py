@@ -309,17 +309,25 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
 
 
 def _check_writable_file(path: Path, label: str) -> None:
-    """Refuse, before any work, an output file whose folder is missing or read-only.
+    """Refuse, before any work, an output file whose folder is missing or read-only: the folder
+    of the file written, a symbolic link's target's (the link is kept). A character device
+    (``/dev/stdout``) is written through, in no folder: its own (``/dev``) is not looked at.
 
     Raises:
         UserError: the message names the option and the path.
     """
-    if path.is_dir():
+    from ..adapters.staged_write import CHARACTER_DEVICE, output_kind, write_target
+
+    if output_kind(path) == CHARACTER_DEVICE:
+        return
+    target = write_target(path)
+    via = f" (the target of the symbolic link {path})" if target != path else ""
+    if target.is_dir():
         raise UserError(f"{label} {path} is a folder; give a file name")
-    if not path.parent.is_dir():
-        raise UserError(f"{label} folder does not exist: {path.parent}")
-    if not os.access(path.parent, os.W_OK | os.X_OK):
-        raise UserError(f"{label} {path}: cannot write in {path.parent} (read-only folder)")
+    if not target.parent.is_dir():
+        raise UserError(f"{label} folder does not exist: {target.parent}{via}")
+    if not os.access(target.parent, os.W_OK | os.X_OK):
+        raise UserError(f"{label} {target}{via}: cannot write in {target.parent} (read-only folder)")
 
 
 class _Laps:
