@@ -259,3 +259,27 @@ def test_refine_json_link_into_a_missing_folder_is_refused_before_any_work(db_co
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and "--json" in lines[0] and "nowhere" in lines[0] and str(link) in lines[0], lines
     assert not out.exists() and not os.path.lexists(store_folder(out))
+
+
+def test_a_file_for_a_device_is_staged_where_the_next_run_sweeps(model, tmp_path, monkeypatch):
+    """``report --json /dev/null`` (``map``, ``export`` alike) stages the file in ``$TMPDIR``: in
+    a locked folder of ours, which the next command removes should a ``kill -9`` leave it (a bare
+    ``.null.*.tmp`` there stayed for ever)."""
+    import tempfile
+
+    from colmap_miho.adapters import staged_write
+
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmpdir))
+    seen: list[list[str]] = []
+    write_through = staged_write.write_through
+
+    def looking(tmp, device):
+        seen.append(sorted(os.listdir(tmpdir)))  # what a kill -9 now would leave
+        return write_through(tmp, device)
+
+    monkeypatch.setattr(staged_write, "write_through", looking)
+    assert main(["report", "--model", str(model), "--json", "/dev/null", "-q"]) == 0
+    assert seen and seen[0] and all(n.startswith(staged_write.TMPDIR_PREFIXES) for n in seen[0]), seen
+    assert not os.listdir(tmpdir)
