@@ -492,7 +492,7 @@ class RunStore:
         arrays = self._read(path)
         try:
             meta = json.loads(str(stored_array(arrays, "meta", path)))
-        except ValueError as exc:  # not JSON
+        except (ValueError, RecursionError) as exc:  # not JSON, or nested past reading
             raise StoreDamaged(path, exc) from None
         if not isinstance(meta, dict):
             raise StoreDamaged(path, "its meta is not a JSON object")

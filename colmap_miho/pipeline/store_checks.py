@@ -95,7 +95,7 @@ def read_manifest(path: Path) -> dict:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise StoreDamaged(path, "it is missing") from None
-    except (OSError, ValueError) as exc:  # truncated, overwritten, unreadable
+    except (OSError, ValueError, RecursionError) as exc:  # truncated, overwritten, unreadable, nested past reading
         raise StoreDamaged(path, getattr(exc, "strerror", None) or exc) from None
     if not isinstance(manifest, dict):
         raise StoreDamaged(path, f"it is {_json_type(manifest)}, not a JSON object")
@@ -236,7 +236,7 @@ def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, i
         raise StoreDamaged(path, "its positions xy are not all finite")
     try:
         stats = json.loads(str(stored_array(z, "stats", path)))
-    except ValueError as exc:
+    except (ValueError, RecursionError) as exc:  # not JSON, or nested past reading
         raise StoreDamaged(path, f"its stats are not JSON ({exc})") from None
     if not isinstance(stats, dict):
         raise StoreDamaged(path, f"its stats are {_json_type(stats)}, not an object")

@@ -122,6 +122,29 @@ def test_a_manifest_without_run_id_is_a_damaged_store(tmp_path):
         RunStore.open(tmp_path, FINGERPRINT, resume=True)
 
 
+#: JSON nested deeper than Python's parser recurses (a RecursionError, "unexpected", at the CLI).
+DEEP = "[" * 100_000 + "]" * 100_000
+
+
+def test_a_manifest_nested_past_reading_is_a_damaged_store(tmp_path):
+    _store(tmp_path)
+    (tmp_path / "manifest.json").write_text(DEEP)
+    with _damaged(tmp_path, "manifest.json", "maximum recursion"):
+        RunStore.open(tmp_path, FINGERPRINT, resume=True)
+
+
+def test_stats_and_meta_nested_past_reading_are_a_damaged_store(tmp_path):
+    _store(tmp_path)
+    _forge(tmp_path, "group-000000.npz", stats=np.array(DEEP))
+    _forge(tmp_path, "stage-match_check.npz", meta=np.array(DEEP))
+    store = _resume(tmp_path)
+    with _damaged(tmp_path, "group-000000.npz", "its stats"):
+        store.refine_groups(PLAN)
+    with _damaged(tmp_path, "stage-match_check.npz", "maximum recursion"):
+        store.load_stage("match_check")
+    store.close()
+
+
 def test_work_without_a_manifest_is_a_damaged_store(tmp_path):
     _store(tmp_path)
     (tmp_path / "manifest.json").unlink()
