@@ -105,6 +105,9 @@ def check_no_links(folder: Path) -> None:
         raise UserError(f"the run folder {folder} is a symbolic link (to {os.readlink(folder)}); a run keeps its "
                         "work only in a folder of its own and never follows a link there: remove the link "
                         "or choose another --output")
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"{folder} is a file, not the run folder a run keeps its work in (it is never replaced): "
+                        "remove it or choose another --output")
     if not folder.is_dir():
         return
     for p in folder.iterdir():
