@@ -33,10 +33,13 @@ COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import signal
 import sqlite3
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -211,9 +214,46 @@ def refine_database(
         if _keep_store(store):
             _add_note(exc, _resume_hint(store))
         raise
-    store.remove()
-    log.info("wrote %s", summary.output)
+    try:  # the output is committed: a signal from here on finds the run done
+        with _signals_held():
+            store.remove()
+        log.info("wrote %s", summary.output)
+    except BaseException as exc:
+        note_output_written(exc, summary)
+        raise
     return summary
+
+
+def note_output_written(exc: BaseException, summary: RefineSummary) -> None:
+    """Mark ``exc`` (a signal, an error) raised after the commit: the output is complete, which
+    the CLI's line says instead of "nothing was written to the input"
+    (``exc.output_written``)."""
+    in_place = f" (refined in place; its backup: {summary.backup})" if summary.backup else ""
+    _add_note(exc, f"{summary.output} was written{in_place} before that and is complete: nothing is left to resume")
+    exc.output_written = True  # type: ignore[attr-defined]
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Hold Ctrl-C, SIGTERM and SIGHUP for the block (their Python handlers, in the main thread):
+    the run store is removed whole, and a signal sent meanwhile is served right after it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    handlers = {}
+    for name in ("SIGINT", "SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is not None and callable(handler := signal.getsignal(sig)):  # SIG_IGN, SIG_DFL as they are
+            handlers[sig] = handler
+            signal.signal(sig, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+        if held:
+            handlers[held[0]](held[0], None)  # served now (raises, as it would have)
 
 
 def _keep_store(store: RunStore) -> bool:
