@@ -149,9 +149,16 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
     if cfg.mode != MatchCheckMode.REMOVE or not stats.used:
         return NO_VERDICTS, stats
     filtered = store.load_filtered()
-    sizes = {(p.image_id1, p.image_id2): p.num_matches for p in db.pairs(source)}
-    if any(len(f) != (np.count_nonzero(filtered[p][1].inliers) if p in filtered else sizes.get(p, -1))
-           for p, f in failed.items() if p not in wrong):
+    known = {(p.image_id1, p.image_id2) for p in db.pairs(source)}
+
+    def judged_rows(pair: Pair) -> int:
+        """The matches the verdict on ``pair`` was made on: a filtered pair's kept ones, another
+        pair's as read (a repeated row once, not its row count), -1 for no pair of the run."""
+        if pair in filtered:
+            return int(np.count_nonzero(filtered[pair][1].inliers))
+        return len(db.matches(pair[0], pair[1], source)) if pair in known else -1
+
+    if any(len(f) != judged_rows(p) for p, f in failed.items() if p not in wrong):
         raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its verdicts do not fit the stored pairs")
     judged = {p: f for p, f in failed.items() if p not in wrong}
     # a pair written back unchanged keeps COLMAP's model where the check removed nothing from it
