@@ -191,6 +191,7 @@ def refine_database(
                    {"--output": None if in_place else wc.output, "--json": json_path})
     if json_path:
         _check_writable_file(Path(json_path), "--json")
+        _refuse_inside_run_folder(Path(json_path), store_folder(wc.output))
     store = RunStore.open(store_folder(wc.output), run_fingerprint(database, image_dir, rec, seed, dev),
                           resume=resume, restart=restart)
     resumed = store.has_work()
@@ -368,6 +369,20 @@ def _check_writable_file(path: Path, label: str) -> None:
         raise UserError(f"{label} folder does not exist: {target.parent}{via}")
     if not os.access(target.parent, os.W_OK | os.X_OK):
         raise UserError(f"{label} {target}{via}: cannot write in {target.parent} (read-only folder)")
+
+
+def _refuse_inside_run_folder(path: Path, folder: Path) -> None:
+    """Refuse ``--json`` inside the run folder ``folder``: it is removed after the commit (a
+    ``manifest.json`` there went with it, the run saying it was written).
+
+    Raises:
+        UserError: naming the option, the path and the folder.
+    """
+    from ..adapters.paths import resolve
+
+    if resolve(folder) in resolve(path).parents:
+        raise UserError(f"--json {path} is inside the run folder {folder}, which is removed when the run ends; "
+                        "choose a path outside it")
 
 
 class _Laps:

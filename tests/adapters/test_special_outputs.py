@@ -283,3 +283,20 @@ def test_a_file_for_a_device_is_staged_where_the_next_run_sweeps(model, tmp_path
     assert main(["report", "--model", str(model), "--json", "/dev/null", "-q"]) == 0
     assert seen and seen[0] and all(n.startswith(staged_write.TMPDIR_PREFIXES) for n in seen[0]), seen
     assert not os.listdir(tmpdir)
+
+
+@pytest.mark.parametrize("name", ["manifest.json", "notes.json"])
+def test_refine_json_inside_the_run_folder_is_refused(name, db_copy, scene, tmp_path, capfd):
+    """The run folder is removed after the commit: ``--json`` there as ``manifest.json`` went
+    with it, exit 0 all the same."""
+    from colmap_miho.pipeline.store import store_folder
+
+    out = tmp_path / "out.db"
+    folder = store_folder(out)
+    folder.mkdir()
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                 "--json", str(folder / name), "--no-refine", "--workers", "1", "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "--json" in lines[0] and "inside the run folder" in lines[0], lines
+    assert not out.exists() and sorted(os.listdir(folder)) == []
