@@ -113,6 +113,13 @@ def disk_full_error(folder: Path, what: str, exc: BaseException | None = None) -
                      "and the working files were removed: free some space and retry")
 
 
+def device_full_error(device: str | os.PathLike, exc: OSError) -> RunFailed:
+    """The one line for a character device that is full (``/dev/full``): it has no folder
+    with free space to tell."""
+    return RunFailed(f"disk full while writing {device} ({exc.strerror or exc}); nothing was written under the "
+                     "output name and the working files were removed: write it elsewhere or retry")
+
+
 def write_target(path: str | os.PathLike) -> Path:
     """The file that writing ``path`` should replace: a symlink's target (the link is kept and
     shows the new content), else ``path`` itself."""
@@ -243,7 +250,12 @@ def _staged(path: str | os.PathLike, target: Path, device: bool, expected_size):
                 raise disk_full_error(target.parent, f"writing {target} ({exc})") from None
             check_written(tmp, target, expected)
             if check_output_path(path) == CHARACTER_DEVICE:  # looked at again: it may have changed
-                write_through(tmp, path)
+                try:
+                    write_through(tmp, path)
+                except OSError as exc:
+                    if is_disk_full(exc):  # the device's, not the staging folder's
+                        raise device_full_error(path, exc) from None
+                    raise
                 return
             if device:
                 raise UserError(f"{path} changed from a character device to a file during the run; nothing "

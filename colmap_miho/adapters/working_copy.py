@@ -31,6 +31,7 @@ from .staged_write import (
     CHARACTER_DEVICE,
     check_output_path,
     check_written,
+    device_full_error,
     disk_full_error,
     file_too_large,
     is_disk_full,
@@ -253,10 +254,8 @@ class WorkingCopy:
                 with open(target, "wb") as fh:
                     fh.write(data)
             except OSError as exc:
-                if is_disk_full(exc):  # a device has no folder with free space to tell
-                    raise RunFailed(f"disk full while writing {target} ({exc.strerror or exc}); nothing was written "
-                                    "under the output name and the working files were removed: write it "
-                                    "elsewhere or retry") from None
+                if is_disk_full(exc):
+                    raise device_full_error(target, exc) from None
                 raise UserError(f"cannot write {target}: {exc.strerror or exc}; nothing was replaced") from None
             self._devices.remove((data, target))
 

@@ -300,3 +300,13 @@ def test_refine_json_inside_the_run_folder_is_refused(name, db_copy, scene, tmp_
     lines = error_lines(capfd.readouterr().err)
     assert len(lines) == 1 and "--json" in lines[0] and "inside the run folder" in lines[0], lines
     assert not out.exists() and sorted(os.listdir(folder)) == []
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full here")
+def test_report_json_to_a_full_device_names_the_device(model, capfd):
+    """(the line named the staging folder in $TMPDIR, with its free space, as the full disk)"""
+    capfd.readouterr()
+    assert main(["report", "--model", str(model), "--json", "/dev/full", "-q"]) == 1
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and lines[0].startswith("ERROR: disk full while writing /dev/full"), lines
+    assert "colmap_miho_device_" not in lines[0] and "MB free" not in lines[0], lines
