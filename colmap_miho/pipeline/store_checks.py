@@ -22,6 +22,7 @@ is read back only through these checks, and one that fails is :class:`StoreDamag
 from __future__ import annotations
 
 import json
+import math
 import zipfile
 import zlib
 from collections.abc import Mapping
@@ -246,6 +247,8 @@ def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, i
                 raise StoreDamaged(path, f"its stats' {key} is not image id -> count")
         elif not _is_number(value):
             raise StoreDamaged(path, f"its stats' {key} is {_json_type(value)}, not a number")
+        elif not (math.isfinite(value) and value >= 0):  # counters and seconds: the summary adds them up
+            raise StoreDamaged(path, f"its stats' {key} is {value}, not a count")
     moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     start = 0
     for image_id, size in zip(ids.tolist(), sizes.tolist(), strict=True):

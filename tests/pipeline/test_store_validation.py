@@ -225,6 +225,8 @@ def _group_forgeries():
         "stats not an object": ({"stats": np.array("[1, 2]")}, "stats"),
         "stats not JSON": ({"stats": np.array("{")}, "stats"),
         "a stat not a number": ({"stats": np.array('{"moved": "3"}')}, "stats"),
+        "a negative stat": ({"stats": np.array('{"moved": -1}')}, "stats' moved is -1, not a count"),
+        "a stat not finite": ({"stats": np.array('{"seconds": NaN}')}, "stats' seconds is nan, not a count"),
         "decodes not per image": ({"stats": np.array('{"decoded_by_image": {"x": 1}}')}, "stats"),
     }
 
