@@ -249,6 +249,14 @@ def _notes(exc: BaseException) -> str:
     return "".join(f"; {' '.join(str(n).split())}" for n in getattr(exc, "__notes__", ()))
 
 
+def _what_was_written(exc: BaseException) -> str:
+    """What a signal's line says of the files: nothing written, or (after a commit, which the
+    exception's note names) that the run was done."""
+    if getattr(exc, "output_written", False):
+        return "it came after the commit"
+    return "working files removed, nothing was written to the input"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; return the process exit code: 0 ok, 1 failed run or internal error (any
     exception that is not a :class:`~colmap_miho.errors.UserError`, e.g. a plain ``ValueError``
@@ -297,10 +305,10 @@ def main(argv: list[str] | None = None) -> int:
     except Terminated as exc:
         code, what = _FORCED_EXITS.get(getattr(exc, "signum", signal.SIGTERM), _FORCED_EXITS[signal.SIGTERM])
         with contextlib.suppress(OSError, ValueError):  # SIGHUP: the terminal may be gone
-            log.error("%s; working files removed, nothing was written to the input%s", what, _notes(exc))
+            log.error("%s; %s%s", what, _what_was_written(exc), _notes(exc))
         return code
     except KeyboardInterrupt as exc:
-        log.error("interrupted; working files removed, nothing was written to the input%s", _notes(exc))
+        log.error("interrupted; %s%s", _what_was_written(exc), _notes(exc))
         return 130
     except (OSError, sqlite3.Error, MemoryError) as exc:
         # disk full, read-only folder, a truncated or corrupt file: one line, not a traceback

@@ -143,7 +143,7 @@ def _coerce(value, annotation, where: str):
             return True
         if text in ("0", "false", "no", "off"):
             return False
-        raise InvalidInput(f"{where}: expected true or false, got {value!r}")
+        raise InvalidInput(f"{where}: expected true or false, got {_shown(value)}")
     if annotation is int:
         # an integer literal only ("1e3" is a float, as 2.5 is), parsed exactly (no trip through float)
         if isinstance(value, int) and not isinstance(value, bool):
@@ -151,14 +151,14 @@ def _coerce(value, annotation, where: str):
         try:
             return int(str(value).strip()) if isinstance(value, str) else _not_an_integer(value, where)
         except ValueError:
-            raise InvalidInput(f"{where}: expected an integer, got {value!r}") from None
+            raise InvalidInput(f"{where}: expected an integer, got {_shown(value)}") from None
     if annotation is float:
         if isinstance(value, bool):
-            raise InvalidInput(f"{where}: expected a number, got {value!r}")
+            raise InvalidInput(f"{where}: expected a number, got {_shown(value)}")
         try:
             return float(value)
         except (TypeError, ValueError):
-            raise InvalidInput(f"{where}: expected a number, got {value!r}") from None
+            raise InvalidInput(f"{where}: expected a number, got {_shown(value)}") from None
     if isinstance(annotation, type) and issubclass(annotation, Enum):
         return annotation.parse(value, where)  # type: ignore[attr-defined]
     if annotation is str:
@@ -170,8 +170,15 @@ def _coerce(value, annotation, where: str):
     return value
 
 
+def _shown(value, most: int = 60) -> str:
+    """``repr(value)`` for a message, at most about ``most`` characters (a 5,000-digit value
+    filled the terminal)."""
+    text = repr(value)
+    return text if len(text) <= most else f"{text[:most]}... ({len(text)} characters)"
+
+
 def _not_an_integer(value, where: str):
-    raise InvalidInput(f"{where}: expected an integer, got {value!r}")
+    raise InvalidInput(f"{where}: expected an integer, got {_shown(value)}")
 
 
 def _build_section(section: str, values: dict, base=None):

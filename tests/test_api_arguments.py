@@ -178,6 +178,26 @@ def test_refine_pair_names_a_bad_input(args, message):
         cm.refine_pair(*args, ONE)
 
 
+@pytest.mark.parametrize("config", ["ncc", {"move": "1"}, cm.FilterConfig()])
+def test_refine_pair_names_a_config_of_another_type(config):
+    """(an AttributeError on ``config.move``)"""
+    with pytest.raises(InvalidInput, match="config must be an NCCConfig, got "):
+        cm.refine_pair(IMG, IMG, [[5.0, 5.0]], [[5.0, 5.0]], ONE, config=config)
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"config": "x"}, "config must be a Recipe, an NCCConfig, a TrackConfig or a tuple .* got str"),
+    ({"config": (1, 2)}, "the NCC config must be an NCCConfig, got int"),
+    ({"config": (cm.NCCConfig(),)}, "got 1 items"),
+    ({"ncc_config": cm.FilterConfig()}, "the NCC config must be an NCCConfig, got FilterConfig"),
+    ({"track_config": cm.NCCConfig()}, "the track config must be a TrackConfig, got NCCConfig"),
+])
+def test_refine_tracks_names_a_config_of_another_type(kwargs, message):
+    """(a config of another type was silently replaced by the defaults, or an AttributeError)"""
+    with pytest.raises(InvalidInput, match=message):
+        cm.refine_tracks({1: IMG}, {1: np.zeros((1, 2))}, {}, {}, **kwargs)
+
+
 @pytest.mark.parametrize(("args", "message"), [((None, 5), "overrides must be a list"),
                                                ((5,), "recipe must be a recipe name"),
                                                ((None, "filter.t_l=3"), "overrides must be a list")])

@@ -140,3 +140,14 @@ def test_integers_are_integer_literals_and_numbers_keep_their_digits(override, m
     with pytest.raises(ValueError, match=message):
         load_recipe(None, [override])
     assert load_recipe(None, ["filter.max_iters= 1000 "]).filter.max_iters == 1000
+
+
+@pytest.mark.parametrize(("key", "value"), [("filter.max_iters", "9" * 5000), ("filter.max_iters", "1." + "5" * 5000),
+                                          ("filter.t_l", "x" * 5000), ("filter.rotation_fix", "y" * 5000)],
+                         ids=["huge integer", "long float", "long text", "long bool"])
+def test_a_very_long_value_is_shown_cut_short(key, value):
+    """(the whole 5,000-character value was echoed in the error line)"""
+    with pytest.raises(ValueError) as err:
+        load_recipe(None, [f"{key}={value}"])
+    assert len(str(err.value)) < 300 and "characters)" in str(err.value), str(err.value)[:300]
+

@@ -46,7 +46,10 @@ def read_image(path: str | Path, *, gray8: bool = False) -> np.ndarray | None:
     data = np.fromfile(p, dtype=np.uint8)
     if data.size == 0:
         return None
-    return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if gray8 else cv2.IMREAD_UNCHANGED)
+    try:
+        return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if gray8 else cv2.IMREAD_UNCHANGED)
+    except cv2.error:  # e.g. a file of 2 GB or more: no decoder takes it
+        return None
 
 
 def read_gray_float(path: str | Path) -> np.ndarray | None:
@@ -168,6 +171,12 @@ def header_size(path: str | Path) -> tuple[int, int] | None:
             with Image.open(path) as im:
                 return int(im.width), int(im.height)
     except Exception:  # noqa: BLE001 - not a format Pillow reads: the decoder decides
+        import cv2
+
+        # only a file whose first bytes OpenCV knows is decoded: a video or an archive among the
+        # images was read whole into memory (2 GB and more: a cv2.error)
+        if not cv2.haveImageReader(str(path)):
+            return None
         img = read_image(path)
         return None if img is None else (int(img.shape[1]), int(img.shape[0]))
 

@@ -113,6 +113,13 @@ def disk_full_error(folder: Path, what: str, exc: BaseException | None = None) -
                      "and the working files were removed: free some space and retry")
 
 
+def device_full_error(device: str | os.PathLike, exc: OSError) -> RunFailed:
+    """The one line for a character device that is full (``/dev/full``): it has no folder
+    with free space to tell."""
+    return RunFailed(f"disk full while writing {device} ({exc.strerror or exc}); nothing was written under the "
+                     "output name and the working files were removed: write it elsewhere or retry")
+
+
 def write_target(path: str | os.PathLike) -> Path:
     """The file that writing ``path`` should replace: a symlink's target (the link is kept and
     shows the new content), else ``path`` itself."""
@@ -217,10 +224,21 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
         UserError: a missing or read-only folder; a target that is not a regular file.
     """
     check_output_path(path)
-    device = output_kind(path) == CHARACTER_DEVICE
-    target = write_target(path)
-    if device:  # stage beside the caller's path: /dev is not writable by everyone
-        target = Path(tempfile.gettempdir()) / Path(path).name
+    if output_kind(path) == CHARACTER_DEVICE:
+        # staged in a folder of our own in $TMPDIR (/dev is not writable by everyone), which the
+        # next run removes should a kill -9 leave it
+        with private_tempdir(DEVICE_STAGING_PREFIX, own_failures=False) as folder:
+            with _staged(path, folder / Path(path).name, True, expected_size) as tmp:
+                yield tmp
+        return
+    with _staged(path, write_target(path), False, expected_size) as tmp:
+        yield tmp
+
+
+@contextlib.contextmanager
+def _staged(path: str | os.PathLike, target: Path, device: bool, expected_size):
+    """:func:`staged_write` onto ``target`` (``device``: a staging name for writing through
+    into the character device ``path``)."""
     tmp = new_staging_name(target)
     WORKING_FILES.add(tmp)
     try:
@@ -232,7 +250,12 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
                 raise disk_full_error(target.parent, f"writing {target} ({exc})") from None
             check_written(tmp, target, expected)
             if check_output_path(path) == CHARACTER_DEVICE:  # looked at again: it may have changed
-                write_through(tmp, path)
+                try:
+                    write_through(tmp, path)
+                except OSError as exc:
+                    if is_disk_full(exc):  # the device's, not the staging folder's
+                        raise device_full_error(path, exc) from None
+                    raise
                 return
             if device:
                 raise UserError(f"{path} changed from a character device to a file during the run; nothing "
@@ -395,10 +418,12 @@ def private_tempdir(prefix: str, parent: str | os.PathLike | None = None, *, own
         WORKING_FILES.discard(path)
 
 
+#: The folder in which :func:`staged_write` stages a file written through into a character device.
+DEVICE_STAGING_PREFIX = "colmap_miho_device_"
 #: The prefixes of the folders this package makes in ``$TMPDIR`` with :func:`private_tempdir`
 #: (the map and import folders go beside their output instead).
-TMPDIR_PREFIXES = ("miho-global-", "colmap_miho_check_", "colmap_miho_report_", "colmap_miho_cmp_",
-                   "colmap-miho-export-", "miho-mp-", "colmap_miho_dask_")
+TMPDIR_PREFIXES = (DEVICE_STAGING_PREFIX, "miho-global-", "colmap_miho_check_", "colmap_miho_report_",
+                   "colmap_miho_cmp_", "colmap-miho-export-", "miho-mp-", "colmap_miho_dask_")
 
 
 def sweep_stale_tempdirs(parent: str | os.PathLike | None = None) -> None:

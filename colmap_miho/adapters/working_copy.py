@@ -8,7 +8,6 @@ from __future__ import annotations
 import logging
 import os
 import stat
-import tempfile
 from pathlib import Path
 
 from ..errors import DatabaseError, RunFailed, UserError
@@ -32,12 +31,12 @@ from .staged_write import (
     CHARACTER_DEVICE,
     check_output_path,
     check_written,
+    device_full_error,
     disk_full_error,
     file_too_large,
     is_disk_full,
     new_staging_name,
     write_target,
-    write_through,
 )
 
 log = logging.getLogger(__name__)
@@ -122,6 +121,7 @@ class WorkingCopy:
         self.committed = False
         self._identity: tuple | None = None
         self._side: list[tuple[Path, Path]] = []
+        self._devices: list[tuple[bytes, Path]] = []  # what is written through a character device
 
     def __enter__(self) -> WorkingCopy:
         check_not_in_use(self.database)
@@ -165,17 +165,20 @@ class WorkingCopy:
         before anything is replaced, and no side file describes a result that was not
         committed). A symlink ``path`` keeps its link: its target is replaced. A character device
         is written through at commit, never replaced, right before the database is moved (a
-        stream cannot be taken back, and a device that fails, ``/dev/full``, then commits nothing).
+        stream cannot be taken back, and a device that fails, ``/dev/full``, then commits nothing);
+        its text waits in memory (a staged file would be one more file for a ``kill -9`` to leave).
 
         Raises:
             UserError: the file cannot be written (missing or read-only folder, disk full), or
                 ``path`` is a FIFO, socket, block device or folder.
         """
-        device = check_output_path(path) == CHARACTER_DEVICE  # a FIFO, a socket ...: refused here
-        target = write_target(path)
-        if device:  # staged elsewhere, written through at commit
-            target = Path(tempfile.gettempdir()) / Path(path).name
         data = text.encode("utf-8")
+        if check_output_path(path) == CHARACTER_DEVICE:  # a FIFO, a socket ...: refused here
+            # kept in memory, written through at commit: no file of ours anywhere meanwhile (one
+            # staged in $TMPDIR outlived a kill -9, and nothing would ever remove it)
+            self._devices.append((data, Path(path)))
+            return
+        target = write_target(path)
         try:
             tmp = new_staging_name(target)
         except UserError as exc:
@@ -189,7 +192,7 @@ class WorkingCopy:
             why = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
             raise UserError(f"cannot write {target}: {why}; nothing was replaced") from None
         os.chmod(tmp, 0o666 & ~current_umask())
-        self._side.append((tmp, Path(path) if device else target))
+        self._side.append((tmp, target))
 
     def commit(self) -> Path:
         """Check again, then atomically move the working copy onto the output; returns it.
@@ -237,25 +240,24 @@ class WorkingCopy:
         return self.output
 
     def _write_devices(self) -> None:
-        """Write the side files staged for a character device through into it (and drop them).
+        """Write the text staged for a character device through into it (and drop it).
 
         Raises:
             RunFailed: the device is full (``/dev/full``), named.
             UserError: it cannot be written otherwise.
         """
-        for tmp, target in list(self._side):
-            if check_output_path(target) != CHARACTER_DEVICE:
-                continue
+        for data, target in list(self._devices):
+            if check_output_path(target) != CHARACTER_DEVICE:  # looked at again: a FIFO is refused there
+                raise UserError(f"{target} changed from a character device to a file during the run; nothing was "
+                                "replaced: run again")
             try:
-                write_through(tmp, target)
+                with open(target, "wb") as fh:
+                    fh.write(data)
             except OSError as exc:
-                if is_disk_full(exc):  # a device has no folder with free space to tell
-                    raise RunFailed(f"disk full while writing {target} ({exc.strerror or exc}); nothing was written "
-                                    "under the output name and the working files were removed: write it "
-                                    "elsewhere or retry") from None
+                if is_disk_full(exc):
+                    raise device_full_error(target, exc) from None
                 raise UserError(f"cannot write {target}: {exc.strerror or exc}; nothing was replaced") from None
-            tmp.unlink()
-            self._side.remove((tmp, target))
+            self._devices.remove((data, target))
 
     def _check_input_unchanged(self) -> None:
         if self.path is None:

@@ -104,7 +104,12 @@ def run(args: argparse.Namespace) -> int:
         restart=args.restart, dask=args.dask,
     )
     if not args.quiet:
+        from ..pipeline.run import note_output_written
         from ..terminal import printable_fields
 
-        print(printable_fields(summary).format())  # image names are data: no raw control characters
+        try:
+            print(printable_fields(summary).format())  # image names are data: no raw control characters
+        except BaseException as exc:  # Ctrl-C while printing: the output is written all the same
+            note_output_written(exc, summary)
+            raise
     return 0

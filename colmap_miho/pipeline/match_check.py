@@ -149,14 +149,16 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
     if cfg.mode != MatchCheckMode.REMOVE or not stats.used:
         return NO_VERDICTS, stats
     filtered = store.load_filtered()
-    pairs = {(p.image_id1, p.image_id2) for p in db.pairs(source)}
+    known = {(p.image_id1, p.image_id2) for p in db.pairs(source)}
 
-    def size(p: Pair) -> int:  # the matches the check judged: the kept ones, or the database's (a repeat once)
-        if p in filtered:
-            return int(np.count_nonzero(filtered[p][1].inliers))
-        return len(db.matches(p[0], p[1], source)) if p in pairs else -1
+    def judged_rows(pair: Pair) -> int:
+        """The matches the verdict on ``pair`` was made on: a filtered pair's kept ones, another
+        pair's as read (a repeated row once, not its row count), -1 for no pair of the run."""
+        if pair in filtered:
+            return int(np.count_nonzero(filtered[pair][1].inliers))
+        return len(db.matches(pair[0], pair[1], source)) if pair in known else -1
 
-    if any(len(f) != size(p) for p, f in failed.items() if p not in wrong):
+    if any(len(f) != judged_rows(p) for p, f in failed.items() if p not in wrong):
         raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its verdicts do not fit the stored pairs")
     judged = {p: f for p, f in failed.items() if p not in wrong}
     # a pair written back unchanged keeps COLMAP's model where the check removed nothing from it

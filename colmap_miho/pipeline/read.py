@@ -14,6 +14,7 @@ from ..adapters.images import ImageLoader
 from ..enums import MatchSource
 from ..errors import DatabaseError, UserError
 from ..pipeline_config import PipelineConfig
+from ..terminal import printable
 from ..types import Pair
 
 log = logging.getLogger(__name__)
@@ -108,12 +109,13 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
         missing = loader.check_all(inspect=_plausibility_check(db, keypoints, names, loader, implausible))
         missing_names = [names[i] for i in missing]
         if missing and cfg.strict:
-            raise UserError(f"image {loader.path(missing[0])} is {loader.problems[missing[0]]} (--strict)"
+            raise UserError(f"image {printable(loader.path(missing[0]))} is {loader.problems[missing[0]]} (--strict)"
                             + (f"; and {len(missing) - 1} more" if len(missing) > 1 else "")
                             + "; fix it, or drop --strict to skip it")
         if missing and len(missing) == len(images):
             raise UserError(f"none of the {len(images)} images of {cfg.database_name} can be used from "
-                            f"{cfg.image_dir} (e.g. {loader.path(missing[0])} is {loader.problems[missing[0]]}); "
+                            f"{cfg.image_dir} (e.g. {printable(loader.path(missing[0]))} is "
+                            f"{loader.problems[missing[0]]}); "
                             "check --images, or pass --no-refine to filter only")
     stats = ReadStats(num_images=len(images), num_pairs=len(pairs),
                       pairs_passed=len(pairs) - len(to_filter), matches_in=sum(p.num_matches for p in pairs),

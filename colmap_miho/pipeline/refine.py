@@ -63,7 +63,8 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
     ncfg = dataclasses.replace(recipe.ncc, device=Device(device)) if recipe.ncc.device == "auto" else recipe.ncc
     budget = recipe.pipeline.image_budget_bytes(runner.slots)
     # the groups are numbered for one image budget: stored groups of another are walked again
-    done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": group_max_matches()})
+    done = store.refine_groups({"image_budget_bytes": budget, "group_max_matches": group_max_matches()},
+                               read.loader.expected_sizes)
     new_keypoints, stats, used = walk_groups(
         read.loader, read.keypoints, usable, read_affines(db, read.keypoints), ncfg, recipe.tracks,
         unrefined={k: m for k, m in output_matches(db, ok, recipe.pipeline.source, verdicts).items()

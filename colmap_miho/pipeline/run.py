@@ -33,10 +33,13 @@ COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
+import signal
 import sqlite3
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -196,6 +199,7 @@ def refine_database(
                    {"--output": None if in_place else wc.output, "--json": json_path})
     if json_path:
         _check_writable_file(Path(json_path), "--json")
+        _refuse_inside_run_folder(Path(json_path), store_folder(wc.output))
     store = RunStore.open(store_folder(wc.output), run_fingerprint(database, image_dir, rec, seed, dev),
                           resume=resume, restart=restart)
     resumed = store.has_work()
@@ -220,9 +224,46 @@ def refine_database(
         if _keep_store(store):
             _add_note(exc, _resume_hint(store))
         raise
-    store.remove()
-    log.info("wrote %s", summary.output)
+    try:  # the output is committed: a signal from here on finds the run done
+        with _signals_held():
+            store.remove()
+        log.info("wrote %s", summary.output)
+    except BaseException as exc:
+        note_output_written(exc, summary)
+        raise
     return summary
+
+
+def note_output_written(exc: BaseException, summary: RefineSummary) -> None:
+    """Mark ``exc`` (a signal, an error) raised after the commit: the output is complete, which
+    the CLI's line says instead of "nothing was written to the input"
+    (``exc.output_written``)."""
+    in_place = f" (refined in place; its backup: {summary.backup})" if summary.backup else ""
+    _add_note(exc, f"{summary.output} was written{in_place} before that and is complete: nothing is left to resume")
+    exc.output_written = True  # type: ignore[attr-defined]
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Hold Ctrl-C, SIGTERM and SIGHUP for the block (their Python handlers, in the main thread):
+    the run store is removed whole, and a signal sent meanwhile is served right after it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    handlers = {}
+    for name in ("SIGINT", "SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is not None and callable(handler := signal.getsignal(sig)):  # SIG_IGN, SIG_DFL as they are
+            handlers[sig] = handler
+            signal.signal(sig, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+        if held:
+            handlers[held[0]](held[0], None)  # served now (raises, as it would have)
 
 
 def _keep_store(store: RunStore) -> bool:
@@ -318,17 +359,39 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
 
 
 def _check_writable_file(path: Path, label: str) -> None:
-    """Refuse, before any work, an output file whose folder is missing or read-only.
+    """Refuse, before any work, an output file whose folder is missing or read-only: the folder
+    of the file written, a symbolic link's target's (the link is kept). A character device
+    (``/dev/stdout``) is written through, in no folder: its own (``/dev``) is not looked at.
 
     Raises:
         UserError: the message names the option and the path.
     """
-    if path.is_dir():
+    from ..adapters.staged_write import CHARACTER_DEVICE, output_kind, write_target
+
+    if output_kind(path) == CHARACTER_DEVICE:
+        return
+    target = write_target(path)
+    via = f" (the target of the symbolic link {path})" if target != path else ""
+    if target.is_dir():
         raise UserError(f"{label} {path} is a folder; give a file name")
-    if not path.parent.is_dir():
-        raise UserError(f"{label} folder does not exist: {path.parent}")
-    if not os.access(path.parent, os.W_OK | os.X_OK):
-        raise UserError(f"{label} {path}: cannot write in {path.parent} (read-only folder)")
+    if not target.parent.is_dir():
+        raise UserError(f"{label} folder does not exist: {target.parent}{via}")
+    if not os.access(target.parent, os.W_OK | os.X_OK):
+        raise UserError(f"{label} {target}{via}: cannot write in {target.parent} (read-only folder)")
+
+
+def _refuse_inside_run_folder(path: Path, folder: Path) -> None:
+    """Refuse ``--json`` inside the run folder ``folder``: it is removed after the commit (a
+    ``manifest.json`` there went with it, the run saying it was written).
+
+    Raises:
+        UserError: naming the option, the path and the folder.
+    """
+    from ..adapters.paths import resolve
+
+    if resolve(folder) in resolve(path).parents:
+        raise UserError(f"--json {path} is inside the run folder {folder}, which is removed when the run ends; "
+                        "choose a path outside it")
 
 
 class _Laps:

@@ -45,7 +45,7 @@ import logging
 import os
 import re
 import secrets
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -105,6 +105,9 @@ def check_no_links(folder: Path) -> None:
         raise UserError(f"the run folder {folder} is a symbolic link (to {os.readlink(folder)}); a run keeps its "
                         "work only in a folder of its own and never follows a link there: remove the link "
                         "or choose another --output")
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"{folder} is a file, not the run folder a run keeps its work in (it is never replaced): "
+                        "remove it or choose another --output")
     if not folder.is_dir():
         return
     for p in folder.iterdir():
@@ -435,9 +438,12 @@ class RunStore:
         return out
 
     # -- refine groups -----------------------------------------------------------------------
-    def refine_groups(self, plan_key: dict) -> dict[int, GroupResult]:
+    def refine_groups(self, plan_key: dict, image_sizes: Mapping[int, tuple[int, int]] | None = None
+                      ) -> dict[int, GroupResult]:
         """The stored refine groups, when they were made under ``plan_key`` (the refine stage's
-        grouping depends on it); otherwise they are dropped and ``plan_key`` recorded."""
+        grouping depends on it); otherwise they are dropped and ``plan_key`` recorded. Each
+        group's positions are checked against ``image_sizes`` (image id -> (width, height)
+        pixels) when given (:func:`~.store_checks.check_group`)."""
         plan_key = json.loads(json.dumps(plan_key, default=str))
         files = self._files(_GROUP_FILE)
         if self.manifest.get("refine_plan") != plan_key:
@@ -449,7 +455,8 @@ class RunStore:
             self.manifest = dict(self.manifest, refine_plan=plan_key)
             _atomic_write_text(self.folder / MANIFEST, json.dumps(self.manifest, indent=1) + "\n")
             return {}
-        return {index: check_group(self._read(path), path, self._num_keypoints) for index, path in files}
+        return {index: check_group(self._read(path), path, self._num_keypoints, image_sizes)
+                for index, path in files}
 
     def group_path(self, index: int) -> Path:
         """The file of refine group ``index``."""
@@ -488,7 +495,7 @@ class RunStore:
         arrays = self._read(path)
         try:
             meta = json.loads(str(stored_array(arrays, "meta", path)))
-        except ValueError as exc:  # not JSON
+        except (ValueError, RecursionError) as exc:  # not JSON, or nested past reading
             raise StoreDamaged(path, exc) from None
         if not isinstance(meta, dict):
             raise StoreDamaged(path, "its meta is not a JSON object")

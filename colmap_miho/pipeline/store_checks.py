@@ -22,8 +22,10 @@ is read back only through these checks, and one that fails is :class:`StoreDamag
 from __future__ import annotations
 
 import json
+import math
 import zipfile
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -94,7 +96,7 @@ def read_manifest(path: Path) -> dict:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise StoreDamaged(path, "it is missing") from None
-    except (OSError, ValueError) as exc:  # truncated, overwritten, unreadable
+    except (OSError, ValueError, RecursionError) as exc:  # truncated, overwritten, unreadable, nested past reading
         raise StoreDamaged(path, getattr(exc, "strerror", None) or exc) from None
     if not isinstance(manifest, dict):
         raise StoreDamaged(path, f"it is {_json_type(manifest)}, not a JSON object")
@@ -212,9 +214,19 @@ def _is_count(value: object) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
-def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, int] | None) -> GroupResult:
+#: Pixels a moved keypoint may lie outside its image: a refinement moves a keypoint by less than
+#: its NCC window (template + search radius, at most 64 px), from at most
+#: :data:`~colmap_miho.adapters.conventions.KEYPOINT_MARGIN_PX` outside; farther, a stored
+#: position is forged (written as it is, ``1e300`` would be an infinite keypoint in the output).
+MOVED_MARGIN_PX = 64.0
+
+
+def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, int] | None,
+                image_sizes: Mapping[int, tuple[int, int]] | None = None) -> GroupResult:
     """A refine group's arrays checked against each other and, when given, the images'
-    ``num_keypoints``; returns (moved, stats)."""
+    ``num_keypoints`` and sizes ``image_sizes`` (image id -> (width, height) pixels; 0: unknown,
+    not checked): each position within :data:`MOVED_MARGIN_PX` of its image; returns (moved,
+    stats)."""
     ids = check_array(z, "image_ids", path, "iu", (None,))
     idx = check_array(z, "idx", path, "iu", (None,))
     xy = check_array(z, "xy", path, "f", (len(idx), 2))
@@ -225,7 +237,7 @@ def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, i
         raise StoreDamaged(path, "its positions xy are not all finite")
     try:
         stats = json.loads(str(stored_array(z, "stats", path)))
-    except ValueError as exc:
+    except (ValueError, RecursionError) as exc:  # not JSON, or nested past reading
         raise StoreDamaged(path, f"its stats are not JSON ({exc})") from None
     if not isinstance(stats, dict):
         raise StoreDamaged(path, f"its stats are {_json_type(stats)}, not an object")
@@ -235,6 +247,8 @@ def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, i
                 raise StoreDamaged(path, f"its stats' {key} is not image id -> count")
         elif not _is_number(value):
             raise StoreDamaged(path, f"its stats' {key} is {_json_type(value)}, not a number")
+        elif not (math.isfinite(value) and value >= 0):  # counters and seconds: the summary adds them up
+            raise StoreDamaged(path, f"its stats' {key} is {value}, not a count")
     moved: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     start = 0
     for image_id, size in zip(ids.tolist(), sizes.tolist(), strict=True):
@@ -248,5 +262,19 @@ def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, i
         if size and n is not None and idx[rows].max() >= n:
             raise StoreDamaged(path, f"it moves keypoint {idx[rows].max()} of image {image_id}, which has {n} "
                                      "keypoints")
+        _check_inside(xy[rows], (image_sizes or {}).get(image_id), image_id, path)
         moved[image_id] = (idx[rows], xy[rows])
     return moved, stats
+
+
+def _check_inside(xy: np.ndarray, size: tuple[int, int] | None, image_id: int, path: Path) -> None:
+    """Refuse positions ``(K, 2)`` (pixel centres at integers) farther than
+    :data:`MOVED_MARGIN_PX` outside an image of ``size`` (width, height; None or 0: unknown)."""
+    if not len(xy) or not size or not (size[0] and size[1]):
+        return
+    lo, hi = -0.5 - MOVED_MARGIN_PX, np.array(size, np.float64) - 0.5 + MOVED_MARGIN_PX
+    bad = ((xy < lo) | (xy > hi)).any(axis=1)
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        raise StoreDamaged(path, f"it moves a keypoint of image {image_id} to ({xy[k, 0]:g}, {xy[k, 1]:g}), outside "
+                                 f"the {size[0]}x{size[1]} image")

@@ -68,12 +68,20 @@ def init_worker() -> None:
 
 
 def _pid_alive(pid: int) -> bool:
-    """Whether ``pid`` is a live process of ours (another user's: the pid was reused)."""
+    """Whether ``pid`` is a live process of ours (another user's: the pid was reused). A zombie
+    is not: a parent killed by SIGKILL (the OOM killer) stays one until whoever started it
+    reaps it, and a script that reads its output reaps it only once the pipes close, which the
+    workers, holding them, never did: both waited for ever."""
     try:
         os.kill(pid, 0)
     except OSError:
         return False
-    return True
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            state = fh.read().rpartition(b")")[2].split()[:1]
+    except OSError:  # no /proc (macOS): the signal test alone
+        return True
+    return state not in ([b"Z"], [b"X"])
 
 
 def _watch_parent(parent_pid: int, ppid: int) -> None:

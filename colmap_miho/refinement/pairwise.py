@@ -192,6 +192,8 @@ def refine_pair(
         ValueError: on malformed inputs (shapes, dtypes, device).
     """
     t0 = time.perf_counter()
+    if config is not None and not isinstance(config, NCCConfig):
+        raise InvalidInput(f"config must be an NCCConfig, got {type(config).__name__}")
     cfg = config if config is not None else NCCConfig.pairwise()
     side = MoveSide.parse(cfg.move if move is None else move, "move")
     inp = pair_inputs(pts1, pts2, patch_homographies, affine1, affine2)

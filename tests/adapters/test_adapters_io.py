@@ -77,6 +77,43 @@ def test_read_image_sizes_and_missing_files(image_files, tmp_path):
             read_gray_uint8(bad)
 
 
+def test_folder_sizes_never_decode_a_file_no_image_decoder_knows(image_files, tmp_path, monkeypatch):
+    """``run``'s size check read a video among the images whole into memory to decode it (2 GB
+    and more: a cv2.error, "unexpected"): only a file whose first bytes name an image format is
+    decoded."""
+    import os
+    import shutil
+
+    from colmap_miho.adapters import images
+
+    paths, _ = image_files
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    shutil.copy(paths["png"], folder / "a.png")
+    (folder / "clip.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(1000))
+    (folder / "notes.txt").write_text("not an image")
+    decoded: list[str] = []
+    read = images.read_image
+
+    def reading(path, **kwargs):
+        decoded.append(os.path.basename(path))
+        return read(path, **kwargs)
+
+    monkeypatch.setattr(images, "read_image", reading)
+    assert images.folder_image_sizes(folder) == {"a.png": (53, 37)}
+    assert decoded == []
+
+
+def test_read_image_of_a_file_the_decoder_refuses_is_none(image_files, monkeypatch):
+    import cv2
+
+    def refuse(*args, **kwargs):
+        raise cv2.error("(-215:Assertion failed) buf.checkVector(1, CV_8U) > 0 in function 'imdecode_'")
+
+    monkeypatch.setattr(cv2, "imdecode", refuse)
+    assert read_image(image_files[0]["png"]) is None
+
+
 # --------------------------------------------------------------------------- new databases
 def test_create_refuses_an_existing_path(tmp_path):
     existing = tmp_path / "x.db"

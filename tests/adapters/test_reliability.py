@@ -261,6 +261,31 @@ def test_workers_die_with_a_killed_parent(tmp_path):
             proc.wait()
 
 
+def test_workers_die_with_a_killed_parent_nobody_has_reaped(tmp_path):
+    """A parent killed (SIGKILL: the OOM killer) stays a zombie until whoever started it reaps
+    it, and a script reading its output does so only once the pipes close, which the workers
+    hold: their watchdogs took the zombie for a live parent, and both waited for ever."""
+    import signal
+    import time
+
+    script = tmp_path / "orphans.py"
+    script.write_text(ORPHAN_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), str(REPO)], stdout=subprocess.PIPE, text=True)
+    try:
+        workers = [int(p) for p in proc.stdout.readline().split()]
+        assert len(workers) == 2 and all(_alive(p) for p in workers)
+        os.kill(proc.pid, signal.SIGKILL)  # not reaped: a zombie while the workers hold its stdout
+        deadline = time.monotonic() + ORPHAN_EXIT_S
+        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(_alive(p) for p in workers), "workers outlived their (zombie) parent"
+        assert proc.stdout.read() == ""  # the pipe closes: the reader is not held
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
+
+
 @pytest.mark.parametrize("in_place", [False, True])
 def test_sigterm_mid_write_cleans_up_like_ctrl_c(db, scene, tmp_path, in_place):
     import signal

@@ -148,3 +148,32 @@ def test_a_signal_a_callback_swallowed_is_said(monkeypatch, capfd, tmp_path):
     assert main(["report", "--model", str(tmp_path), "-q"]) == 0
     err = capfd.readouterr().err
     assert "arrived inside a compiled kernel, which lost it" in err and "output is complete" in err, err
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_a_signal_after_the_commit_says_the_output_was_written(db_copy, scene, tmp_path, capfd, monkeypatch,
+                                                                in_place):
+    """Ctrl-C while the run store is removed after the commit: the output is complete (in place:
+    the input was replaced, its backup kept), so the line must not say "nothing was written to the
+    input" (a rerun in place would refine it twice), nor leave the store for a --resume that fails
+    on the existing output."""
+    from colmap_miho.cli import main
+    from colmap_miho.pipeline.store import RunStore
+
+    remove = RunStore.remove
+
+    def interrupted(self):
+        os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C, as the commit is done
+        return remove(self)
+
+    monkeypatch.setattr(RunStore, "remove", interrupted)
+    before = db_copy.read_bytes()
+    out = db_copy if in_place else tmp_path / "out.db"
+    capfd.readouterr()
+    code = main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--no-refine",
+                 "--workers", "1", "-q", *(["--in-place"] if in_place else ["--output", str(out)])])
+    lines = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+    assert code == 130 and len(lines) == 1, lines
+    assert "nothing was written" not in lines[0] and f"{out} was written" in lines[0], lines
+    assert out.is_file() and not os.path.lexists(store_folder(out))
+    assert (db_copy.read_bytes() != before) == in_place

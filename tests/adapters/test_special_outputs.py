@@ -204,3 +204,109 @@ def test_refine_json_that_fails_after_the_commit_says_the_output_was_written(db_
     assert len(lines) == 1 and f"{out} was written" in lines[0] and str(summary) in lines[0], lines
     assert "--resume" not in lines[0] and "--overwrite" in lines[0]
     assert out.is_file() and not summary.exists() and not os.path.lexists(store_folder(out))
+
+
+def test_refine_json_to_a_device_in_a_folder_this_user_cannot_write(db_copy, scene, tmp_path, monkeypatch):
+    """A user who is not root cannot write in ``/dev``: ``--json /dev/stdout`` (written through,
+    never replaced) was refused as a read-only folder."""
+    real = os.access
+
+    def access(path, mode, *args, **kwargs):  # as for a user who is not root
+        return False if Path(path) == Path("/dev") and mode & os.W_OK else real(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(os, "access", access)
+    out = tmp_path / "out.db"
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                 "--json", "/dev/null", "--no-refine", "--workers", "1", "-q"]) == 0
+    assert out.is_file()
+
+
+def test_refine_json_to_a_device_stages_no_file_in_tmpdir(db_copy, scene, tmp_path, monkeypatch):
+    """The summary for a device waits in memory until the commit: a file staged in ``$TMPDIR``
+    outlived a ``kill -9`` there, and no later run removed it."""
+    import tempfile
+
+    from colmap_miho.adapters.working_copy import WorkingCopy
+
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmpdir))
+    seen: list[list[str]] = []
+    commit = WorkingCopy.commit
+
+    def looking(self):
+        seen.append(sorted(os.listdir(tmpdir)))  # what a kill -9 now would leave
+        return commit(self)
+
+    monkeypatch.setattr(WorkingCopy, "commit", looking)
+    out = tmp_path / "out.db"
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                 "--json", "/dev/null", "--no-refine", "--workers", "1", "-q"]) == 0
+    assert seen == [[]] and out.is_file() and not os.listdir(tmpdir)
+
+
+def test_refine_json_link_into_a_missing_folder_is_refused_before_any_work(db_copy, scene, tmp_path, capfd):
+    """A ``--json`` symbolic link whose target's folder is missing: refused at the start, naming
+    the link (the whole run was done first, then failed on it)."""
+    from colmap_miho.pipeline.store import store_folder
+
+    link = tmp_path / "s.json"
+    link.symlink_to(tmp_path / "nowhere" / "s.json")
+    out = tmp_path / "out.db"
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                 "--json", str(link), "--no-refine", "--workers", "1", "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "--json" in lines[0] and "nowhere" in lines[0] and str(link) in lines[0], lines
+    assert not out.exists() and not os.path.lexists(store_folder(out))
+
+
+def test_a_file_for_a_device_is_staged_where_the_next_run_sweeps(model, tmp_path, monkeypatch):
+    """``report --json /dev/null`` (``map``, ``export`` alike) stages the file in ``$TMPDIR``: in
+    a locked folder of ours, which the next command removes should a ``kill -9`` leave it (a bare
+    ``.null.*.tmp`` there stayed for ever)."""
+    import tempfile
+
+    from colmap_miho.adapters import staged_write
+
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmpdir))
+    seen: list[list[str]] = []
+    write_through = staged_write.write_through
+
+    def looking(tmp, device):
+        seen.append(sorted(os.listdir(tmpdir)))  # what a kill -9 now would leave
+        return write_through(tmp, device)
+
+    monkeypatch.setattr(staged_write, "write_through", looking)
+    assert main(["report", "--model", str(model), "--json", "/dev/null", "-q"]) == 0
+    assert seen and seen[0] and all(n.startswith(staged_write.TMPDIR_PREFIXES) for n in seen[0]), seen
+    assert not os.listdir(tmpdir)
+
+
+@pytest.mark.parametrize("name", ["manifest.json", "notes.json"])
+def test_refine_json_inside_the_run_folder_is_refused(name, db_copy, scene, tmp_path, capfd):
+    """The run folder is removed after the commit: ``--json`` there as ``manifest.json`` went
+    with it, exit 0 all the same."""
+    from colmap_miho.pipeline.store import store_folder
+
+    out = tmp_path / "out.db"
+    folder = store_folder(out)
+    folder.mkdir()
+    capfd.readouterr()
+    assert main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--output", str(out),
+                 "--json", str(folder / name), "--no-refine", "--workers", "1", "-q"]) == 2
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and "--json" in lines[0] and "inside the run folder" in lines[0], lines
+    assert not out.exists() and sorted(os.listdir(folder)) == []
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full here")
+def test_report_json_to_a_full_device_names_the_device(model, capfd):
+    """(the line named the staging folder in $TMPDIR, with its free space, as the full disk)"""
+    capfd.readouterr()
+    assert main(["report", "--model", str(model), "--json", "/dev/full", "-q"]) == 1
+    lines = error_lines(capfd.readouterr().err)
+    assert len(lines) == 1 and lines[0].startswith("ERROR: disk full while writing /dev/full"), lines
+    assert "colmap_miho_device_" not in lines[0] and "MB free" not in lines[0], lines

@@ -40,6 +40,21 @@ def test_a_name_with_control_characters_cannot_forge_a_line(db_copy, scene, tmp_
     assert escaped in out, out
 
 
+def test_an_error_line_names_a_hostile_image_as_the_warnings_do(db_copy, scene, tmp_path, capfd):
+    """``--strict`` and an image with a newline in its name missing: the error line escaped the
+    name as the warnings do (it showed ``a ERROR: forged.png``, the newline a space)."""
+    image_id = sql(db_copy, "SELECT image_id FROM images ORDER BY image_id LIMIT 1")[0][0]
+    sql(db_copy, "UPDATE images SET name = ? WHERE image_id = ?", "a" + FORGED + ".png", image_id)
+    capfd.readouterr()
+    code = main(["refine", "--database", str(db_copy), "--images", str(scene.image_dir), "--workers", "1",
+                 "--output", str(tmp_path / "out.db"), "--strict", "-q"])
+    err = capfd.readouterr().err
+    assert code == 2, err
+    _assert_not_forged(err)
+    line = [x for x in err.splitlines() if x.startswith("ERROR: ")][-1]
+    assert "a\\nERROR: forged line\\x1b[31m.png is missing" in line, line
+
+
 def test_printable_keeps_names_readable_and_escapes_controls():
     from colmap_miho.terminal import printable
 

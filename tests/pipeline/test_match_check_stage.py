@@ -350,3 +350,28 @@ def test_image_names_longer_than_a_file_name_do_not_switch_the_check_off(planted
     on = _run((long_db, images, planted), tmp_path / "on.db", "match_check.mode=remove")
     assert on["match_check"]["used"], on["match_check"]["reason"]
     assert on["match_check"]["matches_removed"] > 0
+
+
+def test_a_pair_with_repeated_rows_written_back_unchanged_is_judged(planted_db, tmp_path):
+    """A pair too small to filter whose matches repeat a row (counted once, as read): the
+    verdicts read back were checked against the row count, so every run (--restart too)
+    stopped on "the interrupted run's file stage-match_check.npz is damaged"."""
+    import shutil
+
+    db, images, _ = planted_db
+    copy = tmp_path / "db.db"
+    shutil.copy(db, copy)
+    with ColmapDatabase(copy) as cdb:
+        h = cdb.handle
+        pair_ids, tvgs = h.read_two_view_geometries()
+        i, j = pycolmap.pair_id_to_image_pair(pair_ids[0])
+        tvg = tvgs[0]
+        m = np.asarray(tvg.inlier_matches, np.uint32)
+        tvg.inlier_matches = np.concatenate([m, m[:1]])  # its first row twice
+        h.update_two_view_geometry(i, j, tvg)
+    with ColmapDatabase(copy) as cdb:
+        n_in = sum(p.num_matches for p in cdb.pairs("verified"))
+        assert len(cdb.matches(i, j, "verified")) == len(m)  # read once
+    on = _run((copy, images, None), tmp_path / "on.db", "match_check.mode=remove", "pipeline.min_matches=100000")
+    assert on["match_check"]["matches_removed"] > 0 and on["matches_in"] == n_in
+    assert on["matches_kept"] == sum(len(x) for x in _output_matches(tmp_path / "on.db").values())

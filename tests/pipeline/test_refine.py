@@ -115,11 +115,13 @@ def test_verify_reruns_colmap_verification(scene, tmp_path):
 
 
 def test_min_matches_passes_small_pairs_through(scene, tmp_path):
-    """The filter passes them; the match check, which judges them too, is off here."""
     s = refine_database(scene.database, scene.image_dir, tmp_path / "p.db",
                         recipe=load_recipe(None, ["pipeline.min_matches=100000", "pipeline.refine=false",
                                                   "match_check.mode=off"]))
-    assert s.pairs_passed == 6 and s.pairs_filtered == 0 and s.matches_kept == s.matches_in > 0
+    assert s.pairs_passed == 6 and s.pairs_filtered == 0
+    # every pair's rows kept as they are (the summary counts the pairs passed through too)
+    with ColmapDatabase(s.output) as db:
+        assert s.matches_kept == s.matches_in == sum(p.num_matches for p in db.pairs("verified"))
     assert _truth(scene, s.output) == _truth(scene, scene.database)
 
 

@@ -129,3 +129,12 @@ def test_refine_with_a_linked_store_folder_stops_with_one_line(tmp_path, capsys)
         assert len(lines) == 1 and str(store_folder(out)) in lines[0] and "symbolic link" in lines[0], lines
         assert _contents(victim) == before and not out.exists()
         assert sorted(p.name for p in out.parent.iterdir()) == [store_folder(out).name]  # no working copy left
+
+
+def test_a_file_in_place_of_the_store_folder_is_named(tmp_path):
+    """A file where the run folder belongs (it said only "File exists")."""
+    folder = store_folder(tmp_path / "o.db")
+    folder.write_text("mine")
+    with pytest.raises(UserError, match=rf"{folder} is a file, not the run folder.*remove it or choose another"):
+        RunStore.open(folder, FINGERPRINT)
+    assert folder.read_text() == "mine"

@@ -122,6 +122,29 @@ def test_a_manifest_without_run_id_is_a_damaged_store(tmp_path):
         RunStore.open(tmp_path, FINGERPRINT, resume=True)
 
 
+#: JSON nested deeper than Python's parser recurses (a RecursionError, "unexpected", at the CLI).
+DEEP = "[" * 100_000 + "]" * 100_000
+
+
+def test_a_manifest_nested_past_reading_is_a_damaged_store(tmp_path):
+    _store(tmp_path)
+    (tmp_path / "manifest.json").write_text(DEEP)
+    with _damaged(tmp_path, "manifest.json", "maximum recursion"):
+        RunStore.open(tmp_path, FINGERPRINT, resume=True)
+
+
+def test_stats_and_meta_nested_past_reading_are_a_damaged_store(tmp_path):
+    _store(tmp_path)
+    _forge(tmp_path, "group-000000.npz", stats=np.array(DEEP))
+    _forge(tmp_path, "stage-match_check.npz", meta=np.array(DEEP))
+    store = _resume(tmp_path)
+    with _damaged(tmp_path, "group-000000.npz", "its stats"):
+        store.refine_groups(PLAN)
+    with _damaged(tmp_path, "stage-match_check.npz", "maximum recursion"):
+        store.load_stage("match_check")
+    store.close()
+
+
 def test_work_without_a_manifest_is_a_damaged_store(tmp_path):
     _store(tmp_path)
     (tmp_path / "manifest.json").unlink()
@@ -202,6 +225,8 @@ def _group_forgeries():
         "stats not an object": ({"stats": np.array("[1, 2]")}, "stats"),
         "stats not JSON": ({"stats": np.array("{")}, "stats"),
         "a stat not a number": ({"stats": np.array('{"moved": "3"}')}, "stats"),
+        "a negative stat": ({"stats": np.array('{"moved": -1}')}, "stats' moved is -1, not a count"),
+        "a stat not finite": ({"stats": np.array('{"seconds": NaN}')}, "stats' seconds is nan, not a count"),
         "decodes not per image": ({"stats": np.array('{"decoded_by_image": {"x": 1}}')}, "stats"),
     }
 
@@ -214,6 +239,30 @@ def test_a_forged_refine_group_is_a_damaged_store(case, tmp_path):
     store = _resume(tmp_path)
     with _damaged(tmp_path, "group-000000.npz", f".*{why}"):
         store.refine_groups(PLAN)
+    store.close()
+
+
+#: Each image's (width, height) pixels.
+SIZES = {1: (640, 480), 2: (640, 480), 3: (0, 0)}  # image 3's size unknown: not checked
+
+
+@pytest.mark.parametrize("x", [1e300, -1e6, 640 + 100.0])
+def test_a_group_moving_a_keypoint_far_outside_its_image_is_a_damaged_store(x, tmp_path):
+    """A forged position (1e300 was written into the output as an infinite keypoint)."""
+    _store(tmp_path)
+    _forge(tmp_path, "group-000000.npz", xy=[[1.5, 1.5], [x, 2.0], [1.0, 1.0]])
+    store = _resume(tmp_path)
+    with _damaged(tmp_path, "group-000000.npz", ".*image 1 .*outside the 640x480 image"):
+        store.refine_groups(PLAN, SIZES)
+    store.close()
+
+
+def test_a_group_moving_a_keypoint_a_little_past_the_border_is_read_back(tmp_path):
+    _store(tmp_path)
+    _forge(tmp_path, "group-000000.npz", xy=[[-3.0, 1.5], [639.5 + 10, 479.5], [1e6, 1e6]])
+    store = _resume(tmp_path)
+    groups = store.refine_groups(PLAN, SIZES)
+    assert groups[0][0][1][1].tolist() == [[-3.0, 1.5], [649.5, 479.5]]
     store.close()
 
 

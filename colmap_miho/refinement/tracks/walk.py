@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from ...devices import resolve_device
+from ...errors import InvalidInput
 from ..config import NCCConfig, TrackConfig
 from ..warping import ImageStack, to_frame, to_gray_tensor
 from .build import build_track_plan, local_affine_of
@@ -87,17 +88,33 @@ class TrackRefineResult:
 
 def _resolve_configs(config: object, ncc_config: NCCConfig | None,
                      track_config: TrackConfig | None) -> tuple[NCCConfig, TrackConfig]:
+    """The NCC and track configs of :func:`refine_tracks`' arguments, each checked to be one
+    (a config of another type was silently replaced by the defaults, or an AttributeError).
+
+    Raises:
+        InvalidInput: naming the argument and the type given.
+    """
     ncc, trk = NCCConfig(), TrackConfig()
     if isinstance(config, tuple):
+        if len(config) != 2:
+            raise InvalidInput(f"config as a tuple must be (NCCConfig, TrackConfig), got {len(config)} items")
         ncc, trk = config
     elif isinstance(config, NCCConfig):
         ncc = config
     elif isinstance(config, TrackConfig):
         trk = config
     elif config is not None:
+        if not (hasattr(config, "ncc") or hasattr(config, "tracks")):
+            raise InvalidInput("config must be a Recipe, an NCCConfig, a TrackConfig or a tuple (NCCConfig, "
+                               f"TrackConfig), got {type(config).__name__}")
         ncc = getattr(config, "ncc", ncc)
         trk = getattr(config, "tracks", trk)
-    return (ncc_config or ncc), (track_config or trk)
+    ncc, trk = ncc_config or ncc, track_config or trk
+    if not isinstance(ncc, NCCConfig):
+        raise InvalidInput(f"the NCC config must be an NCCConfig, got {type(ncc).__name__}")
+    if not isinstance(trk, TrackConfig):
+        raise InvalidInput(f"the track config must be a TrackConfig, got {type(trk).__name__}")
+    return ncc, trk
 
 
 def refine_tracks(
