@@ -27,7 +27,6 @@ import socket
 import sqlite3
 import sys
 import threading
-import time
 
 from .errors import Terminated, UserError
 from .terminal import PrintableFormatter, printable
@@ -135,6 +134,8 @@ def _forced_exit_after_sigterm():
         yield
         return
 
+    ended = threading.Event()  # the command returned: nothing left to force
+
     def watch() -> None:
         while True:
             try:
@@ -146,16 +147,18 @@ def _forced_exit_after_sigterm():
             signum = next((int(b) for b in data if int(b) in _FORCED_EXITS), None)
             if signum is None:
                 continue
-            if not _SIGNAL_HANDLED.wait(TERM_GRACE_S):
+            if not _SIGNAL_HANDLED.wait(TERM_GRACE_S) and not ended.is_set():
                 _forced_exit(signum, "during a COLMAP call")  # the handler never ran: a C++ call holds it
-            time.sleep(TERM_CLEANUP_S)
-            _forced_exit(signum, f"and the clean-up did not end within {TERM_CLEANUP_S:.0f} s")
+            if not ended.wait(TERM_CLEANUP_S):
+                _forced_exit(signum, f"and the clean-up did not end within {TERM_CLEANUP_S:.0f} s")
+            return
 
     thread = threading.Thread(target=watch, name="sigterm-watch", daemon=True)
     thread.start()
     try:
         yield
     finally:
+        ended.set()
         signal.set_wakeup_fd(old_fd)
         wsock.close()
         with contextlib.suppress(OSError):

@@ -148,6 +148,13 @@ def test_a_signal_a_callback_swallowed_is_said(monkeypatch, capfd, tmp_path):
     assert main(["report", "--model", str(tmp_path), "-q"]) == 0
     err = capfd.readouterr().err
     assert "arrived inside a compiled kernel, which lost it" in err and "output is complete" in err, err
+    # the forced-exit watcher ends with the command: it once slept on and ended the caller 60 s later
+    import threading
+
+    deadline = time.monotonic() + 3
+    while any(t.name == "sigterm-watch" for t in threading.enumerate()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(t.name == "sigterm-watch" for t in threading.enumerate())
 
 
 @pytest.mark.parametrize("in_place", [False, True])
