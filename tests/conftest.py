@@ -36,10 +36,12 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(autouse=True)
 def _restore_package_logger():
     """``cli.main`` configures the ``colmap_miho`` logger like an application does (own handler,
-    no propagation); undo that after every test so caplog and later tests see log records."""
+    no propagation); every test starts with the library's own logger (a module-scoped fixture
+    that ran ``main`` would otherwise leave that behind), so that caplog sees log records."""
     import logging
 
     logger = logging.getLogger("colmap_miho")
-    saved = (list(logger.handlers), logger.level, logger.propagate)
+    logger.handlers[:] = [h for h in logger.handlers if isinstance(h, logging.NullHandler)]
+    logger.setLevel(logging.NOTSET)
+    logger.propagate = True
     yield
-    logger.handlers[:], logger.level, logger.propagate = saved[0], saved[1], saved[2]
