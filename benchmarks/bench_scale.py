@@ -78,6 +78,9 @@ class ChildRun:
         hwm_sum_mb: the sum of the per-process peaks, MiB: an upper bound of the tree's peak.
         samples: number of psutil samples taken.
         stderr_tail: the end of the child's stderr.
+        cpu_s: user + system CPU seconds of the child and the descendants it waited for
+            (``wait4``'s rusage): less sensitive than ``wall_s`` to other load on the machine.
+        loadavg: the machine's 1-minute load average when the child ended.
     """
 
     returncode: int
@@ -87,6 +90,8 @@ class ChildRun:
     hwm_sum_mb: float
     samples: int
     stderr_tail: str = ""
+    cpu_s: float = 0.0
+    loadavg: float = 0.0
 
 
 def _vm_hwm(pid: int) -> int:
@@ -154,7 +159,7 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
             t.start()
         deadline = None if timeout is None else t0 + timeout
         while True:
-            pid, status, _ = os.wait4(child.pid, os.WNOHANG)
+            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
             if pid:
                 break
             if deadline is not None and time.perf_counter() > deadline:
@@ -167,7 +172,7 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
             t.join(timeout=5)
     tail = b"".join(stderr_chunks).decode(errors="replace")[-2000:]
     return ChildRun(child.returncode, wall, peak / 2**20, max(hwm.values(), default=0) / 2**20,
-                    sum(hwm.values()) / 2**20, samples, tail)
+                    sum(hwm.values()) / 2**20, samples, tail, usage.ru_utime + usage.ru_stime, os.getloadavg()[0])
 
 
 def fit_power_law(x, y) -> tuple[float, float]:
@@ -398,6 +403,7 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
         "hwm_sum_mb": round(run.hwm_sum_mb, 1),
         "mc_peak_mb": (summary.get("match_check") or {}).get("peak_rss_mb"),
         "rss_samples": run.samples, "scene_info": scene.info,
+        "cpu_s": round(run.cpu_s, 1), "loadavg": round(run.loadavg, 2),
     }
     mc = summary.get("match_check") or {}
     if mc:
@@ -497,8 +503,8 @@ def fits(rows: list[dict]) -> dict:
 
 CHECK_COLUMNS = ("scene", "images", "pairs", "loops", "matches", "ends/img", "refine_s", "read", "filter",
                  "match_check", "mapper", "pair_rot", "refine", "write", "check_share", "rss_tree_mb", "hwm_max_mb",
-                 "correct_rm_%", "wrong_rm_%", "check_rm", "pairs_rm", "trusted", "rounds")
-CHECK_FIT_KEYS = ("refine_s", "read", "filter", "match_check", "mapper", "pair_rotations", "refine", "write",
+                 "correct_rm_%", "wrong_rm_%", "check_rm", "pairs_rm", "trusted", "rounds", "cpu_s", "loadavg")
+CHECK_FIT_KEYS = ("refine_s", "cpu_s", "read", "filter", "match_check", "mapper", "pair_rotations", "refine", "write",
                   "rss_tree_mb", "hwm_max_mb")
 
 
@@ -755,7 +761,9 @@ def write_check_report(rows: list[dict], args, extra: list[str], *, write_json: 
           f"refine + workers (psutil, {args.poll} s), hwm_max_mb = largest per-process peak (VmHWM); correct_rm_% / "
           "wrong_rm_% = verified matches in the input that are true / wrong correspondences (ground truth) and are "
           "not in the output; check_rm / pairs_rm = matches / pairs the check removed; trusted = images the check "
-          "trusted / images", "", check_table(rows), ""]
+          "trusted / images; cpu_s = CPU seconds of refine and its workers, loadavg = the machine's 1-minute load "
+          "when refine ended (other jobs share the machine: wall times are noisy where it exceeds the cores)", "",
+          check_table(rows), ""]
     for graph, v in f.items():
         md.append(f"- fit ({graph}) exponent vs matches: " + ", ".join(f"{k} {e:.2f}" for k, e in v.items()))
     if note:

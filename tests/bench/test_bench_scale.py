@@ -58,6 +58,11 @@ def test_run_measured_sees_the_child_and_its_workers():
     assert 150 < two.hwm_max_mb < 250
     bad = run_measured([sys.executable, "-c", "import sys; sys.exit(3)"])
     assert bad.returncode == 3
+    # CPU seconds: a child that sleeps uses little, one that spins about its wall time
+    assert one.cpu_s < 0.5 * one.wall_s and one.loadavg >= 0
+    busy = "import time; t = time.process_time()\nwhile time.process_time() - t < 0.6: pass"
+    spin = run_measured([sys.executable, "-c", busy])
+    assert spin.cpu_s >= 0.6
 
 
 def test_table_and_fits_report_absent_keys_as_na(tmp_path):
