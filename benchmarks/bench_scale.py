@@ -640,6 +640,8 @@ def main(argv=None) -> int:
                     help="calibrated surveys (miho_bench.calibrated_survey) of --graphs, not make_survey_scene")
     ap.add_argument("--graphs", nargs="+", default=["sequential", "retrieval"],
                     help="--calibrated: pair graphs (exhaustive, sequential, retrieval), each at every size")
+    ap.add_argument("--append", action="store_true",
+                    help="add the rows to those of --out/NAME.json (a sweep run in parts) instead of replacing them")
     ap.add_argument("--name", default="scale", help="output file stem in --out (NAME.md, NAME.json, NAME.png)")
     ap.add_argument("--report-only", action="store_true",
                     help="measure nothing: rewrite scale.md and scale.png from --out/scale.json")
@@ -701,6 +703,8 @@ def main(argv=None) -> int:
         scenes.append(sc)
 
     rows: list[dict] = []
+    if args.append and (args.out / f"{args.name}.json").is_file():  # a long sweep run in parts
+        rows = json.loads((args.out / f"{args.name}.json").read_text())["rows"]
     for sc in scenes:
         if not isinstance(sc, Scene):
             sc = sc()
