@@ -81,6 +81,8 @@ class ChildRun:
         cpu_s: user + system CPU seconds of the child and the descendants it waited for
             (``wait4``'s rusage): less sensitive than ``wall_s`` to other load on the machine.
         loadavg: the machine's 1-minute load average when the child ended.
+        cpu_series: (seconds since the start, CPU seconds of the tree so far: every process's
+            sampled user + system time, workers included) at every sample.
     """
 
     returncode: int
@@ -92,6 +94,7 @@ class ChildRun:
     stderr_tail: str = ""
     cpu_s: float = 0.0
     loadavg: float = 0.0
+    cpu_series: list = field(default_factory=list)
 
 
 def _vm_hwm(pid: int) -> int:
@@ -106,9 +109,10 @@ def _vm_hwm(pid: int) -> int:
     return 0
 
 
-def _sample_tree(proc, hwm: dict[int, int]) -> int:
+def _sample_tree(proc, hwm: dict[int, int], cpu: dict[int, float] | None = None) -> int:
     """Summed RSS in bytes of ``proc`` (a psutil.Process) and its living descendants; updates
-    ``hwm`` (pid -> largest VmHWM seen)."""
+    ``hwm`` (pid -> largest VmHWM seen) and ``cpu`` (pid -> user + system CPU seconds so far,
+    threads included; a process that ended keeps its last sample)."""
     import psutil
 
     total = 0
@@ -119,10 +123,33 @@ def _sample_tree(proc, hwm: dict[int, int]) -> int:
     for p in procs:
         try:
             total += p.memory_info().rss
+            if cpu is not None:
+                t = p.cpu_times()
+                cpu[p.pid] = max(cpu.get(p.pid, 0.0), t.user + t.system)
         except psutil.Error:
             continue
         hwm[p.pid] = max(hwm.get(p.pid, 0), _vm_hwm(p.pid))
     return total
+
+
+def stage_cpu_seconds(series: list[tuple[float, float]], wall_s: float, seconds: dict) -> dict[str, float]:
+    """CPU seconds of the whole process tree during each stage of a refine run: ``series`` =
+    (seconds since the child started, the tree's CPU seconds so far) samples, ``seconds`` = the
+    summary's stage wall times in the order they ran, ``total`` last (the run's timer ends when
+    the child exits, give or take writing the summary). {} without samples."""
+    if len(series) < 2 or not seconds.get("total"):
+        return {}
+    t, c = np.array(series, float).T
+    start = wall_s - float(seconds["total"])
+    out, edge = {}, start
+    for name, sec in seconds.items():
+        if name == "total":
+            continue
+        lo, hi = edge, edge + float(sec)
+        out[name] = round(float(np.interp(hi, t, c) - np.interp(lo, t, c)), 2)
+        edge = hi
+    out["total"] = round(float(np.interp(wall_s, t, c) - np.interp(start, t, c)), 2)
+    return out
 
 
 def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
@@ -137,6 +164,9 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
         hwm: dict[int, int] = {}
         stderr_chunks: list[bytes] = []
 
+        cpu: dict[int, float] = {}
+        series: list[tuple[float, float]] = []
+
         def sample() -> None:
             nonlocal peak, samples
             try:
@@ -144,7 +174,8 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
             except psutil.Error:
                 return
             while not done.is_set():
-                peak = max(peak, _sample_tree(proc, hwm))
+                peak = max(peak, _sample_tree(proc, hwm, cpu))
+                series.append((time.perf_counter() - t0, sum(cpu.values())))
                 samples += 1
                 done.wait(poll)
 
@@ -172,7 +203,8 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
             t.join(timeout=5)
     tail = b"".join(stderr_chunks).decode(errors="replace")[-2000:]
     return ChildRun(child.returncode, wall, peak / 2**20, max(hwm.values(), default=0) / 2**20,
-                    sum(hwm.values()) / 2**20, samples, tail, usage.ru_utime + usage.ru_stime, os.getloadavg()[0])
+                    sum(hwm.values()) / 2**20, samples, tail, usage.ru_utime + usage.ru_stime, os.getloadavg()[0],
+                    series)
 
 
 def fit_power_law(x, y) -> tuple[float, float]:
@@ -404,6 +436,7 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
         "mc_peak_mb": (summary.get("match_check") or {}).get("peak_rss_mb"),
         "rss_samples": run.samples, "scene_info": scene.info,
         "cpu_s": round(run.cpu_s, 1), "loadavg": round(run.loadavg, 2),
+        "stage_cpu_s": stage_cpu_seconds(run.cpu_series, run.wall_s, secs),
     }
     mc = summary.get("match_check") or {}
     if mc:
@@ -503,15 +536,21 @@ def fits(rows: list[dict]) -> dict:
 
 CHECK_COLUMNS = ("scene", "images", "pairs", "loops", "matches", "ends/img", "refine_s", "read", "filter",
                  "match_check", "mapper", "pair_rot", "refine", "write", "check_share", "rss_tree_mb", "hwm_max_mb",
-                 "correct_rm_%", "wrong_rm_%", "check_rm", "pairs_rm", "trusted", "rounds", "cpu_s", "loadavg")
-CHECK_FIT_KEYS = ("refine_s", "cpu_s", "read", "filter", "match_check", "mapper", "pair_rotations", "refine", "write",
-                  "rss_tree_mb", "hwm_max_mb")
+                 "correct_rm_%", "wrong_rm_%", "check_rm", "pairs_rm", "trusted", "rounds", "loadavg",
+                 "cpu:total", "cpu:filter", "cpu:match_check", "cpu:refine", "cpu_check_share")
+CHECK_FIT_KEYS = ("refine_s", "read", "filter", "match_check", "mapper", "pair_rotations", "refine", "write",
+                  "rss_tree_mb", "hwm_max_mb", "cpu:total", "cpu:filter", "cpu:match_check", "cpu:refine")
 
 
 def check_value(row: dict, key: str):
     """A figure of a calibrated-survey row: the match check's parts ("mapper", "pair_rotations",
     the mapper's steps) as well as :func:`_value`'s."""
     check = row.get("check") or {}
+    cpu = row.get("stage_cpu_s") or {}
+    if key.startswith("cpu:"):
+        return cpu.get(key[4:])
+    if key == "cpu_check_share":
+        return round(cpu["match_check"] / cpu["total"], 3) if cpu.get("total") and "match_check" in cpu else None
     if key in check.get("parts_s", {}):
         return check["parts_s"][key]
     if key in check.get("mapper_steps_s", {}):
@@ -535,7 +574,8 @@ def check_table(rows: list[dict]) -> str:
                  "trusted": (f"{c['registered'] - c['untrusted']}/{r.get('images')}" if c.get("registered") is not None
                              else None),
                  "rounds": c.get("rounds")}
-        lines.append("| " + " | ".join(fmt(cells[k] if k in cells else _value(r, k)) for k in CHECK_COLUMNS) + " |")
+        values = (cells[k] if k in cells else check_value(r, k) for k in CHECK_COLUMNS)
+        lines.append("| " + " | ".join(fmt(v) for v in values) + " |")
     return "\n".join(lines)
 
 
@@ -765,8 +805,10 @@ def write_check_report(rows: list[dict], args, extra: list[str], *, write_json: 
           f"refine + workers (psutil, {args.poll} s), hwm_max_mb = largest per-process peak (VmHWM); correct_rm_% / "
           "wrong_rm_% = verified matches in the input that are true / wrong correspondences (ground truth) and are "
           "not in the output; check_rm / pairs_rm = matches / pairs the check removed; trusted = images the check "
-          "trusted / images; cpu_s = CPU seconds of refine and its workers, loadavg = the machine's 1-minute load "
-          "when refine ended (other jobs share the machine: wall times are noisy where it exceeds the cores)", "",
+          "trusted / images; loadavg = the machine's 1-minute load when refine ended (other jobs share the machine: "
+          "wall times are noisy where it exceeds the cores); cpu:STAGE = CPU seconds of refine and its workers "
+          "during the stage (psutil samples of the process tree, stages placed by the summary's seconds), "
+          "cpu_check_share = cpu:match_check / cpu:total", "",
           check_table(rows), ""]
     for graph, v in f.items():
         md.append(f"- fit ({graph}) exponent vs matches: " + ", ".join(f"{k} {e:.2f}" for k, e in v.items()))

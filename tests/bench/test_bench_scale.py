@@ -170,3 +170,24 @@ def test_check_table_and_fits_per_graph():
     assert f["retrieval"]["mapper"] == pytest.approx(1.0, abs=1e-9)
     assert "write" not in f["retrieval"]
     assert bench_scale.check_fits(rows[:1]) == {}
+
+
+def test_stage_cpu_seconds_places_the_stages_from_the_end():
+    # the child ran 10 s; its timer 8 s (2 s of start-up): read 1 s, filter 3 s, check 4 s;
+    # the tree used 1 CPU second per second before the check, 2 during it
+    series = [(t, t if t <= 6 else 6 + 2 * (t - 6)) for t in np.linspace(0, 10, 101)]
+    got = bench_scale.stage_cpu_seconds(series, 10.0, {"read": 1.0, "filter": 3.0, "match_check": 4.0, "total": 8.0})
+    assert got == pytest.approx({"read": 1.0, "filter": 3.0, "match_check": 8.0, "total": 12.0})
+    assert bench_scale.stage_cpu_seconds(series[:1], 10.0, {"total": 8.0}) == {}
+    row = {"stage_cpu_s": got}
+    assert bench_scale.check_value(row, "cpu:match_check") == 8.0
+    assert bench_scale.check_value(row, "cpu_check_share") == pytest.approx(8 / 12, abs=1e-3)
+    assert bench_scale.check_value({}, "cpu_check_share") is None
+
+
+def test_run_measured_samples_the_tree_cpu():
+    busy = "import time; t = time.process_time()\nwhile time.process_time() - t < 0.8: pass"
+    run = run_measured([sys.executable, "-c", busy], poll=0.02)
+    t, c = np.array(run.cpu_series).T
+    assert np.all(np.diff(t) > 0) and np.all(np.diff(c) >= 0)
+    assert 0.6 < c[-1] <= run.cpu_s + 0.05  # the last sample misses at most one poll's CPU
