@@ -683,6 +683,7 @@ def main(argv=None) -> int:
     ap.add_argument("--append", action="store_true",
                     help="add the rows to those of --out/NAME.json (a sweep run in parts) instead of replacing them")
     ap.add_argument("--name", default="scale", help="output file stem in --out (NAME.md, NAME.json, NAME.png)")
+    ap.add_argument("--note", default="", help="text below the table (e.g. the commands that made its rows)")
     ap.add_argument("--report-only", action="store_true",
                     help="measure nothing: rewrite scale.md and scale.png from --out/scale.json")
     args = ap.parse_args(argv)
@@ -709,7 +710,7 @@ def main(argv=None) -> int:
         args.poll = saved.get("poll", args.poll)
         args.sift_sample = saved.get("sift_sample", args.sift_sample)
         print(write_report(saved["rows"], args, saved.get("refine_args", []), write_json=False,
-                           note=saved.get("note", "")))
+                           note=args.note or saved.get("note", "")))
         return 0
 
     import pycolmap
@@ -758,7 +759,7 @@ def main(argv=None) -> int:
         rows.append(row)
         print(f"{sc.name}: sift {t_sift:.1f} s (cached: ~0), refine child {row['child_wall_s']:.1f} s, "
               f"{row['matches']} matches, peak RSS {row['rss_tree_mb']:.0f} MiB", file=sys.stderr)
-        text = write_report(rows, args, extra)  # after every scene: a long sweep cut short keeps its rows
+        text = write_report(rows, args, extra, note=args.note)  # after every scene: a sweep cut short keeps its rows
     print(text if rows else "no scene measured")
     return 0
 
@@ -822,7 +823,7 @@ def write_check_report(rows: list[dict], args, extra: list[str], *, write_json: 
 
         meta = {"argv": portable_argv(sys.argv[1:]), "refine_args": extra, "workers": args.workers, "poll": args.poll,
                 "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "cpu_count": os.cpu_count(), "fits": f,
-                "rows": rows}
+                "note": note, "rows": rows}
         (args.out / f"{args.name}.json").write_text(json.dumps(meta, indent=2) + "\n")
     return text
 
