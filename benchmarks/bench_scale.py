@@ -28,7 +28,17 @@ synthetic sizes (exponent = slope), a table (``scale.md``), all figures (``scale
 plot (``scale.png``) in ``--out``. Scenes are cached under ``--work``; the refined database is
 rewritten on every run.
 
+With ``--calibrated`` the scenes are the realistic surveys of
+``miho_bench.calibrated_survey.make_calibrated_survey`` instead (calibrated camera, CALIBRATED
+two-view geometries with E and F, 8,000-28,000 match ends per image with wrong and
+repeated-structure matches), one per size and pair graph of ``--graphs``; the table
+(``--name``.md / .json) then splits the match check (its global mapper, the pairs' own
+rotations), gives its share of ``refine``, the outcome against the ground truth (true / wrong
+verified matches removed) and the check's verdicts, and fits each stage per pair graph.
+
     python benchmarks/bench_scale.py --sizes 25 50 100 200 400 --workers 2
+    python benchmarks/bench_scale.py --calibrated --sizes 100 200 400 --graphs sequential retrieval --no-sift \
+        --name scale_calibrated
     python benchmarks/bench_scale.py --sizes --scenes middlebury_temple_sparse_ring strecha_fountain_p11
 """
 
@@ -68,6 +78,11 @@ class ChildRun:
         hwm_sum_mb: the sum of the per-process peaks, MiB: an upper bound of the tree's peak.
         samples: number of psutil samples taken.
         stderr_tail: the end of the child's stderr.
+        cpu_s: user + system CPU seconds of the child and the descendants it waited for
+            (``wait4``'s rusage): less sensitive than ``wall_s`` to other load on the machine.
+        loadavg: the machine's 1-minute load average when the child ended.
+        cpu_series: (seconds since the start, CPU seconds of the tree so far: every process's
+            sampled user + system time, workers included) at every sample.
     """
 
     returncode: int
@@ -77,6 +92,9 @@ class ChildRun:
     hwm_sum_mb: float
     samples: int
     stderr_tail: str = ""
+    cpu_s: float = 0.0
+    loadavg: float = 0.0
+    cpu_series: list = field(default_factory=list)
 
 
 def _vm_hwm(pid: int) -> int:
@@ -91,9 +109,10 @@ def _vm_hwm(pid: int) -> int:
     return 0
 
 
-def _sample_tree(proc, hwm: dict[int, int]) -> int:
+def _sample_tree(proc, hwm: dict[int, int], cpu: dict[int, float] | None = None) -> int:
     """Summed RSS in bytes of ``proc`` (a psutil.Process) and its living descendants; updates
-    ``hwm`` (pid -> largest VmHWM seen)."""
+    ``hwm`` (pid -> largest VmHWM seen) and ``cpu`` (pid -> user + system CPU seconds so far,
+    threads included; a process that ended keeps its last sample)."""
     import psutil
 
     total = 0
@@ -104,10 +123,33 @@ def _sample_tree(proc, hwm: dict[int, int]) -> int:
     for p in procs:
         try:
             total += p.memory_info().rss
+            if cpu is not None:
+                t = p.cpu_times()
+                cpu[p.pid] = max(cpu.get(p.pid, 0.0), t.user + t.system)
         except psutil.Error:
             continue
         hwm[p.pid] = max(hwm.get(p.pid, 0), _vm_hwm(p.pid))
     return total
+
+
+def stage_cpu_seconds(series: list[tuple[float, float]], wall_s: float, seconds: dict) -> dict[str, float]:
+    """CPU seconds of the whole process tree during each stage of a refine run: ``series`` =
+    (seconds since the child started, the tree's CPU seconds so far) samples, ``seconds`` = the
+    summary's stage wall times in the order they ran, ``total`` last (the run's timer ends when
+    the child exits, give or take writing the summary). {} without samples."""
+    if len(series) < 2 or not seconds.get("total"):
+        return {}
+    t, c = np.array(series, float).T
+    start = wall_s - float(seconds["total"])
+    out, edge = {}, start
+    for name, sec in seconds.items():
+        if name == "total":
+            continue
+        lo, hi = edge, edge + float(sec)
+        out[name] = round(float(np.interp(hi, t, c) - np.interp(lo, t, c)), 2)
+        edge = hi
+    out["total"] = round(float(np.interp(wall_s, t, c) - np.interp(start, t, c)), 2)
+    return out
 
 
 def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
@@ -122,6 +164,9 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
         hwm: dict[int, int] = {}
         stderr_chunks: list[bytes] = []
 
+        cpu: dict[int, float] = {}
+        series: list[tuple[float, float]] = []
+
         def sample() -> None:
             nonlocal peak, samples
             try:
@@ -129,7 +174,8 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
             except psutil.Error:
                 return
             while not done.is_set():
-                peak = max(peak, _sample_tree(proc, hwm))
+                peak = max(peak, _sample_tree(proc, hwm, cpu))
+                series.append((time.perf_counter() - t0, sum(cpu.values())))
                 samples += 1
                 done.wait(poll)
 
@@ -144,7 +190,7 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
             t.start()
         deadline = None if timeout is None else t0 + timeout
         while True:
-            pid, status, _ = os.wait4(child.pid, os.WNOHANG)
+            pid, status, usage = os.wait4(child.pid, os.WNOHANG)
             if pid:
                 break
             if deadline is not None and time.perf_counter() > deadline:
@@ -157,7 +203,8 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
             t.join(timeout=5)
     tail = b"".join(stderr_chunks).decode(errors="replace")[-2000:]
     return ChildRun(child.returncode, wall, peak / 2**20, max(hwm.values(), default=0) / 2**20,
-                    sum(hwm.values()) / 2**20, samples, tail)
+                    sum(hwm.values()) / 2**20, samples, tail, usage.ru_utime + usage.ru_stime, os.getloadavg()[0],
+                    series)
 
 
 def fit_power_law(x, y) -> tuple[float, float]:
@@ -209,6 +256,66 @@ def synthetic_scene(work: Path, num_images: int, *, seed: int, sequential: int, 
         meta.write_text(json.dumps(info, indent=2))
     info = json.loads(meta.read_text())
     return Scene(f"survey{num_images}", "synthetic", root / "database.db", root / "images", root, info=info)
+
+
+def calibrated_scene(work: Path, num_images: int, *, graph: str, seed: int) -> Scene:
+    """The cached calibrated survey (``miho_bench.calibrated_survey.make_calibrated_survey``,
+    its defaults) of ``num_images`` images and pair graph ``graph`` (built on first use); the
+    ground truth's 3D point per keypoint is kept in ``point3D_ids.npz`` for :func:`outcome`."""
+    from miho_bench.calibrated_survey import make_calibrated_survey
+
+    tag = f"calibrated_n{num_images}_{graph}_s{seed}"
+    root = work / "calibrated" / tag
+    meta = root / "scene.json"
+    if not meta.is_file():
+        if root.exists():
+            import shutil
+
+            shutil.rmtree(root)
+        t0 = time.perf_counter()
+        sc = make_calibrated_survey(root, num_images=num_images, graph=graph, seed=seed)
+        np.savez(root / "point3D_ids.npz", **{str(k): v for k, v in sc.point3D_ids.items()})
+        tl = [p.track.length() for p in sc.gt_reconstruction.points3D.values()]
+        info = {"num_images": num_images, "graph": graph, "seed": seed, "pairs": len(sc.pairs),
+                "candidate_pairs": len(sc.candidate_pairs or []), "loop_pairs": len(sc.loop_pairs or []),
+                "points3D": len(tl), "mean_track_length": float(np.mean(tl)), "max_track_length": int(np.max(tl)),
+                "build_s": round(time.perf_counter() - t0, 2)}
+        meta.write_text(json.dumps(info, indent=2))
+    info = json.loads(meta.read_text())
+    return Scene(f"{graph[:3]}{num_images}", "synthetic", root / "database.db", root / "images", root, info=info)
+
+
+def outcome(scene: Scene, refined: Path) -> dict:
+    """The refine output against the ground truth (a calibrated survey's ``point3D_ids.npz``):
+    verified matches in and out that join two observations of one 3D point (correct) or not
+    (wrong), the shares of each removed (%), and match ends per image in (median, min, max);
+    {} for a scene without ground truth."""
+    from colmap_miho.adapters.database import ColmapDatabase
+
+    gt = scene.work / "point3D_ids.npz"
+    if not gt.is_file():
+        return {}
+    ids = {int(k): v for k, v in np.load(gt).items()}
+
+    def count(path: Path) -> tuple[int, int, np.ndarray]:
+        correct = wrong = 0
+        ends = np.zeros(len(ids) + 1, np.int64)
+        with ColmapDatabase(path) as db:
+            for p in db.pairs("verified"):
+                m = db.matches(p.image_id1, p.image_id2, "verified").astype(np.int64)
+                a, b = ids[p.image_id1][m[:, 0]], ids[p.image_id2][m[:, 1]]
+                ok = int(((a >= 0) & (a == b)).sum())
+                correct, wrong = correct + ok, wrong + len(m) - ok
+                ends[p.image_id1] += len(m)
+                ends[p.image_id2] += len(m)
+        return correct, wrong, ends[1:]
+
+    c_in, w_in, ends = count(scene.database)
+    c_out, w_out, _ = count(refined)
+    return {"correct_in": c_in, "wrong_in": w_in, "correct_out": c_out, "wrong_out": w_out,
+            "correct_removed_pct": round(100 * (c_in - c_out) / max(c_in, 1), 3),
+            "wrong_removed_pct": round(100 * (w_in - w_out) / max(w_in, 1), 2),
+            "ends_per_image": [int(np.median(ends)), int(ends.min()), int(ends.max())]}
 
 
 def real_scene(data: Path, work: Path, name: str) -> Scene | None:
@@ -328,7 +435,27 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
         "hwm_sum_mb": round(run.hwm_sum_mb, 1),
         "mc_peak_mb": (summary.get("match_check") or {}).get("peak_rss_mb"),
         "rss_samples": run.samples, "scene_info": scene.info,
+        "cpu_s": round(run.cpu_s, 1), "loadavg": round(run.loadavg, 2),
+        "stage_cpu_s": stage_cpu_seconds(run.cpu_series, run.wall_s, secs),
     }
+    mc = summary.get("match_check") or {}
+    if mc:
+        rounds = mc.get("round_seconds") or []
+        steps = mc.get("mapper_steps") or []
+        row["check"] = {
+            "used": mc.get("used"), "reason": mc.get("reason"), "rounds": mc.get("rounds"),
+            "registered": mc.get("images_registered"), "untrusted": len(mc.get("images_untrusted") or []),
+            "cut_off": len(mc.get("images_cut_off") or []), "matches_judged": mc.get("matches_judged"),
+            "matches_removed": mc.get("matches_removed"), "pairs_removed": mc.get("pairs_removed"),
+            "hinges": len(mc.get("hinges") or []),
+            "parts_s": {k: round(sum(r.get(k, 0.0) for r in rounds), 2)
+                        for k in sorted({k for r in rounds for k in r})},
+            "mapper_steps_s": {k: round(sum(r.get(k, 0.0) for r in steps), 2)
+                               for k in sorted({k for r in steps for k in r})},
+        }
+    if secs.get("total") and secs.get("match_check") is not None:
+        row["check_share"] = round(secs["match_check"] / secs["total"], 3)
+    row.update(outcome(scene, out_db))
     sift = scene.sift
     if sift:
         fm = sift["seconds_extract"] + sift["seconds_match"]
@@ -404,6 +531,67 @@ def fits(rows: list[dict]) -> dict:
         if sum(v > 0 for v in y) >= 2:
             b, c = fit_power_law(m, y)
             out[key] = {"exponent": round(b, 3), "prefactor": c}
+    return out
+
+
+CHECK_COLUMNS = ("scene", "images", "pairs", "loops", "matches", "ends/img", "refine_s", "read", "filter",
+                 "match_check", "mapper", "pair_rot", "refine", "write", "check_share", "rss_tree_mb", "hwm_max_mb",
+                 "correct_rm_%", "wrong_rm_%", "check_rm", "pairs_rm", "trusted", "rounds", "loadavg",
+                 "cpu:total", "cpu:filter", "cpu:match_check", "cpu:refine", "cpu_check_share")
+CHECK_FIT_KEYS = ("refine_s", "read", "filter", "match_check", "mapper", "pair_rotations", "refine", "write",
+                  "rss_tree_mb", "hwm_max_mb", "cpu:total", "cpu:filter", "cpu:match_check", "cpu:refine")
+
+
+def check_value(row: dict, key: str):
+    """A figure of a calibrated-survey row: the match check's parts ("mapper", "pair_rotations",
+    the mapper's steps) as well as :func:`_value`'s."""
+    check = row.get("check") or {}
+    cpu = row.get("stage_cpu_s") or {}
+    if key.startswith("cpu:"):
+        return cpu.get(key[4:])
+    if key == "cpu_check_share":
+        return round(cpu["match_check"] / cpu["total"], 3) if cpu.get("total") and "match_check" in cpu else None
+    if key in check.get("parts_s", {}):
+        return check["parts_s"][key]
+    if key in check.get("mapper_steps_s", {}):
+        return check["mapper_steps_s"][key]
+    return _value(row, key)
+
+
+def check_table(rows: list[dict]) -> str:
+    """The calibrated surveys' table: stage seconds, the check's share of ``refine`` and its
+    mapper / pairs' rotations, peak memory, the outcome against the ground truth and the check's
+    verdicts."""
+    lines = ["| " + " | ".join(CHECK_COLUMNS) + " |", "|" + "---|" * len(CHECK_COLUMNS)]
+    for r in rows:
+        c = r.get("check") or {}
+        e = r.get("ends_per_image") or [None] * 3
+        cells = {"loops": (r.get("scene_info") or {}).get("loop_pairs"),
+                 "ends/img": f"{e[0]} ({e[1]}-{e[2]})" if e[0] is not None else None,
+                 "mapper": check_value(r, "mapper"), "pair_rot": check_value(r, "pair_rotations"),
+                 "correct_rm_%": r.get("correct_removed_pct"), "wrong_rm_%": r.get("wrong_removed_pct"),
+                 "check_rm": c.get("matches_removed"), "pairs_rm": c.get("pairs_removed"),
+                 "trusted": (f"{c['registered'] - c['untrusted']}/{r.get('images')}" if c.get("registered") is not None
+                             else None),
+                 "rounds": c.get("rounds")}
+        values = (cells[k] if k in cells else check_value(r, k) for k in CHECK_COLUMNS)
+        lines.append("| " + " | ".join(fmt(v) for v in values) + " |")
+    return "\n".join(lines)
+
+
+def check_fits(rows: list[dict]) -> dict:
+    """Per pair graph (the scene name's prefix), exponents of :data:`CHECK_FIT_KEYS` against
+    matches; a graph with fewer than two sizes is left out."""
+    out: dict[str, dict] = {}
+    for graph in sorted({(r.get("scene_info") or {}).get("graph", "") for r in rows}):
+        rs = [r for r in rows if (r.get("scene_info") or {}).get("graph", "") == graph and r.get("matches")]
+        if len({r["matches"] for r in rs}) < 2:
+            continue
+        m = [r["matches"] for r in rs]
+        for key in CHECK_FIT_KEYS:
+            y = [check_value(r, key) or 0 for r in rs]
+            if sum(v > 0 for v in y) >= 2:
+                out.setdefault(graph, {})[key] = round(fit_power_law(m, y)[0], 3)
     return out
 
 
@@ -488,6 +676,14 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=None, help="kill a refine after this many seconds")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="refine --set KEY=VALUE")
     ap.add_argument("--refine-arg", action="append", default=[], help="extra refine argument (repeatable)")
+    ap.add_argument("--calibrated", action="store_true",
+                    help="calibrated surveys (miho_bench.calibrated_survey) of --graphs, not make_survey_scene")
+    ap.add_argument("--graphs", nargs="+", default=["sequential", "retrieval"],
+                    help="--calibrated: pair graphs (exhaustive, sequential, retrieval), each at every size")
+    ap.add_argument("--append", action="store_true",
+                    help="add the rows to those of --out/NAME.json (a sweep run in parts) instead of replacing them")
+    ap.add_argument("--name", default="scale", help="output file stem in --out (NAME.md, NAME.json, NAME.png)")
+    ap.add_argument("--note", default="", help="text below the table (e.g. the commands that made its rows)")
     ap.add_argument("--report-only", action="store_true",
                     help="measure nothing: rewrite scale.md and scale.png from --out/scale.json")
     args = ap.parse_args(argv)
@@ -506,26 +702,40 @@ def main(argv=None) -> int:
         ap.error("psutil is needed for the RSS figures (pip install psutil)")
 
     if args.report_only:
-        if not (args.out / "scale.json").is_file():
-            ap.error(f"--report-only: no {args.out / 'scale.json'}")
-        saved = json.loads((args.out / "scale.json").read_text())
+        if not (args.out / f"{args.name}.json").is_file():
+            ap.error(f"--report-only: no {args.out / (args.name + '.json')}")
+        saved = json.loads((args.out / f"{args.name}.json").read_text())
+        args.calibrated = any("check" in r for r in saved["rows"])
         args.workers = saved["workers"]
         args.poll = saved.get("poll", args.poll)
         args.sift_sample = saved.get("sift_sample", args.sift_sample)
         print(write_report(saved["rows"], args, saved.get("refine_args", []), write_json=False,
-                           note=saved.get("note", "")))
+                           note=args.note or saved.get("note", "")))
         return 0
 
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
     extra = [x for o in args.overrides for x in ("--set", o)] + list(args.refine_arg)
-    scenes: list[Scene] = []  # the real scenes first: small, and each is one target of its own
+    # a Scene, or a function building one; the real scenes first: small, and each is one target of its own
+    scenes: list = []
     for name in args.scenes:
         rs = real_scene(args.data, args.work, name)
         if rs is not None:
             scenes.append(rs)
-    for n in args.sizes:
+    def build_calibrated(n: int, graph: str) -> Scene:
+        t0 = time.perf_counter()
+        sc = calibrated_scene(args.work, n, graph=graph, seed=args.seed)
+        print(f"{sc.name}: scene ready in {time.perf_counter() - t0:.1f} s ({sc.info['pairs']} pairs, mean track "
+              f"{sc.info['mean_track_length']:.2f})", file=sys.stderr)
+        return sc
+
+    import functools
+
+    # built when its turn comes: a long sweep measures its small sizes first
+    sizes = args.sizes if args.calibrated else ()
+    scenes += [functools.partial(build_calibrated, n, g) for n in sizes for g in args.graphs]
+    for n in () if args.calibrated else args.sizes:
         t0 = time.perf_counter()
         sc = synthetic_scene(args.work, n, seed=args.seed, sequential=args.sequential, nearest=args.nearest,
                              points_per_image=args.points_per_image)
@@ -534,7 +744,11 @@ def main(argv=None) -> int:
         scenes.append(sc)
 
     rows: list[dict] = []
+    if args.append and (args.out / f"{args.name}.json").is_file():  # a long sweep run in parts
+        rows = json.loads((args.out / f"{args.name}.json").read_text())["rows"]
     for sc in scenes:
+        if not isinstance(sc, Scene):
+            sc = sc()
         t0 = time.perf_counter()
         if not args.no_sift or sc.kind == "real":  # a real scene's database is the SIFT one
             sample = args.sift_sample if sc.kind == "synthetic" else None
@@ -545,7 +759,7 @@ def main(argv=None) -> int:
         rows.append(row)
         print(f"{sc.name}: sift {t_sift:.1f} s (cached: ~0), refine child {row['child_wall_s']:.1f} s, "
               f"{row['matches']} matches, peak RSS {row['rss_tree_mb']:.0f} MiB", file=sys.stderr)
-        text = write_report(rows, args, extra)  # after every scene: a long sweep cut short keeps its rows
+        text = write_report(rows, args, extra, note=args.note)  # after every scene: a sweep cut short keeps its rows
     print(text if rows else "no scene measured")
     return 0
 
@@ -553,6 +767,8 @@ def main(argv=None) -> int:
 def write_report(rows: list[dict], args, extra: list[str], *, write_json: bool = True, note: str = "") -> str:
     """Write ``scale.md``, ``scale.json`` (unless not ``write_json``) and ``scale.png`` of
     ``rows`` to ``args.out``; returns the markdown (with ``note`` below the table)."""
+    if getattr(args, "calibrated", False):
+        return write_check_report(rows, args, extra, write_json=write_json, note=note)
     f = fits(rows)
     md = [f"colmap-miho refine, {args.workers} worker(s), refine args: {' '.join(extra) or '-'}; "
           f"refine_s = summary seconds.total, read/filter/refine/write = stage seconds; rss_tree_mb = peak "
@@ -579,6 +795,38 @@ def write_report(rows: list[dict], args, extra: list[str], *, write_json: bool =
         (args.out / "scale.json").write_text(json.dumps(meta, indent=2) + "\n")
     plot(rows, args.out / "scale.png")
     return text
+
+def write_check_report(rows: list[dict], args, extra: list[str], *, write_json: bool = True, note: str = "") -> str:
+    """``NAME.md`` / ``NAME.json`` of the calibrated surveys (:func:`check_table`,
+    :func:`check_fits`); returns the markdown."""
+    f = check_fits(rows)
+    md = [f"colmap-miho refine on calibrated surveys, {args.workers} worker(s), refine args: {' '.join(extra) or '-'}; "
+          "seconds from the refine summary (mapper / pair_rot: the match check's global mapper and pairs' "
+          "own rotations, all rounds); check_share = match_check / refine_s; rss_tree_mb = peak summed RSS of "
+          f"refine + workers (psutil, {args.poll} s), hwm_max_mb = largest per-process peak (VmHWM); correct_rm_% / "
+          "wrong_rm_% = verified matches in the input that are true / wrong correspondences (ground truth) and are "
+          "not in the output; check_rm / pairs_rm = matches / pairs the check removed; trusted = images the check "
+          "trusted / images; loadavg = the machine's 1-minute load when refine ended (other jobs share the machine: "
+          "wall times are noisy where it exceeds the cores); cpu:STAGE = CPU seconds of refine and its workers "
+          "during the stage (psutil samples of the process tree, stages placed by the summary's seconds), "
+          "cpu_check_share = cpu:match_check / cpu:total", "",
+          check_table(rows), ""]
+    for graph, v in f.items():
+        md.append(f"- fit ({graph}) exponent vs matches: " + ", ".join(f"{k} {e:.2f}" for k, e in v.items()))
+    if note:
+        md += ["", note]
+    text = "\n".join(md)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"{args.name}.md").write_text(text + "\n")
+    if write_json:
+        from bench_known_cameras import portable_argv
+
+        meta = {"argv": portable_argv(sys.argv[1:]), "refine_args": extra, "workers": args.workers, "poll": args.poll,
+                "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "cpu_count": os.cpu_count(), "fits": f,
+                "note": note, "rows": rows}
+        (args.out / f"{args.name}.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return text
+
 
 if __name__ == "__main__":
     sys.exit(main())

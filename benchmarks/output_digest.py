@@ -11,6 +11,9 @@ multi-threaded) and compare the two JSON files with ``--compare``::
         [--set match_check.mode=remove] [--scenes demo strecha_castle_p19 ...]
     python benchmarks/output_digest.py --compare before.json after.json
 
+``--databases A.db B.db ...`` only hashes those outputs (e.g. one refine run on the process pool
+and one on ``--dask``) and says whether they are identical.
+
 ``--demo-all-recipes`` adds every built-in recipe on the demo scene.
 """
 
@@ -68,6 +71,19 @@ def compare(a: Path, b: Path) -> int:
     return 1 if bad else 0
 
 
+def compare_databases(paths: list[Path]) -> int:
+    """Print the written tables' digests of each database; 0 when all are identical, else 1."""
+    digests = []
+    for p in paths:
+        if not p.is_file():
+            raise SystemExit(f"error: no database at {p}")
+        digests.append(digest(p))
+        print(f"{p}: {' '.join(f'{k}={v}' for k, v in digests[-1].items())}")
+    same = all(d == digests[0] for d in digests)
+    print("identical" if same else "DIFFER")
+    return 0 if same else 1
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
@@ -82,9 +98,13 @@ def main(argv=None) -> int:
     ap.add_argument("--max-features", type=int, default=4096)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--compare", nargs=2, type=Path, metavar=("BEFORE", "AFTER"))
+    ap.add_argument("--databases", nargs="+", type=Path, metavar="DB",
+                    help="only the digests of these refine outputs, and whether they are identical")
     args = ap.parse_args(argv)
     if args.compare:
         return compare(*args.compare)
+    if args.databases:
+        return compare_databases(args.databases)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
     import pycolmap

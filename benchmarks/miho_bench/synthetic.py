@@ -214,6 +214,27 @@ class SurveyLayout:
         idx = np.flatnonzero(ok)
         return idx, np.stack([u[idx], v[idx]], axis=1)
 
+    def intrinsics(self) -> np.ndarray:
+        """float64 (3, 3) calibration matrix K in COLMAP coordinates (principal point at the
+        image centre)."""
+        return np.array([[self.focal, 0.0, self.width / 2.0], [0.0, self.focal, self.height / 2.0],
+                         [0.0, 0.0, 1.0]])
+
+    def relative_geometry(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """The true two-view geometry of images ``a`` -> ``b`` (0-based): float64 (3, 3) ``E``
+        (unit-norm baseline; ``x_b^T E x_a = 0`` for normalised image points) and ``F``
+        (``x_b^T F x_a = 0`` for COLMAP pixel coordinates, Frobenius norm 1), as COLMAP stores
+        them for the pair (a, b)."""
+        Ra, Rb = self.rotations[a], self.rotations[b]
+        R = Rb @ Ra.T  # cam_b from cam_a
+        t = Rb @ (self.centres[a] - self.centres[b])
+        t = t / np.linalg.norm(t)
+        tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+        E = tx @ R
+        Kinv = np.linalg.inv(self.intrinsics())
+        F = Kinv.T @ E @ Kinv
+        return E, F / np.linalg.norm(F)
+
 
 def _small_rotation(rng: np.random.Generator, sigma_deg: float) -> np.ndarray:
     """A random rotation of angle ~ N(0, sigma_deg) degrees about a uniform axis (Rodrigues)."""
@@ -340,7 +361,9 @@ def make_survey_scene(
     A pair is stored when its images share at least ``min_pair_matches`` points (as geometric
     verification would drop the rest): its matches are those true correspondences plus
     ``outlier_ratio`` of wrong ones (distinct keypoints), all stored as two-view-geometry
-    inliers of an UNCALIBRATED geometry too. Each image has its visible points as keypoints
+    inliers of an UNCALIBRATED geometry too, with the pair's true fundamental matrix
+    (:meth:`SurveyLayout.relative_geometry`: the camera has no focal prior, so COLMAP's
+    verification would store F). Each image has its visible points as keypoints
     (moved by Gaussian noise of ``noise_px`` pixels per axis), ``extra_keypoints`` times as many
     keypoints without a 3D point, in random order. One SIMPLE_RADIAL camera (no distortion,
     focal 1.2 * width). Rendered images keep the true positions.
@@ -413,7 +436,8 @@ def make_survey_scene(
                               rng.choice(free_b, n_out, replace=False)], axis=1)
             m = np.concatenate([m, wrong])
         stored[(a + 1, b + 1)] = m[rng.permutation(len(m))]
-    write_survey_database(database, layout, noisy, stored)
+    fundamental = {(a, b): layout.relative_geometry(a - 1, b - 1)[1] for a, b in stored}
+    write_survey_database(database, layout, noisy, stored, fundamental)
     pairs = list(stored)
     gt_kp, ids = _gt_keypoints(gt, {k + 1: len(seen[k]) for k in range(num_images)})
     if render_images:

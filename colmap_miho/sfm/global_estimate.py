@@ -167,7 +167,9 @@ def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[in
     starts = np.asarray([offset[i] for i in sorted(offset)], np.int64)
     image_of = np.searchsorted(starts, nodes, side="right") - 1
     size = np.bincount(track[nodes], minlength=count)
-    views = np.bincount(np.unique(track[nodes] * len(starts) + image_of) // len(starts), minlength=count)
+    # int64: scipy's labels are int32, and label * images passes 2**31 from ~1,300 images of 8192 keypoints
+    views = np.bincount(np.unique(track[nodes].astype(np.int64) * len(starts) + image_of) // len(starts),
+                        minlength=count)
     consistent = size == views if consistent_only else np.ones(count, bool)
     if 2 * int(consistent[track[a]].sum()) < per_image * num_images:
         return dict(matches)  # too few consistent tracks to sample from: every match, as without a sample

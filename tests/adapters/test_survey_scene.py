@@ -95,3 +95,20 @@ def test_survey_images_show_the_points(survey):
     # the renderer draws a bright peak at every point, the background is black
     assert np.median(img[r[ok], c[ok]]) > 100
     assert np.mean(img == 0) > 0.3
+
+
+def test_survey_pairs_store_the_true_fundamental_matrix(survey):
+    # the camera has no focal prior: an UNCALIBRATED geometry with F, not an empty (degenerate) one
+    import pycolmap
+
+    with ColmapDatabase(survey.database) as db:
+        for i, j in survey.pairs:
+            tvg = db.handle.read_two_view_geometry(i, j)
+            assert tvg.config == pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
+            m = db.matches(i, j, "verified").astype(np.int64)
+            true = survey.is_true_match(i, j, m)
+            xa = np.column_stack([survey.gt_keypoints[i][m[true, 0]] + 0.5, np.ones(true.sum())])
+            xb = np.column_stack([survey.gt_keypoints[j][m[true, 1]] + 0.5, np.ones(true.sum())])
+            lines = xa @ tvg.F.T
+            dist = np.abs(np.einsum("ij,ij->i", xb, lines)) / np.linalg.norm(lines[:, :2], axis=1)
+            assert dist.max() < 1e-6  # true correspondences at their true positions, pixels

@@ -58,6 +58,11 @@ def test_run_measured_sees_the_child_and_its_workers():
     assert 150 < two.hwm_max_mb < 250
     bad = run_measured([sys.executable, "-c", "import sys; sys.exit(3)"])
     assert bad.returncode == 3
+    # CPU seconds: a child that sleeps uses little, one that spins about its wall time
+    assert one.cpu_s < 0.5 * one.wall_s and one.loadavg >= 0
+    busy = "import time; t = time.process_time()\nwhile time.process_time() - t < 0.6: pass"
+    spin = run_measured([sys.executable, "-c", busy])
+    assert spin.cpu_s >= 0.6
 
 
 def test_table_and_fits_report_absent_keys_as_na(tmp_path):
@@ -120,3 +125,69 @@ def test_sift_times_scales_a_sample(tiny):
     assert part["seconds_extract"] == pytest.approx(2 * part["seconds_extract_run"], abs=0.016)
     assert part["seconds_match"] == pytest.approx(5 * part["seconds_match_run"], abs=0.031)
     assert sift_times(tiny, threads=1, max_features=512, sample_images=3, seed=1) == part  # cached
+
+
+def test_outcome_counts_the_removed_matches_against_the_ground_truth(tmp_path):
+    import shutil
+
+    from miho_bench.calibrated_survey import make_calibrated_survey
+
+    sc = make_calibrated_survey(tmp_path / "s", num_images=8, points_per_image=300, render_images=False, seed=2)
+    np.savez(tmp_path / "s" / "point3D_ids.npz", **{str(k): v for k, v in sc.point3D_ids.items()})
+    scene = Scene("seq8", "synthetic", sc.database, sc.image_dir, tmp_path / "s", info={"graph": "sequential"})
+    same = bench_scale.outcome(scene, sc.database)
+    assert same["correct_removed_pct"] == 0 and same["wrong_removed_pct"] == 0
+    assert same["correct_in"] > 0 and same["wrong_in"] > 0
+    # one pair keeps only its true matches: its wrong ones count as removed, nothing else
+    out = tmp_path / "out.db"
+    shutil.copy(sc.database, out)
+    i, j = sc.pairs[0]
+    with ColmapDatabase(out) as db:
+        tvg = db.handle.read_two_view_geometry(i, j)
+        m = np.asarray(tvg.inlier_matches)
+        keep = sc.is_true_match(i, j, m)
+        tvg.inlier_matches = np.ascontiguousarray(m[keep])
+        db.handle.update_two_view_geometry(i, j, tvg)
+    got = bench_scale.outcome(scene, out)
+    assert got["correct_out"] == same["correct_in"] and got["wrong_out"] == same["wrong_in"] - (~keep).sum() > 0
+    assert bench_scale.outcome(Scene("x", "synthetic", sc.database, sc.image_dir, tmp_path), out) == {}
+
+
+def test_check_table_and_fits_per_graph():
+    rows = [{"scene": f"{g[:3]}{n}", "kind": "synthetic", "images": n, "matches": 5000 * n,
+             "refine_s": 0.002 * n ** 1.2,
+             "seconds": {"filter": 0.01 * n, "match_check": 0.001 * n}, "scene_info": {"graph": g, "loop_pairs": 3},
+             "check": {"registered": n, "untrusted": 1, "matches_removed": 7, "pairs_removed": 0, "rounds": 2,
+                       "parts_s": {"mapper": 0.5 * n}, "mapper_steps_s": {}},
+             "ends_per_image": [9000, 4000, 15000], "correct_removed_pct": 0.5, "wrong_removed_pct": 40.0}
+            for g in ("sequential", "retrieval") for n in (100, 200, 400)]
+    text = bench_scale.check_table(rows)
+    assert "| seq200 | 200 |" in text and "9000 (4000-15000)" in text and "| 199/200 | 2 |" in text
+    f = bench_scale.check_fits(rows)
+    assert set(f) == {"sequential", "retrieval"}
+    assert f["sequential"]["refine_s"] == pytest.approx(1.2, abs=1e-9)
+    assert f["retrieval"]["filter"] == pytest.approx(1.0, abs=1e-9)
+    assert f["retrieval"]["mapper"] == pytest.approx(1.0, abs=1e-9)
+    assert "write" not in f["retrieval"]
+    assert bench_scale.check_fits(rows[:1]) == {}
+
+
+def test_stage_cpu_seconds_places_the_stages_from_the_end():
+    # the child ran 10 s; its timer 8 s (2 s of start-up): read 1 s, filter 3 s, check 4 s;
+    # the tree used 1 CPU second per second before the check, 2 during it
+    series = [(t, t if t <= 6 else 6 + 2 * (t - 6)) for t in np.linspace(0, 10, 101)]
+    got = bench_scale.stage_cpu_seconds(series, 10.0, {"read": 1.0, "filter": 3.0, "match_check": 4.0, "total": 8.0})
+    assert got == pytest.approx({"read": 1.0, "filter": 3.0, "match_check": 8.0, "total": 12.0})
+    assert bench_scale.stage_cpu_seconds(series[:1], 10.0, {"total": 8.0}) == {}
+    row = {"stage_cpu_s": got}
+    assert bench_scale.check_value(row, "cpu:match_check") == 8.0
+    assert bench_scale.check_value(row, "cpu_check_share") == pytest.approx(8 / 12, abs=1e-3)
+    assert bench_scale.check_value({}, "cpu_check_share") is None
+
+
+def test_run_measured_samples_the_tree_cpu():
+    busy = "import time; t = time.process_time()\nwhile time.process_time() - t < 0.8: pass"
+    run = run_measured([sys.executable, "-c", busy], poll=0.02)
+    t, c = np.array(run.cpu_series).T
+    assert np.all(np.diff(t) > 0) and np.all(np.diff(c) >= 0)
+    assert 0.6 < c[-1] <= run.cpu_s + 0.05  # the last sample misses at most one poll's CPU

@@ -88,3 +88,25 @@ def test_evenly_spaced_keeps_the_ends_and_small_pairs():
     assert len(out[(1, 2)]) == 100 and np.array_equal(out[(1, 2)][[0, -1]], m[[0, -1]])
     assert np.array_equal(out[(1, 3)], m[:10])
     assert np.array_equal(evenly_spaced({(1, 2): m}, 0)[(1, 2)], m)
+
+
+def test_track_labels_times_images_do_not_overflow():
+    # 1,000 images of 2,200 keypoints: the matched keypoints of the last images carry labels near
+    # 2.2 million, and label * images passes 2**31 (int32 labels wrapped negative at 1,600 images
+    # of a calibrated survey); a track that holds two keypoints of one image is still left out
+    sizes = {i: 2200 for i in range(1, 1001)}
+    rng = np.random.default_rng(0)
+    order = {i: rng.permutation(2200) for i in (998, 999, 1000)}
+    matches = {}
+    for i, j in ((998, 999), (998, 1000), (999, 1000)):
+        m = np.column_stack([order[i][:2000], order[j][:2000]])
+        extra = np.column_stack([order[i][2000:2020], order[j][2050:2070]])  # chains in one image
+        matches[(i, j)] = np.concatenate([m, extra]).astype(np.int64)
+    out = sampled_tracks(matches, sizes, per_image=1000, min_pair_matches=15, seed=1)
+    assert set(out) == set(matches)
+    for (i, j), m in out.items():
+        ti = np.argsort(order[i])[m[:, 0]]
+        tj = np.argsort(order[j])[m[:, 1]]
+        assert np.all(ti == tj) and np.all(ti < 2000)
+    kept = len(out[(998, 999)])
+    assert 0.18 * 2000 < kept < 0.32 * 2000  # share = 1000 * 3 images / (2 * 6060 matches) = 0.25
