@@ -38,7 +38,7 @@ import numpy as np
 
 from colmap_miho.adapters.database import ColmapDatabase
 
-from .synthetic import SurveyLayout, SyntheticScene, _gt_keypoints, _scene_folder, survey_layout
+from .synthetic import SurveyLayout, SyntheticScene, _gt_keypoints, _scene_folder, survey_keypoints, survey_layout
 
 log = logging.getLogger(__name__)
 
@@ -212,15 +212,7 @@ def make_calibrated_survey(
     database, image_dir = _scene_folder(out_dir)
     rng = np.random.default_rng(seed + 1)
 
-    true_xy, seen = [], []
-    for k in range(num_images):
-        idx, xy = layout.project(k)
-        n_extra = int(round(extra_keypoints * len(idx)))
-        xy = np.concatenate([xy, rng.uniform((0, 0), (width, height), (n_extra, 2))])
-        idx = np.concatenate([idx, np.full(n_extra, -1, np.int64)])
-        order = rng.permutation(len(idx))
-        true_xy.append(xy[order])
-        seen.append(idx[order])
+    true_xy, seen = survey_keypoints(layout, num_images, extra_keypoints, width, height, rng)
     noisy = [np.clip(xy + rng.normal(0.0, noise_px, xy.shape), 0, (width - 1e-3, height - 1e-3)) for xy in true_xy]
 
     overlap = overlap_counts(layout, seen)

@@ -337,6 +337,22 @@ def write_survey_database(database: Path, layout: SurveyLayout, keypoints: dict[
                 db.handle.update_two_view_geometry(a, b, tvg)
 
 
+def survey_keypoints(layout, num_images: int, extra_keypoints: float, width: int, height: int,
+                     rng: np.random.Generator) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Keypoints per image of a survey: (true xy (COLMAP coordinates), the point index each one
+    sees, -1 for the ``extra_keypoints`` share of keypoints on no point), shuffled."""
+    true_xy, seen = [], []
+    for k in range(num_images):
+        idx, xy = layout.project(k)
+        n_extra = int(round(extra_keypoints * len(idx)))
+        xy = np.concatenate([xy, rng.uniform((0, 0), (width, height), (n_extra, 2))])
+        idx = np.concatenate([idx, np.full(n_extra, -1, np.int64)])
+        order = rng.permutation(len(idx))
+        true_xy.append(xy[order])
+        seen.append(idx[order])
+    return true_xy, seen
+
+
 def make_survey_scene(
     out_dir: str | Path,
     *,
@@ -384,16 +400,7 @@ def make_survey_scene(
     database, image_dir = _scene_folder(out_dir)
     rng = np.random.default_rng(seed + 1)
 
-    # keypoints per image: true xy (COLMAP coordinates) and the point index each one sees
-    true_xy, seen = [], []
-    for k in range(num_images):
-        idx, xy = layout.project(k)
-        n_extra = int(round(extra_keypoints * len(idx)))
-        xy = np.concatenate([xy, rng.uniform((0, 0), (width, height), (n_extra, 2))])
-        idx = np.concatenate([idx, np.full(n_extra, -1, np.int64)])
-        order = rng.permutation(len(idx))
-        true_xy.append(xy[order])
-        seen.append(idx[order])
+    true_xy, seen = survey_keypoints(layout, num_images, extra_keypoints, width, height, rng)
 
     gt = pycolmap.Reconstruction()
     f = layout.focal
