@@ -33,6 +33,20 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.realdata)
 
 
+def pytest_configure(config):
+    """The signal tests send Ctrl-C, SIGTERM and SIGHUP as a terminal would. A shell starts its
+    background jobs with SIGINT ignored, and colmap-miho keeps a signal ignored at start (as
+    ``nohup`` needs): give this process, and so the commands it starts, the signals' defaults."""
+    import signal
+
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    for name in ("SIGTERM", "SIGHUP"):
+        sig = getattr(signal, name, None)
+        if sig is not None and signal.getsignal(sig) == signal.SIG_IGN:
+            signal.signal(sig, signal.SIG_DFL)
+
+
 @pytest.fixture(autouse=True)
 def _restore_package_logger():
     """``cli.main`` configures the ``colmap_miho`` logger like an application does (own handler,
