@@ -9,7 +9,9 @@ unless ``--build-missing``) gives these rows:
   (4) from its GT epipolar line removed (:mod:`miho_bench.oracle`): what a perfect
   match filter gives;
 - one row per ``--variant``: ``refine_database`` with that recipe / overrides (cached under
-  ``--work`` by recipe, overrides and code).
+  ``--work`` by recipe, overrides and code);
+- ``NAME+oracle`` for each variant named by ``--oracle-of``: the oracle applied to that
+  variant's output (e.g. the filter's alone: what is left once it removed what it removed).
 
 Every row's database is mapped with each ``--mappers`` mapper (incremental: ``--repeats`` seeds;
 global: ``--global-repeats`` seeds) with the GT intrinsics written into the mapped copy and
@@ -307,6 +309,8 @@ def main(argv=None) -> int:
                          "with another checkout's code")
     ap.add_argument("--rows", nargs="+", default=None,
                     help="run only these rows (input, oracle, variant names; default all)")
+    ap.add_argument("--oracle-of", nargs="+", default=[], metavar="VARIANT",
+                    help="also a row NAME+oracle per variant named: the oracle applied to its output")
     ap.add_argument("--oracle-threshold", type=float, default=4.0,
                     help="GT epipolar distance (px) above which the oracle removes a match, and the "
                          "GT-outlier threshold of the counts")
@@ -381,6 +385,7 @@ def main(argv=None) -> int:
             work = args.work / scene / setting
             work.mkdir(parents=True, exist_ok=True)
             plan = [(INPUT, None), (ORACLE, None), *[(v[0], v) for v in variants]]
+            plan += [(f"{v[0]}+oracle", v) for v in variants if v[0] in args.oracle_of]
             for row_name, variant in plan:
                 if wanted is not None and row_name not in wanted:
                     continue
@@ -394,6 +399,9 @@ def main(argv=None) -> int:
                     name, recipe, ov, code, seed = variant
                     database, info = refined_database(db, image_dir, work, name, recipe,
                                                       [*args.overrides, *ov, *common], code, args.workers, seed)
+                    if row_name.endswith("+oracle"):  # the oracle applied to the variant's output
+                        database, stats = oracle_database(database, work / row_name, gt_poses, args.oracle_threshold)
+                        info = {**info, "oracle": stats}
                 figures = database_figures(database, gt_poses, args.oracle_threshold)
                 for mapper in args.mappers:
                     from dataclasses import replace

@@ -88,6 +88,10 @@ class MatchCheckStats:
             coverage medians "estimate_coverage" / "mode_coverage", the arbiter's "verdict"
             ("estimate", "mode", "undecided"), the "action" taken ("kept", "estimated again",
             "judged less") and "pairs_unjudged" / "matches_unjudged".
+        matches_restored / pairs_restored: matches the filter removed that the estimate and a
+            third image proved (:mod:`colmap_miho.verification.restore`), given back, and the
+            pairs they are in; pairs_revived: of those, pairs the filter had left without any.
+        restored_per_pair: ``{"images", "image_ids", "restored"}`` per pair with any.
     """
 
     mode: str
@@ -113,6 +117,10 @@ class MatchCheckStats:
     round_seconds: list[dict] = field(default_factory=list)
     mapper_steps: list[dict] = field(default_factory=list)
     hinges: list[dict] = field(default_factory=list)
+    matches_restored: int = 0
+    pairs_restored: int = 0
+    pairs_revived: int = 0
+    restored_per_pair: list[dict] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         """Plain JSON-ready data."""
@@ -133,11 +141,11 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
         return NO_VERDICTS, None
     stored = store.load_stage(STORE_NAME)
     if stored is None:
-        failed, wrong, meta = _decide(db, store, cfg, source, checked, threads)
-        store.save_stage(STORE_NAME, _pack(failed, wrong), meta)
+        failed, wrong, restored, meta = _decide(db, store, cfg, source, checked, threads)
+        store.save_stage(STORE_NAME, _pack(failed, wrong, restored), meta)
         stats = MatchCheckStats(**meta)
     else:
-        failed, wrong, stats = _read_back(store, *stored)
+        failed, wrong, restored, stats = _read_back(store, *stored)
         log.info("match check: the verdicts of the interrupted run are used")
     if not stats.used:  # every way the check switches itself off is said, also under -q
         log.warning("match check: not used, nothing %s: %s", "removed" if cfg.mode == MatchCheckMode.REMOVE
@@ -160,29 +168,46 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
 
     if any(len(f) != judged_rows(p) for p, f in failed.items() if p not in wrong):
         raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its verdicts do not fit the stored pairs")
+    if not all(_restorable(filtered.get(p), r) and p not in wrong for p, r in restored.items()):
+        raise StoreDamaged(store.folder / f"stage-{STORE_NAME}.npz", "its restored matches do not fit the stored pairs")
     judged = {p: f for p, f in failed.items() if p not in wrong}
     # a pair written back unchanged keeps COLMAP's model where the check removed nothing from it
-    return (Verdicts(removed=frozenset(wrong), failed=judged,
-                     refit=frozenset(p for p, f in judged.items() if p in filtered or f.any())),
+    return (Verdicts(removed=frozenset(wrong), failed=judged, restored=restored,
+                     refit=frozenset(p for p, f in judged.items() if p in filtered or f.any()) | frozenset(restored)),
             stats)
 
 
-def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource,
-            checked: Verdicts, threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict]:
+def _restorable(stored, rows: np.ndarray) -> bool:
+    """Whether ``rows`` index matches a stored filter outcome ``(m, r)`` removed."""
+    if stored is None:
+        return False
+    inliers = np.asarray(stored[1].inliers, bool)
+    return bool(len(rows) == 0 or (int(rows.max()) < len(inliers) and not inliers[rows].any()))
+
+
+def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, checked: Verdicts,
+            threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict[Pair, np.ndarray], dict]:
     """The check on the pair graph's matches; returns (pair -> failed mask over its matches,
-    wrong pairs, the stats' fields)."""
+    wrong pairs, filtered pair -> rows of its stored matches restored, the stats' fields)."""
     from ..sfm.global_estimate import GlobalEstimator
 
-    # read here, not held during the mapper: only the kept matches are
-    matches = pair_graph(db, store.load_filtered(), source, checked)
+    filtered = store.load_filtered()
+    matches = pair_graph(db, filtered, source, checked)
+    # the matches the filter removed, offered back to the check
+    removed_rows = {p: np.flatnonzero(~np.asarray(r.inliers, bool)) for p, (m, r) in filtered.items()
+                    if p not in checked.removed}
+    candidates = {p: np.asarray(filtered[p][0][rows], np.int64) for p, rows in removed_rows.items() if len(rows)}
+    del filtered  # not held during the mapper: only the kept matches and the candidates are
     estimator = GlobalEstimator(src=db, config=cfg, num_threads=threads,
                                 verbose=log.isEnabledFor(logging.DEBUG))  # -v: COLMAP's log on the terminal
-    d = judge_in_rounds(matches, estimator, cfg)
-    return d.failed, d.wrong, stats_fields(d, cfg, matches, {im.image_id: im.name for im in db.images()})
+    d = judge_in_rounds(matches, estimator, cfg, candidates)
+    restored = {p: removed_rows[p][ok] for p, ok in sorted(d.restored.items())}
+    names = {im.image_id: im.name for im in db.images()}
+    return d.failed, d.wrong, restored, stats_fields(d, cfg, matches, names, restored)
 
 
 def stats_fields(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.ndarray],
-          names: dict[int, str]) -> dict:
+                 names: dict[int, str], restored: dict[Pair, np.ndarray] | None = None) -> dict:
     """The :class:`MatchCheckStats` fields of a decision, images named."""
     def name(i: int) -> str:
         return names.get(i, str(i))
@@ -207,6 +232,11 @@ def stats_fields(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pai
         "mapper_steps": d.mapper_steps,
         "peak_rss_mb": _peak_rss_mb(),
         "hinges": [_hinge_meta(h, matches, name) for h in d.hinges],
+        "matches_restored": int(sum(len(r) for r in (restored or {}).values())),
+        "pairs_restored": len(restored or {}),
+        "pairs_revived": sum(1 for p in (restored or {}) if p not in matches),
+        "restored_per_pair": [{"images": [name(i), name(j)], "image_ids": [i, j], "restored": len(r)}
+                              for (i, j), r in sorted((restored or {}).items())],
     }
 
 
@@ -246,23 +276,28 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
-def _pack(failed: dict[Pair, np.ndarray], wrong: frozenset[Pair]) -> dict[str, np.ndarray]:
+def _pack(failed: dict[Pair, np.ndarray], wrong: frozenset[Pair], restored: dict[Pair, np.ndarray]
+          ) -> dict[str, np.ndarray]:
     keys = sorted(failed)
+    back = sorted(restored)
     return {"pairs": np.asarray(keys, np.int64).reshape(-1, 2),
             "offsets": np.concatenate([[0], np.cumsum([len(failed[k]) for k in keys])]).astype(np.int64),
             "failed": np.concatenate([failed[k] for k in keys]) if keys else np.zeros(0, bool),
-            "wrong": np.asarray(sorted(wrong), np.int64).reshape(-1, 2)}
+            "wrong": np.asarray(sorted(wrong), np.int64).reshape(-1, 2),
+            "restored_pairs": np.asarray(back, np.int64).reshape(-1, 2),
+            "restored_offsets": np.concatenate([[0], np.cumsum([len(restored[k]) for k in back])]).astype(np.int64),
+            "restored_rows": (np.concatenate([restored[k] for k in back]) if back else np.zeros(0)).astype(np.int64)}
 
 
 def _read_back(store: RunStore, arrays: dict[str, np.ndarray], meta: dict
-               ) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], MatchCheckStats]:
+               ) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict[Pair, np.ndarray], MatchCheckStats]:
     """The stored verdicts and stats of an interrupted run.
 
     Raises:
         StoreDamaged: the arrays or the stats do not have the stage's layout.
     """
     path = store.folder / f"stage-{STORE_NAME}.npz"
-    failed, wrong = _unpack(arrays, path)
+    failed, wrong, restored = _unpack(arrays, path)
     _check_meta(meta, path)
     try:
         stats = MatchCheckStats(**meta)
@@ -270,7 +305,7 @@ def _read_back(store: RunStore, arrays: dict[str, np.ndarray], meta: dict
             raise ValueError("a verdict is not one row of flags")
     except (KeyError, ValueError, TypeError, IndexError) as exc:
         raise StoreDamaged(path, f"{type(exc).__name__}: {exc}") from None
-    return failed, wrong, stats
+    return failed, wrong, restored, stats
 
 
 def _is_number(v: object) -> bool:
@@ -306,7 +341,8 @@ def _check_meta(meta: dict, path: Path) -> None:
             raise StoreDamaged(path, f"its stats' {key} are not all numbers")
 
 
-def _unpack(arrays: dict[str, np.ndarray], path: Path) -> tuple[dict[Pair, np.ndarray], frozenset[Pair]]:
+def _unpack(arrays: dict[str, np.ndarray], path: Path
+            ) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict[Pair, np.ndarray]]:
     """The verdicts of :func:`_pack`'s arrays, checked (dtypes, shapes, offsets, each pair once).
 
     Raises:
@@ -320,4 +356,12 @@ def _unpack(arrays: dict[str, np.ndarray], path: Path) -> tuple[dict[Pair, np.nd
     check_unique_pairs(pairs, path)
     check_unique_pairs(wrong, path, "wrong pairs")
     failed = {(int(a), int(b)): f[off[k]:off[k + 1]] for k, (a, b) in enumerate(pairs.tolist())}
-    return failed, frozenset((int(a), int(b)) for a, b in wrong.tolist())
+    back = check_array(arrays, "restored_pairs", path, "iu", (None, 2))
+    rows = check_array(arrays, "restored_rows", path, "iu", (None,))
+    roff = check_array(arrays, "restored_offsets", path, "iu", (len(back) + 1,))
+    check_offsets(roff, len(rows), "restored_offsets", path)
+    check_unique_pairs(back, path, "restored pairs")
+    if len(rows) and int(rows.min()) < 0:
+        raise StoreDamaged(path, "its restored rows are not row indices")
+    restored = {(int(a), int(b)): rows[roff[k]:roff[k + 1]].astype(np.int64) for k, (a, b) in enumerate(back.tolist())}
+    return failed, frozenset((int(a), int(b)) for a, b in wrong.tolist()), restored

@@ -38,31 +38,39 @@ class Verdicts:
             small to filter, or no plane found).
         refit: pairs the match check judged: their fundamental matrix is fitted again to the
             survivors when written (COLMAP's was fitted to the wrong matches too).
+        restored: filtered pair -> int64 rows of its stored matches that the filter removed
+            and the match check gave back (kept again, without a homography).
     """
 
     removed: frozenset[Pair] = frozenset()
     failed: Mapping[Pair, np.ndarray] = field(default_factory=dict)
     refit: frozenset[Pair] = frozenset()
+    restored: Mapping[Pair, np.ndarray] = field(default_factory=dict)
 
     def merge(self, other: Verdicts) -> Verdicts:
         """Both verdicts: the union of the removed and the refitted pairs, and of the failed
-        matches (``other``'s where both judged a pair)."""
+        and the restored matches (``other``'s where both judged a pair)."""
         return Verdicts(removed=self.removed | other.removed, failed={**self.failed, **other.failed},
-                        refit=self.refit | other.refit)
+                        refit=self.refit | other.refit, restored={**self.restored, **other.restored})
 
     def apply(self, pairs: FilteredPairs) -> FilteredPairs:
-        """``pairs`` (stored filter outcomes, in their order) without the removed pairs, and
-        with the failed matches taken out of each pair's kept matches (their ``inliers``
-        cleared, labels -1); other pairs unchanged."""
+        """``pairs`` (stored filter outcomes, in their order) without the removed pairs, with
+        the failed matches taken out of each pair's kept matches (their ``inliers`` cleared,
+        labels -1) and the restored ones put back (``inliers`` set, labels -1: no
+        homography); other pairs unchanged."""
         out = {k: v for k, v in pairs.items() if k not in self.removed} if self.removed else dict(pairs)
         for key, (m, r) in out.items():
             f = self.failed.get(key)
-            if f is None or not f.any():
+            back = self.restored.get(key)
+            if (f is None or not f.any()) and (back is None or not len(back)):
                 continue
-            rows = np.flatnonzero(r.inliers)[f]
             inl = np.array(r.inliers, bool)
             lab = np.array(r.labels, np.int64)
-            inl[rows], lab[rows] = False, -1
+            if f is not None and f.any():
+                rows = np.flatnonzero(r.inliers)[f]
+                inl[rows], lab[rows] = False, -1
+            if back is not None and len(back):
+                inl[back], lab[back] = True, -1
             out[key] = (m, PairOutcome(inliers=inl, labels=lab, patch_homographies=r.patch_homographies,
                                        success=r.success))
         return out

@@ -29,6 +29,7 @@ from ..geometry import essential, relative_pose, rotation_angle_deg, symmetric_e
 from ..types import Pair, Pose
 from .config import MatchCheckConfig
 from .hinge import Groups, Hinge, arbitrate, confirm_hinge, find_hinges, pair_coverage, split_groups
+from .restore import restore_matches
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -72,10 +73,11 @@ class MatchCheckDecision:
     mapper_steps: list[dict[str, float]] = field(default_factory=list)
     hinges: tuple[HingeVerdict, ...] = ()
     unjudged: frozenset[Pair] = frozenset()
+    restored: dict[Pair, np.ndarray] = field(default_factory=dict)
 
 
 def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
-                    cfg: MatchCheckConfig) -> MatchCheckDecision:
+                    cfg: MatchCheckConfig, candidates: Mapping[Pair, np.ndarray] | None = None) -> MatchCheckDecision:
     """The match check: up to ``cfg.rounds`` global estimates, each from the survivors of the
     last, each judged (:func:`check_matches`, then :func:`place_untrusted`).
 
@@ -86,6 +88,10 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
     distances are truncated: a scale taken from them would shrink round after round); it stops
     once every placed image is trusted. Each estimate is first
     examined for a hinge (:func:`resolve_hinge`).
+
+    ``candidates`` (pair -> ``(R, 2)``, matches the filter removed) are given back where the
+    round's estimate and its kept matches prove them (:mod:`.restore`); ``restored`` holds
+    pair -> bool ``(R,)`` for the pairs with any.
     """
     failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
     wrong: set[Pair] = set()
@@ -98,6 +104,8 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
     hinges: list[HingeVerdict] = []
     unjudged: set[Pair] = set()
     focus: set[int] | None = None  # a later round's images: those not trusted yet
+    restored: dict[Pair, np.ndarray] = {}
+    offered: set[Pair] = set()  # candidate pairs a round's estimate has judged
     for _ in range(cfg.rounds):
         alive = {p: np.flatnonzero(~f) for p, f in failed.items() if p not in wrong and (~f).any()}
         if focus is not None:  # a later round estimates only around the images not trusted yet
@@ -135,6 +143,16 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
                 failed[p][alive[p][f]] = True
         trusted_any |= set(res.trusted)
         wrong |= set(res.wrong_pairs)
+        if candidates:
+            t2 = time.perf_counter()
+            offer = {p: c for p, c in candidates.items()
+                     if p not in offered and p not in wrong and p[0] in res.trusted and p[1] in res.trusted}
+            offered |= set(offer)
+            kept = {p: m[~res.failed[p]] if p in res.failed else m for p, m in judged_now.items()
+                    if p not in res.wrong_pairs}
+            restored.update(restore_matches(offer, kept, est.rays, est.focal, res.poses, res.trusted, threshold,
+                                            min(threshold, cfg.min_threshold_px)))
+            seconds[-1]["restoring"] = time.perf_counter() - t2
         if set(res.trusted) >= set(res.registered):
             break  # every placed image judged already: another round changes little
         focus = {i for p in matches for i in p} - trusted_any
@@ -148,7 +166,7 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         fail_share=share, registered=frozenset(registered_any), trusted=frozenset(trusted_any),
         untrusted=frozenset(registered_any - trusted_any), cut_off=frozenset(cut_any), judged_pairs=judged,
         scale_px=scale, threshold_px=threshold, seconds=seconds, mapper_steps=steps, hinges=tuple(hinges),
-        unjudged=frozenset(unjudged))
+        unjudged=frozenset(unjudged), restored={p: r for p, r in restored.items() if p not in wrong})
 
 
 #: Steps through the pair graph around the images a later round is for: the later estimate is
@@ -364,6 +382,7 @@ class MatchCheckResult:
         wrong_pairs: judged pairs most of whose matches failed (removed as a whole).
         pair_fail_share: judged pair -> its share of failing matches.
         matches_judged / matches_failed: over the judged pairs (wrong pairs included).
+        poses: the poses judged with (the estimate's, the re-placed images' replaced).
     """
 
     used: bool
@@ -380,6 +399,7 @@ class MatchCheckResult:
     pair_fail_share: dict[Pair, float] = field(default_factory=dict)
     matches_judged: int = 0
     matches_failed: int = 0
+    poses: dict[int, Pose] = field(default_factory=dict)
 
 
 def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndarray],
@@ -453,7 +473,7 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
         used=True, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut), agreeing_pairs=agree,
         rotation_pairs=total, scale_px=scale, threshold_px=threshold, failed=failed, wrong_pairs=wrong,
         pair_fail_share=share, matches_judged=int(all_d.size),
-        matches_failed=int(sum(int(f.sum()) for f in failed.values())))
+        matches_failed=int(sum(int(f.sum()) for f in failed.values())), poses=dict(poses))
 
 
 def robust_scale(distances: np.ndarray) -> float:

@@ -43,7 +43,9 @@ def _store(folder):
     store.save_group(0, {1: (np.array([0, 3]), np.full((2, 2), 1.5)), 3: (np.array([7]), np.ones((1, 2)))},
                      {"moved": 3})
     store.save_stage("match_check", {"pairs": np.array([[1, 2]]), "offsets": np.array([0, 4]),
-                                     "failed": np.zeros(4, bool), "wrong": np.zeros((0, 2), np.int64)}, META)
+                                     "failed": np.zeros(4, bool), "wrong": np.zeros((0, 2), np.int64),
+                                     "restored_pairs": np.array([[1, 3]]), "restored_offsets": np.array([0, 2]),
+                                     "restored_rows": np.array([0, 5])}, META)
     store.close()
 
 
@@ -85,8 +87,9 @@ def test_an_untouched_store_is_read_back(tmp_path):
     assert meta == META
     from colmap_miho.pipeline.match_check import _read_back
 
-    failed, wrong, _ = _read_back(store, arrays, meta)
+    failed, wrong, restored, _ = _read_back(store, arrays, meta)
     assert list(failed) == [(1, 2)] and not wrong
+    assert list(restored) == [(1, 3)] and restored[(1, 3)].tolist() == [0, 5]
     store.close()
 
 
@@ -283,6 +286,8 @@ def test_a_group_of_no_group_of_the_plan_is_a_damaged_store(tmp_path):
 @pytest.mark.parametrize("changes, why", [
     ({"offsets": [4, 0]}, "offsets"), ({"offsets": [0, 9]}, "offsets"), ({"pairs": [[1.0, 2.0]]}, "pairs"),
     ({"failed": np.zeros(4, np.int64)}, "failed"), ({"wrong": [1, 2]}, "wrong"),
+    ({"restored_rows": np.array([0, -1])}, "restored rows"), ({"restored_offsets": np.array([0, 3])}, "restored_offsets"),
+    ({"restored_pairs": np.array([[1, 3], [1, 3]])}, "restored"), ({"restored_rows": np.array([0.5, 1.0])}, "restored_rows"),
     ({"pairs": [[1, 2], [1, 2]], "offsets": [0, 2, 4]}, "twice"),
 ])
 def test_a_forged_match_check_result_is_a_damaged_store(changes, why, tmp_path):

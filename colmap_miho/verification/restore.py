@@ -1,0 +1,178 @@
+"""Restoring matches the filter removed when the scene proves them (pure numpy).
+
+A planar-homography filter is weakest on wide-baseline pairs: few matches, strong perspective,
+no plane with enough support, so it drops correct matches and whole correct pairs. The match
+check's global estimate can give them back, but an epipolar test alone never may: repeated
+structure puts wrong matches exactly on the epipolar line (a facade's windows along a
+horizontal baseline). A removed match comes back only when
+
+1. its distance to its epipolar line under the estimate is within the check's threshold and
+   its lowest one (``min_threshold_px``: a match the filter removed needs more proof than one
+   it kept, whatever the scene's noise), and
+2. a third image confirms its depth: one of its keypoints is matched, by a match the check
+   kept, to a keypoint of a third trusted image, and the point triangulated from the removed
+   match reprojects there within the threshold, in front of the camera; that third image must
+   see a depth error along the confirmed keypoint's ray at least
+   :data:`MIN_DEPTH_SENSITIVITY` times as large as the pair's other image does, so a match
+   displaced along its epipolar line (the repeated-structure error) cannot pass unseen.
+
+Conventions as :mod:`.match_check`: ``cam_from_world`` poses, normalised ``rays``, focal
+lengths in pixels.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from ..geometry import essential, relative_pose, symmetric_epipolar_distance
+from ..types import Pair, Pose
+
+#: The third image's pixels per unit depth along the confirmed ray, over the pair's other
+#: image's: a match displaced by ``d`` px along its epipolar line moves the reprojection in the
+#: third image by at least half of ``d``.
+MIN_DEPTH_SENSITIVITY = 0.5
+
+_SHIFT = np.int64(32)
+
+
+def restore_matches(candidates: Mapping[Pair, np.ndarray], kept: Mapping[Pair, np.ndarray],
+                    rays: Mapping[int, np.ndarray], focal: Mapping[int, float], poses: Mapping[int, Pose],
+                    trusted: frozenset[int] | set[int], threshold: float, epipolar_px: float) -> dict[Pair, np.ndarray]:
+    """Which ``candidates`` (pair -> int ``(R, 2)`` keypoint indices removed by the filter) the
+    estimate and the ``kept`` matches (pair -> ``(M, 2)``) prove, within ``epipolar_px`` of
+    their epipolar line and ``threshold`` px of the third image's keypoint; pair -> bool
+    ``(R,)``, only pairs of two ``trusted`` images with at least one restored match."""
+    ends = _kept_ends(kept, trusted)
+    out: dict[Pair, np.ndarray] = {}
+    for (i, j), m in candidates.items():
+        if i not in trusted or j not in trusted or not len(m):
+            continue
+        ok = proven(np.asarray(m, np.int64), i, j, ends, rays, focal, poses, threshold, epipolar_px)
+        if ok.any():
+            out[(i, j)] = ok
+    return out
+
+
+def proven(m: np.ndarray, i: int, j: int, ends: tuple[np.ndarray, np.ndarray, np.ndarray],
+           rays: Mapping[int, np.ndarray], focal: Mapping[int, float], poses: Mapping[int, Pose],
+           threshold: float, epipolar_px: float) -> np.ndarray:
+    """bool ``(R,)``: the matches ``m`` of pair ``(i, j)`` within ``epipolar_px`` of their
+    epipolar line and confirmed by a third image within ``threshold`` px (:func:`_kept_ends`'
+    index ``ends``)."""
+    x1, x2 = rays[i][m[:, 0]], rays[j][m[:, 1]]
+    scale = float(np.sqrt(focal[i] * focal[j]))
+    d = symmetric_epipolar_distance(essential(relative_pose(poses[i], poses[j])), x1, x2) * scale
+    ok = np.zeros(len(m), bool)
+    close = np.flatnonzero(d <= epipolar_px)
+    if not close.size:
+        return ok
+    X, depth_i, depth_j = _midpoints(poses[i], x1[close], poses[j], x2[close])
+    front = (depth_i > 0) & (depth_j > 0)
+    close, X = close[front], X[front]
+    for side, (own, other) in enumerate(((i, j), (j, i))):
+        left = ~ok[close]
+        if not left.any():
+            break
+        rows = close[left]
+        ok[rows[_confirmed(X[left], own, other, m[rows, side], ends, rays, focal, poses, threshold)]] = True
+    return ok
+
+
+def _kept_ends(kept: Mapping[Pair, np.ndarray], trusted) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The kept matches between trusted images as directed edges sorted by their start:
+    (start keys ``image << 32 | keypoint``, end images, end keypoints)."""
+    starts, end_img, end_kp = [], [], []
+    for (i, j), m in kept.items():
+        if i not in trusted or j not in trusted or not len(m):
+            continue
+        m = np.asarray(m, np.int64)
+        starts += [(np.int64(i) << _SHIFT) | m[:, 0], (np.int64(j) << _SHIFT) | m[:, 1]]
+        end_img += [np.full(len(m), j, np.int64), np.full(len(m), i, np.int64)]
+        end_kp += [m[:, 1], m[:, 0]]
+    if not starts:
+        empty = np.zeros(0, np.int64)
+        return empty, empty, empty
+    s = np.concatenate(starts)
+    order = np.argsort(s, kind="stable")
+    return s[order], np.concatenate(end_img)[order], np.concatenate(end_kp)[order]
+
+
+def _confirmed(X: np.ndarray, own: int, other: int, kps: np.ndarray, ends, rays, focal, poses,
+               threshold: float) -> np.ndarray:
+    """bool ``(n,)``: points ``X`` ``(n, 3)`` of matches whose keypoint ``kps`` in image ``own``
+    a kept match links to a third image that sees ``X`` within ``threshold`` px, with enough
+    depth sensitivity against image ``other``."""
+    starts, end_img, end_kp = ends
+    keys = (np.int64(own) << _SHIFT) | kps
+    lo, hi = np.searchsorted(starts, keys, "left"), np.searchsorted(starts, keys, "right")
+    counts = hi - lo
+    ok = np.zeros(len(X), bool)
+    if not counts.any():
+        return ok
+    which = np.repeat(np.arange(len(X)), counts)
+    edge = np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
+    third, third_kp = end_img[edge], end_kp[edge]
+    ray_own = _world_rays(poses[own], rays[own][kps])
+    for k in np.unique(third):
+        k = int(k)
+        if k == other or k not in poses:
+            continue
+        sel = third == k
+        w = which[sel]
+        err, sens = _reprojection(poses[k], X[w], ray_own[w], rays[k][third_kp[sel]])
+        _, sens_other = _reprojection(poses[other], X[w], ray_own[w], None)
+        with np.errstate(over="ignore", invalid="ignore"):
+            good = (err * focal[k] <= threshold) & (
+                sens * focal[k] >= MIN_DEPTH_SENSITIVITY * sens_other * focal[other])
+        ok[w[good]] = True
+    return ok
+
+
+def _centre(pose: Pose) -> np.ndarray:
+    R, t = pose
+    return -np.asarray(R, np.float64).T @ np.asarray(t, np.float64).reshape(3)
+
+
+def _world_rays(pose: Pose, x: np.ndarray) -> np.ndarray:
+    """Unit world directions ``(n, 3)`` of normalised image points ``x`` ``(n, 2)``."""
+    d = np.column_stack([x, np.ones(len(x))]) @ np.asarray(pose[0], np.float64)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _midpoints(pose1: Pose, x1: np.ndarray, pose2: Pose, x2: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Midpoints ``(n, 3)`` of the closest points of the two cameras' rays through ``x1`` and
+    ``x2``, and the depths along each ray (negative: behind the camera; ``nan`` for parallel
+    rays)."""
+    c1, c2 = _centre(pose1), _centre(pose2)
+    d1, d2 = _world_rays(pose1, x1), _world_rays(pose2, x2)
+    b = c2 - c1
+    dd = np.sum(d1 * d2, axis=1)
+    den = 1.0 - dd * dd
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (d1 @ b - dd * (d2 @ b)) / den
+        u = (dd * (d1 @ b) - d2 @ b) / den
+    X = 0.5 * (c1 + s[:, None] * d1 + c2 + u[:, None] * d2)
+    bad = den < 1e-12
+    s[bad], u[bad] = np.nan, np.nan
+    return X, s, u
+
+
+def _reprojection(pose: Pose, X: np.ndarray, direction: np.ndarray, x: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised reprojection error of ``X`` ``(n, 3)`` against ``x`` (``inf`` behind the
+    camera; zeros when ``x`` is None) and the normalised image motion per unit depth of ``X``
+    along ``direction``."""
+    R, t = np.asarray(pose[0], np.float64), np.asarray(pose[1], np.float64).reshape(3)
+    Y = X @ R.T + t
+    v = direction @ R.T
+    z = Y[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        proj = Y[:, :2] / z[:, None]
+        motion = (v[:, :2] * z[:, None] - Y[:, :2] * v[:, 2:3]) / (z * z)[:, None]
+        err = np.zeros(len(X)) if x is None else np.linalg.norm(proj - x, axis=1)
+    err = np.where(z > 0, err, np.inf)
+    sens = np.linalg.norm(motion, axis=1)
+    return np.nan_to_num(err, nan=np.inf), np.nan_to_num(sens, nan=0.0)
