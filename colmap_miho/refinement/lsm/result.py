@@ -1,5 +1,5 @@
-"""What one least-squares alignment returns, and the bounds it is judged by: shared by the
-torch alignment (:mod:`.align`, the reference) and its compiled kernel (:mod:`.kernel`)."""
+"""What one least-squares alignment returns and the bounds it is judged by (torch and compiled
+paths)."""
 
 from __future__ import annotations
 
@@ -17,20 +17,16 @@ MAX_GAIN = 5.0
 
 @dataclass(frozen=True)
 class LSMResult:
-    """Output of :func:`.align.lsm_align` and :func:`.kernel.lsm_frames` (J matches; common-frame pixels).
+    """Output of :func:`.align.lsm_align` and :func:`.kernel.lsm_frames` (J matches; common-frame
+    pixels).
 
     Attributes:
-        shift: (J, 2) float64 final shift t (x, y) relative to each match's centre.
-        sigma: (J, 2) float64 a-posteriori standard deviations of t's x and y.
-        sigma_max: (J,) float64 largest semi-axis of t's standard error ellipse (the
-            precision along the least determined direction); +inf where the normal matrix
-            is singular.
-        affine: (J, 2, 2) float64 final A.
-        gain, offset: (J,) float64 final r1, r0.
-        residual_std: (J,) float64 s0 (intensity units of the inputs).
-        converged: (J,) bool: the shift update fell below the tolerance within the
-            iterations allowed, and A, the gain and the normal matrix stayed regular.
-        iterations: (J,) int64 Gauss-Newton steps taken.
+        shift: ``(J, 2)`` final shift t relative to each centre; sigma: ``(J, 2)`` its std devs.
+        sigma_max: ``(J,)`` largest semi-axis of t's error ellipse (+inf: singular normal matrix).
+        affine, gain, offset: final A ``(J, 2, 2)``, r1, r0.
+        residual_std: ``(J,)`` s0 in input intensity units.
+        converged: ``(J,)`` the update fell below the tolerance with A, gain and normals regular.
+        iterations: ``(J,)`` Gauss-Newton steps taken.
     """
 
     shift: torch.Tensor
