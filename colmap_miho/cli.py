@@ -230,7 +230,6 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _notes(exc: BaseException) -> str:
-    """The exception's notes (e.g. how to resume a refine run), as "; "-joined text."""
     return "".join(f"; {' '.join(str(n).split())}" for n in getattr(exc, "__notes__", ()))
 
 

@@ -38,7 +38,6 @@ def resolve_device(device: Device | str | torch.device, inputs_on: torch.device 
 
 
 def _usable(device: str | torch.device) -> torch.device:
-    """``device`` as a ``torch.device`` that torch can use here."""
     import torch
 
     try:

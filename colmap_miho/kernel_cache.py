@@ -225,7 +225,6 @@ def _compile_children(families: list[str], n: int, folder: Path) -> tuple[dict[s
 
 
 def _wait_any(running: dict[str, tuple[subprocess.Popen, float]]) -> str:
-    """The first family whose child process ended (polled every 50 ms)."""
     while True:
         for family, (proc, _) in running.items():
             if proc.poll() is not None:

@@ -121,7 +121,6 @@ def import_hloc(
 
 def _write_images(db: ColmapDatabase, fh, images: Path, camera_model: str, single_camera: bool,
                   colmap_coordinates: bool, progress: bool) -> tuple[dict[str, int], dict[str, int], int]:
-    """Cameras, rigs, images, frames and keypoints of every image of the features file."""
     from tqdm import tqdm
 
     ids: dict[str, int] = {}

@@ -212,7 +212,6 @@ def count_matches(h5: h5py.File) -> int:
 
 
 class _NameIndex:
-    """Resolves pair keys of a matches file back to image names."""
 
     def __init__(self, names: Iterable[str]):
         self.names = set(names)

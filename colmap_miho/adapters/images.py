@@ -43,7 +43,6 @@ def read_gray_float(path: str | Path) -> np.ndarray | None:
 
 
 def _to_gray_float(img: np.ndarray) -> np.ndarray:
-    """Decoded pixels (as :func:`read_image` gives them) -> float32 (H, W) gray in [0, 1]."""
     import cv2
 
     if img.ndim == 3:

@@ -35,7 +35,6 @@ class _Damaged(Exception):
 
 
 class _Reader:
-    """Bounds-checked reads from one file's bytes."""
 
     def __init__(self, data: bytes) -> None:
         self.data, self.pos = memoryview(data), 0

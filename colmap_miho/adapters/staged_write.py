@@ -374,7 +374,6 @@ def sweep_stale_tempdirs(parent: str | os.PathLike | None = None) -> None:
 
 
 def _lock_is_free(lock_file: Path) -> bool:
-    """Whether nobody holds ``lock_file``'s ``flock`` (False when it cannot be opened)."""
     try:
         fd = os.open(lock_file, os.O_RDWR)
     except OSError:

@@ -247,7 +247,6 @@ class WorkingCopy:
             f"that state in the backup {self.backup}: rerun on the database as it is now")
 
     def _drop_backup(self) -> None:
-        """Delete the backup of an in-place run that replaced nothing (the input is as it was)."""
         if self.backup is None:
             return
         try:
@@ -303,7 +302,6 @@ def _same_inode(a: Path, b: Path) -> bool:
 
 
 def _visible_name(database: Path) -> Path:
-    """``<stem>.miho-<time>.db`` beside ``database``, not existing yet."""
     return unused_stamped_name(database, lambda stamp: f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
 
 

@@ -156,7 +156,6 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
 
 
 def _resolve_config(method: str | FilterMethod | None, config: FilterConfig | None) -> FilterConfig:
-    """The config that runs: ``method``, when given, replaces ``config.method``."""
     if config is None:
         return FilterConfig(method=FilterMethod.MOP_MIHO if method is None else FilterMethod.parse(method, "method"))
     if not isinstance(config, FilterConfig):

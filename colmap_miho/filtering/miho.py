@@ -18,7 +18,6 @@ _ROTATION_Z = 3.0  # paired z-score a non-identity pre-alignment needs over the 
 
 @functools.cache
 def _linear_parts(reflections: bool) -> tuple[np.ndarray, ...]:
-    """The 2x2 linear parts of :func:`_candidate_transforms` (computed once; read-only)."""
     out = []
     for mirror in (False, True) if reflections else (False,):
         for k in range(4):
@@ -33,7 +32,6 @@ def _linear_parts(reflections: bool) -> tuple[np.ndarray, ...]:
 
 @functools.lru_cache(maxsize=64)
 def _all_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``np.triu_indices(n, 1)``, kept per ``n`` (read-only)."""
     i, j = np.triu_indices(n, 1)
     i.flags.writeable = False
     j.flags.writeable = False

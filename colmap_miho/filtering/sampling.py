@@ -228,7 +228,6 @@ class Sampler:
         return self._nb[pos]
 
     def _first_k(self, cand: np.ndarray, ok: np.ndarray) -> np.ndarray:
-        """The first k candidates (pool positions, nearest first) where ``ok``, -1 padded."""
         order = np.argsort(~ok, axis=1, kind="stable")[:, : self.k]
         nb = np.take_along_axis(cand, order, axis=1)
         nb[~np.take_along_axis(ok, order, axis=1)] = -1

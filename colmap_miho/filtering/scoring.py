@@ -263,7 +263,6 @@ class NumpyScoring:
         return spread_ok(problem, sample, t_l)
 
     def _work(self) -> _Scratch:
-        """This instance's work arrays (one instance per filter call)."""
         work = self.__dict__.get("_scratch")
         if work is None:
             work = self.__dict__["_scratch"] = _Scratch()

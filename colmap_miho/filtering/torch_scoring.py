@@ -73,7 +73,6 @@ class TorchScoring(NumpyScoring):
         return hit[1]
 
     def _index(self, idx: np.ndarray) -> Any:
-        """``idx`` on the device; the pool of a round is uploaded once."""
         if self._pool is None or self._pool[0] is not idx:
             self._pool = (idx, self._tensor(idx))
         return self._pool[1]

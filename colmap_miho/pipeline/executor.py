@@ -27,12 +27,10 @@ LOCAL = "local"
 
 
 def _ready() -> bool:
-    """A task that only tells that a worker runs."""
     return True
 
 
 def _one_thread_task(fn: Callable, *args):
-    """Run ``fn(*args)`` in a Dask worker with one torch / BLAS thread."""
     init_worker()
     return fn(*args)
 

@@ -98,7 +98,6 @@ def _job_recipe(recipe: Recipe | str | None, opts: JobOptions, gt: str | Path | 
 
 
 def _mapping_config(recipe: Recipe, opts: JobOptions) -> MappingConfig:
-    """The recipe's ``mapping`` config with the ``mapper`` / ``seed`` overrides applied."""
     cfg = recipe.mapping
     if opts.mapper is not None:
         cfg = replace(cfg, mapper=opts.mapper)

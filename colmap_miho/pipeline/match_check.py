@@ -167,7 +167,6 @@ def stats_fields(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pai
 
 
 def _hinge_meta(v: HingeVerdict, matches: dict[Pair, np.ndarray], name) -> dict:
-    """The stats' record of one hinge, images named."""
     def named(pairs) -> list[list[str]]:
         return [[name(i), name(j)] for i, j in sorted(pairs)]
 

@@ -49,7 +49,6 @@ def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
 
 
 def _resolve_device(device: Device | str) -> str:
-    """"cpu" or "cuda", by the one resolver (torch is imported only if needed)."""
     device = Device.parse(device, "device")
     if device == Device.CPU:
         return "cpu"
@@ -206,7 +205,6 @@ def _keep_store(store: RunStore) -> bool:
 
 
 def _add_note(exc: BaseException, note: str) -> None:
-    """``exc.add_note(note)`` (Python >= 3.11), or the same ``__notes__`` list on 3.10."""
     add = getattr(exc, "add_note", None)
     if add is not None:
         add(note)
@@ -235,7 +233,6 @@ class _RunInputs:
 
 def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Runner, *, resumed: bool,
                 laps: _Laps) -> RefineSummary:
-    """The stages on the working copy, then the commit; returns the summary."""
     database, image_dir, rec, dev = inputs.database, inputs.image_dir, inputs.recipe, inputs.device
     seed, strict, progress, json_path = inputs.seed, inputs.strict, inputs.progress, inputs.json_path
     pcfg = rec.pipeline

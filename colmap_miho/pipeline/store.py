@@ -273,7 +273,6 @@ class RunStore:
         return arrays
 
     def _save(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
-        """:func:`_atomic_savez` with this run's ``run_id`` and the file's name (see :meth:`_read`)."""
         _atomic_savez(path, {**arrays, "run_id": np.array(self.manifest["run_id"]), "file_name": np.array(path.name)})
 
     def _files(self, pattern: re.Pattern) -> list[tuple[int, Path]]:
@@ -440,7 +439,6 @@ class RunStore:
 
 
 def _own_entries(folder: Path) -> list[Path]:
-    """The store's own regular files in ``folder`` (by name, links and folders left out)."""
     return [p for p in Path(folder).iterdir()
             if (_OWN_FILE.match(p.name) or _OWN_TEMP.match(p.name)) and not p.is_symlink() and p.is_file()]
 

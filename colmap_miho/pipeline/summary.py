@@ -146,7 +146,6 @@ class RefineSummary:
 
 
 def _pair_check_line(pc: dict) -> str:
-    """The summary's pair-check lines: counts, then at most 10 wrong pairs with their reasons."""
     done = f"{pc['pairs_removed']} removed" if pc["mode"] == "remove" else f"{pc['pairs_flagged']} flagged"
     line = (f"  pair check: {pc['pairs_checked']} pairs, {pc['triangles']} triangles "
             f"({pc['triangles_broken']} broken), {done}")

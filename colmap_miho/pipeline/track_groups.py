@@ -56,7 +56,6 @@ def _import_plan():
 
 
 def _walk_counters() -> tuple[str, ...]:
-    """The walk's counters that the groups' stats sum (imports the walk)."""
     from ..refinement.lsm.step import LSM_COUNTERS
     from ..refinement.tracks.multiphoto import MULTIPHOTO_COUNTERS
     from ..refinement.tracks.walk import WALK_COUNTERS
@@ -78,7 +77,6 @@ def max_images_for(loader: ImageLoader, image_ids, budget_bytes: int | None,
 
 
 def _moved_of(group, keypoints) -> Moved:
-    """The keypoints of ``group``'s images that its walk changed: image -> (idx, xy)."""
     out: Moved = {}
     for i, arr in keypoints.items():
         arr = np.asarray(arr, np.float64)
@@ -144,7 +142,6 @@ def _merge_walk_stats(plan_stats: dict, parts: list[dict]) -> dict:
 
 
 def _runs(groups: list, n: int) -> list[list[int]]:
-    """``n`` contiguous runs of group indices, balanced by keypoints to refine."""
     work = np.cumsum([g.to_refine for g in groups], dtype=np.float64)
     cut = np.searchsorted(work, work[-1] * np.arange(1, n) / n, side="right")
     bounds = [0, *sorted(set(cut.tolist())), len(groups)]

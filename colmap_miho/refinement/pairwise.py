@@ -73,7 +73,6 @@ def resolve_device(config: NCCConfig, *inputs: object) -> torch.device:
 
 @dataclass
 class _Outputs:
-    """The arrays :func:`refine_pair` fills in and its counters."""
 
     pts: tuple[np.ndarray, np.ndarray]
     before: np.ndarray
@@ -102,7 +101,6 @@ class _Outputs:
 
 @dataclass(frozen=True)
 class _Offsets:
-    """Sample offsets of one :func:`refine_pair` call, on its device."""
 
     shapes: torch.Tensor  # (K, 2, 2) template shapes M
     grid_t: torch.Tensor  # (P, 2) template pixels, radius r

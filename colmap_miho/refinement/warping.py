@@ -212,7 +212,6 @@ def patch_inside(
 
 
 def _job_sizes(image: torch.Tensor | ImageStack, n: int) -> torch.Tensor:
-    """(n, 2) float64 (width, height) of each job's image."""
     if isinstance(image, ImageStack):
         return image.sizes
     return torch.tensor([[image.shape[1], image.shape[0]]], dtype=torch.float64,

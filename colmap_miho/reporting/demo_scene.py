@@ -53,7 +53,6 @@ def _rgb(img: np.ndarray) -> np.ndarray:
 
 
 def _tile(img: np.ndarray, w: int, h: int) -> np.ndarray:
-    """Tile ``img`` (mirrored, so seams do not show) to exactly (h, w)."""
     img = _rgb(img)
     blk = np.concatenate([img, img[:, ::-1]], axis=1)
     blk = np.concatenate([blk, blk[::-1]], axis=0)

@@ -152,7 +152,6 @@ def list_images(image_dir: str | Path) -> list[str]:
 
 
 def _rescale(K: np.ndarray, size_from: tuple[int, int], size_to: tuple[int, int], name: str) -> np.ndarray:
-    """Rescale pixel-centre intrinsics from one image size to another (same aspect)."""
     if size_from == size_to:
         return K
     sx, sy = size_to[0] / size_from[0], size_to[1] / size_from[1]

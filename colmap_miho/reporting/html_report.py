@@ -41,7 +41,6 @@ _PLOT_CONFIG = {"displaylogo": False, "responsive": True}
 
 
 def _plotly():
-    """plotly's ``graph_objects`` module, or None with one logged line naming the extra."""
     from ..extras import MissingExtraError, require
 
     try:
@@ -229,7 +228,6 @@ def _section(title: str, body: str, note: str = "", section_id: str = "") -> str
 
 
 def _load_model(path):
-    """A ``pycolmap.Reconstruction`` from a model folder, or None (logged) when unreadable."""
     from .gt_model import load_reconstruction
 
     if path is None:

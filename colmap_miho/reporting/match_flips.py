@@ -117,7 +117,6 @@ def epipolar_flip_cases(
 
 
 def _common_rows(m0: np.ndarray, m1: np.ndarray) -> np.ndarray:
-    """The (index a, index b) rows present in both (K, 2) int64 arrays, unique, sorted."""
     if m0.size == 0 or m1.size == 0:
         return np.zeros((0, 2), np.int64)
     if min(m0.min(), m1.min()) < 0:

@@ -31,7 +31,6 @@ def decimate(num: int, budget: int = POINT_BUDGET, seed: int = 0) -> np.ndarray:
 
 
 def _poses(rec) -> dict[str, tuple[np.ndarray, np.ndarray, Any]]:
-    """name -> (R_cam_from_world, t, camera) of the registered images."""
     out = {}
     for image in rec.images.values():
         if not image.has_pose:

@@ -45,7 +45,6 @@ def plain_text_figure(func):
 
 
 def _save(fig, path: Path) -> None:
-    """``fig`` as a PNG at ``path``, whole or not at all (staged beside it, then renamed)."""
     from ..adapters.staged_write import staged_write
 
     with staged_write(path) as tmp:

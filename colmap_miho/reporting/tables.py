@@ -109,7 +109,6 @@ def format_value(v, spec: str) -> str:
 
 
 def _cell(rep: dict, path: tuple, spec: str) -> str | None:
-    """The value of ``path``: plain, or with repeats the median and ``[min-max]``."""
     rpt = rep.get("repeats")
     if rpt and _get(rpt.get("median", {}), path) is not None:
         med, lo, hi = (_get(rpt[k], path) for k in ("median", "min", "max"))

@@ -16,7 +16,6 @@ log = logging.getLogger(__name__)
 
 
 def _names_need_escaping(image_dir: Path) -> bool:
-    """Whether a file name under ``image_dir`` needs escaping for the terminal."""
     import os
 
     from ..terminal import printable
@@ -108,7 +107,6 @@ def extract_and_match(
 
 
 def _some(names: list[str], most: int = 5) -> str:
-    """Up to ``most`` of ``names``, escaped for the terminal, and how many more."""
     from ..terminal import printable
 
     shown = ", ".join(printable(n) for n in names[:most])

@@ -199,7 +199,6 @@ class PairCoverage:
         self.poses: dict[tuple[int, int], Pose | None] = {}
 
     def _pair_matches(self, i: int, j: int) -> np.ndarray | None:
-        """The matches of images i and j with column 0 into i (None: not a pair)."""
         if (i, j) in self.matches:
             return np.asarray(self.matches[(i, j)], np.int64)
         if (j, i) in self.matches:

@@ -10,7 +10,6 @@ from ...compiled import Kernels, jit
 
 
 def _rotation_counts(dx1, dx2, lo, hi, rows):
-    """See :func:`rotation_counts`."""
     C = rows.shape[0]
     P = dx1.shape[1]
     scores = np.zeros(C, dtype=np.int64)
@@ -43,7 +42,6 @@ def _rotation_counts(dx1, dx2, lo, hi, rows):
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit every kernel and helper (numpy's error model)."""
     j = jit()
     return {f.__name__: j(f) for f in (_rotation_counts,)}
 

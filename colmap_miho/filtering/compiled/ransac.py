@@ -11,7 +11,6 @@ from ...compiled import Kernels, jit
 
 
 def _greedy_cover(masks, covered, z):
-    """See :func:`greedy_cover`."""
     C, n = masks.shape
     cov = covered.copy()
     free = np.ones(C, dtype=np.bool_)
@@ -40,7 +39,6 @@ def _greedy_cover(masks, covered, z):
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit every kernel and helper (numpy's error model)."""
     j = jit()
     return {f.__name__: j(f) for f in (_greedy_cover,)}
 

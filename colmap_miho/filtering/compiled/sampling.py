@@ -12,7 +12,6 @@ from ...compiled import Kernels, jit, jit_helpers
 
 
 def _spread_ok(spread_xy, sample, t2):
-    """``(B,)`` bool: see :func:`spread_ok`."""
     B = sample.shape[0]
     sets = spread_xy.shape[1]
     ok = np.ones(B, dtype=np.bool_)
@@ -40,12 +39,10 @@ def _spread_ok(spread_xy, sample, t2):
 
 
 def _draw_local(nb, keys, seeds, spread_x, spread_y, t2):
-    """See :func:`draw_local`."""
     return _draw_local_rows(nb, keys, seeds, spread_x, spread_y, t2)
 
 
 def _draw_local_rows(nb, keys, seeds, spread_x, spread_y, t2):
-    """See :func:`draw_local`."""
     L, k = nb.shape
     sets = spread_x.shape[0]
     out = np.empty((L, 3), dtype=np.int64)
@@ -116,7 +113,6 @@ def _push_nearest(best_d, best_j, filled, d, j) -> int:
 
 
 def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q, pool, lists, listed):
-    """See :func:`pool_neighbours`."""
     return _neighbour_rows(todo, cand, far, False, pos, feats, sx, sy, t2, k, q, pool, lists,
                            listed)
 
@@ -208,12 +204,10 @@ def _keep_list(nb, r, pool, lists, listed, a):
 
 
 def _nearest(feats, todo, q, x0, y0, cell, nx, ny, start, members):
-    """See :meth:`NearestGrid.query`."""
     return _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members)
 
 
 def _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members):
-    """See :meth:`NearestGrid.query`."""
     m = todo.shape[0]
     dims = feats.shape[1]
     out = np.empty((m, q), dtype=np.int64)
@@ -324,7 +318,6 @@ def _need_of(probes, known, n, all_at_once):
 def _local_fraction(mask, rows, pool, pos, nb, known, all_at_once, cand, far, cknown,
                     by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start, members,
                     pool_feats, sx, sy, t2, k, q, lists, listed):
-    """See :func:`local_fraction`."""
     n = pool.shape[0]
     m = rows.shape[0]
     probe = np.empty(m, dtype=np.int64)
@@ -355,7 +348,6 @@ def _local_fraction(mask, rows, pool, pos, nb, known, all_at_once, cand, far, ck
 def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, cand, far,
                 cknown, by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start,
                 members, pool_feats, sx, sy, t2, k, q, lists, listed):
-    """See :func:`draw_batch`."""
     n = pool.shape[0]
     size = seeds.shape[0]
     L = local.shape[0]
@@ -387,7 +379,6 @@ def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, c
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit every kernel and helper (numpy's error model: division by zero gives inf / nan)."""
     jit_helpers(globals(), (_far, _push_nearest, _keep_list, _draw_local_rows, _neighbour_rows, _nearest_rows,
                             _search_needed, _need_of))
     j = jit()

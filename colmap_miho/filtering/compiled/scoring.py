@@ -258,7 +258,6 @@ def _mask_row(hk, pts, t2, s2, out):
 
 
 def _inlier_masks(H, Hinv, sign, sign_inv, pts, t2, s2):
-    """See :func:`inlier_masks`."""
     K = H.shape[0]
     terms = 2 * H.shape[1]
     n = pts.shape[3]
@@ -271,7 +270,6 @@ def _inlier_masks(H, Hinv, sign, sign_inv, pts, t2, s2):
 
 
 def _error_sq(H, Hinv, sign, sign_inv, pts, s2):
-    """See :func:`error_sq`."""
     K = H.shape[0]
     terms = 2 * H.shape[1]
     n = pts.shape[3]
@@ -342,7 +340,6 @@ def _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A) -> bool:
 
 
 def _singular_value_ok(sample, src_all, dst_all, min_sv):
-    """See :func:`singular_value_ok`."""
     K = sample.shape[0]
     ok = np.ones(K, dtype=np.bool_)
     p = np.empty((4, 2))
@@ -357,7 +354,6 @@ def _singular_value_ok(sample, src_all, dst_all, min_sv):
 
 def _score_batch(ub, count0, have_best, n_req, z, H, Hinv, sign, sign_inv, sample, src_all,
                  dst_all, min_sv, pts, t2, s2):
-    """See :func:`score_batch`."""
     L = ub.shape[0]
     order = np.argsort(-ub, kind="mergesort")  # stable: the same order as numpy's
     n_buf = 0
@@ -451,7 +447,6 @@ def _normalising(pts, out, T):
 
 
 def _refit(idx, src_all, dst_all, sample):
-    """See :func:`refit`."""
     nh = src_all.shape[1]
     M = idx.shape[0]
     H = np.empty((nh, 3, 3))
@@ -539,7 +534,6 @@ def _refit(idx, src_all, dst_all, sample):
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit every kernel and helper (numpy's error model: a division by zero gives inf / nan)."""
     jit_helpers(globals(), (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows,
                             _mask_row, _normalise4, _sv_ok_one, _normalising))
     j = jit()

@@ -148,7 +148,6 @@ def _start_outputs(shift0: torch.Tensor) -> LSMResult:
 def _write_outputs(out: LSMResult, rows: torch.Tensor, t: torch.Tensor, sigma: torch.Tensor,
                    sigma_max: torch.Tensor, A: torch.Tensor, gain: torch.Tensor, offset: torch.Tensor,
                    s0: torch.Tensor, converged: torch.Tensor, iterations: int) -> None:
-    """The final values of the matches ``rows`` (they stop here), written into ``out``'s tensors."""
     out.shift[rows], out.sigma[rows], out.sigma_max[rows] = t, sigma, sigma_max
     out.affine[rows], out.gain[rows], out.offset[rows] = A, gain, offset
     out.residual_std[rows], out.converged[rows] = s0, converged
@@ -297,7 +296,6 @@ def _frame_grid(M: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 def _shifted(grid: torch.Tensor, off: torch.Tensor | None) -> torch.Tensor:
-    """``grid`` (n, Q, 2) plus ``off`` (n, 1, 2) (in place), or ``grid`` where ``off`` is None."""
     return grid if off is None else grid.add_(off)
 
 

@@ -182,7 +182,6 @@ def _merged(p: float, sigma: float, lim: float, a: float, wv, ix: int) -> tuple[
 
 def _read_blurred(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float,
                   radius: int, a: float, on: bool, sigma: float, out, wts, taps, cw, base) -> None:
-    """:func:`_read`, or :func:`_smoothed` with ``sigma`` where ``on``."""
     if on:
         _smoothed(img, H, cx, cy, a00, a01, a10, a11, radius, a, sigma, out, cw, base)
     else:
@@ -364,7 +363,6 @@ KERNELS = Kernels(_jit_all)
 
 
 def _blur_arrays(blur: tuple[torch.Tensor, torch.Tensor] | None, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(n,)`` bool and float64 arrays of a ``blur_px`` argument (zeros for None)."""
     if blur is None:
         return np.zeros(n, np.bool_), np.zeros(n)
     return (np.ascontiguousarray(blur[0].cpu().numpy()),

@@ -57,7 +57,6 @@ def ncc_maps(
 def _ncc_block(
     windows: torch.Tensor, templates: torch.Tensor, stride: int, normalized: bool
 ) -> torch.Tensor:
-    """:func:`ncc_maps` on one block of jobs."""
     J, K, St, _ = templates.shape
     Sw = windows.shape[-1]
     n = St * St

@@ -57,7 +57,6 @@ def _invert(H, out) -> bool:
 
 
 def _to_frame(H, x: float, y: float) -> tuple[float, float]:
-    """``(x, y)`` mapped by H, w clamped to 1e-12."""
     X = H[0, 0] * x + H[0, 1] * y + H[0, 2]
     Y = H[1, 0] * x + H[1, 1] * y + H[1, 2]
     W = max(H[2, 0] * x + H[2, 1] * y + H[2, 2], 1e-12)
@@ -82,7 +81,6 @@ def _inside(Hi, cx: float, cy: float, radius: int, h: int, w: int) -> bool:
 
 
 def _centre_good(Hi, cx: float, cy: float) -> bool:
-    """The centre maps in front of the camera (:func:`..warping.sample_values`' ``good``)."""
     return Hi[2, 0] * cx + Hi[2, 1] * cy + Hi[2, 2] > _MIN_W
 
 
@@ -485,7 +483,6 @@ KERNELS = Kernels(_jit_all)
 
 
 def _groups(key: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    """The jobs of each value of ``key`` (n,): (value, their rows (int64, in order))."""
     if key.size and (key == key[0]).all():
         return [(int(key[0]), np.arange(key.size, dtype=np.int64))]
     order = np.argsort(key, kind="stable")

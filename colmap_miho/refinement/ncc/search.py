@@ -29,7 +29,6 @@ Pass = tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]
 
 
 def _repeat(image: torch.Tensor | ImageStack, n: int) -> torch.Tensor | ImageStack:
-    """``image`` for ``n`` copies of its jobs, one after the other."""
     if isinstance(image, ImageStack):
         return ImageStack(image.images, image.slot_sizes, image.index.repeat(n))
     return image

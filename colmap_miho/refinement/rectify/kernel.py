@@ -236,7 +236,6 @@ def _fit_clusters(x1, x2, members, bounds, want, k, max_residual_px, iterations,
 
 
 def _jit_all() -> tuple[Any, Any]:
-    """Jit the kernels and their helpers: ``(fit_matches, fit_clusters)``."""
     jit_helpers(globals(), (_extreme_eigenvalues, _solve3, _fit, _fit_matches, _insert, _nearest))
     return globals()["_fit_matches"], jit()(_fit_clusters)
 

@@ -200,7 +200,6 @@ def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displace
 
 
 def _add_counters(res: object, ctx: WalkState) -> None:
-    """Add the refiner's least-squares matching counters (if any) to the walk's stats."""
     stats = getattr(res, "stats", None) or {}
     for key in LSM_COUNTERS:
         if key in stats:
@@ -275,7 +274,6 @@ def refine_batch(groups: list[Group], ctx: WalkState, device: torch.device) -> N
 
 
 def _seg(res: object, seg: slice) -> np.ndarray | None:
-    """``res.ncc_second[seg]``, or None where the refiner reports no second peak."""
     second = getattr(res, "ncc_second", None)
     return None if second is None else second[seg]
 

@@ -125,7 +125,6 @@ def refine_tracks(
 
 def _refiner(refine_fn: Callable | None, ncc_cfg: NCCConfig,
              trk_cfg: TrackConfig) -> tuple[Callable, torch.device | None]:
-    """(refine function, device for batched levels or None)."""
     use_batch = trk_cfg.batch_pairs
     if use_batch is None:  # the built-in refiner takes image stacks; a custom one may not
         use_batch = refine_fn is None
@@ -278,7 +277,6 @@ def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
 
 
 def _joint_tracks(ctx: WalkState, device: torch.device, iterations: int, star_first: bool) -> None:
-    """The body of :func:`joint_pass`."""
     plan, to_ref = ctx.plan, ctx.to_ref
     if to_ref is None or plan.anchors.size == 0:
         return
