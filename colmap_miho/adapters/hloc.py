@@ -212,7 +212,6 @@ def count_matches(h5: h5py.File) -> int:
 
 
 class _NameIndex:
-
     def __init__(self, names: Iterable[str]):
         self.names = set(names)
         self.by_flat: dict[str, str] = {}

@@ -35,7 +35,6 @@ class _Damaged(Exception):
 
 
 class _Reader:
-
     def __init__(self, data: bytes) -> None:
         self.data, self.pos = memoryview(data), 0
 

@@ -73,7 +73,6 @@ def resolve_device(config: NCCConfig, *inputs: object) -> torch.device:
 
 @dataclass
 class _Outputs:
-
     pts: tuple[np.ndarray, np.ndarray]
     before: np.ndarray
     after: np.ndarray
@@ -101,7 +100,6 @@ class _Outputs:
 
 @dataclass(frozen=True)
 class _Offsets:
-
     shapes: torch.Tensor  # (K, 2, 2) template shapes M
     grid_t: torch.Tensor  # (P, 2) template pixels, radius r
     tpl: torch.Tensor  # (K, P, 2) M w
