@@ -39,8 +39,7 @@ def check_seed(seed, name: str = "seed", *, optional: bool = False) -> int | Non
 
 
 def check_path(name: str, value, *, optional: bool = False) -> None:
-    """Refuse a ``value`` that is not a non-empty ``str`` or ``os.PathLike`` (None only if
-    ``optional``)."""
+    """Refuse a ``value`` that is not a non-empty ``str`` or ``os.PathLike`` (None only if ``optional``)."""
     if value is None and optional:
         return
     if isinstance(value, os.PathLike):

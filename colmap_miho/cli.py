@@ -156,8 +156,7 @@ def _forced_exit_after_sigterm():
 
 
 def _forced_exit(signum: int, when: str) -> None:
-    """Remove the working files and exit at once, with the line the interpreter would have printed.
-    """
+    """Remove the working files and exit at once, with the line the interpreter would have printed."""
     import multiprocessing.process
     import shutil
 
@@ -179,8 +178,7 @@ def _forced_exit(signum: int, when: str) -> None:
 
 
 def _stop_children() -> None:
-    """Kill this process's workers, which would otherwise hold its stderr and semaphores until
-    reaped."""
+    """Kill this process's workers, which would otherwise hold its stderr and semaphores until reaped."""
     import multiprocessing
 
     for child in multiprocessing.active_children():
@@ -189,8 +187,7 @@ def _stop_children() -> None:
 
 
 def _release_semaphores() -> None:
-    """Unlink the pool's semaphores as their finalizers would (else the tracker warns after
-    ``os._exit``)."""
+    """Unlink the pool's semaphores as their finalizers would (else the tracker warns after ``os._exit``)."""
     import multiprocessing.synchronize
     import multiprocessing.util as mp_util
 

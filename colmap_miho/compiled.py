@@ -70,8 +70,7 @@ def writable(folder: Path) -> bool:
 
 @contextlib.contextmanager
 def _kernel_cache() -> Iterator[None]:
-    """numba's cache folder set to :func:`cache_dir` while kernels are built; no cache if
-    unwritable."""
+    """numba's cache folder set to :func:`cache_dir` while kernels are built; no cache if unwritable."""
     from numba.core import config as numba_config
 
     config: Any = numba_config  # its settings are set from the environment at import
@@ -90,8 +89,7 @@ def _kernel_cache() -> Iterator[None]:
 
 
 def jit(fastmath: frozenset[str] | None = None) -> Callable[[Callable], Any]:
-    """numba's ``njit`` with the kernels' options: disk cache, no GIL, numpy's error model,
-    ``fastmath``."""
+    """numba's ``njit`` with the kernels' options: disk cache, no GIL, numpy's error model, ``fastmath``."""
     import numba
 
     cache = _CACHING[0]
@@ -102,8 +100,7 @@ def jit(fastmath: frozenset[str] | None = None) -> Callable[[Callable], Any]:
 
 def jit_helpers(namespace: dict[str, Any], helpers: Iterable[Callable],
                 fastmath: frozenset[str] | None = None) -> None:
-    """Replace ``helpers`` in a kernel module's namespace by their jitted versions (numba resolves
-    callees there)."""
+    """Replace ``helpers`` in a kernel module's namespace by their jitted versions (numba resolves callees there)."""
     j = jit(fastmath)
     namespace.update({f.__name__: j(f) for f in helpers})
 

@@ -35,8 +35,7 @@ _PACKAGE = Path(__file__).resolve().parent
 
 @dataclass(frozen=True)
 class Family:
-    """One kernel family: its loader (``module:function``, never raises) and its source paths or
-    globs."""
+    """One kernel family: its loader (``module:function``, never raises) and its source paths or globs."""
 
     warm: str
     sources: tuple[str, ...]
@@ -68,8 +67,7 @@ def families_for(recipe) -> tuple[str, ...]:
 
 @functools.lru_cache(maxsize=1)
 def _machine() -> str:
-    """What numba's cache keys hold beyond the source (its version, target CPU), read without numba.
-    """
+    """What numba's cache keys hold beyond the source (its version, target CPU), read without numba."""
     from importlib.metadata import version
 
     import llvmlite.binding as llvm

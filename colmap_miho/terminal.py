@@ -34,8 +34,7 @@ def printable(text: object, keep_newlines: bool = False) -> str:
 
 
 def printable_fields(obj):
-    """A copy of ``obj`` (nested dataclasses, dicts, lists, strings, paths) with strings made
-    printable."""
+    """A copy of ``obj`` (nested dataclasses, dicts, lists, strings, paths) with strings made printable."""
     if isinstance(obj, (str, PurePath)):
         return printable(obj)
     if isinstance(obj, dict):

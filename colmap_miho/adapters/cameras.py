@@ -26,8 +26,7 @@ class CameraIntrinsics:
 
 
 def model_num_params(model: str) -> int:
-    """Parameter count of the COLMAP camera ``model`` (any case); ValueError listing the known ones.
-    """
+    """Parameter count of the COLMAP camera ``model`` (any case); ValueError listing the known ones."""
     import pycolmap
 
     names = [n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"]

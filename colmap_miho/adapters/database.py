@@ -94,8 +94,7 @@ def _camera_model_params() -> dict[int, tuple[str, int]]:
 
 
 def _check_camera_models(p: Path, name: Path) -> None:
-    """Refuse a camera with an unknown model id or a parameter blob of the wrong size; raises
-    :class:`DatabaseError`."""
+    """Refuse a camera with an unknown model id or a parameter blob of the wrong size; raises :class:`DatabaseError`."""
     models = _camera_model_params()
     con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
     try:
@@ -215,8 +214,7 @@ def fitted_geometry(F: np.ndarray | None, H: np.ndarray | None):
 
 
 def keep_or_fit(handle, i: int, j: int, inliers: np.ndarray, fit: Callable[[], Any], *, keep: bool = True):
-    """The pair's stored verified model when ``keep`` and it has one, else ``fit()`` (None: no
-    model)."""
+    """The pair's stored verified model when ``keep`` and it has one, else ``fit()`` (None: no model)."""
     old = handle.read_two_view_geometry(i, j) if handle.exists_two_view_geometry(i, j) else None
     tvg = old if keep and old is not None and is_verified(old) else fit()
     if tvg is not None:
@@ -326,8 +324,7 @@ class ColmapDatabase(DatabaseBuilder):
         return None
 
     def pairs(self, source: MatchSource | str) -> list[PairRecord]:
-        """Pairs with matches in ``source`` ("verified" or "raw"), sorted by pair id; reads counts
-        only."""
+        """Pairs with matches in ``source`` ("verified" or "raw"), sorted by pair id; reads counts only."""
         source = MatchSource.parse(source, "source")
         if source == MatchSource.VERIFIED:
             pids, counts = self.handle.read_two_view_geometry_num_inliers()
@@ -447,8 +444,7 @@ def _never_free(obj) -> None:
 
 
 def count_images(path: str | Path) -> int:
-    """Number of images in the database at ``path`` (never the user's file: pycolmap migrates it).
-    """
+    """Number of images in the database at ``path`` (never the user's file: pycolmap migrates it)."""
     with ColmapDatabase(path) as db:
         return int(db.handle.num_images())
 

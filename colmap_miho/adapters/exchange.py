@@ -33,8 +33,7 @@ FOCAL_PRIOR = 1.2
 
 @dataclass(frozen=True)
 class ImportStats:
-    """What an import wrote: images, cameras, keypoints, pairs, matches and verified pairs and
-    inliers."""
+    """What an import wrote: images, cameras, keypoints, pairs, matches and verified pairs and inliers."""
 
     num_images: int
     num_cameras: int

@@ -20,8 +20,7 @@ WORKING_FILES: set[Path] = set()
 
 
 def remove_own_file(path: str | os.PathLike) -> None:
-    """Delete ``path`` this process made, unless a symbolic link stands there now (not ours:
-    warned)."""
+    """Delete ``path`` this process made, unless a symbolic link stands there now (not ours: warned)."""
     p = Path(path)
     if p.is_symlink():
         log.warning("%s is a symbolic link that colmap-miho did not make: left as it is", p)

@@ -70,8 +70,7 @@ class ImageFeatures:
 
 @dataclass(frozen=True)
 class PairMatches:
-    """Matches of one pair: ``matches`` ``(M, 2)`` int64 (name0, name1), ``scores`` ``(M,)`` or
-    None."""
+    """Matches of one pair: ``matches`` ``(M, 2)`` int64 (name0, name1), ``scores`` ``(M,)`` or None."""
 
     name0: str
     name1: str
@@ -166,8 +165,7 @@ def _optional_vector(h5: h5py.File, grp: h5py.Group, key: str, n: int, name: str
 
 
 def write_features(h5: h5py.File, name: str, keypoints: np.ndarray, image_size: tuple[int, int] | None = None) -> None:
-    """Write one image group (``keypoints`` float32, optional ``image_size``), replacing an existing
-    one."""
+    """Write one image group (``keypoints`` float32, optional ``image_size``), replacing an existing one."""
     kp = np.asarray(keypoints, dtype=np.float32)
     if kp.ndim != 2 or kp.shape[1] != 2:
         raise InvalidInput(f"keypoints of image {name!r} have shape {kp.shape}, expected (N, 2)")
@@ -273,8 +271,7 @@ def _pair_datasets(h5: h5py.File) -> list[tuple[str, str]]:
 
 
 def _as_int64(values: np.ndarray, what: str, n0: int, n1: int) -> np.ndarray:
-    """Integer match indices as int64; a uint64 value above int64's range is refused (InvalidInput).
-    """
+    """Integer match indices as int64; a uint64 value above int64's range is refused (InvalidInput)."""
     if values.dtype.kind == "u" and values.dtype.itemsize >= 8:
         too_big = values > np.uint64(np.iinfo(np.int64).max)
         if too_big.any():

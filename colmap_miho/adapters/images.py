@@ -36,8 +36,7 @@ def read_image(path: str | Path, *, gray8: bool = False) -> np.ndarray | None:
 
 
 def read_gray_float(path: str | Path) -> np.ndarray | None:
-    """One image as float32 ``(H, W)`` gray in [0, 1] (OpenCV weights, alpha dropped); None if
-    unusable."""
+    """One image as float32 ``(H, W)`` gray in [0, 1] (OpenCV weights, alpha dropped); None if unusable."""
     img = read_image(path)
     return None if img is None else _to_gray_float(img)
 
@@ -124,8 +123,7 @@ def image_size(path: str | Path) -> tuple[int, int]:
 
 
 def header_size(path: str | Path) -> tuple[int, int] | None:
-    """``(width, height)`` as stored (no EXIF rotation), from the header where possible; None if
-    unreadable."""
+    """``(width, height)`` as stored (no EXIF rotation), from the header where possible; None if unreadable."""
     import warnings
 
     try:
@@ -147,8 +145,7 @@ def header_size(path: str | Path) -> tuple[int, int] | None:
 
 
 def folder_image_sizes(folder: str | Path) -> dict[str, tuple[int, int]]:
-    """Every readable image under ``folder`` (all depths): COLMAP image name -> ``(width, height)``.
-    """
+    """Every readable image under ``folder`` (all depths): COLMAP image name -> ``(width, height)``."""
     import os
 
     folder = Path(folder)

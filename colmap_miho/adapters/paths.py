@@ -22,8 +22,7 @@ PathArg = str | os.PathLike | None
 
 
 def resolve(path: str | os.PathLike) -> Path:
-    """The absolute, symlink-free path that writing ``path`` would reach (a missing one: its folder
-    resolved)."""
+    """The absolute, symlink-free path that writing ``path`` would reach (a missing one: its folder resolved)."""
     p = Path(path).expanduser()
     try:
         return p.resolve(strict=False)
@@ -53,8 +52,7 @@ MODEL_SUBFOLDERS = ("", "gt_model", "sparse/0", "0")
 
 
 def model_files(folder: PathArg, label: str) -> dict[str, Path]:
-    """The COLMAP model files a command writes into ``folder``, labelled for :func:`check_distinct`.
-    """
+    """The COLMAP model files a command writes into ``folder``, labelled for :func:`check_distinct`."""
     if folder is None:
         return {}
     names = [f"{stem}{ext}" for stem in MODEL_STEMS for ext in MODEL_EXTENSIONS]
@@ -62,8 +60,7 @@ def model_files(folder: PathArg, label: str) -> dict[str, Path]:
 
 
 def model_input_files(folder: PathArg, label: str) -> dict[str, Path]:
-    """The model files (and ``pairs_with_gt.txt``) a command may read for the model argument
-    ``folder``."""
+    """The model files (and ``pairs_with_gt.txt``) a command may read for the model argument ``folder``."""
     if folder is None:
         return {}
     out: dict[str, Path] = {}
@@ -79,8 +76,7 @@ MAX_LISTED_FILES = 200_000
 
 
 def folder_files(folder: PathArg, label: str) -> dict[str, Path]:
-    """Every file below the input ``folder`` (hidden folders skipped, at most
-    :data:`MAX_LISTED_FILES`)."""
+    """Every file below the input ``folder`` (hidden folders skipped, at most :data:`MAX_LISTED_FILES`)."""
     if folder is None or not Path(folder).is_dir():
         return {}
     out: dict[str, Path] = {}
@@ -103,8 +99,7 @@ def text_model_in(folder: PathArg) -> list[str]:
 
 
 def refuse_text_model(folder: PathArg, label: str) -> None:
-    """Refuse to map into a folder holding a COLMAP text model such as a ground truth (UserError).
-    """
+    """Refuse to map into a folder holding a COLMAP text model such as a ground truth (UserError)."""
     found = text_model_in(folder)
     if found:
         raise UserError(f"{label} {folder} holds a COLMAP text model ({', '.join(found)}) that mapping "
@@ -112,8 +107,7 @@ def refuse_text_model(folder: PathArg, label: str) -> None:
 
 
 def refuse_folder_inside(output: PathArg, out_label: str, folder: PathArg, in_label: str) -> None:
-    """Refuse an output folder that is, or lies inside, the input ``folder`` (UserError naming
-    both)."""
+    """Refuse an output folder that is, or lies inside, the input ``folder`` (UserError naming both)."""
     if output is None or folder is None or not Path(folder).is_dir():
         return
     where, inside = resolve(output), resolve(folder)
@@ -192,8 +186,7 @@ def leaves_folder(name: str) -> bool:
 
 
 def names_of_one_file(image_dir: str | os.PathLike, names: Mapping[int, str]) -> list[list[tuple[int, str]]]:
-    """Groups of database images ``(image_id, name)`` whose names lead to one file of ``image_dir``.
-    """
+    """Groups of database images ``(image_id, name)`` whose names lead to one file of ``image_dir``."""
     groups: dict[object, list[tuple[int, str]]] = {}
     folder = Path(image_dir)
     for image_id in sorted(names):

@@ -105,8 +105,7 @@ def side_files(path: Path) -> list[Path]:
 
 
 def locked_by_other_process(path: Path) -> bool:
-    """Whether another process holds an SQLite lock on ``path`` (an F_GETLK probe; takes no lock).
-    """
+    """Whether another process holds an SQLite lock on ``path`` (an F_GETLK probe; takes no lock)."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except OSError:
@@ -149,8 +148,7 @@ def _size(path: Path) -> int:
 
 
 def check_free_space(folder: Path, needed: int, what: str) -> None:
-    """Refuse to start with less than ``needed`` bytes free in ``folder`` (UserError naming the
-    sizes)."""
+    """Refuse to start with less than ``needed`` bytes free in ``folder`` (UserError naming the sizes)."""
     try:
         free = shutil.disk_usage(folder).free
     except OSError:  # pragma: no cover - unknown: let the copy itself fail cleanly
@@ -221,8 +219,7 @@ COPY_BUFFER_BYTES = 1 << 22
 
 
 def file_identity(path: Path) -> tuple:
-    """What must not change under an in-place run: device, inode, size, mtime and SQLite's header.
-    """
+    """What must not change under an in-place run: device, inode, size, mtime and SQLite's header."""
     st = os.stat(path)
     with open(path, "rb") as fh:
         header = fh.read(100)
@@ -240,8 +237,7 @@ def backup_path(database: Path, now: float | None = None) -> Path:
 
 
 def unused_stamped_name(database: Path, name_for, now: float | None = None) -> Path:
-    """``database.with_name(name_for(stamp))`` with the local time as stamp, suffixed until unused.
-    """
+    """``database.with_name(name_for(stamp))`` with the local time as stamp, suffixed until unused."""
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
     candidate = database.with_name(name_for(stamp))
     k = 1

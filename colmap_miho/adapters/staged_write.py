@@ -41,8 +41,7 @@ SQLITE_FULL_TEXT = ("database or disk is full", "disk i/o error", "no space left
 
 
 def is_disk_full(exc: BaseException) -> bool:
-    """True for a full disk: ENOSPC / EDQUOT / EFBIG, ``SQLITE_FULL``, pycolmap's "database or disk
-    is full"."""
+    """True for a full disk: ENOSPC / EDQUOT / EFBIG, ``SQLITE_FULL``, pycolmap's "database or disk is full"."""
     if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
         return True
     if isinstance(exc, (OSError, RuntimeError, sqlite3.Error)):  # h5py's OSError carries no errno
@@ -85,8 +84,7 @@ def file_too_large(folder: str | os.PathLike, exc: BaseException | None = None) 
 
 
 def disk_full_error(folder: Path, what: str, exc: BaseException | None = None) -> RunFailed:
-    """The one-line error of a full disk or a file-size limit, naming the folder and what was kept.
-    """
+    """The one-line error of a full disk or a file-size limit, naming the folder and what was kept."""
     if file_too_large(folder, exc):
         limit = file_size_limit()
         why, fix = ((f"this process writes files of at most {limit / 1e6:.1f} MB (ulimit -f)",
@@ -125,8 +123,7 @@ CHARACTER_DEVICE = "character device"
 
 
 def output_kind(path: str | os.PathLike) -> str | None:
-    """What writing ``path`` would meet: None for nothing or a regular file, else its kind in words.
-    """
+    """What writing ``path`` would meet: None for nothing or a regular file, else its kind in words."""
     try:
         mode = os.stat(path).st_mode
     except OSError:  # missing (or unreachable: the write itself then says why)
@@ -365,8 +362,7 @@ TMPDIR_PREFIXES = (DEVICE_STAGING_PREFIX, "miho-global-", "colmap_miho_check_", 
 
 
 def sweep_stale_tempdirs(parent: str | os.PathLike | None = None) -> None:
-    """Remove the folders killed runs left in ``parent`` under :data:`TMPDIR_PREFIXES`; never fails.
-    """
+    """Remove the folders killed runs left in ``parent`` under :data:`TMPDIR_PREFIXES`; never fails."""
     where = Path(parent) if parent is not None else Path(tempfile.gettempdir())
     for prefix in TMPDIR_PREFIXES:
         with contextlib.suppress(OSError):

@@ -58,8 +58,7 @@ WORKING_SPACE_MARGIN = 1 << 20
 
 
 def working_space(size: int, *, in_place: bool = False) -> int:
-    """Bytes of free space a run on a database of ``size`` bytes needs beside its output (in
-    place: the backup too)."""
+    """Bytes of free space a run on a database of ``size`` bytes needs beside its output (in place: the backup too)."""
     return int((WORKING_SPACE_FACTOR + (1 if in_place else 0)) * size) + WORKING_SPACE_MARGIN
 
 
@@ -330,8 +329,7 @@ def _rename_no_replace(src: Path, dst: Path, *, advice: str = OVERWRITE_ADVICE) 
 
 
 def leftover_copies(output: Path) -> list[Path]:
-    """Hidden working copies of ``output`` left by killed runs, oldest first (open ones excluded).
-    """
+    """Hidden working copies of ``output`` left by killed runs, oldest first (open ones excluded)."""
     found = [f for f in Path(output).parent.glob(f".{Path(output).name}.*.tmp")
              if f.is_file() and not locked_by_other_process(f)]
     return sorted(found, key=lambda f: f.stat().st_mtime)

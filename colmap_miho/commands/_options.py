@@ -62,8 +62,7 @@ def add_refine_intrinsics_argument(parser) -> None:
 
 
 def add_camera_arguments(parser) -> None:
-    """``--camera-model`` / ``--camera-params`` (-> ``mapping.camera_model`` / ``camera_params``).
-    """
+    """``--camera-model`` / ``--camera-params`` (-> ``mapping.camera_model`` / ``camera_params``)."""
     parser.add_argument("--camera-model", default=None,
                         help="COLMAP camera model written into every camera of the mapped copy (e.g. PINHOLE); "
                              "the input database is never changed")

@@ -39,8 +39,7 @@ def _all_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _candidate_transforms(x2: np.ndarray, reflections: bool) -> list[np.ndarray]:
-    """3x3 affine maps of image 2: rotations by k*90 degrees about the centroid, optionally
-    mirrored; identity first."""
+    """3x3 affine maps of image 2: rotations by k*90 degrees about the centroid, optionally mirrored; identity first."""
     c = x2.mean(axis=0)
     out = []
     for R in _linear_parts(reflections):
@@ -57,8 +56,7 @@ def apply_affine(G: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 def _differences(x: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """``(2, P)`` differences ``x[i] - x[j]``, gathered per coordinate (cheaper than 2-float rows).
-    """
+    """``(2, P)`` differences ``x[i] - x[j]``, gathered per coordinate (cheaper than 2-float rows)."""
     xt = np.ascontiguousarray(x.T)
     return np.take(xt, i, axis=1) - np.take(xt, j, axis=1)
 

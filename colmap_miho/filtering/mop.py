@@ -24,8 +24,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class MopOutput:
-    """Kept hypotheses in discovery order, each one's t_l inliers in its round's pool ``(K, N)``,
-    counters."""
+    """Kept hypotheses in discovery order, each one's t_l inliers in its round's pool ``(K, N)``, counters."""
 
     hyps: Hypotheses
     round_inliers: np.ndarray

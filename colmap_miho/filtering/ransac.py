@@ -25,8 +25,7 @@ _DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
 
 @dataclass
 class RoundResult:
-    """Best model of one run: ``hyp``, ``err2`` ``(n_pool,)`` squared errors, ``count`` t_l inliers.
-    """
+    """Best model of one run: ``hyp``, ``err2`` ``(n_pool,)`` squared errors, ``count`` t_l inliers."""
 
     hyp: Hypotheses
     err2: np.ndarray
@@ -36,8 +35,7 @@ class RoundResult:
 
 def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: np.ndarray,
                    z: int, compiled: bool = False):
-    """Top-z sub-optimal models ordered by inliers not covered by the best and better ones (App.
-    A.3)."""
+    """Top-z sub-optimal models ordered by inliers not covered by the best and better ones (App. A.3)."""
     if z == 0 or not cands:
         return []
     masks = np.stack([m for _, _, m in cands])

@@ -37,8 +37,7 @@ def apart_sets(dx: np.ndarray, dy: np.ndarray, t2: float) -> np.ndarray:
 
 
 def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
-    """``(B,)`` bool: each sample's 4 points are pairwise at least ``t_l`` px apart in every spread
-    set."""
+    """``(B,)`` bool: each sample's 4 points are pairwise at least ``t_l`` px apart in every spread set."""
     assert problem.spread_xy is not None, "sampling runs on the numpy problem"
     px, py = np.take(problem.spread_xy, sample.T, axis=2)  # (sets, 4, B) each
     ok = np.ones(len(sample), dtype=bool)
@@ -59,8 +58,7 @@ def checked_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
 
 
 def required_iters(w: float, w_loc: float, local_fraction: float, p: float) -> float:
-    """Adaptive bound: draws for confidence ``p`` that one sample is all inliers (``inf`` if none
-    can be)."""
+    """Adaptive bound: draws for confidence ``p`` that one sample is all inliers (``inf`` if none can be)."""
     return draws_for_confidence(local_fraction * w * w_loc**3 + (1.0 - local_fraction) * w**4, p)
 
 

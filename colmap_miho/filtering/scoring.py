@@ -77,8 +77,7 @@ def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterCon
 
 
 def passes_singular_value_test(problem: Problem, hyp: Hypotheses, cfg: FilterConfig) -> np.ndarray:
-    """``(K,)`` bool: every half's minimal DLT system passes ``cfg.min_singular_value`` (App. A.3).
-    """
+    """``(K,)`` bool: every half's minimal DLT system passes ``cfg.min_singular_value`` (App. A.3)."""
     K, nh = len(hyp), problem.num_halves
     src = _per_half(problem.src_all, hyp.sample)
     dst = _per_half(problem.dst_all, hyp.sample)
@@ -88,8 +87,7 @@ def passes_singular_value_test(problem: Problem, hyp: Hypotheses, cfg: FilterCon
 
 def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray,
              scratch: _Scratch | None = None) -> np.ndarray:
-    """Squared MOP error ``(K, n)`` of hypotheses on the matches ``idx``, times ``error_scale**2``.
-    """
+    """Squared MOP error ``(K, n)`` of hypotheses on the matches ``idx``, times ``error_scale**2``."""
     err = None
     # (2, n) coordinates per half (kept in ``scratch`` for the next call on the same pool)
     points = (_Scratch() if scratch is None else scratch).points(problem, idx)

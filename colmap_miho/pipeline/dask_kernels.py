@@ -25,8 +25,7 @@ PLUGIN_NAME = "colmap-miho-kernels"
 
 
 class KernelCachePlugin(WorkerPlugin):
-    """On each worker's start: compile the ``families`` its cache lacks, then load them; never
-    fails."""
+    """On each worker's start: compile the ``families`` its cache lacks, then load them; never fails."""
 
     idempotent = False
 
@@ -45,7 +44,6 @@ class KernelCachePlugin(WorkerPlugin):
 
 
 def load_kernels_on_workers(client: Client, families: tuple[str, ...]) -> None:
-    """Register :class:`KernelCachePlugin` on ``client``'s cluster; returns once every worker ran
-    it."""
+    """Register :class:`KernelCachePlugin` on ``client``'s cluster; returns once every worker ran it."""
     log.info("loading the compiled kernels on the Dask workers (%s)", ", ".join(families))
     client.register_plugin(KernelCachePlugin(families), name=PLUGIN_NAME)

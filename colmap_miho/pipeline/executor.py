@@ -148,8 +148,7 @@ def open_runner(workers: int, dask: str | None = None, *, families: tuple[str, .
 
 @contextlib.contextmanager
 def _quiet_dask():
-    """Silence Dask's "Sending large graph" warning and its shutdown tracebacks on Ctrl-C / SIGTERM.
-    """
+    """Silence Dask's "Sending large graph" warning and its shutdown tracebacks on Ctrl-C / SIGTERM."""
     import warnings
 
     with warnings.catch_warnings():

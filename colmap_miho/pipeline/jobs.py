@@ -89,8 +89,7 @@ def _as_recipe(recipe: Recipe | str | None) -> Recipe:
 
 def _job_recipe(recipe: Recipe | str | None, opts: JobOptions, gt: str | Path | None
                 ) -> tuple[Recipe, MappingConfig]:
-    """The job's recipe and mapping config with ``opts``' overrides; InvalidInput for GT cameras
-    without GT."""
+    """The job's recipe and mapping config with ``opts``' overrides; InvalidInput for GT cameras without GT."""
     if opts.gt_cameras and gt is None:
         raise InvalidInput("taking the cameras from the GT needs --gt")
     rec = _as_recipe(recipe)
@@ -129,8 +128,7 @@ def map_repeats(database: Path, image_dir: Path, folder: Path, mapping: MappingC
 
 def _refine_into(database: Path, image_dir: Path, folder: Path, recipe: Recipe, opts: JobOptions,
                  seed: int) -> RefineSummary:
-    """``refine_database`` into ``folder/database.db`` (and ``refine.json``), replacing earlier
-    output."""
+    """``refine_database`` into ``folder/database.db`` (and ``refine.json``), replacing earlier output."""
     return refine_database(database, image_dir, folder / "database.db", recipe=recipe, overwrite=True,
                            restart=True, workers=opts.workers, device=opts.device, seed=seed,
                            progress=opts.progress, json_path=folder / "refine.json")

@@ -237,8 +237,7 @@ _META_TYPES = {
 
 
 def _check_meta(meta: dict, path: Path) -> None:
-    """The stored stats checked against :class:`MatchCheckStats`'s field types; StoreDamaged
-    otherwise."""
+    """The stored stats checked against :class:`MatchCheckStats`'s field types; StoreDamaged otherwise."""
     for f in dataclasses.fields(MatchCheckStats):
         if f.name in meta and not _META_TYPES[str(f.type)](meta[f.name]):
             raise StoreDamaged(path, f"its stats' {f.name} is not of type {f.type}")

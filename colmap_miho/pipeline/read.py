@@ -108,8 +108,7 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
 
 
 def _check_one_file_per_image(cfg: ReadConfig, names: dict[int, str]) -> None:
-    """Warn (``strict``: refuse) when two image rows name one file: both would be refined against
-    the same pixels."""
+    """Warn (``strict``: refuse) when two image rows name one file: both would be refined against the same pixels."""
     from ..adapters.paths import names_of_one_file
 
     groups = names_of_one_file(cfg.image_dir, names)
@@ -126,8 +125,7 @@ def _check_one_file_per_image(cfg: ReadConfig, names: dict[int, str]) -> None:
 
 
 def _check_inside(kp: np.ndarray, im, database) -> None:
-    """Refuse keypoints more than ``KEYPOINT_MARGIN_PX`` outside their image (DatabaseError naming
-    it)."""
+    """Refuse keypoints more than ``KEYPOINT_MARGIN_PX`` outside their image (DatabaseError naming it)."""
     from ..adapters.conventions import KEYPOINT_MARGIN_PX
 
     if len(kp) == 0 or not (im.width and im.height):

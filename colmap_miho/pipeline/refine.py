@@ -63,8 +63,7 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
 
 
 def check_resumed_groups(store: RunStore, done: Mapping[int, GroupResult], num_groups: int) -> None:
-    """Refuse stored groups that are not groups of this run's plan (StoreDamaged naming the file).
-    """
+    """Refuse stored groups that are not groups of this run's plan (StoreDamaged naming the file)."""
     for g in sorted(done):
         if not 0 <= g < num_groups:
             raise StoreDamaged(store.group_path(g), f"group {g} is not one of this run's {num_groups} groups")

@@ -90,8 +90,7 @@ def check_no_links(folder: Path) -> None:
 
 
 def content_hash(path: Path, chunk: int = 1 << 22) -> str:
-    """BLAKE2b (128-bit) of ``path``'s bytes: size and time alone miss a ``cp -p`` of another
-    database."""
+    """BLAKE2b (128-bit) of ``path``'s bytes: size and time alone miss a ``cp -p`` of another database."""
     digest = hashlib.blake2b(digest_size=16)
     with open(path, "rb") as fh:
         while block := fh.read(chunk):
@@ -246,8 +245,7 @@ class RunStore:
             self._lock_fd = None
 
     def remove(self) -> None:
-        """Delete the store's own files, then the folder if empty (others' files kept, with a
-        warning)."""
+        """Delete the store's own files, then the folder if empty (others' files kept, with a warning)."""
         with contextlib.suppress(OSError):
             for p in _own_entries(self.folder):  # the lock last, still held: no other run takes the folder
                 if p.name != LOCK:
@@ -404,8 +402,7 @@ class RunStore:
         return self.folder / f"group-{index:06d}.npz"
 
     def save_group(self, index: int, moved: dict[int, tuple[np.ndarray, np.ndarray]], stats: dict) -> None:
-        """Store one refine group: image id -> (indices ``(K,)``, positions ``(K, 2)`` pixels) and
-        its stats."""
+        """Store one refine group: image id -> (indices ``(K,)``, positions ``(K, 2)`` pixels) and its stats."""
         ids = sorted(moved)
         sizes = [len(moved[i][0]) for i in ids]
         self._save(self.group_path(index), {

@@ -33,8 +33,7 @@ class StoreDamaged(UserError):
 
 
 def read_npz(path: Path) -> dict[str, np.ndarray]:
-    """Every array of the store file ``path``, read now; StoreDamaged for a truncated or foreign
-    file."""
+    """Every array of the store file ``path``, read now; StoreDamaged for a truncated or foreign file."""
     try:
         with np.load(path, allow_pickle=False) as z:
             return {key: z[key] for key in z.files}

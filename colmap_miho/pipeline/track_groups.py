@@ -48,8 +48,7 @@ _WORKER_LOADER: ImageLoader | None = None
 
 
 def _import_plan():
-    """The track plan, imported only when a run refines (so a worker that walks never imports torch
-    here)."""
+    """The track plan, imported only when a run refines (so a worker that walks never imports torch here)."""
     from ..refinement.tracks.build import build_track_plan, local_affine_of
 
     return build_track_plan, local_affine_of
@@ -100,8 +99,7 @@ def _walk_group(loader, group, ncc_config, track_config, affines, on_progress=No
 
 
 def _walk_group_task(loader_state: dict, group, ncc_config, track_config, affines):
-    """Worker task: walk one group with this process's loader, kept with its cache for the next
-    group."""
+    """Worker task: walk one group with this process's loader, kept with its cache for the next group."""
     global _WORKER_LOADER
     state = dict(loader_state)
     names, sizes = state.pop("names"), state.pop("expected_sizes")
@@ -115,8 +113,7 @@ def _walk_group_task(loader_state: dict, group, ncc_config, track_config, affine
 
 def _group_args(loader: ImageLoader, group, affines, budget_bytes: int | None
                 ) -> tuple[dict, Mapping | None]:
-    """What a worker needs besides the group: loader settings for its images and their affine
-    frames."""
+    """What a worker needs besides the group: loader settings for its images and their affine frames."""
     ids = group.image_ids
     state = dict(loader.state(), max_cached_bytes=budget_bytes or loader.max_cached_bytes)
     state["names"] = {i: loader.names[i] for i in ids}
@@ -127,8 +124,7 @@ def _group_args(loader: ImageLoader, group, affines, budget_bytes: int | None
 
 
 def _merge_walk_stats(plan_stats: dict, parts: list[dict]) -> dict:
-    """The plan's stats with the groups' counters summed (``levels``, ``missing_images``: the
-    largest)."""
+    """The plan's stats with the groups' counters summed (``levels``, ``missing_images``: the largest)."""
     stats = dict(plan_stats)
     keys = dict.fromkeys(k for st in parts for k in st if k != DECODED_BY_IMAGE)
     for key in keys:

@@ -59,8 +59,7 @@ NO_VERDICTS = Verdicts()
 
 def output_matches(db: ColmapDatabase, kept: FilteredPairs, source: MatchSource,
                    verdicts: Verdicts = NO_VERDICTS) -> dict[Pair, np.ndarray]:
-    """Every pair's output matches ``(M, 2)`` in database order (removed pairs left out, empty ones
-    kept)."""
+    """Every pair's output matches ``(M, 2)`` in database order (removed pairs left out, empty ones kept)."""
     out = {}
     for p in db.pairs(source):
         key = (p.image_id1, p.image_id2)
@@ -83,7 +82,6 @@ def unfiltered_matches(db: ColmapDatabase, pair: Pair, source: MatchSource, verd
 
 def pair_graph(db: ColmapDatabase, filtered: FilteredPairs, source: MatchSource,
                verdicts: Verdicts = NO_VERDICTS) -> dict[Pair, np.ndarray]:
-    """The checks' pair graph: output matches of ``filtered`` with ``verdicts`` applied, int64,
-    non-empty."""
+    """The checks' pair graph: output matches of ``filtered`` with ``verdicts`` applied, int64, non-empty."""
     return {k: np.asarray(v, np.int64) for k, v in output_matches(db, verdicts.apply(filtered), source,
                                                                    verdicts).items() if len(v)}

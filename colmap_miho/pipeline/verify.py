@@ -1,5 +1,4 @@
-"""Verify stage: COLMAP's own geometric verification of the pairs left without a two-view geometry.
-"""
+"""Verify stage: COLMAP's own geometric verification of the pairs left without a two-view geometry."""
 
 from __future__ import annotations
 

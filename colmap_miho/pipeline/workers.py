@@ -79,8 +79,7 @@ def _watch_parent(parent_pid: int, ppid: int) -> None:
 
 
 def start_parent_watchdog(parent_pid: int) -> None:
-    """In a worker: a daemon thread that ends this process once ``parent_pid`` is gone or it was
-    re-parented."""
+    """In a worker: a daemon thread that ends this process once ``parent_pid`` is gone or it was re-parented."""
     ppid = os.getppid()
     if ppid != parent_pid and not _pid_alive(parent_pid):
         os._exit(1)
@@ -209,8 +208,7 @@ def start_forkserver() -> None:
 
 @contextlib.contextmanager
 def process_pool(workers: int, *, initializer=None, initargs: tuple = (), **kwargs):
-    """A process pool whose workers die with this process and are killed, queue cancelled, when the
-    block raises."""
+    """A process pool whose workers die with this process and are killed, queue cancelled, when the block raises."""
     start_forkserver()
     with ProcessPoolExecutor(max_workers=workers, mp_context=_context(),
                              initializer=_worker_start, initargs=(os.getpid(), initializer, tuple(initargs)),
@@ -227,8 +225,7 @@ def process_pool(workers: int, *, initializer=None, initargs: tuple = (), **kwar
 
 
 def check_not_bootstrapping() -> None:
-    """Refuse a run inside a worker still importing its parent's main script (no ``__main__``
-    guard); RunFailed."""
+    """Refuse a run inside a worker still importing its parent's main script (no ``__main__`` guard); RunFailed."""
     if getattr(multiprocessing.current_process(), "_inheriting", False):
         raise RunFailed("colmap_miho was called while a worker process imported the main script: "
                         "put the call under 'if __name__ == \"__main__\":'")

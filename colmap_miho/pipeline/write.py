@@ -18,8 +18,7 @@ from .verdicts import NO_VERDICTS, Verdicts, unfiltered_matches
 
 @dataclass(frozen=True, kw_only=True)
 class WriteStats:
-    """Keypoints moved and their displacements (px), and the matches the output holds
-    (``RefineSummary`` fields)."""
+    """Keypoints moved and their displacements (px), and the matches the output holds (``RefineSummary`` fields)."""
 
     keypoints_moved: int
     median_displacement_px: float

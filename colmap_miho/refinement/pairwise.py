@@ -61,8 +61,7 @@ class RefineResult:
 
 
 def resolve_device(config: NCCConfig, *inputs: object) -> torch.device:
-    """The torch device ``config.device`` means; "auto" keeps the device of the first stack or CUDA
-    tensor."""
+    """The torch device ``config.device`` means; "auto" keeps the device of the first stack or CUDA tensor."""
     inputs_on = None
     for t in inputs:
         if isinstance(t, ImageStack) or (isinstance(t, torch.Tensor) and t.is_cuda):
@@ -239,8 +238,7 @@ def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], 
 
 def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack],
             sl: slice, cfg: NCCConfig, out: _Outputs) -> None:
-    """Choose each match's direction, accept or reject its move, and refine accepted ones to
-    sub-pixel."""
+    """Choose each match's direction, accept or reject its move, and refine accepted ones to sub-pixel."""
     cand = []
     for f, m, r in res:
         host = {k: r[k].cpu().numpy() for k in
@@ -323,8 +321,7 @@ def normalise_signs(homs: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndar
 
 
 def base_pairs(n: int, affine1: np.ndarray | None, affine2: np.ndarray | None) -> np.ndarray:
-    """``(N, 2, 3, 3)`` base pair: identity, or inverse affine frames scaled to ~1 frame px per
-    image px."""
+    """``(N, 2, 3, 3)`` base pair: identity, or inverse affine frames scaled to ~1 frame px per image px."""
     base = np.tile(np.eye(3), (n, 2, 1, 1))
     if affine1 is None or affine2 is None:
         return base

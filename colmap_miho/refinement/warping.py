@@ -38,8 +38,7 @@ def to_gray_tensor(image: np.ndarray | torch.Tensor, device: torch.device) -> to
 def to_gray_tensor(
     image: np.ndarray | torch.Tensor | ImageStack, device: torch.device
 ) -> torch.Tensor | ImageStack:
-    """Image as a float32 ``(H, W)`` tensor on ``device``; uint8 is divided by 255, float used as
-    is."""
+    """Image as a float32 ``(H, W)`` tensor on ``device``; uint8 is divided by 255, float used as is."""
     if isinstance(image, ImageStack):
         return image
     if isinstance(image, torch.Tensor):
@@ -109,8 +108,7 @@ def job_images(image: torch.Tensor | ImageStack, rows: slice | torch.Tensor
 
 
 def image_arrays(image: torch.Tensor | ImageStack, n: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """The images as float32 numpy views and each job's index into them, for the compiled kernels.
-    """
+    """The images as float32 numpy views and each job's index into them, for the compiled kernels."""
     if isinstance(image, ImageStack):
         return ([im.contiguous().numpy() for im in image.images],
                 image.index.cpu().numpy().astype(np.int64))
@@ -118,16 +116,14 @@ def image_arrays(image: torch.Tensor | ImageStack, n: int) -> tuple[list[np.ndar
 
 
 def offset_grid(radius: int, device: torch.device, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-    """Integer offsets ``(P, 2)`` (x, y) of a (2r+1)^2 square, row-major, so ``(..., P)`` reshapes
-    to ``[y, x]``."""
+    """Integer offsets ``(P, 2)`` (x, y) of a (2r+1)^2 square, row-major, so ``(..., P)`` reshapes to ``[y, x]``."""
     r = torch.arange(-radius, radius + 1, device=device, dtype=dtype)
     yy, xx = torch.meshgrid(r, r, indexing="ij")
     return torch.stack([xx.reshape(-1), yy.reshape(-1)], dim=-1)
 
 
 def invert_homographies(H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched 3x3 inverse by the adjugate: ``(H_inv, valid)``; singular or non-finite get the
-    identity."""
+    """Batched 3x3 inverse by the adjugate: ``(H_inv, valid)``; singular or non-finite get the identity."""
     a, b, c = H[..., 0, 0], H[..., 0, 1], H[..., 0, 2]
     d, e, f = H[..., 1, 0], H[..., 1, 1], H[..., 1, 2]
     g, h, i = H[..., 2, 0], H[..., 2, 1], H[..., 2, 2]
@@ -151,8 +147,7 @@ def invert_homographies(H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def project(H: torch.Tensor, x: torch.Tensor, y: torch.Tensor
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Homogeneous ``H [x; y; 1]`` by elementwise products (a matmul rounds differently with batch
-    size)."""
+    """Homogeneous ``H [x; y; 1]`` by elementwise products (a matmul rounds differently with batch size)."""
     shape = (H.shape[0], 3) + (1,) * (x.ndim - 1)  # (J, 3, 1, ...) against (J, 1, ...)
     h0, h1, h2 = (H[..., c].reshape(shape) for c in range(3))
     xyw = h0 * x[:, None] + h1 * y[:, None] + h2
@@ -349,8 +344,7 @@ def _grid_square(M32: torch.Tensor, axes: tuple[torch.Tensor, torch.Tensor], aff
 
 
 def _sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples ``(n, Q)`` of one image at ``grid`` (zeros outside, ``align_corners=True``).
-    """
+    """Bilinear samples ``(n, Q)`` of one image at ``grid`` (zeros outside, ``align_corners=True``)."""
     out = F.grid_sample(image[None, None], grid[None], mode="bilinear", padding_mode="zeros",
                         align_corners=True)  # (1, 1, n, Q)
     return out[0, 0]
@@ -364,8 +358,7 @@ def to_frame(H: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 
 def frame_jacobian(H_inv: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """Jacobians ``(n, 2, 2)`` of ``H_inv`` (frame -> image) at frame points ``p``: image px per
-    frame px."""
+    """Jacobians ``(n, 2, 2)`` of ``H_inv`` (frame -> image) at frame points ``p``: image px per frame px."""
     xh = H_inv[:, :, :2] @ p[:, :, None] + H_inv[:, :, 2:]  # (n, 3, 1)
     w = xh[:, 2:, :]
     x = xh[:, :2, :] / w

@@ -46,8 +46,7 @@ class Evaluation:
 
 # --------------------------------------------------------------------------- known cameras
 def gt_intrinsics(gt: str | Path) -> dict:
-    """A GT model's cameras by image name (COLMAP's pixel convention), for
-    ``run_mapping(intrinsics=...)``."""
+    """A GT model's cameras by image name (COLMAP's pixel convention), for ``run_mapping(intrinsics=...)``."""
     from ..adapters.cameras import CameraIntrinsics
     from .gt_model import load_reconstruction
 
@@ -95,8 +94,7 @@ def match_changes(baseline_db: str | Path, refined_db: str | Path) -> dict:
 
 
 def _epipolar_flips(databases: tuple[Path, Path], gt: str | Path) -> dict:
-    """The refined matches turned wrong / right under GT against the baseline's; empty without GT.
-    """
+    """The refined matches turned wrong / right under GT against the baseline's; empty without GT."""
     from .gt_model import load_gt_poses
     from .report import database_epipolar_flips, read_database_inliers
 
@@ -134,8 +132,7 @@ def _curves(baseline: dict, refined: dict) -> dict:
 
 
 def _point_clouds(output: Path, base_map, ref_map, plot_files: list) -> dict:
-    """PLY files, density/outlier figures and a picture of each side's cloud; failures logged, never
-    fatal."""
+    """PLY files, density/outlier figures and a picture of each side's cloud; failures logged, never fatal."""
     try:
         from . import pointcloud as pc
     except ImportError as exc:  # pragma: no cover - module missing in a partial install
@@ -170,8 +167,7 @@ def _evaluate(model_ok: bool, model: Path, database: Path | None, gt, pairs, see
 
 
 def evaluate_side(runs: list, database: Path, gt, pairs, seed: int, thresholds=None) -> dict:
-    """One side's report: run 0 in full, its ``mapping`` summary, and a ``repeats`` section for
-    several runs."""
+    """One side's report: run 0 in full, its ``mapping`` summary, and a ``repeats`` section for several runs."""
     from .repeats import run_row, summarise_runs
 
     first = runs[0]

@@ -43,8 +43,7 @@ class CameraPose:
 
 # --------------------------------------------------------------------------- COLMAP models
 def poses_from_reconstruction(rec) -> dict[str, CameraPose]:
-    """Registered images of a reconstruction by name; K is the camera's pinhole part (distortion
-    ignored)."""
+    """Registered images of a reconstruction by name; K is the camera's pinhole part (distortion ignored)."""
     out: dict[str, CameraPose] = {}
     for image in rec.images.values():
         if not image.has_pose:
@@ -75,8 +74,7 @@ def resolve_model_dir(path: str | Path) -> Path:
 
 
 def load_reconstruction(path: str | Path):
-    """Read a COLMAP model folder (text or binary; binary sizes checked first); InvalidInput if
-    damaged."""
+    """Read a COLMAP model folder (text or binary; binary sizes checked first); InvalidInput if damaged."""
     import pycolmap
 
     from ..adapters.model_files import check_binary_model
@@ -92,8 +90,7 @@ def load_reconstruction(path: str | Path):
 
 
 def load_gt_poses(path: str | Path) -> dict[str, CameraPose]:
-    """GT poses by image name from a COLMAP model folder, or a dataset folder holding ``gt_model/``.
-    """
+    """GT poses by image name from a COLMAP model folder, or a dataset folder holding ``gt_model/``."""
     poses = poses_from_reconstruction(load_reconstruction(path))
     if not poses:
         raise InvalidInput(f"the ground-truth model at {path} has no posed images")
@@ -165,8 +162,7 @@ def _rescale(K: np.ndarray, size_from: tuple[int, int], size_to: tuple[int, int]
 
 
 def read_strecha_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
-    """``(K, R_w2c, t_w2c, (width, height))`` of one Strecha ``.camera`` file; R projected onto
-    SO(3)."""
+    """``(K, R_w2c, t_w2c, (width, height))`` of one Strecha ``.camera`` file; R projected onto SO(3)."""
     rows = [ln.split() for ln in Path(path).read_text(encoding="utf-8").splitlines() if ln.strip()]
     try:
         vals = [[float(v) for v in r] for r in rows]

@@ -59,8 +59,7 @@ _CURVE_METRICS = (("model poses (all GT pairs)", "model", "model_pose_auc"),
 
 
 def _pose_curves_figure(go, reports: dict[str, dict], max_deg: float = 20.0):
-    """Cumulative pose-error curves, one panel per metric; None when no report has per-pair errors.
-    """
+    """Cumulative pose-error curves, one panel per metric; None when no report has per-pair errors."""
     from plotly.subplots import make_subplots
 
     panels = []
@@ -105,8 +104,7 @@ def plotly_text(text: str) -> str:
 
 
 def _matches_figure(go, before: dict, after: dict, checked: dict | None = None):
-    """Verified matches per pair, baseline vs refined (and the match check's removals, when
-    ``checked``)."""
+    """Verified matches per pair, baseline vs refined (and the match check's removals, when ``checked``)."""
     labels = sorted(before, key=lambda k: (-before[k], k))
     b = np.array([before[k] for k in labels], dtype=np.float64)
     a = np.array([after.get(k, 0) for k in labels], dtype=np.float64)
@@ -182,8 +180,7 @@ def _displacement_figure(go, displacements: np.ndarray, per_image: list, size: t
 # --------------------------------------------------------------------------- page
 def _table_html(groups: Sequence[tuple[str, Sequence[tuple[str, ...]]]], header: tuple[str, ...],
                 last_cell_classes: Sequence[str] = ()) -> str:
-    """The metrics table, one ``<tbody>`` per group; ``last_cell_classes`` style each row's change
-    cell."""
+    """The metrics table, one ``<tbody>`` per group; ``last_cell_classes`` style each row's change cell."""
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     extra = iter(last_cell_classes)
     bodies = []
@@ -296,8 +293,7 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
 
 
 def removed_by_the_check(removed_per_pair) -> dict[str, int]:
-    """``match_check.removed_per_pair`` keyed like the comparison's pairs (older dicts taken as they
-    are)."""
+    """``match_check.removed_per_pair`` keyed like the comparison's pairs (older dicts taken as they are)."""
     from .pair_labels import pair_label
 
     if isinstance(removed_per_pair, dict):
@@ -361,8 +357,7 @@ def hinge_note(h: dict) -> str:
 
 def write_model_html(path: str | Path, report: dict, model, *, budget: int = POINT_BUDGET,
                      title: str = "colmap-miho report") -> Path | None:
-    """Write the page of one model (table, curves with GT, 3D view); returns the path, or None
-    without plotly."""
+    """Write the page of one model (table, curves with GT, 3D view); returns the path, or None without plotly."""
     go = _plotly()
     if go is None:
         return None

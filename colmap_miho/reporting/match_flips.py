@@ -165,8 +165,7 @@ def epipolar_flips(
     *,
     threshold_px: float = FLIP_THRESHOLD_PX,
 ) -> EpipolarFlips:
-    """Turned-wrong and turned-right matches between two databases (arguments as
-    :func:`epipolar_flip_cases`)."""
+    """Turned-wrong and turned-right matches between two databases (arguments as :func:`epipolar_flip_cases`)."""
     if not threshold_px > 0:
         raise ValueError(f"threshold_px must be > 0, got {threshold_px}")
     cases = epipolar_flip_cases(cameras, keypoints_before, keypoints_after, matches_before, matches_after)

@@ -21,8 +21,7 @@ def gt_pairs(gt: dict[str, CameraPose]) -> list[tuple[str, str]]:
 def model_pair_errors(
     est: dict[str, CameraPose], gt: dict[str, CameraPose], pairs: list[tuple[str, str]] | None = None
 ) -> dict[tuple[str, str], float]:
-    """Relative-pose error in degrees of each GT pair (default all); ``inf`` for an unregistered
-    image."""
+    """Relative-pose error in degrees of each GT pair (default all); ``inf`` for an unregistered image."""
     out = {}
     for a, b in pairs if pairs is not None else gt_pairs(gt):
         if a not in est or b not in est:
@@ -35,8 +34,7 @@ def model_pair_errors(
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity ``dst ~ s R src + t`` in least squares (Umeyama 1991) of ``(N, 3)`` points, N >=
-    3."""
+    """Similarity ``dst ~ s R src + t`` in least squares (Umeyama 1991) of ``(N, 3)`` points, N >= 3."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:

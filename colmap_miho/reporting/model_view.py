@@ -96,8 +96,7 @@ def model_points(rec, transform=None) -> np.ndarray:
 
 
 def _frustum_size(rec, points: np.ndarray) -> float:
-    """Frustum depth: a fifth of the cameras' spread, at least 6% of the median camera-point
-    distance."""
+    """Frustum depth: a fifth of the cameras' spread, at least 6% of the median camera-point distance."""
     centres = np.array(list(_centres(_poses(rec)).values()))
     spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1))) if len(centres) > 1 else 0.0
     depth = 0.0

@@ -10,8 +10,7 @@ def pair_label(name1: str, name2: str) -> str:
 
 
 def pair_names(label: str) -> tuple[str, ...]:
-    """The names of a :func:`pair_label` key (older unescaped keys read the same unless a name held
-    ``\\``)."""
+    """The names of a :func:`pair_label` key (older unescaped keys read the same unless a name held ``\\``)."""
     names, current, escaped = [], [], False
     for ch in label:
         if escaped:

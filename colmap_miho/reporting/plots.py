@@ -24,8 +24,7 @@ def _pyplot():
 
 @contextlib.contextmanager
 def plain_text():
-    """Every text made inside is plain (an image name with two ``$`` would be parsed as TeX and
-    raise)."""
+    """Every text made inside is plain (an image name with two ``$`` would be parsed as TeX and raise)."""
     from ..extras import require
 
     matplotlib = require("matplotlib", "plots", "plotting")
@@ -149,8 +148,7 @@ def short_labels(labels: list[str]) -> list[str]:
 
 @plain_text_figure
 def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title: str = "") -> Path:
-    """Verified matches per pair before and after (log scale) and the share kept; ``{"a|b":
-    count}``."""
+    """Verified matches per pair before and after (log scale) and the share kept; ``{"a|b": count}``."""
     plt = _pyplot()
     labels = sorted(before, key=lambda k: -before[k])
     b = np.array([before[k] for k in labels], dtype=np.float64)

@@ -85,8 +85,7 @@ def pose_auc(errors, thresholds=AUC_THRESHOLDS_DEG) -> list[float]:
 
 
 def mean_average_accuracy(errors, thresholds=MAA_THRESHOLDS_DEG) -> float:
-    """Mean over thresholds of the share of errors strictly below each, in [0, 1] (N = 0 gives 0).
-    """
+    """Mean over thresholds of the share of errors strictly below each, in [0, 1] (N = 0 gives 0)."""
     errs = np.asarray(errors, dtype=np.float64).reshape(-1)
     if errs.size == 0:
         return 0.0

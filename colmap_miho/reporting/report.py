@@ -65,8 +65,7 @@ def reconstruction_stats(rec) -> dict:
 
 
 def pointcloud_figures(rec) -> dict:
-    """Density / outlier figures of the sparse cloud; empty when they cannot be computed (logged).
-    """
+    """Density / outlier figures of the sparse cloud; empty when they cannot be computed (logged)."""
     try:
         from . import pointcloud as pc
 
@@ -141,8 +140,7 @@ def database_keypoint_accuracy(inliers: DatabaseInliers, gt: dict[str, CameraPos
 
 def database_epipolar_flips(before: DatabaseInliers, after: DatabaseInliers, gt: dict[str, CameraPose],
                             **thresholds) -> dict:
-    """Epipolar flips between two databases of one scene under the GT cameras, as a JSON-ready dict.
-    """
+    """Epipolar flips between two databases of one scene under the GT cameras, as a JSON-ready dict."""
     from .match_flips import epipolar_flips
 
     cameras: dict[Hashable, object] = {name: pose for name, pose in gt.items()}
@@ -178,8 +176,7 @@ def two_view_pair_errors(
 
 
 def default_eval_pairs(gt_path: str | Path | None, gt: dict[str, CameraPose]) -> tuple[list[tuple[str, str]], str]:
-    """``(pairs, description)``: the dataset's ``pairs_with_gt.txt`` when it has one, else all GT
-    pairs."""
+    """``(pairs, description)``: the dataset's ``pairs_with_gt.txt`` when it has one, else all GT pairs."""
     if gt_path is not None:
         from .gt_model import resolve_model_dir
 
@@ -298,8 +295,7 @@ def json_safe(obj):
 
 
 def write_report_json(report: dict, path: str | Path) -> Path:
-    """Write ``report`` as indented JSON (NaN/inf as null), whole or not at all; returns the path.
-    """
+    """Write ``report`` as indented JSON (NaN/inf as null), whole or not at all; returns the path."""
     import json
 
     from ..adapters.staged_write import write_text_atomic

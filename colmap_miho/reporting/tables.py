@@ -119,8 +119,7 @@ def _cell(rep: dict, path: tuple, spec: str) -> str | None:
 
 
 def _values(rep: dict, path: tuple) -> tuple[float, float, float] | None:
-    """(value, low, high) of ``path`` (median, min, max with repeats); None when missing or not
-    finite."""
+    """(value, low, high) of ``path`` (median, min, max with repeats); None when missing or not finite."""
     rpt = rep.get("repeats")
     if rpt and _get(rpt.get("median", {}), path) is not None:
         got = tuple(_get(rpt[k], path) for k in ("median", "min", "max"))
@@ -134,8 +133,7 @@ def _values(rep: dict, path: tuple) -> tuple[float, float, float] | None:
 
 
 def _change_text(before: float, after: float, spec: str) -> str:
-    """The change as printed: percentage points for shares, else the difference and its relative
-    size."""
+    """The change as printed: percentage points for shares, else the difference and its relative size."""
     diff = after - before
     if spec in ("%", "%2"):
         return f"{100 * diff:+.{1 if spec == '%' else 2}f} pts"

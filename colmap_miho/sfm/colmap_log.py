@@ -1,5 +1,4 @@
-"""COLMAP's own log (glog) sent to a file instead of the terminal, for every pycolmap call that
-maps or extracts."""
+"""COLMAP's own log (glog) sent to a file instead of the terminal, for every pycolmap call that maps or extracts."""
 
 from __future__ import annotations
 
@@ -56,8 +55,7 @@ def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_
 
 
 def replay_log(log_file: Path | None, hide: tuple[str, ...] = (MAPPER_IMAGE_WARNING,)) -> None:
-    """Write ``log_file``'s lines to stderr, escaped, without glog's header or records holding
-    ``hide``."""
+    """Write ``log_file``'s lines to stderr, escaped, without glog's header or records holding ``hide``."""
     import sys
 
     from ..terminal import printable
@@ -84,8 +82,7 @@ def replay_log(log_file: Path | None, hide: tuple[str, ...] = (MAPPER_IMAGE_WARN
 
 @contextlib.contextmanager
 def glog_to_stderr():
-    """COLMAP's log on stderr only for the block (glog otherwise leaves its own files in
-    ``$TMPDIR``)."""
+    """COLMAP's log on stderr only for the block (glog otherwise leaves its own files in ``$TMPDIR``)."""
     import pycolmap
 
     lg = pycolmap.logging
@@ -110,8 +107,7 @@ _STEP_DONE = re.compile(r"\] (.+?) done in ([0-9.eE+-]+) seconds")
 
 
 def step_seconds(log_file: Path | None) -> dict[str, float]:
-    """Seconds of each step a COLMAP log says it finished (lower case, last of repeats); empty
-    without a file."""
+    """Seconds of each step a COLMAP log says it finished (lower case, last of repeats); empty without a file."""
     if log_file is None:
         return {}
     try:

@@ -137,8 +137,7 @@ def images_around(images: set[int], pairs, rings: int) -> set[int]:
 
 
 class CameraEstimate(Protocol):
-    """What the judging reads of a global estimate (see
-    :class:`~colmap_miho.sfm.global_estimate.GlobalEstimate`)."""
+    """What the judging reads of a global estimate (see :class:`~colmap_miho.sfm.global_estimate.GlobalEstimate`)."""
 
     @property
     def poses(self) -> Mapping[int, Pose]: ...
@@ -235,8 +234,7 @@ def weigh_hinge(coverage: PairCoverage, hinge: Hinge, round_: int) -> HingeVerdi
 
 
 def _weaker_than_the_mode(v: HingeVerdict) -> set[Pair]:
-    """The estimate's cross pairs covered worse than the lower quartile of the mode's informative
-    pairs."""
+    """The estimate's cross pairs covered worse than the lower quartile of the mode's informative pairs."""
     theirs = [x for x in v.mode_coverage.values() if np.isfinite(x)] or [0.0]
     bar = float(np.percentile(theirs, 25))
     return {p for p, c in v.estimate_coverage.items() if not c >= bar}
@@ -286,8 +284,7 @@ def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np
 
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckResult:
-    """What the match check found (``failed``: pair -> bool ``(M,)`` over judged pairs; distances in
-    pixels)."""
+    """What the match check found (``failed``: pair -> bool ``(M,)`` over judged pairs; distances in pixels)."""
 
     used: bool
     reason: str = ""

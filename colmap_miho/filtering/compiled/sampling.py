@@ -97,8 +97,7 @@ def _far(sx, sy, a, b, t2) -> bool:
 
 
 def _push_nearest(best_d, best_j, filled, d, j) -> int:
-    """Push candidate ``j`` at squared distance ``d`` into the sorted buffers; returns the new
-    ``filled``."""
+    """Push candidate ``j`` at squared distance ``d`` into the sorted buffers; returns the new ``filled``."""
     q = best_d.shape[0]
     if filled == q and not (d < best_d[q - 1] or (d == best_d[q - 1] and j < best_j[q - 1])):
         return filled
@@ -255,8 +254,7 @@ def _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members):
 def _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
                    feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2, k,
                    q, lists, listed):
-    """Search the neighbour lists of the positions where ``need``, ascending, and mark them
-    ``known``."""
+    """Search the neighbour lists of the positions where ``need``, ascending, and mark them ``known``."""
     n = pool.shape[0]
     m = 0
     for p in range(n):
@@ -390,8 +388,7 @@ KERNELS = Kernels(_jit_all)
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
-    """``(B,)`` bool: each sample's 4 matches are pairwise at least ``sqrt(t2)`` px apart in every
-    spread set."""
+    """``(B,)`` bool: each sample's 4 matches are pairwise at least ``sqrt(t2)`` px apart in every spread set."""
     return KERNELS()["_spread_ok"](spread_xy, sample, float(t2))
 
 

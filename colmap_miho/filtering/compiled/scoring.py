@@ -206,8 +206,7 @@ def _hypotheses(sample, ok, x1, x2, src_all, dst_all, reflection, X, Y, x2p, y2p
 
 
 def _transfer(h, X, Y, u, v):
-    """``(e, w)`` of one point under row-major ``h[9]``, in :func:`..homography.transfer_error_sq`'s
-    order."""
+    """``(e, w)`` of one point under row-major ``h[9]``, in :func:`..homography.transfer_error_sq`'s order."""
     w = h[6] * X
     w += h[7] * Y
     w += h[8]
@@ -228,8 +227,7 @@ def _transfer(h, X, Y, u, v):
 
 
 def _rows(H, sign, Hinv, sign_inv, k, scaled, out):
-    """``out[2 * halves, 9]``: hypothesis ``k``'s forward and backward matrices, sign-scaled if
-    ``scaled``."""
+    """``out[2 * halves, 9]``: hypothesis ``k``'s forward and backward matrices, sign-scaled if ``scaled``."""
     for h in range(H.shape[1]):
         for e in range(9):
             f, b = H[k, h, e // 3, e % 3], Hinv[k, h, e // 3, e % 3]
@@ -310,8 +308,7 @@ def _normalise4(pts, out):
 
 
 def _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A) -> bool:
-    """Whether sample ``k``'s minimal DLT system passes ``min_sv`` in every half (scratch arrays
-    given)."""
+    """Whether sample ``k``'s minimal DLT system passes ``min_sv`` in every half (scratch arrays given)."""
     for h in range(src_all.shape[1]):
         for i in range(4):
             for c in range(2):
@@ -575,8 +572,7 @@ def error_sq(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.nda
 
 def singular_value_ok(sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray,
                       min_sv: float) -> np.ndarray:
-    """``(K,)`` bool: each sample's normalised minimal DLT system passes ``min_sv`` in every half.
-    """
+    """``(K,)`` bool: each sample's normalised minimal DLT system passes ``min_sv`` in every half."""
     return KERNELS()["_singular_value_ok"](sample, src_all, dst_all, float(min_sv))
 
 

@@ -164,8 +164,7 @@ def _initial_radiometry(f: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor,
 
 
 def _shift_sigma(A: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Standard deviations ``(n, 2)`` of ``t = A d`` and the largest semi-axis ``(n,)`` of its
-    ellipse."""
+    """Standard deviations ``(n, 2)`` of ``t = A d`` and the largest semi-axis ``(n,)`` of its ellipse."""
     AC = (A[:, :, :, None] * C[:, None, :, :]).sum(dim=2)  # AC[i, j] = A[i, 0] C[0, j] + A[i, 1] C[1, j]
     cc = (AC * A).sum(dim=2)  # (cxx, cyy): AC[i, 0] A[i, 0] + AC[i, 1] A[i, 1]
     cxx, cyy = cc.unbind(dim=1)
@@ -175,8 +174,7 @@ def _shift_sigma(A: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.
 
 
 def _regular(A: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
-    """``(n,)`` bool: A's singular values within ``MAX_SCALE``, no reflection, gain within
-    ``MAX_GAIN``."""
+    """``(n,)`` bool: A's singular values within ``MAX_SCALE``, no reflection, gain within ``MAX_GAIN``."""
     a, b, c, d = A.reshape(-1, 4).unbind(dim=1)
     det = a * d - b * c
     fro2 = a * a + b * b + c * c + d * d
@@ -281,8 +279,7 @@ def frame_sampler(
 
 
 def _frame_grid(M: torch.Tensor, radius: int) -> torch.Tensor:
-    """Grid coordinates ``(n, Q, 2)`` float32 of the offsets under the maps ``M`` ``(n, 3, 3)``,
-    elementwise."""
+    """Grid coordinates ``(n, Q, 2)`` float32 of the offsets under the maps ``M`` ``(n, 3, 3)``, elementwise."""
     side = 2 * radius + 1
     ax = torch.arange(-radius, radius + 1, dtype=torch.float32, device=M.device)
     m = M[:, :, :, None]  # (n, 3, 3, 1)
@@ -300,8 +297,7 @@ def _shifted(grid: torch.Tensor, off: torch.Tensor | None) -> torch.Tensor:
 
 
 def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """Bicubic samples ``(n, Q)`` of one image at ``grid`` (``align_corners=True``, border outside).
-    """
+    """Bicubic samples ``(n, Q)`` of one image at ``grid`` (``align_corners=True``, border outside)."""
     return F.grid_sample(image[None, None], grid[None], mode="bicubic", padding_mode="border",
                          align_corners=True)[0, 0]
 

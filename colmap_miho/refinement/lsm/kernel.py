@@ -41,8 +41,7 @@ def _cubic(t: float, a: float) -> tuple[float, float, float, float]:
 
 def _compose(H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float
              ) -> tuple[float, float, float, float, float, float, float, float, float]:
-    """Row-major entries of ``M = H [[A, c], [0, 0, 1]]``: the image's homogeneous coordinates of
-    offsets u."""
+    """Row-major entries of ``M = H [[A, c], [0, 0, 1]]``: the image's homogeneous coordinates of offsets u."""
     m00 = H[0, 0] * a00 + H[0, 1] * a10
     m01 = H[0, 0] * a01 + H[0, 1] * a11
     m02 = H[0, 0] * cx + H[0, 1] * cy + H[0, 2]

@@ -1,5 +1,4 @@
-"""What one least-squares alignment returns and the bounds it is judged by (torch and compiled
-paths)."""
+"""What one least-squares alignment returns and the bounds it is judged by (torch and compiled paths)."""
 
 from __future__ import annotations
 

@@ -64,8 +64,7 @@ def _to_frame(H, x: float, y: float) -> tuple[float, float]:
 
 
 def _inside(Hi, cx: float, cy: float, radius: int, h: int, w: int) -> bool:
-    """The corners of the square up to ``radius`` around (cx, cy) map in front and inside the image.
-    """
+    """The corners of the square up to ``radius`` around (cx, cy) map in front and inside the image."""
     for corner in range(4):
         px = cx + (radius if corner % 2 == 1 else -radius)
         py = cy + (radius if corner >= 2 else -radius)
@@ -141,8 +140,7 @@ def _sample(img, Hi, cx: float, cy: float, radius: int, out, pos) -> None:
 
 
 def _normalize(tpl, out) -> float:
-    """``out``: the zero-mean unit-norm template (zero when flat); returns its sum of squared
-    deviations."""
+    """``out``: the zero-mean unit-norm template (zero when flat); returns its sum of squared deviations."""
     n = tpl.shape[0]
     mean = 0.0
     for y in range(n):
@@ -231,8 +229,7 @@ def _corr(wc, tn, So: int, out, cols) -> None:
 
 
 def _parabola(c0: float, cm: float, cp: float, valid: bool) -> float:
-    """Vertex of the parabola through (-1, cm), (0, c0), (1, cp) clamped to [-0.5, 0.5]; 0 if
-    invalid."""
+    """Vertex of the parabola through (-1, cm), (0, c0), (1, cp) clamped to [-0.5, 0.5]; 0 if invalid."""
     den = cm - 2.0 * c0 + cp
     if not (valid and den < -_MIN_CURVATURE):
         return 0.0
@@ -244,8 +241,7 @@ def _parabola(c0: float, cm: float, cp: float, valid: bool) -> float:
 
 
 def _subpixel_matches(img, rows, H, c, off, tpl, radius: int, iterations: int, out) -> None:
-    """The iterated sub-pixel step of the matches ``rows``: ``out[j]`` ``(2,)`` float64 from
-    ``off[j]``."""
+    """The iterated sub-pixel step of the matches ``rows``: ``out[j]`` ``(2,)`` float64 from ``off[j]``."""
     St = 2 * radius + 1
     side = St + 2
     tn = np.empty((St, St))
@@ -277,8 +273,7 @@ def _subpixel_matches(img, rows, H, c, off, tpl, radius: int, iterations: int, o
 
 
 def _ellipse(tpl, radius: int, use_mask: bool, mask) -> tuple[float, float]:
-    """The structure tensor's ``(lam_min, lam_max)`` of ``tpl``; writes the NCC* mask when
-    ``use_mask``."""
+    """The structure tensor's ``(lam_min, lam_max)`` of ``tpl``; writes the NCC* mask when ``use_mask``."""
     n = tpl.shape[0]
     a = 0.0
     b = 0.0
@@ -317,8 +312,7 @@ def _ellipse(tpl, radius: int, use_mask: bool, mask) -> tuple[float, float]:
 
 def _peaks(maps, n_k: int, So: int, use_mask: bool, mask, cut: int, kk: int
            ) -> tuple[int, int, int, float, float, float, float, bool]:
-    """:func:`.correlation.find_peaks` of ``maps``: (k, iy, ix, peak, NCC, sub-pixel x, y, border).
-    """
+    """:func:`.correlation.find_peaks` of ``maps``: (k, iy, ix, peak, NCC, sub-pixel x, y, border)."""
     best = -math.inf
     bk, by, bx = 0, 0, 0
     first = True
@@ -350,8 +344,7 @@ def _peaks(maps, n_k: int, So: int, use_mask: bool, mask, cut: int, kk: int
 
 
 def _second(maps, k: int, So: int, use_mask: bool, mask, cut: int, py: int, px: int) -> float:
-    """The best peak of ``maps[k]`` at least ``_SEPARATED_PX`` offsets from (py, px); at least -1.
-    """
+    """The best peak of ``maps[k]`` at least ``_SEPARATED_PX`` offsets from (py, px); at least -1."""
     out = -1.0
     for y in range(So):
         for x in range(So):
@@ -469,8 +462,7 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit the kernels: geometry exact, reads and maps with FMA, correlation dots also reassociated.
-    """
+    """Jit the kernels: geometry exact, reads and maps with FMA, correlation dots also reassociated."""
     jit_helpers(globals(), (_corr,), REASSOC)
     jit_helpers(globals(), (_invert, _to_frame, _inside, _centre_good))
     jit_helpers(globals(), (_sample, _normalize, _ncc, _parabola, _ellipse, _peaks, _second), CONTRACT)

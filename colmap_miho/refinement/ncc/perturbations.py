@@ -14,8 +14,7 @@ PAPER_FACTORS = (5.0 / 7.0, 5.0 / 6.0, 1.0, 6.0 / 5.0, 7.0 / 5.0)
 
 
 def shape_matrix(rho_deg: float, factor: float) -> np.ndarray:
-    """The paper's ``A_{rho,f}`` ``(2, 2)``: rotation by ``rho_deg``, first row scaled by
-    ``factor``."""
+    """The paper's ``A_{rho,f}`` ``(2, 2)``: rotation by ``rho_deg``, first row scaled by ``factor``."""
     c, s = math.cos(math.radians(rho_deg)), math.sin(math.radians(rho_deg))
     return np.array([[factor * c, -factor * s], [s, c]], dtype=np.float64)
 

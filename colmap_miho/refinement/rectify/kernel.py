@@ -40,8 +40,7 @@ def _extreme_eigenvalues(S) -> tuple[float, float]:
 
 
 def _solve3(M, B) -> None:
-    """Solve ``M X = B`` in place by Gaussian elimination with partial pivoting (``B`` becomes
-    ``X``)."""
+    """Solve ``M X = B`` in place by Gaussian elimination with partial pivoting (``B`` becomes ``X``)."""
     for j in range(3):
         p = j
         for i in range(j + 1, 3):
@@ -154,8 +153,7 @@ _POINTS_PER_CELL = 2.0
 
 
 def _insert(d: float, j: int, k: int, nb, dist) -> None:
-    """Put candidate ``j`` at squared distance ``d`` among the ``k`` nearest so far, if it is one.
-    """
+    """Put candidate ``j`` at squared distance ``d`` among the ``k`` nearest so far, if it is one."""
     if d < dist[k - 1] or (d == dist[k - 1] and j < nb[k - 1]):
         i = k - 1
         while i > 0 and (d < dist[i - 1] or (d == dist[i - 1] and j < nb[i - 1])):

@@ -138,8 +138,7 @@ def _match_to(g: torch.Tensor, f: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
 
 
 def _leave_one_out(v: torch.Tensor, member: torch.Tensor, track: torch.Tensor, T: int) -> torch.Tensor:
-    """``(N, P)``: for each observation the mean of its track's member patches other than its own.
-    """
+    """``(N, P)``: for each observation the mean of its track's member patches other than its own."""
     w = member.to(v.dtype)
     total = torch.zeros((T, v.shape[1]), dtype=v.dtype, device=v.device).index_add_(0, track, v * w[:, None])
     count = torch.zeros(T, dtype=v.dtype, device=v.device).index_add_(0, track, w)

@@ -24,8 +24,7 @@ Images = Mapping[int, np.ndarray | None] | Callable[[int], np.ndarray | None]
 
 @dataclass(frozen=True)
 class Group:
-    """Edges of ``pair`` whose side-``side`` keypoints move at this level, each against ``partner``.
-    """
+    """Edges of ``pair`` whose side-``side`` keypoints move at this level, each against ``partner``."""
 
     pair: tuple
     side: int
@@ -91,8 +90,7 @@ class WalkState:
 
 @dataclass(frozen=True)
 class _Call:
-    """One group oriented as (fixed, moving): indices, positions, homography pairs and affine
-    frames."""
+    """One group oriented as (fixed, moving): indices, positions, homography pairs and affine frames."""
 
     fixed_id: int
     moving_id: int

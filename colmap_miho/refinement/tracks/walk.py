@@ -59,8 +59,7 @@ class TrackRefineResult:
 
 def _resolve_configs(config: object, ncc_config: NCCConfig | None,
                      track_config: TrackConfig | None) -> tuple[NCCConfig, TrackConfig]:
-    """The NCC and track configs of :func:`refine_tracks`' arguments, each type-checked
-    (InvalidInput)."""
+    """The NCC and track configs of :func:`refine_tracks`' arguments, each type-checked (InvalidInput)."""
     ncc, trk = NCCConfig(), TrackConfig()
     if isinstance(config, tuple):
         if len(config) != 2:
@@ -316,8 +315,7 @@ def _joint_tracks(ctx: WalkState, device: torch.device, iterations: int, star_fi
 
 def _joint_chunk(ctx: WalkState, gray: dict, nodes: np.ndarray, trk: np.ndarray, is_ref: np.ndarray,
                  passes: tuple[int, bool], anchor_of_track: np.ndarray) -> None:
-    """One batched :func:`joint_lsm` call over whole tracks; ``passes`` = (iterations, star_first).
-    """
+    """One batched :func:`joint_lsm` call over whole tracks; ``passes`` = (iterations, star_first)."""
     plan = ctx.plan
     assert ctx.to_ref is not None
     img_of, kp_of = plan.node_image[nodes], plan.node_kp[nodes]
