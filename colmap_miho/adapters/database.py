@@ -312,8 +312,7 @@ class ColmapDatabase(DatabaseBuilder):
         """Local affine frames float64 ``(N, 2, 2)`` (columns = local axes, pixels), or None for x,
         y only.
 
-        6 columns: x, y, a11, a12, a21, a22 (SIFT); 4 columns: x, y, scale, orientation (radians).
-        """
+        6 columns: x, y, a11, a12, a21, a22 (SIFT); 4 columns: x, y, scale, orientation (radians)."""
         raw = self.raw_keypoints(image_id).astype(np.float64)
         if raw.shape[1] >= 6:
             return raw[:, 2:6].reshape(-1, 2, 2)

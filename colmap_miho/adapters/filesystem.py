@@ -1,6 +1,5 @@
 """File-system primitives every writer shares: writing whole or not at all (a hidden file beside the
-target, flushed, renamed, folder flushed), the umask, and the working files a forced exit removes.
-"""
+target, flushed, renamed, folder flushed), the umask, and the working files a forced exit removes."""
 
 from __future__ import annotations
 

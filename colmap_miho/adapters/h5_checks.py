@@ -56,8 +56,7 @@ def h5_reader(func):
 
 def check_keypoints_in_image(h5: h5py.File, keypoints, size: tuple[int, int], what: str, origin: float) -> None:
     """Refuse keypoints ``(N, 2)`` outside the image by more than :data:`KEYPOINT_MARGIN_PX`;
-    ``origin`` is the image edge's coordinate (-0.5 with pixel centres at integers). InvalidInput.
-    """
+    ``origin`` is the image edge's coordinate (-0.5 with pixel centres at integers). InvalidInput."""
     import numpy as np
 
     if len(keypoints) == 0:

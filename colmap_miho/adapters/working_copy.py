@@ -1,7 +1,6 @@
 """The working copy of a user's database: every stage works on a private copy beside the output,
 and only the commit publishes it (a new file, or an atomic replace of the input with a backup
-when in place). A crash, Ctrl-C or kill at any moment leaves the input as it was.
-"""
+when in place). A crash, Ctrl-C or kill at any moment leaves the input as it was."""
 
 from __future__ import annotations
 
@@ -175,8 +174,7 @@ class WorkingCopy:
         """Check again, then atomically move the working copy onto the output; returns it.
 
         UserError: the output appeared (no ``overwrite``) or is held open. DatabaseError: in
-        place, the input changed; the result is kept beside it. SideFileLost: after the commit.
-        """
+        place, the input changed; the result is kept beside it. SideFileLost: after the commit."""
         if self.path is None:
             raise RuntimeError("commit() outside the with block")
         if self.in_place:

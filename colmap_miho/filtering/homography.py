@@ -112,8 +112,7 @@ def _dlt_system(s: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 def dlt(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Normalised DLT of ``(B, M, 2)`` point sets (``M >= 4``): ``(H, sv)``, ``dst ~ H src`` with
-    unit Frobenius norm, ``sv`` the smallest singular value of the minimal system (degeneracy test).
-    """
+    unit Frobenius norm, ``sv`` the smallest singular value of the minimal system (degeneracy test)."""
     B, M, _ = src.shape
     T1, s = normalise_points(src)
     T2, d = normalise_points(dst)

@@ -178,8 +178,7 @@ class RunStore:
         """Open (create) the store at ``folder`` for a run with ``fingerprint``.
 
         UserError: another run holds it; finished work without ``resume`` or ``restart``;
-        ``resume`` with another fingerprint (naming what changed); an unwritable folder.
-        """
+        ``resume`` with another fingerprint (naming what changed); an unwritable folder."""
         folder = Path(folder)
         if resume and restart:
             raise UserError("use either --resume or --restart, not both")
@@ -284,8 +283,7 @@ class RunStore:
     # -- what the work must fit --------------------------------------------------------------
     def expect(self, pairs, num_keypoints) -> None:
         """Give the run's plan (``pairs``, ``num_keypoints``) the stored work must fit, checked now
-        and on every later read; StoreDamaged for a foreign pair or an out-of-range keypoint index.
-        """
+        and on every later read; StoreDamaged for a foreign pair or an out-of-range keypoint index."""
         self._pairs = {(int(a), int(b)) for a, b in pairs}
         self._num_keypoints = {int(i): int(n) for i, n in num_keypoints.items()}
         for index, chunk in self._chunks.items():

@@ -24,8 +24,7 @@ threshold of a wrong track (:data:`~colmap_miho.reporting.keypoint_accuracy.TRAC
 @dataclass(frozen=True)
 class FlipCases:
     """Every match stored in both databases between two GT images (M rows): ``pair`` into ``pairs``,
-    ``idx`` ``(M, 2)``, GT epipolar distances ``before``/``after`` (px), ``disp`` ``(M, 2)`` moves.
-    """
+    ``idx`` ``(M, 2)``, GT epipolar distances ``before``/``after`` (px), ``disp`` ``(M, 2)`` moves."""
 
     pair: np.ndarray
     pairs: list

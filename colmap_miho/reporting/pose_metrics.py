@@ -61,8 +61,7 @@ def pose_error_deg(
 # --------------------------------------------------------------------------- AUC / mAA
 def pose_auc(errors, thresholds=AUC_THRESHOLDS_DEG) -> list[float]:
     """Area under the recall-vs-error curve up to each threshold, divided by it: one AUC in [0, 1]
-    per threshold. Failures (``inf``/``nan``) count in N but never reach the curve; N = 0 gives 0.
-    """
+    per threshold. Failures (``inf``/``nan``) count in N but never reach the curve; N = 0 gives 0."""
     errs = np.asarray(errors, dtype=np.float64).reshape(-1)
     errs = np.where(np.isnan(errs), np.inf, errs)
     n = errs.size

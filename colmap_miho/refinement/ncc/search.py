@@ -111,8 +111,7 @@ def evaluate_direction(
     3, 3)``, template offsets, coarse offsets or None); ``f``, ``m``: the fixed and moving side's
     index in each pair. Returns a dict of J-row tensors: ``peak``, ``centre``, ``second``,
     ``border``, ``zero``, ``inside``, ``valid``, ``flat``, the peak's common-frame ``offset``, the
-    winning pass's ``H_inv``, ``frame_m``, ``template`` and, for LSM, ``H_f_inv`` and ``frame_f``.
-    """
+    winning pass's ``H_inv``, ``frame_m``, ``template`` and, for LSM, ``H_f_inv`` and ``frame_f``."""
     if compiled is None:
         compiled = x_f.device.type == "cpu" and kernel.serves(passes, cfg.template_radius)
     if compiled:
