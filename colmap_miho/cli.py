@@ -1,9 +1,6 @@
-"""The ``colmap-miho`` command line: one console script with subcommands.
-
-Each ``commands/<name>.py`` defines ``HELP``, ``ORDER``, ``add_arguments(parser)``, ``run(args) ->
-int`` and optionally ``paths(args)`` (checked for overlap before it starts); heavy imports happen
-inside ``run`` so ``--help`` stays fast. Failures are one line and an exit code: 2 user error, 1
-failed run, 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP (each cleaning up like Ctrl-C)."""
+"""The ``colmap-miho`` command line: one console script, a module per subcommand (``commands/``)
+with heavy imports inside ``run``. Failures are one line and an exit code (2 user error, 1 failed
+run, 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
 
 from __future__ import annotations
 
@@ -108,10 +105,8 @@ def _raise_interrupted(signum, frame) -> None:
 
 @contextlib.contextmanager
 def _forced_exit_after_sigterm():
-    """Python runs signal handlers only between bytecodes, so a signal during a long C++ call (the
-    global mapper) would wait for it: a watcher thread gives the handler :data:`TERM_GRACE_S`, then
-    removes the working files and exits itself (or after :data:`TERM_CLEANUP_S` of stalled
-    clean-up)."""
+    """A signal during a long C++ call (the global mapper) would wait for it: a watcher thread gives
+    the handler :data:`TERM_GRACE_S`, then removes the working files and exits itself."""
     rsock, wsock = socket.socketpair()
     wsock.setblocking(False)
     try:

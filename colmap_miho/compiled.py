@@ -1,10 +1,6 @@
-"""Loading the compiled (numba) kernels: jit options, one lock, compilation on first use.
-
-Each kernel module wraps its build function in :class:`Kernels`, which jits the kernels on first
-call (or loads numba's disk cache) once per process. The cache is :func:`cache_dir`, never the
-installation's folders, so a read-only install compiles once per user; without a writable folder
-kernels compile in every process, with one warning. Kernels use numpy's error model and per-function
-``fastmath`` fixed at compile time, so results do not depend on the call."""
+"""Loading the compiled (numba) kernels: jit options, one lock, compilation on first use into
+:func:`cache_dir` (never the installation's folders). Kernels use numpy's error model and
+per-function ``fastmath`` fixed at compile time, so results do not depend on the call."""
 
 from __future__ import annotations
 

@@ -13,11 +13,8 @@ if TYPE_CHECKING:
 
 
 def resolve_device(device: Device | str | torch.device, inputs_on: torch.device | None = None) -> torch.device:
-    """The torch device ``device`` means here.
-
-    ``"auto"``: ``inputs_on`` when given, else CUDA when torch sees one, else the CPU; any torch
-    device string or object is itself. ValueError (:class:`~.errors.InvalidInput`) for an unknown
-    device or CUDA that torch does not see."""
+    """The torch device ``device`` means here: ``"auto"`` keeps ``inputs_on``, else CUDA when torch
+    sees one, else the CPU. InvalidInput for an unknown device or CUDA that torch does not see."""
     import torch
 
     if isinstance(device, torch.device) or (isinstance(device, str)

@@ -1,10 +1,6 @@
-"""Filling the compiled kernels' cache ahead, once per cache folder, by kernel family.
-
-A process that finds a family in the cache loads it instead of compiling it. The families
-(:data:`FAMILIES`): ``filter`` (every recipe), ``ncc``, ``lsm`` and ``rectify``.
-:func:`ensure_compiled` compiles the missing ones in child processes, several at once (numba
-compiles one function at a time per process). A family is ready by a file keyed by its sources,
-numba's and Python's versions and the CPU; a lock keeps two processes from compiling at once."""
+"""Filling the compiled kernels' cache ahead, once per cache folder, by kernel family
+(:data:`FAMILIES`), in child processes several at once; a family is ready by a file keyed by its
+sources, the versions and the CPU, under a lock."""
 
 from __future__ import annotations
 

@@ -1,10 +1,6 @@
-"""Homography assignment of the kept matches (paper App. A.4).
-
-A match is kept iff it is a t_l inlier of some homography. ``"paper"``: among the top 5 compatible
-homographies by support, take those with support at least their median q and assign the least-error
-one; with exactly two both are eligible (as in the reference), else the plain median would always
-pick the larger plane. ``"median"``: the plain median. ``"reference"``: the reference's rule, with
-compatibility from each round's pool; same kept set, other labels."""
+"""Homography assignment of the kept matches (paper App. A.4). ``"paper"``: the least-error
+compatible homography among the top 5 with support at least their median; with exactly two both are
+eligible (as in the reference), else the larger plane would always win."""
 
 from __future__ import annotations
 
@@ -16,11 +12,9 @@ from ..enums import Assignment
 def assign_matches(err2: np.ndarray, t_l: float, top: int = 5, *,
                    rule: str | Assignment = Assignment.PAPER,
                    round_inliers: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Assign each match to one homography.
-
-    ``err2`` ``(K, N)`` squared errors (px^2, ``inf`` where quasi-affinity fails); ``round_inliers``
-    ``(K, N)`` only for ``rule="reference"``. Returns ``(labels (N,), support (K,))`` int64, label
-    -1 for no compatible homography. ValueError for an unknown rule or missing ``round_inliers``."""
+    """Labels ``(N,)`` (-1: no compatible homography) and supports ``(K,)`` from the squared errors
+    ``err2`` ``(K, N)``; ``round_inliers`` only for ``rule="reference"``. ValueError for a bad rule.
+    """
     rule = Assignment.parse(rule, "rule")
     K, N = err2.shape
     labels = np.full(N, -1, dtype=np.int64)

@@ -1,11 +1,6 @@
-"""Plane coherence check (``FilterConfig.coherence``, off by default): drop kept homographies whose
-matches sit among other planes' matches that contradict them.
-
-A true surface's matches neighbour each other in both images; a few wrong matches agreeing on a
-plane of their own (repeated texture) do not. A match is contradicted when ``min_share`` of its
-``k`` nearest kept matches in image 1 and in image 2 belong to planes it does not fit; a plane with
-``plane_share`` of its matches contradicted is dropped (never the largest) and its matches
-re-assigned. The constants were set once, not fitted."""
+"""Plane coherence check (``FilterConfig.coherence``, off by default): a homography is dropped when
+most of its matches sit, in both images, among matches of other planes they do not fit (a true
+surface's matches neighbour each other; a few wrong matches agreeing on a plane do not)."""
 
 from __future__ import annotations
 

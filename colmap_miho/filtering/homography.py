@@ -1,8 +1,5 @@
-"""Batched homography maths for MOP (float64), written once for numpy and torch alike.
-
-Points are ``(x, y)`` pixels, integer = pixel centre; ``H`` ``(3, 3)`` or ``(B, 3, 3)`` maps ``x``
-to ``H [x, y, 1]``. The 3x3 inverse is the adjugate (inverse up to a signed scale): it never
-divides, so near-singular hypotheses give no infinities."""
+"""Batched homography maths for MOP (float64), for numpy and torch alike; ``(x, y)`` pixels, ``H``
+maps ``x`` to ``H [x, y, 1]``. Inverses are adjugates: they never divide, so no infinities."""
 
 from __future__ import annotations
 
@@ -144,12 +141,8 @@ def _basis_map(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def four_point(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Exact homographies of 4-point samples in closed form (no SVD): ``B adj(A)``, the same as the
-    minimal DLT.
-
-    The same factors give the signs of ``w`` of the source points under ``H`` and of the destination
-    points under ``adj(H)`` (quasi-affinity, paper App. A.3). Returns ``(H (B, 3, 3), sign_fwd,
-    sign_inv (B, 4))``; three collinear points give a near-singular ``H``."""
+    """Closed-form homographies ``(B, 3, 3)`` of 4-point samples (the minimal DLT's, no SVD), with
+    the quasi-affine signs ``(B, 4)`` of the samples forward and backward (App. A.3)."""
     xp = array_module(src)
     one = xp.ones_like(src[..., :1])
     A, lam, det_p = _basis_map(xp.concatenate([src, one], axis=2))
@@ -226,11 +219,8 @@ def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray, out: tupl
 
 
 def one_way_inside(h, X, Y, x2, y2, t2: float, out: tuple | None = None):
-    """Division-free one-way inlier test ``(K, N)`` bool: ``w > 0`` and ``|u - x2 w|^2 + |v - y2
-    w|^2 <= t2 w^2``.
-
-    ``h`` ``(K, 9, 1)`` holds each homography scaled by its sample's forward sign. ``out`` reuses
-    work arrays (a fresh numpy array pays its page faults on every call)."""
+    """Division-free one-way inlier test ``(K, N)``: ``w > 0`` and ``|u - x2 w|^2 + |v - y2 w|^2 <=
+    t2 w^2`` for sign-scaled ``h`` ``(K, 9, 1)``; ``out`` reuses work arrays."""
     xp = array_module(h)
     if out is None:
         W = h[:, 6] * X

@@ -1,8 +1,5 @@
-"""MiHo and VSAC splits of a homography into two middle homographies (paper Sec. 3.2, App. B, C).
-
-MiHo: each match becomes half-matches ``x1 -> m`` and ``m -> x2`` with ``m = (x1 + x2) / 2``. The
-rotation fix (App. C) turns image 2 by the multiple of 90 degrees (optionally mirrored) that most
-match pairs agree with. VSAC: ``H = H_v H_v`` by the principal square root."""
+"""MiHo and VSAC splits of a homography into two middle homographies (paper Sec. 3.2, App. B, C),
+and the rotation fix that pre-aligns image 2 by a multiple of 90 degrees."""
 
 from __future__ import annotations
 
@@ -71,11 +68,9 @@ def _norms(d: np.ndarray) -> np.ndarray:
 def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
                     pairs: int = 20000, reflections: bool = False,
                     compiled: bool = True) -> tuple[np.ndarray, int, int]:
-    """Pick the image-2 pre-alignment of the rotation fix (App. C) on ``pairs`` random match pairs.
-
-    The identity stays unless another candidate beats it by more than three standard deviations of
-    the paired difference, so outlier noise cannot turn an upright pair. Returns ``(G, index,
-    score)``: ``x2' = G x2``, index 0-3 rotation by index*90 degrees, 4-7 mirrored then rotated."""
+    """The rotation fix's ``(G, index, score)`` (``x2' = G x2``; index 0-3 rotations, 4-7 mirrored):
+    the identity stays unless another candidate wins by three standard deviations on the same pairs.
+    """
     N = len(x1)
     if N < 2:
         return np.eye(3), 0, 0
@@ -134,10 +129,8 @@ def _pick_rotation(cands: list[np.ndarray], scores: np.ndarray,
 
 
 def build_problem(x1: np.ndarray, x2: np.ndarray, miho: bool, full_match: bool = False) -> Problem:
-    """The RANSAC problem of MOP (one half) or MOP+MiHo (two halves, spread tested in x1, x2 and m).
-
-    ``full_match`` doubles the half-match errors, so they bound the full match's error in the
-    midpoint frame and the thresholds mean what they mean for MOP."""
+    """The RANSAC problem of MOP (one half) or MOP+MiHo (two, via the midpoint); ``full_match``
+    doubles the half-match errors so the thresholds bound the full match as for MOP."""
     if not miho:
         return Problem(src=(x1,), dst=(x2,), spread=(x1, x2), x1=x1, x2=x2)
     m = (x1 + x2) / 2

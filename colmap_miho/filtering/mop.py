@@ -1,9 +1,5 @@
-"""MOP's outer loop: multiple overlapping planes by sequential RANSAC (paper Sec. 3.1, App. A.2).
-
-Each round's best model needs n t_l inliers to be kept; its t_h inliers leave the pool if more than
-n/2, else its t_l inliers leave and the round counts as a failure. MOP stops after ``max_failures``
-failures in a row (the paper's rule; the reference's is ``max_failures=4``) or with fewer than n
-matches left."""
+"""MOP's outer loop: multiple planes by sequential RANSAC (paper Sec. 3.1, App. A.2), stopping after
+``max_failures`` failed rounds in a row (the reference's rule is ``max_failures=4``)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,5 @@
-"""The data of one RANSAC problem of MOP (App. A.3, B): :class:`Problem` and :class:`Hypotheses`.
-
-A problem has one or more halves (source, destination) that share the minimal sample: MOP one ``(x1
--> x2)``, MiHo two through the midpoint. A match's error is the max over halves and both directions,
-``inf`` where a projection breaks the sample's quasi-affine sign."""
+"""The data of one RANSAC problem of MOP (App. A.3, B): the point sets of its halves (MOP one, MiHo
+two via the midpoint) and a stack of hypotheses."""
 
 from __future__ import annotations
 
@@ -15,15 +12,8 @@ from .homography import array_module
 
 @dataclass(frozen=True)
 class Problem:
-    """Point sets of one filtering problem, ``(N, 2)`` float64 pixels (numpy, or torch for the
-    device copy).
-
-    Attributes:
-        src, dst: per half, the points a hypothesis maps ``src`` to ``dst``.
-        spread: point sets in which the 4 sample points must be at least t_l apart.
-        x1, x2: the two images' points.
-        error_scale: factor on every transfer error (2 for MiHo with full-match thresholds).
-    """
+    """Point sets of one filtering problem, ``(N, 2)`` float64 pixels: per half ``src``/``dst``, the
+    ``spread`` sets, ``x1``/``x2``, and ``error_scale`` (2 for MiHo with full-match thresholds)."""
 
     src: tuple[np.ndarray, ...]
     dst: tuple[np.ndarray, ...]

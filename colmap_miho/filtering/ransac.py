@@ -1,10 +1,6 @@
-"""One RANSAC run of MOP (paper App. A.3), batched and guided: the round loop.
-
-Each batch of hypotheses is spread-tested, solved in closed form with quasi-affine signs and bounded
-by a one-way float32 inlier count; hypotheses are then fully scored in descending order of that
-bound until none can beat the best, so the best is what exhaustive scoring would pick. The
-singular-value test runs just before full scoring. Iterations count only samples that pass the
-spread test (a failing draw is no hypothesis); at most ``10 x c_max`` are drawn."""
+"""One RANSAC run of MOP (App. A.3), batched and guided: hypotheses are fully scored in order of
+their one-way bound until none can beat the best, so the result is what exhaustive scoring would
+give. Only samples that pass the spread test count as iterations."""
 
 from __future__ import annotations
 
@@ -207,10 +203,8 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
                  buffer: list[Hypotheses], candidates: LocalCandidates | None = None,
                  scoring: NumpyScoring | None = None
                  ) -> tuple[RoundResult | None, list[Hypotheses]]:
-    """Run one RANSAC search on the matches ``pool`` ``(n,)`` (global indices).
-
-    ``buffer``: the global top-z buffer, evaluated first (bootstrap) and returned updated. Returns
-    ``(result, buffer)``; ``result`` is None when no valid hypothesis was found."""
+    """One RANSAC search on ``pool`` ``(n,)``; the top-z ``buffer`` is evaluated first and returned
+    updated. Returns ``(result or None, buffer)``."""
     n = len(pool)
     stats: dict[str, float] = {"drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
     if n < 4:

@@ -1,8 +1,5 @@
-"""Minimal samples of a RANSAC run (paper App. A.3): draws, the spread test, local candidates.
-
-``"local"`` sampling draws a seed uniformly and the other three among its nearest matches in joint
-``(x1, x2)`` space that lie at least t_l from it and each other (plain nearest neighbours would
-mostly fail the spread test). The adaptive bound uses that mixture's all-inlier probability."""
+"""Minimal samples of a RANSAC run (App. A.3): uniform or local draws whose points are spread at
+least t_l apart (plain nearest neighbours would mostly fail the spread test), and the bound."""
 
 from __future__ import annotations
 
@@ -145,11 +142,8 @@ class LocalCandidates:
 
 
 class Sampler:
-    """Minimal samples over the pool: uniform, or a ``local_fraction`` of them around a seed match.
-
-    A local seed's neighbours are its nearest candidates still in the pool and far enough in every
-    spread set; the other three are drawn one by one among those far enough from those drawn. A seed
-    without three gives a sample that fails the spread test."""
+    """Minimal samples over the pool: uniform, or a ``local_fraction`` drawn one by one among a
+    seed's nearest pool matches that are far enough from those drawn."""
 
     #: Pools of at most this many matches have every match's neighbours searched at the first
     #: call.

@@ -1,10 +1,5 @@
-"""The filter's heavy RANSAC kernels in torch, on any torch device.
-
-``device``: ``"cpu"``/None for numpy, any torch device (``torch.device("cpu")`` included) for torch
-float64, ``"auto"`` for CUDA when available. Solver, bounds, singular-value test and full scoring
-run on the device with the numpy path's formulas in the same order; sampling (same generator, same
-samples), bookkeeping, refit and assignment stay in numpy. Both paths agree up to floating-point
-ties."""
+"""The filter's heavy RANSAC kernels in torch float64 on any torch device, with the numpy path's
+formulas in the same order; sampling and bookkeeping stay in numpy, so both agree up to ties."""
 
 from __future__ import annotations
 

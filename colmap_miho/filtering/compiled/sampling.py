@@ -406,10 +406,7 @@ def draw_batch(seeds: np.ndarray, others: np.ndarray, local: np.ndarray, keys: n
                pool_feats: np.ndarray, sx: np.ndarray, sy: np.ndarray, t2: float, k: int,
                q: int, lists: np.ndarray, listed: np.ndarray) -> np.ndarray:
     """``(B, 4)`` global indices of one batch of local sampling, the same samples as
-    ``Sampler.draw``.
-
-    Neighbour lists of seeds not ``known`` yet are searched first; ``nb``, ``known`` and the
-    candidate tables are updated in place. Other arguments as :func:`pool_neighbours`."""
+    ``Sampler.draw``; unknown neighbour lists are searched first and updated in place."""
     if grid is None:
         empty = np.empty(0, dtype=np.int64)
         x0 = y0 = cell = 0.0
@@ -455,13 +452,9 @@ def pool_neighbours(todo: np.ndarray, cand: np.ndarray, far: np.ndarray, pos: np
                     feats: np.ndarray, spread_x: np.ndarray, spread_y: np.ndarray, t2: float,
                     k: int, q: int, pool: np.ndarray, lists: np.ndarray,
                     listed: np.ndarray) -> np.ndarray:
-    """``(m, k)`` pool positions of the nearest pool matches at least ``sqrt(t2)`` from each of
-    ``todo`` in every spread set, -1 padded.
-
-    Taken from the problem-wide candidates where enough are far and in the pool, else by exhaustive
-    search among the ``q - 1`` nearest. ``lists``/``listed`` carry full lists found for earlier
-    pools: the pool only lost matches since, so a list wholly inside it is still the answer. The
-    caller clears ``listed`` when the pool is not a subset of the earlier ones."""
+    """``(m, k)`` nearest pool matches at least ``sqrt(t2)`` from each of ``todo`` in every spread
+    set (-1 padded), from the candidates or by exhaustive search; ``lists``/``listed`` reuse the
+    lists of earlier pools that contain this one (the caller clears them otherwise)."""
     return KERNELS()["_neighbours"](todo, cand, far, pos, feats, spread_x, spread_y,
                                       float(t2), int(k), int(q), pool, lists, listed)
 

@@ -1,10 +1,6 @@
-"""Compiled (numba) kernels of :mod:`..scoring`: each replaces a chain of small numpy calls of a
-RANSAC batch with one call.
-
-:func:`score_batch` and :func:`refit` serve :mod:`..ransac` but live here beside the helpers they
-share: numba's disk cache sees changes only in a kernel's own file. Masks and errors are numpy's
-bits; the solver, singular values and refit sum in a fixed order, so homographies may differ from
-numpy's in the last bits."""
+"""Compiled (numba) kernels of :mod:`..scoring` (and :mod:`..ransac`'s batch scoring and refit,
+beside the helpers they share): one call per chain of numpy calls, the same decisions; the
+homographies may differ from numpy's in the last bits."""
 
 from __future__ import annotations
 
@@ -544,11 +540,8 @@ KERNELS = Kernels(_jit_all)
 def hypotheses(sample: np.ndarray, ok: np.ndarray, x1: np.ndarray, x2: np.ndarray,
                src_all: np.ndarray, dst_all: np.ndarray, reflection: bool,
                pool_src: np.ndarray, pool_dst: np.ndarray, t2: float):
-    """Hypotheses of the samples ``(B, 4)`` that pass ``ok``, the reflection check and
-    quasi-affinity, with their one-way inlier bounds on the pool.
-
-    Returns ``(H, Hinv, sign, sign_inv, sample, ub)`` of the ``K`` survivors in sample order: ``(K,
-    halves, 3, 3)``, ``(K, halves)``, ``(K, 4)``, ``(K,)`` int64 counts."""
+    """``(H, Hinv, sign, sign_inv, sample, ub)`` of the samples ``(B, 4)`` that pass ``ok``, the
+    reflection check and quasi-affinity, with their one-way inlier bounds on the pool."""
     K, H, Hinv, sign, sign_inv, smp, ub = KERNELS()["_hypotheses"](
         sample, ok, x1, x2, src_all, dst_all, bool(reflection), pool_src[0], pool_src[1],
         pool_dst[0], pool_dst[1], np.float32(t2))
@@ -580,13 +573,8 @@ def score_batch(ub: np.ndarray, count: int, have_best: bool, n_req: int, z: int,
                 H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
                 sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, min_sv: float,
                 pts: np.ndarray, t2: float, s2: float):
-    """The full scoring of one batch in one call, with the same decisions as
-    ``ransac._score_batch``.
-
-    Hypotheses are scored in groups of 4 by descending bound while a bound can beat the best.
-    Returns ``(order, masks, events, best, count, scored)``: score order, masks by position, the
-    candidates as they arose (-1: the previous best), the new best (-1: unchanged), its count and
-    the number scored."""
+    """The full scoring of one batch in one call, as ``ransac._score_batch``: ``(order, masks,
+    events, best, count, scored)``."""
     return KERNELS()["_score_batch"](ub, int(count), bool(have_best), int(n_req), int(z),
                                        H, Hinv, sign, sign_inv, sample, src_all, dst_all,
                                        float(min_sv), pts, float(t2), float(s2))
