@@ -1,8 +1,6 @@
-"""The only module that creates, reads and writes COLMAP databases (through pycolmap).
-
-It applies the half-pixel conversion of :mod:`.conventions` exactly once each way: COLMAP puts the
-top-left pixel's centre at (0.5, 0.5), colmap-miho at (0, 0). Open only a working copy
-(:mod:`.safety`): pycolmap migrates the schema on open and creates a missing database."""
+"""The only module that creates, reads and writes COLMAP databases (through pycolmap), and the one
+place of the half-pixel shift (:mod:`.conventions`). Open only a working copy: pycolmap migrates the
+schema on open."""
 
 from __future__ import annotations
 
@@ -32,10 +30,7 @@ REQUIRED_TABLES = ("cameras", "images", "keypoints", "matches", "two_view_geomet
 
 def validate_database(path: str | Path, name: str | Path | None = None) -> None:
     """Check that ``path`` is a COLMAP database (SQLite with COLMAP's tables), read-only with
-    sqlite3.
-
-    Call it on a working copy with no pycolmap handle open; ``name`` is the file the messages name.
-    Raises :class:`DatabaseError` naming the file and any missing tables."""
+    sqlite3 and no pycolmap handle open; DatabaseError names ``name`` and any missing tables."""
     p = check_database_path(path)
     shown = Path(name) if name is not None else p  # the user's file, never a hidden copy
     try:
@@ -223,10 +218,8 @@ def keep_or_fit(handle, i: int, j: int, inliers: np.ndarray, fit: Callable[[], A
 
 
 class ColmapDatabase(DatabaseBuilder):
-    """A pycolmap handle on a working copy of a COLMAP database, with array helpers.
-
-    Coordinates in and out are colmap-miho's (float64 pixels, integer = pixel centre); matches are
-    uint32 ``(M, 2)`` keypoint indices ordered (image_id1, image_id2)."""
+    """A pycolmap handle on a working copy of a COLMAP database, with array helpers in colmap-miho's
+    coordinates; matches are uint32 ``(M, 2)`` keypoint indices ordered (image_id1, image_id2)."""
 
     _db: Any  # pycolmap.Database while open, None once closed
 
@@ -309,10 +302,8 @@ class ColmapDatabase(DatabaseBuilder):
         return colmap_to_pixel_centre(self.raw_keypoints(image_id)[:, :2])
 
     def keypoint_affines(self, image_id: int) -> np.ndarray | None:
-        """Local affine frames float64 ``(N, 2, 2)`` (columns = local axes, pixels), or None for x,
-        y only.
-
-        6 columns: x, y, a11, a12, a21, a22 (SIFT); 4 columns: x, y, scale, orientation (radians)."""
+        """Local affine frames ``(N, 2, 2)`` (columns = local axes, pixels) from 6 (SIFT) or 4
+        (scale, orientation) columns, or None for x, y only."""
         raw = self.raw_keypoints(image_id).astype(np.float64)
         if raw.shape[1] >= 6:
             return raw[:, 2:6].reshape(-1, 2, 2)
@@ -378,11 +369,8 @@ class ColmapDatabase(DatabaseBuilder):
 
     def write_pair(self, image_id1: int, image_id2: int, kept: np.ndarray,
                    xy1: np.ndarray, xy2: np.ndarray, *, keep_model: bool = True) -> str:
-        """Write a pair's kept matches ``(K, 2)`` and its two-view geometry.
-
-        The verified model is kept when ``keep_model``; else F (or H when F fails) is fitted to the
-        kept positions ``xy1``, ``xy2``. Nothing kept: empty matches, no geometry row. Returns the
-        config name written ("NONE" when nothing was kept)."""
+        """Write a pair's kept matches ``(K, 2)`` and its geometry: the verified model when
+        ``keep_model``, else F (or H) fitted to ``xy1``, ``xy2``; returns the config name written."""
         db = self.handle
         i, j = int(image_id1), int(image_id2)
         kept = np.ascontiguousarray(kept, dtype=np.uint32).reshape(-1, 2)
@@ -458,12 +446,9 @@ def verify_geometry(path: str | Path, *, seed: int = 0) -> None:
 
 
 def write_camera_intrinsics(path: str | Path, intrinsics: CameraIntrinsics | dict[str, CameraIntrinsics]) -> int:
-    """Set the model and parameters of cameras in the database at ``path`` (a working copy).
-
-    ``intrinsics``: one for every camera, or image name -> intrinsics for those images' cameras.
-    Given parameters are marked as a prior focal length. Returns the number of cameras written.
-    Raises :class:`DatabaseError` for a camera shared by images given different intrinsics or of
-    another size, ``ValueError`` for an unknown model or parameter count."""
+    """Set the model and parameters of cameras in the working copy at ``path`` (one for all, or
+    image name -> intrinsics), as a prior focal; returns how many. DatabaseError for conflicting or
+    mis-sized cameras, ValueError for a bad model or parameter count."""
     with ColmapDatabase(path) as db:
         cameras = {int(c.camera_id): c for c in db.handle.read_all_cameras()}
         wanted: dict[int, CameraIntrinsics] = {}

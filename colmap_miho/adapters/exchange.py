@@ -1,7 +1,6 @@
-"""hloc / deep-image-matching h5 files in and out of COLMAP databases.
-
-The h5 side is :mod:`.hloc`, the database side :mod:`.database` (the +0.5 pixel shift). deep-image-
-matching's own importer skips the shift; ``keypoint_origin="corner"`` reproduces its databases."""
+"""hloc / deep-image-matching h5 files in and out of COLMAP databases (h5 side :mod:`.hloc`,
+database side :mod:`.database`); ``keypoint_origin="corner"`` reproduces deep-image-matching's
+databases."""
 
 from __future__ import annotations
 
@@ -70,13 +69,10 @@ def import_hloc(
     seed: int = 0,
     progress: bool = False,
 ) -> ImportStats:
-    """Create the NEW ``database`` from hloc-layout h5 files, one image / pair at a time.
-
-    Cameras come from the image files (focal prior ``FOCAL_PRIOR * max(width, height)``); keypoints
-    get COLMAP's 6 columns (affine shape from ``scales``/``oris``, else identity). Written beside
-    and moved in at the end, so a failed import leaves nothing. ``verify=False`` stores every match
-    as an UNCALIBRATED inlier; ``keypoint_origin``: "center" (shifted +0.5) or "corner" (as is).
-    Raises FileExistsError, or FileNotFoundError / ValueError naming the file, image or pair."""
+    """Create the NEW ``database`` from hloc-layout h5 files, one image / pair at a time, written
+    beside and moved in at the end (a failed import leaves nothing). ``verify=False`` stores every
+    match as an UNCALIBRATED inlier. FileExistsError, or FileNotFoundError / ValueError naming the
+    input."""
     features, matches, images, database = Path(features), Path(matches), Path(images), Path(database)
     if database.exists():
         raise FileExistsError(f"{database} exists: import writes a new database only")
@@ -185,12 +181,9 @@ def export_hloc(
     overwrite: bool = False,
     progress: bool = False,
 ) -> ExportStats:
-    """Write ``features`` and ``matches`` h5 files from a temporary copy of ``database``.
-
-    Matches are the verified inliers or the ``"raw"`` table, smaller image id first; ``layout``
-    "hloc" (one match per keypoint of image 0) or "dim" (lossless). Both files are staged and
-    renamed at the end. Raises FileExistsError without ``overwrite``, DatabaseError for a bad
-    database."""
+    """Write ``features`` and ``matches`` h5 files from a copy of ``database`` (``layout`` "hloc":
+    one match per keypoint of image 0, or "dim": lossless). FileExistsError without ``overwrite``.
+    """
     from tqdm import tqdm
 
     database, features, matches = Path(database), Path(features), Path(matches)

@@ -1,11 +1,9 @@
-"""Read and write hloc / deep-image-matching feature and match files (HDF5, one image or pair at a
-time).
+"""Read and write hloc / deep-image-matching HDF5 features and matches, one image or pair at a time.
 
-Features: one group per image (named by its relative path) with ``keypoints`` ``(N, 2)`` pixels
-(integer = pixel centre), optional ``scores``, ``scales``/``oris`` and ``image_size``. Matches, told
-apart per pair: hloc nested ``f(name0)/f(name1)`` or legacy flat ``f(name0)_f(name1)`` with
-``matches0`` ``(N0,)`` (-1 = unmatched), ``f(n) = n.replace('/', '-')``; or deep-image-matching
-``name0/name1`` ``(M, 2)`` index pairs. No COLMAP here (that is :mod:`.exchange`)."""
+Features: a group per image with ``keypoints`` ``(N, 2)`` pixels (integer = pixel centre). Matches,
+told apart per pair: hloc's ``matches0`` ``(N0,)`` (-1 = unmatched) under ``f(name0)/f(name1)`` or
+``f(name0)_f(name1)``, ``f(n) = n.replace('/', '-')``; or deep-image-matching's ``name0/name1``
+``(M, 2)``."""
 
 from __future__ import annotations
 
@@ -339,11 +337,8 @@ def iter_matches(
     num_keypoints: dict[str, int],
     pairs: Iterable[tuple[str, str]] | None = None,
 ) -> Iterator[PairMatches]:
-    """Yield :class:`PairMatches` one pair at a time (any layout, even mixed).
-
-    ``num_keypoints``: image name -> keypoint count (resolves keys, checks indices). ``pairs``:
-    optional (name0, name1) list, each looked up in either order (ValueError when missing); a pair
-    already yielded is skipped."""
+    """Yield :class:`PairMatches` one pair at a time (layouts may mix); ``pairs`` restricts and
+    orients them (ValueError for a missing one); a pair already yielded is skipped."""
     index = _NameIndex(num_keypoints)
     todo: Iterable[tuple[str, str, str, str, bool]]
     if pairs is None:

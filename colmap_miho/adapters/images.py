@@ -17,10 +17,8 @@ log = logging.getLogger(__name__)
 
 
 def read_image(path: str | Path, *, gray8: bool = False) -> np.ndarray | None:
-    """Decode one image file (OpenCV; non-ASCII paths work); None if missing, empty or undecodable.
-
-    ``gray8=False``: the pixels as stored (dtype, BGR(A) order, no EXIF rotation, as COLMAP reads
-    them); True: uint8 gray exactly as ``cv2.IMREAD_GRAYSCALE``."""
+    """Decode one image file (OpenCV; non-ASCII paths work), None if unusable: as stored (BGR(A), no
+    EXIF rotation, as COLMAP reads it), or with ``gray8`` as ``cv2.IMREAD_GRAYSCALE``."""
     import cv2
 
     p = Path(path)
@@ -160,11 +158,8 @@ def folder_image_sizes(folder: str | Path) -> dict[str, tuple[int, int]]:
 
 
 class ImageLoader(Mapping):
-    """Mapping image_id -> float32 ``(H, W)`` gray in [0, 1], or None (missing, unreadable or not
-    its camera's size: one warning), loaded lazily.
-
-    ``max_cached`` images and ``max_cached_bytes`` bytes bound the cache (an image over the byte
-    bound is returned, not kept). ``decodes`` counts real decodes."""
+    """Lazy mapping image_id -> float32 ``(H, W)`` gray in [0, 1], or None (unusable or not its
+    camera's size: one warning); ``max_cached`` / ``max_cached_bytes`` bound the LRU cache."""
 
     def __init__(self, image_dir: str | Path, names: Mapping[int, str], *,
                  max_cached: int | None = 8, max_cached_bytes: int | None = None,

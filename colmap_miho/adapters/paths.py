@@ -1,8 +1,5 @@
-"""Resolves the paths a command reads and writes and refuses any overlap.
-
-A command writing where it reads destroys data (``refine --json x.db --database x.db``), so each
-lists its inputs and outputs and :func:`check_distinct` compares them by device and inode before any
-work: a symlink or hard link to the database counts as the database."""
+"""Resolves the paths a command reads and writes and refuses any overlap (``refine --json x.db
+--database x.db`` would destroy the database), by device and inode, before any work."""
 
 from __future__ import annotations
 
@@ -206,12 +203,9 @@ def _clean(paths: Mapping[str, PathArg]) -> dict[str, Path]:
 
 
 def check_distinct(inputs: Mapping[str, PathArg], outputs: Mapping[str, PathArg]) -> None:
-    """Refuse a command whose outputs overlap its inputs or each other (UserError, exit 2).
-
-    ``inputs`` / ``outputs``: label (the option) -> path, None skipped. An input database also
-    protects its SQLite side files; a folder only itself, so list the files read or written inside
-    one (:func:`model_input_files`, :func:`folder_files`, :func:`model_files`). An output that is an
-    existing folder, FIFO, socket or block device is refused too."""
+    """Refuse a command whose outputs overlap its inputs or each other (UserError, exit 2). An input
+    database also protects its SQLite side files; a folder protects only itself, so list the files
+    read or written inside one."""
     ins, outs = _clean(inputs), _clean(outputs)
     # one stat and one resolve per path: input folders may list thousands of files
     by_identity: dict[tuple[int, int], str] = {}

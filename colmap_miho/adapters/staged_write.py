@@ -1,9 +1,5 @@
-"""Writing a user-visible file whole or not at all, and telling a full disk from other errors.
-
-Every file a command writes goes through :func:`staged_write`: a hidden name beside the target,
-flushed, size checked (a native writer's silence is not trusted), renamed onto the target. Only a
-regular file is ever replaced; a character device is written through, anything else refused. Private
-temporary folders are locked while in use and swept after a kill."""
+"""Writing a user-visible file whole or not at all (:func:`staged_write`), telling a full disk from
+other errors, and private temporary folders swept after a kill."""
 
 from __future__ import annotations
 
@@ -176,12 +172,9 @@ def check_written(tmp: Path, target: Path, expected_size: int | None) -> None:
 
 @contextlib.contextmanager
 def staged_write(path: str | os.PathLike, *, expected_size=None):
-    """Write one output file whole or not at all.
-
-    Yields a hidden file beside the target (a symlink's target) to fill; afterwards it is flushed,
-    its size checked (``expected_size``: bytes or a callable on the path; default not empty) and
-    renamed onto the target, or removed on failure. Raises RunFailed (disk full, short write) or
-    UserError (missing or read-only folder, target not a regular file)."""
+    """Write one output file whole or not at all: yields a hidden file beside the target to fill,
+    then flushes, checks its size (``expected_size``) and renames it, or removes it on failure.
+    RunFailed for a full disk or short write; UserError for a bad folder or target."""
     check_output_path(path)
     if output_kind(path) == CHARACTER_DEVICE:
         # staged in a folder of our own in $TMPDIR (/dev is not writable by everyone), which the
@@ -319,12 +312,9 @@ PENDING_TEMPDIR_S = 60.0
 
 @contextlib.contextmanager
 def private_tempdir(prefix: str, parent: str | os.PathLike | None = None, *, own_failures: bool = True):
-    """A new temporary folder removed on exit, and by the next run after a ``kill -9``.
-
-    It holds a lock file locked (``flock``) while its run lives (made under another name and renamed
-    once locked, so a sweep never sees it free); folders of the same ``prefix`` whose lock is free
-    are removed first. ``own_failures``: errors in the block while the folder's file system is full
-    become the full-disk error (native writers rarely say why)."""
+    """A new temporary folder removed on exit, and by the next run after a ``kill -9`` (its lock
+    file is held while it lives; free ones are swept). ``own_failures``: errors while its disk is
+    full become the full-disk error."""
     where = Path(parent) if parent is not None else Path(tempfile.gettempdir())
     _remove_stale_tempdirs(where, prefix)
     try:

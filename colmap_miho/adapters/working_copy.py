@@ -62,14 +62,10 @@ def working_space(size: int, *, in_place: bool = False) -> int:
 
 
 class WorkingCopy:
-    """Plan and carry out the safe write of a processed database.
-
-    As a context manager, ``path`` is a temporary copy of the input beside the output;
-    :meth:`commit` (after every handle on it is closed) moves it onto the output, and leaving
-    without commit deletes it. The start's checks are repeated at commit: an output that appeared or
-    is held open is not replaced, and in place, a changed input keeps the result beside it.
-    ``output`` defaults to ``<stem>.miho.db``; ``in_place`` replaces the input after a timestamped
-    backup."""
+    """Plan and carry out the safe write of a processed database: ``path`` is a temporary copy
+    beside the output, moved onto it by :meth:`commit` after the start's checks are repeated;
+    leaving without commit deletes it. ``in_place`` replaces the input after a timestamped backup.
+    """
 
     def __init__(self, database: Path, output: Path | None = None, *, in_place: bool = False,
                  overwrite: bool = False) -> None:
@@ -171,10 +167,8 @@ class WorkingCopy:
         self._side.append((tmp, target))
 
     def commit(self) -> Path:
-        """Check again, then atomically move the working copy onto the output; returns it.
-
-        UserError: the output appeared (no ``overwrite``) or is held open. DatabaseError: in
-        place, the input changed; the result is kept beside it. SideFileLost: after the commit."""
+        """Check again, then move the working copy onto the output atomically; returns it. UserError,
+        DatabaseError (in place, the input changed) or SideFileLost."""
         if self.path is None:
             raise RuntimeError("commit() outside the with block")
         if self.in_place:

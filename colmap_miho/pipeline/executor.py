@@ -1,9 +1,5 @@
-"""Where the pipeline's parallel work runs: this process, a local process pool (:mod:`.workers`) or
-a Dask cluster, behind one :class:`Runner` (``slots``, ``submit`` -> Future).
-
-Tasks are module-level functions with picklable arguments, each with one BLAS/torch thread; results
-come back here, the only process that writes SQLite. Dask workers need the same colmap-miho and the
-image folder at the same path."""
+"""Where the pipeline's parallel work runs: this process, a local process pool or a Dask cluster,
+behind one :class:`Runner`; tasks have one BLAS/torch thread and only this process writes SQLite."""
 
 from __future__ import annotations
 
@@ -112,12 +108,8 @@ class Runner:
 
 @contextlib.contextmanager
 def open_runner(workers: int, dask: str | None = None, *, families: tuple[str, ...] = ()) -> Iterator[Runner]:
-    """The engine for ``workers`` processes, or a Dask cluster.
-
-    ``dask``: None, :data:`LOCAL` (a ``LocalCluster`` of ``workers`` processes) or a scheduler
-    address ``tcp://host:port`` (``workers`` ignored). ``families``: compiled kernels every Dask
-    worker loads before its first task. UserError when distributed is missing or the scheduler
-    cannot be reached."""
+    """The engine for ``workers`` processes, or a Dask cluster (``dask``: :data:`LOCAL` or a
+    scheduler address) whose workers load ``families`` first. UserError when Dask cannot be used."""
     if dask is None:
         if workers <= 1:
             yield Runner(1, RunnerKind.INLINE)

@@ -1,8 +1,6 @@
-"""Filter stage: MOP / MOP+MiHo on every pair with enough matches, in chunks of pairs.
-
-Chunks (sized by ``pipeline.memory_budget_mb``) are read here, filtered by the run's
-:class:`~.executor.Runner` and stored in the run store; a resumed run skips stored chunks. Results
-do not depend on chunking, workers or engine: each pair's seed comes from its image ids."""
+"""Filter stage: MOP / MOP+MiHo on every pair with enough matches, in chunks stored in the run
+store. Results do not depend on chunking, workers or engine: each pair's seed comes from its image
+ids."""
 
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
-"""Match-check stage: judge every match against a global estimate of the cameras and remove the ones
-it contradicts, after the filter and before the refinement.
-
-The check is :func:`colmap_miho.verification.match_check.judge_in_rounds` with pycolmap's global
-mapper as estimator. The decision is kept in the run store, so a resumed run does not map again (the
-mapper is not bit-for-bit repeatable across thread counts)."""
+"""Match-check stage: judge every match against a global estimate of the cameras
+(:func:`~colmap_miho.verification.match_check.judge_in_rounds`, pycolmap's global mapper) before the
+refinement; the decision is stored, as the mapper is not bit-for-bit repeatable."""
 
 from __future__ import annotations
 
@@ -34,20 +31,10 @@ MAX_LISTED_PAIRS = 200
 
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckStats:
-    """What the match check did (``RefineSummary.match_check``; empty when off).
-
-    Attributes:
-        mode: "remove" or "flag".
-        used / reason: some round's estimate was trusted and judged; else why not.
-        images_trusted / images_untrusted / images_cut_off: image names over the rounds (cut off:
-          the removals would have separated them from the rest of the pair graph).
-        scale_px / threshold_px: the first round's distance scale and threshold, applied by every round.
-        matches_removed / pairs_removed: failed matches of kept pairs / wrong pairs removed whole.
-        removed_per_pair: ``{"images", "image_ids", "removed"}`` per pair with removals.
-        peak_rss_mb: this process's peak resident memory when the stage ended (MiB).
-        round_seconds / mapper_steps: per round, the parts' and the global mapper's steps' seconds.
-        hinges: each hinge found, its competing pairs, verdict and action.
-    """
+    """What the match check did (``RefineSummary.match_check``; empty when off): whether the
+    estimate was used and why not, the images trusted, untrusted and cut off, the first round's
+    scale and threshold (pixels), the matches and pairs removed, per-pair removals, peak memory
+    (MiB), per-round seconds and the hinges found with their verdicts."""
 
     mode: str
     used: bool

@@ -1,9 +1,5 @@
-"""``refine_database``: filter and refine the matches of a COLMAP database, safely.
-
-Stages, in order: working copy -> read -> filter (chunked, into the run store) -> pair check ->
-match check -> refine -> write back -> COLMAP re-verification -> atomic replace. The input is never
-opened for writing (:mod:`colmap_miho.adapters.safety`); finished chunks survive in the run store
-for ``resume``; only this process writes SQLite."""
+"""``refine_database``: filter, check and refine the matches of a COLMAP database on a working copy,
+stage by stage; finished work survives in the run store for ``resume``."""
 
 from __future__ import annotations
 

@@ -1,10 +1,6 @@
-"""Run store: the finished work of one ``refine`` run on disk, so that a killed run resumes.
-
-A folder ``<output dir>/.<output name>.miho-run/`` holding ``manifest.json`` (the run's fingerprint
-and plan key), ``filter-NNNNNN.npz`` chunks, ``group-NNNNNN.npz`` refine groups,
-``stage-<name>.npz`` once-per-run results and a ``lock``. Every file is written atomically, tied to
-its run (``run_id``, ``file_name``) and checked when read back (:mod:`.store_checks`); links are
-refused and only the store's own files are ever deleted."""
+"""Run store: the finished work of one ``refine`` run on disk (``.<output name>.miho-run/`` beside
+the output), so that a killed run resumes. Its files are written atomically, tied to their run and
+checked when read back (:mod:`.store_checks`); links are refused."""
 
 from __future__ import annotations
 
@@ -175,10 +171,8 @@ class RunStore:
     # -- opening, closing --------------------------------------------------------------------
     @classmethod
     def open(cls, folder: Path, fingerprint: dict, *, resume: bool = False, restart: bool = False) -> RunStore:
-        """Open (create) the store at ``folder`` for a run with ``fingerprint``.
-
-        UserError: another run holds it; finished work without ``resume`` or ``restart``;
-        ``resume`` with another fingerprint (naming what changed); an unwritable folder."""
+        """Open (create) the store at ``folder`` for ``fingerprint``. UserError when another run holds
+        it, when finished work is there without ``resume``/``restart``, or when it changed."""
         folder = Path(folder)
         if resume and restart:
             raise UserError("use either --resume or --restart, not both")

@@ -1,9 +1,5 @@
-"""What a file of the run store read back must be before it is trusted.
-
-A damaged or forged file fails these checks as :class:`StoreDamaged` (one line naming it and
-``--restart``), never as a TypeError or as matches silently lost: the manifest's types, each array's
-dtype and shape, offsets, pairs stored once, a chunk's and a group's arrays against each other and
-against the images' keypoints."""
+"""What a file of the run store read back must be before it is trusted: a damaged or forged file is
+:class:`StoreDamaged` (one line naming it and ``--restart``), never a crash or lost matches."""
 
 from __future__ import annotations
 

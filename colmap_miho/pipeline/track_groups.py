@@ -1,8 +1,5 @@
-"""The track walk of the refine stage over groups of whole tracks (:func:`walk_groups`).
-
-The plan is cut into groups of whole tracks that fit the image budget, numbered in schedule order,
-and walked here or on the runner's slots as contiguous runs, so a worker keeps the images the next
-group needs. Results do not depend on the runner, slots or budget: tracks never share a keypoint."""
+"""The track walk of the refine stage over groups of whole tracks that fit the image budget, walked
+here or on the runner's slots; results do not depend on either (tracks never share a keypoint)."""
 
 from __future__ import annotations
 
@@ -152,16 +149,9 @@ def walk_groups(loader: ImageLoader, keypoints, pairs, affines, ncc_config, trac
                      check_done: Callable[[int], None] | None = None):
     """The track-consistent NCC walk over groups of whole tracks, on ``runner``.
 
-    Args:
-        keypoints: image id -> ``(N, 2)`` float64 pixels.
-        pairs: (i, j) -> (matches ``(M, 2)``, FilterResult) of the filtered pairs with images.
-        unrefined: (i, j) -> ``(M, 2)`` other output matches: they join tracks, never refine.
-        image_budget_bytes: decoded bytes one walking process may hold; sets the groups.
-        done: group index -> (moved, stats) finished by an earlier run (resume).
-        on_group: called here as each group finishes with (index, moved, stats).
-        check_done: called with the group count before ``done`` is used.
-
-    Returns (new keypoints, stats, processes used)."""
+    ``pairs``: (i, j) -> (matches ``(M, 2)``, FilterResult); ``unrefined``: other output matches
+    (join tracks, never refine); ``done``: groups finished by an earlier run; ``on_group`` is called
+    as each group finishes. Returns (new keypoints, stats, processes used)."""
     build_track_plan, local_affine_of = _import_plan()
     plan = build_track_plan(keypoints, {k: m for k, (m, _) in pairs.items()},
                             {k: r for k, (_, r) in pairs.items()}, unrefined_matches=unrefined,

@@ -1,8 +1,5 @@
-"""The checks' verdicts and the matches that reach the output database once they are applied.
-
-Both checks return one :class:`Verdicts`; the run merges them and later stages apply them. A pair's
-output matches are its kept filter matches (or the database's when not filtered), less the failed
-ones; pairs removed whole reach the output without matches."""
+"""The checks' verdicts (:class:`Verdicts`, merged from both checks) and the matches that reach the
+output database once they are applied."""
 
 from __future__ import annotations
 
@@ -19,14 +16,8 @@ from .records import FilteredPairs, PairOutcome
 
 @dataclass(frozen=True, kw_only=True)
 class Verdicts:
-    """What the checks decided.
-
-    Attributes:
-        removed: pairs removed whole, written without matches or geometry.
-        failed: pair -> bool ``(K,)``, the matches removed from a kept pair (over its kept matches
-          when filtered, else over the database's).
-        refit: judged pairs, whose fundamental matrix is fitted again to the survivors.
-    """
+    """What the checks decided: pairs ``removed`` whole, ``failed`` matches per kept pair (bool
+    ``(K,)``), and pairs to ``refit`` (their fundamental matrix fitted again to the survivors)."""
 
     removed: frozenset[Pair] = frozenset()
     failed: Mapping[Pair, np.ndarray] = field(default_factory=dict)

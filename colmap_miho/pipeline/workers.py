@@ -1,10 +1,6 @@
-"""Worker processes: a pool with one BLAS/torch thread per process, and per-pair seeds that do not
-depend on the worker count or order.
-
-Workers fork from a forkserver that imported numpy, torch and the cached kernels once
-(:data:`PRELOAD`), so no worker pays those imports again. Workers die with their parent (a watchdog
-thread) and a pool left by an exception kills them. One thread per process: the NCC walk is many
-small tensor operations, where intra-op threads cost more than they give."""
+"""Worker processes: a pool forked from a forkserver that imported torch and the kernels once, one
+BLAS/torch thread each (the walk's small tensor operations gain nothing from more), dying with their
+parent; and per-pair seeds independent of the worker count."""
 
 from __future__ import annotations
 

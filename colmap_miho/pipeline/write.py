@@ -28,12 +28,9 @@ class WriteStats:
 
 def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoints: dict[int, np.ndarray],
               chunks: Iterable[FilteredPairs], cfg: PipelineConfig, verdicts: Verdicts = NO_VERDICTS) -> WriteStats:
-    """Write what changed, in one transaction.
-
-    Only keypoint rows that differ are written. ``chunks``: the filtered pairs as stored, their
-    inliers replacing the pair's matches. ``cfg.verify`` deletes the geometries for COLMAP to verify
-    again. ``verdicts``: removed pairs are written empty, refitted ones get a new fundamental
-    matrix."""
+    """Write what changed in one transaction: keypoint rows that differ, and each stored pair's kept
+    matches with ``verdicts`` applied (``cfg.verify`` deletes geometries for COLMAP to verify
+    again)."""
     from ..adapters.safety import check_free_space
 
     # the transaction's write-ahead log grows up to the rewritten pages; pycolmap aborts the
