@@ -1,9 +1,6 @@
-"""Batched homography patch sampling with torch (bilinear, pixel centres at integers).
-
-A patch homography ``H`` maps image pixels into a common frame (``c ~ H x``); a patch around ``c``
-reads the image at ``H^-1 (c + w)``. On the CPU a job's samples are bitwise independent of the other
-jobs in the call (the track walk chunks differently and must agree), so no GEMM or reduction runs
-across jobs: small products are written out elementwise."""
+"""Batched homography patch sampling with torch (bilinear, pixel centres at integers): a patch
+around common-frame ``c`` reads the image at ``H^-1 (c + w)``. On the CPU a job's samples never
+depend on the other jobs of the call, so nothing runs across jobs (no GEMM, no reduction)."""
 
 from __future__ import annotations
 
@@ -63,10 +60,8 @@ def to_gray_tensor(
 
 @dataclass(frozen=True)
 class ImageStack:
-    """Several images for one batch of jobs: job j reads image ``index[j]``.
-
-    One batched call serves many pairs (the track walk on a GPU). No padded copy: a job reads only
-    its own image, so its values do not depend on the other images."""
+    """Several images for one batch of jobs, job j reading image ``index[j]`` only (no padded copy),
+    so one batched call serves many pairs."""
 
     images: tuple
     slot_sizes: torch.Tensor

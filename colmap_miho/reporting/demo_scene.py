@@ -1,8 +1,6 @@
-"""A built-in piecewise-planar scene with exact ground truth, made on the fly (no downloads).
-
-A "room corner" (wall, floor, poster, box) textured with scikit-image's bundled photographs and
-rendered from known pinhole cameras plane by plane with a depth test, so poses and intrinsics are
-exact. World frame: x right, y down, z forward; pixel centres at integers."""
+"""A built-in piecewise-planar "room corner" with exact ground truth, rendered on the fly from
+scikit-image's bundled photographs (world: x right, y down, z forward; pixel centres at integers).
+"""
 
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
-"""Ground-truth camera poses: load COLMAP models, convert dataset layouts, write COLMAP models.
-
-Poses are ``dict[str, CameraPose]`` keyed by image name (never by id). ``K`` uses the pixel-centre
-convention; the half-pixel shift of COLMAP models happens only in :func:`poses_from_reconstruction`
-and :func:`write_colmap_model`. Layouts: Strecha ``.camera`` files (K, distortion, camera-to-world
-R, centre C, size) and Middlebury ``_par.txt`` (``P = K [R | t]``)."""
+"""Ground-truth poses: COLMAP models, Strecha ``.camera`` files and Middlebury ``_par.txt``, as
+``dict[str, CameraPose]`` keyed by image name; the half-pixel shift of COLMAP models happens in
+:func:`poses_from_reconstruction` and :func:`write_colmap_model` only."""
 
 from __future__ import annotations
 

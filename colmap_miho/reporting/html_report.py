@@ -1,8 +1,5 @@
-"""``report.html``: one self-contained page to read a comparison (or one model) in a browser.
-
-The table, pose-error curves, matches per pair, keypoint displacements and a 3D view of the sparse
-models, as plotly figures with plotly's JavaScript embedded once (opens offline); arrays travel as
-base64 float32. Without plotly (the ``plots`` extra) the writers log one line and return None."""
+"""``report.html``: one self-contained page (plotly, its JavaScript embedded, opens offline) to read
+a comparison or one model; without plotly the writers log one line and return None."""
 
 from __future__ import annotations
 

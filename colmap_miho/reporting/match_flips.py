@@ -1,9 +1,5 @@
-"""Matches that refinement turned wrong (or right) under ground-truth geometry (pure numpy).
-
-Refinement moves keypoints, never matches, so a match is the same keypoint indices in the
-filter-only and refined databases. ``turned wrong``: within ``threshold_px`` of the GT epipolar line
-before, beyond after (typically a wrong NCC peak in repeated texture); ``turned right``: the
-reverse."""
+"""Matches that refinement turned wrong (or right) under ground-truth geometry: the same keypoint
+indices before and after, beyond (within) ``threshold_px`` of the GT epipolar line only after."""
 
 from __future__ import annotations
 

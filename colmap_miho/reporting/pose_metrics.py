@@ -1,10 +1,6 @@
 """Pose errors, pose AUC / mAA and the paper's two-view pose protocols (numpy + OpenCV).
-
-Poses are world-to-camera ``X_cam = R X + t``; relative poses ``(R_2from1, t_2from1)``; points ``(N,
-2)`` float64 pixels (integer = pixel centre, as ``K``); angles in degrees. A failed estimate has
-error ``inf`` and counts as a miss. The E and F protocols follow the paper (Sec. 4.1.3, App. F); F
-keeps the decomposition closest to the GT, as the paper does (it measures F, not the cheirality
-test)."""
+World-to-camera poses, ``(N, 2)`` pixels (integer = pixel centre, as ``K``), degrees; a failed
+estimate has error ``inf`` and counts as a miss."""
 
 from __future__ import annotations
 

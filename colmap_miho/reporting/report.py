@@ -1,10 +1,6 @@
-"""Quality report of a reconstruction and of a database's matches against ground truth.
-
-:func:`build_report` returns a JSON-ready dict: ``reconstruction`` (model_analyzer's statistics),
-``model_pose_auc`` (relative-pose AUC over all GT pairs; an unregistered image fails its pairs),
-``absolute`` (errors after a similarity alignment), ``two_view_pose_auc_E`` / ``_F`` (the paper's
-protocols), ``keypoint_accuracy`` and ``pairs``. AUCs are fractions in [0, 1]; the database is read
-through a private copy."""
+"""Quality report of a reconstruction and of a database's matches against ground truth:
+:func:`build_report` returns a JSON-ready dict (model statistics, pose AUCs, absolute errors, the
+paper's two-view protocols, keypoint accuracy, per-pair rows); AUCs are fractions."""
 
 from __future__ import annotations
 

@@ -1,8 +1,6 @@
-"""Match check core: judge every match against a global estimate of the cameras (pure numpy).
-
-Poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; ``rays`` are an image's keypoints in normalised
-coordinates ``(N, 2)`` (undistorted ``K^-1 x``); ``focal`` (pixels) turns a normalised distance into
-pixels. The estimator passed in does the I/O."""
+"""Match check core (pure numpy): judge every match against a global estimate of the cameras. Poses
+are ``cam_from_world``; ``rays`` ``(N, 2)`` are undistorted normalised keypoints; ``focal`` (pixels)
+turns a normalised distance into pixels."""
 
 from __future__ import annotations
 
@@ -47,12 +45,9 @@ class MatchCheckDecision:
 
 def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
                     cfg: MatchCheckConfig) -> MatchCheckDecision:
-    """The match check: up to ``cfg.rounds`` estimates, each from the last round's survivors and
-    judged.
-
-    A later round estimates only around the images not trusted yet (:data:`LATER_ROUND_RINGS`), so
-    its cost follows what is left to judge, and reuses the first round's threshold: the survivors'
-    distances are truncated, so a scale taken from them would shrink round after round."""
+    """The match check: up to ``cfg.rounds`` estimates, each from the last one's survivors. Later
+    rounds estimate only around untrusted images and keep the first threshold (the survivors'
+    distances are truncated, so a scale taken from them would shrink round after round)."""
     failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
     wrong: set[Pair] = set()
     trusted_any: set[int] = set()

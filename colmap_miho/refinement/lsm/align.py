@@ -1,12 +1,9 @@
 """Least-squares matching (LSM, Gruen 1985): batched Gauss-Newton alignment of patches.
 
-Per match the template ``f(u)`` on a (2r+1)^2 grid is aligned to the search image by ``f(u) + e(u) =
-r0 + r1 G(t + A u)`` (affine ``A``, shift ``t`` in common-frame pixels, offset ``r0``, gain ``r1``;
-4 parameters with ``affine=False``), forward-compositional. The shift's covariance is ``A (s0^2
-N^-1)_dd A^T``. Sampling is bicubic (bilinear biases values towards pixel centres); gradients are
-slice differences, not kornia's ``spatial_gradient`` (slower, and its conv rounding depends on the
-batch). On CUDA these functions run; on the CPU :mod:`.kernel`, the same iteration compiled. A
-match's result never depends on the other matches of the call."""
+Per match the template ``f(u)`` is aligned by ``f(u) + e(u) = r0 + r1 G(t + A u)`` (affine ``A``,
+shift ``t`` in common-frame pixels, radiometry ``r0``, ``r1``), forward-compositional, with bicubic
+reads (bilinear ones bias values towards pixel centres). The CUDA path and the reference of the
+compiled CPU kernel (:mod:`.kernel`); a match's result never depends on the others."""
 
 from __future__ import annotations
 

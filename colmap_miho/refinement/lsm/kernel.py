@@ -1,10 +1,6 @@
-"""Compiled (numba) least-squares matching of the LSM step: one fused loop per match.
-
-:func:`lsm_frames` computes what :func:`.align.frame_sampler` and :func:`.align.lsm_align` (the
-torch reference, and the CUDA path) do, for matches on CPU tensors, so that an iteration costs its
-arithmetic rather than a few dozen tensor calls. Sampling is ``grid_sample``'s bicubic read (Keys a
-= -0.75, border clamped). Results differ from torch's at float rounding only (float64 here), and a
-match's result depends on its own inputs only."""
+"""Compiled (numba) least-squares matching: :func:`lsm_frames` does on CPU tensors what
+:func:`.align.frame_sampler` and :func:`.align.lsm_align` do, one fused loop per match, so an
+iteration costs its arithmetic; results differ from torch's at float rounding only."""
 
 from __future__ import annotations
 

@@ -16,17 +16,10 @@ MAX_GAIN = 5.0
 
 @dataclass(frozen=True)
 class LSMResult:
-    """Output of :func:`.align.lsm_align` and :func:`.kernel.lsm_frames` (J matches; common-frame
-    pixels).
-
-    Attributes:
-        shift: ``(J, 2)`` final shift t relative to each centre; sigma: ``(J, 2)`` its std devs.
-        sigma_max: ``(J,)`` largest semi-axis of t's error ellipse (+inf: singular normal matrix).
-        affine, gain, offset: final A ``(J, 2, 2)``, r1, r0.
-        residual_std: ``(J,)`` s0 in input intensity units.
-        converged: ``(J,)`` the update fell below the tolerance with A, gain and normals regular.
-        iterations: ``(J,)`` Gauss-Newton steps taken.
-    """
+    """Output of :func:`.align.lsm_align` and :func:`.kernel.lsm_frames` for J matches (common-frame
+    pixels): final ``shift`` ``(J, 2)`` and its ``sigma``, ``sigma_max`` (the error ellipse's
+    largest semi-axis, +inf when singular), ``affine``, ``gain``, ``offset``, ``residual_std``,
+    ``converged`` and ``iterations``."""
 
     shift: torch.Tensor
     sigma: torch.Tensor

@@ -1,14 +1,10 @@
 """The least-squares matching step of the NCC refinement and its acceptance rule.
 
-From the NCC peak, the fixed template and the moving search image are read bicubically in the
-match's common frame and aligned by :func:`.align.lsm_align` (on CPU tensors the compiled
-:func:`.kernel.lsm_frames`). LSM's position replaces NCC's only if it converged regularly, stayed
-within ``lsm_max_shift_px`` of the peak (else it found another minimum) and its shift's standard
-deviation is below ``lsm_max_sigma_px``; each reason is counted.
-
-Anti-aliasing (``lsm_antialias`` > 0): the finer of two views is smoothed to the coarser one's blur,
-a Gaussian approximated per sample by the mean of 4 bicubic reads at ``(+-sigma, +-sigma)``, so it
-costs samples at the affected matches only."""
+From the NCC peak, LSM (:func:`.align.lsm_align`, compiled on CPU tensors) replaces NCC's position
+only if it converged regularly, stayed within ``lsm_max_shift_px`` of the peak (else it found
+another minimum) and its shift's standard deviation is below ``lsm_max_sigma_px``. With
+``lsm_antialias`` the finer of two views is smoothed to the coarser one's blur, each sample the mean
+of 4 bicubic reads."""
 
 from __future__ import annotations
 

@@ -1,10 +1,6 @@
-"""Compiled (numba) NCC search and iterated sub-pixel step: one loop per match on CPU tensors.
-
-:func:`subpixel` and :func:`evaluate` do what :func:`.subpixel.iterate_subpixel` and
-:func:`.search.evaluate_direction` do for the plain search (one unperturbed square template), so
-that a sample costs its arithmetic rather than a few dozen tensor calls per step. The torch
-functions stay the reference and the CUDA path; results differ at float rounding only (float64
-positions and sums here), and a match's result depends on its own inputs only."""
+"""Compiled (numba) NCC search and iterated sub-pixel step on CPU tensors: :func:`evaluate` and
+:func:`subpixel` do what :func:`.search.evaluate_direction` (plain search) and
+:func:`.subpixel.iterate_subpixel` do, one loop per match; results differ at float rounding only."""
 
 from __future__ import annotations
 

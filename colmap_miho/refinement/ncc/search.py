@@ -1,9 +1,6 @@
-"""One direction of the NCC search: templates from the fixed side searched in the moving side.
-
-Per chunk of matches and homography pair ("pass"), the window is sampled once around the moving
-keypoint and the templates around the fixed one, in the pair's common frame. ``coarse_shapes``
-chooses the shape on a stride-2 grid first; ``inner_radius`` searches near offsets first. On CPU
-tensors the plain search runs as :func:`.kernel.evaluate`; this module is its reference."""
+"""One direction of the NCC search: templates from the fixed side searched in the moving side, per
+homography pair ("pass") in its common frame (window sampled once). The reference of
+:func:`.kernel.evaluate`, and the path on CUDA and for perturbed shapes."""
 
 from __future__ import annotations
 

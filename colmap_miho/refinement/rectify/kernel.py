@@ -1,11 +1,6 @@
-"""Compiled (numba) local affine fits for :mod:`.local_affine`: one loop per match.
-
-:func:`fit_clusters` finds each wanted match's ``k`` nearest matches of its cluster (a grid in image
-1) and fits the weighted least-squares affine map image 1 -> image 2 around it, refitted without
-neighbours that miss it; :func:`fit_rows` is the fit alone. The numpy reference
-(``tests/affine_reference.py``) pays a LAPACK call per tiny 3x3 problem; here each match runs in
-registers. Results differ at float rounding (and ties for the last neighbour go to the lowest row);
-a match's result depends on its own cluster only."""
+"""Compiled (numba) local affine fits for :mod:`.local_affine`: each wanted match's ``k`` nearest
+matches of its cluster on a grid, and a weighted least-squares affine map refitted without those
+that miss it, one loop per match (the numpy reference pays a LAPACK call per 3x3 problem)."""
 
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
-"""Local affine rectification: a patch homography pair per match from its nearest matches.
-
-The filter's planes are fitted at a tolerance of several pixels, so a cluster's pair can be off in
-scale or shear at a keypoint and bias the NCC peak. Each refinable match gets its own least-squares
-affine map from its ``k`` nearest matches of the cluster, refitted without those that miss it;
-matches with too few neighbours keep the filter's pair."""
+"""Local affine rectification: a patch homography pair per match from a least-squares affine fit to
+its ``k`` nearest matches of the cluster (the filter's planes, fitted at a tolerance of several
+pixels, can bias the NCC peak); matches with too few neighbours keep the filter's pair."""
 
 from __future__ import annotations
 

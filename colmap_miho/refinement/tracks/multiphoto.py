@@ -1,12 +1,7 @@
-"""Joint multi-photo least-squares matching of whole tracks, after the walk.
-
-Each track of at least ``MIN_OBSERVATIONS`` is aligned jointly (after Gruen & Baltsavias): the
-anchor, which never moves, defines the common frame, and every other observation is aligned by
-:func:`..lsm.align.lsm_align` to a leave-one-out consensus template (the mean of the other patches
-at their current alignment, in the anchor's radiometry); a template holding its own patch would pull
-it towards where it already is. Maps between views are the walk's chained patch homographies with
-the walk's translation. Acceptance is :mod:`..lsm.step`'s; rejected observations keep the walk's
-position."""
+"""Joint multi-photo least-squares matching of whole tracks, after the walk (after Gruen &
+Baltsavias): the anchor fixes the frame and every other observation is aligned to a leave-one-out
+consensus template (one holding its own patch would pull it towards where it is). Rejected
+observations keep the walk's position."""
 
 from __future__ import annotations
 
@@ -31,14 +26,8 @@ MULTIPHOTO_COUNTERS = ("joint_tracks", "joint_observations", "joint_applied",
 
 @dataclass(frozen=True)
 class JointResult:
-    """Output of :func:`joint_lsm` (N observations; common-frame pixels).
-
-    Attributes:
-        shift: ``(N, 2)`` final shift from each start (0 for references and rejected ones).
-        sigma_max: ``(N,)`` largest semi-axis of the shift's error ellipse (+inf for references).
-        accepted: ``(N,)`` bool observations moved (never a reference).
-        counts: ``joint_*`` counters over the non-reference observations.
-    """
+    """Output of :func:`joint_lsm` (N observations, common-frame pixels): ``shift`` ``(N, 2)``,
+    ``sigma_max`` ``(N,)``, ``accepted`` ``(N,)`` (never a reference) and the ``joint_*`` counts."""
 
     shift: torch.Tensor
     sigma_max: torch.Tensor
