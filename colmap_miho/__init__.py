@@ -14,8 +14,7 @@ Public API (imported on first use, so that ``colmap-miho --help`` starts without
     load_recipe(name_or_path=None, overrides=None) -> Recipe   (None: mop_miho_lsm, the default)
 
 Pixel convention everywhere in the API: (x, y), integer = pixel centre (OpenCV). The +0.5
-shift to COLMAP's convention happens only in ``colmap_miho.adapters.database``.
-"""
+shift to COLMAP's convention happens only in ``colmap_miho.adapters.database``."""
 
 from __future__ import annotations
 

@@ -1,13 +1,6 @@
-"""The arguments of the public Python API, checked with the command line's rules.
-
-The CLI bounds its numeric options (:data:`~colmap_miho.validation.OPTION_BOUNDS`) and argparse
-refuses a value of the wrong type; a Python caller passes values straight in. Every public
-entry point (``refine_database``, ``run_mapping``, ``compare_databases``, ``run_from_images``,
-``extract_and_match``, ``build_report``, ``filter_matches``) checks its ``workers``, ``seed``
-and paths here first, so that ``workers=10**6`` is refused instead of becoming a million
-threads, and ``None`` where a path belongs is named instead of failing deep inside.
-Pure: no I/O.
-"""
+"""The public Python API's arguments checked with the command line's rules (pure): every public
+entry point checks ``workers``, ``seed`` and paths here, so ``workers=10**6`` or a ``None`` path is
+refused with a message instead of failing deep inside."""
 
 from __future__ import annotations
 
@@ -23,15 +16,8 @@ FILTER_SEED_BOUND = Bound(0, 2**32 - 1, "a 32-bit seed")
 
 
 def check_integer(name: str, value, bound: Bound | None = None, *, optional: bool = False) -> int | None:
-    """``value`` as an ``int`` (numpy integers too), within ``bound`` when given.
-
-    A bool, a float (even ``2.0``), a string or ``None`` (unless ``optional``) is refused: the
-    CLI's ``type=int`` refuses them too.
-
-    Raises:
-        InvalidInput: ``"<name> must be an integer, got '2'"`` or
-            ``"<name> must be in [lo, hi] (why), got value"``.
-    """
+    """``value`` as an ``int`` within ``bound``; a bool, float, string or None (unless ``optional``)
+    is refused, as by the CLI's ``type=int`` (InvalidInput)."""
     if value is None and optional:
         return None
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
@@ -53,12 +39,7 @@ def check_seed(seed, name: str = "seed", *, optional: bool = False) -> int | Non
 
 
 def check_path(name: str, value, *, optional: bool = False) -> None:
-    """``value`` is a path: a non-empty ``str`` or an ``os.PathLike`` (``None`` only when
-    ``optional``). Whether the file exists is the caller's to say, with its own message.
-
-    Raises:
-        InvalidInput: ``"<name> must be a path (str or os.PathLike), got None"``.
-    """
+    """Refuse a ``value`` that is not a non-empty ``str`` or ``os.PathLike`` (None only if ``optional``)."""
     if value is None and optional:
         return
     if isinstance(value, os.PathLike):

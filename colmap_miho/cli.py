@@ -1,18 +1,6 @@
-"""The ``colmap-miho`` command line: one console script with subcommands.
-
-Each subcommand lives in ``colmap_miho/commands/<name>.py`` and defines ``HELP`` (one line),
-``ORDER`` (position in ``--help``), ``add_arguments(parser)`` and ``run(args) -> int``.
-Command modules import heavy libraries (torch, pycolmap) inside ``run`` only, so that
-``colmap-miho --help`` stays fast. A command may also define ``paths(args) -> (inputs,
-outputs)`` (label -> path): :func:`main` refuses any overlap before the command starts (see
-:mod:`colmap_miho.adapters.paths`).
-
-Failures reach the user as one line (``ERROR: ...``, the traceback only with ``-v``) and an
-exit code: 2 a user error (bad input: :class:`~colmap_miho.errors.UserError`, a missing or
-unwritable path), 1 a failed run or an internal error (with the ``-v`` hint), 130 Ctrl-C, 143
-SIGTERM, 129 SIGHUP (the terminal closed; handled like SIGTERM, which is handled like Ctrl-C:
-working files removed, the input untouched, a refine run's finished work kept for ``--resume``).
-"""
+"""The ``colmap-miho`` command line: one console script, a module per subcommand (``commands/``)
+with heavy imports inside ``run``. Failures are one line and an exit code (2 user error, 1 failed
+run, 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
 
 from __future__ import annotations
 
@@ -117,13 +105,8 @@ def _raise_interrupted(signum, frame) -> None:
 
 @contextlib.contextmanager
 def _forced_exit_after_sigterm():
-    """Python runs signal handlers between bytecodes only, so a SIGTERM or Ctrl-C during a long
-    C++ call (the global mapper: 10-30 s) would wait for it to end. A thread reading the signal
-    wakeup fd gives the handler :data:`TERM_GRACE_S`, then removes the working files and exits
-    with 143 (130 for Ctrl-C) itself. When the handler did run within that time, the
-    interpreter is cleaning up (which may take a while, e.g. a Dask cluster's shutdown) and
-    prints its own line: the watcher only steps in, with a line that says so, if that clean-up
-    has not ended after :data:`TERM_CLEANUP_S`."""
+    """A signal during a long C++ call (the global mapper) would wait for it: a watcher thread gives
+    the handler :data:`TERM_GRACE_S`, then removes the working files and exits itself."""
     rsock, wsock = socket.socketpair()
     wsock.setblocking(False)
     try:
@@ -168,8 +151,7 @@ def _forced_exit_after_sigterm():
 
 
 def _forced_exit(signum: int, when: str) -> None:
-    """Remove the working files (and the worker pool's temporary folder) and exit at once, with
-    the line the interpreter would have printed (the kept work and ``--resume`` included)."""
+    """Remove the working files and exit at once, with the line the interpreter would have printed."""
     import multiprocessing.process
     import shutil
 
@@ -191,9 +173,7 @@ def _forced_exit(signum: int, when: str) -> None:
 
 
 def _stop_children() -> None:
-    """Kill this process's worker processes (a pool's, a local Dask cluster's): their own
-    watchdog would end them once this process is reaped, but until then they hold its stderr
-    (a pipe's reader waits) and their semaphores."""
+    """Kill this process's workers, which would otherwise hold its stderr and semaphores until reaped."""
     import multiprocessing
 
     for child in multiprocessing.active_children():
@@ -202,9 +182,7 @@ def _stop_children() -> None:
 
 
 def _release_semaphores() -> None:
-    """Unlink the worker pool's semaphores (and tell multiprocessing's resource tracker) as
-    their finalizers would at a normal exit: after ``os._exit`` the tracker removes them itself
-    with a "leaked semaphore objects" warning of its own on the terminal."""
+    """Unlink the pool's semaphores as their finalizers would (else the tracker warns after ``os._exit``)."""
     import multiprocessing.synchronize
     import multiprocessing.util as mp_util
 
@@ -216,11 +194,9 @@ def _release_semaphores() -> None:
 
 
 def install_signal_handlers() -> None:
-    """SIGTERM raises :class:`~colmap_miho.errors.Terminated` (a KeyboardInterrupt), so it
-    cleans up like Ctrl-C; both note that the interpreter handles them. pycolmap's import
-    installs glog's handler (a stack dump), so pycolmap is imported first, then replaced. A
-    signal ignored when the command starts (``nohup``, a script's background job) stays
-    ignored, as for any Unix tool."""
+    """SIGTERM raises :class:`~colmap_miho.errors.Terminated` to clean up like Ctrl-C; pycolmap
+    (glog's handler) is imported first, then replaced. Signals ignored at start (``nohup``) stay
+    ignored."""
     handlers = {**{sig: _raise_terminated for sig in _TERMINATING}, signal.SIGINT: _raise_interrupted}
     ignored = {sig for sig in handlers if signal.getsignal(sig) == signal.SIG_IGN}
     try:
@@ -232,9 +208,7 @@ def install_signal_handlers() -> None:
 
 
 def _glog_to_stderr():
-    """COLMAP's log on stderr, never in glog's own files in ``$TMPDIR``, for the command (see
-    :func:`colmap_miho.sfm.colmap_log.glog_to_stderr`; a mapper's log file is asked for
-    apart); a no-op without pycolmap."""
+    """COLMAP's log on stderr, never in glog's files in ``$TMPDIR``; a no-op without pycolmap."""
     try:
         from .sfm.colmap_log import glog_to_stderr
 
@@ -248,24 +222,19 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _notes(exc: BaseException) -> str:
-    """The exception's notes (e.g. how to resume a refine run), as "; "-joined text."""
     return "".join(f"; {' '.join(str(n).split())}" for n in getattr(exc, "__notes__", ()))
 
 
 def _what_was_written(exc: BaseException) -> str:
-    """What a signal's line says of the files: nothing written, or (after a commit, which the
-    exception's note names) that the run was done."""
+    """What a signal's line says of the files: nothing written, or that the run was done."""
     if getattr(exc, "output_written", False):
         return "it came after the commit"
     return "working files removed, nothing was written to the input"
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; return the process exit code: 0 ok, 1 failed run or internal error (any
-    exception that is not a :class:`~colmap_miho.errors.UserError`, e.g. a plain ``ValueError``
-    from a bug, with the ``-v`` hint), 2 bad input (a ``UserError`` such as
-    :class:`~colmap_miho.errors.InvalidInput`, or a missing / unwritable path), 130 Ctrl-C,
-    143 SIGTERM."""
+    """Run the CLI; return the exit code: 0 ok, 1 failed run or internal error, 2 bad input
+    (:class:`~colmap_miho.errors.UserError`), 130 Ctrl-C, 143 SIGTERM."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):

@@ -1,26 +1,6 @@
-"""Loading the compiled (numba) kernels: the jit options, one lock, compilation on first use.
-
-The kernel modules (:mod:`.filtering.compiled`, :mod:`.refinement.ncc.kernel`,
-:mod:`.refinement.lsm.kernel`, :mod:`.refinement.rectify.kernel`) hold plain Python functions;
-each wraps its build function in :class:`Kernels`, the module's ``KERNELS`` handle, which
-imports numba and jits them the first time a kernel is called (compiled then, or loaded from
-numba's on-disk cache, ``cache=True``), once per process, under one lock; a ``warm()`` loads
-them ahead through :meth:`Kernels.warm`. numba is a required dependency: the CPU paths always run
-compiled; the torch paths they mirror are the CUDA paths and the tests' references.
-
-Where the compiled kernels are kept (:func:`cache_dir`): the folder ``COLMAP_MIHO_CACHE_DIR``
-names, else numba's own ``NUMBA_CACHE_DIR``, else ``colmap-miho/numba`` in the user's cache
-folder (``$XDG_CACHE_HOME`` or ``~/.cache`` on Linux, ``~/Library/Caches`` on macOS,
-``%LOCALAPPDATA%`` on Windows): never the installation's own folders, so that a read-only
-installation compiles once per user, not in every process. The kernels are built with numba's
-cache folder set to it (numba's ``config.CACHE_DIR``, only while they are built: other numba
-code of the process keeps its own). Where that folder cannot be written, the kernels compile
-without a cache, in every process, and a warning says so once.
-
-Every kernel uses numpy's error model (a float division by zero gives inf / nan, as in numpy,
-not an exception); ``fastmath`` is chosen per function (:data:`CONTRACT`, :data:`REASSOC`)
-and fixed when it compiles, so a kernel's results do not depend on the call.
-"""
+"""Loading the compiled (numba) kernels: jit options, one lock, compilation on first use into
+:func:`cache_dir` (never the installation's folders). Kernels use numpy's error model and
+per-function ``fastmath`` fixed at compile time, so results do not depend on the call."""
 
 from __future__ import annotations
 
@@ -55,8 +35,8 @@ _WARNED: set[str] = set()  # the unwritable folders warned about
 
 
 def user_cache_root() -> Path:
-    """The user's cache folder of the platform: ``%LOCALAPPDATA%`` (Windows),
-    ``~/Library/Caches`` (macOS), else ``$XDG_CACHE_HOME`` when absolute, else ``~/.cache``."""
+    """The platform's user cache folder (``%LOCALAPPDATA%``, ``~/Library/Caches``,
+    ``$XDG_CACHE_HOME`` or ``~/.cache``)."""
     if sys.platform == "win32" and os.environ.get("LOCALAPPDATA"):
         return Path(os.environ["LOCALAPPDATA"])
     if sys.platform == "darwin":
@@ -66,9 +46,8 @@ def user_cache_root() -> Path:
 
 
 def cache_dir() -> Path:
-    """The folder of the compiled kernels' cache: ``$COLMAP_MIHO_CACHE_DIR``, else
-    ``$NUMBA_CACHE_DIR``, else ``colmap-miho/numba`` under :func:`user_cache_root` (read from
-    the environment at each call; an empty variable counts as unset)."""
+    """``$COLMAP_MIHO_CACHE_DIR``, else ``$NUMBA_CACHE_DIR``, else ``colmap-miho/numba`` under
+    :func:`user_cache_root` (read at each call; empty counts as unset)."""
     for name in (CACHE_ENV, NUMBA_CACHE_ENV):
         if os.environ.get(name):
             return Path(os.environ[name]).expanduser().absolute()
@@ -87,8 +66,7 @@ def writable(folder: Path) -> bool:
 
 @contextlib.contextmanager
 def _kernel_cache() -> Iterator[None]:
-    """numba's cache folder set to :func:`cache_dir` while kernels are built (numba picks a
-    function's cache folder when it is jitted); without a writable folder, no cache."""
+    """numba's cache folder set to :func:`cache_dir` while kernels are built; no cache if unwritable."""
     from numba.core import config as numba_config
 
     config: Any = numba_config  # its settings are set from the environment at import
@@ -107,9 +85,7 @@ def _kernel_cache() -> Iterator[None]:
 
 
 def jit(fastmath: frozenset[str] | None = None) -> Callable[[Callable], Any]:
-    """numba's ``njit`` with the kernels' options: on-disk cache (in :func:`cache_dir`, when
-    built through :class:`Kernels`), no GIL, numpy's error model, and the ``fastmath`` flags
-    given (none by default)."""
+    """numba's ``njit`` with the kernels' options: disk cache, no GIL, numpy's error model, ``fastmath``."""
     import numba
 
     cache = _CACHING[0]
@@ -120,16 +96,13 @@ def jit(fastmath: frozenset[str] | None = None) -> Callable[[Callable], Any]:
 
 def jit_helpers(namespace: dict[str, Any], helpers: Iterable[Callable],
                 fastmath: frozenset[str] | None = None) -> None:
-    """Replace each of ``helpers`` in ``namespace`` (a kernel module's ``globals()``) by its
-    jitted version: numba resolves a kernel's callees in its module's namespace when it
-    compiles it."""
+    """Replace ``helpers`` in a kernel module's namespace by their jitted versions (numba resolves callees there)."""
     j = jit(fastmath)
     namespace.update({f.__name__: j(f) for f in helpers})
 
 
 class Kernels(Generic[T]):
-    """A kernel module's jitted kernels, built by ``build`` on the first call (thread-safe,
-    once per process), cached in :func:`cache_dir`."""
+    """A kernel module's jitted kernels, built on first call (thread-safe, once per process)."""
 
     def __init__(self, build: Callable[[], T]) -> None:
         self._build = build
@@ -149,11 +122,8 @@ class Kernels(Generic[T]):
         return self._value is not None
 
     def warm(self, example: Callable[[], object]) -> bool:
-        """Load the kernels now by running ``example`` (a small synthetic call that reaches
-        every kernel, so that each is compiled or read from the cache); returns whether they
-        are loaded. Never raises: a process that cannot load them loads them when it uses them
-        (where the error shows). The worker processes' forkserver warms them, so that every
-        worker forked from it starts with them loaded."""
+        """Load the kernels now by running ``example``; whether they loaded. Never raises (a
+        failure shows where they are used)."""
         try:
             example()
         except Exception:  # noqa: BLE001 - warming is optional; the real call reports the error

@@ -1,9 +1,5 @@
-"""Which torch device a :class:`~.enums.Device` choice (or a torch device) means on this machine.
-
-The one grammar of a device, and the one place where ``"auto"`` is resolved, for the filter's
-torch kernels, the NCC refinement and the pipeline. torch is imported only when the function
-runs.
-"""
+"""Which torch device a :class:`~.enums.Device` choice means here: the one place ``"auto"`` is
+resolved. torch is imported only when called."""
 
 from __future__ import annotations
 
@@ -17,22 +13,8 @@ if TYPE_CHECKING:
 
 
 def resolve_device(device: Device | str | torch.device, inputs_on: torch.device | None = None) -> torch.device:
-    """The torch device ``device`` means here.
-
-    Args:
-        device: ``"cpu"``; ``"cuda"``; or ``"auto"``: ``inputs_on`` when given, else CUDA
-            when torch sees a CUDA device, else the CPU. Any other torch device string
-            (``"cuda:1"``) or a ``torch.device`` object is that device, once torch can use it
-            here (the filter's ``device`` takes them; the recipes' and the CLI's ``device``
-            are :class:`~.enums.Device` values).
-        inputs_on: the device the caller's inputs already live on (e.g. CUDA tensors it was
-            handed), which ``"auto"`` keeps; None when the inputs do not pin one.
-
-    Raises:
-        ValueError: ``device`` is neither a :class:`~.enums.Device` value nor a torch device,
-            or is a CUDA device that torch does not see (:class:`~.errors.InvalidInput`: bad
-            input, exit 2).
-    """
+    """The torch device ``device`` means here: ``"auto"`` keeps ``inputs_on``, else CUDA when torch
+    sees one, else the CPU. InvalidInput for an unknown device or CUDA that torch does not see."""
     import torch
 
     if isinstance(device, torch.device) or (isinstance(device, str)
@@ -53,8 +35,6 @@ def resolve_device(device: Device | str | torch.device, inputs_on: torch.device 
 
 
 def _usable(device: str | torch.device) -> torch.device:
-    """``device`` (a torch device string or object) as a ``torch.device``, checked to be one
-    that torch can use here."""
     import torch
 
     try:

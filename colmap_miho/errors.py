@@ -10,10 +10,8 @@ class UserError(Exception):
 
 
 class InvalidInput(UserError, ValueError):
-    """A bad value from the user: an option, a recipe value, or the contents of an input file.
-
-    A ``ValueError`` too, so that callers of the Python API catch it as one; the CLI reports it
-    on one line with exit code 2, while any other ``ValueError`` is an internal error (exit 1)."""
+    """A bad value from the user; a ValueError too, so API callers catch it. The CLI exits 2
+    for it and 1 for any other ValueError (an internal error)."""
 
 
 class DatabaseError(UserError):
@@ -27,7 +25,6 @@ class RunFailed(UserError):
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM (or SIGHUP), raised by the CLI's handler so that a terminated run cleans up like
-    Ctrl-C; ``signum`` is the signal's number (None when raised otherwise)."""
+    """SIGTERM (or SIGHUP) raised by the CLI's handler so a run cleans up like Ctrl-C."""
 
     signum: int | None = None

@@ -1,11 +1,5 @@
-"""Optional dependencies (the pyproject extras): import one, or fail with one line naming the extra.
-
-Extras: ``demo`` (scikit-image for the demo scene's textures, matplotlib for its plots),
-``plots`` (matplotlib: compare's figures, point-cloud pictures without open3d; plotly:
-``report.html``; the ``demo`` extra includes it),
-``pointcloud`` (open3d, see :mod:`colmap_miho.reporting.pointcloud`), ``dask`` (Dask's
-``distributed``: ``refine --dask``).
-"""
+"""Optional dependencies (the pyproject extras ``demo``, ``plots``, ``pointcloud``, ``dask``):
+import one, or fail with one line naming the extra."""
 
 from __future__ import annotations
 
@@ -22,12 +16,8 @@ class MissingExtraError(UserError):
 
 
 def require(module: str, extra: str, purpose: str) -> ModuleType:
-    """Import and return ``module`` (e.g. ``"skimage.data"``), part of pyproject extra ``extra``.
-
-    Raises:
-        MissingExtraError: the module cannot be imported; the one-line message names what
-            needs it (``purpose``) and the command that installs it.
-    """
+    """Import and return ``module`` of extra ``extra``, or raise MissingExtraError naming
+    ``purpose`` and the install command."""
     try:
         return importlib.import_module(module)
     except ImportError:

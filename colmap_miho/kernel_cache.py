@@ -1,26 +1,6 @@
-"""Filling the compiled kernels' cache ahead, once per cache folder, by kernel family.
-
-The numba kernels (:mod:`.compiled`) compile on first use and are kept in the cache folder of
-:func:`.compiled.cache_dir`; a process that finds them there loads them in well under a second
-per family instead of compiling them (tens of seconds per family). The kernels come in four
-families (:data:`FAMILIES`), each loaded by its own small synthetic call:
-
-- ``filter``: MOP+MiHo's sampling, scoring, RANSAC and rotation kernels (every recipe);
-- ``ncc``: the NCC search and sub-pixel step of the track walk (recipes that refine);
-- ``lsm``: the least-squares matching step (``ncc.lsm`` or ``tracks.multiphoto_lsm``);
-- ``rectify``: the local affine fits (``ncc.rectification`` ``local`` or ``both``).
-
-:func:`ensure_compiled` compiles the families a recipe uses (:func:`families_for`) that the
-cache lacks, each in a child process of its own, several at once (numba compiles one function
-at a time per process), and logs at INFO level what it compiles and how long it took;
-``refine_database`` calls it before its workers start, ``colmap-miho compile`` calls it on its
-own (a Dockerfile's build step, a cluster's setup), and on Dask each worker calls it once
-(:mod:`.pipeline.dask_kernels`). A family is known to be in the cache by a ready file written
-after its child succeeded, named by a key of the family's kernel sources (their paths and
-contents), numba's and Python's versions and this machine's CPU, the things numba's own
-cache entries depend on; a lock file keeps two processes from compiling into one folder at
-once (the second waits, then finds the families ready).
-"""
+"""Filling the compiled kernels' cache ahead, once per cache folder, by kernel family
+(:data:`FAMILIES`), in child processes several at once; a family is ready by a file keyed by its
+sources, the versions and the CPU, under a lock."""
 
 from __future__ import annotations
 
@@ -51,9 +31,7 @@ _PACKAGE = Path(__file__).resolve().parent
 
 @dataclass(frozen=True)
 class Family:
-    """One kernel family: the function that loads it (``module:function``, returns whether
-    its kernels are loaded, never raises) and its sources (paths relative to the package, or
-    glob patterns)."""
+    """One kernel family: its loader (``module:function``, never raises) and its source paths or globs."""
 
     warm: str
     sources: tuple[str, ...]
@@ -72,10 +50,7 @@ READY_FOLDER = "colmap-miho-ready"
 
 
 def families_for(recipe) -> tuple[str, ...]:
-    """The kernel families a :class:`~colmap_miho.recipe.Recipe` runs on the CPU, in
-    :data:`FAMILIES` order: the filter's always; with ``pipeline.refine`` the NCC kernels, the
-    local affine fits with ``ncc.rectification`` ``local`` or ``both``, the LSM step with
-    ``ncc.lsm`` or ``tracks.multiphoto_lsm``."""
+    """The kernel families a recipe runs on the CPU, in :data:`FAMILIES` order."""
     used = {"filter"}
     if recipe.pipeline.refine:
         used.add("ncc")
@@ -88,9 +63,7 @@ def families_for(recipe) -> tuple[str, ...]:
 
 @functools.lru_cache(maxsize=1)
 def _machine() -> str:
-    """What numba's cache entries are keyed by beyond the source: numba's version and target
-    CPU (its name and features, or numba's ``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``); read
-    without importing numba (this runs in processes that never run a kernel)."""
+    """What numba's cache keys hold beyond the source (its version, target CPU), read without numba."""
     from importlib.metadata import version
 
     import llvmlite.binding as llvm
@@ -106,8 +79,7 @@ def source_files(family: str) -> list[Path]:
 
 
 def ready_file(family: str, folder: Path | None = None) -> Path:
-    """The file whose presence says that ``family``'s kernels, as they are now, are in the cache
-    folder ``folder`` (default :func:`.compiled.cache_dir`)."""
+    """The file whose presence says ``family``'s current kernels are in ``folder``."""
     digest = hashlib.sha256()
     for path in source_files(family):
         digest.update(f"{path}\0".encode())
@@ -123,16 +95,8 @@ def cached(family: str, folder: Path | None = None) -> bool:
 
 @dataclass(frozen=True)
 class CompileReport:
-    """What :func:`ensure_compiled` did.
-
-    Attributes:
-        folder: the cache folder.
-        writable: whether it could be written (if not, nothing was compiled ahead).
-        cached: the families found in the cache.
-        compiled: family -> seconds its child process took (import and compile).
-        failed: family -> why (the kernels then compile in the process that uses them).
-        seconds: wall time of the whole call, waiting for another process's lock included.
-    """
+    """What :func:`ensure_compiled` did: the folder, whether writable, the families cached, compiled
+    (seconds) and failed (why), and the wall time."""
 
     folder: Path
     writable: bool = True
@@ -164,8 +128,7 @@ _CHILD = ("import sys; sys.path.insert(0, {root!r}); "
 
 
 def _compile_family(family: str) -> int:
-    """In a child process: load (compile) one family; 0 when its kernels are loaded. Ends
-    itself as soon as its parent is gone (a killed run leaves no compiler running)."""
+    """In a child process: compile one family (0 when loaded); ends if its parent is gone."""
     import importlib
 
     parent = os.getppid()
@@ -186,14 +149,9 @@ def _compile_family(family: str) -> int:
 
 
 def ensure_compiled(families: Iterable[str] = tuple(FAMILIES), *, processes: int | None = None) -> CompileReport:
-    """Compile the ``families`` (names of :data:`FAMILIES`) the cache lacks, each in a child
-    process, up to ``processes`` at once (default: one per core), and mark each one that
-    succeeded ready. Logs at INFO level what is compiled and how long it took. Never raises
-    for a failed compilation (it is reported, and the kernels compile where they are used).
-
-    Raises:
-        ValueError: an unknown family name.
-    """
+    """Compile the ``families`` the cache lacks in child processes (up to ``processes`` at once) and
+    mark them ready; logs at INFO. A failed compilation is reported, not raised; ValueError for an
+    unknown name."""
     t0 = time.perf_counter()
     wanted = set(families)
     names = [f for f in FAMILIES if f in wanted]
@@ -223,8 +181,7 @@ def ensure_compiled(families: Iterable[str] = tuple(FAMILIES), *, processes: int
 
 
 def _compile_children(families: list[str], n: int, folder: Path) -> tuple[dict[str, float], dict[str, str]]:
-    """Run one child process per family, ``n`` at once, with the cache folder ``folder``;
-    returns (family -> seconds of the ones that succeeded, family -> why of the others)."""
+    """One child per family, ``n`` at once; returns (seconds of successes, why of failures)."""
     env = dict(os.environ, **{compiled.CACHE_ENV: str(folder)})
     todo = list(families)
     running: dict[str, tuple[subprocess.Popen, float]] = {}
@@ -262,7 +219,6 @@ def _compile_children(families: list[str], n: int, folder: Path) -> tuple[dict[s
 
 
 def _wait_any(running: dict[str, tuple[subprocess.Popen, float]]) -> str:
-    """The first family whose child process ended (polled every 50 ms)."""
     while True:
         for family, (proc, _) in running.items():
             if proc.poll() is not None:
@@ -271,9 +227,7 @@ def _wait_any(running: dict[str, tuple[subprocess.Popen, float]]) -> str:
 
 
 def load_cached() -> tuple[str, ...]:
-    """Load, in this process, every family the cache holds; where the cache folder cannot be
-    written, every family (they compile here, once for the processes forked from this one).
-    Returns the families loaded. Never raises."""
+    """Load every cached family here (all of them where the folder is read-only); never raises."""
     folder = cache_dir()
     usable = writable(folder)
     loaded = []
@@ -295,10 +249,8 @@ _BACKGROUND: list[threading.Thread] = []  # the running compile_in_background th
 
 
 def compile_in_background(families: Iterable[str]) -> threading.Thread:
-    """Start :func:`ensure_compiled` of ``families`` in a daemon thread and return the thread:
-    a job with other work before its refine step (feature extraction, the baseline's mapping)
-    compiles meanwhile, and the refine step's own :func:`ensure_compiled` waits for it (the
-    folder's lock), then finds the families ready. Errors are logged, never raised."""
+    """:func:`ensure_compiled` in a daemon thread, so a job compiles while it extracts or maps; the
+    refine step's own call then waits on the lock and finds them ready."""
     names = tuple(families)
 
     def work() -> None:

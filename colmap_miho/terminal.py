@@ -1,11 +1,5 @@
-"""Text for the terminal: names read from files are data, never terminal control.
-
-An image name in a database (or an HDF5 key) may hold a newline, a carriage return or an ANSI
-escape sequence. Printed raw, such a name can forge a line (``ERROR: ...``), overwrite one, or
-recolour the terminal. :func:`printable` escapes those characters (``\\n``, ``\\x1b``) and
-leaves every printable character, ASCII or not (``é``, ``漢字``), as it is.
-:class:`PrintableFormatter` applies it to every log message the CLI shows.
-"""
+"""Text for the terminal: names read from files are data, never terminal control (a name holding a
+newline or ANSI escape could forge or recolour a line). Printable characters stay as they are."""
 
 from __future__ import annotations
 
@@ -29,9 +23,8 @@ def _escape(ch: str) -> str:
 
 
 def printable(text: object, keep_newlines: bool = False) -> str:
-    """``str(text)`` with its control characters escaped: C0 (incl. ESC, CR, LF, TAB), DEL,
-    C1 and the Unicode separators and bidi overrides; ``keep_newlines`` keeps ``\\n`` (for text
-    whose lines the program itself made, e.g. a traceback)."""
+    """``str(text)`` with control characters (C0, DEL, C1, Unicode separators, bidi overrides)
+    escaped; ``keep_newlines`` keeps ``\\n``."""
     s = str(text)
     if s.isprintable() and not _MOVING.intersection(s):
         return s  # the usual case, fast
@@ -41,9 +34,7 @@ def printable(text: object, keep_newlines: bool = False) -> str:
 
 
 def printable_fields(obj):
-    """A copy of ``obj`` (a dataclass, dict, list, tuple, str or path, nested) whose strings and
-    paths are :func:`printable`, for a report built from names read from files; other values
-    are kept."""
+    """A copy of ``obj`` (nested dataclasses, dicts, lists, strings, paths) with strings made printable."""
     if isinstance(obj, (str, PurePath)):
         return printable(obj)
     if isinstance(obj, dict):
@@ -59,9 +50,7 @@ def printable_fields(obj):
 
 
 class PrintableFormatter(logging.Formatter):
-    """A :class:`logging.Formatter` that escapes the control characters of the message (one
-    log record is one line; no message of this package holds a newline of its own) and of the
-    traceback (whose own newlines are kept)."""
+    """A :class:`logging.Formatter` escaping control characters in messages and tracebacks."""
 
     def formatMessage(self, record: logging.LogRecord) -> str:  # noqa: N802 - logging's name
         record.message = printable(record.message)

@@ -1,13 +1,6 @@
-"""Checks shared by the frozen config dataclasses' ``__post_init__`` (pure: no I/O): every
-numeric recipe key carries its allowed range beside it, in its field's metadata (:func:`within`),
-and :func:`check_bounds` checks them all.
-
-Every value that sizes work (radii, blur, iterations, counts, batch sizes) has a lower and an
-upper bound that follow from what it means, checked before any work: the compiled kernels
-size their buffers from these values, and an unbounded one either never ends or corrupts
-memory (``ncc.lsm_antialias=1e20``). Relations between keys (``t_h <= t_l``,
-``template_radius + search_radius``) stay in the dataclass's ``__post_init__``.
-"""
+"""Checks shared by the config dataclasses' ``__post_init__``: every numeric key carries its range
+in its field's metadata (:func:`within`). Every value that sizes work is bounded, since the compiled
+kernels size their buffers from them (``ncc.lsm_antialias=1e20`` would corrupt memory)."""
 
 from __future__ import annotations
 
@@ -51,8 +44,7 @@ MAX_MEMORY_BUDGET_MB = 1 << 20
 
 @dataclass(frozen=True)
 class Bound:
-    """The allowed range of one key: ``lo <= value <= hi`` (``lo < value`` when
-    ``lo_open``, ``value < hi`` when ``hi_open``), and why the range is what it is (shown in the message)."""
+    """The allowed range of one key (open ends with ``lo_open`` / ``hi_open``) and why."""
 
     lo: float
     hi: float
@@ -81,12 +73,7 @@ BOUND_KEY = "bound"
 
 
 def within(lo: float, hi: float, why: str, *, lo_open: bool = False, hi_open: bool = False) -> dict:
-    """The ``metadata`` of a config dataclass field whose value must lie in ``[lo, hi]``
-    (``(lo`` / ``hi)`` when open) for the reason ``why``, which the error message shows::
-
-        template_radius: int = field(default=6, metadata=within(1, MAX_WINDOW_RADIUS_PX, "pixels"))
-
-    :func:`check_bounds` checks it (None values mean "off" or "the default" and pass)."""
+    """Field ``metadata`` for a value in ``[lo, hi]`` for the reason ``why``, shown in the error."""
     return {BOUND_KEY: Bound(lo, hi, why, lo_open=lo_open, hi_open=hi_open)}
 
 
@@ -109,35 +96,21 @@ OPTION_BOUNDS: dict[str, Bound] = {
 
 
 def check_options(args) -> None:
-    """Refuse a numeric option of the argparse namespace ``args`` outside
-    :data:`OPTION_BOUNDS` (options the command does not have, or left unset, pass).
-
-    Raises:
-        InvalidInput: ``"--<option> must be in [lo, hi] (why), got value"``.
-    """
+    """Refuse a numeric CLI option outside :data:`OPTION_BOUNDS` (InvalidInput)."""
     for dest, bound in OPTION_BOUNDS.items():
         check_value(f"--{dest.replace('_', '-')}", getattr(args, dest, None), bound)
 
 
 def check_bounds(cfg) -> None:
-    """Refuse, before any work, a value of the dataclass instance ``cfg`` outside the range its
-    field carries (:func:`within`; non-finite floats first, see :func:`require_finite`): the
-    one check of every config dataclass's ``__post_init__``.
-
-    Raises:
-        InvalidInput: naming the key, the allowed range and why.
-    """
+    """Refuse a value of ``cfg`` outside its field's range (non-finite first): InvalidInput naming
+    the key, the range and why."""
     require_finite(cfg)
     for name, bound in bounds_of(cfg).items():
         check_value(name, getattr(cfg, name), bound)
 
 
 def check_value(name: str, value, bound: Bound) -> None:
-    """Refuse ``value`` outside ``bound`` (None passes: off or the default).
-
-    Raises:
-        InvalidInput: ``"<name> must be in [lo, hi] (why), got value"``.
-    """
+    """Refuse ``value`` outside ``bound`` (None passes)."""
     if value is None or isinstance(value, bool):
         return
     if not isinstance(value, numbers.Real):  # a string from a script: '>=' would raise TypeError
@@ -147,13 +120,8 @@ def check_value(name: str, value, bound: Bound) -> None:
 
 
 def require_finite(cfg) -> None:
-    """Refuse ``inf``, ``nan`` and subnormal numbers in every float field of the dataclass
-    instance ``cfg`` (a ``nan`` threshold compares False with everything and silently disables
-    a check; ``1e-320`` printed back as ``9.99989e-321``).
-
-    Raises:
-        ValueError: names the field and the value.
-    """
+    """Refuse inf, nan and subnormal floats in ``cfg`` (a nan threshold silently disables a check);
+    ValueError naming the field."""
     for f in dataclasses.fields(cfg):
         value = getattr(cfg, f.name)
         if isinstance(value, float) and not math.isfinite(value):
@@ -164,10 +132,6 @@ def require_finite(cfg) -> None:
 
 
 def require_at_most(name: str, value, limit, why: str) -> None:
-    """Refuse ``value > limit`` for a field whose size drives memory use.
-
-    Raises:
-        ValueError: names the field, the value, the limit and ``why``.
-    """
+    """Refuse ``value > limit`` for a field whose size drives memory use (ValueError)."""
     if value is not None and value > limit:
         raise InvalidInput(f"{name} must be <= {limit} ({why}), got {value}")

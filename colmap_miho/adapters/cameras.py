@@ -11,15 +11,9 @@ from ..errors import DatabaseError, InvalidInput
 
 @dataclass(frozen=True, kw_only=True)
 class CameraIntrinsics:
-    """Intrinsics to write into a database camera.
-
-    Attributes:
-        model: COLMAP camera model name (``PINHOLE``, ``SIMPLE_RADIAL``, ...).
-        params: the model's parameters in COLMAP's order and pixel convention (the image's
-            top-left corner at (0, 0)); empty = keep the camera's mean focal length, principal
-            point at the image centre, zero distortion.
-        width, height: image size in pixels the parameters belong to; None = not checked.
-    """
+    """Intrinsics to write into a database camera: COLMAP ``model`` name, ``params`` in COLMAP's
+    order and pixel convention (empty: keep the mean focal, centred principal point, no distortion),
+    and the ``width``/``height`` they belong to (None: not checked)."""
 
     model: str
     params: tuple[float, ...] = ()
@@ -32,11 +26,7 @@ class CameraIntrinsics:
 
 
 def model_num_params(model: str) -> int:
-    """Number of parameters of the COLMAP camera model ``model`` (a name, any case).
-
-    Raises:
-        ValueError: unknown model name (the message lists the known ones).
-    """
+    """Parameter count of the COLMAP camera ``model`` (any case); ValueError listing the known ones."""
     import pycolmap
 
     names = [n for n in pycolmap.CameraModelId.__members__ if n != "INVALID"]
@@ -46,13 +36,9 @@ def model_num_params(model: str) -> int:
 
 
 def camera_from(old: Any, intr: CameraIntrinsics) -> Any:
-    """A new ``pycolmap.Camera`` with ``old``'s id, size and mean focal length and ``intr``'s
-    model and parameters (given parameters are marked as a prior focal length).
-
-    Raises:
-        DatabaseError: ``intr``'s width / height differ from ``old``'s.
-        InvalidInput: a parameter count that does not fit the model.
-    """
+    """A new ``pycolmap.Camera`` with ``old``'s id, size and focal and ``intr``'s model and
+    parameters (a prior focal). DatabaseError for another size, InvalidInput for a wrong parameter
+    count."""
     import pycolmap
 
     if (intr.width is not None and intr.height is not None

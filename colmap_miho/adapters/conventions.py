@@ -1,7 +1,5 @@
-"""COLMAP's conventions that colmap-miho converts in one place: the half-pixel offset of keypoint
-coordinates (COLMAP puts the top-left pixel's centre at (0.5, 0.5), colmap-miho at (0, 0)) and
-the pair id of two image ids.
-"""
+"""COLMAP's conventions converted in one place: the half-pixel offset of keypoints (COLMAP's
+top-left pixel centre is (0.5, 0.5), colmap-miho's (0, 0)) and the pair id of two image ids."""
 
 from __future__ import annotations
 

@@ -1,15 +1,6 @@
-"""The only module that creates, reads and writes COLMAP databases (through pycolmap).
-
-It is also the only place that applies the half-pixel conversion of :mod:`.conventions`:
-COLMAP stores keypoints with the image's top-left corner at (0, 0), so the centre of the
-top-left pixel is (0.5, 0.5); colmap-miho's arrays put pixel centres at integers (OpenCV,
-kornia). ``read`` subtracts :data:`~.conventions.HALF_PIXEL`, ``write`` adds it, each exactly once.
-
-Open only a working copy (see :mod:`colmap_miho.adapters.safety`): pycolmap migrates the schema on
-open and creates an empty database for a missing path. Never hold a Python ``sqlite3``
-connection and a pycolmap handle on the same file at the same time. New databases (hloc import,
-synthetic scenes) are made with :meth:`ColmapDatabase.create`.
-"""
+"""The only module that creates, reads and writes COLMAP databases (through pycolmap), and the one
+place of the half-pixel shift (:mod:`.conventions`). Open only a working copy: pycolmap migrates the
+schema on open."""
 
 from __future__ import annotations
 
@@ -38,16 +29,8 @@ REQUIRED_TABLES = ("cameras", "images", "keypoints", "matches", "two_view_geomet
 
 
 def validate_database(path: str | Path, name: str | Path | None = None) -> None:
-    """Check that ``path`` is a COLMAP database (SQLite with COLMAP's tables).
-
-    Opens ``path`` read-only with Python's sqlite3 and closes it again; call it on a working
-    copy, never while a pycolmap handle is open on the same file; ``name`` (the user's file the
-    copy was made from) is the file the messages name (default ``path``).
-
-    Raises:
-        DatabaseError: missing file, not SQLite, or COLMAP tables missing; the message names
-            the file and the missing tables.
-    """
+    """Check that ``path`` is a COLMAP database (SQLite with COLMAP's tables), read-only with
+    sqlite3 and no pycolmap handle open; DatabaseError names ``name`` and any missing tables."""
     p = check_database_path(path)
     shown = Path(name) if name is not None else p  # the user's file, never a hidden copy
     try:
@@ -70,13 +53,8 @@ def validate_database(path: str | Path, name: str | Path | None = None) -> None:
 
 
 def _check_camera_rows(p: Path, name: Path) -> None:
-    """Refuse a database whose images refer to a ``camera_id`` with no row in ``cameras``: the
-    image files are fine, the camera row is what is missing (the refinement would see a 0x0
-    camera and blame every image; the mapper would fail on an unknown camera).
-
-    Raises:
-        DatabaseError: naming the file, the missing camera ids and (some of) their images.
-    """
+    """Refuse images whose ``camera_id`` has no camera row (the mapper would fail on it); raises
+    :class:`DatabaseError` naming the file and the camera ids."""
     con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
     try:
         rows = con.execute("SELECT camera_id, name FROM images WHERE camera_id NOT IN "
@@ -111,13 +89,7 @@ def _camera_model_params() -> dict[int, tuple[str, int]]:
 
 
 def _check_camera_models(p: Path, name: Path) -> None:
-    """Refuse a camera row whose model id is no COLMAP camera model, or whose parameter blob
-    does not hold that model's parameters (pycolmap: "Camera model does not exist", a failed
-    check).
-
-    Raises:
-        DatabaseError: naming the file, the camera and its model.
-    """
+    """Refuse a camera with an unknown model id or a parameter blob of the wrong size; raises :class:`DatabaseError`."""
     models = _camera_model_params()
     con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
     try:
@@ -139,13 +111,8 @@ def _check_camera_models(p: Path, name: Path) -> None:
 
 
 def _check_frames(p: Path, name: Path) -> None:
-    """Refuse a database whose images have no frame (COLMAP's rig / frame tables): each image
-    is the data of one camera sensor of one frame, and each frame belongs to an existing rig
-    (pycolmap: ``Check failed: frame.HasDataId(image.DataId())``, ``image.HasFrameId()``).
-
-    Raises:
-        DatabaseError: naming the file, the table and (some of) the images.
-    """
+    """Refuse images with no frame, or frames with no rig (pycolmap would fail a check); raises
+    :class:`DatabaseError`."""
     checks = (
         ("SELECT image_id, name FROM images WHERE image_id NOT IN "
          "(SELECT data_id FROM frame_data WHERE sensor_type = 0) ORDER BY image_id",
@@ -179,11 +146,7 @@ _BLOB_TABLES = (("keypoints", "image_id", 4), ("matches", "pair_id", 4), ("two_v
 
 
 def _check_blob_sizes(p: Path, name: Path) -> None:
-    """Refuse a database whose array blobs do not hold ``rows * cols`` values.
-
-    Raises:
-        DatabaseError: naming the file, the table and the image (or pair) and both sizes.
-    """
+    """Refuse array blobs that do not hold ``rows * cols`` values; raises :class:`DatabaseError`."""
     con = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
     try:
         for table, key, size in _BLOB_TABLES:
@@ -234,8 +197,7 @@ def is_verified(tvg) -> bool:
 
 
 def fitted_geometry(F: np.ndarray | None, H: np.ndarray | None):
-    """A new ``pycolmap.TwoViewGeometry`` holding the fundamental matrix ``F`` (config
-    UNCALIBRATED), or else the homography ``H`` (PLANAR)."""
+    """A new ``pycolmap.TwoViewGeometry`` holding ``F`` (UNCALIBRATED), or else ``H`` (PLANAR)."""
     import pycolmap
 
     tvg = pycolmap.TwoViewGeometry()
@@ -247,10 +209,7 @@ def fitted_geometry(F: np.ndarray | None, H: np.ndarray | None):
 
 
 def keep_or_fit(handle, i: int, j: int, inliers: np.ndarray, fit: Callable[[], Any], *, keep: bool = True):
-    """The two-view geometry to write for pair (i, j) of the ``pycolmap.Database`` ``handle``
-    with ``inliers`` (``(M, 2)`` keypoint indices): the pair's stored verified model (config,
-    F, E, H, relative pose) kept when ``keep`` and it has one, else ``fit()`` (a new geometry,
-    or None when no model fits: None is returned)."""
+    """The pair's stored verified model when ``keep`` and it has one, else ``fit()`` (None: no model)."""
     old = handle.read_two_view_geometry(i, j) if handle.exists_two_view_geometry(i, j) else None
     tvg = old if keep and old is not None and is_verified(old) else fit()
     if tvg is not None:
@@ -259,15 +218,8 @@ def keep_or_fit(handle, i: int, j: int, inliers: np.ndarray, fit: Callable[[], A
 
 
 class ColmapDatabase(DatabaseBuilder):
-    """A pycolmap handle on a (working copy of a) COLMAP database, with array helpers.
-
-    All coordinates in and out are colmap-miho's: (x, y) float64 pixels, integer = pixel
-    centre. Matches are uint32 (M, 2) keypoint indices ordered (image_id1, image_id2) as given.
-    The methods that fill a new database come from :class:`~.database_build.DatabaseBuilder`.
-
-    Args:
-        path: an existing COLMAP database file (checked first: pycolmap would create it).
-    """
+    """A pycolmap handle on a working copy of a COLMAP database, with array helpers in colmap-miho's
+    coordinates; matches are uint32 ``(M, 2)`` keypoint indices ordered (image_id1, image_id2)."""
 
     _db: Any  # pycolmap.Database while open, None once closed
 
@@ -280,11 +232,7 @@ class ColmapDatabase(DatabaseBuilder):
 
     @classmethod
     def create(cls, path: str | Path) -> ColmapDatabase:
-        """Create a NEW, empty COLMAP database at ``path`` and open it.
-
-        Raises:
-            FileExistsError: ``path`` exists (an existing database is never reused).
-        """
+        """Create a NEW, empty database at ``path`` and open it; ``FileExistsError`` if it exists."""
         import pycolmap
 
         p = Path(path)
@@ -354,12 +302,8 @@ class ColmapDatabase(DatabaseBuilder):
         return colmap_to_pixel_centre(self.raw_keypoints(image_id)[:, :2])
 
     def keypoint_affines(self, image_id: int) -> np.ndarray | None:
-        """Local affine frames of the keypoints, float64 (N, 2, 2) (columns = local axes, in
-        pixels), or None when the keypoints have only x, y.
-
-        6 columns: x, y, a11, a12, a21, a22 (COLMAP SIFT). 4 columns: x, y, scale,
-        orientation (radians), turned into a scaled rotation.
-        """
+        """Local affine frames ``(N, 2, 2)`` (columns = local axes, pixels) from 6 (SIFT) or 4
+        (scale, orientation) columns, or None for x, y only."""
         raw = self.raw_keypoints(image_id).astype(np.float64)
         if raw.shape[1] >= 6:
             return raw[:, 2:6].reshape(-1, 2, 2)
@@ -370,8 +314,7 @@ class ColmapDatabase(DatabaseBuilder):
         return None
 
     def pairs(self, source: MatchSource | str) -> list[PairRecord]:
-        """Image pairs with matches in ``source`` ("verified": two-view-geometry inliers,
-        "raw": the matches table), sorted by pair id. Cheap: reads counts only."""
+        """Pairs with matches in ``source`` ("verified" or "raw"), sorted by pair id; reads counts only."""
         source = MatchSource.parse(source, "source")
         if source == MatchSource.VERIFIED:
             pids, counts = self.handle.read_two_view_geometry_num_inliers()
@@ -385,8 +328,7 @@ class ColmapDatabase(DatabaseBuilder):
         return out
 
     def matches(self, image_id1: int, image_id2: int, source: MatchSource | str) -> np.ndarray:
-        """Matches of one pair from ``source``, uint32 (M, 2) ordered (image_id1, image_id2);
-        a repeated row is kept once (first occurrence, order kept) with a warning."""
+        """One pair's matches, uint32 ``(M, 2)``; a repeated row is kept once, with a warning."""
         source = MatchSource.parse(source, "source")
         if source == MatchSource.VERIFIED:
             m = self.handle.read_two_view_geometry(int(image_id1), int(image_id2)).inlier_matches
@@ -408,16 +350,8 @@ class ColmapDatabase(DatabaseBuilder):
 
     # -- writing ---------------------------------------------------------------------------
     def write_keypoints(self, image_id: int, xy: np.ndarray, moved: np.ndarray) -> int:
-        """Write refined positions of one image, changing only x, y of the ``moved`` rows.
-
-        Args:
-            xy: float (N, 2) positions, integer = pixel centre (N = stored keypoint count).
-            moved: bool (N,) rows to update; other rows (and all other columns) are written
-                back bit-identical.
-
-        Returns:
-            Number of rows changed.
-        """
+        """Write ``xy`` float ``(N, 2)`` for the ``moved`` rows only; every other value is written
+        back bit-identical. Returns the number of rows changed."""
         raw = self.raw_keypoints(image_id)
         xy = np.asarray(xy, dtype=np.float64)
         moved = np.asarray(moved, dtype=bool)
@@ -435,20 +369,8 @@ class ColmapDatabase(DatabaseBuilder):
 
     def write_pair(self, image_id1: int, image_id2: int, kept: np.ndarray,
                    xy1: np.ndarray, xy2: np.ndarray, *, keep_model: bool = True) -> str:
-        """Write the kept matches of a pair into ``matches`` and ``two_view_geometries``.
-
-        The pair's verified model is kept when ``keep_model`` (:func:`keep_or_fit`); otherwise
-        a fundamental matrix is fitted to the kept matches by least squares, or a homography
-        when F fails (:func:`colmap_miho.geometry.fit_model_lsq`). No kept match: the matches
-        row becomes empty and the geometry row is deleted.
-
-        Args:
-            kept: uint32 (K, 2) keypoint indices ordered (image_id1, image_id2).
-            xy1, xy2: float (K, 2) kept keypoint positions (after refinement), pixel centres.
-
-        Returns:
-            The config name written ("NONE" when nothing was kept).
-        """
+        """Write a pair's kept matches ``(K, 2)`` and its geometry: the verified model when
+        ``keep_model``, else F (or H) fitted to ``xy1``, ``xy2``; returns the config name written."""
         db = self.handle
         i, j = int(image_id1), int(image_id2)
         kept = np.ascontiguousarray(kept, dtype=np.uint32).reshape(-1, 2)
@@ -477,9 +399,9 @@ class ColmapDatabase(DatabaseBuilder):
 
     @contextlib.contextmanager
     def transaction(self):
-        """A pycolmap transaction (speed only: it commits even when the block raises). When the
-        commit fails (a full disk), the transaction and the database handle are never freed:
-        their C++ destructors would retry the write, throw and abort the process."""
+        """A pycolmap transaction (speed only: it commits even when the block raises). If the commit
+        fails, the handle is never freed: its C++ destructor would retry, throw and abort the
+        process."""
         tx = self._pycolmap.DatabaseTransaction(self.handle)
         tx.__enter__()
         try:
@@ -490,8 +412,7 @@ class ColmapDatabase(DatabaseBuilder):
         self._end_transaction(tx, reraise=True)
 
     def _end_transaction(self, tx: Any, *, reraise: bool) -> None:
-        """Commit (or roll back) ``tx``; when that fails, keep ``tx`` and the handle alive until
-        the process ends (see :func:`_never_free`) and raise the error only if ``reraise``."""
+        """Commit (or roll back) ``tx``; on failure keep it alive and raise only if ``reraise``."""
         try:
             tx.__exit__(None, None, None)
         except RuntimeError:
@@ -502,9 +423,7 @@ class ColmapDatabase(DatabaseBuilder):
 
 
 def _never_free(obj) -> None:
-    """Keep ``obj`` (a pycolmap handle whose last write failed) alive until the process ends:
-    pycolmap's destructors retry a failed SQLite write, and a C++ destructor that throws aborts
-    the process (SIGABRT) after the one-line error was printed."""
+    """Keep ``obj`` alive until exit: pycolmap's destructor would retry a failed write and abort."""
     import ctypes
 
     if obj is not None:
@@ -512,16 +431,13 @@ def _never_free(obj) -> None:
 
 
 def count_images(path: str | Path) -> int:
-    """Number of images in the COLMAP database at ``path`` (a working copy or a database
-    colmap-miho created: pycolmap migrates the schema on open)."""
+    """Number of images in the database at ``path`` (never the user's file: pycolmap migrates it)."""
     with ColmapDatabase(path) as db:
         return int(db.handle.num_images())
 
 
 def verify_geometry(path: str | Path, *, seed: int = 0) -> None:
-    """COLMAP's geometric verification of every matched pair of the (closed) database at
-    ``path`` (``pycolmap.geometric_verification``), RANSAC seeded with ``seed``; it writes the
-    two-view geometries."""
+    """COLMAP's geometric verification of every matched pair at ``path``, seeded with ``seed``."""
     import pycolmap
 
     opts = pycolmap.TwoViewGeometryOptions()
@@ -530,22 +446,9 @@ def verify_geometry(path: str | Path, *, seed: int = 0) -> None:
 
 
 def write_camera_intrinsics(path: str | Path, intrinsics: CameraIntrinsics | dict[str, CameraIntrinsics]) -> int:
-    """Set the model and parameters of cameras in the database at ``path`` (a working copy:
-    never the user's file). Given parameters are marked as a prior focal length.
-
-    Args:
-        path: database to change in place.
-        intrinsics: one :class:`CameraIntrinsics` for every camera, or a dict image name ->
-            intrinsics for the cameras of those images (images not in the dict keep theirs).
-
-    Returns:
-        The number of cameras written.
-
-    Raises:
-        DatabaseError: a camera is shared by images given different intrinsics, or its size
-            differs from the intrinsics' ``width``/``height``.
-        ValueError: unknown model or a parameter count that does not fit it.
-    """
+    """Set the model and parameters of cameras in the working copy at ``path`` (one for all, or
+    image name -> intrinsics), as a prior focal; returns how many. DatabaseError for conflicting or
+    mis-sized cameras, ValueError for a bad model or parameter count."""
     with ColmapDatabase(path) as db:
         cameras = {int(c.camera_id): c for c in db.handle.read_all_cameras()}
         wanted: dict[int, CameraIntrinsics] = {}

@@ -1,10 +1,5 @@
-"""Filling a new COLMAP database (hloc import, synthetic scenes): cameras, rigs, images with
-their frames, keypoints and matches, through the open pycolmap handle of
-:class:`~colmap_miho.adapters.database.ColmapDatabase` (which opens and closes it).
-
-Coordinates in are colmap-miho's (integer = pixel centre) unless said otherwise; the +0.5 shift
-to COLMAP's convention is :func:`~colmap_miho.adapters.conventions.pixel_centre_to_colmap`.
-"""
+"""Filling a new COLMAP database (hloc import, synthetic scenes) through the open handle of
+:class:`~colmap_miho.adapters.database.ColmapDatabase`; coordinates in are colmap-miho's."""
 
 from __future__ import annotations
 
@@ -17,9 +12,7 @@ from .conventions import image_pair, pixel_centre_to_colmap
 
 
 class DatabaseBuilder:
-    """The building methods of :class:`~colmap_miho.adapters.database.ColmapDatabase`, which
-    provides ``handle`` (the open ``pycolmap.Database``), ``_pycolmap``, ``images()`` and
-    ``raw_keypoints()``."""
+    """The building methods of :class:`~colmap_miho.adapters.database.ColmapDatabase`."""
 
     _pycolmap: Any
 
@@ -34,15 +27,8 @@ class DatabaseBuilder:
         raise NotImplementedError
 
     def add_camera(self, model: str, width: int, height: int, focal: float) -> tuple[int, int]:
-        """Write a camera of COLMAP model ``model`` (``focal`` prior in pixels, pycolmap's
-        default principal point and distortion) and a rig with it as reference sensor.
-
-        Returns:
-            ``(camera_id, rig_id)``.
-
-        Raises:
-            ValueError: ``model`` is not a COLMAP camera model (the message names it).
-        """
+        """Write a camera of ``model`` (``focal`` prior in pixels) and a rig with it; returns
+        ``(camera_id, rig_id)``. ValueError for an unknown model."""
         pc = self._pycolmap
         try:
             cam = pc.Camera.create_from_model_name(0, model, float(focal), int(width), int(height))
@@ -55,8 +41,7 @@ class DatabaseBuilder:
         return int(camera_id), int(self.handle.write_rig(rig))
 
     def add_image(self, name: str, camera_id: int, rig_id: int) -> int:
-        """Write image ``name`` (path relative to the image folder) of camera ``camera_id`` and
-        its frame in rig ``rig_id``; returns the new image id."""
+        """Write image ``name`` of ``camera_id`` and its frame in ``rig_id``; returns its id."""
         pc = self._pycolmap
         image_id = self.handle.write_image(pc.Image(name=name, camera_id=int(camera_id)))
         frame = pc.Frame()
@@ -67,14 +52,8 @@ class DatabaseBuilder:
 
     def add_keypoints(self, image_id: int, xy: np.ndarray, affines: np.ndarray | None = None, *,
                       colmap_coordinates: bool = False) -> None:
-        """Write the keypoints of a new image as COLMAP's 6 columns (x, y, a11, a12, a21, a22).
-
-        Args:
-            xy: float (N, 2) positions, integer = pixel centre (shifted by +0.5 here), or
-                already in COLMAP's convention when ``colmap_coordinates``.
-            affines: float (N, 2, 2) local affine frames (columns = local axes, pixels), or
-                None for the identity.
-        """
+        """Write a new image's keypoints as COLMAP's 6 columns: ``xy`` ``(N, 2)`` (shifted +0.5
+        unless ``colmap_coordinates``), ``affines`` ``(N, 2, 2)`` or None for identity."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         rows = np.zeros((len(xy), 6), dtype=np.float32)
         rows[:, :2] = xy if colmap_coordinates else pixel_centre_to_colmap(xy)
@@ -86,9 +65,7 @@ class DatabaseBuilder:
 
     def add_matches(self, image_id1: int, image_id2: int, matches: np.ndarray, *,
                     as_inliers: bool = False) -> None:
-        """Write the matches of a new pair, uint32 (M, 2) keypoint indices ordered
-        (image_id1, image_id2); ``as_inliers`` also stores them all as the inliers of an
-        UNCALIBRATED two-view geometry (no verification)."""
+        """Write a new pair's matches ``(M, 2)``; ``as_inliers`` also stores them as UNCALIBRATED inliers."""
         m = np.ascontiguousarray(matches, dtype=np.uint32).reshape(-1, 2)
         self.handle.write_matches(int(image_id1), int(image_id2), m)
         if as_inliers:
@@ -98,14 +75,8 @@ class DatabaseBuilder:
             self.handle.write_two_view_geometry(int(image_id1), int(image_id2), tvg)
 
     def synthesize(self, dataset_options, noise_options=None):
-        """Fill this new database with ``pycolmap.synthesize_dataset(dataset_options)``.
-
-        With ``noise_options`` (``pycolmap.SyntheticNoiseOptions``) the stored keypoints are
-        then moved by ``pycolmap.synthesize_noise``.
-
-        Returns:
-            The noise-free ground-truth ``pycolmap.Reconstruction`` (COLMAP coordinates).
-        """
+        """Fill this new database with ``pycolmap.synthesize_dataset`` (and ``synthesize_noise``
+        with ``noise_options``); returns the noise-free ground truth (COLMAP coordinates)."""
         pc = self._pycolmap
         rec = pc.synthesize_dataset(dataset_options, self.handle)
         gt = pc.Reconstruction(rec)
@@ -114,8 +85,7 @@ class DatabaseBuilder:
         return gt
 
     def store_raw_matches_as_inliers(self) -> None:
-        """Make every pair's two-view-geometry inliers equal to its raw ``matches`` (as a weak
-        geometric verification would); the pairs must have a two-view geometry already."""
+        """Make every pair's inliers equal to its raw matches (pairs need a two-view geometry)."""
         pids, arrays = self.handle.read_all_matches()
         for pid, m in zip(pids, arrays, strict=True):
             i, j = image_pair(pid)

@@ -1,13 +1,6 @@
-"""hloc / deep-image-matching h5 files in and out of COLMAP databases.
-
-:func:`import_hloc` builds a NEW database from a features.h5 and a matches.h5;
-:func:`export_hloc` writes a database's keypoints and matches as such files. The h5 side is
-:mod:`colmap_miho.adapters.hloc` (no COLMAP there), the database side
-:mod:`colmap_miho.adapters.database` (the only place of the +0.5 pixel shift: keypoints in h5
-files follow hloc's convention, integer = pixel centre). deep-image-matching's own importer
-writes its keypoints without the shift; ``keypoint_origin="corner"`` reproduces its databases
-exactly.
-"""
+"""hloc / deep-image-matching h5 files in and out of COLMAP databases (h5 side :mod:`.hloc`,
+database side :mod:`.database`); ``keypoint_origin="corner"`` reproduces deep-image-matching's
+databases."""
 
 from __future__ import annotations
 
@@ -39,8 +32,7 @@ FOCAL_PRIOR = 1.2
 
 @dataclass(frozen=True)
 class ImportStats:
-    """What an import wrote: counts of images, cameras, keypoints, pairs, matches, and (after
-    verification) pairs with a two-view geometry and their inlier matches."""
+    """What an import wrote: images, cameras, keypoints, pairs, matches and verified pairs and inliers."""
 
     num_images: int
     num_cameras: int
@@ -53,8 +45,7 @@ class ImportStats:
 
 @dataclass(frozen=True)
 class ExportStats:
-    """What an export wrote. ``num_dropped``: matches that hloc's one-match-per-keypoint
-    ``matches0`` could not hold (0 with ``layout='dim'``)."""
+    """What an export wrote; ``num_dropped``: matches hloc's ``matches0`` could not hold."""
 
     num_images: int
     num_keypoints: int
@@ -78,30 +69,10 @@ def import_hloc(
     seed: int = 0,
     progress: bool = False,
 ) -> ImportStats:
-    """Create ``database`` from hloc-layout h5 files, streaming one image / pair at a time.
-
-    Cameras come from the image files (focal prior ``FOCAL_PRIOR * max(width, height)``).
-    Keypoints are written as COLMAP's 6 columns (x, y, a11, a12, a21, a22); the affine shape is
-    built from hloc's ``scales``/``oris`` when present, else identity. The database is written
-    into a private folder beside it and moved onto its name at the end (only if no file
-    appeared there meanwhile): a failed import leaves nothing behind.
-
-    Args:
-        features, matches: the h5 files (layouts in :mod:`colmap_miho.adapters.hloc`).
-        images: the image folder; h5 image names are paths relative to it.
-        database: the NEW database (must not exist).
-        pairs: optional pairs list (:func:`colmap_miho.adapters.hloc.read_pairs_file`).
-        verify: run COLMAP's geometric verification (seeded by ``seed``); False stores every
-            match as an inlier of an UNCALIBRATED two-view geometry.
-        min_match_score: drop matches whose matching score is below it (pairs without scores
-            keep all, with one warning).
-        keypoint_origin: "center" (hloc: integer = pixel centre, shifted +0.5) or "corner"
-            (already COLMAP's convention, written as is).
-
-    Raises:
-        FileExistsError: ``database`` exists. FileNotFoundError / ValueError naming the file,
-        image or pair for malformed or mismatched inputs.
-    """
+    """Create the NEW ``database`` from hloc-layout h5 files, one image / pair at a time, written
+    beside and moved in at the end (a failed import leaves nothing). ``verify=False`` stores every
+    match as an UNCALIBRATED inlier. FileExistsError, or FileNotFoundError / ValueError naming the
+    input."""
     features, matches, images, database = Path(features), Path(matches), Path(images), Path(database)
     if database.exists():
         raise FileExistsError(f"{database} exists: import writes a new database only")
@@ -145,7 +116,6 @@ def import_hloc(
 
 def _write_images(db: ColmapDatabase, fh, images: Path, camera_model: str, single_camera: bool,
                   colmap_coordinates: bool, progress: bool) -> tuple[dict[str, int], dict[str, int], int]:
-    """Cameras, rigs, images, frames and keypoints of every image of the features file."""
     from tqdm import tqdm
 
     ids: dict[str, int] = {}
@@ -211,19 +181,8 @@ def export_hloc(
     overwrite: bool = False,
     progress: bool = False,
 ) -> ExportStats:
-    """Write ``features`` (per image ``keypoints`` (N, 2) float32, integer = pixel centre, and
-    ``image_size`` (width, height)) and ``matches`` (one group per pair with matches, image order
-    of the database pair: smaller image id first) from ``database``.
-
-    The database is never opened itself: a temporary copy is read. Matches come from the
-    two-view-geometry inliers (``source="verified"``) or the raw matches table (``"raw"``).
-    ``layout``: "hloc" (name0/name1/matches0, one match per keypoint of image 0) or "dim"
-    (deep-image-matching's (M, 2) name0/name1, lossless). Both files are written under
-    temporary names and renamed at the end.
-
-    Raises:
-        FileExistsError: an existing output without ``overwrite``. DatabaseError: a missing,
-        locked or non-COLMAP database.
+    """Write ``features`` and ``matches`` h5 files from a copy of ``database`` (``layout`` "hloc":
+    one match per keypoint of image 0, or "dim": lossless). FileExistsError without ``overwrite``.
     """
     from tqdm import tqdm
 
@@ -281,15 +240,7 @@ H5_MARGIN = 1.5
 
 
 def check_export_space(copy: Path, features: Path, matches: Path, source: MatchSource, layout: str) -> None:
-    """Refuse an export that would fill the disk (HDF5's library may crash the process when a
-    write fails): the estimated sizes of both files against the free space of their folders.
-
-    Args:
-        copy: the working copy of the database (read with Python's sqlite3, closed again).
-
-    Raises:
-        UserError: not enough free space (one line naming the folder and both sizes).
-    """
+    """Refuse an export that would fill the disk (HDF5 may crash the process on a failed write)."""
     table = "two_view_geometries" if source == MatchSource.VERIFIED else "matches"
     con = sqlite3.connect(f"file:{copy.resolve()}?mode=ro", uri=True)
     try:
@@ -318,13 +269,8 @@ DB_WRITE_FACTOR = 2
 
 
 def check_import_space(fh, mh, folder: Path, verify: bool) -> None:
-    """Refuse an import that would fill the disk (pycolmap aborts the process on some failed
-    SQLite writes): the size of the new database, from the h5 datasets' shapes (nothing is
-    read), against the free space of ``folder``.
-
-    Raises:
-        UserError: not enough free space (one line naming the folder and both sizes).
-    """
+    """Refuse an import that would fill the disk (pycolmap aborts on some failed writes), sized from
+    the h5 shapes alone."""
     keypoints = hloc.count_rows(fh, "keypoints")
     matches = hloc.count_matches(mh)
     need = DB_WRITE_FACTOR * (keypoints * DB_BYTES_PER_KEYPOINT + matches * DB_BYTES_PER_MATCH)

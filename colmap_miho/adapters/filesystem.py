@@ -1,15 +1,5 @@
-"""File-system primitives every writer shares: writing a file whole or not at all, flushing it
-and its folder, the process's umask, and the registry of working files a forced exit removes.
-
-Writing whole or not at all: the content fills a new, uniquely named hidden file beside the
-target (:func:`temp_beside`), which is flushed to disk (:func:`fsync_file`), renamed onto the
-target (:func:`os.replace`, atomic on one file system) and the folder flushed (:func:`fsync_dir`,
-so that the rename itself survives a power cut): the target is the old file or the new one,
-never a part. :func:`write_atomic` does all of it for the run store's files;
-:func:`~colmap_miho.adapters.staged_write.staged_write` adds what a user-visible output needs
-(a full disk told apart, symlinks and devices, the user's permissions), and
-:class:`~colmap_miho.adapters.working_copy.WorkingCopy` what the database needs.
-"""
+"""File-system primitives every writer shares: writing whole or not at all (a hidden file beside the
+target, flushed, renamed, folder flushed), the umask, and the working files a forced exit removes."""
 
 from __future__ import annotations
 
@@ -29,9 +19,7 @@ WORKING_FILES: set[Path] = set()
 
 
 def remove_own_file(path: str | os.PathLike) -> None:
-    """Delete the file ``path`` that this process made (a working or staged file), unless a
-    symbolic link stands there now: that is not ours, and is left as it is (with a warning).
-    A missing file is fine."""
+    """Delete ``path`` this process made, unless a symbolic link stands there now (not ours: warned)."""
     p = Path(path)
     if p.is_symlink():
         log.warning("%s is a symbolic link that colmap-miho did not make: left as it is", p)
@@ -41,21 +29,15 @@ def remove_own_file(path: str | os.PathLike) -> None:
 
 
 def current_umask() -> int:
-    """The process's umask (read without changing it): a new file's permissions are
-    ``0o666 & ~current_umask()``."""
+    """The process's umask, read without changing it."""
     mask = os.umask(0)
     os.umask(mask)
     return mask
 
 
 def temp_beside(target: Path) -> Path:
-    """A new, empty, uniquely named hidden file ``.<name>.<random>.tmp`` beside ``target``
-    (private: 0600), closed: never a fixed name, so two runs, or a user's own file, are never
-    touched.
-
-    Raises:
-        OSError: the folder is missing or not writable, or the disk is full.
-    """
+    """A new, empty, private hidden file ``.<name>.<random>.tmp`` beside ``target`` (never a fixed
+    name); OSError for an unwritable folder or full disk."""
     fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     os.close(fd)
     return Path(name)
@@ -69,8 +51,7 @@ def fsync_file(path: str | os.PathLike) -> int:
 
 
 def fsync_dir(folder: str | os.PathLike) -> None:
-    """Flush ``folder``'s entries (a rename into it) to disk; a file system that cannot is
-    ignored."""
+    """Flush ``folder``'s entries to disk (ignored where unsupported)."""
     with contextlib.suppress(OSError):
         fd = os.open(folder, os.O_RDONLY)
         try:
@@ -80,20 +61,14 @@ def fsync_dir(folder: str | os.PathLike) -> None:
 
 
 def replace_durably(tmp: Path, target: Path) -> None:
-    """Rename the finished, flushed file ``tmp`` onto ``target`` (same folder: atomic) and
-    flush the folder."""
+    """Rename the flushed ``tmp`` onto ``target`` (same folder: atomic) and flush the folder."""
     os.replace(tmp, target)
     fsync_dir(target.parent)
 
 
 def write_atomic(path: Path, write: Callable[[BinaryIO], object]) -> None:
-    """Write ``path`` whole or not at all: ``write(file)`` fills a new hidden file beside it
-    (binary, private), which is flushed to disk and renamed onto ``path``; it is removed on any
-    failure (``path`` then stays as it was).
-
-    Raises:
-        OSError: the folder cannot be written, or the disk is full (as the OS says it).
-    """
+    """Write ``path`` whole or not at all: ``write(file)`` fills a private hidden file, flushed and
+    renamed onto ``path``, removed on failure."""
     tmp = temp_beside(path)
     try:
         with open(tmp, "wb") as fh:

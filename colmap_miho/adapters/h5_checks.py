@@ -1,7 +1,5 @@
-"""Checks on an h5 file's datasets before they are read: a dataset (not a group), a real-number
-dtype, and the memory its arrays would take against a budget, so that a damaged or foreign file
-is one clear error instead of an out-of-memory kill.
-"""
+"""Checks on an h5 file's datasets before they are read (a dataset, a real dtype, a memory budget),
+so a damaged or foreign file is one clear error instead of an out-of-memory kill."""
 
 from __future__ import annotations
 
@@ -43,10 +41,7 @@ def check_budget(h5: h5py.File, nbytes: float, what: str, budget: int) -> None:
 
 
 def h5_reader(func):
-    """Decorator of a function whose first argument is an open ``h5py.File``: h5py's errors
-    on a file damaged in the middle (``OSError: Can't read data``, ``RuntimeError``,
-    ``KeyError`` of an unreadable object) become one :class:`~colmap_miho.errors.InvalidInput`
-    naming the file."""
+    """Decorator: h5py's errors on a damaged file become one InvalidInput naming the file."""
 
     @functools.wraps(func)
     def wrapper(h5, *args, **kwargs):
@@ -60,13 +55,8 @@ def h5_reader(func):
 
 
 def check_keypoints_in_image(h5: h5py.File, keypoints, size: tuple[int, int], what: str, origin: float) -> None:
-    """Refuse keypoints (N, 2) (x, y) outside the image ``size`` (width, height) by more than
-    :data:`KEYPOINT_MARGIN_PX`; ``origin`` is the coordinate of the image's left/top edge
-    (-0.5 with pixel centres at integers, 0 in COLMAP's convention).
-
-    Raises:
-        InvalidInput: naming the file, the image, the keypoint and the image size.
-    """
+    """Refuse keypoints ``(N, 2)`` outside the image by more than :data:`KEYPOINT_MARGIN_PX`;
+    ``origin`` is the image edge's coordinate (-0.5 with pixel centres at integers). InvalidInput."""
     import numpy as np
 
     if len(keypoints) == 0:

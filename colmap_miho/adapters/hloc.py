@@ -1,25 +1,9 @@
-"""Read and write hloc / deep-image-matching feature and match files (HDF5, streamed with h5py).
+"""Read and write hloc / deep-image-matching HDF5 features and matches, one image or pair at a time.
 
-Layouts understood (all read one image or one pair at a time, never the whole file):
-
-Features file (hloc and deep-image-matching alike)
-    one group per image, named by the image's path relative to the image folder (a ``/`` in
-    the name makes nested groups), holding ``keypoints`` (N, 2) float (x, y) pixels with pixel
-    centres at integers (hloc's convention), optional ``scores`` (N,), optional ``scales``
-    and ``oris`` (N,) (hloc's SIFT), ``descriptors`` (ignored here), optional ``image_size``.
-
-Matches file, three pair layouts, told apart per pair:
-    * hloc nested (current hloc): group ``f(name0)/f(name1)`` with ``matches0`` (N0,) int
-      (index into the keypoints of image 1, -1 = unmatched) and optional
-      ``matching_scores0`` (N0,) float, where ``f(n) = n.replace('/', '-')``;
-    * hloc legacy flat: the same datasets in one group ``f(name0) + '_' + f(name1)``;
-    * deep-image-matching: group ``name0`` holding a dataset ``name1`` of (M, 2) int index
-      pairs (keypoint of image 0, keypoint of image 1).
-
-This module knows nothing of COLMAP: coordinates stay in the pixel-centre convention here.
-The COLMAP database side is :mod:`colmap_miho.adapters.exchange` (``import`` and ``export``
-commands).
-"""
+Features: a group per image with ``keypoints`` ``(N, 2)`` pixels (integer = pixel centre). Matches,
+told apart per pair: hloc's ``matches0`` ``(N0,)`` (-1 = unmatched) under ``f(name0)/f(name1)`` or
+``f(name0)_f(name1)``, ``f(n) = n.replace('/', '-')``; or deep-image-matching's ``name0/name1``
+``(M, 2)``."""
 
 from __future__ import annotations
 
@@ -54,7 +38,7 @@ def flat_name(name: str) -> str:
 
 
 def pair_key(name0: str, name1: str, separator: str = "/") -> str:
-    """hloc's key of the pair group (``names_to_pair``; ``separator='_'`` gives the legacy key)."""
+    """hloc's key of the pair group (``separator='_'`` gives the legacy key)."""
     return f"{flat_name(name0)}{separator}{flat_name(name1)}"
 
 
@@ -73,9 +57,8 @@ def open_h5(path: str | Path, mode: str = "r") -> h5py.File:
 
 @dataclass(frozen=True)
 class ImageFeatures:
-    """Keypoints of one image. ``keypoints`` (N, 2) float64 (x, y) pixels, integer = pixel centre;
-    ``scores`` (N,) float32 or None; ``shapes`` (N, 2, 2) float32 local affine frames (from hloc's
-    ``scales``/``oris``) or None."""
+    """Keypoints of one image: ``keypoints`` ``(N, 2)`` float64 pixels, ``scores`` ``(N,)`` or None,
+    ``shapes`` ``(N, 2, 2)`` affine frames (from ``scales``/``oris``) or None."""
 
     name: str
     keypoints: np.ndarray
@@ -85,8 +68,7 @@ class ImageFeatures:
 
 @dataclass(frozen=True)
 class PairMatches:
-    """Matches of one image pair. ``matches`` (M, 2) int64 keypoint indices (image ``name0``,
-    image ``name1``); ``scores`` (M,) float32 or None."""
+    """Matches of one pair: ``matches`` ``(M, 2)`` int64 (name0, name1), ``scores`` ``(M,)`` or None."""
 
     name0: str
     name1: str
@@ -105,8 +87,7 @@ IMAGE_DATASETS = frozenset({"descriptors", "scores", "image_size", "scales", "or
 
 @h5_reader
 def list_feature_images(h5: h5py.File) -> list[str]:
-    """Names of the images of a features file: every group holding a ``keypoints`` dataset,
-    in file order (names are group paths without the leading ``/``)."""
+    """Image names of a features file: every group with a ``keypoints`` dataset, in file order."""
     names: list[str] = []
     keypoint_groups: list[str] = []  # a 'keypoints' that is a group, not a dataset
     without: dict[str, list[str]] = {}  # image group -> its per-image datasets, no 'keypoints'
@@ -140,17 +121,8 @@ def list_feature_images(h5: h5py.File) -> list[str]:
 @h5_reader
 def read_features(h5: h5py.File, name: str, *, budget_bytes: int = READ_BUDGET_BYTES,
                   image_size: tuple[int, int] | None = None, origin: float = -0.5) -> ImageFeatures:
-    """Read the keypoints of image ``name``.
-
-    Shapes and dtypes are checked before anything is read: ``keypoints`` (N, 2) real numbers
-    whose arrays fit ``budget_bytes``, then finite values, and with ``image_size`` (width,
-    height) inside the image (``origin``: the coordinate of its edge, -0.5 for pixel centres
-    at integers; see :func:`~.h5_checks.check_keypoints_in_image`); ``scores``/``scales``/
-    ``oris`` (N,) real numbers, finite.
-
-    Raises:
-        ValueError: naming the file and the image.
-    """
+    """Read the keypoints of image ``name``, shapes and dtypes checked before reading, then values
+    finite and inside ``image_size``. ValueError names the file and the image."""
     if name not in h5 or not isinstance(h5[name], h5py.Group) or "keypoints" not in h5[name]:
         raise InvalidInput(f"{h5.filename}: image {name!r} has no 'keypoints' group/dataset")
     grp = h5[name]
@@ -191,8 +163,7 @@ def _optional_vector(h5: h5py.File, grp: h5py.Group, key: str, n: int, name: str
 
 
 def write_features(h5: h5py.File, name: str, keypoints: np.ndarray, image_size: tuple[int, int] | None = None) -> None:
-    """Write one image group: ``keypoints`` (N, 2) float32 pixel-centre (x, y) and, when given,
-    ``image_size`` (width, height) as hloc stores it. Replaces an existing group of that name."""
+    """Write one image group (``keypoints`` float32, optional ``image_size``), replacing an existing one."""
     kp = np.asarray(keypoints, dtype=np.float32)
     if kp.ndim != 2 or kp.shape[1] != 2:
         raise InvalidInput(f"keypoints of image {name!r} have shape {kp.shape}, expected (N, 2)")
@@ -206,8 +177,7 @@ def write_features(h5: h5py.File, name: str, keypoints: np.ndarray, image_size: 
 
 @h5_reader
 def count_rows(h5: h5py.File, leaf: str) -> int:
-    """The total first dimension of every dataset named ``leaf`` (e.g. ``keypoints``), from the
-    shapes alone (nothing is read)."""
+    """Total first dimension of every dataset named ``leaf``, from the shapes alone."""
     total = 0
 
     def visit(path: str, obj) -> None:
@@ -221,8 +191,7 @@ def count_rows(h5: h5py.File, leaf: str) -> int:
 
 @h5_reader
 def count_matches(h5: h5py.File) -> int:
-    """An upper bound of the matches of a matches file from its datasets' shapes alone: the
-    length of every ``matches0`` and the rows of every deep-image-matching (M, 2) array."""
+    """An upper bound of a matches file's matches from its datasets' shapes alone."""
     total = 0
 
     def visit(path: str, obj) -> None:
@@ -239,8 +208,6 @@ def count_matches(h5: h5py.File) -> int:
 
 
 class _NameIndex:
-    """Resolves pair keys of a matches file back to image names."""
-
     def __init__(self, names: Iterable[str]):
         self.names = set(names)
         self.by_flat: dict[str, str] = {}
@@ -253,7 +220,7 @@ class _NameIndex:
         return part if part in self.names else self.by_flat.get(part)
 
     def split(self, key: str) -> tuple[str, str]:
-        """Split a pair key ``a/b``, ``a_b`` (any separator position) into two known image names."""
+        """Split a pair key ``a/b`` or ``a_b`` into two known image names."""
         found = set()
         for i, ch in enumerate(key):
             if ch in "/_":
@@ -302,13 +269,7 @@ def _pair_datasets(h5: h5py.File) -> list[tuple[str, str]]:
 
 
 def _as_int64(values: np.ndarray, what: str, n0: int, n1: int) -> np.ndarray:
-    """Integer match indices (any shape, any integer dtype) as int64. An unsigned 64-bit value
-    above int64's range (e.g. a -1 written as uint64) cannot be a keypoint index: refused here,
-    naming the entry, rather than wrapped (or cast through float64 with a numpy warning).
-
-    Raises:
-        InvalidInput: naming ``what``, the entry and the value.
-    """
+    """Integer match indices as int64; a uint64 value above int64's range is refused (InvalidInput)."""
     if values.dtype.kind == "u" and values.dtype.itemsize >= 8:
         too_big = values > np.uint64(np.iinfo(np.int64).max)
         if too_big.any():
@@ -322,8 +283,7 @@ def _as_int64(values: np.ndarray, what: str, n0: int, n1: int) -> np.ndarray:
 @h5_reader
 def _read_pair(h5: h5py.File, key: str, layout: str, name0: str, name1: str, n0: int, n1: int,
                budget_bytes: int = READ_BUDGET_BYTES) -> PairMatches:
-    """One pair's matches; shapes, dtypes and sizes checked before reading, indices after,
-    and repeated (i, j) rows dropped with a warning naming the pair."""
+    """One pair's matches, checked; repeated rows dropped with a warning."""
     label = f"pair ({name0!r}, {name1!r})"
     if layout == "hloc":
         grp = h5[key]
@@ -377,19 +337,8 @@ def iter_matches(
     num_keypoints: dict[str, int],
     pairs: Iterable[tuple[str, str]] | None = None,
 ) -> Iterator[PairMatches]:
-    """Yield the matches of each pair, one pair in memory at a time.
-
-    Args:
-        h5: an open matches file (any of the three layouts; they may even be mixed).
-        num_keypoints: image name -> number of keypoints, for every image of the features file
-            (used to resolve pair keys and to check indices).
-        pairs: optional (name0, name1) pairs (a pairs.txt); each is looked up in either order and
-            every layout, and a missing one raises ``ValueError`` naming it. When None, every pair
-            in the file is yielded. Either way a pair already yielded (in either order) is skipped.
-
-    Yields:
-        :class:`PairMatches` in the orientation of the pairs list (or of the file).
-    """
+    """Yield :class:`PairMatches` one pair at a time (layouts may mix); ``pairs`` restricts and
+    orients them (ValueError for a missing one); a pair already yielded is skipped."""
     index = _NameIndex(num_keypoints)
     todo: Iterable[tuple[str, str, str, str, bool]]
     if pairs is None:
@@ -431,10 +380,8 @@ def _find_pair(h5: h5py.File, name0: str, name1: str) -> tuple[str, str, str, st
 def write_pair_matches(
     h5: h5py.File, pm: PairMatches, num_keypoints0: int, layout: str = "hloc"
 ) -> int:
-    """Write one pair. ``layout='hloc'``: group ``f(name0)/f(name1)`` with ``matches0`` (N0,) int32
-    and ``matching_scores0`` (N0,) float32 (1.0 when no scores). A keypoint of image 0 with several
-    matches keeps its first one only (``matches0`` cannot hold more): the number dropped is
-    returned. ``layout='dim'``: dataset ``name0/name1`` (M, 2) int64, lossless, returns 0."""
+    """Write one pair: ``'hloc'`` as ``matches0`` (a keypoint of image 0 keeps its first match only;
+    returns how many were dropped) or ``'dim'`` as ``(M, 2)`` int64 (lossless, returns 0)."""
     m = np.asarray(pm.matches, dtype=np.int64).reshape(-1, 2)
     if layout == "dim":
         h5.create_dataset(f"{pm.name0}/{pm.name1}", data=m)
@@ -455,20 +402,9 @@ def write_pair_matches(
 
 
 def read_pairs_file(path: str | Path) -> list[tuple[str, str]]:
-    """Read a pairs list: the package's one reader of pairs files.
-
-    Rule: one pair per line, its first two whitespace-separated fields are the two image
-    names; further fields are ignored, so both hloc's ``pairs.txt`` (``name0 name1``) and the
-    SuperGlue/LoFTR ``pairs_with_gt.txt`` (``name0 name1 rot0 rot1 K0 K1 T_0to1``) read.
-    Blank lines and lines starting with ``#`` are skipped.
-
-    Returns:
-        ``[(name0, name1), ...]`` in file order (duplicates kept).
-
-    Raises:
-        FileNotFoundError: ``path`` is missing. ValueError: a line with a single field, naming
-        ``file:line``.
-    """
+    """Read a pairs list: the first two whitespace-separated fields of each line (so both
+    ``pairs.txt`` and ``pairs_with_gt.txt``); blank and ``#`` lines skipped. Returns ``[(name0,
+    name1), ...]`` in file order. FileNotFoundError, or ValueError naming ``file:line``."""
     path = Path(path)
     pairs = []
     with open(path, encoding="utf-8") as f:

@@ -1,14 +1,5 @@
-"""Image files: the one decoder (:func:`read_image`), gray conversions, sizes, and lazy, bounded
-loading of the images named in a COLMAP database.
-
-:class:`ImageLoader` is a read-only mapping ``image_id -> float32 (H, W) grayscale in
-[0, 1]`` (or ``None`` for a missing or unreadable image). Images are read on first access and
-at most ``max_cached`` images and / or ``max_cached_bytes`` bytes of them are kept (least
-recently used first out), so memory stays bounded on large scenes; ``decodes`` counts every
-real decode (a cache hit is not one). Colour images are converted to gray (OpenCV's BGR -> gray weights), 16-bit
-images are scaled to [0, 1], an alpha channel is dropped. A missing or unreadable image gives
-one warning naming it, then ``None``.
-"""
+"""Image files: the one decoder (:func:`read_image`), gray conversions, sizes, and bounded lazy
+loading of a database's images (:class:`ImageLoader`, least recently used out)."""
 
 from __future__ import annotations
 
@@ -26,18 +17,8 @@ log = logging.getLogger(__name__)
 
 
 def read_image(path: str | Path, *, gray8: bool = False) -> np.ndarray | None:
-    """Decode one image file; the one image decoder of the package (OpenCV).
-
-    Args:
-        path: image file; non-ASCII paths work (unlike ``cv2.imread``).
-        gray8: False (default): the pixels as stored, (H, W) or (H, W, C) in the file's dtype
-            (uint8, uint16 ...), channels in BGR(A) order, no EXIF rotation (as COLMAP reads
-            them). True: uint8 (H, W) grayscale from the decoder itself, exactly as
-            ``cv2.imread(path, cv2.IMREAD_GRAYSCALE)``.
-
-    Returns:
-        The array, or None if the file is missing, empty or not decodable.
-    """
+    """Decode one image file (OpenCV; non-ASCII paths work), None if unusable: as stored (BGR(A), no
+    EXIF rotation, as COLMAP reads it), or with ``gray8`` as ``cv2.IMREAD_GRAYSCALE``."""
     import cv2
 
     p = Path(path)
@@ -53,17 +34,12 @@ def read_image(path: str | Path, *, gray8: bool = False) -> np.ndarray | None:
 
 
 def read_gray_float(path: str | Path) -> np.ndarray | None:
-    """Read one image as float32 (H, W) grayscale in [0, 1]; None if missing or unreadable.
-
-    Colour is converted with OpenCV's BGR -> gray weights, an alpha channel is dropped, uint8
-    is divided by 255 and uint16 by 65535.
-    """
+    """One image as float32 ``(H, W)`` gray in [0, 1] (OpenCV weights, alpha dropped); None if unusable."""
     img = read_image(path)
     return None if img is None else _to_gray_float(img)
 
 
 def _to_gray_float(img: np.ndarray) -> np.ndarray:
-    """Decoded pixels (as :func:`read_image` gives them) -> float32 (H, W) gray in [0, 1]."""
     import cv2
 
     if img.ndim == 3:
@@ -78,12 +54,8 @@ def _to_gray_float(img: np.ndarray) -> np.ndarray:
 
 
 def read_gray_uint8(path: str | Path) -> np.ndarray:
-    """Read one image as uint8 (H, W) grayscale, converted by the decoder (libpng / libjpeg
-    gray output, which may differ from :func:`read_gray_float` by a grey level or two).
-
-    Raises:
-        FileNotFoundError: the file is missing or cannot be decoded (the message names it).
-    """
+    """One image as uint8 gray from the decoder (may differ from :func:`read_gray_float` by a level
+    or two); FileNotFoundError naming it."""
     img = read_image(path, gray8=True)
     if img is None:
         raise FileNotFoundError(f"cannot read image {path}")
@@ -96,8 +68,7 @@ _END_MARKER_WINDOW = 4096
 
 
 def _truncated(data: np.ndarray) -> bool:
-    """True for a JPEG without its EOI marker or a PNG without IEND near its end (OpenCV
-    decodes a cut JPEG without an error, filling the missing rows with grey)."""
+    """True for a JPEG without EOI or a PNG without IEND (OpenCV decodes a cut JPEG silently)."""
     head, tail = data[:8].tobytes(), data[-_END_MARKER_WINDOW:].tobytes()
     if head[:2] == b"\xff\xd8":
         return b"\xff\xd9" not in tail
@@ -107,11 +78,8 @@ def _truncated(data: np.ndarray) -> bool:
 
 
 def image_problem(path: str | Path, expected_size: tuple[int, int] | None = None) -> str | None:
-    """Why the image file ``path`` cannot be used, or None when it can: missing, empty,
-    truncated (JPEG / PNG end marker absent), not decodable, or of another size than
-    ``expected_size`` ``(width, height)`` (its camera in the database: its keypoints would
-    not belong to these pixels). Decodes the whole image.
-    """
+    """Why the image at ``path`` cannot be used (missing, empty, truncated, undecodable, not
+    ``expected_size``), or None. Decodes the whole image."""
     return _checked_decode(path, expected_size)[1]
 
 
@@ -124,8 +92,7 @@ OUTSIDE = "named outside the image folder (an absolute name or one with '..')"
 
 def _checked_decode(path: str | Path, expected_size: tuple[int, int] | None = None
                     ) -> tuple[np.ndarray | None, str | None]:
-    """(float32 gray image as :func:`read_gray_float` gives it, None) when the file can be used,
-    else (None, why): the checks of :func:`image_problem` and the decode in one read."""
+    """``(gray float32, None)`` when the file can be used, else ``(None, why)``, in one read."""
     import cv2
 
     p = Path(path)
@@ -146,11 +113,7 @@ def _checked_decode(path: str | Path, expected_size: tuple[int, int] | None = No
 
 
 def image_size(path: str | Path) -> tuple[int, int]:
-    """``(width, height)`` in pixels of an image file (decoded by :func:`read_image`).
-
-    Raises:
-        FileNotFoundError: the file is missing or cannot be decoded (the message names it).
-    """
+    """``(width, height)`` of an image file by decoding it; FileNotFoundError naming it."""
     img = read_image(path)
     if img is None:
         raise FileNotFoundError(f"cannot read image {path}")
@@ -158,9 +121,7 @@ def image_size(path: str | Path) -> tuple[int, int]:
 
 
 def header_size(path: str | Path) -> tuple[int, int] | None:
-    """``(width, height)`` in pixels of an image file as stored (no EXIF rotation, as COLMAP
-    reads it), from its header (Pillow) where the format allows, else by decoding it; None when
-    the file is not a readable image."""
+    """``(width, height)`` as stored (no EXIF rotation), from the header where possible; None if unreadable."""
     import warnings
 
     try:
@@ -182,9 +143,7 @@ def header_size(path: str | Path) -> tuple[int, int] | None:
 
 
 def folder_image_sizes(folder: str | Path) -> dict[str, tuple[int, int]]:
-    """Every image file under ``folder`` (all depths, as COLMAP's extraction lists them):
-    its name relative to ``folder`` (``/``-separated, COLMAP's image name) -> ``(width,
-    height)`` pixels; files that are not readable images are left out."""
+    """Every readable image under ``folder`` (all depths): COLMAP image name -> ``(width, height)``."""
     import os
 
     folder = Path(folder)
@@ -199,25 +158,8 @@ def folder_image_sizes(folder: str | Path) -> dict[str, tuple[int, int]]:
 
 
 class ImageLoader(Mapping):
-    """Mapping image_id -> float32 (H, W) gray image in [0, 1], or None, loaded lazily.
-
-    Args:
-        image_dir: folder the database's image names are relative to.
-        names: image_id -> file name (as stored in the database).
-        max_cached: most images kept in memory at once (>= 1), or None (no count bound).
-        max_cached_bytes: most bytes of decoded images kept at once (float32: 4 bytes a pixel),
-            or None (no byte bound). Both bounds apply; an image bigger than the byte bound is
-            returned but not kept.
-        expected_sizes: optional image_id -> (width, height) from the database's cameras;
-            an image of another size is not used (its keypoints do not belong to it): one
-            warning, then ``None``.
-
-    Attributes:
-        decodes: image files decoded so far (by lookups that missed the cache and by
-            :meth:`check_all`).
-        decoded: image id -> times that image file was decoded.
-        loads: decodes by lookups only.
-    """
+    """Lazy mapping image_id -> float32 ``(H, W)`` gray in [0, 1], or None (unusable or not its
+    camera's size: one warning); ``max_cached`` / ``max_cached_bytes`` bound the LRU cache."""
 
     def __init__(self, image_dir: str | Path, names: Mapping[int, str], *,
                  max_cached: int | None = 8, max_cached_bytes: int | None = None,
@@ -255,8 +197,7 @@ class ImageLoader(Mapping):
 
     def add_images(self, names: Mapping[int, str],
                    expected_sizes: Mapping[int, tuple[int, int]] | None = None) -> None:
-        """Add (or rename) images; the cache is kept, so a worker's loader can serve the images
-        of one task after another."""
+        """Add (or rename) images; the cache is kept, so a worker serves task after task."""
         for k, v in names.items():
             k = int(k)
             if self.names.get(k, str(v)) != str(v):
@@ -305,8 +246,7 @@ class ImageLoader(Mapping):
                      or self._cached_bytes + extra_bytes <= self.max_cached_bytes))
 
     def _keep(self, image_id: int, img: np.ndarray, *, evict: bool) -> None:
-        """Cache ``img``: evicting the least recently used images when ``evict``, else only
-        if it fits beside the cached ones. Never kept when it alone is over a bound."""
+        """Cache ``img``, evicting the least recently used when ``evict``; never one over a bound."""
         if not (self.max_cached_bytes is None or img.nbytes <= self.max_cached_bytes):
             return
         if evict:
@@ -317,8 +257,7 @@ class ImageLoader(Mapping):
             self._cached_bytes += img.nbytes
 
     def clear_cache(self) -> None:
-        """Drop every cached image (the work moves to worker processes with loaders of
-        their own: the memory budget is theirs now)."""
+        """Drop every cached image (the work moves to workers with loaders of their own)."""
         self._cache.clear()
         self._cached_bytes = 0
 
@@ -335,13 +274,8 @@ class ImageLoader(Mapping):
                         self.path(image_id), why)
 
     def check_all(self, inspect: Callable[[int, np.ndarray], None] | None = None) -> list[int]:
-        """Find the images that cannot be used (see :func:`image_problem`: missing, empty,
-        truncated, undecodable or of another size than their camera), decoding each once
-        (images already cached are not decoded again); returns their ids (each warned once;
-        the reason is in ``problems``). A good image is kept in the cache when it fits beside
-        the ones kept before it (in id order: nothing is evicted), so that a walk starting with
-        the lowest image ids does not decode them again. ``inspect(image_id, image)`` sees each
-        good image decoded here."""
+        """Ids of the images that cannot be used (:func:`image_problem`), decoding each once;
+        good ones are cached while they fit, in id order. ``inspect`` sees each good image."""
         bad = []
         for image_id in self.names:
             why = self.problems.get(image_id)

@@ -1,13 +1,6 @@
-"""The COLMAP model files: their names (:data:`MODEL_STEMS`), and a check of a binary model's
-files against their sizes before pycolmap reads them.
-
-pycolmap's binary reader trusts every count in the file (cameras, images, 2D points per image,
-3D points, track lengths, rig sensors, frame data): a truncated or damaged file makes it read
-past the end, where a garbage count allocates without bound (``std::bad_alloc`` after many GB)
-or aborts. :func:`check_binary_model` walks each file's records with every count checked
-against the bytes left, in Python (no allocation follows a count), so that a damaged file is
-one line naming it. The layouts are COLMAP's (``colmap/scene/reconstruction_io_binary.cc``).
-"""
+"""The COLMAP model files (:data:`MODEL_STEMS`) and a check of a binary model before pycolmap reads
+it: pycolmap trusts every count in the file, so a damaged one allocates without bound or aborts.
+:func:`check_binary_model` walks the records with each count checked against the bytes left."""
 
 from __future__ import annotations
 
@@ -42,8 +35,6 @@ class _Damaged(Exception):
 
 
 class _Reader:
-    """Bounds-checked reads from one file's bytes."""
-
     def __init__(self, data: bytes) -> None:
         self.data, self.pos = memoryview(data), 0
 
@@ -64,8 +55,7 @@ class _Reader:
         return _U32.unpack_from(self.data, self.pos - 4)[0]
 
     def count(self, what: str, record: int) -> int:
-        """A uint64 count of records of at least ``record`` bytes each: refused when they cannot
-        fit in what is left (the check that keeps a lying count from allocating)."""
+        """A uint64 count of records of at least ``record`` bytes, refused if they cannot fit."""
         n = self.u64(what)
         if n * record > self.left():
             raise _Damaged(f"{what} is {n}, but {n} records need at least {n * record} bytes and "
@@ -143,14 +133,8 @@ _WALKERS = {"cameras.bin": _cameras, "images.bin": _images, "points3D.bin": _poi
 
 
 def check_binary_model(folder: str | os.PathLike) -> None:
-    """Walk every binary model file in ``folder`` (cameras, images, points3D, rigs, frames)
-    with each count checked against the bytes left: a truncated or damaged file is refused
-    before pycolmap reads it. Text models and missing files are left to the reader. Linear in
-    the file sizes, no allocation per count.
-
-    Raises:
-        InvalidInput: (exit 2) naming the file and what does not fit.
-    """
+    """Walk every binary model file in ``folder`` with each count checked against the bytes left;
+    InvalidInput naming a truncated or damaged file. Text models and missing files pass."""
     for name, walk in _WALKERS.items():
         path = Path(folder) / name
         if not path.is_file():

@@ -1,12 +1,5 @@
-"""One place that resolves the paths a command reads and writes and refuses any overlap.
-
-A command that writes a file where it reads one destroys the user's data (``refine --json
-x.db --database x.db`` would replace the database with the JSON summary). Every command
-therefore lists its inputs and outputs (``paths(args)`` in its module, see
-:mod:`colmap_miho.cli`) and :func:`check_distinct` compares them before any work starts:
-paths are resolved (symbolic links followed, ``..`` removed) and existing files are compared
-by device and inode, so a symlink or a hard link to the database counts as the database.
-"""
+"""Resolves the paths a command reads and writes and refuses any overlap (``refine --json x.db
+--database x.db`` would destroy the database), by device and inode, before any work."""
 
 from __future__ import annotations
 
@@ -26,10 +19,7 @@ PathArg = str | os.PathLike | None
 
 
 def resolve(path: str | os.PathLike) -> Path:
-    """The absolute, symlink-free path that writing ``path`` would reach.
-
-    Existing paths are resolved completely; for a missing one its folder is resolved and the
-    name appended (a dangling symlink resolves to its target)."""
+    """The absolute, symlink-free path that writing ``path`` would reach (a missing one: its folder resolved)."""
     p = Path(path).expanduser()
     try:
         return p.resolve(strict=False)
@@ -38,8 +28,7 @@ def resolve(path: str | os.PathLike) -> Path:
 
 
 def identity(path: str | os.PathLike) -> tuple[int, int] | None:
-    """``(st_dev, st_ino)`` of the file ``path`` reaches (symlinks followed), or None if it
-    does not exist."""
+    """``(st_dev, st_ino)`` of the file ``path`` reaches, or None if it does not exist."""
     try:
         st = os.stat(path)
     except OSError:
@@ -48,8 +37,7 @@ def identity(path: str | os.PathLike) -> tuple[int, int] | None:
 
 
 def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
-    """True if ``a`` and ``b`` reach the same file: equal device and inode when both exist,
-    else equal resolved paths."""
+    """Whether ``a`` and ``b`` reach the same file (device and inode, else resolved paths)."""
     ia, ib = identity(a), identity(b)
     if ia is not None and ib is not None:
         return ia == ib
@@ -61,9 +49,7 @@ MODEL_SUBFOLDERS = ("", "gt_model", "sparse/0", "0")
 
 
 def model_files(folder: PathArg, label: str) -> dict[str, Path]:
-    """The COLMAP model files a command writes into ``folder`` (``cameras``, ``images``,
-    ``points3D``, ``rigs``, ``frames``; .bin and .txt), labelled ``"<label> (<name>)"`` for
-    :func:`check_distinct`; empty when ``folder`` is None."""
+    """The COLMAP model files a command writes into ``folder``, labelled for :func:`check_distinct`."""
     if folder is None:
         return {}
     names = [f"{stem}{ext}" for stem in MODEL_STEMS for ext in MODEL_EXTENSIONS]
@@ -71,10 +57,7 @@ def model_files(folder: PathArg, label: str) -> dict[str, Path]:
 
 
 def model_input_files(folder: PathArg, label: str) -> dict[str, Path]:
-    """The model files a command may read for a model argument ``folder`` (the folder itself,
-    or a dataset folder with ``gt_model/``, ``sparse/0/`` or ``0/``), plus the dataset's
-    ``pairs_with_gt.txt``: inputs for :func:`check_distinct`, so that no output lands on a
-    file of the model; empty when ``folder`` is None."""
+    """The model files (and ``pairs_with_gt.txt``) a command may read for the model argument ``folder``."""
     if folder is None:
         return {}
     out: dict[str, Path] = {}
@@ -90,9 +73,7 @@ MAX_LISTED_FILES = 200_000
 
 
 def folder_files(folder: PathArg, label: str) -> dict[str, Path]:
-    """Every file below the input folder ``folder`` (e.g. ``--images``: any of them may be read),
-    labelled ``"<label> (<relative path>)"``, for :func:`check_distinct`; empty when ``folder``
-    is None or not a folder. Hidden folders are skipped; at most :data:`MAX_LISTED_FILES`."""
+    """Every file below the input ``folder`` (hidden folders skipped, at most :data:`MAX_LISTED_FILES`)."""
     if folder is None or not Path(folder).is_dir():
         return {}
     out: dict[str, Path] = {}
@@ -108,19 +89,14 @@ def folder_files(folder: PathArg, label: str) -> dict[str, Path]:
 
 
 def text_model_in(folder: PathArg) -> list[str]:
-    """Names of the COLMAP text-model files (``cameras.txt``, ``images.txt``, ...) in ``folder``:
-    a mapping writes a binary model there and would delete them."""
+    """Names of the COLMAP text-model files in ``folder`` (a mapping there would delete them)."""
     if folder is None:
         return []
     return [f"{stem}.txt" for stem in MODEL_STEMS if (Path(folder) / f"{stem}.txt").is_file()]
 
 
 def refuse_text_model(folder: PathArg, label: str) -> None:
-    """Refuse to map into a folder that holds a COLMAP text model (e.g. a ground truth).
-
-    Raises:
-        UserError: (exit 2) naming the folder and its text files.
-    """
+    """Refuse to map into a folder holding a COLMAP text model such as a ground truth (UserError)."""
     found = text_model_in(folder)
     if found:
         raise UserError(f"{label} {folder} holds a COLMAP text model ({', '.join(found)}) that mapping "
@@ -128,13 +104,7 @@ def refuse_text_model(folder: PathArg, label: str) -> None:
 
 
 def refuse_folder_inside(output: PathArg, out_label: str, folder: PathArg, in_label: str) -> None:
-    """Refuse an output folder that is the input folder ``folder`` (e.g. ``--images``) or lies
-    inside it: what the command writes would sit among the inputs (a later extraction would
-    read the model's files or the plots as images).
-
-    Raises:
-        UserError: naming both options and paths.
-    """
+    """Refuse an output folder that is, or lies inside, the input ``folder`` (UserError naming both)."""
     if output is None or folder is None or not Path(folder).is_dir():
         return
     where, inside = resolve(output), resolve(folder)
@@ -146,17 +116,9 @@ def refuse_folder_inside(output: PathArg, out_label: str, folder: PathArg, in_la
 def comparison_paths(output: str | os.PathLike, *, images: PathArg, database: PathArg = None,
                      gt: PathArg = None, pairs: PathArg = None, repeats: int = 1, seed: int = 0,
                      compare: bool = True) -> tuple[dict[str, Path], dict[str, Path]]:
-    """The inputs and outputs of ``compare`` (``compare=True``) or ``run`` for
-    :func:`check_distinct`: the files read inside ``images`` and ``gt``, and every file written
-    in ``output`` (databases, JSON, tables, plots, point clouds, the model files of every
-    mapping run: ``<side>/model``, ``<side>/runs/seed<S>/model``). ``run``'s
-    ``OUTPUT/database.db`` is an input when it exists (reused), else an output.
-
-    Raises:
-        UserError: the outputs overlap the inputs (:func:`check_distinct`), a file or folder the
-            job makes in ``output`` is a symbolic link (:func:`refuse_links_below`), or a mapping
-            run's model folder holds a COLMAP text model (:func:`refuse_text_model`).
-    """
+    """The inputs and outputs of ``compare`` or ``run`` for :func:`check_distinct` (``run``'s
+    ``OUTPUT/database.db`` is an input when it exists). UserError for an overlap, a link among the
+    job's outputs, or a text model in a model folder."""
     out = Path(output)
     refuse_folder_inside(out, "--output", images, "--images")
     files = ["refined/database.db", "refined/refine.json"]
@@ -193,14 +155,8 @@ def comparison_paths(output: str | os.PathLike, *, images: PathArg, database: Pa
 
 
 def refuse_links_below(root: str | os.PathLike, outputs: Mapping[str, PathArg]) -> None:
-    """Refuse outputs that a command makes itself below the folder ``root`` (the folders between
-    ``root`` and each file, and the file) when one of them is a symbolic link: writing there
-    would replace files, or clear a run's folder, in the link's target. ``root`` itself is the
-    user's choice and may be a link.
-
-    Raises:
-        UserError: (exit 2) naming the option, the link and its target.
-    """
+    """Refuse a symbolic link among the folders and files a command makes below ``root`` (``root``
+    itself may be a link); UserError naming the link."""
     base = Path(root)
     for label, path in _clean(outputs).items():
         try:
@@ -219,9 +175,7 @@ def refuse_links_below(root: str | os.PathLike, outputs: Mapping[str, PathArg]) 
 
 
 def leaves_folder(name: str) -> bool:
-    """True when the image name ``name`` (relative to the image folder, as COLMAP stores it)
-    is absolute or climbs out of the folder with ``..``: reading it would read a file outside
-    ``--images``. Judged on the name alone (symlinks inside the folder are the user's choice)."""
+    """Whether the image name ``name`` is absolute or climbs out of the image folder with ``..``."""
     if not name or os.path.isabs(name) or name.startswith(("/", "\\")):
         return True
     parts = os.path.normpath(name.replace("\\", "/")).split("/")
@@ -229,10 +183,7 @@ def leaves_folder(name: str) -> bool:
 
 
 def names_of_one_file(image_dir: str | os.PathLike, names: Mapping[int, str]) -> list[list[tuple[int, str]]]:
-    """Groups of database images (``(image_id, name)``, ids ascending) whose names lead to one
-    file of ``image_dir``: the same file (``./a.png`` and ``a.png``, or a link), else (no such
-    file) the same path once normalised. Names that leave the folder are left out
-    (:func:`leaves_folder` has its own warning)."""
+    """Groups of database images ``(image_id, name)`` whose names lead to one file of ``image_dir``."""
     groups: dict[object, list[tuple[int, str]]] = {}
     folder = Path(image_dir)
     for image_id in sorted(names):
@@ -252,23 +203,9 @@ def _clean(paths: Mapping[str, PathArg]) -> dict[str, Path]:
 
 
 def check_distinct(inputs: Mapping[str, PathArg], outputs: Mapping[str, PathArg]) -> None:
-    """Refuse a command whose outputs overlap its inputs or each other.
-
-    Args:
-        inputs: label (the option, e.g. ``"--database"``) -> a file or folder the command
-            reads; None entries are skipped. An input database also protects its SQLite side
-            files (``-wal``, ``-shm``, ``-journal``). A folder protects only itself: list the
-            files a command reads inside one (:func:`model_input_files`, :func:`folder_files`).
-        outputs: label -> a file the command writes (replaced if it exists); None skipped.
-            List the files written inside output folders too (:func:`model_files`).
-
-    Raises:
-        UserError: (exit 2) an output is the same file as an input, one of its SQLite side
-            files, or another output; an output is an existing folder, FIFO, socket or block
-            device (a character device is written through: see
-            :func:`~colmap_miho.adapters.staged_write.check_output_path`). The message names
-            both options and paths and says to choose another path.
-    """
+    """Refuse a command whose outputs overlap its inputs or each other (UserError, exit 2). An input
+    database also protects its SQLite side files; a folder protects only itself, so list the files
+    read or written inside one."""
     ins, outs = _clean(inputs), _clean(outputs)
     # one stat and one resolve per path: input folders may list thousands of files
     by_identity: dict[tuple[int, int], str] = {}

@@ -1,11 +1,5 @@
-"""Safe handling of the user's database file: checks, read copies, backups.
-
-The input database is never opened for writing (and never by pycolmap, which migrates the
-schema on open). All work happens on a temporary copy beside the output
-(:mod:`~colmap_miho.adapters.working_copy`); on success the copy replaces the output with
-:func:`os.replace` (atomic on one file system). A crash, SIGKILL or Ctrl-C at any point leaves
-the input byte-identical.
-"""
+"""Safe handling of the user's database file: checks, read copies, backups. The input is never
+opened for writing, nor by pycolmap (which migrates the schema on open)."""
 
 from __future__ import annotations
 
@@ -66,10 +60,8 @@ def exit_notes() -> list[str]:
 
 
 def remove_working_files() -> list[Path]:
-    """Delete this process's registered working files
-    (:data:`~colmap_miho.adapters.filesystem.WORKING_FILES`: working copies, read copies) and their
-    SQLite side files; returns those that existed. For a forced exit (a SIGTERM that arrives
-    while a long COLMAP call holds the interpreter), where no ``finally`` block runs."""
+    """Delete this process's registered working files and their SQLite side files (a forced exit
+    runs no ``finally``); returns those that existed."""
     removed = []
     for path in list(WORKING_FILES):
         if path.exists():
@@ -90,13 +82,8 @@ def remove_working_files() -> list[Path]:
 
 
 def check_database_path(path: str | os.PathLike) -> Path:
-    """Check that ``path`` is an existing, readable SQLite file and return it as a Path.
-
-    Nothing is created or opened for writing: a typo must not produce an empty database.
-
-    Raises:
-        DatabaseError: missing path, a folder, an unreadable file or not an SQLite file.
-    """
+    """``path`` as a Path after checking it is an existing, readable SQLite file, without creating
+    or writing anything (a typo must not make an empty database). DatabaseError otherwise."""
     p = Path(path)
     if not p.exists():
         raise DatabaseError(f"database not found: {p}")
@@ -118,10 +105,7 @@ def side_files(path: Path) -> list[Path]:
 
 
 def locked_by_other_process(path: Path) -> bool:
-    """True if another process holds an SQLite lock on ``path`` (POSIX F_GETLK probe).
-
-    The probe opens the file read-only and only asks the kernel; it takes no lock.
-    """
+    """Whether another process holds an SQLite lock on ``path`` (an F_GETLK probe; takes no lock)."""
     try:
         fd = os.open(path, os.O_RDONLY)
     except OSError:
@@ -140,19 +124,9 @@ def locked_by_other_process(path: Path) -> bool:
 
 
 def check_not_in_use(path: Path) -> None:
-    """Refuse a database that another program holds open or that was not closed cleanly.
-
-    COLMAP uses WAL journal mode: while a program has the database open it holds an SQLite
-    lock (probed without taking it) and there are ``-wal``/``-shm`` side files; a non-empty
-    ``-wal`` (or rollback ``-journal``) that nobody holds open is a hot journal left by a crash:
-    it holds data not yet in the main file, so copying the main file alone would use stale
-    data. An empty ``-wal`` and a ``-shm`` without a lock (what a read-only viewer leaves)
-    hold nothing and are safe.
-
-    Raises:
-        DatabaseError: another process holds a lock, or a hot journal exists; the message
-            names the file and the way out.
-    """
+    """Refuse a database another program holds open, or with a hot journal left by a crash (a
+    non-empty ``-wal`` or ``-journal`` nobody holds: copying the main file alone would lose data).
+    DatabaseError."""
     found = side_files(path)
     if locked_by_other_process(path):
         names = "".join(f", {f.name} exists" for f in found)
@@ -174,11 +148,7 @@ def _size(path: Path) -> int:
 
 
 def check_free_space(folder: Path, needed: int, what: str) -> None:
-    """Refuse to start when ``folder``'s file system has less than ``needed`` bytes free.
-
-    Raises:
-        UserError: not enough space; the message names the folder, both sizes and ``what``.
-    """
+    """Refuse to start with less than ``needed`` bytes free in ``folder`` (UserError naming the sizes)."""
     try:
         free = shutil.disk_usage(folder).free
     except OSError:  # pragma: no cover - unknown: let the copy itself fail cleanly
@@ -189,14 +159,8 @@ def check_free_space(folder: Path, needed: int, what: str) -> None:
 
 
 def read_copy(database: str | os.PathLike, dst: Path) -> Path:
-    """The safe way to read a database: check it (exists, SQLite, not in use, no hot journal),
-    check the free space, and copy it to ``dst``; returns the checked input path. Only the
-    copy may then be opened (pycolmap migrates the schema on open).
-
-    Raises:
-        DatabaseError / UserError: see :func:`check_database_path`, :func:`check_not_in_use`,
-            :func:`check_free_space`, :func:`copy_file`.
-    """
+    """Check a database (exists, SQLite, not in use), check free space and copy it to ``dst``;
+    returns the checked input path. Only the copy may then be opened."""
     src = check_database_path(database)
     check_not_in_use(src)
     check_free_space(Path(dst).parent, 2 * _size(src), f"a working copy of {src}")
@@ -207,14 +171,8 @@ def read_copy(database: str | os.PathLike, dst: Path) -> Path:
 
 
 def check_integrity(copy: Path, name: Path) -> None:
-    """SQLite's ``PRAGMA quick_check`` on the copy ``copy`` of the user's database ``name``
-    (with Python's sqlite3, closed again: a WAL-mode copy is left without side files): a
-    truncated or damaged file is an error before pycolmap, which aborts the process on some
-    damaged files, ever opens it. Never call it on the user's file itself.
-
-    Raises:
-        DatabaseError: damaged or not a database; the message names ``name``.
-    """
+    """``PRAGMA quick_check`` on ``copy`` (never the user's file) before pycolmap, which aborts on
+    some damaged files, opens it; DatabaseError naming ``name``."""
     try:
         con = sqlite3.connect(f"file:{Path(copy).resolve()}?mode=rw", uri=True)
         try:
@@ -230,15 +188,8 @@ def check_integrity(copy: Path, name: Path) -> None:
 
 
 def copy_file(src: Path, dst: Path) -> None:
-    """Copy ``src`` to ``dst`` (bytes only) and flush it to disk. ``dst`` is a file of ours (a
-    working copy, a backup): a symbolic link there is never written through.
-
-    Raises:
-        DatabaseError: the source changed while it was copied.
-        RunFailed: the disk is full, or a file-size limit was met (:func:`disk_full_error`).
-        UserError: ``dst`` is a symbolic link; the copy failed otherwise (a read-only folder):
-            ``dst`` is removed and the message names the folder.
-    """
+    """Copy ``src`` to ``dst`` (never through a link there) and flush. DatabaseError if the source
+    changed meanwhile; RunFailed for a full disk; UserError otherwise."""
     before = src.stat()
     if os.path.islink(dst):
         raise UserError(f"{dst} is a symbolic link (to {os.readlink(dst)}), where colmap-miho writes a file of "
@@ -268,8 +219,7 @@ COPY_BUFFER_BYTES = 1 << 22
 
 
 def file_identity(path: Path) -> tuple:
-    """What must not change under an in-place run: device, inode, size, mtime (ns) and the
-    first 100 bytes (SQLite's header with its change counter)."""
+    """What must not change under an in-place run: device, inode, size, mtime and SQLite's header."""
     st = os.stat(path)
     with open(path, "rb") as fh:
         header = fh.read(100)
@@ -287,9 +237,7 @@ def backup_path(database: Path, now: float | None = None) -> Path:
 
 
 def unused_stamped_name(database: Path, name_for, now: float | None = None) -> Path:
-    """``database.with_name(name_for(stamp))`` with the local time as stamp, ``-1``, ``-2``, ...
-    appended to the stamp until nothing is there (a dangling symbolic link holds its name too:
-    a file written there would land in its target)."""
+    """``database.with_name(name_for(stamp))`` with the local time as stamp, suffixed until unused."""
     stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
     candidate = database.with_name(name_for(stamp))
     k = 1
@@ -300,7 +248,6 @@ def unused_stamped_name(database: Path, name_for, now: float | None = None) -> P
 
 
 def remove_with_side_files(path: Path) -> None:
-    """Delete ``path`` and its SQLite side files, ignoring ones that do not exist (and symbolic
-    links standing there: not ours, see :func:`~colmap_miho.adapters.filesystem.remove_own_file`)."""
+    """Delete ``path`` and its SQLite side files, skipping missing ones and links."""
     for p in [path, *(Path(str(path) + s) for s in SIDE_SUFFIXES)]:
         remove_own_file(p)

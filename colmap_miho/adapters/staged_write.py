@@ -1,13 +1,5 @@
-"""Writing a user-visible file whole or not at all, and telling a full disk from other errors.
-
-Every file a command writes goes through :func:`staged_write`: a unique hidden name beside the
-target, flushed, its size checked after close (a native writer's silence is not trusted), then
-renamed onto the target; removed on failure (the primitives are
-:mod:`~colmap_miho.adapters.filesystem`'s). A symlink target keeps its link. Only a regular
-file (or nothing) is ever replaced: a character device (``/dev/null``, a terminal) is written
-through, and a FIFO, socket, block device or folder is refused (:func:`output_kind`). Private temporary
-folders (:func:`private_tempdir`) are locked while in use and removed by the next run after a kill.
-"""
+"""Writing a user-visible file whole or not at all (:func:`staged_write`), telling a full disk from
+other errors, and private temporary folders swept after a kill."""
 
 from __future__ import annotations
 
@@ -45,8 +37,7 @@ SQLITE_FULL_TEXT = ("database or disk is full", "disk i/o error", "no space left
 
 
 def is_disk_full(exc: BaseException) -> bool:
-    """True for a full disk: ENOSPC / EDQUOT / EFBIG, SQLite's ``SQLITE_FULL`` and pycolmap's
-    ``RuntimeError: ... database or disk is full``."""
+    """True for a full disk: ENOSPC / EDQUOT / EFBIG, ``SQLITE_FULL``, pycolmap's "database or disk is full"."""
     if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
         return True
     if isinstance(exc, (OSError, RuntimeError, sqlite3.Error)):  # h5py's OSError carries no errno
@@ -61,8 +52,7 @@ MIN_ROOM_BYTES = 1 << 20
 
 
 def out_of_room(folder: str | os.PathLike) -> bool:
-    """Whether ``folder``'s file system is full: less than :data:`MIN_ROOM_BYTES` free, or no
-    free inode (a file system that counts them). False when it cannot be read."""
+    """Whether ``folder``'s file system is full (space or inodes); False when it cannot be read."""
     try:
         st = os.statvfs(folder)
     except OSError:
@@ -71,8 +61,7 @@ def out_of_room(folder: str | os.PathLike) -> bool:
 
 
 def file_size_limit() -> int | None:
-    """The largest file this process may write, bytes (``RLIMIT_FSIZE``, ``ulimit -f``), or None
-    when unlimited."""
+    """The largest file this process may write in bytes (``ulimit -f``), or None when unlimited."""
     try:
         import resource
     except ImportError:  # pragma: no cover - not POSIX
@@ -82,9 +71,7 @@ def file_size_limit() -> int | None:
 
 
 def file_too_large(folder: str | os.PathLike, exc: BaseException | None = None) -> bool:
-    """Whether a write in ``folder`` that failed (with ``exc``, when known) met a file-size limit
-    rather than a full disk: EFBIG, or (a native writer that does not say why) a limit set
-    (:func:`file_size_limit`) while the file system has room. ENOSPC and EDQUOT are a full disk."""
+    """Whether a failed write in ``folder`` met a file-size limit rather than a full disk."""
     if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
         return False
     if isinstance(exc, OSError) and exc.errno == errno.EFBIG:
@@ -93,9 +80,7 @@ def file_too_large(folder: str | os.PathLike, exc: BaseException | None = None) 
 
 
 def disk_full_error(folder: Path, what: str, exc: BaseException | None = None) -> RunFailed:
-    """The one-line error of a full disk (or of a file-size limit met, :func:`file_too_large`:
-    the same cause is one message wherever it is met): it names the file system's folder and
-    what was kept."""
+    """The one-line error of a full disk or a file-size limit, naming the folder and what was kept."""
     if file_too_large(folder, exc):
         limit = file_size_limit()
         why, fix = ((f"this process writes files of at most {limit / 1e6:.1f} MB (ulimit -f)",
@@ -114,15 +99,13 @@ def disk_full_error(folder: Path, what: str, exc: BaseException | None = None) -
 
 
 def device_full_error(device: str | os.PathLike, exc: OSError) -> RunFailed:
-    """The one line for a character device that is full (``/dev/full``): it has no folder
-    with free space to tell."""
+    """The one line for a full character device (``/dev/full``), which has no folder to name."""
     return RunFailed(f"disk full while writing {device} ({exc.strerror or exc}); nothing was written under the "
                      "output name and the working files were removed: write it elsewhere or retry")
 
 
 def write_target(path: str | os.PathLike) -> Path:
-    """The file that writing ``path`` should replace: a symlink's target (the link is kept and
-    shows the new content), else ``path`` itself."""
+    """The file writing ``path`` replaces: a symlink's target (the link is kept), else ``path``."""
     p = Path(path)
     return p.resolve() if p.is_symlink() else p
 
@@ -136,9 +119,7 @@ CHARACTER_DEVICE = "character device"
 
 
 def output_kind(path: str | os.PathLike) -> str | None:
-    """What writing ``path`` would meet (symlinks followed): None for nothing there or a regular
-    file (the only things ever replaced), else ``"folder"``, ``"character device"``,
-    ``"block device"``, ``"FIFO (named pipe)"`` or ``"socket"``."""
+    """What writing ``path`` would meet: None for nothing or a regular file, else its kind in words."""
     try:
         mode = os.stat(path).st_mode
     except OSError:  # missing (or unreachable: the write itself then says why)
@@ -149,15 +130,9 @@ def output_kind(path: str | os.PathLike) -> str | None:
 
 
 def check_output_path(path: str | os.PathLike, label: str | None = None, *, device: bool = True) -> str | None:
-    """Refuse an output ``path`` that is not a regular file or a new name, before any work:
-    a FIFO (a write would block for ever or feed another program), a socket, a block device
-    (a disk) or a folder. A character device (``/dev/null``, ``/dev/stdout`` on a terminal)
-    is written through when ``device`` (see :func:`staged_write`), else refused too (a
-    database output must be a file). Returns :func:`output_kind`.
-
-    Raises:
-        UserError: (exit 2) naming ``label`` (the option) and the path.
-    """
+    """Refuse, before any work, an output ``path`` that is a FIFO, socket, block device or folder,
+    and a character device unless ``device``. Returns :func:`output_kind`; UserError names
+    ``label``."""
     kind = output_kind(path)
     if kind is None or (kind == CHARACTER_DEVICE and device):
         return kind
@@ -169,20 +144,13 @@ def check_output_path(path: str | os.PathLike, label: str | None = None, *, devi
 
 
 def write_through(tmp: Path, device: str | os.PathLike) -> None:
-    """Copy the finished staged file ``tmp`` into the character device ``device`` (which is
-    never replaced)."""
+    """Copy the finished staged file ``tmp`` into the character device ``device``."""
     with open(tmp, "rb") as src, open(device, "wb") as dst:
         shutil.copyfileobj(src, dst)
 
 
 def new_staging_name(target: Path) -> Path:
-    """:func:`~colmap_miho.adapters.filesystem.temp_beside` ``target``, its failures told in
-    one line.
-
-    Raises:
-        RunFailed: disk full.
-        UserError: the folder is missing or cannot be written.
-    """
+    """:func:`~colmap_miho.adapters.filesystem.temp_beside` with its failures told in one line."""
     try:
         return temp_beside(target)
     except FileNotFoundError:
@@ -194,12 +162,8 @@ def new_staging_name(target: Path) -> Path:
 
 
 def check_written(tmp: Path, target: Path, expected_size: int | None) -> None:
-    """Flush ``tmp`` to disk and check its size (``expected_size``, else > 0): a native writer
-    that hits a full disk often says nothing and leaves a short or empty file.
-
-    Raises:
-        RunFailed: the size differs (a full disk, named by ``target``'s folder).
-    """
+    """Flush ``tmp`` and check its size (a native writer on a full disk often leaves a short file
+    silently); RunFailed when it differs."""
     size = fsync_file(tmp)
     if (size != expected_size) if expected_size is not None else size == 0:
         want = f"{expected_size} bytes expected" if expected_size is not None else "an empty file"
@@ -208,21 +172,9 @@ def check_written(tmp: Path, target: Path, expected_size: int | None) -> None:
 
 @contextlib.contextmanager
 def staged_write(path: str | os.PathLike, *, expected_size=None):
-    """Write one output file whole or not at all: the one rule of every file a command writes.
-
-    Yields a new, uniquely named hidden file beside the target (see :func:`write_target`: a
-    symlink's target is written and the link kept) for the caller (or a native writer) to
-    fill. After the block it is flushed to disk, its size checked (``expected_size``: bytes,
-    or a callable taking the written path, e.g. :func:`ply_size`; default: not empty), and
-    renamed onto the target; on any failure it is removed and the target left as it was.
-    The target is looked at before and again right before the rename (see
-    :func:`check_output_path`): a character device is written through (its bytes copied into
-    it, never renamed onto), anything else that is not a regular file is refused.
-
-    Raises:
-        RunFailed: disk full (one line naming the folder), or a short write.
-        UserError: a missing or read-only folder; a target that is not a regular file.
-    """
+    """Write one output file whole or not at all: yields a hidden file beside the target to fill,
+    then flushes, checks its size (``expected_size``) and renames it, or removes it on failure.
+    RunFailed for a full disk or short write; UserError for a bad folder or target."""
     check_output_path(path)
     if output_kind(path) == CHARACTER_DEVICE:
         # staged in a folder of our own in $TMPDIR (/dev is not writable by everyone), which the
@@ -237,8 +189,7 @@ def staged_write(path: str | os.PathLike, *, expected_size=None):
 
 @contextlib.contextmanager
 def _staged(path: str | os.PathLike, target: Path, device: bool, expected_size):
-    """:func:`staged_write` onto ``target`` (``device``: a staging name for writing through
-    into the character device ``path``)."""
+    """:func:`staged_write` onto ``target`` (``device``: writing through into ``path``)."""
     tmp = new_staging_name(target)
     WORKING_FILES.add(tmp)
     try:
@@ -286,12 +237,7 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
 
 
 def ply_size(path: Path) -> int:
-    """The size a binary PLY file must have by its own header (vertex count times the bytes of
-    its properties, plus the header): checks the output of a native PLY writer.
-
-    Raises:
-        ValueError: no readable header (a write cut short before it ended).
-    """
+    """The size a binary PLY file must have by its own header; ValueError when it has none."""
     sizes = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
     with open(path, "rb") as fh:
@@ -311,14 +257,9 @@ def ply_size(path: Path) -> int:
 
 
 def write_model_atomic(reconstruction, folder: str | os.PathLike, *, text: bool = False) -> Path:
-    """Write a ``pycolmap.Reconstruction`` into ``folder`` without trusting the native writer:
-    it writes into a new hidden folder beside ``folder``, which is read back (the counts of
-    cameras, images and points must match), then each file is renamed into ``folder`` and the
-    model files of the other format (.bin / .txt) left there are removed.
-
-    Raises:
-        RunFailed: disk full (the read-back fails or differs); ``folder`` is left as it was.
-    """
+    """Write a reconstruction into ``folder`` via a hidden folder that is read back and checked,
+    then renamed in; the other format's model files are removed. RunFailed leaves ``folder`` as it
+    was."""
     import pycolmap
 
     folder = Path(folder)
@@ -371,25 +312,9 @@ PENDING_TEMPDIR_S = 60.0
 
 @contextlib.contextmanager
 def private_tempdir(prefix: str, parent: str | os.PathLike | None = None, *, own_failures: bool = True):
-    """A new temporary folder (``parent``, default ``$TMPDIR``) removed on exit, and also by
-    the next run after a ``kill -9``: the folder holds a lock file locked (``flock``) while its
-    run lives, and earlier folders of the same ``prefix`` whose lock nobody holds are removed
-    first (only folders with that lock file: never a user's folder).
-
-    No window between runs: the lock file is made under another name, locked, and only then
-    renamed to its sweepable name, so a sweep never sees it unlocked while its run lives (a
-    folder without it is never taken, except one left empty but for an unlocked pending lock
-    for :data:`PENDING_TEMPDIR_S`: a run killed in that moment).
-
-    With ``own_failures`` (for a block whose work is in the folder) an ``OSError``,
-    ``RuntimeError``, ``ValueError`` or ``sqlite3.Error`` raised in the block while the
-    folder's file system is full (:func:`out_of_room`) is the full-disk error naming it: a
-    native writer that fails there rarely says why. False for a folder that only lends room
-    to a longer run (its failures are not the folder's).
-
-    Raises:
-        RunFailed: disk full while creating it.
-    """
+    """A new temporary folder removed on exit, and by the next run after a ``kill -9`` (its lock
+    file is held while it lives; free ones are swept). ``own_failures``: errors while its disk is
+    full become the full-disk error."""
     where = Path(parent) if parent is not None else Path(tempfile.gettempdir())
     _remove_stale_tempdirs(where, prefix)
     try:
@@ -427,9 +352,7 @@ TMPDIR_PREFIXES = (DEVICE_STAGING_PREFIX, "miho-global-", "colmap_miho_check_", 
 
 
 def sweep_stale_tempdirs(parent: str | os.PathLike | None = None) -> None:
-    """Remove the folders that killed runs (``kill -9``) left in ``parent`` (default
-    ``$TMPDIR``) under any of :data:`TMPDIR_PREFIXES`: every command does this first, so that
-    a run that makes none of them cleans up too. Never fails."""
+    """Remove the folders killed runs left in ``parent`` under :data:`TMPDIR_PREFIXES`; never fails."""
     where = Path(parent) if parent is not None else Path(tempfile.gettempdir())
     for prefix in TMPDIR_PREFIXES:
         with contextlib.suppress(OSError):
@@ -437,7 +360,6 @@ def sweep_stale_tempdirs(parent: str | os.PathLike | None = None) -> None:
 
 
 def _lock_is_free(lock_file: Path) -> bool:
-    """Whether nobody holds ``lock_file``'s ``flock`` (False when it cannot be opened)."""
     try:
         fd = os.open(lock_file, os.O_RDWR)
     except OSError:
@@ -452,8 +374,7 @@ def _lock_is_free(lock_file: Path) -> bool:
 
 
 def _is_stale(folder: Path) -> bool:
-    """A folder of :func:`private_tempdir` whose run is gone: its lock file is free, or it never
-    got one (killed while making it) and holds nothing but a free pending lock, for a while."""
+    """A :func:`private_tempdir` folder whose run is gone (free lock, or a stale pending one)."""
     if not folder.is_dir() or folder.is_symlink():
         return False
     lock_file = folder / _TEMPDIR_LOCK

@@ -1,7 +1,6 @@
 """The working copy of a user's database: every stage works on a private copy beside the output,
 and only the commit publishes it (a new file, or an atomic replace of the input with a backup
-when in place). A crash, Ctrl-C or kill at any moment leaves the input as it was.
-"""
+when in place). A crash, Ctrl-C or kill at any moment leaves the input as it was."""
 
 from __future__ import annotations
 
@@ -58,32 +57,14 @@ WORKING_SPACE_MARGIN = 1 << 20
 
 
 def working_space(size: int, *, in_place: bool = False) -> int:
-    """Bytes of free space a run on a database of ``size`` bytes needs beside its output (in
-    place: the backup too)."""
+    """Bytes of free space a run on a database of ``size`` bytes needs beside its output (in place: the backup too)."""
     return int((WORKING_SPACE_FACTOR + (1 if in_place else 0)) * size) + WORKING_SPACE_MARGIN
 
 
 class WorkingCopy:
-    """Plan and carry out the safe write of a processed database.
-
-    Use as a context manager: ``path`` is a temporary copy of the input beside the output.
-    Call :meth:`commit` after all writes (and after every database handle on ``path`` is
-    closed) to move it onto the output. Leaving the block without commit, or with an
-    exception, deletes the temporary copy (and, in place, the now useless backup); the input
-    is never written.
-
-    The checks made at the start are made again at commit time, right before the replace:
-    an output that appeared meanwhile (another run) is not replaced without ``overwrite``; an
-    output another SQLite client holds open is never replaced (SQLite would later apply that
-    client's journal to the new file); in place, the input must be unchanged (device, inode,
-    size, mtime and header), else the result is kept beside it under a visible name.
-
-    Args:
-        database: the input database (checked, not opened). In place on a symlink, the link's
-            target is replaced and the link kept.
-        output: the output path, or None for ``<stem>.miho.db`` beside the input.
-        in_place: replace the input itself, after copying it to a timestamped backup.
-        overwrite: allow replacing an existing ``output``.
+    """Plan and carry out the safe write of a processed database: ``path`` is a temporary copy
+    beside the output, moved onto it by :meth:`commit` after the start's checks are repeated;
+    leaving without commit deletes it. ``in_place`` replaces the input after a timestamped backup.
     """
 
     def __init__(self, database: Path, output: Path | None = None, *, in_place: bool = False,
@@ -160,18 +141,9 @@ class WorkingCopy:
         return self
 
     def stage_side_file(self, path: str | os.PathLike, text: str) -> None:
-        """Write ``text`` now to a new hidden file beside ``path`` (flushed, size checked);
-        :meth:`commit` renames it onto ``path`` right after the database (so a bad path fails
-        before anything is replaced, and no side file describes a result that was not
-        committed). A symlink ``path`` keeps its link: its target is replaced. A character device
-        is written through at commit, never replaced, right before the database is moved (a
-        stream cannot be taken back, and a device that fails, ``/dev/full``, then commits nothing);
-        its text waits in memory (a staged file would be one more file for a ``kill -9`` to leave).
-
-        Raises:
-            UserError: the file cannot be written (missing or read-only folder, disk full), or
-                ``path`` is a FIFO, socket, block device or folder.
-        """
+        """Stage ``text`` for ``path`` now (so a bad path fails early); :meth:`commit` puts it
+        in place right after the database. A character device is written through at commit,
+        its text held in memory. UserError when it cannot be written or is no regular file."""
         data = text.encode("utf-8")
         if check_output_path(path) == CHARACTER_DEVICE:  # a FIFO, a socket ...: refused here
             # kept in memory, written through at commit: no file of ours anywhere meanwhile (one
@@ -195,14 +167,8 @@ class WorkingCopy:
         self._side.append((tmp, target))
 
     def commit(self) -> Path:
-        """Check again, then atomically move the working copy onto the output; returns it.
-
-        Raises:
-            UserError: the output appeared meanwhile (no ``overwrite``), or is held open.
-            DatabaseError: in place, the input changed during the run; the result is kept
-                beside it (named in the message) and the input is left as it is.
-            SideFileLost: the output was committed, a side file could not be renamed onto its name.
-        """
+        """Check again, then move the working copy onto the output atomically; returns it. UserError,
+        DatabaseError (in place, the input changed) or SideFileLost."""
         if self.path is None:
             raise RuntimeError("commit() outside the with block")
         if self.in_place:
@@ -240,12 +206,7 @@ class WorkingCopy:
         return self.output
 
     def _write_devices(self) -> None:
-        """Write the text staged for a character device through into it (and drop it).
-
-        Raises:
-            RunFailed: the device is full (``/dev/full``), named.
-            UserError: it cannot be written otherwise.
-        """
+        """Write the text staged for a character device into it (RunFailed when full)."""
         for data, target in list(self._devices):
             if check_output_path(target) != CHARACTER_DEVICE:  # looked at again: a FIFO is refused there
                 raise UserError(f"{target} changed from a character device to a file during the run; nothing was "
@@ -277,7 +238,6 @@ class WorkingCopy:
             f"that state in the backup {self.backup}: rerun on the database as it is now")
 
     def _drop_backup(self) -> None:
-        """Delete the backup of an in-place run that replaced nothing (the input is as it was)."""
         if self.backup is None:
             return
         try:
@@ -309,12 +269,8 @@ class _ForeignSideFile(UserError):
 
 
 def _refuse_side_files(path: Path) -> None:
-    """Refuse a new working copy that already has an SQLite side file beside it (a symbolic link
-    put there while it was copied: SQLite would write its journal through it).
-
-    Raises:
-        _ForeignSideFile: naming it; it is left as it is.
-    """
+    """Refuse a new working copy with an SQLite side file beside it (a link planted during the copy
+    would take SQLite's journal)."""
     for suffix in SIDE_SUFFIXES:
         side = Path(str(path) + suffix)
         if os.path.lexists(side):
@@ -337,31 +293,19 @@ def _same_inode(a: Path, b: Path) -> bool:
 
 
 def _visible_name(database: Path) -> Path:
-    """``<stem>.miho-<time>.db`` beside ``database``, not existing yet."""
     return unused_stamped_name(database, lambda stamp: f"{database.stem}.miho-{stamp}{database.suffix or '.db'}")
 
 
 def publish_new_file(src: Path, dst: Path, *, advice: str = OVERWRITE_ADVICE) -> None:
-    """Move the finished, closed file ``src`` onto the NEW name ``dst`` (flushed first): only
-    if nothing appeared at ``dst`` meanwhile (another run), atomically where hard links work.
-    ``advice`` ends the message when ``dst`` exists: what the calling command offers (a command
-    without ``--overwrite`` must not advise it).
-
-    Raises:
-        UserError: ``dst`` exists.
-    """
+    """Move the closed file ``src`` onto the NEW name ``dst``, only if nothing appeared there
+    (UserError, ending with ``advice``)."""
     fsync_file(src)
     _rename_no_replace(src, dst, advice=advice)
     fsync_dir(dst.parent)
 
 
 def _rename_no_replace(src: Path, dst: Path, *, advice: str = OVERWRITE_ADVICE) -> None:
-    """Move ``src`` to ``dst`` only if ``dst`` does not exist, atomically where the file
-    system supports hard links (a race with another run cannot replace its result).
-
-    Raises:
-        UserError: ``dst`` exists.
-    """
+    """Move ``src`` to ``dst`` only if ``dst`` does not exist, atomically where hard links work."""
     try:
         os.link(src, dst)
     except FileExistsError:
@@ -377,9 +321,7 @@ def _rename_no_replace(src: Path, dst: Path, *, advice: str = OVERWRITE_ADVICE) 
 
 
 def leftover_copies(output: Path) -> list[Path]:
-    """Hidden working copies of ``output`` that an earlier run left behind (a run killed with
-    SIGKILL or a power cut cannot delete its own), oldest first. Copies that another process
-    holds open (a run still going) are not listed."""
+    """Hidden working copies of ``output`` left by killed runs, oldest first (open ones excluded)."""
     found = [f for f in Path(output).parent.glob(f".{Path(output).name}.*.tmp")
              if f.is_file() and not locked_by_other_process(f)]
     return sorted(found, key=lambda f: f.stat().st_mtime)

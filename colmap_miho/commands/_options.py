@@ -8,19 +8,14 @@ from ..enums import Device, Mapper
 
 
 def list_items(values) -> list[str]:
-    """The items of a list option given as ``a,b,c``, ``a b c`` or both mixed (``a,b c``):
-    every token split on commas, empty pieces dropped."""
+    """Items of a list option given as ``a,b,c``, ``a b c`` or mixed; empty pieces dropped."""
     return [item for value in ([values] if isinstance(values, str) else values)
             for item in value.split(",") if item.strip()]
 
 
 class ListAction(argparse.Action):
-    """A list option (``nargs="+"``) that takes ``a,b,c`` as well as ``a b c``.
-
-    ``item_type`` converts each item (argparse's one-line error for a bad one); with
-    ``join=True`` the option keeps COLMAP's comma-separated text instead (``"fx,fy,cx,cy"``),
-    checked later by whoever reads it.
-    """
+    """A list option taking ``a,b,c`` as well as ``a b c``; ``item_type`` converts each item,
+    ``join`` keeps COLMAP's comma-separated text."""
 
     def __init__(self, option_strings, dest, *, item_type=str, join: bool = False, **kwargs):
         kwargs.setdefault("nargs", "+")
@@ -44,8 +39,7 @@ class ListAction(argparse.Action):
 
 
 def add_recipe_arguments(parser) -> None:
-    """--recipe / --set / --workers / --device / --seed / --mapper / --refine-intrinsics,
-    shared with run and demo (read them with :func:`load_run_recipe`)."""
+    """The recipe and run options shared with run and demo (read with :func:`load_run_recipe`)."""
     parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_lsm)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a recipe value, e.g. --set filter.t_l=12 (repeatable)")
@@ -68,8 +62,7 @@ def add_refine_intrinsics_argument(parser) -> None:
 
 
 def add_camera_arguments(parser) -> None:
-    """``--camera-model`` / ``--camera-params`` written into the mapped copy of the database
-    (-> ``mapping.camera_model`` / ``mapping.camera_params``)."""
+    """``--camera-model`` / ``--camera-params`` (-> ``mapping.camera_model`` / ``camera_params``)."""
     parser.add_argument("--camera-model", default=None,
                         help="COLMAP camera model written into every camera of the mapped copy (e.g. PINHOLE); "
                              "the input database is never changed")
@@ -106,13 +99,8 @@ def mapping_overrides(args) -> list[str]:
 
 
 def load_run_recipe(args):
-    """The recipe of compare / run / demo: ``--recipe`` and ``--set``, then the flags, which
-    override it (``--mapper`` -> ``mapping.mapper``, ``--seed`` -> ``mapping.seed``,
-    ``--refine-intrinsics``, ``--camera-model``, ``--camera-params`` -> ``mapping.*``).
-
-    Raises:
-        ValueError: a bad recipe or value (e.g. camera parameters that do not fit the model).
-    """
+    """The recipe of compare / run / demo: ``--recipe`` and ``--set``, then the mapping flags over
+    them; ValueError for a bad value."""
     from ..recipe import load_recipe
 
     return load_recipe(args.recipe, [*args.overrides, *mapping_overrides(args)])

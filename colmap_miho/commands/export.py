@@ -1,9 +1,5 @@
-"""``colmap-miho export``: write a COLMAP database's keypoints and matches as hloc h5 files.
-
-Thin command over :func:`colmap_miho.adapters.exchange.export_hloc` (conventions there): the
-database is read through a temporary copy; matches come from the two-view-geometry inliers
-(``--source verified``, default: what the mapper uses) or the raw matches table (``--source raw``).
-"""
+"""``colmap-miho export``: write a COLMAP database's keypoints and matches as hloc h5 files
+(:func:`colmap_miho.adapters.exchange.export_hloc`)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,5 @@
-"""``colmap-miho import``: build a NEW COLMAP database from hloc / deep-image-matching h5 files.
-
-Thin command over :func:`colmap_miho.adapters.exchange.import_hloc` (conventions there).
-"""
+"""``colmap-miho import``: build a NEW COLMAP database from hloc / deep-image-matching h5 files
+(:func:`colmap_miho.adapters.exchange.import_hloc`)."""
 
 from __future__ import annotations
 
@@ -45,8 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def paths(args: argparse.Namespace) -> tuple[dict, dict]:
-    """Inputs (the image files included) and outputs for the CLI's overlap check; the new
-    database's folder must exist."""
+    """Inputs and outputs for the CLI's overlap check; the new database's folder must exist."""
     from ..adapters.paths import folder_files
 
     if not args.database.parent.is_dir():

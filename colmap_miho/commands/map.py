@@ -35,8 +35,7 @@ def add_arguments(parser) -> None:
 
 
 def paths(args) -> tuple[dict, dict]:
-    """Inputs (the image files included) and outputs (the model files written in --output) for
-    the CLI's overlap check; a text model in --output is refused (mapping writes a binary one)."""
+    """Inputs and outputs for the CLI's overlap check; a text model in --output is refused."""
     from ..adapters.paths import folder_files, model_files, refuse_folder_inside, refuse_text_model
 
     if args.output.exists() and not args.output.is_dir():

@@ -67,8 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def paths(args: argparse.Namespace) -> tuple[dict, dict]:
-    """Inputs (the image files included) and outputs (the default output included) for the
-    CLI's overlap check."""
+    """Inputs and outputs (default output included) for the CLI's overlap check."""
     from ..adapters.paths import folder_files
     from ..adapters.safety import default_output_path
 

@@ -40,9 +40,8 @@ def add_arguments(parser) -> None:
 
 
 def paths(args) -> tuple[dict, dict]:
-    """Inputs (the files read inside --images and --gt included) and outputs (every file run
-    writes in --output) for the CLI's overlap check; a missing --gt, or a text model where a
-    mapping run will write, is refused here, before the long runs."""
+    """Inputs and outputs for the CLI's overlap check; a missing --gt or a text model where mapping
+    writes is refused before the long runs."""
     from ..adapters.paths import comparison_paths
 
     if args.gt is not None and not args.gt.exists():

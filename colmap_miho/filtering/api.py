@@ -1,44 +1,16 @@
 """Public entry point of the MOP / MOP+MiHo match filter.
 
-``filter_matches(pts1, pts2)`` runs the paper's MOP (Sec. 3.1, App. A), MOP* (App. D),
-MOP+MiHo (Sec. 3.2, App. B, C) or the VSAC half-homography split on ``(N, 2)`` pixel matches,
-and returns which matches survive, the homography each one is assigned to, and the
-homography pairs that bring both images into one common frame for patch-based refinement.
+``filter_matches(pts1, pts2)`` runs MOP (paper Sec. 3.1), MOP* (App. D), MOP+MiHo (Sec. 3.2) or the
+VSAC half-homography split on ``(N, 2)`` pixel matches and returns the survivors, each one's
+homography, and the homography pairs that bring both images into one frame for refinement.
 
-Where this implementation departs from the paper (each one a :class:`FilterConfig` field):
-
-- ``sampling``: guided (NAPSAC-style) minimal samples by default, so that they pass the
-  spread test, with an adaptive bound that accounts for it; ``"uniform"`` is the paper's.
-  c_min, c_max and the bound count the samples that pass the spread test (a draw that fails
-  it is no hypothesis). One-way pre-scoring is an exact bound, not an approximation.
-- ``assignment``: the paper's median rule, with both homographies eligible when a match is
-  compatible with exactly two (as in the reference; the plain median would always pick the
-  larger plane); ``"median"`` and the reference's round-based rule are options.
-- ``max_failures``: 3 failures in a row (paper); the reference stops at the 4th.
-- ``t_h``: t_l / 2 (paper; the reference uses 7 px).
-- ``miho_threshold``: what MiHo's thresholds bound (half-match errors as in the paper, the
-  full match, or the full match while searching and half-matches at keep time, the
-  default). The half-match tolerance in the search lets planes that mix in gross outliers
-  win rounds; the full-match tolerance at keep time drops correct matches on non-planar
-  scenes.
-- ``rotation_fix_reflections``: the rotation fix (MOP+MiHo and VSAC) may also pick a
-  mirrored image 2 (App. C's suggested extension); it keeps the identity unless another
-  candidate wins by a clear margin (3 standard deviations on the same random pairs), so
-  that outlier noise cannot turn an upright pair. For MOP+MiHo* a pair whose best
-  pre-alignment is mirrored fails (``success=False``): MiHo's midpoint frame degenerates
-  there and the star variants assume no reflections.
-
-``device``: numpy on the CPU by default (torch inputs are copied to the CPU); with a torch
-device the heavy RANSAC kernels run in torch there while sampling (same seed, same samples)
-and the bookkeeping stay in numpy, giving the same result up to floating-point ties
-(:mod:`.torch_scoring`). A MOP round is a chain of small batched operations on
-``(hypotheses, matches)`` arrays where per-call latency, not arithmetic, dominates, which is
-why numpy stays the CPU default.
-
-Speed comes from the closed-form minimal solver and sample signs (no SVD per hypothesis),
-exact one-way pre-scoring, full scoring only where it can change the best model, guided
-sampling with adaptive stopping, and explained matches leaving the pool.
-"""
+Departures from the paper, each a :class:`FilterConfig` field: guided minimal samples (``sampling``)
+that pass the spread test, with an adaptive bound that counts only those; both homographies eligible
+when a match fits exactly two (``assignment``); ``miho_threshold`` full match while searching,
+half-matches at keep time; the rotation fix may pick a mirrored image 2
+(``rotation_fix_reflections``), only by a clear margin. Numpy on the CPU by default (latency
+dominates these small batched operations); with a torch ``device`` the heavy kernels run there with
+the same samples."""
 
 from __future__ import annotations
 
@@ -66,27 +38,17 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class FilterResult:
-    """Outcome of :func:`filter_matches` for one image pair (``N`` input matches, ``K``
-    homographies).
+    """Outcome of :func:`filter_matches` for one pair (``N`` matches, ``K`` homographies).
 
     Attributes:
         inliers: bool ``(N,)``, the matches kept.
-        labels: int64 ``(N,)``, index into ``homographies`` of each kept match's assigned
-            homography, -1 for discarded matches.
-        homographies: float64 ``(K, 3, 3)``, ``H_2from1`` mapping image-1 pixels to image-2
-            pixels (integer = pixel centre), scaled so that ``H[2, 2] = 1`` when possible.
-        patch_homographies: float64 ``(K, 2, 3, 3)``, pairs ``(A, B)`` mapping both images
-            into one common frame, ``A x1 ~ B x2`` for the cluster's matches: ``(I, H^-1)``
-            for MOP and MOP*; ``(H1, H2^-1)`` for MiHo (image 1 -> midpoint frame, image 2
-            -> midpoint frame, rotation fix folded into ``B``); ``(H_v, H_v^-1)`` for VSAC
-            (rotation fix folded into ``B``), falling back to ``(I, H^-1)`` where the square
-            root fails (listed in ``stats["vsac_fallbacks"]``).
+        labels: int64 ``(N,)``, each kept match's homography index, -1 for discarded ones.
+        homographies: float64 ``(K, 3, 3)`` ``H_2from1`` (pixels, integer = pixel centre).
+        patch_homographies: float64 ``(K, 2, 3, 3)`` pairs ``(A, B)`` with ``A x1 ~ B x2`` into one
+          common frame (MiHo: the midpoint frame).
         success: at least one homography was found (otherwise nothing is kept).
         method: the variant that ran.
-        stats: seconds per stage (``time_*``), MOP ``rounds``, ``failures``, hypotheses
-            ``drawn``/``valid``/``full_scored``, ``support`` per homography, the rotation
-            fix's choice (``rotation_index``: 0-3 = k*90 degrees, 4-7 mirrored), ``reason``
-            when ``success`` is False.
+        stats: per-stage seconds and counters; ``reason`` when ``success`` is False.
     """
 
     inliers: np.ndarray
@@ -136,33 +98,16 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
     """Filter two-view matches with MOP / MOP* / MOP+MiHo / MOP+MiHo* / MOP+VSAC.
 
     Args:
-        pts1: ``(N, 2)`` float pixels in image 1 (integer = pixel centre); numpy array or
-            torch tensor (CPU or CUDA, copied to the CPU).
-        pts2: ``(N, 2)`` float pixels in image 2, ``pts2[i]`` matched to ``pts1[i]``.
-        method: filter variant (:class:`~colmap_miho.enums.FilterMethod` or its value). Rule:
-            when given, it wins (it replaces ``config.method``); when ``None`` the method is
-            ``config.method``, or ``"mop_miho"`` when ``config`` is ``None`` too.
+        pts1, pts2: ``(N, 2)`` float pixels (integer = pixel centre), ``pts2[i]`` matched to
+          ``pts1[i]``; numpy arrays or torch tensors.
+        method: the variant; replaces ``config.method`` when given (default ``"mop_miho"``).
         config: parameters; ``None`` = paper defaults.
-        seed: seed of the ``numpy.random.Generator`` that drives all sampling, an integer in
-            [0, 2^32 - 1]; the same inputs, config and seed give identical results.
-        progress: show a tqdm bar over MOP rounds.
-        device: where the heavy RANSAC kernels run: ``"cpu"`` (default, numpy),
-            ``"cuda"`` / ``"cuda:N"`` / any torch device string or ``torch.device`` object
-            (torch float64 on that device; ``torch.device("cpu")`` runs the torch path on
-            the CPU). Sampling stays in numpy with the same generator, so every
-            device draws the same samples; results agree up to floating-point ties.
-            Outputs are numpy arrays on every device.
+        seed: integer in [0, 2^32 - 1]; same inputs, config and seed give identical results.
+        device: ``"cpu"`` (numpy) or a torch device for the heavy kernels; outputs are numpy.
 
-    Returns:
-        :class:`FilterResult`. Degenerate input (fewer than 4 matches, duplicated or
-        collinear points, no plane with ``n`` inliers) gives ``success=False`` and nothing
-        kept.
-
-    Raises:
-        ValueError: wrong shapes, length mismatch, NaN/inf (naming the argument), a seed
-            that is not an integer in range, an unknown method, or a device that is unknown
-            or not available.
-    """
+    Returns a :class:`FilterResult`; degenerate input (fewer than 4 matches, no plane) gives
+    ``success=False``. Raises ``ValueError`` for bad shapes, non-finite values, seed, method or
+    device."""
     check_integer("seed", seed, FILTER_SEED_BOUND)
     t0 = time.perf_counter()
     scoring = scoring_for_device(device)
@@ -211,7 +156,6 @@ def filter_matches(pts1, pts2, *, method: str | FilterMethod | None = None,
 
 
 def _resolve_config(method: str | FilterMethod | None, config: FilterConfig | None) -> FilterConfig:
-    """The config that runs: ``method``, when given, replaces ``config.method``."""
     if config is None:
         return FilterConfig(method=FilterMethod.MOP_MIHO if method is None else FilterMethod.parse(method, "method"))
     if not isinstance(config, FilterConfig):
@@ -223,10 +167,8 @@ def _resolve_config(method: str | FilterMethod | None, config: FilterConfig | No
 
 def _assign(x1: np.ndarray, x2: np.ndarray, mop: MopOutput, err2: np.ndarray, cfg: FilterConfig,
             stats: dict) -> tuple[Hypotheses, np.ndarray, np.ndarray]:
-    """``(hyps, labels, support)``: MOP's homographies that stay (all but the incoherent ones
-    when ``cfg.coherence``), each match's label ``(N,)`` and each homography's support
-    ``(K,)`` (:func:`assign_matches`), from the squared keep-time errors ``err2`` ``(K, N)``
-    of MOP's homographies on the matches ``x1``, ``x2`` ``(N, 2)``."""
+    """``(hyps, labels, support)``: MOP's homographies that stay, each match's label ``(N,)`` and
+    each homography's support ``(K,)``, from the keep-time errors ``err2`` ``(K, N)``."""
     hyps, round_inliers = mop.hyps, mop.round_inliers
     labels, support = assign_matches(err2, cfg.t_l, rule=cfg.assignment, round_inliers=round_inliers)
     if cfg.coherence:
@@ -242,9 +184,8 @@ def _assign(x1: np.ndarray, x2: np.ndarray, mop: MopOutput, err2: np.ndarray, cf
 
 def _rotation_fix(x1: np.ndarray, x2: np.ndarray, cfg: FilterConfig, rng: np.random.Generator,
                   stats: dict) -> np.ndarray | None:
-    """MiHo's pre-alignment ``G`` ``(3, 3)`` applied to image 2 (identity when off), recording
-    ``stats["rotation_index"]``; ``None`` when the pair is mirrored and the method rejects
-    reflections."""
+    """MiHo's pre-alignment ``G`` ``(3, 3)`` of image 2 (identity when off); None for a mirrored
+    pair when the method rejects reflections."""
     if not (cfg.rotation_fix and (cfg.is_miho or cfg.method == FilterMethod.MOP_VSAC)):
         stats["rotation_index"] = 0
         return np.eye(3)
@@ -258,9 +199,8 @@ def _rotation_fix(x1: np.ndarray, x2: np.ndarray, cfg: FilterConfig, rng: np.ran
 
 def _homographies_and_patch_pairs(hyps, G: np.ndarray, cfg: FilterConfig,
                                   stats: dict) -> tuple[np.ndarray, np.ndarray]:
-    """``H_2from1`` ``(K, 3, 3)`` in the original image 2 and the patch pairs ``(K, 2, 3, 3)``
-    of :class:`FilterResult`, from MOP's hypotheses fitted against image 2 pre-aligned by
-    ``G``; VSAC records the square roots that failed in ``stats["vsac_fallbacks"]``."""
+    """``H_2from1`` ``(K, 3, 3)`` in the original image 2 and the patch pairs ``(K, 2, 3, 3)``, from
+    hypotheses fitted against image 2 pre-aligned by ``G``."""
     G_inv = np.linalg.inv(G)
     K = len(hyps)
     if cfg.is_miho:

@@ -1,27 +1,6 @@
-"""Homography assignment of the kept matches (paper App. A.4).
-
-A match is kept iff it is a t_l inlier (with quasi-affinity) of at least one homography; it
-is then *compatible* with those homographies. Rules (``FilterConfig.assignment``):
-
-- ``"paper"`` (default): among the compatible homographies take the top 5 by support (t_l
-  inliers on the whole match set), let q be the median of their supports, and assign the
-  compatible homography with the smallest error among those whose support is at least q.
-  With exactly two compatible homographies both are eligible, so the one with the smaller
-  error wins: the plain median of two supports is their mean, which would always pick the
-  larger plane and turn the paper's "intermediate solution" between least error and largest
-  support into the largest-support rule. This is also what the reference implementation
-  does (its median index is rounded up to the second entry when two are compatible).
-- ``"median"``: the plain median in every case (two compatible: the larger plane).
-- ``"reference"``: the reference implementation's rule: compatibility and supports come from
-  each homography's t_l inliers in the pool of the MOP round that found it (matches removed
-  by earlier rounds are not compatible with later homographies), q as in ``"paper"``, and a
-  kept match compatible with none of them gets its least-error homography. The kept set is
-  the same as with ``"paper"``; only the labels (and so the NCC patch frames) differ.
-
-For 1, 3, 4 or 5 compatible homographies ``"paper"``, ``"median"`` and ``"reference"`` (given
-the same compatibility) choose alike: q is the top support, the 2nd, the mean of the 2nd and
-3rd (eligible: the top two, and the 3rd only on a tie), and the 3rd.
-"""
+"""Homography assignment of the kept matches (paper App. A.4). ``"paper"``: the least-error
+compatible homography among the top 5 with support at least their median; with exactly two both are
+eligible (as in the reference), else the larger plane would always win."""
 
 from __future__ import annotations
 
@@ -33,24 +12,8 @@ from ..enums import Assignment
 def assign_matches(err2: np.ndarray, t_l: float, top: int = 5, *,
                    rule: str | Assignment = Assignment.PAPER,
                    round_inliers: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Assign each match to one homography.
-
-    Args:
-        err2: ``(K, N)`` squared MOP errors (``inf`` where quasi-affinity fails), in pixels^2.
-        t_l: relaxed threshold in pixels.
-        top: how many compatible homographies (by support) the median q is taken over.
-        rule: ``"paper"``, ``"median"`` or ``"reference"`` (see the module docstring).
-        round_inliers: ``(K, N)`` bool, each homography's t_l inliers in the pool of the
-            round that found it; required by ``rule="reference"``, ignored otherwise.
-
-    Returns:
-        ``(labels, support)``: ``labels`` int64 ``(N,)`` index of the assigned homography or
-        -1 (compatible with none); ``support`` int64 ``(K,)`` the supports the rule used
-        (t_l inliers on all matches, or in the round's pool for ``"reference"``).
-
-    Raises:
-        ValueError: unknown ``rule``, or ``"reference"`` without ``round_inliers`` of shape
-            ``(K, N)``.
+    """Labels ``(N,)`` (-1: no compatible homography) and supports ``(K,)`` from the squared errors
+    ``err2`` ``(K, N)``; ``round_inliers`` only for ``rule="reference"``. ValueError for a bad rule.
     """
     rule = Assignment.parse(rule, "rule")
     K, N = err2.shape

@@ -1,18 +1,5 @@
-"""Batched homography maths for MOP (float64).
-
-Every function takes numpy arrays or torch tensors (any device) and returns the same kind:
-the operations are written once, for both (:func:`array_module` picks the library), so the
-torch path of the filter (``filter_matches(..., device=...)``) computes the same formulas in
-the same order as the numpy one.
-
-All points are ``(x, y)`` pixels, integer = pixel centre. A homography ``H`` of shape
-``(3, 3)`` maps a source point ``x`` to ``H @ [x, y, 1]`` (then divided by the third
-coordinate ``w``). Batched functions take ``(B, 3, 3)`` stacks.
-
-The 3x3 inverse is the closed-form adjugate ``adj(H) = det(H) H^-1``: it is the inverse up to
-a scale (whose sign is the sign of ``det(H)``), which is all a homography needs, and it never
-divides, so near-singular hypotheses do not produce infinities.
-"""
+"""Batched homography maths for MOP (float64), for numpy and torch alike; ``(x, y)`` pixels, ``H``
+maps ``x`` to ``H [x, y, 1]``. Inverses are adjugates: they never divide, so no infinities."""
 
 from __future__ import annotations
 
@@ -40,15 +27,8 @@ def zeros(like, shape: tuple[int, ...]):
 
 
 def normalise_points(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Hartley normalisation of point sets.
-
-    Args:
-        pts: ``(B, M, 2)`` float pixels.
-
-    Returns:
-        ``(T, pts_n)``: ``T`` ``(B, 3, 3)`` similarity with ``pts_n = T pts``, the normalised
-        points ``(B, M, 2)`` having centroid 0 and mean distance ``sqrt(2)`` from it.
-    """
+    """Hartley normalisation of ``(B, M, 2)`` points: ``(T (B, 3, 3), pts_n = T pts)``, centroid 0
+    and mean distance ``sqrt(2)``."""
     scale, centroid, normalised = _normalised(pts)
     T = zeros(pts, (pts.shape[0], 3, 3))
     T[:, 0, 0] = scale
@@ -59,8 +39,7 @@ def normalise_points(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _normalised(pts: np.ndarray):
-    """``(scale (B,), centroid (B, 1, 2), normalised points (B, M, 2))`` of
-    :func:`normalise_points`."""
+    """``(scale (B,), centroid (B, 1, 2), normalised points)`` of :func:`normalise_points`."""
     xp = array_module(pts)
     m = pts.shape[1]
     centroid = pts.sum(axis=1, keepdims=True) / m
@@ -81,12 +60,8 @@ _ADJ_ON_DEVICE: dict = {}
 
 
 def adjugate(H: np.ndarray) -> np.ndarray:
-    """Adjugate of ``(..., 3, 3)`` matrices: ``adj(H) @ H = det(H) I`` (inverse up to scale).
-
-    Each entry is a difference of two products of entries of ``H``, gathered for all nine
-    entries at once (a few whole-array operations, which matters where each one is a kernel
-    launch), with the same products and differences in numpy and torch.
-    """
+    """Adjugate of ``(..., 3, 3)`` matrices (``adj(H) H = det(H) I``), all nine entries in a few
+    whole-array operations (each a kernel launch on a GPU)."""
     lead = tuple(H.shape[:-2])
     idx = _ADJ_FLAT
     if not isinstance(H, np.ndarray):
@@ -107,8 +82,7 @@ def normalise_scale(H: np.ndarray) -> np.ndarray:
 
 
 def _dlt_system(s: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """The DLT system ``A`` ``(B, 2M, 9)`` of ``(B, M, 2)`` (normalised) point sets, ``A h = 0``
-    for ``d ~ H s`` with ``h`` the row-major entries of ``H``: two rows per point."""
+    """The DLT system ``A`` ``(B, 2M, 9)`` with ``A h = 0`` for ``d ~ H s`` (two rows per point)."""
     xp = array_module(s)
     B, M, _ = s.shape
     if xp is np:
@@ -134,17 +108,8 @@ def _dlt_system(s: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def dlt(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised DLT for a batch of point sets.
-
-    Args:
-        src: ``(B, M, 2)`` source pixels, ``M >= 4``.
-        dst: ``(B, M, 2)`` destination pixels.
-
-    Returns:
-        ``(H, sv)``: ``H`` ``(B, 3, 3)`` with ``dst ~ H src`` (unit Frobenius norm), and ``sv``
-        ``(B,)`` the 8th singular value of the normalised ``2M x 9`` system, i.e. the smallest
-        one of the minimal ``8 x 9`` system (the paper's degeneracy test compares it with 0.05).
-    """
+    """Normalised DLT of ``(B, M, 2)`` point sets (``M >= 4``): ``(H, sv)``, ``dst ~ H src`` with
+    unit Frobenius norm, ``sv`` the smallest singular value of the minimal system (degeneracy test)."""
     B, M, _ = src.shape
     T1, s = normalise_points(src)
     T2, d = normalise_points(dst)
@@ -164,9 +129,8 @@ def dlt(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _basis_map(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Projective map sending the canonical basis and ``(1, 1, 1)`` to the homogeneous
-    points ``p`` ``(B, 4, 3)``: returns ``(P diag(lam), lam, det(P))`` with ``P`` the
-    ``(B, 3, 3)`` matrix of columns ``p0, p1, p2`` and ``lam = adj(P) p3`` ``(B, 3)``."""
+    """Projective map ``(P diag(lam), lam, det(P))`` sending the canonical basis and (1, 1, 1) to
+    ``p`` ``(B, 4, 3)``."""
     P = array_module(p).swapaxes(p[:, :3], 1, 2)  # columns p0, p1, p2
     adj = adjugate(P)
     lam = (adj @ p[:, 3, :, None])[..., 0]  # det(P) * P^-1 p3
@@ -177,28 +141,8 @@ def _basis_map(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def four_point(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Exact homographies of minimal samples in closed form (no SVD).
-
-    With 4 points the ``8 x 9`` DLT system has a one-dimensional null space, so this is the
-    same homography as the minimal (normalised) DLT, computed as ``B adj(A)`` where ``A``,
-    ``B`` send the projective basis to the source and destination points, with 3x3 adjugates
-    only: a whole batch is a handful of vectorised operations. Hartley normalisation is not
-    needed here: the residual on the 4 points is as small without it.
-
-    The same factors give, without projecting anything, the signs of the homogeneous ``w``
-    of the 4 source points under ``H`` and of the 4 destination points under ``adj(H)``
-    (quasi-affinity of the sample, App. A.3): with ``A = P diag(lam)``, ``B = Q diag(mu)``,
-    ``H p_i ~ det(A) mu_i / lam_i q_i`` (i < 3) and ``H p_3 ~ det(A) det(Q) / det(P) q_3``,
-    and symmetrically for ``adj(H)``.
-
-    Args:
-        src, dst: ``(B, 4, 2)`` pixels.
-
-    Returns:
-        ``(H, sign_fwd, sign_inv)``: ``H`` ``(B, 3, 3)``, ``dst ~ H src``, unit Frobenius
-        norm; ``sign_fwd``, ``sign_inv`` ``(B, 4)`` in {-1, 0, 1}. Degenerate samples (three
-        collinear points) give a (near) singular ``H``; :func:`dlt_singular_value` flags them.
-    """
+    """Closed-form homographies ``(B, 3, 3)`` of 4-point samples (the minimal DLT's, no SVD), with
+    the quasi-affine signs ``(B, 4)`` of the samples forward and backward (App. A.3)."""
     xp = array_module(src)
     one = xp.ones_like(src[..., :1])
     A, lam, det_p = _basis_map(xp.concatenate([src, one], axis=2))
@@ -217,8 +161,8 @@ def four_point(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def dlt_singular_value(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Smallest singular value ``(B,)`` of the normalised minimal DLT system (``8 x 9``) of
-    ``(B, 4, 2)`` samples: the paper's degeneracy test keeps hypotheses above 0.05."""
+    """Smallest singular value ``(B,)`` of the minimal DLT system of ``(B, 4, 2)`` samples (the
+    paper keeps hypotheses above 0.05)."""
     xp = array_module(src)
     A = _dlt_system(_normalised(src)[2], _normalised(dst)[2])
     evals = xp.linalg.eigvalsh(A @ xp.swapaxes(A, 1, 2))
@@ -226,17 +170,8 @@ def dlt_singular_value(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Apply ``K`` homographies to ``N`` points.
-
-    Args:
-        H: ``(K, 3, 3)``, or ``(..., 3, 3)`` broadcast against ``pts``' leading dimensions.
-        pts: ``(N, 2)`` pixels (shared by all homographies) or ``(K, N, 2)`` (``(..., N, 2)``).
-
-    Returns:
-        ``(x, y, w)``, each ``(K, N)`` (the broadcast shape): the projected pixel
-        coordinates (``w`` divided out) and the homogeneous ``w`` before division (its sign
-        is used by the quasi-affinity test).
-    """
+    """Apply ``(K, 3, 3)`` homographies to ``(N, 2)`` or ``(K, N, 2)`` points: ``(x, y, w)`` each
+    ``(K, N)``, ``w`` before division (its sign feeds the quasi-affinity test)."""
     # Explicit broadcasting: a matmul with inner dimension 2-3 is slower.
     h = H.reshape(tuple(H.shape[:-2]) + (9, 1))
     X, Y = pts[..., 0], pts[..., 1]
@@ -256,21 +191,9 @@ def project(H: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.
 
 
 def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray, out: tuple | None = None):
-    """Squared transfer error of ``K`` homographies, and the homogeneous ``w``.
-
-    Args:
-        H: ``(K, 3, 3)`` (or broadcast like :func:`project`).
-        src, dst: ``(N, 2)`` (or ``(K, N, 2)``) source and destination pixels.
-        out: optional work arrays ``(e, w, y, tmp)``, each of the result's shape, reused
-            from call to call (see :func:`one_way_inside`).
-
-    Returns:
-        ``(e, w)``, each ``(K, N)``: ``e = |H(src) - dst|^2`` in pixels squared, with the
-        same operations in the same order as :func:`project` followed by the squared
-        difference (so the same bits), but in place (fewer temporaries); ``w`` the
-        homogeneous coordinate before division. Where ``w == 0`` ``e`` is inf or nan (numpy
-        callers silence the warnings): the quasi-affinity test rejects those entries anyway.
-    """
+    """``(e, w)`` ``(K, N)``: squared transfer error ``|H(src) - dst|^2`` (same bits as
+    :func:`project`, in place) and ``w``; ``e`` is inf/nan where ``w == 0``. ``out``: reusable work
+    arrays."""
     xp = array_module(H)
     h = H.reshape(tuple(H.shape[:-2]) + (9, 1))
     X, Y = src[..., 0], src[..., 1]
@@ -296,19 +219,8 @@ def transfer_error_sq(H: np.ndarray, src: np.ndarray, dst: np.ndarray, out: tupl
 
 
 def one_way_inside(h, X, Y, x2, y2, t2: float, out: tuple | None = None):
-    """Division-free one-way inlier test of a block of homographies, numpy or torch alike.
-
-    Args:
-        h: (K, 9, 1) homographies (row-major entries), each scaled by its sample's forward
-            sign, so that the quasi-affine test is ``w > 0``.
-        X, Y / x2, y2: (N,) source / destination coordinates.
-        t2: squared threshold, in the coordinates' units.
-        out: optional work arrays ``(W, U, V, T, ok, tmp)``, four float and two bool
-            ``(K, N)``, reused from call to call (numpy: a fresh array of this size costs its
-            page faults on every call); the result is then ``ok``.
-    Returns:
-        (K, N) bool: ``w > 0`` and ``|u - x2 w|^2 + |v - y2 w|^2 <= t2 w^2``.
-    """
+    """Division-free one-way inlier test ``(K, N)``: ``w > 0`` and ``|u - x2 w|^2 + |v - y2 w|^2 <=
+    t2 w^2`` for sign-scaled ``h`` ``(K, 9, 1)``; ``out`` reuses work arrays."""
     xp = array_module(h)
     if out is None:
         W = h[:, 6] * X
@@ -344,8 +256,7 @@ def one_way_inside(h, X, Y, x2, y2, t2: float, out: tuple | None = None):
 
 
 def to_unit_h33(H: np.ndarray) -> np.ndarray:
-    """Scale ``(..., 3, 3)`` homographies so that ``H[2, 2] == 1`` where that entry is not
-    tiny relative to the matrix; otherwise to unit Frobenius norm with ``H[2, 2] >= 0``."""
+    """Scale homographies to ``H[2, 2] == 1`` where that entry is not tiny, else to unit norm."""
     H = normalise_scale(np.asarray(H, dtype=np.float64))
     h33 = H[..., 2:3, 2:3]
     ok = np.abs(h33) > 1e-8
@@ -353,8 +264,8 @@ def to_unit_h33(H: np.ndarray) -> np.ndarray:
 
 
 def triangle_orientations(pts: np.ndarray) -> np.ndarray:
-    """Signed doubled areas of the 4 triangles (i < j < k) of ``(B, 4, 2)`` point quadruples,
-    ``(B, 4)``; used by the reflection check of MOP* (paper App. D)."""
+    """Signed doubled areas ``(B, 4)`` of the four triangles of ``(B, 4, 2)`` quadruples (MOP*'s
+    reflection check, App. D)."""
     out = np.empty(pts.shape[:1] + (4,))
     for t, (i, j, k) in enumerate(((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3))):
         a = pts[:, j] - pts[:, i]

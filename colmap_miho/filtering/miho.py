@@ -1,16 +1,5 @@
-"""MiHo and VSAC splits of a homography into two 'middle' homographies (paper Sec. 3.2,
-App. B, C).
-
-- MiHo: each match ``(x1, x2)`` becomes two half-matches ``(x1 -> m)`` and ``(m -> x2)`` with
-  ``m = (x1 + x2) / 2``; a hypothesis is the pair ``(H1, H2)`` fitted on the same 4 matches,
-  and the two-view map is ``H2 @ H1``. See :func:`build_problem`.
-- Rotation fix (App. C): before MOP, image-2 points are turned by the multiple of 90 degrees
-  (optionally also mirrored) that maximises the number of match pairs whose midpoint distance
-  lies between their two image distances, on a random subset of pairs. See
-  :func:`choose_rotation`.
-- VSAC: ``H = H_v @ H_v`` by the principal matrix square root after making ``det(H) > 0``;
-  fails for 180-degree rotations and reflections. See :func:`sqrt_split`.
-"""
+"""MiHo and VSAC splits of a homography into two middle homographies (paper Sec. 3.2, App. B, C),
+and the rotation fix that pre-aligns image 2 by a multiple of 90 degrees."""
 
 from __future__ import annotations
 
@@ -26,7 +15,6 @@ _ROTATION_Z = 3.0  # paired z-score a non-identity pre-alignment needs over the 
 
 @functools.cache
 def _linear_parts(reflections: bool) -> tuple[np.ndarray, ...]:
-    """The 2x2 linear parts of :func:`_candidate_transforms` (computed once; read-only)."""
     out = []
     for mirror in (False, True) if reflections else (False,):
         for k in range(4):
@@ -41,7 +29,6 @@ def _linear_parts(reflections: bool) -> tuple[np.ndarray, ...]:
 
 @functools.lru_cache(maxsize=64)
 def _all_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
-    """``np.triu_indices(n, 1)``, kept per ``n`` (read-only)."""
     i, j = np.triu_indices(n, 1)
     i.flags.writeable = False
     j.flags.writeable = False
@@ -49,8 +36,7 @@ def _all_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _candidate_transforms(x2: np.ndarray, reflections: bool) -> list[np.ndarray]:
-    """3x3 affine maps of image 2 (rotations by k*90 degrees about the points' centroid,
-    then optionally a mirror about the vertical axis through it), identity first."""
+    """3x3 affine maps of image 2: rotations by k*90 degrees about the centroid, optionally mirrored; identity first."""
     c = x2.mean(axis=0)
     out = []
     for R in _linear_parts(reflections):
@@ -67,15 +53,13 @@ def apply_affine(G: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 def _differences(x: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """``(x[i] - x[j]).T`` ``(2, P)`` for points ``x`` ``(N, 2)``: the same differences,
-    gathered per coordinate (a gather of 2-float rows costs several times more)."""
+    """``(2, P)`` differences ``x[i] - x[j]``, gathered per coordinate (cheaper than 2-float rows)."""
     xt = np.ascontiguousarray(x.T)
     return np.take(xt, i, axis=1) - np.take(xt, j, axis=1)
 
 
 def _norms(d: np.ndarray) -> np.ndarray:
-    """``(P,)`` lengths of the ``(2, P)`` vectors ``d``: ``sqrt(dx * dx + dy * dy)``, the same
-    bits as ``sqrt((d.T**2).sum(1))`` (a 2-term sum adds the squares in this order)."""
+    """``(P,)`` lengths of ``d``, the same bits as ``sqrt((d.T**2).sum(1))``."""
     sq = d[0] * d[0]
     sq += d[1] * d[1]
     return np.sqrt(sq)
@@ -84,23 +68,8 @@ def _norms(d: np.ndarray) -> np.ndarray:
 def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
                     pairs: int = 20000, reflections: bool = False,
                     compiled: bool = True) -> tuple[np.ndarray, int, int]:
-    """Pick the image-2 pre-alignment of the rotation fix (App. C).
-
-    Args:
-        x1, x2: ``(N, 2)`` matched pixels.
-        pairs: random match pairs scored (0 = all ``N (N - 1) / 2`` pairs).
-        reflections: also try the four mirrored variants.
-        compiled: count with the compiled kernel (:func:`.compiled.miho.rotation_counts`, the
-            same counts); False: with numpy (the tests' reference).
-
-    The identity is kept unless another candidate's count exceeds it by more than three
-    standard deviations of the paired difference (same pairs), so that outlier noise
-    cannot turn an upright pair.
-
-    Returns:
-        ``(G, index, score)``: ``G`` ``(3, 3)`` affine map applied to image-2 points
-        (``x2' = G x2``), the index of the candidate (0-3: rotation by index*90 degrees,
-        4-7: mirrored then rotated), and its pair count.
+    """The rotation fix's ``(G, index, score)`` (``x2' = G x2``; index 0-3 rotations, 4-7 mirrored):
+    the identity stays unless another candidate wins by three standard deviations on the same pairs.
     """
     N = len(x1)
     if N < 2:
@@ -151,9 +120,7 @@ def choose_rotation(x1: np.ndarray, x2: np.ndarray, rng: np.random.Generator, *,
 
 def _pick_rotation(cands: list[np.ndarray], scores: np.ndarray,
                    differ: np.ndarray) -> tuple[np.ndarray, int, int]:
-    """:func:`choose_rotation`'s choice from the candidates' pair counts ``scores`` ``(C,)``
-    and the pairs ``differ`` ``(C,)`` where each candidate's decision differs from the
-    identity's."""
+    """:func:`choose_rotation`'s choice from the candidates' counts and disagreeing pairs."""
     spread = np.sqrt(np.maximum(differ, 1))
     z = (scores - scores[0]) / spread
     clear = np.flatnonzero(z > _ROTATION_Z)
@@ -162,14 +129,8 @@ def _pick_rotation(cands: list[np.ndarray], scores: np.ndarray,
 
 
 def build_problem(x1: np.ndarray, x2: np.ndarray, miho: bool, full_match: bool = False) -> Problem:
-    """The RANSAC problem of plain MOP (one half ``x1 -> x2``) or of MOP+MiHo (two halves
-    ``x1 -> m`` and ``m -> x2``, spread tested in ``x1``, ``x2`` and ``m``).
-
-    With ``full_match`` MiHo's half-match errors are doubled before the thresholds: a match
-    ``d`` pixels off moves its midpoint by ``d / 2``, so each half-match error is about
-    ``d / 2`` and the doubled error bounds the full match's ``|H1 x1 - H2 x2|`` in the
-    midpoint frame (triangle inequality); the thresholds then mean what they mean for MOP.
-    """
+    """The RANSAC problem of MOP (one half) or MOP+MiHo (two, via the midpoint); ``full_match``
+    doubles the half-match errors so the thresholds bound the full match as for MOP."""
     if not miho:
         return Problem(src=(x1,), dst=(x2,), spread=(x1, x2), x1=x1, x2=x2)
     m = (x1 + x2) / 2
@@ -178,9 +139,8 @@ def build_problem(x1: np.ndarray, x2: np.ndarray, miho: bool, full_match: bool =
 
 
 def sqrt_split(H: np.ndarray, tol: float = 1e-6) -> np.ndarray | None:
-    """VSAC half homography: ``H_v`` with ``H_v @ H_v ~ H`` (``(3, 3)``), or ``None`` when
-    no real square root exists (180-degree rotation, reflection, negative eigenvalues) or it
-    is inaccurate (relative residual above ``tol``)."""
+    """VSAC half homography ``H_v`` with ``H_v H_v ~ H``, or None without an accurate real root
+    (180-degree rotation, reflection)."""
     from scipy.linalg import sqrtm
 
     Hs = H / np.cbrt(np.linalg.det(H)) if np.linalg.det(H) != 0 else None

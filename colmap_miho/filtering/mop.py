@@ -1,19 +1,5 @@
-"""MOP's outer loop: multiple overlapping planes by sequential RANSAC (paper Sec. 3.1, App. A.2).
-
-Each round runs :func:`~colmap_miho.filtering.ransac.ransac_round` on the current pool with
-the relaxed threshold t_l. A best model with fewer than n inliers is a failure and is not
-kept. Otherwise it is kept and its strict (t_h) inliers leave the pool when there are more
-than n/2 of them; if not, its relaxed (t_l) inliers leave and the round counts as a failure.
-A round without failure resets the counter; MOP stops when ``max_failures`` (c_f*) failures
-happen in a row (the paper's rule; the reference implementation stops one later, which is
-``max_failures=4``) or when fewer than n matches are left (no round could succeed).
-
-The reference has an extra rule: when a round's strict inliers shrink the pool by at most
-n/2 matches, it counts a failure and removes from the pool the relaxed (t_l) inliers of
-*every* homography kept so far, not only this one's. Here, as in the paper, such a round
-removes this model's relaxed inliers (>= n of them) and counts a failure; the extra rule's
-condition can then never hold, and the union it would remove is not implemented.
-"""
+"""MOP's outer loop: multiple planes by sequential RANSAC (paper Sec. 3.1, App. A.2), stopping after
+``max_failures`` failed rounds in a row (the reference's rule is ``max_failures=4``)."""
 
 from __future__ import annotations
 
@@ -34,8 +20,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class MopOutput:
-    """Kept hypotheses (``K`` of them, in discovery order), each one's t_l inliers in the pool
-    of its round (``round_inliers``, bool ``(K, N)``) and loop counters."""
+    """Kept hypotheses in discovery order, each one's t_l inliers in its round's pool ``(K, N)``, counters."""
 
     hyps: Hypotheses
     round_inliers: np.ndarray
@@ -44,8 +29,7 @@ class MopOutput:
 
 def run_mop(problem: Problem, cfg: FilterConfig, rng: np.random.Generator,
             progress: bool = False, scoring: NumpyScoring | None = None) -> MopOutput:
-    """Find the homographies of ``problem`` (all matches ``0..N-1`` start in the pool);
-    ``scoring`` runs the heavy RANSAC kernels (``None``: numpy)."""
+    """Find the homographies of ``problem``; ``scoring`` runs the heavy kernels (None: numpy)."""
     n_req = cfg.inlier_count
     t_h2 = cfg.strict_threshold**2
     pool = np.arange(len(problem.x1))

@@ -1,8 +1,5 @@
-"""The warm-up of the compiled filter kernels (:mod:`.compiled`): :func:`warm` loads them (from
-the cache, or compiled) by filtering a small synthetic pair; it is the ``filter`` family of
-:mod:`colmap_miho.kernel_cache` (compiled ahead by ``colmap-miho compile`` and before a run's
-workers start, loaded by the workers' forkserver). The warm-up lives here, above the filter's
-API, and not in :mod:`.compiled`, which the filter's modules import."""
+"""The warm-up of the compiled filter kernels (the ``filter`` family of
+:mod:`colmap_miho.kernel_cache`); it lives above the filter's API, not in :mod:`.compiled`."""
 
 from __future__ import annotations
 
@@ -16,9 +13,8 @@ HANDLES = (sampling.KERNELS, scoring.KERNELS, ransac.KERNELS, miho.KERNELS)
 
 
 def warm() -> bool:
-    """Load every compiled filter kernel now (each from numba's cache, or compiled), by
-    filtering a small synthetic pair (one that keeps a plane, one of pure outliers); returns
-    whether the kernels are loaded. Never raises."""
+    """Load every compiled filter kernel now by filtering two small synthetic pairs; whether they
+    loaded. Never raises."""
 
     def example() -> None:
         rng = np.random.default_rng(0)

@@ -1,13 +1,5 @@
-"""The data of one RANSAC problem of MOP (paper App. A.3, B): the point sets that a
-hypothesis is fitted to (:class:`Problem`) and a stack of hypotheses (:class:`Hypotheses`).
-
-A problem has one or more *halves* (source, destination) point sets that share the same
-minimal sample. Plain MOP has one half ``(x1 -> x2)``; MiHo has two, ``(x1 -> m)`` and
-``(m -> x2)`` with ``m`` the midpoint (App. B). A match is an inlier of a hypothesis iff, for
-every half, its two-way transfer error is within the threshold and both projections keep the
-quasi-affine sign of the minimal sample (App. A.3), i.e. the error is the max over all halves
-and both directions.
-"""
+"""The data of one RANSAC problem of MOP (App. A.3, B): the point sets of its halves (MOP one, MiHo
+two via the midpoint) and a stack of hypotheses."""
 
 from __future__ import annotations
 
@@ -20,18 +12,8 @@ from .homography import array_module
 
 @dataclass(frozen=True)
 class Problem:
-    """Point sets of one filtering problem (all ``(N, 2)`` float64 pixels: numpy arrays, or
-    torch tensors for the device copy of :class:`~colmap_miho.filtering.torch_scoring.TorchScoring`).
-
-    Attributes:
-        src, dst: per half, the source and destination points; a hypothesis holds one
-            homography per half mapping ``src`` to ``dst``.
-        spread: point sets in which the 4 sample points must be at least t_l apart.
-        x1, x2: the two images' points (reflection check, local-sampling features).
-        error_scale: factor applied to every transfer error before the thresholds (1 for
-            MOP; 2 for MiHo with thresholds on the full match, see
-            ``FilterConfig.miho_threshold``).
-    """
+    """Point sets of one filtering problem, ``(N, 2)`` float64 pixels: per half ``src``/``dst``, the
+    ``spread`` sets, ``x1``/``x2``, and ``error_scale`` (2 for MiHo with full-match thresholds)."""
 
     src: tuple[np.ndarray, ...]
     dst: tuple[np.ndarray, ...]
@@ -62,9 +44,8 @@ class Problem:
 
 @dataclass
 class Hypotheses:
-    """A stack of ``K`` hypotheses: ``H`` and its adjugate ``Hinv`` ``(K, halves, 3, 3)``,
-    quasi-affine reference signs ``sign``/``sign_inv`` ``(K, halves)`` and the minimal
-    samples ``sample`` ``(K, 4)`` (global match indices), numpy arrays."""
+    """``K`` hypotheses: ``H``, adjugates ``Hinv`` ``(K, halves, 3, 3)``, signs ``(K, halves)`` and
+    samples ``(K, 4)``."""
 
     H: np.ndarray
     Hinv: np.ndarray
@@ -81,8 +62,7 @@ class Hypotheses:
                           self.sample[idx])
 
     def row(self, k: int) -> Hypotheses:
-        """Hypothesis ``k`` alone, as views of this stack's rows (:meth:`take` ``([k])``
-        without copies; the stacks are never written in place)."""
+        """Hypothesis ``k`` alone, as views (the stacks are never written in place)."""
         return Hypotheses(self.H[k:k + 1], self.Hinv[k:k + 1], self.sign[k:k + 1],
                           self.sign_inv[k:k + 1], self.sample[k:k + 1])
 

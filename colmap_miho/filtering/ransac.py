@@ -1,29 +1,6 @@
-"""One RANSAC run of MOP (paper App. A.3), batched and guided: the round loop.
-
-Per run, hypotheses are drawn in batches (``FilterConfig.batch_size``, growing to 8x when
-the stopping bound is far, by at most ``batch_growth`` from one batch to the next). For each
-batch: minimal-sample spread test (>= t_l in every image), reflection check (MOP*, App. D),
-closed-form 4-point homographies with the sample's quasi-affine signs (both ways, every
-half) from the same factors, then a one-way float32 error count on the pool, which bounds
-the full inlier count from above. Hypotheses are then fully scored (two-way, every half,
-float64) in descending order of that bound until none left can beat the best, so the best
-model is the one exhaustive scoring would pick; the normalised-DLT singular-value test (>
-0.05) runs just before full scoring, which rejects exactly the hypotheses the paper rejects
-among those that can matter. Buffer candidates are the two strongest of each batch with at
-least n possible inliers (the paper considers every hypothesis; a weaker one could not enter
-a buffer of models worth bootstrapping). The run stops at the adaptive bound for confidence
-``p`` (never before ``min_iters``, never after c_max, ``FilterConfig.iteration_cap``).
-Iterations are the samples that pass the spread test: a draw that fails it is not a
-hypothesis, so it counts neither towards c_min / c_max nor against the bound (samples that
-the reflection or quasi-affinity checks reject do count). At most ``10 x c_max`` samples are
-drawn, for pools where almost nothing is spread out.
-
-Sampling is :mod:`.sampling`; the heavy kernels run in :class:`~.scoring.NumpyScoring`
-(the default: compiled by numba, :mod:`.compiled`; numpy with ``compiled=False``) or its
-torch twin
-:class:`~colmap_miho.filtering.torch_scoring.TorchScoring` (any torch device), passed as
-``scoring``; sampling and the search's bookkeeping run on the host for both.
-"""
+"""One RANSAC run of MOP (App. A.3), batched and guided: hypotheses are fully scored in order of
+their one-way bound until none can beat the best, so the result is what exhaustive scoring would
+give. Only samples that pass the spread test count as iterations."""
 
 from __future__ import annotations
 
@@ -44,8 +21,7 @@ _DRAW_CAP = 10  # most draws per RANSAC run, in units of c_max
 
 @dataclass
 class RoundResult:
-    """Best model of one RANSAC run: ``hyp`` (1 hypothesis), ``err2`` ``(n_pool,)`` its
-    squared errors on the pool, ``count`` its t_l inliers, and counters."""
+    """Best model of one run: ``hyp``, ``err2`` ``(n_pool,)`` squared errors, ``count`` t_l inliers."""
 
     hyp: Hypotheses
     err2: np.ndarray
@@ -55,9 +31,7 @@ class RoundResult:
 
 def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: np.ndarray,
                    z: int, compiled: bool = False):
-    """Top-z sub-optimal models ordered by inliers not covered by the best and the better
-    buffered ones (paper App. A.3, ``v_i >= v_{i+1}``); ``cands`` as in :class:`_Search`
-    (``compiled``: the choice by :func:`.compiled.ransac.greedy_cover`, the same)."""
+    """Top-z sub-optimal models ordered by inliers not covered by the best and better ones (App. A.3)."""
     if z == 0 or not cands:
         return []
     masks = np.stack([m for _, _, m in cands])
@@ -80,10 +54,8 @@ def _greedy_buffer(cands: list[tuple[Hypotheses, int, np.ndarray]], best_mask: n
 
 @dataclass
 class _Search:
-    """State of one RANSAC run: the best model so far (``hyp``; ``err`` its squared errors on
-    the pool, ``mask`` its t_l inliers, ``count`` their number, -1 before any model) and the
-    sub-optimal candidates for the top-z buffer, ``(hypotheses, row, inlier mask)`` (the
-    candidate is row ``row`` of ``hypotheses``: taken out only if the buffer chooses it)."""
+    """State of one RANSAC run: the best model so far (``count`` -1 before any) and the sub-optimal
+    candidates for the top-z buffer."""
 
     t2: float
     hyp: Hypotheses | None = None
@@ -94,11 +66,8 @@ class _Search:
 
     def consider(self, hyp: Hypotheses, masks: np.ndarray, err: np.ndarray | None = None,
                  rows: np.ndarray | None = None) -> bool:
-        """Take fully scored hypotheses: their t_l inlier ``masks`` ``(K, n_pool)`` and, when
-        at hand, their squared errors ``err`` (otherwise the best's are computed at the end
-        of the run); returns whether the best model changed. A replaced best and every other
-        model with inliers become candidates. Row ``k`` of ``masks`` is hypothesis
-        ``rows[k]`` of ``hyp`` (``None``: ``k``; a candidate keeps ``hyp`` and its row)."""
+        """Take fully scored hypotheses' inlier ``masks`` ``(K, n_pool)`` (and ``err`` when at
+        hand); whether the best changed. A replaced best and others with inliers become candidates."""
         counts = masks.sum(axis=1)
         improved = False
         for k in np.argsort(-counts, kind="stable").tolist():
@@ -123,16 +92,8 @@ def _required(search: _Search, sampler: Sampler, n: int, cfg: FilterConfig) -> f
 
 
 class _BatchScores:
-    """Full scores of one batch's hypotheses ``hyp`` in the ``order`` of their one-way bound
-    (position ``i`` is ``hyp`` row ``order[i]``; ``ub`` sorted), computed on demand for the
-    positions :func:`_score_batch` reaches.
-
-    With ``scoring.prefetch == 0`` exactly the positions asked for are scored (singular-value
-    test, then the errors of the survivors). Otherwise positions are screened ahead, in
-    chunks of ``prefetch`` that double, never past ``reach`` (the positions the loop can
-    reach at all, set by the best count when the batch starts); the search takes the same
-    hypotheses in the same order, so the result is the same.
-    """
+    """Full scores of one batch's hypotheses in the order of their one-way bound, computed on
+    demand; ``prefetch > 0`` screens ahead in doubling chunks with the same result."""
 
     def __init__(self, scoring: NumpyScoring, problem: Problem, hyp: Hypotheses,
                  order: np.ndarray, ub: np.ndarray, pool: np.ndarray, cfg: FilterConfig,
@@ -151,8 +112,7 @@ class _BatchScores:
         return self.hyp.take(self.order[pos])
 
     def get(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-        """``(keep, masks, err)`` for the positions ``pos``: those passing the singular-value
-        test, their inlier masks and (when at hand) errors on the pool."""
+        """``(keep, masks, err)`` at ``pos``: singular-value test, inlier masks and errors if at hand."""
         if not self.chunk:
             keep = pos[self.scoring.singular_value_ok(self.problem, self.at(pos), self.cfg)]
             if not len(keep):
@@ -174,14 +134,8 @@ class _BatchScores:
 
 def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.ndarray,
                  cfg: FilterConfig, search: _Search, stats: dict, scoring: NumpyScoring) -> bool:
-    """Full-score the hypotheses of one batch that can matter; returns whether the best
-    model changed.
-
-    Full scoring runs in descending order of the one-way upper bound, in small groups, until
-    no remaining bound can beat the best count; the batch's two strongest (at least n
-    possible inliers) are always scored, as buffer candidates. ``ub`` ``(K,)``: the one-way
-    bounds of ``hyp`` on ``pool`` (:func:`~.scoring.one_way_count`).
-    """
+    """Full-score the batch's hypotheses that can matter, by descending bound ``ub``; the two
+    strongest are always scored as buffer candidates. Returns whether the best changed."""
     if scoring.compiled:
         return _score_batch_compiled(problem, hyp, ub, pool, cfg, search, stats, scoring)
     order = np.argsort(-ub, kind="stable")
@@ -207,8 +161,7 @@ def _score_batch(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.nda
 def _score_batch_compiled(problem: Problem, hyp: Hypotheses, ub: np.ndarray, pool: np.ndarray,
                           cfg: FilterConfig, search: _Search, stats: dict,
                           scoring: NumpyScoring) -> bool:
-    """:func:`_score_batch` in one compiled call (:func:`.compiled.scoring.score_batch`: the same
-    hypotheses scored, the same candidates in the same order, the same best)."""
+    """:func:`_score_batch` in one compiled call (the same hypotheses, candidates and best)."""
     order, masks, events, best, count, scored = scoring.score_batch(
         problem, hyp, ub, pool, cfg, search.t2, search.count, search.hyp is not None)
     stats["full_scored"] += scored
@@ -228,8 +181,7 @@ def _score_batch_compiled(problem: Problem, hyp: Hypotheses, ub: np.ndarray, poo
 
 def _refit_best(problem: Problem, pool: np.ndarray, cfg: FilterConfig, search: _Search,
                 stats: dict, scoring: NumpyScoring) -> None:
-    """Replace the best model by least-squares refits on its inliers while they lose none
-    (the refit itself runs in numpy; its errors through ``scoring``)."""
+    """Replace the best by least-squares refits on its inliers while they lose none."""
     assert search.hyp is not None and search.mask is not None, "no best model"
     for _ in range(cfg.refit_iters):
         refit = _refit(problem, search.hyp, pool[search.mask], scoring.compiled)
@@ -251,18 +203,8 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
                  buffer: list[Hypotheses], candidates: LocalCandidates | None = None,
                  scoring: NumpyScoring | None = None
                  ) -> tuple[RoundResult | None, list[Hypotheses]]:
-    """Run one RANSAC search on the matches ``pool`` (``(n,)`` global indices).
-
-    Args:
-        buffer: the global top-z buffer of sub-optimal hypotheses; evaluated first
-            (bootstrap) and returned updated.
-        candidates: the problem's local-sampling candidates, shared by the rounds (built
-            here when ``None``).
-        scoring: where the heavy kernels run (``None``: :class:`NumpyScoring`).
-
-    Returns:
-        ``(result, buffer)``; ``result`` is ``None`` when no valid hypothesis was found.
-    """
+    """One RANSAC search on ``pool`` ``(n,)``; the top-z ``buffer`` is evaluated first and returned
+    updated. Returns ``(result or None, buffer)``."""
     n = len(pool)
     stats: dict[str, float] = {"drawn": 0, "samples": 0, "valid": 0, "full_scored": 0}
     if n < 4:
@@ -313,9 +255,8 @@ def ransac_round(problem: Problem, pool: np.ndarray, cfg: FilterConfig, rng: np.
 
 def _refit(problem: Problem, hyp: Hypotheses, idx: np.ndarray,
            compiled: bool = False) -> Hypotheses | None:
-    """Least-squares normalised DLT of every half on the matches ``idx`` (global indices);
-    ``None`` when degenerate or when the sample loses its quasi-affine consistency
-    (``compiled``: :func:`.compiled.scoring.refit`)."""
+    """Least-squares normalised DLT of every half on ``idx``; None when degenerate or when the
+    sample loses its quasi-affine consistency."""
     if len(idx) < 5:
         return None
     if compiled:

@@ -1,14 +1,5 @@
-"""Minimal samples of a RANSAC run (paper App. A.3): draws, the spread test, local candidates.
-
-``FilterConfig.sampling``: ``"uniform"`` is the paper's; ``"local"`` draws a seed match
-uniformly and the other three among its ``local_neighbours`` nearest matches in the joint
-``(x1, x2)`` space (NAPSAC-style) that lie at least t_l from the seed and from each other in
-every spread set, for a ``local_fraction`` of the samples. Plain nearest neighbours are
-mostly closer than t_l to each other, so such samples would mostly fail the spread test.
-The adaptive bound (:func:`required_iters`) uses the all-inlier probability of that mixture
-(for local samples ``w * w_loc^3`` with ``w_loc`` the measured inlier fraction among the
-inliers' neighbours).
-"""
+"""Minimal samples of a RANSAC run (App. A.3): uniform or local draws whose points are spread at
+least t_l apart (plain nearest neighbours would mostly fail the spread test), and the bound."""
 
 from __future__ import annotations
 
@@ -31,10 +22,8 @@ _PAIRS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))  # the 6 point pairs o
 
 
 def apart_sets(dx: np.ndarray, dy: np.ndarray, t2: float) -> np.ndarray:
-    """``(...)`` bool from the differences' x and y ``(sets, ...)``: the squared distance
-    ``dx * dx + dy * dy`` (the bits a ``sum`` over (x, y) gives) is at least ``t2`` in every
-    set. Written out over the tiny sets axis (numpy reductions over axes of length 2-3 cost
-    far more than the arithmetic); overwrites ``dx`` and ``dy``."""
+    """``(...)`` bool: ``dx * dx + dy * dy >= t2`` in every set, written out over the tiny sets axis
+    (reductions over it cost more than the arithmetic); overwrites ``dx``, ``dy``."""
     dx *= dx
     dy *= dy
     dx += dy
@@ -45,8 +34,7 @@ def apart_sets(dx: np.ndarray, dy: np.ndarray, t2: float) -> np.ndarray:
 
 
 def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
-    """``(B,)`` bool: the 4 points of each minimal sample ``(B, 4)`` are pairwise at least
-    ``t_l`` pixels apart in every spread set (paper App. A.3)."""
+    """``(B,)`` bool: each sample's 4 points are pairwise at least ``t_l`` px apart in every spread set."""
     assert problem.spread_xy is not None, "sampling runs on the numpy problem"
     px, py = np.take(problem.spread_xy, sample.T, axis=2)  # (sets, 4, B) each
     ok = np.ones(len(sample), dtype=bool)
@@ -57,8 +45,7 @@ def spread_ok(problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
 
 def checked_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
                     ok: np.ndarray | None = None) -> np.ndarray:
-    """The minimal samples ``(B, 4)`` that pass the spread test (unless its result ``ok``
-    ``(B,)`` is given) and, for MOP*, the reflection check (App. D)."""
+    """The samples ``(B, 4)`` that pass the spread test and, for MOP*, the reflection check."""
     ok = spread_ok(problem, sample, cfg.t_l) if ok is None else ok.copy()
     if cfg.reflection_check and ok.any():
         o1 = triangle_orientations(problem.x1[sample])
@@ -68,15 +55,12 @@ def checked_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
 
 
 def required_iters(w: float, w_loc: float, local_fraction: float, p: float) -> float:
-    """Adaptive RANSAC bound: draws needed for confidence ``p`` that one minimal sample is
-    all inliers, with inlier ratio ``w``, ``w_loc`` among the inliers' local neighbours and
-    a ``local_fraction`` of the samples drawn locally (``inf`` when none can be)."""
+    """Adaptive bound: draws for confidence ``p`` that one sample is all inliers (``inf`` if none can be)."""
     return draws_for_confidence(local_fraction * w * w_loc**3 + (1.0 - local_fraction) * w**4, p)
 
 
 def _unknown(idx: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """The sorted distinct entries of ``idx`` (indices into ``known`` ``(n,)`` bool) that are
-    not ``known`` (``np.unique`` of them, by a mask: cheaper for short arrays)."""
+    """Sorted distinct entries of ``idx`` that are not ``known`` (cheaper than ``np.unique``)."""
     need = np.zeros(known.shape[0], dtype=bool)
     need[idx] = True
     need &= ~known
@@ -85,25 +69,21 @@ def _unknown(idx: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=4096)
 def _probe_rows(n: int) -> np.ndarray:
-    """``(min(n, 256),)`` int64 rows evenly spread over ``n`` (``linspace``, truncated), kept
-    per ``n`` (read-only: a round asks for them after every improvement)."""
+    """Up to 256 rows evenly spread over ``n``, cached per ``n`` (read-only)."""
     rows = np.linspace(0, n - 1, min(n, 256)).astype(np.int64)
     rows.flags.writeable = False
     return rows
 
 
 class LocalCandidates:
-    """Candidate neighbours of local sampling for one filtering problem, shared by its MOP
-    rounds: for each match, its ``4 k`` nearest matches in the joint ``(x1, x2)`` space
-    (``k = local_neighbours``) and whether each lies at least t_l from it in every spread
-    set. Both are independent of the pool, so they are computed once per match."""
+    """Candidate neighbours for local sampling, shared by a problem's MOP rounds: each match's ``4
+    k`` nearest in ``(x1, x2)`` and whether each is far enough (independent of the pool, so computed
+    once)."""
 
     SEARCH = 4
 
     def __init__(self, problem: Problem, cfg: FilterConfig, compiled: bool = False) -> None:
-        """``compiled``: search by :class:`.compiled.sampling.NearestGrid` (ties by index) instead of
-        scipy's k-d tree (ties in its own order); the same neighbours but for the order of
-        equidistant ones."""
+        """``compiled``: search a :class:`.compiled.sampling.NearestGrid` instead of scipy's k-d tree."""
         n = len(problem.x1)
         self.compiled = compiled
         assert problem.spread_xy is not None, "local sampling runs on the numpy problem"
@@ -124,9 +104,7 @@ class LocalCandidates:
         self._in_last_pool: np.ndarray | None = None
 
     def lists_for(self, pool: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(lists, listed)`` of :func:`.compiled.sampling.pool_neighbours` for a search of the pool
-        ``pool`` (global indices): kept from the earlier pools while each pool is a subset
-        of the one before (the rounds' pools only lose matches), dropped otherwise."""
+        """``(lists, listed)`` for a search of ``pool``, kept while each pool is a subset of the last."""
         if self._in_last_pool is not None and not self._in_last_pool[pool].all():
             self._listed[:] = False
         self._in_last_pool = np.zeros(len(self._known), dtype=bool)
@@ -146,11 +124,7 @@ class LocalCandidates:
                            np.take(sy, a, axis=1) - np.take(sy, b, axis=1), self._t2)
 
     def get(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(cand, far)``, each ``(len(idx), 4k)``: the nearest matches of matches ``idx``
-        (nearest first) and whether each is far enough for the spread test. Matches are
-        searched when first asked for (one tree query per call for the missing ones; a
-        match's neighbours do not depend on what it is queried with, and local sampling
-        asks for most matches over a few calls)."""
+        """``(cand, far)``, each ``(len(idx), 4k)``, searched on first request."""
         todo = _unknown(idx, self._known)
         if len(todo) and self._q:
             if self.compiled:
@@ -168,18 +142,8 @@ class LocalCandidates:
 
 
 class Sampler:
-    """Minimal samples over the pool: uniform, or a ``local_fraction`` of them drawn around
-    a seed match among its ``local_neighbours`` nearest pool matches in ``(x1, x2)`` space.
-
-    Local samples are drawn so that they pass the spread test: a seed's neighbours are the
-    nearest of its :class:`LocalCandidates` that are still in the pool and lie at least t_l
-    from it in every spread set (image 1, image 2 and, for MiHo, the midpoints; where fewer
-    than k of them are left in the pool, the nearest in the pool are searched anew), and the
-    three others are drawn one by one among the neighbours at least t_l from those already
-    drawn. A seed without three such neighbours gives a sample that fails the spread test.
-    Neighbour lists are computed once per pool position, on demand (all of a small pool at
-    the first call).
-    """
+    """Minimal samples over the pool: uniform, or a ``local_fraction`` drawn one by one among a
+    seed's nearest pool matches that are far enough from those drawn."""
 
     #: Pools of at most this many matches have every match's neighbours searched at the first
     #: call.
@@ -214,8 +178,7 @@ class Sampler:
         self._known = np.zeros(n, dtype=bool)
 
     def neighbours(self, pos: np.ndarray) -> np.ndarray:
-        """``(len(pos), k)`` pool positions of the nearest pool matches at least t_l from each
-        of the pool positions ``pos`` in every spread set (-1 where there are fewer than k)."""
+        """``(len(pos), k)`` nearest far-enough pool positions of each of ``pos``, -1 padded."""
         if len(self.pool) <= self.ALL_AT_ONCE and not self._known.any():
             # A small pool: a round's draws reach nearly every match, so all are searched in
             # one call (each match's neighbours do not depend on which others are searched).
@@ -257,7 +220,6 @@ class Sampler:
         return self._nb[pos]
 
     def _first_k(self, cand: np.ndarray, ok: np.ndarray) -> np.ndarray:
-        """The first k candidates (pool positions, nearest first) where ``ok``, -1 padded."""
         order = np.argsort(~ok, axis=1, kind="stable")[:, : self.k]
         nb = np.take_along_axis(cand, order, axis=1)
         nb[~np.take_along_axis(ok, order, axis=1)] = -1
@@ -266,8 +228,7 @@ class Sampler:
         return nb
 
     def _pool_candidates(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest pool matches of pool positions ``pos`` (as pool positions) and whether
-        each is far enough for the spread test, from a k-d tree over the pool."""
+        """Nearest pool matches of ``pos`` and whether each is far enough, from a k-d tree."""
         cands = self._cands
         assert cands is not None, "neighbours are searched with local sampling only"
         if self._pool_tree is None:
@@ -279,8 +240,7 @@ class Sampler:
         return cand, cands.far(self.pool[cand], self.pool[pos][:, None])
 
     def local_inlier_fraction(self, mask: np.ndarray | None, count: int) -> float:
-        """Share of the best model's inliers (``mask`` ``(n_pool,)``, ``count`` of them) among
-        the neighbours of (up to 256) of them."""
+        """Share of the best model's inliers among the neighbours of up to 256 of them."""
         if self._cands is None or mask is None or count <= 0:
             return 0.0
         if self.compiled:
@@ -294,15 +254,12 @@ class Sampler:
         return float(mask[nb[valid]].mean())
 
     def _local_fraction_compiled(self, mask: np.ndarray, count: int) -> float:
-        """:meth:`local_inlier_fraction` in one compiled call (:func:`.compiled.sampling.local_fraction`:
-        the same searches, the same lists and the same fraction)."""
+        """:meth:`local_inlier_fraction` in one compiled call (the same result)."""
         valid, inside = kernels.local_fraction(mask, _probe_rows(count), *self._search_args())
         return inside / valid if valid else 0.0
 
     def _search_args(self) -> tuple:
-        """The neighbour-search arguments that :func:`.compiled.sampling.draw_batch` and
-        :func:`.compiled.sampling.local_fraction` share (after their own leading ones): the pool, its
-        lists and their state, the problem's candidates and grid, the spread sets."""
+        """The arguments :func:`.compiled.sampling.draw_batch` and ``local_fraction`` share."""
         cands = self._cands
         assert cands is not None and self._spread_x is not None and self._spread_y is not None
         if self._feats is None:
@@ -317,8 +274,7 @@ class Sampler:
                 self._spread_x, self._spread_y, self._t2, self.k, q, *self._lists)
 
     def _draw_local(self, rng: np.random.Generator, seeds: np.ndarray) -> np.ndarray:
-        """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart
-        (the seed itself where no such neighbour is left, which fails the spread test)."""
+        """``(L, 3)`` pool positions drawn among the seeds' neighbours, pairwise >= t_l apart."""
         assert self._spread_x is not None and self._spread_y is not None, \
             "local draws need local sampling"
         nb = self.neighbours(seeds)
@@ -362,8 +318,5 @@ class Sampler:
 
     def _draw_compiled(self, seeds: np.ndarray, others: np.ndarray, local: np.ndarray,
                        keys: np.ndarray) -> np.ndarray:
-        """:meth:`draw`'s samples from its uniform draws ``seeds`` ``(B,)``, ``others``
-        ``(B, 3)``, the local samples ``local`` ``(L,)`` and their keys ``(3, L, k)``, in one
-        compiled call (:func:`.compiled.sampling.draw_batch`: the neighbour searches of
-        :meth:`neighbours` and the draws of :meth:`_draw_local`)."""
+        """:meth:`draw`'s samples in one compiled call (searches and draws as the numpy path)."""
         return kernels.draw_batch(seeds, others, local, keys, *self._search_args())

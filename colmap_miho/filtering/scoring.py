@@ -1,11 +1,6 @@
-"""The heavy kernels of a RANSAC run, in numpy: closed-form minimal solver with the sample's
-quasi-affine signs, singular-value test, one-way inlier bound, full errors and inlier masks.
-
-:class:`NumpyScoring` bundles them (the default); its torch twin, for any torch device, is
-:class:`~colmap_miho.filtering.torch_scoring.TorchScoring`. Errors are squared pixels; the
-error of a match is the max over halves and directions of its transfer error
-(:mod:`.problem`), ``inf`` where a projection breaks the sample's quasi-affine sign.
-"""
+"""The heavy kernels of a RANSAC run in numpy: minimal solver with quasi-affine signs,
+singular-value test, one-way bound, full errors and masks (squared pixels; a match's error is the
+max over halves and directions, ``inf`` where a projection breaks the sample's sign)."""
 
 from __future__ import annotations
 
@@ -28,15 +23,9 @@ from .sampling import checked_samples, spread_ok
 
 
 def sample_signs(problem: Problem, H: np.ndarray, Hinv: np.ndarray, sample: np.ndarray):
-    """Quasi-affine reference signs of minimal samples.
-
-    Args:
-        H, Hinv: ``(K, halves, 3, 3)`` hypotheses and their adjugates.
-        sample: ``(K, 4)`` global match indices.
-
-    Returns ``(ok, sign, sign_inv)``: ``ok`` ``(K,)`` whether the ``w`` of the 4 sample points
-    share one nonzero sign in every half and both directions, and the signs ``(K, halves)``.
-    """
+    """``(ok (K,), sign, sign_inv (K, halves))``: whether the 4 sample points' ``w`` share one
+    nonzero sign in every half and direction, for ``H``, ``Hinv`` ``(K, halves, 3, 3)`` and samples
+    ``(K, 4)``."""
     ok = np.ones(len(H), dtype=bool)
     signs = []
     for mat, pts in ((H, problem.src_all), (Hinv, problem.dst_all)):
@@ -49,9 +38,7 @@ def sample_signs(problem: Problem, H: np.ndarray, Hinv: np.ndarray, sample: np.n
 
 
 def _per_half(pts_all: np.ndarray, sample: np.ndarray) -> np.ndarray:
-    """``(B * halves, 4, 2)`` sample points, half by half, from ``pts_all`` ``(N, halves, 2)``
-    and samples ``(B, 4)``: ``pts_all[sample]`` with the halves moved ahead of the 4 points
-    (gathered as whole rows by ``np.take``, faster than fancy indexing; the same values)."""
+    """``(B * halves, 4, 2)`` sample points, half by half (``np.take``: faster, the same values)."""
     N, nh, _ = pts_all.shape
     B = len(sample)
     rows = np.take(pts_all.reshape(N, nh * 2), sample, axis=0)  # (B, 4, halves * 2)
@@ -59,8 +46,7 @@ def _per_half(pts_all: np.ndarray, sample: np.ndarray) -> np.ndarray:
 
 
 def _one_sign(sg: np.ndarray) -> np.ndarray:
-    """``(B,)`` bool from signs ``sg`` ``(B, halves, 4)`` in {-1, 0, 1}: in every half the 4
-    signs are one nonzero sign (the products with the first are all 1)."""
+    """``(B,)`` bool: in every half the 4 signs of ``sg`` are one nonzero sign."""
     ok = sg[:, :, 0] * sg[:, :, 1] > 0
     ok &= sg[:, :, 0] * sg[:, :, 2] > 0
     ok &= sg[:, :, 0] * sg[:, :, 3] > 0
@@ -69,15 +55,9 @@ def _one_sign(sg: np.ndarray) -> np.ndarray:
 
 def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterConfig,
                             ok: np.ndarray | None = None):
-    """Fit and check hypotheses for minimal samples ``(B, 4)`` of global match indices.
-
-    Applies the spread test (unless its result ``ok`` ``(B,)`` is given), the reflection
-    check (MOP*) and the quasi-affinity of the sample (both ways, every half); homographies
-    come from the closed-form minimal solver. The singular-value test is separate
-    (:func:`passes_singular_value_test`) so that it runs only on hypotheses that can matter;
-    the result is the same as testing all of them first. Returns the surviving
-    :class:`Hypotheses`.
-    """
+    """The surviving :class:`Hypotheses` of samples ``(B, 4)``: spread test (unless ``ok`` is
+    given), reflection check, quasi-affinity. The singular-value test is separate, to run only where
+    it matters."""
     sample = checked_samples(problem, sample, cfg, ok)
     nh = problem.num_halves
     B = len(sample)
@@ -97,8 +77,7 @@ def hypotheses_from_samples(problem: Problem, sample: np.ndarray, cfg: FilterCon
 
 
 def passes_singular_value_test(problem: Problem, hyp: Hypotheses, cfg: FilterConfig) -> np.ndarray:
-    """``(K,)`` bool: the normalised minimal DLT system of every half has its smallest
-    singular value above ``cfg.min_singular_value`` (paper App. A.3)."""
+    """``(K,)`` bool: every half's minimal DLT system passes ``cfg.min_singular_value`` (App. A.3)."""
     K, nh = len(hyp), problem.num_halves
     src = _per_half(problem.src_all, hyp.sample)
     dst = _per_half(problem.dst_all, hyp.sample)
@@ -108,11 +87,7 @@ def passes_singular_value_test(problem: Problem, hyp: Hypotheses, cfg: FilterCon
 
 def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray,
              scratch: _Scratch | None = None) -> np.ndarray:
-    """Squared MOP error ``(K, n)`` of hypotheses on the matches ``idx`` ``(n,)``: the max over
-    halves and directions of the squared transfer error (times ``problem.error_scale``
-    squared); ``inf`` where a projection breaks the quasi-affine sign of the hypothesis'
-    sample. The torch path computes the same per-element formula stacked over halves and
-    directions (``TorchScoring._error_sq``)."""
+    """Squared MOP error ``(K, n)`` of hypotheses on the matches ``idx``, times ``error_scale**2``."""
     err = None
     # (2, n) coordinates per half (kept in ``scratch`` for the next call on the same pool)
     points = (_Scratch() if scratch is None else scratch).points(problem, idx)
@@ -138,10 +113,8 @@ def error_sq(problem: Problem, hyp: Hypotheses, idx: np.ndarray,
 
 
 class _Scratch:
-    """Work arrays reused from call to call, by name: a fresh numpy array above malloc's mmap
-    threshold (~128 KiB) can pay its page faults on every call, which dominates the
-    small kernels here.
-    Not for sharing between threads (one filter call's scoring runs in one thread)."""
+    """Work arrays reused between calls (a fresh large numpy array pays page faults on every call);
+    not for sharing between threads."""
 
     def __init__(self) -> None:
         self._arrays: dict[str, np.ndarray] = {}
@@ -152,16 +125,14 @@ class _Scratch:
         self._all_of: tuple[Problem, np.ndarray] | None = None
 
     def _pool(self, problem: Problem, idx: np.ndarray) -> None:
-        """Forget the pool's arrays unless the same ``problem`` and ``idx`` objects come back
-        (a RANSAC run scores on one pool array, never changed in place)."""
+        """Forget the pool's arrays unless the same ``problem`` and ``idx`` objects come back."""
         key = self._points_of
         if key is None or key[0] is not problem or key[1] is not idx:
             self._points = self._points32 = self._stacked = None
             self._points_of = (problem, idx)
 
     def points(self, problem: Problem, idx: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
-        """Per half, ``(src, dst)`` of the matches ``idx`` as ``(2, n)`` arrays (x row, y row,
-        each contiguous), kept for the same pool."""
+        """Per half, ``(src, dst)`` of the matches ``idx`` as contiguous ``(2, n)`` arrays."""
         self._pool(problem, idx)
         if self._points is None:
             self._points = tuple((problem.src[h][idx].T.copy(), problem.dst[h][idx].T.copy())
@@ -169,9 +140,7 @@ class _Scratch:
         return self._points
 
     def stacked(self, problem: Problem, idx: np.ndarray) -> np.ndarray:
-        """:meth:`points` as one ``(halves, 2, 2, n)`` array (half, source / destination,
-        x / y, match), gathered in one call from the problem's whole such array (kept per
-        problem)."""
+        """:meth:`points` as one ``(halves, 2, 2, n)`` array, gathered in one call."""
         self._pool(problem, idx)
         if self._stacked is None:
             if self._all_of is None or self._all_of[0] is not problem:
@@ -182,8 +151,7 @@ class _Scratch:
         return self._stacked
 
     def points32(self, problem: Problem, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The first half's ``(src, dst)`` of :meth:`points` in float32 (from
-        :meth:`stacked` unless the per-half arrays are already at hand)."""
+        """The first half's ``(src, dst)`` in float32."""
         self._pool(problem, idx)
         if self._points32 is None:
             first = self._points[0] if self._points is not None else self.stacked(problem, idx)[0]
@@ -201,17 +169,9 @@ class _Scratch:
 
 def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
                  scratch: _Scratch | None = None) -> np.ndarray:
-    """``(K, n)`` bool: ``error_sq(problem, hyp, idx) <= t2``, the same decisions bit for bit,
-    computed term by term (halves and directions): after each term only the matches that
-    some hypothesis still keeps are carried on.
-
-    The same because the error is a max of terms scaled by ``error_scale**2`` (a rounded
-    product is monotone, so ``max(a, b) s <= t2`` iff ``a s <= t2`` and ``b s <= t2``; for a
-    power of two ``a s <= t2`` iff ``a <= t2 / s``, both exact) and an entry whose projection
-    breaks the sample's sign is inf, i.e. outside. Each homography is first multiplied by
-    its sample's sign (+-1): that negates ``w`` and the projected numerators exactly, so the
-    error keeps its bits and the sign test becomes ``w > 0``.
-    """
+    """``(K, n)`` bool: ``error_sq(problem, hyp, idx) <= t2`` with the same decisions, term by term,
+    carrying on only matches some hypothesis still keeps (exact: the error is a max, the scale a
+    power of two, and sign-scaling each homography turns the sign test into ``w > 0``)."""
     K, n = len(hyp), len(idx)
     s2 = problem.error_scale**2
     scratch = _Scratch() if scratch is None else scratch
@@ -255,14 +215,8 @@ def inlier_masks(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
 
 def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
                   block: int = 131072, scratch: _Scratch | None = None) -> np.ndarray:
-    """Inliers ``(K,)`` under the first half's forward error only: an upper bound of the
-    full inlier count (the full error is a max that includes this term).
-
-    Division-free and in float32 (``|u - x w|^2 <= t^2 w^2`` with ``w`` of the sample's
-    sign), by broadcasting over blocks of hypotheses sized to stay in cache (a GEMM with
-    inner dimension 3 is slower). float32 rounding moves the bound by about 1e-4 px at
-    1000 px coordinates.
-    """
+    """Inliers ``(K,)`` under the first half's forward error: an upper bound of the full count.
+    Division-free float32 in cache-sized blocks of hypotheses."""
     t2 = t2 / problem.error_scale**2
     scratch = _Scratch() if scratch is None else scratch
     src, dst = scratch.points32(problem, idx)  # (2, n) float32 each
@@ -283,15 +237,9 @@ def one_way_count(problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
 
 
 class NumpyScoring:
-    """The heavy kernels of a RANSAC run (minimal solver, bounds, singular-value test, full
-    scoring), in numpy on the CPU: the default. Its torch twin, for any torch device, is
-    :class:`~colmap_miho.filtering.torch_scoring.TorchScoring`; sampling, the search's
-    bookkeeping and the refit stay in numpy for both.
-
-    ``prefetch``: 0 scores exactly the hypotheses the search reaches; ``> 0`` screens them
-    ahead in chunks of that many (then doubling), which gives the same result with fewer
-    calls (round trips to a device; numpy call overhead on the CPU) (:class:`~.ransac._BatchScores`).
-    """
+    """The heavy kernels of a RANSAC run in numpy on the CPU (the default; the torch twin is
+    :class:`~colmap_miho.filtering.torch_scoring.TorchScoring`). ``prefetch > 0`` screens hypotheses
+    ahead in growing chunks: the same result with fewer calls."""
 
     #: On the CPU per-call overhead dominates groups of 4 hypotheses, so screening ahead
     #: (4, 8, 16, ... at a time; at most twice the work the search needs) pays (numpy; the
@@ -302,9 +250,7 @@ class NumpyScoring:
     compiled = False
 
     def __init__(self, compiled: bool = True) -> None:
-        """``compiled``: run the batch kernels (spread test, minimal solver and one-way
-        bound, local draws) compiled by numba (:mod:`.compiled.scoring`); ``False`` runs the numpy
-        reference (what :class:`~.torch_scoring.TorchScoring` keeps on the host)."""
+        """``compiled``: run the batch kernels compiled by numba; ``False`` runs the numpy reference."""
         self.compiled = compiled
 
     def spread_ok(self, problem: Problem, sample: np.ndarray, t_l: float) -> np.ndarray:
@@ -315,8 +261,6 @@ class NumpyScoring:
         return spread_ok(problem, sample, t_l)
 
     def _work(self) -> _Scratch:
-        """This instance's work arrays (created on first use; one instance per filter
-        call)."""
         work = self.__dict__.get("_scratch")
         if work is None:
             work = self.__dict__["_scratch"] = _Scratch()
@@ -324,8 +268,7 @@ class NumpyScoring:
 
     def hypotheses(self, problem: Problem, sample: np.ndarray, cfg: FilterConfig,
                    ok: np.ndarray, pool: np.ndarray, t2: float) -> tuple[Hypotheses, np.ndarray]:
-        """:func:`hypotheses_from_samples` and their :func:`one_way_count` on ``pool``
-        (compiled: one fused kernel)."""
+        """:func:`hypotheses_from_samples` and their :func:`one_way_count` on ``pool``."""
         if self.compiled:
             src, dst = self._work().points32(problem, pool)
             H, Hinv, sign, sign_inv, smp, ub = kernels.hypotheses(
@@ -359,9 +302,7 @@ class NumpyScoring:
 
     def masks(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray,
               t2: float) -> tuple[np.ndarray, np.ndarray | None]:
-        """``(masks, err)``: the inliers ``err <= t2`` ``(K, n)`` and the errors (``None``
-        where the kernel does not bring them back: here, :func:`inlier_masks` skips the
-        errors of matches already outside)."""
+        """``(masks (K, n), err)``; ``err`` is None here (masks skip matches already outside)."""
         if self.compiled:
             s2 = problem.error_scale**2
             if math.frexp(s2)[0] == 0.5:  # a power of two: as inlier_masks does
@@ -372,9 +313,7 @@ class NumpyScoring:
 
     def screen(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray, t2: float,
                cfg: FilterConfig) -> tuple[np.ndarray, np.ndarray]:
-        """``(sv_ok, masks)``: the singular-value test ``(K,)`` and the inlier masks
-        ``(K, n)`` of all ``K`` hypotheses (rows failing the test are not used: here they are
-        left empty)."""
+        """``(sv_ok (K,), masks (K, n))`` of all hypotheses (failing rows left empty)."""
         sv = self.singular_value_ok(problem, hyp, cfg)
         if sv.all():  # the usual case: no copy of the hypotheses, no scatter of the masks
             return sv, self.masks(problem, hyp, idx, t2)[0]
@@ -385,8 +324,7 @@ class NumpyScoring:
 
     def score_batch(self, problem: Problem, hyp: Hypotheses, ub: np.ndarray, idx: np.ndarray,
                     cfg: FilterConfig, t2: float, count: int, have_best: bool):
-        """:func:`.compiled.scoring.score_batch` of the hypotheses ``hyp`` with one-way bounds ``ub``
-        ``(K,)`` on the matches ``idx`` (compiled only)."""
+        """:func:`.compiled.scoring.score_batch` of ``hyp`` with bounds ``ub`` (compiled only)."""
         assert self.compiled, "the fused batch scoring is compiled"
         s2 = problem.error_scale**2
         if math.frexp(s2)[0] == 0.5:  # a power of two: as inlier_masks does

@@ -1,38 +1,5 @@
-"""The filter's heavy RANSAC kernels in torch, on any torch device (CUDA or CPU).
-
-``filter_matches(..., device=...)`` picks where the kernels run (:func:`scoring_for_device`):
-
-- ``"cpu"`` or ``None`` (default): numpy on the CPU (:class:`~.scoring.NumpyScoring`).
-- ``"cuda"``, ``"cuda:1"``, any other torch device string, or a ``torch.device`` object
-  (``torch.device("cpu")`` included: the torch path where no GPU is lent, for tests and
-  timing): torch float64 on that device (:class:`TorchScoring`).
-- ``"auto"``: ``"cuda"`` when torch sees a CUDA device, else ``"cpu"``.
-
-What runs on the device: the closed-form 4-point homographies of every batch of minimal
-samples with their quasi-affine signs, the float32 one-way inlier bound of every hypothesis
-over the pool, the normalised-DLT singular-value test and the full two-way float64 errors /
-inlier masks of the hypotheses the search reaches (bootstrap buffer included), the errors
-of each round's best model and of the final assignment. The formulas are the numpy path's
-own (:mod:`.homography` takes numpy arrays or tensors; the full errors are
-:func:`.scoring.error_sq`'s per-element formula stacked over halves and directions), in the
-same order. Sampling (the same
-``numpy.random.Generator``, so a seed draws the same samples),
-the spread and reflection checks, the search's bookkeeping, the top-z buffer, the
-least-squares refit and the assignment rule stay in numpy: they are cheap, sequential, and
-keeping them on the host keeps both paths alike. Up to floating-point ties (a bound or an
-error landing on the other side of a threshold, which can then change the random stream),
-both paths give the same matches, labels and homographies
-(``tests/filtering/test_filter_torch.py``; ``benchmarks/bench_filter.py --device cuda``
-and ``benchmarks/check_cuda.py --device cpu`` compare them on real pairs).
-
-Round trips: one per batch for the hypotheses and their bounds, and one per chunk of
-full scores (``TorchScoring.prefetch`` hypotheses screened ahead, doubling; the search takes
-the same ones in the same order as numpy, see :class:`~.ransac._BatchScores`), plus a few
-per MOP round (bootstrap, the best's errors, refit). The work is a chain of small
-operations (thousands of kernel launches per pair), so on a GPU launch latency, not
-arithmetic, sets the time per pair; on the CPU, torch's per-call overhead makes it slower
-than numpy, which stays the CPU default.
-"""
+"""The filter's heavy RANSAC kernels in torch float64 on any torch device, with the numpy path's
+formulas in the same order; sampling and bookkeeping stay in numpy, so both agree up to ties."""
 
 from __future__ import annotations
 
@@ -52,8 +19,7 @@ if TYPE_CHECKING:
     import torch
 
 def scoring_for_device(device: str | torch.device | None = "cpu") -> NumpyScoring:
-    """The kernels for ``device`` (see the module docstring); ``ValueError`` (one line) for
-    an unknown device or one torch cannot use (e.g. ``"cuda"`` without a CUDA device)."""
+    """The kernels for ``device``; ValueError for an unknown or unusable device."""
     if device is None or (isinstance(device, str) and device == "cpu"):
         return NumpyScoring()
     try:
@@ -67,9 +33,8 @@ def scoring_for_device(device: str | torch.device | None = "cpu") -> NumpyScorin
 
 
 class TorchScoring(NumpyScoring):
-    """:class:`~.scoring.NumpyScoring`'s kernels in torch float64 on ``device`` (the one-way
-    bound in float32, as in numpy). Takes and returns numpy, like its parent; the problem's
-    points are copied to the device once per problem and each pool once per round."""
+    """:class:`~.scoring.NumpyScoring`'s kernels in torch float64 on ``device`` (numpy in and out);
+    the problem's points go to the device once per problem, each pool once per round."""
 
     def __init__(self, device: Any) -> None:
         import torch
@@ -103,15 +68,12 @@ class TorchScoring(NumpyScoring):
         return hit[1]
 
     def _index(self, idx: np.ndarray) -> Any:
-        """``idx`` on the device; the pool of a round is uploaded once."""
         if self._pool is None or self._pool[0] is not idx:
             self._pool = (idx, self._tensor(idx))
         return self._pool[1]
 
     def _hyp(self, hyp: Hypotheses) -> tuple[Any, Any]:
-        """``(mats, signs)`` on the device (one upload): ``(K, 2 halves, 3, 3)``, the forward
-        homographies of every half then their adjugates, and their quasi-affine signs
-        ``(K, 2 halves)``."""
+        """``(mats, signs)`` on the device: ``(K, 2 halves, 3, 3)`` homographies then adjugates."""
         K, nh = len(hyp), hyp.H.shape[1]
         packed = self._tensor(np.concatenate(
             [hyp.H.reshape(K, -1), hyp.Hinv.reshape(K, -1), hyp.sign, hyp.sign_inv], axis=1))
@@ -119,8 +81,7 @@ class TorchScoring(NumpyScoring):
         return mats, packed[:, 18 * nh:]
 
     def _pool_points(self, problem: Problem, idx: np.ndarray) -> tuple[Any, Any]:
-        """Source and destination points ``(2 halves, n, 2)`` of the pool ``idx`` in the
-        order of :meth:`_hyp`'s matrices: ``(src_h..., dst_h...)`` and ``(dst_h..., src_h...)``."""
+        """Source and destination points ``(2 halves, n, 2)`` of ``idx`` in :meth:`_hyp`'s order."""
         hit = self._points
         if hit is None or hit[0] is not problem or hit[1] is not idx:
             P, ix = self._problem(problem), self._index(idx)
@@ -137,9 +98,7 @@ class TorchScoring(NumpyScoring):
     # -- kernels --------------------------------------------------------------------------
     def hypotheses(self, problem: Problem, sample: np.ndarray, cfg: FilterConfig,
                    ok: np.ndarray, pool: np.ndarray, t2: float) -> tuple[Hypotheses, np.ndarray]:
-        """:func:`~.scoring.hypotheses_from_samples` and their one-way bounds on ``pool``:
-        minimal solver, quasi-affinity of the samples and bounds on the device, one
-        transfer back."""
+        """Hypotheses and their one-way bounds on ``pool`` on the device, one transfer back."""
         sample = checked_samples(problem, sample, cfg, ok)
         nh = problem.num_halves
         B = len(sample)
@@ -180,8 +139,7 @@ class TorchScoring(NumpyScoring):
         return self._host(self._bounds(problem, Hs, idx, t2)).astype(np.int64)
 
     def _bounds(self, problem: Problem, Hs: Any, idx: np.ndarray, t2: float) -> Any:
-        """One-way inlier counts ``(K,)`` on the device of the first half's homographies
-        ``Hs`` ``(K, 3, 3)`` float32, each scaled by its sample's forward sign."""
+        """One-way inlier counts ``(K,)`` of the sign-scaled first-half homographies ``Hs``."""
         torch = self.torch
         t2 = t2 / problem.error_scale**2
         P, ix = self._problem(problem), self._index(idx)
@@ -213,9 +171,8 @@ class TorchScoring(NumpyScoring):
         return (sv > cfg.min_singular_value).all(1)
 
     def _error_sq(self, problem: Problem, hyp: Hypotheses, idx: np.ndarray) -> Any:
-        """:func:`~.scoring.error_sq` on the device ``(K, n)``: the same formula, element by
-        element, over all halves and both directions at once (a handful of launches; a
-        masked fill, since a boolean-mask assignment would synchronise a GPU)."""
+        """:func:`~.scoring.error_sq` ``(K, n)`` on the device, all halves and directions at once
+        (a masked fill: boolean assignment would synchronise a GPU)."""
         mats, signs = self._hyp(hyp)
         a, b = self._pool_points(problem, idx)
         projected: Any = project(mats, a)  # tensors (K, 2 halves, n)

@@ -1,11 +1,5 @@
-"""The compiled kernels on Dask workers: a worker plugin that fills the worker's machine's
-kernel cache once (:func:`~colmap_miho.kernel_cache.ensure_compiled`: the first worker of a
-machine compiles, the others wait for its lock, then find the families ready) and loads them
-into the worker before its first task. The cache folder follows the same rule on every
-machine (:func:`~colmap_miho.compiled.cache_dir`, from the worker's own environment).
-
-Used only with ``--dask`` (the ``dask`` extra's ``distributed``).
-"""
+"""The compiled kernels on Dask workers: a plugin that fills each machine's kernel cache once (the
+first worker compiles, the others wait on its lock) and loads it before the first task."""
 
 from __future__ import annotations
 
@@ -31,9 +25,7 @@ PLUGIN_NAME = "colmap-miho-kernels"
 
 
 class KernelCachePlugin(WorkerPlugin):
-    """On each worker's start (and on registration, for the running ones): compile the
-    ``families`` its machine's cache lacks, then load them. Never fails the worker: a family
-    that cannot be loaded compiles in the task that uses it."""
+    """On each worker's start: compile the ``families`` its cache lacks, then load them; never fails."""
 
     idempotent = False
 
@@ -52,8 +44,6 @@ class KernelCachePlugin(WorkerPlugin):
 
 
 def load_kernels_on_workers(client: Client, families: tuple[str, ...]) -> None:
-    """Register :class:`KernelCachePlugin` for ``families`` on ``client``'s cluster; returns
-    once every present worker has run it (the first run on a machine compiles: tens of
-    seconds)."""
+    """Register :class:`KernelCachePlugin` on ``client``'s cluster; returns once every worker ran it."""
     log.info("loading the compiled kernels on the Dask workers (%s)", ", ".join(families))
     client.register_plugin(KernelCachePlugin(families), name=PLUGIN_NAME)

@@ -1,21 +1,5 @@
-"""Where the pipeline's parallel work runs: this process, a local process pool (forked by a
-``forkserver`` that imported torch once, see :mod:`.workers`), or a
-Dask cluster (a local one, or a running scheduler at ``tcp://host:port``).
-
-The stages see one :class:`Runner`: ``runner.slots`` says how many tasks run at once,
-``runner.submit(fn, *args)`` returns a :class:`concurrent.futures.Future` (Dask's client speaks
-``concurrent.futures`` through ``Client.get_executor``), so the filter and refine stages are
-written once for every engine. Tasks are plain module-level functions with picklable arguments;
-their results come back to this process, which alone writes SQLite.
-
-Every task runs with one BLAS/torch thread (the parallelism is across tasks): the process
-pool's workers are set up that way (:mod:`.workers`), and on Dask each task sets it on entry
-(Dask's nanny already starts workers with ``OMP_NUM_THREADS=1`` and friends).
-
-A Dask worker imports ``colmap_miho`` itself and reads the images from the path the client
-gives it: on a multi-machine cluster, install the same colmap-miho on every worker and mount the
-image folder at the same path (see the README's "Dask cluster" section).
-"""
+"""Where the pipeline's parallel work runs: this process, a local process pool or a Dask cluster,
+behind one :class:`Runner`; tasks have one BLAS/torch thread and only this process writes SQLite."""
 
 from __future__ import annotations
 
@@ -39,24 +23,17 @@ LOCAL = "local"
 
 
 def _ready() -> bool:
-    """A task that only tells that a worker runs."""
     return True
 
 
 def _one_thread_task(fn: Callable, *args):
-    """Run ``fn(*args)`` in a Dask worker with one torch / BLAS thread."""
     init_worker()
     return fn(*args)
 
 
 class Runner:
-    """The engine of one run: in-process, process pool or Dask.
-
-    Attributes:
-        slots: tasks that run at once (1 in-process).
-        kind: a :class:`~colmap_miho.enums.RunnerKind`.
-        address: the Dask scheduler's address ("" otherwise).
-    """
+    """The engine of one run: ``slots`` tasks at once, ``kind``
+    (:class:`~colmap_miho.enums.RunnerKind`), Dask ``address`` ("" otherwise)."""
 
     def __init__(self, slots: int, kind: RunnerKind | str, address: str = "",
                  make_executor: Callable[[], Executor] | None = None,
@@ -79,8 +56,7 @@ class Runner:
         return self._make is not None
 
     def executor(self) -> Executor:
-        """The underlying executor, started on first use (a process pool costs seconds:
-        each worker imports numpy/torch)."""
+        """The executor, started on first use (a pool costs seconds: workers import torch)."""
         if self._make is None:
             raise RuntimeError("an inline runner has no executor; call the function directly")
         if self._executor is None:
@@ -88,11 +64,8 @@ class Runner:
         return self._executor
 
     def start_in_background(self) -> Callable[[], bool]:
-        """Create the executor and start its workers from a background thread; returns
-        ``starting()``: True until a worker has run a first task. A process pool's first
-        task blocks the thread that submits it until the forkserver has finished its
-        imports (numpy, torch): meanwhile this process can work. Submit only once ``starting()``
-        is False; it raises the start's error, if any."""
+        """Start the workers from a background thread; returns ``starting()``, True until a
+        worker ran a first task. Submit only once it is False (it raises the start's error)."""
         if self._make is None or self._executor is not None:
             return lambda: False
         ex = self.executor()  # here: the pool's cleanup belongs to this thread
@@ -135,21 +108,8 @@ class Runner:
 
 @contextlib.contextmanager
 def open_runner(workers: int, dask: str | None = None, *, families: tuple[str, ...] = ()) -> Iterator[Runner]:
-    """The engine for ``workers`` processes, or a Dask cluster.
-
-    Args:
-        workers: processes (local pool, or local Dask cluster); 1 and no ``dask``: in-process.
-        dask: None (no Dask), :data:`LOCAL` (start a ``LocalCluster`` of ``workers``
-            single-threaded worker processes) or a scheduler address ``tcp://host:port``
-            (use its workers; ``workers`` is ignored).
-        families: the compiled kernel families the tasks use
-            (:func:`~colmap_miho.kernel_cache.families_for`): on Dask every worker, present
-            and future, fills its machine's cache with them once and loads them before its
-            first task (:mod:`.dask_kernels`).
-
-    Raises:
-        UserError: distributed is not installed, or the scheduler cannot be reached.
-    """
+    """The engine for ``workers`` processes, or a Dask cluster (``dask``: :data:`LOCAL` or a
+    scheduler address) whose workers load ``families`` first. UserError when Dask cannot be used."""
     if dask is None:
         if workers <= 1:
             yield Runner(1, RunnerKind.INLINE)
@@ -180,9 +140,7 @@ def open_runner(workers: int, dask: str | None = None, *, families: tuple[str, .
 
 @contextlib.contextmanager
 def _quiet_dask():
-    """Dask's noise that is ours to silence: the "Sending large graph" UserWarning (the pair
-    chunks and image states are sent on purpose, once per task), and on Ctrl-C / SIGTERM the
-    tracebacks of distributed's threads while the cluster shuts down (the CLI prints one line)."""
+    """Silence Dask's "Sending large graph" warning and its shutdown tracebacks on Ctrl-C / SIGTERM."""
     import warnings
 
     with warnings.catch_warnings():

@@ -1,16 +1,6 @@
-"""Filter stage: MOP / MOP+MiHo on every pair with enough matches, in chunks of pairs.
-
-The pairs are cut, in database order, into chunks of at most :func:`chunk_matches` matches
-(set by ``pipeline.memory_budget_mb``, see :func:`plan_chunks`). This process reads a chunk's
-matches from the database, one task filters the chunk (in this process, a worker process or a
-Dask worker: the run's :class:`~.executor.Runner`), and the finished chunk goes to the run
-store (:mod:`.store`), from which the refine and write stages read it back; at most
-:data:`IN_FLIGHT_PER_SLOT` chunks per parallel slot are read and not yet stored. A resumed run
-skips the pairs of the chunks already in the store.
-
-Results do not depend on the chunking, the worker count or the engine: each pair's seed is
-derived from the base seed and its image ids.
-"""
+"""Filter stage: MOP / MOP+MiHo on every pair with enough matches, in chunks stored in the run
+store. Results do not depend on chunking, workers or engine: each pair's seed comes from its image
+ids."""
 
 from __future__ import annotations
 
@@ -66,16 +56,9 @@ IN_FLIGHT_PER_SLOT = 2
 
 @dataclass(frozen=True, kw_only=True)
 class FilterOptions:
-    """Run options of the filter stage.
-
-    Attributes:
-        source: which matches are read (``pipeline.source``).
-        seed: base seed; each pair's seed is :func:`~.workers.pair_seed` of it and the ids.
-        memory_budget_bytes: ``pipeline.memory_budget_mb`` in bytes (sizes the chunks).
-        device: "cpu" (the numpy filter) or "cuda" (the torch filter on the GPU, in this process).
-        progress: tqdm bar over pairs.
-        database_name: the user's database, named in error messages (the stage reads a copy).
-    """
+    """Run options of the filter stage: match ``source``, base ``seed`` (per pair
+    :func:`~.workers.pair_seed`), memory budget in bytes, ``device``, ``progress``, and the user's
+    database name for messages."""
 
     source: MatchSource
     memory_budget_bytes: int
@@ -87,9 +70,7 @@ class FilterOptions:
 
 @dataclass(frozen=True, kw_only=True)
 class FilterStats:
-    """Counts of the filter stage (``RefineSummary`` fields of the same names); matches are
-    counted over the pairs where the filter succeeded; ``chunks`` / ``pairs_resumed`` count
-    the chunks and pairs of the whole run / taken from an interrupted run's store."""
+    """Counts of the filter stage (``RefineSummary`` fields), matches over the successful pairs."""
 
     workers: int
     pairs_filtered: int
@@ -106,9 +87,8 @@ class FilterStats:
 
 
 def chunk_matches(budget_bytes: int, slots: int, total_matches: int) -> int:
-    """Most matches per chunk: the budget's share over the chunks in flight, at most
-    :data:`MAX_CHUNK_MATCHES`, and small enough for :data:`CHUNKS_PER_SLOT` chunks per slot
-    when ``slots > 1``."""
+    """Most matches per chunk: the budget's share over the chunks in flight, bounded by
+    :data:`MAX_CHUNK_MATCHES` and :data:`CHUNKS_PER_SLOT`."""
     cap = budget_bytes * FILTER_BUDGET_SHARE / (IN_FLIGHT_PER_SLOT * max(1, slots) * BYTES_PER_MATCH_IN_FLIGHT)
     cap = min(cap, MAX_CHUNK_MATCHES)
     if slots > 1:
@@ -117,8 +97,7 @@ def chunk_matches(budget_bytes: int, slots: int, total_matches: int) -> int:
 
 
 def plan_chunks(pairs: list[PairRecord], max_matches: int) -> list[list[PairRecord]]:
-    """Cut ``pairs`` (in their order) into runs of at most ``max_matches`` matches; a pair with
-    more matches is a chunk of its own."""
+    """Cut ``pairs`` in order into runs of at most ``max_matches`` matches (a larger pair alone)."""
     chunks: list[list[PairRecord]] = []
     current: list[PairRecord] = []
     size = 0
@@ -135,23 +114,16 @@ def plan_chunks(pairs: list[PairRecord], max_matches: int) -> list[list[PairReco
 
 def filter_chunk(items: list[tuple[np.ndarray, np.ndarray, int]], cfg: FilterConfig,
                  device: str = "cpu") -> list[PairOutcome]:
-    """Task: filter the pairs ``items`` = ``[(pts1 (M, 2), pts2 (M, 2) pixels, seed), ...]`` on
-    ``device`` ("cpu": numpy; "cuda": the torch path, see :func:`~colmap_miho.filtering.api.filter_matches`)."""
+    """Task: filter ``items`` = ``[(pts1 (M, 2), pts2 (M, 2), seed), ...]`` on ``device``."""
     return [PairOutcome.of(filter_matches(p1, p2, method=cfg.method, config=cfg, seed=s, device=device))
             for p1, p2, s in items]
 
 
 def run_filter(db: ColmapDatabase, pairs: list[PairRecord], keypoints: dict[int, np.ndarray],
                cfg: FilterConfig, opts: FilterOptions, *, runner: Runner, store: RunStore) -> FilterStats:
-    """Filter ``pairs`` (matches read from ``db``, positions from ``keypoints``) chunk by chunk
-    into ``store``; the pairs the store already holds are skipped.
-
-    Returns:
-        The stage's counts over all of ``pairs`` (the stored ones included).
-    Raises:
-        DatabaseError: a pair's matches use keypoints the image does not have.
-        StoreDamaged: a stored chunk does not fit ``pairs`` and ``keypoints`` (:meth:`RunStore.expect`).
-    """
+    """Filter ``pairs`` chunk by chunk into ``store``, skipping stored ones; returns the counts over
+    all pairs. DatabaseError for matches past an image's keypoints; StoreDamaged for a foreign
+    chunk."""
     store.expect(((p.image_id1, p.image_id2) for p in pairs), {i: len(k) for i, k in keypoints.items()})
     done = store.filtered_pairs()
     todo = [p for p in pairs if (p.image_id1, p.image_id2) not in done]
@@ -171,10 +143,8 @@ def run_filter(db: ColmapDatabase, pairs: list[PairRecord], keypoints: dict[int,
 
 def _filter_chunks(db: ColmapDatabase, chunks: list[list[PairRecord]], keypoints, cfg: FilterConfig,
                    opts: FilterOptions, runner: Runner | None, store: RunStore) -> None:
-    """Filter ``chunks`` in this process (``runner`` None) or as tasks of ``runner``, storing
-    each finished chunk; chunks are read ahead at most :data:`IN_FLIGHT_PER_SLOT` per slot.
-    While a new process pool has not finished a chunk, this process filters chunks too
-    (results do not depend on where a pair is filtered: its seed is its own)."""
+    """Filter ``chunks`` here or on ``runner``, reading ahead at most :data:`IN_FLIGHT_PER_SLOT` per
+    slot; this process filters too while a new pool starts."""
     first = store.next_filter_index()
     bar = None
     if opts.progress:

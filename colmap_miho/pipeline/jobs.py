@@ -1,20 +1,9 @@
-"""Whole jobs built on :func:`~colmap_miho.pipeline.run.refine_database`: the comparison of a
-database mapped as it is and after refinement, and the job from a folder of images.
+"""Whole jobs built on :func:`~colmap_miho.pipeline.run.refine_database`.
 
-:func:`compare_databases` maps the database as it is (baseline) and after refinement with the
-recipe's ``mapping`` config (known cameras: ``camera_model`` / ``camera_params``, or the GT's
-cameras with ``gt_cameras``; ``refine_intrinsics``), ``repeats`` times each, then hands both
-sides to :func:`colmap_miho.reporting.compare.write_comparison`, which evaluates them and writes::
-
-    OUTPUT/
-      baseline/model/  baseline/report.json  [baseline/runs/seed<S>/model/ with repeats]
-      refined/database.db  refined/refine.json  refined/model/  refined/report.json  [refined/runs/...]
-      compare.md  compare.json  report.html  plots/...
-
-:func:`run_from_images` extracts SIFT features and matches them exhaustively (pycolmap, CPU)
-into ``OUTPUT/database.db``, then refines, maps and reports, or runs the comparison. The input
-database is never modified (everything reads copies).
-"""
+:func:`compare_databases` maps a database as it is and after refinement, ``repeats`` times each, and
+writes the comparison (``baseline/``, ``refined/``, ``compare.md``, ``report.html``);
+:func:`run_from_images` extracts and matches SIFT into ``OUTPUT/database.db`` first. The input
+database is never modified."""
 
 from __future__ import annotations
 
@@ -46,15 +35,11 @@ class JobOptions:
     """How a whole job maps, evaluates and runs.
 
     Attributes:
-        mapper, seed: when given, replace the recipe's ``mapping.mapper`` / ``mapping.seed``
-            (the seed is also the refinement's and the two-view protocols').
-        repeats: mapping runs per side, seeds ``seed, seed + 1, ...``; with more than one the
-            reports get a ``repeats`` section (per-run rows, median, min, max).
-        gt_cameras: write the GT model's intrinsics into the mapped copies (needs ``gt``;
-            combine with ``mapping.refine_intrinsics = "none"`` to keep them).
-        thresholds: pose-AUC thresholds in degrees (None: 0.5/1/2/5/10/20).
-        workers, device: ``refine_database`` options.
-        progress, verbose: bars (one per mapping run) and COLMAP's log on the terminal.
+        mapper, seed: when given, replace the recipe's ``mapping.mapper`` / ``mapping.seed``.
+        repeats: mapping runs per side, seeds ``seed, seed + 1, ...``.
+        gt_cameras: write the GT model's intrinsics into the mapped copies (needs ``gt``).
+        thresholds: pose-AUC thresholds in degrees (None: the defaults).
+        workers, device, progress, verbose: run options.
     """
 
     mapper: Mapper | None = None
@@ -78,13 +63,12 @@ class JobOptions:
 
 @dataclass(frozen=True, kw_only=True)
 class ExtractionOptions:
-    """SIFT extraction of :func:`run_from_images`: the camera is a prior only (the recipe's
-    ``mapping`` config decides what mapping keeps).
+    """SIFT extraction of :func:`run_from_images`; the camera is a prior only.
 
     Attributes:
-        camera_mode: "single" (one camera for all images), "per_folder" or "per_image".
-        camera_model, camera_params: COLMAP camera model name and its comma-separated
-            parameters ("" = estimated from the image size).
+        camera_mode: "single", "per_folder" or "per_image".
+        camera_model, camera_params: COLMAP model name and comma-separated parameters ("" =
+          estimated from the image size).
         max_features: SIFT features per image.
     """
 
@@ -105,11 +89,7 @@ def _as_recipe(recipe: Recipe | str | None) -> Recipe:
 
 def _job_recipe(recipe: Recipe | str | None, opts: JobOptions, gt: str | Path | None
                 ) -> tuple[Recipe, MappingConfig]:
-    """The job's recipe and its mapping config with ``opts``' overrides.
-
-    Raises:
-        InvalidInput: GT cameras asked for without a GT.
-    """
+    """The job's recipe and mapping config with ``opts``' overrides; InvalidInput for GT cameras without GT."""
     if opts.gt_cameras and gt is None:
         raise InvalidInput("taking the cameras from the GT needs --gt")
     rec = _as_recipe(recipe)
@@ -117,7 +97,6 @@ def _job_recipe(recipe: Recipe | str | None, opts: JobOptions, gt: str | Path | 
 
 
 def _mapping_config(recipe: Recipe, opts: JobOptions) -> MappingConfig:
-    """The recipe's ``mapping`` config with the ``mapper`` / ``seed`` overrides applied."""
     cfg = recipe.mapping
     if opts.mapper is not None:
         cfg = replace(cfg, mapper=opts.mapper)
@@ -129,11 +108,9 @@ def _mapping_config(recipe: Recipe, opts: JobOptions) -> MappingConfig:
 def map_repeats(database: Path, image_dir: Path, folder: Path, mapping: MappingConfig, *, repeats: int = 1,
                 intrinsics: dict | None = None, tag: str = "", progress: bool = False,
                 verbose: bool = False) -> list:
-    """Map ``database`` ``repeats`` times with seeds ``mapping.seed + k``.
-
-    Run 0 writes ``folder/model`` (the model the report and plots use), run k >= 1
-    ``folder/runs/seed<S>/model``. Returns the ``MappingResult`` of each run.
-    """
+    """Map ``database`` ``repeats`` times with seeds ``mapping.seed + k``: run 0 into
+    ``folder/model``, run k into ``folder/runs/seed<S>/model``. Returns each run's
+    ``MappingResult``."""
     from ..sfm import run_mapping
 
     if repeats < 1:
@@ -151,23 +128,15 @@ def map_repeats(database: Path, image_dir: Path, folder: Path, mapping: MappingC
 
 def _refine_into(database: Path, image_dir: Path, folder: Path, recipe: Recipe, opts: JobOptions,
                  seed: int) -> RefineSummary:
-    """``refine_database`` into ``folder/database.db`` (with ``folder/refine.json``), replacing
-    an earlier job's output there."""
+    """``refine_database`` into ``folder/database.db`` (and ``refine.json``), replacing earlier output."""
     return refine_database(database, image_dir, folder / "database.db", recipe=recipe, overwrite=True,
                            restart=True, workers=opts.workers, device=opts.device, seed=seed,
                            progress=opts.progress, json_path=folder / "refine.json")
 
 
 def check_compare_inputs(database: str | Path, image_dir: str | Path, gt: str | Path | None) -> None:
-    """What ``compare`` reads, checked before it makes its folders and maps for minutes: the
-    image folder exists, the database is a COLMAP database (on a private copy,
-    :func:`~colmap_miho.adapters.safety.read_copy`) and the GT, when given, a readable model
-    with posed images.
-
-    Raises:
-        NotADirectoryError: ``image_dir`` is not a folder.
-        DatabaseError / InvalidInput: naming the user's file.
-    """
+    """Check what ``compare`` reads before it maps for minutes: the image folder, the database (on a
+    private copy) and the GT model. Raises NotADirectoryError, DatabaseError or InvalidInput."""
     from ..adapters.database import validate_database
     from ..adapters.safety import read_copy
     from ..adapters.staged_write import private_tempdir
@@ -187,24 +156,12 @@ def check_compare_inputs(database: str | Path, image_dir: str | Path, gt: str | 
 def compare_databases(database: str | Path, image_dir: str | Path, output: str | Path, *,
                       recipe: Recipe | str | None = None, gt: str | Path | None = None, pairs: object = None,
                       options: JobOptions | None = None) -> CompareResult:
-    """Map and evaluate ``database`` as it is and after ``refine_database``; write tables/plots.
+    """Map and evaluate ``database`` as it is and after ``refine_database``; write tables and plots.
 
-    Args:
-        database: COLMAP database (never modified).
-        image_dir: its image folder.
-        output: comparison folder (created; files in it are replaced).
-        recipe: Recipe, recipe name or TOML path (default ``mop_miho_lsm``): ``refine_database``'s
-            stages and the ``mapping`` config of both sides (mapper, seed, threads, cameras, refine_intrinsics).
-        gt: GT COLMAP model folder (or dataset folder with ``gt_model/``); without it only
-            reconstruction statistics are compared.
-        pairs: pairs for the two-view AUCs (list or file); default: the dataset's
-            ``pairs_with_gt.txt`` if present, else all GT pairs. Both sides use the same pairs.
-        options: :class:`JobOptions` (mapper, seed, repeats, GT cameras, thresholds, workers,
-            device, progress, verbose).
-
-    Returns:
-        :class:`~colmap_miho.reporting.compare.CompareResult`.
-    """
+    ``output``: the comparison folder (created; files in it replaced). ``recipe``: Recipe, name or
+    TOML path, for refinement and both sides' mapping. ``gt``: GT model folder (without it only
+    reconstruction statistics are compared). ``pairs``: pairs for the two-view AUCs, the same for
+    both sides. Returns a :class:`~colmap_miho.reporting.compare.CompareResult`."""
     check_paths(database=database, image_dir=image_dir, output=output, gt=gt, optional=("gt",))
     if pairs is not None and not isinstance(pairs, (str, os.PathLike, list, tuple)):
         raise InvalidInput(f"pairs must be a pairs file or a list of (name1, name2), got {type(pairs).__name__}")
@@ -241,21 +198,11 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
 def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe | str | None = None,
                     gt: str | Path | None = None, compare: bool = False,
                     extraction: ExtractionOptions | None = None, options: JobOptions | None = None) -> dict:
-    """The whole job from a folder of images: SIFT + exhaustive matching, refine (``recipe``,
-    default ``mop_miho_lsm``), map, report.
+    """The whole job from a folder of images: SIFT and exhaustive matching, refine, map, report.
 
-    Writes ``OUTPUT/database.db`` (COLMAP's features and matches, kept as the baseline input).
-    Without ``compare``: ``OUTPUT/refined/{database.db, refine.json, model/}`` and
-    ``OUTPUT/report.json``. With ``compare``: :func:`compare_databases` into ``OUTPUT`` (without
-    ``compare`` only the ``gt_cameras`` and ``thresholds`` of ``options`` apply to the report).
-
-    Returns:
-        ``{"database", "features", "report" | "compare"}`` (a JSON-ready dict; with compare
-        the :class:`~colmap_miho.reporting.compare.CompareResult` is under ``"result"`` too).
-
-    Raises:
-        RunFailed: extraction found < 2 images, or mapping registered nothing.
-    """
+    Writes ``OUTPUT/database.db`` (the baseline input), then ``OUTPUT/refined/`` and
+    ``OUTPUT/report.json``, or with ``compare`` :func:`compare_databases` into ``OUTPUT``. Returns a
+    JSON-ready dict; RunFailed when extraction finds under 2 images or mapping registers nothing."""
     from ..reporting.report import build_report, write_report_json
     from ..sfm import require_success, run_mapping
     from ..sfm.extraction import extract_and_match

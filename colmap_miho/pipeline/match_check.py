@@ -1,20 +1,6 @@
-"""Match-check stage: after the filter (and the pair check), before the refinement, judge every
-match against a global estimate of the cameras (:mod:`colmap_miho.verification.match_check`)
-and remove the ones it contradicts, so that the track walk refines only what survives.
-
-The check itself, rounds and re-placements included, is
-:func:`colmap_miho.verification.match_check.judge_in_rounds`; its estimator is pycolmap's global
-mapper on the filtered matches, run in this process
-(:class:`colmap_miho.sfm.global_estimate.GlobalEstimator`). This stage reads the matches, keeps
-the verdicts, names the images in the stats and says what the later stages apply.
-
-What the stage decides is kept in the run store (``stage-match_check.npz``): a resumed run reads
-it back instead of running the mapper again (its result is not bit-for-bit repeatable across
-thread counts). What it returns (:class:`~.verdicts.Verdicts`): the matches of filtered pairs
-that failed, taken out of the pair's kept matches; the wrong pairs, removed whole (filtered or
-not) like the pair check's; the judged pairs, whose geometry is fitted again from their
-survivors when written.
-"""
+"""Match-check stage: judge every match against a global estimate of the cameras
+(:func:`~colmap_miho.verification.match_check.judge_in_rounds`, pycolmap's global mapper) before the
+refinement; the decision is stored, as the mapper is not bit-for-bit repeatable."""
 
 from __future__ import annotations
 
@@ -45,54 +31,11 @@ MAX_LISTED_PAIRS = 200
 
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckStats:
-    """What the match check did (``RefineSummary.match_check``; empty when it is off).
-
-    Attributes:
-        mode: "remove" or "flag".
-        used: the global estimate was trusted and the matches judged (in some round).
-        reason: why it was not used ("" when used).
-        rounds: estimates made.
-        images: images in the pair graph; images_registered: placed by some round's estimate.
-        images_trusted / images_untrusted: names of the placed images whose pose the check
-            trusted / did not trust (their pairs were not judged), over the rounds.
-        images_cut_off: names of the images that agreed with their pairs but that the
-            removals would have cut off the rest of the pair graph (placed wrong as a group),
-            so were not trusted at first (placed again, they may be trusted after all).
-        scale_px / threshold_px: the first round's exponential scale of the distances and
-            threshold (pixels), which every round applies.
-        matches_checked: matches in the pair graph; matches_judged: of those, in pairs of two
-            trusted images.
-        matches_removed: matches of kept pairs that failed (removed in "remove" mode).
-        pairs_removed: pairs most of whose matches failed (removed whole), with
-            ``matches_in_removed_pairs`` matches.
-        wrong_pairs: the first :data:`MAX_LISTED_PAIRS` of those: image names and ids, matches,
-            share failing.
-        removed_per_pair: one entry per pair with matches removed (flagged) there, wrong pairs'
-            whole count included: ``{"images": [name1, name2], "image_ids": [id1, id2],
-            "removed": n}`` (ids ascending; a list, not a dict keyed by joined names, which a name
-            holding the separator made ambiguous); pairs with none are left out.
-        seconds: wall time of the rounds (estimates, judging and re-placements).
-        peak_rss_mb: this process's peak resident memory (MiB, Linux's ``VmHWM``) when the
-            stage ended: an upper bound of the stage's own peak (it runs here, in the client,
-            also with ``--dask``).
-        round_seconds: per round, its parts: "database" (the estimate's temporary database),
-            "mapper", "pair_rotations" (each pair's own rotation), "hinge" (the hinge search; a
-            second estimate included when one was made), "judging", "placements".
-        mapper_steps: per round, the global mapper's own seconds per step from its log
-            ("rotation averaging", "track establishment", "global positioning", "iterative
-            bundle adjustment", "iterative retriangulation and refinement", as COLMAP names
-            them; empty with ``-v``).
-        hinges: each hinge found in a round's estimate (:mod:`colmap_miho.verification.hinge`):
-            "round", "angle_deg", the two groups' image names "images_a" / "images_b", the
-            competing pairs "estimate_pairs" / "mode_pairs" (name pairs) with their
-            coverage medians "estimate_coverage" / "mode_coverage", the arbiter's "verdict"
-            ("estimate", "mode", "undecided"), the "action" taken ("kept", "estimated again",
-            "judged less") and "pairs_unjudged" / "matches_unjudged".
-        matches_restored / pairs_restored: matches the filter removed that the estimate and a
-            third image proved (:mod:`colmap_miho.verification.restore`), given back, and the
-            pairs they are in; pairs_revived: of those, pairs the filter had left without any.
-        restored_per_pair: ``{"images", "image_ids", "restored"}`` per pair with any.
-    """
+    """What the match check did (``RefineSummary.match_check``; empty when off): whether the
+    estimate was used and why not, the images trusted, untrusted and cut off, the first round's
+    scale and threshold (pixels), the matches and pairs removed, per-pair removals, the matches
+    the filter removed that it restored (``pairs_revived``: pairs the filter had emptied), peak
+    memory (MiB), per-round seconds and the hinges found with their verdicts."""
 
     mode: str
     used: bool
@@ -134,9 +77,8 @@ class MatchCheckStats:
 
 def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, *,
                     checked: Verdicts = NO_VERDICTS, threads: int = -1) -> tuple[Verdicts, MatchCheckStats | None]:
-    """The stage: judge the pair graph's matches (the pairs ``checked``, the pair check's
-    verdicts, removed); returns its :class:`~.verdicts.Verdicts` (none in "flag" mode) and the
-    stats (None when off)."""
+    """The stage: judge the pair graph's matches; returns its :class:`~.verdicts.Verdicts` (none in
+    "flag" mode) and the stats (None when off)."""
     if not cfg.enabled:
         return NO_VERDICTS, None
     stored = store.load_stage(STORE_NAME)
@@ -160,8 +102,7 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
     known = {(p.image_id1, p.image_id2) for p in db.pairs(source)}
 
     def judged_rows(pair: Pair) -> int:
-        """The matches the verdict on ``pair`` was made on: a filtered pair's kept ones, another
-        pair's as read (a repeated row once, not its row count), -1 for no pair of the run."""
+        """The matches the verdict on ``pair`` was made on (-1: no pair of the run)."""
         if pair in filtered:
             return int(np.count_nonzero(filtered[pair][1].inliers))
         return len(db.matches(pair[0], pair[1], source)) if pair in known else -1
@@ -187,8 +128,8 @@ def _restorable(stored, rows: np.ndarray) -> bool:
 
 def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, checked: Verdicts,
             threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict[Pair, np.ndarray], dict]:
-    """The check on the pair graph's matches; returns (pair -> failed mask over its matches,
-    wrong pairs, filtered pair -> rows of its stored matches restored, the stats' fields)."""
+    """The check on the pair graph: (pair -> failed mask, wrong pairs, filtered pair -> its stored
+    rows restored, the stats' fields)."""
     from ..sfm.global_estimate import GlobalEstimator
 
     filtered = store.load_filtered()
@@ -241,7 +182,6 @@ def stats_fields(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pai
 
 
 def _hinge_meta(v: HingeVerdict, matches: dict[Pair, np.ndarray], name) -> dict:
-    """The stats' record of one hinge, images named."""
     def named(pairs) -> list[list[str]]:
         return [[name(i), name(j)] for i, j in sorted(pairs)]
 
@@ -259,9 +199,8 @@ def _hinge_meta(v: HingeVerdict, matches: dict[Pair, np.ndarray], name) -> dict:
 
 
 def _peak_rss_mb() -> float:
-    """This process's peak resident memory so far, MiB: Linux's ``VmHWM`` (since this program
-    started; ``ru_maxrss`` would carry the launching process's size across ``exec``), else
-    ``ru_maxrss``; 0 where neither can be read."""
+    """Peak resident memory so far in MiB (``VmHWM``: ``ru_maxrss`` would carry the launcher's
+    across ``exec``); 0 when unreadable."""
     try:
         with open("/proc/self/status", encoding="ascii") as fh:
             for line in fh:
@@ -291,11 +230,7 @@ def _pack(failed: dict[Pair, np.ndarray], wrong: frozenset[Pair], restored: dict
 
 def _read_back(store: RunStore, arrays: dict[str, np.ndarray], meta: dict
                ) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict[Pair, np.ndarray], MatchCheckStats]:
-    """The stored verdicts and stats of an interrupted run.
-
-    Raises:
-        StoreDamaged: the arrays or the stats do not have the stage's layout.
-    """
+    """The stored verdicts and stats of an interrupted run; StoreDamaged for another layout."""
     path = store.folder / f"stage-{STORE_NAME}.npz"
     failed, wrong, restored = _unpack(arrays, path)
     _check_meta(meta, path)
@@ -322,12 +257,7 @@ _META_TYPES = {
 
 
 def _check_meta(meta: dict, path: Path) -> None:
-    """The stored stats checked against :class:`MatchCheckStats`'s field types (and the parts
-    the stage reads: each wrong pair's images, share and matches; the seconds as numbers).
-
-    Raises:
-        StoreDamaged: a value of another type.
-    """
+    """The stored stats checked against :class:`MatchCheckStats`'s field types; StoreDamaged otherwise."""
     for f in dataclasses.fields(MatchCheckStats):
         if f.name in meta and not _META_TYPES[str(f.type)](meta[f.name]):
             raise StoreDamaged(path, f"its stats' {f.name} is not of type {f.type}")
@@ -343,11 +273,7 @@ def _check_meta(meta: dict, path: Path) -> None:
 
 def _unpack(arrays: dict[str, np.ndarray], path: Path
             ) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict[Pair, np.ndarray]]:
-    """The verdicts of :func:`_pack`'s arrays, checked (dtypes, shapes, offsets, each pair once).
-
-    Raises:
-        StoreDamaged: they do not have the layout of :func:`_pack`.
-    """
+    """The verdicts of :func:`_pack`'s arrays, checked; StoreDamaged for another layout."""
     pairs = check_array(arrays, "pairs", path, "iu", (None, 2))
     f = check_array(arrays, "failed", path, "b", (None,))
     off = check_array(arrays, "offsets", path, "iu", (len(pairs) + 1,))

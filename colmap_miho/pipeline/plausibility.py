@@ -1,11 +1,6 @@
-"""Whether an image file is the one its keypoints were detected in.
-
-SIFT keypoints are extrema of a difference of Gaussians (DoG) at their scale: at a keypoint the
-DoG's magnitude is larger than a few scales away far more often than not. In another image of the
-same size (files renamed or shuffled after extraction) the keypoints sit on unrelated content and
-the comparison is a coin toss. :func:`keypoint_support` measures that share on a sample of
-keypoints; :func:`implausible` says whether it cannot be told from chance.
-"""
+"""Whether an image file is the one its keypoints were detected in: at a SIFT keypoint the DoG's
+magnitude exceeds that a few scales away far more often than not; in another image (a file renamed
+or shuffled after extraction) it is a coin toss."""
 
 from __future__ import annotations
 
@@ -30,18 +25,8 @@ DOG_RATIO = 1.6
 
 def keypoint_support(image: np.ndarray, xy: np.ndarray, scale: np.ndarray | None, seed: int = 0
                      ) -> tuple[float, int]:
-    """Share of sampled keypoints whose DoG magnitude exceeds the DoG magnitude
-    :data:`OFFSET_SCALES` keypoint scales away, in a random direction.
-
-    Args:
-        image: float (H, W) grayscale.
-        xy: float (N, 2) keypoint positions, pixels (integer = pixel centre).
-        scale: float (N,) keypoint scales in pixels, or None (1 px: keypoints without a shape).
-        seed: the sample's seed.
-
-    Returns:
-        (share in [0, 1], keypoints sampled).
-    """
+    """(share in [0, 1], keypoints sampled): sampled keypoints whose DoG magnitude exceeds that
+    :data:`OFFSET_SCALES` scales away; ``scale`` ``(N,)`` pixels or None (1 px)."""
     import cv2
 
     n = len(xy)
@@ -67,8 +52,8 @@ def keypoint_support(image: np.ndarray, xy: np.ndarray, scale: np.ndarray | None
 
 
 def implausible(share: float, sampled: int) -> bool:
-    """Whether ``share`` over ``sampled`` keypoints cannot be told from chance (no verdict below
-    :data:`MIN_KEYPOINTS`)."""
+    """Whether ``share`` over ``sampled`` keypoints is indistinguishable from chance (no verdict
+    below :data:`MIN_KEYPOINTS`)."""
     if sampled < MIN_KEYPOINTS:
         return False
     return share < CHANCE + MARGIN_SIGMAS * math.sqrt(CHANCE * (1 - CHANCE) / sampled)

@@ -22,16 +22,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, kw_only=True)
 class ReadConfig:
-    """What the read stage needs besides the database.
-
-    Attributes:
-        pipeline: the recipe's ``pipeline`` table (match source, ``min_matches``, refine).
-        image_dir: folder the database's image names are relative to.
-        image_budget_bytes: decoded image bytes the loader keeps (LRU); the refine stage's
-            track groups are sized to it (:meth:`PipelineConfig.image_budget_bytes`).
-        strict: a missing or unreadable image is an error (only checked when refining).
-        database_name: the user's database, named in error messages (the stage reads a copy).
-    """
+    """What the read stage needs besides the database: the ``pipeline`` table, the image folder, the
+    loader's byte budget, ``strict``, and the user's database name for messages."""
 
     pipeline: PipelineConfig
     image_dir: Path
@@ -42,13 +34,8 @@ class ReadConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class ReadOutput:
-    """The database as the later stages see it.
-
-    Attributes:
-        keypoints: image id -> ``(N_i, 2)`` float64 pixels (integer = pixel centre).
-        to_filter: pairs with at least ``pipeline.min_matches`` matches, in database order.
-        loader: lazy image loader; its ``missing`` set holds unreadable images once checked.
-    """
+    """The database as later stages see it: ``keypoints`` (image id -> ``(N_i, 2)`` float64 pixels),
+    the pairs ``to_filter`` and the lazy image ``loader``."""
 
     keypoints: dict[int, np.ndarray]
     to_filter: list[PairRecord]
@@ -57,8 +44,7 @@ class ReadOutput:
 
 @dataclass(frozen=True, kw_only=True)
 class ReadStats:
-    """Counts of the read stage (``RefineSummary`` fields of the same names; ``image_decodes``:
-    image files decoded to check them, when refining)."""
+    """Counts of the read stage (``RefineSummary`` fields of the same names)."""
 
     num_images: int
     num_pairs: int
@@ -75,12 +61,8 @@ class ReadStats:
 
 
 def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats]:
-    """Read images, keypoints and pairs; check that the images open when refining.
-
-    Raises:
-        DatabaseError: no images, or no pairs with ``pipeline.source`` matches.
-        UserError: ``strict`` and an image is missing or unreadable.
-    """
+    """Read images, keypoints and pairs; check the images open when refining. DatabaseError for no
+    images or pairs; UserError for a missing image with ``strict``."""
     pcfg = cfg.pipeline
     images = db.images()
     if not images:
@@ -126,13 +108,7 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
 
 
 def _check_one_file_per_image(cfg: ReadConfig, names: dict[int, str]) -> None:
-    """Warn (``strict``: refuse) when two image rows name one file (``./a.png`` beside
-    ``a.png``, or a link): both rows' keypoints would be refined against the same pixels, as
-    if the photo had been taken twice.
-
-    Raises:
-        UserError: ``strict`` and such rows, naming them and the database.
-    """
+    """Warn (``strict``: refuse) when two image rows name one file: both would be refined against the same pixels."""
     from ..adapters.paths import names_of_one_file
 
     groups = names_of_one_file(cfg.image_dir, names)
@@ -149,13 +125,7 @@ def _check_one_file_per_image(cfg: ReadConfig, names: dict[int, str]) -> None:
 
 
 def _check_inside(kp: np.ndarray, im, database) -> None:
-    """Refuse keypoints (N, 2) (pixel centres at integers) more than ``KEYPOINT_MARGIN_PX``
-    outside their image (``im.width`` x ``im.height``; unknown sizes are not checked): they
-    cannot be measurements of it, and the refinement would read far outside the image.
-
-    Raises:
-        DatabaseError: naming the database, the image and the keypoint.
-    """
+    """Refuse keypoints more than ``KEYPOINT_MARGIN_PX`` outside their image (DatabaseError naming it)."""
     from ..adapters.conventions import KEYPOINT_MARGIN_PX
 
     if len(kp) == 0 or not (im.width and im.height):
@@ -171,12 +141,7 @@ def _check_inside(kp: np.ndarray, im, database) -> None:
 
 def check_match_indices(matches: np.ndarray, n1: int, n2: int, pair: Pair,
                         database_name: Path | str = "") -> None:
-    """Refuse matches ``(M, 2)`` whose keypoint indices are past the two images' keypoint
-    counts ``n1``, ``n2`` (an inconsistent database: matches written for other keypoints).
-
-    Raises:
-        DatabaseError: names the database, the pair's image ids and the first bad index.
-    """
+    """Refuse matches whose keypoint indices pass the images' keypoint counts (DatabaseError)."""
     if not len(matches):
         return
     for col, n, image_id in ((0, n1, pair[0]), (1, n2, pair[1])):
@@ -190,9 +155,8 @@ def check_match_indices(matches: np.ndarray, n1: int, n2: int, pair: Pair,
 
 def _plausibility_check(db: ColmapDatabase, keypoints: dict[int, np.ndarray], names: dict[int, str],
                         loader: ImageLoader, found: list[str]):
-    """The read check's inspection of each decoded image: warn about, and add to ``found``,
-    the images whose keypoints cannot be told from chance on their pixels
-    (:mod:`.plausibility`: a file renamed or shuffled after extraction)."""
+    """Warn about (and add to ``found``) images whose keypoints fit their pixels no better than
+    chance (a file renamed or shuffled after extraction)."""
     from .plausibility import implausible, keypoint_support
 
     def inspect(image_id: int, image: np.ndarray) -> None:
@@ -210,8 +174,7 @@ def _plausibility_check(db: ColmapDatabase, keypoints: dict[int, np.ndarray], na
 
 
 def read_affines(db: ColmapDatabase, image_ids) -> dict[int, np.ndarray] | None:
-    """Keypoint affine shapes per image (see ``ColmapDatabase.keypoint_affines``), or None
-    when any image's keypoints carry no affine shape."""
+    """Keypoint affine shapes per image, or None when any image has none."""
     affines = {i: db.keypoint_affines(i) for i in image_ids}
     known = {i: a for i, a in affines.items() if a is not None}
     return known if len(known) == len(affines) else None

@@ -13,15 +13,9 @@ from ..types import Pair
 
 @dataclass(frozen=True)
 class PairOutcome:
-    """What the later stages need of one pair's :class:`~colmap_miho.filtering.api.FilterResult`
-    (``FilterResult``-like for :func:`~colmap_miho.refinement.tracks.build.pair_rows`).
-
-    Attributes:
-        inliers: bool ``(M,)``, the matches kept (rows 1:1 with the pair's matches).
-        labels: int64 ``(M,)``, each kept match's homography, -1 for discarded ones.
-        patch_homographies: float64 ``(K, 2, 3, 3)``, see ``FilterResult``.
-        success: a plane was found (otherwise the pair is written back unchanged).
-    """
+    """What the later stages need of one pair's :class:`~colmap_miho.filtering.api.FilterResult`:
+    ``inliers`` ``(M,)``, ``labels`` ``(M,)`` (-1: discarded), ``patch_homographies`` ``(K, 2, 3,
+    3)`` and ``success`` (else written back unchanged)."""
 
     inliers: np.ndarray
     labels: np.ndarray

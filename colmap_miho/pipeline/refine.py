@@ -1,10 +1,5 @@
-"""Refine stage of ``refine_database``: the track-consistent NCC walk of the stored pairs.
-
-:func:`run_refine` is the stage: it reads the filtered pairs back from the run store, applies
-the checks' verdicts, walks them over groups of whole tracks (:func:`.track_groups.walk_groups`,
-resuming the groups the store holds) and returns the new keypoints with frozen
-:class:`RefineStats`.
-"""
+"""Refine stage: the track-consistent NCC walk of the stored pairs, with the checks' verdicts
+applied, over groups of whole tracks (resuming the groups the store holds)."""
 
 from __future__ import annotations
 
@@ -26,15 +21,8 @@ from .verdicts import NO_VERDICTS, Verdicts, output_matches
 
 @dataclass(frozen=True)
 class RefineStats:
-    """Counts of the refine stage.
-
-    Attributes:
-        counters: the walk's counters summed over its track groups, with ``workers`` (the
-            processes used), ``missing_images`` and ``groups`` / ``groups_resumed`` /
-            ``image_decodes``; empty when refinement is off or nothing was filtered (the
-            summary's ``refine_stats``).
-        decoded_by_image: image id -> decodes by the walk, over all processes.
-    """
+    """Counts of the refine stage: the walk's counters summed over groups (empty when off) and the
+    decodes per image over all processes."""
 
     counters: Mapping[str, float] = field(default_factory=dict)
     decoded_by_image: Mapping[int, int] = field(default_factory=dict)
@@ -47,14 +35,9 @@ class RefineStats:
 def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Recipe, device: str,
                runner: Runner, progress: bool, verdicts: Verdicts = NO_VERDICTS
                ) -> tuple[dict[int, np.ndarray], RefineStats]:
-    """The refine stage on the stored pairs whose two images are readable, on ``runner``,
-    skipping the track groups ``store`` holds and storing each finished one. The checks'
-    ``verdicts`` are applied first: removed pairs join no track, failed matches are taken out.
-
-    Returns:
-        (image id -> new keypoints (N, 2) float64 pixels, the stage's :class:`RefineStats`);
-        the read keypoints and empty stats when refinement is off or nothing was filtered.
-    """
+    """The refine stage on ``runner``, skipping and storing groups. Returns (image id -> new
+    keypoints ``(N, 2)``, :class:`RefineStats`); the read keypoints when off or nothing was
+    filtered."""
     if not recipe.pipeline.refine or not store.filter_counts().pairs_ok:
         return read.keypoints, RefineStats()
     ok = verdicts.apply(store.load_filtered())
@@ -80,11 +63,7 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
 
 
 def check_resumed_groups(store: RunStore, done: Mapping[int, GroupResult], num_groups: int) -> None:
-    """Refuse stored refine groups that are not groups of this run's plan of ``num_groups``.
-
-    Raises:
-        StoreDamaged: naming the first such group's file.
-    """
+    """Refuse stored groups that are not groups of this run's plan (StoreDamaged naming the file)."""
     for g in sorted(done):
         if not 0 <= g < num_groups:
             raise StoreDamaged(store.group_path(g), f"group {g} is not one of this run's {num_groups} groups")

@@ -1,35 +1,5 @@
-"""``refine_database``: filter and refine the matches of a COLMAP database, safely.
-
-Data flow (one stage after the other, each ``run_<stage>`` returning its outputs and a small
-stats dataclass that :class:`RefineSummary` is assembled from)::
-
-    safe working copy -> read (:mod:`.read`) -> filter the pairs chunk by chunk
-      (:mod:`.filter`, MOP / MOP+MiHo) into the run store (:mod:`.store`)
-      -> optional pair check (:mod:`.pair_check`) -> optional match check against a global
-      estimate of the cameras (:mod:`.match_check`); their :class:`~.verdicts.Verdicts` merged
-      -> track-consistent NCC refinement (:mod:`.refine`) -> write back chunk by chunk
-      (:mod:`.write`: keypoints, matches, two_view_geometries)
-      -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
-
-The input database is never opened for writing; see :mod:`colmap_miho.adapters.safety`.
-
-Memory: ``pipeline.memory_budget_mb`` (``refine --memory-budget``) sizes the filter's chunks
-and the refine stage's image cache (see :class:`~colmap_miho.pipeline_config.PipelineConfig`).
-
-Resuming: finished filter chunks and refine groups are kept in the run store beside the
-output until the commit; a killed or failed run is continued with ``resume=True``
-(``refine --resume``), and ``restart=True`` discards them. A run that finds finished work
-and was given neither refuses to start.
-
-Parallelism: one :class:`~.executor.Runner` per run (:func:`~.executor.open_runner`) runs the
-filter's chunks and the refinement's track groups in this process, in worker processes with one
-thread each (forked from a forkserver that imported torch once), or on a Dask cluster
-(``dask``); only this process writes SQLite. Scripts that call :func:`refine_database` with
-``workers > 1`` need the usual ``if __name__ == "__main__":`` guard.
-
-All coordinates handled here are colmap-miho's (integer = pixel centre); the conversion to
-COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
-"""
+"""``refine_database``: filter, check and refine the matches of a COLMAP database on a working copy,
+stage by stage; finished work survives in the run store for ``resume``."""
 
 from __future__ import annotations
 
@@ -75,7 +45,6 @@ def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
 
 
 def _resolve_device(device: Device | str) -> str:
-    """"cpu" or "cuda", by the one resolver (torch is imported only if needed)."""
     device = Device.parse(device, "device")
     if device == Device.CPU:
         return "cpu"
@@ -88,11 +57,7 @@ def _resolve_device(device: Device | str) -> str:
 
 
 def _check_recipe_device(rec: Recipe) -> None:
-    """Refuse ``ncc.device = "cuda"`` where torch sees no CUDA device, before any work.
-
-    Raises:
-        UserError: naming the key.
-    """
+    """Refuse ``ncc.device = "cuda"`` where torch sees no CUDA device, before any work (UserError)."""
     if not rec.pipeline.refine or Device.parse(rec.ncc.device, "device") != Device.CUDA:
         return
     from ..devices import resolve_device
@@ -122,56 +87,18 @@ def refine_database(
     restart: bool = False,
     dask: str | None = None,
 ) -> RefineSummary:
-    """Filter (MOP / MOP+MiHo) and refine (track-consistent NCC, then least-squares matching
-    in the default recipe) a COLMAP database.
+    """Filter (MOP+MiHo), check and refine (NCC, then least-squares matching) a COLMAP database.
 
-    (The public entry point: its keyword arguments are the ``refine`` command's options, one
-    each, so that a script reads like the command line; the stages get them grouped.)
+    The keyword arguments are the ``refine`` command's options, one each. Missing compiled kernels
+    are compiled first. The input ``database`` is never written (``in_place``: replaced atomically
+    after a backup); ``output`` defaults to ``<stem>.miho.db`` beside it. ``recipe``: a
+    :class:`~colmap_miho.recipe.Recipe`, shipped name or TOML path. Results do not depend on
+    ``workers``; ``seed`` is the run's root seed. ``dask``: ``"local"`` or a scheduler address.
 
-    The compiled kernels the recipe uses that the kernel cache lacks are compiled first, and
-    logged at INFO level (:func:`~colmap_miho.kernel_cache.ensure_compiled`; once per cache
-    folder, tens of seconds; ``colmap-miho compile`` does it ahead).
-
-    Args:
-        database: the input COLMAP database; never opened for writing (unless ``in_place``,
-            and even then only replaced atomically at the end, after a backup).
-        image_dir: folder the database's image names are relative to.
-        output: the database to write; default ``<stem>.miho.db`` beside the input.
-        recipe: a :class:`~colmap_miho.recipe.Recipe`, a shipped recipe name or a TOML path
-            (default ``mop_miho_lsm``; ``mop_miho_ncc`` is the faster NCC-only one); its
-            ``pipeline`` table chooses the match source, ``min_matches``, refinement,
-            re-verification and the memory budget.
-        in_place: replace ``database`` itself, after copying it to a timestamped backup.
-        overwrite: allow replacing an existing ``output``.
-        workers: processes that filter pairs and refine tracks (default: all cores; 1 = all
-            in this process), or the workers of a local Dask cluster. Small jobs stay in
-            this process (below ~10k matches per worker, workers do not pay off); results do
-            not depend on the worker count.
-        device: "cpu", "cuda" or "auto" for the torch work.
-        seed: base seed; each pair's filter seed is derived from it and the pair's image ids.
-        strict: a missing or unreadable image is an error instead of a warning.
-        progress: show tqdm progress bars.
-        json_path: also write :meth:`RefineSummary.to_dict` as JSON to this file.
-        resume: continue an interrupted run from its run store (``.<output name>.miho-run``
-            beside the output); the inputs and options must be those of that run.
-        restart: discard an interrupted run's store and start again.
-        dask: None (no Dask), ``"local"`` (a local Dask cluster of ``workers`` processes) or
-            a scheduler address ``tcp://host:8786``; the workers must see ``image_dir`` at
-            the same path.
-
-    Returns:
-        A :class:`RefineSummary`.
-
-    Raises:
-        DatabaseError: missing or non-COLMAP database, database in use.
-        UserError: bad image folder, existing output without ``overwrite``, strict and an
-            image missing, no pairs to process; an interrupted run's store found without
-            ``resume`` or ``restart``, or ``resume`` with other inputs or options.
-        ValueError: a bad recipe or option value, or an argument of the wrong type or out of the
-            CLI's range (``workers`` in [1, 1024], a 32-bit ``seed``): the message names it.
-        RunFailed: a worker process died (see :data:`~.workers.WORKER_DIED`), or this is
-            a worker importing a script that calls this without a ``__main__`` guard.
-    """
+    Returns a :class:`RefineSummary`. Raises :class:`DatabaseError` (missing, non-COLMAP or busy
+    database), :class:`UserError` (bad folders, existing output, an interrupted run's store without
+    ``resume``/``restart``), ``ValueError`` (a bad option; the message names it) and
+    :class:`RunFailed` (a worker died)."""
     check_not_bootstrapping()
     check_paths(database=database, image_dir=image_dir, output=output, json_path=json_path,
                 optional=("output", "json_path"))
@@ -235,9 +162,7 @@ def refine_database(
 
 
 def note_output_written(exc: BaseException, summary: RefineSummary) -> None:
-    """Mark ``exc`` (a signal, an error) raised after the commit: the output is complete, which
-    the CLI's line says instead of "nothing was written to the input"
-    (``exc.output_written``)."""
+    """Mark ``exc``, raised after the commit: the output is complete (``exc.output_written``)."""
     in_place = f" (refined in place; its backup: {summary.backup})" if summary.backup else ""
     _add_note(exc, f"{summary.output} was written{in_place} before that and is complete: nothing is left to resume")
     exc.output_written = True  # type: ignore[attr-defined]
@@ -245,8 +170,7 @@ def note_output_written(exc: BaseException, summary: RefineSummary) -> None:
 
 @contextlib.contextmanager
 def _signals_held():
-    """Hold Ctrl-C, SIGTERM and SIGHUP for the block (their Python handlers, in the main thread):
-    the run store is removed whole, and a signal sent meanwhile is served right after it."""
+    """Hold Ctrl-C, SIGTERM and SIGHUP for the block, so the run store is removed whole."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -267,8 +191,7 @@ def _signals_held():
 
 
 def _keep_store(store: RunStore) -> bool:
-    """After a failure: keep the store when it holds finished work (else remove it); True
-    when kept."""
+    """After a failure keep the store if it holds finished work (else remove it); True when kept."""
     if store.has_work():
         store.close()
         return True
@@ -277,7 +200,6 @@ def _keep_store(store: RunStore) -> bool:
 
 
 def _add_note(exc: BaseException, note: str) -> None:
-    """``exc.add_note(note)`` (Python >= 3.11), or the same ``__notes__`` list on 3.10."""
     add = getattr(exc, "add_note", None)
     if add is not None:
         add(note)
@@ -292,8 +214,7 @@ def _resume_hint(store: RunStore) -> str:
 
 @dataclass(frozen=True, kw_only=True)
 class _RunInputs:
-    """What the stages of one run read: the user's database and images, the resolved recipe and
-    device (``"cpu"`` / ``"cuda"``), and the run options of :func:`refine_database`."""
+    """What one run's stages read: database, images, resolved recipe and device, run options."""
 
     database: Path
     image_dir: Path
@@ -307,7 +228,6 @@ class _RunInputs:
 
 def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Runner, *, resumed: bool,
                 laps: _Laps) -> RefineSummary:
-    """The stages on the working copy, then the commit; returns the summary."""
     database, image_dir, rec, dev = inputs.database, inputs.image_dir, inputs.recipe, inputs.device
     seed, strict, progress, json_path = inputs.seed, inputs.strict, inputs.progress, inputs.json_path
     pcfg = rec.pipeline
@@ -359,13 +279,8 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
 
 
 def _check_writable_file(path: Path, label: str) -> None:
-    """Refuse, before any work, an output file whose folder is missing or read-only: the folder
-    of the file written, a symbolic link's target's (the link is kept). A character device
-    (``/dev/stdout``) is written through, in no folder: its own (``/dev``) is not looked at.
-
-    Raises:
-        UserError: the message names the option and the path.
-    """
+    """Refuse, before any work, an output whose folder is missing or read-only (a character device
+    such as ``/dev/stdout`` is written through). UserError names the option and path."""
     from ..adapters.staged_write import CHARACTER_DEVICE, output_kind, write_target
 
     if output_kind(path) == CHARACTER_DEVICE:
@@ -381,12 +296,7 @@ def _check_writable_file(path: Path, label: str) -> None:
 
 
 def _refuse_inside_run_folder(path: Path, folder: Path) -> None:
-    """Refuse ``--json`` inside the run folder ``folder``: it is removed after the commit (a
-    ``manifest.json`` there went with it, the run saying it was written).
-
-    Raises:
-        UserError: naming the option, the path and the folder.
-    """
+    """Refuse ``--json`` inside the run folder, which is removed after the commit (UserError)."""
     from ..adapters.paths import resolve
 
     if resolve(folder) in resolve(path).parents:

@@ -1,12 +1,6 @@
-"""Is a ``tcp://host:port`` address a Dask scheduler? A handshake with a deadline.
-
-``distributed.Client``'s timeout covers the TCP connect only: a service that accepts the
-connection and then says nothing (a web server, a database) keeps the client waiting forever.
-A Dask scheduler speaks first: right after it accepts a connection it sends its handshake, a
-message whose first 8 bytes are the length (little-endian uint64) of the frames that follow, a
-few hundred bytes. :func:`check_dask_scheduler` connects, waits for those 8 bytes with a
-deadline and checks that the length is plausible, so the wrong address is one line.
-"""
+"""Is a ``tcp://host:port`` address a Dask scheduler? ``distributed.Client``'s timeout covers only
+the TCP connect, and a service that accepts and stays silent would hang it; a scheduler speaks
+first, so :func:`check_dask_scheduler` waits for its 8-byte handshake length with a deadline."""
 
 from __future__ import annotations
 
@@ -31,13 +25,8 @@ def _host_port(address: str) -> tuple[str, int]:
 
 def check_dask_scheduler(address: str, *, connect_timeout: float = 20.0,
                          handshake_timeout: float | None = None) -> None:
-    """Refuse a ``tcp://`` address where no Dask scheduler answers (other schemes pass).
-
-    Raises:
-        UserError: nothing listens there, the connection times out, or the service there does
-            not send Dask's handshake within ``handshake_timeout`` seconds (default
-            :data:`HANDSHAKE_TIMEOUT_S`); one line each, naming the address.
-    """
+    """Refuse a ``tcp://`` address where no Dask scheduler answers within ``handshake_timeout``
+    (UserError naming it); other schemes pass."""
     if handshake_timeout is None:
         handshake_timeout = HANDSHAKE_TIMEOUT_S
     if not address.startswith("tcp://"):

@@ -1,38 +1,6 @@
-"""Run store: the finished work of one ``refine`` run on disk, so that a killed run resumes.
-
-The store is a folder beside the output (and its hidden working copy),
-``<output dir>/.<output name>.miho-run/`` (:func:`store_folder`), holding:
-
-- ``manifest.json``: what the work was made from (:func:`run_fingerprint`: a hash of the
-  input database's bytes (a copy with the same size and time, ``cp -p``, is still seen), the
-  image folder, the recipe's values that change
-  the result, the seed, the device and the colmap-miho version), and the refine stage's plan
-  key (its groups are numbered for one image budget);
-- ``filter-NNNNNN.npz``: one finished filter chunk (per pair: the matches, the outcome's
-  inliers, labels, patch homographies and success);
-- ``group-NNNNNN.npz``: one finished refine track group (the keypoints it moved, its stats);
-- ``stage-<name>.npz``: the result of a stage that runs once per run (the match check's
-  verdicts: its global estimate is not bit-for-bit repeatable);
-- ``lock``: held (``flock``) by the run using the folder, released by the kernel even on
-  SIGKILL.
-
-The store is never reached through a symbolic link: a link in place of the folder or of one of
-its files is refused (:func:`check_no_links`), and clearing or removing the store takes only the
-files it makes (the names above and their temporary files), never anything else put there.
-
-Each ``.npz`` file is tied to the run that wrote it: it holds the manifest's random ``run_id``
-and its own file name (``file_name``), and one that holds another (a file copied in from another run's store,
-or renamed) is refused on ``--resume`` as damaged, not trusted. Nor is a file of the run's own
-trusted unchecked: every file read back goes through :mod:`.store_checks` (each manifest value's
-type; each array's dtype and shape, offsets, each pair stored once) and, once
-:meth:`RunStore.expect` gives the run's plan, each pair must be one of the run's and each
-keypoint index within its image's keypoints; a file that fails is :class:`StoreDamaged`.
-
-Every file is written under a temporary name, flushed to disk, then renamed onto its name
-(:func:`~colmap_miho.adapters.filesystem.write_atomic`): a file that exists is complete.
-``refine`` removes the store after its commit; after a failure, Ctrl-C, SIGTERM or SIGKILL it
-stays, and ``refine --resume`` continues from it (``--restart`` discards it). The user's database is never written here.
-"""
+"""Run store: the finished work of one ``refine`` run on disk (``.<output name>.miho-run/`` beside
+the output), so that a killed run resumes. Its files are written atomically, tied to their run and
+checked when read back (:mod:`.store_checks`); links are refused."""
 
 from __future__ import annotations
 
@@ -93,13 +61,8 @@ def store_folder(output: Path) -> Path:
 
 
 def check_no_links(folder: Path) -> None:
-    """Refuse a run store reached through a symbolic link: ``folder`` itself, or an entry of
-    it with one of the store's names that is a link or not a regular file (the store would read,
-    write or delete through it: another folder emptied, another file read as this run's work).
-
-    Raises:
-        UserError: naming the link (and its target) and what to do.
-    """
+    """Refuse a run store reached through a symbolic link (the folder or one of its files): the
+    store would read, write or delete through it. UserError names the link."""
     folder = Path(folder)
     if folder.is_symlink():
         raise UserError(f"the run folder {folder} is a symbolic link (to {os.readlink(folder)}); a run keeps its "
@@ -123,9 +86,7 @@ def check_no_links(folder: Path) -> None:
 
 
 def content_hash(path: Path, chunk: int = 1 << 22) -> str:
-    """BLAKE2b (128-bit) of the bytes of ``path``: what the stored work read, by content (its
-    size and modification time alone miss a ``cp -p`` of another database). About 1 s per
-    GB, next to a run of minutes."""
+    """BLAKE2b (128-bit) of ``path``'s bytes: size and time alone miss a ``cp -p`` of another database."""
     digest = hashlib.blake2b(digest_size=16)
     with open(path, "rb") as fh:
         while block := fh.read(chunk):
@@ -134,9 +95,7 @@ def content_hash(path: Path, chunk: int = 1 << 22) -> str:
 
 
 def run_fingerprint(database: Path, image_dir: Path, recipe, seed: int, device: str) -> dict:
-    """What a run's stored work depends on, as plain JSON data (compared on resume): the
-    input database by content (:func:`content_hash`), the image folder, the recipe's values
-    that change the result, the seed, the device and the versions."""
+    """What a run's stored work depends on, as JSON data compared on resume."""
     st = Path(database).stat()
     tables = {}
     for name in RESULT_TABLES:
@@ -152,8 +111,7 @@ def run_fingerprint(database: Path, image_dir: Path, recipe, seed: int, device: 
 
 
 def fingerprint_difference(old: dict, new: dict) -> str | None:
-    """What differs between two fingerprints, in words ("the seed", "recipe value
-    filter.t_l", ...), or None when they agree."""
+    """What differs between two fingerprints in words ("the seed", ...), or None."""
     words = {"store_version": "store format", "colmap_miho": "colmap-miho version",
              "database": "input database (its content changed since)",
              "images": "image folder", "seed": "seed", "device": "device"}
@@ -192,7 +150,7 @@ def _atomic_write_text(path: Path, text: str) -> None:
 
 
 class RunStore:
-    """The open run store of one run (see the module docstring); make it with :meth:`open`."""
+    """The open run store of one run; make it with :meth:`open`."""
 
     def __init__(self, folder: Path, manifest: dict, lock_fd: int) -> None:
         self.folder = Path(folder)
@@ -213,17 +171,8 @@ class RunStore:
     # -- opening, closing --------------------------------------------------------------------
     @classmethod
     def open(cls, folder: Path, fingerprint: dict, *, resume: bool = False, restart: bool = False) -> RunStore:
-        """Open (create) the store at ``folder`` for a run with ``fingerprint``.
-
-        Args:
-            resume: continue from the finished work in the folder (its fingerprint must match).
-            restart: discard the finished work in the folder.
-
-        Raises:
-            UserError: another run uses the folder; finished work is there and neither
-                ``resume`` nor ``restart`` was given; ``resume`` with another fingerprint
-                (the message names what changed); the folder cannot be written.
-        """
+        """Open (create) the store at ``folder`` for ``fingerprint``. UserError when another run holds
+        it, when finished work is there without ``resume``/``restart``, or when it changed."""
         folder = Path(folder)
         if resume and restart:
             raise UserError("use either --resume or --restart, not both")
@@ -273,8 +222,7 @@ class RunStore:
 
     @staticmethod
     def _clear(folder: Path) -> None:
-        """Delete the store's own files in ``folder`` (its work files and the temporary files
-        of writes cut short), keep the lock; anything else there is left as it is."""
+        """Delete the store's own files in ``folder``, keep the lock; anything else is left."""
         for p in _own_entries(folder):
             if p.name != LOCK:
                 p.unlink(missing_ok=True)
@@ -290,9 +238,7 @@ class RunStore:
             self._lock_fd = None
 
     def remove(self) -> None:
-        """Delete the store (after the run's commit), then release the lock: its own files,
-        then the folder when nothing else is in it (what others put there is kept, with a
-        warning)."""
+        """Delete the store's own files, then the folder if empty (others' files kept, with a warning)."""
         with contextlib.suppress(OSError):
             for p in _own_entries(self.folder):  # the lock last, still held: no other run takes the folder
                 if p.name != LOCK:
@@ -307,12 +253,7 @@ class RunStore:
         self.close()
 
     def _read(self, path: Path) -> dict[str, np.ndarray]:
-        """:func:`~.store_checks.read_npz` of one of this store's files, checked to be this run's own: its
-        ``run_id`` is the manifest's and its ``file_name`` its name.
-
-        Raises:
-            StoreDamaged: unreadable, or written by another run or under another name.
-        """
+        """Read one of this store's files, checked to be this run's own; StoreDamaged otherwise."""
         arrays = read_npz(path)
         run_id, name = arrays.pop("run_id", None), arrays.pop("file_name", None)
         want = self.manifest["run_id"]  # a non-empty string (read_manifest)
@@ -323,7 +264,6 @@ class RunStore:
         return arrays
 
     def _save(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
-        """:func:`_atomic_savez` with this run's ``run_id`` and the file's name (see :meth:`_read`)."""
         _atomic_savez(path, {**arrays, "run_id": np.array(self.manifest["run_id"]), "file_name": np.array(path.name)})
 
     def _files(self, pattern: re.Pattern) -> list[tuple[int, Path]]:
@@ -336,14 +276,8 @@ class RunStore:
 
     # -- what the work must fit --------------------------------------------------------------
     def expect(self, pairs, num_keypoints) -> None:
-        """Give the run's plan the stored work must fit: ``pairs`` (image_id1, image_id2), the
-        pairs to filter, and ``num_keypoints``, image id -> its keypoint count. The chunks stored
-        are checked now, and every file read from here on too.
-
-        Raises:
-            StoreDamaged: a stored chunk holds a pair that is not one of ``pairs``, or a keypoint
-                index beyond its image's count.
-        """
+        """Give the run's plan (``pairs``, ``num_keypoints``) the stored work must fit, checked now
+        and on every later read; StoreDamaged for a foreign pair or an out-of-range keypoint index."""
         self._pairs = {(int(a), int(b)) for a, b in pairs}
         self._num_keypoints = {int(i): int(n) for i, n in num_keypoints.items()}
         for index, chunk in self._chunks.items():
@@ -379,9 +313,8 @@ class RunStore:
 
     def save_filter_chunk(self, index: int, pairs: list[Pair], matches: list[np.ndarray],
                           outcomes: list[PairOutcome]) -> None:
-        """Store one finished chunk: ``pairs`` with their matches ``(M, 2)`` and outcomes
-        (rows 1:1). A failed pair's matches and rows are not kept (the pipeline writes it back
-        from the database unchanged)."""
+        """Store one finished chunk: ``pairs``, their matches ``(M, 2)`` and outcomes; failed pairs
+        are not kept (they are written back unchanged)."""
         if index in self._chunks:
             raise RuntimeError(f"filter chunk {index} is stored already")
         stored = self.filtered_pairs()
@@ -440,10 +373,8 @@ class RunStore:
     # -- refine groups -----------------------------------------------------------------------
     def refine_groups(self, plan_key: dict, image_sizes: Mapping[int, tuple[int, int]] | None = None
                       ) -> dict[int, GroupResult]:
-        """The stored refine groups, when they were made under ``plan_key`` (the refine stage's
-        grouping depends on it); otherwise they are dropped and ``plan_key`` recorded. Each
-        group's positions are checked against ``image_sizes`` (image id -> (width, height)
-        pixels) when given (:func:`~.store_checks.check_group`)."""
+        """The stored refine groups if made under ``plan_key`` (else dropped and ``plan_key``
+        recorded), checked against ``image_sizes`` when given."""
         plan_key = json.loads(json.dumps(plan_key, default=str))
         files = self._files(_GROUP_FILE)
         if self.manifest.get("refine_plan") != plan_key:
@@ -463,8 +394,7 @@ class RunStore:
         return self.folder / f"group-{index:06d}.npz"
 
     def save_group(self, index: int, moved: dict[int, tuple[np.ndarray, np.ndarray]], stats: dict) -> None:
-        """Store one finished refine group: image id -> (keypoint indices (K,), positions
-        (K, 2) pixels) and its stats (JSON-ready numbers)."""
+        """Store one refine group: image id -> (indices ``(K,)``, positions ``(K, 2)`` pixels) and its stats."""
         ids = sorted(moved)
         sizes = [len(moved[i][0]) for i in ids]
         self._save(self.group_path(index), {
@@ -477,18 +407,13 @@ class RunStore:
 
     # -- results of once-per-run stages ----------------------------------------------------
     def save_stage(self, name: str, arrays: dict[str, np.ndarray], meta: dict) -> None:
-        """Store the result of stage ``name`` (a plain identifier): arrays and JSON-ready
-        ``meta``."""
+        """Store stage ``name``'s arrays and JSON-ready ``meta``."""
         if not re.fullmatch(r"[a-z_]+", name):
             raise ValueError(f"stage name must be lower-case letters and _, got {name!r}")
         self._save(self.folder / f"stage-{name}.npz", {**arrays, "meta": np.array(json.dumps(meta, default=float))})
 
     def load_stage(self, name: str) -> tuple[dict[str, np.ndarray], dict] | None:
-        """The stored result of stage ``name`` (arrays, meta), or None.
-
-        Raises:
-            StoreDamaged: the file is truncated, not an npz file, or its meta is not JSON.
-        """
+        """Stage ``name``'s stored (arrays, meta), or None; StoreDamaged for a broken file."""
         path = self.folder / f"stage-{name}.npz"
         if not path.is_file():
             return None
@@ -503,7 +428,6 @@ class RunStore:
 
 
 def _own_entries(folder: Path) -> list[Path]:
-    """The store's own regular files in ``folder`` (by name, links and folders left out)."""
     return [p for p in Path(folder).iterdir()
             if (_OWN_FILE.match(p.name) or _OWN_TEMP.match(p.name)) and not p.is_symlink() and p.is_file()]
 

@@ -1,23 +1,5 @@
-"""What a file of the run store (:mod:`.store`) read back must be before it is trusted.
-
-A file can be damaged (truncated, overwritten) or forged with the run's own id; either way it
-is read back only through these checks, and one that fails is :class:`StoreDamaged` (a
-``UserError``: one line naming the file and saying ``--restart``), never a ``TypeError``, an
-``IndexError`` or matches silently lost:
-
-- the manifest (:func:`read_manifest`): a JSON object, its ``fingerprint`` an object (its
-  ``recipe`` an object of objects), its ``run_id`` a non-empty string, its ``refine_plan`` an
-  object;
-- each array (:func:`check_array`): its dtype kind and shape; offsets (:func:`check_offsets`)
-  start at 0, never go back and end at their rows; pairs (:func:`check_unique_pairs`) are
-  stored once;
-- a filter chunk (:func:`check_filter_chunk`): its arrays fit each other (rows, kept counts,
-  labels within the pair's homographies, finite homographies); the run's plan (its pairs and
-  each image's keypoint count) is checked by :meth:`.store.RunStore.expect` from the chunk's
-  :class:`ChunkIndex`;
-- a refine group (:func:`check_group`): its arrays fit each other and each image's keypoints,
-  its stats are counters.
-"""
+"""What a file of the run store read back must be before it is trusted: a damaged or forged file is
+:class:`StoreDamaged` (one line naming it and ``--restart``), never a crash or lost matches."""
 
 from __future__ import annotations
 
@@ -47,11 +29,7 @@ class StoreDamaged(UserError):
 
 
 def read_npz(path: Path) -> dict[str, np.ndarray]:
-    """Every array of the store file ``path``, read now.
-
-    Raises:
-        StoreDamaged: the file is truncated, not an npz file, or lacks an array.
-    """
+    """Every array of the store file ``path``, read now; StoreDamaged for a truncated or foreign file."""
     try:
         with np.load(path, allow_pickle=False) as z:
             return {key: z[key] for key in z.files}
@@ -85,13 +63,7 @@ def _json_type(value: object) -> str:
 
 
 def read_manifest(path: Path) -> dict:
-    """The manifest at ``path``, its values checked: a JSON object whose ``fingerprint`` is an
-    object (its ``recipe``, when there, an object of objects), whose ``run_id`` is a non-empty
-    string and whose ``refine_plan``, when there, is an object.
-
-    Raises:
-        StoreDamaged: missing, unreadable, not JSON, or a value of another type.
-    """
+    """The manifest at ``path``, its values' types checked; StoreDamaged otherwise."""
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -124,12 +96,8 @@ _KINDS = {"b": "booleans", "iu": "integers", "f": "floats"}
 
 def check_array(arrays: dict[str, np.ndarray], key: str, path: Path, kinds: str,
                 shape: tuple[int | None, ...]) -> np.ndarray:
-    """``arrays[key]`` checked to be of one of the dtype ``kinds`` (``"b"``, ``"iu"``, ``"f"``)
-    and of ``shape`` (None: any length), integers as int64.
-
-    Raises:
-        StoreDamaged: the array is missing, of another dtype or shape, or of integers beyond int64.
-    """
+    """``arrays[key]`` checked to be of a dtype in ``kinds`` and of ``shape`` (None: any length),
+    integers as int64; StoreDamaged otherwise."""
     a = stored_array(arrays, key, path)
     want = " x ".join("N" if n is None else str(n) for n in shape) or "a scalar"
     if a.dtype.kind not in kinds or a.ndim != len(shape) or any(
@@ -142,12 +110,7 @@ def check_array(arrays: dict[str, np.ndarray], key: str, path: Path, kinds: str,
 
 
 def check_offsets(offsets: np.ndarray, rows: int, key: str, path: Path) -> np.ndarray:
-    """The row counts of ``offsets`` (int64 ``(P + 1,)``), checked to start at 0, never go back
-    and end at ``rows``.
-
-    Raises:
-        StoreDamaged: they do not.
-    """
+    """``offsets`` ``(P + 1,)`` checked to start at 0, never go back and end at ``rows``."""
     counts = np.diff(offsets)
     if len(offsets) == 0 or offsets[0] != 0 or (counts < 0).any() or offsets[-1] != rows:
         raise StoreDamaged(path, f"its {key} do not run from 0 up to its {rows} rows")
@@ -155,11 +118,7 @@ def check_offsets(offsets: np.ndarray, rows: int, key: str, path: Path) -> np.nd
 
 
 def check_unique_pairs(pairs: np.ndarray, path: Path, key: str = "pairs") -> None:
-    """Refuse a ``(P, 2)`` array of pairs that holds one pair twice.
-
-    Raises:
-        StoreDamaged: naming the pair.
-    """
+    """Refuse a ``(P, 2)`` array of pairs holding one pair twice (StoreDamaged naming it)."""
     if len(pairs) > 1:
         order = np.lexsort((pairs[:, 1], pairs[:, 0]))
         same = np.flatnonzero((np.diff(pairs[order], axis=0) == 0).all(axis=1))
@@ -169,8 +128,7 @@ def check_unique_pairs(pairs: np.ndarray, path: Path, key: str = "pairs") -> Non
 
 
 def check_filter_chunk(z: dict[str, np.ndarray], path: Path) -> ChunkIndex:
-    """A filter chunk's arrays checked against each other (see :meth:`RunStore.save_filter_chunk`);
-    returns its index entry."""
+    """A filter chunk's arrays checked against each other; returns its index entry."""
     pairs = check_array(z, "pairs", path, "iu", (None, 2))
     n = len(pairs)
     ok = check_array(z, "success", path, "b", (n,))
@@ -223,10 +181,8 @@ MOVED_MARGIN_PX = 64.0
 
 def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, int] | None,
                 image_sizes: Mapping[int, tuple[int, int]] | None = None) -> GroupResult:
-    """A refine group's arrays checked against each other and, when given, the images'
-    ``num_keypoints`` and sizes ``image_sizes`` (image id -> (width, height) pixels; 0: unknown,
-    not checked): each position within :data:`MOVED_MARGIN_PX` of its image; returns (moved,
-    stats)."""
+    """A refine group's arrays checked against each other and the images' keypoint counts and sizes;
+    returns (moved, stats)."""
     ids = check_array(z, "image_ids", path, "iu", (None,))
     idx = check_array(z, "idx", path, "iu", (None,))
     xy = check_array(z, "xy", path, "f", (len(idx), 2))
@@ -268,8 +224,7 @@ def check_group(z: dict[str, np.ndarray], path: Path, num_keypoints: dict[int, i
 
 
 def _check_inside(xy: np.ndarray, size: tuple[int, int] | None, image_id: int, path: Path) -> None:
-    """Refuse positions ``(K, 2)`` (pixel centres at integers) farther than
-    :data:`MOVED_MARGIN_PX` outside an image of ``size`` (width, height; None or 0: unknown)."""
+    """Refuse positions farther than :data:`MOVED_MARGIN_PX` outside an image of ``size``."""
     if not len(xy) or not size or not (size[0] and size[1]):
         return
     lo, hi = -0.5 - MOVED_MARGIN_PX, np.array(size, np.float64) - 0.5 + MOVED_MARGIN_PX

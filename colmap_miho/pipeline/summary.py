@@ -18,40 +18,19 @@ from .write import WriteStats
 
 @dataclass
 class RefineSummary:
-    """What ``refine_database`` did. Counters are over image pairs / matches / keypoints.
+    """What ``refine_database`` did; counters are over image pairs, matches or keypoints.
 
     Attributes:
-        output: path of the written database.
-        backup: timestamped copy of the input (``in_place`` only), else None.
-        pairs_filtered: pairs with at least ``pipeline.min_matches`` matches, filtered.
-        pairs_passed: pairs with fewer matches, left unchanged.
-        pairs_failed: filtered pairs for which the filter found no plane; left unchanged.
-        matches_in / matches_kept / matches_removed: over every pair of the source, in the
-            input / in the output (after the filter's, the pair check's and the match check's
-            removals) / their difference.
-        keypoints_moved: keypoints whose position changed (each moves at most once).
-        median_displacement_px / max_displacement_px: over the moved keypoints, pixels.
-        images_missing: names of images that could not be read (not refined).
-        images_implausible: names of images whose keypoints do not match their pixels (a file
-            renamed or replaced after extraction; refined all the same, with a warning).
-        runner: where the parallel work ran: "inline", "processes" or "dask".
-        memory_budget_mb: ``pipeline.memory_budget_mb`` of the run.
-        filter_chunks / filter_chunks_resumed: chunks of pairs filtered in all / taken from
-            an interrupted run's store; pairs_resumed: the pairs of those chunks.
-        refine_groups / refine_groups_resumed: track groups refined in all / taken from the
-            store (0 when the refine stage does not report groups).
-        resumed: the run continued an interrupted one.
-        image_decodes: image files decoded in the whole run, over all processes: the read
-            stage's check (once per image; kept in the cache when it fits) and the track walk's
-            (an image again in each worker whose groups need it and no longer cache it).
-        image_decodes_max: the most times one image was decoded in the run (same count).
-        pair_check: what the pair check removed or flagged, and why
-            (:meth:`~.pair_check.PairCheckStats.to_dict`; empty when it is off).
-        match_check: what the match check against a global estimate of the cameras removed
-            and why, whether the estimate was used and which images it trusted
-            (:meth:`~.match_check.MatchCheckStats.to_dict`; empty when it is off).
-        seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
-            "total").
+        output / backup: the written database / the input's timestamped copy (``in_place`` only).
+        pairs_filtered / pairs_passed / pairs_failed: pairs filtered / too small, left unchanged /
+          with no plane found, left unchanged.
+        matches_in / matches_kept / matches_removed: over every pair, after filter and checks.
+        keypoints_moved, median_displacement_px, max_displacement_px: keypoints moved (each at most
+          once) and how far, in pixels.
+        images_missing / images_implausible: images not read / whose keypoints do not fit their pixels.
+        image_decodes / image_decodes_max: image files decoded over all processes / most of one image.
+        pair_check / match_check: what each check removed and why (empty when off).
+        seconds: wall time per stage.
     """
 
     output: Path
@@ -167,7 +146,6 @@ class RefineSummary:
 
 
 def _pair_check_line(pc: dict) -> str:
-    """The summary's pair-check lines: counts, then at most 10 wrong pairs with their reasons."""
     done = f"{pc['pairs_removed']} removed" if pc["mode"] == "remove" else f"{pc['pairs_flagged']} flagged"
     line = (f"  pair check: {pc['pairs_checked']} pairs, {pc['triangles']} triangles "
             f"({pc['triangles_broken']} broken), {done}")

@@ -1,16 +1,5 @@
-"""The track walk of the refine stage, over groups of whole tracks (:func:`walk_groups`).
-
-The :class:`~colmap_miho.refinement.tracks.plan.TrackPlan` of all output matches is cut into
-groups of whole walked tracks (:meth:`~colmap_miho.refinement.tracks.plan.TrackPlan.groups`),
-each using at most as many images as fit in the image budget; groups are numbered 0..G-1 in
-their schedule order (consecutive groups share images) and walked one after the other in
-this process, or spread over the runner's slots (:mod:`.executor`: a process pool or Dask)
-as contiguous runs of groups, one group of each run in flight at a time, so that a worker
-keeps the images the next group of its run needs.
-
-Results do not depend on the runner, its slots or the budget: groups are whole tracks, which
-never share a keypoint, and each group's walk is exactly the whole plan's walk of its tracks.
-"""
+"""The track walk of the refine stage over groups of whole tracks that fit the image budget, walked
+here or on the runner's slots; results do not depend on either (tracks never share a keypoint)."""
 
 from __future__ import annotations
 
@@ -56,15 +45,13 @@ _WORKER_LOADER: ImageLoader | None = None
 
 
 def _import_plan():
-    """The track plan, imported only when a run refines (numpy and scipy: a process whose
-    workers walk never imports the walk, nor so torch)."""
+    """The track plan, imported only when a run refines (so a worker that walks never imports torch here)."""
     from ..refinement.tracks.build import build_track_plan, local_affine_of
 
     return build_track_plan, local_affine_of
 
 
 def _walk_counters() -> tuple[str, ...]:
-    """The walk's counters that the groups' stats sum (imports the walk)."""
     from ..refinement.lsm.step import LSM_COUNTERS
     from ..refinement.tracks.multiphoto import MULTIPHOTO_COUNTERS
     from ..refinement.tracks.walk import WALK_COUNTERS
@@ -75,10 +62,8 @@ def _walk_counters() -> tuple[str, ...]:
 
 def max_images_for(loader: ImageLoader, image_ids, budget_bytes: int | None,
                    fallback: int) -> int:
-    """Images a group may use (at least 2): as many of the largest of ``image_ids`` (decoded,
-    from the loader's expected sizes) as fit in ``budget_bytes`` and in the loader's own
-    bounds (so that a group's images stay cached during its walk); ``fallback`` when none of
-    these bounds is known."""
+    """Images a group may use (at least 2): as many of the largest as fit ``budget_bytes`` and the
+    loader's bounds; ``fallback`` when no bound is known."""
     sizes = [b for b in (loader.image_bytes(i) for i in image_ids) if b]
     bounds = [loader.max_cached] if loader.max_cached is not None else []
     for budget in (budget_bytes, loader.max_cached_bytes):
@@ -88,7 +73,6 @@ def max_images_for(loader: ImageLoader, image_ids, budget_bytes: int | None,
 
 
 def _moved_of(group, keypoints) -> Moved:
-    """The keypoints of ``group``'s images that its walk changed: image -> (idx, xy)."""
     out: Moved = {}
     for i, arr in keypoints.items():
         arr = np.asarray(arr, np.float64)
@@ -99,9 +83,7 @@ def _moved_of(group, keypoints) -> Moved:
 
 
 def _walk_group(loader, group, ncc_config, track_config, affines, on_progress=None):
-    """Walk one group with ``loader``; returns (moved, stats): the walk's counters
-    (:func:`_walk_counters`, those it has) and ``decoded_by_image`` (image id as text -> the
-    images the walk decoded, JSON-ready)."""
+    """Walk one group; returns (moved, stats) with its counters and ``decoded_by_image``."""
     from ..refinement.tracks.walk import walk_tracks
 
     before = Counter(loader.decoded)
@@ -114,8 +96,7 @@ def _walk_group(loader, group, ncc_config, track_config, affines, on_progress=No
 
 
 def _walk_group_task(loader_state: dict, group, ncc_config, track_config, affines):
-    """Worker task: walk one group with this process's loader (created on first use, then
-    kept with its cache, so the next group of the same run finds its shared images)."""
+    """Worker task: walk one group with this process's loader, kept with its cache for the next group."""
     global _WORKER_LOADER
     state = dict(loader_state)
     names, sizes = state.pop("names"), state.pop("expected_sizes")
@@ -129,9 +110,7 @@ def _walk_group_task(loader_state: dict, group, ncc_config, track_config, affine
 
 def _group_args(loader: ImageLoader, group, affines, budget_bytes: int | None
                 ) -> tuple[dict, Mapping | None]:
-    """What a worker needs besides the group: the loader settings (bytes bounded by
-    ``budget_bytes`` when given) with the group's images only, and the affine frames of the
-    group's images."""
+    """What a worker needs besides the group: loader settings for its images and their affine frames."""
     ids = group.image_ids
     state = dict(loader.state(), max_cached_bytes=budget_bytes or loader.max_cached_bytes)
     state["names"] = {i: loader.names[i] for i in ids}
@@ -142,9 +121,7 @@ def _group_args(loader: ImageLoader, group, affines, budget_bytes: int | None
 
 
 def _merge_walk_stats(plan_stats: dict, parts: list[dict]) -> dict:
-    """The plan's stats, the groups' counters summed (``levels``, ``missing_images``: the
-    largest of one group). The groups' stats hold only counters (:func:`_walk_group`), so
-    this process needs no import of the walk."""
+    """The plan's stats with the groups' counters summed (``levels``, ``missing_images``: the largest)."""
     stats = dict(plan_stats)
     keys = dict.fromkeys(k for st in parts for k in st if k != DECODED_BY_IMAGE)
     for key in keys:
@@ -158,8 +135,6 @@ def _merge_walk_stats(plan_stats: dict, parts: list[dict]) -> dict:
 
 
 def _runs(groups: list, n: int) -> list[list[int]]:
-    """``n`` contiguous runs of group indices, balanced by keypoints to refine (empty runs
-    left out)."""
     work = np.cumsum([g.to_refine for g in groups], dtype=np.float64)
     cut = np.searchsorted(work, work[-1] * np.arange(1, n) / n, side="right")
     bounds = [0, *sorted(set(cut.tolist())), len(groups)]
@@ -174,37 +149,9 @@ def walk_groups(loader: ImageLoader, keypoints, pairs, affines, ncc_config, trac
                      check_done: Callable[[int], None] | None = None):
     """The track-consistent NCC walk over groups of whole tracks, on ``runner``.
 
-    Args:
-        loader: the run's image loader (walks in this process use it; workers build their own
-            with its settings, :meth:`ImageLoader.state`).
-        keypoints: image id -> (N, 2) float64 pixels (integer = pixel centre).
-        pairs: (i, j) -> (matches (M, 2), FilterResult with rows 1:1) of the filtered pairs
-            whose images are present.
-        affines: image id -> (N, 2, 2) keypoint affine frames, or None.
-        unrefined: (i, j) -> (M, 2) the other matches that reach the output database (pairs
-            not filtered, failed, or with a missing image): they join tracks, never refine.
-        runner: a :class:`~.executor.Runner` (in this process, a process pool or Dask).
-        progress: a tqdm bar over the keypoints to refine.
-        image_budget_bytes: decoded image bytes one walking process may hold; sets the
-            images of a group (:func:`max_images_for`; None: ``tracks.max_images_in_memory``).
-            Workers' loaders keep at most this many bytes (or the run loader's bound). Groups
-            (and so ``done``'s indices) depend on the inputs and on this budget only; groups
-            hold at most :func:`group_max_matches`
-            refinable matches (20,000).
-        done: group index -> (moved, stats) of groups finished by an earlier run of the same
-            inputs (resume): not walked again, their moved keypoints applied.
-        on_group: called in this process as each group finishes, with (group index, moved,
-            stats); moved = image id -> (keypoint indices (K,) int64, positions (K, 2)
-            float64) of the keypoints the group changed.
-        check_done: called with the plan's group count before ``done`` is used (the caller's
-            own check that its resumed groups are groups of the plan, e.g. naming their files).
-
-    Returns:
-        (new keypoints dict, stats, processes used). Stats hold the plan's, the walk
-        counters summed over groups (``images_loaded`` and ``image_decodes`` too: an image
-        counts once per group that read / decoded it; the decodes of the loader's
-        ``check_all`` are not in them), ``groups``, ``groups_resumed``, ``group_max_images``.
-    """
+    ``pairs``: (i, j) -> (matches ``(M, 2)``, FilterResult); ``unrefined``: other output matches
+    (join tracks, never refine); ``done``: groups finished by an earlier run; ``on_group`` is called
+    as each group finishes. Returns (new keypoints, stats, processes used)."""
     build_track_plan, local_affine_of = _import_plan()
     plan = build_track_plan(keypoints, {k: m for k, (m, _) in pairs.items()},
                             {k: r for k, (_, r) in pairs.items()}, unrefined_matches=unrefined,
@@ -265,10 +212,8 @@ def walk_groups(loader: ImageLoader, keypoints, pairs, affines, ncc_config, trac
 
 
 class _LocalPairs:
-    """``attach(g)``: group ``g`` with its local affine pairs; a pair's are fitted when the
-    first group that uses it is attached and forgotten once the last one is.
-    ``attach.inputs(g)``: group ``g`` with what it needs to fit its own (in the worker that
-    walks it, so that this process does not fit them while the workers wait; the same bits)."""
+    """``attach(g)``: group ``g`` with its local affine pairs, fitted at first use and forgotten
+    after the last; ``attach.inputs(g)`` lets the worker fit them instead (the same bits)."""
 
     def __init__(self, plan, groups: list, skip) -> None:
         self.plan, self.groups = plan, groups
@@ -291,17 +236,9 @@ class _LocalPairs:
 
 
 def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> None:
-    """Walk the ``todo`` groups on the runner: ``use`` contiguous runs, one group of each run
-    in flight at a time (the worker that finished a group is the idle one, so it usually gets
-    the next group of its run and finds the shared images in its cache). ``args``: (NCC
-    config, track config, affines, image budget).
-
-    A run's next group is handed out as soon as its last one returns, before that one's
-    results are applied and stored, with its task arguments made while the workers walked
-    (so a worker waits for neither). A slot whose run is done takes the last group not yet
-    handed out of the run with the most keypoints left (the runs are balanced by keypoints,
-    which do not measure a group's time well: without this a slot idles while another walks
-    the rest of its run). Where a group is walked does not change its result."""
+    """Walk the ``todo`` groups: ``use`` contiguous runs, one group of each in flight, the next
+    handed out as soon as the last returns; an idle slot takes the last group of the run with the
+    most keypoints left. Where a group is walked does not change its result."""
     ncc_config, track_config, affines, budget = args
     runs = [[todo[k] for k in r] for r in _runs([groups[g] for g in todo], use)]
     pending: dict[Future, tuple[int, int]] = {}
@@ -351,8 +288,7 @@ def _dispatch(runner, loader, groups, todo, use, attach, args, finish, bar) -> N
 
 @contextlib.contextmanager
 def _torch_threads(n: int | None):
-    """Run a block with ``n`` torch intra-op threads, then restore the caller's setting (the
-    walk's many small operations run faster on one thread: see :mod:`.workers`)."""
+    """Run a block with ``n`` torch intra-op threads, then restore the caller's setting."""
     if n is None:
         yield
         return

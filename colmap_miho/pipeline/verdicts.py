@@ -1,15 +1,5 @@
-"""The checks' verdicts, and the matches that reach the output database once they are applied.
-
-Both checks (:mod:`.pair_check`, :mod:`.match_check`) return one :class:`Verdicts`; the run
-merges them (:meth:`Verdicts.merge`) and the later stages apply the result with its one method
-(:meth:`Verdicts.apply`): the refine stage to the stored pairs it walks, the write stage to each
-stored chunk it writes.
-
-A pair's output matches (:func:`output_matches`) are the kept matches of its stored filter
-outcome when it was filtered (the failed matches taken out), else the database's matches (a pair
-too small to filter, or in which no plane was found), less the matches the match check
-failed in it. Pairs removed whole reach the output without matches.
-"""
+"""The checks' verdicts (:class:`Verdicts`, merged from both checks) and the matches that reach the
+output database once they are applied."""
 
 from __future__ import annotations
 
@@ -26,21 +16,9 @@ from .records import FilteredPairs, PairOutcome
 
 @dataclass(frozen=True, kw_only=True)
 class Verdicts:
-    """What the checks decided about the pairs that reach the output.
-
-    Attributes:
-        removed: pairs removed whole (the pair check's and the match check's wrong pairs):
-            they join no track and are written without matches or two-view geometry, whether
-            they were filtered or not.
-        failed: pair -> bool ``(K,)``: the matches the match check removed from a kept pair,
-            over its kept matches (in the order of its ``inliers``' set rows) for a filtered
-            pair, over the database's matches for a pair written back otherwise unchanged (too
-            small to filter, or no plane found).
-        refit: pairs the match check judged: their fundamental matrix is fitted again to the
-            survivors when written (COLMAP's was fitted to the wrong matches too).
-        restored: filtered pair -> int64 rows of its stored matches that the filter removed
-            and the match check gave back (kept again, without a homography).
-    """
+    """What the checks decided: pairs ``removed`` whole, ``failed`` matches per kept pair (bool
+    ``(K,)``), pairs to ``refit`` (their fundamental matrix fitted again to the survivors) and the
+    filter's removals ``restored`` (filtered pair -> rows of its stored matches)."""
 
     removed: frozenset[Pair] = frozenset()
     failed: Mapping[Pair, np.ndarray] = field(default_factory=dict)
@@ -48,16 +26,12 @@ class Verdicts:
     restored: Mapping[Pair, np.ndarray] = field(default_factory=dict)
 
     def merge(self, other: Verdicts) -> Verdicts:
-        """Both verdicts: the union of the removed and the refitted pairs, and of the failed
-        and the restored matches (``other``'s where both judged a pair)."""
+        """The union of both verdicts (``other``'s failed and restored matches where both judged a pair)."""
         return Verdicts(removed=self.removed | other.removed, failed={**self.failed, **other.failed},
                         refit=self.refit | other.refit, restored={**self.restored, **other.restored})
 
     def apply(self, pairs: FilteredPairs) -> FilteredPairs:
-        """``pairs`` (stored filter outcomes, in their order) without the removed pairs, with
-        the failed matches taken out of each pair's kept matches (their ``inliers`` cleared,
-        labels -1) and the restored ones put back (``inliers`` set, labels -1: no
-        homography); other pairs unchanged."""
+        """``pairs`` without the removed ones, failed matches cleared and restored ones set (labels -1)."""
         out = {k: v for k, v in pairs.items() if k not in self.removed} if self.removed else dict(pairs)
         for key, (m, r) in out.items():
             f = self.failed.get(key)
@@ -82,10 +56,7 @@ NO_VERDICTS = Verdicts()
 
 def output_matches(db: ColmapDatabase, kept: FilteredPairs, source: MatchSource,
                    verdicts: Verdicts = NO_VERDICTS) -> dict[Pair, np.ndarray]:
-    """Every pair's output matches ``(M, 2)`` in the database's pair order: the kept matches of
-    the stored pairs ``kept`` (``verdicts`` already applied), the database's for the pairs not
-    in it (less the matches ``verdicts`` failed); the pairs ``verdicts`` removed left out, empty
-    pairs kept."""
+    """Every pair's output matches ``(M, 2)`` in database order (removed pairs left out, empty ones kept)."""
     out = {}
     for p in db.pairs(source):
         key = (p.image_id1, p.image_id2)
@@ -100,8 +71,7 @@ def output_matches(db: ColmapDatabase, kept: FilteredPairs, source: MatchSource,
 
 
 def unfiltered_matches(db: ColmapDatabase, pair: Pair, source: MatchSource, verdicts: Verdicts) -> np.ndarray:
-    """The output matches ``(M, 2)`` of a pair the filter did not keep (too small, or no plane
-    found): the database's, less those ``verdicts`` failed."""
+    """A pair the filter did not keep: the database's matches less those ``verdicts`` failed."""
     m = db.matches(pair[0], pair[1], source)
     f = verdicts.failed.get(pair)
     return m if f is None else m[~f]
@@ -109,7 +79,6 @@ def unfiltered_matches(db: ColmapDatabase, pair: Pair, source: MatchSource, verd
 
 def pair_graph(db: ColmapDatabase, filtered: FilteredPairs, source: MatchSource,
                verdicts: Verdicts = NO_VERDICTS) -> dict[Pair, np.ndarray]:
-    """The checks' pair graph: the output matches of the stored pairs ``filtered`` once
-    ``verdicts`` are applied, as int64, pairs without matches left out."""
+    """The checks' pair graph: output matches of ``filtered`` with ``verdicts`` applied, int64, non-empty."""
     return {k: np.asarray(v, np.int64) for k, v in output_matches(db, verdicts.apply(filtered), source,
                                                                    verdicts).items() if len(v)}

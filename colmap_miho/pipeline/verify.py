@@ -1,6 +1,4 @@
-"""Verify stage: COLMAP's own epipolar verification of the pairs that have matches and no
-two-view geometry (the write stage deleted those of the filtered pairs when ``pipeline.verify``
-is on)."""
+"""Verify stage: COLMAP's own geometric verification of the pairs left without a two-view geometry."""
 
 from __future__ import annotations
 

@@ -1,22 +1,6 @@
-"""Worker processes of the pipeline: a process pool with one BLAS/torch thread per process,
-and per-pair seeds that do not depend on the worker count or order.
-
-Workers are forked from a ``forkserver`` (where the platform has one; ``spawn`` elsewhere) that
-has imported numpy, torch and the pipeline once, and loaded the compiled kernels the cache
-holds (:data:`PRELOAD`): a spawned worker would import torch itself, seconds of CPU paid again
-by every worker of every run.
-:func:`start_forkserver` starts the server early, so that its imports overlap the parent's own
-work. Forking from the server is safe: it is single-threaded and has never run torch work.
-
-Workers die with their parent: each runs a watchdog thread that ends the worker as soon as
-its parent process is gone (a SIGKILL of the parent must not leave orphans running), and a
-pool left by an exception (a failed pair, Ctrl-C, SIGTERM) kills its workers
-instead of waiting for their current task.
-
-One torch thread per process: the NCC walk is many small tensor operations, where intra-op
-threads cost more than they give, and threads over track chunks would share the GIL, hence
-processes (the measurements are in ``docs/results.md``).
-"""
+"""Worker processes: a pool forked from a forkserver that imported torch and the kernels once, one
+BLAS/torch thread each (the walk's small tensor operations gain nothing from more), dying with their
+parent; and per-pair seeds independent of the worker count."""
 
 from __future__ import annotations
 
@@ -68,10 +52,8 @@ def init_worker() -> None:
 
 
 def _pid_alive(pid: int) -> bool:
-    """Whether ``pid`` is a live process of ours (another user's: the pid was reused). A zombie
-    is not: a parent killed by SIGKILL (the OOM killer) stays one until whoever started it
-    reaps it, and a script that reads its output reaps it only once the pipes close, which the
-    workers, holding them, never did: both waited for ever."""
+    """Whether ``pid`` is a live process of ours; a zombie is not (a SIGKILLed parent stays one
+    until reaped, and workers waiting on it would wait for ever)."""
     try:
         os.kill(pid, 0)
     except OSError:
@@ -93,9 +75,7 @@ def _watch_parent(parent_pid: int, ppid: int) -> None:
 
 
 def start_parent_watchdog(parent_pid: int) -> None:
-    """In a worker: a daemon thread that ends this process once the process ``parent_pid``
-    that made the pool is gone (even by SIGKILL), or this worker was re-parented (its
-    forkserver died). Exits at once if the pool's process is already gone."""
+    """In a worker: a daemon thread that ends this process once ``parent_pid`` is gone or it was re-parented."""
     ppid = os.getppid()
     if ppid != parent_pid and not _pid_alive(parent_pid):
         os._exit(1)
@@ -126,15 +106,9 @@ def single_thread_children():
 
 @contextlib.contextmanager
 def sigint_for_this_process_only():
-    """Processes started inside the block never receive SIGINT or SIGHUP: Ctrl-C in a terminal
-    (and closing it) sends it to every process of the foreground group, and a worker (or the
-    forkserver, while it imports torch) would print its own KeyboardInterrupt traceback (or
-    die, SIGHUP, leaving the pool broken). SIGINT is blocked in
-    this thread meanwhile; the mask is inherited by the processes started (across exec
-    too) and by their children, while this process gets a SIGINT that arrived meanwhile
-    when the block ends (the CLI's one line, exit 130). The workers are killed by their
-    pool (:func:`process_pool`) or their cluster when the run ends. A no-op outside the
-    main thread."""
+    """Processes started inside the block never receive SIGINT or SIGHUP (a terminal's Ctrl-C
+    reaches the whole foreground group; workers would print tracebacks or die). This process gets a
+    SIGINT that arrived meanwhile when the block ends. A no-op outside the main thread."""
     if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
         yield
         return
@@ -161,8 +135,7 @@ _FORKSERVER_FAILED: list[str] = []  # why the forkserver could not start (then: 
 
 
 def _context():
-    """The forkserver context where the platform has one (Linux, macOS) and it could be
-    started, else spawn."""
+    """The forkserver context where there is one and it starts, else spawn."""
     if "forkserver" in multiprocessing.get_all_start_methods() and not _FORKSERVER_FAILED:
         return multiprocessing.get_context("forkserver")
     return multiprocessing.get_context("spawn")
@@ -177,11 +150,8 @@ MAX_SOCKET_PATH = 107
 
 
 def private_multiprocessing_tempdir() -> None:
-    """Give multiprocessing (the forkserver's socket) a :func:`~colmap_miho.adapters.staged_write.private_tempdir`
-    for the life of this process instead of its own ``pymp-*`` folder: removed at exit as
-    ``pymp-*`` is, and also by the next run after a ``kill -9`` (a ``pymp-*`` folder is then
-    left for ever: nothing tells whose it is). A no-op when multiprocessing has its folder
-    already."""
+    """Give multiprocessing a :func:`~colmap_miho.adapters.staged_write.private_tempdir` instead of
+    its ``pymp-*`` folder, so a ``kill -9`` leaves nothing behind."""
     import multiprocessing.process
     import multiprocessing.util
 
@@ -215,10 +185,8 @@ def _close_mp_tempdir() -> None:
 
 
 def start_forkserver() -> None:
-    """Start the forkserver now (no-op where there is none, or when it runs already), with
-    :data:`PRELOAD` imported and single-threaded BLAS / OpenMP in its environment: its
-    imports then run beside this process's work instead of in each new worker. If it cannot
-    start (e.g. no writable temporary folder for its socket), pools use spawn."""
+    """Start the forkserver now with :data:`PRELOAD` imported, so its imports overlap this process's
+    work; pools use spawn if it cannot start."""
     ctx = _context()
     if ctx.get_start_method() != "forkserver":
         return
@@ -236,9 +204,7 @@ def start_forkserver() -> None:
 
 @contextlib.contextmanager
 def process_pool(workers: int, *, initializer=None, initargs: tuple = (), **kwargs):
-    """A process pool (forked by the forkserver, see the module docstring) whose workers die
-    with this process (see :func:`start_parent_watchdog`) and are killed, their queued work
-    cancelled, when the block raises (a failed worker, Ctrl-C, SIGTERM)."""
+    """A process pool whose workers die with this process and are killed, queue cancelled, when the block raises."""
     start_forkserver()
     with ProcessPoolExecutor(max_workers=workers, mp_context=_context(),
                              initializer=_worker_start, initargs=(os.getpid(), initializer, tuple(initargs)),
@@ -255,13 +221,7 @@ def process_pool(workers: int, *, initializer=None, initargs: tuple = (), **kwar
 
 
 def check_not_bootstrapping() -> None:
-    """Refuse to start a run inside a worker process that is still importing the main
-    script of its parent (a script that calls colmap_miho without an ``if __name__ ==
-    "__main__":`` guard): the run would start its own working copy and workers there.
-
-    Raises:
-        RunFailed: this process is such a worker (its parent then reports the dead worker).
-    """
+    """Refuse a run inside a worker still importing its parent's main script (no ``__main__`` guard); RunFailed."""
     if getattr(multiprocessing.current_process(), "_inheriting", False):
         raise RunFailed("colmap_miho was called while a worker process imported the main script: "
                         "put the call under 'if __name__ == \"__main__\":'")

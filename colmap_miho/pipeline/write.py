@@ -1,6 +1,5 @@
-"""Write stage: moved keypoints, the kept matches and their two-view geometries, in one
-transaction on the working copy, the pairs chunk by chunk as the run store gives them back
-(COLMAP's +0.5 pixel conversion happens in the database adapter)."""
+"""Write stage: moved keypoints, kept matches and their two-view geometries in one transaction on
+the working copy, chunk by chunk from the run store."""
 
 from __future__ import annotations
 
@@ -19,9 +18,7 @@ from .verdicts import NO_VERDICTS, Verdicts, unfiltered_matches
 
 @dataclass(frozen=True, kw_only=True)
 class WriteStats:
-    """Keypoints moved by refinement and their displacements in pixels (``RefineSummary``
-    fields of the same names; 0 when nothing moved), and the matches the output holds over
-    every pair of the source, after both checks' removals (``matches_kept``)."""
+    """Keypoints moved and their displacements (px), and the matches the output holds (``RefineSummary`` fields)."""
 
     keypoints_moved: int
     median_displacement_px: float
@@ -31,20 +28,9 @@ class WriteStats:
 
 def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoints: dict[int, np.ndarray],
               chunks: Iterable[FilteredPairs], cfg: PipelineConfig, verdicts: Verdicts = NO_VERDICTS) -> WriteStats:
-    """Write what changed, in one transaction.
-
-    Args:
-        keypoints / new_keypoints: image id -> ``(N_i, 2)`` float64 pixels before / after
-            refinement; only rows that differ are written.
-        chunks: the successfully filtered pairs, one chunk at a time (only one is held at
-            once), as stored: with ``verdicts`` applied, their inlier matches replace the
-            pair's matches.
-        cfg: ``source`` (a verified pair keeps its geometry model) and ``verify`` (the pairs'
-            two-view geometries are deleted, for COLMAP to re-verify).
-        verdicts: the checks' :class:`~.verdicts.Verdicts`: removed pairs are written without
-            matches and two-view geometry, refitted ones get a new fundamental matrix; a pair
-            not filtered that the match check removed matches from is written without them.
-    """
+    """Write what changed in one transaction: keypoint rows that differ, and each stored pair's kept
+    matches with ``verdicts`` applied (``cfg.verify`` deletes geometries for COLMAP to verify
+    again)."""
     from ..adapters.safety import check_free_space
 
     # the transaction's write-ahead log grows up to the rewritten pages; pycolmap aborts the
@@ -90,7 +76,6 @@ def run_write(db: ColmapDatabase, keypoints: dict[int, np.ndarray], new_keypoint
 
 def write_pair(db: ColmapDatabase, i: int, j: int, kept: np.ndarray, pts1: np.ndarray,
                pts2: np.ndarray, *, keep_model: bool) -> None:
-    """Write one pair's kept matches ``(M, 2)`` and positions ``(M, 2)`` pixels (called once
-    per pair inside the write transaction; tests wrap it to interrupt a run mid-write)."""
+    """Write one pair's kept matches and positions (tests wrap it to interrupt a run mid-write)."""
     db.write_pair(i, j, kept, pts1, pts2, keep_model=keep_model)
 

@@ -1,24 +1,10 @@
 """Pairwise NCC keypoint refinement on homography-rectified patches (paper Sec. 3.3, App. E).
 
-``refine_pair`` refines N matches at once. For each match and each allowed direction the
-template (radius r) is taken around the *fixed* keypoint and searched (radius s) around the
-*moving* keypoint, both resampled into the common frame of the match's patch homography pair
-``(A, B)`` (``A x1 ~ B x2``); :mod:`.ncc.search` does this for a whole chunk of matches at once
-(search window sampled once per match and pass, only templates re-warped per shape, NCC maps
-by grouped convolution). This module picks the direction per match, rejects doubtful moves,
-refines the accepted ones to sub-pixel accuracy (:mod:`.ncc.subpixel`, on those matches only) and
-maps them back: ``x_moving' = H_moving^-1 (H_moving x_moving + t)``.
-
-Differences from the reference implementation (all configurable, see ``NCCConfig``):
-- perturbations act on the template only and the window is sampled once per match; the
-  reference, too, perturbs only the template, but re-samples the (unperturbed) window for
-  every shape;
-- a move is rejected when its peak lies on the border of the search window (or is held back
-  by the NCC* mask); the reference never rejects; so is a move whose peak NCC is below
-  ``min_ncc``;
-- flat templates (``min_template_std``) are never moved;
-- matches whose template or search window leaves the image are not refined.
-"""
+A template around the fixed keypoint is searched around the moving one, both resampled into the
+common frame of the match's patch homography pair ``(A, B)`` (``A x1 ~ B x2``); the move maps back
+as ``x' = H^-1 (H x + t)``. Unlike the reference: the window is sampled once per match; moves with a
+peak on the window's border or below ``min_ncc`` are rejected; flat templates and patches leaving
+the image are not moved."""
 
 from __future__ import annotations
 
@@ -51,26 +37,16 @@ ArrayInput = np.ndarray | torch.Tensor
 
 @dataclass(frozen=True)
 class RefineResult:
-    """Output of :func:`refine_pair` (N = number of matches).
+    """Output of :func:`refine_pair` (N matches).
 
     Attributes:
-        pts1, pts2: (N, 2) float64 refined pixel coordinates (integer = pixel centre); at most
-            one of the two differs from the input per match.
-        ncc_before: (N,) float64 NCC in [-1, 1] at zero offset (best shape) of the chosen
-            direction; NaN where the match was not evaluated.
-        ncc_after: (N,) float64 NCC of the applied move (= ncc_before where nothing moved).
-        moved_side: (N,) int8, 0 none, 1 or 2.
-        displacement: (N,) float64 pixels the moved keypoint travelled (0 where none).
-        rejected: (N,) bool, a move was found but not applied (border or too weak a peak).
-        ncc_second: (N,) float64 NCC of the best separated peak of the applied move's map
-            (:func:`.ncc.correlation.find_peaks`' ``second``), NaN where nothing moved; how
-            distinct the peak taken is. None from refiners that do not report it.
-        stats: counters (``n``, ``moved``, ``rejected_border``,
-            ``rejected_weak`` (peak below ``min_ncc``), ``gated_flat``, ``outside``,
-            ``invalid_homography``,
-            ``seconds``, ``device``, ``shapes``; with ``config.lsm``, the counters of
-            :data:`~.lsm.step.LSM_COUNTERS`: ``lsm_applied``, ``lsm_not_converged``,
-            ``lsm_far``, ``lsm_imprecise``).
+        pts1, pts2: ``(N, 2)`` float64 refined pixels; at most one side differs per match.
+        ncc_before, ncc_after: ``(N,)`` NCC at zero offset and of the applied move (NaN: not evaluated).
+        moved_side: ``(N,)`` int8, 0 none, 1 or 2.
+        displacement: ``(N,)`` pixels the moved keypoint travelled.
+        rejected: ``(N,)`` bool, a move was found but not applied.
+        ncc_second: ``(N,)`` NCC of the best separated peak (how distinct the peak is), or None.
+        stats: counters and ``seconds``.
     """
 
     pts1: np.ndarray
@@ -85,9 +61,7 @@ class RefineResult:
 
 
 def resolve_device(config: NCCConfig, *inputs: object) -> torch.device:
-    """The torch device ``config.device`` means for ``inputs``: "auto" keeps the device of
-    the first image stack (built by the caller on the device it chose) or CUDA tensor among
-    them (:func:`colmap_miho.devices.resolve_device`)."""
+    """The torch device ``config.device`` means; "auto" keeps the device of the first stack or CUDA tensor."""
     inputs_on = None
     for t in inputs:
         if isinstance(t, ImageStack) or (isinstance(t, torch.Tensor) and t.is_cuda):
@@ -98,9 +72,6 @@ def resolve_device(config: NCCConfig, *inputs: object) -> torch.device:
 
 @dataclass
 class _Outputs:
-    """The arrays :func:`refine_pair` fills in (N rows, see :class:`RefineResult`) and its
-    counters."""
-
     pts: tuple[np.ndarray, np.ndarray]
     before: np.ndarray
     after: np.ndarray
@@ -128,8 +99,6 @@ class _Outputs:
 
 @dataclass(frozen=True)
 class _Offsets:
-    """Sample offsets of one :func:`refine_pair` call, on its device."""
-
     shapes: torch.Tensor  # (K, 2, 2) template shapes M
     grid_t: torch.Tensor  # (P, 2) template pixels, radius r
     tpl: torch.Tensor  # (K, P, 2) M w
@@ -163,34 +132,18 @@ def refine_pair(
     """Refine N matches by NCC template matching on rectified patches.
 
     Args:
-        image1, image2: grayscale images (H, W), numpy or torch, uint8 (scaled to [0, 1]) or
-            float (intensities nominally in [0, 1]); or :class:`~.warping.ImageStack` objects
-            with one image per match (several image pairs in one call).
-        pts1, pts2: (N, 2) pixel coordinates (x, y), integer = pixel centre.
-        patch_homographies: (N, 2, 3, 3) one pair (A, B) per match mapping image 1 and image 2
-            into a common frame, ``A x1 ~ B x2`` (e.g. (I, H_2from1^-1) for MOP, the two
-            middle homographies for MiHo); or (N, P, 2, 3, 3) P candidate pairs per match
-            (the first with the template shapes of ``perturbations``, the others
-            unperturbed; the best NCC peak over all of them wins).
-        move: "1" or "2" (only that side may move, the other gives the template) or "auto"
-            (both directions are tried, the one with the higher NCC peak moves: the paper's
-            behaviour); ``None`` uses ``config.move``.
-        config: :class:`NCCConfig`; None: the paper's pairwise values (:meth:`NCCConfig.pairwise`).
-        affine1, affine2: optional (N, 2, 2) keypoint affine frames (columns = local axes in
-            pixels) for the base pass; identity when omitted.
-        progress: show a tqdm bar over chunks.
+        image1, image2: gray ``(H, W)`` numpy or torch, uint8 or float in [0, 1]; or
+          :class:`~.warping.ImageStack` with one image per match.
+        pts1, pts2: ``(N, 2)`` pixels (x, y), integer = pixel centre.
+        patch_homographies: ``(N, 2, 3, 3)`` pairs ``(A, B)`` with ``A x1 ~ B x2``, or
+          ``(N, P, 2, 3, 3)`` candidates (the best peak wins).
+        move: "1", "2" or "auto" (the side with the higher peak moves); None uses ``config.move``.
+        config: :class:`NCCConfig`; None: the paper's pairwise values.
+        affine1, affine2: optional ``(N, 2, 2)`` keypoint affine frames for the base pass.
 
-    Returns:
-        :class:`RefineResult`. A match that cannot be refined (patch outside the image,
-        singular homography, flat template) is returned unchanged and counted in ``stats``.
-        On the CPU each match's outputs are bitwise the same whatever the other matches of
-        the call (how many, their order, their images in an ImageStack), ``batch_size`` and
-        torch's thread count (tests/refinement/test_ncc_batch_invariance.py); on CUDA they
-        agree to float32 rounding.
-
-    Raises:
-        ValueError: on malformed inputs (shapes, dtypes, device).
-    """
+    Returns a :class:`RefineResult`; matches that cannot be refined come back unchanged. On the CPU
+    a match's outputs do not depend on the other matches or the batch size. ValueError on malformed
+    input."""
     t0 = time.perf_counter()
     if config is not None and not isinstance(config, NCCConfig):
         raise InvalidInput(f"config must be an NCCConfig, got {type(config).__name__}")
@@ -261,11 +214,8 @@ Direction = tuple[int, int, dict[str, torch.Tensor]]
 def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], direction: tuple[int, int],
               r: dict[str, torch.Tensor], rows: tuple[torch.Tensor, np.ndarray], cfg: NCCConfig,
               out: _Outputs) -> tuple[torch.Tensor, np.ndarray]:
-    """Sub-pixel offsets (J, 2) of the accepted moves of ``direction`` (fixed ``f``, moving
-    ``m``), ``rows`` = (their rows in the chunk, their match indices): least-squares matching
-    from the NCC peak's parabola where ``cfg.lsm`` is on and it passes its tests, the iterated
-    parabolas elsewhere (all of them without LSM); and (J,) bool, the moves to apply (all but
-    those LSM did not accept, with ``cfg.lsm_only``)."""
+    """Sub-pixel offsets ``(J, 2)`` of a direction's accepted moves (LSM where on and accepted,
+    iterated parabolas elsewhere) and ``(J,)`` the moves to apply."""
     (f, m), (sel, _) = direction, rows
     H_inv, frame, off = r["H_inv"][sel], r["frame_m"][sel], r["offset"][sel]
     img_m = job_images(img[m], sel)
@@ -288,9 +238,7 @@ def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], 
 
 def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack],
             sl: slice, cfg: NCCConfig, out: _Outputs) -> None:
-    """Choose the direction per match, reject or accept its move, and refine the accepted
-    moves to sub-pixel accuracy (only those: the losing direction needs no sub-pixel step).
-    Writes into ``out``."""
+    """Choose each match's direction, accept or reject its move, and refine accepted ones to sub-pixel."""
     cand = []
     for f, m, r in res:
         host = {k: r[k].cpu().numpy() for k in
@@ -364,8 +312,7 @@ def _as_array(name: str, value: object, shape_tail: tuple[int, ...], n: int | No
 
 
 def normalise_signs(homs: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
-    """Homographies are defined up to scale, sign included: flip each A (B) so that the
-    homogeneous w of A x1 (B x2) is positive, as the patch sampling expects."""
+    """Flip each A (B) so that w of A x1 (B x2) is positive, as the patch sampling expects."""
     homs = homs.copy()
     for side, p in ((0, p1), (1, p2)):
         w = np.einsum("nj,nj->n", homs[:, side, 2, :2], p) + homs[:, side, 2, 2]
@@ -374,8 +321,7 @@ def normalise_signs(homs: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndar
 
 
 def base_pairs(n: int, affine1: np.ndarray | None, affine2: np.ndarray | None) -> np.ndarray:
-    """(N, 2, 3, 3) base pair: identity, or the inverse keypoint affine frames scaled to keep
-    about one common-frame pixel per image pixel."""
+    """``(N, 2, 3, 3)`` base pair: identity, or inverse affine frames scaled to ~1 frame px per image px."""
     base = np.tile(np.eye(3), (n, 2, 1, 1))
     if affine1 is None or affine2 is None:
         return base

@@ -1,17 +1,6 @@
-"""Batched homography patch sampling with torch (bilinear, pixel centres at integers).
-
-All coordinates are (x, y) pixels with integer = pixel centre (OpenCV / kornia convention).
-A patch homography ``H`` maps image pixels into a common (rectified) frame: ``c ~ H x``.
-Sampling a patch around a common-frame centre ``c`` reads the image at ``H^-1 (c + w)`` for the
-offsets ``w`` of a square grid, with ``torch.nn.functional.grid_sample`` (bilinear,
-``align_corners=True``, which puts pixel centres at integers).
-
-On the CPU a job's samples are bitwise independent of the other jobs of the call (how many,
-in which order, which images are stacked with its own): the track walk groups matches
-differently with the chunking and must give the same result. So no GEMM and no reduction
-runs across jobs here: small matrix products are written out elementwise, and each job is
-sampled in the grid coordinates of its own image.
-"""
+"""Batched homography patch sampling with torch (bilinear, pixel centres at integers): a patch
+around common-frame ``c`` reads the image at ``H^-1 (c + w)``. On the CPU a job's samples never
+depend on the other jobs of the call, so nothing runs across jobs (no GEMM, no reduction)."""
 
 from __future__ import annotations
 
@@ -46,13 +35,7 @@ def to_gray_tensor(image: np.ndarray | torch.Tensor, device: torch.device) -> to
 def to_gray_tensor(
     image: np.ndarray | torch.Tensor | ImageStack, device: torch.device
 ) -> torch.Tensor | ImageStack:
-    """Image as a float32 tensor (H, W) on ``device`` (an :class:`ImageStack` is returned
-    as is).
-
-    Args:
-        image: numpy array or tensor (H, W), uint8 (divided by 255) or float (used as is,
-            intensities nominally in [0, 1]).
-    """
+    """Image as a float32 ``(H, W)`` tensor on ``device``; uint8 is divided by 255, float used as is."""
     if isinstance(image, ImageStack):
         return image
     if isinstance(image, torch.Tensor):
@@ -77,18 +60,8 @@ def to_gray_tensor(
 
 @dataclass(frozen=True)
 class ImageStack:
-    """Several images for one batch of jobs: job j reads image ``index[j]`` of ``images``.
-
-    Lets one batched call serve matches of many image pairs (the track walk on a GPU, where
-    a call costs little more for many matches than for few). The images keep their own
-    sizes (no padded copy); a job reads its own image only (samples outside it read zero,
-    as for that image alone), so its values do not depend on the other images.
-
-    Attributes:
-        images: D (H_d, W_d) float32 tensors, on one device.
-        slot_sizes: (D, 2) float64 (width, height) of each image.
-        index: (J,) int64 image of each job.
-    """
+    """Several images for one batch of jobs, job j reading image ``index[j]`` only (no padded copy),
+    so one batched call serves many pairs."""
 
     images: tuple
     slot_sizes: torch.Tensor
@@ -96,8 +69,7 @@ class ImageStack:
 
     @classmethod
     def build(cls, images: list[torch.Tensor], index: IndexLike, device: torch.device) -> ImageStack:
-        """Hold (H, W) float32 tensors (moved to ``device``, not copied when already
-        there); ``index`` (J,) picks each job's image."""
+        """Hold ``(H, W)`` float32 tensors on ``device``; ``index`` ``(J,)`` picks each job's image."""
         if not images:
             raise ValueError("an ImageStack needs at least one image")
         ims = tuple(im.to(device) for im in images)
@@ -126,15 +98,12 @@ class ImageStack:
 
 def job_images(image: torch.Tensor | ImageStack, rows: slice | torch.Tensor
                ) -> torch.Tensor | ImageStack:
-    """The images of the jobs ``rows`` (slice or index tensor): the stack's rows, or a plain
-    image, which serves every job."""
+    """The images of the jobs ``rows``: the stack's rows, or a plain image that serves every job."""
     return image.rows(rows) if isinstance(image, ImageStack) else image
 
 
 def image_arrays(image: torch.Tensor | ImageStack, n: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """For the compiled CPU kernels: the images as float32 numpy views (no copy of a
-    contiguous CPU tensor) and each of the n jobs' index into them (int64; all 0 for a plain
-    image)."""
+    """The images as float32 numpy views and each job's index into them, for the compiled kernels."""
     if isinstance(image, ImageStack):
         return ([im.contiguous().numpy() for im in image.images],
                 image.index.cpu().numpy().astype(np.int64))
@@ -142,22 +111,14 @@ def image_arrays(image: torch.Tensor | ImageStack, n: int) -> tuple[list[np.ndar
 
 
 def offset_grid(radius: int, device: torch.device, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-    """Integer offsets of a (2r+1) x (2r+1) square, (P, 2) as (x, y), row-major (y outer),
-    so that a tensor (..., P) reshapes to (..., 2r+1, 2r+1) indexed [y, x]."""
+    """Integer offsets ``(P, 2)`` (x, y) of a (2r+1)^2 square, row-major, so ``(..., P)`` reshapes to ``[y, x]``."""
     r = torch.arange(-radius, radius + 1, device=device, dtype=dtype)
     yy, xx = torch.meshgrid(r, r, indexing="ij")
     return torch.stack([xx.reshape(-1), yy.reshape(-1)], dim=-1)
 
 
 def invert_homographies(H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched 3x3 inverse by the adjugate.
-
-    Args:
-        H: (..., 3, 3) float64.
-    Returns:
-        (H_inv (..., 3, 3), valid (...) bool); singular or non-finite matrices get the
-        identity as inverse and ``valid=False``.
-    """
+    """Batched 3x3 inverse by the adjugate: ``(H_inv, valid)``; singular or non-finite get the identity."""
     a, b, c = H[..., 0, 0], H[..., 0, 1], H[..., 0, 2]
     d, e, f = H[..., 1, 0], H[..., 1, 1], H[..., 1, 2]
     g, h, i = H[..., 2, 0], H[..., 2, 1], H[..., 2, 2]
@@ -181,15 +142,7 @@ def invert_homographies(H: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def project(H: torch.Tensor, x: torch.Tensor, y: torch.Tensor
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Homogeneous image ``H [x; y; 1]`` of points, by elementwise products (no matmul, whose
-    rounding may depend on the batch size: a point's result must not depend on the others).
-
-    Args:
-        H: (J, 3, 3).
-        x, y: (J,) or (J, Q) coordinates, row j mapped by ``H[j]``.
-    Returns:
-        (X, Y, W) shaped like ``x``, each ``(H[r, 0] x + H[r, 1] y) + H[r, 2]``.
-    """
+    """Homogeneous ``H [x; y; 1]`` by elementwise products (a matmul rounds differently with batch size)."""
     shape = (H.shape[0], 3) + (1,) * (x.ndim - 1)  # (J, 3, 1, ...) against (J, 1, ...)
     h0, h1, h2 = (H[..., c].reshape(shape) for c in range(3))
     xyw = h0 * x[:, None] + h1 * y[:, None] + h2
@@ -197,15 +150,8 @@ def project(H: torch.Tensor, x: torch.Tensor, y: torch.Tensor
 
 
 def apply_homographies(H: torch.Tensor, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Map points by per-batch homographies.
-
-    Args:
-        H: (J, 3, 3) float64.
-        pts: (J, P, 2) float64 (x, y).
-    Returns:
-        (mapped (J, P, 2), ok (J, P) bool); points that land at or behind the line at
-        infinity get ``ok=False`` and a far-away coordinate.
-    """
+    """Map ``pts`` ``(J, P, 2)`` by ``H`` ``(J, 3, 3)``: ``(mapped, ok)``; points behind the line at
+    infinity get ``ok=False``."""
     X, Y, W = project(H, pts[..., 0], pts[..., 1])
     ok = W > _MIN_W
     w = torch.where(ok, W, torch.ones_like(W))
@@ -220,30 +166,13 @@ def sample_patches(
     centres: torch.Tensor,
     offsets: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Sample square patches of the rectified image around common-frame centres.
+    """Sample square patches of the image around common-frame centres.
 
-    The centre is mapped in float64; the (small) offsets are mapped relative to it in float32
-    (``x = x_c + (B o - x_c (b . o)) / (1 + b . o)``, with ``H^-1 = [B | a]`` normalised so that
-    the centre's homogeneous w is 1), which keeps sub-1e-3 pixel accuracy at a fraction of the
-    cost of mapping every sample in float64.
-
-    A job's values are bitwise the same whatever the other jobs of the call (their number,
-    order, images, the sizes of the images stacked with its own): the sample positions are
-    computed by elementwise products and sums (a GEMM rounds differently with the batch
-    size), in the grid coordinates of the job's own image, and ``grid_sample`` (one
-    sample at a time) reads that image alone.
-
-    Args:
-        image: (H, W) float32, or an :class:`ImageStack` with one image per job.
-        H_inv: (J, 3, 3) float64, maps the common frame back to image pixels.
-        centres: (J, 2) float64 common-frame centres.
-        offsets: (K, P, 2) float64 common-frame offsets (K shapes of P = (2r+1)^2 pixels,
-            row-major as :func:`offset_grid`) shared by all jobs, or (J, K, P, 2) one set
-            per job.
-    Returns:
-        (values (J, K, P) float32, inside (J,) bool: the patch corners of every shape map
-        in front of the camera and inside the image, so the whole patch does).
-    """
+    ``H_inv`` ``(J, 3, 3)`` maps the common frame to image pixels; ``centres`` ``(J, 2)``;
+    ``offsets`` ``(K, P, 2)`` shared or ``(J, K, P, 2)`` per job. Returns (values ``(J, K, P)``
+    float32, inside ``(J,)``: every shape's corners map in front of the camera and into the image).
+    The centre is mapped in float64, offsets relative to it in float32 (sub-1e-3 pixel, far
+    cheaper), and a job's values are bitwise the same whatever the other jobs."""
     values, good = sample_values(image, H_inv, centres, offsets)
     return values, patch_inside(image, H_inv, centres, offsets) & good
 
@@ -254,9 +183,7 @@ def patch_inside(
     centres: torch.Tensor,
     offsets: torch.Tensor,
 ) -> torch.Tensor:
-    """The inside test of :func:`sample_patches` alone (no sample read): (J,) bool, the
-    corners of every shape's square of offsets map in front of the camera and inside the
-    job's image. Arguments as :func:`sample_patches`."""
+    """The inside test of :func:`sample_patches` alone, ``(J,)`` bool."""
     J = centres.shape[0]
     K, P = offsets.shape[-3], offsets.shape[-2]
     side = int(round(P**0.5))
@@ -275,7 +202,6 @@ def patch_inside(
 
 
 def _job_sizes(image: torch.Tensor | ImageStack, n: int) -> torch.Tensor:
-    """(n, 2) float64 (width, height) of each job's image."""
     if isinstance(image, ImageStack):
         return image.sizes
     return torch.tensor([[image.shape[1], image.shape[0]]], dtype=torch.float64,
@@ -288,13 +214,8 @@ def sample_values(
     centres: torch.Tensor,
     offsets: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The samples of :func:`sample_patches` (the same bits) without its inside test (the
-    patch corners), for callers that do not need it.
-
-    Args: as :func:`sample_patches`.
-    Returns:
-        (values (J, K, P) float32, good (J,) bool: the centre maps in front of the camera).
-    """
+    """The values of :func:`sample_patches` (same bits) without the inside test; ``good``: the
+    centre maps in front of the camera."""
     J = centres.shape[0]
     per_job = offsets.ndim == 4
     K, P = offsets.shape[-3], offsets.shape[-2]
@@ -339,15 +260,8 @@ def sample_values(
 
 def _grid_maps(H_inv: torch.Tensor, centres: torch.Tensor, size: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per job, the 3x3 map M from common-frame offsets o to ``grid_sample`` coordinates of
-    the job's own image (``align_corners=True``): grid = (M [o; 1])_xy / (M [o; 1])_w.
-
-    Args:
-        H_inv: (J, 3, 3) float64; centres: (J, 2) float64 common frame; size: (J, 2) float64
-            (width, height) of each job's image.
-    Returns:
-        (M (J, 3, 3) float64, good (J,) bool: the centre maps in front of the camera).
-    """
+    """Per job, the 3x3 map from common-frame offsets to ``grid_sample`` coordinates of its own
+    image, and whether the centre maps in front of the camera."""
     X, Y, Wc = project(H_inv, centres[:, 0], centres[:, 1])
     good = Wc > _MIN_W
     wc = torch.where(good, Wc, torch.ones_like(Wc))
@@ -367,8 +281,7 @@ def _grid_maps(H_inv: torch.Tensor, centres: torch.Tensor, size: torch.Tensor
 
 
 def _square_axes(o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """``(xs, ys)`` (S,) when the shared offsets o (1, S*S, 2) form a row-major square grid
-    (``o[y * S + x] = (xs[x], ys[y])``, as :func:`offset_grid`), else None."""
+    """``(xs, ys)`` when the offsets form a row-major square grid, else None."""
     q = o.shape[1]
     side = int(round(q**0.5))
     if o.shape[0] != 1 or side * side != q:
@@ -383,15 +296,8 @@ def _square_axes(o: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
 
 def _grid(M32: torch.Tensor, o: torch.Tensor, axes: tuple[torch.Tensor, torch.Tensor] | None,
           affine: bool) -> torch.Tensor:
-    """``grid_sample`` coordinates (n, Q, 2) float32, grid = (M [o; 1])_xy / (M [o; 1])_w,
-    for the n jobs of M32 (n, 3, 3) float32 and the offsets o (1 or n, Q, 2) float32
-    (``axes``: those of :func:`_square_axes`, or None), by elementwise float32 operations
-    (no GEMM: each job's result is independent of n).
-
-    Every coordinate is ``(m0 ox + m1 oy) + m2`` rounded after each operation, then divided
-    by the clamped w. On a square grid of offsets the products are taken once per column
-    and per row (the same roundings). ``affine``: every job's map has the last row
-    (0, 0, 1), so w = (0 ox + 0 oy) + 1 = 1 exactly and the division, exact, is left out."""
+    """``grid_sample`` coordinates ``(n, Q, 2)`` float32 by elementwise float32 operations (no GEMM,
+    so a job's result does not depend on n); ``affine`` skips the exact division by w = 1."""
     if axes is not None:
         return _grid_square(M32, axes, affine)
     n, q = M32.shape[0], o.shape[1]
@@ -419,15 +325,8 @@ def _grid(M32: torch.Tensor, o: torch.Tensor, axes: tuple[torch.Tensor, torch.Te
 
 def _grid_square(M32: torch.Tensor, axes: tuple[torch.Tensor, torch.Tensor], affine: bool
                  ) -> torch.Tensor:
-    """:func:`_grid` on a square grid of offsets (``axes`` = (xs, ys), (S,) each), all rows
-    of M at once: coordinate r of offset (xs[x], ys[y]) is ``(m_r0 xs[x] + m_r1 ys[y]) +
-    m_r2`` (the products once per column and per row), then divided by the clamped w
-    unless affine. The same float32 operations in the same order as the row-by-row form,
-    so the same bits.
-
-    The coordinates are computed planar, (n, 2, S*S) (contiguous, vectorised), and returned
-    as an (n, S*S, 2) view of it: ``grid_sample`` reads a strided grid, and this is faster
-    than writing the interleaved grid."""
+    """:func:`_grid` on a square grid with the products once per column and row: the same operations
+    in the same order, so the same bits. Computed planar and returned as a strided view (faster)."""
     xs, ys = axes
     n, side = M32.shape[0], xs.shape[0]
     nr = 2 if affine else 3  # w = 1 exactly for an affine map
@@ -440,24 +339,21 @@ def _grid_square(M32: torch.Tensor, axes: tuple[torch.Tensor, torch.Tensor], aff
 
 
 def _sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """Bilinear samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) (zeros
-    outside; ``align_corners=True``)."""
+    """Bilinear samples ``(n, Q)`` of one image at ``grid`` (zeros outside, ``align_corners=True``)."""
     out = F.grid_sample(image[None, None], grid[None], mode="bilinear", padding_mode="zeros",
                         align_corners=True)  # (1, 1, n, Q)
     return out[0, 0]
 
 
 def to_frame(H: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-    """(J, 2) points mapped by (J, 3, 3) homographies (w clamped positive; elementwise, so a
-    point's result does not depend on the others)."""
+    """``(J, 2)`` points mapped by ``(J, 3, 3)`` homographies (w clamped positive; elementwise)."""
     X, Y, W = project(H, x[:, 0], x[:, 1])
     W = W.clamp_min(1e-12)
     return torch.stack([X / W, Y / W], dim=1)
 
 
 def frame_jacobian(H_inv: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """(n, 2, 2) float64 Jacobians of the maps ``H_inv`` (n, 3, 3) (frame -> image pixels) at
-    the frame points ``p`` (n, 2): image pixels per frame pixel."""
+    """Jacobians ``(n, 2, 2)`` of ``H_inv`` (frame -> image) at frame points ``p``: image px per frame px."""
     xh = H_inv[:, :, :2] @ p[:, :, None] + H_inv[:, :, 2:]  # (n, 3, 1)
     w = xh[:, 2:, :]
     x = xh[:, :2, :] / w

@@ -1,5 +1,2 @@
-"""What a user reads after mapping: reconstruction reports (pose AUC, model statistics, point
-clouds), ground-truth models, plots, the with/without comparison and the built-in demo scene.
-
-Imports torch nowhere; pycolmap and matplotlib only inside the functions that need them.
-"""
+"""What a user reads after mapping: reports, ground-truth models, plots, the comparison and the demo
+scene (no torch; pycolmap and matplotlib imported where needed)."""

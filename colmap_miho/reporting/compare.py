@@ -1,19 +1,6 @@
-"""Baseline vs colmap-miho, side by side: the evaluation of both mapped sides and the files.
-
-:func:`write_comparison` takes the mapping runs of the database as it is (baseline) and after
-refinement (run by :func:`colmap_miho.pipeline.jobs.compare_databases`), evaluates both with the
-same pairs and ground truth, and writes side by side::
-
-    OUTPUT/
-      baseline/model/  baseline/report.json  [baseline/runs/seed<S>/model/ with repeats]
-      refined/database.db  refined/refine.json  refined/model/  refined/report.json  [refined/runs/...]
-      compare.md  compare.json  report.html
-      plots/pose_error_curves.png  plots/keypoint_displacement.png  plots/matches_per_pair.png
-
-With several mapping runs per side the reports get per-run rows, median and range
-(:mod:`colmap_miho.reporting.repeats`). The databases are never modified (everything reads
-copies).
-"""
+"""Baseline vs colmap-miho side by side: evaluate both mapped sides with the same pairs and ground
+truth, and write ``compare.md``, ``compare.json``, ``report.html`` and ``plots/``. The databases are
+only read through copies."""
 
 from __future__ import annotations
 
@@ -33,16 +20,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, kw_only=True)
 class CompareResult:
-    """Paths and numbers of one comparison.
-
-    Attributes:
-        output: the comparison folder.
-        baseline, refined: report dicts (see :func:`colmap_miho.reporting.report.build_report`);
-            an empty ``reconstruction`` when mapping failed.
-        refine: ``RefineSummary.to_dict()``.
-        markdown, json: the side-by-side table files.
-        plots: the PNG files written.
-    """
+    """Paths and numbers of one comparison: the folder, both sides' report dicts (empty
+    ``reconstruction`` when mapping failed), the refine summary, the table files and plots."""
 
     output: Path
     baseline: dict
@@ -55,16 +34,9 @@ class CompareResult:
 
 @dataclass(frozen=True, kw_only=True)
 class Evaluation:
-    """What both sides are scored against.
-
-    Attributes:
-        gt: GT COLMAP model folder (or dataset folder with ``gt_model/``); None: only
-            reconstruction statistics are compared.
-        pairs: pairs for the two-view AUCs (list or file); None: the dataset's
-            ``pairs_with_gt.txt`` if present, else all GT pairs. Both sides use the same pairs.
-        seed: seed of the two-view protocols.
-        thresholds: pose-AUC thresholds in degrees (None: 0.5/1/2/5/10/20).
-    """
+    """What both sides are scored against: ``gt`` (None: statistics only), ``pairs`` for the
+    two-view AUCs (the same for both sides), the protocols' ``seed`` and the AUC ``thresholds`` in
+    degrees."""
 
     gt: Path | None = None
     pairs: object = None
@@ -74,15 +46,7 @@ class Evaluation:
 
 # --------------------------------------------------------------------------- known cameras
 def gt_intrinsics(gt: str | Path) -> dict:
-    """The cameras of a GT model by image name, to map with known intrinsics.
-
-    Args:
-        gt: GT COLMAP model folder (or dataset folder with ``gt_model/``).
-
-    Returns:
-        image name -> :class:`colmap_miho.adapters.cameras.CameraIntrinsics` (model, params in
-        COLMAP's pixel convention, width, height): pass as ``run_mapping(intrinsics=...)``.
-    """
+    """A GT model's cameras by image name (COLMAP's pixel convention), for ``run_mapping(intrinsics=...)``."""
     from ..adapters.cameras import CameraIntrinsics
     from .gt_model import load_reconstruction
 
@@ -97,16 +61,8 @@ def gt_intrinsics(gt: str | Path) -> dict:
 
 # --------------------------------------------------------------------------- database diffs
 def match_changes(baseline_db: str | Path, refined_db: str | Path) -> dict:
-    """Per-pair verified match counts and keypoint displacements between two databases.
-
-    Both databases are read through temporary copies. Images are matched by name; keypoint
-    rows by index (refinement moves keypoints in place).
-
-    Returns:
-        ``{"matches_before": {"a|b": n}, "matches_after": {"a|b": n},`` (keys:
-        :func:`~colmap_miho.reporting.pair_labels.pair_label`)
-        "displacements": float64 (K,) pixel distances of the keypoints that moved}``.
-    """
+    """Per-pair verified match counts before and after (keys :func:`~.pair_labels.pair_label`) and
+    the pixel displacements of the keypoints that moved; images by name, keypoints by index."""
     from ..adapters.database import ColmapDatabase
     from ..adapters.safety import read_copy
     from .pair_labels import pair_label
@@ -138,9 +94,7 @@ def match_changes(baseline_db: str | Path, refined_db: str | Path) -> dict:
 
 
 def _epipolar_flips(databases: tuple[Path, Path], gt: str | Path) -> dict:
-    """The refined database's matches turned wrong / right under GT against the baseline's
-    (:mod:`colmap_miho.reporting.match_flips`; the filter moves no keypoint, so against the
-    input this counts what refinement did); empty when the GT cannot be read."""
+    """The refined matches turned wrong / right under GT against the baseline's; empty without GT."""
     from .gt_model import load_gt_poses
     from .report import database_epipolar_flips, read_database_inliers
 
@@ -178,11 +132,7 @@ def _curves(baseline: dict, refined: dict) -> dict:
 
 
 def _point_clouds(output: Path, base_map, ref_map, plot_files: list) -> dict:
-    """PLY files, density/outlier figures and a picture of each side's sparse cloud.
-
-    Uses :mod:`colmap_miho.reporting.pointcloud` (open3d optional: it falls back to scipy and
-    matplotlib); any failure there is logged and skipped, never fatal.
-    """
+    """PLY files, density/outlier figures and a picture of each side's cloud; failures logged, never fatal."""
     try:
         from . import pointcloud as pc
     except ImportError as exc:  # pragma: no cover - module missing in a partial install
@@ -217,9 +167,7 @@ def _evaluate(model_ok: bool, model: Path, database: Path | None, gt, pairs, see
 
 
 def evaluate_side(runs: list, database: Path, gt, pairs, seed: int, thresholds=None) -> dict:
-    """The report of one side: run 0's full report (model and database sections), its
-    ``mapping`` summary, and with several runs a ``repeats`` section
-    (:func:`colmap_miho.reporting.repeats.summarise_runs`; later runs evaluate the model only)."""
+    """One side's report: run 0 in full, its ``mapping`` summary, and a ``repeats`` section for several runs."""
     from .repeats import run_row, summarise_runs
 
     first = runs[0]
@@ -237,8 +185,7 @@ def evaluate_side(runs: list, database: Path, gt, pairs, seed: int, thresholds=N
 
 
 def _write_plots(output: Path, baseline: dict, refined: dict, changes: dict) -> list[Path]:
-    """The figures of the comparison; one that fails is logged (a warning naming it) and
-    skipped, never fatal: the tables are written already."""
+    """The comparison's figures; one that fails is logged and skipped."""
     from . import plots
 
     plot_files: list[Path] = []
@@ -287,16 +234,7 @@ def _write_tables(output: Path, baseline: dict, refined: dict, refine: dict, cha
 
 def write_comparison(output: Path, base_runs: list, ref_runs: list, *, databases: tuple[Path, Path],
                      refine: dict, evaluation: Evaluation) -> CompareResult:
-    """Evaluate both sides and write their reports, the plots, ``compare.md`` and ``compare.json``.
-
-    Args:
-        output: the comparison folder (``baseline/``, ``refined/`` and ``plots/`` exist).
-        base_runs, ref_runs: the ``MappingResult`` of each mapping run of each side (run 0's
-            model is the one evaluated in full and drawn).
-        databases: (baseline database, refined database).
-        refine: ``RefineSummary.to_dict()`` of the refined side.
-        evaluation: the ground truth, pairs, seed and thresholds of both sides.
-    """
+    """Evaluate both sides (run 0 in full) and write their reports, the plots and the tables."""
     from .html_report import write_comparison_html
     from .report import write_report_json
 

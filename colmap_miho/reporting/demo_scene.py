@@ -1,16 +1,5 @@
-"""A built-in piecewise-planar scene with exact ground truth, made on the fly (no downloads).
-
-A small "room corner": a back wall (brick with photographs hung on it), a gravel floor, a
-tilted poster and a box standing on the floor, all textured with the photographs bundled in
-scikit-image (``skimage.data``). Each plane is rendered from known pinhole cameras with
-``cv2.warpPerspective`` (texture -> image homography ``K [R r1 | R r2 | R o + t]``) and a per
-pixel depth test, so the images are exact views of a known 3D scene: the GT poses and
-intrinsics are exact, only the rendering (bilinear resampling, 8-bit quantisation, a little
-sensor noise) departs from an ideal camera.
-
-World frame: x right, y down, z forward (the cameras look roughly along +z).
-Pixel convention: integer = pixel centre, so the principal point of a W x H image is
-((W - 1) / 2, (H - 1) / 2).
+"""A built-in piecewise-planar "room corner" with exact ground truth, rendered on the fly from
+scikit-image's bundled photographs (world: x right, y down, z forward; pixel centres at integers).
 """
 
 from __future__ import annotations
@@ -32,14 +21,8 @@ PX_PER_UNIT = 80.0
 
 @dataclass(frozen=True, kw_only=True)
 class Plane:
-    """A textured 3D rectangle ``origin + a * u_axis + b * v_axis``, a in [0, width], b in [0, height].
-
-    Attributes:
-        origin: (3,) world corner of texture pixel (0, 0).
-        u_axis, v_axis: (3,) unit vectors along the texture's x and y.
-        width, height: size in world units.
-        texture: (h, w, 3) uint8 image covering the rectangle.
-    """
+    """A textured 3D rectangle ``origin + a u_axis + b v_axis``, a in [0, width], b in [0, height];
+    the ``(h, w, 3)`` uint8 ``texture`` covers it."""
 
     origin: np.ndarray
     u_axis: np.ndarray
@@ -68,7 +51,6 @@ def _rgb(img: np.ndarray) -> np.ndarray:
 
 
 def _tile(img: np.ndarray, w: int, h: int) -> np.ndarray:
-    """Tile ``img`` (mirrored, so seams do not show) to exactly (h, w)."""
     img = _rgb(img)
     blk = np.concatenate([img, img[:, ::-1]], axis=1)
     blk = np.concatenate([blk, blk[::-1]], axis=0)
@@ -206,18 +188,9 @@ def make_demo_scene(
     out_dir: str | Path, *, num_images: int = 8, width: int = 640, height: int = 480, noise_std: float = 1.5,
     seed: int = 0,
 ) -> DemoScene:
-    """Write ``out_dir/images/*.png`` and the exact GT model ``out_dir/gt_model/``.
-
-    Args:
-        out_dir: folder to write into (created).
-        num_images: views (>= 3) on an arc in front of the scene.
-        width, height: image size in pixels.
-        noise_std: Gaussian sensor noise (grey levels) added to each rendered image.
-        seed: seed of the noise.
-
-    Returns:
-        :class:`DemoScene`.
-    """
+    """Write ``out_dir/images/*.png`` and the exact GT model ``out_dir/gt_model/``: ``num_images``
+    (>= 3) views on an arc, with Gaussian sensor noise ``noise_std`` (grey levels) seeded by
+    ``seed``."""
     import cv2
 
     if num_images < 3:

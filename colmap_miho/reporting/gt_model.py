@@ -1,24 +1,6 @@
-"""Ground-truth camera poses: load COLMAP models, convert dataset layouts, write COLMAP models.
-
-The common currency is a ``dict[str, CameraPose]`` keyed by image NAME (the file name relative
-to the image folder), so that a reconstruction and its ground truth are matched by name, never
-by image id.
-
-Pixel convention: :class:`CameraPose.K` uses the project's convention (integer = pixel centre).
-COLMAP *models* (cameras.txt / cameras.bin) put the top-left pixel centre at (0.5, 0.5), so the
-principal point is shifted by half a pixel (:data:`~colmap_miho.adapters.database.HALF_PIXEL`)
-when a model is read or written, in :func:`poses_from_reconstruction` and
-:func:`write_colmap_model` only, with the conversions of ``colmap_miho.adapters.database`` (the
-one home of the shift, which also converts the keypoints of databases).
-
-Dataset layouts supported (see the data README):
-
-- Strecha: one ``<image name>.camera`` file per image: K (3 lines), distortion (1 line),
-  camera-to-world R (3 lines), camera centre C (1 line), ``width height``. World-to-camera is
-  ``R_w2c = R^T``, ``t = -R^T C``. The K is 0-based (pixel centres at integers).
-- Middlebury: ``<scene>_par.txt``: first line the count, then per image
-  ``name k11..k33 r11..r33 t1 t2 t3`` with ``P = K [R | t]`` (world-to-camera).
-"""
+"""Ground-truth poses: COLMAP models, Strecha ``.camera`` files and Middlebury ``_par.txt``, as
+``dict[str, CameraPose]`` keyed by image name; the half-pixel shift of COLMAP models happens in
+:func:`poses_from_reconstruction` and :func:`write_colmap_model` only."""
 
 from __future__ import annotations
 
@@ -40,15 +22,8 @@ IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".pgm", ".bmp", ".tif", ".t
 
 @dataclass(frozen=True, kw_only=True)
 class CameraPose:
-    """One calibrated, posed image.
-
-    Attributes:
-        name: image name (relative path inside the image folder).
-        K: (3, 3) float64 pinhole intrinsics, pixel-centre convention.
-        R: (3, 3) float64 world-to-camera rotation.
-        t: (3,) float64 world-to-camera translation (``X_cam = R X + t``).
-        width, height: image size in pixels.
-    """
+    """One calibrated, posed image: ``K`` ``(3, 3)`` pixel-centre intrinsics, world-to-camera ``R``,
+    ``t`` (``X_cam = R X + t``), size in pixels."""
 
     name: str
     K: np.ndarray
@@ -65,11 +40,7 @@ class CameraPose:
 
 # --------------------------------------------------------------------------- COLMAP models
 def poses_from_reconstruction(rec) -> dict[str, CameraPose]:
-    """Posed images of a ``pycolmap.Reconstruction`` (registered images only), by name.
-
-    K is the camera's pinhole part (``calibration_matrix``), shifted to the pixel-centre
-    convention; distortion parameters are ignored.
-    """
+    """Registered images of a reconstruction by name; K is the camera's pinhole part (distortion ignored)."""
     out: dict[str, CameraPose] = {}
     for image in rec.images.values():
         if not image.has_pose:
@@ -100,13 +71,7 @@ def resolve_model_dir(path: str | Path) -> Path:
 
 
 def load_reconstruction(path: str | Path):
-    """Read a COLMAP model folder (text or binary) as a ``pycolmap.Reconstruction``; a binary
-    model's files are checked against their sizes first
-    (:func:`~colmap_miho.adapters.model_files.check_binary_model`).
-
-    Raises:
-        InvalidInput: a damaged or truncated model, naming the file or the folder.
-    """
+    """Read a COLMAP model folder (text or binary; binary sizes checked first); InvalidInput if damaged."""
     import pycolmap
 
     from ..adapters.model_files import check_binary_model
@@ -122,10 +87,7 @@ def load_reconstruction(path: str | Path):
 
 
 def load_gt_poses(path: str | Path) -> dict[str, CameraPose]:
-    """GT poses by image name from a COLMAP model folder (text or binary; points optional).
-
-    ``path`` may also be a dataset folder holding a ``gt_model/`` folder.
-    """
+    """GT poses by image name from a COLMAP model folder, or a dataset folder holding ``gt_model/``."""
     poses = poses_from_reconstruction(load_reconstruction(path))
     if not poses:
         raise InvalidInput(f"the ground-truth model at {path} has no posed images")
@@ -141,14 +103,8 @@ def _quat_wxyz(R: np.ndarray) -> np.ndarray:
 
 
 def write_colmap_model(poses: dict[str, CameraPose], out_dir: str | Path) -> Path:
-    """Write poses as a COLMAP text model (PINHOLE cameras, no 3D points).
-
-    Images with identical (K, width, height) share one camera. The principal point is written in
-    COLMAP's convention (+0.5). Image ids follow the sorted names, starting at 1.
-
-    Returns:
-        The output folder (created if needed).
-    """
+    """Write poses as a COLMAP text model (PINHOLE, shared cameras, ids by sorted name, no points);
+    returns the folder."""
     if not poses:
         raise InvalidInput("poses is empty: nothing to write")
     out = Path(out_dir)
@@ -190,7 +146,6 @@ def list_images(image_dir: str | Path) -> list[str]:
 
 
 def _rescale(K: np.ndarray, size_from: tuple[int, int], size_to: tuple[int, int], name: str) -> np.ndarray:
-    """Rescale pixel-centre intrinsics from one image size to another (same aspect)."""
     if size_from == size_to:
         return K
     sx, sy = size_to[0] / size_from[0], size_to[1] / size_from[1]
@@ -204,11 +159,7 @@ def _rescale(K: np.ndarray, size_from: tuple[int, int], size_to: tuple[int, int]
 
 
 def read_strecha_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
-    """Parse one Strecha ``.camera`` file.
-
-    Returns:
-        ``(K (3, 3), R_w2c (3, 3), t_w2c (3,), (width, height))``; R is projected onto SO(3).
-    """
+    """``(K, R_w2c, t_w2c, (width, height))`` of one Strecha ``.camera`` file; R projected onto SO(3)."""
     rows = [ln.split() for ln in Path(path).read_text(encoding="utf-8").splitlines() if ln.strip()]
     try:
         vals = [[float(v) for v in r] for r in rows]
@@ -225,11 +176,7 @@ def read_strecha_camera(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.nd
 
 
 def strecha_poses(gt_dir: str | Path, image_dir: str | Path) -> dict[str, CameraPose]:
-    """GT poses for every image of ``image_dir`` that has ``<gt_dir>/<name>.camera``.
-
-    Intrinsics are rescaled when the image size differs from the .camera file's size (e.g.
-    full-resolution GT with half-resolution images).
-    """
+    """GT poses for every image with a ``.camera`` file, intrinsics rescaled to the image's size."""
     gt_dir, image_dir = Path(gt_dir), Path(image_dir)
     out: dict[str, CameraPose] = {}
     for name in list_images(image_dir):

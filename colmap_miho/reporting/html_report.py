@@ -1,19 +1,5 @@
-"""``report.html``: one self-contained page to read a comparison (or one model) in a browser.
-
-The page holds the side-by-side table (the rows of ``compare.json``), the cumulative pose-error
-curves, the verified matches per pair, the keypoint displacements (a histogram and, per image,
-where the moved keypoints lie), and a 3D view of the sparse models: cameras as frusta, points
-decimated to a budget per model, one colour per model, each switchable from the
-legend or the buttons above the view.
-
-Charts are plotly figures (the ``plots`` extra); plotly's JavaScript bundle is embedded once in
-the page, so it opens offline and with no CDN. Numeric arrays travel as base64 float32 (4 bytes
-a value, a third more as text) rather than as decimal text; page sizes are in the results
-document (``docs/results.md``). Without plotly the writers log one line naming the extra and
-return None: the command itself still succeeds.
-
-The 3D view and the models' geometry are :mod:`colmap_miho.reporting.model_view`.
-"""
+"""``report.html``: one self-contained page (plotly, its JavaScript embedded, opens offline) to read
+a comparison or one model; without plotly the writers log one line and return None."""
 
 from __future__ import annotations
 
@@ -52,7 +38,6 @@ _PLOT_CONFIG = {"displaylogo": False, "responsive": True}
 
 
 def _plotly():
-    """plotly's ``graph_objects`` module, or None with one logged line naming the extra."""
     from ..extras import MissingExtraError, require
 
     try:
@@ -71,8 +56,7 @@ _CURVE_METRICS = (("model poses (all GT pairs)", "model", "model_pose_auc"),
 
 
 def _pose_curves_figure(go, reports: dict[str, dict], max_deg: float = 20.0):
-    """Cumulative pose-error curves (fraction of pairs with error <= x deg), one panel per
-    metric present; None when no report has per-pair errors."""
+    """Cumulative pose-error curves, one panel per metric; None when no report has per-pair errors."""
     from plotly.subplots import make_subplots
 
     panels = []
@@ -112,16 +96,12 @@ def _pose_curves_figure(go, reports: dict[str, dict], max_deg: float = 20.0):
 
 
 def plotly_text(text: str) -> str:
-    """``text`` (an image name, any user string) as plotly shows it: plotly renders a subset
-    of HTML in labels, hovers and menus (``<a href>``, ``<b>``, ``<br>``, ``<span style>``),
-    so ``&``, ``<`` and ``>`` are escaped as entities, which it shows as the characters."""
+    """``text`` escaped for plotly, which renders a subset of HTML in labels and hovers."""
     return html.escape(str(text), quote=False)
 
 
 def _matches_figure(go, before: dict, after: dict, checked: dict | None = None):
-    """Verified matches per pair, baseline vs refined, pairs sorted by the baseline's count;
-    with ``checked`` (pair -> matches the match check removed) a third bar per pair, and the
-    hover splits the removals between the filter and the match check."""
+    """Verified matches per pair, baseline vs refined (and the match check's removals, when ``checked``)."""
     labels = sorted(before, key=lambda k: (-before[k], k))
     b = np.array([before[k] for k in labels], dtype=np.float64)
     a = np.array([after.get(k, 0) for k in labels], dtype=np.float64)
@@ -154,8 +134,7 @@ def _matches_figure(go, before: dict, after: dict, checked: dict | None = None):
 
 
 def _displacement_figure(go, displacements: np.ndarray, per_image: list, size: tuple[int, int] | None):
-    """Histogram of the displacements (px) and, per image, where the moved keypoints lie
-    (coloured by how far they moved; an image picker above the right panel)."""
+    """Histogram of displacements (px) and, per image, where the moved keypoints lie."""
     from plotly.subplots import make_subplots
 
     d = np.asarray(displacements, dtype=np.float64).reshape(-1)
@@ -198,9 +177,7 @@ def _displacement_figure(go, displacements: np.ndarray, per_image: list, size: t
 # --------------------------------------------------------------------------- page
 def _table_html(groups: Sequence[tuple[str, Sequence[tuple[str, ...]]]], header: tuple[str, ...],
                 last_cell_classes: Sequence[str] = ()) -> str:
-    """The metrics table: one ``<tbody>`` per group, headed by the group's name.
-    ``last_cell_classes`` (one per row, in order, when given) are added to each row's last cell
-    (the change column: its verdict)."""
+    """The metrics table, one ``<tbody>`` per group; ``last_cell_classes`` style each row's change cell."""
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     extra = iter(last_cell_classes)
     bodies = []
@@ -245,7 +222,6 @@ def _section(title: str, body: str, note: str = "", section_id: str = "") -> str
 
 
 def _load_model(path):
-    """A ``pycolmap.Reconstruction`` from a model folder, or None (logged) when unreadable."""
     from .gt_model import load_reconstruction
 
     if path is None:
@@ -269,22 +245,11 @@ def _image_size(models: dict) -> tuple[int, int] | None:
 def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refine: dict, changes: dict, *,
                           models: dict | None = None, budget: int = POINT_BUDGET,
                           title: str = "colmap-miho comparison") -> Path | None:
-    """Write the comparison page.
+    """Write the comparison page; returns the path, or None without plotly.
 
-    Args:
-        path: the HTML file (usually ``OUTPUT/report.html``; its folder must exist).
-        baseline, refined: report dicts of both sides (with their ``pairs`` rows for the curves).
-        refine: ``RefineSummary.to_dict()`` (the recipe line under the table).
-        changes: :func:`colmap_miho.reporting.compare.match_changes`'s dict (matches per pair,
-            displacements).
-        models: ``{"baseline": m, "refined": m}``, each a model folder or a
-            ``pycolmap.Reconstruction``; default ``baseline/model`` and ``refined/model`` next to
-            ``path``. A missing model (mapping failed) is left out of the 3D view.
-        budget: most points drawn per model.
-
-    Returns:
-        The path written, or None when plotly is missing (one warning logged).
-    """
+    ``changes``: :func:`colmap_miho.reporting.compare.match_changes`'s dict. ``models``: both sides'
+    model folders or reconstructions (default ``baseline/model``, ``refined/model`` beside
+    ``path``); a missing one is left out of the 3D view. ``budget``: most points drawn per model."""
     go = _plotly()
     if go is None:
         return None
@@ -325,9 +290,7 @@ def write_comparison_html(path: str | Path, baseline: dict, refined: dict, refin
 
 
 def removed_by_the_check(removed_per_pair) -> dict[str, int]:
-    """``match_check.removed_per_pair`` (a list of ``{"images": [a, b], "removed": n}``; the
-    ``{"a|b": n}`` dict of older reports is taken as it is) keyed like the comparison's
-    matches per pair (:func:`~colmap_miho.reporting.pair_labels.pair_label`)."""
+    """``match_check.removed_per_pair`` keyed like the comparison's pairs (older dicts taken as they are)."""
     from .pair_labels import pair_label
 
     if isinstance(removed_per_pair, dict):
@@ -354,10 +317,7 @@ def _summary_note(baseline: dict, refine: dict) -> str:
 
 
 def match_check_note(mc: dict, *, label: str = "Match check", timing: bool = False, sep: str = " ") -> str:
-    """The match check's sentence (``RefineSummary.match_check``, plain text) after ``label``:
-    whether the global estimate was used (and why not), which images it trusted, what was
-    removed (flagged), with ``timing`` its rounds and seconds; then, each after ``sep``, one
-    sentence per hinge it found (:func:`hinge_note`)."""
+    """The match check's sentence after ``label``, then one per hinge after ``sep``."""
     verb = "removed" if mc.get("mode") == "remove" else "flagged"
     timed = f" ({mc.get('rounds', 0)} round(s), {mc.get('seconds', 0):.1f} s)" if timing else ""
     if not mc.get("used"):
@@ -369,13 +329,23 @@ def match_check_note(mc: dict, *, label: str = "Match check", timing: bool = Fal
                 + f"; {mc.get('matches_removed', 0)} of {mc.get('matches_judged', 0)} judged matches {verb} "
                 f"(farther than {mc.get('threshold_px', 0):.2f} px from their epipolar line under it), "
                 f"{mc.get('pairs_removed', 0)} pairs ({mc.get('matches_in_removed_pairs', 0)} matches) {verb} whole "
-                f"(most of their matches off it){timed}.")
+                f"(most of their matches off it){timed}." + restored_note(mc))
     return f"{label}: {text}" + "".join(sep + hinge_note(h) for h in mc.get("hinges") or [])
 
 
+def restored_note(mc: dict) -> str:
+    """The match check's sentence on the filter's removals it gave back ("" when none)."""
+    n = mc.get("matches_restored", 0)
+    if not n:
+        return ""
+    revived = mc.get("pairs_revived", 0)
+    return (f" {n} matches the filter removed restored in {mc.get('pairs_restored', 0)} pairs"
+            + (f" ({revived} of them emptied by the filter)" if revived else "")
+            + ": on their epipolar line under it and confirmed by a third image.")
+
+
 def hinge_note(h: dict) -> str:
-    """One sentence on a hinge the match check found (a ``match_check.hinges`` record): the
-    two groups, which side the pairs' own coverage took and what was done (plain text)."""
+    """One sentence on a hinge the match check found: its two groups, the verdict and the action."""
     a, b = h.get("images_a") or [], h.get("images_b") or []
     small, large = (a, b) if len(a) <= len(b) else (b, a)
     shown = ", ".join(small[:6]) + (f" and {len(small) - 6} more" if len(small) > 6 else "")
@@ -395,16 +365,7 @@ def hinge_note(h: dict) -> str:
 
 def write_model_html(path: str | Path, report: dict, model, *, budget: int = POINT_BUDGET,
                      title: str = "colmap-miho report") -> Path | None:
-    """Write the page of one model: its report table, pose-error curves (with GT) and 3D view.
-
-    Args:
-        path: the HTML file (its folder must exist).
-        report: :func:`colmap_miho.reporting.report.build_report`'s dict.
-        model: model folder or ``pycolmap.Reconstruction`` (None: no 3D view).
-
-    Returns:
-        The path written, or None when plotly is missing (one warning logged).
-    """
+    """Write the page of one model (table, curves with GT, 3D view); returns the path, or None without plotly."""
     go = _plotly()
     if go is None:
         return None

@@ -1,21 +1,5 @@
-"""Matches that refinement turned wrong (or right) under ground-truth geometry.
-
-Refinement moves keypoints, never matches: a match of the filter-only database and the same
-keypoint indices in the refined database are one match before and after. Given GT cameras,
-:func:`epipolar_flips` compares the symmetric GT epipolar distance of every match stored in
-both databases (same image pair, same keypoint indices) and counts
-
-- **turned wrong**: at most ``threshold_px`` from the GT epipolar line before, more after
-  (a correct match that refinement broke: typically a wrong NCC peak in repeated texture);
-- **turned right**: the reverse,
-
-with the displacement of the keypoints involved (per match, the larger of its two keypoints'
-moves). :func:`epipolar_flip_cases` returns every compared match with its distances and
-displacements, for inspecting the worst ones.
-
-Pure numpy: no file access. Pixel convention: integer = pixel centre, keypoints and
-intrinsics alike (see :mod:`colmap_miho.reporting.keypoint_accuracy`).
-"""
+"""Matches that refinement turned wrong (or right) under ground-truth geometry: the same keypoint
+indices before and after, beyond (within) ``threshold_px`` of the GT epipolar line only after."""
 
 from __future__ import annotations
 
@@ -35,15 +19,8 @@ threshold of a wrong track (:data:`~colmap_miho.reporting.keypoint_accuracy.TRAC
 
 @dataclass(frozen=True)
 class FlipCases:
-    """Every match stored in both databases between two GT images (M rows).
-
-    Attributes:
-        pair: (M,) int64 index into ``pairs``.
-        pairs: the image pairs ``(key_a, key_b)``, in the order of the input mapping.
-        idx: (M, 2) int64 keypoint indices (column 0 into ``key_a``'s keypoints).
-        before, after: (M,) float64 symmetric GT epipolar distances (px).
-        disp: (M, 2) float64 pixels each of the two keypoints moved.
-    """
+    """Every match stored in both databases between two GT images (M rows): ``pair`` into ``pairs``,
+    ``idx`` ``(M, 2)``, GT epipolar distances ``before``/``after`` (px), ``disp`` ``(M, 2)`` moves."""
 
     pair: np.ndarray
     pairs: list
@@ -63,19 +40,9 @@ class FlipCases:
 
 @dataclass(frozen=True, kw_only=True)
 class EpipolarFlips:
-    """Summary of :class:`FlipCases` (see the module docstring).
-
-    Attributes:
-        num_compared: matches stored in both databases between two GT images.
-        num_moved: of those, matches with a keypoint that moved (more than 1e-6 px).
-        num_turned_wrong / num_turned_right: the counts.
-        wrong_disp_median_px / wrong_disp_p90_px / wrong_disp_max_px: displacement of the
-            turned-wrong matches (per match, the larger of its two keypoints' moves).
-        right_disp_median_px / right_disp_max_px: the same of the turned-right matches.
-        moved_disp_median_px: the same over every moved match (for scale).
-        threshold_px: the threshold used.
-    NaN where nothing was counted.
-    """
+    """Summary of :class:`FlipCases`: counts and displacement statistics (per match the larger of
+    its keypoints' moves) of the turned-wrong and turned-right matches; NaN where nothing was
+    counted."""
 
     num_compared: int
     num_moved: int
@@ -101,24 +68,11 @@ def epipolar_flip_cases(
     matches_before: Mapping[tuple[Hashable, Hashable], np.ndarray],
     matches_after: Mapping[tuple[Hashable, Hashable], np.ndarray],
 ) -> FlipCases:
-    """The matches stored in both databases between two GT images, with their GT epipolar
-    distances before and after and their keypoints' displacements.
+    """The matches stored in both databases between two GT images, with GT epipolar distances before
+    and after and their keypoints' displacements.
 
-    Args:
-        cameras: GT camera per image key (as :func:`~.keypoint_accuracy.keypoint_accuracy`).
-        keypoints_before, keypoints_after: (N_i, 2) pixel positions per image key; an image's
-            two arrays must have the same rows (refinement moves keypoints in place).
-        matches_before, matches_after: (M, 2) int keypoint indices per image pair
-            ``(key_a, key_b)``; a pair counts in the orientation given (a pair stored as
-            ``(b, a)`` on one side only is not compared).
-
-    Returns:
-        :class:`FlipCases`.
-
-    Raises:
-        ValueError: an image whose keypoint arrays differ in shape, or a match index out of
-            range (the message names the image or pair).
-    """
+    An image's two keypoint arrays must have the same rows; a pair counts in the orientation given.
+    ValueError names an image whose arrays differ or a pair with an index out of range."""
     cams = {k: camera_krt(c) for k, c in cameras.items()}
     pairs: list[tuple[Hashable, Hashable]] = []
     rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
@@ -158,7 +112,6 @@ def epipolar_flip_cases(
 
 
 def _common_rows(m0: np.ndarray, m1: np.ndarray) -> np.ndarray:
-    """The (index a, index b) rows present in both (K, 2) int64 arrays, unique, sorted."""
     if m0.size == 0 or m1.size == 0:
         return np.zeros((0, 2), np.int64)
     if min(m0.min(), m1.min()) < 0:
@@ -171,11 +124,7 @@ def _common_rows(m0: np.ndarray, m1: np.ndarray) -> np.ndarray:
 
 
 def summarize_flips(cases: FlipCases, threshold_px: float = FLIP_THRESHOLD_PX) -> EpipolarFlips:
-    """:class:`EpipolarFlips` of ``cases`` at ``threshold_px``.
-
-    Raises:
-        ValueError: ``threshold_px`` not > 0.
-    """
+    """:class:`EpipolarFlips` of ``cases`` at ``threshold_px`` (> 0, else ValueError)."""
     if not threshold_px > 0:
         raise ValueError(f"threshold_px must be > 0, got {threshold_px}")
     nan = float("nan")
@@ -211,8 +160,7 @@ def epipolar_flips(
     *,
     threshold_px: float = FLIP_THRESHOLD_PX,
 ) -> EpipolarFlips:
-    """Turned-wrong and turned-right matches between two databases of one scene (see the
-    module docstring; arguments as :func:`epipolar_flip_cases`)."""
+    """Turned-wrong and turned-right matches between two databases (arguments as :func:`epipolar_flip_cases`)."""
     if not threshold_px > 0:
         raise ValueError(f"threshold_px must be > 0, got {threshold_px}")
     cases = epipolar_flip_cases(cameras, keypoints_before, keypoints_after, matches_before, matches_after)

@@ -1,9 +1,5 @@
-"""Pose errors of a reconstruction against GT cameras: relative-pose errors over pairs of GT
-images, and absolute errors after a similarity (Umeyama) alignment of the camera centres.
-
-Angles in degrees; camera poses as :class:`~colmap_miho.reporting.gt_model.CameraPose`
-(world-to-camera ``R``, ``t``).
-"""
+"""Pose errors of a reconstruction against GT cameras: relative errors over GT pairs and absolute
+errors after a similarity alignment of the camera centres (degrees)."""
 
 from __future__ import annotations
 
@@ -25,16 +21,7 @@ def gt_pairs(gt: dict[str, CameraPose]) -> list[tuple[str, str]]:
 def model_pair_errors(
     est: dict[str, CameraPose], gt: dict[str, CameraPose], pairs: list[tuple[str, str]] | None = None
 ) -> dict[tuple[str, str], float]:
-    """Relative-pose error (degrees) of each GT pair from the reconstructed poses.
-
-    Args:
-        est: reconstructed poses by image name (registered images only).
-        gt: GT poses by image name.
-        pairs: pairs to evaluate (default: all GT pairs).
-
-    Returns:
-        ``{(name1, name2): error}``; ``inf`` when an image of the pair is not registered.
-    """
+    """Relative-pose error in degrees of each GT pair (default all); ``inf`` for an unregistered image."""
     out = {}
     for a, b in pairs if pairs is not None else gt_pairs(gt):
         if a not in est or b not in est:
@@ -47,14 +34,7 @@ def model_pair_errors(
 
 
 def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity ``dst ~ s R src + t`` minimising the squared error (Umeyama 1991).
-
-    Args:
-        src, dst: (N, 3) corresponding points, N >= 3 not collinear.
-
-    Returns:
-        ``(s, R (3, 3), t (3,))``.
-    """
+    """Similarity ``dst ~ s R src + t`` in least squares (Umeyama 1991) of ``(N, 3)`` points, N >= 3."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
@@ -74,12 +54,8 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
 
 
 def absolute_errors(est: dict[str, CameraPose], gt: dict[str, CameraPose]) -> dict:
-    """Rotation (deg) and camera-centre errors (GT units) after aligning centres with Umeyama.
-
-    Returns a dict with ``num_aligned``, ``scale`` and median/mean/max of both errors, plus
-    ``center_error_rel`` = median centre error / median distance of the GT centres to their
-    centroid (unit-free). Fewer than 3 common images gives ``num_aligned`` and NaNs.
-    """
+    """Rotation (deg) and centre errors (GT units) after an Umeyama alignment of the centres: a dict
+    of statistics with ``center_error_rel`` unit-free; NaNs with fewer than 3 common images."""
     names = sorted(set(est) & set(gt))
     nan = float("nan")
     empty = {"num_aligned": len(names), "scale": nan, "rotation_error_deg": {"median": nan, "mean": nan, "max": nan},

@@ -1,11 +1,6 @@
-"""The 3D view of ``report.html``: sparse models as decimated points and camera frusta.
-
-Reads ``pycolmap.Reconstruction`` objects (registered images, 3D points, cameras) and returns
-plain arrays or a plotly figure; :mod:`colmap_miho.reporting.html_report` puts it on the page.
-Several models are drawn in the first one's frame: a similarity (Umeyama) fitted on the camera
-centres of the images both registered; with fewer than three such images (or collinear
-centres) a model keeps its own frame. Units are the first model's (arbitrary for SfM).
-"""
+"""The 3D view of ``report.html``: sparse models as decimated points and camera frusta, drawn in the
+first model's frame (a similarity fitted on shared camera centres; with fewer than three, a model
+keeps its own frame)."""
 
 from __future__ import annotations
 
@@ -26,8 +21,7 @@ SIDE_LABEL = {"baseline": "baseline", "refined": "colmap-miho"}
 
 
 def decimate(num: int, budget: int = POINT_BUDGET, seed: int = 0) -> np.ndarray:
-    """Indices of at most ``budget`` of ``num`` items: all of them, or a seeded random subset in
-    increasing order. Returns (min(num, budget),) int64."""
+    """``(min(num, budget),)`` int64: all indices, or a seeded random increasing subset."""
     if budget < 1:
         raise ValueError(f"budget must be >= 1, got {budget}")
     if num <= budget:
@@ -37,7 +31,6 @@ def decimate(num: int, budget: int = POINT_BUDGET, seed: int = 0) -> np.ndarray:
 
 
 def _poses(rec) -> dict[str, tuple[np.ndarray, np.ndarray, Any]]:
-    """name -> (R_cam_from_world (3, 3), t (3,), camera) of the registered images."""
     out = {}
     for image in rec.images.values():
         if not image.has_pose:
@@ -53,16 +46,8 @@ def _centres(poses: dict) -> dict[str, np.ndarray]:
 
 
 def camera_frusta(rec, size: float, transform=None) -> np.ndarray:
-    """Line segments of every registered camera's viewing frustum, for a 3D line plot.
-
-    Args:
-        rec: ``pycolmap.Reconstruction``.
-        size: depth of the frustum's image plane (model units).
-        transform: optional similarity ``(s, R, t)`` applied to the world points (``s R X + t``).
-
-    Returns:
-        (M, 3) float64 polyline vertices, NaN rows separating the cameras (plotly draws gaps).
-    """
+    """``(M, 3)`` polyline vertices of every registered camera's frustum (NaN rows between cameras),
+    of depth ``size``, optionally mapped by ``transform`` ``(s, R, t)``."""
     chunks = []
     for _, (R, t, cam) in sorted(_poses(rec).items()):
         w, h = float(cam.width), float(cam.height)
@@ -85,8 +70,8 @@ def camera_frusta(rec, size: float, transform=None) -> np.ndarray:
 
 
 def alignment(rec_from, rec_to):
-    """Similarity mapping ``rec_from``'s world onto ``rec_to``'s, fitted on the camera centres
-    of the images both registered; None with fewer than three such images."""
+    """Similarity mapping ``rec_from``'s world onto ``rec_to``'s, from shared camera centres; None
+    if fewer than three."""
     from .model_errors import umeyama
 
     a, b = _centres(_poses(rec_from)), _centres(_poses(rec_to))
@@ -111,8 +96,7 @@ def model_points(rec, transform=None) -> np.ndarray:
 
 
 def _frustum_size(rec, points: np.ndarray) -> float:
-    """Frustum depth (model units): a fifth of the cameras' spread, at least 6% of the median
-    distance from the cameras to the points (cameras close together, scene far away)."""
+    """Frustum depth: a fifth of the cameras' spread, at least 6% of the median camera-point distance."""
     centres = np.array(list(_centres(_poses(rec)).values()))
     spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1))) if len(centres) > 1 else 0.0
     depth = 0.0
@@ -124,8 +108,7 @@ def _frustum_size(rec, points: np.ndarray) -> float:
 
 
 def _viewpoint(rec) -> dict:
-    """plotly's scene camera: looking along the cameras' mean viewing direction, from behind
-    them, with their mean "up" (COLMAP's image y axis points down) up on the screen."""
+    """plotly's scene camera: along the cameras' mean viewing direction, their mean up on screen."""
     poses = _poses(rec)
     if not poses:
         return {}
@@ -139,12 +122,8 @@ def _viewpoint(rec) -> dict:
 
 
 def model_figure(go, models: dict[str, Any], *, budget: int = POINT_BUDGET, seed: int = 0):
-    """The 3D view: for each model (tag -> ``pycolmap.Reconstruction``, the first one's frame
-    is the view's) its decimated points and its camera frusta, with show/hide buttons.
-
-    Returns:
-        ``(figure, note)``: note says how the models were put in one frame (text).
-    """
+    """``(figure, note)``: each model's decimated points and frusta in the first one's frame, with
+    show/hide buttons; ``note`` says how the models were aligned."""
     tags = list(models)
     ref = models[tags[0]]
     transforms: dict[str, object] = {tags[0]: None}
@@ -201,11 +180,8 @@ def model_figure(go, models: dict[str, Any], *, budget: int = POINT_BUDGET, seed
 
 
 def moved_keypoints(models: dict[str, Any]) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """Per image registered in both models: the baseline keypoint positions (K, 2) of the
-    keypoints that moved and their displacements (K, 2) px, most moved images first.
-
-    COLMAP models keep every keypoint of a registered image as a ``point2D`` in keypoint
-    order, so the two models' rows correspond (refinement moves keypoints in place)."""
+    """Per image registered in both models: baseline positions ``(K, 2)`` of the moved keypoints and
+    their displacements, most moved first (``point2D`` rows follow keypoint order)."""
     if set(models) != {"baseline", "refined"}:
         return []
     base = {im.name: im for im in models["baseline"].images.values() if im.has_pose}

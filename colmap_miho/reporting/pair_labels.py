@@ -1,7 +1,5 @@
-"""The one text key of an image pair in the comparison's tables and JSON (``matches_per_pair``):
-the two names, sorted, joined by ``|``, each with its ``\\`` and ``|`` escaped by a ``\\``, so
-that a name holding ``|`` cannot make two pairs one key (``a|b`` + ``c`` against ``a`` +
-``b|c``). Names without those characters read as before: ``a.png|b.png``."""
+"""The one text key of an image pair in the comparison's tables and JSON: both names sorted, joined
+by ``|``, with ``\\`` and ``|`` escaped so no two pairs share a key."""
 
 from __future__ import annotations
 
@@ -12,8 +10,7 @@ def pair_label(name1: str, name2: str) -> str:
 
 
 def pair_names(label: str) -> tuple[str, ...]:
-    """The names of a :func:`pair_label` key (a key written before names were escaped reads
-    the same, unless a name held ``\\``)."""
+    """The names of a :func:`pair_label` key (older unescaped keys read the same unless a name held ``\\``)."""
     names, current, escaped = [], [], False
     for ch in label:
         if escaped:

@@ -1,8 +1,5 @@
-"""PNG figures for ``compare``: cumulative pose-error curves, keypoint displacements, matches kept.
-
-matplotlib with the non-interactive Agg backend (works headless); each function writes one
-PNG and returns its path. Inputs are plain arrays / dicts; nothing here reads databases.
-"""
+"""PNG figures for ``compare`` (matplotlib, Agg backend): pose-error curves, keypoint displacements,
+matches kept. Plain arrays in, one PNG path out per function."""
 
 from __future__ import annotations
 
@@ -27,9 +24,7 @@ def _pyplot():
 
 @contextlib.contextmanager
 def plain_text():
-    """Every text made inside is plain text: no math text (an image name with two ``$`` would
-    be parsed as TeX and raise), no LaTeX. matplotlib reads these settings when a text is made,
-    so the figure is built inside."""
+    """Every text made inside is plain (an image name with two ``$`` would be parsed as TeX and raise)."""
     from ..extras import require
 
     matplotlib = require("matplotlib", "plots", "plotting")
@@ -38,8 +33,7 @@ def plain_text():
 
 
 def plain_text_figure(func):
-    """Decorator: ``func`` draws its figure under :func:`plain_text` (user strings, such as
-    image names, are never markup)."""
+    """Decorator: ``func`` draws its figure under :func:`plain_text`."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
@@ -50,7 +44,6 @@ def plain_text_figure(func):
 
 
 def _save(fig, path: Path) -> None:
-    """``fig`` as a PNG at ``path``, whole or not at all (staged beside it, then renamed)."""
     from ..adapters.staged_write import staged_write
 
     with staged_write(path) as tmp:
@@ -61,16 +54,9 @@ def _save(fig, path: Path) -> None:
 def plot_pose_error_curves(
     curves: dict[str, dict[str, list[float]]], path: str | Path, *, max_deg: float = 20.0, title: str = ""
 ) -> Path:
-    """Cumulative pose-error curves: fraction of pairs with error <= x, one panel per metric.
-
-    Args:
-        curves: ``{metric: {label: errors}}``, e.g. ``{"model": {"baseline": [...], "refined":
-            [...]}, "two-view E": {...}}``; errors in degrees, ``inf``/None = failure. A label
-            starting with "baseline" / "refined" gets that colour; add the AUCs to the label.
-        path: PNG file to write.
-        max_deg: largest x-axis limit (degrees); a panel whose errors are all small zooms in
-            to 1.5 x their 95th percentile (at least 1 degree).
-    """
+    """Cumulative pose-error curves, one panel per metric of ``curves`` ``{metric: {label:
+    errors}}`` (degrees; ``inf``/None = failure); a panel of small errors zooms in below
+    ``max_deg``."""
     plt = _pyplot()
     metrics = [m for m in curves if curves[m]]
     fig, axes = plt.subplots(1, max(1, len(metrics)), figsize=(4.2 * max(1, len(metrics)), 3.6), squeeze=False)
@@ -109,11 +95,7 @@ def plot_pose_error_curves(
 @plain_text_figure
 def plot_displacement_histogram(displacements: np.ndarray, path: str | Path, *, max_px: float | None = None,
                                 title: str = "") -> Path:
-    """Histogram of keypoint displacements (pixels) of the moved keypoints.
-
-    Args:
-        displacements: (N,) non-negative pixel distances; N may be 0 (an empty plot says so).
-    """
+    """Histogram of the moved keypoints' displacements in pixels (empty input says so)."""
     plt = _pyplot()
     d = np.asarray(displacements, dtype=np.float64).reshape(-1)
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
@@ -142,8 +124,7 @@ MAX_NAME_CHARS = 24
 
 
 def _shorten(name: str, limit: int = MAX_NAME_CHARS) -> str:
-    """``name`` with its control characters escaped, at most ``limit`` characters: the start
-    and the (more telling) end around an ellipsis."""
+    """``name`` escaped and cut to ``limit`` characters around an ellipsis (keeping the end)."""
     from ..terminal import printable
 
     name = printable(name)
@@ -154,8 +135,7 @@ def _shorten(name: str, limit: int = MAX_NAME_CHARS) -> str:
 
 
 def short_labels(labels: list[str]) -> list[str]:
-    """'a.png|b.png' pair labels without the names' common prefix and extension, each name at
-    most :data:`MAX_NAME_CHARS` characters."""
+    """'a.png|b.png' labels without the names' common prefix and extension, each name shortened."""
     import os
 
     from .pair_labels import pair_names
@@ -168,12 +148,7 @@ def short_labels(labels: list[str]) -> list[str]:
 
 @plain_text_figure
 def plot_matches_per_pair(before: dict, after: dict, path: str | Path, *, title: str = "") -> Path:
-    """Verified matches per image pair before and after (log scale), and the fraction kept.
-
-    Args:
-        before, after: ``{"name1|name2": count}``; a pair missing from ``after`` counts 0.
-            Pairs are sorted by ``before``.
-    """
+    """Verified matches per pair before and after (log scale) and the share kept; ``{"a|b": count}``."""
     plt = _pyplot()
     labels = sorted(before, key=lambda k: -before[k])
     b = np.array([before[k] for k in labels], dtype=np.float64)

@@ -1,26 +1,6 @@
-"""Pose errors, pose AUC / mAA and the paper's two-view pose protocols (pure numpy + OpenCV).
-
-Conventions used throughout this module:
-
-- A pose ``(R, t)`` is world-to-camera: ``X_cam = R @ X_world + t``; ``R`` (3, 3) float64,
-  ``t`` (3,) float64. A relative pose ``(R_2from1, t_2from1)`` maps camera-1 coordinates to
-  camera-2 coordinates.
-- Image points are (N, 2) float64 pixels, (x, y), integer = pixel centre (OpenCV); the
-  intrinsics ``K`` (3, 3) passed with them must use the same convention.
-- Angles are in degrees. A failed estimate has error ``inf`` and counts as a miss in every
-  recall, AUC and mAA.
-
-The two-view protocols follow the paper (Sec. 4.1.3, App. F):
-
-- **E protocol** (:func:`pose_from_essential`): normalise the points with ``K``, estimate E with
-  ``cv2.findEssentialMat`` (RANSAC, threshold 0.5 px / mean focal, prob 0.99999, 10000
-  iterations), ``cv2.recoverPose``. No prior MAGSAC (the paper scores E without it).
-- **F protocol** (:func:`pose_from_fundamental`): optional MAGSAC (``cv2.USAC_MAGSAC``, 0.75 px,
-  on by default as in the paper's F scores), then the 8-point ``cv2.findFundamentalMat``
-  on the remaining matches, ``E = K2^T F K1``, ``cv2.decomposeEssentialMat``; of the four
-  solutions the one with the smaller error against the ground truth is kept (this uses the GT,
-  as the paper does: the protocol measures F, not the cheirality test).
-"""
+"""Pose errors, pose AUC / mAA and the paper's two-view pose protocols (numpy + OpenCV).
+World-to-camera poses, ``(N, 2)`` pixels (integer = pixel centre, as ``K``), degrees; a failed
+estimate has error ``inf`` and counts as a miss."""
 
 from __future__ import annotations
 
@@ -42,11 +22,7 @@ MAA_THRESHOLDS_DEG: tuple[float, ...] = tuple(float(t) for t in range(1, 11))
 
 # --------------------------------------------------------------------------- pose errors
 def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
-    """Geodesic angle between two rotations, degrees in [0, 180].
-
-    Args:
-        R_est, R_gt: (3, 3) rotation matrices.
-    """
+    """Geodesic angle between two ``(3, 3)`` rotations, degrees in [0, 180]."""
     R_est = np.asarray(R_est, dtype=np.float64)
     R_gt = np.asarray(R_gt, dtype=np.float64)
     if R_est.shape != (3, 3) or R_gt.shape != (3, 3):
@@ -55,17 +31,10 @@ def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
 
 
 def translation_angle_deg(t_est: np.ndarray, t_gt: np.ndarray, *, fold: bool = True) -> float:
-    """Angle between two translation directions, degrees.
+    """Angle in degrees between two translation directions, ``inf`` for a near-zero vector.
 
-    Args:
-        t_est, t_gt: (3,) translations (scale ignored).
-        fold: fold the angle ``e`` to ``min(e, 180 - e)`` (sign-agnostic, the paper's Eq. for
-            two-view poses whose translation sign is ambiguous). Use ``fold=False`` for poses of
-            a reconstruction, where the sign is determined.
-
-    Returns:
-        The angle, or ``inf`` when either vector has (near) zero length.
-    """
+    ``fold`` maps ``e`` to ``min(e, 180 - e)`` for two-view poses of ambiguous sign; use
+    ``fold=False`` for a reconstruction's poses."""
     t_est = np.asarray(t_est, dtype=np.float64).reshape(-1)
     t_gt = np.asarray(t_gt, dtype=np.float64).reshape(-1)
     if t_est.shape != (3,) or t_gt.shape != (3,):
@@ -87,19 +56,8 @@ def pose_error_deg(
 
 # --------------------------------------------------------------------------- AUC / mAA
 def pose_auc(errors, thresholds=AUC_THRESHOLDS_DEG) -> list[float]:
-    """Area under the recall-vs-error curve up to each threshold, divided by the threshold.
-
-    The curve starts at (0, 0), steps to recall k/N at the k-th smallest error and is integrated
-    with the trapezoid rule up to the threshold. Failures (``inf``/``nan``) count in N but never
-    reach the curve.
-
-    Args:
-        errors: (N,) errors (degrees or pixels); N may be 0 (AUC 0).
-        thresholds: sequence of positive thresholds, same unit.
-
-    Returns:
-        One AUC in [0, 1] per threshold.
-    """
+    """Area under the recall-vs-error curve up to each threshold, divided by it: one AUC in [0, 1]
+    per threshold. Failures (``inf``/``nan``) count in N but never reach the curve; N = 0 gives 0."""
     errs = np.asarray(errors, dtype=np.float64).reshape(-1)
     errs = np.where(np.isnan(errs), np.inf, errs)
     n = errs.size
@@ -122,11 +80,7 @@ def pose_auc(errors, thresholds=AUC_THRESHOLDS_DEG) -> list[float]:
 
 
 def mean_average_accuracy(errors, thresholds=MAA_THRESHOLDS_DEG) -> float:
-    """Mean over thresholds of the fraction of errors strictly below the threshold, in [0, 1].
-
-    Args:
-        errors: (N,) errors; ``inf``/``nan`` are misses. N = 0 gives 0.
-    """
+    """Mean over thresholds of the share of errors strictly below each, in [0, 1] (N = 0 gives 0)."""
     errs = np.asarray(errors, dtype=np.float64).reshape(-1)
     if errs.size == 0:
         return 0.0
@@ -148,16 +102,8 @@ def auc_summary(errors, thresholds=AUC_THRESHOLDS_DEG) -> dict:
 # --------------------------------------------------------------------------- two-view protocols
 @dataclass(frozen=True, kw_only=True)
 class TwoViewPoseResult:
-    """Outcome of one two-view pose estimate.
-
-    Attributes:
-        success: a pose was estimated.
-        R, t: (3, 3), (3,) estimated ``cam2_from_cam1`` (unit t), or None.
-        error_deg: max(rotation, folded translation-angle) error vs GT, ``inf`` on failure.
-        num_matches: matches given.
-        num_inliers: matches used for the final estimate (after RANSAC/MAGSAC).
-        reason: short text when success is False.
-    """
+    """Outcome of one two-view pose estimate: ``R``, ``t`` (``cam2_from_cam1``, unit t) or None,
+    ``error_deg`` vs GT (``inf`` on failure), matches given and inliers used."""
 
     success: bool
     R: np.ndarray | None = None
@@ -188,19 +134,10 @@ def pose_from_essential(
     pts1, pts2, K1, K2, R_gt, t_gt, *, threshold_px: float = 0.5, prob: float = 0.99999,
     max_iters: int = 10000, seed: int = 0,
 ) -> TwoViewPoseResult:
-    """The paper's E protocol: RANSAC essential matrix on K-normalised points + recoverPose.
+    """The paper's E protocol: RANSAC essential matrix on K-normalised points, then ``recoverPose``.
 
-    Args:
-        pts1, pts2: (N, 2) matched pixels (pixel-centre convention) in image 1 and 2.
-        K1, K2: (3, 3) intrinsics (pixel-centre convention).
-        R_gt, t_gt: (3, 3), (3,) GT ``cam2_from_cam1`` (used only to score the estimate).
-        threshold_px: RANSAC threshold in pixels, divided by the mean focal length.
-        prob, max_iters: RANSAC confidence and iteration cap.
-        seed: seeds OpenCV's RNG (``cv2.setRNGSeed``) for reproducible RANSAC.
-
-    Returns:
-        :class:`TwoViewPoseResult`; ``success=False`` with fewer than 5 matches or no E.
-    """
+    ``threshold_px`` is divided by the mean focal length; the GT pose only scores the estimate;
+    ``seed`` seeds OpenCV's RNG. ``success=False`` with fewer than 5 matches or no E."""
     import cv2
 
     p1, p2, K1, K2 = _check_points(pts1, pts2, K1, K2)
@@ -238,20 +175,8 @@ def pose_from_fundamental(
     pts1, pts2, K1, K2, R_gt, t_gt, *, magsac: bool = True, magsac_threshold_px: float = 0.75,
     magsac_iters: int = 100000, seed: int = 0,
 ) -> TwoViewPoseResult:
-    """The paper's F protocol: [MAGSAC] + 8-point F, E = K2^T F K1, best of the 4 decompositions.
-
-    Args:
-        pts1, pts2: (N, 2) matched pixels (pixel-centre convention).
-        K1, K2: (3, 3) intrinsics (pixel-centre convention); used only to turn F into E.
-        R_gt, t_gt: (3, 3), (3,) GT ``cam2_from_cam1``; the decomposition closest to it is kept.
-        magsac: run ``cv2.USAC_MAGSAC`` first and keep its inliers.
-        magsac_threshold_px: MAGSAC threshold (pixels).
-        magsac_iters: MAGSAC iteration cap (the paper uses 1e5).
-        seed: seeds OpenCV's RNG.
-
-    Returns:
-        :class:`TwoViewPoseResult`; ``success=False`` with fewer than 8 (remaining) matches.
-    """
+    """The paper's F protocol: optional MAGSAC, 8-point F, ``E = K2^T F K1``, the decomposition
+    closest to the GT pose. ``success=False`` with fewer than 8 remaining matches."""
     import cv2
 
     p1, p2, K1, K2 = _check_points(pts1, pts2, K1, K2)

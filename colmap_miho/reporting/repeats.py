@@ -1,11 +1,6 @@
-"""Figures of repeated mapping runs: per-run rows, median and range.
-
-One mapping run is one sample (multi-threaded bundle adjustment and the seed move registered
-images and AUCs from run to run); ``compare --repeats N`` maps each side N times and keeps,
-for every figure of the mapping-dependent report sections, the per-run values, their median
-and their range (min, max). The database sections (two-view AUCs, keypoint accuracy) do not
-depend on mapping and are evaluated once.
-"""
+"""Figures of repeated mapping runs: per-run rows, median and range (min, max). Mapping varies from
+run to run, so ``compare --repeats N`` treats each run as a sample; the database sections do not
+depend on mapping and are evaluated once."""
 
 from __future__ import annotations
 
@@ -20,11 +15,7 @@ FAILED_ZERO = {"reconstruction": ("num_reg_images", "num_points3D", "num_observa
 
 
 def run_row(report: dict, seed: int, success: bool) -> dict:
-    """The mapping-dependent figures of one run's report: ``{"seed", "success", section: {...}}``.
-
-    A failed run has zero registered images / points / observations and zero model pose AUCs
-    (``auc*`` and ``maa`` keys of the successful runs are filled in by :func:`summarise_runs`).
-    """
+    """One run's mapping figures ``{"seed", "success", section: {...}}``; a failed run has zeros."""
     row: dict = {"seed": int(seed), "success": bool(success)}
     for sec in RUN_SECTIONS:
         if isinstance(report.get(sec), dict) and report[sec]:
@@ -51,17 +42,8 @@ def _put(d: dict, path: tuple, value) -> None:
 
 
 def summarise_runs(rows: list[dict]) -> dict:
-    """Median and range of every figure over the runs.
-
-    Args:
-        rows: :func:`run_row` dicts, one per run.
-
-    Returns:
-        ``{"num_runs", "num_failed", "seeds", "runs": rows, "median": {section: {...}},
-        "min": {...}, "max": {...}}``; the three summaries have the sections' nesting. Figures a
-        run lacks are left out of its statistics, except the model pose AUCs of a failed run,
-        which count as 0. Non-finite values (a failed pose) are ignored.
-    """
+    """``{"num_runs", "num_failed", "seeds", "runs", "median", "min", "max"}`` over the
+    :func:`run_row` rows; a failed run's pose AUCs count as 0, non-finite values are ignored."""
     leaves = [_leaves({s: r[s] for s in RUN_SECTIONS if s in r}) for r in rows]
     auc_paths = {p for lv in leaves for p in lv
                  if p[0] == "model_pose_auc" and (p[1].startswith("auc") or p[1] == "maa")}

@@ -1,31 +1,6 @@
-"""Quality report of a reconstruction (and of a database's matches) against ground truth.
-
-:func:`build_report` returns a plain dict (JSON-ready) with these sections:
-
-- ``reconstruction``: the statistics of COLMAP's ``model_analyzer`` under pycolmap's
-  ``Reconstruction.summary()`` names: num_cameras, num_images, num_reg_images, num_points3D,
-  num_observations, mean_track_length, mean_observations_per_image, mean_reprojection_error
-  (px).
-- ``model_pose_auc`` (with GT): relative-pose AUC at each of ``auc_thresholds`` (default
-  0.5/1/2/5/10/20 deg, keys ``auc0.5``, ``auc1``, ...; 5/10/20 always present) and mAA (1-10 deg) over ALL
-  pairs of GT images, from the reconstructed poses; an unregistered image makes its pairs
-  failures. Pair error = max(rotation error, translation-direction angle), the sign of the
-  translation counts (a reconstruction fixes it).
-- ``absolute`` (with GT): rotation and camera-centre errors after a similarity (Umeyama)
-  alignment of the registered camera centres to the GT ones.
-- ``two_view_pose_auc_E`` / ``two_view_pose_auc_F`` (with GT and a database): the paper's E and
-  F protocols on every evaluated pair's verified inlier matches, with GT intrinsics (same AUC
-  keys).
-- ``keypoint_accuracy`` (with GT and a database): the stored inlier matches' distances to
-  their GT epipolar lines and the residuals of their tracks triangulated with the GT cameras
-  (:mod:`colmap_miho.reporting.keypoint_accuracy`; keys of ``KeypointAccuracy.to_dict``).
-- ``pairs``: one row per evaluated pair (names, match count, model/E/F errors), for plots.
-
-Without a model (database and GT only) the report holds the database sections alone.
-
-All AUCs are fractions in [0, 1]. The database is read through a private copy: report never
-changes the caller's file (pycolmap migrates the schema of a database it opens).
-"""
+"""Quality report of a reconstruction and of a database's matches against ground truth:
+:func:`build_report` returns a JSON-ready dict (model statistics, pose AUCs, absolute errors, the
+paper's two-view protocols, keypoint accuracy, per-pair rows); AUCs are fractions."""
 
 from __future__ import annotations
 
@@ -53,12 +28,8 @@ and the usual 2/20. 5/10/20 are always added (the ``auc5/auc10/auc20`` keys stay
 
 
 def auc_thresholds(thresholds=None) -> tuple[float, ...]:
-    """``thresholds`` (degrees; None = :data:`DEFAULT_AUC_THRESHOLDS_DEG`) with 5/10/20 added,
-    sorted, duplicates removed.
-
-    Raises:
-        ValueError: a threshold that is not a positive finite number.
-    """
+    """``thresholds`` in degrees (None: the defaults) with 5/10/20 added, sorted, unique; raises
+    ``ValueError`` for a non-positive or non-finite one."""
     given = DEFAULT_AUC_THRESHOLDS_DEG if thresholds is None else tuple(thresholds)
     for t in given:
         if not (isinstance(t, (int, float)) and math.isfinite(t) and t > 0):
@@ -67,15 +38,14 @@ def auc_thresholds(thresholds=None) -> tuple[float, ...]:
 
 
 def auc_key(threshold: float) -> str:
-    """JSON key of the AUC at ``threshold`` degrees: ``auc0.5``, ``auc1``, ``auc20`` (the keys
-    of :func:`colmap_miho.reporting.pose_metrics.auc_summary`)."""
+    """JSON key of the AUC at ``threshold`` degrees: ``auc0.5``, ``auc1``, ``auc20``."""
     t = float(threshold)
     return f"auc{int(t) if t.is_integer() else t}"
 
 
 # --------------------------------------------------------------------------- reconstruction
 def reconstruction_stats(rec) -> dict:
-    """Statistics of a ``pycolmap.Reconstruction`` (see module docstring)."""
+    """Statistics of a ``pycolmap.Reconstruction`` under ``Reconstruction.summary()``'s names."""
     n_pts = int(rec.num_points3D())
     n_reg = int(rec.num_reg_images())
     return {
@@ -91,8 +61,7 @@ def reconstruction_stats(rec) -> dict:
 
 
 def pointcloud_figures(rec) -> dict:
-    """Density / outlier figures of the sparse cloud (``colmap_miho.reporting.pointcloud``;
-    open3d optional). Empty dict when they cannot be computed (logged, never fatal)."""
+    """Density / outlier figures of the sparse cloud; empty when they cannot be computed (logged)."""
     try:
         from . import pointcloud as pc
 
@@ -106,14 +75,8 @@ def pointcloud_figures(rec) -> dict:
 # --------------------------------------------------------------------------- database matches
 @dataclass(frozen=True, kw_only=True)
 class DatabaseInliers:
-    """Keypoints and verified inlier matches of a database, by image name.
-
-    Attributes:
-        num_images: the database's image count.
-        keypoints: name -> float64 (N, 2) keypoint positions, integer = pixel centre.
-        matches: (name1, name2) with name1 < name2 -> int64 (M, 2) keypoint indices (column 0
-            into name1's keypoints, column 1 into name2's) of the two-view-geometry inliers.
-    """
+    """A database's keypoints (name -> float64 ``(N, 2)``) and verified inliers ((name1, name2),
+    name1 < name2 -> int64 ``(M, 2)`` indices)."""
 
     num_images: int
     keypoints: dict
@@ -127,12 +90,7 @@ class DatabaseInliers:
 
 
 def read_database_inliers(database: str | Path) -> DatabaseInliers:
-    """Keypoints and verified inlier matches of a database (see :class:`DatabaseInliers`).
-
-    The database is copied to a temporary folder first and only the copy is opened; keypoints
-    come through :class:`colmap_miho.adapters.database.ColmapDatabase` (COLMAP's +0.5 px offset
-    removed there).
-    """
+    """Keypoints and verified inlier matches of a database, read through a temporary copy."""
     from ..adapters.database import ColmapDatabase, validate_database
     from ..adapters.safety import check_database_path, read_copy
     from ..adapters.staged_write import private_tempdir
@@ -160,28 +118,14 @@ def read_database_inliers(database: str | Path) -> DatabaseInliers:
 
 
 def read_database_matches(database: str | Path, names: set[str] | None = None) -> tuple[int, dict]:
-    """Verified inlier matches of a database as pixel-centre point pairs, by image names.
-
-    The database is copied to a temporary folder first and only the copy is opened.
-
-    Args:
-        database: COLMAP database path.
-        names: keep only pairs whose two images are in this set (None: all).
-
-    Returns:
-        ``(num_images, matches)``: the database's image count and
-        ``{(name1, name2): (pts1 (M, 2), pts2 (M, 2))}`` with name1 < name2, float64 pixels,
-        integer = pixel centre.
-    """
+    """``(num_images, {(name1, name2): (pts1 (M, 2), pts2 (M, 2))})``: verified inliers as float64
+    pixel pairs, name1 < name2, optionally only pairs within ``names``; read through a copy."""
     inl = read_database_inliers(database)
     return inl.num_images, inl.point_pairs(names)
 
 
 def database_keypoint_accuracy(inliers: DatabaseInliers, gt: dict[str, CameraPose], **thresholds) -> dict:
-    """:func:`colmap_miho.reporting.keypoint_accuracy.keypoint_accuracy` of a database's
-    inliers under the GT cameras, as a JSON-ready dict (the ``keypoint_accuracy`` section);
-    ``thresholds`` are passed on (``epipolar_threshold_px``, ``track_threshold_px``,
-    ``min_track_views``)."""
+    """The ``keypoint_accuracy`` section: a database's inliers under the GT cameras."""
     from .keypoint_accuracy import keypoint_accuracy
 
     if not set(inliers.keypoints) & set(gt):
@@ -192,9 +136,7 @@ def database_keypoint_accuracy(inliers: DatabaseInliers, gt: dict[str, CameraPos
 
 def database_epipolar_flips(before: DatabaseInliers, after: DatabaseInliers, gt: dict[str, CameraPose],
                             **thresholds) -> dict:
-    """:func:`colmap_miho.reporting.match_flips.epipolar_flips` of two databases of one scene
-    (e.g. filter-only and refined; images by name, keypoints by index) under the GT cameras, as
-    a JSON-ready dict; ``thresholds``: ``threshold_px``."""
+    """Epipolar flips between two databases of one scene under the GT cameras, as a JSON-ready dict."""
     from .match_flips import epipolar_flips
 
     cameras: dict[Hashable, object] = {name: pose for name, pose in gt.items()}
@@ -206,20 +148,8 @@ def two_view_pair_errors(
     matches: dict, gt: dict[str, CameraPose], pairs: list[tuple[str, str]], *, seed: int = 0,
     protocols: tuple[str, ...] = ("E", "F"), magsac_for_f: bool = True,
 ) -> dict[tuple[str, str], dict]:
-    """Run the paper's two-view pose protocols on every pair.
-
-    Args:
-        matches: output of :func:`read_database_matches`.
-        gt: GT poses (intrinsics and relative poses).
-        pairs: pairs to evaluate, (name1, name2) either order; a pair without matches is a
-            failure (error ``inf``) for every protocol.
-        seed: OpenCV RNG seed for RANSAC/MAGSAC.
-        protocols: subset of ("E", "F").
-        magsac_for_f: MAGSAC (0.75 px) before the 8-point F, as in the paper's F scores.
-
-    Returns:
-        ``{(name1, name2): {"num_matches": int, "E": error_deg, "F": error_deg}}``.
-    """
+    """The paper's two-view pose protocols ("E", "F") on every pair: ``{pair: {"num_matches", "E",
+    "F"}}`` (errors in degrees; a pair without matches fails with ``inf``)."""
     out = {}
     for a, b in pairs:
         key = (a, b) if a < b else (b, a)
@@ -242,11 +172,7 @@ def two_view_pair_errors(
 
 
 def default_eval_pairs(gt_path: str | Path | None, gt: dict[str, CameraPose]) -> tuple[list[tuple[str, str]], str]:
-    """Pairs for the two-view AUC: the dataset's ``pairs_with_gt.txt`` when the GT model sits
-    in a dataset folder that has one (the benchmark's own pair list), else all GT pairs.
-
-    Returns ``(pairs, description)``.
-    """
+    """``(pairs, description)``: the dataset's ``pairs_with_gt.txt`` when it has one, else all GT pairs."""
     if gt_path is not None:
         from .gt_model import resolve_model_dir
 
@@ -274,24 +200,11 @@ def build_report(
     seed: int = 0,
     thresholds=None,
 ) -> dict:
-    """Evaluate a model and/or a database's matches and return the report dict.
+    """Evaluate a model and/or a database's matches against ``gt`` and return the report dict.
 
-    Args:
-        model: COLMAP model folder (text or binary); or pass ``reconstruction``. Without
-            either, only the database's matches are evaluated (needs ``database`` and ``gt``):
-            the report then has no ``reconstruction``, ``model_pose_auc`` or ``absolute``
-            section and its pair rows hold no ``model`` error.
-        reconstruction: an in-memory ``pycolmap.Reconstruction`` instead of ``model``.
-        database: COLMAP database whose verified matches get the two-view pose AUCs and the
-            ``keypoint_accuracy`` section (needs gt).
-        gt: GT COLMAP model folder (or a dataset folder with ``gt_model/``).
-        pairs: pairs for the two-view AUCs: a list of name pairs or a pairs file; default
-            :func:`default_eval_pairs`.
-        seed: RANSAC seed of the two-view protocols.
-        thresholds: pose-AUC thresholds in degrees (default
-            :data:`DEFAULT_AUC_THRESHOLDS_DEG`; 5/10/20 are always added, see
-            :func:`auc_thresholds`).
-    """
+    ``model`` (a folder) or ``reconstruction``; without either, only ``database`` is evaluated.
+    ``pairs``: name pairs or a pairs file for the two-view AUCs. ``thresholds``: pose-AUC thresholds
+    in degrees (5/10/20 always added)."""
     from ..arguments import check_paths, check_seed
     from .gt_model import load_gt_poses, load_reconstruction, poses_from_reconstruction
 
@@ -378,8 +291,7 @@ def json_safe(obj):
 
 
 def write_report_json(report: dict, path: str | Path) -> Path:
-    """Write ``report`` as indented JSON (NaN/inf as null), whole or not at all (staged beside
-    the target, size checked, renamed; a symlink keeps its link); returns the path."""
+    """Write ``report`` as indented JSON (NaN/inf as null), whole or not at all; returns the path."""
     import json
 
     from ..adapters.staged_write import write_text_atomic

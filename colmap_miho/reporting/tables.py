@@ -1,12 +1,6 @@
-"""The side-by-side table of ``compare``: which rows, in which groups, how a cell reads, and
-whether a change is better or worse.
-
-Rows are (label, key path into a report dict, format, which way is better), in four groups:
-reconstruction, model pose, two-view pose, keypoints against GT. The AUC rows follow the
-thresholds present in the reports (``auc0.5`` ... ``auc20``). With repeated mapping runs (a
-``repeats`` section, :mod:`colmap_miho.reporting.repeats`) a mapping figure reads
-``median [min-max]``, and a change whose two ranges overlap is within the runs' spread.
-"""
+"""The side-by-side table of ``compare``: rows by group, cell formats, and whether a change is
+better or worse. With repeated mapping runs a figure reads ``median [min-max]`` and overlapping
+ranges are within the runs' spread."""
 
 from __future__ import annotations
 
@@ -101,9 +95,8 @@ def _get(d: dict, path: tuple):
 
 
 def format_value(v, spec: str) -> str:
-    """``v`` as a table cell: ``"-"`` for None or a non-finite number; ``spec`` ``"%"`` / ``"%2"``
-    a fraction in percent with 1 / 2 decimals, ``"d"`` an integer (a non-integer median with 1
-    decimal), else a :func:`format` spec."""
+    """``v`` as a cell: ``"-"`` for None or non-finite; ``"%"``/``"%2"`` percent, ``"d"`` integer,
+    else a :func:`format` spec."""
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "-"
     if spec == "%":
@@ -116,7 +109,6 @@ def format_value(v, spec: str) -> str:
 
 
 def _cell(rep: dict, path: tuple, spec: str) -> str | None:
-    """The value of ``path``: plain, or with repeats the median and ``[min-max]``."""
     rpt = rep.get("repeats")
     if rpt and _get(rpt.get("median", {}), path) is not None:
         med, lo, hi = (_get(rpt[k], path) for k in ("median", "min", "max"))
@@ -127,8 +119,7 @@ def _cell(rep: dict, path: tuple, spec: str) -> str | None:
 
 
 def _values(rep: dict, path: tuple) -> tuple[float, float, float] | None:
-    """(value, low, high) of ``path``: with repeats the median, min and max, else the value
-    three times; None when missing or not a finite number."""
+    """(value, low, high) of ``path`` (median, min, max with repeats); None when missing or not finite."""
     rpt = rep.get("repeats")
     if rpt and _get(rpt.get("median", {}), path) is not None:
         got = tuple(_get(rpt[k], path) for k in ("median", "min", "max"))
@@ -142,8 +133,7 @@ def _values(rep: dict, path: tuple) -> tuple[float, float, float] | None:
 
 
 def _change_text(before: float, after: float, spec: str) -> str:
-    """The change as printed: percentage points for shares, else the difference and, where
-    the baseline is not zero, its relative size."""
+    """The change as printed: percentage points for shares, else the difference and its relative size."""
     diff = after - before
     if spec in ("%", "%2"):
         return f"{100 * diff:+.{1 if spec == '%' else 2}f} pts"
@@ -179,9 +169,7 @@ class ComparedRow:
 
 
 def comparison_groups(baseline: dict, refined: dict) -> list[tuple[str, list[ComparedRow]]]:
-    """(group, rows) of the side-by-side table: every metric present in either report, groups
-    without one left out. A row's verdict compares the values (with repeats, the medians; when
-    the two [min-max] ranges overlap, the change is within the runs' spread)."""
+    """(group, rows) of every metric present in either report, with each change's verdict."""
     out = []
     for group, specs in table_groups(baseline, refined):
         rows = []
@@ -203,9 +191,7 @@ def comparison_groups(baseline: dict, refined: dict) -> list[tuple[str, list[Com
 
 
 def comparison_rows(baseline: dict, refined: dict) -> list[tuple[str, str, str]]:
-    """(metric, baseline, refined) text rows for every metric present in either report, group
-    by group (:func:`comparison_groups`). With repeated runs (a ``repeats`` section) the
-    mapping figures read ``median [min-max]``."""
+    """(metric, baseline, refined) text rows of :func:`comparison_groups`."""
     return [(row.metric, row.baseline, row.refined) for _, rows in comparison_groups(baseline, refined)
             for row in rows]
 

@@ -1,7 +1,5 @@
-"""Multi-view geometry under known cameras: batched triangulation of tracks with their reprojection
-residuals. Cameras are world-to-camera (K, R, t) with pixel-centre intrinsics; pixels in
-colmap-miho's convention (integer = pixel centre).
-"""
+"""Batched triangulation of tracks under known world-to-camera (K, R, t), with reprojection
+residuals; pixel centres at integers."""
 
 from __future__ import annotations
 
@@ -20,22 +18,12 @@ def triangulate_tracks(
     K: np.ndarray, R: np.ndarray, t: np.ndarray, xy: np.ndarray, valid: np.ndarray,
     *, gauss_newton_steps: int = GAUSS_NEWTON_STEPS,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Triangulate T tracks of up to L observations with known cameras; vectorised over tracks.
+    """Triangulate T tracks of up to L observations: linear DLT, then Gauss-Newton on the pixel
+    error.
 
-    Linear DLT on normalised coordinates (``K^-1 x``), then ``gauss_newton_steps`` Gauss-Newton
-    steps on the pixel reprojection error (a step that does not lower a track's error is not
-    taken).
-
-    Args:
-        K, R, t: (T, L, 3, 3), (T, L, 3, 3), (T, L, 3) camera of each observation (world-to-camera).
-        xy: (T, L, 2) observed pixels (integer = pixel centre).
-        valid: (T, L) bool, which slots hold an observation (>= 2 per track).
-
-    Returns:
-        ``(X (T, 3), residual (T, L))``: the points and the pixel reprojection error of each
-        observation (0 at invalid slots; ``inf`` at every slot of a track whose point lies
-        behind or on one of its cameras).
-    """
+    ``K``, ``R`` ``(T, L, 3, 3)``, ``t`` ``(T, L, 3)``, ``xy`` ``(T, L, 2)``, ``valid`` ``(T, L)``
+    (>= 2 per track). Returns ``(X (T, 3), residual (T, L))``: 0 at invalid slots, ``inf`` for a
+    point behind a camera."""
     valid = np.asarray(valid, dtype=bool)
     w = valid[..., None].astype(np.float64)
     T = xy.shape[0]

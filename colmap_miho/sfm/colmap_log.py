@@ -1,5 +1,4 @@
-"""COLMAP's own log (glog) sent to a file instead of the terminal, for every pycolmap call that
-maps or extracts."""
+"""COLMAP's own log (glog) sent to a file instead of the terminal, for every pycolmap call that maps or extracts."""
 
 from __future__ import annotations
 
@@ -22,20 +21,12 @@ _GLOG_RECORD = re.compile(r"[IWEF]\d{8} \d{2}:\d{2}:\d{2}\.\d{6} +\d+ [^\s\]]+:\
 @contextlib.contextmanager
 def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_terminal: bool = True,
                        replay: bool = False, hide: tuple[str, ...] = (MAPPER_IMAGE_WARNING,)):
-    """Send COLMAP's glog output to ``folder/colmap_log.<timestamp>``; its errors also reach
-    stderr unless ``errors_to_terminal`` is False (a call whose failure the caller reports in
-    its own words).
+    """Send COLMAP's glog output to ``folder/colmap_log.<timestamp>`` (errors also to stderr unless
+    ``errors_to_terminal`` is False); yields the path prefix, or None when verbose.
 
-    With ``verbose`` and ``replay`` the log still goes to the file, and its lines are written
-    to stderr when the call ends, their control characters escaped (glog prints image names
-    raw: a name holding a newline or ESC would forge a line), glog's header and the records
-    holding a text of ``hide`` left out: for a short call, or one whose names need escaping.
-
-    Yields the log file's path prefix (glog appends a timestamp), or None when verbose (or
-    ``folder`` is None): then COLMAP's log goes to stderr only (see :func:`glog_to_stderr`),
-    never to glog's own files in ``$TMPDIR``. glog settings are process-wide; they are
-    restored on exit.
-    """
+    With ``verbose`` and ``replay`` the lines reach stderr when the call ends, escaped (glog prints
+    image names raw: a newline or ESC could forge a line), without records holding ``hide``. glog
+    settings are process-wide and restored on exit."""
     import pycolmap
 
     lg = pycolmap.logging
@@ -64,9 +55,7 @@ def colmap_log_to_file(folder: Path | None, *, verbose: bool = False, errors_to_
 
 
 def replay_log(log_file: Path | None, hide: tuple[str, ...] = (MAPPER_IMAGE_WARNING,)) -> None:
-    """Write the lines of the glog file ``log_file`` to stderr, escaped (see
-    :func:`colmap_log_to_file`), without glog's header and the records that hold a text of
-    ``hide``."""
+    """Write ``log_file``'s lines to stderr, escaped, without glog's header or records holding ``hide``."""
     import sys
 
     from ..terminal import printable
@@ -93,10 +82,7 @@ def replay_log(log_file: Path | None, hide: tuple[str, ...] = (MAPPER_IMAGE_WARN
 
 @contextlib.contextmanager
 def glog_to_stderr():
-    """COLMAP's log (glog) on stderr only for the block, restored after: by default glog also
-    writes every line into files of its own in ``$TMPDIR`` (``.<host>.<user>.log.INFO.<time>.<pid>``,
-    ``.WARNING``, ``.ERROR``) that nobody asked for and nobody removes. Which lines reach
-    stderr is still ``minloglevel``'s to say."""
+    """COLMAP's log on stderr only for the block (glog otherwise leaves its own files in ``$TMPDIR``)."""
     import pycolmap
 
     lg = pycolmap.logging
@@ -121,9 +107,7 @@ _STEP_DONE = re.compile(r"\] (.+?) done in ([0-9.eE+-]+) seconds")
 
 
 def step_seconds(log_file: Path | None) -> dict[str, float]:
-    """The seconds of each step a COLMAP log says it finished ("rotation averaging", "global
-    positioning", "iterative bundle adjustment" ...; lower case, the last of a repeated step, the
-    whole "reconstruction" left out); empty without a file."""
+    """Seconds of each step a COLMAP log says it finished (lower case, last of repeats); empty without a file."""
     if log_file is None:
         return {}
     try:

@@ -1,6 +1,5 @@
-"""COLMAP's SIFT extraction and exhaustive matching (pycolmap, CPU) into a new database, with the
-free space it needs checked first (pycolmap aborts the process on a full disk).
-"""
+"""COLMAP's SIFT extraction and exhaustive matching (pycolmap, CPU) into a new database, with its
+free space checked first (pycolmap aborts on a full disk)."""
 
 from __future__ import annotations
 
@@ -17,8 +16,6 @@ log = logging.getLogger(__name__)
 
 
 def _names_need_escaping(image_dir: Path) -> bool:
-    """Whether a file name under ``image_dir`` holds a character that
-    :func:`~colmap_miho.terminal.printable` escapes (a newline, ESC ...)."""
     import os
 
     from ..terminal import printable
@@ -41,23 +38,13 @@ def extract_and_match(
     verbose: bool = False,
     log_dir: str | Path | None = None,
 ) -> dict:
-    """COLMAP SIFT extraction and exhaustive matching (CPU) into a new database.
+    """COLMAP SIFT extraction and exhaustive matching (CPU) of every image in ``image_dir`` into the
+    new ``database``.
 
-    Args:
-        image_dir: folder of images (all of them are used).
-        database: the database to create; must not exist yet.
-        camera_mode: "single" (one camera for all images, default), "per_image",
-            "per_folder" or "auto" (COLMAP's: by size and EXIF).
-        camera_model: COLMAP camera model for the new cameras.
-        camera_params: known intrinsics as COLMAP's comma-separated parameter string ("" =
-            estimate; COLMAP starts from 1.2 * max(width, height)).
-        max_features: SIFT features per image.
-        num_threads: extraction / matching threads, -1 = all.
-        verbose: COLMAP's log on the terminal; else in ``log_dir`` (default: beside the database).
-
-    Returns:
-        ``{"num_images", "seconds_extract", "seconds_match"}``.
-    """
+    ``camera_mode``: "single", "per_image", "per_folder" or "auto"; ``camera_params``: COLMAP's
+    comma-separated parameters ("" = estimate); ``num_threads`` -1 = all; without ``verbose``
+    COLMAP's log goes to ``log_dir``. Returns ``{"num_images", "seconds_extract",
+    "seconds_match"}``."""
     import pycolmap
 
     from ..arguments import check_integer, check_paths
@@ -120,7 +107,6 @@ def extract_and_match(
 
 
 def _some(names: list[str], most: int = 5) -> str:
-    """Up to ``most`` of ``names``, escaped for the terminal, and how many more."""
     from ..terminal import printable
 
     shown = ", ".join(printable(n) for n in names[:most])
@@ -128,17 +114,8 @@ def _some(names: list[str], most: int = 5) -> str:
 
 
 def check_camera_sizes(sizes: dict[str, tuple[int, int]], camera_mode: CameraMode, image_dir: Path) -> None:
-    """Refuse a camera mode that shares one camera between images of different sizes (one
-    camera: every image; per folder: the images of a folder): COLMAP's extraction would drop,
-    with a line in its log only, every image whose size is not the first one's.
-
-    Args:
-        sizes: image name (relative to ``image_dir``) -> ``(width, height)`` pixels.
-
-    Raises:
-        InvalidInput: one line naming the sizes, how many images have each, some of them, and
-            the camera modes that fit.
-    """
+    """Refuse a camera mode that shares one camera between images of different sizes (COLMAP would
+    silently drop the others); InvalidInput naming the sizes and the modes that fit."""
     if camera_mode not in (CameraMode.SINGLE, CameraMode.PER_FOLDER):
         return
     groups: dict[str, dict[tuple[int, int], list[str]]] = {}
@@ -172,11 +149,7 @@ EXTRACTION_WRITE_FACTOR = 2
 
 
 def check_extraction_space(image_dir: Path, folder: Path, max_features: int) -> None:
-    """Refuse an extraction whose database would not fit the free space of ``folder``.
-
-    Raises:
-        UserError: one line naming the folder, the estimate and the free space.
-    """
+    """Refuse an extraction whose database would not fit ``folder``'s free space (UserError)."""
     from ..adapters.safety import check_free_space
 
     n = sum(1 for p in Path(image_dir).rglob("*") if p.is_file())

@@ -1,19 +1,6 @@
-"""Match check core: judge every match against a global estimate of the cameras (pure numpy).
-
-:func:`judge_in_rounds` is the whole check (its steps, estimate, trust, hinge, judge, in
-``docs/how-it-works.md``): it asks an :class:`Estimator` (pycolmap's global mapper,
-:class:`colmap_miho.sfm.global_estimate.GlobalEstimator`) for the estimate, examines it for a
-hinge (:func:`resolve_hinge`), judges (:func:`check_matches`: :func:`trusted_images`,
-:func:`robust_scale`, :func:`cut_off_images`), places the images it did not trust again from
-the trusted part (:func:`place_untrusted`), and estimates again from the survivors.
-
-Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))`` (``X_cam = R X + t``);
-``rays`` are a camera's normalised image coordinates ``(N, 2)`` (undistorted, ``K^-1 x``) of an
-image's keypoints; ``focal`` is the camera's mean focal length in pixels, which turns a
-distance in normalised coordinates into pixels.
-
-Pure: arrays in, a small result out; the estimator passed in does the I/O.
-"""
+"""Match check core (pure numpy): judge every match against a global estimate of the cameras. Poses
+are ``cam_from_world``; ``rays`` ``(N, 2)`` are undistorted normalised keypoints; ``focal`` (pixels)
+turns a normalised distance into pixels."""
 
 from __future__ import annotations
 
@@ -34,27 +21,9 @@ from .restore import restore_matches
 
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckDecision:
-    """What :func:`judge_in_rounds` decided, over all its rounds.
-
-    Attributes:
-        used: some round's estimate was trusted and its matches judged.
-        reason: why no round's was ("" when used), or why the rounds stopped early.
-        rounds: estimates made.
-        failed: pair -> bool ``(M,)`` over its matches: those that failed (every pair of two
-            trusted images, and any pair with a failing match; all True for a wrong pair).
-        wrong: pairs most of whose matches failed (removed whole).
-        fail_share: wrong pair -> its share of failing matches before it was removed whole.
-        registered / trusted / untrusted / cut_off: image ids placed by some round's estimate /
-            whose pose was trusted in some round / placed but never trusted / that the removals
-            would have cut off the rest of the pair graph.
-        judged_pairs: pairs of two trusted images.
-        scale_px / threshold_px: the first used round's scale and threshold (every round
-            applies that threshold).
-        seconds: per round, the estimate's parts and "judging", "placements" and "hinge".
-        mapper_steps: per round, the global mapper's own seconds per step (its log's).
-        hinges: the hinges found in the rounds' estimates and their verdicts.
-        unjudged: pairs left unjudged across a hinge the evidence could not decide.
-    """
+    """What :func:`judge_in_rounds` decided over all its rounds (``failed``: pair -> bool ``(M,)``;
+    ``scale_px`` / ``threshold_px`` from the first used round; ``unjudged``: pairs across an
+    undecided hinge; ``restored``: candidate pair -> bool ``(R,)``, the filter's removals given back)."""
 
     used: bool
     reason: str = ""
@@ -78,21 +47,11 @@ class MatchCheckDecision:
 
 def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
                     cfg: MatchCheckConfig, candidates: Mapping[Pair, np.ndarray] | None = None) -> MatchCheckDecision:
-    """The match check: up to ``cfg.rounds`` global estimates, each from the survivors of the
-    last, each judged (:func:`check_matches`, then :func:`place_untrusted`).
-
-    A later round estimates from the survivors among the images not trusted yet and those
-    :data:`LATER_ROUND_RINGS` pairs around them (its cost follows what is left to judge, not
-    the scene; where those images are many, that is the whole pair graph), and judges only the
-    pairs of the images newly trusted, with the first round's threshold (the survivors'
-    distances are truncated: a scale taken from them would shrink round after round); it stops
-    once every placed image is trusted. Each estimate is first
-    examined for a hinge (:func:`resolve_hinge`).
-
-    ``candidates`` (pair -> ``(R, 2)``, matches the filter removed) are given back where the
-    round's estimate and its kept matches prove them (:mod:`.restore`); ``restored`` holds
-    pair -> bool ``(R,)`` for the pairs with any.
-    """
+    """The match check: up to ``cfg.rounds`` estimates, each from the last one's survivors. Later
+    rounds estimate only around untrusted images and keep the first threshold (the survivors'
+    distances are truncated, so a scale taken from them would shrink round after round).
+    ``candidates`` (pair -> ``(R, 2)``, the matches the filter removed) come back where a round's
+    estimate and kept matches prove them (:mod:`.restore`)."""
     failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
     wrong: set[Pair] = set()
     trusted_any: set[int] = set()
@@ -189,8 +148,7 @@ def images_around(images: set[int], pairs, rings: int) -> set[int]:
 
 
 class CameraEstimate(Protocol):
-    """What the judging reads of a global estimate of the cameras (the attributes of
-    :class:`colmap_miho.sfm.global_estimate.GlobalEstimate`, described there)."""
+    """What the judging reads of a global estimate (see :class:`~colmap_miho.sfm.global_estimate.GlobalEstimate`)."""
 
     @property
     def poses(self) -> Mapping[int, Pose]: ...
@@ -214,8 +172,7 @@ Est = TypeVar("Est", bound=CameraEstimate)
 
 
 class Estimator(Protocol[Est]):
-    """Makes the global estimate from matches, and places one image again from the trusted
-    part of an estimate."""
+    """Makes the global estimate from matches, and places one image again from its trusted part."""
 
     def estimate(self, matches: Mapping[Pair, np.ndarray]) -> Est:
         """The estimate from ``matches`` (pair -> int ``(M, 2)`` keypoint indices)."""
@@ -223,26 +180,12 @@ class Estimator(Protocol[Est]):
     def place(self, estimate: Est, image_id: int, matches: Mapping[Pair, np.ndarray],
               trusted: frozenset[int], min_inliers: int | None = None) -> Pose | None:
         """A new pose of ``image_id`` from ``estimate``'s points seen through the ``trusted``
-        images (None when it cannot be placed with ``min_inliers`` inliers, default the
-        estimator's own)."""
+        images; None when fewer than ``min_inliers`` inliers."""
 
 
 @dataclass(frozen=True, kw_only=True)
 class HingeVerdict:
-    """A hinge found in one round's estimate, and what the coverage evidence made of it.
-
-    Attributes:
-        round: the round (1-based) whose estimate it was found in.
-        hinge: the mode and its two ends.
-        groups: the two groups, and the estimate's pairs between them.
-        mode_coverage / estimate_coverage: pair -> coverage (:func:`~.hinge.pair_coverage`) of
-            the mode's pairs / of the estimate's pairs across (``groups.across``).
-        verdict: the side the evidence took (:func:`~.hinge.arbitrate`): "estimate", "mode"
-            or "undecided".
-        action: "kept" (the estimate), "estimated again" (without the estimate's cross pairs)
-            or "judged less" (the pairs between the groups left unjudged).
-        unjudged: pairs left unjudged because of it.
-    """
+    """A hinge found in one round's estimate and the coverage evidence's verdict on it."""
 
     round: int
     hinge: Hinge
@@ -255,10 +198,8 @@ class HingeVerdict:
 
 
 class PairCoverage:
-    """Each pair's own evidence under one estimate, measured once: the second image placed by
-    the pair's matches alone from the first image's points (:meth:`placed`, with as many
-    inliers as a pair needs to count, ``min_hits``), and the pair's coverage
-    (:func:`~.hinge.pair_coverage`)."""
+    """Each pair's own evidence under one estimate, measured once: the second image placed from the
+    first's points by the pair's matches alone, and the pair's coverage."""
 
     def __init__(self, estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np.ndarray],
                  radius_px: float, min_hits: int) -> None:
@@ -268,7 +209,6 @@ class PairCoverage:
         self.poses: dict[tuple[int, int], Pose | None] = {}
 
     def _pair_matches(self, i: int, j: int) -> np.ndarray | None:
-        """The matches of images i and j with column 0 into i (None: not a pair)."""
         if (i, j) in self.matches:
             return np.asarray(self.matches[(i, j)], np.int64)
         if (j, i) in self.matches:
@@ -295,9 +235,7 @@ class PairCoverage:
 
 
 def weigh_hinge(coverage: PairCoverage, hinge: Hinge, round_: int) -> HingeVerdict:
-    """The estimate's cross pairs against the mode's, each measured by its own coverage: the
-    groups follow each image's strongest agreeing pairs (:func:`~.hinge.split_groups`), and
-    :func:`~.hinge.arbitrate` compares the estimate's pairs between them with the mode's."""
+    """The estimate's cross pairs against the mode's, each measured by its own coverage."""
     theirs = {p: coverage(p) for p in hinge.mode_pairs}
     groups = split_groups(hinge, lambda p: np.nan_to_num(coverage(p), nan=0.0))
     ours = {p: coverage(p) for p in groups.across}
@@ -307,8 +245,7 @@ def weigh_hinge(coverage: PairCoverage, hinge: Hinge, round_: int) -> HingeVerdi
 
 
 def _weaker_than_the_mode(v: HingeVerdict) -> set[Pair]:
-    """The estimate's cross pairs covered worse than the lower quartile of the mode's pairs
-    (those that say something)."""
+    """The estimate's cross pairs covered worse than the lower quartile of the mode's informative pairs."""
     theirs = [x for x in v.mode_coverage.values() if np.isfinite(x)] or [0.0]
     bar = float(np.percentile(theirs, 25))
     return {p for p, c in v.estimate_coverage.items() if not c >= bar}
@@ -322,17 +259,11 @@ def cross_pairs(pairs, groups: Groups) -> frozenset[Pair]:
 
 def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
                   round_: int) -> tuple[Est, list[HingeVerdict], frozenset[Pair]]:
-    """Look for a hinge in ``est`` and resolve it (:func:`weigh_hinge`).
+    """Look for a hinge in ``est`` and resolve it.
 
-    The evidence siding with the estimate keeps it. Siding with the mode, the estimate is made
-    again without the estimate's own cross pairs (the correct ones across the hinge then hold
-    the two groups together; the ones left out are still judged). Undecided, or a hinge found
-    again in the estimate made again, or no such estimate: the pairs between the two groups are
-    left unjudged (no correct match is removed on a guess).
-
-    Returns:
-        (the estimate to judge against, what was found, the pairs to leave unjudged).
-    """
+    Evidence for the estimate keeps it; for the mode, the estimate is made again without its cross
+    pairs; undecided, the pairs between the groups are left unjudged (no correct match is removed on
+    a guess). Returns (estimate to judge against, hinges found, pairs left unjudged)."""
     found: list[HingeVerdict] = []
     if not cfg.hinges:
         return est, found, frozenset()
@@ -364,26 +295,8 @@ def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np
 
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckResult:
-    """What the match check found.
-
-    Attributes:
-        used: the estimate was trusted (enough images) and the matches were judged.
-        reason: why it was not used ("" when used).
-        registered: images the estimate placed.
-        trusted: images whose pose the check trusted (their pairs were judged).
-        cut_off: images that agreed with their pairs but that the removals would have cut off
-            the rest of the pair graph (placed wrong as a group): not trusted.
-        agreeing_pairs / rotation_pairs: image id -> its pairs whose own relative rotation
-            agrees with the estimate's / its pairs with an own rotation.
-        scale_px: mean of the judged matches' distances under the exponential model
-            (:func:`robust_scale`, pixels).
-        threshold_px: the distance above which a match failed.
-        failed: pair -> bool ``(M,)``: the pair's matches that failed (only judged pairs).
-        wrong_pairs: judged pairs most of whose matches failed (removed as a whole).
-        pair_fail_share: judged pair -> its share of failing matches.
-        matches_judged / matches_failed: over the judged pairs (wrong pairs included).
-        poses: the poses judged with (the estimate's, the re-placed images' replaced).
-    """
+    """What the match check found (``failed``: pair -> bool ``(M,)`` over judged pairs; distances in
+    pixels; ``poses``: those judged with, re-placed images' included)."""
 
     used: bool
     reason: str = ""
@@ -408,24 +321,9 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
                   threshold: float | None = None) -> MatchCheckResult:
     """Judge the matches of every pair of two trusted images against the estimate.
 
-    Args:
-        matches: pair -> int ``(M, 2)`` keypoint indices (image_id1, image_id2).
-        rays: image id -> ``(N, 2)`` normalised coordinates of its keypoints (registered
-            images only).
-        focal: image id -> focal length in pixels (registered images).
-        poses: image id -> estimated ``cam_from_world`` (the registered images).
-        pair_rotations: pair -> its own relative rotation ``R_2from1`` (pairs with at least
-            ``cfg.min_pair_matches`` matches whose own pose could be estimated).
-        cfg: the thresholds.
-        threshold: pixels; use this threshold instead of the one from these matches'
-            distances (a later round, judging the survivors of the first: their distances are
-            truncated, and a scale taken from them would shrink round after round).
-
-    Returns:
-        A :class:`MatchCheckResult`; ``used`` False (nothing failed) when fewer than
-        ``cfg.min_trusted_images`` images, or less than ``cfg.min_trusted_share`` of the
-        registered ones, are trusted.
-    """
+    ``matches``: pair -> int ``(M, 2)`` keypoint indices; ``pair_rotations``: pair -> its own
+    ``R_2from1``. ``threshold`` (pixels) replaces the one taken from these distances (later rounds).
+    ``used`` is False when too few images, or too small a share, are trusted."""
     registered = frozenset(int(k) for k in poses)
     if len(registered) < cfg.min_trusted_images:
         return MatchCheckResult(used=False, registered=registered,
@@ -477,19 +375,16 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
 
 
 def robust_scale(distances: np.ndarray) -> float:
-    """Mean ``b`` of the distances of correct matches modelled as exponential (a folded
-    Laplace residual: keypoint errors have heavier tails than a normal's), from their median:
-    ``b = median / ln 2``. The wrong matches' distances lie far out and only push the median
-    up a little (with a share ``w`` of them, it is the ``0.5 / (1 - w)`` quantile of the
-    correct ones), so the threshold errs towards keeping. 0 for no distances."""
+    """Mean ``b = median / ln 2`` of the distances modelled as exponential (a folded Laplace
+    residual: keypoint errors have heavier tails than a normal's). Wrong matches only push the
+    median up a little, so the threshold errs towards keeping. 0 for no distances."""
     d = np.asarray(distances, np.float64)
     d = d[np.isfinite(d)]
     return float(np.median(d)) / np.log(2.0) if d.size else 0.0
 
 
 def threshold_px(scale: float, false_reject: float, lo: float, hi: float) -> float:
-    """The distance an exponential of mean ``scale`` exceeds with probability
-    ``false_reject`` (``scale * ln(1 / false_reject)``), clamped to ``[lo, hi]``."""
+    """``scale * ln(1 / false_reject)`` clamped to ``[lo, hi]``."""
     return float(np.clip(scale * np.log(1.0 / false_reject), lo, hi))
 
 
@@ -498,24 +393,10 @@ def trusted_images(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.n
                    ) -> tuple[set[int], dict[int, int], dict[int, int]]:
     """The images whose estimated pose agrees with their pairs' own relative rotations.
 
-    A pair's own rotation (from its matches alone) is right for a correct pair and arbitrary
-    for a wrong one (repeated or symmetric structure: on real scenes many pairs are wrong, so
-    a median over an image's pairs is not robust). A wrong pose agrees with no correct pair,
-    and a wrong pair agrees with the estimate only by chance, so the test counts agreements:
-    an image is trusted when at least ``min_agreeing_pairs`` of its pairs agree within
-    ``max_rotation_deg``.
-
-    Args:
-        poses: image id -> estimated ``cam_from_world``.
-        pair_rotations: pair -> the pair's own ``R_2from1`` (from its matches alone).
-        max_rotation_deg: a pair agrees when the angle between its rotation and the
-            estimate's is at most this.
-        min_agreeing_pairs: agreeing pairs an image needs.
-
-    Returns:
-        (trusted image ids, image id -> its agreeing pairs, image id -> its pairs with a
-        rotation), the counts for every registered image with at least one pair rotation.
-    """
+    A pair's own rotation is arbitrary for a wrong pair, and wrong pairs are many on real scenes, so
+    a median is not robust: an image is trusted when at least ``min_agreeing_pairs`` pairs agree
+    within ``max_rotation_deg``. Returns (trusted ids, id -> agreeing pairs, id -> pairs with a
+    rotation)."""
     agree: dict[int, int] = {}
     total: dict[int, int] = {}
     for (i, j), R in pair_rotations.items():
@@ -528,8 +409,7 @@ def trusted_images(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.n
 
 
 def _largest_component(edges: list[Pair], nodes: list[int]) -> set[int]:
-    """The largest connected component of the graph (``nodes``, ``edges``); of equal ones, the
-    one holding the smallest node."""
+    """The largest connected component; of equal ones, the one holding the smallest node."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -547,13 +427,8 @@ def _largest_component(edges: list[Pair], nodes: list[int]) -> set[int]:
 
 def cut_off_images(matches: Mapping[Pair, np.ndarray], failed: Mapping[Pair, np.ndarray],
                    wrong: set[Pair] | tuple[Pair, ...], min_pair_matches: int) -> set[int]:
-    """The images that removing the failed matches and the wrong pairs would cut off the main
-    part of the pair graph.
-
-    A pair links its images when it holds at least ``min_pair_matches`` matches (before: all
-    of them; after: those that did not fail, none for a wrong pair). Returns the images of the
-    largest component before that are outside the largest component after.
-    """
+    """The images of the pair graph's main part that removing failed matches and wrong pairs would
+    cut off (a pair links its images with at least ``min_pair_matches`` matches)."""
     nodes = sorted({i for p in matches for i in p})
     before = [p for p, m in matches.items() if len(m) >= min_pair_matches]
     after = [p for p, m in matches.items() if p not in wrong
@@ -570,12 +445,9 @@ PLACEMENT_ROUNDS = 3
 def place_untrusted(estimator: Estimator[Est], est: Est, res: MatchCheckResult,
                     matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
                     threshold: float | None) -> MatchCheckResult:
-    """Place each registered image the check did not trust again, from the estimate's 3D
-    points its keypoints match through the trusted images (as incremental mapping registers an
-    image: the trusted part of the estimate is not bent by that image's wrong pairs), and judge
-    again with those poses (the trust test decides again whether each new pose holds). When
-    that judgement finds images that would be cut off (:func:`cut_off_images`), they are placed
-    again from the smaller trusted part, up to :data:`PLACEMENT_ROUNDS` times."""
+    """Place each untrusted image again from the trusted part's 3D points (as incremental mapping
+    would, so its wrong pairs do not bend the estimate) and judge again; repeat for images that
+    would be cut off, up to :data:`PLACEMENT_ROUNDS` times."""
     if not cfg.place_untrusted:
         return res
     poses = dict(est.poses)

@@ -1,5 +1,4 @@
-"""Compiled (numba) kernel of :mod:`..miho`: the rotation fix's pair counts
-(:func:`rotation_counts`, the same decisions as :func:`..miho.choose_rotation`)."""
+"""Compiled (numba) kernel of :mod:`..miho`: the rotation fix's pair counts."""
 
 from __future__ import annotations
 
@@ -11,7 +10,6 @@ from ...compiled import Kernels, jit
 
 
 def _rotation_counts(dx1, dx2, lo, hi, rows):
-    """See :func:`rotation_counts`."""
     C = rows.shape[0]
     P = dx1.shape[1]
     scores = np.zeros(C, dtype=np.int64)
@@ -44,8 +42,6 @@ def _rotation_counts(dx1, dx2, lo, hi, rows):
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit every kernel and the helpers they call (numpy's error model: a division by zero
-    gives inf / nan, and those entries fail the sign test)."""
     j = jit()
     return {f.__name__: j(f) for f in (_rotation_counts,)}
 
@@ -56,10 +52,6 @@ KERNELS = Kernels(_jit_all)
 
 def rotation_counts(dx1: np.ndarray, dx2: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                     rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pair counts of the rotation fix's candidates (:func:`..miho.choose_rotation`, the same
-    decisions): for candidate linear parts ``rows`` ``(C, 2, 2)`` (entries 0 or +-1, one
-    nonzero per row), the pairs whose midpoint distance ``|dx1 + R dx2| / 2`` lies in
-    ``[lo, hi]`` (``(P,)`` each; ``dx1``, ``dx2`` ``(2, P)`` pair differences in each image),
-    and how many of them differ from candidate 0's. Returns ``(scores, differ)``, ``(C,)``
-    int64 each."""
+    """``(scores, differ)`` ``(C,)``: for each candidate ``rows[c]`` the pairs whose midpoint
+    distance ``|dx1 + R dx2| / 2`` lies in ``[lo, hi]``, and how many decide unlike candidate 0."""
     return KERNELS()["_rotation_counts"](dx1, dx2, lo, hi, rows)

@@ -1,6 +1,5 @@
-"""Compiled (numba) kernel of :mod:`..ransac`: the choice of a run's top-z buffer
-(:func:`greedy_cover`, the same as ``ransac._greedy_buffer``). The batch scoring and the refit
-it runs compiled are in :mod:`.scoring`, beside the helpers they share."""
+"""Compiled (numba) kernel of :mod:`..ransac`: the choice of a run's top-z buffer (batch scoring and
+refit are in :mod:`.scoring`, beside their helpers)."""
 
 from __future__ import annotations
 
@@ -12,7 +11,6 @@ from ...compiled import Kernels, jit
 
 
 def _greedy_cover(masks, covered, z):
-    """See :func:`greedy_cover`."""
     C, n = masks.shape
     cov = covered.copy()
     free = np.ones(C, dtype=np.bool_)
@@ -41,8 +39,6 @@ def _greedy_cover(masks, covered, z):
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit every kernel and the helpers they call (numpy's error model: a division by zero
-    gives inf / nan, and those entries fail the sign test)."""
     j = jit()
     return {f.__name__: j(f) for f in (_greedy_cover,)}
 
@@ -52,8 +48,6 @@ KERNELS = Kernels(_jit_all)
 
 
 def greedy_cover(masks: np.ndarray, covered: np.ndarray, z: int) -> np.ndarray:
-    """The top-z buffer's choice (``ransac._greedy_buffer``, the same): up to ``z`` rows of
-    the candidates' inlier ``masks`` ``(C, n)`` bool, each the one (first of equals) with the
-    most inliers not ``covered`` ``(n,)`` bool by the best model and the rows chosen before
-    it, while that gain is positive. Returns their ``(<= z,)`` int64 row indices in order."""
+    """Up to ``z`` rows of ``masks`` ``(C, n)``, each adding the most inliers not yet ``covered``
+    while the gain is positive; their int64 indices in order."""
     return KERNELS()["_greedy_cover"](masks, covered, int(z))

@@ -1,9 +1,6 @@
-"""Compiled (numba) kernels of :mod:`..sampling`: the spread test of minimal samples
-(:func:`spread_ok`), the local draws and the pool's neighbour lists (:func:`draw_local`,
-:func:`pool_neighbours`), a batch's local draws with the searches they need, in one call
-(:func:`draw_batch`), the local inlier fraction (:func:`local_fraction`), and
-:class:`NearestGrid`, the compiled path's neighbour search for local sampling (the numpy path
-keeps scipy's k-d tree). The same decisions / bits as numpy's for the same inputs."""
+"""Compiled (numba) kernels of :mod:`..sampling`: spread test, local draws and neighbour lists, a
+batch's draws in one call, the local inlier fraction, and :class:`NearestGrid` (the compiled
+neighbour search; numpy keeps scipy's k-d tree). Same decisions and bits as numpy's."""
 
 from __future__ import annotations
 
@@ -15,7 +12,6 @@ from ...compiled import Kernels, jit, jit_helpers
 
 
 def _spread_ok(spread_xy, sample, t2):
-    """``(B,)`` bool: see :func:`spread_ok`."""
     B = sample.shape[0]
     sets = spread_xy.shape[1]
     ok = np.ones(B, dtype=np.bool_)
@@ -43,12 +39,10 @@ def _spread_ok(spread_xy, sample, t2):
 
 
 def _draw_local(nb, keys, seeds, spread_x, spread_y, t2):
-    """See :func:`draw_local`."""
     return _draw_local_rows(nb, keys, seeds, spread_x, spread_y, t2)
 
 
 def _draw_local_rows(nb, keys, seeds, spread_x, spread_y, t2):
-    """See :func:`draw_local`."""
     L, k = nb.shape
     sets = spread_x.shape[0]
     out = np.empty((L, 3), dtype=np.int64)
@@ -90,8 +84,7 @@ def _draw_local_rows(nb, keys, seeds, spread_x, spread_y, t2):
 
 
 def _far(sx, sy, a, b, t2) -> bool:
-    """Matches ``a`` and ``b`` are at least ``sqrt(t2)`` apart in every set of ``sx``, ``sy``
-    ``(sets, n)`` (:func:`..sampling.apart_sets`' operations)."""
+    """Matches ``a`` and ``b`` are at least ``sqrt(t2)`` apart in every spread set."""
     for s in range(sx.shape[0]):
         dx = sx[s, a] - sx[s, b]
         dy = sy[s, a] - sy[s, b]
@@ -104,9 +97,7 @@ def _far(sx, sy, a, b, t2) -> bool:
 
 
 def _push_nearest(best_d, best_j, filled, d, j) -> int:
-    """Candidate ``j`` at squared distance ``d`` into the sorted buffers ``best_d`` /
-    ``best_j`` (q = their length; ``filled`` entries used), nearest first, ties by index;
-    returns the new ``filled``."""
+    """Push candidate ``j`` at squared distance ``d`` into the sorted buffers; returns the new ``filled``."""
     q = best_d.shape[0]
     if filled == q and not (d < best_d[q - 1] or (d == best_d[q - 1] and j < best_j[q - 1])):
         return filled
@@ -121,15 +112,13 @@ def _push_nearest(best_d, best_j, filled, d, j) -> int:
 
 
 def _neighbours(todo, cand, far, pos, feats, sx, sy, t2, k, q, pool, lists, listed):
-    """See :func:`pool_neighbours`."""
     return _neighbour_rows(todo, cand, far, False, pos, feats, sx, sy, t2, k, q, pool, lists,
                            listed)
 
 
 def _neighbour_rows(todo, cand, far, by_match, pos, feats, sx, sy, t2, k, q, pool, lists,
                     listed):
-    """:func:`pool_neighbours`; with ``by_match`` the candidates ``cand``, ``far`` are the
-    problem's tables ``(N, c)``, read at each row's global index, else ``(m, c)`` rows."""
+    """:func:`pool_neighbours`; ``by_match``: candidates read at each row's global index."""
     m = todo.shape[0]
     n = feats.shape[0]
     dims = feats.shape[1]
@@ -207,20 +196,17 @@ def _neighbour_rows(todo, cand, far, by_match, pos, feats, sx, sy, t2, k, q, poo
 
 
 def _keep_list(nb, r, pool, lists, listed, a):
-    """Keep row ``r`` of ``nb`` (a full list, pool positions) as match ``a``'s list in
-    ``lists`` (global indices) for the pools to come."""
+    """Keep row ``r`` of ``nb`` as match ``a``'s list (global indices) for later pools."""
     for c in range(nb.shape[1]):
         lists[a, c] = pool[nb[r, c]]
     listed[a] = True
 
 
 def _nearest(feats, todo, q, x0, y0, cell, nx, ny, start, members):
-    """See :meth:`NearestGrid.query`."""
     return _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members)
 
 
 def _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members):
-    """See :meth:`NearestGrid.query`."""
     m = todo.shape[0]
     dims = feats.shape[1]
     out = np.empty((m, q), dtype=np.int64)
@@ -268,8 +254,7 @@ def _nearest_rows(feats, todo, q, x0, y0, cell, nx, ny, start, members):
 def _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_all, sy_all,
                    feats_all, x0, y0, cell, nx, ny, start, members, pool_feats, sx, sy, t2, k,
                    q, lists, listed):
-    """Search the neighbour lists ``nb`` of the pool positions where ``need`` ``(n,)``, in
-    ascending order, and mark them ``known`` (:func:`draw_batch`'s search; its arguments)."""
+    """Search the neighbour lists of the positions where ``need``, ascending, and mark them ``known``."""
     n = pool.shape[0]
     m = 0
     for p in range(n):
@@ -312,9 +297,7 @@ def _search_needed(need, pool, pos, nb, known, cand, far, cknown, by_match, sx_a
 
 
 def _need_of(probes, known, n, all_at_once):
-    """``(n,)`` bool: the pool positions whose neighbour lists a draw or a probe of the
-    positions ``probes`` needs searched: those of ``probes`` not ``known`` yet, or every
-    position of a pool with ``all_at_once`` that has none searched yet."""
+    """``(n,)`` bool: the positions whose lists a draw or probe of ``probes`` needs searched."""
     fresh = True
     for p in range(n):
         if known[p]:
@@ -333,7 +316,6 @@ def _need_of(probes, known, n, all_at_once):
 def _local_fraction(mask, rows, pool, pos, nb, known, all_at_once, cand, far, cknown,
                     by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start, members,
                     pool_feats, sx, sy, t2, k, q, lists, listed):
-    """See :func:`local_fraction`."""
     n = pool.shape[0]
     m = rows.shape[0]
     probe = np.empty(m, dtype=np.int64)
@@ -364,7 +346,6 @@ def _local_fraction(mask, rows, pool, pos, nb, known, all_at_once, cand, far, ck
 def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, cand, far,
                 cknown, by_match, sx_all, sy_all, feats_all, x0, y0, cell, nx, ny, start,
                 members, pool_feats, sx, sy, t2, k, q, lists, listed):
-    """See :func:`draw_batch`."""
     n = pool.shape[0]
     size = seeds.shape[0]
     L = local.shape[0]
@@ -396,8 +377,6 @@ def _draw_batch(seeds, others, local, keys, pool, pos, nb, known, all_at_once, c
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit every kernel and the helpers they call (numpy's error model: a division by zero
-    gives inf / nan, and those entries fail the sign test)."""
     jit_helpers(globals(), (_far, _push_nearest, _keep_list, _draw_local_rows, _neighbour_rows, _nearest_rows,
                             _search_needed, _need_of))
     j = jit()
@@ -409,19 +388,14 @@ KERNELS = Kernels(_jit_all)
 
 
 def spread_ok(spread_xy: np.ndarray, sample: np.ndarray, t2: float) -> np.ndarray:
-    """``(B,)`` bool: the 4 matches of each minimal sample ``(B, 4)`` (global indices) are
-    pairwise at least ``sqrt(t2)`` pixels apart in every spread set; ``spread_xy``
-    ``(2, sets, N)`` float64 (``Problem.spread_xy``)."""
+    """``(B,)`` bool: each sample's 4 matches are pairwise at least ``sqrt(t2)`` px apart in every spread set."""
     return KERNELS()["_spread_ok"](spread_xy, sample, float(t2))
 
 
 def draw_local(nb: np.ndarray, keys: np.ndarray, seeds: np.ndarray, spread_x: np.ndarray,
                spread_y: np.ndarray, t2: float) -> np.ndarray:
-    """``(L, 3)`` pool positions drawn one by one among each seed's neighbours ``nb``
-    ``(L, k)`` (pool positions, -1 = none): the free neighbour of the largest key ``keys[j]``
-    ``(3, L, k)`` uniform in [0, 1), then only those at least ``sqrt(t2)`` from it in every
-    spread set ``spread_x``, ``spread_y`` ``(sets, n)`` stay free; the seed where none is
-    free."""
+    """``(L, 3)`` pool positions drawn one by one among each seed's neighbours ``nb`` by the largest
+    key, each leaving free only those far enough from it; the seed where none is free."""
     return KERNELS()["_draw_local"](nb, keys, seeds, spread_x, spread_y, float(t2))
 
 
@@ -431,21 +405,8 @@ def draw_batch(seeds: np.ndarray, others: np.ndarray, local: np.ndarray, keys: n
                grid: NearestGrid | None, sx_all: np.ndarray, sy_all: np.ndarray,
                pool_feats: np.ndarray, sx: np.ndarray, sy: np.ndarray, t2: float, k: int,
                q: int, lists: np.ndarray, listed: np.ndarray) -> np.ndarray:
-    """``(B, 4)`` global match indices of one batch of local sampling (``Sampler.draw``
-    with the compiled kernels, the same samples): the seeds ``seeds`` ``(B,)`` with the
-    others ``others`` ``(B, 3)`` (pool positions, uniform draws), where the samples
-    ``local`` ``(L,)`` take theirs among the seed's neighbours by the keys ``keys`` ``(3, L,
-    k)`` (:func:`draw_local`).
-
-    The neighbour lists ``nb`` ``(n, k)`` (pool positions) of the local seeds not ``known``
-    ``(n,)`` yet are searched first (:func:`pool_neighbours`; every pool match at the
-    first search when ``all_at_once``), both updated in place. ``grid``: the problem's
-    :class:`NearestGrid`, whose candidates fill ``cand``, ``far`` ``(N, c)`` where
-    ``cknown`` ``(N,)`` is False (updated in place; ``LocalCandidates``' tables), ``None``
-    for a problem searched without candidates. ``sx_all``, ``sy_all`` ``(sets, N)``: the
-    problem's spread sets; ``pool`` ``(n,)``, ``pos``, ``pool_feats``, ``sx``, ``sy``,
-    ``t2``, ``k``, ``q``, ``lists``, ``listed`` as :func:`pool_neighbours`.
-    """
+    """``(B, 4)`` global indices of one batch of local sampling, the same samples as
+    ``Sampler.draw``; unknown neighbour lists are searched first and updated in place."""
     if grid is None:
         empty = np.empty(0, dtype=np.int64)
         x0 = y0 = cell = 0.0
@@ -468,11 +429,8 @@ def local_fraction(mask: np.ndarray, rows: np.ndarray, pool: np.ndarray, pos: np
                    sx_all: np.ndarray, sy_all: np.ndarray, pool_feats: np.ndarray,
                    sx: np.ndarray, sy: np.ndarray, t2: float, k: int, q: int,
                    lists: np.ndarray, listed: np.ndarray) -> tuple[int, int]:
-    """``(valid, inside)``: of the neighbours (pool positions in ``nb`` ``(n, k)``, -1 =
-    none) of the inliers ``mask`` ``(n,)`` at the ranks ``rows`` (ascending, among the
-    inliers in pool order), how many there are and how many are inliers
-    (``Sampler.local_inlier_fraction``); the lists not ``known`` yet are searched first, as
-    :func:`draw_batch` searches a batch's seeds (its arguments, updated in place)."""
+    """``(valid, inside)``: how many neighbours the inliers at ``rows`` have and how many are
+    inliers; unknown lists are searched first."""
     grid_args = _grid_args(grid, cand, far)
     return KERNELS()["_local_fraction"](
         mask, rows, pool, pos, nb, known, bool(all_at_once), *grid_args[:2], cknown,
@@ -481,8 +439,7 @@ def local_fraction(mask: np.ndarray, rows: np.ndarray, pool: np.ndarray, pos: np
 
 
 def _grid_args(grid: NearestGrid | None, cand: np.ndarray, far: np.ndarray) -> tuple:
-    """``(cand, far, feats, x0, y0, cell, nx, ny, start, members)`` of the compiled search
-    for ``grid`` (empty tables and grid for a problem searched without candidates)."""
+    """The compiled search's arguments for ``grid`` (empty for a problem without candidates)."""
     if grid is None:
         empty = np.empty(0, dtype=np.int64)
         return (np.empty((0, 0), dtype=np.int64), np.empty((0, 0), dtype=np.bool_),
@@ -495,36 +452,16 @@ def pool_neighbours(todo: np.ndarray, cand: np.ndarray, far: np.ndarray, pos: np
                     feats: np.ndarray, spread_x: np.ndarray, spread_y: np.ndarray, t2: float,
                     k: int, q: int, pool: np.ndarray, lists: np.ndarray,
                     listed: np.ndarray) -> np.ndarray:
-    """``(m, k)`` pool positions of the nearest pool matches at least ``sqrt(t2)`` from each
-    of the pool positions ``todo`` ``(m,)`` in every spread set, -1 padded
-    (``Sampler.neighbours``).
-
-    The first ``k`` of the problem-wide candidates ``cand`` ``(m, c)`` (global indices,
-    nearest first, -1 = none) that are ``far`` ``(m, c)`` enough and in the pool (``pos``
-    ``(N,)``: global index -> pool position, -1 outside); where fewer than ``k``, the first
-    ``k`` far enough among the ``q - 1`` nearest pool matches in ``feats`` ``(n, dims)``
-    (exhaustive search, ties by pool position). ``spread_x``, ``spread_y``: ``(sets, n)``
-    of the pool; ``pool`` ``(n,)`` its global indices, ascending.
-
-    ``lists`` ``(N, k)`` (global indices) and ``listed`` ``(N,)`` bool carry the full lists
-    (k neighbours) found for earlier pools that contain this one, and are updated: a match
-    whose kept list lies wholly in the pool has that list again, without a search. The
-    same list, because the pool only lost matches since: every pool match nearer than a
-    listed one (in the candidates' order, or in distance and position) was nearer in the
-    earlier pool, where it was either listed or not far enough; and the listed ones keep
-    their order and lie no deeper in the ``q`` nearest. The caller drops the lists
-    (``listed[:] = False``) when the pool is not a subset of the earlier ones.
-    """
+    """``(m, k)`` nearest pool matches at least ``sqrt(t2)`` from each of ``todo`` in every spread
+    set (-1 padded), from the candidates or by exhaustive search; ``lists``/``listed`` reuse the
+    lists of earlier pools that contain this one (the caller clears them otherwise)."""
     return KERNELS()["_neighbours"](todo, cand, far, pos, feats, spread_x, spread_y,
                                       float(t2), int(k), int(q), pool, lists, listed)
 
 
 class NearestGrid:
-    """Exact ``q`` nearest neighbours of points ``feats`` ``(N, dims)`` float64 among
-    themselves (Euclidean, the squared distance summed over dims in order, as scipy's k-d
-    tree sums it), by a compiled search of a grid over the first two coordinates (about
-    ``PER_CELL`` points a cell), rings of cells outwards until no point outside can come
-    closer. Ties (equal distances) by index."""
+    """Exact ``q`` nearest neighbours of ``feats`` ``(N, dims)`` among themselves (summed as scipy's
+    k-d tree), by a grid over the first two coordinates searched ring by ring; ties by index."""
 
     PER_CELL = 4
     MAX_CELLS = 1024
@@ -546,8 +483,7 @@ class NearestGrid:
         self.start = np.searchsorted(cell_of[self.members], np.arange(self.nx * self.ny + 1))
 
     def query(self, todo: np.ndarray, q: int) -> np.ndarray:
-        """``(len(todo), q)`` int64: the ``q`` nearest points of each point ``todo``
-        (indices), nearest first (the point itself, or a copy of it, first)."""
+        """``(len(todo), q)`` int64 nearest points of each ``todo``, nearest (itself) first."""
         return KERNELS()["_nearest"](self.feats, np.asarray(todo, np.int64), int(q), self.x0,
                                        self.y0, self.cell, self.nx, self.ny, self.start,
                                        self.members)

@@ -1,23 +1,6 @@
-"""Compiled (numba) kernels of :mod:`..scoring`: each replaces a chain of small numpy calls
-of a RANSAC batch with one call.
-
-- :func:`hypotheses`: reflection check, closed-form 4-point solver with the sample's
-  quasi-affine signs, adjugates and the one-way float32 inlier bound on the pool, fused
-  (:func:`..scoring.hypotheses_from_samples` then :func:`..scoring.one_way_count`);
-- :func:`singular_value_ok`, :func:`inlier_masks`, :func:`error_sq`: full scoring;
-  :func:`score_batch`: a batch's whole full scoring (the first two) and its search's choices,
-  in one call (``NumpyScoring.score_batch``, for ``ransac._score_batch``);
-- :func:`refit`: the least-squares refit of a run's best model (``ransac._refit``).
-
-:func:`score_batch` and :func:`refit` accelerate :mod:`..ransac` but live here, beside the
-per-hypothesis helpers (sign, adjugate, transfer, inlier test, normalised DLT) they share with
-the scoring kernels: numba's on-disk cache notices a change only in a kernel's own file, so a
-kernel never calls a jitted function of another file.
-
-The masks and the errors are the same decisions / bits as numpy's for the same inputs; the
-solver, the singular values and the refit add their products in a fixed order where numpy's
-matmul (BLAS) may fuse or reorder them, so homographies can differ in the last bits, and with
-them, rarely, a borderline decision."""
+"""Compiled (numba) kernels of :mod:`..scoring` (and :mod:`..ransac`'s batch scoring and refit,
+beside the helpers they share): one call per chain of numpy calls, the same decisions; the
+homographies may differ from numpy's in the last bits."""
 
 from __future__ import annotations
 
@@ -38,8 +21,7 @@ def _sign(v: float) -> float:
 
 
 def _adjugate(e, out) -> None:
-    """``out[9]`` = the adjugate of the row-major 3x3 ``e[9]`` (the products and differences
-    of :func:`..homography.adjugate`)."""
+    """``out[9]`` = the adjugate of the row-major 3x3 ``e[9]``."""
     out[0] = e[4] * e[8] - e[5] * e[7]
     out[1] = e[2] * e[7] - e[1] * e[8]
     out[2] = e[1] * e[5] - e[2] * e[4]
@@ -52,8 +34,7 @@ def _adjugate(e, out) -> None:
 
 
 def _normalised(e) -> bool:
-    """Scale the 9 entries ``e`` to unit Frobenius norm (in place; the norm at least 1e-300);
-    whether all of them are finite then."""
+    """Scale ``e[9]`` to unit Frobenius norm in place; whether all entries are finite."""
     norm = 0.0
     for a in range(9):
         norm += e[a] * e[a]
@@ -67,8 +48,7 @@ def _normalised(e) -> bool:
 
 
 def _basis_map(px, py, A, lam, work):
-    """Fill ``A[9]`` (row-major ``P diag(lam)``) and ``lam[3]`` for the 4 points ``px[4]``,
-    ``py[4]`` (:func:`..homography._basis_map`); returns ``det(P)``. ``work[18]`` scratch."""
+    """Fill ``A[9]`` and ``lam[3]`` of :func:`..homography._basis_map`; returns ``det(P)``."""
     P = work[:9]
     adj = work[9:18]
     for c in range(3):
@@ -96,8 +76,7 @@ _TRIANGLES = ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3))
 
 
 def _orientation(pts, i, j, k) -> float:
-    """Signed doubled area of the triangle of points ``i, j, k`` of ``pts`` ``(N, 2)``
-    (:func:`..homography.triangle_orientations`)."""
+    """Signed doubled area of the triangle of points ``i, j, k`` of ``pts``."""
     ax = pts[j, 0] - pts[i, 0]
     ay = pts[j, 1] - pts[i, 1]
     bx = pts[k, 0] - pts[i, 0]
@@ -106,8 +85,7 @@ def _orientation(pts, i, j, k) -> float:
 
 
 def _hypotheses(sample, ok, x1, x2, src_all, dst_all, reflection, X, Y, x2p, y2p, t2):
-    """See :func:`hypotheses`: ``(K, H, Hinv, sign, sign_inv, sample_out, ub)``, the first
-    ``K`` rows of each output valid."""
+    """See :func:`hypotheses`; the first ``K`` rows of each output are valid."""
     B = sample.shape[0]
     nh = src_all.shape[1]
     n = X.shape[0]
@@ -224,9 +202,7 @@ def _hypotheses(sample, ok, x1, x2, src_all, dst_all, reflection, X, Y, x2p, y2p
 
 
 def _transfer(h, X, Y, u, v):
-    """``(e, w)``: squared transfer error of the point ``(X, Y)`` to ``(u, v)`` under the
-    row-major ``h[9]``, and its ``w`` (:func:`..homography.transfer_error_sq`'s operations, in
-    its order)."""
+    """``(e, w)`` of one point under row-major ``h[9]``, in :func:`..homography.transfer_error_sq`'s order."""
     w = h[6] * X
     w += h[7] * Y
     w += h[8]
@@ -247,8 +223,7 @@ def _transfer(h, X, Y, u, v):
 
 
 def _rows(H, sign, Hinv, sign_inv, k, scaled, out):
-    """``out[2 * halves, 9]``: hypothesis ``k``'s forward and backward matrices, half by
-    half, times their sample's signs when ``scaled`` (an exact change: the signs are +-1)."""
+    """``out[2 * halves, 9]``: hypothesis ``k``'s forward and backward matrices, sign-scaled if ``scaled``."""
     for h in range(H.shape[1]):
         for e in range(9):
             f, b = H[k, h, e // 3, e % 3], Hinv[k, h, e // 3, e % 3]
@@ -260,8 +235,7 @@ def _rows(H, sign, Hinv, sign_inv, k, scaled, out):
 
 
 def _mask_row(hk, pts, t2, s2, out):
-    """``out[n]``: whether each match is inside under the sign-scaled matrices ``hk``
-    ``(2 * halves, 9)`` (:func:`_rows`), every half and direction (:func:`inlier_masks`)."""
+    """``out[n]``: whether each match is inside in every half and direction."""
     terms = hk.shape[0]
     for i in range(pts.shape[3]):
         inside = True
@@ -278,7 +252,6 @@ def _mask_row(hk, pts, t2, s2, out):
 
 
 def _inlier_masks(H, Hinv, sign, sign_inv, pts, t2, s2):
-    """See :func:`inlier_masks`."""
     K = H.shape[0]
     terms = 2 * H.shape[1]
     n = pts.shape[3]
@@ -291,7 +264,6 @@ def _inlier_masks(H, Hinv, sign, sign_inv, pts, t2, s2):
 
 
 def _error_sq(H, Hinv, sign, sign_inv, pts, s2):
-    """See :func:`error_sq`."""
     K = H.shape[0]
     terms = 2 * H.shape[1]
     n = pts.shape[3]
@@ -317,8 +289,7 @@ def _error_sq(H, Hinv, sign, sign_inv, pts, s2):
 
 
 def _normalise4(pts, out):
-    """Hartley-normalised copy ``out[4, 2]`` of the 4 points ``pts[4, 2]``
-    (:func:`..homography._normalised`)."""
+    """Hartley-normalised copy ``out[4, 2]`` of ``pts[4, 2]``."""
     cx = (pts[0, 0] + pts[1, 0] + pts[2, 0] + pts[3, 0]) / 4
     cy = (pts[0, 1] + pts[1, 1] + pts[2, 1] + pts[3, 1]) / 4
     dist = 0.0
@@ -333,9 +304,7 @@ def _normalise4(pts, out):
 
 
 def _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A) -> bool:
-    """Whether sample ``k``'s normalised minimal DLT system has its smallest singular value
-    above ``min_sv`` in every half (:func:`singular_value_ok`); ``p``, ``q``, ``s``, ``d``
-    ``(4, 2)`` and ``A`` ``(8, 9)`` (zero where no entry is written) scratch."""
+    """Whether sample ``k``'s minimal DLT system passes ``min_sv`` in every half (scratch arrays given)."""
     for h in range(src_all.shape[1]):
         for i in range(4):
             for c in range(2):
@@ -364,7 +333,6 @@ def _sv_ok_one(sample, k, src_all, dst_all, min_sv, p, q, s, d, A) -> bool:
 
 
 def _singular_value_ok(sample, src_all, dst_all, min_sv):
-    """See :func:`singular_value_ok`."""
     K = sample.shape[0]
     ok = np.ones(K, dtype=np.bool_)
     p = np.empty((4, 2))
@@ -379,7 +347,6 @@ def _singular_value_ok(sample, src_all, dst_all, min_sv):
 
 def _score_batch(ub, count0, have_best, n_req, z, H, Hinv, sign, sign_inv, sample, src_all,
                  dst_all, min_sv, pts, t2, s2):
-    """See :func:`score_batch`."""
     L = ub.shape[0]
     order = np.argsort(-ub, kind="mergesort")  # stable: the same order as numpy's
     n_buf = 0
@@ -446,8 +413,7 @@ def _score_batch(ub, count0, have_best, n_req, z, H, Hinv, sign, sign_inv, sampl
 
 
 def _normalising(pts, out, T):
-    """Hartley normalisation of ``pts[M, 2]``: ``out[M, 2]`` the normalised points and
-    ``T[3, 3]`` the similarity (:func:`..homography.normalise_points`)."""
+    """Hartley normalisation of ``pts[M, 2]`` into ``out`` and the similarity ``T[3, 3]``."""
     M = pts.shape[0]
     cx = 0.0
     cy = 0.0
@@ -474,7 +440,6 @@ def _normalising(pts, out, T):
 
 
 def _refit(idx, src_all, dst_all, sample):
-    """See :func:`refit`."""
     nh = src_all.shape[1]
     M = idx.shape[0]
     H = np.empty((nh, 3, 3))
@@ -562,8 +527,6 @@ def _refit(idx, src_all, dst_all, sample):
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit every kernel and the helpers they call (numpy's error model: a division by zero
-    gives inf / nan, and those entries fail the sign test)."""
     jit_helpers(globals(), (_sign, _adjugate, _normalised, _basis_map, _one_sign, _orientation, _transfer, _rows,
                             _mask_row, _normalise4, _sv_ok_one, _normalising))
     j = jit()
@@ -577,22 +540,8 @@ KERNELS = Kernels(_jit_all)
 def hypotheses(sample: np.ndarray, ok: np.ndarray, x1: np.ndarray, x2: np.ndarray,
                src_all: np.ndarray, dst_all: np.ndarray, reflection: bool,
                pool_src: np.ndarray, pool_dst: np.ndarray, t2: float):
-    """Hypotheses of the minimal samples ``(B, 4)`` (global indices) that pass ``ok`` ``(B,)``
-    (the spread test), the reflection check when ``reflection`` and the quasi-affinity of the
-    sample (every half, both ways), with their one-way inlier bounds on the pool.
-
-    Args:
-        x1, x2: ``(N, 2)`` the two images' points (reflection check).
-        src_all, dst_all: ``(N, halves, 2)`` float64 pixels of every half.
-        pool_src, pool_dst: ``(2, n)`` float32 x and y rows of the pool's first half.
-        t2: squared threshold of the one-way bound, in the pool coordinates' units.
-
-    Returns:
-        ``(H, Hinv, sign, sign_inv, sample, ub)`` of the ``K`` survivors, in sample order:
-        ``(K, halves, 3, 3)`` unit-norm homographies and adjugates, ``(K, halves)`` signs of
-        the first sample point's ``w`` forward and backward, ``(K, 4)`` samples and ``(K,)``
-        int64 one-way inlier counts.
-    """
+    """``(H, Hinv, sign, sign_inv, sample, ub)`` of the samples ``(B, 4)`` that pass ``ok``, the
+    reflection check and quasi-affinity, with their one-way inlier bounds on the pool."""
     K, H, Hinv, sign, sign_inv, smp, ub = KERNELS()["_hypotheses"](
         sample, ok, x1, x2, src_all, dst_all, bool(reflection), pool_src[0], pool_src[1],
         pool_dst[0], pool_dst[1], np.float32(t2))
@@ -601,28 +550,22 @@ def hypotheses(sample: np.ndarray, ok: np.ndarray, x1: np.ndarray, x2: np.ndarra
 
 def inlier_masks(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
                  pts: np.ndarray, t2: float, s2: float) -> np.ndarray:
-    """``(K, n)`` bool: the squared error of each hypothesis (``H``, ``Hinv`` ``(K, halves,
-    3, 3)``, signs ``(K, halves)``) on each match, times ``s2``, is at most ``t2`` in every
-    half and direction, with ``w`` of the sample's sign (:func:`..scoring.inlier_masks`, the
-    same decisions for the same hypotheses). ``pts`` ``(halves, 2, 2, n)``: per half, source
-    then destination, x row then y row."""
+    """``(K, n)`` bool: every half and direction's squared error times ``s2`` is at most ``t2``,
+    with ``w`` of the sample's sign. ``pts`` ``(halves, 2, 2, n)``: source then destination, x then
+    y."""
     return KERNELS()["_inlier_masks"](H, Hinv, sign, sign_inv, pts, float(t2), float(s2))
 
 
 def error_sq(H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
              pts: np.ndarray, s2: float) -> np.ndarray:
-    """``(K, n)`` float64: the max over halves and directions of the squared transfer error,
-    ``inf`` where ``w`` breaks the sample's sign, times ``s2`` (:func:`..scoring.error_sq`,
-    the same bits); arguments as :func:`inlier_masks`."""
+    """``(K, n)`` max squared transfer error over halves and directions (``inf`` where ``w`` breaks
+    the sign), times ``s2``."""
     return KERNELS()["_error_sq"](H, Hinv, sign, sign_inv, pts, float(s2))
 
 
 def singular_value_ok(sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray,
                       min_sv: float) -> np.ndarray:
-    """``(K,)`` bool: the Hartley-normalised minimal DLT system (``8 x 9``) of each sample
-    ``(K, 4)`` (global indices) has its smallest singular value above ``min_sv`` in every
-    half (:func:`..scoring.passes_singular_value_test`; the eigenvalues of ``A A^T`` from
-    LAPACK as numpy's, the products summed in another order)."""
+    """``(K,)`` bool: each sample's normalised minimal DLT system passes ``min_sv`` in every half."""
     return KERNELS()["_singular_value_ok"](sample, src_all, dst_all, float(min_sv))
 
 
@@ -630,36 +573,14 @@ def score_batch(ub: np.ndarray, count: int, have_best: bool, n_req: int, z: int,
                 H: np.ndarray, Hinv: np.ndarray, sign: np.ndarray, sign_inv: np.ndarray,
                 sample: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, min_sv: float,
                 pts: np.ndarray, t2: float, s2: float):
-    """The full scoring of one batch of hypotheses in one call (``ransac._score_batch``'s
-    loop and its search's choices, the same decisions): in descending order of their
-    one-way bounds ``ub`` ``(K,)`` (stable), groups of 4 are scored (bound > 0,
-    :func:`singular_value_ok`, then :func:`inlier_masks`) while a bound can beat the best count
-    (``count`` at the start) or a group holds one of the batch's two strongest with at
-    least ``n_req`` possible inliers (at most ``z``); within a group the hypotheses are
-    taken by count, descending: one above the best becomes the best (the best it replaces,
-    if ``have_best``, becomes a candidate), another with inliers a candidate.
-
-    Returns ``(order, masks, events, best, count, scored)``: the order ``(K,)`` (position
-    -> hypothesis row), the masks ``(R, n)`` by position (rows of scored positions only),
-    the candidates ``(E,)`` in the order they arose (positions; -1: the best from before the
-    batch), the new best's position (-1: unchanged), the best count and the number of
-    hypotheses scored. ``H``, ``Hinv``, signs and ``sample`` ``(K, ...)``: the hypotheses;
-    ``src_all``, ``dst_all``, ``min_sv`` as :func:`singular_value_ok`; ``pts``, ``t2``,
-    ``s2`` as :func:`inlier_masks`.
-    """
+    """The full scoring of one batch in one call, as ``ransac._score_batch``: ``(order, masks,
+    events, best, count, scored)``."""
     return KERNELS()["_score_batch"](ub, int(count), bool(have_best), int(n_req), int(z),
                                        H, Hinv, sign, sign_inv, sample, src_all, dst_all,
                                        float(min_sv), pts, float(t2), float(s2))
 
 
 def refit(idx: np.ndarray, src_all: np.ndarray, dst_all: np.ndarray, sample: np.ndarray):
-    """Least-squares normalised DLT of every half on the matches ``idx`` ``(M,)`` (global,
-    ``M >= 5``), checked against the quasi-affine signs of the minimal ``sample`` ``(4,)``
-    (``ransac._refit``: the smallest eigenvector of ``A^T A`` by LAPACK, as numpy's, the
-    products summed in another order).
-
-    Returns ``(ok, H, Hinv, sign, sign_inv)``: whether the fit is finite and keeps one
-    nonzero sign of ``w`` on the sample's 4 points (every half, both ways), ``(halves, 3,
-    3)`` unit-norm homographies and adjugates and ``(halves,)`` signs.
-    """
+    """Least-squares normalised DLT of every half on the matches ``idx`` (``M >= 5``), checked
+    against the sample's quasi-affine signs. Returns ``(ok, H, Hinv, sign, sign_inv)``."""
     return KERNELS()["_refit"](idx, src_all, dst_all, sample)

@@ -1,2 +1,1 @@
-"""Least-squares matching: the alignment's result and bounds, the torch alignment (the
-reference), its compiled kernel, and the step of the NCC refinement that runs them."""
+"""Least-squares matching: the alignment (torch reference and compiled kernel) and its step."""

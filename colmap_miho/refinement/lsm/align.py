@@ -1,45 +1,9 @@
 """Least-squares matching (LSM, Gruen 1985): batched Gauss-Newton alignment of patches.
 
-Per match j a fixed reference template ``f_j(u)`` (offsets ``u`` of a (2r+1)^2 grid, common
-frame pixels) is aligned to the search image ``G_j`` (the moving side, seen in the match's
-common frame) by the model
-
-    f(u) + e(u) = r0 + r1 * G(t + A u)
-
-with the 2x2 affine ``A``, the shift ``t`` (common-frame pixels, relative to the match's
-centre), the radiometric offset ``r0`` and gain ``r1``: 8 parameters (4 with
-``affine=False``: shift and radiometry only). Gauss-Newton in the forward-compositional form:
-the increment is applied in the patch frame, ``t + A (u + d + D u)``, so the Jacobian uses the
-gradient of the resampled patch itself (central differences over a grid one pixel wider than
-the template) and the update is ``t += A d``, ``A = A (I + D)``. Each match stops once its
-shift update is below ``tol_px``; the a-posteriori covariance of the shift is
-``A (s0^2 N^-1)_dd A^T`` with ``s0^2 = e^T e / (n - p)`` (n pixels, p parameters) and N the
-normal matrix of the last iteration.
-
-Sampling is bicubic (``grid_sample(mode="bicubic")``, Keys a = -0.75): bilinear sampling
-biases the values towards pixel centres. The gradients are central differences of the
-bicubic samples, taken with :meth:`torch.Tensor.__getitem__` slices rather than kornia's
-``spatial_gradient``: kornia's pads and runs a 3x3 ``conv2d`` over the batch, which is several
-times slower than two subtractions on these small patches (``benchmarks/results/lsm.md``) and
-whose rounding may depend on the batch size (oneDNN picks kernels by shape).
-kornia's warps (``warp_affine``, ``warp_perspective``) sample whole images on a regular grid,
-not per-match point sets in several images, so they are not used either.
-
-The loop runs on the matches still iterating only (their state is compacted as matches stop)
-and the sampler composes each match's map to grid coordinates once per call. The
-inverse-compositional form (the template's gradients: a Jacobian and normal matrix formed once)
-is not used: its fixed point is not this sum of squares' minimum but differs from it by the
-gradient noise, which on real scenes is of the order of the precision sought, so it would still
-need full steps to finish, and those dominate the cost.
-
-The LSM step of the NCC refinement (:mod:`.step`) runs these functions on CUDA; on CPU
-tensors it runs :mod:`.kernel`, the same iteration compiled per match, which is tested
-against them.
-
-On the CPU a match's result is bitwise the same whatever the other matches of the call: the
-sample positions are elementwise products, every reduction runs over one match's own pixels,
-and the normal equations are per-match matrix products and solves (tested).
-"""
+Per match the template ``f(u)`` is aligned by ``f(u) + e(u) = r0 + r1 G(t + A u)`` (affine ``A``,
+shift ``t`` in common-frame pixels, radiometry ``r0``, ``r1``), forward-compositional, with bicubic
+reads (bilinear ones bias values towards pixel centres). The CUDA path and the reference of the
+compiled CPU kernel (:mod:`.kernel`); a match's result never depends on the others."""
 
 from __future__ import annotations
 
@@ -73,25 +37,10 @@ def lsm_align(
 ) -> LSMResult:
     """Align J templates to the search images by Gauss-Newton, each match on its own.
 
-    (Long on purpose: one Gauss-Newton loop whose per-match stop, normal equations and
-    precision share their batched tensors; split, each piece would pass them all around.)
-
-    Args:
-        sampler: reads the search images (see :data:`Sampler`); must be elementwise per
-            match for the result to be batch independent.
-        templates: (J, S, S) float reference patches, S = 2r + 1, on the grid
-            :func:`~..warping.offset_grid` (r) (row-major, [y, x]).
-        shift0: (J, 2) float64 starting shift (e.g. the NCC sub-pixel peak); A starts at
-            the identity, (r0, r1) at the values matching the means and standard deviations.
-        affine: estimate the 4 affine terms of A (8 parameters); False: shift and radiometry
-            only (4), A stays the identity.
-        max_iterations: Gauss-Newton steps per match at most.
-        tol_px: a match converges once its shift update (max over x, y) is below this.
-        max_shift_px: a match whose shift leaves ``shift0`` by more than this stops there,
-            not converged (None: no bound).
-    Returns:
-        :class:`LSMResult` on the device of ``templates``.
-    """
+    ``sampler`` reads the search images (elementwise per match); ``templates`` ``(J, S, S)``, S = 2r
+    + 1, row-major; ``shift0`` ``(J, 2)`` float64 start (A = I, radiometry from the means and
+    spreads). ``tol_px``: stop once the shift update is below it; ``max_shift_px``: stop, not
+    converged, beyond it. Returns :class:`LSMResult` on the templates' device."""
     J, S = templates.shape[0], templates.shape[-1]
     if templates.ndim != 3 or templates.shape[1] != S or S % 2 == 0:
         raise ValueError(f"templates must be (J, S, S) with S odd, got {tuple(templates.shape)}")
@@ -180,9 +129,7 @@ def lsm_align(
 
 
 def _start_outputs(shift0: torch.Tensor) -> LSMResult:
-    """The result of J matches before any step, filled row by row as matches stop
-    (:func:`_write_outputs`): a match that takes no step (``max_iterations`` < 1) keeps its
-    start: shift0 ((J, 2) float64), A = I, r0 = 0, r1 = 1, no precision, not converged."""
+    """The result of J matches before any step (shift0, A = I, r0 = 0, r1 = 1, not converged)."""
     J, dev, f64 = shift0.shape[0], shift0.device, torch.float64
     return LSMResult(shift=shift0.clone(),
                      sigma=torch.full((J, 2), float("inf"), dtype=f64, device=dev),
@@ -198,7 +145,6 @@ def _start_outputs(shift0: torch.Tensor) -> LSMResult:
 def _write_outputs(out: LSMResult, rows: torch.Tensor, t: torch.Tensor, sigma: torch.Tensor,
                    sigma_max: torch.Tensor, A: torch.Tensor, gain: torch.Tensor, offset: torch.Tensor,
                    s0: torch.Tensor, converged: torch.Tensor, iterations: int) -> None:
-    """The final values of the matches ``rows`` (they stop here), written into ``out``'s tensors."""
     out.shift[rows], out.sigma[rows], out.sigma_max[rows] = t, sigma, sigma_max
     out.affine[rows], out.gain[rows], out.offset[rows] = A, gain, offset
     out.residual_std[rows], out.converged[rows] = s0, converged
@@ -206,8 +152,7 @@ def _write_outputs(out: LSMResult, rows: torch.Tensor, t: torch.Tensor, sigma: t
 
 
 def _initial_radiometry(f: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(r0, r1) (n,) float64 that match g's mean and spread to f's (r1 = 1 where either
-    patch is flat); f, g (n, P) float32."""
+    """``(r0, r1)`` ``(n,)`` matching g's mean and spread to f's (r1 = 1 where a patch is flat)."""
     fm, gm = f.mean(dim=1, dtype=torch.float64), g.mean(dim=1, dtype=torch.float64)
     fs = (f - fm[:, None]).square().sum(dim=1, dtype=torch.float64).sqrt()
     gs = (g - gm[:, None]).square().sum(dim=1, dtype=torch.float64).sqrt()
@@ -216,8 +161,7 @@ def _initial_radiometry(f: torch.Tensor, g: torch.Tensor) -> tuple[torch.Tensor,
 
 
 def _shift_sigma(A: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Standard deviations (n, 2) of t = A d and the largest semi-axis (n,) of its error
-    ellipse, from the covariance C (n, 2, 2) of d (elementwise: A C A^T)."""
+    """Standard deviations ``(n, 2)`` of ``t = A d`` and the largest semi-axis ``(n,)`` of its ellipse."""
     AC = (A[:, :, :, None] * C[:, None, :, :]).sum(dim=2)  # AC[i, j] = A[i, 0] C[0, j] + A[i, 1] C[1, j]
     cc = (AC * A).sum(dim=2)  # (cxx, cyy): AC[i, 0] A[i, 0] + AC[i, 1] A[i, 1]
     cxx, cyy = cc.unbind(dim=1)
@@ -227,8 +171,7 @@ def _shift_sigma(A: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.
 
 
 def _regular(A: torch.Tensor, gain: torch.Tensor) -> torch.Tensor:
-    """(n,) bool: A's singular values within [1/MAX_SCALE, MAX_SCALE] and its determinant
-    positive (no reflection), the gain within [1/MAX_GAIN, MAX_GAIN]."""
+    """``(n,)`` bool: A's singular values within ``MAX_SCALE``, no reflection, gain within ``MAX_GAIN``."""
     a, b, c, d = A.reshape(-1, 4).unbind(dim=1)
     det = a * d - b * c
     fro2 = a * a + b * b + c * c + d * d
@@ -245,28 +188,12 @@ def frame_sampler(
     blur: tuple[torch.Tensor, torch.Tensor] | None = None,
     blur_px: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> Sampler:
-    """A :data:`Sampler` of the rectified search images: match j reads its image at
-    ``H_inv[j] (centres[j] + t + A u)``.
+    """A :data:`Sampler` of the rectified search images: match j reads ``H_inv[j] (centres[j] + t +
+    A u)``.
 
-    The map from the grid ``u`` to ``grid_sample`` coordinates is composed per match in
-    float64 (elementwise), then evaluated in float32 once per grid column and row. A blurred
-    match's 4 shifted reads are 4 more maps in the same ``grid_sample`` calls (one call per
-    image of the matches read), and their mean is summed in a fixed order per match.
-
-    Args:
-        image: (H, W) float32, or an :class:`~..warping.ImageStack` with one image per match.
-        H_inv: (J, 3, 3) float64, common frame -> image pixels (integer = pixel centre).
-        centres: (J, 2) float64 common-frame centre of each match.
-        blur: None, or ((J,) bool ``on``, (J, 2, 2) float64 ``step``): match j with ``on``
-            reads the mean of the 4 samples at ``t + step[j] o``, o in {-1, 1}^2 (the
-            columns of ``step``: frame offsets of one blur step along the image's x and y;
-            see :mod:`.step`).
-        blur_px: None, or ((J,) bool ``on``, (J,) float64 ``sigma``): match j with ``on``
-            reads the mean of the 4 samples at ``(x + i sigma[j], y + j sigma[j])``, o = (i, j)
-            in {-1, 1}^2, (x, y) each sample's image position (pixels): the same smoothing
-            along the image's own axes, exactly (``blur`` gives it at the match's centre, to
-            first order). Not with ``blur``.
-    """
+    ``H_inv`` ``(J, 3, 3)`` frame -> image pixels, ``centres`` ``(J, 2)``. ``blur``: matches with
+    ``on`` read the mean of 4 samples at ``t + step[j] o``, o in {-1, 1}^2 (frame offsets);
+    ``blur_px``: the same along the image's own axes by ``sigma[j]`` pixels. Not both."""
     if blur is not None and blur_px is not None:
         raise ValueError("frame_sampler takes blur or blur_px, not both")
 
@@ -317,8 +244,7 @@ def frame_sampler(
 
     def read(rows: torch.Tensor, A: torch.Tensor, t: torch.Tensor, radius: int,
              off: torch.Tensor | None = None) -> torch.Tensor:
-        """(n, S, S) samples; ``off`` (n, 2) float64 image pixels added to every sample
-        position of a row (after the map), or None."""
+        """``(n, S, S)`` samples; ``off`` ``(n, 2)`` image pixels added to every position, or None."""
         n = rows.numel()
         Br = B[rows]
         c = centres[rows] + t
@@ -350,10 +276,7 @@ def frame_sampler(
 
 
 def _frame_grid(M: torch.Tensor, radius: int) -> torch.Tensor:
-    """Grid coordinates (n, Q, 2) float32 of the (2 radius + 1)^2 offsets u (row-major) under
-    the maps M (n, 3, 3) float32: (M u)_xy / (M u)_w, elementwise. The three planes are
-    formed with the grid's x axis innermost (vectorised), then divided into grid_sample's
-    interleaved layout."""
+    """Grid coordinates ``(n, Q, 2)`` float32 of the offsets under the maps ``M`` ``(n, 3, 3)``, elementwise."""
     side = 2 * radius + 1
     ax = torch.arange(-radius, radius + 1, dtype=torch.float32, device=M.device)
     m = M[:, :, :, None]  # (n, 3, 3, 1)
@@ -367,13 +290,11 @@ def _frame_grid(M: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 def _shifted(grid: torch.Tensor, off: torch.Tensor | None) -> torch.Tensor:
-    """``grid`` (n, Q, 2) plus ``off`` (n, 1, 2) (in place), or ``grid`` where ``off`` is None."""
     return grid if off is None else grid.add_(off)
 
 
 def _grid_sample(image: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
-    """Bicubic samples (n, Q) float32 of one (H, W) image at ``grid`` (n, Q, 2) in grid units
-    (``align_corners=True``, border values outside)."""
+    """Bicubic samples ``(n, Q)`` of one image at ``grid`` (``align_corners=True``, border outside)."""
     return F.grid_sample(image[None, None], grid[None], mode="bicubic", padding_mode="border",
                          align_corners=True)[0, 0]
 

@@ -1,32 +1,6 @@
-"""Compiled (numba) least-squares matching of the LSM step: one fused loop per match.
-
-:func:`lsm_frames` does what :func:`.step.lsm_step` asks of :func:`.align.frame_sampler`
-and :func:`.align.lsm_align` (the torch reference, and the path on CUDA) for matches on CPU
-tensors: it reads the fixed side's template, then runs the match's Gauss-Newton iteration
-(the model, update, stop rule and a-posteriori precision of :mod:`.align`) with every sample,
-gradient, normal matrix, Cholesky solve and test of one iteration in one compiled loop, so
-that an iteration costs its arithmetic and nothing else (the torch path pays a few dozen
-tensor calls per iteration, and forms sample coordinates in memory before reading them).
-
-Sampling is the bicubic read of ``grid_sample`` (``align_corners=True``, border padding:
-each of the 4 x 4 taps clamped to the image), with the cubic convolution's parameter ``a``
-of Keys (-0.75, as ``grid_sample``). Blurred reads are the mean of the 4
-shifted bicubic reads of :func:`.align.frame_sampler` (its ``blur_px``), read as one with the
-4 reads' taps merged (the mean is separable).
-
-Differences from the torch path, all at float rounding: positions are formed in float64
-pixels (the torch path rounds them to float32 grid units first), samples, gradients and
-the normal matrix are float64 (float32 there), the reads use fused multiply-adds and the
-dot products of the normal matrix a vectorised order of summation (both fixed when the
-kernel compiles), and the Cholesky factor and solves are written out here (LAPACK there).
-A match whose shift update is within rounding of the tolerance can stop a step earlier or
-later on one path than on the other. The tests bound the differences (``test_lsm_kernel.py``).
-
-A match's result depends on its own inputs only: the loop over matches is serial and
-every quantity of a match is computed by the same code whatever the other matches are.
-
-The kernel compiles on first use (:mod:`colmap_miho.compiled`).
-"""
+"""Compiled (numba) least-squares matching: :func:`lsm_frames` does on CPU tensors what
+:func:`.align.frame_sampler` and :func:`.align.lsm_align` do, one fused loop per match, so an
+iteration costs its arithmetic; results differ from torch's at float rounding only."""
 
 from __future__ import annotations
 
@@ -49,8 +23,7 @@ _FIXED_SPAN = 6
 
 
 def _cubic(t: float, a: float) -> tuple[float, float, float, float]:
-    """The cubic convolution kernel (parameter ``a``) at the taps -1, 0, 1, 2 from the floor
-    of a position ``t`` (in [0, 1)) past it."""
+    """The cubic convolution weights at taps -1, 0, 1, 2 for a fractional position ``t``."""
     a2, a3, a4, a5, a8 = a + 2.0, a + 3.0, 4.0 * a, 5.0 * a, 8.0 * a
     s = t + 1.0
     w0 = ((a * s - a5) * s + a8) * s - a4
@@ -64,9 +37,7 @@ def _cubic(t: float, a: float) -> tuple[float, float, float, float]:
 
 def _compose(H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float
              ) -> tuple[float, float, float, float, float, float, float, float, float]:
-    """The 9 entries (row-major) of M = H [[A, c], [0, 0, 1]]: the image's homogeneous
-    coordinates of the offsets u (``H`` (3, 3) frame -> image pixels, A = [[a00, a01], [a10,
-    a11]], c = (cx, cy))."""
+    """Row-major entries of ``M = H [[A, c], [0, 0, 1]]``: the image's homogeneous coordinates of offsets u."""
     m00 = H[0, 0] * a00 + H[0, 1] * a10
     m01 = H[0, 0] * a01 + H[0, 1] * a11
     m02 = H[0, 0] * cx + H[0, 1] * cy + H[0, 2]
@@ -81,12 +52,8 @@ def _compose(H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: f
 
 def _read(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float,
           radius: int, a: float, out, add: bool, wts, taps) -> None:
-    """``out`` (S, S), S = 2 radius + 1, [y, x]: ``img`` (h, w) read bicubically at
-    ``H (c + A u)``, u the integer offsets (x, y) in [-radius, radius]^2 (``H`` (3, 3) frame
-    -> image pixels, integer = pixel centre), taps outside the image clamped to its border;
-    added to ``out`` when ``add``. ``wts`` (2, 4, >= S) float64 and ``taps`` (2, >= S) int64
-    are work space: one row's tap weights and first tap indices (x, y), formed first in a
-    loop without branches, then read."""
+    """``out`` ``(S, S)`` ``[y, x]``: ``img`` read bicubically at ``H (c + A u)`` (border clamped),
+    added when ``add``; ``wts`` and ``taps`` are work space."""
     h, w = img.shape
     # M = H [[A, c], [0, 0, 1]]: the image's homogeneous coordinates of u
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = _compose(H, cx, cy, a00, a01, a10, a11)
@@ -130,8 +97,7 @@ def _read(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11:
 
 
 def _dot(x, y) -> float:
-    """The dot product of the vectors x and y (n,) (compiled with reassociation: summed in
-    the order the vectorised loop gives, the same for every pair of length n)."""
+    """Dot product of x and y, reassociated but in the same order for every pair of length n."""
     acc = 0.0
     for k in range(x.shape[0]):
         acc += x[k] * y[k]
@@ -140,12 +106,8 @@ def _dot(x, y) -> float:
 
 def _smoothed(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float,
               radius: int, a: float, sigma: float, out, cw, base) -> None:
-    """:func:`_read` smoothed: the mean of the 4 bicubic reads at ``(x +- sigma, y +- sigma)``
-    of each position (x, y) (image pixels), as one read with the 4 reads' merged taps (the
-    mean is separable: (1/2 the sum of the x weights at x - sigma and x + sigma) times the
-    same in y, over the columns and rows either touches). ``cw`` (2, S, >= max(span, 6)) float64 and
-    ``base`` (4, S) int64 (first column, first row, and how many of each) are work space;
-    span = 4 + floor(x + sigma) - floor(x - sigma), at most 5 + 2 sigma."""
+    """:func:`_read` smoothed: the mean of 4 bicubic reads at ``(x +- sigma, y +- sigma)`` as one
+    read with merged taps (the mean is separable); ``cw`` and ``base`` are work space."""
     h, w = img.shape
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = _compose(H, cx, cy, a00, a01, a10, a11)
     side = 2 * radius + 1
@@ -192,9 +154,8 @@ def _smoothed(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, 
 
 
 def _merged(p: float, sigma: float, lim: float, a: float, wv, ix: int) -> tuple[int, int]:
-    """Half the sum of the cubic weights of the reads at ``p - sigma`` and ``p + sigma`` (one
-    axis; positions clamped to [-2, ``lim``]) into ``wv[ix, :n]``; returns (the first tap's
-    index, n), n = 4 + floor(p + sigma) - floor(p - sigma)."""
+    """Half the sum of one axis' cubic weights at ``p - sigma`` and ``p + sigma`` into ``wv[ix]``;
+    returns (first tap, n)."""
     xa = min(max(p - sigma, -2.0), lim)
     xb = min(max(p + sigma, -2.0), lim)
     fa, fb = np.floor(xa), np.floor(xb)
@@ -216,7 +177,6 @@ def _merged(p: float, sigma: float, lim: float, a: float, wv, ix: int) -> tuple[
 
 def _read_blurred(img, H, cx: float, cy: float, a00: float, a01: float, a10: float, a11: float,
                   radius: int, a: float, on: bool, sigma: float, out, wts, taps, cw, base) -> None:
-    """:func:`_read`, or :func:`_smoothed` with ``sigma`` where ``on``."""
     if on:
         _smoothed(img, H, cx, cy, a00, a01, a10, a11, radius, a, sigma, out, cw, base)
     else:
@@ -227,8 +187,7 @@ def _lsm_matches(img_f, img_m, rows, H_f, c_f, H_m, c_m, on_f, sigma_f, on_m, si
                  radius: int, affine: bool, max_iterations: int, tol: float, max_shift: float,
                  a: float, max_scale: float, max_gain: float,
                  shift, sigma, sigma_max, A_out, gain, offset, s0_out, converged, iterations):
-    """The LSM of the matches ``rows`` (module docstring): their outputs written into the
-    (J, ...) arrays ``shift`` .. ``iterations`` (rows not listed left as they are)."""
+    """The LSM of the matches ``rows``, written into the ``(J, ...)`` output arrays."""
     side = 2 * radius + 1
     P = side * side
     npar = 8 if affine else 4
@@ -387,8 +346,7 @@ def _lsm_matches(img_f, img_m, rows, H_f, c_f, H_m, c_m, on_f, sigma_f, on_m, si
 
 
 def _jit_all() -> Any:
-    """Jit the kernel and its helpers: fused multiply-adds in the reads, the dot products
-    also reassociated (vectorised); both fixed at compile time, the same for every match."""
+    """Jit the kernel and helpers: FMA in the reads, reassociated dots, fixed at compile time."""
     jit_helpers(globals(), (_cubic, _compose, _merged, _read, _smoothed), CONTRACT)
     jit_helpers(globals(), (_read_blurred,))
     jit_helpers(globals(), (_dot,), REASSOC)
@@ -400,7 +358,6 @@ KERNELS = Kernels(_jit_all)
 
 
 def _blur_arrays(blur: tuple[torch.Tensor, torch.Tensor] | None, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(n,) bool and (n,) float64 arrays of a ``blur_px`` argument (zeros for None)."""
     if blur is None:
         return np.zeros(n, np.bool_), np.zeros(n)
     return (np.ascontiguousarray(blur[0].cpu().numpy()),
@@ -408,15 +365,8 @@ def _blur_arrays(blur: tuple[torch.Tensor, torch.Tensor] | None, n: int) -> tupl
 
 
 def _check_sizes(radius: int, max_iterations: int, *blurs) -> None:
-    """Refuse sizes the compiled kernel's buffers were not made for (its work space grows with
-    the radius and the widest blur): a template radius outside [1, ``MAX_WINDOW_RADIUS_PX``],
-    an iteration count outside [1, 50], a blur that is not finite or wider than
-    ``MAX_BLUR_PX``. The recipe's bounds keep these in range; this guard keeps any other
-    caller from corrupting memory.
-
-    Raises:
-        ValueError: naming the value.
-    """
+    """Refuse sizes the kernel's buffers were not made for (radius, iterations, blur), so no caller
+    can corrupt memory; ValueError naming the value."""
     if not 1 <= int(radius) <= MAX_WINDOW_RADIUS_PX:
         raise ValueError(f"LSM radius must be in [1, {MAX_WINDOW_RADIUS_PX}] pixels, got {radius}")
     if not 1 <= int(max_iterations) <= 50:
@@ -448,23 +398,12 @@ def lsm_frames(
     tol_px: float = DEFAULT_TOL_PX,
     max_shift_px: float | None = None,
 ) -> LSMResult:
-    """LSM of n matches on the CPU: the fixed side's template read (radius ``radius``) and
-    aligned to the moving side; what ``lsm_align(frame_sampler(img_m, H_m_inv, frame_m,
-    blur_px=blur_m), frame_sampler(img_f, H_f_inv, frame_f, blur_px=blur_f)(..., I, 0, radius),
-    shift0, ...)`` computes (module docstring).
+    """LSM of n matches on the CPU: the fixed side's template read and aligned to the moving side,
+    as ``lsm_align(frame_sampler(...), ...)`` would.
 
-    Args:
-        img_f, img_m: (H, W) float32 CPU images, or :class:`~..warping.ImageStack` objects
-            with one image per match.
-        H_f_inv, H_m_inv: (n, 3, 3) float64 common frame -> image pixels of each side.
-        frame_f, frame_m: (n, 2) float64 common-frame centres of the fixed and moving side.
-        shift0: (n, 2) float64 start of the moving side's shift (common-frame pixels).
-        radius: template half size (pixels); the moving side is read one pixel wider.
-        blur_f, blur_m: the ``blur_px`` arguments of :func:`.align.frame_sampler`, or None.
-        affine, max_iterations, tol_px, max_shift_px: as :func:`.align.lsm_align`.
-    Returns:
-        :class:`~.result.LSMResult` (CPU tensors).
-    """
+    ``H_f_inv``, ``H_m_inv`` ``(n, 3, 3)`` common frame -> image pixels; ``frame_f``, ``frame_m``
+    ``(n, 2)`` centres; ``shift0`` ``(n, 2)`` start; ``blur_f``, ``blur_m`` as ``blur_px``; the rest
+    as :func:`.align.lsm_align`. Returns :class:`~.result.LSMResult` on CPU tensors."""
     n = shift0.shape[0]
     _check_sizes(radius, max_iterations, blur_f, blur_m)
     ims_f, idx_f = image_arrays(img_f, n)
@@ -501,8 +440,7 @@ def lsm_frames(
 
 
 def warm() -> bool:
-    """Load (or compile) the kernel now, by running it on a small synthetic problem (plain
-    and smoothed reads); returns whether it is loaded. Never raises."""
+    """Load (or compile) the kernel now on a small problem; whether it loaded. Never raises."""
 
     def example() -> None:
         g = torch.arange(48, dtype=torch.float32)

@@ -1,5 +1,4 @@
-"""What one least-squares alignment returns, and the bounds it is judged by: shared by the
-torch alignment (:mod:`.align`, the reference) and its compiled kernel (:mod:`.kernel`)."""
+"""What one least-squares alignment returns and the bounds it is judged by (torch and compiled paths)."""
 
 from __future__ import annotations
 
@@ -17,21 +16,10 @@ MAX_GAIN = 5.0
 
 @dataclass(frozen=True)
 class LSMResult:
-    """Output of :func:`.align.lsm_align` and :func:`.kernel.lsm_frames` (J matches; common-frame pixels).
-
-    Attributes:
-        shift: (J, 2) float64 final shift t (x, y) relative to each match's centre.
-        sigma: (J, 2) float64 a-posteriori standard deviations of t's x and y.
-        sigma_max: (J,) float64 largest semi-axis of t's standard error ellipse (the
-            precision along the least determined direction); +inf where the normal matrix
-            is singular.
-        affine: (J, 2, 2) float64 final A.
-        gain, offset: (J,) float64 final r1, r0.
-        residual_std: (J,) float64 s0 (intensity units of the inputs).
-        converged: (J,) bool: the shift update fell below the tolerance within the
-            iterations allowed, and A, the gain and the normal matrix stayed regular.
-        iterations: (J,) int64 Gauss-Newton steps taken.
-    """
+    """Output of :func:`.align.lsm_align` and :func:`.kernel.lsm_frames` for J matches (common-frame
+    pixels): final ``shift`` ``(J, 2)`` and its ``sigma``, ``sigma_max`` (the error ellipse's
+    largest semi-axis, +inf when singular), ``affine``, ``gain``, ``offset``, ``residual_std``,
+    ``converged`` and ``iterations``."""
 
     shift: torch.Tensor
     sigma: torch.Tensor

@@ -1,40 +1,10 @@
 """The least-squares matching step of the NCC refinement and its acceptance rule.
 
-After the NCC peak of a match (integer peak and parabola), the template around the fixed keypoint and the
-search image around the moving keypoint are both read in the match's common frame (the
-winning homography pair of the NCC search), bicubically, and aligned by :func:`.align.lsm_align`
-from the NCC offset. LSM's position replaces the NCC one only where
-
-- the Gauss-Newton iteration converged with a regular affine map and gain,
-- the shift stays within ``lsm_max_shift_px`` of the NCC peak (a larger move means LSM found
-  another minimum than the correlation did), and
-- the a-posteriori standard deviation of the shift is below ``lsm_max_sigma_px`` (flat and
-  edge-like patches, and patches the model does not fit, fail this);
-
-elsewhere the NCC refinement goes on as without LSM (iterated parabolas). Each reason is
-counted.
-
-On CPU tensors the step runs :func:`.kernel.lsm_frames`, one compiled loop
-per match; the torch path (:func:`.align.frame_sampler` and :func:`.align.lsm_align`) runs on
-CUDA and is the kernel's reference (they agree to float rounding).
-
-Anti-aliasing (``lsm_antialias`` > 0): where one view sees the match at a finer scale than
-the other (the local scale ``sqrt |det J|`` of its frame -> image map at the match is
-larger), its samples are smoothed so that both sides carry the blur of the coarser view:
-a Gaussian of ``lsm_antialias * sqrt(ratio^2 - 1)`` of its own pixels (the coarser view's
-blur, ``lsm_antialias`` pixels of its own, brought to the finer view's pixels, less the
-finer view's own). The Gaussian is approximated by the mean of 4 bicubic samples at
-``(+-sigma, +-sigma)`` image pixels from each sample's position, along the image axes (the
-variance of a Gaussian of ``sigma`` on each axis; the mean is separable, so the compiled
-kernel reads it as one sample with the 4 samples' taps merged), so the smoothing costs
-samples at the affected matches only and stays per match; a
-3 x 3 stencil of the same variance was measured slightly more accurate at over twice the cost.
-Smoothing whole images once per blur level instead (kornia's ``gaussian_blur2d``) would cost
-more than the samples: an image is loaded many times per run and a match's blur varies
-continuously. Smoothing a crop around each match once costs about what the samples it saves
-cost, as the crop must cover the whole iteration. A 3-sample stencil of the same mean and
-covariance (a triangle) skews the blur and loses accuracy (docs/results.md).
-"""
+From the NCC peak, LSM (:func:`.align.lsm_align`, compiled on CPU tensors) replaces NCC's position
+only if it converged regularly, stayed within ``lsm_max_shift_px`` of the peak (else it found
+another minimum) and its shift's standard deviation is below ``lsm_max_sigma_px``. With
+``lsm_antialias`` the finer of two views is smoothed to the coarser one's blur, each sample the mean
+of 4 bicubic reads."""
 
 from __future__ import annotations
 
@@ -65,25 +35,12 @@ def lsm_step(
     *,
     compiled: bool | None = None,
 ) -> tuple[torch.Tensor, dict[str, int], torch.Tensor]:
-    """LSM-refined offsets of n matches, the counters of :data:`LSM_COUNTERS`, and which
-    matches LSM moved.
+    """LSM-refined offsets ``(n, 2)`` of n matches (LSM's where accepted, else ``offset``), the
+    :data:`LSM_COUNTERS`, and ``(n,)`` which matches LSM moved.
 
-    Args:
-        img_f, img_m: (H, W) float32 fixed-side and moving-side images, or
-            :class:`~..warping.ImageStack` objects with one image per match (n rows).
-        H_f_inv, H_m_inv: (n, 3, 3) float64 common frame -> image pixels of each side.
-        frame_f, frame_m: (n, 2) float64 common-frame positions of the fixed and the moving
-            keypoint.
-        offset: (n, 2) float64 NCC offset of the moving side (common frame): the start of
-            LSM and the reference of ``lsm_max_shift_px``.
-        cfg: ``lsm_*`` fields of :class:`~..config.NCCConfig`.
-        compiled: run :func:`.kernel.lsm_frames` (CPU tensors only) rather than the
-            torch path (:func:`.align.frame_sampler` and :func:`.align.lsm_align`); None: where
-            the tensors are on the CPU.
-    Returns:
-        ((n, 2) float64 offsets: LSM's where accepted, else ``offset``; counters; (n,)
-        bool accepted).
-    """
+    ``H_f_inv``, ``H_m_inv`` ``(n, 3, 3)`` common frame -> image pixels; ``frame_f``, ``frame_m``
+    ``(n, 2)`` keypoints in the frame; ``offset`` the NCC offset (LSM's start). ``compiled``: the
+    kernel (None: where the tensors are on the CPU)."""
     n = offset.shape[0]
     if n == 0:
         return offset, dict.fromkeys(LSM_COUNTERS, 0), torch.zeros(0, dtype=torch.bool,
@@ -123,9 +80,7 @@ def lsm_step(
 def _antialias_blur(H_f_inv: torch.Tensor, at_f: torch.Tensor, H_m_inv: torch.Tensor,
                     at_m: torch.Tensor, base_px: float
                     ) -> tuple[tuple[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]:
-    """The ``blur_px`` arguments of :func:`.align.frame_sampler` for the fixed and the moving
-    side: the finer view of each match smoothed to the coarser one's blur (see the module
-    docstring); ``at_f`` / ``at_m`` (n, 2) frame points of the match."""
+    """The ``blur_px`` arguments that smooth each match's finer view to the coarser one's blur."""
     s_f = local_scale(frame_jacobian(H_f_inv, at_f))
     s_m = local_scale(frame_jacobian(H_m_inv, at_m))
     coarse = torch.minimum(s_f, s_m)
@@ -135,10 +90,8 @@ def _antialias_blur(H_f_inv: torch.Tensor, at_f: torch.Tensor, H_m_inv: torch.Te
 
 def lsm_outcomes(moved: torch.Tensor, sigma_max: torch.Tensor, converged: torch.Tensor,
                  cfg: NCCConfig) -> dict[str, torch.Tensor]:
-    """The acceptance rule (module docstring) of n LSM results: (n,) bool masks ``applied``,
-    ``not_converged``, ``far``, ``imprecise`` (disjoint, together every match); ``moved``
-    (n, 2) each shift from its start (common-frame pixels), ``sigma_max`` (n,) and
-    ``converged`` (n,) as :class:`.align.LSMResult` gives them."""
+    """The acceptance rule of n LSM results: disjoint ``(n,)`` masks ``applied``, ``not_converged``,
+    ``far``, ``imprecise``."""
     far = moved.abs().amax(dim=1) > cfg.lsm_max_shift_px
     imprecise = converged & ~far & ~(sigma_max <= cfg.lsm_max_sigma_px)
     return {"applied": converged & ~far & ~imprecise, "not_converged": ~converged & ~far,
@@ -146,9 +99,8 @@ def lsm_outcomes(moved: torch.Tensor, sigma_max: torch.Tensor, converged: torch.
 
 
 def blur_sigma(scale: torch.Tensor, coarse: torch.Tensor, base_px: float) -> torch.Tensor:
-    """(n,) the Gaussian (pixels of its own) that smooths a view of local scale ``scale`` (n,)
-    to the blur of a coarser view of scale ``coarse`` (n,): ``base_px * sqrt(ratio^2 - 1)``,
-    ratio = scale / coarse (0 where the view is not finer), at most ``MAX_BLUR_PX``."""
+    """``(n,)`` Gaussian sigma (own pixels) bringing a view of ``scale`` to a coarser ``coarse``:
+    ``base_px * sqrt(ratio^2 - 1)``, 0 where not finer, at most ``MAX_BLUR_PX``."""
     ratio = scale / coarse.clamp_min(1e-12)
     # capped: a blur wider than any window it smooths is meaningless (a degenerate frame's
     # scale ratio is huge), and the compiled kernel sizes its buffers by it
@@ -157,10 +109,8 @@ def blur_sigma(scale: torch.Tensor, coarse: torch.Tensor, base_px: float) -> tor
 
 def smoothing_to(J: torch.Tensor, scale: torch.Tensor, coarse: torch.Tensor,
                  base_px: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``blur`` argument of :func:`.align.frame_sampler` that smooths a view (Jacobians ``J``
-    (n, 2, 2), local scale ``scale`` (n,)) to the blur of a coarser view of scale ``coarse``
-    (n,): a Gaussian of ``base_px * sqrt(ratio^2 - 1)`` of its own pixels (ratio = scale /
-    coarse; none where the view is not finer), taken where it reaches ``MIN_BLUR_PX``."""
+    """The ``blur`` argument smoothing a view to a coarser view's blur (see :func:`blur_sigma`),
+    where it reaches ``MIN_BLUR_PX``."""
     sigma = blur_sigma(scale, coarse, base_px)
     # one step of sigma image pixels along the image's axes, in frame pixels: J^-1 sigma
     return sigma >= MIN_BLUR_PX, torch.linalg.inv(J) * sigma[:, None, None]

@@ -1,2 +1,1 @@
-"""The NCC search of one match: template shapes, batched correlation maps, the search of one
-direction, the iterated sub-pixel step, their compiled kernel, and blur matching."""
+"""The NCC search of one match: template shapes, correlation maps, search and sub-pixel step."""

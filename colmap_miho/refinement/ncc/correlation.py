@@ -1,12 +1,8 @@
 """Batched normalised cross-correlation maps, structure tensors and peak finding (App. E).
 
-NCC of a template ``T`` (zero mean, unit norm) against the window patch ``W_t`` at offset
-``t`` is ``sum_w T(w) (W_t(w) - mean W_t) / ||W_t - mean W_t||``, in [-1, 1] (the paper's
-S divided by the number of pixels). Because ``T`` has zero mean, the numerator is the plain
-cross-correlation of ``T`` with the window (one grouped ``conv2d`` for all matches and shapes)
-and the window norms come from box filters (``avg_pool2d``), so no patch is normalised one by
-one.
-"""
+With a zero-mean template the NCC numerator is a plain cross-correlation (one grouped ``conv2d``)
+and the window norms come from box sums, so no patch is normalised one by one. NCC is in [-1, 1]
+(the paper's S divided by the pixel count)."""
 
 from __future__ import annotations
 
@@ -30,7 +26,7 @@ _BLOCK_PIXELS = 256 * 33 * 33
 
 
 def normalize_templates(templates: torch.Tensor) -> torch.Tensor:
-    """Zero-mean, unit-norm templates (J, K, St, St) float32; flat ones become all zero."""
+    """Zero-mean, unit-norm templates ``(J, K, St, St)`` float32; flat ones become zero."""
     # float64 reductions: float32 ones may round differently with the batch size, and a
     # match's result should not depend on which other matches share its batch
     t = templates - _mean64(templates)
@@ -42,18 +38,11 @@ def normalize_templates(templates: torch.Tensor) -> torch.Tensor:
 def ncc_maps(
     windows: torch.Tensor, templates: torch.Tensor, stride: int = 1, normalized: bool = False
 ) -> torch.Tensor:
-    """NCC response maps of every template against its own window.
+    """NCC maps ``(J, K, So, So)`` of every template against its own window, So = (Sw - St) //
+    stride + 1.
 
-    Args:
-        windows: (J, Sw, Sw) float32 search windows.
-        templates: (J, K, St, St) float32 templates (K shapes per window), St <= Sw.
-        stride: evaluate every ``stride``-th offset only (coarse search).
-        normalized: the templates already went through :func:`normalize_templates`.
-    Returns:
-        (J, K, So, So) float32 with So = (Sw - St) // stride + 1; entry [j, k, y, x] is the
-        NCC of template k of job j with the window patch whose top-left corner is
-        (stride x, stride y). Flat windows or templates give 0.
-    """
+    ``windows`` ``(J, Sw, Sw)``, ``templates`` ``(J, K, St, St)``; entry ``[j, k, y, x]`` is for the
+    patch with top-left corner (stride x, stride y). Flat windows or templates give 0."""
     J, Sw = windows.shape[0], windows.shape[-1]
     block = max(_GROUP_PAD, _BLOCK_PIXELS // (Sw * Sw) // _GROUP_PAD * _GROUP_PAD)
     if J <= block or windows.device.type != "cpu":  # a GPU wants one big call
@@ -68,7 +57,6 @@ def ncc_maps(
 def _ncc_block(
     windows: torch.Tensor, templates: torch.Tensor, stride: int, normalized: bool
 ) -> torch.Tensor:
-    """:func:`ncc_maps` on one block of jobs."""
     J, K, St, _ = templates.shape
     Sw = windows.shape[-1]
     n = St * St
@@ -107,19 +95,13 @@ def _ncc_block(
 
 
 def _mean64(x: torch.Tensor) -> torch.Tensor:
-    """Mean over the last two axes, summed in float64 (the sum of ``x.to(float64)``,
-    without the float64 copy), in x's dtype."""
+    """Mean over the last two axes summed in float64, returned in x's dtype."""
     return x.mean(dim=(-2, -1), keepdim=True, dtype=torch.float64).to(x.dtype)
 
 
 def box_sum(x: torch.Tensor, size: int) -> torch.Tensor:
-    """Sums over all ``size`` x ``size`` windows ('valid') of x (J, S, S) by separable
-    running sums (rows, then columns); returns (J, S - size + 1, S - size + 1).
-
-    Running sums along one axis are sequential per row, so a value never depends on the
-    batch it is computed in. In float32 on the mean-free windows of :func:`ncc_maps`
-    (values in [-1, 1], S = 41) the error is below 1e-5, far below the window norms that
-    matter (a flat 21x21 template has a squared norm of about 0.04)."""
+    """Sums over all ``size`` x ``size`` windows of x ``(J, S, S)`` by separable running sums
+    (sequential, so a value never depends on the batch)."""
     J, S = x.shape[0], x.shape[-1]
     o = S - size + 1
     # window [j, j + size) = c[j + size - 1] - c[j - 1], the first one c[size - 1] - 0
@@ -135,14 +117,8 @@ def box_sum(x: torch.Tensor, size: int) -> torch.Tensor:
 
 
 def structure_tensor(patches: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Eigen-decomposition of the gradient structure tensor of each patch.
-
-    Args:
-        patches: (J, S, S) float32.
-    Returns:
-        (lam_min (J,), lam_max (J,), dir_max (J, 2)): eigenvalues of ``sum g g^T`` over the
-        patch (central differences) and the unit (x, y) direction of the dominant gradient.
-    """
+    """``(lam_min, lam_max (J,), dir_max (J, 2))``: eigenvalues of each patch's gradient structure
+    tensor and the unit direction of the dominant gradient."""
     patches = patches.to(torch.float64)  # batch-independent sums
     gx = 0.5 * (patches[:, 1:-1, 2:] - patches[:, 1:-1, :-2])
     gy = 0.5 * (patches[:, 2:, 1:-1] - patches[:, :-2, 1:-1])
@@ -170,13 +146,8 @@ def ellipse_masks(
     radius: int,
     min_axis: float = 0.5,
 ) -> torch.Tensor:
-    """NCC* search masks (App. E): an ellipse with semi-axis ``radius`` along the dominant
-    gradient (across an edge) and ``max(min_axis, radius * sqrt(lam_min / lam_max))`` along
-    the edge.
-
-    Returns:
-        (J, 2*radius+1, 2*radius+1) bool, indexed [y, x] like the NCC maps.
-    """
+    """NCC* masks ``(J, 2r+1, 2r+1)`` ``[y, x]``: an ellipse of semi-axis ``radius`` across the edge
+    and ``max(min_axis, radius sqrt(lam_min / lam_max))`` along it."""
     r = torch.arange(-radius, radius + 1, device=lam_min.device, dtype=torch.float32)
     yy, xx = torch.meshgrid(r, r, indexing="ij")
     ratio = torch.where(lam_max > 0, lam_min / lam_max.clamp_min(1e-20), torch.ones_like(lam_max))
@@ -191,9 +162,8 @@ def ellipse_masks(
 def parabola_vertex(
     c0: torch.Tensor, cm: torch.Tensor, cp: torch.Tensor, valid: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """Vertex offset of the 1-D parabola through (-1, cm), (0, c0), (1, cp) (App. E's
-    sub-pixel step), clamped to [-0.5, 0.5]; zero where ``valid`` is False or the curvature
-    is too flat to trust (``MIN_CURVATURE``). All tensors have one shape."""
+    """Vertex of the parabola through (-1, cm), (0, c0), (1, cp), clamped to [-0.5, 0.5]; 0 where
+    invalid or too flat (``MIN_CURVATURE``)."""
     den = cm - 2.0 * c0 + cp
     ok = den < -MIN_CURVATURE
     if valid is not None:
@@ -203,21 +173,12 @@ def parabola_vertex(
 
 
 def find_peaks(maps: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """Best shape and offset of each job, with 1-D parabolic sub-pixel refinement.
+    """Best shape and offset per job with parabolic sub-pixel refinement: a dict of ``(J,)``
+    tensors.
 
-    Args:
-        maps: (J, K, So, So) NCC maps (So = 2s+1, centre = zero offset).
-        mask: optional (J, So, So) bool, offsets allowed (NCC*).
-    Returns:
-        dict of (J,) tensors: ``k`` best shape, ``peak`` its NCC, ``ix``/``iy`` integer peak
-        offsets from the centre, ``dx``/``dy`` sub-pixel offsets (float, ``ix + sub``),
-        ``border`` (peak on the map border, or - with a mask - not a local maximum
-        of the unmasked map, i.e. held back by the mask), ``centre`` the NCC at zero
-        offset of the best shape at zero offset, ``second`` the highest separated peak of the
-        best shape's (masked) map: its best local maximum (3x3, ties count) at least
-        :data:`SEPARATED_PX` offsets from the peak in x or y, -1 where there is none (at
-        least -1).
-    """
+    ``k``, ``peak``, integer ``ix``/``iy`` and sub-pixel ``dx``/``dy`` offsets from the centre,
+    ``border`` (on the border or held back by ``mask``), ``centre`` (NCC at zero offset) and
+    ``second`` (best local maximum at least :data:`SEPARATED_PX` away, at least -1)."""
     J, K, So, _ = maps.shape
     s = So // 2
     m = maps if mask is None else maps.masked_fill(~mask[:, None], -2.0)

@@ -1,43 +1,6 @@
-"""Compiled (numba) NCC search and iterated sub-pixel step: one loop per match on CPU tensors.
-
-:func:`subpixel` does what :func:`.subpixel.iterate_subpixel` does, and :func:`evaluate` what
-:func:`.search.evaluate_direction` does for the plain search (one unperturbed square template
-in every pass, no coarse choice of shapes), for matches on CPU tensors. The torch functions stay
-the reference and the path on CUDA and for the other configurations. A match's samples, NCC
-maps, peaks and sub-pixel steps are computed in one compiled loop, so that a sample costs its
-arithmetic (the torch path forms every sample's coordinates in memory, then calls
-``grid_sample``, then convolves, with a few dozen tensor calls per step).
-
-What each part computes, as the torch path:
-
-- homographies inverted by the adjugate (:func:`..warping.invert_homographies`: invalid when
-  singular or not finite, the identity then), keypoints mapped into the common frame
-  (:func:`.search.to_frame`), the inside tests on the patch corners
-  (:func:`..warping.patch_inside`; the search window's is always the full radius's square) with
-  the same float64 operations in the same order, so the same flags;
-- bilinear samples with ``grid_sample``'s semantics (``align_corners=True``, zeros outside,
-  the job's own image) at ``H^-1 (c + o)``, the offsets o mapped relative to the centre as
-  :func:`..warping.sample_patches` does (``x_c + (B o - x_c (b . o)) / max(1 + b . o, 1e-6)``);
-- NCC maps as :func:`.correlation.ncc_maps` (zero-mean unit-norm template, flat ones zero;
-  the window's mean removed first, its norms from box sums; flat windows 0; clamped to
-  [-1, 1]); peaks, borders, centre NCC and parabolas as :func:`.correlation.find_peaks`
-  (the NCC* ellipse of :func:`.correlation.ellipse_masks` with ``ellipse_mask``); the structure
-  tensor and flat flag of the first pass's template as :func:`.search._evaluate`;
-- with ``inner_radius``, the matches whose peak of some pass lies on the smaller window's
-  border (usable ones: valid, inside, not flat) are searched again over the full radius.
-
-Differences from the torch path, all at float rounding: positions are float64 pixels (the torch
-path rounds them to float32 grid units, about 1e-4 px on large images), the NCC sums, box sums,
-normalisation and parabolas are float64 (float32 there). Integer peaks and decisions agree
-except at near-ties (two offsets, passes or a threshold within rounding). The tests bound the
-differences (``test_ncc_kernel.py``).
-
-A match's result depends on its own inputs only: the loop over matches is serial and every
-quantity of a match is computed by the same code whatever the other matches are.
-
-The kernels compile on first use (:mod:`colmap_miho.compiled`); :func:`warm` loads them ahead
-(the ``ncc`` family of :mod:`colmap_miho.kernel_cache`).
-"""
+"""Compiled (numba) NCC search and iterated sub-pixel step on CPU tensors: :func:`evaluate` and
+:func:`subpixel` do what :func:`.search.evaluate_direction` (plain search) and
+:func:`.subpixel.iterate_subpixel` do, one loop per match; results differ at float rounding only."""
 
 from __future__ import annotations
 
@@ -64,8 +27,7 @@ _SEPARATED_PX = 2
 
 
 def _invert(H, out) -> bool:
-    """``out`` (3, 3) = H^-1 by the adjugate; False (and the identity) when H (3, 3) is
-    singular or not finite (:func:`..warping.invert_homographies`)."""
+    """``out`` = H^-1 by the adjugate; False (and the identity) when singular or not finite."""
     a, b, c = H[0, 0], H[0, 1], H[0, 2]
     d, e, f = H[1, 0], H[1, 1], H[1, 2]
     g, h, i = H[2, 0], H[2, 1], H[2, 2]
@@ -91,7 +53,6 @@ def _invert(H, out) -> bool:
 
 
 def _to_frame(H, x: float, y: float) -> tuple[float, float]:
-    """The point (x, y) mapped by H (3, 3), w clamped to 1e-12 (:func:`.search.to_frame`)."""
     X = H[0, 0] * x + H[0, 1] * y + H[0, 2]
     Y = H[1, 0] * x + H[1, 1] * y + H[1, 2]
     W = max(H[2, 0] * x + H[2, 1] * y + H[2, 2], 1e-12)
@@ -99,8 +60,7 @@ def _to_frame(H, x: float, y: float) -> tuple[float, float]:
 
 
 def _inside(Hi, cx: float, cy: float, radius: int, h: int, w: int) -> bool:
-    """The 4 corners of the square of offsets up to ``radius`` around (cx, cy) map by Hi in
-    front of the camera and inside the (h, w) image (:func:`..warping.patch_inside`)."""
+    """The corners of the square up to ``radius`` around (cx, cy) map in front and inside the image."""
     for corner in range(4):
         px = cx + (radius if corner % 2 == 1 else -radius)
         py = cy + (radius if corner >= 2 else -radius)
@@ -116,7 +76,6 @@ def _inside(Hi, cx: float, cy: float, radius: int, h: int, w: int) -> bool:
 
 
 def _centre_good(Hi, cx: float, cy: float) -> bool:
-    """The centre maps in front of the camera (:func:`..warping.sample_values`' ``good``)."""
     return Hi[2, 0] * cx + Hi[2, 1] * cy + Hi[2, 2] > _MIN_W
 
 
@@ -125,11 +84,8 @@ def _centre_good(Hi, cx: float, cy: float) -> bool:
 
 
 def _sample(img, Hi, cx: float, cy: float, radius: int, out, pos) -> None:
-    """``out`` (S, S) float32, S = 2 radius + 1, [y, x]: ``img`` (h, w) float32 read
-    bilinearly (zeros outside, integer = pixel centre) at ``Hi (c + o)`` for the integer
-    offsets o in [-radius, radius]^2, the offsets mapped relative to the centre. ``pos``
-    (2, >= S) float64 is work space: one row's positions, formed first in a loop without
-    branches, then read."""
+    """``out`` ``(S, S)`` float32 ``[y, x]``: ``img`` read bilinearly (zeros outside) at ``Hi (c +
+    o)`` for integer offsets up to ``radius``; ``pos`` is work space."""
     h, w = img.shape
     X = Hi[0, 0] * cx + Hi[0, 1] * cy + Hi[0, 2]
     Y = Hi[1, 0] * cx + Hi[1, 1] * cy + Hi[1, 2]
@@ -180,10 +136,7 @@ def _sample(img, Hi, cx: float, cy: float, radius: int, out, pos) -> None:
 
 
 def _normalize(tpl, out) -> float:
-    """``out`` (St, St) float64: the zero-mean, unit-norm template ``tpl`` (St, St); all zero
-    when its norm is at most the flatness epsilon (:func:`.correlation.normalize_templates`).
-    Returns the sum of squared deviations from the mean (the flatness test's variance times
-    St^2 - 1)."""
+    """``out``: the zero-mean unit-norm template (zero when flat); returns its sum of squared deviations."""
     n = tpl.shape[0]
     mean = 0.0
     for y in range(n):
@@ -209,11 +162,8 @@ def _normalize(tpl, out) -> float:
 
 
 def _ncc(win, tn, So: int, out, wc, box, cols) -> None:
-    """``out`` (>= So, >= So) float64, [y, x]: the NCC of the normalised template ``tn``
-    (St, St) with the patch of ``win`` (Sw, Sw) float32 whose top-left corner is (x, y),
-    Sw = St + So - 1 (:func:`.correlation.ncc_maps`). ``wc`` (>= Sw, >= Sw), ``box``
-    (2, >= Sw + 1, >= Sw + 1) and ``cols`` (>= So Sw St,) float64 are work space: the mean-free
-    window, the integral images of it and of its square, and its column bands (:func:`_corr`)."""
+    """``out`` ``[y, x]``: NCC of the normalised template ``tn`` with each patch of ``win`` (Sw = St
+    + So - 1); ``wc``, ``box`` and ``cols`` are work space."""
     St = tn.shape[0]
     Sw = St + So - 1
     mean = 0.0
@@ -251,13 +201,9 @@ def _ncc(win, tn, So: int, out, wc, box, cols) -> None:
 
 
 def _corr(wc, tn, So: int, out, cols) -> None:
-    """``out[y, x]`` = the cross-correlation of ``tn`` (St, St) with the patch of ``wc`` at
-    (x, y), for x, y < So: one dot product of St^2 contiguous values per offset. ``cols``
-    (>= So Sw St,) is work space: the band of columns x .. x + St - 1 of ``wc`` (Sw, St), for
-    each x, row-major, so that the patch at (x, y) is its rows y .. y + St - 1, contiguous and
-    in the template's order. Compiled with reassociation: each dot is summed in the order the
-    vectorised loop gives, the same for every match (a dot over a template row alone is too
-    short for the vector loop)."""
+    """``out[y, x]``: cross-correlation of ``tn`` with ``wc``'s patch at (x, y), one contiguous dot
+    per offset (``cols``: column bands, work space). Reassociated, but the same order for every
+    match."""
     St = tn.shape[0]
     Sw = St + So - 1
     band = Sw * St
@@ -279,8 +225,7 @@ def _corr(wc, tn, So: int, out, cols) -> None:
 
 
 def _parabola(c0: float, cm: float, cp: float, valid: bool) -> float:
-    """The vertex of the parabola through (-1, cm), (0, c0), (1, cp), clamped to [-0.5, 0.5];
-    0 where not ``valid`` or too flat (:func:`.correlation.parabola_vertex`)."""
+    """Vertex of the parabola through (-1, cm), (0, c0), (1, cp) clamped to [-0.5, 0.5]; 0 if invalid."""
     den = cm - 2.0 * c0 + cp
     if not (valid and den < -_MIN_CURVATURE):
         return 0.0
@@ -292,9 +237,7 @@ def _parabola(c0: float, cm: float, cp: float, valid: bool) -> float:
 
 
 def _subpixel_matches(img, rows, H, c, off, tpl, radius: int, iterations: int, out) -> None:
-    """The iterated sub-pixel step (:func:`.subpixel.iterate_subpixel`) of the matches
-    ``rows``: ``out[j]`` (2,) float64 from ``off[j]``, the template ``tpl[j]`` (St, St)
-    float32 searched around ``c[j] + off`` in ``img`` by ``H[j]`` (frame -> image pixels)."""
+    """The iterated sub-pixel step of the matches ``rows``: ``out[j]`` ``(2,)`` float64 from ``off[j]``."""
     St = 2 * radius + 1
     side = St + 2
     tn = np.empty((St, St))
@@ -326,9 +269,7 @@ def _subpixel_matches(img, rows, H, c, off, tpl, radius: int, iterations: int, o
 
 
 def _ellipse(tpl, radius: int, use_mask: bool, mask) -> tuple[float, float]:
-    """The structure tensor of ``tpl`` (St, St) (:func:`.correlation.structure_tensor`):
-    returns (lam_min, lam_max) and, when ``use_mask``, writes the NCC* mask (2 radius + 1,
-    2 radius + 1) of :func:`.correlation.ellipse_masks` into ``mask``."""
+    """The structure tensor's ``(lam_min, lam_max)`` of ``tpl``; writes the NCC* mask when ``use_mask``."""
     n = tpl.shape[0]
     a = 0.0
     b = 0.0
@@ -367,9 +308,7 @@ def _ellipse(tpl, radius: int, use_mask: bool, mask) -> tuple[float, float]:
 
 def _peaks(maps, n_k: int, So: int, use_mask: bool, mask, cut: int, kk: int
            ) -> tuple[int, int, int, float, float, float, float, bool]:
-    """:func:`.correlation.find_peaks` of the maps ``maps[k, :So, :So]`` (k < ``n_k``; only
-    ``kk`` when ``kk >= 0``), masked by ``mask[cut:, cut:]`` when ``use_mask``: (k, iy, ix,
-    peak (masked), NCC at the peak, sub-pixel x, sub-pixel y, border)."""
+    """:func:`.correlation.find_peaks` of ``maps``: (k, iy, ix, peak, NCC, sub-pixel x, y, border)."""
     best = -math.inf
     bk, by, bx = 0, 0, 0
     first = True
@@ -401,10 +340,7 @@ def _peaks(maps, n_k: int, So: int, use_mask: bool, mask, cut: int, kk: int
 
 
 def _second(maps, k: int, So: int, use_mask: bool, mask, cut: int, py: int, px: int) -> float:
-    """The best separated peak of ``maps[k, :So, :So]`` (masked by ``mask[cut:, cut:]`` when
-    ``use_mask``) around the peak (py, px), as :func:`.correlation.find_peaks`' ``second``:
-    the highest local maximum (3x3, ties count, masked offsets read -2) at least
-    ``_SEPARATED_PX`` offsets from the peak in x or y; at least -1."""
+    """The best peak of ``maps[k]`` at least ``_SEPARATED_PX`` offsets from (py, px); at least -1."""
     out = -1.0
     for y in range(So):
         for x in range(So):
@@ -432,10 +368,7 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
                     use_mask: bool, min_std: float,
                     peak, centre, border, zero, inside, valid, flat, offset,
                     H_inv, frame_m, H_f_inv, frame_f, template, researched, second) -> None:
-    """The search of the matches ``rows`` (module docstring): keypoints ``xf``, ``xm`` (J, 2)
-    float64, homography pairs ``H`` (J, n_pass, 2, 3, 3) float64 (side ``f`` fixed, ``m``
-    moving), template radius ``r``, offsets up to ``s0`` first (``s0 == s``: the full radius
-    only); outputs written into the (J, ...) arrays ``peak`` .. ``researched``."""
+    """The search of the matches ``rows``; outputs written into the ``(J, ...)`` arrays."""
     n_pass = H.shape[1]
     St = 2 * r + 1
     Sw = 2 * (r + s) + 1
@@ -525,8 +458,7 @@ def _search_matches(img_f, img_m, rows, xf, xm, H, f: int, m: int, r: int, s0: i
 
 
 def _jit_all() -> dict[str, Any]:
-    """Jit the kernels and their helpers: the geometry exact, the reads and maps with fused
-    multiply-adds, the correlation's dot products also reassociated."""
+    """Jit the kernels: geometry exact, reads and maps with FMA, correlation dots also reassociated."""
     jit_helpers(globals(), (_corr,), REASSOC)
     jit_helpers(globals(), (_invert, _to_frame, _inside, _centre_good))
     jit_helpers(globals(), (_sample, _normalize, _ncc, _parabola, _ellipse, _peaks, _second), CONTRACT)
@@ -539,7 +471,6 @@ KERNELS = Kernels(_jit_all)
 
 
 def _groups(key: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    """The jobs of each value of ``key`` (n,): (value, their rows (int64, in order))."""
     if key.size and (key == key[0]).all():
         return [(int(key[0]), np.arange(key.size, dtype=np.int64))]
     order = np.argsort(key, kind="stable")
@@ -562,8 +493,7 @@ def subpixel(
     template_radius: int,
     iterations: int,
 ) -> torch.Tensor:
-    """:func:`.subpixel.iterate_subpixel` on CPU tensors (arguments and result as there):
-    (n, 2) float64 refined offsets."""
+    """:func:`.subpixel.iterate_subpixel` on CPU tensors: ``(n, 2)`` float64 refined offsets."""
     n = offset.shape[0]
     if iterations <= 0 or n == 0:
         return offset
@@ -578,8 +508,7 @@ def subpixel(
 
 
 def serves(passes: list, template_radius: int) -> bool:
-    """Whether :func:`evaluate` serves these passes: every pass searches one template shape,
-    the unperturbed square of radius ``template_radius`` (offsets as :func:`..warping.offset_grid`)."""
+    """Whether :func:`evaluate` serves these passes: one unperturbed square template each."""
     offs = passes[0][1]
     St = 2 * template_radius + 1
     if offs.ndim != 3 or offs.shape[0] != 1 or offs.shape[1] != St * St:
@@ -606,9 +535,7 @@ def evaluate(
     ellipse_mask: bool,
     min_template_std: float,
 ) -> dict[str, torch.Tensor]:
-    """:func:`.search.evaluate_direction` on CPU tensors for passes :func:`serves` serves
-    (arguments and result as there; ``inner_radius`` outside (0, ``search_radius``) searches
-    the full radius at once). The result also holds ``researched`` (J,) bool: the matches
+    """:func:`.search.evaluate_direction` on CPU tensors, plus ``researched`` ``(J,)``: the matches
     searched again over the full radius."""
     J = x_f.shape[0]
     ims_f, idx_f = image_arrays(img_f, J)
@@ -635,8 +562,7 @@ def evaluate(
 
 
 def warm() -> bool:
-    """Load (or compile) the kernels now, by running each on a small synthetic problem;
-    returns whether they are loaded. Never raises."""
+    """Load (or compile) the kernels now on a small problem; whether they loaded. Never raises."""
 
     def example() -> None:
         g = torch.arange(64, dtype=torch.float32)

@@ -1,14 +1,5 @@
-"""Template shape perturbations of the NCC refinement (paper Sec. 3.3, Eq. A_{rho,f}).
-
-The paper perturbs the extended homography pair by the affine maps
-
-    A_{rho,f} = [[f cos(rho), -f sin(rho)], [sin(rho), cos(rho)]]
-
-with rho in {-30, -15, 0, 15, 30} degrees and f in {5/7, 5/6, 1, 6/5, 7/5} (25 shapes).
-Here the perturbation is applied to the *template* only, about the template centre, so that
-the search window is sampled once per match: template pixel ``w`` (common-frame offset) is
-read at ``H_fixed^-1 (c + M w)`` with ``M`` one of the matrices returned below.
-"""
+"""Template shape perturbations of the NCC refinement (paper Sec. 3.3): ``A_{rho,f} = [[f cos rho,
+-f sin rho], [sin rho, cos rho]]``, applied to the template only, so the window is sampled once."""
 
 from __future__ import annotations
 
@@ -23,19 +14,14 @@ PAPER_FACTORS = (5.0 / 7.0, 5.0 / 6.0, 1.0, 6.0 / 5.0, 7.0 / 5.0)
 
 
 def shape_matrix(rho_deg: float, factor: float) -> np.ndarray:
-    """The paper's ``A_{rho,f}`` (2, 2) float64: rotation by ``rho_deg`` with the first row
-    scaled by ``factor`` (an anisotropic scaling / shear of the template)."""
+    """The paper's ``A_{rho,f}`` ``(2, 2)``: rotation by ``rho_deg``, first row scaled by ``factor``."""
     c, s = math.cos(math.radians(rho_deg)), math.sin(math.radians(rho_deg))
     return np.array([[factor * c, -factor * s], [s, c]], dtype=np.float64)
 
 
 def perturbation_matrices(name: Perturbations | str) -> np.ndarray:
-    """Template shapes of a named set as an array (K, 2, 2) float64; the identity comes first.
-
-    - ``"none"``: only the identity (K = 1).
-    - ``"small"``: identity, rotations by +-15 degrees, factors 5/6 and 6/5 (K = 5).
-    - ``"paper"``: the 5 rotations x 5 factors of the paper (K = 25, identity included once).
-    """
+    """Template shapes ``(K, 2, 2)`` of a named set, identity first: ``"none"`` (1), ``"small"`` (5:
+    +-15 degrees, 5/6 and 6/5) or ``"paper"`` (25)."""
     name = Perturbations.parse(name, "perturbations")
     if name is Perturbations.NONE:
         return np.eye(2)[None].copy()

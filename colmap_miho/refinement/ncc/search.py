@@ -1,17 +1,6 @@
-"""One direction of the NCC search: templates from the fixed side, searched in the moving side.
-
-For a chunk of J matches and each homography pair ("pass": the filter's extended pair with its
-template shapes, then the base pair), the search window is sampled once around the moving
-keypoint and the templates around the fixed keypoint, both in the pair's common frame. With
-several template shapes and ``coarse_shapes``, the shape is chosen on a stride-2 grid first
-and only the chosen shape (and the unperturbed one) is searched at full resolution. With
-``inner_radius`` the offsets near the keypoint are searched first, the full radius only for the
-matches whose peaks climb out of that smaller window.
-
-On CPU tensors the plain search, one unperturbed template shape in every pass,
-runs as :func:`.kernel.evaluate`, one compiled loop per match; this module is its reference
-and the path on CUDA and for perturbed shapes.
-"""
+"""One direction of the NCC search: templates from the fixed side searched in the moving side, per
+homography pair ("pass") in its common frame (window sampled once). The reference of
+:func:`.kernel.evaluate`, and the path on CUDA and for perturbed shapes."""
 
 from __future__ import annotations
 
@@ -37,7 +26,6 @@ Pass = tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]
 
 
 def _repeat(image: torch.Tensor | ImageStack, n: int) -> torch.Tensor | ImageStack:
-    """``image`` for ``n`` copies of its jobs, one after the other."""
     if isinstance(image, ImageStack):
         return ImageStack(image.images, image.slot_sizes, image.index.repeat(n))
     return image
@@ -52,10 +40,8 @@ def _templates(
     offs_coarse: torch.Tensor | None,
     cfg: NCCConfig,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Templates (J, K', St, St) to search at full resolution, and whether they are inside.
-
-    With several shapes and ``cfg.coarse_shapes`` the best shape per match is chosen on the
-    stride-2 grid and K' = 2 (unperturbed, chosen); otherwise K' = K (every shape)."""
+    """Templates ``(J, K', St, St)`` to search at full resolution (K' = 2 after a coarse shape
+    choice, else every shape), and whether they are inside."""
     J = c_f.shape[0]
     st = 2 * cfg.template_radius + 1
     if offs.shape[0] == 1 or not cfg.coarse_shapes:
@@ -83,8 +69,7 @@ def _search_passes(
     passes: list[Pass],
     cfg: NCCConfig,
 ) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
-    """Templates (J, K', St, St) and NCC maps (J, K', So, So) of each pass, and whether each
-    of the n_pass * J templates is inside its image (pass-major, like ``win_all``)."""
+    """Templates and NCC maps of each pass, and whether each template is inside (pass-major)."""
     n_pass = len(passes)
     J = win_all.shape[0] // n_pass
     st = 2 * cfg.template_radius + 1
@@ -118,33 +103,12 @@ def evaluate_direction(
 ) -> dict[str, torch.Tensor]:
     """Best NCC peak over all passes and shapes for J matches in one direction.
 
-    With ``cfg.inner_radius`` (0 < s0 < s) the offsets up to s0 are searched first, in
-    every pass; only the matches where the peak of some pass (or shape) lies on that
-    smaller window's border (or is held back by the NCC* mask), climbing outwards, are
-    searched again over the full radius s, in every pass. A match whose passes all peak
-    inside the smaller window keeps the best of those peaks even where a higher one lies
-    farther out.
-
-    Args:
-        img_f, img_m: (H, W) float32 fixed-side and moving-side images.
-        x_f, x_m: (J, 2) float64 keypoints of the fixed and moving side.
-        passes: :data:`Pass` tuples: (J, 2, 3, 3) float64 homography pairs, template
-            offsets (K, P, 2), the same shapes sampled every 2 px (K, Pc, 2) or None.
-        f, m: index (0 or 1) of the fixed and moving side within each pair.
-        win_off: (Pw, 2) offsets of the search window (radius r + s).
-        cfg: the refinement parameters.
-        compiled: run :func:`.kernel.evaluate` (CPU tensors, one unperturbed template
-            shape in every pass) rather than the torch path; None: where it serves.
-    Returns:
-        dict of tensors with J rows: ``peak``, ``centre`` (NCC at zero offset), ``second``
-        (the best separated peak of the winning map, :func:`.correlation.find_peaks`), ``border``,
-        ``zero`` (integer peak at zero offset), ``inside``, ``valid``, ``flat``,
-        and for the sub-pixel step and the mapping back: ``offset`` (J, 2) float64
-        common-frame offset of the peak, ``H_inv`` (J, 3, 3) and ``frame_m`` (J, 2) of the
-        winning pass, ``template`` (J, St, St) the winning template; for least-squares
-        matching, ``H_f_inv`` (J, 3, 3) and ``frame_f`` (J, 2) of the fixed side in the
-        winning pass.
-    """
+    With ``cfg.inner_radius`` only the matches whose peak climbs out of the smaller window are
+    searched again over the full radius. ``passes``: :data:`Pass` tuples (homography pairs ``(J, 2,
+    3, 3)``, template offsets, coarse offsets or None); ``f``, ``m``: the fixed and moving side's
+    index in each pair. Returns a dict of J-row tensors: ``peak``, ``centre``, ``second``,
+    ``border``, ``zero``, ``inside``, ``valid``, ``flat``, the peak's common-frame ``offset``, the
+    winning pass's ``H_inv``, ``frame_m``, ``template`` and, for LSM, ``H_f_inv`` and ``frame_f``."""
     if compiled is None:
         compiled = x_f.device.type == "cpu" and kernel.serves(passes, cfg.template_radius)
     if compiled:
@@ -180,10 +144,8 @@ def _evaluate(
     radius: int,
     cfg: NCCConfig,
 ) -> dict[str, torch.Tensor]:
-    """:func:`evaluate_direction` over offsets up to ``radius`` (<= ``cfg.search_radius``):
-    ``sides`` = (f, m); ``windows`` = the window offsets (Pw, 2) of radius r + ``radius``,
-    and the offsets whose square the inside test checks instead (the full window's), or
-    None (the window's own)."""
+    """:func:`evaluate_direction` over offsets up to ``radius``; ``windows``: the window offsets and
+    those whose square the inside test checks (None: the window's own)."""
     f, m = sides
     win_off, outer = windows
     st = 2 * cfg.template_radius + 1

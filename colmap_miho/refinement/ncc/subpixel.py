@@ -1,12 +1,6 @@
-"""Iterated sub-pixel refinement of an NCC peak (re-centred 1-D parabolas).
-
-The parabola fit of App. E on an integer NCC map is biased towards integer offsets ("pixel
-locking"). Re-sampling the search window at the sub-pixel estimate and fitting again on the
-3x3 NCC neighbourhood removes most of that bias.
-
-On CPU tensors the step runs as :func:`.kernel.subpixel`, one compiled loop
-per match; the torch code here is its reference and the path on CUDA.
-"""
+"""Iterated sub-pixel refinement of an NCC peak: a parabola on the integer NCC map is biased towards
+integers ("pixel locking"); re-sampling at the estimate and fitting again removes most of it. On CPU
+tensors the compiled :func:`.kernel.subpixel` runs; this is its reference."""
 
 from __future__ import annotations
 
@@ -30,23 +24,11 @@ def iterate_subpixel(
     iterations: int,
     compiled: bool | None = None,
 ) -> torch.Tensor:
-    """Refine sub-pixel offsets of the template in the rectified search image.
+    """Refine sub-pixel offsets ``(n, 2)`` of the ``templates`` in the moving image.
 
-    Args:
-        image: (H, W) float32, the image searched (the moving side), or an
-            :class:`~..warping.ImageStack` with one image per match.
-        H_inv: (n, 3, 3) float64, common frame -> image pixels of the moving side.
-        centres: (n, 2) float64 common-frame position of the moving keypoint.
-        offset: (n, 2) float64 current offset estimate (integer peak + parabola).
-        templates: (n, St, St) float32 the templates that produced the peak.
-        template_radius: r, with St = 2r + 1.
-        iterations: how many re-centred fits (0 returns ``offset`` unchanged).
-        compiled: run :func:`.kernel.subpixel` (CPU tensors) rather than the torch path;
-            None: on CPU tensors.
-    Returns:
-        (n, 2) float64 refined offsets. Each match stops on its own once a step is below
-        1e-3 px, so its result does not depend on the other matches of the batch.
-    """
+    ``H_inv`` ``(n, 3, 3)`` common frame -> image pixels, ``centres`` ``(n, 2)``, ``offset`` the
+    current estimate; ``iterations`` re-centred fits (0: unchanged). Each match stops on its own
+    once a step is below 1e-3 px."""
     if iterations <= 0 or offset.shape[0] == 0:
         return offset
     if compiled is None:

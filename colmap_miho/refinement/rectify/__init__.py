@@ -1,2 +1,1 @@
-"""Local affine rectification: a patch homography pair per match from its nearest matches,
-and the compiled fits."""
+"""Local affine rectification: a patch homography pair per match from its nearest matches."""

@@ -1,31 +1,6 @@
-"""Compiled (numba) local affine fits: one loop per match, for :mod:`.local_affine`.
-
-:func:`fit_clusters` does what :func:`.local_affine.local_affine_pairs` needs (the numpy reference,
-``tests/affine_reference.py``: a k-d tree per cluster, then batched least squares) for
-the matches of one image pair: per cluster a grid of its matches in image 1, each wanted
-match's ``k`` nearest matches from it, and the match's fit: the weighted least-squares
-affine map image 1 -> image 2 around it, re-fitted without the neighbours that miss it (by
-twice the median residual, then by the absolute bound), the well-fitted test and the inverse
-of the full affine map. :func:`fit_rows` is the fit alone, for given neighbours. The numpy
-path spends its time in k-d tree builds and in a few dozen batched calls per batch (matmul,
-eigvalsh, solve, median, inv), each looping over tiny 3 x 3 problems with the overhead of a
-LAPACK call per matrix; here each match's search and fits run in registers.
-
-Differences from the numpy path: neighbours tied for a fit's last place are the lowest rows
-here (any of them in the k-d tree's), and all else at float rounding: the 3 x 3 normal
-equations are solved by Gaussian elimination with partial pivoting written out here
-(LAPACK's LU there, whose rounding depends on the BLAS kernels the machine selects), the
-conditioning test takes the extreme eigenvalues of the normal matrix in closed form
-(trigonometric solution of the characteristic cubic; LAPACK's ``syevd`` there) and the
-inverse of the affine map is formed in closed form (LU there). Sums run in the order of the
-neighbours (nearest first, ties to the lower row), without fused multiply-adds, so results
-do not depend on the machine. The tests bound the differences (``test_affine_kernel.py``).
-
-A match's result depends on its own inputs only (its cluster's positions), not on which other
-matches are fitted with it.
-
-The kernels compile on first use (:mod:`colmap_miho.compiled`).
-"""
+"""Compiled (numba) local affine fits for :mod:`.local_affine`: each wanted match's ``k`` nearest
+matches of its cluster on a grid, and a weighted least-squares affine map refitted without those
+that miss it, one loop per match (the numpy reference pays a LAPACK call per 3x3 problem)."""
 
 from __future__ import annotations
 
@@ -60,8 +35,7 @@ def _extreme_eigenvalues(S) -> tuple[float, float]:
 
 
 def _solve3(M, B) -> None:
-    """Solve ``M X = B`` in place (``M`` (3, 3) becomes its LU factors, ``B`` (3, 2) becomes
-    ``X``): Gaussian elimination with partial pivoting."""
+    """Solve ``M X = B`` in place by Gaussian elimination with partial pivoting (``B`` becomes ``X``)."""
     for j in range(3):
         p = j
         for i in range(j + 1, 3):
@@ -87,10 +61,8 @@ def _solve3(M, B) -> None:
 
 
 def _fit(x1n, x2n, w, A, M, B) -> bool:
-    """Weighted least squares ``x2n ~ A [x1n; 1]`` over the (k, 2) centred neighbours with
-    (k,) weights ``w``: ``A`` (2, 3) filled; returns whether the normal matrix is
-    well-conditioned (an ill-conditioned one is replaced by the identity, as the numpy
-    path)."""
+    """Weighted least squares ``x2n ~ A [x1n; 1]`` into ``A`` ``(2, 3)``; whether the normal matrix
+    is well-conditioned (else the identity, as numpy's path)."""
     k = x1n.shape[0]
     for a in range(3):
         for b in range(3):
@@ -120,9 +92,7 @@ def _fit(x1n, x2n, w, A, M, B) -> bool:
 
 
 def _fit_matches(x1, x2, rows, nb, max_residual_px, iterations, min_neighbours, good, H, H_inv):
-    """Per match ``rows[i]`` with neighbours ``nb[i]`` (module docstring): ``good[i]``,
-    ``H[i]`` (3, 3) affine image 1 -> image 2 and ``H_inv[i]`` its inverse (identity where
-    not good)."""
+    """Per match ``rows[i]`` with neighbours ``nb[i]``: ``good[i]``, ``H[i]`` and its inverse."""
     n, k = nb.shape
     x1n, x2n = np.empty((k, 2)), np.empty((k, 2))
     w, r, srt = np.empty(k), np.empty(k), np.empty(k)
@@ -178,8 +148,7 @@ _POINTS_PER_CELL = 2.0
 
 
 def _insert(d: float, j: int, k: int, nb, dist) -> None:
-    """Put candidate ``j`` at squared distance ``d`` among the ``k`` nearest so far (``dist``
-    ascending, ties to the lower ``j``), if it is one of them."""
+    """Put candidate ``j`` at squared distance ``d`` among the ``k`` nearest so far, if it is one."""
     if d < dist[k - 1] or (d == dist[k - 1] and j < nb[k - 1]):
         i = k - 1
         while i > 0 and (d < dist[i - 1] or (d == dist[i - 1] and j < nb[i - 1])):
@@ -189,13 +158,8 @@ def _insert(d: float, j: int, k: int, nb, dist) -> None:
 
 
 def _nearest(xs, ys, cell_x, cell_y, start, order, gx, gy, side, p, k, nb, dist) -> None:
-    """The ``k`` nearest points (itself included) to point ``p`` of a cluster (``xs``, ``ys``
-    (n,) float64 positions) on its grid: ``nb`` (k,) point indices, nearest first, ties to the
-    lower index; ``dist`` (k,) their squared distances. The grid: ``gx`` x ``gy`` square cells
-    of ``side`` pixels, point ``i`` in cell (``cell_x[i]``, ``cell_y[i]``), the points of cell
-    ``c`` (row-major) are ``order[start[c]:start[c + 1]]``. Rings of cells around ``p``'s are
-    searched outwards until the next ring's points (at least ``r * side`` away) cannot be
-    nearer than the k-th so far."""
+    """The ``k`` nearest points to point ``p`` of a cluster on its grid (nearest first, ties to the
+    lower index), searched ring by ring until no farther cell can hold a nearer point."""
     for j in range(k):
         dist[j], nb[j] = math.inf, -1
     qx, qy, cx, cy = xs[p], ys[p], cell_x[p], cell_y[p]
@@ -219,8 +183,7 @@ def _nearest(xs, ys, cell_x, cell_y, start, order, gx, gy, side, p, k, nb, dist)
 
 def _fit_clusters(x1, x2, members, bounds, want, k, max_residual_px, iterations, min_neighbours,
                   good, H_inv) -> None:
-    """Per cluster ``members[bounds[c]:bounds[c + 1]]`` (its rows, ascending): the neighbours
-    and fits of its ``want`` rows, into ``good`` and ``H_inv`` (by row)."""
+    """Per cluster, the neighbours and fits of its ``want`` rows, into ``good`` and ``H_inv``."""
     for c in range(bounds.size - 1):
         cl = members[bounds[c]:bounds[c + 1]]
         n = cl.size
@@ -266,7 +229,6 @@ def _fit_clusters(x1, x2, members, bounds, want, k, max_residual_px, iterations,
 
 
 def _jit_all() -> tuple[Any, Any]:
-    """Jit the kernels and their helpers: ``(fit_matches, fit_clusters)``."""
     jit_helpers(globals(), (_extreme_eigenvalues, _solve3, _fit, _fit_matches, _insert, _nearest))
     return globals()["_fit_matches"], jit()(_fit_clusters)
 
@@ -278,19 +240,8 @@ KERNELS = Kernels(_jit_all)
 def fit_rows(x1: np.ndarray, x2: np.ndarray, rows: np.ndarray, nb: np.ndarray, *,
              max_residual_px: float, iterations: int, min_neighbours: int
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Robust local affine maps image 1 -> image 2 at the matches ``rows`` (module docstring).
-
-    Args:
-        x1, x2: (M, 2) float64 matched pixel positions.
-        rows: (n,) int64 matches to fit.
-        nb: (n, k) int64 neighbours of each (the match included), k >= 3.
-        max_residual_px: neighbours off the last re-weighted fit by more than this are dropped.
-        iterations: re-weighted fits before the last one (>= 1).
-        min_neighbours: fewest neighbours kept for a good fit.
-    Returns:
-        (good (n,) bool, H (n, 3, 3) float64 the maps x2 ~ H x1, H_inv (n, 3, 3) float64 their
-        inverses where good, the identity elsewhere).
-    """
+    """Robust local affine maps image 1 -> image 2 at the matches ``rows`` with neighbours ``nb``
+    ``(n, k)``, k >= 3. Returns ``(good (n,), H, H_inv (n, 3, 3))``, identity where not good."""
     rows = np.ascontiguousarray(rows, np.int64)
     nb = np.ascontiguousarray(nb, np.int64)
     n = rows.size
@@ -306,22 +257,11 @@ def fit_rows(x1: np.ndarray, x2: np.ndarray, rows: np.ndarray, nb: np.ndarray, *
 def fit_clusters(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, want: np.ndarray, *, k: int,
                  max_residual_px: float, iterations: int, min_neighbours: int
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Local affine maps of the ``want`` matches, each fitted to its ``min(k, cluster size)``
-    nearest matches in image 1 (itself included; ties to the lower row) of its cluster
-    (module docstring); clusters of fewer than ``min_neighbours`` matches are not fitted.
+    """Local affine maps of the ``want`` matches, each fitted to its nearest matches in image 1
+    within its cluster (``labels``; -1 never fitted; clusters under ``min_neighbours`` not fitted).
 
-    Args:
-        x1, x2: (M, 2) float64 matched pixel positions.
-        labels: (M,) int64 cluster of each match (-1: none, never fitted).
-        want: (M,) bool matches to fit (their neighbours are drawn from their whole cluster).
-        k, max_residual_px, iterations, min_neighbours: as :func:`fit_rows`.
-    Returns:
-        (good (M,) bool: fitted and well-fitted, H_inv (M, 3, 3) float64 the inverse maps
-        x1 ~ H_inv x2 where good, undefined elsewhere).
-    Raises:
-        ValueError: a position in image 1 of a cluster to fit is not finite (as scipy's k-d
-            tree of the numpy path).
-    """
+    Returns ``(good (M,), H_inv (M, 3, 3))`` with ``x1 ~ H_inv x2`` where good. ValueError for a
+    non-finite position in a cluster to fit."""
     x1 = np.ascontiguousarray(x1, np.float64)
     labels = np.asarray(labels, np.int64)
     m = labels.size
@@ -346,8 +286,7 @@ def fit_clusters(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, want: np.nd
 
 
 def warm() -> bool:
-    """Load (or compile) the kernels now, by fitting a small synthetic cluster; returns
-    whether they are loaded. Never raises."""
+    """Load (or compile) the kernels now on a small cluster; whether they loaded. Never raises."""
 
     def example() -> None:
         t = np.arange(8, dtype=np.float64)

@@ -1,16 +1,6 @@
-"""Local affine rectification: a patch homography pair per match from its nearest matches.
-
-The filter's planes are fitted at a tolerance of several pixels, so the patch homography
-pair of a cluster can be off by a few percent in scale or shear at a given keypoint; over a
-21x21 template that biases the NCC peak by a tenth of a pixel or more. Here each refinable
-match gets its own affine map image 1 -> image 2, fitted by least squares to the ``k``
-nearest matches (in image 1) of the same cluster, re-fitted without the neighbours that miss
-it (by twice the median residual, then by ``max_residual_px``). Matches with too few neighbours keep the filter's
-pair.
-
-The fits run compiled (:mod:`.kernel`); their numpy reference is in the tests
-(``tests/affine_reference.py``).
-"""
+"""Local affine rectification: a patch homography pair per match from a least-squares affine fit to
+its ``k`` nearest matches of the cluster (the filter's planes, fitted at a tolerance of several
+pixels, can bias the NCC peak); matches with too few neighbours keep the filter's pair."""
 
 from __future__ import annotations
 
@@ -27,24 +17,11 @@ MIN_NEIGHBOURS = 6
 def local_affine_pairs(x1: np.ndarray, x2: np.ndarray, labels: np.ndarray, homs: np.ndarray, *,
                        k: int, max_residual_px: float, fit: np.ndarray | None = None,
                        rows: np.ndarray | None = None) -> np.ndarray:
-    """Per-match patch homography pairs ``(I, A^-1)`` from local affine fits.
+    """Per-match patch homography pairs ``(I, A^-1)`` ``(M, 2, 3, 3)`` from local affine fits.
 
-    Args:
-        x1, x2: (M, 2) float64 matched pixel positions (integer = pixel centre).
-        labels: (M,) int64 cluster of each match (-1: not refinable, keeps identity).
-        homs: (K, 2, 3, 3) float64 the filter's pairs, used where a fit is not possible.
-        k: neighbours per fit (the match included).
-        max_residual_px: neighbours off the first fit by more than this are dropped.
-        fit: optional (M,) bool, the matches whose pairs are wanted (their neighbours are
-            drawn from all matches of their cluster all the same); the others keep the
-            filter's pair unfitted. A match's pair does not depend on which others are
-            fitted with it.
-        rows: optional (R,) int64 distinct rows: return only theirs (the ``fit`` matches must
-            be among them).
-    Returns:
-        (M, 2, 3, 3) float64 pairs (A, B) with ``A x1 ~ B x2`` near each match (or (R, 2,
-        3, 3), those of ``rows``).
-    """
+    ``labels`` ``(M,)`` cluster (-1: keeps identity); ``homs`` the filter's pairs where no fit is
+    possible; ``fit`` the matches wanted (others keep the filter's pair); ``rows`` returns only
+    those rows. A match's pair does not depend on which others are fitted."""
     m = x1.shape[0]
     labels = np.asarray(labels, np.int64)
     ok = labels >= 0

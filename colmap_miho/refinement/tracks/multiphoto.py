@@ -1,49 +1,7 @@
-"""Joint multi-photo least-squares matching of whole tracks, after the walk.
-
-The walk aligns each keypoint to one fixed neighbour (the anchor, or a partner that may have
-moved itself), whose patch alone is the template. Here every track of at least ``MIN_OBSERVATIONS``
-observations is aligned jointly, in the spirit of multi-photo LSM (Gruen & Baltsavias): the
-reference observation (the track's anchor, which never moves) defines the geometry (the
-common frame is the anchor image's pixels, centred on the anchor keypoint), and every other
-observation is aligned by :func:`..lsm.align.lsm_align` (affine + gain/offset) to a *consensus
-template*: the mean of the track's patches, each read at its current alignment and brought
-to the reference's radiometry (``r0 + r1 g``), the reference's own patch included. The
-passes iterate (rebuild the template -> align), starting from the walk's positions (or, with
-``star_first``, from one pass against the reference alone).
-
-With the reference held fixed, each view's error at the joint fixed point is, to first order
-in the image noise, its own noise less the reference's, as for the star of pairwise
-alignments to the reference: the reference's noise is common to the track (a consistent
-shift of the point in the reference frame). The consensus changes the non-linear part: a
-template that is not one view's appearance, so more patches converge and pass the precision
-gate. Each consensus pass removes only part of the template's misalignment (the other views'
-errors are in it), so from a poor start the star pass should come first.
-
-Each observation's template leaves its own patch out (leave-one-out mean): a template that
-held it would pull the alignment towards its current position by a share of 1 / (number of
-patches). Observations not accepted in a pass (see below) leave the template for the next
-one and restart from the walk's position. A track of 3 observations thus aligns each
-non-reference view to the mean of the reference and the other view.
-
-Maps between views: the walk composes, for every keypoint it reached, the patch homography
-pairs along its chain from the anchor (:attr:`.refine_calls.WalkState.to_ref`: anchor-image
-pixels -> its image pixels). Its translation is replaced by the walk's result (the chain maps
-the anchor keypoint to the walk's position), so the pass starts where the walk ended and the
-chain only supplies the local shape of the map, which LSM's affine refines.
-
-Acceptance is the pairwise LSM step's (:mod:`..lsm.step`): converged at the last pass, the
-shift from the walk's position within ``lsm_max_shift_px``, the shift's a-posteriori
-standard deviation below ``lsm_max_sigma_px``. An accepted observation moves to
-``H_inv (c + t)``; the others keep the walk's result. Every observation is thus aligned
-relative to the same fixed reference; its final position is the walk's or this pass's.
-
-Anti-aliasing (``lsm_antialias`` > 0): every observation is smoothed to the blur of the
-track's coarsest view (the smallest local scale ``sqrt |det J|`` of its frame -> image map),
-with :mod:`..lsm.step`'s 4-sample Gaussian, so all patches of the consensus carry one blur.
-
-Batched in torch on the device of the walk; observations are processed in chunks of whole
-tracks, one LSM radius (``NCCConfig.lsm_window``) for all.
-"""
+"""Joint multi-photo least-squares matching of whole tracks, after the walk (after Gruen &
+Baltsavias): the anchor fixes the frame and every other observation is aligned to a leave-one-out
+consensus template (one holding its own patch would pull it towards where it is). Rejected
+observations keep the walk's position."""
 
 from __future__ import annotations
 
@@ -68,17 +26,8 @@ MULTIPHOTO_COUNTERS = ("joint_tracks", "joint_observations", "joint_applied",
 
 @dataclass(frozen=True)
 class JointResult:
-    """Output of :func:`joint_lsm` (N observations; common-frame pixels).
-
-    Attributes:
-        shift: (N, 2) float64 final shift t from each observation's start (0 for references
-            and for observations not accepted).
-        sigma_max: (N,) float64 largest semi-axis of t's standard error ellipse (+inf for
-            references).
-        accepted: (N,) bool observations moved (never a reference).
-        counts: ``joint_applied``, ``joint_not_converged``, ``joint_far``, ``joint_imprecise``
-            over the non-reference observations.
-    """
+    """Output of :func:`joint_lsm` (N observations, common-frame pixels): ``shift`` ``(N, 2)``,
+    ``sigma_max`` ``(N,)``, ``accepted`` ``(N,)`` (never a reference) and the ``joint_*`` counts."""
 
     shift: torch.Tensor
     sigma_max: torch.Tensor
@@ -100,26 +49,13 @@ def joint_lsm(
     """Align the observations of tracks jointly to leave-one-out consensus templates.
 
     Args:
-        images: (H, W) float32 image, or an :class:`~..warping.ImageStack` with one image per
-            observation (N rows).
-        H_inv: (N, 3, 3) float64 common frame (the track's reference image pixels) -> the
-            observation's image pixels; ``H_inv[o] (centres[o])`` is its start position.
-        centres: (N, 2) float64 the track's reference keypoint (common frame), the same for
-            all observations of a track.
-        track: (N,) int64 track of each observation, 0..T-1.
-        is_ref: (N,) bool, exactly one reference per track (held fixed; its ``H_inv`` maps
-            the frame to its own image).
-        cfg: ``lsm_*`` fields of :class:`~..config.NCCConfig` (radius, affine, iterations,
-            tolerance, shift and precision bounds, anti-aliasing).
-        iterations: consensus passes (rebuild the template -> align), >= 0; stops
-            early once no accepted shift changes by ``lsm_tol_px``.
-        star_first: before them, one pass that aligns every observation to the reference
-            alone (the star of pairwise alignments), so that the first consensus template
-            is built from aligned patches. Needed from a poor start: each consensus pass
-            removes only part of the template's misalignment (the other views' errors are
-            in it). After the walk the start is already aligned.
-    Returns:
-        :class:`JointResult`.
+        images: ``(H, W)`` float32 or an :class:`~..warping.ImageStack` with one image per observation.
+        H_inv: ``(N, 3, 3)`` common frame (reference image pixels) -> observation pixels.
+        centres: ``(N, 2)`` the track's reference keypoint in the common frame.
+        track: ``(N,)`` int64 track index 0..T-1; is_ref: ``(N,)`` one reference per track.
+        iterations: consensus passes (stop early when no accepted shift moves by ``lsm_tol_px``).
+        star_first: one pass against the reference alone first; needed from a poor start, since
+          a consensus pass removes only part of the template's misalignment.
     """
     if iterations < 0 or iterations + star_first < 1:
         raise ValueError(f"joint_lsm needs a pass: iterations={iterations}, star_first={star_first}")
@@ -182,8 +118,7 @@ def joint_lsm(
 
 
 def _match_to(g: torch.Tensor, f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(r0, r1) (n,) float64 with ``r0 + r1 g`` of f's mean and spread (r1 = 1 where either
-    is flat); g, f (n, P)."""
+    """``(r0, r1)`` ``(n,)`` with ``r0 + r1 g`` matching f's mean and spread (r1 = 1 where flat)."""
     g, f = g.to(torch.float64), f.to(torch.float64)
     gm, fm = g.mean(dim=1), f.mean(dim=1)
     gs, fs = (g - gm[:, None]).std(dim=1), (f - fm[:, None]).std(dim=1)
@@ -192,8 +127,7 @@ def _match_to(g: torch.Tensor, f: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
 
 
 def _leave_one_out(v: torch.Tensor, member: torch.Tensor, track: torch.Tensor, T: int) -> torch.Tensor:
-    """(N, P) per observation the mean of its track's member patches ``v`` (N, P) other than
-    its own (its own is left out only where it is a member; the reference always is)."""
+    """``(N, P)``: for each observation the mean of its track's member patches other than its own."""
     w = member.to(v.dtype)
     total = torch.zeros((T, v.shape[1]), dtype=v.dtype, device=v.device).index_add_(0, track, v * w[:, None])
     count = torch.zeros(T, dtype=v.dtype, device=v.device).index_add_(0, track, w)
@@ -204,7 +138,7 @@ def _leave_one_out(v: torch.Tensor, member: torch.Tensor, track: torch.Tensor, T
 def _coarsest_blur(H_inv: torch.Tensor, centres: torch.Tensor, track: torch.Tensor,
                    T: int, base_px: float) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``blur`` argument of :func:`..lsm.align.frame_sampler` that smooths every observation to
-    the blur of its track's coarsest view (see the module docstring)."""
+    its track's coarsest view, so that the consensus carries one blur."""
     J = frame_jacobian(H_inv, centres)
     s = local_scale(J)
     s_min = torch.full((T,), float("inf"), dtype=s.dtype, device=s.device)

@@ -1,11 +1,6 @@
-"""The refine calls of the track walk: one per image pair and side, or one per level.
-
-:mod:`.walk` decides which keypoints move against which; this module turns a level's
-groups (edges of one pair whose keypoints on one side move) into calls of the pairwise
-refiner and writes the results back. On CUDA a call costs little more for many matches than
-for few, so all groups of a level go into one call on stacked images
-(:class:`~..warping.ImageStack`), at most ``max_images`` images a call.
-"""
+"""The refine calls of the track walk: a level's groups become calls of the pairwise refiner, whose
+results are written back. On CUDA a whole level goes into one call on stacked images (a call costs
+little more for many matches than for few)."""
 
 from __future__ import annotations
 
@@ -29,9 +24,7 @@ Images = Mapping[int, np.ndarray | None] | Callable[[int], np.ndarray | None]
 
 @dataclass(frozen=True)
 class Group:
-    """Edges ``edges`` (indices into the plan's edge arrays) of ``pair`` whose side-``side``
-    keypoints (nodes ``free``) move at this level, each against the fixed node
-    ``partner``."""
+    """Edges of ``pair`` whose side-``side`` keypoints move at this level, each against ``partner``."""
 
     pair: tuple
     side: int
@@ -45,11 +38,7 @@ class Group:
 
 
 class ImageSource:
-    """Images by id from a Mapping (``.get``) or a callable; ``None`` means missing.
-
-    Holds no cache of its own: a Mapping that loads lazily (e.g.
-    :class:`colmap_miho.adapters.images.ImageLoader`) bounds its own memory; a plain dict
-    holds everything already; a callable is called on every use."""
+    """Images by id from a Mapping or a callable (None: missing); no cache of its own."""
 
     def __init__(self, images: Images) -> None:
         self._load: Callable[[int], np.ndarray | None]
@@ -75,16 +64,9 @@ class ImageSource:
 
 @dataclass(frozen=True)
 class WalkState:
-    """What the refine calls of the walk read and update (arrays are updated in place).
-
-    ``pos`` image_id -> (Ni, 2) current positions; ``score`` (T,) quality of each fixed
-    node as a partner (NCC after refinement, +inf for anchors); ``moved`` (T,) bool;
-    ``out_disp`` / ``out_against`` the result arrays of :class:`~.walk.TrackRefineResult`;
-    ``gray`` the float32 tensors of the images of the last batched call (image_id ->
-    tensor), reused by the next call instead of converting the same images again;
-    ``far_move_px`` the far-move bound (pixels, :class:`~..config.TrackConfig`; None: off) and
-    ``far_move_ratio`` its distinctness ratio.
-    """
+    """What the walk's refine calls read and update in place: positions, each fixed node's partner
+    score (+inf for anchors), moved flags, result arrays, the last call's image tensors, and the
+    far-move bound (pixels; None: off) with its distinctness ratio."""
 
     plan: TrackPlan
     pos: dict
@@ -108,9 +90,7 @@ class WalkState:
 
 @dataclass(frozen=True)
 class _Call:
-    """One group oriented as (fixed, moving): keypoint indices, positions, homography pairs
-    (fixed side first; (n, 2, 3, 3) or (n, P, 2, 3, 3) candidates) and affine frames (or
-    None)."""
+    """One group oriented as (fixed, moving): indices, positions, homography pairs and affine frames."""
 
     fixed_id: int
     moving_id: int
@@ -124,8 +104,7 @@ class _Call:
 
 
 def _pairs_of(plan: TrackPlan, edges: np.ndarray, rectification: Rectification) -> np.ndarray:
-    """Patch homography pairs of edges of one pair: (n, 2, 3, 3) from the filter ("filter")
-    or the local affine fits ("local"), or (n, 2, 2, 3, 3) both as candidates ("both")."""
+    """Patch homography pairs of one pair's edges: "filter", "local", or both as candidates."""
     p = int(plan.edge_pair[edges[0]])
     filt = plan.pair_homs[p][plan.edge_label[edges]]
     pair_local = None if rectification is Rectification.FILTER else plan.local_pairs(p)
@@ -151,9 +130,7 @@ def _orient(grp: Group, ctx: WalkState) -> _Call:
 
 
 def _chain(call: _Call, grp: Group, ctx: WalkState) -> None:
-    """Record each free node's map from its reference image (see :attr:`WalkState.to_ref`):
-    the call's moving-side homography, inverted, after its fixed-side one (the local
-    candidate where there are several)."""
+    """Record each free node's map from its reference image (:attr:`WalkState.to_ref`)."""
     if ctx.to_ref is None:
         return
     h = call.homs if call.homs.ndim == 4 else call.homs[:, -1]
@@ -162,9 +139,7 @@ def _chain(call: _Call, grp: Group, ctx: WalkState) -> None:
 
 
 def predicted(call: _Call) -> np.ndarray:
-    """(n, 2) where each match's homography pair puts its fixed keypoint in the moving image
-    (``B^-1 A x_f``; the last candidate pair where there are several: the local affine fit
-    with ``rectification = "both"``)."""
+    """``(n, 2)`` where each match's homography pair puts its fixed keypoint in the moving image."""
     h = call.homs if call.homs.ndim == 4 else call.homs[:, -1]
     m = np.linalg.solve(h[:, 1], h[:, 0])  # fixed-side pixels -> moving-side pixels
     x = np.einsum("nij,nj->ni", m, np.column_stack([call.pts_f, np.ones(len(call.pts_f))]))
@@ -174,11 +149,8 @@ def predicted(call: _Call) -> np.ndarray:
 
 def far_moves(call: _Call, new: np.ndarray, moved: np.ndarray, bound_px: float,
               distinct: np.ndarray | None = None) -> np.ndarray:
-    """(n,) bool: the moves to ``new`` (where ``moved``) farther than ``bound_px`` from the
-    keypoint's position that have no evidence for them. Evidence is landing within
-    ``bound_px`` of where the homography pair predicts the keypoint (:func:`predicted`), or
-    bringing it nearer to that prediction with a ``distinct`` NCC peak ((n,) bool; None: every
-    peak is): neither the keypoint nor the geometry supports any other far peak."""
+    """``(n,)`` bool: moves farther than ``bound_px`` with no evidence for them (landing near the
+    homography's prediction, or approaching it with a ``distinct`` peak)."""
     pred = predicted(call)
     far_from_kp = np.linalg.norm(new - call.pts_m, axis=1) > bound_px
     dev_new = np.linalg.norm(new - pred, axis=1)
@@ -190,8 +162,8 @@ def far_moves(call: _Call, new: np.ndarray, moved: np.ndarray, bound_px: float,
 
 
 def distinct_peaks(ncc_peak: np.ndarray, ncc_second: np.ndarray | None, ratio: float) -> np.ndarray | None:
-    """(n,) bool, Lowe's ratio test on the NCC dissimilarity: ``1 - peak <= ratio (1 - second)``
-    (the best separated peak is clearly worse); None when the refiner reports no second peak."""
+    """``(n,)`` Lowe's ratio test on NCC dissimilarity, ``1 - peak <= ratio (1 - second)``; None
+    without a second peak."""
     if ncc_second is None:
         return None
     second = np.nan_to_num(np.asarray(ncc_second, np.float64), nan=-1.0)
@@ -200,10 +172,8 @@ def distinct_peaks(ncc_peak: np.ndarray, ncc_second: np.ndarray | None, ratio: f
 
 def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displacement: np.ndarray,
            rejected: np.ndarray, ncc: tuple[np.ndarray, np.ndarray, np.ndarray | None], ctx: WalkState) -> None:
-    """Write one group's refinement result: ``moved`` says which of its keypoints moved to
-    ``new``; every one of them is fixed from now on, with its NCC after (before, where a far
-    move is undone: :func:`far_moves`) as partner score; ``ncc`` = (before, after, the best
-    separated peak or None)."""
+    """Write one group's result: every keypoint is fixed from now on, scored by its NCC after
+    (before, where a far move is undone)."""
     st = ctx.stats
     ncc_before, ncc_after = (np.asarray(a, np.float64) for a in ncc[:2])
     if ctx.far_move_px is not None:
@@ -228,7 +198,6 @@ def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displace
 
 
 def _add_counters(res: object, ctx: WalkState) -> None:
-    """Add the refiner's least-squares matching counters (if any) to the walk's stats."""
     stats = getattr(res, "stats", None) or {}
     for key in LSM_COUNTERS:
         if key in stats:
@@ -303,7 +272,6 @@ def refine_batch(groups: list[Group], ctx: WalkState, device: torch.device) -> N
 
 
 def _seg(res: object, seg: slice) -> np.ndarray | None:
-    """``res.ncc_second[seg]``, or None where the refiner reports no second peak."""
     second = getattr(res, "ncc_second", None)
     return None if second is None else second[seg]
 

@@ -1,25 +1,9 @@
 """Track-consistent NCC refinement over many images: every keypoint moves at most once.
 
-Pairwise NCC may move either keypoint of a match, so one keypoint would get different
-positions in different pairs, which COLMAP cannot store (one position per keypoint index).
-Here the tracks of all output matches come from one :class:`~.plan.TrackPlan` (anchors,
-frozen tracks and unrefinable matches are decided there). Each walked track is walked
-breadth-first from its anchor, level by level, over refinable edges. Each free keypoint
-adjacent to an already fixed one is refined against it (template from the fixed side) and
-becomes fixed whatever the outcome (moved, rejected or skipped). Hence no keypoint moves
-twice.
-
-Partner rule: a free keypoint adjacent to several fixed keypoints at one level is refined
-against the one with the best score - the anchor (where a direct match to it exists), else
-the partner whose own refinement reached the highest NCC; ties go to the lowest
-``(image_id, keypoint_index)``.
-
-With ``TrackConfig.multiphoto_lsm`` the walk ends with the joint pass (:func:`joint_pass`):
-the tracks it reached are aligned by :func:`.multiphoto.joint_lsm`.
-
-Track logic only: the refine calls are made by :mod:`.refine_calls`, the patch maths is in
-:mod:`colmap_miho.refinement.pairwise`.
-"""
+COLMAP stores one position per keypoint, so pairwise NCC moving either side would conflict. Each
+track is walked breadth-first from its anchor (:class:`~.plan.TrackPlan`); a free keypoint next to a
+fixed one is refined against it and then fixed whatever the outcome. Several fixed partners: the
+anchor, else the best-scoring one, ties to the lowest ``(image_id, index)``."""
 
 from __future__ import annotations
 
@@ -60,24 +44,11 @@ class TrackRefineResult:
     """Output of :func:`refine_tracks` / :func:`walk_tracks`.
 
     Attributes:
-        keypoints: image_id -> (Ni, 2) float64 refined pixel positions (integer = pixel
-            centre), equal to the input where a keypoint was not moved.
-        displacement: image_id -> (Ni,) float64 pixels each keypoint moved (0 if not).
-        refined_against: image_id -> (Ni, 2) int64 ``(image_id, keypoint_index)`` of the fixed
-            keypoint each keypoint was refined against, ``(-1, -1)`` for anchors and keypoints
-            that were never refined.
-        stats: the plan's (:class:`~.plan.TrackPlan`), and ``levels`` (walk depth),
-            ``refined`` (refine attempts), ``refined_against_moved`` (attempts whose partner
-            had itself moved), ``moved``, ``rejected`` (``rejected_far`` of them: far moves
-            without geometric support, ``TrackConfig.far_move_check``), ``skipped`` (keypoints left
-            unrefined because an image was missing), ``missing_images``, ``refine_calls``,
-            ``images_loaded`` (distinct images read), ``image_decodes`` (image files the
-            walk decoded, only when ``images`` counts them in ``decodes``, like
-            :class:`~colmap_miho.adapters.images.ImageLoader`), ``seconds``; with
-            ``TrackConfig.multiphoto_lsm`` the joint pass's
-            :data:`~.multiphoto.MULTIPHOTO_COUNTERS` too.
-            The result holds the images of the plan's keypoints only (for a group of
-            :meth:`~.plan.TrackPlan.groups`: its own images).
+        keypoints: image_id -> ``(Ni, 2)`` float64 pixel positions (unchanged where not moved).
+        displacement: image_id -> ``(Ni,)`` pixels each keypoint moved.
+        refined_against: image_id -> ``(Ni, 2)`` ``(image_id, keypoint_index)`` of the partner,
+          ``(-1, -1)`` for anchors and keypoints never refined.
+        stats: the plan's counts and the walk's (levels, refined, moved, rejected, skipped, ...).
     """
 
     keypoints: dict
@@ -88,12 +59,7 @@ class TrackRefineResult:
 
 def _resolve_configs(config: object, ncc_config: NCCConfig | None,
                      track_config: TrackConfig | None) -> tuple[NCCConfig, TrackConfig]:
-    """The NCC and track configs of :func:`refine_tracks`' arguments, each checked to be one
-    (a config of another type was silently replaced by the defaults, or an AttributeError).
-
-    Raises:
-        InvalidInput: naming the argument and the type given.
-    """
+    """The NCC and track configs of :func:`refine_tracks`' arguments, each type-checked (InvalidInput)."""
     ncc, trk = NCCConfig(), TrackConfig()
     if isinstance(config, tuple):
         if len(config) != 2:
@@ -135,32 +101,18 @@ def refine_tracks(
     """Refine keypoints of many images by NCC so that every keypoint moves at most once.
 
     Args:
-        images: a callable ``image_id -> (H, W) gray array (uint8 or float) or None`` or a
-            Mapping; None means missing (keypoints needing it are not refined).
-        keypoints: image_id -> (Ni, 2) pixel coordinates (integer = pixel centre).
-        pair_matches: (id1, id2) -> (M, 2) int keypoint indices of a filtered pair.
-        pair_filter_results: (id1, id2) -> ``FilterResult``-like object, rows 1:1 with
-            ``pair_matches``: ``inliers`` (M,) rows that reach the output (all when
-            absent), ``labels`` (M,) homography of each row (-1: joins tracks, never
-            refines), ``patch_homographies`` (K, 2, 3, 3) pairs (A, B), ``A x1 ~ B x2``.
-        unrefined_matches: (id1, id2) -> (M, 2) matches that reach the output without a
-            homography (pairs never filtered, failed, or touching a missing image): they
-            join tracks and are never used to refine (see :mod:`.build`).
-        config: a Recipe-like object (``.ncc``, ``.tracks``), a tuple (NCCConfig,
-            TrackConfig), or one of the two (the default recipe's where absent);
-            ``ncc_config`` / ``track_config`` override it.
-            ``NCCConfig.move`` is ignored: the walk decides which side moves.
-        affines: optional image_id -> (Ni, 2, 2) keypoint affine frames for the base pass.
-        progress: tqdm bar over the keypoints to refine.
-        on_progress: called with the number of keypoints handled after every refine call.
-        refine_fn: the pairwise refiner, default :func:`colmap_miho.refinement.pairwise.refine_pair`
-            (same signature; tests pass a cheap fake). It receives the fixed side first and
-            ``move="2"``; with ``TrackConfig.batch_pairs`` the images are
-            :class:`~..warping.ImageStack` objects.
+        images: ``image_id -> (H, W)`` gray array (uint8 or float) or None (missing), a callable or
+          a Mapping.
+        keypoints: image_id -> ``(Ni, 2)`` pixels (integer = pixel centre).
+        pair_matches: (id1, id2) -> ``(M, 2)`` keypoint indices of a filtered pair.
+        pair_filter_results: (id1, id2) -> ``FilterResult``-like (``inliers``, ``labels``,
+          ``patch_homographies``), rows 1:1 with ``pair_matches``.
+        unrefined_matches: matches that reach the output without a homography: they join tracks
+          but never refine.
+        config: a Recipe-like object, a ``(NCCConfig, TrackConfig)`` tuple or one of them.
+        refine_fn: the pairwise refiner (default :func:`~colmap_miho.refinement.pairwise.refine_pair`).
 
-    Returns:
-        :class:`TrackRefineResult`.
-    """
+    Returns a :class:`TrackRefineResult`."""
     ncc_cfg, trk_cfg = _resolve_configs(config, ncc_config, track_config)
     plan = build_track_plan(keypoints, pair_matches, pair_filter_results,
                             unrefined_matches=unrefined_matches,
@@ -172,7 +124,6 @@ def refine_tracks(
 
 def _refiner(refine_fn: Callable | None, ncc_cfg: NCCConfig,
              trk_cfg: TrackConfig) -> tuple[Callable, torch.device | None]:
-    """(refine function, device for batched levels or None)."""
     use_batch = trk_cfg.batch_pairs
     if use_batch is None:  # the built-in refiner takes image stacks; a custom one may not
         use_batch = refine_fn is None
@@ -190,9 +141,8 @@ def _refiner(refine_fn: Callable | None, ncc_cfg: NCCConfig,
 
 def _level_groups(plan: TrackPlan, ea: np.ndarray, eb: np.ndarray, e_ids: np.ndarray,
                   fixed: np.ndarray, score: np.ndarray) -> list[Group] | None:
-    """The groups of the next level: every free node with a fixed neighbour, paired with
-    its best-scoring fixed neighbour (ties: lowest node id), grouped by (pair, side).
-    None when no free node has a fixed neighbour."""
+    """The next level's groups: each free node with a fixed neighbour paired with its best one
+    (ties: lowest id), grouped by (pair, side); None when there are none."""
     fa, fb = fixed[ea], fixed[eb]
     fwd = fa & ~fb  # a fixed, b free: b moves (side 2)
     bwd = fb & ~fa  # b fixed, a free: a moves (side 1)
@@ -216,13 +166,9 @@ def _level_groups(plan: TrackPlan, ea: np.ndarray, eb: np.ndarray, e_ids: np.nda
 
 
 def cache_order(groups: list[Group], level: int) -> list[Group]:
-    """A level's groups (calls) in an order that reuses images: by pair, the second images
-    of each first image alternately ascending and descending (a snake), and the whole level
-    reversed every other level, so consecutive calls share an image and the next level starts
-    with the images the last one ended with. With an LRU image cache smaller than the images
-    of a level this decodes far fewer images than the plain pair order (a cyclic scan misses
-    every time). Calls of one level are independent (each free keypoint is in one, against
-    keypoints fixed at earlier levels), so the order changes no result."""
+    """A level's calls in an order that reuses images (a snake over pairs, reversed every other
+    level), so an LRU image cache decodes fewer images; calls of a level are independent, so no
+    result changes."""
     firsts = sorted({grp.pair[0] for grp in groups})
     rank = {i: r for r, i in enumerate(firsts)}
 
@@ -318,12 +264,8 @@ def walk_tracks(
 
 def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
                star_first: bool = False) -> None:
-    """Run :func:`joint_lsm` on the tracks the walk reached and write the accepted moves into
-    ``ctx`` (positions, displacements, ``refined_against`` = the anchor) and its stats.
-
-    The observations are the track's keypoints with a chain from the anchor
-    (:attr:`~.refine_calls.WalkState.to_ref` finite), in tracks of at least
-    :data:`MIN_OBSERVATIONS` of them, in images that load."""
+    """Run :func:`joint_lsm` on the tracks the walk reached (at least :data:`MIN_OBSERVATIONS`
+    chained keypoints) and write the accepted moves and stats into ``ctx``."""
     t0 = time.perf_counter()
     for key in MULTIPHOTO_COUNTERS:
         ctx.stats.setdefault(key, 0)
@@ -334,7 +276,6 @@ def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
 
 
 def _joint_tracks(ctx: WalkState, device: torch.device, iterations: int, star_first: bool) -> None:
-    """The body of :func:`joint_pass`."""
     plan, to_ref = ctx.plan, ctx.to_ref
     if to_ref is None or plan.anchors.size == 0:
         return
@@ -374,9 +315,7 @@ def _joint_tracks(ctx: WalkState, device: torch.device, iterations: int, star_fi
 
 def _joint_chunk(ctx: WalkState, gray: dict, nodes: np.ndarray, trk: np.ndarray, is_ref: np.ndarray,
                  passes: tuple[int, bool], anchor_of_track: np.ndarray) -> None:
-    """One batched :func:`joint_lsm` call over whole tracks (``nodes`` grouped by track) on
-    the images ``gray`` (image id -> (H, W) float32 tensor); ``passes`` = (iterations,
-    star_first)."""
+    """One batched :func:`joint_lsm` call over whole tracks; ``passes`` = (iterations, star_first)."""
     plan = ctx.plan
     assert ctx.to_ref is not None
     img_of, kp_of = plan.node_image[nodes], plan.node_kp[nodes]
