@@ -109,8 +109,7 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
             offered |= set(offer)
             kept = {p: m[~res.failed[p]] if p in res.failed else m for p, m in judged_now.items()
                     if p not in res.wrong_pairs}
-            restored.update(restore_matches(offer, kept, est.rays, est.focal, res.poses, res.trusted, threshold,
-                                            min(threshold, cfg.min_threshold_px)))
+            restored.update(restore_matches(offer, kept, est.rays, est.focal, res.poses, res.trusted, threshold))
             seconds[-1]["restoring"] = time.perf_counter() - t2
         if set(res.trusted) >= set(res.registered):
             break  # every placed image judged already: another round changes little

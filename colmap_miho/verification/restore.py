@@ -6,15 +6,15 @@ check's global estimate can give them back, but an epipolar test alone never may
 structure puts wrong matches exactly on the epipolar line (a facade's windows along a
 horizontal baseline). A removed match comes back only when
 
-1. its distance to its epipolar line under the estimate is within the check's threshold and
-   its lowest one (``min_threshold_px``: a match the filter removed needs more proof than one
-   it kept, whatever the scene's noise), and
+1. its distance to its epipolar line under the estimate is within :data:`EPIPOLAR_SHARE` of the
+   check's threshold (a match the filter removed needs more proof than one it kept), and
 2. a third image confirms its depth: one of its keypoints is matched, by a match the check
    kept, to a keypoint of a third trusted image, and the point triangulated from the removed
    match reprojects there within the threshold, in front of the camera; that third image must
    see a depth error along the confirmed keypoint's ray at least
    :data:`MIN_DEPTH_SENSITIVITY` times as large as the pair's other image does, so a match
-   displaced along its epipolar line (the repeated-structure error) cannot pass unseen.
+   displaced along its epipolar line (the repeated-structure error) cannot pass unseen;
+3. it joins no two tracks of the kept matches that hold a keypoint of the same image.
 
 Conventions as :mod:`.match_check`: ``cam_from_world`` poses, normalised ``rays``, focal
 lengths in pixels.
@@ -34,22 +34,73 @@ from ..types import Pair, Pose
 #: third image by at least half of ``d``.
 MIN_DEPTH_SENSITIVITY = 0.5
 
+#: The share of the check's threshold a restored match must lie within of its epipolar line.
+EPIPOLAR_SHARE = 0.5
+
 _SHIFT = np.int64(32)
 
 
 def restore_matches(candidates: Mapping[Pair, np.ndarray], kept: Mapping[Pair, np.ndarray],
                     rays: Mapping[int, np.ndarray], focal: Mapping[int, float], poses: Mapping[int, Pose],
-                    trusted: frozenset[int] | set[int], threshold: float, epipolar_px: float) -> dict[Pair, np.ndarray]:
+                    trusted: frozenset[int] | set[int], threshold: float) -> dict[Pair, np.ndarray]:
     """Which ``candidates`` (pair -> int ``(R, 2)`` keypoint indices removed by the filter) the
-    estimate and the ``kept`` matches (pair -> ``(M, 2)``) prove, within ``epipolar_px`` of
-    their epipolar line and ``threshold`` px of the third image's keypoint; pair -> bool
-    ``(R,)``, only pairs of two ``trusted`` images with at least one restored match."""
+    estimate and the ``kept`` matches (pair -> ``(M, 2)``) prove, the check's ``threshold`` (px)
+    given; pair -> bool ``(R,)``, only pairs of two ``trusted`` images with any restored."""
     ends = _kept_ends(kept, trusted)
     out: dict[Pair, np.ndarray] = {}
-    for (i, j), m in candidates.items():
+    for (i, j), m in sorted(candidates.items()):
         if i not in trusted or j not in trusted or not len(m):
             continue
-        ok = proven(np.asarray(m, np.int64), i, j, ends, rays, focal, poses, threshold, epipolar_px)
+        ok = proven(np.asarray(m, np.int64), i, j, ends, rays, focal, poses, threshold, EPIPOLAR_SHARE * threshold)
+        if ok.any():
+            out[(i, j)] = ok
+    return _track_consistent(out, candidates, ends)
+
+
+def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair, np.ndarray], ends
+                      ) -> dict[Pair, np.ndarray]:
+    """``proven_`` less the matches that would join two tracks of the kept matches (or a
+    keypoint to a track) holding a keypoint of the same image: a match between two points
+    that one image sees at nearly the same place passes every geometric test, and the track it
+    makes is wrong. Judged in pair and row order, each accepted match joining its tracks."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    starts, end_img, end_kp = ends
+    node_keys, inverse = np.unique(np.concatenate([starts, (end_img << _SHIFT) | end_kp]), return_inverse=True)
+    n = len(node_keys)
+    half = len(starts)
+    graph = coo_matrix((np.ones(half, np.int8), (inverse[:half], inverse[half:])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False) if n else (0, np.zeros(0, np.int64))
+    comp_images: dict[int, set[int]] = {}
+    parent: dict[int, int] = {}
+
+    def root(c: int) -> int:
+        while parent.get(c, c) != c:
+            c = parent[c]
+        return c
+
+    def track_of(image: int, kp: int) -> int:
+        key = (np.int64(image) << _SHIFT) | np.int64(kp)
+        at = int(np.searchsorted(node_keys, key))
+        c = int(comp[at]) if at < n and node_keys[at] == key else -1 - len(parent)  # a keypoint in no track
+        if c < 0:
+            parent[c] = c
+            comp_images[c] = {image}
+        elif c not in comp_images:
+            comp_images[c] = {int(x) >> 32 for x in node_keys[comp == c]}
+        return root(c)
+
+    out = {}
+    for (i, j), ok in proven_.items():
+        m = np.asarray(candidates[(i, j)], np.int64)
+        for r in np.flatnonzero(ok):
+            a, b = track_of(i, int(m[r, 0])), track_of(j, int(m[r, 1]))
+            if a != b and comp_images[a] & comp_images[b]:
+                ok[r] = False
+            elif a != b:
+                parent[b] = a
+                comp_images[a] |= comp_images.pop(b)
         if ok.any():
             out[(i, j)] = ok
     return out

@@ -375,3 +375,58 @@ def test_a_pair_with_repeated_rows_written_back_unchanged_is_judged(planted_db, 
     on = _run((copy, images, None), tmp_path / "on.db", "match_check.mode=remove", "pipeline.min_matches=100000")
     assert on["match_check"]["matches_removed"] > 0 and on["matches_in"] == n_in
     assert on["matches_kept"] == sum(len(x) for x in _output_matches(tmp_path / "on.db").values())
+
+
+@pytest.mark.slow
+def test_correct_matches_the_filter_removed_come_back_and_wrong_ones_do_not(planted_db, tmp_path, monkeypatch):
+    """A filter that removes every planted (wrong) match, a third of the correct ones and one
+    pair whole: the check gives back most of the correct ones, the emptied pair among them, and
+    none of the planted ones, and the summary says so."""
+    from colmap_miho.pipeline.records import PairOutcome
+    from colmap_miho.pipeline.store import RunStore
+
+    db, _, planted = planted_db
+    dropped: dict = {}
+    real = RunStore.save_filter_chunk
+
+    def lossy(self, index, pairs, matches, outcomes):
+        changed = []
+        for p, m, o in zip(pairs, matches, outcomes, strict=True):
+            inl = np.array(o.inliers, bool)
+            rows = np.flatnonzero(inl)
+            bad = np.array([tuple(m[k].tolist()) in planted.get(p, set()) for k in rows], bool)
+            good = rows[~bad]
+            lose = good if not dropped else good[::3]  # the first pair loses all its correct matches
+            dropped[p] = {tuple(m[k].tolist()) for k in lose}
+            inl[rows[bad]] = False
+            inl[lose] = False
+            labels = np.where(inl, o.labels, -1)
+            changed.append(PairOutcome(inliers=inl, labels=labels, patch_homographies=o.patch_homographies,
+                                       success=o.success))
+        return real(self, index, pairs, matches, changed)
+
+    monkeypatch.setattr(RunStore, "save_filter_chunk", lossy)
+    on = _run(planted_db, tmp_path / "on.db", "match_check.mode=remove")
+    out = _output_matches(tmp_path / "on.db")
+    back = sum(len({tuple(r) for r in out.get(p, np.zeros((0, 2))).tolist()} & lost) for p, lost in dropped.items())
+    n_dropped = sum(len(s) for s in dropped.values())
+    _, left = _shares(planted, out)
+    mc = on["match_check"]
+    assert left == 0  # nothing wrong comes back
+    assert mc["matches_restored"] >= back >= 0.5 * n_dropped  # the filter's own removals may come back too
+    assert mc["pairs_revived"] >= 1 and mc["restored_per_pair"]
+    assert on["matches_kept"] == sum(len(m) for m in out.values())
+    assert f"{mc['matches_restored']} matches the filter removed restored" in match_check_note(mc)
+
+
+def test_restored_rows_are_kept_again_without_a_homography():
+    from colmap_miho.pipeline.records import PairOutcome
+    from colmap_miho.pipeline.verdicts import Verdicts
+
+    m = np.arange(12, dtype=np.uint32).reshape(6, 2)
+    r = PairOutcome(inliers=np.array([1, 1, 0, 1, 0, 0], bool), labels=np.array([0, 1, -1, 0, -1, -1]),
+                    patch_homographies=np.zeros((2, 2, 3, 3)), success=True)
+    v = Verdicts(failed={(1, 2): np.array([False, True, False])}, restored={(1, 2): np.array([2, 5])})
+    _, out = v.apply({(1, 2): (m, r)})[(1, 2)]
+    assert out.inliers.tolist() == [True, False, True, True, False, True]
+    assert out.labels.tolist() == [0, -1, -1, 0, -1, -1]

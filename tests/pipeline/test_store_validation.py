@@ -286,8 +286,10 @@ def test_a_group_of_no_group_of_the_plan_is_a_damaged_store(tmp_path):
 @pytest.mark.parametrize("changes, why", [
     ({"offsets": [4, 0]}, "offsets"), ({"offsets": [0, 9]}, "offsets"), ({"pairs": [[1.0, 2.0]]}, "pairs"),
     ({"failed": np.zeros(4, np.int64)}, "failed"), ({"wrong": [1, 2]}, "wrong"),
-    ({"restored_rows": np.array([0, -1])}, "restored rows"), ({"restored_offsets": np.array([0, 3])}, "restored_offsets"),
-    ({"restored_pairs": np.array([[1, 3], [1, 3]])}, "restored"), ({"restored_rows": np.array([0.5, 1.0])}, "restored_rows"),
+    ({"restored_rows": np.array([0, -1])}, "restored rows"),
+    ({"restored_offsets": np.array([0, 3])}, "restored_offsets"),
+    ({"restored_pairs": np.array([[1, 3], [1, 3]])}, "restored"),
+    ({"restored_rows": np.array([0.5, 1.0])}, "restored_rows"),
     ({"pairs": [[1, 2], [1, 2]], "offsets": [0, 2, 4]}, "twice"),
 ])
 def test_a_forged_match_check_result_is_a_damaged_store(changes, why, tmp_path):
