@@ -10,19 +10,12 @@ many of them are GT-wrong, the pairs the filter left without matches that hold a
 
     python benchmarks/bench_restore.py [--scenes ...] [--settings default permissive]
         [--cache /tmp/bench_accuracy] [--work /tmp/bench_restore] [--set key=value] [--json out.json]
-
-``--plant N`` adds a stress test: in every pair of two GT images, N extra matches per pair
-whose ends lie within 2 px of their GT epipolar line but are wrong (the keypoint of the second
-image is the one nearest the epipolar line at least 20 px from where the first keypoint's GT
-track puts it) are written into the input's matches and inliers; how many of them the check
-restores is printed (it should be none).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -57,7 +50,7 @@ def run_one(db: Path, images: Path, out: Path, overrides: list[str]) -> tuple[di
     finally:
         stage.judge_in_rounds = original
     return (captured.get("candidates", {}), captured.get("restored", {}), captured.get("kept", set()),
-            (s.refine_stats or {}).get("match_check", {}))
+            s.match_check or {})
 
 
 def keypoints_and_names(db: Path) -> tuple[dict[int, np.ndarray], dict[int, str]]:
@@ -81,60 +74,6 @@ def gt_distances(pairs: dict, kp, names, gt) -> dict:
             m = np.asarray(m, np.int64)
             out[(i, j)] = pair_distances(gt[names[i]], gt[names[j]], kp[i][m[:, 0]], kp[j][m[:, 1]])
     return out
-
-
-def plant(db: Path, out: Path, gt, per_pair: int, seed: int = 0) -> int:
-    """Copy ``db`` to ``out`` with ``per_pair`` wrong matches on the GT epipolar line added to
-    each pair's matches and inliers; returns how many were planted."""
-    import pycolmap
-
-    from colmap_miho.geometry import fundamental_from_poses
-    from colmap_miho.reporting.keypoint_accuracy import camera_krt
-
-    shutil.copyfile(db, out)
-    kp, names = keypoints_and_names(out)
-    rng = np.random.default_rng(seed)
-    planted = 0
-    database = pycolmap.Database.open(str(out))
-    try:
-        for (i, j), tvg in [(pair, database.read_two_view_geometry(*pair)) for pair in _pairs(database)]:
-            if names[i] not in gt or names[j] not in gt:
-                continue
-            inl = np.asarray(tvg.inlier_matches, np.int64).reshape(-1, 2)
-            F = fundamental_from_poses(*camera_krt(gt[names[i]]), *camera_krt(gt[names[j]]))
-            new = []
-            used = set(inl[:, 1].tolist())
-            for a in rng.permutation(len(kp[i]))[:20 * per_pair]:
-                line = F @ np.array([*kp[i][a], 1.0])
-                d = np.abs(kp[j] @ line[:2] + line[2]) / np.hypot(line[0], line[1])
-                near = np.flatnonzero(d < 2.0)
-                # the true position is unknown without depth: keypoints on the line far apart are
-                # wrong matches for all but (at most) one of them; plant two far apart
-                if len(near) < 2:
-                    continue
-                far = near[np.argsort(kp[j][near, 0])]
-                b = int(far[0]) if int(far[0]) not in used else int(far[-1])
-                if np.linalg.norm(kp[j][far[0]] - kp[j][far[-1]]) < 40 or b in used:
-                    continue
-                new.append((int(a), b))
-                used.add(b)
-                if len(new) >= per_pair:
-                    break
-            if not new:
-                continue
-            both = np.concatenate([inl, np.asarray(new, np.int64)])
-            tvg.inlier_matches = both.astype(np.uint32)
-            database.update_two_view_geometry(i, j, tvg)
-            database.update_matches(i, j, both.astype(np.uint32)) if hasattr(database, "update_matches") else None
-            planted += len(new)
-    finally:
-        database.close()
-    return planted
-
-
-def _pairs(database) -> list[tuple[int, int]]:
-    ids, _ = database.read_two_view_geometries()
-    return [tuple(int(x) for x in database.pair_id_to_image_pair(p)) for p in ids]
 
 
 def main() -> int:
