@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..geometry import fundamental_from_poses, symmetric_epipolar_distance
+from ..match_tracks import build_tracks, match_ends, node_offsets, repeated_image
 from .track_geometry import GAUSS_NEWTON_STEPS, triangulate_tracks
 
 EPIPOLAR_THRESHOLD_PX = 2.0
@@ -102,40 +103,6 @@ def camera_krt(cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if K.shape != (3, 3) or R.shape != (3, 3) or t.reshape(-1).shape != (3,):
         raise ValueError(f"a camera needs K (3, 3), R (3, 3), t (3,); got {K.shape}, {R.shape}, {t.shape}")
     return K, R, t.reshape(3)
-
-
-# --------------------------------------------------------------------------- tracks
-def build_tracks(num_keypoints: list[int], matches: list[tuple[int, int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    """Connected components of matches over (image, keypoint) nodes.
-
-    Args:
-        num_keypoints: keypoint count of each image (images numbered 0..I-1).
-        matches: ``(image_a, image_b, idx (M, 2))`` keypoint indices of a into a, of b into b.
-
-    Returns:
-        ``(node (N,), label (N,))``: the global node index (``offset[image] + keypoint``) of every
-        matched keypoint and its component label (labels are arbitrary integers, equal within
-        a track).
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    offset = np.concatenate([[0], np.cumsum(num_keypoints)]).astype(np.int64)
-    src, dst = [], []
-    for a, b, idx in matches:
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1, 2)
-        if len(idx) == 0:
-            continue
-        src.append(offset[a] + idx[:, 0])
-        dst.append(offset[b] + idx[:, 1])
-    if not src:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    s, d = np.concatenate(src), np.concatenate(dst)
-    n = int(offset[-1])
-    graph = coo_matrix((np.ones(len(s), np.int8), (s, d)), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    nodes = np.unique(np.concatenate([s, d]))
-    return nodes, labels[nodes]
 
 
 # --------------------------------------------------------------------------- the measure
@@ -257,20 +224,16 @@ class _Tracks:
 def _classify_tracks(keys: list, kps: list[np.ndarray], cams: dict,
                      track_matches: list[tuple[int, int, np.ndarray]], min_track_views: int) -> _Tracks:
     """Union-find tracks of ``track_matches`` and their classes (see :class:`_Tracks`)."""
-    nodes, labels = build_tracks([len(k) for k in kps], track_matches)
-    offset = np.concatenate([[0], np.cumsum([len(k) for k in kps])]).astype(np.int64)
-    img = np.searchsorted(offset, nodes, side="right") - 1
-    _, lab = np.unique(labels, return_inverse=True)
+    offset, total = node_offsets({k: len(x) for k, x in enumerate(kps)})
+    nodes, lab = build_tracks(*match_ends(offset, track_matches), total)
+    img = np.searchsorted(np.asarray(list(offset.values()), np.int64), nodes, side="right") - 1
     n_lab = int(lab.max()) + 1 if lab.size else 0
-    n_obs = np.bincount(lab, minlength=n_lab)
-    uniq_li = np.unique(lab * len(kps) + img) if lab.size else np.zeros(0, np.int64)
-    n_img = np.bincount(uniq_li // max(len(kps), 1), minlength=n_lab)
     has_gt = np.array([k in cams for k in keys], dtype=bool)
     gt_obs = has_gt[img] if img.size else np.zeros(0, bool)
     gt_li = np.unique((lab * len(kps) + img)[gt_obs]) if lab.size else np.zeros(0, np.int64)
     n_gt_img = np.bincount(gt_li // max(len(kps), 1), minlength=n_lab)
     candidate = n_gt_img >= min_track_views
-    conflicting = candidate & (n_obs > n_img)
+    conflicting = candidate & repeated_image(lab, img, n_lab)
     return _Tracks(nodes=nodes, img=img, gt_obs=gt_obs, lab=lab, candidate=candidate, conflicting=conflicting,
                    measured=candidate & ~conflicting)
 

@@ -30,13 +30,12 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from ...enums import Rectification
+from ...match_tracks import build_tracks, components, distinct, image_runs, node_offsets
 from ...types import Pair
 from ..config import NCCConfig
-from .plan import TrackPlan, distinct
+from .plan import TrackPlan
 
 
 def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
@@ -51,8 +50,7 @@ def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,
     """Nodes joined to an anchor by the edges (ea, eb), anchors not counted."""
     if not ea.size:
         return 0
-    _, comp = connected_components(
-        coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
+    _, comp = components(ea, eb, total)
     if nodes is None:
         nodes = distinct(np.concatenate([ea, eb]), total)
     hit = np.zeros(comp.max() + 1, bool)
@@ -112,13 +110,12 @@ def pair_rows(pair: Pair, matches: np.ndarray, result: Any) -> tuple[np.ndarray,
 
 
 def _nodes(keypoints: Mapping) -> tuple[dict, dict, np.ndarray, np.ndarray]:
-    kps, offset, total = {}, {}, 0
+    kps = {}
     for i in sorted(keypoints):
-        arr = np.asarray(keypoints[i], dtype=np.float64)
-        if arr.ndim != 2 or arr.shape[1] != 2:
-            raise ValueError(f"keypoints[{i}] must have shape (N, 2), got {arr.shape}")
-        kps[i], offset[i] = arr, total
-        total += arr.shape[0]
+        kps[i] = np.asarray(keypoints[i], dtype=np.float64)
+        if kps[i].ndim != 2 or kps[i].shape[1] != 2:
+            raise ValueError(f"keypoints[{i}] must have shape (N, 2), got {kps[i].shape}")
+    offset, _ = node_offsets({i: len(a) for i, a in kps.items()})
     node_image = np.concatenate([np.full(len(a), i, np.int64) for i, a in kps.items()]
                                 or [np.zeros(0, np.int64)])
     node_kp = np.concatenate([np.arange(len(a), dtype=np.int64) for a in kps.values()]
@@ -167,11 +164,8 @@ def _conflicts(track: np.ndarray, nodes: np.ndarray, node_image: np.ndarray, pos
     """(n_tracks,) bool: tracks with two keypoints of one image more than ``duplicate_px``
     apart; and (n_tracks,) bool: tracks with two keypoints of one image at all."""
     n_tracks = int(track.max()) + 1
-    key = np.lexsort((node_image[nodes], track[nodes]))
-    t, im, p = track[nodes][key], node_image[nodes][key], pos[key]
-    start = np.ones(t.size, bool)
-    start[1:] = (t[1:] != t[:-1]) | (im[1:] != im[:-1])
-    idx = np.flatnonzero(start)
+    order, idx = image_runs(track[nodes], node_image[nodes])
+    t, p = track[nodes][order], pos[order]
     count = np.diff(np.append(idx, t.size))
     spread = np.maximum.reduceat(p, idx, axis=0) - np.minimum.reduceat(p, idx, axis=0)
     far = np.linalg.norm(spread, axis=1) > duplicate_px
@@ -224,10 +218,8 @@ def build_track_plan(
     anchors = np.zeros(0, np.int64)
     to_refine = 0
     if ea.size:
-        _, comp = connected_components(
-            coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
-        nodes = distinct(np.concatenate([ea, eb]), total)
-        _, track[nodes] = np.unique(comp[nodes], return_inverse=True)
+        nodes, node_track = build_tracks(ea, eb, total)
+        track[nodes] = node_track
         pos = np.concatenate(list(kps.values()))[nodes]
         conflict, any_two = _conflicts(track, nodes, node_image, pos, duplicate_px)
         frozen[nodes] = conflict[track[nodes]]

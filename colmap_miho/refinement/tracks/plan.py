@@ -8,24 +8,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
-
-def distinct(values: np.ndarray, size: int | None = None) -> np.ndarray:
-    """The sorted distinct entries of the int64 array ``values`` (``np.unique``'s result):
-    by a mask when they are known to lie in ``0..size-1``, else by a sort (numpy's default
-    ``unique`` hashes, several times slower on the plan's arrays)."""
-    values = np.asarray(values).reshape(-1)
-    if size is not None:
-        seen = np.zeros(size, dtype=bool)
-        seen[values] = True
-        return np.flatnonzero(seen).astype(values.dtype, copy=False)
-    out = np.sort(values)
-    if out.size:
-        out = out[np.concatenate([[True], out[1:] != out[:-1]])]
-    return out
-
+from ...match_tracks import components, distinct
 
 #: Most entries of the padded (units, longest image tuple) table :func:`_by_image_tuple`
 #: sorts with numpy; larger plans sort the tuples in Python.
@@ -244,8 +228,7 @@ class TrackPlan:
             return unit, np.zeros(0, np.int64)
         total = self.num_nodes
         ea, eb = self.edge_a[ok], self.edge_b[ok]
-        _, comp = connected_components(
-            coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
+        _, comp = components(ea, eb, total)
         of_comp = np.full(comp.max() + 1, -1, np.int64)
         of_comp[comp[self.anchors]] = np.arange(self.anchors.size)
         unit[ok] = of_comp[comp[ea]]

@@ -368,7 +368,7 @@ def test_walk_refines_along_walk_steps_only(seed):
 
 
 def test_distinct_is_numpys_unique():
-    from colmap_miho.refinement.tracks.plan import distinct
+    from colmap_miho.match_tracks import distinct
 
     rng = np.random.default_rng(0)
     for n in (0, 1, 7, 5000):
