@@ -119,13 +119,6 @@ def _one_side_each(support: list[tuple[Pair, bool]]) -> list[tuple[Pair, bool]]:
             if votes[j if f else i] >= 0 and votes[i if f else j] < 0]
 
 
-def find_hinge(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray], *, tolerance_deg: float,
-               min_pairs: int, min_side_images: int) -> Hinge | None:
-    """The strongest candidate of :func:`find_hinges`, or None."""
-    return next(find_hinges(poses, pair_rotations, tolerance_deg=tolerance_deg, min_pairs=min_pairs,
-                            min_side_images=min_side_images), None)
-
-
 def confirm_hinge(hinge: Hinge, poses: Mapping[int, Pose], placed: Callable[[int, int], Pose | None], *,
                   tolerance_deg: float, min_pairs: int, min_side_images: int) -> Hinge | None:
     """The hinge with only the mode's pairs whose disagreement holds when the pair's relative
