@@ -1,27 +1,16 @@
-"""Keypoint accuracy under ground-truth geometry: epipolar distances and GT track residuals.
+"""Keypoint accuracy under ground-truth cameras, the measure refinement is judged by.
 
-The measure by which keypoint refinement is judged. Given GT cameras, the keypoints of each
-image and the stored inlier matches of each image pair, :func:`keypoint_accuracy` computes
+- **Epipolar distance** of every stored inlier match between two GT images: the symmetric
+  point-to-epipolar-line distance (px) under the GT ``F_2from1``.
+- **GT track residuals**: the tracks of the stored inliers (:mod:`colmap_miho.match_tracks`);
+  one holding two keypoints of one image is *conflicting*, counted apart. Each other track seen
+  by at least :data:`MIN_TRACK_VIEWS` GT images is triangulated with the GT cameras (DLT, then
+  Gauss-Newton on the pixel error); tracks whose largest residual is at most
+  :data:`TRACK_THRESHOLD_PX` are *measured*, the others are *wrong tracks*. A track's own
+  triangulation absorbs 3 degrees of freedom: with Gaussian noise ``sigma`` px per axis over
+  ``n`` views the mean squared residual is ``2 sigma^2 (1 - 3 / (2 n))``.
 
-- **epipolar distance** of every stored inlier match whose two images have GT: the symmetric
-  point-to-epipolar-line distance in pixels, ``(d(x2, F x1) + d(x1, F^T x2)) / 2`` with the GT
-  fundamental matrix ``F = K2^-T [t]_x R K1^-1`` (``R, t`` = camera 2 from camera 1). Median and
-  the share above :data:`EPIPOLAR_THRESHOLD_PX`.
-- **GT track residuals**: tracks are the connected components of the stored inliers over
-  (image, keypoint) nodes, as COLMAP's mapper would join them. A track that holds two keypoints
-  of one image is *conflicting* and counted apart, not measured. Each other track seen by at
-  least :data:`MIN_TRACK_VIEWS` GT images is triangulated with the GT cameras (linear DLT on
-  normalised coordinates, then Gauss-Newton on the pixel reprojection error, vectorised over
-  tracks); the residual of an observation is its reprojection error in pixels. Tracks whose
-  largest residual is at most :data:`TRACK_THRESHOLD_PX` are *measured* (median, mean and 90th
-  percentile of their observations' residuals); the others (and tracks that triangulate behind
-  a camera or at infinity) are *wrong tracks*, reported as a count and a share.
-
-Pure numpy/scipy: no file access, no pycolmap. Pixel convention: integer = pixel centre, both
-for the keypoints and for the intrinsics ``K`` (see :mod:`colmap_miho.reporting.gt_model`).
-The residual of a track triangulated from its own observations is slightly below the keypoint
-noise (the point absorbs 3 degrees of freedom): for Gaussian noise of ``sigma`` px per axis and
-``n`` views, the mean squared residual is ``2 sigma^2 (1 - 3 / (2 n))``.
+Pure numpy/scipy. Pixels: integer = pixel centre, for the keypoints and the intrinsics ``K``.
 """
 
 from __future__ import annotations
@@ -223,7 +212,7 @@ class _Tracks:
 
 def _classify_tracks(keys: list, kps: list[np.ndarray], cams: dict,
                      track_matches: list[tuple[int, int, np.ndarray]], min_track_views: int) -> _Tracks:
-    """Union-find tracks of ``track_matches`` and their classes (see :class:`_Tracks`)."""
+    """The tracks of ``track_matches`` and their classes (see :class:`_Tracks`)."""
     offset, total = node_offsets({k: len(x) for k, x in enumerate(kps)})
     nodes, lab = build_tracks(*match_ends(offset, track_matches), total)
     img = np.searchsorted(np.asarray(list(offset.values()), np.int64), nodes, side="right") - 1

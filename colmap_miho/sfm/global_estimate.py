@@ -1,15 +1,7 @@
-"""The global estimate of the cameras for the match check: pycolmap's global mapper on a
-temporary database holding the filtered matches, and each pair's own relative rotation.
-
-:func:`global_estimate` does it in three steps: :func:`_write_database` (the cameras, rigs,
-frames, images and keypoints of the open working database, each pair's given matches as its
-two-view geometry's inliers, :func:`~colmap_miho.adapters.database.keep_or_fit`),
-:func:`_run_mapper` (``pycolmap.global_mapping`` with COLMAP's log sent to the temporary folder)
-and :func:`_read_model` (the largest model's poses, the normalised coordinates of the registered
-images' keypoints, undistorted by the model's cameras, and its tracks); then the pairs' own
-relative rotations (``pycolmap.estimate_two_view_geometry`` on each pair's matches with the
-model's cameras). Coordinates are COLMAP's inside (the rays do not depend on the convention).
-"""
+"""The match check's global estimate of the cameras: pycolmap's global mapper on a temporary
+database of the given matches (:func:`global_estimate`), each pair's own relative rotation, and
+the placing of an image by its 3D points. Coordinates are COLMAP's inside (rays do not depend on
+the convention)."""
 
 from __future__ import annotations
 
@@ -57,9 +49,7 @@ class GlobalEstimate:
         keypoints: image id -> ``(N, 2)`` keypoints in COLMAP's convention.
         seconds: wall time of its parts: "database" (the temporary database), "mapper",
             "pair_rotations".
-        mapper_steps: the mapper's own seconds per step, from its log ("rotation averaging",
-            "global positioning", "iterative bundle adjustment" ...; empty with ``-v``, whose log
-            goes to the terminal).
+        mapper_steps: the mapper's own seconds per step, from its log (empty with ``-v``).
         failure: why the mapper gave no model, in COLMAP's words ("" when it gave one).
     """
 
@@ -82,20 +72,16 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
     Args:
         src: the open working database (read only here).
         matches: pair -> int ``(M, 2)`` keypoint indices, the matches to estimate from.
-        cfg: the match check's settings the estimate uses (``min_pair_matches``: pairs with
-            fewer matches are left out and get no pair rotation; ``estimate_matches_per_image``: the
-            tracks the mapper is given, :func:`sampled_tracks`; ``pair_rotation_matches``: the most
-            of a pair's matches its own rotation is estimated from; ``seed``, ``ba_iterations``,
-            ``retriangulate``, ``ba_function_tolerance``).
+        cfg: the match check's settings (pairs under ``min_pair_matches`` are left out; the
+            mapper gets :func:`sampled_tracks`; ``pair_rotation_matches`` caps each pair's own
+            rotation's matches).
         num_threads: mapper threads (-1: all cores).
-        verbose: COLMAP's log on the terminal instead of the temporary folder's file (its
-            errors never reach the terminal otherwise: a failed estimate is the caller's to
-            report).
-        workdir: where the temporary folder goes (default ``$TMPDIR``); it is removed on exit,
-            at a forced exit after SIGTERM, and by the next run after a ``kill -9``.
+        verbose: COLMAP's log on the terminal instead of the temporary folder's file (a failed
+            estimate is the caller's to report).
+        workdir: where the temporary folder goes (default ``$TMPDIR``; always removed).
 
     Returns:
-        The :class:`GlobalEstimate` (empty when no model came out).
+        The :class:`GlobalEstimate`, empty when no model came out.
 
     Raises:
         RunFailed: the disk of the temporary folder is full.

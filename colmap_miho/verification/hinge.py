@@ -1,15 +1,10 @@
 """A hinged global estimate: find it, and let each pair's own coverage decide which side is right
-(pure numpy).
+(pure numpy; why a hinge arises: ``docs/how-it-works.md``, "A hinged estimate").
 
-Why a hinge arises and how it is resolved: ``docs/how-it-works.md`` (the match check, "A hinged
-estimate"). Here the pure parts: detect (:func:`find_hinges`, :func:`confirm_hinge`: modes of the
-world-frame residuals ``D_ij = R_j^T R_ij R_i``, which is ``G_B^T G_A`` for every correct pair
-across the hinge, the strongest that holds with each pair's pose measured from 3D points),
-measure (:func:`coverage`, :func:`pair_coverage`: missing correspondences, Zach et al. 2008,
-each pair with its own geometry), group and arbitrate (:func:`split_groups`, :func:`arbitrate`).
-
-Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; ``rays`` are normalised image
-coordinates.
+Detect (:func:`find_hinges`, :func:`confirm_hinge`: modes of the world-frame residuals
+``D_ij = R_j^T R_ij R_i``), measure (:func:`coverage`, :func:`pair_coverage`: missing
+correspondences, Zach et al. 2008), group and arbitrate (:func:`split_groups`, :func:`arbitrate`).
+Poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; ``rays`` normalised image coordinates.
 """
 
 from __future__ import annotations

@@ -1,27 +1,17 @@
-"""The track plan: tracks built once, for the walk and for the worker split alike.
+"""The track plan: the tracks of every output match, built once for the walk and the workers.
 
-Every match that reaches the output database is an edge between two ``(image_id,
-keypoint_index)`` nodes; the connected components of all edges are the tracks, exactly the
-tracks COLMAP will build from the output. An edge is *refinable* when it carries a patch
-homography pair (a match the filter kept and labelled); the others (pairs that were never
-filtered, whose filter failed, or that touch a missing image) join tracks but are never used
-to refine.
+Tracks are the components of all output matches (:mod:`colmap_miho.match_tracks`), the tracks
+COLMAP builds from the output. An edge is *refinable* when the filter gave it a patch homography
+pair; the others join tracks but never refine. Rules:
 
-Rules (documented once, here):
-
-- **Anchor**: per track, the node with the most refinable edges; ties go to the lowest
-  ``(image_id, keypoint_index)``. Tracks without a refinable edge have no anchor.
-- **Reach**: a track is walked from its anchor over refinable edges only; its keypoints that
-  the anchor cannot reach that way never move. So every moved keypoint is refined relative
-  to the anchor of the track it belongs to in the output, whatever joined the track.
-- **Conflicts**: a track holding two keypoints of one image more than
-  ``TrackConfig.duplicate_px`` apart is *frozen*: none of its keypoints moves (the
-  keypoints of one image cannot all be the same 3D point, so the walk has no single
-  reference to refine them to). Keypoints of one image closer than that are duplicates
-  (SIFT keeps one keypoint per dominant orientation at the same position) and are walked
-  like the others.
-
-The plan itself is :class:`.plan.TrackPlan`. Pure numpy/scipy: no images, no torch.
+- **Anchor**: per track, the node with the most refinable edges (ties: the lowest
+  ``(image_id, keypoint_index)``); a track without a refinable edge has none.
+- **Reach**: a track is walked from its anchor over refinable edges only; what the anchor
+  cannot reach that way never moves, so every moved keypoint is refined to its output track's
+  anchor.
+- **Conflicts**: a track holding two keypoints of one image more than ``duplicate_px`` apart is
+  *frozen* (they cannot be one 3D point); closer ones are duplicates (SIFT's one keypoint per
+  orientation) and walked like the others.
 """
 
 from __future__ import annotations
@@ -185,7 +175,7 @@ def build_track_plan(
     duplicate_px: float = 1.0,
     local_affine: tuple[int, float] | None = None,
 ) -> TrackPlan:
-    """Build the tracks of all output matches (see the module docstring for the rules).
+    """The :class:`TrackPlan` of all output matches (the module docstring states the rules).
 
     Args:
         keypoints: image_id -> (Ni, 2) pixel positions (integer = pixel centre).
@@ -201,8 +191,6 @@ def build_track_plan(
             own patch homography pair from a local affine fit to its pair's nearest matches
             (:func:`..rectify.local_affine.local_affine_pairs`), fitted when the walk first needs the pair
             (:meth:`TrackPlan.local_pairs`); None: the filter's pairs only.
-    Returns:
-        :class:`TrackPlan`.
     Raises:
         ValueError: malformed inputs (names the pair or image).
     """

@@ -123,13 +123,9 @@ class TrackPlan:
 
     def local_pairs(self, p: int) -> np.ndarray | None:
         """(M_p, 2, 3, 3) local affine pairs of the edges of pair ``p`` (by ``edge_row``), or
-        None without ``local_affine``. A plan over all output matches fits them on first use
-        (each from the neighbourhood of its match among all of the pair's edges) and keeps
-        them until :meth:`release_local`; a group carries those of its own edges
-        (:meth:`attach_local`). Only the edges the walk can refine along
-        (:meth:`walk_steps`) are fitted: the others keep the filter's pair.
-
-        A group with :attr:`local_inputs` fits its own on first use, the same bits.
+        None without ``local_affine``; fitted on first use (only along :meth:`walk_steps`, the
+        others keep the filter's pair) and kept until :meth:`release_local`. A group carries
+        its own (:meth:`attach_local`) or fits them from :attr:`local_inputs`, the same bits.
 
         Raises:
             ValueError: a group whose local pairs were not attached.
@@ -270,20 +266,11 @@ class TrackPlan:
             local_affine=self.local_affine, source_pairs=src_pairs, source_rows=src_rows)
 
     def groups(self, max_images: int, max_edges: int | None = None) -> list[TrackPlan]:
-        """Whole walked units (the part of a track its anchor reaches over refinable
-        edges) packed into compact groups (:meth:`subset`) of at most ``max_images``
-        distinct images and at most ``max_edges`` refinable edges each. A unit over
-        ``max_images`` images (its walk needs them all anyway) raises its group's image bound
-        to its own image count; one over ``max_edges`` is a group alone.
-
-        Schedule: units sorted by their sorted image ids (lexicographically; ties by
-        anchor), then swept in that order, a new group started when the next unit would
-        exceed a bound; so consecutive groups share images and an image stops being needed
-        once the sweep has passed the units that start with it. Deterministic: the same
-        plan and bounds give the same groups in the same order. Walking the
-        groups one by one moves exactly the keypoints a walk of the whole plan moves, to the
-        same positions (units never share a keypoint). Local affine pairs are not included:
-        :meth:`attach_local` adds them, group by group.
+        """Whole walked units packed into compact groups (:meth:`subset`) of at most
+        ``max_images`` images and ``max_edges`` refinable edges (a larger unit is its own
+        group). Units are swept in the order of their sorted image ids, so consecutive groups
+        share images; walking the groups one by one moves the keypoints exactly as a walk of
+        the whole plan. Local affine pairs: :meth:`attach_local`, group by group.
         """
         if max_images < 1:
             raise ValueError(f"max_images must be >= 1, got {max_images}")
