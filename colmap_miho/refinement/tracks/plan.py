@@ -359,21 +359,3 @@ class TrackPlan:
     def refinable(self) -> np.ndarray:
         """(E,) bool: edges the walk may refine along (labelled, track not frozen)."""
         return (self.edge_label >= 0) & ~self.frozen[self.edge_a]
-
-    def partition(self, n: int) -> list[TrackPlan]:
-        """At most ``n`` compact plans (:meth:`subset`) of whole walked units, balanced by
-        refinable edges (greedy: the biggest unit to the lightest part). Parts never share a
-        keypoint, so their results merge without conflict. Empty parts are left out."""
-        if n < 1:
-            raise ValueError(f"n must be >= 1, got {n}")
-        unit, anchors = self.walked_units()
-        e_ids = np.flatnonzero(unit >= 0)
-        sizes = np.bincount(unit[e_ids], minlength=anchors.size)
-        order = np.argsort(-sizes, kind="stable")
-        load = np.zeros(n)
-        part_of = np.zeros(anchors.size, np.int64)
-        for u in order:
-            b = int(np.argmin(load))
-            part_of[u] = b
-            load[b] += sizes[u]
-        return self._split(e_ids, part_of[unit[e_ids]], anchors, part_of, n)
