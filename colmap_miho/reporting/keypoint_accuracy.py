@@ -1,27 +1,16 @@
-"""Keypoint accuracy under ground-truth geometry: epipolar distances and GT track residuals.
+"""Keypoint accuracy under ground-truth cameras, the measure refinement is judged by.
 
-The measure by which keypoint refinement is judged. Given GT cameras, the keypoints of each
-image and the stored inlier matches of each image pair, :func:`keypoint_accuracy` computes
+- **Epipolar distance** of every stored inlier match between two GT images: the symmetric
+  point-to-epipolar-line distance (px) under the GT ``F_2from1``.
+- **GT track residuals**: the tracks of the stored inliers (:mod:`colmap_miho.match_tracks`);
+  one holding two keypoints of one image is *conflicting*, counted apart. Each other track seen
+  by at least :data:`MIN_TRACK_VIEWS` GT images is triangulated with the GT cameras (DLT, then
+  Gauss-Newton on the pixel error); tracks whose largest residual is at most
+  :data:`TRACK_THRESHOLD_PX` are *measured*, the others are *wrong tracks*. A track's own
+  triangulation absorbs 3 degrees of freedom: with Gaussian noise ``sigma`` px per axis over
+  ``n`` views the mean squared residual is ``2 sigma^2 (1 - 3 / (2 n))``.
 
-- **epipolar distance** of every stored inlier match whose two images have GT: the symmetric
-  point-to-epipolar-line distance in pixels, ``(d(x2, F x1) + d(x1, F^T x2)) / 2`` with the GT
-  fundamental matrix ``F = K2^-T [t]_x R K1^-1`` (``R, t`` = camera 2 from camera 1). Median and
-  the share above :data:`EPIPOLAR_THRESHOLD_PX`.
-- **GT track residuals**: tracks are the connected components of the stored inliers over
-  (image, keypoint) nodes, as COLMAP's mapper would join them. A track that holds two keypoints
-  of one image is *conflicting* and counted apart, not measured. Each other track seen by at
-  least :data:`MIN_TRACK_VIEWS` GT images is triangulated with the GT cameras (linear DLT on
-  normalised coordinates, then Gauss-Newton on the pixel reprojection error, vectorised over
-  tracks); the residual of an observation is its reprojection error in pixels. Tracks whose
-  largest residual is at most :data:`TRACK_THRESHOLD_PX` are *measured* (median, mean and 90th
-  percentile of their observations' residuals); the others (and tracks that triangulate behind
-  a camera or at infinity) are *wrong tracks*, reported as a count and a share.
-
-Pure numpy/scipy: no file access, no pycolmap. Pixel convention: integer = pixel centre, both
-for the keypoints and for the intrinsics ``K`` (see :mod:`colmap_miho.reporting.gt_model`).
-The residual of a track triangulated from its own observations is slightly below the keypoint
-noise (the point absorbs 3 degrees of freedom): for Gaussian noise of ``sigma`` px per axis and
-``n`` views, the mean squared residual is ``2 sigma^2 (1 - 3 / (2 n))``.
+Pure numpy/scipy. Pixels: integer = pixel centre, for the keypoints and the intrinsics ``K``.
 """
 
 from __future__ import annotations
@@ -33,6 +22,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..geometry import fundamental_from_poses, symmetric_epipolar_distance
+from ..match_tracks import build_tracks, match_ends, node_offsets, repeated_image
 from .track_geometry import GAUSS_NEWTON_STEPS, triangulate_tracks
 
 EPIPOLAR_THRESHOLD_PX = 2.0
@@ -102,40 +92,6 @@ def camera_krt(cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if K.shape != (3, 3) or R.shape != (3, 3) or t.reshape(-1).shape != (3,):
         raise ValueError(f"a camera needs K (3, 3), R (3, 3), t (3,); got {K.shape}, {R.shape}, {t.shape}")
     return K, R, t.reshape(3)
-
-
-# --------------------------------------------------------------------------- tracks
-def build_tracks(num_keypoints: list[int], matches: list[tuple[int, int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    """Connected components of matches over (image, keypoint) nodes.
-
-    Args:
-        num_keypoints: keypoint count of each image (images numbered 0..I-1).
-        matches: ``(image_a, image_b, idx (M, 2))`` keypoint indices of a into a, of b into b.
-
-    Returns:
-        ``(node (N,), label (N,))``: the global node index (``offset[image] + keypoint``) of every
-        matched keypoint and its component label (labels are arbitrary integers, equal within
-        a track).
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    offset = np.concatenate([[0], np.cumsum(num_keypoints)]).astype(np.int64)
-    src, dst = [], []
-    for a, b, idx in matches:
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1, 2)
-        if len(idx) == 0:
-            continue
-        src.append(offset[a] + idx[:, 0])
-        dst.append(offset[b] + idx[:, 1])
-    if not src:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    s, d = np.concatenate(src), np.concatenate(dst)
-    n = int(offset[-1])
-    graph = coo_matrix((np.ones(len(s), np.int8), (s, d)), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    nodes = np.unique(np.concatenate([s, d]))
-    return nodes, labels[nodes]
 
 
 # --------------------------------------------------------------------------- the measure
@@ -256,21 +212,17 @@ class _Tracks:
 
 def _classify_tracks(keys: list, kps: list[np.ndarray], cams: dict,
                      track_matches: list[tuple[int, int, np.ndarray]], min_track_views: int) -> _Tracks:
-    """Union-find tracks of ``track_matches`` and their classes (see :class:`_Tracks`)."""
-    nodes, labels = build_tracks([len(k) for k in kps], track_matches)
-    offset = np.concatenate([[0], np.cumsum([len(k) for k in kps])]).astype(np.int64)
-    img = np.searchsorted(offset, nodes, side="right") - 1
-    _, lab = np.unique(labels, return_inverse=True)
+    """The tracks of ``track_matches`` and their classes (see :class:`_Tracks`)."""
+    offset, total = node_offsets({k: len(x) for k, x in enumerate(kps)})
+    nodes, lab = build_tracks(*match_ends(offset, track_matches), total)
+    img = np.searchsorted(np.asarray(list(offset.values()), np.int64), nodes, side="right") - 1
     n_lab = int(lab.max()) + 1 if lab.size else 0
-    n_obs = np.bincount(lab, minlength=n_lab)
-    uniq_li = np.unique(lab * len(kps) + img) if lab.size else np.zeros(0, np.int64)
-    n_img = np.bincount(uniq_li // max(len(kps), 1), minlength=n_lab)
     has_gt = np.array([k in cams for k in keys], dtype=bool)
     gt_obs = has_gt[img] if img.size else np.zeros(0, bool)
     gt_li = np.unique((lab * len(kps) + img)[gt_obs]) if lab.size else np.zeros(0, np.int64)
     n_gt_img = np.bincount(gt_li // max(len(kps), 1), minlength=n_lab)
     candidate = n_gt_img >= min_track_views
-    conflicting = candidate & (n_obs > n_img)
+    conflicting = candidate & repeated_image(lab, img, n_lab)
     return _Tracks(nodes=nodes, img=img, gt_obs=gt_obs, lab=lab, candidate=candidate, conflicting=conflicting,
                    measured=candidate & ~conflicting)
 

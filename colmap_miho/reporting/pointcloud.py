@@ -1,13 +1,9 @@
-"""Sparse point clouds: PLY files, density / outlier figures, cloud-to-cloud distances, pictures.
+"""Sparse point clouds: the PLY export, density / outlier figures and pictures.
 
-open3d is an optional extra (``pip install 'colmap-miho[pointcloud]'``). Without it every
-function here still works: PLY reading and writing are plain numpy, nearest neighbours come
-from scipy's cKDTree, and open3d's statistical outlier rule is reproduced exactly (checked by
-the tests against open3d); :func:`require_open3d` raises a clear ``RuntimeError`` for callers
-that insist on open3d (``backend="open3d"``).
-
-Units are those of the reconstruction (arbitrary for an unscaled SfM model; metres after an
-alignment to a metric ground truth). Arrays: ``points`` (N, 3) float64, ``colors`` (N, 3) uint8.
+open3d is an optional extra (``pip install 'colmap-miho[pointcloud]'``); without it, nearest
+neighbours come from scipy's cKDTree (open3d's statistical outlier rule reproduced exactly) and
+pictures from matplotlib. Units are the reconstruction's. Arrays: ``points`` (N, 3) float64,
+``colors`` (N, 3) uint8.
 """
 
 from __future__ import annotations
@@ -23,9 +19,6 @@ from ..errors import InvalidInput
 log = logging.getLogger(__name__)
 
 OPEN3D_MISSING = "open3d is not installed: pip install 'colmap-miho[pointcloud]' (or pip install 'open3d>=0.18')"
-_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
-              "char": "i1", "int8": "i1", "short": "<i2", "ushort": "<u2", "int": "<i4", "int32": "<i4",
-              "uint": "<u4", "uint32": "<u4"}
 _renderer_failed: str | None = None  # why open3d's offscreen renderer did not work, once seen
 
 
@@ -89,73 +82,6 @@ def export_ply(reconstruction, path: str | Path) -> Path:
     with staged_write(path, expected_size=ply_size) as tmp:
         reconstruction.export_PLY(str(tmp))
     return path
-
-
-def write_ply(points: np.ndarray, path: str | Path, colors: np.ndarray | None = None) -> Path:
-    """Write (N, 3) points (stored as float32) and optional (N, 3) uint8 colours to a binary
-    little-endian PLY, the layout COLMAP writes. Returns the path."""
-    p = _check_points(points)
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if colors is not None:
-        c = np.asarray(colors)
-        if c.shape != p.shape:
-            raise InvalidInput(f"colors must have shape {p.shape}, got {c.shape}")
-        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    rows = np.empty(len(p), dtype=fields)
-    rows["x"], rows["y"], rows["z"] = p[:, 0], p[:, 1], p[:, 2]
-    if colors is not None:
-        rows["red"], rows["green"], rows["blue"] = c[:, 0], c[:, 1], c[:, 2]
-    props = "".join(f"property {'float' if t == '<f4' else 'uchar'} {n}\n" for n, t in fields)
-    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(p)}\n{props}end_header\n"
-    from ..adapters.staged_write import write_bytes_atomic
-
-    path = Path(path)
-    write_bytes_atomic(path, header.encode("ascii") + rows.tobytes())
-    return path
-
-
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Read the vertices of a binary little-endian PLY (as COLMAP and :func:`write_ply` write):
-    (N, 3) float64 xyz and (N, 3) uint8 RGB or None. Other vertex properties are skipped;
-    ASCII / big-endian files and other elements before the vertices raise ``ValueError``."""
-    path = Path(path)
-    with open(path, "rb") as f:
-        if f.readline().strip() != b"ply":
-            raise InvalidInput(f"{path}: not a PLY file")
-        fields: list[tuple[str, str]] = []
-        count = None
-        in_vertex = False
-        while True:
-            line = f.readline()
-            if not line:
-                raise InvalidInput(f"{path}: PLY header without end_header")
-            words = line.decode("ascii", "replace").split()
-            if not words or words[0] in ("comment", "obj_info"):
-                continue
-            if words[0] == "format" and words[1] != "binary_little_endian":
-                raise InvalidInput(f"{path}: PLY format {words[1]} not supported (binary_little_endian only)")
-            if words[0] == "element":
-                if words[1] == "vertex":
-                    count, in_vertex = int(words[2]), True
-                elif count is None:
-                    raise InvalidInput(f"{path}: PLY element {words[1]!r} before the vertices is not supported")
-                else:
-                    in_vertex = False
-            elif words[0] == "property" and in_vertex:
-                if words[1] == "list" or words[1] not in _PLY_TYPES:
-                    raise InvalidInput(f"{path}: vertex property {' '.join(words[1:])!r} not supported")
-                fields.append((words[2], _PLY_TYPES[words[1]]))
-            elif words[0] == "end_header":
-                break
-        if count is None or not {"x", "y", "z"} <= {n for n, _ in fields}:
-            raise InvalidInput(f"{path}: no vertex element with x, y, z")
-        rows = np.frombuffer(f.read(np.dtype(fields).itemsize * count), dtype=fields, count=count)
-    xyz = np.stack([rows["x"], rows["y"], rows["z"]], axis=1).astype(np.float64)
-    names = {n for n, _ in fields}
-    rgb = None
-    if {"red", "green", "blue"} <= names:
-        rgb = np.stack([rows["red"], rows["green"], rows["blue"]], axis=1).astype(np.uint8)
-    return xyz, rgb
 
 
 # ---------------------------------------------------------------------------------------------
@@ -231,38 +157,6 @@ def cloud_figures(points: np.ndarray, *, nb_neighbors: int = 20, std_ratio: floa
     out["spacing_median"], out["spacing_mean"] = float(np.median(nn)), float(nn.mean())
     outliers = statistical_outliers(p, nb_neighbors=nb_neighbors, std_ratio=std_ratio, backend=b)
     out["outlier_share"] = float(outliers.mean())
-    return out
-
-
-def cloud_to_cloud(a: np.ndarray, b: np.ndarray, *, backend: str = "auto") -> dict:
-    """Nearest-neighbour distances between two ALREADY ALIGNED clouds (same frame and scale:
-    align first, e.g. by the similarity from the report's alignment to GT or to each other).
-
-    Args:
-        a, b: (Na, 3), (Nb, 3) float, same unit.
-
-    Returns:
-        dict with, for each direction ``a_to_b`` and ``b_to_a``, ``median``, ``mean`` and ``p90``
-        of the distance from each point of the first cloud to its nearest point of the second
-        (unit of the inputs), and ``chamfer`` = mean of the two means.
-    """
-    pa, pb = _check_points(a, "a"), _check_points(b, "b")
-    if len(pa) == 0 or len(pb) == 0:
-        raise InvalidInput(f"both clouds need points, got {len(pa)} and {len(pb)}")
-    bk = _backend(backend)
-    out: dict = {"backend": bk}
-    for key, src, dst in (("a_to_b", pa, pb), ("b_to_a", pb, pa)):
-        if bk == "open3d":
-            o3d = require_open3d()
-            cloud_src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
-            cloud_dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(dst))
-            d = np.asarray(cloud_src.compute_point_cloud_distance(cloud_dst), dtype=np.float64)
-        else:
-            from scipy.spatial import cKDTree
-
-            d = cKDTree(dst).query(src, k=1)[0]
-        out[key] = {"median": float(np.median(d)), "mean": float(d.mean()), "p90": float(np.percentile(d, 90))}
-    out["chamfer"] = 0.5 * (out["a_to_b"]["mean"] + out["b_to_a"]["mean"])
     return out
 
 

@@ -1,15 +1,7 @@
-"""The global estimate of the cameras for the match check: pycolmap's global mapper on a
-temporary database holding the filtered matches, and each pair's own relative rotation.
-
-:func:`global_estimate` does it in three steps: :func:`_write_database` (the cameras, rigs,
-frames, images and keypoints of the open working database, each pair's given matches as its
-two-view geometry's inliers, :func:`~colmap_miho.adapters.database.keep_or_fit`),
-:func:`_run_mapper` (``pycolmap.global_mapping`` with COLMAP's log sent to the temporary folder)
-and :func:`_read_model` (the largest model's poses, the normalised coordinates of the registered
-images' keypoints, undistorted by the model's cameras, and its tracks); then the pairs' own
-relative rotations (``pycolmap.estimate_two_view_geometry`` on each pair's matches with the
-model's cameras). Coordinates are COLMAP's inside (the rays do not depend on the convention).
-"""
+"""The match check's global estimate of the cameras: pycolmap's global mapper on a temporary
+database of the given matches (:func:`global_estimate`), each pair's own relative rotation, and
+the placing of an image by its 3D points. Coordinates are COLMAP's inside (rays do not depend on
+the convention)."""
 
 from __future__ import annotations
 
@@ -26,6 +18,7 @@ import numpy as np
 
 from ..adapters.database import ColmapDatabase, fitted_geometry, is_verified, keep_or_fit
 from ..geometry import fit_fundamental, spread_rows
+from ..match_tracks import components, distinct, match_ends, node_offsets, repeated_image
 from ..types import Pair, Pose
 from .colmap_log import colmap_log_to_file, last_error_line, latest_log, step_seconds
 from .mapping import global_options, largest_model
@@ -56,9 +49,7 @@ class GlobalEstimate:
         keypoints: image id -> ``(N, 2)`` keypoints in COLMAP's convention.
         seconds: wall time of its parts: "database" (the temporary database), "mapper",
             "pair_rotations".
-        mapper_steps: the mapper's own seconds per step, from its log ("rotation averaging",
-            "global positioning", "iterative bundle adjustment" ...; empty with ``-v``, whose log
-            goes to the terminal).
+        mapper_steps: the mapper's own seconds per step, from its log (empty with ``-v``).
         failure: why the mapper gave no model, in COLMAP's words ("" when it gave one).
     """
 
@@ -81,20 +72,16 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
     Args:
         src: the open working database (read only here).
         matches: pair -> int ``(M, 2)`` keypoint indices, the matches to estimate from.
-        cfg: the match check's settings the estimate uses (``min_pair_matches``: pairs with
-            fewer matches are left out and get no pair rotation; ``estimate_matches_per_image``: the
-            tracks the mapper is given, :func:`sampled_tracks`; ``pair_rotation_matches``: the most
-            of a pair's matches its own rotation is estimated from; ``seed``, ``ba_iterations``,
-            ``retriangulate``, ``ba_function_tolerance``).
+        cfg: the match check's settings (pairs under ``min_pair_matches`` are left out; the
+            mapper gets :func:`sampled_tracks`; ``pair_rotation_matches`` caps each pair's own
+            rotation's matches).
         num_threads: mapper threads (-1: all cores).
-        verbose: COLMAP's log on the terminal instead of the temporary folder's file (its
-            errors never reach the terminal otherwise: a failed estimate is the caller's to
-            report).
-        workdir: where the temporary folder goes (default ``$TMPDIR``); it is removed on exit,
-            at a forced exit after SIGTERM, and by the next run after a ``kill -9``.
+        verbose: COLMAP's log on the terminal instead of the temporary folder's file (a failed
+            estimate is the caller's to report).
+        workdir: where the temporary folder goes (default ``$TMPDIR``; always removed).
 
     Returns:
-        The :class:`GlobalEstimate` (empty when no model came out).
+        The :class:`GlobalEstimate`, empty when no model came out.
 
     Raises:
         RunFailed: the disk of the temporary folder is full.
@@ -133,44 +120,28 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
 
 
 def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[int, int], per_image: int,
-                   min_pair_matches: int, seed: int, *, consistent_only: bool = True) -> dict[Pair, np.ndarray]:
-    """The matches the global mapper is given: a sample of whole tracks when ``matches`` hold
-    more than ``per_image`` match ends per image on average; all of them otherwise, with
-    ``per_image`` 0, or where the consistent tracks (below) hold fewer than that.
+                   min_pair_matches: int, seed: int) -> dict[Pair, np.ndarray]:
+    """The matches the global mapper is given: a seeded sample of whole tracks, each kept with
+    probability ``per_image`` over the match ends per image; all matches with ``per_image`` 0,
+    when there are no more than that per image, or when the consistent tracks hold fewer.
 
-    Tracks are the keypoints connected across pairs. A track that holds two keypoints of one
-    image is not one scene point: wrong matches on repeated structure chain copies together
-    (on castle-P19 such components grow to 2,000 keypoints), and they are left out of the
-    sample. Each track is kept at random (seeded) with probability ``per_image`` over the
-    match ends per image, whole; pairs left with fewer than ``min_pair_matches`` matches are
-    dropped. Thinning each pair alone instead breaks the tracks, and the mapper then turned
-    groups of images on repeated structure (docs/results.md, the match check's cost).
-    ``consistent_only`` False samples every component alike (how ``benchmarks/bench_hinge.py``
-    rebuilds a hinged estimate of castle-P19).
+    Tracks holding two keypoints of one image are left out (repeated structure chains copies
+    together; the mapper then turns groups of images), and thinning whole tracks rather than
+    each pair keeps the tracks the mapper sees unbroken. Pairs left with fewer than
+    ``min_pair_matches`` matches are dropped.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     total = sum(len(m) for m in matches.values())
     num_images = len({i for p in matches for i in p})
     share = per_image * num_images / (2 * total) if total else 1.0
     if per_image <= 0 or share >= 1.0:
         return dict(matches)
-    offset, n = {}, 0
-    for i in sorted(num_keypoints):
-        offset[i], n = n, n + int(num_keypoints[i])
+    offset, n = node_offsets(num_keypoints)
     pairs = sorted(matches)
-    a = np.concatenate([offset[i] + matches[(i, j)][:, 0] for i, j in pairs])
-    b = np.concatenate([offset[j] + matches[(i, j)][:, 1] for i, j in pairs])
-    count, track = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)
-    nodes = np.unique(np.concatenate([a, b]))
-    starts = np.asarray([offset[i] for i in sorted(offset)], np.int64)
-    image_of = np.searchsorted(starts, nodes, side="right") - 1
-    size = np.bincount(track[nodes], minlength=count)
-    # int64: scipy's labels are int32, and label * images passes 2**31 from ~1,300 images of 8192 keypoints
-    views = np.bincount(np.unique(track[nodes].astype(np.int64) * len(starts) + image_of) // len(starts),
-                        minlength=count)
-    consistent = size == views if consistent_only else np.ones(count, bool)
+    a, b = match_ends(offset, ((i, j, matches[(i, j)]) for i, j in pairs))
+    count, track = components(a, b, n)
+    nodes = distinct(np.concatenate([a, b]), n)
+    image_of = np.searchsorted(np.asarray(list(offset.values()), np.int64), nodes, side="right") - 1
+    consistent = ~repeated_image(track[nodes], image_of, count)
     if 2 * int(consistent[track[a]].sum()) < per_image * num_images:
         return dict(matches)  # too few consistent tracks to sample from: every match, as without a sample
     keep = (np.random.default_rng(seed).random(count) < share) & consistent

@@ -1,15 +1,10 @@
 """A hinged global estimate: find it, and let each pair's own coverage decide which side is right
-(pure numpy).
+(pure numpy; why a hinge arises: ``docs/how-it-works.md``, "A hinged estimate").
 
-Why a hinge arises and how it is resolved: ``docs/how-it-works.md`` (the match check, "A hinged
-estimate"). Here the pure parts: detect (:func:`find_hinges`, :func:`confirm_hinge`: modes of the
-world-frame residuals ``D_ij = R_j^T R_ij R_i``, which is ``G_B^T G_A`` for every correct pair
-across the hinge, the strongest that holds with each pair's pose measured from 3D points),
-measure (:func:`coverage`, :func:`pair_coverage`: missing correspondences, Zach et al. 2008,
-each pair with its own geometry), group and arbitrate (:func:`split_groups`, :func:`arbitrate`).
-
-Conventions: poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; ``rays`` are normalised image
-coordinates.
+Detect (:func:`find_hinges`, :func:`confirm_hinge`: modes of the world-frame residuals
+``D_ij = R_j^T R_ij R_i``), measure (:func:`coverage`, :func:`pair_coverage`: missing
+correspondences, Zach et al. 2008), group and arbitrate (:func:`split_groups`, :func:`arbitrate`).
+Poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; ``rays`` normalised image coordinates.
 """
 
 from __future__ import annotations
@@ -117,13 +112,6 @@ def _one_side_each(support: list[tuple[Pair, bool]]) -> list[tuple[Pair, bool]]:
         votes[b] = votes.get(b, 0) - 1
     return [((i, j), f) for (i, j), f in support
             if votes[j if f else i] >= 0 and votes[i if f else j] < 0]
-
-
-def find_hinge(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray], *, tolerance_deg: float,
-               min_pairs: int, min_side_images: int) -> Hinge | None:
-    """The strongest candidate of :func:`find_hinges`, or None."""
-    return next(find_hinges(poses, pair_rotations, tolerance_deg=tolerance_deg, min_pairs=min_pairs,
-                            min_side_images=min_side_images), None)
 
 
 def confirm_hinge(hinge: Hinge, poses: Mapping[int, Pose], placed: Callable[[int, int], Pose | None], *,

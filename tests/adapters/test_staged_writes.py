@@ -43,7 +43,7 @@ def test_report_ply_on_a_full_disk_is_one_line_and_leaves_nothing(model, tmp_pat
 
 
 def test_report_ply_is_whole(model, tmp_path):
-    from colmap_miho.reporting.pointcloud import read_ply
+    from helpers.ply import read_ply
 
     assert main(["report", "--model", str(model), "--ply", str(tmp_path / "p.ply"), "-q"]) == 0
     xyz, rgb = read_ply(tmp_path / "p.ply")

@@ -1,4 +1,4 @@
-"""Point-cloud helpers: PLY round trips, density / outlier figures, distances, pictures."""
+"""Point clouds: the PLY export, density / outlier figures, pictures."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+from helpers.ply import read_ply, write_ply
 
 from colmap_miho.reporting import pointcloud as pc
 
@@ -52,31 +53,14 @@ def test_scipy_outlier_rule_equals_open3d(seed):
     np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.parametrize("backend", ["scipy", pytest.param("open3d", marks=needs_open3d)])
-def test_cloud_to_cloud_known_shift(backend):
-    pts, _ = grid_with_far_outliers()
-    grid = pts[:1000]
-    shift = np.array([0.02, 0.0, 0.0])  # < half the grid step: nearest point is the shifted twin
-    d = pc.cloud_to_cloud(grid, grid + shift, backend=backend)
-    for key in ("a_to_b", "b_to_a"):
-        assert d[key]["median"] == pytest.approx(0.02, abs=1e-12)
-        assert d[key]["p90"] == pytest.approx(0.02, abs=1e-12)
-    assert d["chamfer"] == pytest.approx(0.02, abs=1e-12)
-    # every other grid point (along z): at distance 0 from the full grid; the other half of the
-    # full grid is one step from it
-    sub = pc.cloud_to_cloud(grid[::2], grid, backend=backend)
-    assert sub["a_to_b"]["p90"] == 0.0
-    assert sub["b_to_a"]["mean"] == pytest.approx(SPACING / 2) and sub["b_to_a"]["p90"] == pytest.approx(SPACING)
-
-
 def test_ply_round_trip_and_reconstruction_export(tmp_path):
     pts, _ = grid_with_far_outliers()
     rgb = (np.arange(len(pts) * 3) % 256).astype(np.uint8).reshape(-1, 3)
-    pc.write_ply(pts, tmp_path / "a.ply", rgb)
-    xyz, col = pc.read_ply(tmp_path / "a.ply")
+    write_ply(pts, tmp_path / "a.ply", rgb)
+    xyz, col = read_ply(tmp_path / "a.ply")
     np.testing.assert_allclose(xyz, pts, rtol=1e-7, atol=PLY_ATOL)
     np.testing.assert_array_equal(col, rgb)
-    xyz, col = pc.read_ply(pc.write_ply(pts, tmp_path / "b.ply"))
+    xyz, col = read_ply(write_ply(pts, tmp_path / "b.ply"))
     assert col is None and xyz.shape == pts.shape
 
     pycolmap = pytest.importorskip("pycolmap")
@@ -84,22 +68,11 @@ def test_ply_round_trip_and_reconstruction_export(tmp_path):
     for k, pid in enumerate(sorted(rec.points3D)):
         rec.points3D[pid].color = np.array([k, 2 * k, 255 - k], np.uint8)
     want_xyz, want_rgb = pc.reconstruction_points(rec)
-    xyz, col = pc.read_ply(pc.export_ply(rec, tmp_path / "rec.ply"))
+    xyz, col = read_ply(pc.export_ply(rec, tmp_path / "rec.ply"))
     order = np.lexsort(want_xyz.T)  # compare as sets of rows
     got = np.lexsort(xyz.T)
     np.testing.assert_allclose(xyz[got], want_xyz[order], atol=PLY_ATOL)
     np.testing.assert_array_equal(col[got], want_rgb[order])
-
-
-@needs_open3d
-def test_open3d_reads_our_ply(tmp_path):
-    import open3d as o3d
-
-    pts, _ = grid_with_far_outliers()
-    rgb = np.tile(np.array([[10, 200, 30]], np.uint8), (len(pts), 1))
-    cloud = o3d.io.read_point_cloud(str(pc.write_ply(pts, tmp_path / "c.ply", rgb)))
-    np.testing.assert_allclose(np.asarray(cloud.points), pts, atol=PLY_ATOL)
-    np.testing.assert_allclose(np.asarray(cloud.colors) * 255, rgb, atol=1e-6)
 
 
 def test_render_png(tmp_path):
@@ -121,7 +94,6 @@ def test_without_open3d_clear_error_and_numpy_fallbacks(monkeypatch, tmp_path):
         pc.cloud_figures(np.zeros((5, 3)), backend="open3d")
     pts, planted = grid_with_far_outliers()
     assert pc.cloud_figures(pts)["backend"] == "scipy"
-    assert pc.cloud_to_cloud(pts, pts)["chamfer"] == 0.0
     assert pc.render_cloud_png(pts, None, tmp_path / "x.png") == "matplotlib"
 
 
@@ -130,5 +102,3 @@ def test_bad_inputs():
         pc.cloud_figures(np.zeros((4, 2)))
     with pytest.raises(ValueError, match="backend="):
         pc.cloud_figures(np.zeros((4, 3)), backend="pcl")
-    with pytest.raises(ValueError, match="both clouds need points"):
-        pc.cloud_to_cloud(np.zeros((0, 3)), np.zeros((3, 3)))

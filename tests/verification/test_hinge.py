@@ -12,7 +12,7 @@ from colmap_miho.verification.hinge import (
     arbitrate,
     confirm_hinge,
     coverage,
-    find_hinge,
+    find_hinges,
     split_groups,
     world_residuals,
 )
@@ -20,6 +20,11 @@ from colmap_miho.verification.hinge import (
 TOL = 5.0
 GROUP_A = range(1, 6)
 GROUP_B = range(6, 11)
+
+
+def find_hinge(poses, pair_rotations, **kwargs) -> Hinge | None:
+    """The strongest candidate of :func:`find_hinges`, or None."""
+    return next(find_hinges(poses, pair_rotations, **kwargs), None)
 
 
 def _rot(axis, deg: float) -> np.ndarray:

@@ -1,27 +1,17 @@
-"""The track plan: tracks built once, for the walk and for the worker split alike.
+"""The track plan: the tracks of every output match, built once for the walk and the workers.
 
-Every match that reaches the output database is an edge between two ``(image_id,
-keypoint_index)`` nodes; the connected components of all edges are the tracks, exactly the
-tracks COLMAP will build from the output. An edge is *refinable* when it carries a patch
-homography pair (a match the filter kept and labelled); the others (pairs that were never
-filtered, whose filter failed, or that touch a missing image) join tracks but are never used
-to refine.
+Tracks are the components of all output matches (:mod:`colmap_miho.match_tracks`), the tracks
+COLMAP builds from the output. An edge is *refinable* when the filter gave it a patch homography
+pair; the others join tracks but never refine. Rules:
 
-Rules (documented once, here):
-
-- **Anchor**: per track, the node with the most refinable edges; ties go to the lowest
-  ``(image_id, keypoint_index)``. Tracks without a refinable edge have no anchor.
-- **Reach**: a track is walked from its anchor over refinable edges only; its keypoints that
-  the anchor cannot reach that way never move. So every moved keypoint is refined relative
-  to the anchor of the track it belongs to in the output, whatever joined the track.
-- **Conflicts**: a track holding two keypoints of one image more than
-  ``TrackConfig.duplicate_px`` apart is *frozen*: none of its keypoints moves (the
-  keypoints of one image cannot all be the same 3D point, so the walk has no single
-  reference to refine them to). Keypoints of one image closer than that are duplicates
-  (SIFT keeps one keypoint per dominant orientation at the same position) and are walked
-  like the others.
-
-The plan itself is :class:`.plan.TrackPlan`. Pure numpy/scipy: no images, no torch.
+- **Anchor**: per track, the node with the most refinable edges (ties: the lowest
+  ``(image_id, keypoint_index)``); a track without a refinable edge has none.
+- **Reach**: a track is walked from its anchor over refinable edges only; what the anchor
+  cannot reach that way never moves, so every moved keypoint is refined to its output track's
+  anchor.
+- **Conflicts**: a track holding two keypoints of one image more than ``duplicate_px`` apart is
+  *frozen* (they cannot be one 3D point); closer ones are duplicates (SIFT's one keypoint per
+  orientation) and walked like the others.
 """
 
 from __future__ import annotations
@@ -30,13 +20,12 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from ...enums import Rectification
+from ...match_tracks import build_tracks, components, distinct, image_runs, node_offsets
 from ...types import Pair
 from ..config import NCCConfig
-from .plan import TrackPlan, distinct
+from .plan import TrackPlan
 
 
 def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
@@ -51,8 +40,7 @@ def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,
     """Nodes joined to an anchor by the edges (ea, eb), anchors not counted."""
     if not ea.size:
         return 0
-    _, comp = connected_components(
-        coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
+    _, comp = components(ea, eb, total)
     if nodes is None:
         nodes = distinct(np.concatenate([ea, eb]), total)
     hit = np.zeros(comp.max() + 1, bool)
@@ -112,13 +100,12 @@ def pair_rows(pair: Pair, matches: np.ndarray, result: Any) -> tuple[np.ndarray,
 
 
 def _nodes(keypoints: Mapping) -> tuple[dict, dict, np.ndarray, np.ndarray]:
-    kps, offset, total = {}, {}, 0
+    kps = {}
     for i in sorted(keypoints):
-        arr = np.asarray(keypoints[i], dtype=np.float64)
-        if arr.ndim != 2 or arr.shape[1] != 2:
-            raise ValueError(f"keypoints[{i}] must have shape (N, 2), got {arr.shape}")
-        kps[i], offset[i] = arr, total
-        total += arr.shape[0]
+        kps[i] = np.asarray(keypoints[i], dtype=np.float64)
+        if kps[i].ndim != 2 or kps[i].shape[1] != 2:
+            raise ValueError(f"keypoints[{i}] must have shape (N, 2), got {kps[i].shape}")
+    offset, _ = node_offsets({i: len(a) for i, a in kps.items()})
     node_image = np.concatenate([np.full(len(a), i, np.int64) for i, a in kps.items()]
                                 or [np.zeros(0, np.int64)])
     node_kp = np.concatenate([np.arange(len(a), dtype=np.int64) for a in kps.values()]
@@ -167,11 +154,8 @@ def _conflicts(track: np.ndarray, nodes: np.ndarray, node_image: np.ndarray, pos
     """(n_tracks,) bool: tracks with two keypoints of one image more than ``duplicate_px``
     apart; and (n_tracks,) bool: tracks with two keypoints of one image at all."""
     n_tracks = int(track.max()) + 1
-    key = np.lexsort((node_image[nodes], track[nodes]))
-    t, im, p = track[nodes][key], node_image[nodes][key], pos[key]
-    start = np.ones(t.size, bool)
-    start[1:] = (t[1:] != t[:-1]) | (im[1:] != im[:-1])
-    idx = np.flatnonzero(start)
+    order, idx = image_runs(track[nodes], node_image[nodes])
+    t, p = track[nodes][order], pos[order]
     count = np.diff(np.append(idx, t.size))
     spread = np.maximum.reduceat(p, idx, axis=0) - np.minimum.reduceat(p, idx, axis=0)
     far = np.linalg.norm(spread, axis=1) > duplicate_px
@@ -191,7 +175,7 @@ def build_track_plan(
     duplicate_px: float = 1.0,
     local_affine: tuple[int, float] | None = None,
 ) -> TrackPlan:
-    """Build the tracks of all output matches (see the module docstring for the rules).
+    """The :class:`TrackPlan` of all output matches (the module docstring states the rules).
 
     Args:
         keypoints: image_id -> (Ni, 2) pixel positions (integer = pixel centre).
@@ -207,8 +191,6 @@ def build_track_plan(
             own patch homography pair from a local affine fit to its pair's nearest matches
             (:func:`..rectify.local_affine.local_affine_pairs`), fitted when the walk first needs the pair
             (:meth:`TrackPlan.local_pairs`); None: the filter's pairs only.
-    Returns:
-        :class:`TrackPlan`.
     Raises:
         ValueError: malformed inputs (names the pair or image).
     """
@@ -224,10 +206,8 @@ def build_track_plan(
     anchors = np.zeros(0, np.int64)
     to_refine = 0
     if ea.size:
-        _, comp = connected_components(
-            coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
-        nodes = distinct(np.concatenate([ea, eb]), total)
-        _, track[nodes] = np.unique(comp[nodes], return_inverse=True)
+        nodes, node_track = build_tracks(ea, eb, total)
+        track[nodes] = node_track
         pos = np.concatenate(list(kps.values()))[nodes]
         conflict, any_two = _conflicts(track, nodes, node_image, pos, duplicate_px)
         frozen[nodes] = conflict[track[nodes]]

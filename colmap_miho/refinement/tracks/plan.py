@@ -8,24 +8,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
-
-def distinct(values: np.ndarray, size: int | None = None) -> np.ndarray:
-    """The sorted distinct entries of the int64 array ``values`` (``np.unique``'s result):
-    by a mask when they are known to lie in ``0..size-1``, else by a sort (numpy's default
-    ``unique`` hashes, several times slower on the plan's arrays)."""
-    values = np.asarray(values).reshape(-1)
-    if size is not None:
-        seen = np.zeros(size, dtype=bool)
-        seen[values] = True
-        return np.flatnonzero(seen).astype(values.dtype, copy=False)
-    out = np.sort(values)
-    if out.size:
-        out = out[np.concatenate([[True], out[1:] != out[:-1]])]
-    return out
-
+from ...match_tracks import components, distinct
 
 #: Most entries of the padded (units, longest image tuple) table :func:`_by_image_tuple`
 #: sorts with numpy; larger plans sort the tuples in Python.
@@ -139,13 +123,9 @@ class TrackPlan:
 
     def local_pairs(self, p: int) -> np.ndarray | None:
         """(M_p, 2, 3, 3) local affine pairs of the edges of pair ``p`` (by ``edge_row``), or
-        None without ``local_affine``. A plan over all output matches fits them on first use
-        (each from the neighbourhood of its match among all of the pair's edges) and keeps
-        them until :meth:`release_local`; a group carries those of its own edges
-        (:meth:`attach_local`). Only the edges the walk can refine along
-        (:meth:`walk_steps`) are fitted: the others keep the filter's pair.
-
-        A group with :attr:`local_inputs` fits its own on first use, the same bits.
+        None without ``local_affine``; fitted on first use (only along :meth:`walk_steps`, the
+        others keep the filter's pair) and kept until :meth:`release_local`. A group carries
+        its own (:meth:`attach_local`) or fits them from :attr:`local_inputs`, the same bits.
 
         Raises:
             ValueError: a group whose local pairs were not attached.
@@ -244,8 +224,7 @@ class TrackPlan:
             return unit, np.zeros(0, np.int64)
         total = self.num_nodes
         ea, eb = self.edge_a[ok], self.edge_b[ok]
-        _, comp = connected_components(
-            coo_matrix((np.ones(ea.size), (ea, eb)), shape=(total, total)), directed=False)
+        _, comp = components(ea, eb, total)
         of_comp = np.full(comp.max() + 1, -1, np.int64)
         of_comp[comp[self.anchors]] = np.arange(self.anchors.size)
         unit[ok] = of_comp[comp[ea]]
@@ -287,20 +266,11 @@ class TrackPlan:
             local_affine=self.local_affine, source_pairs=src_pairs, source_rows=src_rows)
 
     def groups(self, max_images: int, max_edges: int | None = None) -> list[TrackPlan]:
-        """Whole walked units (the part of a track its anchor reaches over refinable
-        edges) packed into compact groups (:meth:`subset`) of at most ``max_images``
-        distinct images and at most ``max_edges`` refinable edges each. A unit over
-        ``max_images`` images (its walk needs them all anyway) raises its group's image bound
-        to its own image count; one over ``max_edges`` is a group alone.
-
-        Schedule: units sorted by their sorted image ids (lexicographically; ties by
-        anchor), then swept in that order, a new group started when the next unit would
-        exceed a bound; so consecutive groups share images and an image stops being needed
-        once the sweep has passed the units that start with it. Deterministic: the same
-        plan and bounds give the same groups in the same order. Walking the
-        groups one by one moves exactly the keypoints a walk of the whole plan moves, to the
-        same positions (units never share a keypoint). Local affine pairs are not included:
-        :meth:`attach_local` adds them, group by group.
+        """Whole walked units packed into compact groups (:meth:`subset`) of at most
+        ``max_images`` images and ``max_edges`` refinable edges (a larger unit is its own
+        group). Units are swept in the order of their sorted image ids, so consecutive groups
+        share images; walking the groups one by one moves the keypoints exactly as a walk of
+        the whole plan. Local affine pairs: :meth:`attach_local`, group by group.
         """
         if max_images < 1:
             raise ValueError(f"max_images must be >= 1, got {max_images}")
@@ -389,21 +359,3 @@ class TrackPlan:
     def refinable(self) -> np.ndarray:
         """(E,) bool: edges the walk may refine along (labelled, track not frozen)."""
         return (self.edge_label >= 0) & ~self.frozen[self.edge_a]
-
-    def partition(self, n: int) -> list[TrackPlan]:
-        """At most ``n`` compact plans (:meth:`subset`) of whole walked units, balanced by
-        refinable edges (greedy: the biggest unit to the lightest part). Parts never share a
-        keypoint, so their results merge without conflict. Empty parts are left out."""
-        if n < 1:
-            raise ValueError(f"n must be >= 1, got {n}")
-        unit, anchors = self.walked_units()
-        e_ids = np.flatnonzero(unit >= 0)
-        sizes = np.bincount(unit[e_ids], minlength=anchors.size)
-        order = np.argsort(-sizes, kind="stable")
-        load = np.zeros(n)
-        part_of = np.zeros(anchors.size, np.int64)
-        for u in order:
-            b = int(np.argmin(load))
-            part_of[u] = b
-            load[b] += sizes[u]
-        return self._split(e_ids, part_of[unit[e_ids]], anchors, part_of, n)

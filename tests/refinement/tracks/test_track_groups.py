@@ -223,16 +223,17 @@ def test_groups_fit_their_own_local_pairs_with_the_same_bits():
         plan.with_local_inputs(plan)
 
 
-def test_partition_of_a_group_and_no_walked_track():
+def test_groups_of_a_group_and_no_walked_track():
     kps = {1: np.zeros((1, 2)), 2: np.zeros((1, 2))}
     pm = {(1, 2): np.array([[0, 0]])}
     res = {(1, 2): SimpleNamespace(labels=np.array([-1]), patch_homographies=np.zeros((0, 2, 3, 3)))}
     plan = build_track_plan(kps, pm, res)
-    assert plan.groups(4) == [] and plan.partition(2) == []
+    assert plan.groups(4) == []
     kps, pm, res, unref = random_scene(2)
     plan = build_track_plan(kps, pm, res, unrefined_matches=unref)
     g = max(plan.groups(4), key=lambda g: g.anchors.size)
-    parts = g.partition(2)
+    parts = g.groups(4, max_edges=1)  # one walked unit each
+    assert len(parts) == g.anchors.size > 1
     assert sum(p.to_refine for p in parts) == g.to_refine
     whole = walk_tracks(_images(g.keypoints), g, refine_fn=PullRefiner())
     merged, _ = _merge(g.keypoints, g, [walk_tracks(_images(p.keypoints), p, refine_fn=PullRefiner())
@@ -368,7 +369,7 @@ def test_walk_refines_along_walk_steps_only(seed):
 
 
 def test_distinct_is_numpys_unique():
-    from colmap_miho.refinement.tracks.plan import distinct
+    from colmap_miho.match_tracks import distinct
 
     rng = np.random.default_rng(0)
     for n in (0, 1, 7, 5000):

@@ -266,7 +266,7 @@ def test_rows_must_be_one_to_one():
                       refine_fn=FakeRefiner())
 
 
-def test_partition_keeps_whole_tracks_and_gives_the_same_result():
+def test_groups_keep_whole_tracks_and_give_the_same_result():
     rng = np.random.default_rng(0)
     kps = {i: rng.uniform(0, 100, (30, 2)) for i in range(1, 6)}
     pm = {}
@@ -274,8 +274,8 @@ def test_partition_keeps_whole_tracks_and_gives_the_same_result():
         for b in range(a + 1, 6):
             pm[(a, b)] = np.stack([rng.permutation(30)[:12], rng.permutation(30)[:12]], 1)
     plan = build_track_plan(kps, pm, _identity_results(pm))
-    parts = plan.partition(3)
-    assert 1 <= len(parts) <= 3
+    parts = plan.groups(2)
+    assert len(parts) > 1
     node_of = {(int(i), int(k)): n for n, (i, k) in enumerate(zip(plan.node_image, plan.node_kp, strict=True))}
 
     def parent_tracks(part):
