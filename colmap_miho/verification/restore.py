@@ -63,15 +63,15 @@ def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair,
     keypoint to a track) holding a keypoint of the same image: a match between two points
     that one image sees at nearly the same place passes every geometric test, and the track it
     makes is wrong. Judged in pair and row order, each accepted match joining its tracks."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    from ..match_tracks import components
 
+    if not proven_:
+        return {}
     starts, end_img, end_kp = ends
     node_keys, inverse = np.unique(np.concatenate([starts, (end_img << _SHIFT) | end_kp]), return_inverse=True)
     n = len(node_keys)
     half = len(starts)
-    graph = coo_matrix((np.ones(half, np.int8), (inverse[:half], inverse[half:])), shape=(n, n))
-    _, comp = connected_components(graph, directed=False) if n else (0, np.zeros(0, np.int64))
+    _, comp = components(inverse[:half], inverse[half:], n)
     comp_images: dict[int, set[int]] = {}
     parent: dict[int, int] = {}
 
