@@ -46,7 +46,7 @@ from colmap_miho.enums import MatchSource
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import choose_rotation
 from colmap_miho.filtering.scoring import NumpyScoring
-from colmap_miho.pipeline.workers import pair_seed
+from colmap_miho.seeds import pair_seed
 
 REPO = Path(__file__).resolve().parents[1]
 COUNTERS = ("rounds", "drawn", "samples", "valid", "full_scored")

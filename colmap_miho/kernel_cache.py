@@ -7,8 +7,8 @@ families (:data:`FAMILIES`), each loaded by its own small synthetic call:
 
 - ``filter``: MOP+MiHo's sampling, scoring, RANSAC and rotation kernels (every recipe);
 - ``ncc``: the NCC search and sub-pixel step of the track walk (recipes that refine);
-- ``lsm``: the least-squares matching step (``ncc.lsm`` or ``tracks.multiphoto_lsm``);
-- ``rectify``: the local affine fits (``ncc.rectification`` ``local`` or ``both``).
+- ``lsm``: the least-squares matching step (``lsm.enabled`` or ``tracks.multiphoto_lsm``);
+- ``rectify``: the local affine fits (``rectify.mode`` ``local`` or ``both``).
 
 :func:`ensure_compiled` compiles the families a recipe uses (:func:`families_for`) that the
 cache lacks, each in a child process of its own, several at once (numba compiles one function
@@ -74,14 +74,14 @@ READY_FOLDER = "colmap-miho-ready"
 def families_for(recipe) -> tuple[str, ...]:
     """The kernel families a :class:`~colmap_miho.recipe.Recipe` runs on the CPU, in
     :data:`FAMILIES` order: the filter's always; with ``pipeline.refine`` the NCC kernels, the
-    local affine fits with ``ncc.rectification`` ``local`` or ``both``, the LSM step with
-    ``ncc.lsm`` or ``tracks.multiphoto_lsm``."""
+    local affine fits with ``rectify.mode`` ``local`` or ``both``, the LSM step with
+    ``lsm.enabled`` or ``tracks.multiphoto_lsm``."""
     used = {"filter"}
     if recipe.pipeline.refine:
         used.add("ncc")
-        if recipe.ncc.rectification != Rectification.FILTER:
+        if recipe.ncc.rectify.mode != Rectification.FILTER:
             used.add("rectify")
-        if recipe.ncc.lsm or recipe.tracks.multiphoto_lsm:
+        if recipe.ncc.lsm.enabled or recipe.tracks.multiphoto_lsm:
             used.add("lsm")
     return tuple(f for f in FAMILIES if f in used)
 

@@ -5,7 +5,7 @@ and :func:`check_bounds` checks them all.
 Every value that sizes work (radii, blur, iterations, counts, batch sizes) has a lower and an
 upper bound that follow from what it means, checked before any work: the compiled kernels
 size their buffers from these values, and an unbounded one either never ends or corrupts
-memory (``ncc.lsm_antialias=1e20``). Relations between keys (``t_h <= t_l``,
+memory (``lsm.antialias=1e20``). Relations between keys (``t_h <= t_l``,
 ``template_radius + search_radius``) stay in the dataclass's ``__post_init__``.
 """
 

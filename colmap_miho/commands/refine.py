@@ -61,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     resume.add_argument("--restart", action="store_true",
                         help="discard an interrupted run's finished work and start again")
     parser.add_argument("--device", choices=Device.values(), default=Device.AUTO.value, help="torch device")
-    parser.add_argument("--seed", type=int, default=0, help="base random seed")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="the run's root seed: every stage's seed derives from it (default 0)")
     parser.add_argument("--strict", action="store_true", help="a missing or unreadable image is an error")
     parser.add_argument("--json", dest="json_path", type=Path, default=None, help="write the summary as JSON")
 

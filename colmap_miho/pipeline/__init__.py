@@ -1,9 +1,9 @@
-"""The ``refine`` pipeline: read -> filter -> pair check -> match check -> refine -> write ->
+"""The ``refine`` pipeline: read -> filter -> match check -> refine -> write ->
 verify, on a working copy, and the whole jobs built on it.
 
 :func:`refine_database` (:mod:`.run`) calls the stages in the order of the data flow, one
 ``run_<stage>`` call each, every one returning its outputs and frozen stats: :mod:`.read`,
-:mod:`.filter`, :mod:`.pair_check` (off by default), :mod:`.match_check` (the global estimate's
+:mod:`.filter`, :mod:`.match_check` (the global estimate's
 verdicts, on by default), :mod:`.refine` (the NCC walk), :mod:`.write`, :mod:`.verify` (off by
 default).
 :mod:`.records` holds what passes between stages, :mod:`.summary` the run's

@@ -26,9 +26,9 @@ from ..adapters.database import ColmapDatabase, PairRecord
 from ..enums import MatchSource, RunnerKind
 from ..filtering.api import filter_matches
 from ..filtering.config import FilterConfig
+from ..seeds import pair_seed
 from .read import check_match_indices
 from .records import PairOutcome
-from .workers import pair_seed
 
 if TYPE_CHECKING:
     from .executor import Runner
@@ -70,7 +70,7 @@ class FilterOptions:
 
     Attributes:
         source: which matches are read (``pipeline.source``).
-        seed: base seed; each pair's seed is :func:`~.workers.pair_seed` of it and the ids.
+        seed: base seed; each pair's seed is :func:`~colmap_miho.seeds.pair_seed` of it and the ids.
         memory_budget_bytes: ``pipeline.memory_budget_mb`` in bytes (sizes the chunks).
         device: "cpu" (the numpy filter) or "cuda" (the torch filter on the GPU, in this process).
         progress: tqdm bar over pairs.

@@ -1,4 +1,4 @@
-"""Match-check stage: after the filter (and the pair check), before the refinement, judge every
+"""Match-check stage: after the filter, before the refinement, judge every
 match against a global estimate of the cameras (:mod:`colmap_miho.verification.match_check`)
 and remove the ones it contradicts, so that the track walk refines only what survives.
 
@@ -12,7 +12,7 @@ What the stage decides is kept in the run store (``stage-match_check.npz``): a r
 it back instead of running the mapper again (its result is not bit-for-bit repeatable across
 thread counts). What it returns (:class:`~.verdicts.Verdicts`): the matches of filtered pairs
 that failed, taken out of the pair's kept matches; the wrong pairs, removed whole (filtered or
-not) like the pair check's; the judged pairs, whose geometry is fitted again from their
+not); the judged pairs, whose geometry is fitted again from their
 survivors when written.
 """
 
@@ -27,6 +27,7 @@ import numpy as np
 
 from ..adapters.database import ColmapDatabase
 from ..enums import MatchCheckMode, MatchSource
+from ..seeds import match_check_seed
 from ..types import Pair
 from ..verification.config import MatchCheckConfig
 from ..verification.match_check import HingeVerdict, MatchCheckDecision, judge_in_rounds
@@ -125,15 +126,14 @@ class MatchCheckStats:
 
 
 def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, *,
-                    checked: Verdicts = NO_VERDICTS, threads: int = -1) -> tuple[Verdicts, MatchCheckStats | None]:
-    """The stage: judge the pair graph's matches (the pairs ``checked``, the pair check's
-    verdicts, removed); returns its :class:`~.verdicts.Verdicts` (none in "flag" mode) and the
-    stats (None when off)."""
+                    seed: int = 0, threads: int = -1) -> tuple[Verdicts, MatchCheckStats | None]:
+    """The stage: judge the pair graph's matches (``seed``: the run's root seed); returns its
+    :class:`~.verdicts.Verdicts` (none in "flag" mode) and the stats (None when off)."""
     if not cfg.enabled:
         return NO_VERDICTS, None
     stored = store.load_stage(STORE_NAME)
     if stored is None:
-        failed, wrong, meta = _decide(db, store, cfg, source, checked, threads)
+        failed, wrong, meta = _decide(db, store, cfg, source, seed, threads)
         store.save_stage(STORE_NAME, _pack(failed, wrong), meta)
         stats = MatchCheckStats(**meta)
     else:
@@ -168,14 +168,14 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
 
 
 def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource,
-            checked: Verdicts, threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict]:
+            seed: int, threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict]:
     """The check on the pair graph's matches; returns (pair -> failed mask over its matches,
     wrong pairs, the stats' fields)."""
     from ..sfm.global_estimate import GlobalEstimator
 
     # read here, not held during the mapper: only the kept matches are
-    matches = pair_graph(db, store.load_filtered(), source, checked)
-    estimator = GlobalEstimator(src=db, config=cfg, num_threads=threads,
+    matches = pair_graph(db, store.load_filtered(), source)
+    estimator = GlobalEstimator(src=db, config=cfg, seed=match_check_seed(seed), num_threads=threads,
                                 verbose=log.isEnabledFor(logging.DEBUG))  # -v: COLMAP's log on the terminal
     d = judge_in_rounds(matches, estimator, cfg)
     return d.failed, d.wrong, stats_fields(d, cfg, matches, {im.image_id: im.name for im in db.images()})

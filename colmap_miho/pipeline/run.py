@@ -5,8 +5,8 @@ stats dataclass that :class:`RefineSummary` is assembled from)::
 
     safe working copy -> read (:mod:`.read`) -> filter the pairs chunk by chunk
       (:mod:`.filter`, MOP / MOP+MiHo) into the run store (:mod:`.store`)
-      -> optional pair check (:mod:`.pair_check`) -> optional match check against a global
-      estimate of the cameras (:mod:`.match_check`); their :class:`~.verdicts.Verdicts` merged
+      -> match check against a global estimate of the cameras (:mod:`.match_check`, its
+      :class:`~.verdicts.Verdicts`)
       -> track-consistent NCC refinement (:mod:`.refine`) -> write back chunk by chunk
       (:mod:`.write`: keypoints, matches, two_view_geometries)
       -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
@@ -56,7 +56,6 @@ from ..recipe import Recipe, load_recipe
 from .executor import LOCAL, Runner, open_runner
 from .filter import FilterOptions, run_filter
 from .match_check import run_match_check
-from .pair_check import run_pair_check
 from .read import ReadConfig, run_read
 from .refine import run_refine
 from .store import RunStore, StoreDamaged, run_fingerprint, store_folder
@@ -326,17 +325,12 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                     source=pcfg.source, seed=seed, memory_budget_bytes=pcfg.memory_budget_bytes, device=dev,
                     progress=progress, database_name=str(database)), runner=runner, store=store)
                 laps.lap("filter")
-                pair_verdicts, pair_check = run_pair_check(db, read, store, rec.pair_check, pcfg.source)
-                if rec.pair_check.enabled:
-                    laps.lap("pair_check")
                 # the global mapper runs here: threads beyond this machine's cores (a remote Dask
                 # cluster's slots, --workers 1024) would only be created, never run in parallel
-                match_verdicts, match_check = run_match_check(db, store, rec.match_check, pcfg.source,
-                                                              checked=pair_verdicts,
-                                                              threads=min(runner.slots, os.cpu_count() or 1))
+                verdicts, match_check = run_match_check(db, store, rec.match_check, pcfg.source, seed=seed,
+                                                        threads=min(runner.slots, os.cpu_count() or 1))
                 if rec.match_check.enabled:
                     laps.lap("match_check")
-                verdicts = pair_verdicts.merge(match_verdicts)
                 new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress, verdicts)
                 laps.lap("refine")
                 write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg, verdicts)
@@ -346,9 +340,9 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 laps.lap("verify")
             summary = RefineSummary.from_stages(
                 output=database if wc.in_place else wc.output,  # in place: the user's path (a symlink stays one)
-                database=database, backup=wc.backup, recipe=rec, device=dev, runner=str(runner.kind),
+                database=database, backup=wc.backup, recipe=rec, device=dev, seed=seed, runner=str(runner.kind),
                 resumed=resumed, read=read_stats, filtered=filter_stats, refine=refine_stats,
-                write=write_stats, seconds=laps.total(), pair_check=pair_check, match_check=match_check)
+                write=write_stats, seconds=laps.total(), match_check=match_check)
             if json_path:  # written beside its target now, renamed onto it with the commit
                 wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
             wc.commit()

@@ -74,7 +74,7 @@ LOCK = "lock"
 #: Format of the store's files; a store of another format is not resumed.
 STORE_VERSION = 1
 #: Recipe tables whose values change a run's result (``mapping`` is not used by ``refine``).
-RESULT_TABLES = ("filter", "ncc", "tracks", "pipeline", "pair_check", "match_check")
+RESULT_TABLES = ("filter", "ncc", "tracks", "pipeline", "match_check")
 #: ``pipeline`` keys that do not change the result (they only bound memory).
 NOT_RESULT_KEYS = {"pipeline": ("memory_budget_mb",)}
 

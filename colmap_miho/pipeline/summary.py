@@ -10,7 +10,6 @@ from pathlib import Path
 from ..recipe import Recipe
 from .filter import FilterStats
 from .match_check import MatchCheckStats
-from .pair_check import PairCheckStats
 from .read import ReadStats
 from .refine import RefineStats
 from .write import WriteStats
@@ -23,11 +22,12 @@ class RefineSummary:
     Attributes:
         output: path of the written database.
         backup: timestamped copy of the input (``in_place`` only), else None.
+        seed: the run's root seed (every stage's derives from it: :mod:`colmap_miho.seeds`).
         pairs_filtered: pairs with at least ``pipeline.min_matches`` matches, filtered.
         pairs_passed: pairs with fewer matches, left unchanged.
         pairs_failed: filtered pairs for which the filter found no plane; left unchanged.
         matches_in / matches_kept / matches_removed: over every pair of the source, in the
-            input / in the output (after the filter's, the pair check's and the match check's
+            input / in the output (after the filter's and the match check's
             removals) / their difference.
         keypoints_moved: keypoints whose position changed (each moves at most once).
         median_displacement_px / max_displacement_px: over the moved keypoints, pixels.
@@ -45,8 +45,6 @@ class RefineSummary:
             stage's check (once per image; kept in the cache when it fits) and the track walk's
             (an image again in each worker whose groups need it and no longer cache it).
         image_decodes_max: the most times one image was decoded in the run (same count).
-        pair_check: what the pair check removed or flagged, and why
-            (:meth:`~.pair_check.PairCheckStats.to_dict`; empty when it is off).
         match_check: what the match check against a global estimate of the cameras removed
             and why, whether the estimate was used and which images it trusted
             (:meth:`~.match_check.MatchCheckStats.to_dict`; empty when it is off).
@@ -58,6 +56,7 @@ class RefineSummary:
     database: Path
     backup: Path | None = None
     recipe: str = ""
+    seed: int = 0
     source: str = ""
     refined: bool = True
     verified: bool = False
@@ -89,21 +88,19 @@ class RefineSummary:
     image_decodes_max: int = 0
     refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
-    pair_check: dict = field(default_factory=dict)
     match_check: dict = field(default_factory=dict)
 
     @classmethod
     def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
-                    device: str, runner: str, resumed: bool, read: ReadStats, filtered: FilterStats,
+                    device: str, seed: int, runner: str, resumed: bool, read: ReadStats, filtered: FilterStats,
                     refine: RefineStats, write: WriteStats, seconds: dict[str, float],
-                    pair_check: PairCheckStats | None = None,
                     match_check: MatchCheckStats | None = None) -> RefineSummary:
         """Assemble the summary from the stages' stats (a check's None: it was off)."""
         pcfg = recipe.pipeline
         per_image = Counter(read.decoded_by_image)
         per_image.update(refine.decoded_by_image)
         return cls(
-            output=output, database=database, backup=backup, recipe=recipe.name,
+            output=output, database=database, backup=backup, recipe=recipe.name, seed=int(seed),
             source=str(pcfg.source), refined=pcfg.refine, verified=pcfg.verify,
             workers=filtered.workers, device=device, num_images=read.num_images,
             num_pairs=read.num_pairs, pairs_filtered=filtered.pairs_filtered,
@@ -121,7 +118,6 @@ class RefineSummary:
             image_decodes=read.image_decodes + refine.count("image_decodes"),
             image_decodes_max=max(per_image.values(), default=0),
             refine_stats=dict(refine.counters), seconds=seconds,
-            pair_check={} if pair_check is None else pair_check.to_dict(),
             match_check={} if match_check is None else match_check.to_dict())
 
     def to_dict(self) -> dict:
@@ -150,8 +146,6 @@ class RefineSummary:
             lines.append(f"  resumed: {self.filter_chunks_resumed} of {self.filter_chunks} filter chunks "
                          f"({self.pairs_resumed} pairs) and {self.refine_groups_resumed} of "
                          f"{self.refine_groups} refine groups were finished before")
-        if self.pair_check:
-            lines.append(_pair_check_line(self.pair_check))
         if self.match_check:
             from ..reporting.html_report import match_check_note
 
@@ -164,14 +158,3 @@ class RefineSummary:
             lines.append(f"  backup of the input: {self.backup}")
         lines.append("  seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in self.seconds.items()))
         return "\n".join(lines)
-
-
-def _pair_check_line(pc: dict) -> str:
-    """The summary's pair-check lines: counts, then at most 10 wrong pairs with their reasons."""
-    done = f"{pc['pairs_removed']} removed" if pc["mode"] == "remove" else f"{pc['pairs_flagged']} flagged"
-    line = (f"  pair check: {pc['pairs_checked']} pairs, {pc['triangles']} triangles "
-            f"({pc['triangles_broken']} broken), {done}")
-    line += "".join(f"\n    {' - '.join(w['images'])}: {w['reason']}" for w in pc["wrong_pairs"][:10])
-    if len(pc["wrong_pairs"]) > 10:
-        line += f"\n    ... and {len(pc['wrong_pairs']) - 10} more (see the JSON report)"
-    return line

@@ -1,7 +1,7 @@
 """The checks' verdicts, and the matches that reach the output database once they are applied.
 
-Both checks (:mod:`.pair_check`, :mod:`.match_check`) return one :class:`Verdicts`; the run
-merges them (:meth:`Verdicts.merge`) and the later stages apply the result with its one method
+The match check (:mod:`.match_check`) returns one :class:`Verdicts`; the later stages apply it
+with its one method
 (:meth:`Verdicts.apply`): the refine stage to the stored pairs it walks, the write stage to each
 stored chunk it writes.
 
@@ -29,7 +29,7 @@ class Verdicts:
     """What the checks decided about the pairs that reach the output.
 
     Attributes:
-        removed: pairs removed whole (the pair check's and the match check's wrong pairs):
+        removed: pairs removed whole (the match check's wrong pairs):
             they join no track and are written without matches or two-view geometry, whether
             they were filtered or not.
         failed: pair -> bool ``(K,)``: the matches the match check removed from a kept pair,
@@ -43,12 +43,6 @@ class Verdicts:
     removed: frozenset[Pair] = frozenset()
     failed: Mapping[Pair, np.ndarray] = field(default_factory=dict)
     refit: frozenset[Pair] = frozenset()
-
-    def merge(self, other: Verdicts) -> Verdicts:
-        """Both verdicts: the union of the removed and the refitted pairs, and of the failed
-        matches (``other``'s where both judged a pair)."""
-        return Verdicts(removed=self.removed | other.removed, failed={**self.failed, **other.failed},
-                        refit=self.refit | other.refit)
 
     def apply(self, pairs: FilteredPairs) -> FilteredPairs:
         """``pairs`` (stored filter outcomes, in their order) without the removed pairs, and

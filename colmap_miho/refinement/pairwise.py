@@ -35,7 +35,6 @@ from ..enums import MoveSide
 from ..errors import InvalidInput
 from .config import DEFAULT_BATCH_SIZE, NCCConfig
 from .lsm.step import LSM_COUNTERS, lsm_step
-from .ncc.blur import match_blur
 from .ncc.perturbations import perturbation_matrices
 from .ncc.search import Pass, evaluate_direction
 from .ncc.subpixel import iterate_subpixel
@@ -68,7 +67,7 @@ class RefineResult:
         stats: counters (``n``, ``moved``, ``rejected_border``,
             ``rejected_weak`` (peak below ``min_ncc``), ``gated_flat``, ``outside``,
             ``invalid_homography``,
-            ``seconds``, ``device``, ``shapes``; with ``config.lsm``, the counters of
+            ``seconds``, ``device``, ``shapes``; with ``config.lsm.enabled``, the counters of
             :data:`~.lsm.step.LSM_COUNTERS`: ``lsm_applied``, ``lsm_not_converged``,
             ``lsm_far``, ``lsm_imprecise``).
     """
@@ -201,13 +200,8 @@ def refine_pair(
     device = resolve_device(cfg, image1, image2, pts1, patch_homographies)
     img = (to_gray_tensor(image1, device), to_gray_tensor(image2, device))
     out = _Outputs.unchanged(inp.p1, inp.p2)
-    if cfg.match_blur:
-        img, blur_counts = match_blur(img, inp.p1, inp.p2, inp.homs)
-        out.counts.update(blur_counts)
-    if cfg.lsm:
+    if cfg.lsm.enabled:
         out.counts.update(dict.fromkeys(LSM_COUNTERS, 0))
-        if cfg.lsm_only:
-            out.counts["rejected_lsm"] = 0
     offs = _Offsets.of(cfg, device)
     base = base_pairs(n, inp.affine1, inp.affine2)
     use_base = cfg.use_base_pair and not (
@@ -260,30 +254,26 @@ Direction = tuple[int, int, dict[str, torch.Tensor]]
 
 def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], direction: tuple[int, int],
               r: dict[str, torch.Tensor], rows: tuple[torch.Tensor, np.ndarray], cfg: NCCConfig,
-              out: _Outputs) -> tuple[torch.Tensor, np.ndarray]:
+              out: _Outputs) -> torch.Tensor:
     """Sub-pixel offsets (J, 2) of the accepted moves of ``direction`` (fixed ``f``, moving
     ``m``), ``rows`` = (their rows in the chunk, their match indices): least-squares matching
-    from the NCC peak's parabola where ``cfg.lsm`` is on and it passes its tests, the iterated
-    parabolas elsewhere (all of them without LSM); and (J,) bool, the moves to apply (all but
-    those LSM did not accept, with ``cfg.lsm_only``)."""
+    from the NCC peak's parabola where ``cfg.lsm.enabled`` and it passes its tests, the iterated
+    parabolas elsewhere (all of them without LSM)."""
     (f, m), (sel, _) = direction, rows
     H_inv, frame, off = r["H_inv"][sel], r["frame_m"][sel], r["offset"][sel]
     img_m = job_images(img[m], sel)
-    every = np.ones(sel.numel(), bool)
-    if not cfg.lsm:
+    if not cfg.lsm.enabled:
         return iterate_subpixel(img_m, H_inv, frame, off, r["template"][sel], cfg.template_radius,
-                                cfg.subpixel_iterations), every
+                                cfg.subpixel_iterations)
     off, lsm_counts, accepted = lsm_step(job_images(img[f], sel), img_m, r["H_f_inv"][sel], r["frame_f"][sel],
                                          H_inv, frame, off, cfg)
     for key, value in lsm_counts.items():
         out.add(key, int(value))
-    if cfg.lsm_only:
-        return off, accepted.cpu().numpy()
     todo = torch.nonzero(~accepted)[:, 0]
     if todo.numel():
         off[todo] = iterate_subpixel(job_images(img_m, todo), H_inv[todo], frame[todo], off[todo],
                                      r["template"][sel][todo], cfg.template_radius, cfg.subpixel_iterations)
-    return off, every
+    return off
 
 
 def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack],
@@ -321,15 +311,7 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
             continue
         sel = torch.as_tensor(take, device=r["offset"].device)
         H_inv, frame = r["H_inv"][sel], r["frame_m"][sel]
-        off, apply = _subpixel(img, (f, m), r, (sel, idx[take]), cfg, out)
-        if not apply.all():  # lsm_only: the moves LSM did not accept are rejected
-            out.rejected[idx[take[~apply]]] = True
-            out.add("rejected_lsm", int((~apply).sum()))
-            keep = torch.as_tensor(np.flatnonzero(apply), device=off.device)
-            take, sel, off = take[apply], sel[keep], off[keep]
-            H_inv, frame = H_inv[keep], frame[keep]
-            if take.size == 0:
-                continue
+        off = _subpixel(img, (f, m), r, (sel, idx[take]), cfg, out)
         new = to_frame(H_inv, frame + off).cpu().numpy()
         ok = idx[take]
         old = out.pts[m][ok]

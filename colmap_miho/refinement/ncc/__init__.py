@@ -1,2 +1,2 @@
 """The NCC search of one match: template shapes, batched correlation maps, the search of one
-direction, the iterated sub-pixel step, their compiled kernel, and blur matching."""
+direction, the iterated sub-pixel step and their compiled kernel."""

@@ -32,12 +32,12 @@ the anchor keypoint to the walk's position), so the pass starts where the walk e
 chain only supplies the local shape of the map, which LSM's affine refines.
 
 Acceptance is the pairwise LSM step's (:mod:`..lsm.step`): converged at the last pass, the
-shift from the walk's position within ``lsm_max_shift_px``, the shift's a-posteriori
-standard deviation below ``lsm_max_sigma_px``. An accepted observation moves to
+shift from the walk's position within ``lsm.max_shift_px``, the shift's a-posteriori
+standard deviation below ``lsm.max_sigma_px``. An accepted observation moves to
 ``H_inv (c + t)``; the others keep the walk's result. Every observation is thus aligned
 relative to the same fixed reference; its final position is the walk's or this pass's.
 
-Anti-aliasing (``lsm_antialias`` > 0): every observation is smoothed to the blur of the
+Anti-aliasing (``lsm.antialias`` > 0): every observation is smoothed to the blur of the
 track's coarsest view (the smallest local scale ``sqrt |det J|`` of its frame -> image map),
 with :mod:`..lsm.step`'s 4-sample Gaussian, so all patches of the consensus carry one blur.
 
@@ -112,7 +112,7 @@ def joint_lsm(
         cfg: ``lsm_*`` fields of :class:`~..config.NCCConfig` (radius, affine, iterations,
             tolerance, shift and precision bounds, anti-aliasing).
         iterations: consensus passes (rebuild the template -> align), >= 0; stops
-            early once no accepted shift changes by ``lsm_tol_px``.
+            early once no accepted shift changes by ``lsm.tol_px``.
         star_first: before them, one pass that aligns every observation to the reference
             alone (the star of pairwise alignments), so that the first consensus template
             is built from aligned patches. Needed from a poor start: each consensus pass
@@ -132,8 +132,8 @@ def joint_lsm(
                            dict.fromkeys(MULTIPHOTO_COUNTERS[2:6], 0))
     T = int(track.max()) + 1
     radius = cfg.lsm_window
-    blur = (_coarsest_blur(H_inv, centres, track, T, cfg.lsm_antialias)
-            if cfg.lsm_antialias > 0 else None)
+    blur = (_coarsest_blur(H_inv, centres, track, T, cfg.lsm.antialias)
+            if cfg.lsm.antialias > 0 else None)
     samp = frame_sampler(images, H_inv, centres, blur=blur)
     ref_of = torch.zeros(T, dtype=torch.int64, device=dev)
     ref_rows = torch.nonzero(is_ref)[:, 0]
@@ -160,8 +160,8 @@ def joint_lsm(
                              track, T)
         side = 2 * radius + 1
         res = lsm_align(sub, tpl[mov].to(torch.float32).view(-1, side, side), t[mov],
-                        affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
-                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
+                        affine=cfg.lsm.affine, max_iterations=cfg.lsm.max_iterations,
+                        tol_px=cfg.lsm.tol_px, max_shift_px=cfg.lsm.max_shift_px)
         prev = t[mov].clone()
         t[mov], A[mov], r0[mov], r1[mov] = res.shift, res.affine, res.offset, res.gain
         sigma[mov], conv[mov] = res.sigma_max, res.converged
@@ -170,7 +170,7 @@ def joint_lsm(
         bad = mov[~ok]  # restart from the walk's position, out of the template
         t[bad], A[bad], r0[bad], r1[bad] = 0.0, eye[bad], r0_init[bad], r1_init[bad]
         moved = (res.shift - prev)[ok].abs()
-        if it > star_first and (moved.numel() == 0 or float(moved.max()) < cfg.lsm_tol_px):
+        if it > star_first and (moved.numel() == 0 or float(moved.max()) < cfg.lsm.tol_px):
             break
     shift = torch.where(member[:, None] & ~is_ref[:, None], t, 0.0)
     last = lsm_outcomes(res.shift, res.sigma_max, res.converged, cfg)
