@@ -182,3 +182,14 @@ def test_every_stage_seed_derives_from_the_root():
     assert (match_check_seed(0), mapping_seed(0), mapping_seed(0, 2)) == (0, 0, 2)
     assert pair_seed(0, 1, 2) == pair_seed(0, 1, 2) != pair_seed(1, 1, 2)
     assert (match_check_seed(7), mapping_seed(7, 1)) == (7, 8)
+
+
+def test_a_resumed_run_names_a_changed_key_of_a_nested_table(tmp_path):
+    from colmap_miho.pipeline.store import fingerprint_difference, run_fingerprint
+
+    db = tmp_path / "d.db"
+    db.write_bytes(b"not read as a database here")
+    a = run_fingerprint(db, tmp_path, load_recipe(), 0, "cpu")
+    b = run_fingerprint(db, tmp_path, load_recipe(None, ["lsm.radius=4"]), 0, "cpu")
+    assert fingerprint_difference(a, b).startswith("recipe value lsm.radius (8 then, 4 now)")
+    assert "lsm" not in a["recipe"]["ncc"] and fingerprint_difference(a, a) is None

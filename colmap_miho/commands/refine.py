@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --output")
     parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_lsm)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a recipe value, e.g. --set filter.t_l=12 (repeatable)")
+                        help="override a recipe value, table.key=value, e.g. --set filter.t_l=12, --set lsm.radius=6; "
+                             "tables: filter, ncc, lsm, rectify, tracks, pipeline, match_check (repeatable)")
     parser.add_argument("--source", choices=MatchSource.values(), default=None,
                         help="filter the verified inliers (two_view_geometries, default) or the "
                              "raw tentative matches (MOP+MiHo then replaces geometric verification)")
