@@ -28,5 +28,8 @@ def configured(cls, base=None, **values):
     ``values`` changed by :func:`variant`: one call for a benchmark's ``--variant`` strings."""
     names = {f.name for f in dataclasses.fields(cls)}
     fields = {k: v for k, v in values.items() if k in names}
-    cfg = dataclasses.replace(base, **fields) if base is not None else cls(**fields)
-    return variant(cfg, **{k: v for k, v in values.items() if k not in names})
+    if base is None:
+        return variant(cls(**fields), **{k: v for k, v in values.items() if k not in names})
+    kept = {k: v for k, v in vars(base).items() if k not in names}  # base's own variant constants
+    kept.update((k, v) for k, v in values.items() if k not in names)
+    return variant(dataclasses.replace(base, **fields), **kept)
