@@ -1,5 +1,15 @@
-"""The checks' verdicts (:class:`Verdicts`, merged from both checks) and the matches that reach the
-output database once they are applied."""
+"""The checks' verdicts, and the matches that reach the output database once they are applied.
+
+The match check (:mod:`.match_check`) returns one :class:`Verdicts`; the later stages apply it
+with its one method
+(:meth:`Verdicts.apply`): the refine stage to the stored pairs it walks, the write stage to each
+stored chunk it writes.
+
+A pair's output matches (:func:`output_matches`) are the kept matches of its stored filter
+outcome when it was filtered (the failed matches taken out), else the database's matches (a pair
+too small to filter, or in which no plane was found), less the matches the match check
+failed in it. Pairs removed whole reach the output without matches.
+"""
 
 from __future__ import annotations
 
@@ -16,17 +26,23 @@ from .records import FilteredPairs, PairOutcome
 
 @dataclass(frozen=True, kw_only=True)
 class Verdicts:
-    """What the checks decided: pairs ``removed`` whole, ``failed`` matches per kept pair (bool
-    ``(K,)``), and pairs to ``refit`` (their fundamental matrix fitted again to the survivors)."""
+    """What the checks decided about the pairs that reach the output.
+
+    Attributes:
+        removed: pairs removed whole (the match check's wrong pairs):
+            they join no track and are written without matches or two-view geometry, whether
+            they were filtered or not.
+        failed: pair -> bool ``(K,)``: the matches the match check removed from a kept pair,
+            over its kept matches (in the order of its ``inliers``' set rows) for a filtered
+            pair, over the database's matches for a pair written back otherwise unchanged (too
+            small to filter, or no plane found).
+        refit: pairs the match check judged: their fundamental matrix is fitted again to the
+            survivors when written (COLMAP's was fitted to the wrong matches too).
+    """
 
     removed: frozenset[Pair] = frozenset()
     failed: Mapping[Pair, np.ndarray] = field(default_factory=dict)
     refit: frozenset[Pair] = frozenset()
-
-    def merge(self, other: Verdicts) -> Verdicts:
-        """The union of both verdicts (``other``'s failed matches where both judged a pair)."""
-        return Verdicts(removed=self.removed | other.removed, failed={**self.failed, **other.failed},
-                        refit=self.refit | other.refit)
 
     def apply(self, pairs: FilteredPairs) -> FilteredPairs:
         """``pairs`` without the removed ones and with failed matches cleared (labels -1)."""
