@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    mapping = replace(recipe.mapping, mapper=Mapper.INCREMENTAL, seed=0)
+    mapping = replace(recipe.mapping, mapper=Mapper.INCREMENTAL)
 
     import pycolmap
 

@@ -42,6 +42,7 @@ from colmap_miho.filtering.config import FilterConfig
 from miho_bench.datasets import multiview_pairs, oxford_pairs
 from miho_bench.frontend_cache import load_inputs
 from miho_bench.match_errors import gt_error
+from miho_bench.variants import configured
 
 GT_PX = 3.0
 CACHE = Path(__file__).resolve().parent / "results" / "cache"
@@ -114,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         err = gt_error(pair, fm.pts1, fm.pts2)
         good = err <= GT_PX
         for method, sampling, vname, over in variants:
-            cfg = FilterConfig(method=method, sampling=sampling, **over)
+            cfg = configured(FilterConfig, method=method, sampling=sampling, **over)
             name = method if len(samplings) == 1 else f"{method}/{sampling}"
             name += f"/{vname}" if vname else ""
             times, cpu = [], []

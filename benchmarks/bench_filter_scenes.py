@@ -46,7 +46,8 @@ from colmap_miho.enums import MatchSource
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import choose_rotation
 from colmap_miho.filtering.scoring import NumpyScoring
-from colmap_miho.pipeline.workers import pair_seed
+from colmap_miho.seeds import pair_seed
+from miho_bench.variants import configured
 
 REPO = Path(__file__).resolve().parents[1]
 COUNTERS = ("rounds", "drawn", "samples", "valid", "full_scored")
@@ -137,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     variants = [("default", {})] + [parse_variant(v) for v in args.variant]
     numpy_kernels = frozenset(name for name, over in variants if over.pop("kernels", None) == "numpy")
-    configs = {name: FilterConfig(**over) for name, over in variants}
+    configs = {name: configured(FilterConfig, **over) for name, over in variants}
     print(f"cold start: {cold_start():.2f} CPU s (first filter call of the process)")
     print("scene/setting | variant | pairs | matches | cpu s | rounds | drawn | samples | valid | "
           "scored | ms/round | kept | same")

@@ -53,6 +53,7 @@ from miho_bench.datasets import oxford_pairs
 from miho_bench.frontend_cache import load_inputs
 from miho_bench.match_errors import gt_error
 from miho_bench.peers import ReferenceMiho, magsac_mask
+from miho_bench.variants import configured
 
 OUTLIER_PX = 15.0
 GOOD_PX = 3.0
@@ -182,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
 
     for m in args.methods.split(","):
         for vname, over in variants:
-            cfg = FilterConfig(method=m, **over)
+            cfg = configured(FilterConfig, method=m, **over)
             label = m if vname == "default" else f"{m}/{vname}"
             runners.append((label, lambda p1, p2, c=cfg, lab=label: run_filter(p1, p2, c, lab)))
     if not args.no_magsac:

@@ -4,7 +4,7 @@ For each scene, COLMAP matching setting and SIFT budget, the database is built o
 ``bench_accuracy.py`` builds it, cached under ``--cache/<features>``), ``refine_database`` runs
 with the default recipe up to the match check, and the check's input (the filtered pair graph) is
 kept; the check then runs on it twice, with and without the hinge search
-(``match_check.hinges``), with pycolmap's global mapper on ``--threads`` threads as ``refine``
+(``MatchCheckConfig.hinges``), with pycolmap's global mapper on ``--threads`` threads as ``refine``
 runs it. Each match is judged against its GT epipolar line (a GT outlier lies more than 4 px
 from it). Printed per database: the pairs and matches judged; the hinge search's findings (a
 mode not confirmed by 3D points, a hinge and the arbiter's verdict and action); the GT-correct
@@ -46,6 +46,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_accuracy import DEMO, MAX_FEATURES, SETTINGS, SHARED_SCENES, build_database, scene_inputs  # noqa: E402
+
+from miho_bench.variants import variant  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 GT_THRESHOLD_PX = 4.0
@@ -111,8 +113,8 @@ def check(db, matches, labels, threads: int, hinges: bool, seed: int = 0):
     from colmap_miho.verification import MatchCheckConfig, judge_in_rounds
     from colmap_miho.verification.hinge import find_hinges
 
-    cfg = MatchCheckConfig(mode="remove", hinges=hinges, seed=seed)
-    inner = GlobalEstimator(src=db, config=cfg, num_threads=threads)
+    cfg = variant(MatchCheckConfig(mode="remove"), hinges=hinges)
+    inner = GlobalEstimator(src=db, config=cfg, seed=seed, num_threads=threads)
     first: list = []
 
     class Recording:
@@ -253,7 +255,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, help="global mapper threads (refine uses its worker count)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--hinge-by-construction", nargs=2, type=int, default=None, metavar=("CUT", "KEEP"))
-    ap.add_argument("--check-seed", type=int, default=0, help="match_check.seed (the mapper's and the track sample's)")
+    ap.add_argument("--check-seed", type=int, default=0,
+                    help="the match check's seed (the mapper's and the track sample's)")
     ap.add_argument("--sample-every-component", action="store_true",
                     help="the estimate's track sample takes inconsistent components too (rebuilds a hinge)")
     args = ap.parse_args(argv)

@@ -21,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from miho_bench.hinge_scene import make_hinged_survey  # noqa: E402
+from miho_bench.variants import variant  # noqa: E402
 
 
 def judge(scene, hinges: bool):
@@ -29,7 +30,7 @@ def judge(scene, hinges: bool):
     from colmap_miho.sfm.global_estimate import GlobalEstimator
     from colmap_miho.verification import MatchCheckConfig, judge_in_rounds
 
-    cfg = MatchCheckConfig(mode="remove", hinges=hinges)
+    cfg = variant(MatchCheckConfig(mode="remove"), hinges=hinges)
     with ColmapDatabase(scene.database) as db:
         d = judge_in_rounds(scene.matches, GlobalEstimator(src=db, config=cfg, num_threads=1), cfg)
     pairs = sorted(scene.matches)

@@ -159,14 +159,12 @@ def database_figures(database: Path, gt_poses: dict, threshold: float) -> dict:
 
 def map_runs(db: Path, image_dir: Path, gt: Path, folder: Path, seeds: int, mapping, intrinsics) -> list[dict]:
     """Map ``db`` with ``seeds`` seeds (0..seeds-1); one row of figures per run."""
-    from dataclasses import replace
-
     from colmap_miho.reporting.report import auc_key, build_report
     from colmap_miho.sfm import run_mapping
 
     rows = []
     for seed in range(seeds):
-        res = run_mapping(db, image_dir, folder / f"model_seed{seed}", replace(mapping, seed=seed),
+        res = run_mapping(db, image_dir, folder / f"model_seed{seed}", mapping, seed=seed,
                           intrinsics=intrinsics)
         row = {"seed": seed, "num_reg_images": res.num_reg_images, "num_images": res.num_images,
                "seconds": res.seconds}

@@ -7,14 +7,15 @@ two-way transfer error) are refined by ``refine_pair`` with the filter's patch h
 pairs (``--homographies filter``, what a user of the Python API does) or the GT pair
 (I, H^-1) (``gt``: the refiner alone). Per pair: the median GT transfer error before, after
 NCC (``NCCConfig.pairwise()`` with ``--set`` overrides) and after NCC + LSM (the same with
-``lsm=True``), and the ratio after / before; pairs with fewer than ``--min-matches`` are
+``lsm.enabled=true``), and the ratio after / before; pairs with fewer than ``--min-matches`` are
 listed but not counted in the summary.
 
     python benchmarks/bench_lsm_pairs.py [--homographies filter|gt] [--targets 2 3 4]
-        [--set template_radius=6 --set lsm_max_sigma_px=0.1]
-        [--variant NAME:lsm_only=true,lsm_antialias=0.5 ...]
+        [--set template_radius=6 --set lsm.max_sigma_px=0.1]
+        [--variant NAME:lsm.antialias=0.5,lsm.max_shift_px=2.0 ...]
 
-Each ``--variant`` adds a column: the LSM configuration with its own ``NCCConfig`` overrides.
+Each ``--variant`` adds a column: the LSM configuration with its own overrides (``NCCConfig``
+fields, ``lsm.*`` / ``rectify.*`` and the class constants of either).
 
 Data: ``$COLMAP_MIHO_DATA`` or ``<repo>/../shared/data``.
 """
@@ -24,7 +25,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +34,7 @@ from colmap_miho.refinement.config import NCCConfig
 from miho_bench.datasets import oxford_pairs
 from miho_bench.frontend import sift_matches
 from miho_bench.match_errors import transfer_error
+from miho_bench.variants import configured
 
 GT_PX = 3.0
 SEQUENCES = ("graf", "boat", "bikes", "leuven")
@@ -45,22 +46,30 @@ def data_root() -> Path:
 
 
 def parse_sets(items: list[str]) -> dict:
-    types = {f.name: f.type for f in fields(NCCConfig)}
+    """``KEY=VALUE`` strings -> {KEY: value}, values read as true/false, int, float or text."""
     out: dict = {}
     for item in items:
         key, _, value = item.partition("=")
-        kind = str(types.get(key, "str"))
-        if key not in types:
-            raise SystemExit(f"unknown NCCConfig field {key!r}")
-        if "bool" in kind:
-            out[key] = value.lower() in ("1", "true", "yes")
-        elif "int" in kind and "float" not in kind:
-            out[key] = int(value)
-        elif "float" in kind:
-            out[key] = float(value)
-        else:
-            out[key] = value
+        low = value.lower()
+        if low in ("true", "false", "yes", "no"):
+            out[key] = low in ("true", "yes")
+            continue
+        for kind in (int, float, str):
+            try:
+                out[key] = kind(value)
+                break
+            except ValueError:
+                continue
     return out
+
+
+def _config(base: NCCConfig, sets: dict) -> NCCConfig:
+    """``base`` with ``sets``: NCCConfig fields, ``lsm.FIELD`` / ``rectify.FIELD`` of its tables,
+    and class constants (:func:`miho_bench.variants.configured`)."""
+    tables = {t: {k.split(".", 1)[1]: v for k, v in sets.items() if k.startswith(t + ".")} for t in ("lsm", "rectify")}
+    rest = {k: v for k, v in sets.items() if "." not in k}
+    nested = {t: configured(type(getattr(base, t)), getattr(base, t), **kv) for t, kv in tables.items() if kv}
+    return configured(NCCConfig, base, **nested, **rest)
 
 
 def main(argv=None) -> int:
@@ -78,13 +87,12 @@ def main(argv=None) -> int:
     if not root.is_dir():
         print(f"data folder not found: {root}", file=sys.stderr)
         return 2
-    base = NCCConfig.pairwise(device="cpu", **parse_sets(args.sets))
-    lsm = NCCConfig(**{**{f.name: getattr(base, f.name) for f in fields(base)}, "lsm": True})
+    base = _config(NCCConfig.pairwise(device="cpu"), parse_sets(args.sets))
+    lsm = _config(base, {"lsm.enabled": True})
     cfgs = {"ncc": base, "lsm": lsm}
     for item in args.variants:
         name, _, sets = item.partition(":")
-        cfgs[name] = NCCConfig(**{**{f.name: getattr(lsm, f.name) for f in fields(lsm)},
-                                  **parse_sets([s for s in sets.split(",") if s])})
+        cfgs[name] = _config(lsm, parse_sets([s for s in sets.split(",") if s]))
     extra_names = list(cfgs)[2:]
     print(f"patch homographies: {args.homographies}; NCCConfig overrides: {args.sets or 'none'}; "
           f"variants: {args.variants or 'none'}")

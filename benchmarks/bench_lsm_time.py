@@ -16,7 +16,7 @@ and prefer the CPU times.
 
     python benchmarks/bench_lsm_time.py --database DB --images DIR [--repeats 3] [--workers 2]
         [--ncc-recipe colmap_miho/recipes/mop_miho_ncc.toml] [--lsm-recipe colmap_miho/recipes/mop_miho_lsm.toml]
-        [--set ncc.lsm_radius=6] [--lsm-share] [--torch-lsm]
+        [--set lsm.radius=6] [--lsm-share] [--torch-lsm]
 """
 
 from __future__ import annotations
@@ -120,7 +120,7 @@ def main(argv=None) -> int:
     if (args.lsm_share or args.torch_lsm) and args.workers != 1:
         ap.error("--lsm-share and --torch-lsm need --workers 1 (the stages run in this process)")
     recipes = {"ncc": load_recipe(args.ncc_recipe, []),
-               "lsm": load_recipe(args.lsm_recipe, ["ncc.lsm=true", *args.overrides])}
+               "lsm": load_recipe(args.lsm_recipe, ["lsm.enabled=true", *args.overrides])}
     if args.torch_lsm:
         recipes["lsm_torch"] = recipes["lsm"]
     import colmap_miho.pipeline.run as run_mod

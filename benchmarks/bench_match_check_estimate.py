@@ -4,7 +4,7 @@ For each scene, COLMAP matching setting and SIFT budget, the database is built o
 ``bench_accuracy.py`` builds it, cached under ``--cache/<features>``), ``refine_database`` runs
 with the default recipe up to the match check and keeps the check's input (the filtered pair
 graph, as ``bench_hinge.py``); the check then runs on it once per ``--variant`` and per
-``--seeds`` seed (``match_check.seed``: the global mapper's and the track sample's), with
+``--seeds`` seed (the match check's seed: the global mapper's and the track sample's), with
 pycolmap's global mapper on ``--threads`` threads. Each match is judged against its GT epipolar
 line (a GT outlier lies more than 4 px from it). Printed per database, variant and seed: the
 GT-correct matches removed, the GT-wrong ones removed, the rounds, the stage's process CPU
@@ -40,14 +40,16 @@ from bench_accuracy import MAX_FEATURES, build_database, scene_inputs  # noqa: E
 from bench_hard_pairs import parse_variant  # noqa: E402
 from bench_hinge import database_arguments, gt_labels, stage_input  # noqa: E402
 
+from miho_bench.variants import configured  # noqa: E402
+
 
 def run_check(db, matches, labels, fields: dict, seed: int, threads: int) -> dict:
     from colmap_miho.sfm.global_estimate import GlobalEstimator
     from colmap_miho.verification import MatchCheckConfig, judge_in_rounds
 
-    cfg = MatchCheckConfig(mode="remove", **{**fields, "seed": seed})
+    cfg = configured(MatchCheckConfig, mode="remove", **fields)
     cpu = time.process_time()
-    d = judge_in_rounds(matches, GlobalEstimator(src=db, config=cfg, num_threads=threads), cfg)
+    d = judge_in_rounds(matches, GlobalEstimator(src=db, config=cfg, seed=seed, num_threads=threads), cfg)
     cpu = time.process_time() - cpu
     pairs = sorted(matches)
     ok = np.concatenate([labels[p] for p in pairs])
@@ -66,7 +68,7 @@ def run_check(db, matches, labels, fields: dict, seed: int, threads: int) -> dic
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     database_arguments(ap)
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="match_check.seed values")
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="root seeds (the match check's seed)")
     ap.add_argument("--threads", type=int, default=1, help="global mapper threads")
     ap.add_argument("--variant", dest="variants", action="append", default=[])
     ap.add_argument("--json", type=Path, default=None)

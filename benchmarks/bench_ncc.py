@@ -42,6 +42,7 @@ from colmap_miho.refinement.config import NCCConfig
 from miho_bench.datasets import oxford_pairs
 from miho_bench.frontend import sift_matches
 from miho_bench.match_errors import transfer_error
+from miho_bench.variants import variant
 
 GT_PX = 3.0
 REFERENCE_S = {950: 5.4, 2549: 21.0}
@@ -107,8 +108,8 @@ def main(argv=None) -> int:
                 for move in ("auto", "2"):
                     shapes, coarse = variants[s]
                     r = refine_pair(img1, img2, p1, p2, homs, move=move,
-                                    config=NCCConfig.pairwise(perturbations=shapes, coarse_shapes=coarse,
-                                                     device=args.device))
+                                    config=variant(NCCConfig.pairwise(device=args.device),
+                                                   perturbations=shapes, coarse_shapes=coarse))
                     cells.append(f"{np.median(transfer_error(pair.H_2from1, r.pts1, r.pts2)):11.3f}")
             if cells:
                 print(f"{seq + ' 1-2':14s} {det:9s} {len(p1):5d} {np.median(err0[good]):7.3f} "
@@ -127,7 +128,7 @@ def main(argv=None) -> int:
         for s in sets:
             for move in ("auto", "2"):
                 shapes, coarse = variants[s]
-                cfg = NCCConfig.pairwise(perturbations=shapes, coarse_shapes=coarse, device=args.device)
+                cfg = variant(NCCConfig.pairwise(device=args.device), perturbations=shapes, coarse_shapes=coarse)
                 wall, cpu = timed(lambda idx=idx, move=move, cfg=cfg: refine_pair(
                     img1, img2, p1[idx], p2[idx], homs[idx], move=move, config=cfg), runs)
                 ref = REFERENCE_S[n]

@@ -49,6 +49,7 @@ from colmap_miho.refinement.tracks.walk import refine_tracks
 from miho_bench.datasets import oxford_pairs
 from miho_bench.frontend import filtered_multiview_matches, sift_matches
 from miho_bench.match_errors import transfer_error
+from miho_bench.variants import variant
 
 GT_PX = 3.0
 SECTIONS = ("filter", "fountain", "pairs", "tracks", "speed")
@@ -175,7 +176,7 @@ def check_pairs(root: Path) -> None:
             homs = np.tile(np.stack([np.eye(3), np.linalg.inv(pair.H_2from1)]), (len(p1), 1, 1, 1))
             for shapes, move in itertools.product(("none", "paper"), ("auto", "2")):
                 res = {dev: refine_pair(img1, img2, p1, p2, homs, move=move,
-                                        config=NCCConfig.pairwise(perturbations=shapes, device=dev))
+                                        config=variant(NCCConfig.pairwise(device=dev), perturbations=shapes))
                        for dev in ("cpu", "cuda")}
                 c, g = res["cpu"], res["cuda"]
                 err = {k: np.median(transfer_error(pair.H_2from1, r.pts1, r.pts2))
@@ -198,11 +199,11 @@ def check_tracks(root: Path, n_images: int) -> None:
     runs = {"cpu": ("cpu", None), "cuda per pair": ("cuda", False), "cuda": ("cuda", None)}
     for name, (dev, batch) in runs.items():
         refine_tracks(images, keypoints, matches, results, ncc_config=NCCConfig.pairwise(device=dev),
-                      track_config=TrackConfig(batch_pairs=batch))  # warm-up
+                      track_config=variant(TrackConfig(), batch_pairs=batch))  # warm-up
         t0 = time.perf_counter()
         out[name] = refine_tracks(images, keypoints, matches, results,
                                   ncc_config=NCCConfig.pairwise(device=dev),
-                                  track_config=TrackConfig(batch_pairs=batch))
+                                  track_config=variant(TrackConfig(), batch_pairs=batch))
         st = out[name].stats
         print(f"{name:13s}: {time.perf_counter() - t0:6.2f} s, {st['refine_calls']} calls, "
               f"tracks {st['tracks']}, refined {st['refined']}, moved {st['moved']}, "
@@ -228,7 +229,7 @@ def time_cuda(root: Path, runs: int) -> None:
         idx = np.resize(np.arange(len(fm.pts1)), n)
         for shapes, move, batch in itertools.product(("none", "paper"), ("auto", "2"),
                                                       (512, 4096)):
-            cfg = NCCConfig.pairwise(perturbations=shapes, device="cuda", batch_size=batch)
+            cfg = variant(NCCConfig.pairwise(device="cuda", batch_size=batch), perturbations=shapes)
             cells = []
             for a, b in ((img1, img2), (g1, g2)):
                 def call(a=a, b=b, idx=idx, move=move, cfg=cfg):

@@ -3,14 +3,13 @@
     python benchmarks/package_surface.py [--json FILE]
 
 Docstrings are module, class and function docstrings, counted by the lines they span; recipe
-keys are the leaves of ``Recipe()``'s stage dataclasses (``name`` and ``description`` aside).
+keys are what a recipe table or ``--set`` may set (:func:`colmap_miho.recipe.recipe_keys`).
 """
 
 from __future__ import annotations
 
 import argparse
 import ast
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -31,24 +30,9 @@ def docstring_lines(tree: ast.AST) -> int:
 
 def recipe_keys() -> list[str]:
     sys.path.insert(0, str(PACKAGE.parent))  # the tree this script sits in, not an installed one
-    from colmap_miho.recipe import Recipe
+    from colmap_miho.recipe import recipe_keys as keys
 
-    keys = []
-
-    def leaves(prefix: str, obj: object) -> None:
-        for f in dataclasses.fields(obj):
-            value = getattr(obj, f.name)
-            if dataclasses.is_dataclass(value):
-                leaves(f"{prefix}{f.name}.", value)
-            else:
-                keys.append(prefix + f.name)
-
-    recipe = Recipe()
-    for f in dataclasses.fields(recipe):
-        value = getattr(recipe, f.name)
-        if dataclasses.is_dataclass(value):
-            leaves(f"{f.name}.", value)
-    return keys
+    return keys()
 
 
 def measure() -> dict:

@@ -33,7 +33,7 @@ if TYPE_CHECKING:  # what static tools see; at run time the table below imports 
     from .pipeline import PipelineConfig, RefineSummary, refine_database
     from .pipeline.jobs import ExtractionOptions, JobOptions, compare_databases
     from .recipe import Recipe, load_recipe
-    from .refinement.config import NCCConfig, TrackConfig
+    from .refinement.config import LSMConfig, NCCConfig, RectifyConfig, TrackConfig
     from .refinement.pairwise import RefineResult, refine_pair
     from .refinement.tracks.walk import TrackRefineResult, refine_tracks
     from .reporting.report import build_report
@@ -48,7 +48,9 @@ _LAZY = {
     "RefineResult": "colmap_miho.refinement.pairwise",
     "refine_tracks": "colmap_miho.refinement.tracks.walk",
     "TrackRefineResult": "colmap_miho.refinement.tracks.walk",
+    "LSMConfig": "colmap_miho.refinement.config",
     "NCCConfig": "colmap_miho.refinement.config",
+    "RectifyConfig": "colmap_miho.refinement.config",
     "TrackConfig": "colmap_miho.refinement.config",
     "load_recipe": "colmap_miho.recipe",
     "Recipe": "colmap_miho.recipe",
@@ -72,11 +74,13 @@ __all__ = [
     "FilterMethod",
     "FilterResult",
     "JobOptions",
+    "LSMConfig",
     "MappingResult",
     "MoveSide",
     "NCCConfig",
     "PipelineConfig",
     "Recipe",
+    "RectifyConfig",
     "RefineResult",
     "RefineSummary",
     "TrackConfig",

@@ -129,13 +129,6 @@ class RunnerKind(StrEnum):
     DASK = "dask"  # a Dask cluster, local or remote
 
 
-class PairCheckMode(StrEnum):
-    """What the pair check does with a pair that the rest of the pair graph contradicts."""
-
-    REMOVE = "remove"  # drop the pair's matches from the output database
-    FLAG = "flag"  # keep it; only report it
-
-
 class MatchCheckMode(StrEnum):
     """What the match check (verification against a global estimate of the cameras) does."""
 

@@ -1,6 +1,26 @@
-"""Filling the compiled kernels' cache ahead, once per cache folder, by kernel family
-(:data:`FAMILIES`), in child processes several at once; a family is ready by a file keyed by its
-sources, the versions and the CPU, under a lock."""
+"""Filling the compiled kernels' cache ahead, once per cache folder, by kernel family.
+
+The numba kernels (:mod:`.compiled`) compile on first use and are kept in the cache folder of
+:func:`.compiled.cache_dir`; a process that finds them there loads them in well under a second
+per family instead of compiling them (tens of seconds per family). The kernels come in four
+families (:data:`FAMILIES`), each loaded by its own small synthetic call:
+
+- ``filter``: MOP+MiHo's sampling, scoring, RANSAC and rotation kernels (every recipe);
+- ``ncc``: the NCC search and sub-pixel step of the track walk (recipes that refine);
+- ``lsm``: the least-squares matching step (``lsm.enabled`` or ``tracks.multiphoto_lsm``);
+- ``rectify``: the local affine fits (``rectify.mode`` ``local`` or ``both``).
+
+:func:`ensure_compiled` compiles the families a recipe uses (:func:`families_for`) that the
+cache lacks, each in a child process of its own, several at once (numba compiles one function
+at a time per process), and logs at INFO level what it compiles and how long it took;
+``refine_database`` calls it before its workers start, ``colmap-miho compile`` calls it on its
+own (a Dockerfile's build step, a cluster's setup), and on Dask each worker calls it once
+(:mod:`.pipeline.dask_kernels`). A family is known to be in the cache by a ready file written
+after its child succeeded, named by a key of the family's kernel sources (their paths and
+contents), numba's and Python's versions and this machine's CPU, the things numba's own
+cache entries depend on; a lock file keeps two processes from compiling into one folder at
+once (the second waits, then finds the families ready).
+"""
 
 from __future__ import annotations
 
@@ -50,13 +70,16 @@ READY_FOLDER = "colmap-miho-ready"
 
 
 def families_for(recipe) -> tuple[str, ...]:
-    """The kernel families a recipe runs on the CPU, in :data:`FAMILIES` order."""
+    """The kernel families a :class:`~colmap_miho.recipe.Recipe` runs on the CPU, in
+    :data:`FAMILIES` order: the filter's always; with ``pipeline.refine`` the NCC kernels, the
+    local affine fits with ``rectify.mode`` ``local`` or ``both``, the LSM step with
+    ``lsm.enabled`` or ``tracks.multiphoto_lsm``."""
     used = {"filter"}
     if recipe.pipeline.refine:
         used.add("ncc")
-        if recipe.ncc.rectification != Rectification.FILTER:
+        if recipe.ncc.rectify.mode != Rectification.FILTER:
             used.add("rectify")
-        if recipe.ncc.lsm or recipe.tracks.multiphoto_lsm:
+        if recipe.ncc.lsm.enabled or recipe.tracks.multiphoto_lsm:
             used.add("lsm")
     return tuple(f for f in FAMILIES if f in used)
 
@@ -219,6 +242,7 @@ def _compile_children(families: list[str], n: int, folder: Path) -> tuple[dict[s
 
 
 def _wait_any(running: dict[str, tuple[subprocess.Popen, float]]) -> str:
+    """The first family whose child process ended (polled every 50 ms)."""
     while True:
         for family, (proc, _) in running.items():
             if proc.poll() is not None:

@@ -20,19 +20,14 @@ class PipelineConfig:
     """Parameters of ``colmap-miho refine``.
 
     Attributes:
-        source: which matches are filtered: "verified" (two_view_geometries inliers)
-            or "raw" (tentative matches; MOP+MiHo then replaces geometric verification).
+        source: which matches are filtered: "verified" (two_view_geometries inliers) or "raw"
+            (tentative matches; MOP+MiHo then replaces geometric verification).
         min_matches: pairs with fewer matches pass through unchanged.
-        refine: run the track-consistent NCC refinement after filtering.
+        refine: run the track-consistent refinement after filtering.
         verify: re-run COLMAP's epipolar verification on the kept matches.
-        memory_budget_mb: memory the run may use for its working data, in MiB. It bounds the
-            filter's chunks of pairs (the matches read, filtered and held for the run store at
-            once; see :func:`~colmap_miho.pipeline.filter.chunk_matches`) and the decoded
-            images the refine stage keeps (:meth:`image_budget_bytes`: half of it, shared
-            among the parallel tasks; it sets the images of a track group); results do not
-            depend on it. Not bounded by it: the keypoints of all images and the matches of
-            the filtered pairs, which the track plan needs at once (about 40 bytes per
-            keypoint and per match).
+        memory_budget_mb: MiB for the filter's chunks of pairs and (half of it) the refine
+            stage's decoded images; results do not depend on it. The keypoints and the
+            filtered matches (about 40 bytes each) are held outside it.
     """
 
     source: MatchSource = MatchSource.VERIFIED

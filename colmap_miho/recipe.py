@@ -1,10 +1,11 @@
 """Recipes: named TOML files that set the configuration of every stage.
 
-A recipe has one table per stage (``[filter]``, ``[ncc]``, ``[tracks]``, ``[pipeline]``,
-``[mapping]``, ``[pair_check]``, ``[match_check]``) whose keys are fields of the stage's
-dataclass; a missing table or key means the dataclass default, which is the default recipe's.
-Unknown tables or keys are errors, never silently ignored.
-``--set section.key=value`` overrides are parsed with the field's type.
+A recipe has one table per stage (``[filter]``, ``[ncc]``, ``[lsm]``, ``[rectify]``,
+``[tracks]``, ``[pipeline]``, ``[mapping]``, ``[match_check]``) whose keys are fields of the
+stage's dataclass; a missing table or key means the dataclass default, which is the default
+recipe's. Unknown tables or keys are errors, never silently ignored; a key of an older release
+is refused with a line naming what replaced it. ``--set table.key=value`` overrides are parsed
+with the field's type.
 """
 
 from __future__ import annotations
@@ -22,9 +23,9 @@ from pathlib import Path
 from .errors import InvalidInput
 from .filtering.config import FilterConfig
 from .pipeline_config import PipelineConfig
-from .refinement.config import NCCConfig, TrackConfig
+from .refinement.config import LSMConfig, NCCConfig, RectifyConfig, TrackConfig
 from .sfm import MappingConfig
-from .verification.config import MatchCheckConfig, PairCheckConfig
+from .verification.config import MatchCheckConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -38,12 +39,9 @@ DEFAULT_RECIPE = "mop_miho_lsm"
 
 @dataclass(frozen=True, kw_only=True)
 class Recipe:
-    """The configuration of every stage: ``refine`` (filter, ncc, tracks, pipeline, the two
-    checks) and mapping.
-
-    Every stage's dataclass defaults are the default recipe's (:data:`DEFAULT_RECIPE`), so
-    ``Recipe()`` is that recipe; each recipe file states only how it differs from them.
-    """
+    """The configuration of every stage. ``Recipe()`` is the default recipe
+    (:data:`DEFAULT_RECIPE`); each recipe file states only how it differs from it. The
+    ``[lsm]`` and ``[rectify]`` tables are ``ncc.lsm`` and ``ncc.rectify`` here."""
 
     name: str = "custom"
     description: str = ""
@@ -52,19 +50,78 @@ class Recipe:
     tracks: TrackConfig = field(default_factory=TrackConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
-    pair_check: PairCheckConfig = field(default_factory=PairCheckConfig)
     match_check: MatchCheckConfig = field(default_factory=MatchCheckConfig)
 
+    @property
+    def lsm(self) -> LSMConfig:
+        """The ``[lsm]`` table."""
+        return self.ncc.lsm
 
+    @property
+    def rectify(self) -> RectifyConfig:
+        """The ``[rectify]`` table."""
+        return self.ncc.rectify
+
+
+#: the recipe's tables and their dataclasses (``lsm`` and ``rectify`` nest in ``ncc``)
 SECTIONS: dict[str, type] = {
     "filter": FilterConfig,
     "ncc": NCCConfig,
+    "lsm": LSMConfig,
+    "rectify": RectifyConfig,
     "tracks": TrackConfig,
     "pipeline": PipelineConfig,
     "mapping": MappingConfig,
-    "pair_check": PairCheckConfig,
     "match_check": MatchCheckConfig,
 }
+#: tables that are fields of another table's dataclass, not keys of it
+NESTED = {"ncc": ("lsm", "rectify")}
+
+_SEED = "--seed (seed= in Python): the run's root seed, every stage's derives from it"
+#: keys of earlier releases -> what replaced them (the decisions: docs/results.md, "Recipe keys:
+#: what a user sets")
+RENAMED = {
+    "ncc.lsm": "lsm.enabled", "ncc.lsm_radius": "lsm.radius", "ncc.lsm_antialias": "lsm.antialias",
+    "ncc.lsm_max_shift_px": "lsm.max_shift_px", "ncc.lsm_tol_px": "lsm.tol_px",
+    "ncc.rectification": "rectify.mode", "ncc.local_affine_neighbours": "rectify.neighbours",
+    "ncc.local_affine_max_residual_px": "rectify.max_residual_px",
+    "tracks.far_move_px": "rectify.max_residual_px (the far-move bound)",
+    "mapping.seed": _SEED, "match_check.seed": _SEED,
+}
+REMOVED = {
+    "pair_check": "the pair check was removed (no recipe used it)",
+    "ncc.match_blur": "blur matching was removed (it lost accuracy in the walk)",
+    "ncc.lsm_only": "removed: a move LSM does not accept keeps the NCC peak's position",
+    "ncc.lsm_affine": "now the constant LSMConfig.affine",
+    "ncc.lsm_max_iterations": "now the constant LSMConfig.max_iterations",
+    "ncc.lsm_max_sigma_px": "now the constant LSMConfig.max_sigma_px",
+    "tracks.multiphoto_star_first": "removed: the joint pass starts from the walk's positions",
+    "tracks.far_move_ratio": "removed: the far-move check has no peak-ratio test",
+}
+
+
+def _refuse_old(section: str, key: str | None = None) -> None:
+    """Raise the line that names what replaced ``section.key`` (or the table), if it is old."""
+    name = section if key is None else f"{section}.{key}"
+    where = 'see docs/results.md, "Recipe keys: what a user sets"'
+    if name in RENAMED:
+        raise InvalidInput(f"{name} is now {RENAMED[name]}")
+    if name in REMOVED or section in REMOVED:
+        raise InvalidInput(f"{name} is no longer a recipe key: {REMOVED.get(name) or REMOVED[section]}; {where}")
+    cls = SECTIONS.get(section)
+    if key is not None and cls is not None and hasattr(cls, key) and not key.startswith("_") \
+            and key not in _keys(section):
+        raise InvalidInput(f"{name} is no longer a recipe key: a fixed constant ({cls.__name__}.{key}); {where}")
+
+
+def _keys(section: str) -> list[str]:
+    """The keys of the table ``section`` (the nested tables aside)."""
+    return [f.name for f in dataclasses.fields(SECTIONS[section]) if f.name not in NESTED.get(section, ())]
+
+
+def recipe_keys() -> list[str]:
+    """Every key a recipe sets, ``table.key``."""
+    return [f"{s}.{k}" for s in SECTIONS for k in _keys(s)]
 
 
 def available_recipes() -> list[str]:
@@ -184,10 +241,11 @@ def _not_an_integer(value, where: str):
 def _build_section(section: str, values: dict, base=None):
     cls = SECTIONS[section]
     types_ = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
+    names = _keys(section)
     kwargs = {}
     for key, value in values.items():
-        if key not in types_ or key not in names:
+        if key not in names:
+            _refuse_old(section, key)
             raise InvalidInput(
                 f"unknown key {section}.{key}; valid keys: "
                 + ", ".join(f"{section}.{n}" for n in names)
@@ -215,6 +273,7 @@ def parse_overrides(overrides: list[str] | None) -> dict[str, dict[str, str]]:
             )
         section, name = key.strip().split(".", 1)
         if section not in SECTIONS:
+            _refuse_old(section, name.strip())
             raise InvalidInput(f"--set {key!r}: unknown section {section!r}; one of {', '.join(SECTIONS)}")
         parsed.setdefault(section, {})[name.strip()] = value.strip()
     return parsed
@@ -243,6 +302,7 @@ def load_recipe(name_or_path: str | None = None, overrides: list[str] | None = N
     data.pop("name", None)
     for section in data:
         if section not in SECTIONS:
+            _refuse_old(section)
             raise InvalidInput(
                 f"recipe {name!r}: unknown table [{section}]; valid tables: {', '.join(SECTIONS)}"
             )
@@ -251,4 +311,8 @@ def load_recipe(name_or_path: str | None = None, overrides: list[str] | None = N
     configs = {s: _build_section(s, data.get(s, {})) for s in SECTIONS}
     for section, values in parse_overrides(overrides).items():
         configs[section] = _build_section(section, values, base=configs[section])
+    try:
+        configs["ncc"] = dataclasses.replace(configs["ncc"], lsm=configs.pop("lsm"), rectify=configs.pop("rectify"))
+    except ValueError as exc:
+        raise InvalidInput(f"[ncc] {exc}") from None
     return Recipe(name=name, description=description, **configs)

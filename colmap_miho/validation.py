@@ -1,6 +1,13 @@
-"""Checks shared by the config dataclasses' ``__post_init__``: every numeric key carries its range
-in its field's metadata (:func:`within`). Every value that sizes work is bounded, since the compiled
-kernels size their buffers from them (``ncc.lsm_antialias=1e20`` would corrupt memory)."""
+"""Checks shared by the frozen config dataclasses' ``__post_init__`` (pure: no I/O): every
+numeric recipe key carries its allowed range beside it, in its field's metadata (:func:`within`),
+and :func:`check_bounds` checks them all.
+
+Every value that sizes work (radii, blur, iterations, counts, batch sizes) has a lower and an
+upper bound that follow from what it means, checked before any work: the compiled kernels
+size their buffers from these values, and an unbounded one either never ends or corrupts
+memory (``lsm.antialias=1e20``). Relations between keys (``t_h <= t_l``,
+``template_radius + search_radius``) stay in the dataclass's ``__post_init__``.
+"""
 
 from __future__ import annotations
 

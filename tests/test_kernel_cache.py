@@ -69,8 +69,8 @@ def test_the_families_follow_the_recipe():
     assert families_for(load_recipe(None)) == ("filter", "rectify", "ncc", "lsm")  # the default uses all
     assert families_for(load_recipe("mop")) == ("filter",)
     assert families_for(load_recipe("mop_miho_ncc")) == ("filter", "rectify", "ncc")
-    assert families_for(load_recipe(None, ["ncc.rectification=filter"])) == ("filter", "ncc", "lsm")
-    assert families_for(load_recipe(None, ["ncc.lsm=false", "tracks.multiphoto_lsm=true"])) == (
+    assert families_for(load_recipe(None, ["rectify.mode=filter"])) == ("filter", "ncc", "lsm")
+    assert families_for(load_recipe(None, ["lsm.enabled=false", "tracks.multiphoto_lsm=true"])) == (
         "filter", "rectify", "ncc", "lsm")
     with pytest.raises(ValueError, match="unknown kernel families"):
         ensure_compiled(["filter", "nope"])

@@ -83,7 +83,7 @@ def dist(tmp_path_factory) -> dict[str, Path]:
 
 def test_sdist_and_wheel_hold_every_file_of_the_package(dist):
     files = _package_files()
-    assert "colmap_miho/verification/pair_graph.py" in files and "colmap_miho/recipes/mop_miho_lsm.toml" in files
+    assert "colmap_miho/verification/match_check.py" in files and "colmap_miho/recipes/mop_miho_lsm.toml" in files
     with tarfile.open(dist["sdist"]) as tar:
         top = dist["sdist"].name[: -len(".tar.gz")]
         in_sdist = {n[len(top) + 1:] for n in tar.getnames() if n.startswith(top + "/")}

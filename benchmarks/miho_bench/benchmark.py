@@ -27,6 +27,7 @@ from .datasets import PairGT, multiview_pairs, oxford_pairs
 from .match_errors import gt_error
 from .peers import adalam_mask, colmap_verification_mask, gms_available, gms_mask, magsac_mask
 from .protocol import averaged_precision_recall, homography_auc, homography_error, homography_from_matches
+from .variants import variant
 
 log = logging.getLogger(__name__)
 
@@ -120,7 +121,7 @@ def _filter_and_refine(name: str, inp: PairInput, seed: int):
         if refinement and kept.any():
             labels = np.asarray(result.labels)[kept]
             hom = np.asarray(result.patch_homographies)[labels]
-            cfg = NCCConfig.pairwise(ellipse_mask=(refinement == "ncc_star"))
+            cfg = variant(NCCConfig.pairwise(), ellipse_mask=(refinement == "ncc_star"))
             move = "2" if refinement == "track" else "auto"
             ref = refine_pair(inp.image1, inp.image2, pts1[kept], pts2[kept], hom, move=move, config=cfg)
             pts1, pts2 = pts1.copy(), pts2.copy()

@@ -47,7 +47,8 @@ def add_recipe_arguments(parser) -> None:
                         help="pycolmap mapper (default: the recipe's mapping.mapper, incremental)")
     parser.add_argument("--workers", type=int, default=None, help="processes filtering pairs (default: all cores)")
     parser.add_argument("--device", choices=Device.values(), default=Device.AUTO.value, help="torch device")
-    parser.add_argument("--seed", type=int, default=0, help="seed of refinement, mapping and RANSAC")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="the run's root seed: every stage's seed derives from it (default 0)")
     add_refine_intrinsics_argument(parser)
 
 
@@ -89,7 +90,7 @@ def auc_thresholds(args) -> tuple[float, ...]:
 def mapping_overrides(args) -> list[str]:
     """``--set`` strings for the mapping flags the command has and the user gave."""
     out = []
-    for flag, key in (("mapper", "mapper"), ("seed", "seed"), ("threads", "num_threads"),
+    for flag, key in (("mapper", "mapper"), ("threads", "num_threads"),
                       ("min_num_matches", "min_num_matches"), ("camera_model", "camera_model"),
                       ("camera_params", "camera_params"), ("refine_intrinsics", "refine_intrinsics")):
         value = getattr(args, flag, None)
@@ -99,8 +100,13 @@ def mapping_overrides(args) -> list[str]:
 
 
 def load_run_recipe(args):
-    """The recipe of compare / run / demo: ``--recipe`` and ``--set``, then the mapping flags over
-    them; ValueError for a bad value."""
+    """The recipe of compare / run / demo: ``--recipe`` and ``--set``, then the flags, which
+    override it (``--mapper`` -> ``mapping.mapper``,
+    ``--refine-intrinsics``, ``--camera-model``, ``--camera-params`` -> ``mapping.*``).
+
+    Raises:
+        ValueError: a bad recipe or value (e.g. camera parameters that do not fit the model).
+    """
     from ..recipe import load_recipe
 
     return load_recipe(args.recipe, [*args.overrides, *mapping_overrides(args)])

@@ -66,9 +66,9 @@ def run(args) -> int:
     quiet_colmap(args.verbose)
     result = compare_databases(
         args.database, args.images, args.output, gt=args.gt, pairs=args.pairs, recipe=recipe,
-        options=JobOptions(repeats=args.repeats, gt_cameras=args.camera_from_gt, thresholds=thresholds,
-                           workers=args.workers, device=args.device, progress=not args.quiet,
-                           verbose=args.verbose),
+        options=JobOptions(seed=args.seed, repeats=args.repeats, gt_cameras=args.camera_from_gt,
+                           thresholds=thresholds, workers=args.workers, device=args.device,
+                           progress=not args.quiet, verbose=args.verbose),
     )
     if not args.quiet:
         print(format_comparison(result))

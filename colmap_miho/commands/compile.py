@@ -21,7 +21,7 @@ ORDER = 90
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_lsm)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a recipe value, e.g. --set ncc.lsm=false (repeatable)")
+                        help="override a recipe value, e.g. --set lsm.enabled=false (repeatable)")
     parser.add_argument("--all", action="store_true", help="every kernel, whatever the recipe")
     parser.add_argument("--processes", type=int, default=None,
                         help="kernel families compiled at once, each in a process (default: one per core)")

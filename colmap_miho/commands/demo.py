@@ -64,7 +64,8 @@ def run(args) -> int:
     out = run_from_images(
         scene.image_dir, args.output, gt=scene.gt_dir, recipe=recipe, compare=True,
         extraction=ExtractionOptions(max_features=max_features),
-        options=JobOptions(workers=args.workers, device=args.device, progress=not args.quiet, verbose=args.verbose),
+        options=JobOptions(seed=args.seed, workers=args.workers, device=args.device, progress=not args.quiet,
+                           verbose=args.verbose),
     )
     if not args.quiet:
         print(format_comparison(out["result"]))

@@ -24,7 +24,7 @@ def add_arguments(parser) -> None:
                         help="override a recipe value, e.g. --set mapping.num_threads=1 (repeatable)")
     parser.add_argument("--mapper", default=None, choices=Mapper.values(),
                         help="pycolmap pipeline (default incremental)")
-    parser.add_argument("--seed", type=int, default=None, help="mapper random seed (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="the root seed; the mapper's derives from it (default 0)")
     parser.add_argument("--threads", type=int, default=None,
                         help="mapper threads (-1 all, the default; 1 for bit-exact repeat runs)")
     parser.add_argument("--min-num-matches", type=int, default=None,
@@ -48,11 +48,12 @@ def paths(args) -> tuple[dict, dict]:
 
 def run(args) -> int:
     from ..recipe import load_recipe
+    from ..seeds import mapping_seed
     from ..sfm import require_success, run_mapping
     from ._options import mapping_overrides
 
     config = load_recipe(args.recipe, [*args.overrides, *mapping_overrides(args)]).mapping
-    result = run_mapping(args.database, args.images, args.output, config,
+    result = run_mapping(args.database, args.images, args.output, config, seed=mapping_seed(args.seed),
                          progress=not args.quiet, verbose=args.verbose)
     if args.json:
         from ..adapters.staged_write import write_text_atomic

@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --output")
     parser.add_argument("--recipe", default=None, help="recipe name or .toml path (default mop_miho_lsm)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a recipe value, e.g. --set filter.t_l=12 (repeatable)")
+                        help="override a recipe value, table.key=value, e.g. --set filter.t_l=12, --set lsm.radius=6; "
+                             "tables: filter, ncc, lsm, rectify, tracks, pipeline, match_check (repeatable)")
     parser.add_argument("--source", choices=MatchSource.values(), default=None,
                         help="filter the verified inliers (two_view_geometries, default) or the "
                              "raw tentative matches (MOP+MiHo then replaces geometric verification)")
@@ -61,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     resume.add_argument("--restart", action="store_true",
                         help="discard an interrupted run's finished work and start again")
     parser.add_argument("--device", choices=Device.values(), default=Device.AUTO.value, help="torch device")
-    parser.add_argument("--seed", type=int, default=0, help="base random seed")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="the run's root seed: every stage's seed derives from it (default 0)")
     parser.add_argument("--strict", action="store_true", help="a missing or unreadable image is an error")
     parser.add_argument("--json", dest="json_path", type=Path, default=None, help="write the summary as JSON")
 

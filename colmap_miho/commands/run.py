@@ -78,9 +78,9 @@ def run(args) -> int:
         args.images, args.output, gt=args.gt, recipe=recipe, compare=args.compare,
         extraction=ExtractionOptions(camera_mode=args.camera_mode, camera_model=args.extract_camera_model,
                                      camera_params=args.extract_camera_params, max_features=args.max_features),
-        options=JobOptions(repeats=args.repeats, gt_cameras=args.camera_from_gt, thresholds=thresholds,
-                           workers=args.workers, device=args.device, progress=not args.quiet,
-                           verbose=args.verbose),
+        options=JobOptions(seed=args.seed, repeats=args.repeats, gt_cameras=args.camera_from_gt,
+                           thresholds=thresholds, workers=args.workers, device=args.device,
+                           progress=not args.quiet, verbose=args.verbose),
     )
     if not args.quiet:
         if args.compare:

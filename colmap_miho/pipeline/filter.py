@@ -16,9 +16,9 @@ from ..adapters.database import ColmapDatabase, PairRecord
 from ..enums import MatchSource, RunnerKind
 from ..filtering.api import filter_matches
 from ..filtering.config import FilterConfig
+from ..seeds import pair_seed
 from .read import check_match_indices
 from .records import PairOutcome
-from .workers import pair_seed
 
 if TYPE_CHECKING:
     from .executor import Runner
@@ -56,9 +56,16 @@ IN_FLIGHT_PER_SLOT = 2
 
 @dataclass(frozen=True, kw_only=True)
 class FilterOptions:
-    """Run options of the filter stage: match ``source``, base ``seed`` (per pair
-    :func:`~.workers.pair_seed`), memory budget in bytes, ``device``, ``progress``, and the user's
-    database name for messages."""
+    """Run options of the filter stage.
+
+    Attributes:
+        source: which matches are read (``pipeline.source``).
+        seed: base seed; each pair's seed is :func:`~colmap_miho.seeds.pair_seed` of it and the ids.
+        memory_budget_bytes: ``pipeline.memory_budget_mb`` in bytes (sizes the chunks).
+        device: "cpu" (the numpy filter) or "cuda" (the torch filter on the GPU, in this process).
+        progress: tqdm bar over pairs.
+        database_name: the user's database, named in error messages (the stage reads a copy).
+    """
 
     source: MatchSource
     memory_budget_bytes: int

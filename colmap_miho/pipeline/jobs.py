@@ -20,6 +20,7 @@ from ..errors import InvalidInput, RunFailed
 from ..kernel_cache import compile_in_background, families_for
 from ..recipe import Recipe, load_recipe
 from ..reporting.compare import CompareResult, Evaluation, gt_intrinsics, write_comparison
+from ..seeds import mapping_seed
 from ..sfm import MappingConfig, parse_camera_params
 from ..validation import OPTION_BOUNDS
 from .run import refine_database
@@ -35,15 +36,19 @@ class JobOptions:
     """How a whole job maps, evaluates and runs.
 
     Attributes:
-        mapper, seed: when given, replace the recipe's ``mapping.mapper`` / ``mapping.seed``.
-        repeats: mapping runs per side, seeds ``seed, seed + 1, ...``.
-        gt_cameras: write the GT model's intrinsics into the mapped copies (needs ``gt``).
-        thresholds: pose-AUC thresholds in degrees (None: the defaults).
-        workers, device, progress, verbose: run options.
+        mapper: when given, replaces the recipe's ``mapping.mapper``.
+        seed: the run's root seed; every stage's seed derives from it (:mod:`colmap_miho.seeds`).
+        repeats: mapping runs per side, seeds ``seed, seed + 1, ...``; with more than one the
+            reports get a ``repeats`` section (per-run rows, median, min, max).
+        gt_cameras: write the GT model's intrinsics into the mapped copies (needs ``gt``;
+            combine with ``mapping.refine_intrinsics = "none"`` to keep them).
+        thresholds: pose-AUC thresholds in degrees (None: 0.5/1/2/5/10/20).
+        workers, device: ``refine_database`` options.
+        progress, verbose: bars (one per mapping run) and COLMAP's log on the terminal.
     """
 
     mapper: Mapper | None = None
-    seed: int | None = None
+    seed: int = 0
     repeats: int = 1
     gt_cameras: bool = False
     thresholds: Sequence[float] | None = None
@@ -53,7 +58,7 @@ class JobOptions:
     verbose: bool = False
 
     def __post_init__(self) -> None:
-        check_seed(self.seed, optional=True)
+        check_seed(self.seed)
         check_workers(self.workers)
         check_integer("repeats", self.repeats, OPTION_BOUNDS["repeats"])
         if self.mapper is not None:
@@ -97,31 +102,33 @@ def _job_recipe(recipe: Recipe | str | None, opts: JobOptions, gt: str | Path | 
 
 
 def _mapping_config(recipe: Recipe, opts: JobOptions) -> MappingConfig:
+    """The recipe's ``mapping`` config with the ``mapper`` override applied."""
     cfg = recipe.mapping
     if opts.mapper is not None:
         cfg = replace(cfg, mapper=opts.mapper)
-    if opts.seed is not None:
-        cfg = replace(cfg, seed=opts.seed)
     return cfg
 
 
-def map_repeats(database: Path, image_dir: Path, folder: Path, mapping: MappingConfig, *, repeats: int = 1,
-                intrinsics: dict | None = None, tag: str = "", progress: bool = False,
+def map_repeats(database: Path, image_dir: Path, folder: Path, mapping: MappingConfig, *, seed: int = 0,
+                repeats: int = 1, intrinsics: dict | None = None, tag: str = "", progress: bool = False,
                 verbose: bool = False) -> list:
-    """Map ``database`` ``repeats`` times with seeds ``mapping.seed + k``: run 0 into
-    ``folder/model``, run k into ``folder/runs/seed<S>/model``. Returns each run's
-    ``MappingResult``."""
+    """Map ``database`` ``repeats`` times, the k-th with :func:`~colmap_miho.seeds.mapping_seed`
+    (``seed``, k).
+
+    Run 0 writes ``folder/model`` (the model the report and plots use), run k >= 1
+    ``folder/runs/seed<S>/model``. Returns the ``MappingResult`` of each run.
+    """
     from ..sfm import run_mapping
 
     if repeats < 1:
         raise InvalidInput(f"repeats must be >= 1, got {repeats}")
     results = []
     for k in range(repeats):
-        seed = mapping.seed + k
-        out = folder / "model" if k == 0 else folder / "runs" / f"seed{seed}" / "model"
+        run_seed = mapping_seed(seed, k)
+        out = folder / "model" if k == 0 else folder / "runs" / f"seed{run_seed}" / "model"
         label = f"{tag} run {k + 1}/{repeats}" if repeats > 1 else f"{tag} mapping".strip()
-        log.info("%s: mapping (seed %d)", tag or "mapping", seed)
-        results.append(run_mapping(database, image_dir, out, replace(mapping, seed=seed), intrinsics=intrinsics,
+        log.info("%s: mapping (seed %d)", tag or "mapping", run_seed)
+        results.append(run_mapping(database, image_dir, out, mapping, seed=run_seed, intrinsics=intrinsics,
                                    progress=progress, label=label, verbose=verbose))
     return results
 
@@ -171,7 +178,7 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
     rec, mapping = _job_recipe(recipe, opts, gt)
     output = Path(output)
     check_distinct(*comparison_paths(output, database=database, images=image_dir, gt=gt, repeats=opts.repeats,
-                                     pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=mapping.seed))
+                                     pairs=pairs if isinstance(pairs, (str, Path)) else None, seed=opts.seed))
     check_compare_inputs(database, image_dir, gt)  # before any folder is made
     compile_in_background(families_for(rec))  # while the baseline maps
     intrinsics = gt_intrinsics(gt) if opts.gt_cameras and gt is not None else None
@@ -180,19 +187,19 @@ def compare_databases(database: str | Path, image_dir: str | Path, output: str |
     database, image_dir = Path(database), Path(image_dir)
 
     def map_side(db: Path, tag: str) -> list:
-        return map_repeats(db, image_dir, output / tag, mapping, repeats=opts.repeats, intrinsics=intrinsics,
-                           tag=tag, progress=opts.progress, verbose=opts.verbose)
+        return map_repeats(db, image_dir, output / tag, mapping, seed=opts.seed, repeats=opts.repeats,
+                           intrinsics=intrinsics, tag=tag, progress=opts.progress, verbose=opts.verbose)
 
     base_runs = map_side(database, "baseline")
     log.info("refining the matches (recipe %s)", rec.name)
-    summary = _refine_into(database, image_dir, output / "refined", rec, opts, mapping.seed)
+    summary = _refine_into(database, image_dir, output / "refined", rec, opts, opts.seed)
     ref_runs = map_side(summary.output, "refined")
     if not any(r.success for r in base_runs + ref_runs):
         raise RunFailed("mapping failed on both the baseline and the refined database")
     return write_comparison(output, base_runs, ref_runs, databases=(database, summary.output),
                             refine=summary.to_dict(),
                             evaluation=Evaluation(gt=None if gt is None else Path(gt), pairs=pairs,
-                                                  seed=mapping.seed, thresholds=opts.thresholds))
+                                                  seed=opts.seed, thresholds=opts.thresholds))
 
 
 def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe | str | None = None,
@@ -215,7 +222,7 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
     ext = extraction or ExtractionOptions()
     rec, mapping = _job_recipe(recipe, opts, gt)
     output = Path(output)
-    check_distinct(*comparison_paths(output, images=image_dir, gt=gt, repeats=opts.repeats, seed=mapping.seed,
+    check_distinct(*comparison_paths(output, images=image_dir, gt=gt, repeats=opts.repeats, seed=opts.seed,
                                      compare=compare))
     output.mkdir(parents=True, exist_ok=True)
     compile_in_background(families_for(rec))  # while the features are extracted and matched
@@ -234,12 +241,13 @@ def run_from_images(image_dir: str | Path, output: str | Path, *, recipe: Recipe
         out["result"] = res
         return out
     (output / "refined").mkdir(exist_ok=True)
-    summary = _refine_into(database, Path(image_dir), output / "refined", rec, opts, mapping.seed)
+    summary = _refine_into(database, Path(image_dir), output / "refined", rec, opts, opts.seed)
     res_map = require_success(run_mapping(summary.output, image_dir, output / "refined" / "model", mapping,
+                                          seed=mapping_seed(opts.seed),
                                           intrinsics=gt_intrinsics(gt) if opts.gt_cameras and gt is not None
                                           else None, progress=opts.progress, verbose=opts.verbose))
     report = build_report(res_map.output, reconstruction=res_map.reconstruction,
-                          database=summary.output if gt is not None else None, gt=gt, seed=mapping.seed,
+                          database=summary.output if gt is not None else None, gt=gt, seed=opts.seed,
                           thresholds=opts.thresholds)
     report["refine"] = summary.to_dict()
     report["mapping"] = res_map.to_dict()

@@ -1,6 +1,20 @@
-"""Match-check stage: judge every match against a global estimate of the cameras
-(:func:`~colmap_miho.verification.match_check.judge_in_rounds`, pycolmap's global mapper) before the
-refinement; the decision is stored, as the mapper is not bit-for-bit repeatable."""
+"""Match-check stage: after the filter, before the refinement, judge every
+match against a global estimate of the cameras (:mod:`colmap_miho.verification.match_check`)
+and remove the ones it contradicts, so that the track walk refines only what survives.
+
+The check itself, rounds and re-placements included, is
+:func:`colmap_miho.verification.match_check.judge_in_rounds`; its estimator is pycolmap's global
+mapper on the filtered matches, run in this process
+(:class:`colmap_miho.sfm.global_estimate.GlobalEstimator`). This stage reads the matches, keeps
+the verdicts, names the images in the stats and says what the later stages apply.
+
+What the stage decides is kept in the run store (``stage-match_check.npz``): a resumed run reads
+it back instead of running the mapper again (its result is not bit-for-bit repeatable across
+thread counts). What it returns (:class:`~.verdicts.Verdicts`): the matches of filtered pairs
+that failed, taken out of the pair's kept matches; the wrong pairs, removed whole (filtered or
+not); the judged pairs, whose geometry is fitted again from their
+survivors when written.
+"""
 
 from __future__ import annotations
 
@@ -13,6 +27,7 @@ import numpy as np
 
 from ..adapters.database import ColmapDatabase
 from ..enums import MatchCheckMode, MatchSource
+from ..seeds import match_check_seed
 from ..types import Pair
 from ..verification.config import MatchCheckConfig
 from ..verification.match_check import HingeVerdict, MatchCheckDecision, judge_in_rounds
@@ -76,14 +91,14 @@ class MatchCheckStats:
 
 
 def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, *,
-                    checked: Verdicts = NO_VERDICTS, threads: int = -1) -> tuple[Verdicts, MatchCheckStats | None]:
-    """The stage: judge the pair graph's matches; returns its :class:`~.verdicts.Verdicts` (none in
-    "flag" mode) and the stats (None when off)."""
+                    seed: int = 0, threads: int = -1) -> tuple[Verdicts, MatchCheckStats | None]:
+    """The stage: judge the pair graph's matches (``seed``: the run's root seed); returns its
+    :class:`~.verdicts.Verdicts` (none in "flag" mode) and the stats (None when off)."""
     if not cfg.enabled:
         return NO_VERDICTS, None
     stored = store.load_stage(STORE_NAME)
     if stored is None:
-        failed, wrong, restored, meta = _decide(db, store, cfg, source, checked, threads)
+        failed, wrong, restored, meta = _decide(db, store, cfg, source, seed, threads)
         store.save_stage(STORE_NAME, _pack(failed, wrong, restored), meta)
         stats = MatchCheckStats(**meta)
     else:
@@ -126,20 +141,19 @@ def _restorable(stored, rows: np.ndarray) -> bool:
     return bool(len(rows) == 0 or (int(rows.max()) < len(inliers) and not inliers[rows].any()))
 
 
-def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, checked: Verdicts,
+def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, seed: int,
             threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict[Pair, np.ndarray], dict]:
     """The check on the pair graph: (pair -> failed mask, wrong pairs, filtered pair -> its stored
     rows restored, the stats' fields)."""
     from ..sfm.global_estimate import GlobalEstimator
 
     filtered = store.load_filtered()
-    matches = pair_graph(db, filtered, source, checked)
+    matches = pair_graph(db, filtered, source)
     # the matches the filter removed, offered back to the check
-    removed_rows = {p: np.flatnonzero(~np.asarray(r.inliers, bool)) for p, (m, r) in filtered.items()
-                    if p not in checked.removed}
+    removed_rows = {p: np.flatnonzero(~np.asarray(r.inliers, bool)) for p, (m, r) in filtered.items()}
     candidates = {p: np.asarray(filtered[p][0][rows], np.int64) for p, rows in removed_rows.items() if len(rows)}
     del filtered  # not held during the mapper: only the kept matches and the candidates are
-    estimator = GlobalEstimator(src=db, config=cfg, num_threads=threads,
+    estimator = GlobalEstimator(src=db, config=cfg, seed=match_check_seed(seed), num_threads=threads,
                                 verbose=log.isEnabledFor(logging.DEBUG))  # -v: COLMAP's log on the terminal
     d = judge_in_rounds(matches, estimator, cfg, candidates)
     restored = {p: removed_rows[p][ok] for p, ok in sorted(d.restored.items())}
@@ -182,6 +196,7 @@ def stats_fields(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pai
 
 
 def _hinge_meta(v: HingeVerdict, matches: dict[Pair, np.ndarray], name) -> dict:
+    """The stats' record of one hinge, images named."""
     def named(pairs) -> list[list[str]]:
         return [[name(i), name(j)] for i, j in sorted(pairs)]
 

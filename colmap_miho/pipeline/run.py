@@ -1,5 +1,35 @@
-"""``refine_database``: filter, check and refine the matches of a COLMAP database on a working copy,
-stage by stage; finished work survives in the run store for ``resume``."""
+"""``refine_database``: filter and refine the matches of a COLMAP database, safely.
+
+Data flow (one stage after the other, each ``run_<stage>`` returning its outputs and a small
+stats dataclass that :class:`RefineSummary` is assembled from)::
+
+    safe working copy -> read (:mod:`.read`) -> filter the pairs chunk by chunk
+      (:mod:`.filter`, MOP / MOP+MiHo) into the run store (:mod:`.store`)
+      -> match check against a global estimate of the cameras (:mod:`.match_check`, its
+      :class:`~.verdicts.Verdicts`)
+      -> track-consistent NCC refinement (:mod:`.refine`) -> write back chunk by chunk
+      (:mod:`.write`: keypoints, matches, two_view_geometries)
+      -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
+
+The input database is never opened for writing; see :mod:`colmap_miho.adapters.safety`.
+
+Memory: ``pipeline.memory_budget_mb`` (``refine --memory-budget``) sizes the filter's chunks
+and the refine stage's image cache (see :class:`~colmap_miho.pipeline_config.PipelineConfig`).
+
+Resuming: finished filter chunks and refine groups are kept in the run store beside the
+output until the commit; a killed or failed run is continued with ``resume=True``
+(``refine --resume``), and ``restart=True`` discards them. A run that finds finished work
+and was given neither refuses to start.
+
+Parallelism: one :class:`~.executor.Runner` per run (:func:`~.executor.open_runner`) runs the
+filter's chunks and the refinement's track groups in this process, in worker processes with one
+thread each (forked from a forkserver that imported torch once), or on a Dask cluster
+(``dask``); only this process writes SQLite. Scripts that call :func:`refine_database` with
+``workers > 1`` need the usual ``if __name__ == "__main__":`` guard.
+
+All coordinates handled here are colmap-miho's (integer = pixel centre); the conversion to
+COLMAP's happens inside :mod:`colmap_miho.adapters.database`.
+"""
 
 from __future__ import annotations
 
@@ -26,7 +56,6 @@ from ..recipe import Recipe, load_recipe
 from .executor import LOCAL, Runner, open_runner
 from .filter import FilterOptions, run_filter
 from .match_check import run_match_check
-from .pair_check import run_pair_check
 from .read import ReadConfig, run_read
 from .refine import run_refine
 from .store import RunStore, StoreDamaged, run_fingerprint, store_folder
@@ -45,6 +74,7 @@ def _resolve_recipe(recipe: Recipe | str | os.PathLike | None) -> Recipe:
 
 
 def _resolve_device(device: Device | str) -> str:
+    """"cpu" or "cuda", by the one resolver (torch is imported only if needed)."""
     device = Device.parse(device, "device")
     if device == Device.CPU:
         return "cpu"
@@ -200,6 +230,7 @@ def _keep_store(store: RunStore) -> bool:
 
 
 def _add_note(exc: BaseException, note: str) -> None:
+    """``exc.add_note(note)`` (Python >= 3.11), or the same ``__notes__`` list on 3.10."""
     add = getattr(exc, "add_note", None)
     if add is not None:
         add(note)
@@ -228,6 +259,7 @@ class _RunInputs:
 
 def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Runner, *, resumed: bool,
                 laps: _Laps) -> RefineSummary:
+    """The stages on the working copy, then the commit; returns the summary."""
     database, image_dir, rec, dev = inputs.database, inputs.image_dir, inputs.recipe, inputs.device
     seed, strict, progress, json_path = inputs.seed, inputs.strict, inputs.progress, inputs.json_path
     pcfg = rec.pipeline
@@ -246,17 +278,12 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                     source=pcfg.source, seed=seed, memory_budget_bytes=pcfg.memory_budget_bytes, device=dev,
                     progress=progress, database_name=str(database)), runner=runner, store=store)
                 laps.lap("filter")
-                pair_verdicts, pair_check = run_pair_check(db, read, store, rec.pair_check, pcfg.source)
-                if rec.pair_check.enabled:
-                    laps.lap("pair_check")
                 # the global mapper runs here: threads beyond this machine's cores (a remote Dask
                 # cluster's slots, --workers 1024) would only be created, never run in parallel
-                match_verdicts, match_check = run_match_check(db, store, rec.match_check, pcfg.source,
-                                                              checked=pair_verdicts,
-                                                              threads=min(runner.slots, os.cpu_count() or 1))
+                verdicts, match_check = run_match_check(db, store, rec.match_check, pcfg.source, seed=seed,
+                                                        threads=min(runner.slots, os.cpu_count() or 1))
                 if rec.match_check.enabled:
                     laps.lap("match_check")
-                verdicts = pair_verdicts.merge(match_verdicts)
                 new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress, verdicts)
                 laps.lap("refine")
                 write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg, verdicts)
@@ -266,9 +293,9 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                 laps.lap("verify")
             summary = RefineSummary.from_stages(
                 output=database if wc.in_place else wc.output,  # in place: the user's path (a symlink stays one)
-                database=database, backup=wc.backup, recipe=rec, device=dev, runner=str(runner.kind),
+                database=database, backup=wc.backup, recipe=rec, device=dev, seed=seed, runner=str(runner.kind),
                 resumed=resumed, read=read_stats, filtered=filter_stats, refine=refine_stats,
-                write=write_stats, seconds=laps.total(), pair_check=pair_check, match_check=match_check)
+                write=write_stats, seconds=laps.total(), match_check=match_check)
             if json_path:  # written beside its target now, renamed onto it with the commit
                 wc.stage_side_file(json_path, json.dumps(summary.to_dict(), indent=2) + "\n")
             wc.commit()

@@ -42,9 +42,9 @@ LOCK = "lock"
 #: Format of the store's files; a store of another format is not resumed.
 STORE_VERSION = 1
 #: Recipe tables whose values change a run's result (``mapping`` is not used by ``refine``).
-RESULT_TABLES = ("filter", "ncc", "tracks", "pipeline", "pair_check", "match_check")
-#: ``pipeline`` keys that do not change the result (they only bound memory).
-NOT_RESULT_KEYS = {"pipeline": ("memory_budget_mb",)}
+RESULT_TABLES = ("filter", "ncc", "lsm", "rectify", "tracks", "pipeline", "match_check")
+#: keys left out of a table: ``pipeline``'s that only bound memory, ``ncc``'s nested tables (their own).
+NOT_RESULT_KEYS = {"pipeline": ("memory_budget_mb",), "ncc": ("lsm", "rectify")}
 
 _FILTER_FILE = re.compile(r"^filter-(\d{6})\.npz$")
 _GROUP_FILE = re.compile(r"^group-(\d{6})\.npz$")

@@ -10,7 +10,6 @@ from pathlib import Path
 from ..recipe import Recipe
 from .filter import FilterStats
 from .match_check import MatchCheckStats
-from .pair_check import PairCheckStats
 from .read import ReadStats
 from .refine import RefineStats
 from .write import WriteStats
@@ -18,25 +17,46 @@ from .write import WriteStats
 
 @dataclass
 class RefineSummary:
-    """What ``refine_database`` did; counters are over image pairs, matches or keypoints.
+    """What ``refine_database`` did. Counters are over image pairs / matches / keypoints.
 
     Attributes:
-        output / backup: the written database / the input's timestamped copy (``in_place`` only).
-        pairs_filtered / pairs_passed / pairs_failed: pairs filtered / too small, left unchanged /
-          with no plane found, left unchanged.
-        matches_in / matches_kept / matches_removed: over every pair, after filter and checks.
-        keypoints_moved, median_displacement_px, max_displacement_px: keypoints moved (each at most
-          once) and how far, in pixels.
-        images_missing / images_implausible: images not read / whose keypoints do not fit their pixels.
-        image_decodes / image_decodes_max: image files decoded over all processes / most of one image.
-        pair_check / match_check: what each check removed and why (empty when off).
-        seconds: wall time per stage.
+        output: path of the written database.
+        backup: timestamped copy of the input (``in_place`` only), else None.
+        seed: the run's root seed (every stage's derives from it: :mod:`colmap_miho.seeds`).
+        pairs_filtered: pairs with at least ``pipeline.min_matches`` matches, filtered.
+        pairs_passed: pairs with fewer matches, left unchanged.
+        pairs_failed: filtered pairs for which the filter found no plane; left unchanged.
+        matches_in / matches_kept / matches_removed: over every pair of the source, in the
+            input / in the output (after the filter's and the match check's
+            removals) / their difference.
+        keypoints_moved: keypoints whose position changed (each moves at most once).
+        median_displacement_px / max_displacement_px: over the moved keypoints, pixels.
+        images_missing: names of images that could not be read (not refined).
+        images_implausible: names of images whose keypoints do not match their pixels (a file
+            renamed or replaced after extraction; refined all the same, with a warning).
+        runner: where the parallel work ran: "inline", "processes" or "dask".
+        memory_budget_mb: ``pipeline.memory_budget_mb`` of the run.
+        filter_chunks / filter_chunks_resumed: chunks of pairs filtered in all / taken from
+            an interrupted run's store; pairs_resumed: the pairs of those chunks.
+        refine_groups / refine_groups_resumed: track groups refined in all / taken from the
+            store (0 when the refine stage does not report groups).
+        resumed: the run continued an interrupted one.
+        image_decodes: image files decoded in the whole run, over all processes: the read
+            stage's check (once per image; kept in the cache when it fits) and the track walk's
+            (an image again in each worker whose groups need it and no longer cache it).
+        image_decodes_max: the most times one image was decoded in the run (same count).
+        match_check: what the match check against a global estimate of the cameras removed
+            and why, whether the estimate was used and which images it trusted
+            (:meth:`~.match_check.MatchCheckStats.to_dict`; empty when it is off).
+        seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
+            "total").
     """
 
     output: Path
     database: Path
     backup: Path | None = None
     recipe: str = ""
+    seed: int = 0
     source: str = ""
     refined: bool = True
     verified: bool = False
@@ -68,21 +88,19 @@ class RefineSummary:
     image_decodes_max: int = 0
     refine_stats: dict = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
-    pair_check: dict = field(default_factory=dict)
     match_check: dict = field(default_factory=dict)
 
     @classmethod
     def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
-                    device: str, runner: str, resumed: bool, read: ReadStats, filtered: FilterStats,
+                    device: str, seed: int, runner: str, resumed: bool, read: ReadStats, filtered: FilterStats,
                     refine: RefineStats, write: WriteStats, seconds: dict[str, float],
-                    pair_check: PairCheckStats | None = None,
                     match_check: MatchCheckStats | None = None) -> RefineSummary:
         """Assemble the summary from the stages' stats (a check's None: it was off)."""
         pcfg = recipe.pipeline
         per_image = Counter(read.decoded_by_image)
         per_image.update(refine.decoded_by_image)
         return cls(
-            output=output, database=database, backup=backup, recipe=recipe.name,
+            output=output, database=database, backup=backup, recipe=recipe.name, seed=int(seed),
             source=str(pcfg.source), refined=pcfg.refine, verified=pcfg.verify,
             workers=filtered.workers, device=device, num_images=read.num_images,
             num_pairs=read.num_pairs, pairs_filtered=filtered.pairs_filtered,
@@ -100,7 +118,6 @@ class RefineSummary:
             image_decodes=read.image_decodes + refine.count("image_decodes"),
             image_decodes_max=max(per_image.values(), default=0),
             refine_stats=dict(refine.counters), seconds=seconds,
-            pair_check={} if pair_check is None else pair_check.to_dict(),
             match_check={} if match_check is None else match_check.to_dict())
 
     def to_dict(self) -> dict:
@@ -129,8 +146,6 @@ class RefineSummary:
             lines.append(f"  resumed: {self.filter_chunks_resumed} of {self.filter_chunks} filter chunks "
                          f"({self.pairs_resumed} pairs) and {self.refine_groups_resumed} of "
                          f"{self.refine_groups} refine groups were finished before")
-        if self.pair_check:
-            lines.append(_pair_check_line(self.pair_check))
         if self.match_check:
             from ..reporting.html_report import match_check_note
 
@@ -143,13 +158,3 @@ class RefineSummary:
             lines.append(f"  backup of the input: {self.backup}")
         lines.append("  seconds: " + ", ".join(f"{k} {v:.2f}" for k, v in self.seconds.items()))
         return "\n".join(lines)
-
-
-def _pair_check_line(pc: dict) -> str:
-    done = f"{pc['pairs_removed']} removed" if pc["mode"] == "remove" else f"{pc['pairs_flagged']} flagged"
-    line = (f"  pair check: {pc['pairs_checked']} pairs, {pc['triangles']} triangles "
-            f"({pc['triangles_broken']} broken), {done}")
-    line += "".join(f"\n    {' - '.join(w['images'])}: {w['reason']}" for w in pc["wrong_pairs"][:10])
-    if len(pc["wrong_pairs"]) > 10:
-        line += f"\n    ... and {len(pc['wrong_pairs']) - 10} more (see the JSON report)"
-    return line

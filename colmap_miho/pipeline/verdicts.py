@@ -1,5 +1,15 @@
-"""The checks' verdicts (:class:`Verdicts`, merged from both checks) and the matches that reach the
-output database once they are applied."""
+"""The checks' verdicts, and the matches that reach the output database once they are applied.
+
+The match check (:mod:`.match_check`) returns one :class:`Verdicts`; the later stages apply it
+with its one method
+(:meth:`Verdicts.apply`): the refine stage to the stored pairs it walks, the write stage to each
+stored chunk it writes.
+
+A pair's output matches (:func:`output_matches`) are the kept matches of its stored filter
+outcome when it was filtered (the failed matches taken out), else the database's matches (a pair
+too small to filter, or in which no plane was found), less the matches the match check
+failed in it. Pairs removed whole reach the output without matches.
+"""
 
 from __future__ import annotations
 
@@ -24,11 +34,6 @@ class Verdicts:
     failed: Mapping[Pair, np.ndarray] = field(default_factory=dict)
     refit: frozenset[Pair] = frozenset()
     restored: Mapping[Pair, np.ndarray] = field(default_factory=dict)
-
-    def merge(self, other: Verdicts) -> Verdicts:
-        """The union of both verdicts (``other``'s failed and restored matches where both judged a pair)."""
-        return Verdicts(removed=self.removed | other.removed, failed={**self.failed, **other.failed},
-                        refit=self.refit | other.refit, restored={**self.restored, **other.restored})
 
     def apply(self, pairs: FilteredPairs) -> FilteredPairs:
         """``pairs`` without the removed ones, failed matches cleared and restored ones set (labels -1)."""

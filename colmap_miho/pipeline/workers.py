@@ -15,8 +15,6 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
-import numpy as np
-
 from ..errors import RunFailed, UserError
 
 log = logging.getLogger(__name__)
@@ -38,11 +36,6 @@ SCRIPT_HINT = ("if you call colmap_miho from your own script, put the call under
 WORKER_DIED = f"a worker process ended abruptly (killed, out of memory, or a crash in native code); {SCRIPT_HINT}"
 
 _SINGLE_THREAD_ENV = {k: "1" for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-
-
-def pair_seed(seed: int, image_id1: int, image_id2: int) -> int:
-    """Seed of one pair, independent of worker count and order."""
-    return int(np.random.SeedSequence([int(seed), int(image_id1), int(image_id2)]).generate_state(1)[0])
 
 
 def init_worker() -> None:

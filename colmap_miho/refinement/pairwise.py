@@ -21,7 +21,6 @@ from ..enums import MoveSide
 from ..errors import InvalidInput
 from .config import DEFAULT_BATCH_SIZE, NCCConfig
 from .lsm.step import LSM_COUNTERS, lsm_step
-from .ncc.blur import match_blur
 from .ncc.perturbations import perturbation_matrices
 from .ncc.search import Pass, evaluate_direction
 from .ncc.subpixel import iterate_subpixel
@@ -37,16 +36,26 @@ ArrayInput = np.ndarray | torch.Tensor
 
 @dataclass(frozen=True)
 class RefineResult:
-    """Output of :func:`refine_pair` (N matches).
+    """Output of :func:`refine_pair` (N = number of matches).
 
     Attributes:
-        pts1, pts2: ``(N, 2)`` float64 refined pixels; at most one side differs per match.
-        ncc_before, ncc_after: ``(N,)`` NCC at zero offset and of the applied move (NaN: not evaluated).
-        moved_side: ``(N,)`` int8, 0 none, 1 or 2.
-        displacement: ``(N,)`` pixels the moved keypoint travelled.
-        rejected: ``(N,)`` bool, a move was found but not applied.
-        ncc_second: ``(N,)`` NCC of the best separated peak (how distinct the peak is), or None.
-        stats: counters and ``seconds``.
+        pts1, pts2: (N, 2) float64 refined pixel coordinates (integer = pixel centre); at most
+            one of the two differs from the input per match.
+        ncc_before: (N,) float64 NCC in [-1, 1] at zero offset (best shape) of the chosen
+            direction; NaN where the match was not evaluated.
+        ncc_after: (N,) float64 NCC of the applied move (= ncc_before where nothing moved).
+        moved_side: (N,) int8, 0 none, 1 or 2.
+        displacement: (N,) float64 pixels the moved keypoint travelled (0 where none).
+        rejected: (N,) bool, a move was found but not applied (border or too weak a peak).
+        ncc_second: (N,) float64 NCC of the best separated peak of the applied move's map
+            (:func:`.ncc.correlation.find_peaks`' ``second``), NaN where nothing moved; how
+            distinct the peak taken is. None from refiners that do not report it.
+        stats: counters (``n``, ``moved``, ``rejected_border``,
+            ``rejected_weak`` (peak below ``min_ncc``), ``gated_flat``, ``outside``,
+            ``invalid_homography``,
+            ``seconds``, ``device``, ``shapes``; with ``config.lsm.enabled``, the counters of
+            :data:`~.lsm.step.LSM_COUNTERS`: ``lsm_applied``, ``lsm_not_converged``,
+            ``lsm_far``, ``lsm_imprecise``).
     """
 
     pts1: np.ndarray
@@ -72,6 +81,9 @@ def resolve_device(config: NCCConfig, *inputs: object) -> torch.device:
 
 @dataclass
 class _Outputs:
+    """The arrays :func:`refine_pair` fills in (N rows, see :class:`RefineResult`) and its
+    counters."""
+
     pts: tuple[np.ndarray, np.ndarray]
     before: np.ndarray
     after: np.ndarray
@@ -99,6 +111,8 @@ class _Outputs:
 
 @dataclass(frozen=True)
 class _Offsets:
+    """Sample offsets of one :func:`refine_pair` call, on its device."""
+
     shapes: torch.Tensor  # (K, 2, 2) template shapes M
     grid_t: torch.Tensor  # (P, 2) template pixels, radius r
     tpl: torch.Tensor  # (K, P, 2) M w
@@ -154,13 +168,8 @@ def refine_pair(
     device = resolve_device(cfg, image1, image2, pts1, patch_homographies)
     img = (to_gray_tensor(image1, device), to_gray_tensor(image2, device))
     out = _Outputs.unchanged(inp.p1, inp.p2)
-    if cfg.match_blur:
-        img, blur_counts = match_blur(img, inp.p1, inp.p2, inp.homs)
-        out.counts.update(blur_counts)
-    if cfg.lsm:
+    if cfg.lsm.enabled:
         out.counts.update(dict.fromkeys(LSM_COUNTERS, 0))
-        if cfg.lsm_only:
-            out.counts["rejected_lsm"] = 0
     offs = _Offsets.of(cfg, device)
     base = base_pairs(n, inp.affine1, inp.affine2)
     use_base = cfg.use_base_pair and not (
@@ -213,27 +222,26 @@ Direction = tuple[int, int, dict[str, torch.Tensor]]
 
 def _subpixel(img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack], direction: tuple[int, int],
               r: dict[str, torch.Tensor], rows: tuple[torch.Tensor, np.ndarray], cfg: NCCConfig,
-              out: _Outputs) -> tuple[torch.Tensor, np.ndarray]:
-    """Sub-pixel offsets ``(J, 2)`` of a direction's accepted moves (LSM where on and accepted,
-    iterated parabolas elsewhere) and ``(J,)`` the moves to apply."""
+              out: _Outputs) -> torch.Tensor:
+    """Sub-pixel offsets (J, 2) of the accepted moves of ``direction`` (fixed ``f``, moving
+    ``m``), ``rows`` = (their rows in the chunk, their match indices): least-squares matching
+    from the NCC peak's parabola where ``cfg.lsm.enabled`` and it passes its tests, the iterated
+    parabolas elsewhere (all of them without LSM)."""
     (f, m), (sel, _) = direction, rows
     H_inv, frame, off = r["H_inv"][sel], r["frame_m"][sel], r["offset"][sel]
     img_m = job_images(img[m], sel)
-    every = np.ones(sel.numel(), bool)
-    if not cfg.lsm:
+    if not cfg.lsm.enabled:
         return iterate_subpixel(img_m, H_inv, frame, off, r["template"][sel], cfg.template_radius,
-                                cfg.subpixel_iterations), every
+                                cfg.subpixel_iterations)
     off, lsm_counts, accepted = lsm_step(job_images(img[f], sel), img_m, r["H_f_inv"][sel], r["frame_f"][sel],
                                          H_inv, frame, off, cfg)
     for key, value in lsm_counts.items():
         out.add(key, int(value))
-    if cfg.lsm_only:
-        return off, accepted.cpu().numpy()
     todo = torch.nonzero(~accepted)[:, 0]
     if todo.numel():
         off[todo] = iterate_subpixel(job_images(img_m, todo), H_inv[todo], frame[todo], off[todo],
                                      r["template"][sel][todo], cfg.template_radius, cfg.subpixel_iterations)
-    return off, every
+    return off
 
 
 def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Tensor | ImageStack],
@@ -269,15 +277,7 @@ def _decide(res: list[Direction], img: tuple[torch.Tensor | ImageStack, torch.Te
             continue
         sel = torch.as_tensor(take, device=r["offset"].device)
         H_inv, frame = r["H_inv"][sel], r["frame_m"][sel]
-        off, apply = _subpixel(img, (f, m), r, (sel, idx[take]), cfg, out)
-        if not apply.all():  # lsm_only: the moves LSM did not accept are rejected
-            out.rejected[idx[take[~apply]]] = True
-            out.add("rejected_lsm", int((~apply).sum()))
-            keep = torch.as_tensor(np.flatnonzero(apply), device=off.device)
-            take, sel, off = take[apply], sel[keep], off[keep]
-            H_inv, frame = H_inv[keep], frame[keep]
-            if take.size == 0:
-                continue
+        off = _subpixel(img, (f, m), r, (sel, idx[take]), cfg, out)
         new = to_frame(H_inv, frame + off).cpu().numpy()
         ok = idx[take]
         old = out.pts[m][ok]

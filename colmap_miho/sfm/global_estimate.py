@@ -66,7 +66,8 @@ class GlobalEstimate:
 
 
 def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig, *,
-                    num_threads: int = -1, verbose: bool = False, workdir: Path | None = None) -> GlobalEstimate:
+                    seed: int = 0, num_threads: int = -1, verbose: bool = False,
+                    workdir: Path | None = None) -> GlobalEstimate:
     """Run pycolmap's global mapper on ``matches`` with the cameras of ``src``.
 
     Args:
@@ -75,6 +76,8 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
         cfg: the match check's settings (pairs under ``min_pair_matches`` are left out; the
             mapper gets :func:`sampled_tracks`; ``pair_rotation_matches`` caps each pair's own
             rotation's matches).
+        seed: the match check's seed (:mod:`colmap_miho.seeds`): the track sample's, the
+            mapper's and the pairs' RANSAC.
         num_threads: mapper threads (-1: all cores).
         verbose: COLMAP's log on the terminal instead of the temporary folder's file (a failed
             estimate is the caller's to report).
@@ -98,11 +101,11 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
     with private_tempdir("miho-global-", workdir) as folder:
         try:
             tracks = sampled_tracks(used, {i: len(k) for i, k in kp.items()}, cfg.estimate_matches_per_image,
-                                    cfg.min_pair_matches, cfg.seed)
-            _write_database(pycolmap, src, folder / "global.db", image_ids, tracks, kp, cfg.seed)
+                                    cfg.min_pair_matches, seed)
+            _write_database(pycolmap, src, folder / "global.db", image_ids, tracks, kp, seed)
             seconds["database"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            recs, failure, steps = _run_mapper(pycolmap, folder, cfg, num_threads, verbose)
+            recs, failure, steps = _run_mapper(pycolmap, folder, cfg, seed, num_threads, verbose)
             seconds["mapper"] = time.perf_counter() - t0
         except (OSError, RuntimeError) as exc:
             if is_disk_full(exc):
@@ -114,7 +117,7 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
     model = _read_model(rec, kp)
     t0 = time.perf_counter()
     sample = evenly_spaced(used, cfg.pair_rotation_matches)
-    rotations = _pair_rotations(pycolmap, sample, kp, model["cameras"], cfg.seed, num_threads)
+    rotations = _pair_rotations(pycolmap, sample, kp, model["cameras"], seed, num_threads)
     seconds["pair_rotations"] = time.perf_counter() - t0
     return GlobalEstimate(**model, seconds=seconds, mapper_steps=steps, keypoints=kp, pair_rotations=rotations)
 
@@ -183,14 +186,14 @@ def _write_database(pc, src: ColmapDatabase, path: Path, image_ids: list[int], u
                 dst.write_two_view_geometry(i, j, tvg)
 
 
-def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, num_threads: int, verbose: bool
+def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, seed: int, num_threads: int, verbose: bool
                 ) -> tuple[dict, str, dict[str, float]]:
     """``pycolmap.global_mapping`` on ``folder``'s ``global.db`` into ``folder/model``; returns
     (its models, why it gave none in COLMAP's words ("" when it gave some), the seconds of its
     steps from its log)."""
     from ..adapters.staged_write import is_disk_full
 
-    opts = global_options(seed=cfg.seed, num_threads=num_threads, min_num_matches=cfg.min_pair_matches)
+    opts = global_options(seed=seed, num_threads=num_threads, min_num_matches=cfg.min_pair_matches)
     opts.mapper.ba_num_iterations = int(cfg.ba_iterations)
     opts.mapper.skip_retriangulation = not cfg.retriangulate
     if cfg.ba_function_tolerance > 0:
@@ -249,20 +252,21 @@ class GlobalEstimator:
 
     src: ColmapDatabase
     config: MatchCheckConfig
+    seed: int = 0
     num_threads: int = -1
     verbose: bool = False
     workdir: Path | None = None
 
     def estimate(self, matches: Mapping[Pair, np.ndarray]) -> GlobalEstimate:
-        return global_estimate(self.src, matches, self.config, num_threads=self.num_threads, verbose=self.verbose,
-                               workdir=self.workdir)
+        return global_estimate(self.src, matches, self.config, seed=self.seed, num_threads=self.num_threads,
+                               verbose=self.verbose, workdir=self.workdir)
 
     def place(self, estimate: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray],
               trusted: frozenset[int], min_inliers: int | None = None) -> Pose | None:
         cfg = self.config
         return place_by_points(estimate, image_id, matches, trusted, max_error_px=cfg.max_threshold_px,
                                min_inliers=cfg.min_placed_inliers if min_inliers is None else min_inliers,
-                               seed=cfg.seed)
+                               seed=self.seed)
 
 
 def place_by_points(est: GlobalEstimate, image_id: int, matches: Mapping[Pair, np.ndarray], trusted, *,

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..enums import Mapper, StrEnum
 from ..errors import InvalidInput, RunFailed
-from ..validation import MAX_MATCHES, MAX_SEED, check_bounds, within
+from ..validation import MAX_MATCHES, check_bounds, within
 from .colmap_log import colmap_log_to_file, latest_log
 
 log = logging.getLogger(__name__)
@@ -141,8 +141,6 @@ class MappingConfig:
     Attributes:
         mapper: "incremental" (``pycolmap.incremental_mapping``) or "global"
             (``pycolmap.global_mapping``, GLOMAP).
-        seed: ``random_seed`` of the mapper options (deterministic with ``num_threads=1``;
-            multi-threaded bundle adjustment may still vary in the last digits).
         num_threads: mapper threads, -1 = all cores.
         min_num_matches: pairs with fewer verified inliers are ignored by the mapper.
         camera_model: COLMAP camera model written into the mapped copy of the database for
@@ -155,7 +153,6 @@ class MappingConfig:
     """
 
     mapper: Mapper = Mapper.INCREMENTAL
-    seed: int = field(default=0, metadata=within(0, MAX_SEED, "a 32-bit seed"))
     num_threads: int = field(default=-1, metadata=within(-1, 4096, "threads; -1: all cores"))
     min_num_matches: int = field(default=15, metadata=within(0, MAX_MATCHES, "no pair holds more matches"))
     camera_model: str = ""
@@ -192,7 +189,7 @@ def run_mapping(
     config: MappingConfig | None = None,
     *,
     mapper: Mapper | str | None = None,
-    seed: int | None = None,
+    seed: int = 0,
     intrinsics: dict | None = None,
     progress: bool = False,
     label: str = "mapping",
@@ -205,8 +202,9 @@ def run_mapping(
         image_dir: the image folder (colours of the 3D points).
         output: folder for the model (cameras/images/points3D .bin); created. An existing
             binary model in it is replaced; a text model (a ground truth, say) is refused.
-        config: mapper, seed, threads and ``min_num_matches`` (default :class:`MappingConfig`).
-        mapper, seed: when given, replace ``config.mapper`` / ``config.seed``.
+        config: mapper, threads and ``min_num_matches`` (default :class:`MappingConfig`).
+        mapper: when given, replaces ``config.mapper``.
+        seed: the mapper's seed (:func:`colmap_miho.seeds.mapping_seed` of the run's root).
         intrinsics: image name -> :class:`~colmap_miho.adapters.cameras.CameraIntrinsics`
             written into those images' cameras of the copy after ``config.camera_model`` (e.g.
             the GT cameras, :func:`colmap_miho.reporting.compare.gt_intrinsics`).
@@ -227,13 +225,12 @@ def run_mapping(
     from ..arguments import check_paths, check_seed
 
     check_paths(database=database, image_dir=image_dir, output=output)
-    check_seed(seed, optional=True)
+    check_seed(seed)
     if config is not None and not isinstance(config, MappingConfig):
         raise InvalidInput(f"config must be of type MappingConfig, got {type(config).__name__}")
     cfg = config or MappingConfig()
-    if mapper is not None or seed is not None:
-        cfg = replace(cfg, mapper=cfg.mapper if mapper is None else Mapper.parse(mapper, "mapper"),
-                      seed=cfg.seed if seed is None else seed)
+    if mapper is not None:
+        cfg = replace(cfg, mapper=Mapper.parse(mapper, "mapper"))
     database = check_database_path(database)
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
@@ -260,7 +257,7 @@ def run_mapping(
             # COLMAP prints image names raw: with one that needs escaping, -v replays the log
             with colmap_log_to_file(output, verbose=verbose, replay=verbose and _names_need_escaping(db_copy),
                                     hide=()) as prefix:
-                models = _run_mapper(cfg, db_copy, image_dir, models_dir, num_images if progress else None, label)
+                models = _run_mapper(cfg, seed, db_copy, image_dir, models_dir, num_images if progress else None, label)
             seconds = time.perf_counter() - t0
             log_file = latest_log(prefix)
     except BaseException as exc:
@@ -273,7 +270,7 @@ def run_mapping(
 
     if not models:
         log.warning("mapping found no model (%d images in the database)", num_images)
-        return MappingResult(success=False, output=None, mapper=cfg.mapper.value, seed=cfg.seed, num_images=num_images,
+        return MappingResult(success=False, output=None, mapper=cfg.mapper.value, seed=seed, num_images=num_images,
                              seconds=seconds, refine_intrinsics=cfg.refine_intrinsics.value, log_file=log_file)
     best = _write_largest(models, output)
     log.info(
@@ -282,7 +279,7 @@ def run_mapping(
         output,
     )
     return MappingResult(
-        success=best.num_reg_images() >= 2, output=output, mapper=cfg.mapper.value, seed=cfg.seed,
+        success=best.num_reg_images() >= 2, output=output, mapper=cfg.mapper.value, seed=seed,
         num_models=len(models),
         num_images=num_images, num_reg_images=int(best.num_reg_images()),
         num_points3D=int(best.num_points3D()), seconds=seconds, cameras=_camera_rows(best),
@@ -348,7 +345,7 @@ def largest_model(models: dict):
     return max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), default=None)
 
 
-def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir: Path,
+def _run_mapper(cfg: MappingConfig, seed: int, database: Path, image_dir: Path, models_dir: Path,
                 bar_total: int | None, label: str = "mapping") -> dict:
     """pycolmap's incremental or global pipeline on ``database``; returns its models. A tqdm
     bar over ``bar_total`` images follows the incremental mapper's callbacks when given."""
@@ -356,16 +353,16 @@ def _run_mapper(cfg: MappingConfig, database: Path, image_dir: Path, models_dir:
 
     refine = _REFINE_FLAGS.get(cfg.refine_intrinsics)
     if cfg.mapper == Mapper.GLOBAL:
-        gopts = global_options(seed=cfg.seed, num_threads=cfg.num_threads, min_num_matches=cfg.min_num_matches,
+        gopts = global_options(seed=seed, num_threads=cfg.num_threads, min_num_matches=cfg.min_num_matches,
                                refine=refine)
         return pycolmap.global_mapping(str(database), str(image_dir), str(models_dir), gopts)
     opts = pycolmap.IncrementalPipelineOptions()
-    opts.random_seed = int(cfg.seed)
+    opts.random_seed = int(seed)
     opts.num_threads = int(cfg.num_threads)
     opts.min_num_matches = int(cfg.min_num_matches)
-    opts.mapper.random_seed = int(cfg.seed)
+    opts.mapper.random_seed = int(seed)
     opts.mapper.num_threads = int(cfg.num_threads)
-    opts.triangulation.random_seed = int(cfg.seed)
+    opts.triangulation.random_seed = int(seed)
     if refine is not None:
         opts.ba_refine_focal_length, opts.ba_refine_principal_point, opts.ba_refine_extra_params = refine
         # image registration (absolute pose) refines focal / distortion on its own flags

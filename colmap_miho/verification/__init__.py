@@ -1,10 +1,14 @@
-"""Verification against the rest of the scene: the pair check (pairs the pair graph contradicts,
-:mod:`.pair_graph`) and the match check (every match against a global estimate,
-:mod:`.match_check`)."""
+"""Verification against the rest of the scene: the match check (every match judged against a
+global estimate of the cameras).
 
-from .config import MatchCheckConfig, PairCheckConfig
+Modules:
+
+- ``config``: :class:`MatchCheckConfig` (thresholds, remove or flag).
+- ``match_check``: :func:`judge_in_rounds`, the match check (estimates from an estimator
+  passed in, judgement by :func:`check_matches`, re-placement of the images not trusted).
+"""
+
+from .config import MatchCheckConfig
 from .match_check import MatchCheckDecision, MatchCheckResult, check_matches, judge_in_rounds
-from .pair_graph import PairCheckResult, PairVerdict, check_pairs
 
-__all__ = ["MatchCheckConfig", "MatchCheckDecision", "MatchCheckResult", "PairCheckConfig", "PairCheckResult",
-           "PairVerdict", "check_matches", "check_pairs", "judge_in_rounds"]
+__all__ = ["MatchCheckConfig", "MatchCheckDecision", "MatchCheckResult", "check_matches", "judge_in_rounds"]

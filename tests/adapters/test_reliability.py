@@ -415,14 +415,14 @@ def test_disk_full_while_copying_leaves_nothing_behind(db, scene, monkeypatch, c
     ("ncc.template_radius=1000", "template_radius must be in \\[1, 64\\]"),
     ("ncc.search_radius=100000", "search_radius must be in \\[1, 64\\]"),
     ("filter.t_l=inf", "t_l must be a finite number"),
-    ("filter.confidence=nan", "confidence must be a finite number"),
+    ("match_check.false_reject=nan", "false_reject must be a finite number"),
     ("ncc.min_ncc=nan", "min_ncc must be a finite number"),
-    ("filter.batch_size=100000000", "batch_size must be in \\[1, 8192\\]"),
+    ("ncc.batch_size=100000000", "batch_size must be in \\[1, 65536\\]"),
     ("filter.t_l=1e308", "t_l must be in \\[0.001, 100000\\]"),
     ("filter.t_l=1e-300", "t_l must be in \\[0.001, 100000\\]"),
     ("filter.t_h=1e-300", "t_h must be in \\[0.001, 100000\\]"),
     ("filter.max_iters=100000000", "max_iters must be in \\[1, 1000000\\]"),
-    ("filter.local_neighbours=100000", "local_neighbours must be in \\[3, 1024\\]"),
+    ("rectify.neighbours=100000", "neighbours must be in \\[6, 1024\\]"),
 ])
 def test_unsafe_settings_are_one_line(setting, message, db, scene, capfd):
     capfd.readouterr()

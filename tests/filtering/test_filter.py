@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers.variants import variant
 from planes import image2_transform, make_scene
 
 from colmap_miho import FilterResult, filter_matches
@@ -293,7 +294,7 @@ def test_length_mismatch_and_bad_method_raise():
     with pytest.raises(ValueError, match="method"):
         filter_matches(np.zeros((10, 2)), np.zeros((10, 2)), method="ransac")
     with pytest.raises(ValueError, match="sampling"):
-        FilterConfig(sampling="napsac")
+        variant(FilterConfig(), sampling="napsac")
 
 
 def test_method_precedence(scene):
@@ -314,7 +315,7 @@ def test_torch_input_matches_numpy(scene):
 
 
 def test_uniform_sampling_is_as_accurate(scene):
-    res = filter_matches(scene.x1, scene.x2, config=FilterConfig(sampling="uniform"))
+    res = filter_matches(scene.x1, scene.x2, config=variant(FilterConfig(), sampling="uniform"))
     precision, recall = _pr(res, scene)
     assert precision >= MIN_PRECISION and recall >= MIN_RECALL
 

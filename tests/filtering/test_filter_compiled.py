@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers.variants import variant
 from planes import make_scene
 
 from colmap_miho import filter_matches
@@ -94,7 +95,7 @@ def test_masks_and_errors_are_the_same_bits(miho):
 @pytest.mark.parametrize("miho", [False, True])
 def test_local_draws_are_the_same(miho):
     sc, problem, rng = _problem(miho)
-    cfg = FilterConfig(local_fraction=1.0)
+    cfg = variant(FilterConfig(), local_fraction=1.0)
     pool = np.sort(rng.choice(len(sc.x1), 300, replace=False))
     ref = Sampler(problem, pool, cfg).draw(np.random.default_rng(7), 1000)
     got = Sampler(problem, pool, cfg, compiled=True).draw(np.random.default_rng(7), 1000)

@@ -7,6 +7,7 @@ from itertools import pairwise
 
 import numpy as np
 import pytest
+from helpers.variants import variant
 from planes import make_scene
 
 from colmap_miho import filter_matches
@@ -32,7 +33,7 @@ def test_local_samples_pass_the_spread_test(miho):
     rng = np.random.default_rng(0)
     x1, x2 = _dense_plane(rng)
     problem = build_problem(x1, x2, miho=miho)
-    cfg = FilterConfig(local_fraction=1.0)
+    cfg = variant(FilterConfig(), local_fraction=1.0)
     pool = np.arange(len(x1))
     sampler = Sampler(problem, pool, cfg)
     sample = sampler.draw(np.random.default_rng(1), 2000)
@@ -99,7 +100,7 @@ def test_iterations_count_spread_out_samples():
     noise = rng.uniform(0, 600, (300, 2))  # a second set of random matches
     x1, x2 = np.r_[x1, noise], np.r_[x2, rng.uniform(0, 600, (300, 2))]
     problem = build_problem(x1, x2, miho=False)
-    cfg = FilterConfig(method="mop", max_iters=300, min_iters=300)
+    cfg = variant(FilterConfig(method="mop", max_iters=300), min_iters=300)
     res, _ = ransac_round(problem, np.arange(len(x1)), cfg, np.random.default_rng(0), [])
     st = res.stats
     assert st["samples"] >= cfg.min_iters  # c_min counts samples that pass the spread test
@@ -114,7 +115,7 @@ def test_iteration_cap_follows_the_method_unless_given():
     assert FilterConfig(method="mop", max_iters=None).iteration_cap == 2000
     assert FilterConfig(method="mop_miho", max_iters=700).iteration_cap == 700
     with pytest.raises(ValueError, match="min_iters"):
-        FilterConfig(method="mop_miho", max_iters=None, min_iters=600)
+        FilterConfig(method="mop_miho", max_iters=10)  # below c_min
     with pytest.raises(ValueError, match="batch_growth"):
         FilterConfig(batch_growth=0.5)
 
@@ -137,7 +138,7 @@ def test_batch_growth_bounds_each_batch(monkeypatch):
     runs = {}
     for growth in (0.0, 2.0):
         sizes.clear()
-        cfg = FilterConfig(method="mop", sampling="uniform", batch_size=32, batch_growth=growth)
+        cfg = variant(FilterConfig(method="mop", batch_growth=growth), sampling="uniform", batch_size=32)
         res, _ = ransac_round(problem, np.arange(len(x1)), cfg, np.random.default_rng(1), [])
         assert res is not None and res.count >= 290  # the plane is found either way
         runs[growth] = list(sizes)
@@ -177,8 +178,6 @@ def test_miho_threshold_half_vs_full():
     assert search.inliers[300:].tolist() == half.inliers[300:].tolist()
     with pytest.raises(ValueError, match="miho_threshold"):
         FilterConfig(miho_threshold="both")
-    with pytest.raises(ValueError, match="assignment"):
-        FilterConfig(assignment="largest")
 
 
 def test_rotation_fix_keeps_upright_pairs_among_outliers():

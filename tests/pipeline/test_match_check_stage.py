@@ -17,6 +17,7 @@ from colmap_miho.pipeline.run import refine_database
 from colmap_miho.pipeline.summary import RefineSummary
 from colmap_miho.recipe import load_recipe
 from colmap_miho.reporting.html_report import match_check_note
+from colmap_miho.verification.config import MatchCheckConfig
 
 #: Pixels of keypoint noise.
 NOISE_PX = 0.5
@@ -182,8 +183,9 @@ def test_matches_kept_counts_what_the_check_removed(planted_db, tmp_path):
 
 
 @pytest.mark.slow
-def test_colmap_errors_of_a_failed_estimate_stay_off_the_terminal(planted_db, tmp_path, capfd):
-    on = _run(planted_db, tmp_path / "on.db", "match_check.mode=remove", "match_check.min_pair_matches=100000")
+def test_colmap_errors_of_a_failed_estimate_stay_off_the_terminal(planted_db, tmp_path, capfd, monkeypatch):
+    monkeypatch.setattr(MatchCheckConfig, "min_pair_matches", 100000)  # no pair enters the estimate
+    on = _run(planted_db, tmp_path / "on.db", "match_check.mode=remove")
     mc = on["match_check"]
     assert not mc["used"] and "Failed to create sparse model" in mc["reason"]  # COLMAP's words, in ours
     err = capfd.readouterr().err
@@ -305,11 +307,12 @@ def test_the_default_recipe_checks_matches(planted_db, tmp_path):
 
 
 @pytest.mark.slow
-def test_with_debug_logging_colmaps_log_reaches_the_terminal(planted_db, tmp_path, capfd, caplog):
+def test_with_debug_logging_colmaps_log_reaches_the_terminal(planted_db, tmp_path, capfd, caplog, monkeypatch):
     import logging
 
     caplog.set_level(logging.DEBUG, logger="colmap_miho")  # what -v sets
-    _run(planted_db, tmp_path / "on.db", "match_check.mode=remove", "match_check.min_pair_matches=100000")
+    monkeypatch.setattr(MatchCheckConfig, "min_pair_matches", 100000)
+    _run(planted_db, tmp_path / "on.db", "match_check.mode=remove")
     assert "Failed to create sparse model" in capfd.readouterr().err
 
 

@@ -26,12 +26,3 @@ def test_apply_drops_the_removed_pairs_and_the_failed_matches_in_order():
     assert out[(2, 3)] is pairs[(2, 3)]
     assert pairs[(1, 2)][1].inliers.tolist() == [True, False, True, True]  # the stored pairs stay
     assert NO_VERDICTS.apply(pairs) == pairs
-
-
-def test_merge_joins_both_checks():
-    pair_check = Verdicts(removed=frozenset({(1, 2)}))
-    match_check = Verdicts(removed=frozenset({(3, 4)}), failed={(1, 3): np.array([True])},
-                           refit=frozenset({(1, 3)}))
-    both = pair_check.merge(match_check)
-    assert both.removed == {(1, 2), (3, 4)} and both.refit == {(1, 3)} and list(both.failed) == [(1, 3)]
-    assert NO_VERDICTS.merge(NO_VERDICTS) == NO_VERDICTS

@@ -149,6 +149,6 @@ def _lsm_kernel_loaded() -> bool:
 
 
 def test_workers_start_with_the_compiled_lsm_step_loaded(every_family_cached):
-    """The same for the LSM step (recipes with ``ncc.lsm``)."""
+    """The same for the LSM step (recipes with ``lsm.enabled``)."""
     with workers.process_pool(1) as ex:
         assert ex.submit(_lsm_kernel_loaded).result(timeout=300)

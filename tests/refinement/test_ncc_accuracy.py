@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers.variants import variant
 
 from colmap_miho.refinement.config import NCCConfig
 from colmap_miho.refinement.pairwise import refine_pair
@@ -69,7 +70,7 @@ def test_ncc_with_local_affine_rectification_from_noisy_matches():
     pairs = local_affine_pairs(pts1, noisy, np.zeros(len(pts1), np.int64), identity, k=12,
                                max_residual_px=2.0)
     res = refine_pair(img1, img2, pts1, start, pairs, move="2",
-                      config=NCCConfig.pairwise(device="cpu", use_base_pair=False))
+                      config=variant(NCCConfig.pairwise(device="cpu"), use_base_pair=False))
     _check(res, start, truth2)
 
 

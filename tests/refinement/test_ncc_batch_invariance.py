@@ -12,9 +12,12 @@ taken.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
+from helpers.variants import variant
 
 from colmap_miho.refinement.config import NCCConfig
 from colmap_miho.refinement.ncc.correlation import ncc_maps
@@ -66,12 +69,12 @@ CONFIGS = {
     # the track walk's recipe: one side moves, r = 6
     "walk": NCCConfig.pairwise(device="cpu", move="2", template_radius=6),
     # 25 template shapes chosen coarse-to-fine (per-match offsets), NCC* mask
-    "paper": NCCConfig.pairwise(device="cpu", perturbations="paper", ellipse_mask=True,
-                       template_radius=5, search_radius=4),
+    "paper": variant(NCCConfig.pairwise(device="cpu", template_radius=5, search_radius=4),
+                     perturbations="paper", ellipse_mask=True),
     # least-squares matching after the NCC peak (bicubic samples, per-match Gauss-Newton)
-    "lsm": NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8),
+    "lsm": NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm={"enabled": True, "radius": 8}),
     # 3x3 templates: a convolution of one group would sum in another order than a batch
-    "tiny": NCCConfig.pairwise(device="cpu", template_radius=1, search_radius=3, min_template_std=0.0),
+    "tiny": variant(NCCConfig.pairwise(device="cpu", template_radius=1, search_radius=3), min_template_std=0.0),
     # the near offsets first, the full radius only where the near peak is on its border
     "inner": NCCConfig.pairwise(device="cpu", move="2", template_radius=6, inner_radius=2),
 }
@@ -105,7 +108,9 @@ def test_match_result_is_the_same_in_any_batch(name):
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        part = call(perm, NCCConfig(**{**cfg.__dict__, "batch_size": 13}))
+        small = copy.copy(cfg)  # a copy keeps a variant's class constants
+        object.__setattr__(small, "batch_size", 13)
+        part = call(perm, small)
     finally:
         torch.set_num_threads(threads)
     _assert_same(full, perm, part)

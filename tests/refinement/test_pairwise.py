@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers.variants import variant
 
 from colmap_miho.enums import Device, Perturbations, Rectification
 from colmap_miho.refinement.config import NCCConfig
@@ -51,24 +52,21 @@ def known_motion(shared_data):
 
 
 def test_config_validation_names_the_field():
-    for kwargs, field in [
-        ({"perturbations": "many"}, "perturbations"),
+    for kwargs, field in [  # rectify as a dict of changes: NCCConfig.pairwise
         ({"template_radius": 0}, "template_radius"),
-        ({"subpixel_iterations": -1}, "subpixel_iterations"),
-        ({"min_template_std": -1.0}, "min_template_std"),
         ({"move": "3"}, "move"),
-        ({"rectification": "global"}, "rectification"),
+        ({"rectify": {"mode": "global"}}, "mode"),
         ({"device": "tpu"}, "device"),
     ]:
         with pytest.raises(ValueError, match=field):
-            NCCConfig(**kwargs)
+            NCCConfig.pairwise(**kwargs)
 
 
 def test_closed_choices_parse_strings_into_enums():
     """Recipes and ``--set`` give strings; the config holds the enum members (equal to them)."""
-    cfg = NCCConfig.pairwise(perturbations="Paper", rectification="local", device="cpu")
-    assert cfg.perturbations is Perturbations.PAPER and cfg.perturbations == "paper"
-    assert cfg.rectification is Rectification.LOCAL
+    cfg = NCCConfig.pairwise(rectify={"mode": "Local"}, device="cpu")
+    assert cfg.rectify.mode is Rectification.LOCAL and cfg.rectify.mode == "local"
+    assert variant(cfg, perturbations="Paper").perturbations is Perturbations.PAPER
     assert cfg.device is Device.CPU
 
 
@@ -111,7 +109,7 @@ def test_known_motion_recovered_to_subpixel(known_motion):
     assert np.median(err) <= KNOWN_MOTION_MEDIAN_PX
     assert np.all(r.moved_side[~r.rejected & (r.moved_side > 0)] == 2)
     single = refine_pair(img1, img2, pts1, noisy2, homs, move="2",
-                         config=NCCConfig.pairwise(subpixel_iterations=0))
+                         config=variant(NCCConfig.pairwise(), subpixel_iterations=0))
     assert np.median(np.linalg.norm(single.pts2 - gt2, axis=1)) <= SINGLE_PARABOLA_MEDIAN_PX
 
 
@@ -168,7 +166,7 @@ def test_edge_patches_move_only_across_the_edge():
     pts1 = np.stack([np.full_like(ys, 60.3), ys], 1)
     pts2 = pts1 + [1.6, 1.3]  # off the edge by 1.6 px, along it by 1.3 px
     star = refine_pair(img, img, pts1, pts2, _identity_pairs(15), move="2",
-                       config=NCCConfig.pairwise(ellipse_mask=True))
+                       config=variant(NCCConfig.pairwise(), ellipse_mask=True))
     moved = star.moved_side == 2
     assert moved.sum() >= 10
     np.testing.assert_allclose(star.pts2[moved, 0], 60.3, atol=0.05)  # back onto the edge
@@ -218,7 +216,8 @@ def test_base_pass_uses_keypoint_affine_frames(known_motion):
     x = np.c_[p1, np.ones(len(p1))] @ H_KNOWN.T
     w = x[:, 2]
     jac = (H_KNOWN[None, :2, :2] - (x[:, :2] / w[:, None])[:, :, None] * H_KNOWN[None, 2:, :2]) / w[:, None, None]
-    without = refine_pair(img1, img2, p1, n2, wrong, move="2", config=NCCConfig.pairwise(use_base_pair=False))
+    without = refine_pair(img1, img2, p1, n2, wrong, move="2",
+                          config=variant(NCCConfig.pairwise(), use_base_pair=False))
     with_aff = refine_pair(img1, img2, p1, n2, wrong, move="2",
                            affine1=np.tile(np.eye(2), (len(p1), 1, 1)), affine2=jac)
     e_without = np.median(np.linalg.norm(without.pts2 - g2, axis=1))
@@ -246,7 +245,7 @@ def test_cuda_agrees_with_cpu(known_motion, perturbations):
     between the two directions cannot flip the side."""
     img1, img2, pts1, gt2, noisy2, homs = known_motion
     res = {dev: refine_pair(img1, img2, pts1, noisy2, homs, move="2",
-                            config=NCCConfig.pairwise(perturbations=perturbations, device=dev))
+                            config=variant(NCCConfig.pairwise(device=dev), perturbations=perturbations))
            for dev in ("cpu", "cuda")}
     assert res["cuda"].stats["device"].startswith("cuda")
     agree = res["cpu"].moved_side == res["cuda"].moved_side

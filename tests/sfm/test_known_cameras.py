@@ -77,7 +77,7 @@ def test_default_is_colmaps_own_behaviour(scene, tmp_path):
 
     s, _ = scene
     res = run_mapping(s.database, s.image_dir, tmp_path / "m", MappingConfig(refine_intrinsics="default",
-                                                                              num_threads=1, seed=2))
+                                                                              num_threads=1), seed=2)
     copy = tmp_path / "raw.db"
     shutil.copyfile(s.database, copy)
     opts = pycolmap.IncrementalPipelineOptions()
@@ -315,7 +315,8 @@ def test_refine_flags_reach_both_mappers(monkeypatch, tmp_path, refine, flags):
     monkeypatch.setattr(pycolmap, "incremental_mapping", lambda db, im, out, opts, **kw: seen.update(inc=opts) or {})
     monkeypatch.setattr(pycolmap, "global_mapping", lambda db, im, out, opts, **kw: seen.update(glo=opts) or {})
     for mapper in ("incremental", "global"):
-        _run_mapper(MappingConfig(mapper=mapper, refine_intrinsics=refine), tmp_path / "db", tmp_path, tmp_path, None)
+        _run_mapper(MappingConfig(mapper=mapper, refine_intrinsics=refine), 0, tmp_path / "db", tmp_path, tmp_path,
+                    None)
     inc, ba = seen["inc"], seen["glo"].mapper.bundle_adjustment
     ref_inc, ref_ba = pycolmap.IncrementalPipelineOptions(), pycolmap.GlobalPipelineOptions().mapper.bundle_adjustment
     got_inc = (inc.ba_refine_focal_length, inc.ba_refine_principal_point, inc.ba_refine_extra_params)

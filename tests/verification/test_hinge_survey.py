@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers.variants import variant
 
 from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.pipeline.match_check import MatchCheckStats, stats_fields
@@ -24,7 +25,7 @@ MIN_WRONG_REMOVED = 0.9
 
 def _judge(scene, **cfg):
     with ColmapDatabase(scene.database) as db:
-        config = MatchCheckConfig(mode="remove", **cfg)
+        config = variant(MatchCheckConfig(mode="remove"), **cfg)  # hinges: a class constant
         d = judge_in_rounds(scene.matches, GlobalEstimator(src=db, config=config, num_threads=1), config)
         names = {im.image_id: im.name for im in db.images()}
     pairs = sorted(scene.matches)

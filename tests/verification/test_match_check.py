@@ -121,7 +121,7 @@ def test_a_group_placed_wrong_together_is_not_trusted_rather_than_cut_off():
     for k in (7, 8):
         rotations[(1, k)] = relative_pose(bad[1], bad[k])[0]  # a wrong pair that agrees with the wrong group
     plain = check_matches(matches, rays, focal, bad, rotations,
-                          MatchCheckConfig(mode="remove", min_agreeing_pairs=2))
+                          MatchCheckConfig(mode="remove"))
     assert plain.used and plain.cut_off == frozenset({7, 8})
     assert plain.trusted == frozenset(poses) - {7, 8}
     assert not any(7 in p or 8 in p for p in plain.failed) and not plain.wrong_pairs
@@ -180,9 +180,7 @@ def test_distances_and_threshold():
 
 
 @pytest.mark.parametrize("field, value", [("false_reject", 0.0), ("false_reject", 0.5), ("min_threshold_px", 5.0),
-                                          ("max_rotation_deg", 0.0), ("min_pair_matches", 7), ("rounds", 0),
-                                          ("min_trusted_share", 0.0), ("max_pair_fail_share", 1.5),
-                                          ("min_agreeing_pairs", 0), ("mode", "maybe")])
+                                          ("rounds", 0), ("estimate_matches_per_image", -1), ("mode", "maybe")])
 def test_config_refuses_bad_values(field, value):
     with pytest.raises(ValueError):
         MatchCheckConfig(**{field: value})

@@ -1,10 +1,40 @@
 """The least-squares matching step of the NCC refinement and its acceptance rule.
 
-From the NCC peak, LSM (:func:`.align.lsm_align`, compiled on CPU tensors) replaces NCC's position
-only if it converged regularly, stayed within ``lsm_max_shift_px`` of the peak (else it found
-another minimum) and its shift's standard deviation is below ``lsm_max_sigma_px``. With
-``lsm_antialias`` the finer of two views is smoothed to the coarser one's blur, each sample the mean
-of 4 bicubic reads."""
+After the NCC peak of a match (integer peak and parabola), the template around the fixed keypoint and the
+search image around the moving keypoint are both read in the match's common frame (the
+winning homography pair of the NCC search), bicubically, and aligned by :func:`.align.lsm_align`
+from the NCC offset. LSM's position replaces the NCC one only where
+
+- the Gauss-Newton iteration converged with a regular affine map and gain,
+- the shift stays within ``lsm.max_shift_px`` of the NCC peak (a larger move means LSM found
+  another minimum than the correlation did), and
+- the a-posteriori standard deviation of the shift is below ``lsm.max_sigma_px`` (flat and
+  edge-like patches, and patches the model does not fit, fail this);
+
+elsewhere the NCC refinement goes on as without LSM (iterated parabolas). Each reason is
+counted.
+
+On CPU tensors the step runs :func:`.kernel.lsm_frames`, one compiled loop
+per match; the torch path (:func:`.align.frame_sampler` and :func:`.align.lsm_align`) runs on
+CUDA and is the kernel's reference (they agree to float rounding).
+
+Anti-aliasing (``lsm.antialias`` > 0): where one view sees the match at a finer scale than
+the other (the local scale ``sqrt |det J|`` of its frame -> image map at the match is
+larger), its samples are smoothed so that both sides carry the blur of the coarser view:
+a Gaussian of ``lsm_antialias * sqrt(ratio^2 - 1)`` of its own pixels (the coarser view's
+blur, ``lsm.antialias`` pixels of its own, brought to the finer view's pixels, less the
+finer view's own). The Gaussian is approximated by the mean of 4 bicubic samples at
+``(+-sigma, +-sigma)`` image pixels from each sample's position, along the image axes (the
+variance of a Gaussian of ``sigma`` on each axis; the mean is separable, so the compiled
+kernel reads it as one sample with the 4 samples' taps merged), so the smoothing costs
+samples at the affected matches only and stays per match; a
+3 x 3 stencil of the same variance was measured slightly more accurate at over twice the cost.
+Smoothing whole images once per blur level instead (kornia's ``gaussian_blur2d``) would cost
+more than the samples: an image is loaded many times per run and a match's blur varies
+continuously. Smoothing a crop around each match once costs about what the samples it saves
+cost, as the crop must cover the whole iteration. A 3-sample stencil of the same mean and
+covariance (a triangle) skews the blur and loses accuracy (docs/results.md).
+"""
 
 from __future__ import annotations
 
@@ -35,12 +65,25 @@ def lsm_step(
     *,
     compiled: bool | None = None,
 ) -> tuple[torch.Tensor, dict[str, int], torch.Tensor]:
-    """LSM-refined offsets ``(n, 2)`` of n matches (LSM's where accepted, else ``offset``), the
-    :data:`LSM_COUNTERS`, and ``(n,)`` which matches LSM moved.
+    """LSM-refined offsets of n matches, the counters of :data:`LSM_COUNTERS`, and which
+    matches LSM moved.
 
-    ``H_f_inv``, ``H_m_inv`` ``(n, 3, 3)`` common frame -> image pixels; ``frame_f``, ``frame_m``
-    ``(n, 2)`` keypoints in the frame; ``offset`` the NCC offset (LSM's start). ``compiled``: the
-    kernel (None: where the tensors are on the CPU)."""
+    Args:
+        img_f, img_m: (H, W) float32 fixed-side and moving-side images, or
+            :class:`~..warping.ImageStack` objects with one image per match (n rows).
+        H_f_inv, H_m_inv: (n, 3, 3) float64 common frame -> image pixels of each side.
+        frame_f, frame_m: (n, 2) float64 common-frame positions of the fixed and the moving
+            keypoint.
+        offset: (n, 2) float64 NCC offset of the moving side (common frame): the start of
+            LSM and the reference of ``lsm.max_shift_px``.
+        cfg: ``lsm_*`` fields of :class:`~..config.NCCConfig`.
+        compiled: run :func:`.kernel.lsm_frames` (CPU tensors only) rather than the
+            torch path (:func:`.align.frame_sampler` and :func:`.align.lsm_align`); None: where
+            the tensors are on the CPU.
+    Returns:
+        ((n, 2) float64 offsets: LSM's where accepted, else ``offset``; counters; (n,)
+        bool accepted).
+    """
     n = offset.shape[0]
     if n == 0:
         return offset, dict.fromkeys(LSM_COUNTERS, 0), torch.zeros(0, dtype=torch.bool,
@@ -56,20 +99,20 @@ def lsm_step(
     sub_f, sub_m = job_images(img_f, rows), job_images(img_m, rows)
     every = torch.arange(k, device=dev)
     blur_f = blur_m = None
-    if cfg.lsm_antialias > 0:
+    if cfg.lsm.antialias > 0:
         blur_f, blur_m = _antialias_blur(H_f_inv[rows], frame_f[rows], H_m_inv[rows],
-                                         frame_m[rows] + offset[rows], cfg.lsm_antialias)
+                                         frame_m[rows] + offset[rows], cfg.lsm.antialias)
     if compiled:
         res = kernel.lsm_frames(sub_f, sub_m, H_f_inv[rows], frame_f[rows], H_m_inv[rows],
                                 frame_m[rows], offset[rows], r, blur_f=blur_f, blur_m=blur_m,
-                                affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
-                                tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
+                                affine=cfg.lsm.affine, max_iterations=cfg.lsm.max_iterations,
+                                tol_px=cfg.lsm.tol_px, max_shift_px=cfg.lsm.max_shift_px)
     else:
         samp_f = frame_sampler(sub_f, H_f_inv[rows], frame_f[rows], blur_px=blur_f)
         samp_m = frame_sampler(sub_m, H_m_inv[rows], frame_m[rows], blur_px=blur_m)
         res = lsm_align(samp_m, samp_f(every, eye, zero, r), offset[rows],
-                        affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
-                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
+                        affine=cfg.lsm.affine, max_iterations=cfg.lsm.max_iterations,
+                        tol_px=cfg.lsm.tol_px, max_shift_px=cfg.lsm.max_shift_px)
     shift, sigma_max, converged = res.shift, res.sigma_max, res.converged
     outcome = lsm_outcomes(shift - offset, sigma_max, converged, cfg)
     ok = outcome["applied"]
@@ -92,8 +135,8 @@ def lsm_outcomes(moved: torch.Tensor, sigma_max: torch.Tensor, converged: torch.
                  cfg: NCCConfig) -> dict[str, torch.Tensor]:
     """The acceptance rule of n LSM results: disjoint ``(n,)`` masks ``applied``, ``not_converged``,
     ``far``, ``imprecise``."""
-    far = moved.abs().amax(dim=1) > cfg.lsm_max_shift_px
-    imprecise = converged & ~far & ~(sigma_max <= cfg.lsm_max_sigma_px)
+    far = moved.abs().amax(dim=1) > cfg.lsm.max_shift_px
+    imprecise = converged & ~far & ~(sigma_max <= cfg.lsm.max_sigma_px)
     return {"applied": converged & ~far & ~imprecise, "not_converged": ~converged & ~far,
             "far": far, "imprecise": imprecise}
 

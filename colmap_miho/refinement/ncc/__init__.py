@@ -1,1 +1,2 @@
-"""The NCC search of one match: template shapes, correlation maps, search and sub-pixel step."""
+"""The NCC search of one match: template shapes, batched correlation maps, the search of one
+direction, the iterated sub-pixel step and their compiled kernel."""

@@ -30,9 +30,9 @@ from .plan import TrackPlan
 
 def local_affine_of(ncc_cfg: NCCConfig) -> tuple[int, float] | None:
     """The plan's ``local_affine`` argument for an NCC configuration."""
-    if ncc_cfg.rectification is Rectification.FILTER:
+    if ncc_cfg.rectify.mode is Rectification.FILTER:
         return None
-    return ncc_cfg.local_affine_neighbours, ncc_cfg.local_affine_max_residual_px
+    return ncc_cfg.rectify.neighbours, ncc_cfg.rectify.max_residual_px
 
 
 def _reachable(total: int, ea: np.ndarray, eb: np.ndarray, anchors: np.ndarray,

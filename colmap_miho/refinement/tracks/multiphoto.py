@@ -1,7 +1,49 @@
-"""Joint multi-photo least-squares matching of whole tracks, after the walk (after Gruen &
-Baltsavias): the anchor fixes the frame and every other observation is aligned to a leave-one-out
-consensus template (one holding its own patch would pull it towards where it is). Rejected
-observations keep the walk's position."""
+"""Joint multi-photo least-squares matching of whole tracks, after the walk.
+
+The walk aligns each keypoint to one fixed neighbour (the anchor, or a partner that may have
+moved itself), whose patch alone is the template. Here every track of at least ``MIN_OBSERVATIONS``
+observations is aligned jointly, in the spirit of multi-photo LSM (Gruen & Baltsavias): the
+reference observation (the track's anchor, which never moves) defines the geometry (the
+common frame is the anchor image's pixels, centred on the anchor keypoint), and every other
+observation is aligned by :func:`..lsm.align.lsm_align` (affine + gain/offset) to a *consensus
+template*: the mean of the track's patches, each read at its current alignment and brought
+to the reference's radiometry (``r0 + r1 g``), the reference's own patch included. The
+passes iterate (rebuild the template -> align), starting from the walk's positions (or, with
+``star_first``, from one pass against the reference alone).
+
+With the reference held fixed, each view's error at the joint fixed point is, to first order
+in the image noise, its own noise less the reference's, as for the star of pairwise
+alignments to the reference: the reference's noise is common to the track (a consistent
+shift of the point in the reference frame). The consensus changes the non-linear part: a
+template that is not one view's appearance, so more patches converge and pass the precision
+gate. Each consensus pass removes only part of the template's misalignment (the other views'
+errors are in it), so from a poor start the star pass should come first.
+
+Each observation's template leaves its own patch out (leave-one-out mean): a template that
+held it would pull the alignment towards its current position by a share of 1 / (number of
+patches). Observations not accepted in a pass (see below) leave the template for the next
+one and restart from the walk's position. A track of 3 observations thus aligns each
+non-reference view to the mean of the reference and the other view.
+
+Maps between views: the walk composes, for every keypoint it reached, the patch homography
+pairs along its chain from the anchor (:attr:`.refine_calls.WalkState.to_ref`: anchor-image
+pixels -> its image pixels). Its translation is replaced by the walk's result (the chain maps
+the anchor keypoint to the walk's position), so the pass starts where the walk ended and the
+chain only supplies the local shape of the map, which LSM's affine refines.
+
+Acceptance is the pairwise LSM step's (:mod:`..lsm.step`): converged at the last pass, the
+shift from the walk's position within ``lsm.max_shift_px``, the shift's a-posteriori
+standard deviation below ``lsm.max_sigma_px``. An accepted observation moves to
+``H_inv (c + t)``; the others keep the walk's result. Every observation is thus aligned
+relative to the same fixed reference; its final position is the walk's or this pass's.
+
+Anti-aliasing (``lsm.antialias`` > 0): every observation is smoothed to the blur of the
+track's coarsest view (the smallest local scale ``sqrt |det J|`` of its frame -> image map),
+with :mod:`..lsm.step`'s 4-sample Gaussian, so all patches of the consensus carry one blur.
+
+Batched in torch on the device of the walk; observations are processed in chunks of whole
+tracks, one LSM radius (``NCCConfig.lsm_window``) for all.
+"""
 
 from __future__ import annotations
 
@@ -49,13 +91,26 @@ def joint_lsm(
     """Align the observations of tracks jointly to leave-one-out consensus templates.
 
     Args:
-        images: ``(H, W)`` float32 or an :class:`~..warping.ImageStack` with one image per observation.
-        H_inv: ``(N, 3, 3)`` common frame (reference image pixels) -> observation pixels.
-        centres: ``(N, 2)`` the track's reference keypoint in the common frame.
-        track: ``(N,)`` int64 track index 0..T-1; is_ref: ``(N,)`` one reference per track.
-        iterations: consensus passes (stop early when no accepted shift moves by ``lsm_tol_px``).
-        star_first: one pass against the reference alone first; needed from a poor start, since
-          a consensus pass removes only part of the template's misalignment.
+        images: (H, W) float32 image, or an :class:`~..warping.ImageStack` with one image per
+            observation (N rows).
+        H_inv: (N, 3, 3) float64 common frame (the track's reference image pixels) -> the
+            observation's image pixels; ``H_inv[o] (centres[o])`` is its start position.
+        centres: (N, 2) float64 the track's reference keypoint (common frame), the same for
+            all observations of a track.
+        track: (N,) int64 track of each observation, 0..T-1.
+        is_ref: (N,) bool, exactly one reference per track (held fixed; its ``H_inv`` maps
+            the frame to its own image).
+        cfg: ``lsm_*`` fields of :class:`~..config.NCCConfig` (radius, affine, iterations,
+            tolerance, shift and precision bounds, anti-aliasing).
+        iterations: consensus passes (rebuild the template -> align), >= 0; stops
+            early once no accepted shift changes by ``lsm.tol_px``.
+        star_first: before them, one pass that aligns every observation to the reference
+            alone (the star of pairwise alignments), so that the first consensus template
+            is built from aligned patches. Needed from a poor start: each consensus pass
+            removes only part of the template's misalignment (the other views' errors are
+            in it). After the walk the start is already aligned.
+    Returns:
+        :class:`JointResult`.
     """
     if iterations < 0 or iterations + star_first < 1:
         raise ValueError(f"joint_lsm needs a pass: iterations={iterations}, star_first={star_first}")
@@ -68,8 +123,8 @@ def joint_lsm(
                            dict.fromkeys(MULTIPHOTO_COUNTERS[2:6], 0))
     T = int(track.max()) + 1
     radius = cfg.lsm_window
-    blur = (_coarsest_blur(H_inv, centres, track, T, cfg.lsm_antialias)
-            if cfg.lsm_antialias > 0 else None)
+    blur = (_coarsest_blur(H_inv, centres, track, T, cfg.lsm.antialias)
+            if cfg.lsm.antialias > 0 else None)
     samp = frame_sampler(images, H_inv, centres, blur=blur)
     ref_of = torch.zeros(T, dtype=torch.int64, device=dev)
     ref_rows = torch.nonzero(is_ref)[:, 0]
@@ -96,8 +151,8 @@ def joint_lsm(
                              track, T)
         side = 2 * radius + 1
         res = lsm_align(sub, tpl[mov].to(torch.float32).view(-1, side, side), t[mov],
-                        affine=cfg.lsm_affine, max_iterations=cfg.lsm_max_iterations,
-                        tol_px=cfg.lsm_tol_px, max_shift_px=cfg.lsm_max_shift_px)
+                        affine=cfg.lsm.affine, max_iterations=cfg.lsm.max_iterations,
+                        tol_px=cfg.lsm.tol_px, max_shift_px=cfg.lsm.max_shift_px)
         prev = t[mov].clone()
         t[mov], A[mov], r0[mov], r1[mov] = res.shift, res.affine, res.offset, res.gain
         sigma[mov], conv[mov] = res.sigma_max, res.converged
@@ -106,7 +161,7 @@ def joint_lsm(
         bad = mov[~ok]  # restart from the walk's position, out of the template
         t[bad], A[bad], r0[bad], r1[bad] = 0.0, eye[bad], r0_init[bad], r1_init[bad]
         moved = (res.shift - prev)[ok].abs()
-        if it > star_first and (moved.numel() == 0 or float(moved.max()) < cfg.lsm_tol_px):
+        if it > star_first and (moved.numel() == 0 or float(moved.max()) < cfg.lsm.tol_px):
             break
     shift = torch.where(member[:, None] & ~is_ref[:, None], t, 0.0)
     last = lsm_outcomes(res.shift, res.sigma_max, res.converged, cfg)

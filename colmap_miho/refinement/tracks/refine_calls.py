@@ -64,9 +64,15 @@ class ImageSource:
 
 @dataclass(frozen=True)
 class WalkState:
-    """What the walk's refine calls read and update in place: positions, each fixed node's partner
-    score (+inf for anchors), moved flags, result arrays, the last call's image tensors, and the
-    far-move bound (pixels; None: off) with its distinctness ratio."""
+    """What the refine calls of the walk read and update (arrays are updated in place).
+
+    ``pos`` image_id -> (Ni, 2) current positions; ``score`` (T,) quality of each fixed
+    node as a partner (NCC after refinement, +inf for anchors); ``moved`` (T,) bool;
+    ``out_disp`` / ``out_against`` the result arrays of :class:`~.walk.TrackRefineResult`;
+    ``gray`` the float32 tensors of the images of the last batched call (image_id ->
+    tensor), reused by the next call instead of converting the same images again;
+    ``far_move_px`` the far-move bound (pixels, ``rectify.max_residual_px``; None: off).
+    """
 
     plan: TrackPlan
     pos: dict
@@ -85,7 +91,6 @@ class WalkState:
     #: does not read it
     to_ref: np.ndarray | None = None
     far_move_px: float | None = None
-    far_move_ratio: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -119,7 +124,7 @@ def _orient(grp: Group, ctx: WalkState) -> _Call:
     id1, id2 = grp.pair
     k1 = plan.node_kp[plan.edge_a[grp.edges]]
     k2 = plan.node_kp[plan.edge_b[grp.edges]]
-    homs = _pairs_of(plan, grp.edges, ctx.ncc_cfg.rectification)
+    homs = _pairs_of(plan, grp.edges, ctx.ncc_cfg.rectify.mode)
     aff1 = aff2 = None
     if ctx.affines is not None and id1 in ctx.affines and id2 in ctx.affines:
         aff1 = np.asarray(ctx.affines[id1])[k1]
@@ -147,27 +152,18 @@ def predicted(call: _Call) -> np.ndarray:
         return x[:, :2] / x[:, 2:3]
 
 
-def far_moves(call: _Call, new: np.ndarray, moved: np.ndarray, bound_px: float,
-              distinct: np.ndarray | None = None) -> np.ndarray:
-    """``(n,)`` bool: moves farther than ``bound_px`` with no evidence for them (landing near the
-    homography's prediction, or approaching it with a ``distinct`` peak)."""
+def far_moves(call: _Call, new: np.ndarray, moved: np.ndarray, bound_px: float) -> np.ndarray:
+    """(n,) bool: the moves to ``new`` (where ``moved``) farther than ``bound_px`` from the
+    keypoint's position that have no evidence for them. Evidence is landing within
+    ``bound_px`` of where the homography pair predicts the keypoint (:func:`predicted`), or
+    bringing it nearer to that prediction: neither the keypoint nor the geometry supports any
+    other far peak."""
     pred = predicted(call)
     far_from_kp = np.linalg.norm(new - call.pts_m, axis=1) > bound_px
     dev_new = np.linalg.norm(new - pred, axis=1)
     dev_old = np.linalg.norm(call.pts_m - pred, axis=1)
     nearer = dev_new <= dev_old
-    if distinct is not None:
-        nearer &= distinct
     return moved & far_from_kp & ~((dev_new <= bound_px) | nearer)  # NaN: no support
-
-
-def distinct_peaks(ncc_peak: np.ndarray, ncc_second: np.ndarray | None, ratio: float) -> np.ndarray | None:
-    """``(n,)`` Lowe's ratio test on NCC dissimilarity, ``1 - peak <= ratio (1 - second)``; None
-    without a second peak."""
-    if ncc_second is None:
-        return None
-    second = np.nan_to_num(np.asarray(ncc_second, np.float64), nan=-1.0)
-    return (1.0 - np.asarray(ncc_peak, np.float64)) <= ratio * (1.0 - second)
 
 
 def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displacement: np.ndarray,
@@ -177,7 +173,7 @@ def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displace
     st = ctx.stats
     ncc_before, ncc_after = (np.asarray(a, np.float64) for a in ncc[:2])
     if ctx.far_move_px is not None:
-        far = far_moves(call, new, moved, ctx.far_move_px, distinct_peaks(ncc_after, ncc[2], ctx.far_move_ratio))
+        far = far_moves(call, new, moved, ctx.far_move_px)
         if far.any():
             moved = moved & ~far
             rejected = np.asarray(rejected, bool) | far
@@ -198,6 +194,7 @@ def _apply(grp: Group, call: _Call, new: np.ndarray, moved: np.ndarray, displace
 
 
 def _add_counters(res: object, ctx: WalkState) -> None:
+    """Add the refiner's least-squares matching counters (if any) to the walk's stats."""
     stats = getattr(res, "stats", None) or {}
     for key in LSM_COUNTERS:
         if key in stats:
@@ -272,6 +269,7 @@ def refine_batch(groups: list[Group], ctx: WalkState, device: torch.device) -> N
 
 
 def _seg(res: object, seg: slice) -> np.ndarray | None:
+    """``res.ncc_second[seg]``, or None where the refiner reports no second peak."""
     second = getattr(res, "ncc_second", None)
     return None if second is None else second[seg]
 

@@ -124,6 +124,7 @@ def refine_tracks(
 
 def _refiner(refine_fn: Callable | None, ncc_cfg: NCCConfig,
              trk_cfg: TrackConfig) -> tuple[Callable, torch.device | None]:
+    """(refine function, device for batched levels or None)."""
     use_batch = trk_cfg.batch_pairs
     if use_batch is None:  # the built-in refiner takes image stacks; a custom one may not
         use_batch = refine_fn is None
@@ -215,10 +216,10 @@ def walk_tracks(
         to_ref[plan.anchors] = np.eye(3)
     far_px = None
     if trk_cfg.far_move_check:
-        far_px = trk_cfg.far_move_px or ncc_cfg.local_affine_max_residual_px
+        far_px = ncc_cfg.rectify.max_residual_px
     ctx = WalkState(plan, out_kp, affines, source, ncc_cfg, refine_fn, score,
                     np.zeros(plan.num_nodes, bool), out_disp, out_against, stats, to_ref=to_ref,
-                    far_move_px=far_px, far_move_ratio=trk_cfg.far_move_ratio)
+                    far_move_px=far_px)
     bar = None
     if progress:
         from tqdm import tqdm
@@ -247,8 +248,7 @@ def walk_tracks(
             for grp in groups:
                 fixed[grp.free] = True
         if trk_cfg.multiphoto_lsm:
-            joint_pass(ctx, batched or resolve_device(ncc_cfg.device), trk_cfg.multiphoto_iterations,
-                       star_first=trk_cfg.multiphoto_star_first)
+            joint_pass(ctx, batched or resolve_device(ncc_cfg.device), trk_cfg.multiphoto_iterations)
     finally:
         if bar is not None:
             bar.close()
@@ -262,20 +262,20 @@ def walk_tracks(
                              refined_against=out_against, stats=stats)
 
 
-def joint_pass(ctx: WalkState, device: torch.device, iterations: int, *,
-               star_first: bool = False) -> None:
+def joint_pass(ctx: WalkState, device: torch.device, iterations: int) -> None:
     """Run :func:`joint_lsm` on the tracks the walk reached (at least :data:`MIN_OBSERVATIONS`
     chained keypoints) and write the accepted moves and stats into ``ctx``."""
     t0 = time.perf_counter()
     for key in MULTIPHOTO_COUNTERS:
         ctx.stats.setdefault(key, 0)
     try:
-        _joint_tracks(ctx, device, iterations, star_first)
+        _joint_tracks(ctx, device, iterations)
     finally:
         ctx.stats["joint_seconds"] += time.perf_counter() - t0
 
 
-def _joint_tracks(ctx: WalkState, device: torch.device, iterations: int, star_first: bool) -> None:
+def _joint_tracks(ctx: WalkState, device: torch.device, iterations: int) -> None:
+    """The body of :func:`joint_pass`."""
     plan, to_ref = ctx.plan, ctx.to_ref
     if to_ref is None or plan.anchors.size == 0:
         return
@@ -308,14 +308,14 @@ def _joint_tracks(ctx: WalkState, device: torch.device, iterations: int, star_fi
         while hi < starts.size and ends[hi] - starts[lo] <= CHUNK_OBSERVATIONS:
             hi += 1
         seg = slice(int(starts[lo]), int(ends[hi - 1]))
-        _joint_chunk(ctx, gray, nodes[seg], trk[seg], is_ref[seg], (iterations, star_first),
-                     anchor_of_track)
+        _joint_chunk(ctx, gray, nodes[seg], trk[seg], is_ref[seg], iterations, anchor_of_track)
         lo = hi
 
 
 def _joint_chunk(ctx: WalkState, gray: dict, nodes: np.ndarray, trk: np.ndarray, is_ref: np.ndarray,
-                 passes: tuple[int, bool], anchor_of_track: np.ndarray) -> None:
-    """One batched :func:`joint_lsm` call over whole tracks; ``passes`` = (iterations, star_first)."""
+                 iterations: int, anchor_of_track: np.ndarray) -> None:
+    """One batched :func:`joint_lsm` call over whole tracks (``nodes`` grouped by track) on
+    the images ``gray`` (image id -> (H, W) float32 tensor), ``iterations`` consensus passes."""
     plan = ctx.plan
     assert ctx.to_ref is not None
     img_of, kp_of = plan.node_image[nodes], plan.node_kp[nodes]
@@ -338,8 +338,7 @@ def _joint_chunk(ctx: WalkState, gray: dict, nodes: np.ndarray, trk: np.ndarray,
     H_t = torch.as_tensor(H, dtype=f64, device=device)
     c_t = torch.as_tensor(c, dtype=f64, device=device)
     res = joint_lsm(stack, H_t, c_t, torch.as_tensor(tr_local, dtype=torch.int64, device=device),
-                    torch.as_tensor(is_ref, device=device), ctx.ncc_cfg, passes[0],
-                    star_first=passes[1])
+                    torch.as_tensor(is_ref, device=device), ctx.ncc_cfg, iterations)
     new = to_frame(H_t, c_t + res.shift).cpu().numpy()
     acc = res.accepted.cpu().numpy()
     st = ctx.stats

@@ -185,7 +185,7 @@ def _homography_pair():
 
 
 def test_refine_pair_with_lsm_lowers_the_error_on_a_known_homography():
-    """The pairwise refiner with ``lsm=True``: on a perspective warp with gain/offset of a
+    """The pairwise refiner with ``lsm.enabled``: on a perspective warp with gain/offset of a
     photograph, LSM's positions are closer to the truth than NCC's, and every LSM outcome
     is counted."""
     from colmap_miho.refinement.config import NCCConfig
@@ -194,7 +194,7 @@ def test_refine_pair_with_lsm_lowers_the_error_on_a_known_homography():
     img1, img2, pts1, truth, pts2, homs = _homography_pair()
     err = {}
     for lsm in (False, True):
-        cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm=lsm)
+        cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm={"enabled": lsm})
         res = refine_pair(img1, img2, pts1, pts2, homs, config=cfg)
         moved = res.moved_side == 2
         err[lsm] = np.median(np.linalg.norm(res.pts2[moved] - truth[moved], axis=1))
@@ -243,8 +243,8 @@ def test_antialiasing_the_finer_view_lowers_the_error(scale):
     img1, img2, pts1, truth, pts2, homs = _scaled_pair(scale)
     err = {}
     for aa in (0.0, 0.5):
-        cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
-                        lsm_antialias=aa)
+        cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6,
+                                 lsm={"enabled": True, "radius": 8, "antialias": aa})
         res = refine_pair(img1, img2, pts1, pts2, homs, config=cfg)
         err[aa] = np.median(np.linalg.norm(res.pts2 - truth, axis=1))
     assert err[0.5] < ANTIALIAS_GAIN * err[0.0], err
@@ -256,8 +256,8 @@ def test_antialiased_lsm_is_per_match():
     from colmap_miho.refinement.pairwise import refine_pair
 
     img1, img2, pts1, _, pts2, homs = _scaled_pair(0.6)
-    cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6, lsm=True, lsm_radius=8,
-                    lsm_antialias=0.5)
+    cfg = NCCConfig.pairwise(device="cpu", move="2", template_radius=6,
+                             lsm={"enabled": True, "radius": 8, "antialias": 0.5})
     full = refine_pair(img1, img2, pts1, pts2, homs, config=cfg)
     rows = np.random.default_rng(3).permutation(len(pts1))[: len(pts1) // 3]
     part = refine_pair(img1, img2, pts1[rows], pts2[rows], homs[rows], config=cfg)
@@ -278,26 +278,6 @@ def test_frame_jacobian_matches_finite_differences():
     num = torch.stack([(f(p[0] + eps * e) - f(p[0] - eps * e)) / (2 * eps)
                        for e in torch.eye(2, dtype=torch.float64)], dim=1)
     assert torch.allclose(frame_jacobian(H, p)[0], num, atol=1e-7)
-
-
-def test_lsm_only_moves_where_lsm_accepted():
-    """With ``lsm_only`` a move LSM does not accept is rejected: the keypoint keeps its
-    input position, the moved count is LSM's accepted count, and the moves that remain sit
-    where plain LSM puts them."""
-    from colmap_miho.refinement.config import NCCConfig
-    from colmap_miho.refinement.pairwise import refine_pair
-
-    img1, img2, pts1, _, pts2, homs = _homography_pair()
-    base = dict(device="cpu", move="2", template_radius=6, lsm=True, lsm_max_sigma_px=0.02)
-    plain = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig.pairwise(**base))
-    only = refine_pair(img1, img2, pts1, pts2, homs, config=NCCConfig.pairwise(**base, lsm_only=True))
-    assert plain.stats["lsm_applied"] < plain.stats["moved"]  # the bound rejects some
-    assert only.stats["moved"] == only.stats["lsm_applied"] == plain.stats["lsm_applied"]
-    assert only.stats["rejected_lsm"] == plain.stats["moved"] - plain.stats["lsm_applied"]
-    kept = only.moved_side == 0
-    assert np.array_equal(only.pts2[kept], pts2[kept])
-    moved = only.moved_side == 2
-    assert np.array_equal(only.pts2[moved], plain.pts2[moved])
 
 
 #: positions read by frame_sampler (float32 grid) against a float64 mapping of every sample (px).

@@ -168,8 +168,9 @@ def test_lsm_step_runs_the_kernel_on_the_cpu():
     from colmap_miho.refinement.lsm.step import lsm_step
 
     img1, img2, Hf, Hm, c, start = _problem("astronaut", 8)
-    cfg = NCCConfig.pairwise(device="cpu", template_radius=6, lsm=True, lsm_radius=RADIUS, lsm_antialias=0.5,
-                    lsm_max_shift_px=2.0, lsm_tol_px=0.01)
+    cfg = NCCConfig.pairwise(device="cpu", template_radius=6,
+                             lsm={"enabled": True, "radius": RADIUS, "antialias": 0.5, "max_shift_px": 2.0,
+                                  "tol_px": 0.01})
     calls = []
     orig = lsm_kernel.lsm_frames
 

@@ -10,6 +10,7 @@ import functools
 import numpy as np
 import pytest
 import torch
+from helpers.variants import variant
 
 from colmap_miho.refinement import pairwise
 from colmap_miho.refinement.config import NCCConfig
@@ -143,7 +144,7 @@ def test_ncc_maps_match_float64_reference(so: int) -> None:
 def test_search_matches_torch(inner: int, ellipse: bool) -> None:
     img1, img2, p1, p2, homs = _problem("astronaut", 300, 0)
     ref, got = _both(torch.tensor(img1), torch.tensor(img2), p1, p2, homs,
-                     _cfg(inner_radius=inner, ellipse_mask=ellipse))
+                     variant(_cfg(inner_radius=inner), ellipse_mask=ellipse))
     for key in ("inside", "valid", "flat"):
         assert torch.equal(ref[key], got[key]), key
     usable = (ref["valid"] & ref["inside"] & ~ref["flat"]).numpy()

@@ -120,8 +120,8 @@ def _errors(problem, cfg: NCCConfig, *, star: bool = False) -> tuple[np.ndarray,
 
 
 def _cfg(tol_px: float = 0.001) -> NCCConfig:
-    return NCCConfig.pairwise(lsm=True, lsm_radius=RADIUS, lsm_max_shift_px=2.0, lsm_tol_px=tol_px,
-                     lsm_antialias=0.0)
+    return NCCConfig.pairwise(lsm={"enabled": True, "radius": RADIUS, "max_shift_px": 2.0, "tol_px": tol_px,
+                                   "antialias": 0.0})
 
 
 @pytest.mark.parametrize("name", ["camera", "astronaut"])
@@ -161,17 +161,16 @@ def test_anti_aliased_joint_still_recovers() -> None:
     """With the coarsest-view blur on (all views here within 10% of the reference's scale,
     the blur hits the finer ones), positions stay within the tolerance."""
     problem = _track_problem("camera", noise=0.0, seed=4)
-    err, acc, _ = _errors(problem, NCCConfig.pairwise(lsm=True, lsm_radius=RADIUS, lsm_max_shift_px=2.0,
-                                             lsm_tol_px=0.001, lsm_antialias=0.5))
+    err, acc, _ = _errors(problem, NCCConfig.pairwise(lsm={"enabled": True, "radius": RADIUS, "max_shift_px": 2.0,
+                                                           "tol_px": 0.001, "antialias": 0.5}))
     assert np.median(err[acc]) < 2 * MEDIAN_TOL_PX
 
 
 def test_config_defaults_and_counters() -> None:
     assert TrackConfig().multiphoto_lsm is False
-    with pytest.raises(ValueError, match="multiphoto_iterations"):
-        TrackConfig(multiphoto_iterations=11)
-    with pytest.raises(ValueError, match="multiphoto_star_first"):
-        TrackConfig(multiphoto_iterations=0, multiphoto_star_first=False)
+    for bad in (0, 11):
+        with pytest.raises(ValueError, match="multiphoto_iterations"):
+            TrackConfig(multiphoto_iterations=bad)
     assert MULTIPHOTO_COUNTERS[0] == "joint_tracks"
 
 
@@ -232,13 +231,12 @@ def test_pass_after_the_walk_moves_every_observation_to_the_anchor() -> None:
         pm[(a, b)] = np.stack([np.arange(len(pts))] * 2, axis=1)
         results[(a, b)] = SimpleNamespace(inliers=np.ones(len(pts), bool), labels=np.zeros(len(pts), np.int64),
                                           patch_homographies=np.stack([np.eye(3), np.linalg.inv(h_ab)])[None])
-    ncc = NCCConfig.pairwise(lsm=True, lsm_radius=RADIUS, lsm_max_shift_px=2.0, lsm_tol_px=0.001)
+    ncc = NCCConfig.pairwise(lsm={"enabled": True, "radius": RADIUS, "max_shift_px": 2.0, "tol_px": 0.001})
     walk = refine_tracks(images, kps, pm, results, refine_fn=_TransferRefiner(), ncc_config=ncc)
+    # 3 consensus passes from this (poor) walk go part of the way (the star pass that went all
+    # of it from such a start is joint_lsm's star_first, tested above; the walk starts aligned)
     out = refine_tracks(images, kps, pm, results, refine_fn=_TransferRefiner(), ncc_config=ncc,
-                        track_config=TrackConfig(multiphoto_lsm=True, multiphoto_star_first=True))
-    # without the star pass, 3 consensus passes from this (poor) walk only part of the way
-    part = refine_tracks(images, kps, pm, results, refine_fn=_TransferRefiner(), ncc_config=ncc,
-                         track_config=TrackConfig(multiphoto_lsm=True))
+                        track_config=TrackConfig(multiphoto_lsm=True))
     assert out.stats["joint_tracks"] == len(pts)
     assert out.stats["joint_observations"] == 4 * len(pts)
     assert out.stats["joint_applied"] >= 0.9 * 4 * len(pts)
@@ -248,9 +246,7 @@ def test_pass_after_the_walk_moves_every_observation_to_the_anchor() -> None:
         err_walk = np.linalg.norm(walk.keypoints[k] - truth, axis=1)
         err = np.linalg.norm(out.keypoints[k] - truth, axis=1)
         assert np.median(err_walk) > 0.9 * CALL_ERROR_PX
-        assert np.median(err) < MEDIAN_TOL_PX
-        err_part = np.linalg.norm(part.keypoints[k] - truth, axis=1)
-        assert np.median(err_part) < PARTWAY_FACTOR * np.median(err_walk)
+        assert np.median(err) < PARTWAY_FACTOR * np.median(err_walk)
         moved = out.displacement[k] > 0
         assert (out.refined_against[k][moved, 0] == 2).all()
         assert np.array_equal(out.refined_against[k][moved, 1], np.flatnonzero(moved))

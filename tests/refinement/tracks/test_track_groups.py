@@ -103,7 +103,7 @@ def _merge(kps, plan, walks):
 def test_groups_walk_exactly_like_the_whole_plan(seed, max_images):
     kps, pm, res, unref = random_scene(seed)
     plan = build_track_plan(kps, pm, res, unrefined_matches=unref, local_affine=LOCAL)
-    ncc = NCCConfig.pairwise(rectification="both")
+    ncc = NCCConfig.pairwise(rectify={"mode": "both"})
     whole_fake = PullRefiner()
     whole = walk_tracks(_images(kps), plan, ncc_config=ncc, refine_fn=whole_fake)
     groups = plan.groups(max_images)
@@ -257,8 +257,8 @@ def test_groups_on_real_images_move_keypoints_like_the_whole_walk(shared_data):
     kps, matches, results = filtered_multiview_matches(images, max_features=600)
     assert len(matches) >= 4
     ncc = NCCConfig.pairwise(device="cpu", template_radius=6)
-    plan = build_track_plan(kps, matches, results, local_affine=(ncc.local_affine_neighbours,
-                                                                 ncc.local_affine_max_residual_px))
+    plan = build_track_plan(kps, matches, results, local_affine=(ncc.rectify.neighbours,
+                                                                 ncc.rectify.max_residual_px))
     whole = walk_tracks(images, plan, ncc_config=ncc, track_config=TrackConfig())
     assert whole.stats["moved"] > 50
     for max_images, max_edges in ((2, 100), (3, 400), (5, 250)):
@@ -357,7 +357,7 @@ def test_walk_refines_along_walk_steps_only(seed):
                                                                 strict=True))}
     allowed = {frozenset((int(a), int(b))) for a, b in zip(plan.edge_a[steps],
                                                            plan.edge_b[steps], strict=True)}
-    walk = walk_tracks(_images(kps), plan, ncc_config=NCCConfig.pairwise(rectification="both"),
+    walk = walk_tracks(_images(kps), plan, ncc_config=NCCConfig.pairwise(rectify={"mode": "both"}),
                        refine_fn=PullRefiner())
     used = 0
     for i, against in walk.refined_against.items():

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from helpers.variants import variant
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -94,7 +95,7 @@ def test_every_keypoint_moves_at_most_once(graph, batch_pairs):
     fake = FakeRefiner()
     images = {i: np.zeros((4, 4), np.uint8) for i in kps}
     res = refine_tracks(images, kps, pair_matches, _identity_results(pair_matches), refine_fn=fake,
-                        track_config=TrackConfig(batch_pairs=batch_pairs, max_images_in_memory=3))
+                        track_config=variant(TrackConfig(max_images_in_memory=3), batch_pairs=batch_pairs))
     # each keypoint moved at most once: the fake moves by exactly +1 px, so any position is
     # the original or the original + 1
     for i, k in kps.items():
@@ -244,7 +245,7 @@ def test_missing_image_is_skipped():
 
     res = refine_tracks(loader, kps, pair_matches, results, refine_fn=FakeRefiner())
     batched = refine_tracks(loader, kps, pair_matches, results, refine_fn=FakeRefiner(),
-                            track_config=TrackConfig(batch_pairs=True))
+                            track_config=variant(TrackConfig(), batch_pairs=True))
     assert batched.stats == {**res.stats, "seconds": batched.stats["seconds"]}
     # (1,0)-(2,0)-(3,0) walked; (1,1)-(2,1) is a track without a refinable edge
     assert res.stats["tracks"] == 2 and res.stats["anchors"] == 1
@@ -419,7 +420,7 @@ def test_batched_levels_match_per_pair_calls_on_real_images(shared_data):
     kps, matches, results = filtered_multiview_matches(images, max_features=2000)
     assert len(matches) >= 2
     out = {b: refine_tracks(images, kps, matches, results, ncc_config=NCCConfig.pairwise(device="cpu"),
-                            track_config=TrackConfig(batch_pairs=b))
+                            track_config=variant(TrackConfig(), batch_pairs=b))
            for b in (False, True)}
     assert out[True].stats["refine_calls"] < out[False].stats["refine_calls"]
     for key in ("refined", "moved", "rejected", "levels"):
