@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers.variants import variant
 from planes import image2_transform, make_scene
 
 from colmap_miho import FilterResult, filter_matches
@@ -14,6 +13,7 @@ from colmap_miho.filtering.assign import assign_matches
 from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.homography import dlt, four_point, to_unit_h33
 from colmap_miho.filtering.miho import choose_rotation, sqrt_split
+from miho_bench.variants import variant
 
 ALL_METHODS = [m.value for m in FilterMethod]
 # Planted scenes: 3 planes x 150 matches, 0.5 px noise, 40 % random outliers. Measured

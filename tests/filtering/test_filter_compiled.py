@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers.variants import variant
 from planes import make_scene
 
 from colmap_miho import filter_matches
@@ -21,6 +20,7 @@ from colmap_miho.filtering.miho import build_problem, choose_rotation
 from colmap_miho.filtering.ransac import _refit
 from colmap_miho.filtering.sampling import LocalCandidates, Sampler, checked_samples, spread_ok
 from colmap_miho.filtering.scoring import NumpyScoring, hypotheses_from_samples
+from miho_bench.variants import variant
 
 H_ATOL = 1e-12  # entries of unit-Frobenius-norm homographies
 REFIT_ATOL = 1e-9  # the same, least-squares refits (an eigenvector of A^T A: less well set)

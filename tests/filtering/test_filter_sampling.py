@@ -7,7 +7,6 @@ from itertools import pairwise
 
 import numpy as np
 import pytest
-from helpers.variants import variant
 from planes import make_scene
 
 from colmap_miho import filter_matches
@@ -15,6 +14,7 @@ from colmap_miho.filtering.config import FilterConfig
 from colmap_miho.filtering.miho import build_problem, choose_rotation
 from colmap_miho.filtering.ransac import ransac_round
 from colmap_miho.filtering.sampling import LocalCandidates, Sampler, spread_ok
+from miho_bench.variants import variant
 
 
 def _dense_plane(rng, n=400, step=6.0):

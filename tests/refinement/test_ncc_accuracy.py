@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers.variants import variant
 
 from colmap_miho.refinement.config import NCCConfig
 from colmap_miho.refinement.pairwise import refine_pair
 from colmap_miho.refinement.rectify.local_affine import local_affine_pairs
+from miho_bench.variants import variant
 
 cv2 = pytest.importorskip("cv2")
 skdata = pytest.importorskip("skimage.data")

@@ -17,12 +17,12 @@ import copy
 import numpy as np
 import pytest
 import torch
-from helpers.variants import variant
 
 from colmap_miho.refinement.config import NCCConfig
 from colmap_miho.refinement.ncc.correlation import ncc_maps
 from colmap_miho.refinement.pairwise import RefineResult, refine_pair
 from colmap_miho.refinement.warping import ImageStack, offset_grid, sample_patches
+from miho_bench.variants import variant
 
 cv2 = pytest.importorskip("cv2")
 

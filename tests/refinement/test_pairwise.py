@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from helpers.variants import variant
 
 from colmap_miho.enums import Device, Perturbations, Rectification
 from colmap_miho.refinement.config import NCCConfig
 from colmap_miho.refinement.ncc.perturbations import perturbation_matrices
 from colmap_miho.refinement.pairwise import refine_pair
+from miho_bench.variants import variant
 
 cv2 = pytest.importorskip("cv2")
 

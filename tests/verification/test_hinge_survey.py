@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers.variants import variant
 
 from colmap_miho.adapters.database import ColmapDatabase
 from colmap_miho.pipeline.match_check import MatchCheckStats, stats_fields
@@ -14,6 +13,7 @@ from colmap_miho.reporting.html_report import match_check_note
 from colmap_miho.sfm.global_estimate import GlobalEstimator
 from colmap_miho.verification import MatchCheckConfig, judge_in_rounds
 from miho_bench.hinge_scene import make_hinged_survey
+from miho_bench.variants import variant
 
 pytestmark = pytest.mark.slow
 

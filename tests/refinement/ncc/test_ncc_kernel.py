@@ -10,7 +10,6 @@ import functools
 import numpy as np
 import pytest
 import torch
-from helpers.variants import variant
 
 from colmap_miho.refinement import pairwise
 from colmap_miho.refinement.config import NCCConfig
@@ -19,6 +18,7 @@ from colmap_miho.refinement.ncc import search, subpixel
 from colmap_miho.refinement.ncc.correlation import ncc_maps
 from colmap_miho.refinement.pairwise import refine_pair
 from colmap_miho.refinement.warping import ImageStack, offset_grid, sample_values
+from miho_bench.variants import variant
 
 cv2 = pytest.importorskip("cv2")
 skdata = pytest.importorskip("skimage.data")

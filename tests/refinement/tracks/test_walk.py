@@ -8,7 +8,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from helpers.variants import variant
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -16,6 +15,7 @@ from colmap_miho.refinement.config import NCCConfig, TrackConfig
 from colmap_miho.refinement.pairwise import RefineResult
 from colmap_miho.refinement.tracks.build import build_track_plan, pair_rows
 from colmap_miho.refinement.tracks.walk import refine_tracks, walk_tracks
+from miho_bench.variants import variant
 
 # test_synthetic_scene_refinement: required drop of the median track-relative error
 # (measured: -56%).
