@@ -216,7 +216,7 @@ def main(argv=None) -> int:
 
     import pycolmap
 
-    from colmap_miho.pipeline.run import refine_database
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.recipe import DEFAULT_RECIPE, load_recipe
     from colmap_miho.reporting.gt_model import load_gt_poses
     from colmap_miho.reporting.report import database_epipolar_flips

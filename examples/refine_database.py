@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import pycolmap
 
-    from colmap_miho.pipeline.run import refine_database
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.recipe import load_recipe
     from colmap_miho.reporting.demo_scene import make_demo_scene
     from colmap_miho.sfm.extraction import extract_and_match

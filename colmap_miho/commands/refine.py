@@ -79,7 +79,7 @@ def paths(args: argparse.Namespace) -> tuple[dict, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..pipeline.run import refine_database
+    from ..pipeline.refine_job import refine_database
     from ..recipe import load_recipe
 
     if args.workers is not None and args.workers < 1:
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         restart=args.restart, dask=args.dask,
     )
     if not args.quiet:
-        from ..pipeline.run import note_output_written
+        from ..pipeline.refine_job import note_output_written
         from ..terminal import printable_fields
 
         try:

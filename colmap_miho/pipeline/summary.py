@@ -9,9 +9,9 @@ from pathlib import Path
 
 from ..recipe import Recipe
 from .filter import FilterStats
-from .match_check import MatchCheckStats
+from .match_check_stage import MatchCheckStats
 from .read import ReadStats
-from .refine import RefineStats
+from .refine_keypoints import RefineKeypointsStats
 from .write import WriteStats
 
 
@@ -47,7 +47,7 @@ class RefineSummary:
         image_decodes_max: the most times one image was decoded in the run (same count).
         match_check: what the match check against a global estimate of the cameras removed
             and why, whether the estimate was used and which images it trusted
-            (:meth:`~.match_check.MatchCheckStats.to_dict`; empty when it is off).
+            (:meth:`~.match_check_stage.MatchCheckStats.to_dict`; empty when it is off).
         seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
             "total").
     """
@@ -93,7 +93,7 @@ class RefineSummary:
     @classmethod
     def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
                     device: str, seed: int, runner: str, resumed: bool, read: ReadStats, filtered: FilterStats,
-                    refine: RefineStats, write: WriteStats, seconds: dict[str, float],
+                    refine: RefineKeypointsStats, write: WriteStats, seconds: dict[str, float],
                     match_check: MatchCheckStats | None = None) -> RefineSummary:
         """Assemble the summary from the stages' stats (a check's None: it was off)."""
         pcfg = recipe.pipeline

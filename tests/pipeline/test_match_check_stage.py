@@ -13,7 +13,7 @@ import pycolmap
 import pytest
 
 from colmap_miho.adapters.database import ColmapDatabase
-from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.refine_job import refine_database
 from colmap_miho.pipeline.summary import RefineSummary
 from colmap_miho.recipe import load_recipe
 from colmap_miho.reporting.html_report import match_check_note
@@ -141,7 +141,7 @@ def test_no_estimate_removes_nothing(planted_db, tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_resumed_run_reuses_the_stored_verdicts(planted_db, tmp_path, monkeypatch):
-    from colmap_miho.pipeline import run as run_module
+    from colmap_miho.pipeline import refine_job as run_module
 
     ref = _run(planted_db, tmp_path / "ref.db", "match_check.mode=remove")
 
@@ -224,7 +224,7 @@ def test_disk_full_in_the_temporary_folder_names_that_folder(planted_db, tmp_pat
 @pytest.mark.slow
 @pytest.mark.parametrize("damage", ["cut", "random", "no_meta", "bad_layout"])
 def test_a_damaged_verdict_file_is_named_and_resume_refused(planted_db, tmp_path, monkeypatch, damage):
-    from colmap_miho.pipeline import run as run_module
+    from colmap_miho.pipeline import refine_job as run_module
     from colmap_miho.pipeline.store import StoreDamaged, store_folder
 
     out = tmp_path / "out.db"
