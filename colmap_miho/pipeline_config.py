@@ -23,7 +23,8 @@ class PipelineConfig:
         source: which matches are filtered: "verified" (two_view_geometries inliers) or "raw"
             (tentative matches; MOP+MiHo then replaces geometric verification).
         min_matches: pairs with fewer matches pass through unchanged.
-        refine: run the track-consistent refinement after filtering.
+        refine_keypoints: move the kept keypoints by the track-consistent refinement after
+            filtering (false: filter only, ``refine --no-refine``).
         verify: re-run COLMAP's epipolar verification on the kept matches.
         memory_budget_mb: MiB for the filter's chunks of pairs and (half of it) the refine
             stage's decoded images; results do not depend on it. The keypoints and the
@@ -33,7 +34,7 @@ class PipelineConfig:
     source: MatchSource = MatchSource.VERIFIED
     min_matches: int = field(default=15, metadata=within(
         4, MAX_MATCHES, "a homography needs 4 matches; no pair holds more"))
-    refine: bool = True
+    refine_keypoints: bool = True
     verify: bool = False
     memory_budget_mb: int = field(default=DEFAULT_MEMORY_BUDGET_MB, metadata=within(
         MIN_MEMORY_BUDGET_MB, MAX_MEMORY_BUDGET_MB, "MiB; at least one chunk, at most 1 TiB"))

@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     if args.source:
         overrides.append(f"pipeline.source={args.source}")
     if args.no_refine:
-        overrides.append("pipeline.refine=false")
+        overrides.append("pipeline.refine_keypoints=false")
     if args.verify is not None:
         overrides.append(f"pipeline.verify={str(args.verify).lower()}")
     if args.memory_budget is not None:

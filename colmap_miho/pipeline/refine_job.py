@@ -89,7 +89,7 @@ def _resolve_device(device: Device | str) -> str:
 
 def _check_recipe_device(rec: Recipe) -> None:
     """Refuse ``ncc.device = "cuda"`` where torch sees no CUDA device, before any work (UserError)."""
-    if not rec.pipeline.refine or Device.parse(rec.ncc.device, "device") != Device.CUDA:
+    if not rec.pipeline.refine_keypoints or Device.parse(rec.ncc.device, "device") != Device.CUDA:
         return
     from ..devices import resolve_device
 

@@ -38,7 +38,7 @@ def run_refine_keypoints(db: ColmapDatabase, read: ReadOutput, store: RunStore, 
     """The keypoint refinement stage on ``runner``, skipping and storing groups. Returns (image id -> new
     keypoints ``(N, 2)``, :class:`RefineKeypointsStats`); the read keypoints when off or nothing was
     filtered."""
-    if not recipe.pipeline.refine or not store.filter_counts().pairs_ok:
+    if not recipe.pipeline.refine_keypoints or not store.filter_counts().pairs_ok:
         return read.keypoints, RefineKeypointsStats()
     ok = verdicts.apply(store.load_filtered())
     missing = read.loader.missing

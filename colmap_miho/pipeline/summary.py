@@ -101,7 +101,7 @@ class RefineSummary:
         per_image.update(refine.decoded_by_image)
         return cls(
             output=output, database=database, backup=backup, recipe=recipe.name, seed=int(seed),
-            source=str(pcfg.source), refined=pcfg.refine, verified=pcfg.verify,
+            source=str(pcfg.source), refined=pcfg.refine_keypoints, verified=pcfg.verify,
             workers=filtered.workers, device=device, num_images=read.num_images,
             num_pairs=read.num_pairs, pairs_filtered=filtered.pairs_filtered,
             pairs_passed=read.pairs_passed, pairs_failed=filtered.pairs_failed,

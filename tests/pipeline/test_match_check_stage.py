@@ -79,7 +79,7 @@ def _output_matches(path):
 
 def _run(planted_db, out, *sets, resume=False, restart=False):
     db, images, _ = planted_db
-    rec = load_recipe(None, ["pipeline.refine=false", "match_check.mode=off", *sets])
+    rec = load_recipe(None, ["pipeline.refine_keypoints=false", "match_check.mode=off", *sets])
     json_path = out.with_suffix(".json")
     refine_database(db, images, out, recipe=rec, workers=1, json_path=json_path, overwrite=True,
                     resume=resume, restart=restart)
@@ -298,11 +298,11 @@ def test_a_signal_during_the_global_mapper_stops_the_run_promptly(planted_db, tm
 def test_the_default_recipe_checks_matches(planted_db, tmp_path):
     db, images, _ = planted_db
     out = tmp_path / "default.db"
-    summary = refine_database(db, images, out, recipe=load_recipe(None, ["pipeline.refine=false"]), workers=1)
+    summary = refine_database(db, images, out, recipe=load_recipe(None, ["pipeline.refine_keypoints=false"]), workers=1)
     assert summary.match_check["mode"] == "remove" and summary.match_check["used"]
     assert summary.match_check["matches_removed"] > 0
     off = refine_database(db, images, tmp_path / "off.db", workers=1,
-                          recipe=load_recipe(None, ["pipeline.refine=false", "match_check.mode=off"]))
+                          recipe=load_recipe(None, ["pipeline.refine_keypoints=false", "match_check.mode=off"]))
     assert off.match_check == {} and off.matches_kept > summary.matches_kept
 
 
