@@ -10,7 +10,7 @@ from .validation import MIN_MEMORY_BUDGET_MB as MIN_MEMORY_BUDGET_MB
 
 #: ``pipeline.memory_budget_mb`` default (MiB).
 DEFAULT_MEMORY_BUDGET_MB = 2048
-#: Share of the memory budget for decoded images in the refine stage (the rest: the track
+#: Share of the memory budget for decoded images in the keypoint refinement (the rest: the track
 #: plan, the NCC batches and the filter results the stage reads back).
 IMAGE_BUDGET_SHARE = 0.5
 
@@ -26,8 +26,8 @@ class PipelineConfig:
         refine_keypoints: move the kept keypoints by the track-consistent refinement after
             filtering (false: filter only, ``refine --no-refine``).
         verify: re-run COLMAP's epipolar verification on the kept matches.
-        memory_budget_mb: MiB for the filter's chunks of pairs and (half of it) the refine
-            stage's decoded images; results do not depend on it. The keypoints and the
+        memory_budget_mb: MiB for the filter's chunks of pairs and (half of it) the keypoint
+            refinement's decoded images; results do not depend on it. The keypoints and the
             filtered matches (about 40 bytes each) are held outside it.
     """
 

@@ -39,7 +39,7 @@ class RefineSummary:
         filter_chunks / filter_chunks_resumed: chunks of pairs filtered in all / taken from
             an interrupted run's store; pairs_resumed: the pairs of those chunks.
         refine_groups / refine_groups_resumed: track groups refined in all / taken from the
-            store (0 when the refine stage does not report groups).
+            store (0 when the keypoint refinement does not report groups).
         resumed: the run continued an interrupted one.
         image_decodes: image files decoded in the whole run, over all processes: the read
             stage's check (once per image; kept in the cache when it fits) and the track walk's
