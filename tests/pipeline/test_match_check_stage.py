@@ -160,7 +160,7 @@ def test_resumed_run_reuses_the_stored_verdicts(planted_db, tmp_path, monkeypatc
     from colmap_miho.sfm import global_estimate
 
     monkeypatch.setattr(global_estimate, "global_estimate", no_mapper)
-    from colmap_miho.pipeline import match_check as stage
+    from colmap_miho.pipeline import match_check_stage as stage
 
     monkeypatch.setattr(stage, "_decide", no_mapper)
     res = _run(planted_db, out, "match_check.mode=remove", resume=True)
