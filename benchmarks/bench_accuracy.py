@@ -18,11 +18,11 @@ cameras (tracks seen by >= 3 GT images; tracks above 4 px are "wrong", counted a
 A variant is a name and ``--set`` overrides on top of ``--recipe`` and the global ``--set``s;
 the special key ``recipe=NAME`` swaps the base recipe for that variant, e.g.::
 
-    --variant filter_only:pipeline.refine=false --variant ncc --variant r6:ncc.template_radius=6
+    --variant filter_only:pipeline.refine_keypoints=false --variant ncc --variant r6:ncc.template_radius=6
 
 Without ``--variant`` one variant runs: the recipe as given. The ``input`` row of each
 scene/setting is the database before colmap-miho; "d_med %" is the change of the residual
-median against it. With a variant that does not refine (``pipeline.refine=false``, or the one
+median against it. With a variant that does not refine (``pipeline.refine_keypoints=false``, or the one
 ``--baseline`` names), every other variant's row also counts its *turned-wrong* matches (at most
 4 px from the GT epipolar line in the baseline, more in the variant: same pair, same keypoint
 indices; :mod:`colmap_miho.reporting.match_flips`), the turned-right ones and how far their
@@ -136,13 +136,13 @@ def measure(database: Path, gt_poses: dict) -> tuple[dict, object]:
 
 def baseline_variant(variants: list[tuple[str, str | None, list[str]]], recipes: dict, name: str | None) -> str | None:
     """The variant the others' turned-wrong / turned-right matches are counted against: ``name``
-    (``--baseline``), else the first variant that does not refine (``pipeline.refine=false``),
+    (``--baseline``), else the first variant that does not refine (``pipeline.refine_keypoints=false``),
     else None (not counted)."""
     if name is not None:
         if name not in recipes:
             raise SystemExit(f"--baseline {name}: no such --variant")
         return name
-    return next((v for v, _, _ in variants if not recipes[v].pipeline.refine), None)
+    return next((v for v, _, _ in variants if not recipes[v].pipeline.refine_keypoints), None)
 
 
 def numeric_stats(stats: dict, prefix: str = "") -> dict:
@@ -205,7 +205,7 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline", default=None, metavar="NAME",
                     help="variant that the others' turned-wrong / turned-right matches (GT epipolar distance "
                          "<= 4 px in one, > 4 px in the other) are counted against; default: the first "
-                         "variant with pipeline.refine=false, if any")
+                         "variant with pipeline.refine_keypoints=false, if any")
     ap.add_argument("--workers", type=int, default=2, help="refine_database workers (default 2)")
     ap.add_argument("--seed", type=int, default=0,
                     help="refine_database seed (another seed shows the run-to-run spread)")
@@ -216,7 +216,7 @@ def main(argv=None) -> int:
 
     import pycolmap
 
-    from colmap_miho.pipeline.run import refine_database
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.recipe import DEFAULT_RECIPE, load_recipe
     from colmap_miho.reporting.gt_model import load_gt_poses
     from colmap_miho.reporting.report import database_epipolar_flips

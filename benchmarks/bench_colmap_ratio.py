@@ -71,7 +71,7 @@ def main() -> int:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     from colmap_miho.adapters.database import ColmapDatabase
-    from colmap_miho.pipeline.run import refine_database
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.sfm import colmap_log_to_file
 
     rows = []

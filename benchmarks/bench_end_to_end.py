@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import pycolmap
 
-    from colmap_miho.pipeline.run import refine_database
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.reporting.compare import gt_intrinsics
     from colmap_miho.reporting.gt_model import load_gt_poses
 

@@ -60,7 +60,7 @@ class _Captured(Exception):
 def stage_input(database: Path, image_dir: Path, seed: int) -> dict[tuple[int, int], np.ndarray]:
     """The match check's input of ``refine_database`` with the default recipe and ``seed``:
     the filtered pair graph (the run stops there; the database is only read)."""
-    import colmap_miho.pipeline.match_check as stage
+    import colmap_miho.pipeline.match_check_stage as stage
     from colmap_miho import refine_database
 
     held: dict = {}

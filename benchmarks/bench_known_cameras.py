@@ -79,7 +79,7 @@ INPUT, ORACLE = "input", "oracle"
 # refine in another checkout (``code=``): its colmap_miho on the path, the arguments as JSON
 _REFINE_SCRIPT = """
 import json, sys
-from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.refine_job import refine_database
 from colmap_miho.recipe import load_recipe
 a = json.loads(sys.argv[1])
 s = refine_database(a["db"], a["images"], a["out"], recipe=load_recipe(a["recipe"], a["overrides"]),
@@ -117,7 +117,7 @@ def refined_database(db: Path, image_dir: Path, folder: Path, name: str, recipe:
         line = [ln for ln in proc.stdout.splitlines() if ln.startswith("REFINE_SUMMARY ")][-1]
         raw = json.loads(line.split(" ", 1)[1])
     else:
-        from colmap_miho.pipeline.run import refine_database
+        from colmap_miho.pipeline.refine_job import refine_database
         from colmap_miho.recipe import load_recipe
 
         s = refine_database(db, image_dir, tmp, recipe=load_recipe(recipe, overrides), overwrite=True, restart=True,

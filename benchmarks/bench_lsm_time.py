@@ -28,7 +28,7 @@ import threading
 import time
 from pathlib import Path
 
-from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.refine_job import refine_database
 from colmap_miho.recipe import load_recipe
 
 REPO = Path(__file__).resolve().parents[1]
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
                "lsm": load_recipe(args.lsm_recipe, ["lsm.enabled=true", *args.overrides])}
     if args.torch_lsm:
         recipes["lsm_torch"] = recipes["lsm"]
-    import colmap_miho.pipeline.run as run_mod
+    import colmap_miho.pipeline.refine_job as run_mod
     import colmap_miho.refinement.pairwise as ncc_mod
 
     step = ncc_mod.lsm_step
@@ -134,7 +134,7 @@ def main(argv=None) -> int:
             if name == "lsm_torch":
                 ncc_mod.lsm_step = functools.partial(step, compiled=False)
             if args.lsm_share:
-                clocks = [StageClock(run_mod, "run_refine"), StageClock(ncc_mod, "lsm_step")]
+                clocks = [StageClock(run_mod, "run_refine_keypoints"), StageClock(ncc_mod, "lsm_step")]
             try:
                 with CpuMeter() as cpu:
                     s = refine_database(args.database, args.images, f"{args.output_dir}/bench_lsm_time_{name}.db",

@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import pycolmap
 
-    from colmap_miho.pipeline.run import refine_database
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.recipe import load_recipe
 
     pycolmap.logging.minloglevel = 2

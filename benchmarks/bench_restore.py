@@ -39,8 +39,8 @@ REPO = Path(__file__).resolve().parents[1]
 def run_one(db: Path, images: Path, out: Path, overrides: list[str]) -> tuple[dict, dict, set, dict]:
     """Refine ``db``; (candidates, restored masks, the pairs the check was given, summary's
     match-check stats)."""
-    import colmap_miho.pipeline.match_check as stage
-    from colmap_miho.pipeline.run import refine_database
+    import colmap_miho.pipeline.match_check_stage as stage
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.recipe import load_recipe
 
     captured: dict = {}

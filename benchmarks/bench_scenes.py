@@ -7,7 +7,7 @@ dataset's pairs_with_gt.txt, plus wall times.
 
     python benchmarks/bench_scenes.py [--data ../shared/data] [--work /tmp/bench_scenes]
         [--scenes middlebury_temple_sparse_ring strecha_fountain_p11 strecha_entry_p10]
-        [--recipe mop_miho_lsm] [--set pipeline.refine=false] [--max-features 4096]
+        [--recipe mop_miho_lsm] [--set pipeline.refine_keypoints=false] [--max-features 4096]
         [--repeats 3] [--camera-from-gt --refine-intrinsics none]
 
 With ``--repeats N`` the mapping figures are medians of N runs (``compare --repeats``).

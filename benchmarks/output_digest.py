@@ -109,7 +109,7 @@ def main(argv=None) -> int:
 
     import pycolmap
 
-    from colmap_miho.pipeline.run import refine_database
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.recipe import available_recipes, load_recipe
 
     pycolmap.logging.minloglevel = 1

@@ -71,11 +71,11 @@ READY_FOLDER = "colmap-miho-ready"
 
 def families_for(recipe) -> tuple[str, ...]:
     """The kernel families a :class:`~colmap_miho.recipe.Recipe` runs on the CPU, in
-    :data:`FAMILIES` order: the filter's always; with ``pipeline.refine`` the NCC kernels, the
+    :data:`FAMILIES` order: the filter's always; with ``pipeline.refine_keypoints`` the NCC kernels, the
     local affine fits with ``rectify.mode`` ``local`` or ``both``, the LSM step with
     ``lsm.enabled`` or ``tracks.multiphoto_lsm``."""
     used = {"filter"}
-    if recipe.pipeline.refine:
+    if recipe.pipeline.refine_keypoints:
         used.add("ncc")
         if recipe.ncc.rectify.mode != Rectification.FILTER:
             used.add("rectify")

@@ -10,7 +10,7 @@ from .validation import MIN_MEMORY_BUDGET_MB as MIN_MEMORY_BUDGET_MB
 
 #: ``pipeline.memory_budget_mb`` default (MiB).
 DEFAULT_MEMORY_BUDGET_MB = 2048
-#: Share of the memory budget for decoded images in the refine stage (the rest: the track
+#: Share of the memory budget for decoded images in the keypoint refinement (the rest: the track
 #: plan, the NCC batches and the filter results the stage reads back).
 IMAGE_BUDGET_SHARE = 0.5
 
@@ -23,17 +23,18 @@ class PipelineConfig:
         source: which matches are filtered: "verified" (two_view_geometries inliers) or "raw"
             (tentative matches; MOP+MiHo then replaces geometric verification).
         min_matches: pairs with fewer matches pass through unchanged.
-        refine: run the track-consistent refinement after filtering.
+        refine_keypoints: move the kept keypoints by the track-consistent refinement after
+            filtering (false: filter only, ``refine --no-refine``).
         verify: re-run COLMAP's epipolar verification on the kept matches.
-        memory_budget_mb: MiB for the filter's chunks of pairs and (half of it) the refine
-            stage's decoded images; results do not depend on it. The keypoints and the
+        memory_budget_mb: MiB for the filter's chunks of pairs and (half of it) the keypoint
+            refinement's decoded images; results do not depend on it. The keypoints and the
             filtered matches (about 40 bytes each) are held outside it.
     """
 
     source: MatchSource = MatchSource.VERIFIED
     min_matches: int = field(default=15, metadata=within(
         4, MAX_MATCHES, "a homography needs 4 matches; no pair holds more"))
-    refine: bool = True
+    refine_keypoints: bool = True
     verify: bool = False
     memory_budget_mb: int = field(default=DEFAULT_MEMORY_BUDGET_MB, metadata=within(
         MIN_MEMORY_BUDGET_MB, MAX_MEMORY_BUDGET_MB, "MiB; at least one chunk, at most 1 TiB"))

@@ -86,7 +86,7 @@ RENAMED = {
     "ncc.rectification": "rectify.mode", "ncc.local_affine_neighbours": "rectify.neighbours",
     "ncc.local_affine_max_residual_px": "rectify.max_residual_px",
     "tracks.far_move_px": "rectify.max_residual_px (the far-move bound)",
-    "mapping.seed": _SEED, "match_check.seed": _SEED,
+    "mapping.seed": _SEED, "match_check.seed": _SEED, "pipeline.refine": "pipeline.refine_keypoints",
 }
 REMOVED = {
     "pair_check": "the pair check was removed (no recipe used it)",

@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import pycolmap
 
-    from colmap_miho.pipeline.run import refine_database
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.recipe import load_recipe
     from colmap_miho.reporting.demo_scene import make_demo_scene
     from colmap_miho.sfm.extraction import extract_and_match
@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
         database, images = args.database, args.images
 
     # None: the default recipe (mop_miho_lsm); "mop_miho_ncc" is the faster NCC-only one
-    recipe = load_recipe(None, ["pipeline.refine=false"] if args.no_refine else [])
+    recipe = load_recipe(None, ["pipeline.refine_keypoints=false"] if args.no_refine else [])
     summary = refine_database(database, images, work / "refined.db", recipe=recipe, workers=1)
     print(summary.format())
 

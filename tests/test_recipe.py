@@ -27,7 +27,7 @@ def test_default_recipe_is_mop_miho_with_refinement():
     recipe = load_recipe()
     assert recipe.name == DEFAULT_RECIPE == "mop_miho_lsm"
     assert recipe.filter.method is FilterMethod.MOP_MIHO
-    assert recipe.pipeline.refine is True
+    assert recipe.pipeline.refine_keypoints is True
     # least-squares matching from each NCC peak; mop_miho_ncc is the same recipe without it
     assert recipe.lsm.enabled is True and recipe.tracks.multiphoto_lsm is False
     ncc = load_recipe("mop_miho_ncc")
@@ -62,9 +62,10 @@ def test_run_commands_apply_mapper_and_seed_flags_over_the_recipe():
 
 
 def test_overrides_are_typed():
-    recipe = load_recipe("mop", ["filter.t_l=12", "pipeline.source=raw", "pipeline.refine=yes", "filter.t_h=none"])
+    recipe = load_recipe("mop", ["filter.t_l=12", "pipeline.source=raw", "pipeline.refine_keypoints=yes",
+                                 "filter.t_h=none"])
     assert recipe.filter.t_l == 12.0 and recipe.filter.t_h is None
-    assert recipe.pipeline.source is MatchSource.RAW and recipe.pipeline.refine is True
+    assert recipe.pipeline.source is MatchSource.RAW and recipe.pipeline.refine_keypoints is True
 
 
 @pytest.mark.parametrize(
@@ -88,6 +89,7 @@ def test_overrides_are_typed():
         ("ncc.rectification=local", "ncc.rectification is now rectify.mode"),
         ("mapping.seed=3", "mapping.seed is now --seed"),
         ("match_check.seed=3", "match_check.seed is now --seed"),
+        ("pipeline.refine=false", "pipeline.refine is now pipeline.refine_keypoints"),
         ("pair_check.enabled=true", "pair check was removed"),
         ("ncc.match_blur=true", "ncc.match_blur is no longer a recipe key"),
         ("filter.sampling=uniform", "a fixed constant .FilterConfig.sampling"),

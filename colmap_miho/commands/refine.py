@@ -79,7 +79,7 @@ def paths(args: argparse.Namespace) -> tuple[dict, dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..pipeline.run import refine_database
+    from ..pipeline.refine_job import refine_database
     from ..recipe import load_recipe
 
     if args.workers is not None and args.workers < 1:
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     if args.source:
         overrides.append(f"pipeline.source={args.source}")
     if args.no_refine:
-        overrides.append("pipeline.refine=false")
+        overrides.append("pipeline.refine_keypoints=false")
     if args.verify is not None:
         overrides.append(f"pipeline.verify={str(args.verify).lower()}")
     if args.memory_budget is not None:
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         restart=args.restart, dask=args.dask,
     )
     if not args.quiet:
-        from ..pipeline.run import note_output_written
+        from ..pipeline.refine_job import note_output_written
         from ..terminal import printable_fields
 
         try:

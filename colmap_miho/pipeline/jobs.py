@@ -1,4 +1,5 @@
-"""Whole jobs built on :func:`~colmap_miho.pipeline.run.refine_database`.
+"""The whole jobs of the ``run``, ``compare`` and ``demo`` commands, built on
+:func:`~colmap_miho.pipeline.refine_job.refine_database`.
 
 :func:`compare_databases` maps a database as it is and after refinement, ``repeats`` times each, and
 writes the comparison (``baseline/``, ``refined/``, ``compare.md``, ``report.html``);
@@ -23,7 +24,7 @@ from ..reporting.compare import CompareResult, Evaluation, gt_intrinsics, write_
 from ..seeds import mapping_seed
 from ..sfm import MappingConfig, parse_camera_params
 from ..validation import OPTION_BOUNDS
-from .run import refine_database
+from .refine_job import refine_database
 from .summary import RefineSummary
 
 log = logging.getLogger(__name__)

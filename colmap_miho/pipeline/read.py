@@ -86,7 +86,7 @@ def run_read(db: ColmapDatabase, cfg: ReadConfig) -> tuple[ReadOutput, ReadStats
                          expected_sizes={im.image_id: (im.width, im.height) for im in images})
     missing_names: list[str] = []
     implausible: list[str] = []
-    if pcfg.refine:
+    if pcfg.refine_keypoints:
         _check_one_file_per_image(cfg, names)
         missing = loader.check_all(inspect=_plausibility_check(db, keypoints, names, loader, implausible))
         missing_names = [names[i] for i in missing]

@@ -9,9 +9,9 @@ from pathlib import Path
 
 from ..recipe import Recipe
 from .filter import FilterStats
-from .match_check import MatchCheckStats
+from .match_check_stage import MatchCheckStats
 from .read import ReadStats
-from .refine import RefineStats
+from .refine_keypoints import RefineKeypointsStats
 from .write import WriteStats
 
 
@@ -39,7 +39,7 @@ class RefineSummary:
         filter_chunks / filter_chunks_resumed: chunks of pairs filtered in all / taken from
             an interrupted run's store; pairs_resumed: the pairs of those chunks.
         refine_groups / refine_groups_resumed: track groups refined in all / taken from the
-            store (0 when the refine stage does not report groups).
+            store (0 when the keypoint refinement does not report groups).
         resumed: the run continued an interrupted one.
         image_decodes: image files decoded in the whole run, over all processes: the read
             stage's check (once per image; kept in the cache when it fits) and the track walk's
@@ -47,7 +47,7 @@ class RefineSummary:
         image_decodes_max: the most times one image was decoded in the run (same count).
         match_check: what the match check against a global estimate of the cameras removed
             and why, whether the estimate was used and which images it trusted
-            (:meth:`~.match_check.MatchCheckStats.to_dict`; empty when it is off).
+            (:meth:`~.match_check_stage.MatchCheckStats.to_dict`; empty when it is off).
         seconds: wall time per stage ("copy", "read", "filter", "refine", "write", "verify",
             "total").
     """
@@ -93,7 +93,7 @@ class RefineSummary:
     @classmethod
     def from_stages(cls, *, output: Path, database: Path, backup: Path | None, recipe: Recipe,
                     device: str, seed: int, runner: str, resumed: bool, read: ReadStats, filtered: FilterStats,
-                    refine: RefineStats, write: WriteStats, seconds: dict[str, float],
+                    refine: RefineKeypointsStats, write: WriteStats, seconds: dict[str, float],
                     match_check: MatchCheckStats | None = None) -> RefineSummary:
         """Assemble the summary from the stages' stats (a check's None: it was off)."""
         pcfg = recipe.pipeline
@@ -101,7 +101,7 @@ class RefineSummary:
         per_image.update(refine.decoded_by_image)
         return cls(
             output=output, database=database, backup=backup, recipe=recipe.name, seed=int(seed),
-            source=str(pcfg.source), refined=pcfg.refine, verified=pcfg.verify,
+            source=str(pcfg.source), refined=pcfg.refine_keypoints, verified=pcfg.verify,
             workers=filtered.workers, device=device, num_images=read.num_images,
             num_pairs=read.num_pairs, pairs_filtered=filtered.pairs_filtered,
             pairs_passed=read.pairs_passed, pairs_failed=filtered.pairs_failed,

@@ -1,4 +1,4 @@
-"""The track walk of the refine stage over groups of whole tracks that fit the image budget, walked
+"""The track walk of the keypoint refinement over groups of whole tracks that fit the image budget, walked
 here or on the runner's slots; results do not depend on either (tracks never share a keypoint)."""
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def group_max_matches() -> int:
     """Most refinable matches of one group (part of a resumed run's plan key)."""
     return GROUP_SIZE_IN_WORKER_MINIMUMS * MIN_MATCHES_PER_REFINE_WORKER
 
-#: Key of the refine stage's stats holding image id -> decodes by the walk (all processes).
+#: Key of the keypoint refinement's stats holding image id -> decodes by the walk (all processes).
 DECODED_BY_IMAGE = "decoded_by_image"
 
 #: (image id, keypoint indices (K,) int64, new positions (K, 2) float64) per image of a group.

@@ -1,8 +1,8 @@
 """The checks' verdicts, and the matches that reach the output database once they are applied.
 
-The match check (:mod:`.match_check`) returns one :class:`Verdicts`; the later stages apply it
+The match check (:mod:`.match_check_stage`) returns one :class:`Verdicts`; the later stages apply it
 with its one method
-(:meth:`Verdicts.apply`): the refine stage to the stored pairs it walks, the write stage to each
+(:meth:`Verdicts.apply`): the keypoint refinement to the stored pairs it walks, the write stage to each
 stored chunk it writes.
 
 A pair's output matches (:func:`output_matches`) are the kept matches of its stored filter

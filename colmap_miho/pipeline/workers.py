@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 PARENT_POLL_S = 0.5
 
 #: Modules the forkserver imports once for all the workers it forks.
-PRELOAD = ("numpy", "torch", "colmap_miho.pipeline.filter", "colmap_miho.pipeline.refine",
+PRELOAD = ("numpy", "torch", "colmap_miho.pipeline.filter", "colmap_miho.pipeline.refine_keypoints",
            "colmap_miho.refinement.pairwise", "colmap_miho.refinement.tracks.walk",
            "colmap_miho.kernel_preload")
 

@@ -329,7 +329,7 @@ def test_import_bad_options(tiny, capsys):
 def test_refine_then_export_round_trip(scene, h5files, tmp_path):
     """hloc files -> database -> refine -> export: the files carry the refined database exactly."""
     try:
-        from colmap_miho.pipeline.run import refine_database
+        from colmap_miho.pipeline.refine_job import refine_database
     except ImportError as exc:  # the refine stage is built by another helper
         pytest.skip(f"refine not available: {exc}")
     db = tmp_path / "in.db"

@@ -197,7 +197,7 @@ def test_the_match_check_never_asks_for_more_threads_than_cores(db_copy, scene, 
     """``workers`` (up to 1024, or a remote Dask cluster's slots) sizes the pool; the global
     mapper runs here and gets at most this machine's cores."""
     from colmap_miho import refine_database
-    from colmap_miho.pipeline import run as run_module
+    from colmap_miho.pipeline import refine_job as run_module
 
     asked: list[int] = []
 

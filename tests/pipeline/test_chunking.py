@@ -13,7 +13,7 @@ from colmap_miho.adapters.database import PairRecord
 from colmap_miho.pipeline import filter as filter_stage
 from colmap_miho.pipeline.executor import Runner
 from colmap_miho.pipeline.filter import chunk_matches, plan_chunks
-from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.refine_job import refine_database
 from colmap_miho.pipeline_config import PipelineConfig
 from colmap_miho.recipe import load_recipe
 from miho_bench.synthetic import make_synthetic_scene

@@ -10,7 +10,7 @@ from helpers.small_budget import two_images
 from colmap_miho.pipeline import filter as filter_stage
 from colmap_miho.pipeline import track_groups
 from colmap_miho.pipeline.executor import LOCAL
-from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.refine_job import refine_database
 from colmap_miho.pipeline_config import PipelineConfig
 from miho_bench.synthetic import make_synthetic_scene
 

@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from colmap_miho.pipeline.match_check import MatchCheckStats, stats_fields
+from colmap_miho.pipeline.match_check_stage import MatchCheckStats, stats_fields
 from colmap_miho.reporting.html_report import removed_by_the_check
 from colmap_miho.verification.config import MatchCheckConfig
 from colmap_miho.verification.match_check import MatchCheckDecision

@@ -13,7 +13,7 @@ import pycolmap
 import pytest
 
 from colmap_miho.adapters.database import ColmapDatabase
-from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.refine_job import refine_database
 from colmap_miho.pipeline.summary import RefineSummary
 from colmap_miho.recipe import load_recipe
 from colmap_miho.reporting.html_report import match_check_note
@@ -79,7 +79,7 @@ def _output_matches(path):
 
 def _run(planted_db, out, *sets, resume=False, restart=False):
     db, images, _ = planted_db
-    rec = load_recipe(None, ["pipeline.refine=false", "match_check.mode=off", *sets])
+    rec = load_recipe(None, ["pipeline.refine_keypoints=false", "match_check.mode=off", *sets])
     json_path = out.with_suffix(".json")
     refine_database(db, images, out, recipe=rec, workers=1, json_path=json_path, overwrite=True,
                     resume=resume, restart=restart)
@@ -141,7 +141,7 @@ def test_no_estimate_removes_nothing(planted_db, tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_resumed_run_reuses_the_stored_verdicts(planted_db, tmp_path, monkeypatch):
-    from colmap_miho.pipeline import run as run_module
+    from colmap_miho.pipeline import refine_job as run_module
 
     ref = _run(planted_db, tmp_path / "ref.db", "match_check.mode=remove")
 
@@ -160,7 +160,7 @@ def test_resumed_run_reuses_the_stored_verdicts(planted_db, tmp_path, monkeypatc
     from colmap_miho.sfm import global_estimate
 
     monkeypatch.setattr(global_estimate, "global_estimate", no_mapper)
-    from colmap_miho.pipeline import match_check as stage
+    from colmap_miho.pipeline import match_check_stage as stage
 
     monkeypatch.setattr(stage, "_decide", no_mapper)
     res = _run(planted_db, out, "match_check.mode=remove", resume=True)
@@ -224,7 +224,7 @@ def test_disk_full_in_the_temporary_folder_names_that_folder(planted_db, tmp_pat
 @pytest.mark.slow
 @pytest.mark.parametrize("damage", ["cut", "random", "no_meta", "bad_layout"])
 def test_a_damaged_verdict_file_is_named_and_resume_refused(planted_db, tmp_path, monkeypatch, damage):
-    from colmap_miho.pipeline import run as run_module
+    from colmap_miho.pipeline import refine_job as run_module
     from colmap_miho.pipeline.store import StoreDamaged, store_folder
 
     out = tmp_path / "out.db"
@@ -298,11 +298,11 @@ def test_a_signal_during_the_global_mapper_stops_the_run_promptly(planted_db, tm
 def test_the_default_recipe_checks_matches(planted_db, tmp_path):
     db, images, _ = planted_db
     out = tmp_path / "default.db"
-    summary = refine_database(db, images, out, recipe=load_recipe(None, ["pipeline.refine=false"]), workers=1)
+    summary = refine_database(db, images, out, recipe=load_recipe(None, ["pipeline.refine_keypoints=false"]), workers=1)
     assert summary.match_check["mode"] == "remove" and summary.match_check["used"]
     assert summary.match_check["matches_removed"] > 0
     off = refine_database(db, images, tmp_path / "off.db", workers=1,
-                          recipe=load_recipe(None, ["pipeline.refine=false", "match_check.mode=off"]))
+                          recipe=load_recipe(None, ["pipeline.refine_keypoints=false", "match_check.mode=off"]))
     assert off.match_check == {} and off.matches_kept > summary.matches_kept
 
 

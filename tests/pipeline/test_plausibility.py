@@ -38,7 +38,7 @@ def test_two_swapped_images_are_named(shared_data, tmp_path):
     """The temple's database with two of its image files swapped: both are named in the summary
     and the warnings, no other image is."""
     from colmap_miho.adapters.database import ColmapDatabase
-    from colmap_miho.pipeline.run import refine_database
+    from colmap_miho.pipeline.refine_job import refine_database
     from colmap_miho.sfm.extraction import extract_and_match
 
     root = shared_data / "middlebury_temple_sparse_ring"

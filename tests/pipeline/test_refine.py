@@ -94,7 +94,7 @@ def test_mapping_registers_all_images(scene, filtered, tmp_path):
 
 def test_raw_source_replaces_verification(scene, tmp_path):
     s = refine_database(scene.database, scene.image_dir, tmp_path / "raw.db",
-                        recipe=load_recipe(None, ["pipeline.source=raw", "pipeline.refine=false"]), workers=1)
+                        recipe=load_recipe(None, ["pipeline.source=raw", "pipeline.refine_keypoints=false"]), workers=1)
     assert isinstance(s, RefineSummary) and s.source == "raw"
     good0, bad0 = _truth(scene, scene.database, "raw")
     good1, bad1 = _truth(scene, s.output, "verified")
@@ -105,7 +105,8 @@ def test_raw_source_replaces_verification(scene, tmp_path):
 
 def test_verify_reruns_colmap_verification(scene, tmp_path):
     s = refine_database(scene.database, scene.image_dir, tmp_path / "v.db",
-                        recipe=load_recipe(None, ["pipeline.verify=true", "pipeline.refine=false"]), workers=1)
+                        recipe=load_recipe(None, ["pipeline.verify=true", "pipeline.refine_keypoints=false"]),
+                        workers=1)
     assert s.verified and "verify" in s.seconds
     good1, bad1 = _truth(scene, s.output, "verified")
     good0, _ = _truth(scene, scene.database)
@@ -116,7 +117,7 @@ def test_verify_reruns_colmap_verification(scene, tmp_path):
 
 def test_min_matches_passes_small_pairs_through(scene, tmp_path):
     s = refine_database(scene.database, scene.image_dir, tmp_path / "p.db",
-                        recipe=load_recipe(None, ["pipeline.min_matches=100000", "pipeline.refine=false",
+                        recipe=load_recipe(None, ["pipeline.min_matches=100000", "pipeline.refine_keypoints=false",
                                                   "match_check.mode=off"]))
     assert s.pairs_passed == 6 and s.pairs_filtered == 0
     # every pair's rows kept as they are (the summary counts the pairs passed through too)

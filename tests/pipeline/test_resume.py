@@ -136,7 +136,7 @@ def test_resume_without_finished_work_runs_from_the_start(scene, reference, tmp_
 
 
 def test_failed_run_keeps_its_work_and_says_how_to_resume(scene, reference, tmp_path, monkeypatch, capsys):
-    from colmap_miho.pipeline import refine as refine_module
+    from colmap_miho.pipeline import refine_keypoints as refine_module
 
     def broken(*args, **kwargs):
         raise RuntimeError("refine stage broke")
@@ -159,7 +159,7 @@ def test_resume_and_restart_are_exclusive(scene, tmp_path):
 
 def _failed_run(scene, db, out, monkeypatch) -> None:
     """A run that fails in the refine stage, leaving its filter chunk in the store."""
-    from colmap_miho.pipeline import refine as refine_module
+    from colmap_miho.pipeline import refine_keypoints as refine_module
 
     def broken(*args, **kwargs):
         raise RuntimeError("refine stage broke")

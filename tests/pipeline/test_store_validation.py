@@ -85,7 +85,7 @@ def test_an_untouched_store_is_read_back(tmp_path):
     assert sorted(groups[0][0]) == [1, 3] and groups[0][1] == {"moved": 3}
     arrays, meta = store.load_stage("match_check")
     assert meta == META
-    from colmap_miho.pipeline.match_check import _read_back
+    from colmap_miho.pipeline.match_check_stage import _read_back
 
     failed, wrong, restored, _ = _read_back(store, arrays, meta)
     assert list(failed) == [(1, 2)] and not wrong
@@ -270,7 +270,7 @@ def test_a_group_moving_a_keypoint_a_little_past_the_border_is_read_back(tmp_pat
 
 
 def test_a_group_of_no_group_of_the_plan_is_a_damaged_store(tmp_path):
-    from colmap_miho.pipeline.refine import check_resumed_groups
+    from colmap_miho.pipeline.refine_keypoints import check_resumed_groups
 
     _store(tmp_path)
     (tmp_path / "group-000000.npz").rename(tmp_path / "group-000005.npz")
@@ -293,7 +293,7 @@ def test_a_group_of_no_group_of_the_plan_is_a_damaged_store(tmp_path):
     ({"pairs": [[1, 2], [1, 2]], "offsets": [0, 2, 4]}, "twice"),
 ])
 def test_a_forged_match_check_result_is_a_damaged_store(changes, why, tmp_path):
-    from colmap_miho.pipeline.match_check import _read_back
+    from colmap_miho.pipeline.match_check_stage import _read_back
 
     _store(tmp_path)
     _forge(tmp_path, "stage-match_check.npz", **changes)
@@ -308,7 +308,7 @@ def test_a_forged_match_check_result_is_a_damaged_store(changes, why, tmp_path):
                                     {"wrong_pairs": [{"images": 1}]}, {"round_seconds": [{"mapper": "x"}]},
                                     {"unknown": 1}])
 def test_forged_match_check_stats_are_a_damaged_store(change, tmp_path):
-    from colmap_miho.pipeline.match_check import _read_back
+    from colmap_miho.pipeline.match_check_stage import _read_back
 
     _store(tmp_path)
     store = _resume(tmp_path)

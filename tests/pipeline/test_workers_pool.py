@@ -15,7 +15,7 @@ from helpers.db_contents import database_rows
 
 from colmap_miho.errors import RunFailed
 from colmap_miho.pipeline import workers
-from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.refine_job import refine_database
 from miho_bench.synthetic import make_synthetic_scene
 
 pytestmark = pytest.mark.skipif("forkserver" not in multiprocessing.get_all_start_methods(),
@@ -97,7 +97,7 @@ def test_a_run_started_while_a_worker_imports_the_main_script_is_refused(monkeyp
 UNGUARDED = """
 from colmap_miho.pipeline import filter as filter_stage
 from colmap_miho.pipeline import track_groups
-from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.refine_job import refine_database
 
 filter_stage.MIN_PAIRS_PER_WORKER = 1  # both stages use the workers even for this scene
 filter_stage.MIN_MATCHES_PER_FILTER_WORKER = 0

@@ -39,7 +39,7 @@ def test_compare_synthetic(scene, tmp_path, capsys):
     before = sha(s.database)
     out = tmp_path / "cmp"
     rc = main(["compare", "--database", str(s.database), "--images", str(s.image_dir), "--output", str(out),
-               "--gt", str(gt), "--workers", "1", "--set", "pipeline.refine=false"])
+               "--gt", str(gt), "--workers", "1", "--set", "pipeline.refine_keypoints=false"])
     assert rc == 0
     assert sha(s.database) == before
     printed = capsys.readouterr().out
@@ -107,7 +107,7 @@ def test_compare_middlebury_temple(shared_data, tmp_path):
     extract_and_match(root / "images", db, max_features=4096)
     out = tmp_path / "cmp"
     rc = main(["compare", "--database", str(db), "--images", str(root / "images"), "--output", str(out),
-               "--gt", str(root), "-q", "--set", "pipeline.refine=false"])
+               "--gt", str(root), "-q", "--set", "pipeline.refine_keypoints=false"])
     assert rc == 0
     for side in ("baseline", "refined"):
         rep = json.loads((out / side / "report.json").read_text())
@@ -130,7 +130,7 @@ def test_a_failing_figure_costs_only_itself(tmp_path, monkeypatch, capfd):
     monkeypatch.setattr(plots, "plot_matches_per_pair", broken)
     out = tmp_path / "cmp"
     rc = main(["compare", "--database", str(s.database), "--images", str(s.image_dir), "--output", str(out),
-               "--workers", "1", "--set", "pipeline.refine=false", "-q"])
+               "--workers", "1", "--set", "pipeline.refine_keypoints=false", "-q"])
     assert rc == 0
     assert (out / "compare.md").is_file() and (out / "report.html").is_file()
     cmp = json.loads((out / "compare.json").read_text())

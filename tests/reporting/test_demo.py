@@ -80,7 +80,7 @@ def test_run_on_demo_images_writes_report(demo_run, tmp_path):
     scene = out / "scene"
     rc = main(["run", "--images", str(scene / "images"), "--output", str(tmp_path / "w"), "--gt",
                str(scene / "gt_model"), "-q", "--workers", "1", "--max-features", "1024",
-               "--set", "pipeline.refine=false"])  # NCC refinement is covered by the demo test
+               "--set", "pipeline.refine_keypoints=false"])  # NCC refinement is covered by the demo test
     assert rc == 0
     rep = json.loads((tmp_path / "w" / "report.json").read_text())
     assert rep["reconstruction"]["num_reg_images"] == 6

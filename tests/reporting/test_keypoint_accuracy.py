@@ -263,7 +263,7 @@ def test_bench_on_the_temple_input_agrees_with_the_gt(shared_data, tmp_path):
 
     out = tmp_path / "b.json"
     assert ba.main(["--data", str(shared_data), "--work", str(tmp_path), "--scenes", "middlebury_temple_sparse_ring",
-                    "--settings", "default", "--variant", "filter:pipeline.refine=false", "--workers", "1",
+                    "--settings", "default", "--variant", "filter:pipeline.refine_keypoints=false", "--workers", "1",
                     "--json", str(out)]) == 0
     rows = json.loads(out.read_text())["rows"]
     assert [r["variant"] for r in rows] == ["input", "filter"]

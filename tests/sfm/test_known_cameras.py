@@ -208,7 +208,8 @@ def test_compare_repeats_with_gt_cameras(scene, tmp_path, capsys):
     before = sha(s.database)
     out = tmp_path / "cmp"
     rc = main(["compare", "--database", str(s.database), "--images", str(s.image_dir), "--output", str(out),
-               "--gt", str(gt), "--workers", "1", "--set", "pipeline.refine=false", "--set", "mapping.num_threads=1",
+               "--gt", str(gt), "--workers", "1", "--set", "pipeline.refine_keypoints=false",
+               "--set", "mapping.num_threads=1",
                "--camera-from-gt", "--refine-intrinsics", "none", "--repeats", "2", "--seed", "3"])
     assert rc == 0
     assert sha(s.database) == before

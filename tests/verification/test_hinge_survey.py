@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from colmap_miho.adapters.database import ColmapDatabase
-from colmap_miho.pipeline.match_check import MatchCheckStats, stats_fields
+from colmap_miho.pipeline.match_check_stage import MatchCheckStats, stats_fields
 from colmap_miho.reporting.html_report import match_check_note
 from colmap_miho.sfm.global_estimate import GlobalEstimator
 from colmap_miho.verification import MatchCheckConfig, judge_in_rounds

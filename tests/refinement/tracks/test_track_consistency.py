@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from colmap_miho.adapters.database import ColmapDatabase
-from colmap_miho.pipeline.run import refine_database
+from colmap_miho.pipeline.refine_job import refine_database
 from colmap_miho.recipe import load_recipe
 from miho_bench.synthetic import make_synthetic_scene
 

@@ -1,4 +1,4 @@
-"""Refine stage: the track-consistent NCC walk of the stored pairs, with the checks' verdicts
+"""Keypoint refinement stage: the track-consistent NCC walk of the stored pairs, with the checks' verdicts
 applied, over groups of whole tracks (resuming the groups the store holds)."""
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from .verdicts import NO_VERDICTS, Verdicts, output_matches
 
 
 @dataclass(frozen=True)
-class RefineStats:
-    """Counts of the refine stage: the walk's counters summed over groups (empty when off) and the
+class RefineKeypointsStats:
+    """Counts of the keypoint refinement stage: the walk's counters summed over groups (empty when off) and the
     decodes per image over all processes."""
 
     counters: Mapping[str, float] = field(default_factory=dict)
@@ -32,14 +32,14 @@ class RefineStats:
         return int(self.counters.get(key, 0))
 
 
-def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Recipe, device: str,
+def run_refine_keypoints(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Recipe, device: str,
                runner: Runner, progress: bool, verdicts: Verdicts = NO_VERDICTS
-               ) -> tuple[dict[int, np.ndarray], RefineStats]:
-    """The refine stage on ``runner``, skipping and storing groups. Returns (image id -> new
-    keypoints ``(N, 2)``, :class:`RefineStats`); the read keypoints when off or nothing was
+               ) -> tuple[dict[int, np.ndarray], RefineKeypointsStats]:
+    """The keypoint refinement stage on ``runner``, skipping and storing groups. Returns (image id -> new
+    keypoints ``(N, 2)``, :class:`RefineKeypointsStats`); the read keypoints when off or nothing was
     filtered."""
-    if not recipe.pipeline.refine or not store.filter_counts().pairs_ok:
-        return read.keypoints, RefineStats()
+    if not recipe.pipeline.refine_keypoints or not store.filter_counts().pairs_ok:
+        return read.keypoints, RefineKeypointsStats()
     ok = verdicts.apply(store.load_filtered())
     missing = read.loader.missing
     usable = {k: v for k, v in ok.items() if k[0] not in missing and k[1] not in missing}
@@ -59,7 +59,7 @@ def run_refine(db: ColmapDatabase, read: ReadOutput, store: RunStore, recipe: Re
     decoded = {int(k): int(v) for k, v in stats.pop(DECODED_BY_IMAGE, {}).items()}
     # the images skipped before the walk count as missing too: the same number as images_missing
     counters = dict(stats, workers=used, missing_images=max(int(stats.get("missing_images", 0)), len(missing)))
-    return new_keypoints, RefineStats(counters=counters, decoded_by_image=decoded)
+    return new_keypoints, RefineKeypointsStats(counters=counters, decoded_by_image=decoded)
 
 
 def check_resumed_groups(store: RunStore, done: Mapping[int, GroupResult], num_groups: int) -> None:

@@ -1,11 +1,11 @@
-"""Verify stage: COLMAP's own geometric verification of the pairs left without a two-view geometry."""
+"""Re-verification stage: COLMAP's own geometric verification of the pairs left without a two-view geometry."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 
-def run_verify(path: Path) -> None:
+def run_reverify(path: Path) -> None:
     """Run ``pycolmap.geometric_verification`` on the working copy at ``path``."""
     import pycolmap
 

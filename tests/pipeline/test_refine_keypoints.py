@@ -1,4 +1,4 @@
-"""The pipeline's refine stage over groups of tracks (``pipeline.track_groups.walk_groups``):
+"""The keypoint refinement stage over groups of tracks (``pipeline.track_groups.walk_groups``):
 bit-identical keypoints whatever the runner and its slots, the same moves whatever the image
 budget; resume from finished groups; each group reported once; images decoded once per group
 at most."""

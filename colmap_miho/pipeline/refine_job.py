@@ -1,20 +1,21 @@
-"""``refine_database``: filter and refine the matches of a COLMAP database, safely.
+"""The ``refine`` command's job, :func:`refine_database`: filter, check and refine the matches of a
+COLMAP database, safely.
 
 Data flow (one stage after the other, each ``run_<stage>`` returning its outputs and a small
 stats dataclass that :class:`RefineSummary` is assembled from)::
 
     safe working copy -> read (:mod:`.read`) -> filter the pairs chunk by chunk
       (:mod:`.filter`, MOP / MOP+MiHo) into the run store (:mod:`.store`)
-      -> match check against a global estimate of the cameras (:mod:`.match_check`, its
+      -> match check against a global estimate of the cameras (:mod:`.match_check_stage`, its
       :class:`~.verdicts.Verdicts`)
-      -> track-consistent NCC refinement (:mod:`.refine`) -> write back chunk by chunk
+      -> track-consistent NCC refinement (:mod:`.refine_keypoints`) -> write back chunk by chunk
       (:mod:`.write`: keypoints, matches, two_view_geometries)
-      -> optional COLMAP re-verification (:mod:`.verify`) -> atomic replace
+      -> optional COLMAP re-verification (:mod:`.reverify`) -> atomic replace
 
 The input database is never opened for writing; see :mod:`colmap_miho.adapters.safety`.
 
 Memory: ``pipeline.memory_budget_mb`` (``refine --memory-budget``) sizes the filter's chunks
-and the refine stage's image cache (see :class:`~colmap_miho.pipeline_config.PipelineConfig`).
+and the keypoint refinement's image cache (see :class:`~colmap_miho.pipeline_config.PipelineConfig`).
 
 Resuming: finished filter chunks and refine groups are kept in the run store beside the
 output until the commit; a killed or failed run is continued with ``resume=True``
@@ -55,12 +56,12 @@ from ..kernel_cache import ensure_compiled, families_for
 from ..recipe import Recipe, load_recipe
 from .executor import LOCAL, Runner, open_runner
 from .filter import FilterOptions, run_filter
-from .match_check import run_match_check
+from .match_check_stage import run_match_check
 from .read import ReadConfig, run_read
-from .refine import run_refine
+from .refine_keypoints import run_refine_keypoints
+from .reverify import run_reverify
 from .store import RunStore, StoreDamaged, run_fingerprint, store_folder
 from .summary import RefineSummary
-from .verify import run_verify
 from .workers import check_not_bootstrapping, start_forkserver
 from .write import run_write
 
@@ -88,7 +89,7 @@ def _resolve_device(device: Device | str) -> str:
 
 def _check_recipe_device(rec: Recipe) -> None:
     """Refuse ``ncc.device = "cuda"`` where torch sees no CUDA device, before any work (UserError)."""
-    if not rec.pipeline.refine or Device.parse(rec.ncc.device, "device") != Device.CUDA:
+    if not rec.pipeline.refine_keypoints or Device.parse(rec.ncc.device, "device") != Device.CUDA:
         return
     from ..devices import resolve_device
 
@@ -284,12 +285,13 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                                                         threads=min(runner.slots, os.cpu_count() or 1))
                 if rec.match_check.enabled:
                     laps.lap("match_check")
-                new_keypoints, refine_stats = run_refine(db, read, store, rec, dev, runner, progress, verdicts)
+                new_keypoints, refine_stats = run_refine_keypoints(db, read, store, rec, dev, runner, progress,
+                                                                   verdicts)
                 laps.lap("refine")
                 write_stats = run_write(db, read.keypoints, new_keypoints, store.iter_filter_chunks(), pcfg, verdicts)
                 laps.lap("write")
             if pcfg.verify:
-                run_verify(work_db)
+                run_reverify(work_db)
                 laps.lap("verify")
             summary = RefineSummary.from_stages(
                 output=database if wc.in_place else wc.output,  # in place: the user's path (a symlink stays one)
