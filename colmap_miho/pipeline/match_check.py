@@ -30,7 +30,8 @@ from ..enums import MatchCheckMode, MatchSource
 from ..seeds import match_check_seed
 from ..types import Pair
 from ..verification.config import MatchCheckConfig
-from ..verification.match_check import HingeVerdict, MatchCheckDecision, judge_in_rounds
+from ..verification.hinge import HingeVerdict
+from ..verification.match_check import MatchCheckDecision, judge_in_rounds
 from .store import RunStore
 from .store_checks import StoreDamaged, check_array, check_offsets, check_unique_pairs
 from .verdicts import NO_VERDICTS, Verdicts, pair_graph
