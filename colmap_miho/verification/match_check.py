@@ -45,6 +45,79 @@ class MatchCheckDecision:
     restored: dict[Pair, np.ndarray] = field(default_factory=dict)
 
 
+@dataclass(kw_only=True)
+class _Rounds:
+    """What :func:`judge_in_rounds` carries from one round to the next (``trusted``,
+    ``registered``, ``cut_off``: in any round; ``focus``: a later round's images, those not
+    trusted yet; ``offered``: candidate pairs a round's estimate has judged)."""
+
+    failed: dict[Pair, np.ndarray]
+    wrong: set[Pair] = field(default_factory=set)
+    trusted: set[int] = field(default_factory=set)
+    registered: set[int] = field(default_factory=set)
+    cut_off: set[int] = field(default_factory=set)
+    used: bool = False
+    reason: str = ""
+    scale_px: float = 0.0
+    threshold_px: float = 0.0
+    rounds: int = 0
+    seconds: list[dict[str, float]] = field(default_factory=list)
+    mapper_steps: list[dict[str, float]] = field(default_factory=list)
+    hinges: list[HingeVerdict] = field(default_factory=list)
+    unjudged: set[Pair] = field(default_factory=set)
+    focus: set[int] | None = None
+    restored: dict[Pair, np.ndarray] = field(default_factory=dict)
+    offered: set[Pair] = field(default_factory=set)
+
+    def alive(self, matches: Mapping[Pair, np.ndarray]) -> dict[Pair, np.ndarray]:
+        """The rows of each pair still standing, pair -> int ``(K,)``; a later round only around
+        its focus."""
+        alive = {p: np.flatnonzero(~f) for p, f in self.failed.items() if p not in self.wrong and (~f).any()}
+        if self.focus is not None:
+            near = images_around(self.focus, alive, LATER_ROUND_RINGS)
+            alive = {p: idx for p, idx in alive.items() if p[0] in near and p[1] in near}
+        return alive
+
+    def take(self, res: MatchCheckResult, alive: Mapping[Pair, np.ndarray]) -> None:
+        """A used round's judgement: the first round's scale and threshold kept; a later round
+        fails only matches of pairs not trusted on both sides before it."""
+        if not self.used:
+            self.scale_px, self.threshold_px = res.scale_px, res.threshold_px
+        self.used, self.reason = True, ""
+        for p, f in res.failed.items():
+            if not (p[0] in self.trusted and p[1] in self.trusted):
+                self.failed[p][alive[p][f]] = True
+        self.trusted |= set(res.trusted)
+        self.wrong |= set(res.wrong_pairs)
+
+    def restore(self, candidates: Mapping[Pair, np.ndarray], res: MatchCheckResult,
+                judged: Mapping[Pair, np.ndarray], est: CameraEstimate) -> None:
+        """Offer the candidates of pairs this round trusts on both sides (each pair once)."""
+        offer = {p: c for p, c in candidates.items()
+                 if p not in self.offered and p not in self.wrong and p[0] in res.trusted and p[1] in res.trusted}
+        self.offered |= set(offer)
+        kept = {p: m[~res.failed[p]] if p in res.failed else m for p, m in judged.items()
+                if p not in res.wrong_pairs}
+        self.restored.update(restore_matches(offer, kept, est.rays, est.focal, res.poses, res.trusted,
+                                             self.threshold_px))
+
+    def decision(self, matches: Mapping[Pair, np.ndarray]) -> MatchCheckDecision:
+        """The decision over all rounds; a wrong pair's matches all fail."""
+        judged = frozenset(p for p in matches if p[0] in self.trusted and p[1] in self.trusted
+                           and p not in self.unjudged)
+        share = {p: float(self.failed[p].mean()) for p in self.wrong}  # before the pair is removed whole
+        for p in self.wrong:
+            self.failed[p][:] = True
+        return MatchCheckDecision(
+            used=self.used, reason=self.reason, rounds=self.rounds,
+            failed={p: f for p, f in self.failed.items() if f.any() or p in judged}, wrong=frozenset(self.wrong),
+            fail_share=share, registered=frozenset(self.registered), trusted=frozenset(self.trusted),
+            untrusted=frozenset(self.registered - self.trusted), cut_off=frozenset(self.cut_off),
+            judged_pairs=judged, scale_px=self.scale_px, threshold_px=self.threshold_px, seconds=self.seconds,
+            mapper_steps=self.mapper_steps, hinges=tuple(self.hinges), unjudged=frozenset(self.unjudged),
+            restored={p: r for p, r in self.restored.items() if p not in self.wrong})
+
+
 def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
                     cfg: MatchCheckConfig, candidates: Mapping[Pair, np.ndarray] | None = None) -> MatchCheckDecision:
     """The match check: up to ``cfg.rounds`` estimates, each from the last one's survivors. Later
@@ -52,79 +125,42 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
     distances are truncated, so a scale taken from them would shrink round after round).
     ``candidates`` (pair -> ``(R, 2)``, the matches the filter removed) come back where a round's
     estimate and kept matches prove them (:mod:`.restore`)."""
-    failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
-    wrong: set[Pair] = set()
-    trusted_any: set[int] = set()
-    registered_any: set[int] = set()
-    cut_any: set[int] = set()
-    used, reason, scale, threshold, rounds = False, "", 0.0, 0.0, 0
-    seconds: list[dict[str, float]] = []
-    steps: list[dict[str, float]] = []
-    hinges: list[HingeVerdict] = []
-    unjudged: set[Pair] = set()
-    focus: set[int] | None = None  # a later round's images: those not trusted yet
-    restored: dict[Pair, np.ndarray] = {}
-    offered: set[Pair] = set()  # candidate pairs a round's estimate has judged
+    s = _Rounds(failed={p: np.zeros(len(m), bool) for p, m in matches.items()})
     for _ in range(cfg.rounds):
-        alive = {p: np.flatnonzero(~f) for p, f in failed.items() if p not in wrong and (~f).any()}
-        if focus is not None:  # a later round estimates only around the images not trusted yet
-            near = images_around(focus, alive, LATER_ROUND_RINGS)
-            alive = {p: idx for p, idx in alive.items() if p[0] in near and p[1] in near}
+        alive = s.alive(matches)
         current = {p: matches[p][idx] for p, idx in alive.items()}
         est = estimator.estimate(current)
-        rounds += 1
+        s.rounds += 1
         part = dict(est.seconds)
-        steps.append(dict(est.mapper_steps))
+        s.mapper_steps.append(dict(est.mapper_steps))
         th = time.perf_counter()
-        est, found, skip = resolve_hinge(estimator, est, current, cfg, rounds)
+        est, found, skip = resolve_hinge(estimator, est, current, cfg, s.rounds)
         if cfg.hinges:
             part["hinge"] = time.perf_counter() - th  # the search; a second estimate included
-        hinges += found
-        unjudged |= skip
-        judged_now = {p: m for p, m in current.items() if p not in unjudged}  # left unjudged in any round
+        s.hinges += found
+        s.unjudged |= skip
+        judged_now = {p: m for p, m in current.items() if p not in s.unjudged}  # left unjudged in any round
+        given = s.threshold_px if s.used else None
         t0 = time.perf_counter()
-        res = check_matches(judged_now, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
-                            threshold=threshold if used else None)
+        res = check_matches(judged_now, est.rays, est.focal, est.poses, est.pair_rotations, cfg, threshold=given)
         t1 = time.perf_counter()
-        res = place_untrusted(estimator, est, res, judged_now, cfg, threshold if used else None)
-        seconds.append({**part, "judging": t1 - t0, "placements": time.perf_counter() - t1})
-        cut_any |= set(res.cut_off)  # the first judgement's and the placements' together
-        registered_any |= set(res.registered)
+        res = place_untrusted(estimator, est, res, judged_now, cfg, given)
+        s.seconds.append({**part, "judging": t1 - t0, "placements": time.perf_counter() - t1})
+        s.cut_off |= set(res.cut_off)  # the first judgement's and the placements' together
+        s.registered |= set(res.registered)
         if not res.used:
             why = res.reason + (f": {est.failure}" if est.failure else "")
-            reason = why if not used else f"round {rounds}: {why}"
+            s.reason = why if not s.used else f"round {s.rounds}: {why}"
             break
-        if not used:
-            scale, threshold = res.scale_px, res.threshold_px
-        used, reason = True, ""
-        for p, f in res.failed.items():  # a later round judges only the pairs of images newly trusted
-            if not (p[0] in trusted_any and p[1] in trusted_any):
-                failed[p][alive[p][f]] = True
-        trusted_any |= set(res.trusted)
-        wrong |= set(res.wrong_pairs)
+        s.take(res, alive)
         if candidates:
             t2 = time.perf_counter()
-            offer = {p: c for p, c in candidates.items()
-                     if p not in offered and p not in wrong and p[0] in res.trusted and p[1] in res.trusted}
-            offered |= set(offer)
-            kept = {p: m[~res.failed[p]] if p in res.failed else m for p, m in judged_now.items()
-                    if p not in res.wrong_pairs}
-            restored.update(restore_matches(offer, kept, est.rays, est.focal, res.poses, res.trusted, threshold))
-            seconds[-1]["restoring"] = time.perf_counter() - t2
+            s.restore(candidates, res, judged_now, est)
+            s.seconds[-1]["restoring"] = time.perf_counter() - t2
         if set(res.trusted) >= set(res.registered):
             break  # every placed image judged already: another round changes little
-        focus = {i for p in matches for i in p} - trusted_any
-    judged = frozenset(p for p in matches if p[0] in trusted_any and p[1] in trusted_any and p not in unjudged)
-    share = {p: float(failed[p].mean()) for p in wrong}  # before the pair is removed whole
-    for p in wrong:
-        failed[p][:] = True
-    return MatchCheckDecision(
-        used=used, reason=reason, rounds=rounds,
-        failed={p: f for p, f in failed.items() if f.any() or p in judged}, wrong=frozenset(wrong),
-        fail_share=share, registered=frozenset(registered_any), trusted=frozenset(trusted_any),
-        untrusted=frozenset(registered_any - trusted_any), cut_off=frozenset(cut_any), judged_pairs=judged,
-        scale_px=scale, threshold_px=threshold, seconds=seconds, mapper_steps=steps, hinges=tuple(hinges),
-        unjudged=frozenset(unjudged), restored={p: r for p, r in restored.items() if p not in wrong})
+        s.focus = {i for p in matches for i in p} - s.trusted
+    return s.decision(matches)
 
 
 #: Steps through the pair graph around the images a later round is for: the later estimate is
