@@ -5,6 +5,7 @@ schema on open."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import sqlite3
 from collections.abc import Callable, Mapping
@@ -413,7 +414,7 @@ class ColmapDatabase(DatabaseBuilder):
                 i = int(rec.image_id)
                 dst.write_keypoints(i, np.ascontiguousarray(h.read_keypoints(i), np.float32))
             for (i, j), m in sorted(matches.items()):
-                tvg = keep_or_fit(h, i, j, m, lambda i=i, j=j, m=m: fit(i, j, m))
+                tvg = keep_or_fit(h, i, j, m, functools.partial(fit, i, j, m))
                 if tvg is not None:
                     dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
                     dst.write_two_view_geometry(i, j, tvg)

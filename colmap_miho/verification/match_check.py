@@ -21,9 +21,10 @@ from .restore import restore_matches
 
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckDecision:
-    """What :func:`judge_in_rounds` decided over all its rounds (``failed``: pair -> bool ``(M,)``;
-    ``scale_px`` / ``threshold_px`` from the first used round; ``unjudged``: pairs across an
-    undecided hinge; ``restored``: candidate pair -> bool ``(R,)``, the filter's removals given back)."""
+    """The match check's result: what :func:`judge_in_rounds` decided over all its rounds
+    (``failed``: pair -> bool ``(M,)``; ``scale_px`` / ``threshold_px`` from the first used round;
+    ``unjudged``: pairs across an undecided hinge; ``restored``: candidate pair -> bool ``(R,)``,
+    the filter's removals given back)."""
 
     used: bool
     reason: str = ""
@@ -78,7 +79,7 @@ class _Rounds:
             alive = {p: idx for p, idx in alive.items() if p[0] in near and p[1] in near}
         return alive
 
-    def take(self, res: MatchCheckResult, alive: Mapping[Pair, np.ndarray]) -> None:
+    def take(self, res: Judgement, alive: Mapping[Pair, np.ndarray]) -> None:
         """A used round's judgement: the first round's scale and threshold kept; a later round
         fails only matches of pairs not trusted on both sides before it."""
         if not self.used:
@@ -90,7 +91,7 @@ class _Rounds:
         self.trusted |= set(res.trusted)
         self.wrong |= set(res.wrong_pairs)
 
-    def restore(self, candidates: Mapping[Pair, np.ndarray], res: MatchCheckResult,
+    def restore(self, candidates: Mapping[Pair, np.ndarray], res: Judgement,
                 judged: Mapping[Pair, np.ndarray], est: CameraEstimate) -> None:
         """Offer the candidates of pairs this round trusts on both sides (each pair once)."""
         offer = {p: c for p, c in candidates.items()
@@ -219,9 +220,10 @@ class Estimator(Protocol[Est]):
 
 
 @dataclass(frozen=True, kw_only=True)
-class MatchCheckResult:
-    """What the match check found (``failed``: pair -> bool ``(M,)`` over judged pairs; distances in
-    pixels; ``poses``: those judged with, re-placed images' included)."""
+class Judgement:
+    """One judgement against one estimate (:func:`check_matches`), a step of a round; the check's
+    result is :class:`MatchCheckDecision` (``failed``: pair -> bool ``(M,)`` over judged pairs;
+    distances in pixels; ``poses``: those judged with, re-placed images' included)."""
 
     used: bool
     reason: str = ""
@@ -243,7 +245,7 @@ class MatchCheckResult:
 def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndarray],
                   focal: Mapping[int, float], poses: Mapping[int, Pose],
                   pair_rotations: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
-                  threshold: float | None = None) -> MatchCheckResult:
+                  threshold: float | None = None) -> Judgement:
     """Judge the matches of every pair of two trusted images against the estimate.
 
     ``matches``: pair -> int ``(M, 2)`` keypoint indices; ``pair_rotations``: pair -> its own
@@ -251,13 +253,13 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
     ``used`` is False when too few images, or too small a share, are trusted."""
     registered = frozenset(int(k) for k in poses)
     if len(registered) < cfg.min_trusted_images:
-        return MatchCheckResult(used=False, registered=registered,
+        return Judgement(used=False, registered=registered,
                                 reason=f"the global estimate placed {len(registered)} images "
                                        f"(at least {cfg.min_trusted_images} needed)")
     trusted, agree, total = trusted_images(poses, pair_rotations, cfg.max_rotation_deg, cfg.min_agreeing_pairs)
     needed = max(cfg.min_trusted_images, int(np.ceil(cfg.min_trusted_share * len(registered))))
     if len(trusted) < needed:
-        return MatchCheckResult(
+        return Judgement(
             used=False, registered=registered, trusted=frozenset(trusted), agreeing_pairs=agree, rotation_pairs=total,
             reason=f"{len(trusted)} of the {len(registered)} placed images agree with their pairs' own "
                    f"relative rotations (at least {cfg.min_agreeing_pairs} pairs within {cfg.max_rotation_deg:g} deg; "
@@ -287,12 +289,12 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
         cut |= lost
         trusted -= lost
         if len(trusted) < needed:
-            return MatchCheckResult(
+            return Judgement(
                 used=False, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut),
                 agreeing_pairs=agree, rotation_pairs=total,
                 reason=f"removing the matches that fail the global estimate would cut {len(cut)} images off the "
                        f"rest of the pair graph; {len(trusted)} trusted images left ({needed} needed)")
-    return MatchCheckResult(
+    return Judgement(
         used=True, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut), agreeing_pairs=agree,
         rotation_pairs=total, scale_px=scale, threshold_px=threshold, failed=failed, wrong_pairs=wrong,
         pair_fail_share=share, matches_judged=int(all_d.size),
@@ -367,9 +369,9 @@ def cut_off_images(matches: Mapping[Pair, np.ndarray], failed: Mapping[Pair, np.
 PLACEMENT_ROUNDS = 3
 
 
-def place_untrusted(estimator: Estimator[Est], est: Est, res: MatchCheckResult,
+def place_untrusted(estimator: Estimator[Est], est: Est, res: Judgement,
                     matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
-                    threshold: float | None) -> MatchCheckResult:
+                    threshold: float | None) -> Judgement:
     """Place each untrusted image again from the trusted part's 3D points (as incremental mapping
     would, so its wrong pairs do not bend the estimate) and judge again; repeat for images that
     would be cut off, up to :data:`PLACEMENT_ROUNDS` times."""
