@@ -144,7 +144,7 @@ def coverage_auc(estimator, est, matches, labels, cfg) -> float:
     telling the GT-correct pairs (at least half their matches within the GT bound) from the
     GT-wrong ones, over every pair of two placed images that says something; 0.5: no better
     than chance."""
-    from colmap_miho.verification.match_check import PairCoverage
+    from colmap_miho.verification.hinge import PairCoverage
 
     cov = PairCoverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
     scores = {p: cov(p) for p in matches if p[0] in est.poses and p[1] in est.poses}

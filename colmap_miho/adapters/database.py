@@ -5,9 +5,10 @@ schema on open."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import sqlite3
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -390,6 +391,33 @@ class ColmapDatabase(DatabaseBuilder):
         else:
             db.write_two_view_geometry(i, j, tvg)
         return self._pycolmap.TwoViewGeometryConfiguration(int(tvg.config)).name
+
+    def write_scene_copy(self, path: str | Path, matches: Mapping[Pair, np.ndarray],
+                         fit: Callable[[int, int, np.ndarray], Any]) -> None:
+        """A NEW database at ``path`` for a mapper: this one's cameras, rigs, frames, images (ids
+        kept, each named by its id: a mapper joins names to its folder) and keypoints, and each
+        pair of ``matches`` (``(M, 2)`` keypoint indices) with them as its two-view geometry's
+        inliers: its verified model kept, else ``fit(i, j, m)`` (a ``pycolmap.TwoViewGeometry``;
+        a pair with neither is left out)."""
+        h = self.handle
+        with self._pycolmap.Database.open(str(path)) as dst:
+            for cam in h.read_all_cameras():
+                dst.write_camera(cam, use_camera_id=True)
+            for rig in h.read_all_rigs():
+                dst.write_rig(rig, use_rig_id=True)
+            for frame in h.read_all_frames():
+                dst.write_frame(frame, use_frame_id=True)
+            for im in h.read_all_images():
+                im.name = f"{int(im.image_id)}"
+                dst.write_image(im, use_image_id=True)
+            for rec in self.images():
+                i = int(rec.image_id)
+                dst.write_keypoints(i, np.ascontiguousarray(h.read_keypoints(i), np.float32))
+            for (i, j), m in sorted(matches.items()):
+                tvg = keep_or_fit(h, i, j, m, functools.partial(fit, i, j, m))
+                if tvg is not None:
+                    dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
+                    dst.write_two_view_geometry(i, j, tvg)
 
     def delete_two_view_geometries(self, pairs: list[Pair]) -> None:
         """Delete the two-view geometry rows of ``pairs`` (before COLMAP re-verification)."""

@@ -30,7 +30,8 @@ from ..enums import MatchCheckMode, MatchSource
 from ..seeds import match_check_seed
 from ..types import Pair
 from ..verification.config import MatchCheckConfig
-from ..verification.match_check import HingeVerdict, MatchCheckDecision, judge_in_rounds
+from ..verification.hinge import HingeVerdict
+from ..verification.match_check import MatchCheckDecision, judge_in_rounds
 from .store import RunStore
 from .store_checks import StoreDamaged, check_array, check_offsets, check_unique_pairs
 from .verdicts import NO_VERDICTS, Verdicts, pair_graph
@@ -80,6 +81,42 @@ class MatchCheckStats:
     pairs_revived: int = 0
     restored_per_pair: list[dict] = field(default_factory=list)
 
+    @classmethod
+    def of(cls, d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.ndarray],
+           names: dict[int, str], restored: dict[Pair, np.ndarray] | None = None) -> MatchCheckStats:
+        """The stats of the check's decision ``d`` on ``matches``, images named (``restored``:
+        pair -> the rows given back)."""
+        def name(i: int) -> str:
+            return names.get(i, str(i))
+
+        restored = restored or {}
+        wrong_list = sorted(d.wrong, key=lambda p: (-len(matches[p]), p))
+        return cls(
+            mode=str(cfg.mode), used=d.used, reason=d.reason, rounds=d.rounds,
+            images=len({i for p in matches for i in p}), images_registered=len(d.registered),
+            images_trusted=sorted(name(i) for i in d.trusted),
+            images_untrusted=sorted(name(i) for i in d.untrusted),
+            images_cut_off=sorted(name(i) for i in d.cut_off),
+            scale_px=d.scale_px, threshold_px=d.threshold_px,
+            matches_checked=int(sum(len(m) for m in matches.values())),
+            matches_judged=int(sum(len(matches[p]) for p in d.judged_pairs)),
+            matches_removed=int(sum(int(f.sum()) for p, f in d.failed.items() if p not in d.wrong)),
+            pairs_removed=len(d.wrong), matches_in_removed_pairs=int(sum(len(matches[p]) for p in d.wrong)),
+            wrong_pairs=[{"images": [name(i), name(j)], "image_ids": [i, j], "matches": len(matches[(i, j)]),
+                          "fail_share": round(d.fail_share[(i, j)], 3)} for i, j in wrong_list[:MAX_LISTED_PAIRS]],
+            removed_per_pair=[{"images": [name(i), name(j)], "image_ids": [i, j], "removed": int(f.sum())}
+                              for (i, j), f in sorted(d.failed.items()) if f.any()],
+            seconds=float(sum(sum(r.values()) for r in d.seconds)), round_seconds=d.seconds,
+            mapper_steps=d.mapper_steps,
+            peak_rss_mb=_peak_rss_mb(),
+            hinges=[_hinge_meta(h, matches, name) for h in d.hinges],
+            matches_restored=int(sum(len(r) for r in restored.values())),
+            pairs_restored=len(restored),
+            pairs_revived=sum(1 for p in restored if p not in matches),
+            restored_per_pair=[{"images": [name(i), name(j)], "image_ids": [i, j], "restored": len(r)}
+                               for (i, j), r in sorted(restored.items())],
+        )
+
     def to_dict(self) -> dict:
         """Plain JSON-ready data."""
         out = dataclasses.asdict(self)
@@ -98,9 +135,8 @@ def run_match_check(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, 
         return NO_VERDICTS, None
     stored = store.load_stage(STORE_NAME)
     if stored is None:
-        failed, wrong, restored, meta = _decide(db, store, cfg, source, seed, threads)
-        store.save_stage(STORE_NAME, _pack(failed, wrong, restored), meta)
-        stats = MatchCheckStats(**meta)
+        failed, wrong, restored, stats = _decide(db, store, cfg, source, seed, threads)
+        store.save_stage(STORE_NAME, _pack(failed, wrong, restored), dataclasses.asdict(stats))
     else:
         failed, wrong, restored, stats = _read_back(store, *stored)
         log.info("match check: the verdicts of the interrupted run are used")
@@ -142,9 +178,9 @@ def _restorable(stored, rows: np.ndarray) -> bool:
 
 
 def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: MatchSource, seed: int,
-            threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict[Pair, np.ndarray], dict]:
+            threads: int) -> tuple[dict[Pair, np.ndarray], frozenset[Pair], dict[Pair, np.ndarray], MatchCheckStats]:
     """The check on the pair graph: (pair -> failed mask, wrong pairs, filtered pair -> its stored
-    rows restored, the stats' fields)."""
+    rows restored, the stats)."""
     from ..sfm.global_estimate import GlobalEstimator
 
     filtered = store.load_filtered()
@@ -158,41 +194,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
     d = judge_in_rounds(matches, estimator, cfg, candidates)
     restored = {p: removed_rows[p][ok] for p, ok in sorted(d.restored.items())}
     names = {im.image_id: im.name for im in db.images()}
-    return d.failed, d.wrong, restored, stats_fields(d, cfg, matches, names, restored)
-
-
-def stats_fields(d: MatchCheckDecision, cfg: MatchCheckConfig, matches: dict[Pair, np.ndarray],
-                 names: dict[int, str], restored: dict[Pair, np.ndarray] | None = None) -> dict:
-    """The :class:`MatchCheckStats` fields of a decision, images named."""
-    def name(i: int) -> str:
-        return names.get(i, str(i))
-
-    wrong_list = sorted(d.wrong, key=lambda p: (-len(matches[p]), p))
-    return {
-        "mode": str(cfg.mode), "used": d.used, "reason": d.reason, "rounds": d.rounds,
-        "images": len({i for p in matches for i in p}), "images_registered": len(d.registered),
-        "images_trusted": sorted(name(i) for i in d.trusted),
-        "images_untrusted": sorted(name(i) for i in d.untrusted),
-        "images_cut_off": sorted(name(i) for i in d.cut_off),
-        "scale_px": d.scale_px, "threshold_px": d.threshold_px,
-        "matches_checked": int(sum(len(m) for m in matches.values())),
-        "matches_judged": int(sum(len(matches[p]) for p in d.judged_pairs)),
-        "matches_removed": int(sum(int(f.sum()) for p, f in d.failed.items() if p not in d.wrong)),
-        "pairs_removed": len(d.wrong), "matches_in_removed_pairs": int(sum(len(matches[p]) for p in d.wrong)),
-        "wrong_pairs": [{"images": [name(i), name(j)], "image_ids": [i, j], "matches": len(matches[(i, j)]),
-                         "fail_share": round(d.fail_share[(i, j)], 3)} for i, j in wrong_list[:MAX_LISTED_PAIRS]],
-        "removed_per_pair": [{"images": [name(i), name(j)], "image_ids": [i, j], "removed": int(f.sum())}
-                             for (i, j), f in sorted(d.failed.items()) if f.any()],
-        "seconds": float(sum(sum(r.values()) for r in d.seconds)), "round_seconds": d.seconds,
-        "mapper_steps": d.mapper_steps,
-        "peak_rss_mb": _peak_rss_mb(),
-        "hinges": [_hinge_meta(h, matches, name) for h in d.hinges],
-        "matches_restored": int(sum(len(r) for r in (restored or {}).values())),
-        "pairs_restored": len(restored or {}),
-        "pairs_revived": sum(1 for p in (restored or {}) if p not in matches),
-        "restored_per_pair": [{"images": [name(i), name(j)], "image_ids": [i, j], "restored": len(r)}
-                              for (i, j), r in sorted((restored or {}).items())],
-    }
+    return d.failed, d.wrong, restored, MatchCheckStats.of(d, cfg, matches, names, restored)
 
 
 def _hinge_meta(v: HingeVerdict, matches: dict[Pair, np.ndarray], name) -> dict:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..adapters.database import ColmapDatabase, fitted_geometry, is_verified, keep_or_fit
+from ..adapters.database import ColmapDatabase, fitted_geometry, is_verified
 from ..geometry import fit_fundamental, spread_rows
 from ..match_tracks import components, distinct, match_ends, node_offsets, repeated_image
 from ..types import Pair, Pose
@@ -95,14 +95,13 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
 
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
-    image_ids = [im.image_id for im in src.images()]
-    kp = {i: np.asarray(src.handle.read_keypoints(int(i))[:, :2], np.float64) for i in image_ids}
+    kp = {im.image_id: src.raw_keypoints(im.image_id)[:, :2].astype(np.float64) for im in src.images()}
     used = {p: np.asarray(m, np.int64) for p, m in matches.items() if len(m) >= cfg.min_pair_matches}
     with private_tempdir("miho-global-", workdir) as folder:
         try:
             tracks = sampled_tracks(used, {i: len(k) for i, k in kp.items()}, cfg.estimate_matches_per_image,
                                     cfg.min_pair_matches, seed)
-            _write_database(pycolmap, src, folder / "global.db", image_ids, tracks, kp, seed)
+            src.write_scene_copy(folder / "global.db", tracks, _fit_geometry(kp, seed))
             seconds["database"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             recs, failure, steps = _run_mapper(pycolmap, folder, cfg, seed, num_threads, verbose)
@@ -156,34 +155,13 @@ def sampled_tracks(matches: Mapping[Pair, np.ndarray], num_keypoints: Mapping[in
     return out
 
 
-def _write_database(pc, src: ColmapDatabase, path: Path, image_ids: list[int], used: Mapping[Pair, np.ndarray],
-                    kp: Mapping[int, np.ndarray], seed: int) -> None:
-    """The new database at ``path``: the cameras, rigs, frames, images and keypoints of ``src``
-    (ids kept, each image named by its id), and each pair of ``used`` with its matches as its
-    two-view geometry's inliers (its verified model kept, else a fundamental matrix fitted to
-    them; a pair with neither is left out)."""
-    h = src.handle
-    with pc.Database.open(str(path)) as dst:
-        for cam in h.read_all_cameras():
-            dst.write_camera(cam, use_camera_id=True)
-        for rig in h.read_all_rigs():
-            dst.write_rig(rig, use_rig_id=True)
-        for frame in h.read_all_frames():
-            dst.write_frame(frame, use_frame_id=True)
-        for im in h.read_all_images():
-            im.name = f"{int(im.image_id)}"  # the mapper joins names to its folder: no user length there
-            dst.write_image(im, use_image_id=True)
-        for i in image_ids:
-            dst.write_keypoints(int(i), np.ascontiguousarray(h.read_keypoints(int(i)), np.float32))
-        for (i, j), m in sorted(used.items()):
-            def fit(i=i, j=j, m=m):
-                F = fit_fundamental(kp[i][m[:, 0]], kp[j][m[:, 1]], np.random.default_rng([seed, i, j]))
-                return None if F is None else fitted_geometry(F, None)
+def _fit_geometry(kp: Mapping[int, np.ndarray], seed: int):
+    """``fit(i, j, m)``: a two-view geometry holding F fitted to the pair's matches (None: no fit)."""
+    def fit(i: int, j: int, m: np.ndarray):
+        F = fit_fundamental(kp[i][m[:, 0]], kp[j][m[:, 1]], np.random.default_rng([seed, i, j]))
+        return None if F is None else fitted_geometry(F, None)
 
-            tvg = keep_or_fit(h, i, j, m, fit)
-            if tvg is not None:
-                dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
-                dst.write_two_view_geometry(i, j, tvg)
+    return fit
 
 
 def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, seed: int, num_threads: int, verbose: bool

@@ -3,20 +3,26 @@
 
 Detect (:func:`find_hinges`, :func:`confirm_hinge`: modes of the world-frame residuals
 ``D_ij = R_j^T R_ij R_i``), measure (:func:`coverage`, :func:`pair_coverage`: missing
-correspondences, Zach et al. 2008), group and arbitrate (:func:`split_groups`, :func:`arbitrate`).
+correspondences, Zach et al. 2008), group and arbitrate (:func:`split_groups`, :func:`arbitrate`),
+and resolve (:func:`resolve_hinge`, the one call of the match check's rounds).
 Poses are ``cam_from_world`` ``(R (3, 3), t (3,))``; ``rays`` normalised image coordinates.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from ..geometry import project_to_so3, rotation_angle_deg
 from ..types import Pair, Pose
+from .config import MatchCheckConfig
+
+if TYPE_CHECKING:  # the check's estimator protocol; the check imports this module
+    from .match_check import Est, Estimator
 
 
 def world_residuals(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray]) -> dict[Pair, np.ndarray]:
@@ -307,3 +313,113 @@ def arbitrate(estimate_scores: list[float], mode_scores: list[float]) -> str:
     if e_lo > m_hi:
         return "estimate"
     return "undecided"
+
+
+@dataclass(frozen=True, kw_only=True)
+class HingeVerdict:
+    """A hinge found in one round's estimate and the coverage evidence's verdict on it."""
+
+    round: int
+    hinge: Hinge
+    groups: Groups
+    mode_coverage: dict[Pair, float]
+    estimate_coverage: dict[Pair, float]
+    verdict: str
+    action: str = ""
+    unjudged: frozenset[Pair] = frozenset()
+
+
+class PairCoverage:
+    """Each pair's own evidence under one estimate, measured once: the second image placed from the
+    first's points by the pair's matches alone, and the pair's coverage."""
+
+    def __init__(self, estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np.ndarray],
+                 radius_px: float, min_hits: int) -> None:
+        self.estimator, self.est, self.matches, self.radius = estimator, est, matches, radius_px
+        self.min_hits = min_hits
+        self.known: dict[Pair, float] = {}
+        self.poses: dict[tuple[int, int], Pose | None] = {}
+
+    def _pair_matches(self, i: int, j: int) -> np.ndarray | None:
+        if (i, j) in self.matches:
+            return np.asarray(self.matches[(i, j)], np.int64)
+        if (j, i) in self.matches:
+            return np.asarray(self.matches[(j, i)], np.int64)[:, ::-1]
+        return None
+
+    def _place(self, i: int, j: int, m: np.ndarray) -> Pose | None:
+        if (i, j) not in self.poses:
+            self.poses[(i, j)] = self.estimator.place(self.est, j, {(i, j): m}, frozenset({i}),
+                                                      min_inliers=self.min_hits)
+        return self.poses[(i, j)]
+
+    def placed(self, i: int, j: int) -> Pose | None:
+        """Image j's ``cam_from_world`` placed from image i's points by their pair's matches."""
+        m = self._pair_matches(i, j)
+        return None if m is None else self._place(i, j, m)
+
+    def __call__(self, pair: Pair) -> float:
+        if pair not in self.known:
+            m = self.matches.get(pair)
+            self.known[pair] = (float("nan") if m is None else
+                                pair_coverage(self.est, self._place, pair, m, self.radius, self.min_hits))
+        return self.known[pair]
+
+
+def weigh_hinge(coverage: PairCoverage, hinge: Hinge, round_: int) -> HingeVerdict:
+    """The estimate's cross pairs against the mode's, each measured by its own coverage."""
+    theirs = {p: coverage(p) for p in hinge.mode_pairs}
+    groups = split_groups(hinge, lambda p: np.nan_to_num(coverage(p), nan=0.0))
+    ours = {p: coverage(p) for p in groups.across}
+    verdict = arbitrate(list(ours.values()), list(theirs.values()))
+    return HingeVerdict(round=round_, hinge=hinge, groups=groups, mode_coverage=theirs, estimate_coverage=ours,
+                        verdict=verdict)
+
+
+def _weaker_than_the_mode(v: HingeVerdict) -> set[Pair]:
+    """The estimate's cross pairs covered worse than the lower quartile of the mode's informative pairs."""
+    theirs = [x for x in v.mode_coverage.values() if np.isfinite(x)] or [0.0]
+    bar = float(np.percentile(theirs, 25))
+    return {p for p, c in v.estimate_coverage.items() if not c >= bar}
+
+
+def cross_pairs(pairs, groups: Groups) -> frozenset[Pair]:
+    """The pairs with one image in each group."""
+    a, b = groups.side_a, groups.side_b
+    return frozenset(p for p in pairs if (p[0] in a and p[1] in b) or (p[0] in b and p[1] in a))
+
+
+def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
+                  round_: int) -> tuple[Est, list[HingeVerdict], frozenset[Pair]]:
+    """Look for a hinge in ``est`` and resolve it.
+
+    Evidence for the estimate keeps it; for the mode, the estimate is made again without its cross
+    pairs; undecided, the pairs between the groups are left unjudged (no correct match is removed on
+    a guess). Returns (estimate to judge against, hinges found, pairs left unjudged)."""
+    found: list[HingeVerdict] = []
+    if not cfg.hinges:
+        return est, found, frozenset()
+    for attempt in range(2):  # the estimate, and at most one made again
+        coverage = PairCoverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
+        tol, n, sides = cfg.max_rotation_deg, cfg.hinge_min_pairs, cfg.hinge_min_side_images
+        confirmed = (confirm_hinge(h, est.poses, coverage.placed, tolerance_deg=tol, min_pairs=n, min_side_images=sides)
+                     for h in find_hinges(est.poses, est.pair_rotations, tolerance_deg=tol, min_pairs=n,
+                                          min_side_images=sides))
+        hinge = next((h for h in confirmed if h is not None), None)
+        if hinge is None:
+            break
+        v = weigh_hinge(coverage, hinge, round_)
+        if v.verdict == "estimate":
+            found.append(dataclasses.replace(v, action="kept"))
+            break
+        drop = _weaker_than_the_mode(v)
+        if v.verdict == "mode" and attempt == 0 and drop:
+            again = estimator.estimate({p: m for p, m in matches.items() if p not in drop})
+            if len(again.poses) >= cfg.min_trusted_images:
+                found.append(dataclasses.replace(v, action="estimated again"))
+                est = again
+                continue
+        unjudged = cross_pairs(matches, v.groups)
+        found.append(dataclasses.replace(v, action="judged less", unjudged=unjudged))
+        return est, found, unjudged
+    return est, found, frozenset()

@@ -15,15 +15,16 @@ import numpy as np
 from ..geometry import essential, relative_pose, rotation_angle_deg, symmetric_epipolar_distance
 from ..types import Pair, Pose
 from .config import MatchCheckConfig
-from .hinge import Groups, Hinge, arbitrate, confirm_hinge, find_hinges, pair_coverage, split_groups
+from .hinge import HingeVerdict, resolve_hinge
 from .restore import restore_matches
 
 
 @dataclass(frozen=True, kw_only=True)
 class MatchCheckDecision:
-    """What :func:`judge_in_rounds` decided over all its rounds (``failed``: pair -> bool ``(M,)``;
-    ``scale_px`` / ``threshold_px`` from the first used round; ``unjudged``: pairs across an
-    undecided hinge; ``restored``: candidate pair -> bool ``(R,)``, the filter's removals given back)."""
+    """The match check's result: what :func:`judge_in_rounds` decided over all its rounds
+    (``failed``: pair -> bool ``(M,)``; ``scale_px`` / ``threshold_px`` from the first used round;
+    ``unjudged``: pairs across an undecided hinge; ``restored``: candidate pair -> bool ``(R,)``,
+    the filter's removals given back)."""
 
     used: bool
     reason: str = ""
@@ -45,6 +46,79 @@ class MatchCheckDecision:
     restored: dict[Pair, np.ndarray] = field(default_factory=dict)
 
 
+@dataclass(kw_only=True)
+class _Rounds:
+    """What :func:`judge_in_rounds` carries from one round to the next (``trusted``,
+    ``registered``, ``cut_off``: in any round; ``focus``: a later round's images, those not
+    trusted yet; ``offered``: candidate pairs a round's estimate has judged)."""
+
+    failed: dict[Pair, np.ndarray]
+    wrong: set[Pair] = field(default_factory=set)
+    trusted: set[int] = field(default_factory=set)
+    registered: set[int] = field(default_factory=set)
+    cut_off: set[int] = field(default_factory=set)
+    used: bool = False
+    reason: str = ""
+    scale_px: float = 0.0
+    threshold_px: float = 0.0
+    rounds: int = 0
+    seconds: list[dict[str, float]] = field(default_factory=list)
+    mapper_steps: list[dict[str, float]] = field(default_factory=list)
+    hinges: list[HingeVerdict] = field(default_factory=list)
+    unjudged: set[Pair] = field(default_factory=set)
+    focus: set[int] | None = None
+    restored: dict[Pair, np.ndarray] = field(default_factory=dict)
+    offered: set[Pair] = field(default_factory=set)
+
+    def alive(self, matches: Mapping[Pair, np.ndarray]) -> dict[Pair, np.ndarray]:
+        """The rows of each pair still standing, pair -> int ``(K,)``; a later round only around
+        its focus."""
+        alive = {p: np.flatnonzero(~f) for p, f in self.failed.items() if p not in self.wrong and (~f).any()}
+        if self.focus is not None:
+            near = images_around(self.focus, alive, LATER_ROUND_RINGS)
+            alive = {p: idx for p, idx in alive.items() if p[0] in near and p[1] in near}
+        return alive
+
+    def take(self, res: Judgement, alive: Mapping[Pair, np.ndarray]) -> None:
+        """A used round's judgement: the first round's scale and threshold kept; a later round
+        fails only matches of pairs not trusted on both sides before it."""
+        if not self.used:
+            self.scale_px, self.threshold_px = res.scale_px, res.threshold_px
+        self.used, self.reason = True, ""
+        for p, f in res.failed.items():
+            if not (p[0] in self.trusted and p[1] in self.trusted):
+                self.failed[p][alive[p][f]] = True
+        self.trusted |= set(res.trusted)
+        self.wrong |= set(res.wrong_pairs)
+
+    def restore(self, candidates: Mapping[Pair, np.ndarray], res: Judgement,
+                judged: Mapping[Pair, np.ndarray], est: CameraEstimate) -> None:
+        """Offer the candidates of pairs this round trusts on both sides (each pair once)."""
+        offer = {p: c for p, c in candidates.items()
+                 if p not in self.offered and p not in self.wrong and p[0] in res.trusted and p[1] in res.trusted}
+        self.offered |= set(offer)
+        kept = {p: m[~res.failed[p]] if p in res.failed else m for p, m in judged.items()
+                if p not in res.wrong_pairs}
+        self.restored.update(restore_matches(offer, kept, est.rays, est.focal, res.poses, res.trusted,
+                                             self.threshold_px))
+
+    def decision(self, matches: Mapping[Pair, np.ndarray]) -> MatchCheckDecision:
+        """The decision over all rounds; a wrong pair's matches all fail."""
+        judged = frozenset(p for p in matches if p[0] in self.trusted and p[1] in self.trusted
+                           and p not in self.unjudged)
+        share = {p: float(self.failed[p].mean()) for p in self.wrong}  # before the pair is removed whole
+        for p in self.wrong:
+            self.failed[p][:] = True
+        return MatchCheckDecision(
+            used=self.used, reason=self.reason, rounds=self.rounds,
+            failed={p: f for p, f in self.failed.items() if f.any() or p in judged}, wrong=frozenset(self.wrong),
+            fail_share=share, registered=frozenset(self.registered), trusted=frozenset(self.trusted),
+            untrusted=frozenset(self.registered - self.trusted), cut_off=frozenset(self.cut_off),
+            judged_pairs=judged, scale_px=self.scale_px, threshold_px=self.threshold_px, seconds=self.seconds,
+            mapper_steps=self.mapper_steps, hinges=tuple(self.hinges), unjudged=frozenset(self.unjudged),
+            restored={p: r for p, r in self.restored.items() if p not in self.wrong})
+
+
 def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
                     cfg: MatchCheckConfig, candidates: Mapping[Pair, np.ndarray] | None = None) -> MatchCheckDecision:
     """The match check: up to ``cfg.rounds`` estimates, each from the last one's survivors. Later
@@ -52,79 +126,42 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
     distances are truncated, so a scale taken from them would shrink round after round).
     ``candidates`` (pair -> ``(R, 2)``, the matches the filter removed) come back where a round's
     estimate and kept matches prove them (:mod:`.restore`)."""
-    failed = {p: np.zeros(len(m), bool) for p, m in matches.items()}
-    wrong: set[Pair] = set()
-    trusted_any: set[int] = set()
-    registered_any: set[int] = set()
-    cut_any: set[int] = set()
-    used, reason, scale, threshold, rounds = False, "", 0.0, 0.0, 0
-    seconds: list[dict[str, float]] = []
-    steps: list[dict[str, float]] = []
-    hinges: list[HingeVerdict] = []
-    unjudged: set[Pair] = set()
-    focus: set[int] | None = None  # a later round's images: those not trusted yet
-    restored: dict[Pair, np.ndarray] = {}
-    offered: set[Pair] = set()  # candidate pairs a round's estimate has judged
+    s = _Rounds(failed={p: np.zeros(len(m), bool) for p, m in matches.items()})
     for _ in range(cfg.rounds):
-        alive = {p: np.flatnonzero(~f) for p, f in failed.items() if p not in wrong and (~f).any()}
-        if focus is not None:  # a later round estimates only around the images not trusted yet
-            near = images_around(focus, alive, LATER_ROUND_RINGS)
-            alive = {p: idx for p, idx in alive.items() if p[0] in near and p[1] in near}
+        alive = s.alive(matches)
         current = {p: matches[p][idx] for p, idx in alive.items()}
         est = estimator.estimate(current)
-        rounds += 1
+        s.rounds += 1
         part = dict(est.seconds)
-        steps.append(dict(est.mapper_steps))
+        s.mapper_steps.append(dict(est.mapper_steps))
         th = time.perf_counter()
-        est, found, skip = resolve_hinge(estimator, est, current, cfg, rounds)
+        est, found, skip = resolve_hinge(estimator, est, current, cfg, s.rounds)
         if cfg.hinges:
             part["hinge"] = time.perf_counter() - th  # the search; a second estimate included
-        hinges += found
-        unjudged |= skip
-        judged_now = {p: m for p, m in current.items() if p not in unjudged}  # left unjudged in any round
+        s.hinges += found
+        s.unjudged |= skip
+        judged_now = {p: m for p, m in current.items() if p not in s.unjudged}  # left unjudged in any round
+        given = s.threshold_px if s.used else None
         t0 = time.perf_counter()
-        res = check_matches(judged_now, est.rays, est.focal, est.poses, est.pair_rotations, cfg,
-                            threshold=threshold if used else None)
+        res = check_matches(judged_now, est.rays, est.focal, est.poses, est.pair_rotations, cfg, threshold=given)
         t1 = time.perf_counter()
-        res = place_untrusted(estimator, est, res, judged_now, cfg, threshold if used else None)
-        seconds.append({**part, "judging": t1 - t0, "placements": time.perf_counter() - t1})
-        cut_any |= set(res.cut_off)  # the first judgement's and the placements' together
-        registered_any |= set(res.registered)
+        res = place_untrusted(estimator, est, res, judged_now, cfg, given)
+        s.seconds.append({**part, "judging": t1 - t0, "placements": time.perf_counter() - t1})
+        s.cut_off |= set(res.cut_off)  # the first judgement's and the placements' together
+        s.registered |= set(res.registered)
         if not res.used:
             why = res.reason + (f": {est.failure}" if est.failure else "")
-            reason = why if not used else f"round {rounds}: {why}"
+            s.reason = why if not s.used else f"round {s.rounds}: {why}"
             break
-        if not used:
-            scale, threshold = res.scale_px, res.threshold_px
-        used, reason = True, ""
-        for p, f in res.failed.items():  # a later round judges only the pairs of images newly trusted
-            if not (p[0] in trusted_any and p[1] in trusted_any):
-                failed[p][alive[p][f]] = True
-        trusted_any |= set(res.trusted)
-        wrong |= set(res.wrong_pairs)
+        s.take(res, alive)
         if candidates:
             t2 = time.perf_counter()
-            offer = {p: c for p, c in candidates.items()
-                     if p not in offered and p not in wrong and p[0] in res.trusted and p[1] in res.trusted}
-            offered |= set(offer)
-            kept = {p: m[~res.failed[p]] if p in res.failed else m for p, m in judged_now.items()
-                    if p not in res.wrong_pairs}
-            restored.update(restore_matches(offer, kept, est.rays, est.focal, res.poses, res.trusted, threshold))
-            seconds[-1]["restoring"] = time.perf_counter() - t2
+            s.restore(candidates, res, judged_now, est)
+            s.seconds[-1]["restoring"] = time.perf_counter() - t2
         if set(res.trusted) >= set(res.registered):
             break  # every placed image judged already: another round changes little
-        focus = {i for p in matches for i in p} - trusted_any
-    judged = frozenset(p for p in matches if p[0] in trusted_any and p[1] in trusted_any and p not in unjudged)
-    share = {p: float(failed[p].mean()) for p in wrong}  # before the pair is removed whole
-    for p in wrong:
-        failed[p][:] = True
-    return MatchCheckDecision(
-        used=used, reason=reason, rounds=rounds,
-        failed={p: f for p, f in failed.items() if f.any() or p in judged}, wrong=frozenset(wrong),
-        fail_share=share, registered=frozenset(registered_any), trusted=frozenset(trusted_any),
-        untrusted=frozenset(registered_any - trusted_any), cut_off=frozenset(cut_any), judged_pairs=judged,
-        scale_px=scale, threshold_px=threshold, seconds=seconds, mapper_steps=steps, hinges=tuple(hinges),
-        unjudged=frozenset(unjudged), restored={p: r for p, r in restored.items() if p not in wrong})
+        s.focus = {i for p in matches for i in p} - s.trusted
+    return s.decision(matches)
 
 
 #: Steps through the pair graph around the images a later round is for: the later estimate is
@@ -183,119 +220,10 @@ class Estimator(Protocol[Est]):
 
 
 @dataclass(frozen=True, kw_only=True)
-class HingeVerdict:
-    """A hinge found in one round's estimate and the coverage evidence's verdict on it."""
-
-    round: int
-    hinge: Hinge
-    groups: Groups
-    mode_coverage: dict[Pair, float]
-    estimate_coverage: dict[Pair, float]
-    verdict: str
-    action: str = ""
-    unjudged: frozenset[Pair] = frozenset()
-
-
-class PairCoverage:
-    """Each pair's own evidence under one estimate, measured once: the second image placed from the
-    first's points by the pair's matches alone, and the pair's coverage."""
-
-    def __init__(self, estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np.ndarray],
-                 radius_px: float, min_hits: int) -> None:
-        self.estimator, self.est, self.matches, self.radius = estimator, est, matches, radius_px
-        self.min_hits = min_hits
-        self.known: dict[Pair, float] = {}
-        self.poses: dict[tuple[int, int], Pose | None] = {}
-
-    def _pair_matches(self, i: int, j: int) -> np.ndarray | None:
-        if (i, j) in self.matches:
-            return np.asarray(self.matches[(i, j)], np.int64)
-        if (j, i) in self.matches:
-            return np.asarray(self.matches[(j, i)], np.int64)[:, ::-1]
-        return None
-
-    def _place(self, i: int, j: int, m: np.ndarray) -> Pose | None:
-        if (i, j) not in self.poses:
-            self.poses[(i, j)] = self.estimator.place(self.est, j, {(i, j): m}, frozenset({i}),
-                                                      min_inliers=self.min_hits)
-        return self.poses[(i, j)]
-
-    def placed(self, i: int, j: int) -> Pose | None:
-        """Image j's ``cam_from_world`` placed from image i's points by their pair's matches."""
-        m = self._pair_matches(i, j)
-        return None if m is None else self._place(i, j, m)
-
-    def __call__(self, pair: Pair) -> float:
-        if pair not in self.known:
-            m = self.matches.get(pair)
-            self.known[pair] = (float("nan") if m is None else
-                                pair_coverage(self.est, self._place, pair, m, self.radius, self.min_hits))
-        return self.known[pair]
-
-
-def weigh_hinge(coverage: PairCoverage, hinge: Hinge, round_: int) -> HingeVerdict:
-    """The estimate's cross pairs against the mode's, each measured by its own coverage."""
-    theirs = {p: coverage(p) for p in hinge.mode_pairs}
-    groups = split_groups(hinge, lambda p: np.nan_to_num(coverage(p), nan=0.0))
-    ours = {p: coverage(p) for p in groups.across}
-    verdict = arbitrate(list(ours.values()), list(theirs.values()))
-    return HingeVerdict(round=round_, hinge=hinge, groups=groups, mode_coverage=theirs, estimate_coverage=ours,
-                        verdict=verdict)
-
-
-def _weaker_than_the_mode(v: HingeVerdict) -> set[Pair]:
-    """The estimate's cross pairs covered worse than the lower quartile of the mode's informative pairs."""
-    theirs = [x for x in v.mode_coverage.values() if np.isfinite(x)] or [0.0]
-    bar = float(np.percentile(theirs, 25))
-    return {p for p, c in v.estimate_coverage.items() if not c >= bar}
-
-
-def cross_pairs(pairs, groups: Groups) -> frozenset[Pair]:
-    """The pairs with one image in each group."""
-    a, b = groups.side_a, groups.side_b
-    return frozenset(p for p in pairs if (p[0] in a and p[1] in b) or (p[0] in b and p[1] in a))
-
-
-def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
-                  round_: int) -> tuple[Est, list[HingeVerdict], frozenset[Pair]]:
-    """Look for a hinge in ``est`` and resolve it.
-
-    Evidence for the estimate keeps it; for the mode, the estimate is made again without its cross
-    pairs; undecided, the pairs between the groups are left unjudged (no correct match is removed on
-    a guess). Returns (estimate to judge against, hinges found, pairs left unjudged)."""
-    found: list[HingeVerdict] = []
-    if not cfg.hinges:
-        return est, found, frozenset()
-    for attempt in range(2):  # the estimate, and at most one made again
-        coverage = PairCoverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)
-        tol, n, sides = cfg.max_rotation_deg, cfg.hinge_min_pairs, cfg.hinge_min_side_images
-        confirmed = (confirm_hinge(h, est.poses, coverage.placed, tolerance_deg=tol, min_pairs=n, min_side_images=sides)
-                     for h in find_hinges(est.poses, est.pair_rotations, tolerance_deg=tol, min_pairs=n,
-                                          min_side_images=sides))
-        hinge = next((h for h in confirmed if h is not None), None)
-        if hinge is None:
-            break
-        v = weigh_hinge(coverage, hinge, round_)
-        if v.verdict == "estimate":
-            found.append(dataclasses.replace(v, action="kept"))
-            break
-        drop = _weaker_than_the_mode(v)
-        if v.verdict == "mode" and attempt == 0 and drop:
-            again = estimator.estimate({p: m for p, m in matches.items() if p not in drop})
-            if len(again.poses) >= cfg.min_trusted_images:
-                found.append(dataclasses.replace(v, action="estimated again"))
-                est = again
-                continue
-        unjudged = cross_pairs(matches, v.groups)
-        found.append(dataclasses.replace(v, action="judged less", unjudged=unjudged))
-        return est, found, unjudged
-    return est, found, frozenset()
-
-
-@dataclass(frozen=True, kw_only=True)
-class MatchCheckResult:
-    """What the match check found (``failed``: pair -> bool ``(M,)`` over judged pairs; distances in
-    pixels; ``poses``: those judged with, re-placed images' included)."""
+class Judgement:
+    """One judgement against one estimate (:func:`check_matches`), a step of a round; the check's
+    result is :class:`MatchCheckDecision` (``failed``: pair -> bool ``(M,)`` over judged pairs;
+    distances in pixels; ``poses``: those judged with, re-placed images' included)."""
 
     used: bool
     reason: str = ""
@@ -317,7 +245,7 @@ class MatchCheckResult:
 def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndarray],
                   focal: Mapping[int, float], poses: Mapping[int, Pose],
                   pair_rotations: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
-                  threshold: float | None = None) -> MatchCheckResult:
+                  threshold: float | None = None) -> Judgement:
     """Judge the matches of every pair of two trusted images against the estimate.
 
     ``matches``: pair -> int ``(M, 2)`` keypoint indices; ``pair_rotations``: pair -> its own
@@ -325,13 +253,13 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
     ``used`` is False when too few images, or too small a share, are trusted."""
     registered = frozenset(int(k) for k in poses)
     if len(registered) < cfg.min_trusted_images:
-        return MatchCheckResult(used=False, registered=registered,
+        return Judgement(used=False, registered=registered,
                                 reason=f"the global estimate placed {len(registered)} images "
                                        f"(at least {cfg.min_trusted_images} needed)")
     trusted, agree, total = trusted_images(poses, pair_rotations, cfg.max_rotation_deg, cfg.min_agreeing_pairs)
     needed = max(cfg.min_trusted_images, int(np.ceil(cfg.min_trusted_share * len(registered))))
     if len(trusted) < needed:
-        return MatchCheckResult(
+        return Judgement(
             used=False, registered=registered, trusted=frozenset(trusted), agreeing_pairs=agree, rotation_pairs=total,
             reason=f"{len(trusted)} of the {len(registered)} placed images agree with their pairs' own "
                    f"relative rotations (at least {cfg.min_agreeing_pairs} pairs within {cfg.max_rotation_deg:g} deg; "
@@ -361,12 +289,12 @@ def check_matches(matches: Mapping[Pair, np.ndarray], rays: Mapping[int, np.ndar
         cut |= lost
         trusted -= lost
         if len(trusted) < needed:
-            return MatchCheckResult(
+            return Judgement(
                 used=False, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut),
                 agreeing_pairs=agree, rotation_pairs=total,
                 reason=f"removing the matches that fail the global estimate would cut {len(cut)} images off the "
                        f"rest of the pair graph; {len(trusted)} trusted images left ({needed} needed)")
-    return MatchCheckResult(
+    return Judgement(
         used=True, registered=registered, trusted=frozenset(trusted), cut_off=frozenset(cut), agreeing_pairs=agree,
         rotation_pairs=total, scale_px=scale, threshold_px=threshold, failed=failed, wrong_pairs=wrong,
         pair_fail_share=share, matches_judged=int(all_d.size),
@@ -441,9 +369,9 @@ def cut_off_images(matches: Mapping[Pair, np.ndarray], failed: Mapping[Pair, np.
 PLACEMENT_ROUNDS = 3
 
 
-def place_untrusted(estimator: Estimator[Est], est: Est, res: MatchCheckResult,
+def place_untrusted(estimator: Estimator[Est], est: Est, res: Judgement,
                     matches: Mapping[Pair, np.ndarray], cfg: MatchCheckConfig,
-                    threshold: float | None) -> MatchCheckResult:
+                    threshold: float | None) -> Judgement:
     """Place each untrusted image again from the trusted part's 3D points (as incremental mapping
     would, so its wrong pairs do not bend the estimate) and judge again; repeat for images that
     would be cut off, up to :data:`PLACEMENT_ROUNDS` times."""

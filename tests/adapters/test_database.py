@@ -110,6 +110,31 @@ def test_keep_or_fit_keeps_a_verified_model_else_fits(scene_db, tmp_path):
         assert keep_or_fit(h, 1, 2, m, lambda: None) is None  # nothing stored, nothing fits
 
 
+def test_write_scene_copy_keeps_the_scene_and_writes_the_given_matches(scene_db, tmp_path):
+    db_path = _copy(scene_db.database, tmp_path / "s.db")
+    fitted = []
+
+    def fit(i, j, m):
+        fitted.append((i, j, len(m)))
+        return None  # the pair without a stored model is left out
+
+    with ColmapDatabase(db_path) as db:
+        m12 = db.matches(1, 2, "verified")[:10].astype(np.int64)
+        m13 = db.matches(1, 3, "verified")[:5].astype(np.int64)
+        db.handle.delete_two_view_geometry(1, 3)
+        db.write_scene_copy(tmp_path / "copy.db", {(1, 2): m12, (1, 3): m13}, fit)
+        raw = {im.image_id: db.raw_keypoints(im.image_id) for im in db.images()}
+        stored = db.handle.read_two_view_geometry(1, 2)
+    assert fitted == [(1, 3, 5)]
+    with ColmapDatabase(tmp_path / "copy.db") as copy:
+        assert [(im.image_id, im.name) for im in copy.images()] == [(i, str(i)) for i in sorted(raw)]
+        for i, kp in raw.items():
+            np.testing.assert_array_equal(copy.raw_keypoints(i), kp)  # every column
+        assert [(p.image_id1, p.image_id2) for p in copy.pairs("verified")] == [(1, 2)]
+        np.testing.assert_array_equal(copy.matches(1, 2, "verified"), m12)
+        np.testing.assert_array_equal(copy.handle.read_two_view_geometry(1, 2).F, stored.F)
+
+
 def test_write_pair_updates_matches_and_geometry(scene_db, tmp_path):
     db_path = _copy(scene_db.database, tmp_path / "c.db")
     with ColmapDatabase(db_path) as db:

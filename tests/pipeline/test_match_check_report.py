@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from colmap_miho.pipeline.match_check_stage import MatchCheckStats, stats_fields
+from colmap_miho.pipeline.match_check_stage import MatchCheckStats
 from colmap_miho.reporting.html_report import removed_by_the_check
 from colmap_miho.verification.config import MatchCheckConfig
 from colmap_miho.verification.match_check import MatchCheckDecision
@@ -18,8 +18,8 @@ def test_removed_per_pair_names_each_pair_unambiguously():
     matches = {(1, 2): np.zeros((3, 2), np.int64), (3, 4): np.zeros((4, 2), np.int64)}
     d = MatchCheckDecision(used=True, rounds=1, failed={(1, 2): np.array([True, False, True]),
                                                         (3, 4): np.array([True, False, False, False])})
-    meta = stats_fields(d, MatchCheckConfig(), matches, names)
-    rows = json.loads(json.dumps(MatchCheckStats(**meta).to_dict()))["removed_per_pair"]
+    stats = MatchCheckStats.of(d, MatchCheckConfig(), matches, names)
+    rows = json.loads(json.dumps(stats.to_dict()))["removed_per_pair"]
     assert rows == [{"images": ["a|b", "c"], "image_ids": [1, 2], "removed": 2},
                     {"images": ["a", "b|c"], "image_ids": [3, 4], "removed": 1}]
 

@@ -214,7 +214,7 @@ def test_disk_full_in_the_temporary_folder_names_that_folder(planted_db, tmp_pat
     def full_disk(*args, **kwargs):
         raise RuntimeError("[database_sqlite.cc:1389] SQLite error: database or disk is full")
 
-    monkeypatch.setattr("colmap_miho.sfm.global_estimate._write_database", full_disk)
+    monkeypatch.setattr("colmap_miho.adapters.database.ColmapDatabase.write_scene_copy", full_disk)
     (tmp_path / "out").mkdir()
     with pytest.raises(RunFailed) as err:
         _run(planted_db, tmp_path / "out" / "on.db", "match_check.mode=remove")

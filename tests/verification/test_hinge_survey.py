@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from colmap_miho.adapters.database import ColmapDatabase
-from colmap_miho.pipeline.match_check_stage import MatchCheckStats, stats_fields
+from colmap_miho.pipeline.match_check_stage import MatchCheckStats
 from colmap_miho.reporting.html_report import match_check_note
 from colmap_miho.sfm.global_estimate import GlobalEstimator
 from colmap_miho.verification import MatchCheckConfig, judge_in_rounds
@@ -45,7 +45,7 @@ def test_a_planted_hinge_is_found_and_removes_no_correct_match(tmp_path, wrong_p
     assert d.hinges[0].verdict == "mode" and d.hinges[0].action == "estimated again"
     assert correct <= MAX_CORRECT_REMOVED
     assert wrong >= MIN_WRONG_REMOVED
-    stats = MatchCheckStats(**stats_fields(d, MatchCheckConfig(mode="remove"), scene.matches, names)).to_dict()
+    stats = MatchCheckStats.of(d, MatchCheckConfig(mode="remove"), scene.matches, names).to_dict()
     h = stats["hinges"][0]
     assert h["verdict"] == "mode" and h["action"] == "estimated again" and h["mode_coverage"] > h["estimate_coverage"]
     assert "Hinge in round 1's estimate" in match_check_note(stats) and "made again" in match_check_note(stats)
