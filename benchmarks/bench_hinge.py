@@ -113,7 +113,7 @@ def check(db, matches, labels, threads: int, hinges: bool, seed: int = 0):
     from colmap_miho.verification import MatchCheckConfig, judge_in_rounds
     from colmap_miho.verification.hinge import find_hinges
 
-    cfg = variant(MatchCheckConfig(mode="remove"), hinges=hinges)
+    cfg = variant(MatchCheckConfig(mode="remove"), look_for_hinges=hinges)
     inner = GlobalEstimator(src=db, config=cfg, seed=seed, num_threads=threads)
     first: list = []
 

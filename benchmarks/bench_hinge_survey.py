@@ -30,7 +30,7 @@ def judge(scene, hinges: bool):
     from colmap_miho.sfm.global_estimate import GlobalEstimator
     from colmap_miho.verification import MatchCheckConfig, judge_in_rounds
 
-    cfg = variant(MatchCheckConfig(mode="remove"), hinges=hinges)
+    cfg = variant(MatchCheckConfig(mode="remove"), look_for_hinges=hinges)
     with ColmapDatabase(scene.database) as db:
         d = judge_in_rounds(scene.matches, GlobalEstimator(src=db, config=cfg, num_threads=1), cfg)
     pairs = sorted(scene.matches)

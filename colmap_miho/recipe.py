@@ -81,6 +81,7 @@ _SEED = "--seed (seed= in Python): the run's root seed, every stage's derives fr
 #: keys of earlier releases -> what replaced them (the decisions: docs/results.md, "Recipe keys:
 #: what a user sets")
 RENAMED = {
+    "match_check.rounds": "match_check.max_rounds",
     "ncc.lsm": "lsm.enabled", "ncc.lsm_radius": "lsm.radius", "ncc.lsm_antialias": "lsm.antialias",
     "ncc.lsm_max_shift_px": "lsm.max_shift_px", "ncc.lsm_tol_px": "lsm.tol_px",
     "ncc.rectification": "rectify.mode", "ncc.local_affine_neighbours": "rectify.neighbours",

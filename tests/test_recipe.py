@@ -89,6 +89,7 @@ def test_overrides_are_typed():
         ("ncc.rectification=local", "ncc.rectification is now rectify.mode"),
         ("mapping.seed=3", "mapping.seed is now --seed"),
         ("match_check.seed=3", "match_check.seed is now --seed"),
+        ("match_check.rounds=3", "match_check.rounds is now match_check.max_rounds"),
         ("pipeline.refine=false", "pipeline.refine is now pipeline.refine_keypoints"),
         ("pair_check.enabled=true", "pair check was removed"),
         ("ncc.match_blur=true", "ncc.match_blur is no longer a recipe key"),

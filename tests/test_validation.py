@@ -66,7 +66,7 @@ def test_bounds_hold_the_defaults_and_every_shipped_recipe():
 
 
 @pytest.mark.parametrize("override", ["lsm.antialias=1e20", "lsm.antialias=1e3",
-                                      "match_check.rounds=1000000000", "filter.max_iters=-1",
+                                      "match_check.max_rounds=1000000000", "filter.max_iters=-1",
                                       "mapping.num_threads=-5", "lsm.radius=1e300"])
 def test_the_attack_values_are_refused_fast_naming_the_key(override, tmp_path, capfd):
     key = override.split("=")[0].split(".")[1]

@@ -21,7 +21,7 @@ class MatchCheckConfig:
         min_threshold_px / max_threshold_px: bounds of that threshold, pixels.
         estimate_matches_per_image: the estimate is built from whole tracks sampled to about
             this many match ends per image (0: every match); bounds the mapper's cost.
-        rounds: global estimates at most; a later one re-estimates the images not trusted yet.
+        max_rounds: global estimates at most; a later one re-estimates the images not trusted yet.
 
     The class constants below are the check's fixed rules, not recipe keys.
     """
@@ -33,7 +33,7 @@ class MatchCheckConfig:
     max_threshold_px: float = field(default=4.0, metadata=within(0, MAX_THRESHOLD_PX, PX, lo_open=True))
     estimate_matches_per_image: int = field(default=2000, metadata=within(
         0, 1_000_000_000, "match ends of an image (0: all)"))
-    rounds: int = field(default=2, metadata=within(1, 5, "global-mapper runs"))
+    max_rounds: int = field(default=2, metadata=within(1, 5, "global-mapper runs"))
 
     #: degrees: a pair agrees with the estimate when its own relative rotation is this close.
     max_rotation_deg: ClassVar[float] = 5.0
@@ -59,7 +59,7 @@ class MatchCheckConfig:
     #: look for a hinge (two image groups the estimate turned against each other) after each
     #: estimate: a mode of at least ``hinge_min_pairs`` pairs touching ``hinge_min_side_images``
     #: images on each side (:mod:`colmap_miho.verification.hinge`).
-    hinges: ClassVar[bool] = True
+    look_for_hinges: ClassVar[bool] = True
     hinge_min_pairs: ClassVar[int] = 3
     hinge_min_side_images: ClassVar[int] = 2
 

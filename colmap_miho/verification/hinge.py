@@ -397,7 +397,7 @@ def resolve_hinge(estimator: Estimator[Est], est: Est, matches: Mapping[Pair, np
     pairs; undecided, the pairs between the groups are left unjudged (no correct match is removed on
     a guess). Returns (estimate to judge against, hinges found, pairs left unjudged)."""
     found: list[HingeVerdict] = []
-    if not cfg.hinges:
+    if not cfg.look_for_hinges:
         return est, found, frozenset()
     for attempt in range(2):  # the estimate, and at most one made again
         coverage = PairCoverage(estimator, est, matches, cfg.max_threshold_px, cfg.min_pair_matches)

@@ -121,13 +121,13 @@ class _Rounds:
 
 def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est],
                     cfg: MatchCheckConfig, candidates: Mapping[Pair, np.ndarray] | None = None) -> MatchCheckDecision:
-    """The match check: up to ``cfg.rounds`` estimates, each from the last one's survivors. Later
+    """The match check: up to ``cfg.max_rounds`` estimates, each from the last one's survivors. Later
     rounds estimate only around untrusted images and keep the first threshold (the survivors'
     distances are truncated, so a scale taken from them would shrink round after round).
     ``candidates`` (pair -> ``(R, 2)``, the matches the filter removed) come back where a round's
     estimate and kept matches prove them (:mod:`.restore`)."""
     s = _Rounds(failed={p: np.zeros(len(m), bool) for p, m in matches.items()})
-    for _ in range(cfg.rounds):
+    for _ in range(cfg.max_rounds):
         alive = s.alive(matches)
         current = {p: matches[p][idx] for p, idx in alive.items()}
         est = estimator.estimate(current)
@@ -136,7 +136,7 @@ def judge_in_rounds(matches: Mapping[Pair, np.ndarray], estimator: Estimator[Est
         s.mapper_steps.append(dict(est.mapper_steps))
         th = time.perf_counter()
         est, found, skip = resolve_hinge(estimator, est, current, cfg, s.rounds)
-        if cfg.hinges:
+        if cfg.look_for_hinges:
             part["hinge"] = time.perf_counter() - th  # the search; a second estimate included
         s.hinges += found
         s.unjudged |= skip

@@ -25,7 +25,7 @@ MIN_WRONG_REMOVED = 0.9
 
 def _judge(scene, **cfg):
     with ColmapDatabase(scene.database) as db:
-        config = variant(MatchCheckConfig(mode="remove"), **cfg)  # hinges: a class constant
+        config = variant(MatchCheckConfig(mode="remove"), **cfg)  # look_for_hinges: a class constant
         d = judge_in_rounds(scene.matches, GlobalEstimator(src=db, config=config, num_threads=1), config)
         names = {im.image_id: im.name for im in db.images()}
     pairs = sorted(scene.matches)
@@ -38,7 +38,7 @@ def _judge(scene, **cfg):
 def test_a_planted_hinge_is_found_and_removes_no_correct_match(tmp_path, wrong_per_right):
     scene = make_hinged_survey(tmp_path, wrong_per_right=wrong_per_right, seed=0)
     assert len(scene.wrong_pairs) >= wrong_per_right * len(scene.correct_cross) * 0.9 or len(scene.wrong_pairs) > 40
-    plain, correct_plain, _, _ = _judge(scene, hinges=False)
+    plain, correct_plain, _, _ = _judge(scene, look_for_hinges=False)
     assert correct_plain > 0.1  # the mapper sides with the wrong pairs: the check without the hinge fails here
     d, correct, wrong, names = _judge(scene)
     assert d.used and d.hinges
@@ -58,7 +58,7 @@ def test_more_matches_on_the_wrong_pairs(tmp_path):
     wrong = np.median([len(scene.matches[p]) for p in scene.wrong_pairs])
     right = np.median([len(scene.matches[p]) for p in scene.correct_cross])
     assert wrong > right
-    _, correct_plain, _, _ = _judge(scene, hinges=False)
+    _, correct_plain, _, _ = _judge(scene, look_for_hinges=False)
     d, correct, wrong_removed, _ = _judge(scene)
     assert correct_plain > 0.1 and correct <= MAX_CORRECT_REMOVED and d.hinges
 
@@ -69,7 +69,7 @@ def test_a_planted_wrong_hypothesis_is_rejected(tmp_path, turn_deg):
     the correct ones: the estimate stays right, the wrong pairs form a mode, and the arbiter
     keeps the estimate; the verdicts are those of the check without the hinge search."""
     scene = make_hinged_survey(tmp_path, wrong_per_right=0.3, turn_deg=turn_deg, seed=1)
-    plain, correct_plain, wrong_plain, _ = _judge(scene, hinges=False)
+    plain, correct_plain, wrong_plain, _ = _judge(scene, look_for_hinges=False)
     assert correct_plain <= MAX_CORRECT_REMOVED  # the premise: the estimate is right
     d, correct, wrong, _ = _judge(scene)
     assert d.hinges, "the planted wrong pairs form a mode"

@@ -180,7 +180,7 @@ def test_distances_and_threshold():
 
 
 @pytest.mark.parametrize("field, value", [("false_reject", 0.0), ("false_reject", 0.5), ("min_threshold_px", 5.0),
-                                          ("rounds", 0), ("estimate_matches_per_image", -1), ("mode", "maybe")])
+                                          ("max_rounds", 0), ("estimate_matches_per_image", -1), ("mode", "maybe")])
 def test_config_refuses_bad_values(field, value):
     with pytest.raises(ValueError):
         MatchCheckConfig(**{field: value})
@@ -217,7 +217,7 @@ def test_rounds_judge_and_a_later_round_that_fails_keeps_the_first_verdicts():
     wrong4 = {**poses, 4: (_rot([0, 1, 0], 30.0) @ R, t)}  # image 4 untrusted: a second round is asked for
     first = _Estimate(wrong4, rays, focal, _pair_rotations(poses))
     est = _Scripted(first)
-    d = judge_in_rounds(matches, est, MatchCheckConfig(mode="remove", rounds=2))
+    d = judge_in_rounds(matches, est, MatchCheckConfig(mode="remove", max_rounds=2))
     assert est.calls == 2 and d.rounds == 2
     assert d.used and d.registered == frozenset(poses) and d.untrusted == frozenset({4})
     assert d.trusted == frozenset(poses) - {4}
@@ -248,7 +248,7 @@ def test_a_later_round_estimates_only_around_the_images_not_trusted():
     first = _Estimate({**poses, 2: (_rot([0, 1, 0], 30.0) @ R, t)}, rays, focal, _pair_rotations(poses))
     second = _Estimate(poses, rays, focal, _pair_rotations(poses))
     est = _Scripted(first, second)
-    d = judge_in_rounds(matches, est, MatchCheckConfig(mode="remove", rounds=2))
+    d = judge_in_rounds(matches, est, MatchCheckConfig(mode="remove", max_rounds=2))
     assert est.calls == 2 and d.rounds == 2 and d.used
     assert est.given[0] == set(matches)
     near = images_around({2}, matches, LATER_ROUND_RINGS)
