@@ -13,16 +13,14 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import numpy as np
 
 from ..geometry import project_to_so3, rotation_angle_deg
 from ..types import Pair, Pose
 from .config import MatchCheckConfig
-
-if TYPE_CHECKING:  # the check's estimator protocol; the check imports this module
-    from .match_check import Est, Estimator
+from .estimator import Est, Estimator
 
 
 def world_residuals(poses: Mapping[int, Pose], pair_rotations: Mapping[Pair, np.ndarray]) -> dict[Pair, np.ndarray]:
