@@ -72,8 +72,11 @@ def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair,
     n = len(node_keys)
     half = len(starts)
     _, comp = components(inverse[:half], inverse[half:], n)
+    order = np.argsort(comp, kind="stable")  # the nodes of each track, found by a search
+    by_track = comp[order]
     comp_images: dict[int, set[int]] = {}
     parent: dict[int, int] = {}
+    loose: dict[int, int] = {}  # a keypoint in no kept track -> the track it started
 
     def root(c: int) -> int:
         while parent.get(c, c) != c:
@@ -81,14 +84,18 @@ def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair,
         return c
 
     def track_of(image: int, kp: int) -> int:
-        key = (np.int64(image) << _SHIFT) | np.int64(kp)
+        key = (image << 32) | kp
         at = int(np.searchsorted(node_keys, key))
-        c = int(comp[at]) if at < n and node_keys[at] == key else -1 - len(parent)  # a keypoint in no track
-        if c < 0:
-            parent[c] = c
+        if at < n and int(node_keys[at]) == key:
+            c = int(comp[at])
+            if c not in comp_images:
+                lo, hi = np.searchsorted(by_track, c, "left"), np.searchsorted(by_track, c, "right")
+                comp_images[c] = set((node_keys[order[lo:hi]] >> _SHIFT).tolist())
+        elif key in loose:
+            c = loose[key]
+        else:
+            c = loose[key] = -1 - len(loose)
             comp_images[c] = {image}
-        elif c not in comp_images:
-            comp_images[c] = {int(x) >> 32 for x in node_keys[comp == c]}
         return root(c)
 
     out = {}

@@ -79,3 +79,15 @@ def test_a_match_joining_two_tracks_that_share_an_image_is_not_restored(street):
     kept = {(0, 3): correct, (1, 3): np.array([[0, 1]] + [[k, k] for k in range(1, len(correct))])}
     out = _restore(street, kept, {(0, 1): correct[:1]})
     assert (0, 1) not in out
+
+
+def test_a_keypoint_in_no_track_joins_one_track_only():
+    """Keypoint 5 of image 0 is in no kept track; restored to the track of image 1's keypoint 0,
+    it may not then join the track of image 2's keypoint 0 too: both hold a keypoint of image 3."""
+    from colmap_miho.verification.restore import _kept_ends, _track_consistent
+
+    kept = {(1, 3): np.array([[0, 0]]), (2, 3): np.array([[0, 1]])}
+    ends = _kept_ends(kept, {0, 1, 2, 3})
+    candidates = {(0, 1): np.array([[5, 0]]), (0, 2): np.array([[5, 0]])}
+    out = _track_consistent({p: np.ones(1, bool) for p in candidates}, candidates, ends)
+    assert list(out) == [(0, 1)]
