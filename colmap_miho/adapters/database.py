@@ -209,10 +209,16 @@ def fitted_geometry(F: np.ndarray | None, H: np.ndarray | None):
     return tvg
 
 
+def stored_model(handle, i: int, j: int):
+    """The pair's stored ``pycolmap.TwoViewGeometry`` when it holds a verified model, else None."""
+    tvg = handle.read_two_view_geometry(i, j) if handle.exists_two_view_geometry(i, j) else None
+    return tvg if tvg is not None and is_verified(tvg) else None
+
+
 def keep_or_fit(handle, i: int, j: int, inliers: np.ndarray, fit: Callable[[], Any], *, keep: bool = True):
     """The pair's stored verified model when ``keep`` and it has one, else ``fit()`` (None: no model)."""
-    old = handle.read_two_view_geometry(i, j) if handle.exists_two_view_geometry(i, j) else None
-    tvg = old if keep and old is not None and is_verified(old) else fit()
+    old = stored_model(handle, i, j) if keep else None
+    tvg = old if old is not None else fit()
     if tvg is not None:
         tvg.inlier_matches = np.ascontiguousarray(inliers, np.uint32)
     return tvg
@@ -290,6 +296,10 @@ class ColmapDatabase(DatabaseBuilder):
             out.append(ImageRecord(int(im.image_id), str(im.name), int(im.camera_id),
                                    int(cam.width) if cam else 0, int(cam.height) if cam else 0))
         return sorted(out, key=lambda r: r.image_id)
+
+    def verified_model(self, i: int, j: int):
+        """The pair's stored ``pycolmap.TwoViewGeometry`` when it holds a verified model, else None."""
+        return stored_model(self.handle, int(i), int(j))
 
     def raw_keypoints(self, image_id: int) -> np.ndarray:
         """The stored keypoint rows, float32 (N, C), C in {2, 4, 6}, COLMAP coordinates."""

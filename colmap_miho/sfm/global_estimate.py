@@ -5,6 +5,7 @@ the convention)."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
@@ -12,7 +13,7 @@ from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -115,8 +116,10 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
         return GlobalEstimate(seconds=seconds, mapper_steps=steps, failure=failure)
     model = _read_model(rec, kp)
     t0 = time.perf_counter()
-    sample = evenly_spaced(used, cfg.pair_rotation_matches)
-    rotations = _pair_rotations(pycolmap, sample, kp, model["cameras"], seed, num_threads)
+    cams = model["cameras"]
+    sample = {p: m for p, m in evenly_spaced(used, cfg.pair_rotation_matches).items() if p[0] in cams and p[1] in cams}
+    stored = {p: src.verified_model(*p) for p in sample}
+    rotations = _pair_rotations(pycolmap, sample, stored, kp, cams, seed, num_threads)
     seconds["pair_rotations"] = time.perf_counter() - t0
     return GlobalEstimate(**model, seconds=seconds, mapper_steps=steps, keypoints=kp, pair_rotations=rotations)
 
@@ -292,12 +295,18 @@ def evenly_spaced(matches: Mapping[Pair, np.ndarray], most: int) -> dict[Pair, n
     return {p: m[spread_rows(len(m), most)] for p, m in matches.items()}
 
 
-def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.ndarray],
-                    cams: Mapping, seed: int, num_threads: int = 1) -> dict[Pair, np.ndarray]:
+def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], stored: Mapping[Pair, Any],
+                    kp: Mapping[int, np.ndarray], cams: Mapping, seed: int, num_threads: int = 1
+                    ) -> dict[Pair, np.ndarray]:
     """Each pair's own ``R_2from1`` from its matches (pairs of two registered images whose
-    relative pose could be estimated), on ``num_threads`` threads (-1: all cores; pycolmap
-    releases the GIL, and each pair's RANSAC is seeded alone, so the result does not depend on
-    the threads)."""
+    relative pose could be found): the pose of the pair's stored CALIBRATED model (``stored``:
+    pair -> ``pycolmap.TwoViewGeometry`` or None) over the matches, whose inliers they are,
+    else a RANSAC estimate from the matches alone. Only an essential matrix is reused: an
+    UNCALIBRATED F fitted without the focal length turns near-planar pairs by degrees, and a
+    PLANAR H decomposes two ways. On ``num_threads`` threads (-1: all cores; pycolmap releases
+    the GIL, and each pair's RANSAC is seeded alone, so the result does not depend on the
+    threads)."""
+    calibrated = int(pc.TwoViewGeometryConfiguration.CALIBRATED)
     opts = pc.TwoViewGeometryOptions()
     opts.compute_relative_pose = True
     opts.ransac.max_error = PAIR_POSE_MAX_ERROR_PX
@@ -306,7 +315,14 @@ def _pair_rotations(pc, matches: Mapping[Pair, np.ndarray], kp: Mapping[int, np.
 
     def rotation(item: tuple[Pair, np.ndarray]) -> np.ndarray | None:
         (i, j), m = item
-        tvg = pc.estimate_two_view_geometry(cams[i], kp[i], cams[j], kp[j], np.ascontiguousarray(m, np.uint32), opts)
+        m = np.ascontiguousarray(m, np.uint32)
+        tvg = stored.get((i, j))
+        if tvg is not None and int(tvg.config) == calibrated:
+            tvg.inlier_matches = m
+            with contextlib.suppress(ValueError):  # COLMAP's check: a model without its matrix
+                if pc.estimate_two_view_geometry_pose(cams[i], kp[i], cams[j], kp[j], tvg):
+                    return np.asarray(tvg.cam2_from_cam1.rotation.matrix(), np.float64)
+        tvg = pc.estimate_two_view_geometry(cams[i], kp[i], cams[j], kp[j], m, opts)
         pose = tvg.cam2_from_cam1
         return np.asarray(pose.rotation.matrix(), np.float64) if is_verified(tvg) and pose is not None else None
 
