@@ -23,6 +23,7 @@ lengths in pixels.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -47,11 +48,12 @@ def restore_matches(candidates: Mapping[Pair, np.ndarray], kept: Mapping[Pair, n
     estimate and the ``kept`` matches (pair -> ``(M, 2)``) prove, the check's ``threshold`` (px)
     given; pair -> bool ``(R,)``, only pairs of two ``trusted`` images with any restored."""
     ends = _kept_ends(kept, trusted)
+    cams = _Cameras.of(poses, focal)
     out: dict[Pair, np.ndarray] = {}
     for (i, j), m in sorted(candidates.items()):
         if i not in trusted or j not in trusted or not len(m):
             continue
-        ok = proven(np.asarray(m, np.int64), i, j, ends, rays, focal, poses, threshold, EPIPOLAR_SHARE * threshold)
+        ok = proven(np.asarray(m, np.int64), i, j, ends, rays, cams, threshold, EPIPOLAR_SHARE * threshold)
         if ok.any():
             out[(i, j)] = ok
     return _track_consistent(out, candidates, ends)
@@ -68,10 +70,12 @@ def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair,
     if not proven_:
         return {}
     starts, end_img, end_kp = ends
-    node_keys, inverse = np.unique(np.concatenate([starts, (end_img << _SHIFT) | end_kp]), return_inverse=True)
+    # every kept match is an edge both ways: the ends are the sorted starts' keys
+    first = np.ones(len(starts), bool)
+    first[1:] = starts[1:] != starts[:-1]
+    node_keys = starts[first]
     n = len(node_keys)
-    half = len(starts)
-    _, comp = components(inverse[:half], inverse[half:], n)
+    _, comp = components(np.cumsum(first) - 1, np.searchsorted(node_keys, (end_img << _SHIFT) | end_kp), n)
     order = np.argsort(comp, kind="stable")  # the nodes of each track, found by a search
     by_track = comp[order]
     comp_images: dict[int, set[int]] = {}
@@ -114,11 +118,11 @@ def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair,
 
 
 def proven(m: np.ndarray, i: int, j: int, ends: tuple[np.ndarray, np.ndarray, np.ndarray],
-           rays: Mapping[int, np.ndarray], focal: Mapping[int, float], poses: Mapping[int, Pose],
-           threshold: float, epipolar_px: float) -> np.ndarray:
+           rays: Mapping[int, np.ndarray], cams: _Cameras, threshold: float, epipolar_px: float) -> np.ndarray:
     """bool ``(R,)``: the matches ``m`` of pair ``(i, j)`` within ``epipolar_px`` of their
     epipolar line and confirmed by a third image within ``threshold`` px (:func:`_kept_ends`'
     index ``ends``)."""
+    poses, focal = cams.poses, cams.focal
     x1, x2 = rays[i][m[:, 0]], rays[j][m[:, 1]]
     scale = float(np.sqrt(focal[i] * focal[j]))
     d = symmetric_epipolar_distance(essential(relative_pose(poses[i], poses[j])), x1, x2) * scale
@@ -134,7 +138,7 @@ def proven(m: np.ndarray, i: int, j: int, ends: tuple[np.ndarray, np.ndarray, np
         if not left.any():
             break
         rows = close[left]
-        ok[rows[_confirmed(X[left], own, other, m[rows, side], ends, rays, focal, poses, threshold)]] = True
+        ok[rows[_confirmed(X[left], own, other, m[rows, side], ends, rays, cams, threshold)]] = True
     return ok
 
 
@@ -157,11 +161,11 @@ def _kept_ends(kept: Mapping[Pair, np.ndarray], trusted) -> tuple[np.ndarray, np
     return s[order], np.concatenate(end_img)[order], np.concatenate(end_kp)[order]
 
 
-def _confirmed(X: np.ndarray, own: int, other: int, kps: np.ndarray, ends, rays, focal, poses,
+def _confirmed(X: np.ndarray, own: int, other: int, kps: np.ndarray, ends, rays, cams: _Cameras,
                threshold: float) -> np.ndarray:
     """bool ``(n,)``: points ``X`` ``(n, 3)`` of matches whose keypoint ``kps`` in image ``own``
     a kept match links to a third image that sees ``X`` within ``threshold`` px, with enough
-    depth sensitivity against image ``other``."""
+    depth sensitivity against image ``other`` (every link at once)."""
     starts, end_img, end_kp = ends
     keys = (np.int64(own) << _SHIFT) | kps
     lo, hi = np.searchsorted(starts, keys, "left"), np.searchsorted(starts, keys, "right")
@@ -172,20 +176,57 @@ def _confirmed(X: np.ndarray, own: int, other: int, kps: np.ndarray, ends, rays,
     which = np.repeat(np.arange(len(X)), counts)
     edge = np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
     third, third_kp = end_img[edge], end_kp[edge]
-    ray_own = _world_rays(poses[own], rays[own][kps])
-    for k in np.unique(third):
-        k = int(k)
-        if k == other or k not in poses:
-            continue
-        sel = third == k
-        w = which[sel]
-        err, sens = _reprojection(poses[k], X[w], ray_own[w], rays[k][third_kp[sel]])
-        _, sens_other = _reprojection(poses[other], X[w], ray_own[w], None)
-        with np.errstate(over="ignore", invalid="ignore"):
-            good = (err * focal[k] <= threshold) & (
-                sens * focal[k] >= MIN_DEPTH_SENSITIVITY * sens_other * focal[other])
-        ok[w[good]] = True
+    at, posed = cams.index(third)
+    use = posed & (third != other)
+    if not use.any():
+        return ok
+    which, third, third_kp, at = which[use], third[use], third_kp[use], at[use]
+    ray_own = _world_rays(cams.poses[own], rays[own][kps])
+    R_other, t_other = (np.asarray(a, np.float64) for a in cams.poses[other])
+    _, sens_other = _reprojection(R_other, t_other.reshape(3), X, ray_own, None)
+    err, sens = _reprojection(cams.R[at], cams.t[at], X[which], ray_own[which], _gather(rays, third, third_kp))
+    f = cams.f[at]
+    with np.errstate(over="ignore", invalid="ignore"):
+        good = (err * f <= threshold) & (sens * f >= MIN_DEPTH_SENSITIVITY * sens_other[which] * cams.focal[other])
+    ok[which[good]] = True
     return ok
+
+
+def _gather(rays: Mapping[int, np.ndarray], image: np.ndarray, kp: np.ndarray) -> np.ndarray:
+    """``rays[image[e]][kp[e]]`` for every ``e``, ``(E, 2)``: one fancy index per image."""
+    out = np.empty((len(image), 2))
+    order = np.argsort(image, kind="stable")
+    sorted_images = image[order]
+    cuts = np.flatnonzero(sorted_images[1:] != sorted_images[:-1]) + 1
+    for a, b in zip([0, *cuts.tolist()], [*cuts.tolist(), len(order)], strict=True):
+        rows = order[a:b]
+        out[rows] = rays[int(sorted_images[a])][kp[rows]]
+    return out
+
+
+@dataclass(frozen=True)
+class _Cameras:
+    """The estimate's registered cameras as arrays, for every link at once: ``ids`` sorted,
+    ``R`` ``(n, 3, 3)``, ``t`` ``(n, 3)``, ``f`` ``(n,)`` in that order."""
+
+    poses: Mapping[int, Pose]
+    focal: Mapping[int, float]
+    ids: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    f: np.ndarray
+
+    @classmethod
+    def of(cls, poses: Mapping[int, Pose], focal: Mapping[int, float]) -> _Cameras:
+        ids = np.array(sorted(poses), np.int64)
+        R = np.array([np.asarray(poses[int(k)][0], np.float64) for k in ids]).reshape(-1, 3, 3)
+        t = np.array([np.asarray(poses[int(k)][1], np.float64).reshape(3) for k in ids]).reshape(-1, 3)
+        return cls(poses, focal, ids, R, t, np.array([float(focal[int(k)]) for k in ids]))
+
+    def index(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each image's row in the arrays and whether it has one (a pose)."""
+        at = np.minimum(np.searchsorted(self.ids, images), max(len(self.ids) - 1, 0))
+        return at, (self.ids[at] == images) if len(self.ids) else np.zeros(len(images), bool)
 
 
 def _centre(pose: Pose) -> np.ndarray:
@@ -218,14 +259,15 @@ def _midpoints(pose1: Pose, x1: np.ndarray, pose2: Pose, x2: np.ndarray
     return X, s, u
 
 
-def _reprojection(pose: Pose, X: np.ndarray, direction: np.ndarray, x: np.ndarray | None
+def _reprojection(R: np.ndarray, t: np.ndarray, X: np.ndarray, direction: np.ndarray, x: np.ndarray | None
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Normalised reprojection error of ``X`` ``(n, 3)`` against ``x`` (``inf`` behind the
     camera; zeros when ``x`` is None) and the normalised image motion per unit depth of ``X``
-    along ``direction``."""
-    R, t = np.asarray(pose[0], np.float64), np.asarray(pose[1], np.float64).reshape(3)
-    Y = X @ R.T + t
-    v = direction @ R.T
+    along ``direction``, in the camera ``R`` ``(3, 3)`` or ``(n, 3, 3)``, ``t`` ``(3,)`` or ``(n, 3)``."""
+    if R.ndim == 2:
+        Y, v = X @ R.T + t, direction @ R.T
+    else:
+        Y, v = np.einsum("nij,nj->ni", R, X) + t, np.einsum("nij,nj->ni", R, direction)
     z = Y[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         proj = Y[:, :2] / z[:, None]
