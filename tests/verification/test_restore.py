@@ -91,3 +91,22 @@ def test_a_keypoint_in_no_track_joins_one_track_only():
     candidates = {(0, 1): np.array([[5, 0]]), (0, 2): np.array([[5, 0]])}
     out = _track_consistent({p: np.ones(1, bool) for p in candidates}, candidates, ends)
     assert list(out) == [(0, 1)]
+
+
+def test_links_are_gathered_and_indexed_per_image():
+    """The batched third-image links read each link's own ray and camera, whatever the order of
+    the images and whether an image has a pose."""
+    from colmap_miho.verification.restore import _Cameras, _gather
+
+    rng = np.random.default_rng(3)
+    rays = {7: rng.normal(size=(5, 2)), 2: rng.normal(size=(4, 2)), 11: rng.normal(size=(3, 2))}
+    image = np.array([11, 7, 2, 7, 11, 2, 2])
+    kp = np.array([2, 4, 0, 1, 0, 3, 3])
+    expected = np.array([rays[int(i)][int(k)] for i, k in zip(image, kp, strict=True)])
+    assert np.array_equal(_gather(rays, image, kp), expected)
+    poses = {7: _camera([1.0, 0, 0]), 2: _camera([0, 2.0, 0])}
+    cams = _Cameras.of(poses, {7: 900.0, 2: 1100.0})
+    at, posed = cams.index(np.array([2, 11, 7, 1, 7]))
+    assert posed.tolist() == [True, False, True, False, True]
+    assert np.array_equal(cams.t[at[0]], poses[2][1]) and np.array_equal(cams.t[at[2]], poses[7][1])
+    assert cams.f[at[4]] == 900.0
