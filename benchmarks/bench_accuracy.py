@@ -73,6 +73,20 @@ def parse_variant(text: str) -> tuple[str, str | None, list[str]]:
     return name, recipe, overrides
 
 
+def scene_databases(scenes, settings, data: Path, work: Path, max_features: int):
+    """``(scene, setting, image folder, database)`` for every scene of ``scenes`` that has its data
+    (the others are skipped, saying so) and every COLMAP matching setting, each database built once
+    under ``work`` (:func:`build_database`)."""
+    for scene in scenes:
+        found = scene_inputs(scene, data, work)
+        if found is None:
+            print(f"skip {scene}: no images/ or gt_model/ under {data / scene}", file=sys.stderr)
+            continue
+        for setting in settings:
+            yield scene, setting, found[0], build_database(found[0], work / scene, setting,
+                                                           MAX_FEATURES.get(scene, max_features))
+
+
 def scene_inputs(scene: str, data: Path, work: Path) -> tuple[Path, Path] | None:
     """(image folder, GT model folder) of a scene; the demo is rendered once into ``work``."""
     if scene == DEMO:

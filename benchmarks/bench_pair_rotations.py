@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_accuracy import MAX_FEATURES, SETTINGS, build_database, scene_inputs  # noqa: E402
+from bench_accuracy import SETTINGS, scene_databases  # noqa: E402
 
 STRECHA = ("strecha_castle_p19", "strecha_entry_p10", "strecha_fountain_p11")
 REPO = Path(__file__).resolve().parents[1]
@@ -161,24 +161,18 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     print("database | pairs | configs | RANSAC s | posed s | apart > 5 deg (RANSAC / posed nearer the GT) | "
           "GT error median RANSAC / posed (deg) | pairs > 5 deg from the GT RANSAC / posed")
-    for scene in args.scenes:
-        found = scene_inputs(scene, args.data, args.work)
-        if found is None:
-            print(f"skip {scene}: no data", file=sys.stderr)
-            continue
-        image_dir, _ = found
+    for scene, setting, image_dir, db in scene_databases(args.scenes, args.settings, args.data, args.work,
+                                                         args.max_features):
         gt = strecha_poses(args.data / scene / "gt_full_res", image_dir)
-        for setting in args.settings:
-            db = build_database(image_dir, args.work / scene, setting, MAX_FEATURES.get(scene, args.max_features))
-            priors = verified_with_gt_priors(db, args.work / "gt_priors" / scene / setting / "database.db", gt)
-            for label, path in (("as built", db), ("GT focal priors", priors)):
-                r = {"scene": scene, "setting": setting, "database": label, **compare(path, gt, args.models)}
-                rows.append(r)
-                print(f"{scene}/{setting} ({label}) | {r['pairs']} | {r['configs']} | "
-                      f"{r['ransac_s']} | {r['posed_s']} | "
-                      f"{r['apart_5deg']} ({r['apart_ransac_nearer']} / {r['apart_posed_nearer']}) | "
-                      f"{r['gt_error_median_deg'][0]} / {r['gt_error_median_deg'][1]} | "
-                      f"{r['gt_over_5deg'][0]} / {r['gt_over_5deg'][1]}", flush=True)
+        priors = verified_with_gt_priors(db, args.work / "gt_priors" / scene / setting / "database.db", gt)
+        for label, path in (("as built", db), ("GT focal priors", priors)):
+            r = {"scene": scene, "setting": setting, "database": label, **compare(path, gt, args.models)}
+            rows.append(r)
+            print(f"{scene}/{setting} ({label}) | {r['pairs']} | {r['configs']} | "
+                  f"{r['ransac_s']} | {r['posed_s']} | "
+                  f"{r['apart_5deg']} ({r['apart_ransac_nearer']} / {r['apart_posed_nearer']}) | "
+                  f"{r['gt_error_median_deg'][0]} / {r['gt_error_median_deg'][1]} | "
+                  f"{r['gt_over_5deg'][0]} / {r['gt_over_5deg'][1]}", flush=True)
     if args.json:
         args.json.write_text(json.dumps({"argv": sys.argv[1:] if argv is None else argv, "models": args.models,
                                          "rows": rows}, indent=2), encoding="utf-8")

@@ -29,7 +29,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_accuracy import DEMO, MAX_FEATURES, SETTINGS, SHARED_SCENES, build_database, scene_inputs  # noqa: E402
+from bench_accuracy import DEMO, SETTINGS, SHARED_SCENES, scene_databases  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 #: Tables ``refine`` writes, and the column that orders their rows.
@@ -114,27 +114,21 @@ def main(argv=None) -> int:
 
     pycolmap.logging.minloglevel = 1
     rows = []
-    for scene in args.scenes:
-        found = scene_inputs(scene, args.data, args.work)
-        if found is None:
-            print(f"skip {scene}: no data", file=sys.stderr)
-            continue
-        image_dir, _ = found
-        for setting in args.settings:
-            db = build_database(image_dir, args.work / scene, setting, MAX_FEATURES.get(scene, args.max_features))
-            recipes = list(args.recipes)
-            if scene == DEMO and args.demo_all_recipes:
-                recipes += [r for r in available_recipes() if r not in recipes]
-            for name in recipes:
-                run = f"{scene}/{setting}/{name}"
-                out = args.out / scene / setting / f"{name}.db"
-                out.parent.mkdir(parents=True, exist_ok=True)
-                t0 = time.perf_counter()
-                summary = refine_database(db, image_dir, out, recipe=load_recipe(name, args.overrides),
-                                          overwrite=True, restart=True, workers=args.workers, seed=0)
-                d = digest(summary.output)
-                rows.append({"run": run, "digest": d, "seconds": round(time.perf_counter() - t0, 1)})
-                print(f"{run}: {' '.join(d.values())} ({time.perf_counter() - t0:.1f} s)", flush=True)
+    for scene, setting, image_dir, db in scene_databases(args.scenes, args.settings, args.data, args.work,
+                                                         args.max_features):
+        recipes = list(args.recipes)
+        if scene == DEMO and args.demo_all_recipes:
+            recipes += [r for r in available_recipes() if r not in recipes]
+        for name in recipes:
+            run = f"{scene}/{setting}/{name}"
+            out = args.out / scene / setting / f"{name}.db"
+            out.parent.mkdir(parents=True, exist_ok=True)
+            t0 = time.perf_counter()
+            summary = refine_database(db, image_dir, out, recipe=load_recipe(name, args.overrides),
+                                      overwrite=True, restart=True, workers=args.workers, seed=0)
+            d = digest(summary.output)
+            rows.append({"run": run, "digest": d, "seconds": round(time.perf_counter() - t0, 1)})
+            print(f"{run}: {' '.join(d.values())} ({time.perf_counter() - t0:.1f} s)", flush=True)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"argv": sys.argv[1:] if argv is None else list(argv),
