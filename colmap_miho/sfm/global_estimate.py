@@ -117,8 +117,8 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
     model = _read_model(rec, kp)
     t0 = time.perf_counter()
     cams = model["cameras"]
-    sample = {p: m for p, m in evenly_spaced(used, cfg.pair_rotation_matches).items() if p[0] in cams and p[1] in cams}
-    stored = {p: src.verified_model(*p) for p in sample}
+    sample = evenly_spaced(used, cfg.pair_rotation_matches)
+    stored = {p: src.verified_model(*p) for p in sample if p[0] in cams and p[1] in cams}
     rotations = _pair_rotations(pycolmap, sample, stored, kp, cams, seed, num_threads)
     seconds["pair_rotations"] = time.perf_counter() - t0
     return GlobalEstimate(**model, seconds=seconds, mapper_steps=steps, keypoints=kp, pair_rotations=rotations)
