@@ -66,7 +66,7 @@ def stage_input(database: Path, image_dir: Path, seed: int) -> dict[tuple[int, i
     held: dict = {}
     original = stage.judge_in_rounds
 
-    def grab(matches, estimator, cfg):
+    def grab(matches, estimator, cfg, candidates=None):
         held.update(matches)
         raise _Captured
 
