@@ -403,13 +403,27 @@ class ColmapDatabase(DatabaseBuilder):
         return self._pycolmap.TwoViewGeometryConfiguration(int(tvg.config)).name
 
     def write_scene_copy(self, path: str | Path, matches: Mapping[Pair, np.ndarray],
-                         fit: Callable[[int, int, np.ndarray], Any]) -> None:
+                         fit: Callable[[int, int, np.ndarray], Any], *,
+                         matched_keypoints_only: bool = False) -> dict[int, np.ndarray] | None:
         """A NEW database at ``path`` for a mapper: this one's cameras, rigs, frames, images (ids
         kept, each named by its id: a mapper joins names to its folder) and keypoints, and each
         pair of ``matches`` (``(M, 2)`` keypoint indices) with them as its two-view geometry's
         inliers: its verified model kept, else ``fit(i, j, m)`` (a ``pycolmap.TwoViewGeometry``;
-        a pair with neither is left out)."""
+        a pair with neither is left out).
+
+        With ``matched_keypoints_only`` an image keeps only the keypoints that ``matches`` use,
+        in their order (a mapper holds every keypoint it is given: on a sample of the matches
+        most of its memory); returns then image id -> the indices here of the keypoints
+        written, ascending (keypoint ``k`` of the copy is ``indices[k]`` here), else None."""
         h = self.handle
+        kept: dict[int, np.ndarray] | None = None
+        if matched_keypoints_only:
+            ends: dict[int, list[np.ndarray]] = {}
+            for (i, j), m in matches.items():
+                ends.setdefault(i, []).append(np.asarray(m[:, 0], np.int64))
+                ends.setdefault(j, []).append(np.asarray(m[:, 1], np.int64))
+            kept = {int(rec.image_id): np.unique(np.concatenate(ends[rec.image_id])) if rec.image_id in ends
+                    else np.zeros(0, np.int64) for rec in self.images()}
         with self._pycolmap.Database.open(str(path)) as dst:
             for cam in h.read_all_cameras():
                 dst.write_camera(cam, use_camera_id=True)
@@ -422,12 +436,17 @@ class ColmapDatabase(DatabaseBuilder):
                 dst.write_image(im, use_image_id=True)
             for rec in self.images():
                 i = int(rec.image_id)
-                dst.write_keypoints(i, np.ascontiguousarray(h.read_keypoints(i), np.float32))
+                kps = h.read_keypoints(i)
+                dst.write_keypoints(i, np.ascontiguousarray(kps if kept is None else kps[kept[i]], np.float32))
             for (i, j), m in sorted(matches.items()):
                 tvg = keep_or_fit(h, i, j, m, functools.partial(fit, i, j, m))
                 if tvg is not None:
+                    if kept is not None:
+                        m = np.column_stack([np.searchsorted(kept[i], m[:, 0]), np.searchsorted(kept[j], m[:, 1])])
+                        tvg.inlier_matches = np.ascontiguousarray(m, np.uint32)
                     dst.write_matches(i, j, np.ascontiguousarray(m, np.uint32))
                     dst.write_two_view_geometry(i, j, tvg)
+        return kept
 
     def delete_two_view_geometries(self, pairs: list[Pair]) -> None:
         """Delete the two-view geometry rows of ``pairs`` (before COLMAP re-verification)."""

@@ -182,6 +182,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
     """The check on the pair graph: (pair -> failed mask, wrong pairs, filtered pair -> its stored
     rows restored, the stats)."""
     from ..sfm.global_estimate import GlobalEstimator
+    from ..sfm.mapping import release_freed_heap
 
     filtered = store.load_filtered()
     matches = pair_graph(db, filtered, source)
@@ -192,6 +193,7 @@ def _decide(db: ColmapDatabase, store: RunStore, cfg: MatchCheckConfig, source: 
     estimator = GlobalEstimator(src=db, config=cfg, seed=match_check_seed(seed), num_threads=threads,
                                 verbose=log.isEnabledFor(logging.DEBUG))  # -v: COLMAP's log on the terminal
     d = judge_in_rounds(matches, estimator, cfg, candidates)
+    release_freed_heap()  # the judging's and restoring's, before the refinement
     restored = {p: removed_rows[p][ok] for p, ok in sorted(d.restored.items())}
     names = {im.image_id: im.name for im in db.images()}
     return d.failed, d.wrong, restored, MatchCheckStats.of(d, cfg, matches, names, restored)

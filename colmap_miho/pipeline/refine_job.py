@@ -279,6 +279,8 @@ def _run_stages(inputs: _RunInputs, wc: WorkingCopy, store: RunStore, runner: Ru
                     source=pcfg.source, seed=seed, memory_budget_bytes=pcfg.memory_budget_bytes, device=dev,
                     progress=progress, database_name=str(database)), runner=runner, store=store)
                 laps.lap("filter")
+                if runner.started:  # the walk's workers decode their own images: none held through the check
+                    read.loader.clear_cache()
                 # the global mapper runs here: threads beyond this machine's cores (a remote Dask
                 # cluster's slots, --workers 1024) would only be created, never run in parallel
                 verdicts, match_check = run_match_check(db, store, rec.match_check, pcfg.source, seed=seed,

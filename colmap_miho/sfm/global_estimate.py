@@ -22,7 +22,7 @@ from ..geometry import fit_fundamental, spread_rows
 from ..match_tracks import components, distinct, match_ends, node_offsets, repeated_image
 from ..types import Pair, Pose
 from .colmap_log import colmap_log_to_file, last_error_line, latest_log, step_seconds
-from .mapping import global_options, largest_model
+from .mapping import global_options, largest_model, release_freed_heap
 
 if TYPE_CHECKING:
     from ..verification.config import MatchCheckConfig
@@ -75,8 +75,9 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
         src: the open working database (read only here).
         matches: pair -> int ``(M, 2)`` keypoint indices, the matches to estimate from.
         cfg: the match check's settings (pairs under ``min_pair_matches`` are left out; the
-            mapper gets :func:`sampled_tracks`; ``pair_rotation_matches`` caps each pair's own
-            rotation's matches).
+            mapper gets :func:`sampled_tracks`, its positioning ``positioning_tracks_per_image``
+            of them, again with every track where that registers fewer images than the sample
+            holds; ``pair_rotation_matches`` caps each pair's own rotation's matches).
         seed: the match check's seed (:mod:`colmap_miho.seeds`): the track sample's, the
             mapper's and the pairs' RANSAC.
         num_threads: mapper threads (-1: all cores).
@@ -102,11 +103,20 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
         try:
             tracks = sampled_tracks(used, {i: len(k) for i, k in kp.items()}, cfg.estimate_matches_per_image,
                                     cfg.min_pair_matches, seed)
-            src.write_scene_copy(folder / "global.db", tracks, _fit_geometry(kp, seed))
+            written = src.write_scene_copy(folder / "global.db", tracks, _fit_geometry(kp, seed),
+                                           matched_keypoints_only=True)
             seconds["database"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            recs, failure, steps = _run_mapper(pycolmap, folder, cfg, seed, num_threads, verbose)
+            recs, failure, steps = _run_mapper(pycolmap, folder, cfg, seed, num_threads, verbose,
+                                               cfg.positioning_tracks_per_image)
             seconds["mapper"] = time.perf_counter() - t0
+            if cfg.positioning_tracks_per_image > 0 and _registered(recs) < len({i for p in tracks for i in p}):
+                # the positioning from a share of the tracks lost images: every track, the better of the two
+                t0 = time.perf_counter()
+                again = _run_mapper(pycolmap, folder, cfg, seed, num_threads, verbose, 0, "model_every_track")
+                if _registered(again[0]) > _registered(recs):
+                    recs, failure, steps = again
+                seconds["mapper_every_track"] = time.perf_counter() - t0
         except (OSError, RuntimeError) as exc:
             if is_disk_full(exc):
                 raise disk_full_error(folder.parent, "writing the global estimate's temporary database", exc) from None
@@ -114,7 +124,9 @@ def global_estimate(src: ColmapDatabase, matches: Mapping[Pair, np.ndarray], cfg
     rec = largest_model(recs)
     if rec is None:
         return GlobalEstimate(seconds=seconds, mapper_steps=steps, failure=failure)
-    model = _read_model(rec, kp)
+    model = _read_model(rec, kp, written)
+    del rec, recs
+    release_freed_heap()  # the mapper's freed memory, held otherwise through the judging and restoring
     t0 = time.perf_counter()
     cams = model["cameras"]
     sample = evenly_spaced(used, cfg.pair_rotation_matches)
@@ -167,22 +179,31 @@ def _fit_geometry(kp: Mapping[int, np.ndarray], seed: int):
     return fit
 
 
-def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, seed: int, num_threads: int, verbose: bool
-                ) -> tuple[dict, str, dict[str, float]]:
-    """``pycolmap.global_mapping`` on ``folder``'s ``global.db`` into ``folder/model``; returns
-    (its models, why it gave none in COLMAP's words ("" when it gave some), the seconds of its
-    steps from its log)."""
+def _registered(models: dict) -> int:
+    """Images registered in the largest of ``models`` (0 without models)."""
+    rec = largest_model(models)
+    return 0 if rec is None else int(rec.num_reg_images())
+
+
+def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, seed: int, num_threads: int, verbose: bool,
+                tracks_per_image: int, name: str = "model") -> tuple[dict, str, dict[str, float]]:
+    """``pycolmap.global_mapping`` on ``folder``'s ``global.db`` into ``folder/name``, its
+    positioning from the longest tracks until each image has ``tracks_per_image`` (0: every
+    track); returns (its models, why it gave none in COLMAP's words ("" when it gave some), the
+    seconds of its steps from its log)."""
     from ..adapters.staged_write import is_disk_full
 
     opts = global_options(seed=seed, num_threads=num_threads, min_num_matches=cfg.min_pair_matches)
     opts.mapper.ba_num_iterations = int(cfg.ba_iterations)
     opts.mapper.skip_retriangulation = not cfg.retriangulate
+    if tracks_per_image > 0:
+        opts.mapper.track_required_tracks_per_view = int(tracks_per_image)
     if cfg.ba_function_tolerance > 0:
         opts.mapper.bundle_adjustment.ceres.solver_options.function_tolerance = float(cfg.ba_function_tolerance)
-    out = folder / "model"
+    out = folder / name
     out.mkdir()
     failure = ""
-    with colmap_log_to_file(folder, verbose=verbose, errors_to_terminal=False, replay=True) as prefix:
+    with colmap_log_to_file(out, verbose=verbose, errors_to_terminal=False, replay=True) as prefix:
         try:
             recs = pc.global_mapping(str(folder / "global.db"), str(folder), str(out), opts)
         except RuntimeError as exc:  # COLMAP's own check failed: no estimate, the run goes on
@@ -195,9 +216,10 @@ def _run_mapper(pc, folder: Path, cfg: MatchCheckConfig, seed: int, num_threads:
     return recs, failure, step_seconds(log_file)
 
 
-def _read_model(rec, kp: Mapping[int, np.ndarray]) -> dict:
+def _read_model(rec, kp: Mapping[int, np.ndarray], written: Mapping[int, np.ndarray] | None = None) -> dict:
     """The :class:`GlobalEstimate` fields ``poses``, ``rays``, ``focal``, ``cameras`` and
-    ``observations`` of the model ``rec`` (its registered images)."""
+    ``observations`` of the model ``rec`` (its registered images); ``written``: image id -> the
+    keypoint indices the mapper's keypoints stand for (None: the same indices)."""
     poses, rays, focal, cams = {}, {}, {}, {}
     for image_id, im in rec.images.items():
         if not im.has_pose:
@@ -219,7 +241,8 @@ def _read_model(rec, kp: Mapping[int, np.ndarray]) -> dict:
                 row[1].append(p3.xyz)
                 row[2].append(int(point_id))
                 row[3].append(len(elements))
-    observations = {i: (np.asarray(a, np.int64), np.asarray(b, np.float64).reshape(-1, 3), np.asarray(c, np.int64),
+    observations = {i: (np.asarray(a, np.int64) if written is None else written[i][np.asarray(a, np.int64)],
+                        np.asarray(b, np.float64).reshape(-1, 3), np.asarray(c, np.int64),
                         np.asarray(d, np.int64)) for i, (a, b, c, d) in obs.items()}
     return {"poses": poses, "rays": rays, "focal": focal, "cameras": cams, "observations": observations}
 

@@ -340,6 +340,19 @@ def global_options(*, seed: int, num_threads: int, min_num_matches: int,
     return gopts
 
 
+def release_freed_heap() -> None:
+    """Give the C heap's free pages back to the system (glibc's ``malloc_trim``): pycolmap's
+    mappers free hundreds of MB that glibc would otherwise keep for the process. A no-op
+    where the C library has no such call."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def largest_model(models: dict):
     """The model with the most registered images (then points), or None without models."""
     return max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), default=None)

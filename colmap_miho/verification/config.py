@@ -56,6 +56,11 @@ class MatchCheckConfig:
     ba_iterations: ClassVar[int] = 3
     retriangulate: ClassVar[bool] = True
     ba_function_tolerance: ClassVar[float] = 1e-4
+    #: the global positioning solves for the longest tracks until each image has this many
+    #: (COLMAP's ``track_required_tracks_per_view``; 0: every track), again with every track
+    #: where that registers fewer images; retriangulation then uses them all. Off: faster on
+    #: large surveys, but it loses pose on repeated structure (docs/results.md, the match check).
+    positioning_tracks_per_image: ClassVar[int] = 0
     #: look for a hinge (two image groups the estimate turned against each other) after each
     #: estimate: a mode of at least ``hinge_min_pairs`` pairs touching ``hinge_min_side_images``
     #: images on each side (:mod:`colmap_miho.verification.hinge`).

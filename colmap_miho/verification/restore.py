@@ -64,23 +64,13 @@ def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair,
     """``proven_`` less the matches that would join two tracks of the kept matches (or a
     keypoint to a track) holding a keypoint of the same image: a match between two points
     that one image sees at nearly the same place passes every geometric test, and the track it
-    makes is wrong. Judged in pair and row order, each accepted match joining its tracks."""
-    from ..match_tracks import components
-
+    makes is wrong. Judged in pair and row order, each accepted match joining its tracks. Only
+    the tracks of the proven matches' keypoints are walked (:func:`_track`), not the whole graph."""
     if not proven_:
         return {}
-    starts, end_img, end_kp = ends
-    # every kept match is an edge both ways: the ends are the sorted starts' keys
-    first = np.ones(len(starts), bool)
-    first[1:] = starts[1:] != starts[:-1]
-    node_keys = starts[first]
-    n = len(node_keys)
-    _, comp = components(np.cumsum(first) - 1, np.searchsorted(node_keys, (end_img << _SHIFT) | end_kp), n)
-    order = np.argsort(comp, kind="stable")  # the nodes of each track, found by a search
-    by_track = comp[order]
+    comp_of: dict[int, int] = {}  # a walked keypoint's key -> its track (the track's smallest key)
     comp_images: dict[int, set[int]] = {}
     parent: dict[int, int] = {}
-    loose: dict[int, int] = {}  # a keypoint in no kept track -> the track it started
 
     def root(c: int) -> int:
         while parent.get(c, c) != c:
@@ -89,18 +79,12 @@ def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair,
 
     def track_of(image: int, kp: int) -> int:
         key = (image << 32) | kp
-        at = int(np.searchsorted(node_keys, key))
-        if at < n and int(node_keys[at]) == key:
-            c = int(comp[at])
-            if c not in comp_images:
-                lo, hi = np.searchsorted(by_track, c, "left"), np.searchsorted(by_track, c, "right")
-                comp_images[c] = set((node_keys[order[lo:hi]] >> _SHIFT).tolist())
-        elif key in loose:
-            c = loose[key]
-        else:
-            c = loose[key] = -1 - len(loose)
-            comp_images[c] = {image}
-        return root(c)
+        if key not in comp_of:
+            nodes = _track(key, ends)
+            c = min(nodes)
+            comp_of.update(dict.fromkeys(nodes, c))
+            comp_images[c] = {k >> 32 for k in nodes}
+        return root(comp_of[key])
 
     out = {}
     for (i, j), ok in proven_.items():
@@ -115,6 +99,21 @@ def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair,
         if ok.any():
             out[(i, j)] = ok
     return out
+
+
+def _track(key: int, ends: tuple[np.ndarray, np.ndarray, np.ndarray]) -> set[int]:
+    """The keys (``image << 32 | keypoint``) of the kept matches' track holding ``key``, found
+    by a breadth-first walk over :func:`_kept_ends`' sorted edges; ``{key}`` for a keypoint in
+    no kept match."""
+    starts, end_img, end_kp = ends
+    seen = {key}
+    frontier = np.array([key], np.int64)
+    while frontier.size:
+        edge, _ = _edges_from(starts, frontier)
+        reached = set(((end_img[edge].astype(np.int64) << _SHIFT) | end_kp[edge]).tolist()) - seen
+        seen |= reached
+        frontier = np.fromiter(reached, np.int64, len(reached))
+    return seen
 
 
 def proven(m: np.ndarray, i: int, j: int, ends: tuple[np.ndarray, np.ndarray, np.ndarray],
@@ -144,21 +143,22 @@ def proven(m: np.ndarray, i: int, j: int, ends: tuple[np.ndarray, np.ndarray, np
 
 def _kept_ends(kept: Mapping[Pair, np.ndarray], trusted) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The kept matches between trusted images as directed edges sorted by their start:
-    (start keys ``image << 32 | keypoint``, end images, end keypoints)."""
-    starts, end_img, end_kp = [], [], []
-    for (i, j), m in kept.items():
-        if i not in trusted or j not in trusted or not len(m):
-            continue
-        m = np.asarray(m, np.int64)
-        starts += [(np.int64(i) << _SHIFT) | m[:, 0], (np.int64(j) << _SHIFT) | m[:, 1]]
-        end_img += [np.full(len(m), j, np.int64), np.full(len(m), i, np.int64)]
-        end_kp += [m[:, 1], m[:, 0]]
-    if not starts:
-        empty = np.zeros(0, np.int64)
-        return empty, empty, empty
-    s = np.concatenate(starts)
+    (int64 start keys ``image << 32 | keypoint``, int32 end images, int32 end keypoints)."""
+    used = [(i, j, m) for (i, j), m in kept.items() if i in trusted and j in trusted and len(m)]
+    total = 2 * sum(len(m) for _, _, m in used)
+    s = np.empty(total, np.int64)
+    end_img = np.empty(total, np.int32)
+    end_kp = np.empty(total, np.int32)
+    at = 0
+    for i, j, m in used:  # filled in place: at a million matches the pieces and their concatenation cost GBs
+        n = len(m)
+        a, b = np.asarray(m[:, 0], np.int64), np.asarray(m[:, 1], np.int64)
+        s[at:at + n], s[at + n:at + 2 * n] = (np.int64(i) << _SHIFT) | a, (np.int64(j) << _SHIFT) | b
+        end_img[at:at + n], end_img[at + n:at + 2 * n] = j, i
+        end_kp[at:at + n], end_kp[at + n:at + 2 * n] = b, a
+        at += 2 * n
     order = np.argsort(s, kind="stable")
-    return s[order], np.concatenate(end_img)[order], np.concatenate(end_kp)[order]
+    return s[order], end_img[order], end_kp[order]
 
 
 def _confirmed(X: np.ndarray, own: int, other: int, kps: np.ndarray, ends, rays, cams: _Cameras,
@@ -167,14 +167,11 @@ def _confirmed(X: np.ndarray, own: int, other: int, kps: np.ndarray, ends, rays,
     a kept match links to a third image that sees ``X`` within ``threshold`` px, with enough
     depth sensitivity against image ``other`` (every link at once)."""
     starts, end_img, end_kp = ends
-    keys = (np.int64(own) << _SHIFT) | kps
-    lo, hi = np.searchsorted(starts, keys, "left"), np.searchsorted(starts, keys, "right")
-    counts = hi - lo
+    edge, counts = _edges_from(starts, (np.int64(own) << _SHIFT) | kps)
     ok = np.zeros(len(X), bool)
     if not counts.any():
         return ok
     which = np.repeat(np.arange(len(X)), counts)
-    edge = np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
     third, third_kp = end_img[edge], end_kp[edge]
     at, posed = cams.index(third)
     use = posed & (third != other)
@@ -190,6 +187,14 @@ def _confirmed(X: np.ndarray, own: int, other: int, kps: np.ndarray, ends, rays,
         good = (err * f <= threshold) & (sens * f >= MIN_DEPTH_SENSITIVITY * sens_other[which] * cams.focal[other])
     ok[which[good]] = True
     return ok
+
+
+def _edges_from(starts: np.ndarray, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of the sorted ``starts`` equal to each of ``keys``, in key order, and their
+    number per key."""
+    lo, hi = np.searchsorted(starts, keys, "left"), np.searchsorted(starts, keys, "right")
+    counts = hi - lo
+    return np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum())), counts
 
 
 def _gather(rays: Mapping[int, np.ndarray], image: np.ndarray, kp: np.ndarray) -> np.ndarray:

@@ -135,6 +135,27 @@ def test_write_scene_copy_keeps_the_scene_and_writes_the_given_matches(scene_db,
         np.testing.assert_array_equal(copy.handle.read_two_view_geometry(1, 2).F, stored.F)
 
 
+def test_a_scene_copy_of_the_matched_keypoints_only_indexes_the_same_points(scene_db, tmp_path):
+    db_path = _copy(scene_db.database, tmp_path / "s.db")
+    with ColmapDatabase(db_path) as db:
+        m12 = db.matches(1, 2, "verified")[::3].astype(np.int64)
+        m23 = db.matches(2, 3, "verified")[:7].astype(np.int64)
+        written = db.write_scene_copy(tmp_path / "copy.db", {(1, 2): m12, (2, 3): m23}, lambda i, j, m: None,
+                                      matched_keypoints_only=True)
+        raw = {im.image_id: db.raw_keypoints(im.image_id) for im in db.images()}
+    assert written is not None and sorted(written) == sorted(raw)
+    np.testing.assert_array_equal(written[2], np.unique(np.concatenate([m12[:, 1], m23[:, 0]])))
+    assert not any(len(written[i]) for i in raw if i not in (1, 2, 3))  # images in no pair keep none
+    with ColmapDatabase(tmp_path / "copy.db") as copy:
+        for i, kp in raw.items():
+            np.testing.assert_array_equal(copy.raw_keypoints(i), kp[written[i]])
+        for (i, j), m in {(1, 2): m12, (2, 3): m23}.items():
+            c = copy.matches(i, j, "verified").astype(np.int64)
+            np.testing.assert_array_equal(written[i][c[:, 0]], m[:, 0])  # the same keypoints, renumbered
+            np.testing.assert_array_equal(written[j][c[:, 1]], m[:, 1])
+            np.testing.assert_array_equal(copy.handle.read_two_view_geometry(i, j).inlier_matches, c)
+
+
 def test_write_pair_updates_matches_and_geometry(scene_db, tmp_path):
     db_path = _copy(scene_db.database, tmp_path / "c.db")
     with ColmapDatabase(db_path) as db:
