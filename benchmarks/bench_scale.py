@@ -45,6 +45,7 @@ verified matches removed) and the check's verdicts, and fits each stage per pair
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -83,6 +84,7 @@ class ChildRun:
         loadavg: the machine's 1-minute load average when the child ended.
         cpu_series: (seconds since the start, CPU seconds of the tree so far: every process's
             sampled user + system time, workers included) at every sample.
+        client_rss: (seconds since the start, the child's own RSS in MiB) at every sample.
     """
 
     returncode: int
@@ -95,6 +97,7 @@ class ChildRun:
     cpu_s: float = 0.0
     loadavg: float = 0.0
     cpu_series: list = field(default_factory=list)
+    client_rss: list = field(default_factory=list)
 
 
 def _vm_hwm(pid: int) -> int:
@@ -132,6 +135,33 @@ def _sample_tree(proc, hwm: dict[int, int], cpu: dict[int, float] | None = None)
     return total
 
 
+def stage_windows(wall_s: float, seconds: dict) -> dict[str, tuple[float, float]]:
+    """Each stage's (start, end) in seconds since the child started: ``seconds`` = the summary's
+    stage wall times in the order they ran, ``total`` last (the run's timer ends when the child
+    exits, give or take writing the summary)."""
+    edge = wall_s - float(seconds["total"])
+    out = {}
+    for name, sec in seconds.items():
+        if name != "total":
+            out[name] = (edge, edge + float(sec))
+            edge += float(sec)
+    return out
+
+
+def stage_peaks(series: list[tuple[float, float]], wall_s: float, seconds: dict) -> dict[str, float]:
+    """The largest sampled value of ``series`` ((seconds since the start, value) pairs) in each
+    stage (:func:`stage_windows`); a stage without a sample is left out; {} without samples."""
+    if not series or not seconds.get("total"):
+        return {}
+    t, v = np.array(series, float).T
+    out = {}
+    for name, (lo, hi) in stage_windows(wall_s, seconds).items():
+        inside = (t >= lo) & (t <= hi)
+        if inside.any():
+            out[name] = round(float(v[inside].max()), 1)
+    return out
+
+
 def stage_cpu_seconds(series: list[tuple[float, float]], wall_s: float, seconds: dict) -> dict[str, float]:
     """CPU seconds of the whole process tree during each stage of a refine run: ``series`` =
     (seconds since the child started, the tree's CPU seconds so far) samples, ``seconds`` = the
@@ -141,13 +171,8 @@ def stage_cpu_seconds(series: list[tuple[float, float]], wall_s: float, seconds:
         return {}
     t, c = np.array(series, float).T
     start = wall_s - float(seconds["total"])
-    out, edge = {}, start
-    for name, sec in seconds.items():
-        if name == "total":
-            continue
-        lo, hi = edge, edge + float(sec)
-        out[name] = round(float(np.interp(hi, t, c) - np.interp(lo, t, c)), 2)
-        edge = hi
+    out = {name: round(float(np.interp(hi, t, c) - np.interp(lo, t, c)), 2)
+           for name, (lo, hi) in stage_windows(wall_s, seconds).items()}
     out["total"] = round(float(np.interp(wall_s, t, c) - np.interp(start, t, c)), 2)
     return out
 
@@ -166,6 +191,7 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
 
         cpu: dict[int, float] = {}
         series: list[tuple[float, float]] = []
+        client: list[tuple[float, float]] = []
 
         def sample() -> None:
             nonlocal peak, samples
@@ -175,7 +201,10 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
                 return
             while not done.is_set():
                 peak = max(peak, _sample_tree(proc, hwm, cpu))
-                series.append((time.perf_counter() - t0, sum(cpu.values())))
+                now = time.perf_counter() - t0
+                series.append((now, sum(cpu.values())))
+                with contextlib.suppress(psutil.Error):
+                    client.append((now, proc.memory_info().rss / 2**20))
                 samples += 1
                 done.wait(poll)
 
@@ -204,7 +233,7 @@ def run_measured(cmd: list[str], *, env: dict | None = None, poll: float = 0.05,
     tail = b"".join(stderr_chunks).decode(errors="replace")[-2000:]
     return ChildRun(child.returncode, wall, peak / 2**20, max(hwm.values(), default=0) / 2**20,
                     sum(hwm.values()) / 2**20, samples, tail, usage.ru_utime + usage.ru_stime, os.getloadavg()[0],
-                    series)
+                    series, client)
 
 
 def fit_power_law(x, y) -> tuple[float, float]:
@@ -285,11 +314,27 @@ def calibrated_scene(work: Path, num_images: int, *, graph: str, seed: int) -> S
     return Scene(f"{graph[:3]}{num_images}", "synthetic", root / "database.db", root / "images", root, info=info)
 
 
+#: bounds of the pair-size classes (verified matches of a pair in the input) of the outcome
+PAIR_SIZE_BOUNDS = (300, 600, 1000, 1500)
+
+
+def pair_size_class(n: int) -> str:
+    """The pair-size class of a pair of ``n`` verified matches, e.g. ``"300-599"`` or ``"1500+"``."""
+    lo = 0
+    for hi in PAIR_SIZE_BOUNDS:
+        if n < hi:
+            return f"{lo}-{hi - 1}"
+        lo = hi
+    return f"{lo}+"
+
+
 def outcome(scene: Scene, refined: Path) -> dict:
     """The refine output against the ground truth (a calibrated survey's ``point3D_ids.npz``):
     verified matches in and out that join two observations of one 3D point (correct) or not
-    (wrong), the shares of each removed (%), and match ends per image in (median, min, max);
-    {} for a scene without ground truth."""
+    (wrong), the shares of each removed (%), match ends per image in (median, min, max), and the
+    wrong matches in and removed per pair-size class (:func:`pair_size_class`: a larger survey
+    holds another mix of pairs, and the filter removes a smaller share in larger pairs); {} for
+    a scene without ground truth."""
     from colmap_miho.adapters.database import ColmapDatabase
 
     gt = scene.work / "point3D_ids.npz"
@@ -297,25 +342,41 @@ def outcome(scene: Scene, refined: Path) -> dict:
         return {}
     ids = {int(k): v for k, v in np.load(gt).items()}
 
-    def count(path: Path) -> tuple[int, int, np.ndarray]:
-        correct = wrong = 0
-        ends = np.zeros(len(ids) + 1, np.int64)
+    def read(path: Path) -> dict[tuple[int, int], np.ndarray]:
         with ColmapDatabase(path) as db:
-            for p in db.pairs("verified"):
-                m = db.matches(p.image_id1, p.image_id2, "verified").astype(np.int64)
-                a, b = ids[p.image_id1][m[:, 0]], ids[p.image_id2][m[:, 1]]
-                ok = int(((a >= 0) & (a == b)).sum())
-                correct, wrong = correct + ok, wrong + len(m) - ok
-                ends[p.image_id1] += len(m)
-                ends[p.image_id2] += len(m)
-        return correct, wrong, ends[1:]
+            return {(p.image_id1, p.image_id2): db.matches(p.image_id1, p.image_id2, "verified").astype(np.int64)
+                    for p in db.pairs("verified")}
 
-    c_in, w_in, ends = count(scene.database)
-    c_out, w_out, _ = count(refined)
+    def wrong(p: tuple[int, int], m: np.ndarray) -> np.ndarray:
+        a, b = ids[p[0]][m[:, 0]], ids[p[1]][m[:, 1]]
+        return ~((a >= 0) & (a == b))
+
+    before, after = read(scene.database), read(refined)
+    ends = np.zeros(len(ids) + 1, np.int64)
+    c_in = w_in = c_out = w_out = 0
+    by_size: dict[str, list[int]] = {}
+    for p, m in before.items():
+        bad = wrong(p, m)
+        kept = after.get(p, np.zeros((0, 2), np.int64))
+        bad_kept = wrong(p, kept) if len(kept) else np.zeros(0, bool)
+        c_in, w_in = c_in + int((~bad).sum()), w_in + int(bad.sum())
+        c_out, w_out = c_out + int((~bad_kept).sum()), w_out + int(bad_kept.sum())
+        cls = by_size.setdefault(pair_size_class(len(m)), [0, 0, 0])
+        cls[0], cls[1], cls[2] = cls[0] + 1, cls[1] + int(bad.sum()), cls[2] + int(bad.sum()) - int(bad_kept.sum())
+        ends[p[0]] += len(m)
+        ends[p[1]] += len(m)
+    ends = ends[1:]
     return {"correct_in": c_in, "wrong_in": w_in, "correct_out": c_out, "wrong_out": w_out,
             "correct_removed_pct": round(100 * (c_in - c_out) / max(c_in, 1), 3),
             "wrong_removed_pct": round(100 * (w_in - w_out) / max(w_in, 1), 2),
-            "ends_per_image": [int(np.median(ends)), int(ends.min()), int(ends.max())]}
+            "ends_per_image": [int(np.median(ends)), int(ends.min()), int(ends.max())],
+            "wrong_by_pair_size": {k: {"pairs": v[0], "wrong_in": v[1], "wrong_removed": v[2]}
+                                   for k, v in sorted(by_size.items(), key=lambda kv: _class_start(kv[0]))}}
+
+
+def _class_start(cls: str) -> int:
+    """The smallest match count of a :func:`pair_size_class` name."""
+    return int(cls.split("-")[0].rstrip("+"))
 
 
 def real_scene(data: Path, work: Path, name: str) -> Scene | None:
@@ -437,6 +498,7 @@ def measure_refine(scene: Scene, *, workers: int, extra: list[str], poll: float,
         "rss_samples": run.samples, "scene_info": scene.info,
         "cpu_s": round(run.cpu_s, 1), "loadavg": round(run.loadavg, 2),
         "stage_cpu_s": stage_cpu_seconds(run.cpu_series, run.wall_s, secs),
+        "client_peak_mb": stage_peaks(run.client_rss, run.wall_s, secs),
     }
     mc = summary.get("match_check") or {}
     if mc:
@@ -537,7 +599,8 @@ def fits(rows: list[dict]) -> dict:
 CHECK_COLUMNS = ("scene", "images", "pairs", "loops", "matches", "ends/img", "refine_s", "read", "filter",
                  "match_check", "mapper", "pair_rot", "refine", "write", "check_share", "rss_tree_mb", "hwm_max_mb",
                  "correct_rm_%", "wrong_rm_%", "check_rm", "pairs_rm", "trusted", "rounds", "loadavg",
-                 "cpu:total", "cpu:filter", "cpu:match_check", "cpu:refine", "cpu_check_share")
+                 "cpu:total", "cpu:filter", "cpu:match_check", "cpu:refine", "cpu_check_share",
+                 "mem:read", "mem:filter", "mem:match_check", "mem:refine", "mem:write")
 CHECK_FIT_KEYS = ("refine_s", "read", "filter", "match_check", "mapper", "pair_rotations", "refine", "write",
                   "rss_tree_mb", "hwm_max_mb", "cpu:total", "cpu:filter", "cpu:match_check", "cpu:refine")
 
@@ -549,6 +612,8 @@ def check_value(row: dict, key: str):
     cpu = row.get("stage_cpu_s") or {}
     if key.startswith("cpu:"):
         return cpu.get(key[4:])
+    if key.startswith("mem:"):
+        return (row.get("client_peak_mb") or {}).get(key[4:])
     if key == "cpu_check_share":
         return round(cpu["match_check"] / cpu["total"], 3) if cpu.get("total") and "match_check" in cpu else None
     if key in check.get("parts_s", {}):
@@ -576,6 +641,36 @@ def check_table(rows: list[dict]) -> str:
                  "rounds": c.get("rounds")}
         values = (cells[k] if k in cells else check_value(r, k) for k in CHECK_COLUMNS)
         lines.append("| " + " | ".join(fmt(v) for v in values) + " |")
+    return "\n".join(lines)
+
+
+def pair_size_table(rows: list[dict]) -> str:
+    """Wrong matches removed per pair-size class (% of the class's wrong matches; pairs and
+    wrong matches in brackets) and ``at first mix``: the classes' removal shares weighted by the
+    wrong matches per class of the graph's smallest survey (the outcome at a fixed mix of pairs);
+    "" without the figures."""
+    rs = [r for r in rows if r.get("wrong_by_pair_size")]
+    if not rs:
+        return ""
+    classes = sorted({k for r in rs for k in r["wrong_by_pair_size"]}, key=_class_start)
+    first: dict[str, dict] = {}
+    for r in sorted(rs, key=lambda r: r.get("images") or 0):
+        first.setdefault((r.get("scene_info") or {}).get("graph", ""), r["wrong_by_pair_size"])
+    lines = ["| scene | " + " | ".join(f"wrong removed, pairs of {c} matches" for c in classes)
+             + " | all | at first mix |", "|---|" + "---:|" * (len(classes) + 2)]
+    for r in rs:
+        by = r["wrong_by_pair_size"]
+        cells = []
+        for c in classes:
+            v = by.get(c)
+            cells.append(f"{100 * v['wrong_removed'] / max(v['wrong_in'], 1):.1f}% ({v['pairs']} / {v['wrong_in']})"
+                         if v else "")
+        ref = first[(r.get("scene_info") or {}).get("graph", "")]
+        weight = {c: ref[c]["wrong_in"] for c in ref if c in by and by[c]["wrong_in"]}
+        mixed = sum(weight[c] * by[c]["wrong_removed"] / by[c]["wrong_in"] for c in weight)
+        mixed /= max(sum(weight.values()), 1)
+        lines.append(f"| {r['scene']} | " + " | ".join(cells)
+                     + f" | {fmt(r.get('wrong_removed_pct'))}% | {100 * mixed:.1f}% |")
     return "\n".join(lines)
 
 
@@ -809,8 +904,14 @@ def write_check_report(rows: list[dict], args, extra: list[str], *, write_json: 
           "trusted / images; loadavg = the machine's 1-minute load when refine ended (other jobs share the machine: "
           "wall times are noisy where it exceeds the cores); cpu:STAGE = CPU seconds of refine and its workers "
           "during the stage (psutil samples of the process tree, stages placed by the summary's seconds), "
-          "cpu_check_share = cpu:match_check / cpu:total", "",
+          "cpu_check_share = cpu:match_check / cpu:total; mem:STAGE = the refine process's own largest sampled RSS "
+          "during the stage, MiB (workers not counted)", "",
           check_table(rows), ""]
+    sizes = pair_size_table(rows)
+    if sizes:
+        md += ["Wrong matches removed by pair size (verified matches of the pair in the input; in brackets: pairs / "
+               "wrong matches in the class); at first mix = the classes' shares weighted as the graph's smallest "
+               "survey holds its wrong matches:", "", sizes, ""]
     for graph, v in f.items():
         md.append(f"- fit ({graph}) exponent vs matches: " + ", ".join(f"{k} {e:.2f}" for k, e in v.items()))
     if note:

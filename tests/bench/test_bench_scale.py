@@ -153,6 +153,12 @@ def test_outcome_counts_the_removed_matches_against_the_ground_truth(tmp_path):
         db.handle.update_two_view_geometry(i, j, tvg)
     got = bench_scale.outcome(scene, out)
     assert got["correct_out"] == same["correct_in"] and got["wrong_out"] == same["wrong_in"] - (~keep).sum() > 0
+    # the wrong matches per pair-size class: the pair's class holds what was removed
+    cls = bench_scale.pair_size_class(len(m))
+    by = got["wrong_by_pair_size"]
+    assert by[cls]["wrong_removed"] == (~keep).sum() and sum(v["wrong_removed"] for v in by.values()) == (~keep).sum()
+    assert sum(v["wrong_in"] for v in by.values()) == same["wrong_in"]
+    assert sum(v["pairs"] for v in by.values()) == len(sc.pairs)
     assert bench_scale.outcome(Scene("x", "synthetic", sc.database, sc.image_dir, tmp_path), out) == {}
 
 
@@ -194,3 +200,28 @@ def test_run_measured_samples_the_tree_cpu():
     t, c = np.array(run.cpu_series).T
     assert np.all(np.diff(t) > 0) and np.all(np.diff(c) >= 0)
     assert 0.6 < c[-1] <= run.cpu_s + 0.05  # the last sample misses at most one poll's CPU
+
+
+def test_pair_size_classes_and_the_outcome_at_the_first_mix():
+    assert [bench_scale.pair_size_class(n) for n in (0, 299, 300, 1499, 1500, 10**6)] == [
+        "0-299", "0-299", "300-599", "1000-1499", "1500+", "1500+"]
+    # the larger survey removes the same share in each class, but holds more of the large pairs
+    small = {"0-299": {"pairs": 10, "wrong_in": 100, "wrong_removed": 80},
+             "1500+": {"pairs": 10, "wrong_in": 100, "wrong_removed": 20}}
+    large = {"0-299": {"pairs": 10, "wrong_in": 100, "wrong_removed": 80},
+             "1500+": {"pairs": 30, "wrong_in": 300, "wrong_removed": 60}}
+    rows = [{"scene": "seq100", "images": 100, "scene_info": {"graph": "sequential"}, "wrong_removed_pct": 50.0,
+             "wrong_by_pair_size": small},
+            {"scene": "seq1600", "images": 1600, "scene_info": {"graph": "sequential"}, "wrong_removed_pct": 35.0,
+             "wrong_by_pair_size": large}]
+    text = bench_scale.pair_size_table(rows)
+    assert "| seq1600 | 80.0% (10 / 100) | 20.0% (30 / 300) | 35.00% | 50.0% |" in text
+    assert bench_scale.pair_size_table([{"scene": "x"}]) == ""
+
+
+def test_stage_peaks_take_the_largest_sample_of_each_stage():
+    series = [(t, 100.0 + 10 * t) for t in np.linspace(0, 10, 101)]
+    got = bench_scale.stage_peaks(series, 10.0, {"read": 1.0, "filter": 3.0, "match_check": 4.0, "total": 8.0})
+    assert got == pytest.approx({"read": 130.0, "filter": 160.0, "match_check": 200.0})  # from 2 s: 2-3, 3-6, 6-10
+    assert bench_scale.stage_peaks([], 10.0, {"total": 8.0}) == {}
+    assert bench_scale.check_value({"client_peak_mb": got}, "mem:filter") == 160.0
