@@ -315,9 +315,10 @@ class ColmapDatabase(DatabaseBuilder):
     def keypoint_affines(self, image_id: int) -> np.ndarray | None:
         """Local affine frames ``(N, 2, 2)`` (columns = local axes, pixels) from 6 (SIFT) or 4
         (scale, orientation) columns, or None for x, y only."""
-        raw = self.raw_keypoints(image_id).astype(np.float64)
-        if raw.shape[1] >= 6:
-            return raw[:, 2:6].reshape(-1, 2, 2)
+        raw = self.raw_keypoints(image_id)
+        if raw.shape[1] >= 6:  # the four columns alone: a view would hold all six in float64
+            return raw[:, 2:6].astype(np.float64).reshape(-1, 2, 2)
+        raw = raw.astype(np.float64)
         if raw.shape[1] == 4:
             s, o = raw[:, 2], raw[:, 3]
             c, n = s * np.cos(o), s * np.sin(o)

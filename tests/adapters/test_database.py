@@ -248,3 +248,20 @@ def test_image_loader_gray_colour_16bit_missing(tmp_path):
     assert len(warned) == 2 and "broken.jpg" in warned[0] and "absent.png" in warned[1]
     assert len(loader._cache) <= 2  # bounded
     assert read_gray_float(tmp_path / "absent.png") is None
+
+
+def test_keypoint_affines_are_the_shape_columns_and_hold_nothing_else(scene_db, tmp_path):
+    db_path = _copy(scene_db.database, tmp_path / "a.db")
+    rng = np.random.default_rng(0)
+    with ColmapDatabase(db_path) as db:
+        n = len(db.raw_keypoints(1))
+        six = rng.normal(size=(n, 6)).astype(np.float32)
+        db.handle.update_keypoints(1, six)
+        aff = db.keypoint_affines(1)
+        assert aff.shape == (n, 2, 2) and aff.dtype == np.float64
+        np.testing.assert_array_equal(aff.reshape(n, 4), six[:, 2:6].astype(np.float64))
+        # one image's frames, not a view into all its columns: at a million keypoints the rest is GBs
+        assert (aff.base if aff.base is not None else aff).nbytes == n * 4 * 8
+        four = np.column_stack([six[:, :2], np.full(n, 2.0, np.float32), np.full(n, np.pi / 2, np.float32)])
+        db.handle.update_keypoints(1, four)
+        np.testing.assert_allclose(db.keypoint_affines(1)[0], [[0.0, -2.0], [2.0, 0.0]], atol=1e-6)
