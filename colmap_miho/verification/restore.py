@@ -78,12 +78,12 @@ def _track_consistent(proven_: dict[Pair, np.ndarray], candidates: Mapping[Pair,
         return c
 
     def track_of(image: int, kp: int) -> int:
-        key = (image << 32) | kp
+        key = (image << int(_SHIFT)) | kp
         if key not in comp_of:
             nodes = _track(key, ends)
             c = min(nodes)
             comp_of.update(dict.fromkeys(nodes, c))
-            comp_images[c] = {k >> 32 for k in nodes}
+            comp_images[c] = {k >> int(_SHIFT) for k in nodes}
         return root(comp_of[key])
 
     out = {}
